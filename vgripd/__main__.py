@@ -1,0 +1,57 @@
+"""Command-line entry: ``vgripd <command> ...``.
+
+Each command lives in ``vgripd/cli/<name>.py`` with ``add_arguments(parser)`` and
+``run(args) -> int``; this module only parses, dispatches and maps errors to exit codes.
+
+Exit codes: 0 success; 1 runtime failure; 2 bad usage or bad input values;
+78 (EX_CONFIG) configuration error, which systemd is told not to restart on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from vgripd.errors import ConfigError, VgripError
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_CONFIG = 78
+
+# command name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "convert": ("vgripd.cli.convert", "convert a pose between robot vendor conventions"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vgripd", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module_name, help_text) in COMMANDS.items():
+        module = importlib.import_module(module_name)
+        p = sub.add_parser(name, help=help_text, description=module.__doc__)
+        module.add_arguments(p)
+        p.set_defaults(_module=module)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        rc: int = args._module.run(args)
+    except ConfigError as err:
+        print(f"vgripd: config error: {err}", file=sys.stderr)
+        return EXIT_CONFIG
+    except VgripError as err:
+        print(f"vgripd: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+    except KeyboardInterrupt:
+        return 130
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,130 @@
+"""Frozen value types that flow one way through vgripd.
+
+camera driver -> ImagePair -> (features, geometry) -> JobResult (with RobotTarget) -> link driver.
+
+Every value carries its capture time on the monotonic clock (``t_mono_ns``, from
+``time.monotonic_ns()``) and transforms are named ``T_a_b`` (pose of frame b in frame a, mm).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import IntEnum
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+
+_EMPTY: Mapping[str, Any] = MappingProxyType({})
+
+
+class Status(IntEnum):
+    """Every job ends with exactly one of these codes (also the value of the status register).
+
+    Grouped by range, so a PLC can test ``status < 10`` for "a pose was published":
+
+    ====  ==================  ==================================================================
+    code  name                meaning / what the robot should do
+    ====  ==================  ==================================================================
+       0  IDLE                no job has run since start (register value only)
+       1  OK                  pose published; all checks passed
+       2  OK_RECALIBRATE      pose published, but epipolar residuals exceed the warning level:
+                              the stereo calibration has drifted, plan a recalibration
+      10  NOT_FOUND           too few features found; no pose
+      11  PARTIAL             some model features missing and the rest is not enough to trust
+      12  AMBIGUOUS           two poses explain the image equally well (planar PnP); no pose
+      13  RESIDUAL_TOO_HIGH   a pose was computed but its residuals exceed the thresholds
+      20  OUT_OF_LIMITS       offset exceeds the configured translation/rotation limits
+      21  OUT_OF_WORKSPACE    object pose outside the configured workspace box
+      30  CAMERA_ERROR        acquisition failed (timeout, missing/corrupt image, device)
+      31  NOT_CALIBRATED      calibration missing or invalid for this job
+      32  BAD_REQUEST         the trigger/command was malformed (unknown command, bad recipe)
+      40  BUSY                trigger refused: a job is already running
+      41  ABORTED             job aborted by shutdown
+      99  INTERNAL            unexpected error (logged with a traceback); no pose
+    ====  ==================  ==================================================================
+    """
+
+    IDLE = 0
+    OK = 1
+    OK_RECALIBRATE = 2
+    NOT_FOUND = 10
+    PARTIAL = 11
+    AMBIGUOUS = 12
+    RESIDUAL_TOO_HIGH = 13
+    OUT_OF_LIMITS = 20
+    OUT_OF_WORKSPACE = 21
+    CAMERA_ERROR = 30
+    NOT_CALIBRATED = 31
+    BAD_REQUEST = 32
+    BUSY = 40
+    ABORTED = 41
+    INTERNAL = 99
+
+    @property
+    def pose_valid(self) -> bool:
+        """True only for codes under which a pose is published to the robot."""
+        return self in (Status.OK, Status.OK_RECALIBRATE)
+
+
+@dataclass(frozen=True)
+class ImagePair:
+    """One acquisition: a stereo pair, or a single image (``right is None``).
+
+    Images are 8-bit grey (H, W) or BGR (H, W, 3) arrays as the driver delivered them.
+    ``T_base_flange`` is the robot flange pose at capture (mm) for robot-mounted cameras.
+    ``truth`` carries ground truth from the synthetic driver (e.g. ``{"T_cam_obj": 4x4}``).
+    """
+
+    left: npt.NDArray[Any]
+    right: npt.NDArray[Any] | None
+    t_mono_ns: int
+    source: str = ""
+    meta: Mapping[str, Any] = field(default_factory=lambda: _EMPTY)
+    T_base_flange: FloatArray | None = None
+    truth: Mapping[str, Any] = field(default_factory=lambda: _EMPTY)
+
+    @property
+    def is_stereo(self) -> bool:
+        return self.right is not None
+
+
+@dataclass(frozen=True)
+class RobotTarget:
+    """A pose in one robot vendor's convention: field names, values in that vendor's units."""
+
+    vendor: str
+    fields: tuple[str, ...]
+    values: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class JobResult:
+    """The outcome of one job. ``target`` is set only when ``status.pose_valid``.
+
+    ``T_base_obj``: object pose in the robot base frame (mm). ``offset``: the gripping offset
+    against the taught reference as a 4x4 transform (mm), before vendor conversion.
+    ``residuals``: named figures (px for reprojection/epipolar, mm for fit RMS).
+    ``timings_ms``: per-stage wall time.
+    """
+
+    job_id: int
+    status: Status
+    message: str = ""
+    target: RobotTarget | None = None
+    T_base_obj: FloatArray | None = None
+    offset: FloatArray | None = None
+    residuals: Mapping[str, float] = field(default_factory=lambda: _EMPTY)
+    timings_ms: Mapping[str, float] = field(default_factory=lambda: _EMPTY)
+    features_used: tuple[str, ...] = ()
+    features_missing: tuple[str, ...] = ()
+    t_capture_mono_ns: int | None = None
+    t_done_mono_ns: int = 0
+
+    def __post_init__(self) -> None:
+        if self.target is not None and not self.status.pose_valid:
+            raise ValueError(f"JobResult with status {self.status.name} must not carry a target")
