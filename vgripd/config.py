@@ -13,9 +13,17 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from vgripd.errors import ConfigError
 
@@ -54,6 +62,252 @@ class DaemonConfig(Model):
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
 
+# --- camera calibration, object model, taught reference (owner: cameras/scene) -------------
+
+Vec3 = tuple[float, float, float]
+_Row4 = tuple[float, float, float, float]
+_Matrix4 = tuple[_Row4, _Row4, _Row4, _Row4]
+_ROTATION_TOL = 1e-6
+
+
+class PoseConfig(Model):
+    """A rigid transform ``T_a_b`` (pose of frame b in frame a, mm and rad), in exactly one form.
+
+    Either ``translation_mm = [x, y, z]`` with ``rotvec_rad = [rx, ry, rz]`` (axis * angle,
+    default no rotation), or ``matrix = [[4 rows of 4]]`` (homogeneous, last row 0 0 0 1).
+    """
+
+    translation_mm: Vec3 | None = None
+    rotvec_rad: Vec3 | None = None
+    matrix: _Matrix4 | None = None
+
+    @field_validator("matrix")
+    @classmethod
+    def _rigid(cls, m: _Matrix4 | None) -> _Matrix4 | None:
+        if m is None:
+            return m
+        a = np.asarray(m, dtype=np.float64)
+        if not np.all(np.isfinite(a)):
+            raise ValueError("matrix has non-finite entries")
+        if np.abs(a[3] - (0.0, 0.0, 0.0, 1.0)).max() > _ROTATION_TOL:
+            raise ValueError(f"matrix last row must be [0, 0, 0, 1], got {list(a[3])}")
+        r = a[:3, :3]
+        err = float(np.abs(r.T @ r - np.eye(3)).max())
+        if err > _ROTATION_TOL:
+            raise ValueError(
+                f"matrix rotation part is not orthonormal (max |R^T R - I| = {err:.2e})"
+            )
+        if np.linalg.det(r) < 0:
+            raise ValueError("matrix rotation part is a reflection (det < 0)")
+        return m
+
+    @model_validator(mode="after")
+    def _one_form(self) -> PoseConfig:
+        if self.matrix is not None:
+            if self.translation_mm is not None or self.rotvec_rad is not None:
+                raise ValueError("give either matrix or translation_mm/rotvec_rad, not both")
+        elif self.translation_mm is None:
+            raise ValueError("pose needs translation_mm (with optional rotvec_rad) or matrix")
+        return self
+
+
+class IntrinsicsConfig(Model):
+    """One camera: pinhole + Brown distortion in OpenCV order (= Bouguet ``kc``), pixels.
+
+    ``dist = [k1, k2, p1, p2, k3]``; ``skew`` is the x-axis shear in px (Bouguet
+    ``alpha_c * fc[0]``), 0 for square-pixel sensors.
+    """
+
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+    skew: float = 0.0
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+
+    @model_validator(mode="after")
+    def _principal_point_inside(self) -> IntrinsicsConfig:
+        if not (0 <= self.cx < self.width and 0 <= self.cy < self.height):
+            raise ValueError(
+                f"principal point ({self.cx}, {self.cy}) lies outside the "
+                f"{self.width}x{self.height} image"
+            )
+        return self
+
+
+class StereoConfig(Model):
+    """The rig: ``T_right_left`` = pose of the left camera in the right camera frame
+    (Bouguet/OpenCV ``stereoCalibrate``: ``X_R = R X_L + T``)."""
+
+    T_right_left: PoseConfig
+
+
+class HandEyeConfig(Model):
+    """Where the (left) camera is: fixed in the cell or carried by the robot.
+
+    ``mounting = "fixed"`` needs ``T_base_camera`` (camera in the robot base frame);
+    ``mounting = "robot"`` needs ``T_flange_camera`` (camera in the flange frame; the flange pose
+    at capture then comes with each image).
+    """
+
+    mounting: Literal["fixed", "robot"] = "fixed"
+    T_base_camera: PoseConfig | None = None
+    T_flange_camera: PoseConfig | None = None
+
+    @model_validator(mode="after")
+    def _pose_matches_mounting(self) -> HandEyeConfig:
+        need, other = (
+            ("T_base_camera", "T_flange_camera")
+            if self.mounting == "fixed"
+            else ("T_flange_camera", "T_base_camera")
+        )
+        if getattr(self, need) is None:
+            raise ValueError(f'mounting = "{self.mounting}" needs {need}')
+        if getattr(self, other) is not None:
+            raise ValueError(f'mounting = "{self.mounting}" takes {need}, not {other}')
+        return self
+
+
+class CalibrationConfig(Model):
+    """Intrinsics of one or two cameras, the stereo rig and the hand-eye pose.
+
+    Without ``right`` (and ``stereo``) the job runs in single-camera (PnP) mode.
+    """
+
+    left: IntrinsicsConfig
+    right: IntrinsicsConfig | None = None
+    stereo: StereoConfig | None = None
+    hand_eye: HandEyeConfig
+
+    @model_validator(mode="after")
+    def _stereo_complete(self) -> CalibrationConfig:
+        if (self.right is None) != (self.stereo is None):
+            raise ValueError("calibration.right and calibration.stereo go together")
+        return self
+
+
+class _FeatureBase(Model):
+    name: str = Field(min_length=1)
+    xyz_mm: Vec3
+
+
+class CircleFeature(_FeatureBase):
+    """A circular mark; its centre is the feature point."""
+
+    kind: Literal["circle"]
+    diameter_mm: float = Field(gt=0)
+    polarity: Literal["dark", "bright"] = "dark"
+
+
+class ArucoFeature(_FeatureBase):
+    """An ArUco marker; its centre is the feature point."""
+
+    kind: Literal["aruco"]
+    marker_id: int = Field(ge=0)
+    dictionary: str = Field(default="DICT_4X4_50", pattern=r"^DICT_[A-Z0-9_]+$")
+    size_mm: float = Field(gt=0)
+
+
+class TemplateFeature(_FeatureBase):
+    """A grey-level template (image file) whose centre is the feature point."""
+
+    kind: Literal["template"]
+    template: str = Field(min_length=1)
+    size_px: int = Field(gt=0)
+
+
+FeatureConfig = Annotated[
+    CircleFeature | ArucoFeature | TemplateFeature, Field(discriminator="kind")
+]
+
+
+class ObjectConfig(Model):
+    """The object's features and how their coordinates are defined.
+
+    ``definition = "cad"``: ``xyz_mm`` are model points in the object frame (from CAD).
+    ``definition = "reference"``: ``xyz_mm`` are the points as measured in the robot base frame
+    with the object at its taught reference position (relative orientation, no CAD needed).
+    """
+
+    name: str = Field(default="object", min_length=1)
+    definition: Literal["cad", "reference"] = "cad"
+    features: tuple[FeatureConfig, ...]
+
+    @field_validator("features")
+    @classmethod
+    def _enough_unique(cls, feats: tuple[Any, ...]) -> tuple[Any, ...]:
+        if len(feats) < 3:
+            raise ValueError(f"needs at least 3 features for a 6-DOF pose, got {len(feats)}")
+        seen: set[str] = set()
+        for i, f in enumerate(feats):
+            if f.name in seen:
+                raise ValueError(f"feature {i}: duplicate name {f.name!r}")
+            seen.add(f.name)
+        return feats
+
+
+class ReferenceConfig(Model):
+    """The taught reference: ``T_base_obj`` = object pose in the base frame at teach time.
+
+    The gripping offset of a job is the base-frame correction
+    ``T_offset = T_base_obj @ inv(T_base_obj_ref)``: a grip pose ``G`` taught on the reference
+    object (in the base frame) becomes ``T_offset @ G`` for the object as found.
+    Only for ``object.definition = "cad"``; with ``"reference"`` the object frame *is* the base
+    frame at teach time (``T_base_obj_ref`` = identity) and this pose must not be set.
+    Unset for a CAD object means "not taught yet": jobs end with NOT_CALIBRATED.
+    """
+
+    T_base_obj: PoseConfig | None = None
+
+
+# The embedded demo cell: two 1280x1024 cameras with 16 mm lenses (fx ~ 1800 px), 150 mm
+# baseline, each toed in by 6 deg, ~690 mm above a 160 x 120 mm plate with six dark 10 mm marks
+# (two on bosses 12 and 20 mm high; all pairwise distances differ by > 4 mm, so no symmetry).
+DEMO_CALIBRATION = CalibrationConfig(
+    left=IntrinsicsConfig(
+        fx=1805.2, fy=1804.6, cx=641.3, cy=508.9, dist=(-0.08, 0.11, 0.0004, -0.0003, 0.0),
+        width=1280, height=1024,
+    ),
+    right=IntrinsicsConfig(
+        fx=1798.7, fy=1799.5, cx=636.8, cy=514.2, dist=(-0.075, 0.095, -0.0002, 0.0005, 0.0),
+        width=1280, height=1024,
+    ),
+    stereo=StereoConfig(
+        T_right_left=PoseConfig(
+            translation_mm=(-149.18, 0.35, 15.68), rotvec_rad=(0.0021, 0.20944, -0.0032)
+        )
+    ),
+    hand_eye=HandEyeConfig(
+        mounting="fixed",
+        T_base_camera=PoseConfig(
+            translation_mm=(525.0, 100.0, 700.0), rotvec_rad=(3.13729, 0.0, 0.16442)
+        ),
+    ),
+)
+DEMO_OBJECT = ObjectConfig(
+    name="demo_plate",
+    definition="cad",
+    features=tuple(
+        CircleFeature(name=f"m{i + 1}", xyz_mm=xyz, kind="circle", diameter_mm=10.0)
+        for i, xyz in enumerate(
+            [
+                (-62.0, 29.0, 0.0),
+                (-65.0, -44.0, 0.0),
+                (-16.0, 46.0, 0.0),
+                (-32.0, -15.0, 0.0),
+                (48.0, -41.0, 20.0),
+                (58.0, 16.0, 12.0),
+            ]
+        )
+    ),
+)
+DEMO_REFERENCE = ReferenceConfig(
+    T_base_obj=PoseConfig(translation_mm=(600.0, 100.0, 10.0), rotvec_rad=(0.0, 0.0, 0.05))
+)
+
+
 class Config(Model):
     """The whole file. Sections are filled in by their owners (see module docstring)."""
 
@@ -62,6 +316,34 @@ class Config(Model):
     limits: LimitsConfig = LimitsConfig()
     daemon: DaemonConfig = DaemonConfig()
     links: tuple[DriverSection, ...] = ()
+    # The demo cell applies only where a file does not say otherwise: a real camera without a
+    # [calibration] is uncalibrated, a custom [object] without a [reference] is untaught.
+    calibration: CalibrationConfig | None = DEMO_CALIBRATION
+    object: ObjectConfig = DEMO_OBJECT
+    reference: ReferenceConfig = DEMO_REFERENCE
+
+    @model_validator(mode="before")
+    @classmethod
+    def _demo_defaults_only_for_demo(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        camera = data.get("camera")
+        camera_type = camera.get("type") if isinstance(camera, dict) else None
+        if "calibration" not in data and camera_type not in (None, "synthetic"):
+            data["calibration"] = None
+        if "object" in data and "reference" not in data:
+            data["reference"] = {}
+        return data
+
+    @model_validator(mode="after")
+    def _reference_matches_definition(self) -> Config:
+        if self.object.definition == "reference" and self.reference.T_base_obj is not None:
+            raise ValueError(
+                'reference.T_base_obj must be unset when object.definition = "reference" '
+                "(the object frame is the base frame at teach time)"
+            )
+        return self
 
 
 def format_validation_error(err: ValidationError, source: str) -> str:
