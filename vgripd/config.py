@@ -58,8 +58,31 @@ class LimitsConfig(Model):
 
 
 class DaemonConfig(Model):
+    """The service: one job at a time, each bounded by ``job_timeout_s`` (see docs/daemon.md)."""
+
     job_timeout_s: float = Field(10.0, gt=0)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    # Cycle-time percentiles in `vgripd status` are taken over this many most recent jobs.
+    stats_window: int = Field(1000, ge=1)
+
+
+class RecordConfig(Model):
+    """Recording of every job (images, metadata, config, result) for offline ``vgripd replay``.
+
+    Off by default; when on, the oldest jobs are deleted beyond ``max_mb`` of the folder.
+    """
+
+    enabled: bool = False
+    folder: Path = Path("/var/lib/vgripd/record")
+    max_mb: float = Field(500.0, gt=0)
+
+
+class StatusConfig(Model):
+    """The read-only HTTP ``GET /status`` endpoint behind ``vgripd status`` (port 0: any free)."""
+
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = Field(8730, ge=0, le=65535)
 
 
 # --- camera calibration, object model, taught reference (owner: cameras/scene) -------------
@@ -315,6 +338,8 @@ class Config(Model):
     output: OutputConfig = OutputConfig()
     limits: LimitsConfig = LimitsConfig()
     daemon: DaemonConfig = DaemonConfig()
+    record: RecordConfig = RecordConfig()
+    status: StatusConfig = StatusConfig()
     links: tuple[DriverSection, ...] = ()
     # The demo cell applies only where a file does not say otherwise: a real camera without a
     # [calibration] is uncalibrated, a custom [object] without a [reference] is untaught.
