@@ -1,0 +1,103 @@
+"""Recorder: what lands on disk reads back identically (OpenCV, json), the cap holds, a broken
+disk is logged once and never raises into the job."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from vgripd.recorder import Recorder, dict_from_result
+from vgripd.types import ImagePair, JobResult, RobotTarget, Status
+
+
+def _pair(seed: int, stereo: bool = True) -> ImagePair:
+    rng = np.random.default_rng(seed)
+    left = rng.integers(0, 256, (120, 160), dtype=np.uint8)
+    right = rng.integers(0, 256, (120, 160), dtype=np.uint8) if stereo else None
+    T = np.eye(4)
+    T[:3, 3] = (1.0, 2.0, 3.0)
+    return ImagePair(left=left, right=right, t_mono_ns=123, source="test",
+                     meta={"exposure_ms": 4.0}, T_base_flange=T, truth={"T_cam_obj": T})
+
+
+def _ok(job_id: int) -> JobResult:
+    target = RobotTarget("kuka", ("X", "Y", "Z", "A", "B", "C"), (1.0, 2.0, 3.0, 4.0, 5.0, 6.0))
+    return JobResult(job_id=job_id, status=Status.OK, target=target, offset=np.eye(4),
+                     residuals={"epipolar_px": np.float64(0.25)})
+
+
+def test_a_recorded_job_reads_back_identically(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path, 10_000_000, {"daemon": {"job_timeout_s": 10.0}})
+    rec.scan()
+    pair = _pair(1)
+    folder = rec.write(pair, _ok(7))
+    assert folder.name.endswith("-job000007")
+    assert sorted(p.name for p in folder.iterdir()) == [
+        "config.json", "left.png", "pair.json", "result.json", "right.png"]
+    assert np.array_equal(cv2.imread(str(folder / "left.png"), cv2.IMREAD_UNCHANGED), pair.left)
+    assert np.array_equal(cv2.imread(str(folder / "right.png"), cv2.IMREAD_UNCHANGED), pair.right)
+    meta = json.loads((folder / "pair.json").read_text())
+    assert np.allclose(meta["T_base_flange"], pair.T_base_flange)
+    assert meta["meta"] == {"exposure_ms": 4.0}
+    result = json.loads((folder / "result.json").read_text())
+    assert result["status"] == "OK"
+    assert result["status_code"] == 1
+    assert result["target"]["fields"] == ["X", "Y", "Z", "A", "B", "C"]
+    assert result["residuals"] == {"epipolar_px": 0.25}
+    assert json.loads((folder / "config.json").read_text()) == {"daemon": {"job_timeout_s": 10.0}}
+
+
+def test_single_camera_job_has_no_right_image(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path, 10_000_000, {})
+    rec.scan()
+    folder = rec.write(_pair(2, stereo=False), JobResult(job_id=1, status=Status.NOT_FOUND))
+    assert not (folder / "right.png").exists()
+    assert dict_from_result(JobResult(job_id=1, status=Status.NOT_FOUND))["target"] is None
+
+
+def test_size_cap_deletes_oldest_jobs(tmp_path: Path) -> None:
+    probe = Recorder(tmp_path / "probe", 10**9, {})
+    probe.scan()
+    one_job = sum(f.stat().st_size for f in probe.write(_pair(0), _ok(0)).iterdir())
+    cap = int(one_job * 3.5)  # room for three jobs
+    rec = Recorder(tmp_path / "rec", cap, {})
+    rec.scan()
+    written = [rec.write(_pair(0), _ok(i)).name for i in range(1, 7)]
+    on_disk = sorted(p.name for p in (tmp_path / "rec").iterdir())
+    assert on_disk == written[-3:]
+    assert rec.total_bytes <= cap
+    # A new recorder on the same folder counts what is there and drops interrupted writes.
+    (tmp_path / "rec" / ".partial-x").mkdir()
+    again = Recorder(tmp_path / "rec", cap, {})
+    again.scan()
+    assert again.total_bytes == rec.total_bytes
+    assert not (tmp_path / "rec" / ".partial-x").exists()
+
+
+def test_broken_disk_is_logged_once_and_never_raises(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("x")
+    rec = Recorder(blocker / "record", 10**9, {})
+    with caplog.at_level(logging.ERROR, logger="vgripd.recorder"):
+        rec.start()
+        for i in range(3):
+            rec.submit(_pair(i), _ok(i))
+        rec.close()
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1
+    assert "not-a-dir" in errors[0].getMessage()
+
+
+def test_submit_writes_on_the_recorder_thread(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path, 10**9, {})
+    rec.start()
+    assert rec.submit(_pair(3), _ok(1))
+    rec.close()
+    assert len([p for p in tmp_path.iterdir() if p.name.endswith("-job000001")]) == 1

@@ -1,0 +1,201 @@
+"""Job recording: every job's images and data in a size-capped folder, for offline replay.
+
+One folder per job, named so that names sort by time (job ids restart with the daemon)::
+
+    <folder>/20261122-044158.123-job000042/
+        left.png  right.png   the images as grabbed (right.png only for stereo)
+        pair.json             ImagePair source, capture time, meta, T_base_flange, truth
+        config.json           the configuration the job ran with
+        result.json           the JobResult
+
+A job folder is written under a ``.partial-`` name and renamed when complete, so a reader
+never sees half a job. ``vgripd replay <job folder>`` reads ``left*``/``right*`` from it.
+
+Writing runs on the recorder's own single thread, never on the event loop, and never fails a
+job: a full or broken disk is logged once (and once more when it works again).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from vgripd.types import ImagePair, JobResult
+
+log = logging.getLogger(__name__)
+
+PARTIAL_PREFIX = ".partial-"
+# Jobs waiting for the disk beyond this are not recorded (a stalled disk must not eat memory).
+MAX_PENDING = 4
+
+
+def jsonable(value: Any) -> Any:
+    """Plain JSON data for numpy arrays/scalars, enums, mappings, tuples and paths."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Enum):
+        return value.name
+    if isinstance(value, Mapping):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def dict_from_result(result: JobResult) -> dict[str, Any]:
+    """A JobResult as JSON data (status by name and code, target with its field names)."""
+    target = result.target
+    return {
+        "job_id": result.job_id,
+        "status": result.status.name,
+        "status_code": int(result.status),
+        "message": result.message,
+        "target": None if target is None else {
+            "vendor": target.vendor,
+            "fields": list(target.fields),
+            "values": list(target.values),
+        },
+        "T_base_obj": jsonable(result.T_base_obj),
+        "offset": jsonable(result.offset),
+        "residuals": jsonable(result.residuals),
+        "timings_ms": jsonable(result.timings_ms),
+        "features_used": list(result.features_used),
+        "features_missing": list(result.features_missing),
+        "t_capture_mono_ns": result.t_capture_mono_ns,
+        "t_done_mono_ns": result.t_done_mono_ns,
+    }
+
+
+def _dir_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+class Recorder:
+    """Writes jobs to ``folder`` and keeps it under ``max_bytes`` by deleting the oldest jobs.
+
+    ``config_snapshot`` is the configuration as JSON data, written beside every job so that a
+    recorded job can be reproduced even after the live config changed.
+    """
+
+    def __init__(self, folder: Path, max_bytes: int, config_snapshot: Mapping[str, Any]) -> None:
+        self.folder = folder
+        self.max_bytes = max_bytes
+        self._config_json = json.dumps(jsonable(config_snapshot), indent=2)
+        self._jobs: OrderedDict[str, int] = OrderedDict()  # name -> bytes, oldest first
+        self._executor: ThreadPoolExecutor | None = None
+        self._pending = 0
+        self._lock = threading.Lock()
+        self._failing = False
+
+    @property
+    def total_bytes(self) -> int:
+        return sum(self._jobs.values())
+
+    def scan(self) -> None:
+        """Take stock of jobs already in the folder; drop leftovers of interrupted writes."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._jobs.clear()
+        for entry in sorted(self.folder.iterdir()):
+            if not entry.is_dir():
+                continue
+            if entry.name.startswith(PARTIAL_PREFIX):
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                self._jobs[entry.name] = _dir_bytes(entry)
+
+    def write(self, pair: ImagePair, result: JobResult) -> Path:
+        """Write one job (blocking) and prune; raises OSError if the disk refuses."""
+        t = time.time()
+        stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(t)) + f".{int(t % 1 * 1000):03d}"
+        name = f"{stamp}-job{result.job_id:06d}"
+        tmp = self.folder / (PARTIAL_PREFIX + name)
+        tmp.mkdir(parents=True)
+        try:
+            images = {"left": pair.left} if pair.right is None else {
+                "left": pair.left, "right": pair.right}
+            for side, image in images.items():
+                if not cv2.imwrite(str(tmp / f"{side}.png"), image):
+                    raise OSError(f"{tmp / side}.png: cv2.imwrite failed")
+            meta = {
+                "source": pair.source,
+                "t_mono_ns": pair.t_mono_ns,
+                "meta": jsonable(pair.meta),
+                "T_base_flange": jsonable(pair.T_base_flange),
+                "truth": jsonable(pair.truth),
+            }
+            (tmp / "pair.json").write_text(json.dumps(meta, indent=2))
+            (tmp / "config.json").write_text(self._config_json)
+            (tmp / "result.json").write_text(json.dumps(dict_from_result(result), indent=2))
+            final = self.folder / name
+            tmp.rename(final)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        self._jobs[name] = _dir_bytes(final)
+        self._prune(keep=name)
+        return final
+
+    def _prune(self, keep: str) -> None:
+        while self.total_bytes > self.max_bytes and len(self._jobs) > 1:
+            oldest = next(iter(self._jobs))
+            if oldest == keep:
+                break
+            shutil.rmtree(self.folder / oldest, ignore_errors=True)
+            del self._jobs[oldest]
+
+    # --- non-blocking use from the daemon ------------------------------------------------
+
+    def start(self) -> None:
+        """Start the writer thread and scan the folder on it (the caller never waits)."""
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix="vgripd-record")
+        self._executor.submit(self.scan).add_done_callback(self._report)
+
+    def submit(self, pair: ImagePair, result: JobResult) -> bool:
+        """Queue a job for writing; False if it was dropped because the disk is behind."""
+        if self._executor is None:
+            raise RuntimeError("Recorder.submit before start")
+        with self._lock:
+            if self._pending >= MAX_PENDING:
+                log.warning("record: job %d not recorded, %d jobs still waiting for the disk",
+                            result.job_id, self._pending)
+                return False
+            self._pending += 1
+        self._executor.submit(self.write, pair, result).add_done_callback(self._written)
+        return True
+
+    def _written(self, fut: Future[Any]) -> None:
+        with self._lock:
+            self._pending -= 1
+        self._report(fut)
+
+    def _report(self, fut: Future[Any]) -> None:
+        err = fut.exception()
+        if err is not None and not self._failing:
+            self._failing = True
+            log.error("record: cannot write to %s: %s (jobs keep running; logged once)",
+                      self.folder, err)
+        elif err is None and self._failing:
+            self._failing = False
+            log.info("record: writing to %s works again", self.folder)
+
+    def close(self) -> None:
+        """Finish queued writes and stop the writer thread."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
