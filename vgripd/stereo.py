@@ -1,0 +1,216 @@
+"""Stereo triangulation and epipolar geometry of a calibrated camera pair.
+
+Frames: ``left`` and ``right`` are the two camera frames (x right, y down, z forward, mm).
+The rig stores ``T_right_left``, the pose of the left camera in the right camera:
+``X_R = R X_L + t`` for a 3D point, which is Bouguet's (and OpenCV ``stereoCalibrate``'s)
+``om``/``T`` convention. Triangulated points are returned in the left camera frame.
+
+Pixels are measured (distorted) coordinates with OpenCV's origin (centre of the top-left pixel
+is 0, 0). "Ideal pixels" are what a distortion-free camera with the same K would see:
+``K @ [x_n, y_n, 1]`` of the undistorted normalised coordinates. Epipolar lines live in ideal
+pixels because with lens distortion the epipolar "line" in the raw image is a curve.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vgripd.camera_model import CameraModel
+from vgripd.errors import DegenerateInputError
+from vgripd.transforms import check_transform
+from vgripd.types import FloatArray
+
+__all__ = ["StereoRig", "Triangulation"]
+
+
+@dataclass(frozen=True, eq=False)
+class Triangulation:
+    """Result of :meth:`StereoRig.triangulate`.
+
+    Attributes
+    ----------
+    points_mm : (n, 3) float64
+        Midpoints of the closest points of the two viewing rays, left camera frame (mm).
+    gap_mm : (n,) float64
+        Distance between the two rays at their closest approach (mm): 0 for a perfect
+        correspondence and calibration; grows with matching errors and calibration drift.
+    """
+
+    points_mm: FloatArray
+    gap_mm: FloatArray
+
+
+def _pixels(px: object, name: str) -> FloatArray:
+    arr = np.asarray(px, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise DegenerateInputError(f"{name}: expected shape (n, 2), got {arr.shape}")
+    finite = np.isfinite(arr).all(axis=1)
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite)[0])
+        raise DegenerateInputError(f"{name}: point {bad} is not finite: {arr[bad].tolist()}")
+    return arr
+
+
+def _skew(v: FloatArray) -> FloatArray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+@dataclass(frozen=True, eq=False)
+class StereoRig:
+    """Two calibrated cameras and the pose between them.
+
+    Parameters
+    ----------
+    left, right : CameraModel
+        Intrinsics and distortion of each camera.
+    T_right_left : (4, 4) array_like
+        Pose of the left camera frame in the right camera frame (mm): ``X_R = R X_L + t``.
+    min_ray_angle_rad : float
+        Rays meeting at a smaller angle are refused as parallel: depth along them is not
+        determined (a point 1e6 baselines away, or a wrong correspondence).
+    """
+
+    left: CameraModel
+    right: CameraModel
+    T_right_left: FloatArray
+    min_ray_angle_rad: float = 1e-6
+    #: (3, 3) fundamental matrix in ideal pixels: ``u_R^T F u_L = 0``.
+    F: FloatArray = field(init=False, repr=False)
+    _R_lr: FloatArray = field(init=False, repr=False)  # right-camera axes in the left frame
+    _c_right: FloatArray = field(init=False, repr=False)  # right-camera centre, left frame (mm)
+
+    def __post_init__(self) -> None:
+        T = check_transform(self.T_right_left, "T_right_left").copy()
+        R, t = T[:3, :3], T[:3, 3]
+        if np.linalg.norm(t) == 0.0:
+            raise DegenerateInputError("T_right_left: zero baseline, nothing to triangulate")
+        T.flags.writeable = False
+        essential = _skew(t) @ R
+        F = np.linalg.inv(self.right.K).T @ essential @ np.linalg.inv(self.left.K)
+        F /= np.linalg.norm(F)
+        F.flags.writeable = False
+        set_ = object.__setattr__
+        set_(self, "T_right_left", T)
+        set_(self, "F", F)
+        set_(self, "_R_lr", np.ascontiguousarray(R.T))
+        set_(self, "_c_right", -R.T @ t)
+
+    def triangulate(self, px_left: object, px_right: object) -> Triangulation:
+        """3D points from corresponding pixels, by linear least squares on the chapter's eq. (14).
+
+        Eq. (14), ``M1^-1 r1 z1 = R M2^-1 r2 z2 + K``, with ``d = M1^-1 r1`` (left ray, z = 1),
+        ``e = R M2^-1 r2`` (right ray in the left frame, its right-frame z = 1) and ``c = K``
+        (right camera centre in the left frame), is three equations in the two depths. Their
+        normal equations are 2x2 and solved in closed form for all points at once. The
+        returned point is the midpoint of the two closest ray points ``z1 d`` and
+        ``z2 e + c``; their distance is the gap.
+
+        Parameters
+        ----------
+        px_left, px_right : (n, 2) array_like
+            Measured (distorted) pixels of the same n points in the left and right image.
+
+        Raises
+        ------
+        DegenerateInputError
+            Shape mismatch, NaN (naming the point), rays (nearly) parallel, or a point whose
+            least-squares depth puts it behind either camera (naming the point).
+        """
+        pl = _pixels(px_left, "px_left")
+        pr = _pixels(px_right, "px_right")
+        if pl.shape != pr.shape:
+            raise DegenerateInputError(
+                f"px_left has {pl.shape[0]} points but px_right has {pr.shape[0]}"
+            )
+        nl = self.left.undistort(pl)
+        nr = self.right.undistort(pr)
+        d = np.empty((pl.shape[0], 3))
+        d[:, :2] = nl
+        d[:, 2] = 1.0
+        R = self._R_lr
+        e = nr @ R[:, :2].T + R[:, 2]
+        c = self._c_right
+        a = np.einsum("ij,ij->i", d, d)
+        b = np.einsum("ij,ij->i", d, e)
+        cc = np.einsum("ij,ij->i", e, e)
+        p = d @ c
+        q = e @ c
+        det = a * cc - b * b  # = |d|^2 |e|^2 sin^2(angle between rays)
+        parallel = np.flatnonzero(det <= (self.min_ray_angle_rad**2) * a * cc)
+        if parallel.size:
+            i = int(parallel[0])
+            raise DegenerateInputError(
+                f"point {i}: left and right rays are (nearly) parallel "
+                f"(angle {np.arcsin(np.sqrt(max(det[i], 0.0) / (a[i] * cc[i]))):.3g} rad)"
+            )
+        z1 = (cc * p - b * q) / det
+        z2 = (b * p - a * q) / det
+        behind = np.flatnonzero((z1 <= 0) | (z2 <= 0))
+        if behind.size:
+            i = int(behind[0])
+            raise DegenerateInputError(
+                f"point {i}: rays meet behind a camera (depth left {z1[i]:.4g} mm, "
+                f"right {z2[i]:.4g} mm); wrong correspondence?"
+            )
+        p1 = z1[:, None] * d
+        p2 = z2[:, None] * e + c
+        return Triangulation(points_mm=0.5 * (p1 + p2), gap_mm=np.linalg.norm(p1 - p2, axis=1))
+
+    def _ideal_homogeneous(self, camera: CameraModel, px: FloatArray) -> FloatArray:
+        """Homogeneous ideal pixels (n, 3): undistort, then re-project with K only."""
+        norm = camera.undistort(px)
+        return np.c_[norm, np.ones(len(norm))] @ camera.K.T
+
+    def epipolar_lines_right(self, px_left: object) -> FloatArray:
+        """Epipolar lines in the right image of measured left pixels.
+
+        Returns
+        -------
+        (n, 3) float64
+            Lines ``(a, b, c)`` in right *ideal* pixels with ``a^2 + b^2 = 1``, so that
+            ``a u + b v + c`` is the signed distance (px) of ideal pixel (u, v) from the line.
+            To test measured right pixels, convert them with :meth:`ideal_pixels` first.
+        """
+        u_l = self._ideal_homogeneous(self.left, _pixels(px_left, "px_left"))
+        lines = u_l @ self.F.T
+        return lines / np.hypot(lines[:, 0], lines[:, 1])[:, None]
+
+    def ideal_pixels(self, camera: CameraModel, px: object) -> FloatArray:
+        """Measured pixels (n, 2) of ``camera`` -> ideal (distortion-free) pixels (n, 2)."""
+        return self._ideal_homogeneous(camera, _pixels(px, "px"))[:, :2]
+
+    def epipolar_residuals_px(self, px_left: object, px_right: object) -> FloatArray:
+        """Distance of each point to the epipolar line of its partner, both images.
+
+        Both pixel sets are undistorted and re-projected into ideal pixels; the fundamental
+        matrix of the calibration then gives the lines. Use it to watch calibration drift
+        (the chapter: frequent large residuals call for recalibration) and to reject wrong
+        correspondences before triangulating.
+
+        Returns
+        -------
+        (n, 2) float64
+            Column 0: distance (ideal px) of the left point from the epipolar line of the
+            right point in the left image; column 1: of the right point from the line of the
+            left point in the right image.
+        """
+        pl = _pixels(px_left, "px_left")
+        pr = _pixels(px_right, "px_right")
+        if pl.shape != pr.shape:
+            raise DegenerateInputError(
+                f"px_left has {pl.shape[0]} points but px_right has {pr.shape[0]}"
+            )
+        u_l = self._ideal_homogeneous(self.left, pl)
+        u_r = self._ideal_homogeneous(self.right, pr)
+        lines_r = u_l @ self.F.T  # in the right image
+        lines_l = u_r @ self.F  # in the left image
+        algebraic = np.abs(np.einsum("ij,ij->i", u_r, lines_r))
+        return np.stack(
+            [
+                algebraic / np.hypot(lines_l[:, 0], lines_l[:, 1]),
+                algebraic / np.hypot(lines_r[:, 0], lines_r[:, 1]),
+            ],
+            axis=1,
+        )
