@@ -51,10 +51,59 @@ class OutputConfig(Model):
 
 
 class LimitsConfig(Model):
-    """Safety gates applied before anything is published (offset against the taught reference)."""
+    """Safety gates applied before anything is published (offset against the taught reference).
 
-    max_translation_mm: float = Field(50.0, gt=0)
-    max_rotation_deg: float = Field(10.0, gt=0)
+    ``workspace_min_mm``/``workspace_max_mm``: a box in the robot base frame that every model
+    point of the found object must lie in (both or neither; unset = no box check).
+    """
+
+    max_translation_mm: float = Field(default=50.0, gt=0)
+    max_rotation_deg: float = Field(default=10.0, gt=0)
+    workspace_min_mm: tuple[float, float, float] | None = None
+    workspace_max_mm: tuple[float, float, float] | None = None
+
+    @model_validator(mode="after")
+    def _box(self) -> LimitsConfig:
+        lo, hi = self.workspace_min_mm, self.workspace_max_mm
+        if (lo is None) != (hi is None):
+            raise ValueError("workspace_min_mm and workspace_max_mm go together")
+        if lo is not None and hi is not None and not all(
+            a < b for a, b in zip(lo, hi, strict=True)
+        ):
+            raise ValueError(
+                f"workspace_min_mm {list(lo)} must be below workspace_max_mm {list(hi)}"
+            )
+        return self
+
+
+class VisionConfig(Model):
+    """Feature finding, matching and the residual gates of the pipeline (see docs/pipeline.md).
+
+    Pixel figures are at full image resolution; mm figures in the left camera frame.
+    """
+
+    working_distance_mm: tuple[float, float] = (300.0, 2000.0)
+    downscale: int = Field(default=2, ge=1, le=8)
+    min_contrast: float = Field(default=25.0, gt=0, le=255)
+    min_circularity: float = Field(default=0.6, gt=0, le=1)
+    template_min_score: float = Field(default=0.7, gt=0, le=1)
+    epipolar_tolerance_px: float = Field(default=3.0, gt=0)
+    model_tolerance_mm: float = Field(default=3.0, gt=0)
+    min_features: int = Field(default=4, ge=3)
+    max_fit_rms_mm: float = Field(default=1.0, gt=0)
+    max_reprojection_px: float = Field(default=1.5, gt=0)
+    epipolar_warn_px: float = Field(default=1.0, gt=0)
+
+    @model_validator(mode="after")
+    def _ranges(self) -> VisionConfig:
+        near, far = self.working_distance_mm
+        if not 0 < near < far:
+            raise ValueError(
+                f"working_distance_mm must be [near, far] with 0 < near < far, got {[near, far]}"
+            )
+        if self.epipolar_warn_px > self.epipolar_tolerance_px:
+            raise ValueError("epipolar_warn_px must not exceed epipolar_tolerance_px")
+        return self
 
 
 class DaemonConfig(Model):
@@ -337,6 +386,7 @@ class Config(Model):
     camera: DriverSection = DriverSection(type="synthetic")
     output: OutputConfig = OutputConfig()
     limits: LimitsConfig = LimitsConfig()
+    vision: VisionConfig = VisionConfig()
     daemon: DaemonConfig = DaemonConfig()
     record: RecordConfig = RecordConfig()
     status: StatusConfig = StatusConfig()

@@ -1,0 +1,528 @@
+"""ImagePair -> features -> pose -> offset -> RobotTarget, with the gates in between.
+
+The chain (docs/pipeline.md has the whole story and the status table):
+
+1. image checks: 8-bit, the calibrated size, not black/flat (else CAMERA_ERROR);
+2. features in both images (``vgripd.features``);
+3. stereo: left/right pairs on the epipolar line, triangulated in the left camera frame;
+   mono: identified features (ArUco/template) only, PnP;
+4. model correspondence by rigid distances, robust Horn fit of the model onto the points:
+   ``T_cam_obj``;
+5. ``T_base_obj = T_base_camera @ T_cam_obj`` (fixed camera, or ``T_base_flange @
+   T_flange_camera`` for a robot-mounted one), offset ``T_base_obj @ inv(T_base_obj_ref)``;
+6. gates (:func:`gate`), then the vendor convention of ``output.vendor`` for the offset.
+
+``Pipeline.process`` never raises for bad images: every job ends with one status, and a pose
+that failed a gate is never carried as a target. It is pure CPU and keeps no state between jobs,
+so the daemon may run it in an executor.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from vgripd import features as ft
+from vgripd import scene
+from vgripd.camera_model import CameraModel
+from vgripd.config import Config, LimitsConfig, VisionConfig
+from vgripd.errors import ConfigError, GeometryError, NotCalibratedError
+from vgripd.orientation import horn_robust, pnp
+from vgripd.stereo import StereoRig
+from vgripd.transforms import invert_transform, rotation_angle
+from vgripd.types import FloatArray, ImagePair, JobResult, Status
+from vgripd.vendors import VENDORS, target_from_transform
+
+#: Minimum number of matched features for PnP (three points have up to four poses).
+MIN_PNP_FEATURES = 4
+
+
+# --------------------------------------------------------------------------- gates
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """What the gates look at: counts, pose and residuals of one job (mm, rad, px)."""
+
+    found: int
+    needed: int
+    ambiguous: bool = False
+    T_base_obj: FloatArray | None = None
+    offset: FloatArray | None = None
+    model_base: FloatArray | None = None  # (n, 3) model points in the base frame at the pose
+    residuals: Mapping[str, float] = field(default_factory=dict)
+
+
+def gate(m: Measurement, vision: VisionConfig, limits: LimitsConfig) -> tuple[Status, str]:
+    """The status of a job from its measurement, checked in a fixed order (first failure wins).
+
+    Counts (NOT_FOUND under 3 matched, PARTIAL under ``needed``), ambiguity, residuals (fit RMS
+    mm and reprojection px), offset limits, workspace box, then the epipolar warning that still
+    publishes the pose (OK_RECALIBRATE).
+    """
+    if m.found < 3:
+        return Status.NOT_FOUND, f"{m.found} feature(s) matched, need at least 3"
+    if m.found < m.needed:
+        return Status.PARTIAL, f"{m.found} feature(s) matched, need {m.needed}"
+    if m.ambiguous:
+        return Status.AMBIGUOUS, "two poses explain the features equally well"
+    if m.offset is None or m.T_base_obj is None:
+        return Status.NOT_FOUND, "no pose"
+    r = m.residuals
+    fit = r.get("fit_rms_mm", 0.0)
+    if fit > vision.max_fit_rms_mm:
+        return Status.RESIDUAL_TOO_HIGH, (
+            f"fit RMS {fit:.3f} mm > vision.max_fit_rms_mm {vision.max_fit_rms_mm}"
+        )
+    reproj = r.get("reprojection_px", 0.0)
+    if reproj > vision.max_reprojection_px:
+        return Status.RESIDUAL_TOO_HIGH, (
+            f"reprojection RMS {reproj:.3f} px > vision.max_reprojection_px "
+            f"{vision.max_reprojection_px}"
+        )
+    shift = float(np.linalg.norm(m.offset[:3, 3]))
+    if shift > limits.max_translation_mm:
+        return Status.OUT_OF_LIMITS, (
+            f"offset translation {shift:.2f} mm > limits.max_translation_mm "
+            f"{limits.max_translation_mm}"
+        )
+    turn = float(np.degrees(rotation_angle(m.offset[:3, :3])))
+    if turn > limits.max_rotation_deg:
+        return Status.OUT_OF_LIMITS, (
+            f"offset rotation {turn:.2f} deg > limits.max_rotation_deg {limits.max_rotation_deg}"
+        )
+    if limits.workspace_min_mm is not None and limits.workspace_max_mm is not None:
+        pts = m.model_base if m.model_base is not None else m.T_base_obj[None, :3, 3]
+        lo, hi = np.asarray(limits.workspace_min_mm), np.asarray(limits.workspace_max_mm)
+        outside = np.flatnonzero(((pts < lo) | (pts > hi)).any(axis=1))
+        if outside.size:
+            p = pts[outside[0]]
+            return Status.OUT_OF_WORKSPACE, (
+                f"object point {int(outside[0])} at {np.round(p, 1).tolist()} mm (base) is "
+                "outside the limits.workspace box"
+            )
+    epi = r.get("epipolar_px", 0.0)
+    if epi > vision.epipolar_warn_px:
+        return Status.OK_RECALIBRATE, (
+            f"median epipolar residual {epi:.2f} px > vision.epipolar_warn_px "
+            f"{vision.epipolar_warn_px}: plan a recalibration"
+        )
+    return Status.OK, ""
+
+
+# --------------------------------------------------------------------------- finders
+
+
+@dataclass(frozen=True)
+class Found:
+    """Features of one image: identified ones by feature index, anonymous circle candidates."""
+
+    identified: dict[int, FloatArray]  # feature index -> (2,) px
+    circles: FloatArray  # (k, 2) px
+
+
+class _Finder:
+    """The finders the object's features need, prepared once from the config."""
+
+    def __init__(self, config: Config, focal_px: float) -> None:
+        vision = config.vision
+        near, far = vision.working_distance_mm
+        self.specs: list[ft.CircleSpec] = []
+        self.aruco: dict[str, dict[int, int]] = {}  # dictionary -> marker id -> feature index
+        self.templates: list[tuple[int, ft.UInt8Image]] = []
+        circles: dict[str, list[float]] = {}
+        for i, f in enumerate(config.object.features):
+            if f.kind == "circle":
+                circles.setdefault(f.polarity, []).append(f.diameter_mm)
+            elif f.kind == "aruco":
+                ids = self.aruco.setdefault(f.dictionary, {})
+                if f.marker_id in ids:
+                    raise ConfigError(
+                        f"object.features[{i}]: marker id {f.marker_id} of {f.dictionary} is "
+                        "used twice"
+                    )
+                try:
+                    ft.aruco_dictionary(f.dictionary)
+                except ValueError as err:
+                    raise ConfigError(f"object.features[{i}].dictionary: {err}") from None
+                ids[f.marker_id] = i
+            else:
+                self.templates.append((i, _load_template(f.template, f"object.features[{i}]")))
+        for polarity, diameters in circles.items():
+            self.specs.append(
+                ft.CircleSpec(
+                    polarity="dark" if polarity == "dark" else "bright",
+                    min_diameter_px=max(3.0, focal_px * min(diameters) / far),
+                    max_diameter_px=focal_px * max(diameters) / near,
+                    min_contrast=vision.min_contrast,
+                    min_circularity=vision.min_circularity,
+                    downscale=vision.downscale,
+                )
+            )
+        self.min_score = vision.template_min_score
+
+    def __call__(self, gray: ft.UInt8Image) -> Found:
+        identified: dict[int, FloatArray] = {}
+        for dictionary, ids in self.aruco.items():
+            for marker_id, marker in ft.find_aruco(gray, dictionary).items():
+                if marker_id in ids:
+                    identified[ids[marker_id]] = marker.centre
+        for index, patch in self.templates:
+            hit = ft.find_template(gray, patch, self.min_score)
+            if hit is not None:
+                identified[index] = hit[0]
+        blobs = [ft.find_circles(gray, spec).xy for spec in self.specs]
+        circles = np.vstack(blobs) if blobs else np.zeros((0, 2))
+        return Found(identified, circles)
+
+
+def _load_template(path: str, where: str) -> ft.UInt8Image:
+    image = cv2.imread(str(Path(path)), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise ConfigError(f"{where}.template: cannot read image file {path!r}")
+    return np.asarray(image, dtype=np.uint8)
+
+
+# --------------------------------------------------------------------------- pipeline
+
+
+class _Reject(Exception):
+    """A job ends early with this status (internal control flow of ``process``)."""
+
+    def __init__(self, status: Status, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+@dataclass
+class _Job:
+    """What a job has learnt so far; becomes the JobResult."""
+
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    residuals: dict[str, float] = field(default_factory=dict)
+    used: tuple[str, ...] = ()
+    missing: tuple[str, ...] = ()
+    T_base_obj: FloatArray | None = None
+    offset: FloatArray | None = None
+    _t: float = field(default_factory=time.perf_counter)
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.timings_ms[stage] = (now - self._t) * 1e3
+        self._t = now
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """Object pose in the left camera frame and the features behind it."""
+
+    T_cam_obj: FloatArray
+    used: npt.NDArray[np.bool_]  # (n_model,) features that entered the fit
+    ambiguous: bool
+    residuals: dict[str, float]
+
+
+class Pipeline:
+    """The configured vision chain; construct once, call :meth:`process` per image pair.
+
+    Raises
+    ------
+    NotCalibratedError
+        Calibration missing or invalid, or (CAD object) no taught reference.
+    ConfigError
+        Unknown vendor, unreadable template, or single-camera calibration with fewer than
+        four identified (ArUco/template) features: circle marks carry no identity in one image.
+    """
+
+    def __init__(self, config: Config) -> None:
+        self.config = config
+        self.left, self.right = scene.camera_models(config)
+        self.rig: StereoRig | None = scene.stereo_rig(config)
+        self.names = scene.feature_names(config)
+        self.model = scene.object_points(config)
+        self.T_base_obj_ref = scene.T_base_obj_ref(config)
+        assert config.calibration is not None  # camera_models raised otherwise
+        self.fixed_T_base_camera = (
+            scene.T_base_camera(config)
+            if config.calibration.hand_eye.mounting == "fixed"
+            else None
+        )
+        if config.output.vendor not in VENDORS:
+            raise ConfigError(
+                f"output.vendor: unknown vendor {config.output.vendor!r} "
+                f"(known: {', '.join(sorted(VENDORS))})"
+            )
+        self.kinds = tuple(f.kind for f in config.object.features)
+        self.is_circle = np.array([k == "circle" for k in self.kinds])
+        identified = int((~self.is_circle).sum())
+        if self.rig is None and identified < MIN_PNP_FEATURES:
+            raise ConfigError(
+                "object.features: single-camera (PnP) mode needs at least "
+                f"{MIN_PNP_FEATURES} aruco/template features, the object has {identified} "
+                "(circle marks cannot be told apart in one image)"
+            )
+        self.find_left = _Finder(config, self.left.fx)
+        self.find_right = _Finder(config, self.right.fx) if self.right is not None else None
+
+    # ------------------------------------------------------------------ entry point
+    def process(self, pair: ImagePair, job_id: int) -> JobResult:
+        """Run one job. Never raises: failures become a status with a message."""
+        job = _Job()
+        try:
+            status, message, target = self._run(pair, job)
+        except _Reject as rej:
+            status, message, target = rej.status, rej.message, None
+        except NotCalibratedError as err:
+            status, message, target = Status.NOT_CALIBRATED, str(err), None
+        except Exception as err:  # noqa: BLE001 - a job must end with a status, never crash
+            last = traceback.extract_tb(err.__traceback__)[-1]
+            status, target = Status.INTERNAL, None
+            message = f"{type(err).__name__}: {err} ({Path(last.filename).name}:{last.lineno})"
+        job.timings_ms["total"] = sum(job.timings_ms.values())
+        return JobResult(
+            job_id=job_id,
+            status=status,
+            message=message,
+            target=target,
+            T_base_obj=job.T_base_obj,
+            offset=job.offset,
+            residuals=dict(job.residuals),
+            timings_ms=dict(job.timings_ms),
+            features_used=job.used,
+            features_missing=job.missing,
+            t_capture_mono_ns=pair.t_mono_ns,
+            t_done_mono_ns=time.monotonic_ns(),
+        )
+
+    def _run(self, pair: ImagePair, job: _Job) -> tuple[Status, str, Any]:
+        vision, limits = self.config.vision, self.config.limits
+        gray_l = _checked_gray(pair.left, self.left, "left")
+        stereo = pair.right is not None and self.rig is not None
+        gray_r = _checked_gray(pair.right, self.right, "right") if stereo else None
+        T_base_camera = self.fixed_T_base_camera
+        if T_base_camera is None:
+            T_base_camera = scene.T_base_camera(self.config, pair.T_base_flange)
+        job.lap("checks")
+
+        found_l = self.find_left(gray_l)
+        found_r = None
+        if gray_r is not None and self.find_right is not None:
+            found_r = self.find_right(gray_r)
+        job.lap("features")
+
+        if found_r is not None:
+            estimate = self._stereo_pose(found_l, found_r, job)
+            needed = vision.min_features
+        else:
+            estimate = self._mono_pose(found_l, job)
+            needed = max(vision.min_features, MIN_PNP_FEATURES)
+        job.lap("pose")
+        if estimate is None:
+            return (*gate(Measurement(found=len(job.used), needed=needed), vision, limits), None)
+
+        T_base_obj = T_base_camera @ estimate.T_cam_obj
+        offset = T_base_obj @ invert_transform(self.T_base_obj_ref)
+        job.T_base_obj, job.offset = T_base_obj, offset
+        job.residuals.update(estimate.residuals)
+        measurement = Measurement(
+            found=int(estimate.used.sum()),
+            needed=needed,
+            ambiguous=estimate.ambiguous,
+            T_base_obj=T_base_obj,
+            offset=offset,
+            model_base=self.model @ T_base_obj[:3, :3].T + T_base_obj[:3, 3],
+            residuals=estimate.residuals,
+        )
+        status, message = gate(measurement, vision, limits)
+        target = target_from_transform(self.config.output.vendor, offset) if (
+            status.pose_valid
+        ) else None
+        job.lap("output")
+        return status, message, target
+
+    # ------------------------------------------------------------------ stereo
+    def _stereo_pose(self, left: Found, right: Found, job: _Job) -> PoseEstimate | None:
+        """Pair, triangulate, match to the model and fit; None when fewer than 3 features."""
+        assert self.rig is not None
+        vision = self.config.vision
+        n = len(self.names)
+        px_l: list[FloatArray] = []
+        px_r: list[FloatArray] = []
+        # Identified features pair by identity (and must still satisfy the epipolar constraint).
+        fixed: dict[int, int] = {}  # feature index -> row in px_l/px_r
+        for index, p in left.identified.items():
+            q = right.identified.get(index)
+            if q is None:
+                continue
+            fixed[index] = len(px_l)
+            px_l.append(p)
+            px_r.append(q)
+        # Circles: every right candidate near the left candidate's epipolar line.
+        keys: list[tuple[int, ...]] = [(-1 - i,) for i in range(len(px_l))]
+        circle_rows: list[int] = []
+        if len(left.circles) and len(right.circles):
+            lines = self.rig.epipolar_lines_right(left.circles)
+            ideal_r = self.rig.ideal_pixels(self.rig.right, right.circles)
+            dist = np.abs(lines[:, :2] @ ideal_r.T + lines[:, 2:3])
+            for i, j in ft.match_epipolar(dist, vision.epipolar_tolerance_px):
+                circle_rows.append(len(px_l))
+                keys.append((2 * int(i), 2 * int(j) + 1))  # left blob i, right blob j
+                px_l.append(left.circles[i])
+                px_r.append(right.circles[j])
+        if len(px_l) < 3:
+            job.missing = self.names
+            return None
+        points, gap, valid = self._triangulate(np.array(px_l), np.array(px_r))
+        near, far = vision.working_distance_mm
+        valid &= (points[:, 2] >= near) & (points[:, 2] <= far)
+
+        assignment = np.full(n, -1, dtype=np.intp)
+        for index, row in fixed.items():
+            if valid[row]:
+                assignment[index] = row
+        rows = np.array([r for r in circle_rows if valid[r]], dtype=np.intp)
+        circle_model = np.flatnonzero(self.is_circle)
+        ambiguous = False
+        if rows.size and circle_model.size:
+            T0 = None
+            if (assignment >= 0).sum() >= 3:
+                sel = np.flatnonzero(assignment >= 0)
+                T0 = ft.kabsch(self.model[sel], points[assignment[sel]])
+            elif circle_model.size >= 3:
+                match = ft.match_model(
+                    self.model[circle_model], points[rows], vision.model_tolerance_mm,
+                    [keys[r] for r in rows],
+                )
+                if match is not None:
+                    T0, ambiguous = match.T_points_model, match.ambiguous
+            if T0 is not None:
+                sub, _ = ft.assign_nearest(
+                    self.model[circle_model], points[rows], T0, vision.model_tolerance_mm,
+                    [keys[r] for r in rows],
+                )
+                hit = sub >= 0
+                assignment[circle_model[hit]] = rows[sub[hit]]
+        return self._fit_stereo(assignment, points, gap, np.array(px_l), np.array(px_r),
+                                ambiguous, job)
+
+    def _triangulate(
+        self, px_l: FloatArray, px_r: FloatArray
+    ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+        """Points (k, 3) mm in the left frame, ray gaps (k,) mm and a validity mask.
+
+        ``StereoRig.triangulate`` refuses a whole batch when one pair meets behind a camera
+        (a wrong pairing); then the pairs are triangulated one by one to keep the good ones.
+        """
+        assert self.rig is not None
+        k = px_l.shape[0]
+        try:
+            tri = self.rig.triangulate(px_l, px_r)
+            return tri.points_mm, tri.gap_mm, np.ones(k, dtype=bool)
+        except GeometryError:
+            pass
+        points = np.full((k, 3), np.nan)
+        gap = np.full(k, np.nan)
+        valid = np.zeros(k, dtype=bool)
+        for i in range(k):
+            try:
+                tri = self.rig.triangulate(px_l[i : i + 1], px_r[i : i + 1])
+            except GeometryError:
+                continue
+            points[i], gap[i], valid[i] = tri.points_mm[0], tri.gap_mm[0], True
+        return points, gap, valid
+
+    def _fit_stereo(
+        self,
+        assignment: npt.NDArray[np.intp],
+        points: FloatArray,
+        gap: FloatArray,
+        px_l: FloatArray,
+        px_r: FloatArray,
+        ambiguous: bool,
+        job: _Job,
+    ) -> PoseEstimate | None:
+        assert self.rig is not None
+        vision = self.config.vision
+        sel = np.flatnonzero(assignment >= 0)
+        if sel.size < 3:
+            job.used = tuple(self.names[i] for i in sel)
+            job.missing = tuple(self.names[i] for i in range(len(self.names)) if i not in sel)
+            return None
+        rows = assignment[sel]
+        try:
+            fit = horn_robust(self.model[sel], points[rows], threshold_mm=vision.model_tolerance_mm)
+        except GeometryError:
+            job.used = ()
+            job.missing = self.names
+            return None
+        keep = sel[fit.inliers]
+        used = np.zeros(len(self.names), dtype=bool)
+        used[keep] = True
+        job.used = tuple(self.names[i] for i in keep)
+        job.missing = tuple(self.names[i] for i in np.flatnonzero(~used))
+        kept_rows = assignment[keep]
+        T = fit.T_to_from
+        model_cam = self.model[keep] @ T[:3, :3].T + T[:3, 3]
+        T_right_left = self.rig.T_right_left
+        model_right = model_cam @ T_right_left[:3, :3].T + T_right_left[:3, 3]
+        err_l = self.rig.left.project(model_cam) - px_l[kept_rows]
+        err_r = self.rig.right.project(model_right) - px_r[kept_rows]
+        err = np.concatenate([np.linalg.norm(err_l, axis=1), np.linalg.norm(err_r, axis=1)])
+        epi = self.rig.epipolar_residuals_px(px_l[kept_rows], px_r[kept_rows]).max(axis=1)
+        residuals = {
+            "fit_rms_mm": fit.rms_mm,
+            "reprojection_px": float(np.sqrt(np.mean(err**2))),
+            "epipolar_px": float(np.median(epi)),
+            "ray_gap_mm": float(np.max(gap[kept_rows])),
+        }
+        return PoseEstimate(T, used, ambiguous, residuals)
+
+    # ------------------------------------------------------------------ mono
+    def _mono_pose(self, left: Found, job: _Job) -> PoseEstimate | None:
+        """PnP on the identified features (ArUco ids, templates); circles carry no identity."""
+        index = np.array(sorted(left.identified), dtype=np.intp)
+        used = np.zeros(len(self.names), dtype=bool)
+        used[index] = True
+        job.used = tuple(self.names[i] for i in index)
+        job.missing = tuple(self.names[i] for i in np.flatnonzero(~used))
+        if index.size < MIN_PNP_FEATURES:
+            return None
+        px = np.array([left.identified[i] for i in index])
+        try:
+            result = pnp(self.model[index], px, self.left)
+        except GeometryError:
+            return None
+        residuals = {"reprojection_px": result.rms_px}
+        return PoseEstimate(result.T_cam_obj, used, result.ambiguous, residuals)
+
+
+def _checked_gray(image: Any, camera: CameraModel | None, side: str) -> ft.UInt8Image:
+    """The 8-bit grey image of one side, or a CAMERA_ERROR naming what is wrong with it."""
+    if image is None or camera is None:
+        raise _Reject(Status.CAMERA_ERROR, f"{side} image missing")
+    arr = np.asarray(image)
+    try:
+        gray = ft.gray_from_image(arr)
+    except ValueError as err:
+        raise _Reject(Status.CAMERA_ERROR, f"{side} image: {err}") from None
+    h, w = gray.shape
+    if (w, h) != (camera.width, camera.height):
+        raise _Reject(
+            Status.CAMERA_ERROR,
+            f"{side} image is {w}x{h} but calibration.{side} is {camera.width}x{camera.height}",
+        )
+    lo, hi = cv2.minMaxLoc(gray)[:2]
+    if hi < 16:
+        raise _Reject(Status.CAMERA_ERROR, f"{side} image is black (max grey {hi:.0f})")
+    if hi - lo < 8:
+        raise _Reject(Status.CAMERA_ERROR, f"{side} image is flat (grey {lo:.0f}..{hi:.0f})")
+    return gray
