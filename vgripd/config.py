@@ -15,7 +15,6 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-import numpy as np
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -25,7 +24,8 @@ from pydantic import (
     model_validator,
 )
 
-from vgripd.errors import ConfigError
+from vgripd.errors import ConfigError, DegenerateInputError
+from vgripd.transforms import check_transform
 
 
 class Model(BaseModel):
@@ -139,7 +139,6 @@ class StatusConfig(Model):
 Vec3 = tuple[float, float, float]
 _Row4 = tuple[float, float, float, float]
 _Matrix4 = tuple[_Row4, _Row4, _Row4, _Row4]
-_ROTATION_TOL = 1e-6
 
 
 class PoseConfig(Model):
@@ -156,21 +155,11 @@ class PoseConfig(Model):
     @field_validator("matrix")
     @classmethod
     def _rigid(cls, m: _Matrix4 | None) -> _Matrix4 | None:
-        if m is None:
-            return m
-        a = np.asarray(m, dtype=np.float64)
-        if not np.all(np.isfinite(a)):
-            raise ValueError("matrix has non-finite entries")
-        if np.abs(a[3] - (0.0, 0.0, 0.0, 1.0)).max() > _ROTATION_TOL:
-            raise ValueError(f"matrix last row must be [0, 0, 0, 1], got {list(a[3])}")
-        r = a[:3, :3]
-        err = float(np.abs(r.T @ r - np.eye(3)).max())
-        if err > _ROTATION_TOL:
-            raise ValueError(
-                f"matrix rotation part is not orthonormal (max |R^T R - I| = {err:.2e})"
-            )
-        if np.linalg.det(r) < 0:
-            raise ValueError("matrix rotation part is a reflection (det < 0)")
+        if m is not None:
+            try:
+                check_transform(m, "matrix")
+            except DegenerateInputError as err:
+                raise ValueError(str(err)) from None
         return m
 
     @model_validator(mode="after")
