@@ -109,10 +109,10 @@ class VisionConfig(Model):
 class DaemonConfig(Model):
     """The service: one job at a time, each bounded by ``job_timeout_s`` (see docs/daemon.md)."""
 
-    job_timeout_s: float = Field(10.0, gt=0)
+    job_timeout_s: float = Field(default=10.0, gt=0)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     # Cycle-time percentiles in `vgripd status` are taken over this many most recent jobs.
-    stats_window: int = Field(1000, ge=1)
+    stats_window: int = Field(default=1000, ge=1)
 
 
 class RecordConfig(Model):
@@ -123,7 +123,7 @@ class RecordConfig(Model):
 
     enabled: bool = False
     folder: Path = Path("/var/lib/vgripd/record")
-    max_mb: float = Field(500.0, gt=0)
+    max_mb: float = Field(default=500.0, gt=0)
 
 
 class StatusConfig(Model):
@@ -131,7 +131,7 @@ class StatusConfig(Model):
 
     enabled: bool = True
     host: str = "127.0.0.1"
-    port: int = Field(8730, ge=0, le=65535)
+    port: int = Field(default=8730, ge=0, le=65535)
 
 
 # --- camera calibration, object model, taught reference (owner: cameras/scene) -------------
