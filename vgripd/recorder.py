@@ -98,14 +98,13 @@ class Recorder:
         self.max_bytes = max_bytes
         self._config_json = json.dumps(jsonable(config_snapshot), indent=2)
         self._jobs: OrderedDict[str, int] = OrderedDict()  # name -> bytes, oldest first
+        # Kept as a plain int (not summed on demand) so the event loop can read it while the
+        # writer thread changes ``_jobs``.
+        self.total_bytes = 0
         self._executor: ThreadPoolExecutor | None = None
         self._pending = 0
         self._lock = threading.Lock()
         self._failing = False
-
-    @property
-    def total_bytes(self) -> int:
-        return sum(self._jobs.values())
 
     def scan(self) -> None:
         """Take stock of jobs already in the folder; drop leftovers of interrupted writes."""
@@ -118,6 +117,7 @@ class Recorder:
                 shutil.rmtree(entry, ignore_errors=True)
             else:
                 self._jobs[entry.name] = _dir_bytes(entry)
+        self.total_bytes = sum(self._jobs.values())
 
     def write(self, pair: ImagePair, result: JobResult) -> Path:
         """Write one job (blocking) and prune; raises OSError if the disk refuses."""
@@ -148,6 +148,7 @@ class Recorder:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         self._jobs[name] = _dir_bytes(final)
+        self.total_bytes += self._jobs[name]
         self._prune(keep=name)
         return final
 
@@ -157,7 +158,7 @@ class Recorder:
             if oldest == keep:
                 break
             shutil.rmtree(self.folder / oldest, ignore_errors=True)
-            del self._jobs[oldest]
+            self.total_bytes -= self._jobs.pop(oldest)
 
     # --- non-blocking use from the daemon ------------------------------------------------
 

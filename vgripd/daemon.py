@@ -1,0 +1,493 @@
+"""The asyncio service: robot links in, one job at a time, results out.
+
+Life of a job (``JobState``)::
+
+    IDLE -> TRIGGERED -> ACQUIRING -> PROCESSING -> PUBLISHING -> IDLE
+
+- A trigger while a job runs is refused with ``Status.BUSY`` (published to the link that sent
+  it, for its ``seq``, with ``job_id = 0``: no job was created); the running job is unaffected.
+- ``daemon.job_timeout_s`` bounds acquisition plus processing. Running out while acquiring is
+  ``CAMERA_ERROR``; while processing it is ``INTERNAL`` (the stale computation cannot be
+  interrupted; it finishes on the job thread and its result is discarded).
+- The image-captured signal goes to the triggering link as soon as ``grab()`` returns; the
+  result goes only to the link that triggered (each link has its own handshake and sequence).
+- Processing runs on a single-thread executor, so links and the status endpoint keep
+  answering within milliseconds while a job is processed.
+- Every job ends with exactly one ``Status``: a camera failure is ``CAMERA_ERROR``, an
+  unexpected exception ``INTERNAL`` (logged with its traceback), shutdown ``ABORTED``.
+- Shutdown (SIGTERM/SIGINT) aborts the job in flight (unless it is already publishing), so the
+  PLC gets ``ABORTED`` for its trigger at once instead of waiting; then links, the camera, the
+  recorder and the job thread are closed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import enum
+import logging
+import os
+import sys
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Protocol
+
+import numpy as np
+
+from vgripd.config import Config
+from vgripd.errors import CameraError, NotCalibratedError
+from vgripd.protocol import RobotLink, Trigger
+from vgripd.recorder import Recorder
+from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
+from vgripd.sdnotify import Notifier, watchdog_interval_s
+from vgripd.statusapi import StatusServer
+from vgripd.types import ImagePair, JobResult, Status
+
+log = logging.getLogger("vgripd")
+
+# A link call (image_captured/publish) that takes longer is abandoned and logged.
+LINK_CALL_TIMEOUT_S = 2.0
+# The watchdog stops pinging when a job runs this long past its timeout: the timeout should
+# have ended it, so the job machinery is wedged and systemd should restart the service.
+WATCHDOG_GRACE_S = 5.0
+
+
+class JobState(enum.Enum):
+    IDLE = "idle"
+    TRIGGERED = "triggered"
+    ACQUIRING = "acquiring"
+    PROCESSING = "processing"
+    PUBLISHING = "publishing"
+
+
+class RunState(enum.Enum):
+    CREATED = "created"
+    STARTING = "starting"
+    RUNNING = "running"
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+
+
+class Processor(Protocol):
+    """What the daemon needs from the vision pipeline (``vgripd.pipeline.Pipeline``)."""
+
+    def process(self, pair: ImagePair, job_id: int) -> JobResult: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class JobRecord:
+    """A finished job as the daemon remembers it (for status and listeners)."""
+
+    job_id: int
+    link: str
+    seq: int
+    result: JobResult
+    cycle_ms: float  # trigger received -> result published
+    t_done_mono_ns: int
+
+
+JobListener = Callable[[ImagePair | None, JobRecord], None]
+
+
+def configure_logging(level: str = "INFO") -> None:
+    """One compact line per event on stderr; no timestamps under systemd (journald adds them)."""
+    fmt = "%(levelname)s %(name)s: %(message)s"
+    if "JOURNAL_STREAM" not in os.environ:
+        fmt = "%(asctime)s " + fmt
+    logging.basicConfig(stream=sys.stderr, level=level, format=fmt, force=True)
+    logging.getLogger("pymodbus").setLevel(max(logging.WARNING, logging.getLevelName(level)))
+
+
+def _link_names(config: Config) -> list[str]:
+    types = [s.type for s in config.links]
+    return [t if types.count(t) == 1 else f"{t}.{i}" for i, t in enumerate(types)]
+
+
+def _make_pipeline(config: Config) -> Processor:
+    from vgripd.pipeline import Pipeline  # heavy (OpenCV); only the daemon needs it
+
+    pipeline: Processor = Pipeline(config)
+    return pipeline
+
+
+class Daemon:
+    """One vgripd service instance. Construction validates drivers and does no I/O.
+
+    Raises ``ConfigError`` for a bad driver type or options. A missing/invalid calibration
+    (``NotCalibratedError``) does not stop the service: every job then answers
+    ``NOT_CALIBRATED``, so the PLC sees why (``not_calibrated`` says so).
+    """
+
+    def __init__(
+        self,
+        config: Config,
+        *,
+        pipeline: Processor | None = None,
+        env: Mapping[str, str] | None = None,
+    ) -> None:
+        self.config = config
+        self._env = dict(os.environ if env is None else env)
+        cam_cls = load_class(CAMERAS, "camera", config.camera.type)
+        self.camera = cam_cls(validate_options(cam_cls, config.camera, "camera"), config)
+        self.links: dict[str, RobotLink] = {}
+        for i, (name, section) in enumerate(zip(_link_names(config), config.links, strict=True)):
+            link_cls = load_class(LINKS, "link", section.type)
+            self.links[name] = link_cls(name, validate_options(link_cls, section, f"links.{i}"))
+        self.not_calibrated = ""
+        self._pipeline: Processor | None = pipeline
+        if pipeline is None:
+            try:
+                self._pipeline = _make_pipeline(config)
+            except NotCalibratedError as err:
+                self.not_calibrated = str(err)
+
+        self.run_state = RunState.CREATED
+        self.state = JobState.IDLE
+        self.listeners: list[JobListener] = []
+        self.notifier = Notifier(self._env)
+        self.status_server: StatusServer | None = None
+        self.recorder: Recorder | None = None
+        self.counters: Counter[str] = Counter()
+        self.cycle_ms: deque[float] = deque(maxlen=config.daemon.stats_window)
+        self.last_job: JobRecord | None = None
+
+        self._job_seq = 0
+        self._job: tuple[int, Trigger, asyncio.Task[None]] | None = None
+        self._job_started_ns = 0
+        self._camera_open = False
+        self._executor: ThreadPoolExecutor | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_thread = 0
+        self._changed: asyncio.Event | None = None
+        self._stop_requested: asyncio.Event | None = None
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._t_start_ns = 0
+
+    # --- lifecycle --------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Open everything; READY=1 once the links serve. Raises (after cleanup) on failure."""
+        self._loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
+        self._changed = asyncio.Event()
+        self._stop_requested = asyncio.Event()
+        self._t_start_ns = time.monotonic_ns()
+        self._set_run_state(RunState.STARTING)
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix="vgripd-job")
+        try:
+            if self.not_calibrated:
+                log.error("not calibrated, every job will answer NOT_CALIBRATED: %s",
+                          self.not_calibrated)
+            rec = self.config.record
+            if rec.enabled:
+                self.recorder = Recorder(rec.folder, int(rec.max_mb * 1e6),
+                                         self.config.model_dump(mode="json"))
+                self.recorder.start()
+                log.info("recording jobs to %s (max %.0f MB)", rec.folder, rec.max_mb)
+            await self._open_camera()
+            for name, link in self.links.items():
+                await link.open(self._on_trigger)
+                log.info("link %s open", name)
+            st = self.config.status
+            if st.enabled:
+                self.status_server = StatusServer(st.host, st.port, self.snapshot)
+                await self.status_server.start()
+            interval_s = watchdog_interval_s(self._env)
+            if interval_s is not None:
+                self._spawn(self._watchdog(interval_s / 2))
+        except BaseException:
+            await self._shutdown()
+            raise
+        self._set_run_state(RunState.RUNNING)
+        self.notifier.ready(self.status_line())
+        log.info("ready: %s", self.status_line())
+
+    def request_stop(self) -> None:
+        """Ask ``serve()`` to stop (signal handlers call this)."""
+        if self._stop_requested is not None:
+            self._stop_requested.set()
+
+    async def serve(self) -> None:
+        """Start, run until ``request_stop()``, then stop cleanly."""
+        await self.start()
+        assert self._stop_requested is not None
+        try:
+            await self._stop_requested.wait()
+        finally:
+            await self.stop()
+
+    async def stop(self) -> None:
+        if self.run_state in (RunState.STOPPING, RunState.STOPPED):
+            return
+        self._set_run_state(RunState.STOPPING)
+        self.notifier.stopping("stopping")
+        log.info("stopping")
+        await self._shutdown()
+
+    async def _shutdown(self) -> None:
+        if self._job is not None:
+            task = self._job[2]
+            if self.state is not JobState.PUBLISHING:
+                task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        if self.status_server is not None:
+            await self.status_server.close()
+        for name, link in self.links.items():
+            try:
+                await link.close()
+            except Exception:
+                log.exception("link %s: close failed", name)
+        if self._camera_open:
+            try:
+                await self.camera.close()
+            except Exception:
+                log.exception("camera: close failed")
+            self._camera_open = False
+        if self.recorder is not None:
+            self.recorder.close()
+        if self._executor is not None:
+            # Waits only for a CPU step already running (its result is discarded).
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+        self.notifier.close()
+        self._set_run_state(RunState.STOPPED)
+        log.info("stopped")
+
+    # --- waiting on state (for callers and tests) --------------------------------------
+
+    async def wait_for(self, predicate: Callable[[], bool], timeout_s: float) -> None:
+        """Wait until ``predicate()`` holds (checked on every state change); TimeoutError."""
+        async with asyncio.timeout(timeout_s):
+            while not predicate():
+                assert self._changed is not None, "daemon not started"
+                await self._changed.wait()
+
+    def _notify_changed(self) -> None:
+        # Wake every waiter once, then hand later waiters a fresh event.
+        if self._changed is not None:
+            self._changed.set()
+            self._changed = asyncio.Event()
+
+    def _set_run_state(self, state: RunState) -> None:
+        self.run_state = state
+        self._notify_changed()
+
+    def _set_state(self, state: JobState) -> None:
+        self.state = state
+        self.notifier.status(self.status_line())
+        self._notify_changed()
+
+    # --- triggers and jobs --------------------------------------------------------------
+
+    def _on_trigger(self, trigger: Trigger) -> None:
+        """Called by a link for every trigger; from any thread, never blocks."""
+        assert self._loop is not None
+        if threading.get_ident() != self._loop_thread:
+            self._loop.call_soon_threadsafe(self._on_trigger, trigger)
+            return
+        if trigger.link not in self.links:
+            log.error("trigger from unknown link %r ignored", trigger.link)
+            return
+        if self.run_state is not RunState.RUNNING or self._job is not None:
+            status = Status.BUSY if self.run_state is RunState.RUNNING else Status.ABORTED
+            log.warning("trigger seq %d from %s refused: %s", trigger.seq, trigger.link,
+                        status.name)
+            self.counters[status.name] += 1
+            refusal = JobResult(job_id=0, status=status, message=f"refused: {status.name}",
+                                t_done_mono_ns=time.monotonic_ns())
+            self._spawn(self._link_call(trigger.link, "publish", trigger.seq, refusal))
+            return
+        self._job_seq += 1
+        job_id = self._job_seq
+        log.info("job %d: trigger seq %d command %d from %s", job_id, trigger.seq,
+                 trigger.command, trigger.link)
+        self._job_started_ns = time.monotonic_ns()
+        self._job = (job_id, trigger, asyncio.create_task(self._run_job(trigger, job_id)))
+        self._set_state(JobState.TRIGGERED)
+
+    async def _open_camera(self) -> None:
+        try:
+            await self.camera.open()
+            self._camera_open = True
+            log.info("camera %s open", self.config.camera.type)
+        except CameraError as err:
+            # Not fatal: the next job tries again and answers CAMERA_ERROR meanwhile.
+            log.error("camera %s cannot open: %s", self.config.camera.type, err)
+
+    async def _acquire(self, trigger: Trigger, deadline_ns: int) -> ImagePair:
+        if not self._camera_open:
+            await self._open_camera()
+            if not self._camera_open:
+                raise CameraError(f"camera {self.config.camera.type} is not open")
+        remaining_s = max(0.0, (deadline_ns - time.monotonic_ns()) / 1e9)
+        pair: ImagePair = await self.camera.grab(remaining_s)
+        if pair.T_base_flange is None and trigger.T_base_flange is not None:
+            pair = dataclasses.replace(pair, T_base_flange=trigger.T_base_flange)
+        return pair
+
+    async def _run_job(self, trigger: Trigger, job_id: int) -> None:
+        timeout_s = self.config.daemon.job_timeout_s
+        deadline_ns = self._job_started_ns + int(timeout_s * 1e9)
+        pair: ImagePair | None = None
+        try:
+            try:
+                async with asyncio.timeout(timeout_s):
+                    self._set_state(JobState.ACQUIRING)
+                    pair = await self._acquire(trigger, deadline_ns)
+                    await self._link_call(trigger.link, "image_captured", trigger.seq, job_id)
+                    self._set_state(JobState.PROCESSING)
+                    result = await self._process(pair, job_id)
+            except TimeoutError:
+                stage = "acquisition" if pair is None else "processing"
+                status = Status.CAMERA_ERROR if pair is None else Status.INTERNAL
+                result = self._failure(job_id, status,
+                                       f"{stage} exceeded daemon.job_timeout_s = {timeout_s} s")
+            except CameraError as err:
+                result = self._failure(job_id, Status.CAMERA_ERROR, str(err))
+            except Exception as err:
+                log.exception("job %d: unexpected error", job_id)
+                result = self._failure(job_id, Status.INTERNAL, f"{type(err).__name__}: {err}")
+        except asyncio.CancelledError:
+            result = self._failure(job_id, Status.ABORTED, "aborted by shutdown")
+            await self._finish(trigger, job_id, pair, result)
+            raise
+        await self._finish(trigger, job_id, pair, result)
+
+    async def _process(self, pair: ImagePair, job_id: int) -> JobResult:
+        if self._pipeline is None:
+            return self._failure(job_id, Status.NOT_CALIBRATED, self.not_calibrated)
+        assert self._loop is not None
+        t0 = time.monotonic_ns()
+        result = await self._loop.run_in_executor(
+            self._executor, self._pipeline.process, pair, job_id)
+        timings = {"acquire": (t0 - self._job_started_ns) / 1e6, **result.timings_ms,
+                   "process": (time.monotonic_ns() - t0) / 1e6}
+        return dataclasses.replace(
+            result, job_id=job_id, timings_ms=timings,
+            t_capture_mono_ns=result.t_capture_mono_ns or pair.t_mono_ns)
+
+    @staticmethod
+    def _failure(job_id: int, status: Status, message: str) -> JobResult:
+        log.warning("job %d: %s: %s", job_id, status.name, message)
+        return JobResult(job_id=job_id, status=status, message=message,
+                         t_done_mono_ns=time.monotonic_ns())
+
+    async def _finish(self, trigger: Trigger, job_id: int, pair: ImagePair | None,
+                      result: JobResult) -> None:
+        self._set_state(JobState.PUBLISHING)
+        if not result.t_done_mono_ns:
+            result = dataclasses.replace(result, t_done_mono_ns=time.monotonic_ns())
+        await self._link_call(trigger.link, "publish", trigger.seq, result)
+        done_ns = time.monotonic_ns()
+        record = JobRecord(job_id=job_id, link=trigger.link, seq=trigger.seq, result=result,
+                           cycle_ms=(done_ns - trigger.t_mono_ns) / 1e6, t_done_mono_ns=done_ns)
+        self.last_job = record
+        self.counters[result.status.name] += 1
+        self.cycle_ms.append(record.cycle_ms)
+        log.info("job %d: %s in %.1f ms%s", job_id, result.status.name, record.cycle_ms,
+                 f" ({result.message})" if result.message else "")
+        if self.recorder is not None and pair is not None:
+            self.recorder.submit(pair, result)
+        for listener in self.listeners:
+            try:
+                listener(pair, record)
+            except Exception:
+                log.exception("job listener failed")
+        self._job = None
+        self._set_state(JobState.IDLE)
+
+    async def _link_call(self, name: str, method: str, seq: int, arg: Any) -> None:
+        """Call a link; a failing or hanging link is logged and never fails the job."""
+        try:
+            async with asyncio.timeout(LINK_CALL_TIMEOUT_S):
+                await getattr(self.links[name], method)(seq, arg)
+        except Exception as err:
+            log.error("link %s: %s(seq %d) failed: %r", name, method, seq, err)
+
+    # --- background tasks ---------------------------------------------------------------
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def healthy(self) -> bool:
+        """False when a job has outlived its timeout by ``WATCHDOG_GRACE_S`` (wedged)."""
+        if self._job is None:
+            return True
+        age_s = (time.monotonic_ns() - self._job_started_ns) / 1e9
+        return age_s < self.config.daemon.job_timeout_s + WATCHDOG_GRACE_S
+
+    async def _watchdog(self, period_s: float) -> None:
+        while True:
+            if self.healthy():
+                self.notifier.watchdog()
+            else:
+                log.error("watchdog: job running %.1f s, not pinging systemd",
+                          (time.monotonic_ns() - self._job_started_ns) / 1e9)
+            await asyncio.sleep(period_s)
+
+    # --- status -------------------------------------------------------------------------
+
+    def cycle_percentiles_ms(self) -> dict[str, float]:
+        if not self.cycle_ms:
+            return {}
+        p50, p95, p99 = np.percentile(np.fromiter(self.cycle_ms, float), (50, 95, 99))
+        return {"p50": float(p50), "p95": float(p95), "p99": float(p99),
+                "max": max(self.cycle_ms)}
+
+    def status_line(self) -> str:
+        """One line for ``systemctl status`` (sd_notify STATUS=)."""
+        jobs = sum(self.counters.values())
+        counts = ", ".join(f"{k} {v}" for k, v in sorted(self.counters.items()))
+        line = f"{self.state.value}; {jobs} triggers" + (f" ({counts})" if counts else "")
+        if self.last_job is not None:
+            lj = self.last_job
+            line += f"; last job {lj.job_id} {lj.result.status.name} {lj.cycle_ms:.0f} ms"
+        return line
+
+    def snapshot(self) -> dict[str, Any]:
+        """The status as JSON data (served by ``GET /status``)."""
+        now = time.monotonic_ns()
+        job = None
+        if self._job is not None:
+            job_id, trig, _ = self._job
+            job = {"id": job_id, "link": trig.link, "seq": trig.seq,
+                   "age_s": (now - self._job_started_ns) / 1e9}
+        last = None
+        if self.last_job is not None:
+            lj = self.last_job
+            last = {"id": lj.job_id, "link": lj.link, "seq": lj.seq,
+                    "status": lj.result.status.name, "status_code": int(lj.result.status),
+                    "message": lj.result.message, "cycle_ms": lj.cycle_ms,
+                    "age_s": (now - lj.t_done_mono_ns) / 1e9}
+        links = []
+        for name, link in self.links.items():
+            h = link.health()
+            links.append({"name": name, "state": h.state.value, "peer": h.peer,
+                          "last_error": h.last_error, "reconnects": h.reconnects})
+        return {
+            "pid": os.getpid(),
+            "run_state": self.run_state.value,
+            "state": self.state.value,
+            "uptime_s": (now - self._t_start_ns) / 1e9 if self._t_start_ns else 0.0,
+            "camera": {"type": self.config.camera.type, "open": self._camera_open},
+            "calibrated": not self.not_calibrated,
+            "job": job,
+            "last_job": last,
+            "links": links,
+            "counters": dict(self.counters),
+            "cycle_ms": {"window": len(self.cycle_ms), **self.cycle_percentiles_ms()},
+            "record": None if self.recorder is None else {
+                "folder": str(self.recorder.folder), "bytes": self.recorder.total_bytes},
+        }
