@@ -1,0 +1,238 @@
+"""A stand-in for a robot controller's own Modbus/TCP server (e.g. Universal Robots, port 502).
+
+Cells without a PLC let vgripd write straight into the robot: the robot exposes general-purpose
+holding registers (UR: 128-255) and its program polls them. ``MockRobotModbus`` is that server,
+run by pymodbus on 127.0.0.1 (a free port unless one is given):
+
+- holding registers ``first .. first+count-1`` only; any other address or table answers with
+  the Modbus exception ILLEGAL_DATA_ADDRESS, as UR's server does;
+- a simulated robot program (``run_job``, or ``start_program`` for a loop as an asyncio task):
+  writes a new sequence number into the trigger register, waits until vgripd writes the same
+  number into the acknowledge register, then snapshots the result words;
+- misbehaviour switches: ``go_offline``/``come_back`` (drop every connection and stop
+  listening, then listen again on the same port), ``drop_connections`` (drop, keep listening),
+  ``RobotMode.SILENT`` (accept TCP, never answer) and ``RobotMode.REFUSE`` (answer every request
+  with an exception code).
+
+Every network write is logged (address and words, in arrival order) so tests can check what was
+written in which order, e.g. that the acknowledge word came last in its own transaction.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from vgripd.errors import LinkError
+
+UR_FIRST_REGISTER = 128
+UR_REGISTER_COUNT = 128
+
+_HOLDING_CODES = frozenset({3, 6, 16, 22, 23})
+_WRITE_CODES = frozenset({6, 16, 22, 23})
+
+
+class RobotMode(enum.Enum):
+    NORMAL = "normal"
+    SILENT = "silent"  # TCP accepted, requests never answered (a hung controller)
+    REFUSE = "refuse"  # every request answered with ``refuse_code``
+
+
+@dataclass(frozen=True)
+class RegisterWrite:
+    """One write transaction as the robot received it."""
+
+    address: int
+    values: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class JobSeen:
+    """What the simulated robot program saw for one job.
+
+    ``words`` is the whole register window at the moment the acknowledge matched (index 0 is
+    register ``first``); ``writes`` are the write transactions received while the job ran.
+    """
+
+    seq: int
+    words: tuple[int, ...]
+    writes: tuple[RegisterWrite, ...]
+
+
+class MockRobotModbus:
+    """Mock robot Modbus/TCP server; ``start``/``stop`` from the test's event loop."""
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        first: int = UR_FIRST_REGISTER,
+        count: int = UR_REGISTER_COUNT,
+    ) -> None:
+        self.host = host
+        self.port = port
+        self.first = first
+        self.count = count
+        self.mode = RobotMode.NORMAL
+        self.refuse_code = ExcCodes.ILLEGAL_ADDRESS
+        self.writes: list[RegisterWrite] = []
+        self.requests = 0
+        self._regs = [0] * count
+        self._server: ModbusTcpServer | None = None
+        self._changed = asyncio.Condition()
+        self._release_silent = asyncio.Event()
+        self._program: asyncio.Task[None] | None = None
+        self.jobs_done = 0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Listen; with ``port=0`` a free port is chosen and kept for ``come_back``."""
+        device = SimDevice(
+            id=0,
+            simdata=[
+                SimData(self.first, count=self.count, values=0, datatype=DataType.REGISTERS)
+            ],
+            action=self._action,
+        )
+        server = ModbusTcpServer(device, address=(self.host, self.port))
+        await server.serve_forever(background=True)
+        self._server = server
+        if self.port == 0:
+            sockets = getattr(server.transport, "sockets", None)
+            if not sockets:
+                raise LinkError(f"mock robot: cannot tell which port {self.host} listens on")
+            self.port = int(sockets[0].getsockname()[1])
+        self._release_silent.clear()
+
+    async def stop(self) -> None:
+        await self.stop_program()
+        await self.go_offline()
+
+    async def go_offline(self) -> None:
+        """Drop every connection and stop listening (a controller reboot or pulled cable)."""
+        self._release_silent.set()  # let held (silent) handlers finish before the sockets go
+        if self._server is not None:
+            server, self._server = self._server, None
+            await server.shutdown()
+
+    async def come_back(self) -> None:
+        """Listen again on the same port, registers kept."""
+        await self.start()
+
+    def drop_connections(self) -> None:
+        """Close every client connection; keep listening."""
+        if self._server is not None:
+            for conn in list(self._server.active_connections.values()):
+                conn.close()
+
+    @property
+    def connections(self) -> int:
+        return 0 if self._server is None else len(self._server.active_connections)
+
+    # -- register access for tests and the simulated program ---------------------------------
+
+    def read(self, address: int, count: int = 1) -> list[int]:
+        i = self._index(address, count)
+        return self._regs[i : i + count]
+
+    async def write(self, address: int, values: Sequence[int]) -> None:
+        """Write as the robot program does (not a network write: not logged)."""
+        i = self._index(address, len(values))
+        self._regs[i : i + len(values)] = [int(v) & 0xFFFF for v in values]
+        async with self._changed:
+            self._changed.notify_all()
+
+    async def wait_until(self, address: int, value: int, timeout_s: float) -> None:
+        """Wait until register ``address`` holds ``value``; ``TimeoutError`` otherwise."""
+        i = self._index(address, 1)
+        async with asyncio.timeout(timeout_s), self._changed:
+            await self._changed.wait_for(lambda: self._regs[i] == value)
+
+    def _index(self, address: int, count: int) -> int:
+        if address < self.first or address + count > self.first + self.count:
+            last = self.first + self.count - 1
+            raise ValueError(
+                f"registers {address}..{address + count - 1} outside the robot's"
+                f" {self.first}..{last}"
+            )
+        return address - self.first
+
+    # -- simulated robot program -------------------------------------------------------------
+
+    async def run_job(
+        self, trigger_address: int, ack_address: int, seq: int, timeout_s: float,
+        trigger_words: Sequence[int] = (),
+    ) -> JobSeen:
+        """One cycle of the robot program: trigger with ``seq``, wait for the ack, read.
+
+        ``trigger_words`` (e.g. a command) are written right after the trigger register before
+        the sequence itself, as a robot program sets parameters before raising the request.
+        """
+        start = len(self.writes)
+        if trigger_words:
+            await self.write(trigger_address + 1, trigger_words)
+        await self.write(trigger_address, [seq])
+        await self.wait_until(ack_address, seq & 0xFFFF, timeout_s)
+        self.jobs_done += 1
+        return JobSeen(seq, tuple(self._regs), tuple(self.writes[start:]))
+
+    def start_program(
+        self, trigger_address: int, ack_address: int, timeout_s: float, first_seq: int = 1
+    ) -> None:
+        """Run jobs back to back on a task until ``stop_program`` (benchmarks, soak tests)."""
+
+        async def loop() -> None:
+            seq = first_seq
+            while True:
+                await self.run_job(trigger_address, ack_address, seq, timeout_s)
+                seq = seq % 0xFFFF + 1
+
+        self._program = asyncio.create_task(loop(), name="mock robot program")
+
+    async def stop_program(self) -> None:
+        task, self._program = self._program, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    # -- pymodbus hook -----------------------------------------------------------------------
+
+    async def _action(
+        self,
+        function_code: int,
+        start_address: int,
+        address: int,
+        count: int,
+        current_registers: list[int],
+        set_values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        """Called by pymodbus for every valid request; our ``_regs`` is the truth.
+
+        pymodbus reads its own list after this returns, so reads are served by copying our
+        words into it; writes are logged and applied to ours.
+        """
+        self.requests += 1
+        if function_code not in _HOLDING_CODES:
+            return ExcCodes.ILLEGAL_ADDRESS  # only holding registers exist
+        if self.mode is RobotMode.SILENT:
+            await self._release_silent.wait()
+            return ExcCodes.DEVICE_BUSY
+        if self.mode is RobotMode.REFUSE:
+            return self.refuse_code
+        base = self.first - start_address
+        if function_code in _WRITE_CODES and set_values is not None:
+            words = tuple(int(v) for v in set_values)
+            self.writes.append(RegisterWrite(address, words))
+            i = address - self.first
+            self._regs[i : i + len(words)] = list(words)
+            async with self._changed:
+                self._changed.notify_all()
+        current_registers[base : base + self.count] = self._regs
+        return None
