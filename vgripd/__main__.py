@@ -24,6 +24,9 @@ EXIT_CONFIG = 78
 # command name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "convert": ("vgripd.cli.convert", "convert a pose between robot vendor conventions"),
+    "run": ("vgripd.cli.run", "run the service until SIGTERM (what systemd starts)"),
+    "check": ("vgripd.cli.check", "validate a config file without starting"),
+    "status": ("vgripd.cli.status", "show a running daemon's status"),
 }
 
 

@@ -162,8 +162,9 @@ class Daemon:
         self._executor: ThreadPoolExecutor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_thread = 0
-        self._changed: asyncio.Event | None = None
-        self._stop_requested: asyncio.Event | None = None
+        # asyncio.Event binds to the running loop on first use, not here.
+        self._changed = asyncio.Event()
+        self._stop_requested = asyncio.Event()
         self._tasks: set[asyncio.Task[Any]] = set()
         self._t_start_ns = 0
 
@@ -173,8 +174,6 @@ class Daemon:
         """Open everything; READY=1 once the links serve. Raises (after cleanup) on failure."""
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
-        self._changed = asyncio.Event()
-        self._stop_requested = asyncio.Event()
         self._t_start_ns = time.monotonic_ns()
         self._set_run_state(RunState.STARTING)
         self._executor = ThreadPoolExecutor(1, thread_name_prefix="vgripd-job")
@@ -207,14 +206,12 @@ class Daemon:
         log.info("ready: %s", self.status_line())
 
     def request_stop(self) -> None:
-        """Ask ``serve()`` to stop (signal handlers call this)."""
-        if self._stop_requested is not None:
-            self._stop_requested.set()
+        """Ask ``serve()`` to stop (signal handlers call this; also before start finished)."""
+        self._stop_requested.set()
 
     async def serve(self) -> None:
         """Start, run until ``request_stop()``, then stop cleanly."""
         await self.start()
-        assert self._stop_requested is not None
         try:
             await self._stop_requested.wait()
         finally:
@@ -269,14 +266,12 @@ class Daemon:
         """Wait until ``predicate()`` holds (checked on every state change); TimeoutError."""
         async with asyncio.timeout(timeout_s):
             while not predicate():
-                assert self._changed is not None, "daemon not started"
                 await self._changed.wait()
 
     def _notify_changed(self) -> None:
         # Wake every waiter once, then hand later waiters a fresh event.
-        if self._changed is not None:
-            self._changed.set()
-            self._changed = asyncio.Event()
+        self._changed.set()
+        self._changed = asyncio.Event()
 
     def _set_run_state(self, state: RunState) -> None:
         self.run_state = state

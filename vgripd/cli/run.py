@@ -1,0 +1,36 @@
+"""Run the vgripd service until SIGTERM/SIGINT (what systemd starts)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+
+from vgripd.config import load_config
+from vgripd.daemon import Daemon, configure_logging
+
+DEFAULT_CONFIG = "/etc/vgripd/vgripd.toml"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("-c", "--config", default=DEFAULT_CONFIG,
+                        help=f"TOML config file (default {DEFAULT_CONFIG})")
+
+
+async def serve(daemon: Daemon) -> None:
+    """Serve until a signal; SIGTERM and SIGINT both stop cleanly (job aborted, links closed)."""
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, daemon.request_stop)
+    try:
+        await daemon.serve()
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(sig)
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    configure_logging(config.daemon.log_level)
+    asyncio.run(serve(Daemon(config)))
+    return 0

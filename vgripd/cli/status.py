@@ -1,0 +1,87 @@
+"""Show a running daemon's status: state, last job, links, counters, cycle times."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import urllib.error
+import urllib.request
+from typing import Any
+
+from vgripd.config import load_config
+
+DEFAULT_URL = "http://127.0.0.1:8730/status"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--url", help=f"status endpoint (default {DEFAULT_URL})")
+    where.add_argument("-c", "--config", help="take host and port from this config's [status]")
+    parser.add_argument("--json", action="store_true", help="print the raw JSON")
+    parser.add_argument("--timeout", type=float, default=3.0, help="seconds (default 3)")
+
+
+def _age(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.1f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def format_status(s: dict[str, Any]) -> str:
+    """The status JSON as a few readable lines."""
+    cam = s["camera"]
+    lines = [
+        f"vgripd pid {s['pid']}: {s['run_state']}, job state {s['state']}, "
+        f"up {_age(s['uptime_s'])}",
+        f"camera {cam['type']} ({'open' if cam['open'] else 'NOT OPEN'})"
+        + ("" if s["calibrated"] else ", NOT CALIBRATED"),
+    ]
+    if s["job"]:
+        j = s["job"]
+        lines.append(f"running job {j['id']} (seq {j['seq']} from {j['link']}, "
+                     f"{_age(j['age_s'])})")
+    lj = s["last_job"]
+    if lj:
+        msg = f": {lj['message']}" if lj["message"] else ""
+        lines.append(f"last job {lj['id']}: {lj['status']} ({lj['status_code']}){msg}, "
+                     f"cycle {lj['cycle_ms']:.1f} ms, {_age(lj['age_s'])} ago")
+    else:
+        lines.append("no job yet")
+    lines.append("links:")
+    for link in s["links"]:
+        extra = f", last error: {link['last_error']}" if link["last_error"] else ""
+        lines.append(f"  {link['name']}: {link['state']}"
+                     f"{', peer ' + link['peer'] if link['peer'] else ''}, "
+                     f"reconnects {link['reconnects']}{extra}")
+    if not s["links"]:
+        lines.append("  none")
+    counts = ", ".join(f"{k} {v}" for k, v in sorted(s["counters"].items())) or "none"
+    lines.append(f"counters: {counts}")
+    cyc = s["cycle_ms"]
+    if cyc.get("window"):
+        lines.append(f"cycle time over the last {cyc['window']} jobs: p50 {cyc['p50']:.1f} ms, "
+                     f"p95 {cyc['p95']:.1f} ms, p99 {cyc['p99']:.1f} ms, "
+                     f"max {cyc['max']:.1f} ms")
+    if s["record"]:
+        lines.append(f"recording to {s['record']['folder']} "
+                     f"({s['record']['bytes'] / 1e6:.1f} MB)")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    url = args.url or DEFAULT_URL
+    if args.config:
+        st = load_config(args.config).status
+        url = f"http://{st.host}:{st.port}/status"
+    try:
+        with urllib.request.urlopen(url, timeout=args.timeout) as resp:
+            data = json.loads(resp.read())
+    except (urllib.error.URLError, OSError, ValueError) as err:
+        print(f"vgripd status: cannot read {url}: {err} (is the daemon running?)",
+              file=sys.stderr)
+        return 1
+    print(json.dumps(data, indent=2) if args.json else format_status(data))
+    return 0
