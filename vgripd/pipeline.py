@@ -273,6 +273,12 @@ class Pipeline:
         self.find_left = _Finder(config, self.left.fx)
         self.find_right = _Finder(config, self.right.fx) if self.right is not None else None
 
+    def T_base_camera(self, pair: ImagePair) -> FloatArray:
+        """Pose of the left camera in the base frame when ``pair`` was taken (mm)."""
+        if self.fixed_T_base_camera is not None:
+            return self.fixed_T_base_camera
+        return scene.T_base_camera(self.config, pair.T_base_flange)
+
     # ------------------------------------------------------------------ entry point
     def process(self, pair: ImagePair, job_id: int) -> JobResult:
         """Run one job. Never raises: failures become a status with a message."""
@@ -308,9 +314,7 @@ class Pipeline:
         gray_l = _checked_gray(pair.left, self.left, "left")
         stereo = pair.right is not None and self.rig is not None
         gray_r = _checked_gray(pair.right, self.right, "right") if stereo else None
-        T_base_camera = self.fixed_T_base_camera
-        if T_base_camera is None:
-            T_base_camera = scene.T_base_camera(self.config, pair.T_base_flange)
+        T_base_camera = self.T_base_camera(pair)
         job.lap("checks")
 
         found_l = self.find_left(gray_l)

@@ -1,0 +1,78 @@
+"""Pictures of a job for an operator: where the model landed, what was missing, the pose axes.
+
+Drawn from the JobResult and the calibration only (no second pass of the finders): every model
+feature is projected at the found pose and labelled by name, green when it was used for the
+pose, red when it was missing; the object axes (x red, y green, z blue) are drawn from its
+origin; in the right image, the epipolar line of each used left feature is drawn as a straight
+line in ideal pixels (exact without lens distortion, within a pixel or so with the usual
+distortion near the image centre). Without a pose only the status line is written.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from vgripd.camera_model import CameraModel
+from vgripd.pipeline import Pipeline
+from vgripd.transforms import invert_transform
+from vgripd.types import FloatArray, ImagePair, JobResult
+
+GREEN, RED, BLUE, YELLOW, WHITE = (0, 200, 0), (0, 0, 255), (255, 80, 0), (0, 220, 255), (255,) * 3
+
+
+def _bgr(image: Any) -> np.ndarray:
+    arr = np.asarray(image)
+    return cv2.cvtColor(arr, cv2.COLOR_GRAY2BGR) if arr.ndim == 2 else arr.copy()
+
+
+def _pt(p: FloatArray) -> tuple[int, int]:
+    return int(round(float(p[0]))), int(round(float(p[1])))
+
+
+def _draw_model(img: np.ndarray, cam: CameraModel, T_cam_obj: FloatArray, pipeline: Pipeline,
+                used: set[str], scale: int) -> None:
+    pts = pipeline.model @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    if (pts[:, 2] <= 0).any():
+        return
+    px = cam.project(pts)
+    for name, p in zip(pipeline.names, px, strict=True):
+        colour = GREEN if name in used else RED
+        cv2.circle(img, _pt(p), 6 * scale, colour, scale)
+        cv2.putText(img, name, _pt(p + 8 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.5 * scale, colour,
+                    scale)
+    size = float(np.ptp(pipeline.model, axis=0).max()) / 2.0 or 10.0
+    axes = np.array([[0, 0, 0], [size, 0, 0], [0, size, 0], [0, 0, size]], dtype=np.float64)
+    ends = cam.project(axes @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3])
+    for k, colour in ((1, RED), (2, GREEN), (3, BLUE)):
+        cv2.arrowedLine(img, _pt(ends[0]), _pt(ends[k]), colour, 2 * scale, tipLength=0.1)
+
+
+def annotate(pipeline: Pipeline, pair: ImagePair, result: JobResult) -> list[np.ndarray]:
+    """BGR images (left, and right for a stereo pair) with the job drawn on them."""
+    images = [_bgr(pair.left)] + ([_bgr(pair.right)] if pair.right is not None else [])
+    scale = max(1, images[0].shape[1] // 1200)
+    text = f"{result.status.name} {result.message}"[:120]
+    for img in images:
+        cv2.putText(img, text, (10, 30 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.8 * scale, YELLOW,
+                    2 * scale)
+    if result.T_base_obj is None:
+        return images
+    T_cam_obj = invert_transform(pipeline.T_base_camera(pair)) @ result.T_base_obj
+    used = set(result.features_used)
+    _draw_model(images[0], pipeline.left, T_cam_obj, pipeline, used, scale)
+    rig = pipeline.rig
+    if len(images) == 2 and rig is not None:
+        T_right_obj = rig.T_right_left @ T_cam_obj
+        _draw_model(images[1], rig.right, T_right_obj, pipeline, used, scale)
+        sel = [i for i, n in enumerate(pipeline.names) if n in used]
+        pts = pipeline.model[sel] @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+        if len(sel) and (pts[:, 2] > 0).all():
+            w = images[1].shape[1]
+            for a, b, c in rig.epipolar_lines_right(pipeline.left.project(pts)):
+                if abs(b) > 1e-9:
+                    cv2.line(images[1], (0, int(round(-c / b))), (w, int(round(-(c + a * w) / b))),
+                             WHITE, scale)
+    return images
