@@ -1,0 +1,186 @@
+"""Synthetic camera: rendered marks against OpenCV's projection of the 3D circles."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers.cameras.synthetic import SyntheticCamera
+from vgripd import scene
+from vgripd.config import (
+    Config,
+    DriverSection,
+    IntrinsicsConfig,
+    PoseConfig,
+    config_from_dict,
+)
+from vgripd.errors import CameraError, ConfigError
+from vgripd.registry import CAMERAS, load_class, validate_options
+from vgripd.types import ImagePair
+
+DEMO = config_from_dict({})
+QUIET = {"noise_std": 0, "blur_px": 0}
+
+
+def make_camera(cfg: Config = DEMO, **options: Any) -> SyntheticCamera:
+    cls = load_class(CAMERAS, "camera", "synthetic")
+    section = DriverSection.model_validate({"type": "synthetic", **options})
+    camera = cls(validate_options(cls, section, "camera"), cfg)
+    assert isinstance(camera, SyntheticCamera)
+    return camera
+
+
+async def grab(cfg: Config = DEMO, n: int = 1, **options: Any) -> list[ImagePair]:
+    camera = make_camera(cfg, **options)
+    await camera.open()
+    try:
+        return [await camera.grab(30.0) for _ in range(n)]
+    finally:
+        await camera.close()
+
+
+def opencv_projection(intr: IntrinsicsConfig, T_cam_obj: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    K = np.array([[intr.fx, intr.skew, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1]])
+    rvec = cv2.Rodrigues(T_cam_obj[:3, :3])[0]
+    px, _ = cv2.projectPoints(pts.reshape(-1, 1, 3), rvec, T_cam_obj[:3, 3], K, np.array(intr.dist))
+    return px.reshape(-1, 2)
+
+
+def cameras(pair: ImagePair) -> list[tuple[str, IntrinsicsConfig, np.ndarray, np.ndarray]]:
+    """(side, intrinsics, T_cam_obj, image) for both cameras of the demo rig."""
+    calib = DEMO.calibration
+    assert calib is not None
+    assert calib.right is not None
+    assert pair.right is not None
+    T_rl = scene.T_right_left(DEMO)
+    T_left = pair.truth["T_cam_obj"]
+    return [("left", calib.left, T_left, pair.left),
+            ("right", calib.right, T_rl @ T_left, pair.right)]
+
+
+async def test_rendered_marks_match_the_projected_discs() -> None:
+    (pair,) = await grab(seed=3, **QUIET)
+    theta = np.linspace(0, 2 * np.pi, 4096, endpoint=False)
+    worst_vs_polygon = worst_vs_truth = 0.0
+    for side, intr, T, image in cameras(pair):
+        truth_px = pair.truth[f"pixels_{side}"]
+        for f, truth in zip(DEMO.object.features, truth_px, strict=True):
+            centre = np.array(f.xyz_mm)
+            # Independent oracle: OpenCV projects the 3D rim; polygon moments give its centroid.
+            rim = centre + 5.0 * np.c_[np.cos(theta), np.sin(theta), np.zeros_like(theta)]
+            rim_px = opencv_projection(intr, T, rim)
+            m = cv2.moments(rim_px.astype(np.float32).reshape(-1, 1, 2))
+            oracle = np.array([m["m10"], m["m01"]]) / m["m00"]
+            # The projected 3D centre reported as truth is what OpenCV projects too.
+            np.testing.assert_allclose(truth, opencv_projection(intr, T, centre)[0], atol=1e-6)
+            # Centroid of the rendered darkness over a window around the mark.
+            x0, y0 = np.floor(oracle).astype(int) - 25
+            patch = 190.0 - image[y0:y0 + 51, x0:x0 + 51].astype(float)
+            mp = cv2.moments(patch)
+            rendered = np.array([mp["m10"], mp["m01"]]) / mp["m00"] + (x0, y0)
+            # Area matches too: (190 - 35) grey levels per fully covered pixel.
+            assert abs(mp["m00"] / 155.0 - m["m00"]) < 0.01 * m["m00"]
+            worst_vs_polygon = max(worst_vs_polygon, float(np.abs(rendered - oracle).max()))
+            worst_vs_truth = max(worst_vs_truth, float(np.abs(rendered - truth).max()))
+    print(f"max |rendered - polygon centroid| = {worst_vs_polygon:.4f} px, "
+          f"max |rendered - projected centre| = {worst_vs_truth:.4f} px")
+    assert worst_vs_polygon < 0.01
+    assert worst_vs_truth < 0.03
+
+
+async def test_same_seed_same_frames_other_seed_other_frames() -> None:
+    a = await grab(n=2, seed=7)
+    b = await grab(n=2, seed=7)
+    c = await grab(n=1, seed=8)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.left, y.left)
+        np.testing.assert_array_equal(x.right, y.right)
+        np.testing.assert_array_equal(x.truth["T_base_obj"], y.truth["T_base_obj"])
+    assert not np.array_equal(a[0].truth["T_base_obj"], a[1].truth["T_base_obj"])
+    assert not np.array_equal(a[0].truth["T_base_obj"], c[0].truth["T_base_obj"])
+
+
+async def test_random_poses_stay_within_the_ranges() -> None:
+    ref = scene.T_base_obj_ref(DEMO)
+    centroid = scene.object_points(DEMO).mean(axis=0)
+    for pair in await grab(n=8, seed=11, max_shift_mm=4.0, max_tilt_deg=2.0, black=True):
+        delta = pair.truth["T_base_obj"] @ np.linalg.inv(ref)
+        angle = np.degrees(np.linalg.norm(cv2.Rodrigues(delta[:3, :3])[0]))
+        assert angle <= 2.0 * np.sqrt(3) + 1e-9
+        moved = (pair.truth["T_base_obj"] - ref) @ np.r_[centroid, 1.0]
+        assert np.all(np.abs(moved[:3]) <= 4.0 + 1e-9)
+
+
+async def test_fixed_pose_and_single_camera() -> None:
+    pose = {"translation_mm": [610, 95, 12], "rotvec_rad": [0.02, -0.01, 0.3]}
+    mono = DEMO.model_copy(update={"calibration": DEMO.calibration.model_copy(  # type: ignore[union-attr]
+        update={"right": None, "stereo": None})})
+    (pair,) = await grab(mono, pose=pose, seed=1)
+    assert pair.right is None
+    assert pair.truth["pixels_right"] is None
+    expected = scene.matrix_from_pose(PoseConfig.model_validate(pose))
+    np.testing.assert_allclose(pair.truth["T_base_obj"], expected)
+    assert pair.left.shape == (1024, 1280)
+    assert pair.left.dtype == np.uint8
+
+
+def dark_blobs(image: np.ndarray) -> int:
+    _, mask = cv2.threshold(image, 110, 255, cv2.THRESH_BINARY_INV)
+    n, _ = cv2.connectedComponents(mask)
+    return n - 1
+
+
+async def test_faults() -> None:
+    (clean,) = await grab(seed=5)
+    assert dark_blobs(clean.left) == 6
+    (dropped,) = await grab(seed=5, drop_features=["m2", "m5"])
+    assert dark_blobs(dropped.left) == 4
+    assert dropped.truth["dropped"] == ("m2", "m5")
+    for name in ("m2", "m5"):
+        i = dropped.truth["feature_names"].index(name)
+        u, v = np.rint(dropped.truth["pixels_left"][i]).astype(int)
+        assert dropped.left[v, u] > 150  # background where the mark would be
+    (extra,) = await grab(seed=5, extra_blobs=3)
+    assert dark_blobs(extra.left) == 9
+    assert extra.truth["extra_blobs_px"].shape == (3, 2)
+    (black,) = await grab(seed=5, black=True)
+    assert not black.left.any()
+    assert black.right is not None
+    assert not black.right.any()
+
+
+def test_only_circles_and_known_names() -> None:
+    feats = [{"name": n, "xyz_mm": [i * 20, i * i, 0], "kind": "circle", "diameter_mm": 8}
+             for i, n in enumerate("abc")]
+    tag = {"name": "tag", "xyz_mm": [0, 40, 0], "kind": "aruco", "marker_id": 1, "size_mm": 20}
+    cfg = config_from_dict({"object": {"features": [*feats, tag]}})
+    with pytest.raises(ConfigError, match="object.features.3: .*'tag' is 'aruco'"):
+        make_camera(cfg)
+    with pytest.raises(ConfigError, match=r"drop_features: no such features \['m9'\]"):
+        make_camera(drop_features=["m9"])
+    with pytest.raises(ConfigError, match="camera: blur_px: Input should be less than"):
+        make_camera(blur_px=100)
+
+
+async def test_scene_problems_are_camera_errors() -> None:
+    robot = DEMO.model_copy(update={"calibration": DEMO.calibration.model_copy(  # type: ignore[union-attr]
+        update={"hand_eye": DEMO.calibration.hand_eye.model_copy(  # type: ignore[union-attr]
+            update={"mounting": "robot", "T_base_camera": None,
+                    "T_flange_camera": DEMO.calibration.hand_eye.T_base_camera})})})  # type: ignore[union-attr]
+    camera = make_camera(robot)
+    with pytest.raises(CameraError, match="flange pose"):
+        await camera.open()
+    # With the flange pose given, the camera sits at flange @ T_flange_camera.
+    (pair,) = await grab(robot, seed=2, flange_pose={"translation_mm": [0, 0, 0]})
+    np.testing.assert_array_equal(pair.T_base_flange, np.eye(4))
+    # An object pose behind the camera.
+    camera = make_camera(pose={"translation_mm": [600, 100, 2000]})
+    await camera.open()
+    try:
+        with pytest.raises(CameraError, match="mark 'm1' in camera left: .*not in front"):
+            await camera.grab(10.0)
+    finally:
+        await camera.close()
