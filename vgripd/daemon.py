@@ -184,7 +184,7 @@ class Daemon:
             rec = self.config.record
             if rec.enabled:
                 self.recorder = Recorder(rec.folder, int(rec.max_mb * 1e6),
-                                         self.config.model_dump(mode="json"))
+                                         self.config.model_dump(mode="json", exclude_none=True))
                 self.recorder.start()
                 log.info("recording jobs to %s (max %.0f MB)", rec.folder, rec.max_mb)
             await self._open_camera()

@@ -5,11 +5,12 @@ One folder per job, named so that names sort by time (job ids restart with the d
     <folder>/20261122-044158.123-job000042/
         left.png  right.png   the images as grabbed (right.png only for stereo)
         pair.json             ImagePair source, capture time, meta, T_base_flange, truth
-        config.json           the configuration the job ran with
+        config.toml           the configuration the job ran with (loadable as is)
         result.json           the JobResult
 
 A job folder is written under a ``.partial-`` name and renamed when complete, so a reader
-never sees half a job. ``vgripd replay <job folder>`` reads ``left*``/``right*`` from it.
+never sees half a job. ``vgripd replay -c JOB/config.toml JOB`` reproduces the job offline
+(relative paths in the config, e.g. template images, resolve against the current directory).
 
 Writing runs on the recorder's own single thread, never on the event loop, and never fails a
 job: a full or broken disk is logged once (and once more when it works again).
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import shutil
 import threading
 import time
@@ -82,6 +84,53 @@ def dict_from_result(result: JobResult) -> dict[str, Any]:
     }
 
 
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def _toml_key(key: str) -> str:
+    return key if _BARE_KEY.fullmatch(key) else json.dumps(key)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # JSON string escapes are valid TOML basic-string escapes
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
+    raise TypeError(f"cannot write {type(value).__name__} to TOML")
+
+
+def _is_table_array(value: Any) -> bool:
+    return isinstance(value, list) and bool(value) and all(isinstance(v, dict) for v in value)
+
+
+def toml_from_dict(data: Mapping[str, Any]) -> str:
+    """TOML text for JSON-like data (no None): tables as ``[a.b]``, lists of tables as
+    ``[[a]]`` with inline tables inside. ``tomllib.loads`` gives ``data`` back."""
+    lines: list[str] = []
+
+    def table(d: Mapping[str, Any], path: tuple[str, ...]) -> None:
+        if path:
+            lines.append(f"\n[{'.'.join(map(_toml_key, path))}]")
+        nested = {k: v for k, v in d.items() if isinstance(v, dict) or _is_table_array(v)}
+        lines.extend(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in d.items() if k not in nested)
+        for k, v in nested.items():
+            if isinstance(v, dict):
+                table(v, (*path, k))
+                continue
+            for item in v:
+                lines.append(f"\n[[{'.'.join(map(_toml_key, (*path, k)))}]]")
+                lines.extend(f"{_toml_key(ik)} = {_toml_value(iv)}" for ik, iv in item.items())
+
+    table(data, ())
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
 def _dir_bytes(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
@@ -89,14 +138,15 @@ def _dir_bytes(path: Path) -> int:
 class Recorder:
     """Writes jobs to ``folder`` and keeps it under ``max_bytes`` by deleting the oldest jobs.
 
-    ``config_snapshot`` is the configuration as JSON data, written beside every job so that a
-    recorded job can be reproduced even after the live config changed.
+    ``config_snapshot`` is the configuration as JSON data without None values
+    (``Config.model_dump(mode="json", exclude_none=True)``), written beside every job as TOML
+    so that a recorded job can be reproduced even after the live config changed.
     """
 
     def __init__(self, folder: Path, max_bytes: int, config_snapshot: Mapping[str, Any]) -> None:
         self.folder = folder
         self.max_bytes = max_bytes
-        self._config_json = json.dumps(jsonable(config_snapshot), indent=2)
+        self._config_toml = toml_from_dict(jsonable(config_snapshot))
         self._jobs: OrderedDict[str, int] = OrderedDict()  # name -> bytes, oldest first
         # Kept as a plain int (not summed on demand) so the event loop can read it while the
         # writer thread changes ``_jobs``.
@@ -140,7 +190,7 @@ class Recorder:
                 "truth": jsonable(pair.truth),
             }
             (tmp / "pair.json").write_text(json.dumps(meta, indent=2))
-            (tmp / "config.json").write_text(self._config_json)
+            (tmp / "config.toml").write_text(self._config_toml)
             (tmp / "result.json").write_text(json.dumps(dict_from_result(result), indent=2))
             final = self.folder / name
             tmp.rename(final)

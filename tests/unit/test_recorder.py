@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import json
 import logging
+import tomllib
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from vgripd.recorder import Recorder, dict_from_result
+from vgripd.config import Config, config_from_dict
+from vgripd.recorder import Recorder, dict_from_result, toml_from_dict
 from vgripd.types import ImagePair, JobResult, RobotTarget, Status
 
 
@@ -38,7 +40,7 @@ def test_a_recorded_job_reads_back_identically(tmp_path: Path) -> None:
     folder = rec.write(pair, _ok(7))
     assert folder.name.endswith("-job000007")
     assert sorted(p.name for p in folder.iterdir()) == [
-        "config.json", "left.png", "pair.json", "result.json", "right.png"]
+        "config.toml", "left.png", "pair.json", "result.json", "right.png"]
     assert np.array_equal(cv2.imread(str(folder / "left.png"), cv2.IMREAD_UNCHANGED), pair.left)
     assert np.array_equal(cv2.imread(str(folder / "right.png"), cv2.IMREAD_UNCHANGED), pair.right)
     meta = json.loads((folder / "pair.json").read_text())
@@ -49,7 +51,19 @@ def test_a_recorded_job_reads_back_identically(tmp_path: Path) -> None:
     assert result["status_code"] == 1
     assert result["target"]["fields"] == ["X", "Y", "Z", "A", "B", "C"]
     assert result["residuals"] == {"epipolar_px": 0.25}
-    assert json.loads((folder / "config.json").read_text()) == {"daemon": {"job_timeout_s": 10.0}}
+    assert tomllib.loads((folder / "config.toml").read_text()) == {"daemon": {"job_timeout_s": 10.0}}
+
+
+def test_config_snapshot_toml_loads_back_to_the_same_config() -> None:
+    links = [{"type": "modbus_server", "host": "127.0.0.1", "port": 1502},
+             {"type": "ur_rtde", "host": "ur \"cell\" 3", "upper": True}]
+    config = config_from_dict({"links": links, "record": {"enabled": True, "max_mb": 1.5}})
+    data = config.model_dump(mode="json", exclude_none=True)
+    text = toml_from_dict(data)
+    assert tomllib.loads(text) == data
+    again = config_from_dict(tomllib.loads(text))
+    assert again == config
+    assert again != Config()
 
 
 def test_single_camera_job_has_no_right_image(tmp_path: Path) -> None:
