@@ -1,24 +1,66 @@
-"""The robot-link contract, with no I/O.
+"""The robot-link contract and the register map of register-based links, with no I/O.
 
 Every link driver (``drivers/links/*``) implements ``RobotLink``; the daemon talks to links only
 through it. A link turns its peer's trigger into a ``Trigger`` and hands it to the daemon's
 handler; the daemon answers through ``image_captured`` and ``publish``.
 
-Publishing rule for register-based links: all result data first, the acknowledged sequence last,
-so a poller never sees a new sequence with old or partial data.
+Register map (Modbus holding registers, 16-bit words, zero-based addresses; ``docs/registers.md``
+has the integrator's version). Only the command area (0-2) is writable; everything else is written
+by vgripd. 32-bit items (u32, int32, float32) take two words in the configured word order:
+``ABCD`` = high word first (default), ``CDAB`` = low word first. Bytes inside a word are always
+big-endian (Modbus).
+
+====  =============  ====  ======  =================================================================
+addr  name           R/W   type    meaning
+====  =============  ====  ======  =================================================================
+   0  CMD            RW    u16     command: 1 TRIGGER (run a job), 2 CLEAR (reset the result area)
+   1  REQ_SEQ        RW    u16     request sequence: a request is a write that changes it to a
+                                   non-zero value (edge on the sequence, not on the level)
+   2  RECIPE         RW    u16     job parameter handed to the daemon with the trigger
+   3  MAP_VERSION    R     u16     1
+   4  CHECK_U16      R     u16     0x1234
+   5  CHECK_U32      R     u32     0x12345678 in the configured word order
+   7  CHECK_F32      R     f32     123.456 in the configured word order
+   9  VALUE_FORMAT   R     u16     1 = float32 values, 2 = int32 values scaled by VALUE_SCALE
+  10  VALUE_SCALE    R     u32     int32 mode: raw = round(value * scale); 0 in float32 mode
+  12  HEARTBEAT      R     u16     +1 every ``heartbeat_ms`` while the link is healthy (wraps)
+  13  STATE          R     u16     0 IDLE, 1 TRIGGERED, 2 BUSY (image captured), 3 DONE
+  14  CAPTURED_SEQ   R     u16     request whose image is taken: the robot may move on
+  15  REJECT_SEQ     R     u16     last refused request (written after REJECT_CODE)
+  16  REJECT_CODE    R     u16     why it was refused: 40 BUSY, 32 BAD_REQUEST
+  17  ACK_SEQ        R     u16     request whose result is in 18-39; 0 = no result. Written LAST
+  18  STATUS         R     u16     ``vgripd.types.Status`` of that result
+  19  JOB_ID         R     u32     daemon job id (set at image capture, again at publish)
+  21  RESULT_AGE_MS  R     u32     ms since the result was produced, live; 0xFFFFFFFF = none
+  23  N_VALUES       R     u16     number of valid pose values: 0, 6 (XYZ + 3 angles) or 7 (XYZ+q)
+  24  VALUES         R     7x32    pose in the output vendor's convention and units
+  38  FIT_RMS        R     32      fit residual in mm (VALUE_FORMAT encoding); -1 = unknown
+====  =============  ====  ======  =================================================================
+
+Handshake: a request is answered exactly once, either by ``ACK_SEQ == seq`` (the job ran or
+the result area was cleared; ``STATUS`` tells the outcome) or by ``REJECT_SEQ == seq`` (refused,
+``REJECT_CODE`` says why, nothing else changed: a running job keeps going and its result is later
+acknowledged under its own sequence).
+
+Ordering, so that a poller never pairs an acknowledged sequence with data of another request:
+a publish writes all data first and ``ACK_SEQ`` last; a new job retracts ``ACK_SEQ`` (0) first and
+only then clears the data. Servers apply each list of block writes without yielding to readers.
 """
 
 from __future__ import annotations
 
 import enum
+import math
+import struct
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict, Field
 
-from vgripd.types import FloatArray, JobResult
+from vgripd.errors import LinkError
+from vgripd.types import FloatArray, JobResult, Status
 
 
 class LinkState(enum.Enum):
@@ -31,11 +73,14 @@ class LinkState(enum.Enum):
 
 @dataclass(frozen=True)
 class LinkHealth:
+    """``peers``: connected clients for server links (0 when not applicable)."""
+
     state: LinkState
     peer: str = ""
     last_error: str = ""
     reconnects: int = 0
     since_mono_ns: int = 0
+    peers: int = 0
 
 
 @dataclass(frozen=True)
@@ -43,7 +88,7 @@ class Trigger:
     """A request from the robot side. ``seq`` is the peer's request sequence number.
 
     ``T_base_flange`` is the robot's flange/TCP pose at trigger time (mm) when the link can read
-    it (RTDE), for robot-mounted cameras.
+    it (RTDE), for robot-mounted cameras. ``recipe`` is the peer's job parameter (0 = default).
     """
 
     link: str
@@ -51,6 +96,7 @@ class Trigger:
     command: int
     t_mono_ns: int
     T_base_flange: FloatArray | None = None
+    recipe: int = 0
 
 
 TriggerHandler = Callable[[Trigger], None]
@@ -83,3 +129,373 @@ class RobotLink(ABC):
     @abstractmethod
     async def publish(self, seq: int, result: JobResult) -> None:
         """Publish a finished job atomically (data first, acknowledged sequence last)."""
+
+
+# --- register map -------------------------------------------------------------------------
+
+
+class Reg(enum.IntEnum):
+    """Start address of each register (see the module docstring for types and meaning)."""
+
+    CMD = 0
+    REQ_SEQ = 1
+    RECIPE = 2
+    MAP_VERSION = 3
+    CHECK_U16 = 4
+    CHECK_U32 = 5
+    CHECK_F32 = 7
+    VALUE_FORMAT = 9
+    VALUE_SCALE = 10
+    HEARTBEAT = 12
+    STATE = 13
+    CAPTURED_SEQ = 14
+    REJECT_SEQ = 15
+    REJECT_CODE = 16
+    ACK_SEQ = 17
+    STATUS = 18
+    JOB_ID = 19
+    RESULT_AGE_MS = 21
+    N_VALUES = 23
+    VALUES = 24
+    FIT_RMS = 38
+
+
+MAP_VERSION = 1
+MAP_SIZE = 40
+MAX_VALUES = 7  # ABB/quaternion conventions: XYZ + 4; the others use 6
+COMMAND_AREA = range(Reg.CMD, Reg.RECIPE + 1)
+CHECK_U16 = 0x1234
+CHECK_U32 = 0x12345678
+CHECK_F32 = 123.456
+NO_AGE = 0xFFFFFFFF
+FIT_RMS_KEY = "fit_rms_mm"  # the JobResult.residuals entry shown in FIT_RMS
+
+
+class Command(enum.IntEnum):
+    TRIGGER = 1
+    CLEAR = 2
+
+
+class HandshakeState(enum.IntEnum):
+    IDLE = 0
+    TRIGGERED = 1  # request accepted, waiting for the image
+    BUSY = 2  # image captured, processing
+    DONE = 3  # result acknowledged
+
+
+WordOrder = Literal["ABCD", "CDAB"]
+ValueFormat = Literal["float32", "int32"]
+
+
+class RegisterOptions(BaseModel):
+    """Options every register-based link shares (a link's ``Options`` extends this model).
+
+    ``word_order``: ``ABCD`` high word first (Siemens, most PLCs), ``CDAB`` low word first.
+    ``value_format``: ``int32`` for PLCs without floats; raw = round(value * ``scale``).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    word_order: WordOrder = "ABCD"
+    value_format: ValueFormat = "float32"
+    scale: int = Field(10000, ge=1, le=1_000_000)
+    heartbeat_ms: int = Field(500, ge=100, le=1000)
+
+
+class RegisterAccessError(LinkError):
+    """A peer addressed registers that do not exist or may not be written."""
+
+
+class RegisterOverflowError(LinkError):
+    """A value cannot be represented in the configured register format."""
+
+
+@dataclass(frozen=True)
+class BlockWrite:
+    """``words`` written at ``address`` in one step."""
+
+    address: int
+    words: tuple[int, ...]
+
+
+class ValueCodec:
+    """Encodes 32-bit items into two words in the configured word order (and back, for tests
+    and the mock PLC's own cross-checks)."""
+
+    def __init__(self, word_order: WordOrder = "ABCD", value_format: ValueFormat = "float32",
+                 scale: int = 10000) -> None:
+        self.word_order = word_order
+        self.value_format = value_format
+        self.scale = scale
+
+    def _words(self, raw: bytes) -> tuple[int, int]:
+        hi, lo = struct.unpack(">HH", raw)
+        return (hi, lo) if self.word_order == "ABCD" else (lo, hi)
+
+    def _bytes(self, words: Sequence[int]) -> bytes:
+        first, second = words
+        hi, lo = (first, second) if self.word_order == "ABCD" else (second, first)
+        return struct.pack(">HH", hi, lo)
+
+    def u32(self, value: int) -> tuple[int, int]:
+        return self._words(struct.pack(">I", value))
+
+    def f32(self, value: float, where: str = "value") -> tuple[int, int]:
+        if not math.isfinite(value):
+            raise RegisterOverflowError(f"{where}: {value} is not a finite number")
+        try:
+            raw = struct.pack(">f", value)
+        except OverflowError:
+            raise RegisterOverflowError(f"{where}: {value} exceeds the float32 range") from None
+        return self._words(raw)
+
+    def i32_scaled(self, value: float, where: str = "value") -> tuple[int, int]:
+        if not math.isfinite(value):
+            raise RegisterOverflowError(f"{where}: {value} is not a finite number")
+        raw = round(value * self.scale)
+        if not -(2**31) <= raw < 2**31:
+            raise RegisterOverflowError(
+                f"{where}: {value} x {self.scale} = {raw} does not fit an int32"
+            )
+        return self._words(struct.pack(">i", raw))
+
+    def value(self, value: float, where: str = "value") -> tuple[int, int]:
+        """A pose/residual value in the configured ``value_format``."""
+        if self.value_format == "float32":
+            return self.f32(value, where)
+        return self.i32_scaled(value, where)
+
+    def decode_u32(self, words: Sequence[int]) -> int:
+        result: int = struct.unpack(">I", self._bytes(words))[0]
+        return result
+
+    def decode_value(self, words: Sequence[int]) -> float:
+        if self.value_format == "float32":
+            result: float = struct.unpack(">f", self._bytes(words))[0]
+            return result
+        raw: int = struct.unpack(">i", self._bytes(words))[0]
+        return raw / self.scale
+
+
+class RegisterImage:
+    """The word block a register server serves. Every change goes through ``apply``.
+
+    ``journal``: when a list is given, every applied ``BlockWrite`` is appended to it (tests
+    check the ordering rules with it).
+    """
+
+    def __init__(self, codec: ValueCodec, journal: list[BlockWrite] | None = None) -> None:
+        self.codec = codec
+        self.words = [0] * MAP_SIZE
+        self.journal = journal
+        self._t_result_ns: int | None = None
+        fmt = 1 if codec.value_format == "float32" else 2
+        scale = 0 if codec.value_format == "float32" else codec.scale
+        self.apply([
+            BlockWrite(Reg.MAP_VERSION, (MAP_VERSION, CHECK_U16, *codec.u32(CHECK_U32),
+                                         *codec.f32(CHECK_F32), fmt, *codec.u32(scale))),
+            BlockWrite(Reg.RESULT_AGE_MS, codec.u32(NO_AGE)),
+        ])
+
+    def apply(self, writes: Sequence[BlockWrite]) -> None:
+        for write in writes:
+            end = write.address + len(write.words)
+            if not (0 <= write.address < end <= MAP_SIZE):
+                raise RegisterAccessError(f"block write {write.address}..{end - 1} outside the map")
+            self.words[write.address:end] = write.words
+            if self.journal is not None:
+                self.journal.append(write)
+
+    def read(self, address: int, count: int, now_ns: int) -> list[int]:
+        """Words ``address .. address+count-1``, with ``RESULT_AGE_MS`` brought up to ``now_ns``."""
+        if count < 1 or address < 0 or address + count > MAP_SIZE:
+            raise RegisterAccessError(
+                f"read of {count} registers at {address} outside 0..{MAP_SIZE - 1}"
+            )
+        if self._t_result_ns is not None:
+            age_ms = min((now_ns - self._t_result_ns) // 1_000_000, NO_AGE - 1)
+            self.words[Reg.RESULT_AGE_MS:Reg.RESULT_AGE_MS + 2] = self.codec.u32(max(age_ms, 0))
+        return self.words[address:address + count]
+
+    def set_result_time(self, t_ns: int | None) -> None:
+        """Start (or with None, stop) the live ``RESULT_AGE_MS`` clock."""
+        self._t_result_ns = t_ns
+
+    def result_words(self, result: JobResult) -> tuple[int, ...]:
+        """``STATUS .. FIT_RMS`` for ``result``; raises ``RegisterOverflowError`` when a value
+        does not fit (the caller then publishes a failure, never a wrapped number)."""
+        values: tuple[float, ...] = ()
+        if result.status.pose_valid and result.target is not None:
+            values = result.target.values
+            if len(values) > MAX_VALUES:
+                raise RegisterOverflowError(
+                    f"{len(values)} pose values do not fit the {MAX_VALUES} VALUES registers"
+                )
+        value_words: list[int] = []
+        for i, v in enumerate(values):
+            value_words += self.codec.value(v, f"register {Reg.VALUES + 2 * i} (VALUES[{i}])")
+        value_words += [0] * (2 * MAX_VALUES - len(value_words))
+        rms = result.residuals.get(FIT_RMS_KEY, -1.0)
+        return (
+            int(result.status),
+            *self.codec.u32(result.job_id & 0xFFFFFFFF),
+            *self.codec.u32(0),  # RESULT_AGE_MS: restarted by set_result_time
+            len(values),
+            *value_words,
+            *self.codec.value(rms, f"register {Reg.FIT_RMS} (FIT_RMS)"),
+        )
+
+    def empty_result_words(self) -> tuple[int, ...]:
+        """``STATUS .. FIT_RMS`` meaning "no result"."""
+        return (int(Status.IDLE), 0, 0, *self.codec.u32(NO_AGE), 0,
+                *([0] * (MAP_SIZE - Reg.VALUES)))
+
+
+class Action(enum.Enum):
+    IGNORE = "ignore"  # not a new request
+    START = "start"  # run a job: hand a Trigger to the daemon
+    CLEAR = "clear"  # reset the result area and acknowledge
+    REJECT = "reject"  # refused: REJECT_SEQ / REJECT_CODE
+
+
+@dataclass(frozen=True)
+class Decision:
+    action: Action
+    seq: int = 0
+    command: int = 0
+    recipe: int = 0
+    code: Status = Status.IDLE
+
+
+class Handshake:
+    """What a write of the command area means: idle -> triggered -> busy -> done -> ...
+
+    A request is a change of the request sequence to a non-zero value. 0 is the power-on value
+    and never a request: a restarted PLC may write 0 and then start again at 1.
+    """
+
+    def __init__(self) -> None:
+        self.state = HandshakeState.IDLE
+        self.running_seq = 0
+        self.last_req_seq = 0
+
+    @property
+    def busy(self) -> bool:
+        return self.state in (HandshakeState.TRIGGERED, HandshakeState.BUSY)
+
+    def on_request(self, command: int, seq: int, recipe: int = 0) -> Decision:
+        if seq == self.last_req_seq:
+            return Decision(Action.IGNORE, seq)
+        self.last_req_seq = seq
+        if seq == 0:
+            return Decision(Action.IGNORE, seq)
+        if command not in (Command.TRIGGER, Command.CLEAR):
+            return Decision(Action.REJECT, seq, command, recipe, Status.BAD_REQUEST)
+        if self.busy:
+            return Decision(Action.REJECT, seq, command, recipe, Status.BUSY)
+        if command == Command.CLEAR:
+            self.state = HandshakeState.IDLE
+            return Decision(Action.CLEAR, seq, command, recipe)
+        self.state = HandshakeState.TRIGGERED
+        self.running_seq = seq
+        return Decision(Action.START, seq, command, recipe)
+
+    def on_captured(self, seq: int) -> None:
+        self.check_running(seq, "image_captured")
+        self.state = HandshakeState.BUSY
+
+    def on_published(self, seq: int) -> None:
+        self.check_running(seq, "publish")
+        self.state = HandshakeState.DONE
+
+    def check_running(self, seq: int, what: str) -> None:
+        if not self.busy or seq != self.running_seq:
+            running = self.running_seq if self.busy else "none"
+            raise LinkError(f"{what} for request {seq}, but the running request is {running}")
+
+
+class RegisterBank:
+    """Register image + handshake: everything a register server link does except the I/O.
+
+    Each method changes the image in one call (no awaits in between), so a server that calls
+    it on its event loop is atomic with respect to the read requests it serves on that loop.
+    """
+
+    def __init__(self, codec: ValueCodec, journal: list[BlockWrite] | None = None) -> None:
+        self.image = RegisterImage(codec, journal)
+        self.handshake = Handshake()
+        self._heartbeat = 0
+
+    def read(self, address: int, count: int, now_ns: int) -> list[int]:
+        return self.image.read(address, count, now_ns)
+
+    def write(self, address: int, values: Sequence[int]) -> Decision:
+        """A peer's write. Only the command area is writable; raises ``RegisterAccessError``."""
+        end = address + len(values)
+        if not values or address < COMMAND_AREA.start or end > COMMAND_AREA.stop:
+            raise RegisterAccessError(
+                f"write of {len(values)} registers at {address}: only "
+                f"{COMMAND_AREA.start}..{COMMAND_AREA.stop - 1} (command area) are writable"
+            )
+        if any(not 0 <= v <= 0xFFFF for v in values):
+            raise RegisterAccessError(f"write at {address}: values must be 0..65535")
+        self.image.apply([BlockWrite(address, tuple(values))])
+        if not address <= Reg.REQ_SEQ < end:
+            return Decision(Action.IGNORE)
+        w = self.image.words
+        decision = self.handshake.on_request(w[Reg.CMD], w[Reg.REQ_SEQ], w[Reg.RECIPE])
+        if decision.action is Action.START:
+            self.image.apply([
+                BlockWrite(Reg.ACK_SEQ, (0,)),  # retract first: cleared data is nobody's result
+                BlockWrite(Reg.STATUS, self.image.empty_result_words()),
+                BlockWrite(Reg.STATE, (HandshakeState.TRIGGERED,)),
+            ])
+            self.image.set_result_time(None)
+        elif decision.action is Action.CLEAR:
+            self.image.apply([
+                BlockWrite(Reg.STATUS, self.image.empty_result_words()),
+                BlockWrite(Reg.STATE, (HandshakeState.IDLE,)),
+                BlockWrite(Reg.ACK_SEQ, (decision.seq,)),
+            ])
+            self.image.set_result_time(None)
+        elif decision.action is Action.REJECT:
+            self.image.apply([
+                BlockWrite(Reg.REJECT_CODE, (int(decision.code),)),
+                BlockWrite(Reg.REJECT_SEQ, (decision.seq,)),
+            ])
+        return decision
+
+    def captured(self, seq: int, job_id: int) -> None:
+        self.handshake.on_captured(seq)
+        self.image.apply([
+            BlockWrite(Reg.JOB_ID, self.image.codec.u32(job_id & 0xFFFFFFFF)),
+            BlockWrite(Reg.STATE, (HandshakeState.BUSY,)),
+            BlockWrite(Reg.CAPTURED_SEQ, (seq,)),
+        ])
+
+    def publish(self, seq: int, result: JobResult, now_ns: int) -> Status:
+        """Publish ``result`` for request ``seq``: data, then ``STATE``, then ``ACK_SEQ``.
+
+        A value that does not fit the register format turns the result into ``OUT_OF_LIMITS``
+        without a pose. Returns the status actually published.
+        """
+        self.handshake.check_running(seq, "publish")
+        try:
+            words = self.image.result_words(result)
+        except RegisterOverflowError as err:
+            result = JobResult(job_id=result.job_id, status=Status.OUT_OF_LIMITS,
+                               message=str(err))
+            words = self.image.result_words(result)
+        self.handshake.on_published(seq)
+        self.image.apply([
+            BlockWrite(Reg.STATUS, words),
+            BlockWrite(Reg.STATE, (HandshakeState.DONE,)),
+            BlockWrite(Reg.ACK_SEQ, (seq,)),
+        ])
+        self.image.set_result_time(result.t_done_mono_ns or now_ns)
+        return result.status
+
+    def beat(self) -> int:
+        self._heartbeat = (self._heartbeat + 1) & 0xFFFF
+        self.image.apply([BlockWrite(Reg.HEARTBEAT, (self._heartbeat,))])
+        return self._heartbeat
