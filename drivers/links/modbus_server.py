@@ -191,7 +191,8 @@ class RegisterServerLink(RobotLink):
     def dispatch(self, seq: int, command: int, recipe: int) -> None:
         """Hand a new job to the daemon, outside the Modbus request that triggered it (an error
         in the handler must not become a Modbus exception response)."""
-        assert self._loop is not None and self._on_trigger is not None
+        assert self._loop is not None
+        assert self._on_trigger is not None
         trigger = Trigger(link=self.name, seq=seq, command=command,
                           t_mono_ns=time.monotonic_ns(), recipe=recipe)
         self._loop.call_soon(self._on_trigger, trigger)
@@ -210,7 +211,7 @@ class RegisterServerLink(RobotLink):
             self._last_error = error
 
 
-class Options(RegisterOptions):
+class TcpOptions(RegisterOptions):
     """``host``/``port``: where to listen (port 0 = any free port, see ``ModbusServerLink.port``).
     ``unit_id``: answer only this unit id (None = any; most Modbus/TCP clients send 1 or 255)."""
 
@@ -220,8 +221,8 @@ class Options(RegisterOptions):
 
 
 class ModbusServerLink(RegisterServerLink):
-    Options = Options
-    options: Options
+    Options = TcpOptions
+    options: TcpOptions
 
     @property
     def port(self) -> int:
