@@ -162,15 +162,18 @@ def _refine_centre(
     """Sub-pixel centre, equivalent diameter (px) and contrast of one mark near (cx, cy).
 
     In a window of radius 0.75*d + 3 px, each pixel's weight is its "mark fraction"
-    (background - I) / (background - mark), clipped to [0, 1]: 1 inside the mark, 0 on the
-    background, partial on the blurred rim. The background is the median of the window's
-    corners, the mark level a low percentile inside. Two passes re-centre the window.
+    (I/B - 1) / (k - 1), clipped to [0, 1]: 1 inside the mark, 0 on the background, partial on
+    the blurred rim. B is a plane fitted to the window's corners (uneven light is a gradient at
+    this scale; a constant level would pull the centre towards the darker side) and k the
+    median ratio I/B in the mark's core: light multiplies mark and background alike, so the
+    ratio, unlike a difference, is the same all over the mark. Two passes re-centre the window.
+    The contrast returned is |B (k - 1)| in grey levels.
     Returns None when the window leaves the image or the mark has no contrast.
     """
     h, w = gray.shape
     radius = 0.75 * d_px + 3.0
     half = int(np.ceil(radius)) + 2
-    sign = 1.0 if polarity == "dark" else -1.0
+    sign = -1.0 if polarity == "dark" else 1.0
     area_px = 0.0
     contrast = 0.0
     for _ in range(2):
@@ -178,25 +181,44 @@ def _refine_centre(
         x0, y0, x1, y1 = ix - half, iy - half, ix + half + 1, iy + half + 1
         if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
             return None
-        roi = gray[y0:y1, x0:x1].astype(np.float32) * sign
+        roi = gray[y0:y1, x0:x1].astype(np.float32)
         yy, xx = np.mgrid[y0:y1, x0:x1].astype(np.float32)
         r2 = (xx - cx) ** 2 + (yy - cy) ** 2
         inside = r2 <= radius**2
         outside = ~inside
         if not outside.any():
             return None
-        background = float(np.median(roi[outside]))
-        mark = float(np.percentile(roi[r2 <= (0.3 * d_px) ** 2 + 1.0], 20))
-        contrast = background - mark
+        background = np.maximum(_background_plane(roi, xx - cx, yy - cy, outside), 1.0)
+        ratio = roi / background
+        k = float(np.median(ratio[r2 <= (0.3 * d_px) ** 2 + 1.0]))
+        contrast = float(np.median(background)) * (k - 1.0) * sign
         if contrast <= 0:
             return None
-        weight = np.clip((background - roi) / contrast, 0.0, 1.0) * inside
+        weight = np.clip((ratio - 1.0) / (k - 1.0), 0.0, 1.0) * inside
         area_px = float(weight.sum())
         if area_px <= 0:
             return None
         cx = float((weight * xx).sum() / area_px)
         cy = float((weight * yy).sum() / area_px)
     return (cx, cy), 2.0 * float(np.sqrt(area_px / np.pi)), contrast
+
+
+def _background_plane(
+    roi: npt.NDArray[np.float32], dx: npt.NDArray[np.float32], dy: npt.NDArray[np.float32],
+    mask: npt.NDArray[np.bool_],
+) -> npt.NDArray[np.float32]:
+    """Least-squares plane a + b*dx + c*dy through ``roi[mask]``, refitted once without the
+    pixels more than 3 robust sigmas off (a neighbouring mark in the corner), evaluated
+    everywhere."""
+    A = np.stack([np.ones(int(mask.sum()), np.float32), dx[mask], dy[mask]], axis=1)
+    z = roi[mask]
+    coef = np.linalg.lstsq(A, z, rcond=None)[0]
+    res = z - A @ coef
+    mad = float(np.median(np.abs(res))) + 1e-3
+    good = np.abs(res) < 4.5 * mad
+    if good.sum() >= 3:
+        coef = np.linalg.lstsq(A[good], z[good], rcond=None)[0]
+    return np.asarray(coef[0] + coef[1] * dx + coef[2] * dy, dtype=np.float32)
 
 
 # --------------------------------------------------------------------------- aruco

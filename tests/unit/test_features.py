@@ -1,0 +1,190 @@
+"""Feature finders and correspondence against rendered ground truth.
+
+Marks are rendered by supersampling (area coverage of a disc per pixel, 8x8 samples), then
+blurred (Gaussian, sigma 1.2 px), lit unevenly (a 0.6..1.0 ramp across the image) and given
+Gaussian noise (sigma 3 grey levels), so the true centre is known to about 0.01 px.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from vgripd import features as ft
+
+SS = 8  # supersampling factor of the renderer
+
+
+def render_discs(shape, discs, polarity="dark", noise=3.0, blur=1.2, seed=0):
+    """Grey image with discs (cx, cy, r) in px; returns uint8 image."""
+    h, w = shape
+    rng = np.random.default_rng(seed)
+    fg, bg = (50.0, 200.0) if polarity == "dark" else (230.0, 80.0)
+    img = np.full((h, w), bg)
+    for cx, cy, r in discs:
+        x0, y0 = int(cx - r - 2), int(cy - r - 2)
+        x1, y1 = int(cx + r + 3), int(cy + r + 3)
+        sy, sx = np.mgrid[y0 * SS : y1 * SS, x0 * SS : x1 * SS]
+        inside = ((sx + 0.5) / SS - 0.5 - cx) ** 2 + ((sy + 0.5) / SS - 0.5 - cy) ** 2 <= r * r
+        cover = inside.reshape(y1 - y0, SS, x1 - x0, SS).mean(axis=(1, 3))
+        img[y0:y1, x0:x1] = img[y0:y1, x0:x1] * (1 - cover) + fg * cover
+    img *= np.linspace(0.6, 1.0, w)[None, :]
+    img = cv2.GaussianBlur(img, (0, 0), blur) + rng.normal(0.0, noise, img.shape)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def random_discs(rng, n, shape, r_range=(6.0, 16.0)):
+    h, w = shape
+    discs: list[tuple[float, float, float]] = []
+    while len(discs) < n:
+        c = (rng.uniform(60, w - 60), rng.uniform(60, h - 60), rng.uniform(*r_range))
+        if all(np.hypot(c[0] - d[0], c[1] - d[1]) > 4 * max(c[2], d[2]) for d in discs):
+            discs.append(c)
+    return discs
+
+
+def nearest_errors(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    d = np.linalg.norm(found[:, None, :] - truth[None, :, :2], axis=2)
+    return d.min(axis=0)
+
+
+@pytest.mark.parametrize("polarity", ["dark", "bright"])
+@pytest.mark.parametrize("downscale", [1, 2, 4])
+def test_circle_centres_subpixel(polarity, downscale):
+    rng = np.random.default_rng(7)
+    shape = (600, 800)
+    discs = random_discs(rng, 10, shape)
+    img = render_discs(shape, discs, polarity=polarity, seed=downscale)
+    spec = ft.CircleSpec(polarity=polarity, min_diameter_px=10, max_diameter_px=36,
+                         downscale=downscale)
+    blobs = ft.find_circles(img, spec)
+    truth = np.array(discs)
+    assert len(blobs) == len(discs)
+    # Centroid noise: sigma_I / contrast * sqrt(sum r^2 over the window) / area, about 0.02 px
+    # here; the bound is 5x that.
+    assert nearest_errors(blobs.xy, truth).max() < 0.1
+    # Equivalent diameter from the mark fraction: within a pixel of the truth.
+    d_err = np.abs(np.sort(blobs.diameter_px) - np.sort(2 * truth[:, 2]))
+    assert d_err.max() < 1.0
+
+
+def test_circle_filters_size_shape_border_and_polarity():
+    shape = (400, 600)
+    img = render_discs(shape, [(100.5, 100.25, 10.0), (300.0, 200.0, 3.0), (500.0, 200.0, 40.0)])
+    cv2.rectangle(img, (200, 300), (320, 312), 50, -1)  # a bar: not circular
+    cv2.circle(img, (3, 200), 10, 50, -1)  # cut by the left border
+    spec = ft.CircleSpec(min_diameter_px=12, max_diameter_px=40, downscale=2)
+    blobs = ft.find_circles(img, spec)
+    assert blobs.xy.shape == (1, 2)
+    np.testing.assert_allclose(blobs.xy[0], (100.5, 100.25), atol=0.1)
+    bright = ft.find_circles(img, ft.CircleSpec(polarity="bright", min_diameter_px=12,
+                                                max_diameter_px=40))
+    assert len(bright) == 0
+
+
+def test_gray_from_image_rejects_bad_arrays():
+    assert ft.gray_from_image(np.zeros((4, 5, 3), np.uint8)).shape == (4, 5)
+    with pytest.raises(ValueError, match="dtype"):
+        ft.gray_from_image(np.zeros((4, 5), np.uint16))
+    with pytest.raises(ValueError, match="shape"):
+        ft.gray_from_image(np.zeros((4, 5, 4), np.uint8))
+
+
+def test_aruco_centre_is_projected_square_centre():
+    # A marker warped by a perspective homography: its centre must be H applied to the centre
+    # of the square, which differs from the mean of the corners.
+    side = 200
+    marker = cv2.aruco.generateImageMarker(
+        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), 7, side)
+    canvas = np.full((side + 80, side + 80), 255, np.uint8)
+    canvas[40:40 + side, 40:40 + side] = marker
+    src = np.array([[40, 40], [40 + side, 40], [40 + side, 40 + side], [40, 40 + side]],
+                   np.float32) - 0.5
+    dst = np.array([[210, 150], [420, 170], [440, 390], [190, 350]], np.float32)
+    H = cv2.getPerspectiveTransform(src, dst)
+    img = cv2.warpPerspective(canvas, H, (640, 480), flags=cv2.INTER_LINEAR,
+                              borderValue=255)
+    found = ft.find_aruco(img, "DICT_4X4_50")
+    assert set(found) == {7}
+    centre = cv2.perspectiveTransform(np.array([[[40 + side / 2 - 0.5] * 2]], np.float32), H)
+    np.testing.assert_allclose(found[7].centre, centre.reshape(2), atol=0.5)
+    assert np.linalg.norm(found[7].corners.mean(axis=0) - centre.reshape(2)) > 1.0
+    with pytest.raises(ValueError, match="unknown ArUco"):
+        ft.aruco_dictionary("DICT_NOPE")
+
+
+def test_template_subpixel_peak():
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (300, 400)), (0, 0), 2.0)
+    base = cv2.normalize(texture, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    patch = base[100:141, 150:191].copy()  # centre (170, 120)
+    for dx, dy in [(0.0, 0.0), (0.3, -0.4), (-0.45, 0.2)]:
+        M = np.float32([[1, 0, dx], [0, 1, dy]])
+        shifted = cv2.warpAffine(base, M, (400, 300), flags=cv2.INTER_CUBIC)
+        hit = ft.find_template(shifted, patch, 0.7)
+        assert hit is not None
+        np.testing.assert_allclose(hit[0], (170 + dx, 120 + dy), atol=0.15)
+    assert ft.find_template(np.full((300, 400), 128, np.uint8), patch, 0.7) is None
+
+
+def test_match_epipolar_keeps_all_partners_within_tolerance():
+    d = np.array([[0.5, 9.0, 2.0], [7.0, 0.1, 8.0]])
+    pairs = ft.match_epipolar(d, 2.5)
+    assert pairs.tolist() == [[0, 0], [0, 2], [1, 1]]
+    plausible = np.array([[False, True, True], [True, True, True]])
+    assert ft.match_epipolar(d, 2.5, plausible).tolist() == [[0, 2], [1, 1]]
+
+
+def _scene(rng, n_model=8, n_spurious=20, noise=0.1, drop=()):
+    model = rng.uniform(-80, 80, (n_model, 3)) * (1, 1, 0.2)
+    R = Rotation.random(random_state=rng)
+    t = np.array([20.0, -10.0, 700.0])
+    measured = R.apply(model) + t + rng.normal(0, noise, (n_model, 3))
+    keep = [i for i in range(n_model) if i not in drop]
+    spurious = t + rng.uniform(-120, 120, (n_spurious, 3))
+    points = np.vstack([measured[keep], spurious])
+    perm = rng.permutation(len(points))
+    points = points[perm]
+    where = {int(np.flatnonzero(perm == k)[0]): keep[k] for k in range(len(keep))}
+    return model, points, where, R, t
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_match_model_with_spurious_and_missing_points(seed):
+    rng = np.random.default_rng(seed)
+    model, points, where, R, t = _scene(rng, drop=(seed % 8,))
+    match = ft.match_model(model, points, tolerance_mm=1.0)
+    assert match is not None
+    assert not match.ambiguous
+    expected = np.full(len(model), -1)
+    for p, m in where.items():
+        expected[m] = p
+    np.testing.assert_array_equal(match.assignment, expected)
+    # The seed's rigid motion is the true one within the noise (oracle: scipy Rotation).
+    err = Rotation.from_matrix(match.T_points_model[:3, :3]) * R.inv()
+    assert np.degrees(err.magnitude()) < 1.0
+
+
+def test_match_model_exclusive_keys_and_no_match():
+    rng = np.random.default_rng(11)
+    model, points, _, _, _ = _scene(rng, n_spurious=0, noise=0.0)
+    # Two alternatives for one blob (same key): only one may be used.
+    dup = np.vstack([points, points[:1] + 0.3])
+    keys = [(i,) for i in range(len(points))] + [(0,)]
+    match = ft.match_model(model, dup, 1.0, keys)
+    assert match is not None
+    used = match.assignment[match.assignment >= 0]
+    assert not ({0, len(points)} <= set(used.tolist()))
+    far = rng.uniform(-1000, 1000, (2, 3))
+    assert ft.match_model(model, far, 1.0) is None
+
+
+def test_match_model_reports_symmetric_model_as_ambiguous():
+    # A square: rotating it by 90 deg maps the model onto itself with a different assignment.
+    model = np.array([[0, 0, 0], [100, 0, 0], [100, 100, 0], [0, 100, 0]], float)
+    points = model + (5.0, 5.0, 600.0)
+    match = ft.match_model(model, points, 1.0)
+    assert match is not None
+    assert match.ambiguous
