@@ -257,10 +257,10 @@ class CameraModel:
         res = np.where(np.isfinite(res), res, np.inf)
         bad = (res > tol) | ~(slope > 0)
         i = int(np.argmax(np.where(bad, res, -1.0)))
-        where = "residual" if res[i] > tol else "converged beyond the fold of the distortion"
+        why = "did not converge" if res[i] > tol else "converged beyond the distortion's fold"
         raise ConvergenceError(
-            f"undistort: point {i} did not converge ({where}; residual "
-            f"{res[i] * max(self.fx, self.fy):.3g} px; {int(bad.sum())} of {res.size} bad)")
+            f"undistort: point {i} {why} (residual {res[i] * max(self.fx, self.fy):.3g} px; "
+            f"{int(bad.sum())} of {res.size} points bad)")
 
     def rays(self, px: Any) -> FloatArray:
         """Unit viewing directions in the camera frame for pixels.
