@@ -499,3 +499,66 @@ class RegisterBank:
         self._heartbeat = (self._heartbeat + 1) & 0xFFFF
         self.image.apply([BlockWrite(Reg.HEARTBEAT, (self._heartbeat,))])
         return self._heartbeat
+
+
+# --- UR RTDE register map (drivers/links/ur_rtde.py, docs/ur_rtde.md) ---------------------
+
+
+@dataclass(frozen=True)
+class URRegisterMap:
+    """UR RTDE general-purpose registers used by the ``ur_rtde`` link (docs/ur_rtde.md).
+
+    Numbers are for the lower range; ``upper=True`` adds 24 (ur_rtde's
+    ``use_upper_range_registers``). The limits come from ur_rtde: its getters read only output
+    registers 12..19 and its setters write only input registers 18..22 (23 is its own command
+    word, overwritten on every write). A UR pose needs 6 doubles but only 5 input doubles are
+    writable, so the pose travels in two pages of 3 (translation, then rotation vector), each
+    written data first and its acknowledge last.
+
+    Robot -> vgripd (output_int_register_N): ``seq`` (a change to a new non-zero value is a
+    trigger), ``command``, ``page_request`` (= seq once the robot has read the translation).
+    vgripd -> robot (input_int_register_N): ``ack`` (= seq, written last), ``status``,
+    ``captured`` (seq whose images are taken), ``job_id``, ``page_ack`` (= seq once the rotation
+    page is in place); input_double_register ``page`` (3 registers).
+    """
+
+    upper: bool = False
+
+    def _n(self, n: int) -> int:
+        return n + 24 if self.upper else n
+
+    @property
+    def seq(self) -> int:
+        return self._n(12)
+
+    @property
+    def command(self) -> int:
+        return self._n(13)
+
+    @property
+    def page_request(self) -> int:
+        return self._n(14)
+
+    @property
+    def ack(self) -> int:
+        return self._n(18)
+
+    @property
+    def status(self) -> int:
+        return self._n(19)
+
+    @property
+    def captured(self) -> int:
+        return self._n(20)
+
+    @property
+    def job_id(self) -> int:
+        return self._n(21)
+
+    @property
+    def page_ack(self) -> int:
+        return self._n(22)
+
+    @property
+    def page(self) -> tuple[int, int, int]:
+        return (self._n(18), self._n(19), self._n(20))

@@ -1,0 +1,356 @@
+"""Universal Robots RTDE link: the robot program triggers jobs and reads results through RTDE
+general-purpose registers (port 30004), with the ``ur_rtde`` client.
+
+The register map and handshake are ``vgripd.protocol.URRegisterMap`` (docs/ur_rtde.md); the robot
+side is ``urscript/vgripd.script``. The pose goes to the robot in two pages (translation, then
+rotation vector) because ur_rtde can write only 5 input double registers; each page is written
+data first, acknowledge last.
+
+ur_rtde runs in a child process (``ur_rtde_worker``): its constructors hold the GIL with no
+timeout and it aborts the process when it destroys an IO interface on a dead socket. The asyncio
+side reads the child's pipe with ``add_reader`` (no threads) and one supervisor task owns the
+child: it starts it, waits for ``up`` at most ``connect_timeout_s``, serves, and on any failure
+(silent controller, refused connection, dropped socket, data stream older than
+``stale_after_s``, child crash) kills it and starts a new one after a doubling back-off, logging
+once per outage. A register ``IN_USE`` or a variable the controller does not know is FAILED, not
+retried: it is a configuration problem of the robot.
+
+After every reconnect the last ``image_captured``/``publish`` is written again, so a robot whose
+acknowledge was lost with the connection still gets its answer. A trigger that was already
+pending when the link first connected is not served (the robot's timeout retries it); one that
+arrives while the link is down is served at the reconnect.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import math
+import multiprocessing
+import time
+from multiprocessing.connection import Connection
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from drivers.links import ur_rtde_worker
+from vgripd.errors import ConversionError, LinkError
+from vgripd.protocol import (
+    LinkHealth,
+    LinkState,
+    RobotLink,
+    Trigger,
+    TriggerHandler,
+    URRegisterMap,
+)
+from vgripd.types import JobResult, Status
+from vgripd.vendors import transform_from_vendor
+
+log = logging.getLogger("vgripd.link.ur_rtde")
+
+
+class URRtdeOptions(BaseModel):
+    """Options of ``type = "ur_rtde"`` (TOML ``[links.<name>]``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    host: str = Field(min_length=1)
+    #: Use registers 36..47 instead of 12..23 (leaves the lower range to a PLC/fieldbus).
+    use_upper_range_registers: bool = False
+    #: Output stream rate asked from the controller; also the child's polling rate.
+    frequency_hz: float = Field(500.0, gt=0, le=500)
+    #: Child start + RTDE setup must finish within this (a silent controller is killed after it).
+    connect_timeout_s: float = Field(6.0, gt=0, le=120)
+    #: No new data package for this long = connection lost (ur_rtde itself gives up at 2.5 s).
+    stale_after_s: float = Field(1.0, gt=0, lt=2.5)
+    #: Longest wait for the child to confirm a register write.
+    write_timeout_s: float = Field(2.0, gt=0, le=60)
+    backoff_initial_s: float = Field(0.2, gt=0, le=60)
+    backoff_max_s: float = Field(10.0, gt=0, le=600)
+
+
+class _Child:
+    """One worker process and the asyncio side of its pipe."""
+
+    def __init__(self, opts: URRtdeOptions, last_seq: int | None) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self.conn, child_conn = ctx.Pipe()
+        self.process = ctx.Process(
+            target=ur_rtde_worker.main, name=f"ur_rtde {opts.host}", daemon=True,
+            args=(child_conn, opts.host, opts.use_upper_range_registers, opts.frequency_hz,
+                  opts.stale_after_s, opts.connect_timeout_s, last_seq))
+        self._child_conn: Connection | None = child_conn
+        self.messages: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue()
+        self.exited: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+
+    def start(self) -> None:
+        loop = asyncio.get_running_loop()
+        self.process.start()
+        assert self._child_conn is not None
+        self._child_conn.close()
+        self._child_conn = None
+        loop.add_reader(self.conn.fileno(), self._on_readable)
+        loop.add_reader(self.process.sentinel, self._on_exit)
+
+    def _on_readable(self) -> None:
+        try:
+            while self.conn.poll():
+                self.messages.put_nowait(self.conn.recv())
+        except (EOFError, OSError):
+            asyncio.get_running_loop().remove_reader(self.conn.fileno())
+
+    def _on_exit(self) -> None:
+        asyncio.get_running_loop().remove_reader(self.process.sentinel)
+        self.process.join()
+        if not self.exited.done():
+            code = self.process.exitcode
+            self.exited.set_result(-1 if code is None else code)
+
+    async def next_message(self) -> tuple[Any, ...]:
+        """The next message, or ``("exit", code)`` once the process is gone and nothing is left."""
+        get: asyncio.Future[Any] = asyncio.ensure_future(self.messages.get())
+        try:
+            await asyncio.wait({get, self.exited}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            if not get.done():
+                get.cancel()
+        if get.done() and not get.cancelled():
+            return get.result()
+        self._on_readable()  # anything written just before the exit
+        if not self.messages.empty():
+            return self.messages.get_nowait()
+        return ("exit", self.exited.result())
+
+    def send(self, message: tuple[Any, ...]) -> None:
+        self.conn.send(message)
+
+    async def stop(self, grace_s: float) -> None:
+        """Ask the child to leave, kill it after ``grace_s``, reap it, close the pipe."""
+        if self.process.pid is not None and not self.exited.done():
+            with contextlib.suppress(OSError):
+                self.send((0, "close", ()))
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(asyncio.shield(self.exited), grace_s)
+            if not self.exited.done():
+                self.process.kill()
+                await self.exited
+        loop = asyncio.get_running_loop()
+        loop.remove_reader(self.conn.fileno())
+        self.conn.close()
+        if self._child_conn is not None:
+            self._child_conn.close()
+
+
+def _describe_exit(code: int | None) -> str:
+    if code is not None and code < 0:
+        return f"worker process killed by signal {-code}"
+    return f"worker process ended with code {code}"
+
+
+class URRtdeLink(RobotLink):
+    """RobotLink over UR RTDE registers (see module docstring and docs/ur_rtde.md)."""
+
+    Options = URRtdeOptions
+    options: URRtdeOptions
+
+    def __init__(self, name: str, options: URRtdeOptions) -> None:
+        super().__init__(name, options)
+        self.regs = URRegisterMap(options.use_upper_range_registers)
+        self._peer = f"{options.host}:{ur_rtde_worker.RTDE_PORT}"
+        self._health = LinkHealth(LinkState.STOPPED, self._peer, since_mono_ns=time.monotonic_ns())
+        self._health_changed: asyncio.Condition | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._child: _Child | None = None
+        self._on_trigger: TriggerHandler | None = None
+        self._last_seq: int | None = None
+        self._replay: dict[str, tuple[str, tuple[Any, ...]]] = {}
+        self._pending: dict[int, asyncio.Future[None]] = {}
+        self._ids = itertools.count(1)
+
+    # -- RobotLink ----------------------------------------------------------------------------
+
+    async def open(self, on_trigger: TriggerHandler) -> None:
+        """Start the supervisor and wait for the first attempt's outcome.
+
+        Raises ``LinkError`` (state FAILED) for problems retrying cannot fix (register IN_USE,
+        variable NOT_FOUND). An unreachable or silent controller is not an error here: the link
+        is DOWN and keeps retrying.
+        """
+        if self._task is not None:
+            raise LinkError(f"link {self.name}: already open")
+        self._on_trigger = on_trigger
+        self._health_changed = asyncio.Condition()
+        self._task = asyncio.create_task(self._supervise(), name=f"link {self.name} supervisor")
+        health = await self.wait_state({LinkState.UP, LinkState.DOWN, LinkState.FAILED},
+                                       timeout_s=self.options.connect_timeout_s + 5.0)
+        if health.state is LinkState.FAILED:
+            await self.close()
+            self._health = health
+            raise LinkError(f"link {self.name}: {health.last_error}")
+
+    async def close(self) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        await self._set_health(LinkState.STOPPED)
+
+    def health(self) -> LinkHealth:
+        return self._health
+
+    async def image_captured(self, seq: int, job_id: int) -> None:
+        await self._request("captured", (seq, job_id))
+
+    async def publish(self, seq: int, result: JobResult) -> None:
+        """Write status, job id and (for a valid pose) the translation page, then the ack.
+
+        The rotation page follows when the robot asks for it (``page_request`` = seq). A valid
+        status whose target is not a UR pose is answered INTERNAL and raises ``LinkError``.
+        """
+        status, translation, rotation = int(result.status), None, None
+        problem = ""
+        if result.status.pose_valid:
+            target = result.target
+            if target is None or target.vendor != "ur" or len(target.values) != 6 or not all(
+                    math.isfinite(v) for v in target.values):
+                problem = (f"job {result.job_id}: status {result.status.name} needs a 'ur' target "
+                           f"of 6 finite values, got {target}")
+                status = int(Status.INTERNAL)
+            else:
+                translation, rotation = tuple(target.values[:3]), tuple(target.values[3:])
+        await self._request("publish", (seq, status, result.job_id, translation, rotation))
+        if problem:
+            raise LinkError(f"link {self.name}: {problem}; answered INTERNAL")
+
+    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
+        """Wait until ``health().state`` is one of ``states``; ``TimeoutError`` otherwise."""
+        wanted = {states} if isinstance(states, LinkState) else states
+        assert self._health_changed is not None, "open() first"
+        async with asyncio.timeout(timeout_s), self._health_changed:
+            await self._health_changed.wait_for(lambda: self._health.state in wanted)
+        return self._health
+
+    # -- requests to the child ----------------------------------------------------------------
+
+    async def _request(self, kind: str, args: tuple[Any, ...]) -> None:
+        if self._task is None or self._health.state is LinkState.FAILED:
+            raise LinkError(f"link {self.name} to {self._peer} is {self._health.state.value}")
+        self._replay[kind] = (kind, args)
+        child = self._child
+        if child is None or self._health.state is not LinkState.UP:
+            raise LinkError(f"link {self.name} to {self._peer} is {self._health.state.value} "
+                            f"({self._health.last_error}); {kind} seq {args[0]} will be written "
+                            "at the reconnect")
+        await self._send(child, kind, args)
+
+    async def _send(self, child: _Child, kind: str, args: tuple[Any, ...]) -> None:
+        req = next(self._ids)
+        done = asyncio.get_running_loop().create_future()
+        self._pending[req] = done
+        try:
+            child.send((req, kind, args))
+            await asyncio.wait_for(done, self.options.write_timeout_s)
+        except (OSError, TimeoutError):
+            raise LinkError(f"link {self.name} to {self._peer}: {kind} seq {args[0]} not "
+                            f"confirmed within {self.options.write_timeout_s} s") from None
+        finally:
+            self._pending.pop(req, None)
+
+    # -- supervisor ---------------------------------------------------------------------------
+
+    async def _set_health(self, state: LinkState, error: str | None = None,
+                          reconnected: bool = False) -> None:
+        h = self._health
+        self._health = LinkHealth(
+            state, self._peer, h.last_error if error is None else error,
+            h.reconnects + reconnected,
+            h.since_mono_ns if state is h.state else time.monotonic_ns())
+        if self._health_changed is not None:
+            async with self._health_changed:
+                self._health_changed.notify_all()
+
+    async def _supervise(self) -> None:
+        backoff = self.options.backoff_initial_s
+        failures = 0
+        ever_up = False
+        while True:
+            child = _Child(self.options, self._last_seq)
+            self._child = child
+            try:
+                child.start()
+                fatal, error = await self._serve(child, ever_up)
+            finally:
+                self._child = None
+                for fut in self._pending.values():
+                    if not fut.done():
+                        fut.set_exception(LinkError(f"link {self.name}: connection lost"))
+                await child.stop(grace_s=1.0)
+            if self._health.state is LinkState.UP:
+                ever_up, failures, backoff = True, 0, self.options.backoff_initial_s
+            if fatal:
+                log.error("link %s: %s", self.name, error)
+                await self._set_health(LinkState.FAILED, error)
+                return
+            failures += 1
+            if failures == 1:
+                log.warning("link %s down: %s (retrying with back-off up to %.0f s)",
+                            self.name, error, self.options.backoff_max_s)
+            else:
+                log.debug("link %s still down (attempt %d): %s", self.name, failures, error)
+            await self._set_health(LinkState.DOWN, error)
+            await asyncio.sleep(backoff)
+            backoff = min(2 * backoff, self.options.backoff_max_s)
+
+    async def _serve(self, child: _Child, ever_up: bool) -> tuple[bool, str]:
+        """Run one child until it fails; return (fatal, reason)."""
+        if not ever_up and self._health.state is LinkState.STOPPED:
+            await self._set_health(LinkState.CONNECTING)
+        try:
+            first = await asyncio.wait_for(child.next_message(), self.options.connect_timeout_s)
+        except TimeoutError:
+            return False, (f"{self._peer} did not complete the RTDE setup within "
+                           f"{self.options.connect_timeout_s} s (controller silent?)")
+        if first[0] == "error":
+            return bool(first[1]), str(first[2])
+        if first[0] == "exit":
+            return False, f"{self._peer}: {_describe_exit(first[1])} during setup"
+        was_down = self._health.state is LinkState.DOWN
+        await self._set_health(LinkState.UP, "", reconnected=ever_up)
+        if was_down:
+            log.info("link %s up again (%s)", self.name, self._peer)
+        try:
+            for kind, args in list(self._replay.values()):
+                await self._send(child, kind, args)
+        except LinkError as err:
+            return False, str(err)
+        while True:
+            msg = await child.next_message()
+            if msg[0] == "trigger":
+                self._deliver(*msg[1:])
+            elif msg[0] == "done":
+                fut = self._pending.get(msg[1])
+                if fut is not None and not fut.done():
+                    fut.set_result(None)
+            elif msg[0] == "error":
+                return bool(msg[1]), str(msg[2])
+            else:
+                return False, f"{self._peer}: {_describe_exit(msg[1])}"
+
+    def _deliver(self, seq: int, command: int, tcp_pose: list[float]) -> None:
+        t_mono_ns = time.monotonic_ns()
+        self._last_seq = seq
+        self._replay.clear()  # a new request: earlier answers are no longer wanted
+        try:
+            T_base_flange = transform_from_vendor("ur", tcp_pose)
+        except ConversionError as err:
+            log.warning("link %s: trigger seq %d with unusable TCP pose %s: %s",
+                        self.name, seq, tcp_pose, err)
+            T_base_flange = None
+        trigger = Trigger(self.name, seq, command, t_mono_ns, T_base_flange)
+        assert self._on_trigger is not None
+        try:
+            self._on_trigger(trigger)
+        except Exception:  # the handler's bug must not take the link down
+            log.exception("link %s: trigger handler failed for seq %d", self.name, seq)
