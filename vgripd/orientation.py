@@ -17,10 +17,12 @@ index or the condition; nothing returns a pose it cannot vouch for.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from itertools import combinations
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from vgripd.camera_model import CameraModel
 from vgripd.errors import ConvergenceError, DegenerateInputError, GeometryError
@@ -68,20 +70,21 @@ class HornResult:
 
 @dataclass(frozen=True, eq=False)
 class RobustHornResult(HornResult):
-    """:class:`HornResult` of the inliers plus the indices of the dropped correspondences.
+    """:class:`HornResult` of the inliers, and which correspondences were dropped.
 
     ``rms_mm`` is over the inliers only; ``residuals_mm`` covers every input point, so a dropped
     point's residual shows how far off it was.
+
+    Attributes
+    ----------
+    inliers : (n,) bool
+        Correspondences used for ``T_to_from`` (points with weight 0 are never inliers).
+    dropped : tuple of int
+        Indices of positive-weight correspondences rejected as wrong, ascending.
     """
 
+    inliers: npt.NDArray[np.bool_] = field(default_factory=lambda: np.ones(0, dtype=bool))
     dropped: tuple[int, ...] = ()
-
-    @property
-    def inliers(self) -> FloatArray:
-        """Boolean mask (n,) of the correspondences used for ``T_to_from``."""
-        mask = np.ones(self.residuals_mm.shape[0], dtype=bool)
-        mask[list(self.dropped)] = False
-        return mask
 
 
 def _as_points(points: object, name: str, dim: int) -> FloatArray:
@@ -188,31 +191,33 @@ def horn(points_from: object, points_to: object, weights: object = None) -> Horn
     )
 
 
-def _leave_one_out_sse(a: FloatArray, b: FloatArray, w: FloatArray) -> FloatArray:
-    """Weighted mean squared residual of Horn fits that each leave out one point, (n,).
+def _matrices_from_quats(q: FloatArray) -> FloatArray:
+    """Rotation matrices (m, 3, 3) from unit quaternions (m, 4), (w, x, y, z).
 
-    Uses Horn's identity: the minimum of ``sum w |R a + t - b|^2`` equals
-    ``sum w (|a - ca|^2 + |b - cb|^2) - 2 lambda_max``, so the n fits need only the largest
-    eigenvalues of n 4x4 matrices, computed as one stack.
+    A stacked twin of :func:`vgripd.transforms.matrix_from_quat`, which takes one quaternion.
     """
-    a = a - a.mean(axis=0)
-    b = b - b.mean(axis=0)
-    wa = w[:, None] * a
-    wb = w[:, None] * b
-    W = w.sum() - w  # total weight of each leave-one-out subset
-    sum_a = wa.sum(axis=0) - wa  # (n, 3)
-    sum_b = wb.sum(axis=0) - wb
-    ca = sum_a / W[:, None]
-    cb = sum_b / W[:, None]
-    outer = wa[:, :, None] * b[:, None, :]  # (n, 3, 3) per-point contribution
-    M = outer.sum(axis=0) - outer - W[:, None, None] * ca[:, :, None] * cb[:, None, :]
-    sq_a = (wa * a).sum(axis=1)
-    sq_b = (wb * b).sum(axis=1)
-    spread = (sq_a.sum() - sq_a - W * (ca**2).sum(axis=1)) + (
-        sq_b.sum() - sq_b - W * (cb**2).sum(axis=1)
-    )
-    lam = np.linalg.eigvalsh(_horn_matrix(M))[:, 3]
-    return np.maximum(spread - 2.0 * lam, 0.0) / W
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def _triple_hypotheses(a: FloatArray, b: FloatArray, triples: npt.NDArray[np.intp]) -> FloatArray:
+    """Residuals (m, n) of every point under the Horn fit of each triple of points (m, 3)."""
+    ta, tb = a[triples], b[triples]  # (m, 3, 3): triple, point, coordinate
+    ca, cb = ta.mean(axis=1), tb.mean(axis=1)
+    M = (ta - ca[:, None]).transpose(0, 2, 1) @ (tb - cb[:, None])
+    R = _matrices_from_quats(np.linalg.eigh(_horn_matrix(M))[1][:, :, 3])
+    t = cb - np.einsum("mij,mj->mi", R, ca)
+    return np.linalg.norm(np.einsum("mij,nj->mni", R, a) + t[:, None] - b[None], axis=2)
+
+
+#: Above this many point triples, :func:`horn_robust` tries a fixed pseudo-random sample of
+#: this many instead of all (C(23, 3) = 1771 is still exhaustive).
+MAX_TRIPLES = 2000
 
 
 def horn_robust(
@@ -224,50 +229,72 @@ def horn_robust(
 ) -> RobustHornResult:
     """:func:`horn` that finds and drops wrong correspondences.
 
-    While some used point's residual exceeds ``threshold_mm``, drop the point whose removal
-    leaves the best fit of the others (leave-one-out over all remaining points). This is more
-    reliable than dropping the largest residual: with few points one wrong pair pulls the fit
-    so that a correct point can show the largest residual.
+    Every triple of points (or :data:`MAX_TRIPLES` of them) gives an exact-fit hypothesis; the
+    one under which most points lie within ``threshold_mm`` wins (ties: smaller summed squared
+    residual), then the fit is redone on its inliers until the inlier set is stable. Unlike
+    dropping the worst residual of a fit over all points, this is not fooled when a wrong pair
+    pulls the fit so that a correct point shows the largest residual, and it finds a swapped
+    pair (two wrong correspondences) among 5 or more points.
 
     Parameters
     ----------
     threshold_mm : float
-        Largest residual (mm) an inlier may have; set it to a few times the expected 3D
-        measurement noise.
+        Largest residual (mm) an inlier may have; a few times the expected 3D noise.
 
     Raises
     ------
     DegenerateInputError
         As :func:`horn` for the input as a whole.
     GeometryError
-        No subset of at least 3 points fits within ``threshold_mm``.
+        Fewer than 3 correspondences agree within ``threshold_mm``, or those that agree are
+        collinear.
     """
     if not threshold_mm > 0:
         raise DegenerateInputError(f"threshold_mm must be positive, got {threshold_mm}")
     a = _as_points(points_from, "points_from", 3)
     b = _as_points(points_to, "points_to", 3)
     fit = horn(a, b, weights)  # validates shapes, count, weights and spread once
-    n = a.shape[0]
-    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
-    keep = np.flatnonzero(w > 0)
-    dropped: list[int] = []
-    while fit.residuals_mm[keep].max() > threshold_mm:
-        if keep.size <= 3:
-            raise GeometryError(
-                f"no 3 or more correspondences agree within {threshold_mm} mm; dropped "
-                f"{dropped}, residuals of the rest {fit.residuals_mm[keep].round(3).tolist()} mm"
-            )
-        worst = int(np.argmin(_leave_one_out_sse(a[keep], b[keep], w[keep])))
-        dropped.append(int(keep[worst]))
-        keep = np.delete(keep, worst)
-        sub = horn(a[keep], b[keep], w[keep])
-        T = sub.T_to_from
-        fit = HornResult(T, sub.rms_mm, np.linalg.norm(a @ T[:3, :3].T + T[:3, 3] - b, axis=1))
+    w = np.ones(a.shape[0]) if weights is None else np.asarray(weights, dtype=np.float64)
+    usable = w > 0
+    inliers = usable & (fit.residuals_mm <= threshold_mm)
+    if inliers.sum() < usable.sum():
+        candidates = np.flatnonzero(usable)
+        triples = np.array(list(combinations(candidates, 3)), dtype=np.intp)
+        if len(triples) > MAX_TRIPLES:
+            triples = np.random.default_rng(0).choice(triples, MAX_TRIPLES, replace=False)
+        res = _triple_hypotheses(a, b, triples)
+        ok = (res <= threshold_mm) & usable
+        sse = np.where(ok, res**2, 0.0).sum(axis=1)
+        best = np.lexsort((sse, -ok.sum(axis=1)))[0]
+        inliers = ok[best]
+        for _ in range(10):
+            if inliers.sum() < 3:
+                raise GeometryError(
+                    f"fewer than 3 correspondences agree within {threshold_mm} mm "
+                    f"(best set: {np.flatnonzero(inliers).tolist()})"
+                )
+            try:
+                sub = horn(a[inliers], b[inliers], w[inliers])
+            except DegenerateInputError as err:
+                raise GeometryError(
+                    f"the correspondences that agree, {np.flatnonzero(inliers).tolist()}, "
+                    f"are degenerate: {err}"
+                ) from None
+            T = sub.T_to_from
+            residuals = np.linalg.norm(a @ T[:3, :3].T + T[:3, 3] - b, axis=1)
+            fit = HornResult(T, sub.rms_mm, residuals)
+            refined = usable & (residuals <= threshold_mm)
+            if np.array_equal(refined, inliers):
+                break
+            inliers = refined
+        else:
+            raise GeometryError("the inlier set of the robust Horn fit did not settle")
     return RobustHornResult(
         T_to_from=fit.T_to_from,
-        rms_mm=float(np.sqrt(np.mean(fit.residuals_mm[keep] ** 2))),
+        rms_mm=float(np.sqrt(np.mean(fit.residuals_mm[inliers] ** 2))),
         residuals_mm=fit.residuals_mm,
-        dropped=tuple(sorted(dropped)),
+        inliers=inliers,
+        dropped=tuple(int(i) for i in np.flatnonzero(usable & ~inliers)),
     )
 
 
@@ -287,8 +314,8 @@ class PnPResult:
         True when a second pose explains the pixels nearly as well (planar targets seen small
         or nearly fronto-parallel); the pose must then not be trusted.
     T_cam_obj_alt : (4, 4) float64 or None
-        The other local minimum for planar targets (None for non-planar targets, or when
-        refining it converged onto the first pose).
+        The other pose of a planar target (see :func:`pnp`); None for non-planar targets and
+        when both IPPE poses coincide.
     rms_px_alt : float or None
         Its reprojection RMS (pixels).
     """
@@ -373,6 +400,18 @@ def _refine_lm(
     )
 
 
+def _rms(res: FloatArray) -> float:
+    """Root mean square of the per-point error lengths of residuals (n, 2)."""
+    return float(np.sqrt((res**2).sum() / res.shape[0]))
+
+
+def _same_pose(R1: FloatArray, t1: FloatArray, R2: FloatArray, t2: FloatArray) -> bool:
+    """Equal to about 1e-6 (rad, relative translation): two solvers found the same pose."""
+    return bool(
+        np.abs(R1 - R2).max() < 1e-6 and np.linalg.norm(t1 - t2) < 1e-6 * np.linalg.norm(t1)
+    )
+
+
 def _pose_from_cv(rvec: object, tvec: object) -> tuple[FloatArray, FloatArray]:
     return matrix_from_rotvec(np.asarray(rvec, dtype=np.float64).reshape(3)), np.asarray(
         tvec, dtype=np.float64
@@ -396,7 +435,9 @@ def pnp(
     three points cannot tell the right one.
 
     A planar target is flagged ``ambiguous`` when the second IPPE pose, refined too, fits
-    almost as well: ``rms_alt < ambiguity_ratio * max(rms_best, noise_floor_px)``.
+    almost as well: ``rms_alt < ambiguity_ratio * max(rms_best, noise_floor_px)``. When its
+    refinement slides into the first minimum (a flat valley between the two), the unrefined
+    IPPE pose stands for the alternative.
     ``noise_floor_px`` (about the corner-detection noise) keeps noise-free data from calling
     any second pose distinguishable only because the best fit is exact.
 
@@ -443,31 +484,40 @@ def pnp(
             raise ConvergenceError("SQPnP found no initial pose")
         starts = [_pose_from_cv(rvec, tvec)]
     fits = []
+    behind_start = -1
     for R0, t0 in starts:
-        z = (obj @ R0.T + t0)[:, 2]
-        if (z <= 0).any():
-            continue  # not a physical solution; the other one may be
+        in_front = (obj @ R0.T + t0)[:, 2] > 0
+        if not in_front.all():  # not a physical solution; the other one may be
+            behind_start = int(np.argmin(in_front))
+            continue
         R, t, res = _refine_lm(camera, R0, t0, obj, px)
-        err = np.linalg.norm(res, axis=1)
-        fits.append((float(np.sqrt(np.mean(err**2))), R, t, err))
+        fits.append((_rms(res), R, t, res, R0, t0))
     if not fits:
-        raise DegenerateInputError("no pose puts all model points in front of the camera")
+        raise DegenerateInputError(
+            f"model point {behind_start} lies behind the camera in every candidate pose"
+        )
     fits.sort(key=lambda f: f[0])
-    rms, R, t, err = fits[0]
+    rms, R, t, res = fits[0][:4]
     behind = np.flatnonzero((obj @ R.T + t)[:, 2] <= 0)
     if behind.size:
         raise DegenerateInputError(f"model point {int(behind[0])} lies behind the camera")
     alt = None
     if len(fits) > 1:
-        rms_alt, R_alt, t_alt, _ = fits[1]
-        # Refining the second start can slide into the first minimum: then there is only one.
-        if np.linalg.norm(R_alt - R) > 1e-6 or np.linalg.norm(t_alt - t) > 1e-6 * np.linalg.norm(t):
+        rms_alt, R_alt, t_alt = fits[1][:3]
+        if _same_pose(R_alt, t_alt, R, t):
+            # Both starts slid into one minimum (a flat valley between them): the start that
+            # fits worse stands for the alternative explanation.
+            rms_alt, R_alt, t_alt = max(
+                ((_rms(_project_errors(camera, f[4], f[5], obj, px)), f[4], f[5]) for f in fits),
+                key=lambda f: f[0],
+            )
+        if not _same_pose(R_alt, t_alt, R, t):
             alt = (rms_alt, make_transform(R_alt, t_alt))
     ambiguous = alt is not None and alt[0] < ambiguity_ratio * max(rms, noise_floor_px)
     return PnPResult(
         T_cam_obj=make_transform(R, t),
         rms_px=rms,
-        errors_px=err,
+        errors_px=np.linalg.norm(res, axis=1),
         ambiguous=bool(ambiguous),
         T_cam_obj_alt=None if alt is None else alt[1],
         rms_px_alt=None if alt is None else alt[0],
