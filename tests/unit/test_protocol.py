@@ -1,0 +1,254 @@
+"""Register map, codec, handshake and publish ordering (vgripd.protocol), without I/O.
+
+Oracle for the encodings: ``struct`` packing written out here by hand (big-endian bytes, words
+swapped for CDAB), not the codec under test.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from vgripd.errors import LinkError
+from vgripd.protocol import (
+    CHECK_F32,
+    MAP_SIZE,
+    NO_AGE,
+    Action,
+    BlockWrite,
+    Command,
+    Handshake,
+    HandshakeState,
+    Reg,
+    RegisterAccessError,
+    RegisterBank,
+    RegisterOverflowError,
+    ValueCodec,
+)
+from vgripd.types import JobResult, RobotTarget, Status
+
+
+def words_from_bytes(raw: bytes, order: str) -> list[int]:
+    hi, lo = int.from_bytes(raw[:2], "big"), int.from_bytes(raw[2:], "big")
+    return [hi, lo] if order == "ABCD" else [lo, hi]
+
+
+def ok_result(values: tuple[float, ...], job_id: int = 7, rms: float = 0.25) -> JobResult:
+    fields = tuple(f"v{i}" for i in range(len(values)))
+    return JobResult(job_id=job_id, status=Status.OK, target=RobotTarget("kuka", fields, values),
+                     residuals={"fit_rms_mm": rms}, t_done_mono_ns=1_000_000_000)
+
+
+# --- codec ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("order", ["ABCD", "CDAB"])
+def test_check_words_match_struct(order: str) -> None:
+    bank = RegisterBank(ValueCodec(order))  # type: ignore[arg-type]
+    w = bank.read(0, MAP_SIZE, 0)
+    assert w[Reg.CHECK_U16] == 0x1234
+    assert w[Reg.CHECK_U32:Reg.CHECK_U32 + 2] == words_from_bytes(bytes.fromhex("12345678"), order)
+    assert w[Reg.CHECK_F32:Reg.CHECK_F32 + 2] == words_from_bytes(struct.pack(">f", CHECK_F32), order)
+    # 123.456 as float32 is 0x42F6E979: the integrator's reference figure in docs/registers.md
+    assert struct.pack(">f", CHECK_F32).hex() == "42f6e979"
+    assert w[Reg.RESULT_AGE_MS:Reg.RESULT_AGE_MS + 2] == [0xFFFF, 0xFFFF]
+
+
+@pytest.mark.parametrize("order", ["ABCD", "CDAB"])
+@given(value=st.floats(-1e6, 1e6, allow_nan=False))
+def test_float32_words(order: str, value: float) -> None:
+    codec = ValueCodec(order, "float32")  # type: ignore[arg-type]
+    words = codec.value(value)
+    assert list(words) == words_from_bytes(struct.pack(">f", value), order)
+    assert codec.decode_value(words) == np.float32(value)
+
+
+@pytest.mark.parametrize("order", ["ABCD", "CDAB"])
+@given(value=st.floats(-200_000, 200_000, allow_nan=False))
+def test_int32_scaled_words(order: str, value: float) -> None:
+    codec = ValueCodec(order, "int32", 10000)  # type: ignore[arg-type]
+    words = codec.value(value)
+    raw = round(value * 10000)
+    assert list(words) == words_from_bytes(struct.pack(">i", raw), order)
+    assert abs(codec.decode_value(words) - value) <= 0.5e-4 + 1e-9
+
+
+@pytest.mark.parametrize(
+    ("fmt", "value", "match"),
+    [
+        ("int32", 214748.3648, "does not fit an int32"),  # 2**31 / 10000
+        ("int32", -214748.3649, "does not fit an int32"),
+        ("int32", float("nan"), "not a finite number"),
+        ("float32", 1e39, "float32 range"),
+        ("float32", float("inf"), "not a finite number"),
+    ],
+)
+def test_out_of_range_values_raise(fmt: str, value: float, match: str) -> None:
+    codec = ValueCodec("ABCD", fmt, 10000)  # type: ignore[arg-type]
+    with pytest.raises(RegisterOverflowError, match=match):
+        codec.value(value, "VALUES[0]")
+
+
+def test_int32_range_edges_are_exact() -> None:
+    codec = ValueCodec("ABCD", "int32", 10000)
+    assert list(codec.value(214748.3647)) == words_from_bytes(struct.pack(">i", 2**31 - 1), "ABCD")
+    assert list(codec.value(-214748.3648)) == words_from_bytes(struct.pack(">i", -(2**31)), "ABCD")
+
+
+# --- handshake --------------------------------------------------------------------------------
+
+def test_handshake_edges_on_sequence() -> None:
+    hs = Handshake()
+    assert hs.on_request(Command.TRIGGER, 0).action is Action.IGNORE  # 0 is never a request
+    start = hs.on_request(Command.TRIGGER, 5, recipe=3)
+    assert (start.action, start.seq, start.recipe) == (Action.START, 5, 3)
+    assert hs.state is HandshakeState.TRIGGERED
+    assert hs.on_request(Command.TRIGGER, 5).action is Action.IGNORE  # level, not edge
+    busy = hs.on_request(Command.TRIGGER, 6)
+    assert (busy.action, busy.code) == (Action.REJECT, Status.BUSY)
+    assert hs.running_seq == 5
+    hs.on_captured(5)
+    assert hs.state is HandshakeState.BUSY
+    assert hs.on_request(Command.CLEAR, 7).code is Status.BUSY
+    hs.on_published(5)
+    assert hs.state is HandshakeState.DONE
+    assert hs.on_request(Command.TRIGGER, 7).action is Action.IGNORE  # 7 was already refused
+    assert hs.on_request(Command.TRIGGER, 8).action is Action.START
+    assert hs.on_request(99, 9).code is Status.BAD_REQUEST
+
+
+def test_handshake_restarted_plc_rearms_with_zero() -> None:
+    hs = Handshake()
+    assert hs.on_request(Command.CLEAR, 1).action is Action.CLEAR
+    assert hs.on_request(Command.CLEAR, 1).action is Action.IGNORE
+    assert hs.on_request(Command.CLEAR, 0).action is Action.IGNORE
+    assert hs.on_request(Command.TRIGGER, 1).action is Action.START
+
+
+def test_handshake_refuses_answers_for_other_requests() -> None:
+    hs = Handshake()
+    with pytest.raises(LinkError, match="publish for request 3, but the running request is none"):
+        hs.on_published(3)
+    hs.on_request(Command.TRIGGER, 4)
+    with pytest.raises(LinkError, match="image_captured for request 3, but the running request is 4"):
+        hs.on_captured(3)
+
+
+# --- register bank: ordering and content ------------------------------------------------------
+
+def test_publish_writes_data_first_and_ack_last() -> None:
+    journal: list[BlockWrite] = []
+    bank = RegisterBank(ValueCodec(), journal)
+    bank.write(Reg.CMD, [Command.TRIGGER, 11, 0])
+    bank.captured(11, 42)
+    journal.clear()
+    bank.publish(11, ok_result((1.0, 2.0, 3.0, 4.0, 5.0, 6.0)), now_ns=0)
+    assert journal[-1] == BlockWrite(Reg.ACK_SEQ, (11,))
+    touched = {a for w in journal[:-1] for a in range(w.address, w.address + len(w.words))}
+    assert set(range(Reg.STATUS, MAP_SIZE)) <= touched
+
+
+def test_new_job_retracts_ack_before_clearing_data() -> None:
+    journal: list[BlockWrite] = []
+    bank = RegisterBank(ValueCodec(), journal)
+    bank.write(Reg.CMD, [Command.TRIGGER, 1, 0])
+    bank.captured(1, 1)
+    bank.publish(1, ok_result((1.0, 2.0, 3.0, 4.0, 5.0, 6.0)), now_ns=0)
+    journal.clear()
+    bank.write(Reg.REQ_SEQ, [2])
+    first_data = next(i for i, w in enumerate(journal) if w.address == Reg.STATUS)
+    ack = next(i for i, w in enumerate(journal) if w.address == Reg.ACK_SEQ)
+    assert journal[ack].words == (0,)
+    assert ack < first_data
+    w = bank.read(0, MAP_SIZE, 0)
+    assert w[Reg.N_VALUES] == 0
+    assert w[Reg.VALUES:MAP_SIZE] == [0] * (MAP_SIZE - Reg.VALUES)
+    assert w[Reg.STATE] == HandshakeState.TRIGGERED
+
+
+def test_busy_reject_leaves_running_job_untouched() -> None:
+    journal: list[BlockWrite] = []
+    bank = RegisterBank(ValueCodec(), journal)
+    bank.write(Reg.CMD, [Command.TRIGGER, 20, 0])
+    bank.captured(20, 5)
+    before = bank.read(0, MAP_SIZE, 0)
+    journal.clear()
+    decision = bank.write(Reg.REQ_SEQ, [21])
+    assert decision.code is Status.BUSY
+    assert journal[1:] == [BlockWrite(Reg.REJECT_CODE, (40,)), BlockWrite(Reg.REJECT_SEQ, (21,))]
+    after = bank.read(0, MAP_SIZE, 0)
+    changed = [i for i in range(MAP_SIZE) if before[i] != after[i]]
+    assert changed == [Reg.REQ_SEQ, Reg.REJECT_SEQ, Reg.REJECT_CODE]
+    bank.publish(20, ok_result((1.0, 2.0, 3.0, 4.0, 5.0, 6.0), job_id=5), now_ns=0)
+    assert bank.read(Reg.ACK_SEQ, 2, 0) == [20, Status.OK]
+
+
+def test_publish_content_quaternion_and_age() -> None:
+    codec = ValueCodec("CDAB", "int32", 1000)
+    bank = RegisterBank(codec)
+    bank.write(Reg.CMD, [Command.TRIGGER, 3, 0])
+    bank.captured(3, 0x01020304)
+    values = (600.5, -100.25, 10.0, 0.5, 0.5, -0.5, 0.5)
+    status = bank.publish(3, ok_result(values, job_id=0x01020304, rms=0.125), now_ns=0)
+    assert status is Status.OK
+    w = bank.read(0, MAP_SIZE, 1_000_000_000 + 1_234_000_000)
+    assert w[Reg.N_VALUES] == 7
+    got = [codec.decode_value(w[Reg.VALUES + 2 * i:Reg.VALUES + 2 * i + 2]) for i in range(7)]
+    assert got == pytest.approx(values, abs=1e-9)
+    assert codec.decode_u32(w[Reg.JOB_ID:Reg.JOB_ID + 2]) == 0x01020304
+    assert codec.decode_u32(w[Reg.RESULT_AGE_MS:Reg.RESULT_AGE_MS + 2]) == 1234
+    assert codec.decode_value(w[Reg.FIT_RMS:Reg.FIT_RMS + 2]) == 0.125
+    assert (w[Reg.CAPTURED_SEQ], w[Reg.STATE], w[Reg.ACK_SEQ]) == (3, HandshakeState.DONE, 3)
+
+
+def test_unrepresentable_value_publishes_out_of_limits_without_pose() -> None:
+    bank = RegisterBank(ValueCodec("ABCD", "int32", 10000))
+    bank.write(Reg.CMD, [Command.TRIGGER, 9, 0])
+    status = bank.publish(9, ok_result((1e6, 0.0, 0.0, 0.0, 0.0, 0.0)), now_ns=0)
+    assert status is Status.OUT_OF_LIMITS
+    w = bank.read(0, MAP_SIZE, 0)
+    assert (w[Reg.ACK_SEQ], w[Reg.STATUS], w[Reg.N_VALUES]) == (9, Status.OUT_OF_LIMITS, 0)
+    assert w[Reg.VALUES:Reg.FIT_RMS] == [0] * 14
+
+
+def test_clear_resets_result_and_acknowledges() -> None:
+    bank = RegisterBank(ValueCodec())
+    bank.write(Reg.CMD, [Command.TRIGGER, 1, 0])
+    bank.publish(1, ok_result((1.0,) * 6), now_ns=0)
+    bank.write(Reg.CMD, [Command.CLEAR, 2, 0])
+    w = bank.read(0, MAP_SIZE, 10**12)
+    assert (w[Reg.ACK_SEQ], w[Reg.STATUS], w[Reg.N_VALUES], w[Reg.STATE]) == (2, 0, 0, 0)
+    assert ValueCodec().decode_u32(w[Reg.RESULT_AGE_MS:Reg.RESULT_AGE_MS + 2]) == NO_AGE
+
+
+@pytest.mark.parametrize(
+    ("address", "values", "match"),
+    [
+        (3, [1], "only 0..2 \\(command area\\) are writable"),
+        (2, [1, 1], "write of 2 registers at 2"),
+        (Reg.ACK_SEQ, [5], "at 17"),
+        (0, [70000], "0..65535"),
+    ],
+)
+def test_writes_outside_the_command_area_are_refused(address: int, values: list[int], match: str) -> None:
+    bank = RegisterBank(ValueCodec())
+    before = bank.read(0, MAP_SIZE, 0)
+    with pytest.raises(RegisterAccessError, match=match):
+        bank.write(address, values)
+    assert bank.read(0, MAP_SIZE, 0) == before
+
+
+@pytest.mark.parametrize(("address", "count"), [(39, 2), (-1, 1), (40, 1), (0, 0)])
+def test_reads_outside_the_map_are_refused(address: int, count: int) -> None:
+    with pytest.raises(RegisterAccessError, match="outside 0..39"):
+        RegisterBank(ValueCodec()).read(address, count, 0)
+
+
+def test_heartbeat_wraps() -> None:
+    bank = RegisterBank(ValueCodec())
+    bank._heartbeat = 0xFFFE
+    assert [bank.beat(), bank.beat()] == [0xFFFF, 0]
+    assert bank.read(Reg.HEARTBEAT, 1, 0) == [0]

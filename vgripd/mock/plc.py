@@ -1,0 +1,213 @@
+"""A scripted PLC: the Modbus/TCP client side of the register handshake (``vgripd.protocol``).
+
+It triggers a job (command, recipe and a new request sequence in one write), polls until the
+request is answered (acknowledged or refused), and checks what a careful PLC program would:
+the acknowledged sequence is its own, the status is a known code, pose values are present only
+under a pose-valid status, the image-captured sequence was seen, and the byte-order check words
+decode correctly. 32-bit items are decoded with pymodbus' own converters, not vgripd's codec,
+so the check is independent of the server's encoder.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Literal
+
+from pymodbus.client import AsyncModbusTcpClient
+from pymodbus.client.mixin import ModbusClientMixin
+
+from vgripd.errors import LinkError
+from vgripd.protocol import (
+    CHECK_F32,
+    CHECK_U16,
+    CHECK_U32,
+    MAP_SIZE,
+    MAP_VERSION,
+    Command,
+    Reg,
+    ValueFormat,
+    WordOrder,
+)
+from vgripd.types import Status
+
+_DT = ModbusClientMixin.DATATYPE
+
+
+class PlcCheckError(LinkError):
+    """The server broke the handshake or the register map (message says which register)."""
+
+
+@dataclass(frozen=True)
+class CycleResult:
+    """One answered request. ``rejected``: refused (``status`` is then the reject code).
+
+    ``values``: the pose in the vendor convention (empty unless ``status.pose_valid``).
+    ``fit_rms``: FIT_RMS as published (-1 = unknown). ``age_ms``: RESULT_AGE_MS at the answer.
+    ``cycle_ms``: trigger write to answer seen, on the PLC's clock.
+    """
+
+    seq: int
+    status: Status
+    rejected: bool
+    job_id: int
+    values: tuple[float, ...]
+    fit_rms: float
+    captured_seen: bool
+    age_ms: int
+    polls: int
+    cycle_ms: float
+
+
+class MockPlc:
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        word_order: WordOrder = "ABCD",
+        value_format: ValueFormat = "float32",
+        scale: int = 10000,
+        unit_id: int = 1,
+        poll_s: float = 0.01,
+        timeout_s: float = 5.0,
+    ) -> None:
+        self.client = AsyncModbusTcpClient(host, port=port, timeout=timeout_s, retries=0)
+        self.where = f"{host}:{port}"
+        self.word_order: Literal["big", "little"] = "big" if word_order == "ABCD" else "little"
+        self.value_format = value_format
+        self.scale = scale
+        self.unit_id = unit_id
+        self.poll_s = poll_s
+        self.timeout_s = timeout_s
+        self.seq = 0
+
+    async def __aenter__(self) -> MockPlc:
+        await self.connect()
+        return self
+
+    async def __aexit__(self, exc_type: type[BaseException] | None,
+                        exc: BaseException | None, tb: TracebackType | None) -> None:
+        self.close()
+
+    async def connect(self) -> None:
+        if not await self.client.connect():
+            raise LinkError(f"mock PLC: cannot connect to {self.where}")
+
+    def close(self) -> None:
+        self.client.close()
+
+    async def read(self, address: int = 0, count: int = MAP_SIZE) -> list[int]:
+        response = await self.client.read_holding_registers(
+            address, count=count, device_id=self.unit_id
+        )
+        if response.isError():
+            raise LinkError(
+                f"mock PLC: read of {count} registers at {address} on {self.where} "
+                f"refused, exception code {response.exception_code}"
+            )
+        return list(response.registers)
+
+    async def write(self, address: int, values: list[int]) -> None:
+        response = await self.client.write_registers(address, values, device_id=self.unit_id)
+        if response.isError():
+            raise LinkError(
+                f"mock PLC: write at {address} on {self.where} refused, "
+                f"exception code {response.exception_code}"
+            )
+
+    def _u32(self, words: list[int]) -> int:
+        value = self.client.convert_from_registers(words, _DT.UINT32, self.word_order)
+        assert isinstance(value, int)
+        return value
+
+    def _value(self, words: list[int]) -> float:
+        if self.value_format == "float32":
+            value = self.client.convert_from_registers(words, _DT.FLOAT32, self.word_order)
+            assert isinstance(value, float)
+            return value
+        raw = self.client.convert_from_registers(words, _DT.INT32, self.word_order)
+        assert isinstance(raw, int)
+        return raw / self.scale
+
+    async def check_byte_order(self) -> None:
+        """Read the check words; raise ``PlcCheckError`` if this PLC's word order is wrong."""
+        w = await self.read(Reg.MAP_VERSION, Reg.VALUE_FORMAT - Reg.MAP_VERSION)
+        got_u32 = self._u32(w[Reg.CHECK_U32 - 3:Reg.CHECK_U32 - 1])
+        got_f32 = self.client.convert_from_registers(
+            w[Reg.CHECK_F32 - 3:Reg.CHECK_F32 - 1], _DT.FLOAT32, self.word_order
+        )
+        assert isinstance(got_f32, float)
+        if w[0] != MAP_VERSION or w[1] != CHECK_U16:
+            raise PlcCheckError(f"map version/CHECK_U16 read as {w[0]}/{w[1]:#06x}")
+        if got_u32 != CHECK_U32 or abs(got_f32 - CHECK_F32) > 1e-4:
+            raise PlcCheckError(
+                f"word order mismatch: CHECK_U32 = {got_u32:#010x}, CHECK_F32 = {got_f32} "
+                f"with {self.word_order}-endian words"
+            )
+
+    def next_seq(self) -> int:
+        self.seq = self.seq % 0xFFFF + 1  # 1..65535: 0 is never a request
+        return self.seq
+
+    async def trigger(self, recipe: int = 0, command: int = Command.TRIGGER) -> int:
+        """Write command, sequence and recipe in one request; return the sequence used."""
+        seq = self.next_seq()
+        await self.write(Reg.CMD, [int(command), seq, recipe])
+        return seq
+
+    async def wait_answer(self, seq: int, t0_ns: int | None = None) -> CycleResult:
+        """Poll until ``seq`` is acknowledged or refused; check what was read."""
+        t0_ns = time.monotonic_ns() if t0_ns is None else t0_ns
+        deadline = time.monotonic() + self.timeout_s
+        captured_seen = False
+        polls = 0
+        while True:
+            w = await self.read()
+            polls += 1
+            captured_seen |= w[Reg.CAPTURED_SEQ] == seq
+            if w[Reg.ACK_SEQ] == seq or w[Reg.REJECT_SEQ] == seq:
+                break
+            if time.monotonic() > deadline:
+                raise PlcCheckError(
+                    f"request {seq} not answered within {self.timeout_s} s (ACK_SEQ "
+                    f"{w[Reg.ACK_SEQ]}, REJECT_SEQ {w[Reg.REJECT_SEQ]}, STATE {w[Reg.STATE]})"
+                )
+            await asyncio.sleep(self.poll_s)
+        cycle_ms = (time.monotonic_ns() - t0_ns) / 1e6
+        rejected = w[Reg.ACK_SEQ] != seq
+        code = w[Reg.REJECT_CODE] if rejected else w[Reg.STATUS]
+        try:
+            status = Status(code)
+        except ValueError:
+            raise PlcCheckError(f"request {seq}: unknown status code {code}") from None
+        n = w[Reg.N_VALUES]
+        if rejected:
+            return CycleResult(seq, status, True, 0, (), -1.0, captured_seen, 0, polls, cycle_ms)
+        if status.pose_valid != (n > 0) or n not in (0, 6, 7):
+            raise PlcCheckError(f"request {seq}: status {status.name} with N_VALUES = {n}")
+        if status.pose_valid and not captured_seen:
+            raise PlcCheckError(f"request {seq}: pose acknowledged, CAPTURED_SEQ never showed it")
+        values = tuple(
+            self._value(w[Reg.VALUES + 2 * i:Reg.VALUES + 2 * i + 2]) for i in range(n)
+        )
+        return CycleResult(
+            seq=seq,
+            status=status,
+            rejected=False,
+            job_id=self._u32(w[Reg.JOB_ID:Reg.JOB_ID + 2]),
+            values=values,
+            fit_rms=self._value(w[Reg.FIT_RMS:Reg.FIT_RMS + 2]),
+            captured_seen=captured_seen,
+            age_ms=self._u32(w[Reg.RESULT_AGE_MS:Reg.RESULT_AGE_MS + 2]),
+            polls=polls,
+            cycle_ms=cycle_ms,
+        )
+
+    async def cycle(self, recipe: int = 0) -> CycleResult:
+        """One job: trigger, then wait for the answer."""
+        t0_ns = time.monotonic_ns()
+        seq = await self.trigger(recipe)
+        return await self.wait_answer(seq, t0_ns)
