@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 import pytest
 
+from drivers.cameras.replay import ReplayCamera, ReplayOptions
 from drivers.cameras.synthetic import SyntheticCamera
 from vgripd import scene
 from vgripd.config import (
@@ -23,6 +26,8 @@ from vgripd.types import ImagePair
 
 DEMO = config_from_dict({})
 QUIET = {"noise_std": 0, "blur_px": 0}
+SAMPLES = Path(__file__).resolve().parents[2] / "config" / "samples"
+SAMPLE_TRUTH = (SAMPLES / "truth.json").read_text(encoding="utf-8")
 
 
 def make_camera(cfg: Config = DEMO, **options: Any) -> SyntheticCamera:
@@ -184,3 +189,24 @@ async def test_scene_problems_are_camera_errors() -> None:
             await camera.grab(10.0)
     finally:
         await camera.close()
+
+
+async def test_bundled_samples_are_current_renders() -> None:
+    """config/samples (replayed as the example config does) equals a fresh render of its truth."""
+    truth = json.loads(SAMPLE_TRUTH)
+    replay = ReplayCamera(ReplayOptions(folder=str(SAMPLES), left_glob="left_*.png",
+                                        right_glob="right_*.png"), DEMO)
+    rendered = await grab(n=len(truth["frames"]), **truth["options"])
+    await replay.open()
+    try:
+        for frame, fresh in zip(truth["frames"], rendered, strict=True):
+            pair = await replay.grab(10.0)
+            assert pair.meta["left_path"].endswith(frame["left"])
+            assert pair.right is not None
+            assert fresh.right is not None
+            assert np.abs(pair.left.astype(int) - fresh.left).max() <= 1
+            assert np.abs(pair.right.astype(int) - fresh.right).max() <= 1
+            np.testing.assert_allclose(frame["T_base_obj"], fresh.truth["T_base_obj"], atol=1e-8)
+            np.testing.assert_allclose(frame["pixels_left"], fresh.truth["pixels_left"], atol=1e-5)
+    finally:
+        await replay.close()
