@@ -46,9 +46,10 @@ from vgripd.types import JobResult
 
 log = logging.getLogger(__name__)
 
-HOLDING_READ = {3, 23}  # read holding registers, read/write multiple (its read part)
-HOLDING_WRITE = {6, 16, 23}  # write single, write multiple, read/write multiple
-MASK_WRITE = 22  # read-modify-write of one register: allowed on the command area only
+# Holding-register function codes: 3 read, 6 write single, 16 write multiple, 22 mask write,
+# 23 read/write multiple. Writes read back what they wrote (6, 22) for the response.
+HOLDING_WRITE = {6, 16, 22, 23}
+HOLDING_READ = {3} | HOLDING_WRITE
 
 
 class RegisterContext(ModbusServerContext):
@@ -80,7 +81,7 @@ class RegisterContext(ModbusServerContext):
     async def async_getValues(
         self, device_id: int, func_code: int, address: int, count: int = 1
     ) -> list[int] | list[bool] | ExcCodes:
-        if exc := self._check(device_id, func_code, HOLDING_READ | {MASK_WRITE}):
+        if exc := self._check(device_id, func_code, HOLDING_READ):
             return exc
         try:
             return self._link.bank.read(address, count, time.monotonic_ns())
@@ -92,7 +93,7 @@ class RegisterContext(ModbusServerContext):
         self, device_id: int, func_code: int, address: int,
         values: Sequence[int] | Sequence[bool],
     ) -> ExcCodes | None:
-        if exc := self._check(device_id, func_code, HOLDING_WRITE | {MASK_WRITE}):
+        if exc := self._check(device_id, func_code, HOLDING_WRITE):
             return exc
         try:
             decision = self._link.bank.write(address, [int(v) for v in values])

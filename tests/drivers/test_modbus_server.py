@@ -1,0 +1,274 @@
+"""Modbus/TCP server link against real peers: the pymodbus client (through the mock PLC and
+directly), raw sockets, and mbpoll (Debian's Modbus master, installed in CI).
+
+A stand-in daemon drives the link directly (image_captured/publish) so each handshake step is
+under the test's control; the end-to-end daemon tests live with the daemon.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import re
+import shutil
+import struct
+from collections.abc import AsyncIterator
+
+import pytest
+from pymodbus.client import AsyncModbusTcpClient
+
+from drivers.links.modbus_server import ModbusServerLink
+from vgripd.errors import LinkError
+from vgripd.mock.plc import MockPlc
+from vgripd.protocol import CHECK_F32, MAP_SIZE, LinkState, Reg, Trigger
+from vgripd.types import JobResult, RobotTarget, Status
+
+KUKA = ("X", "Y", "Z", "A", "B", "C")
+POSE = (612.5, -98.125, 10.75, 2.5, -0.75, 179.5)  # exactly representable in float32
+
+
+def ok(job_id: int, values: tuple[float, ...] = POSE) -> JobResult:
+    return JobResult(job_id=job_id, status=Status.OK,
+                     target=RobotTarget("kuka", KUKA[: len(values)] + ("q",) * (len(values) - 6), values),
+                     residuals={"fit_rms_mm": 0.375})
+
+
+class Harness:
+    def __init__(self, link: ModbusServerLink) -> None:
+        self.link = link
+        self.triggers: asyncio.Queue[Trigger] = asyncio.Queue()
+
+    async def next_trigger(self) -> Trigger:
+        return await asyncio.wait_for(self.triggers.get(), 5)
+
+
+async def open_link(**options: object) -> tuple[ModbusServerLink, Harness]:
+    link = ModbusServerLink("plc", ModbusServerLink.Options(host="127.0.0.1", port=0, **options))
+    harness = Harness(link)
+    await link.open(harness.triggers.put_nowait)
+    return link, harness
+
+
+@pytest.fixture
+async def served() -> AsyncIterator[Harness]:
+    link, harness = await open_link()
+    yield harness
+    await link.close()
+    assert link.health().state is LinkState.STOPPED
+
+
+@pytest.mark.parametrize("order", ["ABCD", "CDAB"])
+async def test_byte_order_words(order: str) -> None:
+    link, _ = await open_link(word_order=order)
+    try:
+        async with MockPlc("127.0.0.1", link.port, word_order=order) as plc:  # type: ignore[arg-type]
+            await plc.check_byte_order()
+            w = await plc.read()
+            f32 = struct.pack(">f", CHECK_F32)
+            hi, lo = int.from_bytes(f32[:2], "big"), int.from_bytes(f32[2:], "big")
+            assert w[Reg.CHECK_F32:Reg.CHECK_F32 + 2] == ([hi, lo] if order == "ABCD" else [lo, hi])
+        other = "CDAB" if order == "ABCD" else "ABCD"
+        async with MockPlc("127.0.0.1", link.port, word_order=other) as wrong:  # type: ignore[arg-type]
+            with pytest.raises(LinkError, match="word order mismatch"):
+                await wrong.check_byte_order()
+    finally:
+        await link.close()
+
+
+async def test_cycle_trigger_capture_publish(served: Harness) -> None:
+    link = served.link
+
+    async def daemon() -> None:
+        t = await served.next_trigger()
+        assert (t.link, t.command, t.recipe) == ("plc", 1, 4)
+        await link.image_captured(t.seq, job_id=1001)
+        await link.publish(t.seq, ok(1001))
+
+    async with MockPlc("127.0.0.1", link.port, poll_s=0.002) as plc:
+        stand_in = asyncio.create_task(daemon())
+        result = await plc.cycle(recipe=4)
+        await stand_in
+    assert (result.seq, result.status, result.rejected, result.job_id) == (1, Status.OK, False, 1001)
+    assert result.values == POSE
+    assert result.fit_rms == 0.375
+    assert result.captured_seen
+
+
+async def test_int32_scaled_quaternion_cycle() -> None:
+    link, harness = await open_link(value_format="int32", scale=10000, word_order="CDAB")
+    values = (612.34567, -98.1, 10.0, 0.7071068, 0.0, 0.7071068, 0.0)
+    try:
+        async with MockPlc("127.0.0.1", link.port, word_order="CDAB", value_format="int32",
+                           scale=10000, poll_s=0.002) as plc:
+            seq = await plc.trigger()
+            t = await harness.next_trigger()
+            await link.image_captured(t.seq, 5)
+            await link.publish(t.seq, ok(5, values))
+            result = await plc.wait_answer(seq)
+    finally:
+        await link.close()
+    assert len(result.values) == 7
+    assert result.values == pytest.approx(values, abs=0.5e-4)
+
+
+async def test_trigger_while_busy_is_refused_and_running_job_completes(served: Harness) -> None:
+    link = served.link
+    async with MockPlc("127.0.0.1", link.port, poll_s=0.002) as plc:
+        first = await plc.trigger()
+        t = await served.next_trigger()
+        await link.image_captured(t.seq, 77)
+        second = await plc.trigger()
+        refused = await plc.wait_answer(second)
+        assert (refused.rejected, refused.status) == (True, Status.BUSY)
+        assert served.triggers.empty()
+        w = await plc.read()
+        assert (w[Reg.ACK_SEQ], w[Reg.STATE], w[Reg.CAPTURED_SEQ]) == (0, 2, first)
+        await link.publish(t.seq, ok(77))
+        done = await plc.wait_answer(first)
+        assert (done.status, done.job_id, done.values) == (Status.OK, 77, POSE)
+        # the refused sequence stays refused: a retry needs a new one
+        third = await plc.trigger()
+        t3 = await served.next_trigger()
+        assert t3.seq == third == 3
+
+
+async def test_bad_writes_and_reads_get_exception_responses(served: Harness) -> None:
+    client = AsyncModbusTcpClient("127.0.0.1", port=served.link.port, retries=0)
+    await client.connect()
+    try:
+        for address, values in [(Reg.ACK_SEQ, [9]), (2, [1, 2]), (MAP_SIZE, [1]), (1000, [1])]:
+            r = await client.write_registers(address, values, device_id=1)
+            assert (r.isError(), r.exception_code) == (True, 2), (address, values)
+        r = await client.write_register(Reg.STATUS, 1, device_id=1)
+        assert (r.isError(), r.exception_code) == (True, 2)
+        r = await client.read_holding_registers(MAP_SIZE - 1, count=2, device_id=1)
+        assert (r.isError(), r.exception_code) == (True, 2)
+        r = await client.read_holding_registers(0, count=MAP_SIZE, device_id=1)
+        assert r.registers[Reg.ACK_SEQ:Reg.STATUS + 1] == [0, 0]
+        r = await client.read_coils(0, count=1, device_id=1)
+        assert (r.isError(), r.exception_code) == (True, 1)
+        r = await client.read_input_registers(0, count=1, device_id=1)
+        assert (r.isError(), r.exception_code) == (True, 1)
+        # the command area is writable, one register at a time too
+        assert not (await client.write_register(Reg.RECIPE, 3, device_id=1)).isError()
+        assert not (await client.write_register(Reg.CMD, 1, device_id=1)).isError()
+        assert served.triggers.empty()  # no sequence change yet
+        assert not (await client.write_register(Reg.REQ_SEQ, 12, device_id=1)).isError()
+        t = await served.next_trigger()
+        assert (t.seq, t.command, t.recipe) == (12, 1, 3)
+    finally:
+        client.close()
+
+
+async def test_garbage_frames_do_not_stop_the_server(served: Harness) -> None:
+    rng = random.Random(4)
+    frames = [
+        bytes(rng.randrange(256) for _ in range(rng.randrange(1, 64))) for _ in range(20)
+    ] + [
+        b"\x00\x01\x00\x00\x00\x06\x01\x03\x00\x00",  # truncated request
+        b"\x00\x02\x00\x00\xff\xff\x01\x03\x00\x00\x00\x01",  # absurd MBAP length
+        b"\x00\x03\x00\x00\x00\x06\x01\x63\x00\x00\x00\x01",  # unknown function 0x63
+        b"\x00\x04\x00\x00\x00\x06\x01\x03\x00\x00\x00\x00",  # count 0
+        b"\x00\x05\x00\x00\x00\x06\x01\x03\x00\x00\x07\xd0",  # count 2000
+        b"\x00\x06\x00\x00\x00\x09\x01\x10\x00\x00\x00\x10\x02\x00\x01",  # bad byte count
+    ]
+    for frame in frames:
+        reader, writer = await asyncio.open_connection("127.0.0.1", served.link.port)
+        writer.write(frame)
+        await writer.drain()
+        writer.close()
+        await writer.wait_closed()
+        del reader
+    async with MockPlc("127.0.0.1", served.link.port) as plc:
+        await plc.check_byte_order()
+        seq = await plc.trigger()
+        t = await served.next_trigger()
+        assert t.seq == seq
+    assert served.link.health().state is LinkState.UP
+
+
+async def test_client_disconnect_mid_job_then_result_is_readable(served: Harness) -> None:
+    link = served.link
+    async with MockPlc("127.0.0.1", link.port) as plc:
+        seq = await plc.trigger()
+        t = await served.next_trigger()
+    await link.image_captured(t.seq, 8)
+    await link.publish(t.seq, ok(8))
+    async with MockPlc("127.0.0.1", link.port) as again:
+        again.seq = seq  # the same PLC program after a reconnect
+        result = await again.wait_answer(seq)
+    assert (result.status, result.values, result.job_id) == (Status.OK, POSE, 8)
+
+
+async def test_health_counts_peers_and_heartbeat_runs() -> None:
+    link, _ = await open_link(heartbeat_ms=100)
+    try:
+        assert link.health().peers == 0
+        async with MockPlc("127.0.0.1", link.port) as a, MockPlc("127.0.0.1", link.port) as b:
+            beats = {(await a.read(Reg.HEARTBEAT, 1))[0]}
+            async with asyncio.timeout(5):  # a PLC watches the heartbeat by polling it
+                while len(beats) < 3:
+                    beats.add((await b.read(Reg.HEARTBEAT, 1))[0])
+                    await asyncio.sleep(0.01)
+            assert link.health().peers == 2
+        health = link.health()
+        assert health.state is LinkState.UP
+        assert health.peer == f"127.0.0.1:{link.port}"
+    finally:
+        await link.close()
+    assert not [t for t in asyncio.all_tasks() if "heartbeat" in t.get_name()]
+
+
+async def test_port_in_use_is_a_link_error_naming_address_and_port(served: Harness) -> None:
+    busy_port = served.link.port
+    other = ModbusServerLink("plc2", ModbusServerLink.Options(host="127.0.0.1", port=busy_port))
+    with pytest.raises(LinkError, match=rf"plc2: cannot listen on 127\.0\.0\.1:{busy_port}: Address already in use"):
+        await other.open(lambda t: None)
+    assert other.health().state is LinkState.FAILED
+    await other.close()
+
+
+# --- mbpoll, a third-party Modbus master --------------------------------------------------
+
+MBPOLL = shutil.which("mbpoll") or "mbpoll"
+
+
+async def mbpoll(port: int, *args: str) -> dict[int, str]:
+    """Run mbpoll once with 0-based references; return {reference: printed value}."""
+    proc = await asyncio.create_subprocess_exec(
+        MBPOLL, "-m", "tcp", "-a", "1", "-0", "-1", "-o", "2", "-p", str(port), *args,
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+    )
+    out, err = await proc.communicate()
+    assert proc.returncode == 0, (out.decode(), err.decode())
+    return {int(m[1]): m[2] for m in re.finditer(r"^\[(\d+)\]:\s+(\S+)", out.decode(), re.M)}
+
+
+@pytest.mark.parametrize(("order", "flags"), [("ABCD", ["-B"]), ("CDAB", [])])
+async def test_mbpoll_reads_byte_order_words(order: str, flags: list[str]) -> None:
+    link, _ = await open_link(word_order=order)
+    try:
+        u16 = await mbpoll(link.port, "-t", "4:hex", "-r", str(Reg.CHECK_U16), "-c", "1", "127.0.0.1")
+        assert u16 == {Reg.CHECK_U16: "0x1234"}
+        i32 = await mbpoll(link.port, "-t", "4:int", *flags, "-r", str(Reg.CHECK_U32), "-c", "1", "127.0.0.1")
+        assert i32 == {Reg.CHECK_U32: str(0x12345678)}
+        f32 = await mbpoll(link.port, "-t", "4:float", *flags, "-r", str(Reg.CHECK_F32), "-c", "1", "127.0.0.1")
+        assert float(f32[Reg.CHECK_F32]) == pytest.approx(CHECK_F32, abs=1e-3)
+        wrong = await mbpoll(link.port, "-t", "4:float", *(["-B"] if not flags else []), "-r",
+                             str(Reg.CHECK_F32), "-c", "1", "127.0.0.1")
+        assert float(wrong[Reg.CHECK_F32]) != pytest.approx(CHECK_F32, abs=1)
+    finally:
+        await link.close()
+
+
+async def test_mbpoll_triggers_and_reads_published_pose(served: Harness) -> None:
+    link = served.link
+    await mbpoll(link.port, "-t", "4", "-r", "0", "127.0.0.1", "1", "42", "0")
+    t = await served.next_trigger()
+    assert t.seq == 42
+    await link.image_captured(42, 3)
+    await link.publish(42, ok(3))
+    head = await mbpoll(link.port, "-t", "4", "-r", str(Reg.ACK_SEQ), "-c", "2", "127.0.0.1")
+    assert head == {Reg.ACK_SEQ: "42", Reg.STATUS: str(int(Status.OK))}
+    pose = await mbpoll(link.port, "-t", "4:float", "-B", "-r", str(Reg.VALUES), "-c", "6", "127.0.0.1")
+    assert [float(pose[Reg.VALUES + 2 * i]) for i in range(6)] == pytest.approx(POSE, abs=1e-3)
