@@ -6,9 +6,9 @@ run by pymodbus on 127.0.0.1 (a free port unless one is given):
 
 - holding registers ``first .. first+count-1`` only; any other address or table answers with
   the Modbus exception ILLEGAL_DATA_ADDRESS, as UR's server does;
-- a simulated robot program (``run_job``, or ``start_program`` for a loop as an asyncio task):
-  writes a new sequence number into the trigger register, waits until vgripd writes the same
-  number into the acknowledge register, then snapshots the result words;
+- a simulated robot program on ``vgripd.protocol``'s map (``run_job``, or ``start_program`` for
+  a loop on an asyncio task): writes a new request sequence, waits until vgripd acknowledges
+  (or refuses) it, snapshots the block and checks the byte-order words;
 - misbehaviour switches: ``go_offline``/``come_back`` (drop every connection and stop
   listening, then listen again on the same port), ``drop_connections`` (drop, keep listening),
   ``RobotMode.SILENT`` (accept TCP, never answer) and ``RobotMode.REFUSE`` (answer every request
@@ -30,6 +30,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from vgripd.errors import LinkError
+from vgripd.protocol import CHECK_U16, CHECK_U32, MAP_SIZE, Command, Reg, ValueCodec
 
 UR_FIRST_REGISTER = 128
 UR_REGISTER_COUNT = 128
@@ -56,8 +57,8 @@ class RegisterWrite:
 class JobSeen:
     """What the simulated robot program saw for one job.
 
-    ``words`` is the whole register window at the moment the acknowledge matched (index 0 is
-    register ``first``); ``writes`` are the write transactions received while the job ran.
+    ``words``: the map block (``MAP_SIZE`` words, index = map offset) at the moment ACK_SEQ or
+    REJECT_SEQ matched; ``writes``: the write transactions received while the job ran.
     """
 
     seq: int
@@ -149,11 +150,10 @@ class MockRobotModbus:
         async with self._changed:
             self._changed.notify_all()
 
-    async def wait_until(self, address: int, value: int, timeout_s: float) -> None:
-        """Wait until register ``address`` holds ``value``; ``TimeoutError`` otherwise."""
-        i = self._index(address, 1)
-        async with asyncio.timeout(timeout_s), self._changed:
-            await self._changed.wait_for(lambda: self._regs[i] == value)
+    async def changed(self) -> None:
+        """Wait for the next register change (a network write or the program's own)."""
+        async with self._changed:
+            await self._changed.wait()
 
     def _index(self, address: int, count: int) -> int:
         if address < self.first or address + count > self.first + self.count:
@@ -167,31 +167,41 @@ class MockRobotModbus:
     # -- simulated robot program -------------------------------------------------------------
 
     async def run_job(
-        self, trigger_address: int, ack_address: int, seq: int, timeout_s: float,
-        trigger_words: Sequence[int] = (),
+        self, seq: int, timeout_s: float, base: int = UR_FIRST_REGISTER,
+        command: int = Command.TRIGGER, recipe: int = 0, codec: ValueCodec | None = None,
     ) -> JobSeen:
-        """One cycle of the robot program: trigger with ``seq``, wait for the ack, read.
+        """One cycle of the robot program on ``vgripd.protocol``'s map at ``base``.
 
-        ``trigger_words`` (e.g. a command) are written right after the trigger register before
-        the sequence itself, as a robot program sets parameters before raising the request.
+        Sets CMD and RECIPE, then raises REQ_SEQ to ``seq``; waits until ACK_SEQ or REJECT_SEQ
+        equals ``seq``; snapshots the block and checks the byte-order words (``codec``: the
+        word order the program expects, ABCD float32 by default). Raises ``LinkError`` when the
+        check words are wrong and ``TimeoutError`` when no answer comes.
         """
+        codec = codec or ValueCodec()
         start = len(self.writes)
-        if trigger_words:
-            await self.write(trigger_address + 1, trigger_words)
-        await self.write(trigger_address, [seq])
-        await self.wait_until(ack_address, seq & 0xFFFF, timeout_s)
+        await self.write(base + Reg.CMD, [command])
+        await self.write(base + Reg.RECIPE, [recipe])
+        await self.write(base + Reg.REQ_SEQ, [seq])
+        ack, reject = base + Reg.ACK_SEQ, base + Reg.REJECT_SEQ
+        async with asyncio.timeout(timeout_s), self._changed:
+            await self._changed.wait_for(
+                lambda: seq in (self._regs[ack - self.first], self._regs[reject - self.first])
+            )
+        words = tuple(self.read(base, MAP_SIZE))
+        check = (words[Reg.CHECK_U16], codec.decode_u32(words[Reg.CHECK_U32:Reg.CHECK_U32 + 2]))
+        if check != (CHECK_U16, CHECK_U32):
+            raise LinkError(f"robot program: check words {check} at base {base} are not "
+                            f"({CHECK_U16:#x}, {CHECK_U32:#x}) in word order {codec.word_order}")
         self.jobs_done += 1
-        return JobSeen(seq, tuple(self._regs), tuple(self.writes[start:]))
+        return JobSeen(seq, words, tuple(self.writes[start:]))
 
-    def start_program(
-        self, trigger_address: int, ack_address: int, timeout_s: float, first_seq: int = 1
-    ) -> None:
+    def start_program(self, timeout_s: float, base: int = UR_FIRST_REGISTER) -> None:
         """Run jobs back to back on a task until ``stop_program`` (benchmarks, soak tests)."""
 
         async def loop() -> None:
-            seq = first_seq
+            seq = 1
             while True:
-                await self.run_job(trigger_address, ack_address, seq, timeout_s)
+                await self.run_job(seq, timeout_s, base)
                 seq = seq % 0xFFFF + 1
 
         self._program = asyncio.create_task(loop(), name="mock robot program")

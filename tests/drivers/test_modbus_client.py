@@ -1,0 +1,287 @@
+"""ModbusClientLink against the mock robot Modbus server, over real sockets on 127.0.0.1.
+
+The robot side decodes the result words with ``struct`` here (not with vgripd's codec), so a
+word-order or scaling bug in the link cannot cancel out.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from collections.abc import AsyncIterator, Callable
+
+import numpy as np
+import pytest
+
+from drivers.links.modbus_client import ModbusClientLink, ModbusClientOptions, plan_writes
+from vgripd.errors import LinkError
+from vgripd.mock.robot_modbus import MockRobotModbus, RegisterWrite, RobotMode
+from vgripd.protocol import MAP_SIZE, BlockWrite, LinkState, Reg, RegisterBank, Trigger, ValueCodec
+from vgripd.types import JobResult, RobotTarget, Status
+
+BASE = 128
+WAIT_S = 5.0
+UR_POSE = (412.5, -133.25, 287.0625, 0.1234, -2.9, 3.14159)  # mm and rad (UR rotation vector)
+
+
+def ur_result(job_id: int, values: tuple[float, ...] = UR_POSE) -> JobResult:
+    target = RobotTarget("ur", ("x", "y", "z", "rx", "ry", "rz"), values)
+    return JobResult(job_id=job_id, status=Status.OK, target=target,
+                     residuals={"fit_rms_mm": 0.042})
+
+
+def words_to_bytes(words: tuple[int, ...], word_order: str) -> bytes:
+    hi, lo = words if word_order == "ABCD" else words[::-1]
+    return struct.pack(">HH", hi, lo)
+
+
+@pytest.fixture
+async def robot() -> AsyncIterator[MockRobotModbus]:
+    r = MockRobotModbus()
+    await r.start()
+    yield r
+    await r.stop()
+
+
+class Daemon:
+    """Stands in for vgripd's daemon: answers every trigger with ``result_for``."""
+
+    def __init__(self, link: ModbusClientLink,
+                 result_for: Callable[[Trigger], JobResult] | None = None) -> None:
+        self.link = link
+        self.triggers: asyncio.Queue[Trigger] = asyncio.Queue()
+        self.result_for = result_for
+        self.tasks: set[asyncio.Task[None]] = set()
+
+    def on_trigger(self, trigger: Trigger) -> None:
+        self.triggers.put_nowait(trigger)
+        if self.result_for is not None:
+            task = asyncio.create_task(self.answer(trigger))
+            self.tasks.add(task)
+            task.add_done_callback(self.tasks.discard)
+
+    async def answer(self, trigger: Trigger) -> None:
+        assert self.result_for is not None
+        await self.link.image_captured(trigger.seq, 100 + trigger.seq)
+        await self.link.publish(trigger.seq, self.result_for(trigger))
+
+
+def make_link(robot: MockRobotModbus, **options: object) -> ModbusClientLink:
+    opts = {"host": robot.host, "port": robot.port, "timeout_s": 0.3,
+            "backoff_initial_s": 0.02, "backoff_max_s": 0.2, "poll_interval_s": 0.005}
+    opts.update(options)
+    return ModbusClientLink("robot", ModbusClientOptions.model_validate(opts))
+
+
+@pytest.mark.parametrize(("word_order", "value_format"),
+                         [("ABCD", "float32"), ("CDAB", "float32"), ("CDAB", "int32")])
+async def test_job_end_to_end_pose_exact_and_ack_last(
+    robot: MockRobotModbus, word_order: str, value_format: str
+) -> None:
+    link = make_link(robot, word_order=word_order, value_format=value_format, scale=10000)
+    daemon = Daemon(link, lambda t: ur_result(100 + t.seq))
+    await link.open(daemon.on_trigger)
+    try:
+        assert link.health().state is LinkState.UP
+        codec = ValueCodec(word_order, value_format, 10000)  # type: ignore[arg-type]
+        seen = await robot.run_job(7, WAIT_S, recipe=3, codec=codec)
+        trigger = daemon.triggers.get_nowait()
+        assert (trigger.seq, trigger.command, trigger.recipe) == (7, 1, 3)
+    finally:
+        await link.close()
+
+    w = seen.words
+    assert w[Reg.ACK_SEQ] == 7
+    assert w[Reg.CAPTURED_SEQ] == 7
+    assert w[Reg.STATUS] == Status.OK
+    assert w[Reg.N_VALUES] == 6
+    job_id = struct.unpack(">I", words_to_bytes(w[Reg.JOB_ID:Reg.JOB_ID + 2], word_order))[0]
+    assert job_id == 107
+    fmt = ">f" if value_format == "float32" else ">i"
+    got = [struct.unpack(fmt, words_to_bytes(w[Reg.VALUES + 2 * i:Reg.VALUES + 2 * i + 2],
+                                             word_order))[0] for i in range(6)]
+    if value_format == "float32":
+        assert got == [float(np.float32(v)) for v in UR_POSE]  # bit-exact float32
+    else:
+        assert got == [round(v * 10000) for v in UR_POSE]
+    # The acknowledge is the last write, alone, and every result word came before it.
+    ack = RegisterWrite(BASE + Reg.ACK_SEQ, (7,))
+    assert seen.writes[-1] == ack
+    data_writes = [x for x in seen.writes[:-1] if x.address >= BASE + Reg.STATUS]
+    assert data_writes, "result data not written before the acknowledge"
+    assert all(len(x.values) == 1 for x in seen.writes if x.address == BASE + Reg.ACK_SEQ)
+    # The robot's command area was never written by the link.
+    assert all(x.address >= BASE + 3 for x in seen.writes)
+
+
+async def test_header_words_and_heartbeat_reach_the_robot(robot: MockRobotModbus) -> None:
+    link = make_link(robot, heartbeat_ms=100)
+    await link.open(Daemon(link).on_trigger)
+    try:
+        header = robot.read(BASE + Reg.MAP_VERSION, 9)
+        assert header[:2] == [1, 0x1234]
+        assert struct.unpack(">I", words_to_bytes(tuple(header[2:4]), "ABCD"))[0] == 0x12345678
+        assert struct.unpack(">f", words_to_bytes(tuple(header[4:6]), "ABCD"))[0] == pytest.approx(123.456, abs=1e-4)
+        beats = {robot.read(BASE + Reg.HEARTBEAT)[0]}
+        async with asyncio.timeout(WAIT_S):
+            while len(beats) < 3:
+                await robot.changed()
+                beats.add(robot.read(BASE + Reg.HEARTBEAT)[0])
+    finally:
+        await link.close()
+
+
+async def test_busy_refusal_and_old_request_not_rerun(robot: MockRobotModbus) -> None:
+    # An already answered request in the robot (ACK == REQ) is not run again at start.
+    await robot.write(BASE + Reg.REQ_SEQ, [4])
+    await robot.write(BASE + Reg.ACK_SEQ, [4])
+    link = make_link(robot)
+    daemon = Daemon(link)  # never answers: the first job stays running
+    await link.open(daemon.on_trigger)
+    try:
+        first = asyncio.create_task(robot.run_job(5, WAIT_S))
+        assert (await asyncio.wait_for(daemon.triggers.get(), WAIT_S)).seq == 5
+        # a second request while the first runs is refused with BUSY, nothing else changes
+        await robot.write(BASE + Reg.REQ_SEQ, [6])
+        async with asyncio.timeout(WAIT_S):
+            while robot.read(BASE + Reg.REJECT_SEQ)[0] != 6:
+                await robot.changed()
+        assert robot.read(BASE + Reg.REJECT_CODE)[0] == Status.BUSY
+        assert daemon.triggers.empty()
+        await link.publish(5, ur_result(1))
+        seen = await first  # the running job is still answered under its own sequence
+        assert seen.words[Reg.ACK_SEQ] == 5 and seen.words[Reg.STATUS] == Status.OK
+    finally:
+        await link.close()
+
+
+async def test_robot_drops_mid_job_and_comes_back(robot: MockRobotModbus) -> None:
+    link = make_link(robot)
+    daemon = Daemon(link)
+    await link.open(daemon.on_trigger)
+    try:
+        job = asyncio.create_task(robot.run_job(1, WAIT_S))
+        trigger = await asyncio.wait_for(daemon.triggers.get(), WAIT_S)
+        await link.image_captured(trigger.seq, 1)
+        await robot.go_offline()  # the controller reboots while the job is processed
+        down = await link.wait_state(LinkState.DOWN, WAIT_S)
+        assert f"{robot.host}:{robot.port}" in down.last_error
+        with pytest.raises(LinkError, match="kept for the reconnect"):
+            await link.publish(1, ur_result(1))
+        await robot.come_back()
+        up = await link.wait_state(LinkState.UP, WAIT_S)
+        assert up.reconnects == 1
+        seen = await job  # the result published while away reaches the waiting program
+        assert seen.words[Reg.ACK_SEQ] == 1 and seen.words[Reg.STATUS] == Status.OK
+        assert seen.writes[-1] == RegisterWrite(BASE + Reg.ACK_SEQ, (1,))
+        # and the next job works normally
+        nxt = asyncio.create_task(robot.run_job(2, WAIT_S))
+        assert (await asyncio.wait_for(daemon.triggers.get(), WAIT_S)).seq == 2
+        await link.image_captured(2, 2)
+        await link.publish(2, ur_result(2))
+        assert (await nxt).words[Reg.ACK_SEQ] == 2
+    finally:
+        await link.close()
+
+
+async def test_robot_drops_connection_detected_at_once(robot: MockRobotModbus) -> None:
+    link = make_link(robot, timeout_s=30.0)  # a drop must not wait for the request timeout
+    await link.open(Daemon(link).on_trigger)
+    try:
+        robot.drop_connections()
+        down = await link.wait_state(LinkState.DOWN, WAIT_S)
+        assert "lost" in down.last_error
+        await link.wait_state(LinkState.UP, WAIT_S)
+    finally:
+        await link.close()
+
+
+async def test_silent_robot_times_out_and_loop_stays_responsive(robot: MockRobotModbus) -> None:
+    link = make_link(robot)
+    await link.open(Daemon(link).on_trigger)
+    try:
+        robot.mode = RobotMode.SILENT
+        ticks = 0
+
+        async def ticker() -> None:
+            nonlocal ticks
+            while True:
+                ticks += 1
+                await asyncio.sleep(0)
+
+        tick_task = asyncio.create_task(ticker())
+        down = await link.wait_state(LinkState.DOWN, WAIT_S)
+        tick_task.cancel()
+        await asyncio.gather(tick_task, return_exceptions=True)
+        assert "no answer within 0.3 s" in down.last_error
+        assert f"{robot.host}:{robot.port}" in down.last_error
+        assert ticks > 100  # the loop kept running other tasks while the link waited
+        robot.mode = RobotMode.NORMAL
+        await link.wait_state(LinkState.UP, WAIT_S)
+    finally:
+        await link.close()
+    assert link.health().state is LinkState.STOPPED
+
+
+async def test_refused_range_at_start_fails_naming_the_register() -> None:
+    robot = MockRobotModbus()
+    await robot.start()
+    link = make_link(robot, base_address=240)  # 240 + 40 words runs past UR's 255
+    try:
+        with pytest.raises(LinkError, match=r"registers 256\.\.256 .*map register REJECT_CODE"):
+            await link.open(Daemon(link).on_trigger)
+        health = link.health()
+        assert health.state is LinkState.FAILED
+        assert "exception 2 (ILLEGAL_ADDRESS)" in health.last_error
+    finally:
+        await link.close()
+        await robot.stop()
+
+
+async def test_refusing_robot_mid_run_is_down_then_recovers(robot: MockRobotModbus) -> None:
+    link = make_link(robot)
+    await link.open(Daemon(link).on_trigger)
+    try:
+        robot.refuse_code = 4  # SLAVE_DEVICE_FAILURE / DEVICE_FAILURE
+        robot.mode = RobotMode.REFUSE
+        down = await link.wait_state(LinkState.DOWN, WAIT_S)
+        assert "exception 4 (DEVICE_FAILURE)" in down.last_error
+        assert f"registers {BASE}.." in down.last_error
+        robot.mode = RobotMode.NORMAL
+        await link.wait_state(LinkState.UP, WAIT_S)
+    finally:
+        await link.close()
+
+
+async def test_unreachable_at_open_is_down_and_connects_later() -> None:
+    robot = MockRobotModbus()
+    await robot.start()
+    await robot.go_offline()  # a port nobody listens on
+    link = make_link(robot)
+    try:
+        await link.open(Daemon(link).on_trigger)
+        assert link.health().state in (LinkState.DOWN, LinkState.CONNECTING)
+        assert "cannot connect" in link.health().last_error
+        await robot.come_back()
+        await link.wait_state(LinkState.UP, WAIT_S)
+    finally:
+        await link.close()
+        await robot.stop()
+
+
+def test_plan_keeps_ack_alone_and_last() -> None:
+    journal: list[BlockWrite] = []
+    bank = RegisterBank(ValueCodec(), journal)
+    bank.write(0, [1, 9, 0])
+    bank.captured(9, 3)
+    bank.publish(9, ur_result(3), 0)
+    plan = plan_writes(journal)
+    assert all(w.address >= 3 for w in plan)
+    acks = [i for i, w in enumerate(plan) if w.address <= Reg.ACK_SEQ < w.address + len(w.words)]
+    assert [plan[i] for i in acks] == [BlockWrite(Reg.ACK_SEQ, (0,)), BlockWrite(Reg.ACK_SEQ, (9,))]
+    assert acks[-1] == len(plan) - 1
+    # replaying the plan on a copy gives the bank's image outside the command area
+    image = [0] * MAP_SIZE
+    for w in plan:
+        image[w.address:w.address + len(w.words)] = w.words
+    assert image[3:] == bank.image.words[3:]
