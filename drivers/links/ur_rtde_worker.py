@@ -126,7 +126,8 @@ class _Session:
                  peer: str, last_seq: int | None, stale_after_s: float) -> None:
         self.conn, self.rcv, self.io, self.regs, self.peer = conn, rcv, io, regs, peer
         self.stale_after_s = stale_after_s
-        self.last_seq = last_seq
+        # A request already pending at the first connect is older than this link: not served.
+        self.last_seq = self.snapshot()[1] if last_seq is None else last_seq
         self.pending_rotation: tuple[int, Sequence[float]] | None = None
         self.last_ts = -1.0
         self.last_ts_change = time.monotonic()
@@ -187,9 +188,7 @@ class _Session:
             self.last_ts, self.last_ts_change = ts, now
         elif now - self.last_ts_change > self.stale_after_s:
             raise _Lost(f"{self.peer}: no new data package for {self.stale_after_s} s")
-        if self.last_seq is None:
-            self.last_seq = seq  # a request older than this link is not served
-        elif seq != self.last_seq and seq != 0:
+        if seq != self.last_seq and seq != 0:
             self.last_seq = seq
             self.pending_rotation = None
             self.conn.send(("trigger", seq, command, pose))
@@ -218,8 +217,9 @@ def main(conn: Connection, host: str, upper: bool, frequency_hz: float, stale_af
     code = 0
     try:
         rcv, io = _connect(host, regs, frequency_hz, probe_timeout_s)
+        session = _Session(conn, rcv, io, regs, peer, last_seq, stale_after_s)
         conn.send(("up", peer))
-        _Session(conn, rcv, io, regs, peer, last_seq, stale_after_s).run(1.0 / frequency_hz)
+        session.run(1.0 / frequency_hz)
     except _Lost as err:
         with contextlib.suppress(OSError):
             conn.send(("error", err.fatal, str(err)))
