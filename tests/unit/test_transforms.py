@@ -87,7 +87,7 @@ def test_gimbal_lock_returns_third_angle_zero_and_same_matrix(seq: str, middle: 
     assert (a2, b2, c2) == (a, b, c)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(a=angle, b=near_lock, c=angle)
 def test_zyx_round_trip_near_gimbal_lock(a: float, b: float, c: float) -> None:
     R = matrix_from_euler_zyx(a, b, c)
@@ -95,7 +95,7 @@ def test_zyx_round_trip_near_gimbal_lock(a: float, b: float, c: float) -> None:
     assert np.abs(back - R).max() < 1e-11
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(seq=st.sampled_from(["ZYX", "XYZ", "ZYZ", "xyz"]), a=angle, b=angle, c=angle)
 def test_euler_round_trip_any_angles(seq: str, a: float, b: float, c: float) -> None:
     R = matrix_from_euler(seq, (a, b, c))
@@ -131,7 +131,7 @@ def test_quaternions_against_scipy() -> None:
     assert max(e1, e2, e3, e4) < 1e-14
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(q=unit_quat)
 def test_q_and_minus_q_are_the_same_rotation_and_sign_is_canonical(q: np.ndarray) -> None:
     R = matrix_from_quat(q)
@@ -191,7 +191,7 @@ def test_compose_invert_and_points(q1: np.ndarray, q2: np.ndarray, t1: list[floa
     p_c = np.array([[1.0, 2.0, 3.0], [-40.0, 5.0, 600.0]])
     T_a_c = compose(T_a_b, T_b_c)
     assert np.abs(transform_points(T_a_c, p_c) - transform_points(T_a_b, transform_points(T_b_c, p_c))).max() < 1e-9
-    assert np.abs(compose(T_a_b, invert_transform(T_a_b)) - np.eye(4)).max() < 1e-12
+    assert np.abs(compose(T_a_b, invert_transform(T_a_b)) - np.eye(4)).max() < 1e-10  # |t| up to 1e3 mm
     assert np.abs(invert_transform(T_a_b) - np.linalg.inv(T_a_b)).max() < 1e-9
     # scipy composes rotations the same way (r1 * r2 applies r2 first).
     ref = (Rotation.from_quat(q1, scalar_first=True) * Rotation.from_quat(q2, scalar_first=True)).as_matrix()
