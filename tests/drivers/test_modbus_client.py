@@ -150,7 +150,8 @@ async def test_busy_refusal_and_old_request_not_rerun(robot: MockRobotModbus) ->
         assert daemon.triggers.empty()
         await link.publish(5, ur_result(1))
         seen = await first  # the running job is still answered under its own sequence
-        assert seen.words[Reg.ACK_SEQ] == 5 and seen.words[Reg.STATUS] == Status.OK
+        assert seen.words[Reg.ACK_SEQ] == 5
+        assert seen.words[Reg.STATUS] == Status.OK
     finally:
         await link.close()
 
@@ -172,7 +173,8 @@ async def test_robot_drops_mid_job_and_comes_back(robot: MockRobotModbus) -> Non
         up = await link.wait_state(LinkState.UP, WAIT_S)
         assert up.reconnects == 1
         seen = await job  # the result published while away reaches the waiting program
-        assert seen.words[Reg.ACK_SEQ] == 1 and seen.words[Reg.STATUS] == Status.OK
+        assert seen.words[Reg.ACK_SEQ] == 1
+        assert seen.words[Reg.STATUS] == Status.OK
         assert seen.writes[-1] == RegisterWrite(BASE + Reg.ACK_SEQ, (1,))
         # and the next job works normally
         nxt = asyncio.create_task(robot.run_job(2, WAIT_S))
