@@ -16,8 +16,10 @@ Life of a job (``JobState``)::
 - Every job ends with exactly one ``Status``: a camera failure is ``CAMERA_ERROR``, an
   unexpected exception ``INTERNAL`` (logged with its traceback), shutdown ``ABORTED``.
 - Shutdown (SIGTERM/SIGINT) aborts the job in flight (unless it is already publishing), so the
-  PLC gets ``ABORTED`` for its trigger at once instead of waiting; then links, the camera, the
-  recorder and the job thread are closed.
+  PLC gets ``ABORTED`` for its trigger at once instead of waiting; the links stay up for
+  ``ABORT_LINGER_S`` so a polling PLC can read it, then links, the camera, the recorder and the
+  job thread are closed. A CPU step already running (rendering, image processing) cannot be
+  interrupted: the process exits when it ends, its result is discarded.
 """
 
 from __future__ import annotations
@@ -51,6 +53,9 @@ log = logging.getLogger("vgripd")
 
 # A link call (image_captured/publish) that takes longer is abandoned and logged.
 LINK_CALL_TIMEOUT_S = 2.0
+# After publishing ABORTED on shutdown the links stay up this long, so that a polling PLC
+# reads the answer to its trigger before the server goes away.
+ABORT_LINGER_S = 1.0
 # The watchdog stops pinging when a job runs this long past its timeout: the timeout should
 # have ended it, so the job machinery is wedged and systemd should restart the service.
 WATCHDOG_GRACE_S = 5.0
@@ -228,10 +233,13 @@ class Daemon:
     async def _shutdown(self) -> None:
         if self._job is not None:
             task = self._job[2]
-            if self.state is not JobState.PUBLISHING:
+            aborting = self.state is not JobState.PUBLISHING
+            if aborting:
                 task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+            if aborting and self.links:
+                await asyncio.sleep(ABORT_LINGER_S)
         for task in list(self._tasks):
             task.cancel()
         for task in list(self._tasks):
@@ -470,7 +478,8 @@ class Daemon:
         for name, link in self.links.items():
             h = link.health()
             links.append({"name": name, "state": h.state.value, "peer": h.peer,
-                          "last_error": h.last_error, "reconnects": h.reconnects})
+                          "peers": h.peers, "last_error": h.last_error,
+                          "reconnects": h.reconnects})
         return {
             "pid": os.getpid(),
             "run_state": self.run_state.value,

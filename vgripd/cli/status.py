@@ -54,8 +54,8 @@ def format_status(s: dict[str, Any]) -> str:
     for link in s["links"]:
         extra = f", last error: {link['last_error']}" if link["last_error"] else ""
         lines.append(f"  {link['name']}: {link['state']}"
-                     f"{', peer ' + link['peer'] if link['peer'] else ''}, "
-                     f"reconnects {link['reconnects']}{extra}")
+                     f"{', ' + link['peer'] if link['peer'] else ''}, "
+                     f"{link['peers']} peers, reconnects {link['reconnects']}{extra}")
     if not s["links"]:
         lines.append("  none")
     counts = ", ".join(f"{k} {v}" for k, v in sorted(s["counters"].items())) or "none"
