@@ -287,3 +287,28 @@ def test_plan_keeps_ack_alone_and_last() -> None:
     for w in plan:
         image[w.address:w.address + len(w.words)] = w.words
     assert image[3:] == bank.image.words[3:]
+
+
+@pytest.mark.parametrize(("word_order", "flags"), [("ABCD", ["-B"]), ("CDAB", [])])
+async def test_mbpoll_reads_the_pose_vgripd_wrote(
+    robot: MockRobotModbus, word_order: str, flags: list[str]
+) -> None:
+    """mbpoll (an independent Modbus client, Debian) reads the robot's registers as a robot
+    integrator would, decoding the floats with its own word-order option."""
+    link = make_link(robot, word_order=word_order)
+    await link.open(Daemon(link, lambda t: ur_result(1)).on_trigger)
+    try:
+        await robot.run_job(3, WAIT_S, codec=ValueCodec(word_order))  # type: ignore[arg-type]
+    finally:
+        await link.close()
+    proc = await asyncio.create_subprocess_exec(
+        "mbpoll", "-m", "tcp", "-a", "1", "-0", "-1", "-t", "4:float", *flags,
+        "-r", str(BASE + Reg.VALUES), "-c", "6", "-p", str(robot.port), robot.host,
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+    )
+    out, err = await asyncio.wait_for(proc.communicate(), WAIT_S)
+    assert proc.returncode == 0, err.decode()
+    values = [float(line.split(":")[1]) for line in out.decode().splitlines()
+              if line.startswith("[")]
+    assert len(values) == 6
+    np.testing.assert_allclose(values, UR_POSE, rtol=1e-5)  # mbpoll prints 6 significant digits
