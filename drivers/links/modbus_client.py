@@ -22,7 +22,8 @@ One supervisor task owns the connection and is the only retry loop: pymodbus' ow
 and retries are off (``reconnect_delay=0``, ``retries=0``). After a drop it reconnects with
 doubling back-off and logs once per outage; ``health()`` says DOWN with the reason (address,
 port, Modbus exception, register). If the robot refuses a register of the block at the first
-contact the link is FAILED and not retried: a wrong ``base_address`` does not fix itself.
+contact (ILLEGAL_ADDRESS or ILLEGAL_FUNCTION) the link is FAILED and not retried: a wrong
+``base_address`` does not fix itself; other exception codes (busy, device failure) are retried.
 
 RESULT_AGE_MS is live on the server link; here it is refreshed with every heartbeat.
 """
@@ -80,7 +81,16 @@ class ModbusClientOptions(RegisterOptions):
 
 
 class RegisterRefused(LinkError):
-    """The robot answered a request with a Modbus exception."""
+    """The robot answered a request with a Modbus exception (``code``)."""
+
+    def __init__(self, message: str, code: int) -> None:
+        super().__init__(message)
+        self.code = code
+
+    @property
+    def permanent(self) -> bool:
+        """The block is not there (as opposed to a busy or failing device)."""
+        return self.code in (ExcCodes.ILLEGAL_FUNCTION, ExcCodes.ILLEGAL_ADDRESS)
 
 
 def plan_writes(journal: Sequence[BlockWrite]) -> list[BlockWrite]:
@@ -268,7 +278,7 @@ class ModbusClientLink(RobotLink):
                 await self._serve(client)
             except RegisterRefused as err:
                 error = str(err)
-                if not self._primed:
+                if err.permanent and not self._primed:
                     log.error("%s: %s", self.name, error)
                     await self._set_health(LinkState.FAILED, error)
                     return
@@ -316,7 +326,7 @@ class ModbusClientLink(RobotLink):
                 except RegisterRefused as err:
                     name = next(r.name for r in reversed(Reg) if r.value <= offset)
                     raise RegisterRefused(
-                        f"{err} (block base {base} + {offset}, map register {name})"
+                        f"{err} (block base {base} + {offset}, map register {name})", err.code
                     ) from None
             raise
 
@@ -430,5 +440,5 @@ class ModbusClientLink(RobotLink):
             except ValueError:
                 name = "unknown"
             raise RegisterRefused(f"robot {self._peer} answered Modbus exception {code} "
-                                  f"({name}) {where}")
+                                  f"({name}) {where}", code)
         return pdu

@@ -312,3 +312,17 @@ async def test_mbpoll_reads_the_pose_vgripd_wrote(
               if line.startswith("[")]
     assert len(values) == 6
     np.testing.assert_allclose(values, UR_POSE, rtol=1e-5)  # mbpoll prints 6 significant digits
+
+
+async def test_busy_robot_at_start_is_retried_not_failed(robot: MockRobotModbus) -> None:
+    robot.refuse_code = 6  # SLAVE_DEVICE_BUSY: transient, unlike a missing register
+    robot.mode = RobotMode.REFUSE
+    link = make_link(robot)
+    try:
+        await link.open(Daemon(link).on_trigger)
+        assert link.health().state in (LinkState.DOWN, LinkState.CONNECTING)
+        assert "exception 6 (DEVICE_BUSY)" in link.health().last_error
+        robot.mode = RobotMode.NORMAL
+        await link.wait_state(LinkState.UP, WAIT_S)
+    finally:
+        await link.close()

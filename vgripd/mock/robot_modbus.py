@@ -81,7 +81,7 @@ class MockRobotModbus:
         self.first = first
         self.count = count
         self.mode = RobotMode.NORMAL
-        self.refuse_code = ExcCodes.ILLEGAL_ADDRESS
+        self.refuse_code: int = ExcCodes.ILLEGAL_ADDRESS
         self.writes: list[RegisterWrite] = []
         self.requests = 0
         self._regs = [0] * count
@@ -235,7 +235,7 @@ class MockRobotModbus:
             await self._release_silent.wait()
             return ExcCodes.DEVICE_BUSY
         if self.mode is RobotMode.REFUSE:
-            return self.refuse_code
+            return ExcCodes(self.refuse_code)  # pymodbus only recognises the enum
         base = self.first - start_address
         if function_code in _WRITE_CODES and set_values is not None:
             words = tuple(int(v) for v in set_values)
