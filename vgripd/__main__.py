@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("vgripd.cli.run", "run the service until SIGTERM (what systemd starts)"),
     "check": ("vgripd.cli.check", "validate a config file without starting"),
     "status": ("vgripd.cli.status", "show a running daemon's status"),
+    "demo": ("vgripd.cli.demo", "run daemon, synthetic camera and a mock PLC on this computer"),
     "locate": ("vgripd.cli.locate", "locate the object in one image pair and print the pose"),
     "replay": ("vgripd.cli.replay", "run every image pair of a folder, JSON lines + summary"),
 }
