@@ -316,15 +316,17 @@ class URRtdeLink(RobotLink):
             return bool(first[1]), str(first[2])
         if first[0] == "exit":
             return False, f"{self._peer}: {_describe_exit(first[1])} during setup"
+        if self._last_seq is None:
+            self._last_seq = first[2]  # the baseline: later connects serve anything newer
         was_down = self._health.state is LinkState.DOWN
         await self._set_health(LinkState.UP, "", reconnected=ever_up)
         if was_down:
             log.info("link %s up again (%s)", self.name, self._peer)
         try:
             for kind, args in list(self._replay.values()):
-                await self._send(child, kind, args)
-        except LinkError as err:
-            return False, str(err)
+                child.send((0, kind, args))  # nobody waits for these: no "done" is expected
+        except OSError as err:
+            return False, f"{self._peer}: {err}"
         while True:
             msg = await child.next_message()
             if msg[0] == "trigger":

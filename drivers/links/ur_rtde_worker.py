@@ -9,8 +9,9 @@ its sockets.
 
 Pipe messages, parent -> child: ``(req, "captured", (seq, job_id))``,
 ``(req, "publish", (seq, status, job_id, translation | None, rotation | None))``,
-``(0, "close", ())``. Child -> parent: ``("up", peer)``, ``("trigger", seq, command, tcp_pose)``,
-``("done", req)``, ``("error", fatal, message)`` (the child exits right after).
+``(0, "close", ())``. Child -> parent: ``("up", peer, baseline_seq)``,
+``("trigger", seq, command, tcp_pose)``, ``("done", req)``, ``("error", fatal, message)`` (the
+child exits right after).
 """
 
 from __future__ import annotations
@@ -218,7 +219,7 @@ def main(conn: Connection, host: str, upper: bool, frequency_hz: float, stale_af
     try:
         rcv, io = _connect(host, regs, frequency_hz, probe_timeout_s)
         session = _Session(conn, rcv, io, regs, peer, last_seq, stale_after_s)
-        conn.send(("up", peer))
+        conn.send(("up", peer, session.last_seq))
         session.run(1.0 / frequency_hz)
     except _Lost as err:
         with contextlib.suppress(OSError):

@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator
+import logging
+import multiprocessing
+from collections.abc import AsyncIterator, Iterator
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
+from vgripd.errors import LinkError
 from vgripd.mock.ur_controller import URController
 from vgripd.protocol import LinkState, Trigger
 from vgripd.types import JobResult, RobotTarget, Status
@@ -157,3 +160,156 @@ async def test_pending_request_at_first_connect_is_not_served() -> None:
             assert triggers.queue.empty()
         finally:
             await lnk.close()
+
+
+# --- faults: drop mid-job, refuse, silent, IN_USE, stream pause ------------------------------
+
+FAST = {"backoff_initial_s": 0.05, "backoff_max_s": 0.4}
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_processes() -> Iterator[None]:
+    yield
+    assert multiprocessing.active_children() == []
+
+
+class LogEvent(logging.Handler):
+    """Sets ``event`` when a record containing ``text`` is logged."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__()
+        self.text = text
+        self.event = asyncio.Event()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.text in record.getMessage():
+            self.event.set()
+
+
+async def test_drop_mid_job_reconnects_and_answers(caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.DEBUG, "vgripd.link.ur_rtde")
+    async with connected("127.0.5.11", **FAST) as (robot, link, triggers):
+        seq = robot.start_program(1)
+        await triggers.next()
+        robot.drop(refuse=True)  # the controller goes away mid-job
+        down = await link.wait_state(LinkState.DOWN, timeout_s=10)
+        assert "127.0.5.11:30004" in down.last_error
+        with pytest.raises(LinkError, match="written at the reconnect"):
+            await link.publish(seq, ur_result(3))
+        retried = LogEvent("still down")
+        logging.getLogger("vgripd.link.ur_rtde").addHandler(retried)
+        try:
+            await asyncio.wait_for(retried.event.wait(), 10)  # a second attempt failed too
+        finally:
+            logging.getLogger("vgripd.link.ur_rtde").removeHandler(retried)
+
+        robot.listen()
+        up = await link.wait_state(LinkState.UP, timeout_s=10)
+        assert up.reconnects == 1
+        # The result that could not be written is written after the reconnect.
+        result = robot.program_result(seq)
+        assert result["offset"] == OFFSET
+        assert result["job_id"] == 3
+        # ... and the next job works.
+        trigger, result = await run_job(robot, link, triggers, job_id=4)
+        assert trigger.seq == seq + 1
+        assert result["offset"] == OFFSET
+    warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1, [r.message for r in warnings]  # logged once per outage
+    assert "down" in warnings[0].message
+
+
+async def test_trigger_while_down_is_served_at_reconnect() -> None:
+    async with connected("127.0.5.12", **FAST) as (robot, link, triggers):
+        robot.drop(refuse=True)
+        await link.wait_state(LinkState.DOWN, timeout_s=10)
+        seq = robot.start_program(2)
+        robot.listen()
+        trigger = await triggers.next(timeout_s=10)
+        assert (trigger.seq, trigger.command) == (seq, 2)
+        await link.publish(seq, ur_result(9))
+        assert robot.program_result(seq)["offset"] == OFFSET
+
+
+async def test_silent_controller_does_not_block_the_loop() -> None:
+    ticks = 0
+
+    async def heartbeat() -> None:
+        nonlocal ticks
+        while True:
+            await asyncio.sleep(0.01)
+            ticks += 1
+
+    with URController("127.0.5.13") as robot:
+        robot.set_silent(True)
+        beat = asyncio.create_task(heartbeat())
+        link = URRtdeLink("ur", URRtdeOptions(host=robot.host, connect_timeout_s=1.0, **FAST))
+        try:
+            await link.open(Triggers())  # the child hangs in ur_rtde's constructor
+            health = link.health()
+            assert health.state is LinkState.DOWN
+            assert "did not complete the RTDE setup within 1.0 s" in health.last_error
+            # While the child hung for >= 1 s, the loop kept running (10 ms ticks).
+            assert ticks >= 20
+            assert robot.sessions() == [] or all(not s["streaming"] for s in robot.sessions())
+
+            robot.set_silent(False)
+            await link.wait_state(LinkState.UP, timeout_s=15)
+        finally:
+            await link.close()
+            beat.cancel()
+            await asyncio.gather(beat, return_exceptions=True)
+
+
+async def test_register_in_use_fails_naming_the_register() -> None:
+    with URController("127.0.5.14") as robot:
+        robot.set_in_use("input_int_register_19")
+        link = URRtdeLink("ur", URRtdeOptions(host=robot.host))
+        with pytest.raises(LinkError, match="input_int_register_19 IN_USE"):
+            await link.open(Triggers())
+        health = link.health()
+        assert health.state is LinkState.FAILED
+        assert "127.0.5.14:30004" in health.last_error
+        assert "input_int_register_20" not in health.last_error
+        await link.close()
+
+
+async def test_second_client_gets_in_use() -> None:
+    async with connected("127.0.5.15") as (robot, link, triggers):
+        second = URRtdeLink("ur2", URRtdeOptions(host=robot.host))
+        with pytest.raises(LinkError, match="input_int_register_23.*IN_USE") as err:
+            await second.open(Triggers())
+        assert "input_double_register_22" in str(err.value)
+        await second.close()
+        # The first link is unaffected.
+        trigger, result = await run_job(robot, link, triggers, job_id=1)
+        assert result["offset"] == OFFSET
+
+
+async def test_refused_then_controller_starts(caplog: pytest.LogCaptureFixture) -> None:
+    link = URRtdeLink("ur", URRtdeOptions(host="127.0.5.16", **FAST))
+    triggers = Triggers()
+    try:
+        await link.open(triggers)
+        health = link.health()
+        assert health.state is LinkState.DOWN
+        assert "127.0.5.16:30004 refused the connection" in health.last_error
+        with URController("127.0.5.16") as robot:
+            await link.wait_state(LinkState.UP, timeout_s=15)
+            trigger, result = await run_job(robot, link, triggers, job_id=1)
+            assert result["offset"] == OFFSET
+            await link.close()
+    finally:
+        await link.close()
+
+
+async def test_stream_pause_is_noticed_and_recovered() -> None:
+    async with connected("127.0.5.17", stale_after_s=0.5, **FAST) as (robot, link, triggers):
+        robot.pause_stream(True)
+        down = await link.wait_state(LinkState.DOWN, timeout_s=10)
+        assert "no new data package for 0.5 s" in down.last_error
+        robot.pause_stream(False)
+        up = await link.wait_state(LinkState.UP, timeout_s=15)
+        assert up.reconnects == 1
+        trigger, result = await run_job(robot, link, triggers, job_id=1)
+        assert result["offset"] == OFFSET
