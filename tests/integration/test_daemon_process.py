@@ -101,6 +101,8 @@ enabled = false
                for line in stderr.splitlines() if line.strip())
     ready = next(m for m in messages if "READY=1" in m)
     assert "STATUS=idle" in ready
+    # STATUS= follows the job through its states.
+    assert any(m.startswith("STATUS=acquiring") for m in messages), messages
 
 
 def _vgripd(*args: str) -> subprocess.CompletedProcess[str]:
