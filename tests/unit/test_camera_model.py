@@ -52,9 +52,12 @@ def test_opencv_projectpoints_ignores_skew_so_skew_is_checked_by_bouguets_formul
     err = np.abs(cam.project(P) - ref).max()
     print(f"ORACLE project with skew vs Bouguet's skew formula on cv2 output: max abs {err:.3g} px")
     assert err < 1e-9
-    # ... and undistort removes the skew again.
-    xn = cam.undistort(cam.project(P))
+    # ... and undistort removes the skew again, which cv2.undistortPoints would not (it ignores K[0, 1]).
+    px = cam.project(P)
+    xn = cam.undistort(px)
     assert np.abs(xn - P[:, :2] / P[:, 2:]).max() < 1e-12
+    cv_skew = cv2.undistortPoints(px.reshape(-1, 1, 2), cam.K, cam.dist_array)
+    assert np.array_equal(cv_skew, cv2.undistortPoints(px.reshape(-1, 1, 2), no_skew.K, cam.dist_array))
 
 
 def test_undistort_matches_opencv_iterated_to_convergence() -> None:
