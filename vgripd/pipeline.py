@@ -35,7 +35,7 @@ from vgripd import scene
 from vgripd.camera_model import CameraModel
 from vgripd.config import Config, LimitsConfig, VisionConfig
 from vgripd.errors import ConfigError, GeometryError, NotCalibratedError
-from vgripd.orientation import horn_robust, pnp
+from vgripd.orientation import horn, horn_robust, pnp
 from vgripd.stereo import StereoRig
 from vgripd.transforms import invert_transform, rotation_angle
 from vgripd.types import FloatArray, ImagePair, JobResult, Status
@@ -263,6 +263,9 @@ class Pipeline:
             )
         self.kinds = tuple(f.kind for f in config.object.features)
         self.is_circle = np.array([k == "circle" for k in self.kinds])
+        self.diameters = np.array(
+            [f.diameter_mm if f.kind == "circle" else 0.0 for f in config.object.features]
+        )
         identified = int((~self.is_circle).sum())
         if self.rig is None and identified < MIN_PNP_FEATURES:
             raise ConfigError(
@@ -474,7 +477,26 @@ class Pipeline:
         job.used = tuple(self.names[i] for i in keep)
         job.missing = tuple(self.names[i] for i in np.flatnonzero(~used))
         kept_rows = assignment[keep]
-        T = fit.T_to_from
+        T, fit_rms = fit.T_to_from, fit.rms_mm
+        circles = keep[self.is_circle[keep]]
+        if circles.size:
+            # Second pass with the perspective bias of circle centres removed (see
+            # _circle_centre_bias); the pose of the first pass is good enough to predict it.
+            px_l, px_r = px_l.copy(), px_r.copy()
+            px_l[assignment[circles]] -= _circle_centre_bias(
+                self.rig.left, T, self.model[circles], self.diameters[circles])
+            px_r[assignment[circles]] -= _circle_centre_bias(
+                self.rig.right, self.rig.T_right_left @ T, self.model[circles],
+                self.diameters[circles])
+            try:
+                tri = self.rig.triangulate(px_l[kept_rows], px_r[kept_rows])
+                refit = horn(self.model[keep], tri.points_mm)
+            except GeometryError:
+                pass  # keep the first pass
+            else:
+                T, fit_rms = refit.T_to_from, refit.rms_mm
+                gap = gap.copy()
+                gap[kept_rows] = tri.gap_mm
         model_cam = self.model[keep] @ T[:3, :3].T + T[:3, 3]
         T_right_left = self.rig.T_right_left
         model_right = model_cam @ T_right_left[:3, :3].T + T_right_left[:3, 3]
@@ -483,7 +505,7 @@ class Pipeline:
         err = np.concatenate([np.linalg.norm(err_l, axis=1), np.linalg.norm(err_r, axis=1)])
         epi = self.rig.epipolar_residuals_px(px_l[kept_rows], px_r[kept_rows]).max(axis=1)
         residuals = {
-            "fit_rms_mm": fit.rms_mm,
+            "fit_rms_mm": fit_rms,
             "reprojection_px": float(np.sqrt(np.mean(err**2))),
             "epipolar_px": float(np.median(epi)),
             "ray_gap_mm": float(np.max(gap[kept_rows])),
@@ -507,6 +529,36 @@ class Pipeline:
             return None
         residuals = {"reprojection_px": result.rms_px}
         return PoseEstimate(result.T_cam_obj, used, result.ambiguous, residuals)
+
+
+#: Rim vertices for predicting the imaged centre of a circle (bias error < 1e-4 px).
+_RIM = np.stack([np.cos(np.linspace(0, 2 * np.pi, 48, endpoint=False)),
+                 np.sin(np.linspace(0, 2 * np.pi, 48, endpoint=False))], axis=1)
+
+
+def _circle_centre_bias(
+    camera: CameraModel, T_cam_obj: FloatArray, centres: FloatArray, diameters: FloatArray
+) -> FloatArray:
+    """Imaged area centroid minus projected centre (n, 2) px of circular marks at a pose.
+
+    Under perspective the image of a circle's centre is not the centre of its image: the
+    nearer half of the disc looks bigger. The finder measures the area centroid, so this
+    difference (0.01-0.05 px in the demo cell, about 0.04 mm of depth) is subtracted before the
+    second fit. Marks are assumed to lie in planes normal to the object's z axis.
+    """
+    R, t = T_cam_obj[:3, :3], T_cam_obj[:3, 3]
+    n, k = centres.shape[0], _RIM.shape[0]
+    rim = np.zeros((n, k, 3))
+    rim[:, :, :2] = 0.5 * diameters[:, None, None] * _RIM[None]
+    rim += centres[:, None, :]
+    px = camera.project(rim.reshape(-1, 3) @ R.T + t).reshape(n, k, 2)
+    x, y = px[..., 0], px[..., 1]
+    x1, y1 = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cross = x * y1 - x1 * y
+    area = cross.sum(axis=1) / 2.0
+    centroid = np.stack([((x + x1) * cross).sum(axis=1), ((y + y1) * cross).sum(axis=1)], axis=1)
+    centroid /= 6.0 * area[:, None]
+    return np.asarray(centroid - camera.project(centres @ R.T + t), dtype=np.float64)
 
 
 def _checked_gray(image: Any, camera: CameraModel | None, side: str) -> ft.UInt8Image:
