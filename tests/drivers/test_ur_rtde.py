@@ -251,7 +251,6 @@ async def test_silent_controller_does_not_block_the_loop() -> None:
             assert "did not complete the RTDE setup within 1.0 s" in health.last_error
             # While the child hung for >= 1 s, the loop kept running (10 ms ticks).
             assert ticks >= 20
-            assert robot.sessions() == [] or all(not s["streaming"] for s in robot.sessions())
 
             robot.set_silent(False)
             await link.wait_state(LinkState.UP, timeout_s=15)
