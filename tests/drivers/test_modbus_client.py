@@ -326,3 +326,25 @@ async def test_busy_robot_at_start_is_retried_not_failed(robot: MockRobotModbus)
         await link.wait_state(LinkState.UP, WAIT_S)
     finally:
         await link.close()
+
+
+async def test_outage_logged_once_and_recovery_once(
+    robot: MockRobotModbus, caplog: pytest.LogCaptureFixture
+) -> None:
+    link = make_link(robot)
+    await link.open(Daemon(link).on_trigger)
+    try:
+        with caplog.at_level("INFO", logger="drivers.links.modbus_client"):
+            await robot.go_offline()
+            await link.wait_state(LinkState.DOWN, WAIT_S)
+            for _ in range(3):  # three more failed attempts with back-off
+                await link.wait_state(LinkState.CONNECTING, WAIT_S)
+                await link.wait_state(LinkState.DOWN, WAIT_S)
+            await robot.come_back()
+            await link.wait_state(LinkState.UP, WAIT_S)
+        records = [r for r in caplog.records if r.name == "drivers.links.modbus_client"]
+        assert [r.levelname for r in records] == ["WARNING", "INFO"]
+        assert f"{robot.host}:{robot.port}" in records[0].getMessage()
+        assert link.health().reconnects == 1
+    finally:
+        await link.close()
