@@ -224,7 +224,7 @@ class CameraModel:
         target = np.empty((2, p.shape[0]))  # distorted normalized coordinates, one row per axis
         target[1] = (p[:, 1] - self.cy) / self.fy
         target[0] = (p[:, 0] - self.cx - self.skew * target[1]) / self.fx
-        if not any(self.dist):
+        if not any(self.dist) or p.shape[0] == 0:
             return target.T.copy()
         k1, k2, p1, p2, k3 = self.dist
         guess = cv2.undistortPoints(target.T.reshape(-1, 1, 2), _EYE3, self.dist_array,
@@ -238,7 +238,8 @@ class CameraModel:
             r2 = P2[0] + P2[1]
             scale = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)) + 2.0 * (tang @ P)
             F = scale * P + tang[:, None] * r2 - target
-            if np.vdot(F, F) < tol * tol or step == max_iter:
+            converged = bool(np.vdot(F, F) < tol * tol)  # every point's residual < tol
+            if converged or step == max_iter:
                 break
             dradial = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2))  # 2 d(radial)/d(r2)
             # The Jacobian of (xd, yd) w.r.t. (x, y) is symmetric: [[J0, Jxy], [Jxy, J1]].
@@ -247,7 +248,7 @@ class CameraModel:
             P -= (J[::-1] * F - Jxy * F[::-1]) / (J[0] * J[1] - Jxy * Jxy)
         # d(r_d)/dr along the ray (r_d = r radial(r^2)); > 0 on the invertible side of the fold.
         slope = 1.0 + r2 * (3.0 * k1 + r2 * (5.0 * k2 + r2 * 7.0 * k3))
-        if step == max_iter or not slope.min() > 0:
+        if not converged or not slope.min() > 0:
             self._raise_not_converged(F, slope, tol)
         return P.T.copy()
 

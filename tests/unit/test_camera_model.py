@@ -135,6 +135,14 @@ def test_rays_are_unit_and_point_at_the_scene_points() -> None:
     assert np.abs(1.0 - cosines).max() < 1e-13
 
 
+def test_empty_and_single_point_inputs() -> None:
+    assert STRONG.project(np.zeros((0, 3))).shape == (0, 2)
+    assert STRONG.undistort(np.zeros((0, 2))).shape == (0, 2)
+    assert STRONG.rays(np.zeros((0, 2))).shape == (0, 3)
+    assert STRONG.undistort([645.3, 478.9]).shape == (1, 2)
+    assert np.abs(STRONG.undistort([645.3, 478.9])).max() < 1e-15
+
+
 def test_opencv_round_trip_and_invalid_parameters() -> None:
     K, d = STRONG.to_opencv()
     assert CameraModel.from_opencv(K, d, (1280, 960)) == STRONG
