@@ -348,3 +348,37 @@ async def test_outage_logged_once_and_recovery_once(
         assert link.health().reconnects == 1
     finally:
         await link.close()
+
+
+async def test_daemon_jobs_through_the_robot_modbus_server(robot: MockRobotModbus) -> None:
+    """The real daemon (synthetic camera, full pipeline) with a modbus_client link: the robot
+    program gets the pose the daemon computed, bit-exact in float32, ACK_SEQ last."""
+    from vgripd.config import config_from_dict
+    from vgripd.daemon import Daemon as VgripDaemon
+    from vgripd.daemon import JobRecord
+
+    config = config_from_dict({
+        "camera": {"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0},
+        "links": [{"type": "modbus_client", "host": robot.host, "port": robot.port,
+                   "poll_interval_s": 0.005}],
+        "status": {"enabled": False},
+    })
+    daemon = VgripDaemon(config)
+    jobs: list[JobRecord] = []
+    daemon.listeners.append(lambda pair, rec: jobs.append(rec))
+    await daemon.start()
+    try:
+        for seq in (1, 2):
+            seen = await robot.run_job(seq, 30.0)
+            await daemon.wait_for(lambda: len(jobs) >= seq, WAIT_S)  # noqa: B023
+            rec = jobs[seq - 1]
+            assert rec.result.status is Status.OK
+            assert rec.result.target is not None
+            assert seen.words[Reg.STATUS] == Status.OK
+            n = seen.words[Reg.N_VALUES]
+            got = [struct.unpack(">f", words_to_bytes(seen.words[Reg.VALUES + 2 * i:Reg.VALUES + 2 * i + 2], "ABCD"))[0]
+                   for i in range(n)]
+            assert got == [float(np.float32(v)) for v in rec.result.target.values]
+            assert seen.writes[-1] == RegisterWrite(BASE + Reg.ACK_SEQ, (seq,))
+    finally:
+        await daemon.stop()
