@@ -301,8 +301,10 @@ class Daemon:
         if trigger.link not in self.links:
             log.error("trigger from unknown link %r ignored", trigger.link)
             return
-        if self.run_state is not RunState.RUNNING or self._job is not None:
-            status = Status.BUSY if self.run_state is RunState.RUNNING else Status.ABORTED
+        # Links open during start-up may trigger before READY: those jobs run normally.
+        accepting = self.run_state in (RunState.STARTING, RunState.RUNNING)
+        if not accepting or self._job is not None:
+            status = Status.BUSY if accepting else Status.ABORTED
             log.warning("trigger seq %d from %s refused: %s", trigger.seq, trigger.link,
                         status.name)
             self.counters[status.name] += 1

@@ -328,3 +328,24 @@ async def test_recorded_jobs_replay_to_the_same_result(tmp_path: Path) -> None:
     assert replayed["status"] == recorded["status"] == "OK"
     assert replayed["target"]["values"] == pytest.approx(recorded["target"]["values"], abs=1e-9)
     assert recorded["target"]["values"] == pytest.approx(list(rec.result.target.values))
+
+
+async def test_without_calibration_every_job_answers_not_calibrated(tmp_path: Path) -> None:
+    pair = await _synthetic_pair(2)
+    cv2.imwrite(str(tmp_path / "left_1.png"), pair.left)
+    cv2.imwrite(str(tmp_path / "right_1.png"), pair.right)
+    camera = {"type": "replay", "folder": str(tmp_path), "left_glob": "left_*.png",
+              "right_glob": "right_*.png"}
+    async with running(make_config(camera)) as run, Plc(run.port()) as plc:
+        assert run.daemon.snapshot()["calibrated"] is False
+        await plc.trigger(1)
+        words = await plc.result(1)
+        assert words[Reg.STATUS] == Status.NOT_CALIBRATED
+        assert words[Reg.N_VALUES] == 0
+        # Anything but GET /status is refused by the status endpoint.
+        assert run.daemon.status_server is not None
+        reader, writer = await asyncio.open_connection("127.0.0.1", run.daemon.status_server.port)
+        writer.write(b"POST /status HTTP/1.0\r\n\r\n")
+        assert (await reader.read()).startswith(b"HTTP/1.0 404")
+        writer.close()
+        await writer.wait_closed()

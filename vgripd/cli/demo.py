@@ -160,6 +160,9 @@ async def run_demo(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.cycles < 1:
+        print("vgripd demo: --cycles must be at least 1")
+        return 2
     configure_logging("INFO" if args.verbose else "WARNING")
     if not args.verbose:
         logging.getLogger("vgripd").setLevel(logging.ERROR)
