@@ -189,6 +189,16 @@ def _angle_about(axis: int, R: FloatArray) -> float:
     return math.atan2(R[m, l] - R[l, m], R[l, l] + R[m, m])
 
 
+def _cross_at(u: FloatArray, v: FloatArray, i: int) -> float:
+    """Component i of the cross product u x v (np.cross is slow for single 3-vectors)."""
+    j, k = (i + 1) % 3, (i + 2) % 3
+    return float(u[j] * v[k] - u[k] * v[j])
+
+
+def _cross(u: FloatArray, v: FloatArray) -> FloatArray:
+    return np.array([_cross_at(u, v, 0), _cross_at(u, v, 1), _cross_at(u, v, 2)])
+
+
 def _parse_seq(seq: str) -> tuple[tuple[int, int, int], bool]:
     """Axis indices of an Euler sequence and whether it is extrinsic (lower case)."""
     if (len(seq) != 3 or not (seq.isupper() or seq.islower())
@@ -233,20 +243,20 @@ def euler_from_matrix(seq: str, R: Any) -> tuple[float, float, float]:
     # Ri(a) applied to a reference direction (e_k for Tait-Bryan, e_j x e_i for proper Euler)
     # scaled by cos b resp. sin b >= 0, so a is the angle from that reference about axis i.
     v = M[:, k]
-    ref = e[k] if i != k else np.cross(e[j], e[i])
-    sin_part = float(np.cross(ref, v)[i])
+    ref = e[k] if i != k else _cross(e[j], e[i])
+    sin_part = _cross_at(ref, v, i)
     cos_part = float(ref @ v)
     if math.hypot(sin_part, cos_part) > GIMBAL_TOL:
         a = math.atan2(sin_part, cos_part)
         w = _axis_matrix(i, a).T @ v  # = Rj(b) e_k
-        b = math.atan2(float(np.cross(e[k], w)[j]), float(e[k] @ w))
+        b = math.atan2(_cross_at(e[k], w, j), float(e[k] @ w))
         # c from what is left, so that the triple rebuilds M even where a is ill-conditioned.
         c = _angle_about(k, (_axis_matrix(i, a) @ _axis_matrix(j, b)).T @ M)
     else:
         # Gimbal lock: axes i and k are aligned; take c = 0, then M = Ri(a) Rj(b) and
         # M e_j = Ri(a) e_j fixes a.
         u = M[:, j]
-        a = math.atan2(float(np.cross(e[j], u)[i]), float(e[j] @ u))
+        a = math.atan2(_cross_at(e[j], u, i), float(e[j] @ u))
         b = _angle_about(j, _axis_matrix(i, a).T @ M)
         c = 0.0
     return (c, b, a) if extrinsic else (a, b, c)
