@@ -268,7 +268,8 @@ class ModbusClientLink(RobotLink):
             try:
                 self._lost = asyncio.get_running_loop().create_future()
                 if not await client.connect():
-                    raise LinkError(f"cannot connect to {self._peer} within {opt.timeout_s} s")
+                    raise LinkError(f"cannot connect to {self._peer} (refused, or no answer "
+                                    f"within {opt.timeout_s} s)")
                 await self._first_contact(client)
                 await self._set_health(LinkState.UP, reconnect=outage_logged)
                 if outage_logged:
@@ -284,6 +285,9 @@ class ModbusClientLink(RobotLink):
                     return
             except LinkError as err:
                 error = str(err)
+            except Exception as err:  # a bug must not leave a dead link reporting UP
+                log.exception("%s: unexpected error talking to %s", self.name, self._peer)
+                error = f"internal error: {err!r}"
             finally:
                 client.close()
                 self._lost = None

@@ -382,3 +382,21 @@ async def test_daemon_jobs_through_the_robot_modbus_server(robot: MockRobotModbu
             assert seen.writes[-1] == RegisterWrite(BASE + Reg.ACK_SEQ, (seq,))
     finally:
         await daemon.stop()
+
+
+def test_options_typo_and_bounds_are_config_errors_naming_the_field() -> None:
+    from vgripd.config import DriverSection
+    from vgripd.errors import ConfigError
+    from vgripd.registry import LINKS, load_class, validate_options
+
+    cls = load_class(LINKS, "link", "modbus_client")
+    assert cls is ModbusClientLink
+    ok = validate_options(cls, DriverSection.model_validate(
+        {"type": "modbus_client", "host": "10.0.0.5"}), "links.0")
+    assert (ok.port, ok.base_address, ok.word_order) == (502, 128, "ABCD")
+    with pytest.raises(ConfigError, match="hots"):
+        validate_options(cls, DriverSection.model_validate(
+            {"type": "modbus_client", "hots": "10.0.0.5"}), "links.0")
+    with pytest.raises(ConfigError, match="base_address"):
+        validate_options(cls, DriverSection.model_validate(
+            {"type": "modbus_client", "host": "h", "base_address": 65530}), "links.0")
