@@ -1,6 +1,6 @@
 """Convert a pose between robot vendor conventions.
 
-Examples::
+Examples:
 
     vgripd convert --from kuka --to ur 100 -20 300 90 0 0
     vgripd convert --from abb --to kuka --json 100 -20 300 0.7071068 0 0 0.7071068
@@ -40,8 +40,11 @@ _NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|nan)$
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    table = "; ".join(f"{c.name}: {' '.join(c.fields[3:]) if c.name != 'matrix' else '16 numbers'}"
-                      f" ({c.length_unit})" for c in CONVENTIONS.values())
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter  # keep the examples' layout
+    table = "; ".join(
+        f"{c.name}: {' '.join(c.fields) if c.rotation != 'matrix' else '16 numbers, row-major'}"
+        f" ({c.length_unit}{', ' + c.angle_unit if c.angle_unit else ''})"
+        for c in CONVENTIONS.values())
     parser.add_argument("--from", dest="src", required=True, metavar="VENDOR",
                         help=f"convention of the input, one of: {', '.join(VENDORS)}")
     parser.add_argument("--to", dest="dst", required=True, metavar="VENDOR",
