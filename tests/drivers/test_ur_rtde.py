@@ -91,11 +91,13 @@ async def test_trigger_pose_result_roundtrip() -> None:
         assert result["error"] is None
         assert (result["status"], result["job_id"], result["captured"]) == (1, 17, trigger.seq)
         assert result["offset"] == OFFSET  # float-exact through the registers
-        oracle = (Rotation.from_rotvec(TAUGHT[3:]) * Rotation.from_rotvec(OFFSET[3:]))
-        np.testing.assert_allclose(result["target"][3:], oracle.as_rotvec(), atol=1e-12)
+        # The robot moves to offset * taught (base-frame offset, applied on the left).
+        oracle = Rotation.from_rotvec(OFFSET[3:]) * Rotation.from_rotvec(TAUGHT[3:])
+        np.testing.assert_allclose(Rotation.from_rotvec(result["target"][3:]).as_matrix(),
+                                   oracle.as_matrix(), atol=1e-12)
         np.testing.assert_allclose(
             result["target"][:3],
-            np.array(TAUGHT[:3]) + Rotation.from_rotvec(TAUGHT[3:]).apply(OFFSET[:3]), atol=1e-12)
+            np.array(OFFSET[:3]) + Rotation.from_rotvec(OFFSET[3:]).apply(TAUGHT[:3]), atol=1e-12)
 
         # Ordering on the wire: every data write before its acknowledge.
         log = robot.input_log(log_start)

@@ -3,15 +3,18 @@ expected bytes are the ones RTDE.md recorded from the real ur_rtde 1.6.5 and UR'
 
 from __future__ import annotations
 
+import re
 import socket
 import struct
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from vgripd.mock.ur_controller import MockControllerError, URController, pose_trans
+from vgripd.protocol import URRegisterMap
 
 pytestmark = pytest.mark.timeout(30)
 HOST = "127.0.5.30"
@@ -159,3 +162,21 @@ def test_pose_trans_matches_scipy() -> None:
         np.testing.assert_allclose(got[:3], a[:3] + Ra.apply(b[:3]), atol=1e-12)
         R = (Ra * Rb).as_matrix()
         np.testing.assert_allclose(Rotation.from_rotvec(got[3:]).as_matrix(), R, atol=1e-12)
+
+
+def test_urscript_uses_the_register_map() -> None:
+    """urscript/vgripd.script and the simulated program must use the same registers."""
+    text = (Path(__file__).resolve().parents[2] / "urscript" / "vgripd.script").read_text()
+    code = "\n".join(line.split("#", 1)[0] for line in text.splitlines())
+
+    def used(function: str) -> set[int]:
+        return {int(n) for n in re.findall(rf"{function}\((\d+) \+ o", code)}
+
+    regs = URRegisterMap()
+    assert used("write_output_integer_register") == {regs.seq, regs.command, regs.page_request}
+    assert used("read_output_integer_register") == {regs.seq}
+    assert used("vgripd_wait_int") == {regs.ack, regs.page_ack}
+    assert used("read_input_integer_register") == {regs.ack, regs.status}
+    assert used("read_input_float_register") == set(regs.page)
+    assert URRegisterMap(upper=True).ack - regs.ack == 24
+    assert "global VGRIPD_OFFSET = 0" in code

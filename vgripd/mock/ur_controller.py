@@ -342,7 +342,9 @@ class _Server:
             return result
         result["offset"] = (*translation, *in_page())
         if taught_pose is not None:
-            result["target"] = pose_trans(taught_pose, result["offset"])
+            # vgripd's offset is T_base_obj @ inv(T_base_obj_ref), in the base frame: it is
+            # applied on the left of the taught grip pose.
+            result["target"] = pose_trans(result["offset"], taught_pose)
         return result
 
     def start_program(self, command: int, timeout_s: float, upper: bool,
@@ -564,7 +566,7 @@ class URController:
 
     def program_result(self, seq: int, timeout_s: float = 15.0) -> dict[str, Any]:
         """Wait for the program of ``seq``: ``status``, ``job_id``, ``captured``, ``offset``
-        (UR pose read from the registers), ``target`` (``pose_trans(taught, offset)``),
+        (UR pose read from the registers), ``target`` (``pose_trans(offset, taught)``),
         ``ack_log_index`` (index in ``input_log`` of the ack write) or ``error``."""
         result: dict[str, Any] = self._call("program_result", seq, timeout_s=timeout_s)
         return result
