@@ -4,10 +4,13 @@ The daemon runs in-process on built-in defaults: the synthetic camera renders th
 a random pose around the taught reference (the truth is known), the Modbus/TCP server link
 listens on 127.0.0.1, and a scripted PLC (``vgripd.mock.plc``) triggers cycles over real TCP,
 polls for each answer and checks the handshake. One cycle also triggers a second time while the
-job runs, to show the refusal (BUSY). Each result is printed with the offset in the robot
-vendor's convention and the pose error against the synthetic truth; a summary follows.
+job runs, to show the refusal (BUSY). A last fault cycle restarts the daemon with the object
+placed beyond the offset limit, to show the safety gate (OUT_OF_LIMITS, no pose published).
+Each result is printed with the offset in the robot vendor's convention and the pose error
+against the synthetic truth; a summary follows.
 
-Exit code 0 when every cycle got a consistent handshake answer, 1 otherwise.
+Exit code 0 when every cycle got a consistent handshake answer (and the fault cycle was
+refused by the gate), 1 otherwise.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import argparse
 import asyncio
 import logging
 import socket
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 import numpy as np
@@ -53,16 +57,26 @@ def _port(wanted: int) -> int:
     return wanted
 
 
-def demo_config(port: int, seed: int, vendor: str) -> Any:
+def demo_config(port: int, seed: int, vendor: str, pose: dict[str, Any] | None = None) -> Any:
+    """The demo cell; ``pose`` fixes the object pose (else random around the reference)."""
     return config_from_dict({
         # Tilt kept within 3 deg: the offset is taken in the base frame, where a tilt about the
         # object moves its origin too, and 5 deg can exceed the 50 mm limit.
-        "camera": {"type": "synthetic", "seed": seed, "max_shift_mm": 10.0, "max_tilt_deg": 3.0},
+        "camera": {"type": "synthetic", "seed": seed, "max_shift_mm": 10.0, "max_tilt_deg": 3.0,
+                   **({"pose": pose} if pose else {})},
         "output": {"vendor": vendor},
         "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": port}],
         "status": {"port": 0},
         "daemon": {"log_level": "WARNING"},
     })
+
+
+def fault_pose(config: Any) -> dict[str, Any]:
+    """The taught reference pose moved along base x by 1.6 times the translation limit."""
+    ref = config.reference.T_base_obj
+    x, y, z = ref.translation_mm
+    shift = 1.6 * config.limits.max_translation_mm
+    return {"translation_mm": [x + shift, y, z], "rotvec_rad": list(ref.rotvec_rad or (0, 0, 0))}
 
 
 def pose_error(truth: FloatArray, found: FloatArray) -> tuple[float, float]:
@@ -73,12 +87,17 @@ def pose_error(truth: FloatArray, found: FloatArray) -> tuple[float, float]:
 
 
 class Demo:
-    def __init__(self, daemon: Daemon, vendor: str) -> None:
-        self.daemon = daemon
+    def __init__(self, vendor: str) -> None:
         self.conv = convention(vendor)
         self.jobs: dict[int, tuple[ImagePair | None, JobRecord]] = {}
         self.errors: list[tuple[float, float]] = []
         self.answers: list[CycleResult] = []
+        self.daemon: Daemon | None = None
+
+    def attach(self, daemon: Daemon) -> None:
+        """Follow this daemon's jobs (job ids restart with each daemon)."""
+        self.daemon = daemon
+        self.jobs.clear()
         daemon.listeners.append(lambda pair, rec: self.jobs.__setitem__(rec.job_id, (pair, rec)))
 
     def header(self) -> str:
@@ -92,6 +111,7 @@ class Demo:
         head = f"{answer.seq:>4}  {answer.status.name:<15}"
         if answer.rejected:
             return head + f"refused: {note or 'by the handshake'}"
+        assert self.daemon is not None
         await self.daemon.wait_for(lambda: answer.job_id in self.jobs, 5.0)
         pair, rec = self.jobs[answer.job_id]
         cols = "".join(f"{v:>10.3f}" for v in answer.values) if answer.values else (
@@ -120,40 +140,63 @@ class Demo:
         return lines
 
 
-async def run_demo(args: argparse.Namespace) -> int:
-    port = _port(args.port)
-    daemon = Daemon(demo_config(port, args.seed, args.vendor))
-    demo = Demo(daemon, args.vendor)
+async def _with_daemon(demo: Demo, config: Any,
+                       script: Callable[[Daemon, MockPlc], Awaitable[None]]) -> None:
+    """Start a daemon on ``config``, run ``script`` with a PLC connected to it, stop it."""
+    daemon = Daemon(config)
+    demo.attach(daemon)
     await daemon.start()
     try:
-        link = next(iter(daemon.links.values()))
-        link_port: int = link.port  # type: ignore[attr-defined]  # ModbusServerLink
+        link_port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+        async with MockPlc("127.0.0.1", link_port) as plc:
+            await plc.check_byte_order()
+            await script(daemon, plc)
+    finally:
+        await daemon.stop()
+
+
+async def run_demo(args: argparse.Namespace) -> int:
+    port = _port(args.port)
+    demo = Demo(args.vendor)
+    config = demo_config(port, args.seed, args.vendor)
+
+    async def cycles(daemon: Daemon, plc: MockPlc) -> None:
         assert daemon.status_server is not None
-        print(f"vgripd demo: daemon serving Modbus/TCP on 127.0.0.1:{link_port}, status on "
+        print(f"vgripd demo: daemon serving Modbus/TCP on {plc.where}, status on "
               f"http://127.0.0.1:{daemon.status_server.port}/status")
-        print(f"synthetic stereo camera, object {daemon.config.object.name!r}, offset against "
+        print(f"synthetic stereo camera, object {config.object.name!r}, offset against "
               f"the taught reference as {args.vendor.upper()} ({demo.conv.summary})\n")
         print(demo.header())
         busy_cycle = args.cycles // 2 + 1 if args.cycles >= 2 else 0
-        async with MockPlc("127.0.0.1", link_port) as plc:
-            await plc.check_byte_order()
-            for i in range(1, args.cycles + 1):
-                if i != busy_cycle:
-                    print(await demo.line(await plc.cycle()), flush=True)
-                    continue
-                first = await plc.trigger()
-                second = await plc.trigger()  # while the first job runs
-                refused = await plc.wait_answer(second)
-                answer = await plc.wait_answer(first)
-                print(await demo.line(answer), flush=True)
-                print(await demo.line(refused, f"job for seq {first} was running"), flush=True)
-                if not (refused.rejected and refused.status is Status.BUSY):
-                    raise LinkError(f"seq {second} sent while busy was not refused with BUSY")
+        for i in range(1, args.cycles + 1):
+            if i != busy_cycle:
+                print(await demo.line(await plc.cycle()), flush=True)
+                continue
+            first = await plc.trigger()
+            second = await plc.trigger()  # while the first job runs
+            refused = await plc.wait_answer(second)
+            answer = await plc.wait_answer(first)
+            print(await demo.line(answer), flush=True)
+            print(await demo.line(refused, f"job for seq {first} was running"), flush=True)
+            if not (refused.rejected and refused.status is Status.BUSY):
+                raise LinkError(f"seq {second} sent while busy was not refused with BUSY")
+
+    async def fault(daemon: Daemon, plc: MockPlc) -> None:
+        answer = await plc.cycle()
+        print(await demo.line(answer), flush=True)
+        if answer.status is not Status.OUT_OF_LIMITS or answer.values:
+            raise LinkError(f"fault cycle answered {answer.status.name}, not OUT_OF_LIMITS")
+
+    try:
+        await _with_daemon(demo, config, cycles)
+        print(f"\nfault cycle (daemon restarted): object placed "
+              f"{1.6 * config.limits.max_translation_mm:.0f} mm from the reference, limit "
+              f"{config.limits.max_translation_mm:.0f} mm")
+        await _with_daemon(demo, demo_config(port, args.seed, args.vendor, fault_pose(config)),
+                           fault)
     except (LinkError, TimeoutError) as err:
         print(f"\nvgripd demo: FAILED: {err}")
         return 1
-    finally:
-        await daemon.stop()
     print("\n" + "\n".join(demo.summary()))
     print("every cycle got a consistent handshake answer")
     return 0
