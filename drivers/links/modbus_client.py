@@ -167,9 +167,12 @@ class ModbusClientLink(RobotLink):
         self._health_changed = asyncio.Condition()
         self._wake = asyncio.Event()
         self._task = asyncio.create_task(self._supervise(), name=f"{self.name}-supervisor")
-        health = await self.wait_state(
-            {LinkState.UP, LinkState.DOWN, LinkState.FAILED}, 2 * self.options.timeout_s + 1.0
-        )
+        # connect + one read each take at most timeout_s; a slower first contact stays with
+        # the supervisor (CONNECTING) rather than failing the start
+        with contextlib.suppress(TimeoutError):
+            await self.wait_state({LinkState.UP, LinkState.DOWN, LinkState.FAILED},
+                                  2 * self.options.timeout_s + 1.0)
+        health = self._health
         if health.state is LinkState.FAILED:
             await self._stop_task()
             raise LinkError(f"link {self.name}: {health.last_error}")
@@ -219,14 +222,10 @@ class ModbusClientLink(RobotLink):
         self._wake.set()
         await done
 
-    def _release_waiters(self, error: Exception | None) -> None:
+    def _release_waiters(self, error: Exception) -> None:
         waiters, self._waiters = self._waiters, []
         for w in waiters:
-            if w.done():
-                continue
-            if error is None:
-                w.set_result(None)
-            else:
+            if not w.done():
                 w.set_exception(error)
 
     async def _stop_task(self) -> None:
