@@ -17,6 +17,7 @@ index or the condition; nothing returns a pose it cannot vouch for.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from itertools import combinations
 
@@ -26,7 +27,7 @@ import numpy.typing as npt
 
 from vgripd.camera_model import CameraModel
 from vgripd.errors import ConvergenceError, DegenerateInputError, GeometryError
-from vgripd.transforms import make_transform, matrix_from_quat, matrix_from_rotvec
+from vgripd.transforms import make_transform, matrix_from_rotvec
 from vgripd.types import FloatArray
 
 __all__ = [
@@ -87,28 +88,77 @@ class RobustHornResult(HornResult):
     dropped: tuple[int, ...] = ()
 
 
-def _as_points(points: object, name: str, dim: int) -> FloatArray:
-    """Return ``points`` as a float64 (n, dim) array; shapes and NaN are checked by index."""
+def _as_array(points: object, name: str, dim: int) -> FloatArray:
+    """Return ``points`` as a float64 (n, dim) array (shape checked, values not)."""
     arr = np.asarray(points, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != dim:
         raise DegenerateInputError(f"{name}: expected shape (n, {dim}), got {arr.shape}")
-    finite = np.isfinite(arr).all(axis=1)
-    if not finite.all():
-        bad = int(np.flatnonzero(~finite)[0])
-        raise DegenerateInputError(f"{name}: point {bad} is not finite: {arr[bad].tolist()}")
     return arr
 
 
-def _check_spread(centred: FloatArray, name: str) -> None:
-    """Refuse coincident or collinear point sets (from singular values of the centred set)."""
-    s = np.linalg.svd(centred, compute_uv=False)
-    if s[0] < MIN_SPREAD_MM:
-        raise DegenerateInputError(f"{name}: all points coincide")
-    if s[1] < MIN_SPREAD_RATIO * s[0]:
+def _check_finite(arr: FloatArray, name: str) -> None:
+    """Raise naming the first point with a NaN or inf coordinate."""
+    if not np.isfinite(arr).all():
+        bad = int(np.argmin(np.isfinite(arr).all(axis=1)))
+        raise DegenerateInputError(f"{name}: point {bad} is not finite: {arr[bad].tolist()}")
+
+
+def _as_points(points: object, name: str, dim: int) -> FloatArray:
+    """Return ``points`` as a float64 (n, dim) array; shape and NaN are checked by index."""
+    arr = _as_array(points, name, dim)
+    _check_finite(arr, name)
+    return arr
+
+
+def _check_spread(scatter: list[list[float]], name: str) -> None:
+    """Refuse coincident or collinear point sets.
+
+    Parameters
+    ----------
+    scatter : (d, d) nested list of float
+        Scatter matrix ``sum w (p - c)(p - c)^T`` of a centred point set (d = 2 or 3); its
+        eigenvalues l1 >= l2 >= l3 are the squared singular values of the set.
+    name : str
+        Names the set in the message.
+
+    Notes
+    -----
+    The trace is ``l1 + l2 + l3`` and the second invariant (sum of the 2x2 principal minors)
+    ``I2 = l1 l2 + l1 l3 + l2 l3`` lies between ``l1 l2`` and ``3 l1 l2``, so ``I2 / trace^2``
+    tracks ``(s2 / s1)^2``. Plain float arithmetic on a 3x3 is far cheaper than an
+    eigen-decomposition in the hot path; the exact singular values go into the message.
+    A NaN in the points makes the trace NaN, which is also refused (callers then name the point).
+    """
+    m = scatter
+    d = len(m)
+    tr = sum(m[i][i] for i in range(d))
+    i2 = sum(m[i][i] * m[j][j] - m[i][j] * m[j][i] for i in range(d) for j in range(i + 1, d))
+    if not tr >= MIN_SPREAD_MM**2:
+        raise DegenerateInputError(f"{name}: all points coincide (or are not finite)")
+    if i2 < MIN_SPREAD_RATIO**2 * tr * tr:
+        sv = np.sqrt(np.maximum(np.linalg.eigvalsh(np.array(scatter)), 0.0))[::-1]
         raise DegenerateInputError(
-            f"{name}: points are (nearly) collinear: singular values {s.tolist()}, the second "
-            f"must be at least {MIN_SPREAD_RATIO:g} of the first"
+            f"{name}: points are (nearly) collinear: singular values {sv.round(6).tolist()}, "
+            f"the second must be at least about {MIN_SPREAD_RATIO:g} of the first"
         )
+
+
+def _horn_n(M: FloatArray | list[list[float]]) -> FloatArray:
+    """Horn's 4x4 matrix N for one 3x3 ``M`` (written out as in Horn 1987, section 4)."""
+    (sxx, sxy, sxz), (syx, syy, syz), (szx, szy, szz) = M
+    return np.array(
+        [
+            [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+            [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+            [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+            [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+        ]
+    )
+
+
+# N is linear in M: tabulate the map once (columns = N of the 9 unit matrices), so that a stack
+# of N costs one matrix product.
+_HORN_MAP_T = np.stack([_horn_n(E.reshape(3, 3)).ravel() for E in np.eye(9)])
 
 
 def _horn_matrix(M: FloatArray) -> FloatArray:
@@ -117,16 +167,7 @@ def _horn_matrix(M: FloatArray) -> FloatArray:
     The unit quaternion (w, x, y, z) rotating the *a* points onto the *b* points is N's
     eigenvector of the largest eigenvalue. Works on stacks (..., 3, 3) -> (..., 4, 4).
     """
-    sxx, sxy, sxz = M[..., 0, 0], M[..., 0, 1], M[..., 0, 2]
-    syx, syy, syz = M[..., 1, 0], M[..., 1, 1], M[..., 1, 2]
-    szx, szy, szz = M[..., 2, 0], M[..., 2, 1], M[..., 2, 2]
-    rows = [
-        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
-        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
-        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
-        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
-    ]
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+    return (M.reshape(-1, 9) @ _HORN_MAP_T).reshape(*M.shape[:-2], 4, 4)
 
 
 def _normalised_weights(weights: object, n: int) -> FloatArray:
@@ -139,6 +180,43 @@ def _normalised_weights(weights: object, n: int) -> FloatArray:
     if np.count_nonzero(w) < 3:
         raise DegenerateInputError("weights: fewer than 3 points have a positive weight")
     return w / w.sum()
+
+
+def _rotation_quadratic(q: FloatArray | list[float]) -> FloatArray:
+    """R(q) for one quaternion (w, x, y, z), written homogeneous (quadratic in q; unit q)."""
+    w, x, y, z = q
+    return np.array(
+        [
+            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
+        ]
+    )
+
+
+def _quadratic_map() -> FloatArray:
+    """(16, 9) map from ``outer(q, q).ravel()`` to ``R(q).ravel()``, by polarisation."""
+    basis = np.eye(4)
+    Q = np.zeros((4, 4, 9))
+    for k in range(4):
+        Q[k, k] = _rotation_quadratic(basis[k]).ravel()
+        for m in range(k + 1, 4):
+            cross = _rotation_quadratic(basis[k] + basis[m]).ravel() - Q[k, k]
+            Q[k, m] = Q[m, k] = 0.5 * (cross - _rotation_quadratic(basis[m]).ravel())
+    return Q.reshape(16, 9)
+
+
+_QUAT_MAP = _quadratic_map()
+
+
+def _matrices_from_quats(q: FloatArray) -> FloatArray:
+    """Rotation matrices (m, 3, 3) from unit quaternions (m, 4), (w, x, y, z).
+
+    A stacked, unchecked twin of :func:`vgripd.transforms.matrix_from_quat` (which takes one
+    quaternion and validates it): the callers pass eigenvectors, unit by construction. One
+    matrix product of the quaternions' outer products with a tabulated map.
+    """
+    return ((q[:, :, None] * q[:, None, :]).reshape(-1, 16) @ _QUAT_MAP).reshape(-1, 3, 3)
 
 
 def horn(points_from: object, points_to: object, weights: object = None) -> HornResult:
@@ -160,8 +238,8 @@ def horn(points_from: object, points_to: object, weights: object = None) -> Horn
         Mismatched shapes, fewer than 3 points, NaN/inf (naming the point index), coincident
         or collinear points in either set, or a rotation the data do not determine uniquely.
     """
-    a = _as_points(points_from, "points_from", 3)
-    b = _as_points(points_to, "points_to", 3)
+    a = _as_array(points_from, "points_from", 3)
+    b = _as_array(points_to, "points_to", 3)
     if a.shape != b.shape:
         raise DegenerateInputError(
             f"points_from has {a.shape[0]} points but points_to has {b.shape[0]}"
@@ -169,40 +247,37 @@ def horn(points_from: object, points_to: object, weights: object = None) -> Horn
     n = a.shape[0]
     if n < 3:
         raise DegenerateInputError(f"need at least 3 point pairs, got {n}")
-    w = np.full(n, 1.0 / n) if weights is None else _normalised_weights(weights, n)
-    ca = w @ a
-    cb = w @ b
-    a0 = a - ca
-    b0 = b - cb
-    sw = np.sqrt(w)[:, None]
-    _check_spread(sw * a0, "points_from")
-    _check_spread(sw * b0, "points_to")
-    evals, evecs = np.linalg.eigh(_horn_matrix((w[:, None] * a0).T @ b0))
+    ab = np.concatenate([a, b], axis=1)  # (n, 6): both sets in one pass
+    if weights is None:
+        c = ab.sum(axis=0) / n
+        ab0 = ab - c
+        S = (ab0.T @ ab0) / n
+    else:
+        w = _normalised_weights(weights, n)
+        c = w @ ab
+        ab0 = ab - c
+        S = (w[:, None] * ab0).T @ ab0
+    # One product gave both sets' scatter matrices (diagonal blocks) and Horn's M (off-diagonal
+    # block); the small matrices are handled as Python floats, cheaper than numpy calls.
+    m = S.tolist()
+    if not math.isfinite(sum(m[i][i] for i in range(6))):  # NaN/inf anywhere ends up here
+        _check_finite(a, "points_from")
+        _check_finite(b, "points_to")
+    _check_spread([row[:3] for row in m[:3]], "points_from")
+    _check_spread([row[3:] for row in m[3:]], "points_to")
+    evals, evecs = np.linalg.eigh(_horn_n([row[3:] for row in m[:3]]))
     # eigh sorts ascending; a repeated top eigenvalue means two rotations fit equally well.
     if evals[3] - evals[2] <= 1e-12 * max(abs(evals[3]), 1e-300):
         raise DegenerateInputError("the point sets do not determine a unique rotation")
-    R = matrix_from_quat(evecs[:, 3])
-    t = cb - R @ ca
-    residuals = np.linalg.norm(a @ R.T + t - b, axis=1)
+    R = _rotation_quadratic(evecs[:, 3].tolist())
+    T = np.eye(4)  # R is orthonormal by construction: no make_transform check needed
+    T[:3, :3] = R
+    T[:3, 3] = c[3:] - R @ c[:3]
+    diff = a @ R.T + T[:3, 3] - b
+    sq = np.einsum("ij,ij->i", diff, diff)
     return HornResult(
-        T_to_from=make_transform(R, t),
-        rms_mm=float(np.sqrt(np.mean(residuals**2))),
-        residuals_mm=residuals,
+        T_to_from=T, rms_mm=math.sqrt(float(sq.sum()) / n), residuals_mm=np.sqrt(sq)
     )
-
-
-def _matrices_from_quats(q: FloatArray) -> FloatArray:
-    """Rotation matrices (m, 3, 3) from unit quaternions (m, 4), (w, x, y, z).
-
-    A stacked twin of :func:`vgripd.transforms.matrix_from_quat`, which takes one quaternion.
-    """
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def _triple_hypotheses(a: FloatArray, b: FloatArray, triples: npt.NDArray[np.intp]) -> FloatArray:
@@ -466,12 +541,13 @@ def pnp(
     if n < 4:
         raise DegenerateInputError(f"PnP needs at least 4 points, got {n}")
     centred = obj - obj.mean(axis=0)
-    s = np.linalg.svd(centred, compute_uv=False)
-    _check_spread(centred, "model_points")
+    _check_spread((centred.T @ centred).tolist(), "model_points")
     norm = camera.undistort(px)
-    _check_spread(norm - norm.mean(axis=0), "pixels (undistorted)")
+    norm0 = norm - norm.mean(axis=0)
+    _check_spread((norm0.T @ norm0).tolist(), "pixels (undistorted)")
     obj_cv = np.ascontiguousarray(obj).reshape(-1, 1, 3)
     norm_cv = np.ascontiguousarray(norm).reshape(-1, 1, 2)
+    s = np.linalg.svd(centred, compute_uv=False)
     planar = s[2] < PLANAR_RATIO * s[0]
     if planar:
         _, rvecs, tvecs, _ = cv2.solvePnPGeneric(

@@ -42,15 +42,19 @@ class Triangulation:
     gap_mm: FloatArray
 
 
-def _pixels(px: object, name: str) -> FloatArray:
-    arr = np.asarray(px, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 2:
-        raise DegenerateInputError(f"{name}: expected shape (n, 2), got {arr.shape}")
-    finite = np.isfinite(arr).all(axis=1)
-    if not finite.all():
-        bad = int(np.flatnonzero(~finite)[0])
-        raise DegenerateInputError(f"{name}: point {bad} is not finite: {arr[bad].tolist()}")
-    return arr
+def _undistort(camera: CameraModel, px: object, name: str) -> FloatArray:
+    """``camera.undistort`` (it checks shape and NaN by point index), errors prefixed by name."""
+    try:
+        return camera.undistort(px)
+    except DegenerateInputError as err:
+        raise DegenerateInputError(f"{name}: {err}") from None
+
+
+def _same_count(nl: FloatArray, nr: FloatArray) -> None:
+    if nl.shape != nr.shape:
+        raise DegenerateInputError(
+            f"px_left has {nl.shape[0]} points but px_right has {nr.shape[0]}"
+        )
 
 
 def _skew(v: FloatArray) -> FloatArray:
@@ -102,10 +106,11 @@ class StereoRig:
 
         Eq. (14), ``M1^-1 r1 z1 = R M2^-1 r2 z2 + K``, with ``d = M1^-1 r1`` (left ray, z = 1),
         ``e = R M2^-1 r2`` (right ray in the left frame, its right-frame z = 1) and ``c = K``
-        (right camera centre in the left frame), is three equations in the two depths. Their
-        normal equations are 2x2 and solved in closed form for all points at once. The
-        returned point is the midpoint of the two closest ray points ``z1 d`` and
-        ``z2 e + c``; their distance is the gap.
+        (right camera centre in the left frame), is three equations in the two depths z1
+        (left camera) and z2 (right camera). Their normal equations are 2x2 and solved in
+        closed form for all points at once. The returned point is the midpoint of the two
+        closest ray points ``z1 d`` and ``z2 e + c``; their distance is the gap. The pixels
+        are undistorted first (Newton inversion of the camera's Brown model).
 
         Parameters
         ----------
@@ -118,49 +123,42 @@ class StereoRig:
             Shape mismatch, NaN (naming the point), rays (nearly) parallel, or a point whose
             least-squares depth puts it behind either camera (naming the point).
         """
-        pl = _pixels(px_left, "px_left")
-        pr = _pixels(px_right, "px_right")
-        if pl.shape != pr.shape:
-            raise DegenerateInputError(
-                f"px_left has {pl.shape[0]} points but px_right has {pr.shape[0]}"
-            )
-        nl = self.left.undistort(pl)
-        nr = self.right.undistort(pr)
-        d = np.empty((pl.shape[0], 3))
-        d[:, :2] = nl
-        d[:, 2] = 1.0
-        R = self._R_lr
-        e = nr @ R[:, :2].T + R[:, 2]
-        c = self._c_right
-        a = np.einsum("ij,ij->i", d, d)
-        b = np.einsum("ij,ij->i", d, e)
-        cc = np.einsum("ij,ij->i", e, e)
-        p = d @ c
-        q = e @ c
-        det = a * cc - b * b  # = |d|^2 |e|^2 sin^2(angle between rays)
-        parallel = np.flatnonzero(det <= (self.min_ray_angle_rad**2) * a * cc)
-        if parallel.size:
-            i = int(parallel[0])
+        nl = _undistort(self.left, px_left, "px_left")
+        nr = _undistort(self.right, px_right, "px_right")
+        _same_count(nl, nr)
+        # Rows of V: the left ray d (z = 1) and the right ray e, both in the left frame. With
+        # u = (z1, -z2), eq. (14) reads u1 d + u2 e = c; its normal equations are G u = V c.
+        V = np.empty((nl.shape[0], 2, 3))
+        V[:, 0, :2] = nl
+        V[:, 0, 2] = 1.0
+        V[:, 1] = nr @ self._R_lr[:, :2].T + self._R_lr[:, 2]
+        G = V @ V.transpose(0, 2, 1)
+        a, b, cc = G[:, 0, 0], G[:, 0, 1], G[:, 1, 1]
+        det = a * cc - b * b  # = |d|^2 |e|^2 sin^2(angle between the rays)
+        parallel = det <= self.min_ray_angle_rad**2 * a * cc
+        if parallel.any():
+            i = int(np.argmax(parallel))
             raise DegenerateInputError(
                 f"point {i}: left and right rays are (nearly) parallel "
                 f"(angle {np.arcsin(np.sqrt(max(det[i], 0.0) / (a[i] * cc[i]))):.3g} rad)"
             )
-        z1 = (cc * p - b * q) / det
-        z2 = (b * p - a * q) / det
-        behind = np.flatnonzero((z1 <= 0) | (z2 <= 0))
-        if behind.size:
-            i = int(behind[0])
+        p, q = (V @ self._c_right).T
+        u1 = (cc * p - b * q) / det
+        u2 = (a * q - b * p) / det
+        behind = (u1 <= 0) | (u2 >= 0)
+        if behind.any():
+            i = int(np.argmax(behind))
             raise DegenerateInputError(
-                f"point {i}: rays meet behind a camera (depth left {z1[i]:.4g} mm, "
-                f"right {z2[i]:.4g} mm); wrong correspondence?"
+                f"point {i}: rays meet behind a camera (depth left {u1[i]:.4g} mm, "
+                f"right {-u2[i]:.4g} mm); wrong correspondence?"
             )
-        p1 = z1[:, None] * d
-        p2 = z2[:, None] * e + c
-        return Triangulation(points_mm=0.5 * (p1 + p2), gap_mm=np.linalg.norm(p1 - p2, axis=1))
+        p1 = V[:, 0] * u1[:, None]  # closest point on the left ray
+        r = p1 - (self._c_right - V[:, 1] * u2[:, None])  # minus the closest on the right ray
+        return Triangulation(points_mm=p1 - 0.5 * r, gap_mm=np.sqrt(np.einsum("ij,ij->i", r, r)))
 
-    def _ideal_homogeneous(self, camera: CameraModel, px: FloatArray) -> FloatArray:
-        """Homogeneous ideal pixels (n, 3): undistort, then re-project with K only."""
-        norm = camera.undistort(px)
+    @staticmethod
+    def _ideal_homogeneous(norm: FloatArray, camera: CameraModel) -> FloatArray:
+        """Homogeneous ideal pixels (n, 3) from normalised coordinates: re-project with K only."""
         return np.c_[norm, np.ones(len(norm))] @ camera.K.T
 
     def epipolar_lines_right(self, px_left: object) -> FloatArray:
@@ -173,13 +171,13 @@ class StereoRig:
             ``a u + b v + c`` is the signed distance (px) of ideal pixel (u, v) from the line.
             To test measured right pixels, convert them with :meth:`ideal_pixels` first.
         """
-        u_l = self._ideal_homogeneous(self.left, _pixels(px_left, "px_left"))
+        u_l = self._ideal_homogeneous(_undistort(self.left, px_left, "px_left"), self.left)
         lines = u_l @ self.F.T
         return lines / np.hypot(lines[:, 0], lines[:, 1])[:, None]
 
     def ideal_pixels(self, camera: CameraModel, px: object) -> FloatArray:
         """Measured pixels (n, 2) of ``camera`` -> ideal (distortion-free) pixels (n, 2)."""
-        return self._ideal_homogeneous(camera, _pixels(px, "px"))[:, :2]
+        return self._ideal_homogeneous(_undistort(camera, px, "px"), camera)[:, :2]
 
     def epipolar_residuals_px(self, px_left: object, px_right: object) -> FloatArray:
         """Distance of each point to the epipolar line of its partner, both images.
@@ -196,14 +194,11 @@ class StereoRig:
             right point in the left image; column 1: of the right point from the line of the
             left point in the right image.
         """
-        pl = _pixels(px_left, "px_left")
-        pr = _pixels(px_right, "px_right")
-        if pl.shape != pr.shape:
-            raise DegenerateInputError(
-                f"px_left has {pl.shape[0]} points but px_right has {pr.shape[0]}"
-            )
-        u_l = self._ideal_homogeneous(self.left, pl)
-        u_r = self._ideal_homogeneous(self.right, pr)
+        nl = _undistort(self.left, px_left, "px_left")
+        nr = _undistort(self.right, px_right, "px_right")
+        _same_count(nl, nr)
+        u_l = self._ideal_homogeneous(nl, self.left)
+        u_r = self._ideal_homogeneous(nr, self.right)
         lines_r = u_l @ self.F.T  # in the right image
         lines_l = u_r @ self.F  # in the left image
         algebraic = np.abs(np.einsum("ij,ij->i", u_r, lines_r))
