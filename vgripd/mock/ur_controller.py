@@ -316,14 +316,14 @@ class _Server:
         return True
 
     async def program(self, seq: int, regs: URRegisterMap, timeout_s: float,
-                      taught_pose: Sequence[float] | None) -> dict[str, Any]:
+                      taught_pose: Sequence[float] | None, t_start: float) -> dict[str, Any]:
         def in_int(n: int) -> int:
             return int(self.inputs.get(f"input_int_register_{n}", 0))
 
         def in_page() -> list[float]:
             return [float(self.inputs.get(f"input_double_register_{n}", 0.0)) for n in regs.page]
 
-        deadline = time.monotonic() + timeout_s
+        deadline = t_start + timeout_s
         result: dict[str, Any] = {"seq": seq, "error": None, "offset": None, "target": None}
         ack_name = f"input_int_register_{regs.ack}"
         if not await self.wait_input(ack_name, seq, deadline):
@@ -331,7 +331,7 @@ class _Server:
             return result
         result["ack_log_index"] = len(self.input_log) - 1
         result.update(status=in_int(regs.status), job_id=in_int(regs.job_id),
-                      captured=in_int(regs.captured))
+                      captured=in_int(regs.captured), elapsed_s=time.monotonic() - t_start)
         if result["status"] not in POSE_VALID_STATUS:
             return result
         translation = in_page()
@@ -341,6 +341,7 @@ class _Server:
             result["error"] = f"timeout waiting for {page_ack_name} == {seq}"
             return result
         result["offset"] = (*translation, *in_page())
+        result["elapsed_s"] = time.monotonic() - t_start
         if taught_pose is not None:
             # vgripd's offset is T_base_obj @ inv(T_base_obj_ref), in the base frame: it is
             # applied on the left of the taught grip pose.
@@ -356,7 +357,8 @@ class _Server:
         # Command and seq change in the same data package; the seq is the trigger.
         self.outputs[f"output_int_register_{regs.command}"] = command
         self.outputs[f"output_int_register_{regs.seq}"] = seq
-        self.programs[seq] = self.spawn(self.program(seq, regs, timeout_s, taught_pose))
+        self.programs[seq] = self.spawn(self.program(seq, regs, timeout_s, taught_pose,
+                                                     time.monotonic()))
         return seq
 
     # ---- pipe commands from the handle
@@ -567,7 +569,8 @@ class URController:
     def program_result(self, seq: int, timeout_s: float = 15.0) -> dict[str, Any]:
         """Wait for the program of ``seq``: ``status``, ``job_id``, ``captured``, ``offset``
         (UR pose read from the registers), ``target`` (``pose_trans(offset, taught)``),
-        ``ack_log_index`` (index in ``input_log`` of the ack write) or ``error``."""
+        ``ack_log_index`` (index in ``input_log`` of the ack write), ``elapsed_s`` (trigger
+        to the last value read, on the mock's clock) or ``error``."""
         result: dict[str, Any] = self._call("program_result", seq, timeout_s=timeout_s)
         return result
 
