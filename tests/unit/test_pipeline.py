@@ -313,3 +313,41 @@ def test_single_camera_pnp_on_aruco_markers():
     partial = pipeline.process(ImagePair(left=hidden, right=None, t_mono_ns=0), 2)
     assert partial.status in (Status.PARTIAL, Status.NOT_FOUND)
     assert partial.target is None
+
+
+async def test_robot_mounted_camera_uses_the_flange_pose_of_each_image():
+    # The demo camera pose expressed as flange pose @ T_flange_camera.
+    demo = make_config()
+    T_base_camera = Pipeline(demo).T_base_camera(ImagePair(None, None, 0))
+    T_flange_camera = make_transform(np.eye(3), [0.0, 0.0, 120.0])
+    T_base_flange = T_base_camera @ invert_transform(T_flange_camera)
+    data = demo.model_dump()
+    data["calibration"]["hand_eye"] = {
+        "mounting": "robot", "T_flange_camera": {"matrix": T_flange_camera.tolist()}}
+    data["camera"] = {"type": "synthetic", "seed": 3,
+                      "flange_pose": {"matrix": T_base_flange.tolist()}}
+    config = config_from_dict(data)
+    (pair,) = await grab(config)
+    pipeline = Pipeline(config)
+    result = pipeline.process(pair, 1)
+    assert result.status is Status.OK, result.message
+    err_t, err_r = pose_errors(result.T_base_obj, pair.truth["T_base_obj"])
+    assert err_t < MAX_TRANSLATION_ERR_MM
+    assert err_r < MAX_ROTATION_ERR_DEG
+    no_flange = ImagePair(left=pair.left, right=pair.right, t_mono_ns=0)
+    result = pipeline.process(no_flange, 2)
+    assert result.status is Status.NOT_CALIBRATED
+    assert "flange" in result.message
+
+
+def test_vision_and_limits_config_validation():
+    with pytest.raises(ConfigError, match="workspace_min_mm and workspace_max_mm go together"):
+        make_config(limits={"workspace_min_mm": [0, 0, 0]})
+    with pytest.raises(ConfigError, match="must be below"):
+        make_config(limits={"workspace_min_mm": [0, 0, 0], "workspace_max_mm": [1, -1, 1]})
+    with pytest.raises(ConfigError, match="working_distance_mm"):
+        make_config(vision={"working_distance_mm": [900, 300]})
+    with pytest.raises(ConfigError, match="epipolar_warn_px"):
+        make_config(vision={"epipolar_warn_px": 5.0, "epipolar_tolerance_px": 2.0})
+    with pytest.raises(ConfigError, match="vision.min_features"):
+        make_config(vision={"min_features": 2})
