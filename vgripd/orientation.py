@@ -58,7 +58,8 @@ class HornResult:
     T_to_from : (4, 4) float64
         ``p_to = T_to_from @ p_from`` (mm).
     rms_mm : float
-        Root mean square of ``residuals_mm`` (unweighted, over the points used).
+        Root mean square of ``residuals_mm`` (unweighted; all points for :func:`horn`, the
+        inliers for :func:`horn_robust`).
     residuals_mm : (n,) float64
         ``|| R p_from_i + t - p_to_i ||`` per input point (mm), for every input point, also
         for points a robust fit dropped.
@@ -156,8 +157,8 @@ def _horn_n(M: FloatArray | list[list[float]]) -> FloatArray:
     )
 
 
-# N is linear in M: tabulate the map once (columns = N of the 9 unit matrices), so that a stack
-# of N costs one matrix product.
+# N is linear in M: tabulate the map once (row k = N of the k-th unit matrix, flattened), so
+# that a stack of N costs one matrix product.
 _HORN_MAP_T = np.stack([_horn_n(E.reshape(3, 3)).ravel() for E in np.eye(9)])
 
 
@@ -457,7 +458,10 @@ def _refine_lm(
             step = np.linalg.solve(H + mu * np.diag(np.diag(H)), -g)
             dR = matrix_from_rotvec(step[:3])
             R_new, t_new = dR @ R, dR @ t + step[3:]
-            res_new = _project_errors(camera, R_new, t_new, obj, px)
+            try:
+                res_new = _project_errors(camera, R_new, t_new, obj, px)
+            except DegenerateInputError:  # the trial step put a point behind the camera
+                res_new = np.full_like(res, np.inf)
             cost_new = float((res_new**2).sum())
             if cost_new <= cost:
                 break
@@ -531,7 +535,12 @@ def pnp(
         Fewer than 4 points, mismatched counts, NaN (naming the index), collinear model
         points, collinear image points (plane seen edge-on), or a model point behind the camera.
     ConvergenceError
-        The refinement did not converge.
+        Undistorting a pixel or the refinement did not converge.
+
+    Notes
+    -----
+    Only planar targets are checked for a second pose. Non-planar targets of 6 or more points
+    in general position have a unique pose; for 4-5 points a rare second one goes undetected.
     """
     obj = _as_points(model_points, "model_points", 3)
     px = _as_points(pixels, "pixels", 2)

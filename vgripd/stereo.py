@@ -90,6 +90,10 @@ class StereoRig:
         R, t = T[:3, :3], T[:3, 3]
         if np.linalg.norm(t) == 0.0:
             raise DegenerateInputError("T_right_left: zero baseline, nothing to triangulate")
+        if not 0.0 <= self.min_ray_angle_rad < 0.5 * np.pi:
+            raise DegenerateInputError(
+                f"min_ray_angle_rad must be in [0, pi/2), got {self.min_ray_angle_rad}"
+            )
         T.flags.writeable = False
         essential = _skew(t) @ R
         F = np.linalg.inv(self.right.K).T @ essential @ np.linalg.inv(self.left.K)
@@ -122,6 +126,8 @@ class StereoRig:
         DegenerateInputError
             Shape mismatch, NaN (naming the point), rays (nearly) parallel, or a point whose
             least-squares depth puts it behind either camera (naming the point).
+        ConvergenceError
+            A pixel cannot be undistorted (beyond the fold of the distortion model).
         """
         nl = _undistort(self.left, px_left, "px_left")
         nr = _undistort(self.right, px_right, "px_right")
