@@ -131,9 +131,14 @@ def _check_spread(scatter: list[list[float]], name: str) -> None:
     A NaN in the points makes the trace NaN, which is also refused (callers then name the point).
     """
     m = scatter
-    d = len(m)
-    tr = sum(m[i][i] for i in range(d))
-    i2 = sum(m[i][i] * m[j][j] - m[i][j] * m[j][i] for i in range(d) for j in range(i + 1, d))
+    if len(m) == 3:
+        (s00, s01, s02), (s10, s11, s12), (s20, s21, s22) = m
+        tr = s00 + s11 + s22
+        i2 = s00 * s11 - s01 * s10 + s00 * s22 - s02 * s20 + s11 * s22 - s12 * s21
+    else:
+        (s00, s01), (s10, s11) = m
+        tr = s00 + s11
+        i2 = s00 * s11 - s01 * s10
     if not tr >= MIN_SPREAD_MM**2:
         raise DegenerateInputError(f"{name}: all points coincide (or are not finite)")
     if i2 < MIN_SPREAD_RATIO**2 * tr * tr:
@@ -183,27 +188,27 @@ def _normalised_weights(weights: object, n: int) -> FloatArray:
     return w / w.sum()
 
 
-def _rotation_quadratic(q: FloatArray | list[float]) -> FloatArray:
-    """R(q) for one quaternion (w, x, y, z), written homogeneous (quadratic in q; unit q)."""
+def _rotation_quadratic(q: list[float]) -> list[list[float]]:
+    """Rows of R(q) for one unit quaternion (w, x, y, z), written homogeneous (quadratic in q)."""
     w, x, y, z = q
-    return np.array(
-        [
-            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
-        ]
-    )
+    return [
+        [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
+    ]
 
 
 def _quadratic_map() -> FloatArray:
     """(16, 9) map from ``outer(q, q).ravel()`` to ``R(q).ravel()``, by polarisation."""
+    def flat(q: FloatArray) -> FloatArray:
+        return np.ravel(_rotation_quadratic(q.tolist()))
+
     basis = np.eye(4)
     Q = np.zeros((4, 4, 9))
     for k in range(4):
-        Q[k, k] = _rotation_quadratic(basis[k]).ravel()
+        Q[k, k] = flat(basis[k])
         for m in range(k + 1, 4):
-            cross = _rotation_quadratic(basis[k] + basis[m]).ravel() - Q[k, k]
-            Q[k, m] = Q[m, k] = 0.5 * (cross - _rotation_quadratic(basis[m]).ravel())
+            Q[k, m] = Q[m, k] = 0.5 * (flat(basis[k] + basis[m]) - Q[k, k] - flat(basis[m]))
     return Q.reshape(16, 9)
 
 
@@ -270,11 +275,12 @@ def horn(points_from: object, points_to: object, weights: object = None) -> Horn
     # eigh sorts ascending; a repeated top eigenvalue means two rotations fit equally well.
     if evals[3] - evals[2] <= 1e-12 * max(abs(evals[3]), 1e-300):
         raise DegenerateInputError("the point sets do not determine a unique rotation")
+    # R is orthonormal by construction: no make_transform check needed.
     R = _rotation_quadratic(evecs[:, 3].tolist())
-    T = np.eye(4)  # R is orthonormal by construction: no make_transform check needed
-    T[:3, :3] = R
-    T[:3, 3] = c[3:] - R @ c[:3]
-    diff = a @ R.T + T[:3, 3] - b
+    ca0, ca1, ca2, *cb = c.tolist()
+    t = [cb_i - (r0 * ca0 + r1 * ca1 + r2 * ca2) for cb_i, (r0, r1, r2) in zip(cb, R, strict=True)]
+    T = np.array([[*R[0], t[0]], [*R[1], t[1]], [*R[2], t[2]], [0.0, 0.0, 0.0, 1.0]])
+    diff = a @ T[:3, :3].T + T[:3, 3] - b
     sq = np.einsum("ij,ij->i", diff, diff)
     return HornResult(
         T_to_from=T, rms_mm=math.sqrt(float(sq.sum()) / n), residuals_mm=np.sqrt(sq)

@@ -140,13 +140,14 @@ class StereoRig:
         V[:, 1] = nr @ self._R_lr[:, :2].T + self._R_lr[:, 2]
         G = V @ V.transpose(0, 2, 1)
         a, b, cc = G[:, 0, 0], G[:, 0, 1], G[:, 1, 1]
-        det = a * cc - b * b  # = |d|^2 |e|^2 sin^2(angle between the rays)
-        parallel = det <= self.min_ray_angle_rad**2 * a * cc
+        ac = a * cc
+        det = ac - b * b  # = |d|^2 |e|^2 sin^2(angle between the rays)
+        parallel = det <= self.min_ray_angle_rad**2 * ac
         if parallel.any():
             i = int(np.argmax(parallel))
             raise DegenerateInputError(
                 f"point {i}: left and right rays are (nearly) parallel "
-                f"(angle {np.arcsin(np.sqrt(max(det[i], 0.0) / (a[i] * cc[i]))):.3g} rad)"
+                f"(angle {np.arcsin(np.sqrt(max(det[i], 0.0) / ac[i])):.3g} rad)"
             )
         p, q = (V @ self._c_right).T
         u1 = (cc * p - b * q) / det
