@@ -272,3 +272,59 @@ async def test_mbpoll_triggers_and_reads_published_pose(served: Harness) -> None
     assert head == {Reg.ACK_SEQ: "42", Reg.STATUS: str(int(Status.OK))}
     pose = await mbpoll(link.port, "-t", "4:float", "-B", "-r", str(Reg.VALUES), "-c", "6", "127.0.0.1")
     assert [float(pose[Reg.VALUES + 2 * i]) for i in range(6)] == pytest.approx(POSE, abs=1e-3)
+
+
+def pose_for(seq: int) -> tuple[float, ...]:
+    return tuple(float(seq * 8 + i) for i in range(6))
+
+
+async def test_concurrent_reader_never_sees_ack_with_other_data(served: Harness) -> None:
+    """A second client reads ACK..VALUES continuously while jobs are triggered and published:
+    every read with ACK_SEQ = k must carry exactly job k's pose, every read with ACK_SEQ = 0 none."""
+    link = served.link
+    stop = asyncio.Event()
+    seen: dict[int, int] = {}
+
+    async def reader() -> None:
+        async with MockPlc("127.0.0.1", link.port) as spy:
+            while not stop.is_set():
+                w = await spy.read(Reg.ACK_SEQ, Reg.FIT_RMS - Reg.ACK_SEQ)
+                ack, n = w[0], w[Reg.N_VALUES - Reg.ACK_SEQ]
+                vals = [spy._value(w[i:i + 2]) for i in range(Reg.VALUES - Reg.ACK_SEQ, len(w), 2)]
+                if ack == 0:
+                    assert (n, vals) == (0, [0.0] * 7)
+                else:
+                    assert (n, tuple(vals[:6])) == (6, pose_for(ack)), ack
+                seen[ack] = seen.get(ack, 0) + 1
+
+    spy_task = asyncio.create_task(reader())
+    async with MockPlc("127.0.0.1", link.port, poll_s=0.001) as plc:
+        for _ in range(40):
+            seq = await plc.trigger()
+            t = await served.next_trigger()
+            await link.image_captured(t.seq, seq)
+            await asyncio.sleep(0)  # let the reader interleave between each step
+            await link.publish(t.seq, ok(seq, pose_for(seq)))
+            await plc.wait_answer(seq)
+    stop.set()
+    await spy_task
+    assert len(seen) > 10  # the reader did interleave with many jobs
+
+
+async def test_read_write_multiple_in_one_transaction(served: Harness) -> None:
+    """FC23: a PLC writes the command area and reads the status block in one request."""
+    client = AsyncModbusTcpClient("127.0.0.1", port=served.link.port, retries=0)
+    await client.connect()
+    try:
+        r = await client.readwrite_registers(
+            read_address=Reg.STATE, read_count=5, write_address=Reg.CMD, values=[1, 77, 0], device_id=1
+        )
+        assert not r.isError()
+        assert r.registers[0] == 1  # STATE already TRIGGERED in the same answer
+        assert (await served.next_trigger()).seq == 77
+        r = await client.readwrite_registers(
+            read_address=0, read_count=1, write_address=Reg.STATUS, values=[1], device_id=1
+        )
+        assert (r.isError(), r.exception_code) == (True, 2)
+    finally:
+        client.close()
