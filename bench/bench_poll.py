@@ -280,8 +280,8 @@ if __name__ == "__main__":
         sys.exit(0)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=5.0)
-    parser.add_argument("--cv-threads", type=int, default=1,
-                        help="OpenCV worker threads of the job (0 = OpenCV's default)")
+    parser.add_argument("--cv-threads", type=int, default=-1,
+                        help="OpenCV worker threads of the job (-1 = OpenCV default, one per core, as the daemon runs)")
     parser.add_argument("--job", choices=("pipeline", "opencv"), default="pipeline",
                         help="the job run back to back: the real pipeline or OpenCV filtering")
     args = parser.parse_args()
