@@ -77,6 +77,11 @@ def gate(m: Measurement, vision: VisionConfig, limits: LimitsConfig) -> tuple[St
     if m.offset is None or m.T_base_obj is None:
         return Status.NOT_FOUND, "no pose"
     r = m.residuals
+    # A NaN compares False against every limit below: refuse it here, never let it through.
+    if not (np.isfinite(m.offset).all() and np.isfinite(m.T_base_obj).all()
+            and all(np.isfinite(v) for v in r.values())):
+        bad = [k for k, v in r.items() if not np.isfinite(v)]
+        return Status.INTERNAL, f"non-finite pose or residuals {bad} (numerical failure)"
     fit = r.get("fit_rms_mm", 0.0)
     if fit > vision.max_fit_rms_mm:
         return Status.RESIDUAL_TOO_HIGH, (

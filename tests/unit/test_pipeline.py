@@ -254,6 +254,11 @@ def test_gate_order_and_thresholds():
     assert status(offset=turned) is Status.OUT_OF_LIMITS
     # Out of limits wins over the recalibration warning: the pose must not be sent.
     assert status(offset=far, residuals={**good, "epipolar_px": 1.5}) is Status.OUT_OF_LIMITS
+    # NaN compares False against every limit: it must never pass as OK.
+    nan_offset = T.copy()
+    nan_offset[0, 3] = np.nan
+    assert status(offset=nan_offset) is Status.INTERNAL
+    assert status(residuals={**good, "fit_rms_mm": float("nan")}) is Status.INTERNAL
 
 
 def render_aruco_scene(config: Config, T_cam_obj: np.ndarray) -> np.ndarray:
