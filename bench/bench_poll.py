@@ -25,7 +25,6 @@ import contextlib
 import json
 import os
 import platform
-import re
 import statistics
 import sys
 import time
@@ -38,6 +37,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.results import write_section  # noqa: E402
 from drivers.links.modbus_server import ModbusServerLink  # noqa: E402
 from vgripd.protocol import MAP_SIZE, Reg, Trigger  # noqa: E402
 from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
@@ -261,17 +261,7 @@ async def main(seconds: float, cv_threads: int, job_name: str) -> None:
     ]
     text = "\n".join(lines)
     print(text)
-    write_section(REPO / "bench" / "RESULTS.md", text)
-
-
-def write_section(path: Path, text: str) -> None:
-    """Replace (or append) only this benchmark's section of RESULTS.md."""
-    old = path.read_text() if path.exists() else "# Benchmark results\n\n"
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    new = pattern.sub(lambda _: text + "\n", old) if pattern.search(old) else (
-        old.rstrip("\n") + "\n\n" + text + "\n"
-    )
-    path.write_text(new)
+    write_section(SECTION, text)
 
 
 if __name__ == "__main__":

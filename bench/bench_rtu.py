@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import re
 import shutil
 import statistics
 import sys
@@ -35,6 +34,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.results import write_section  # noqa: E402
 from drivers.links.modbus_rtu import ModbusRtuLink  # noqa: E402
 from vgripd.protocol import MAP_SIZE, Reg, Trigger  # noqa: E402
 from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
@@ -169,12 +169,7 @@ async def main(cycles: int) -> None:
     ]
     text = "\n".join(lines)
     print(text)
-    path = REPO / "bench" / "RESULTS.md"
-    old = path.read_text()
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    new = (pattern.sub(lambda _: text + "\n", old) if pattern.search(old)
-           else old.rstrip("\n") + "\n\n" + text + "\n")
-    path.write_text(new)
+    write_section(SECTION, text)
 
 
 if __name__ == "__main__":
