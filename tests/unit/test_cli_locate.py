@@ -28,6 +28,8 @@ def truth(frame: int) -> np.ndarray:
 def test_every_config_loads_and_locates_a_sample(path, capsys, monkeypatch):
     monkeypatch.chdir(REPO)  # configs name files relative to the repository root
     load_config(path)
+    assert main(["check", "-c", str(path)]) == 0  # driver and link options too
+    assert capsys.readouterr().out.startswith("OK ")
     rc = main(["locate", "-c", str(path), str(SAMPLES / "left_00.png"),
                str(SAMPLES / "right_00.png"), "--json"])
     out = json.loads(capsys.readouterr().out)
