@@ -30,6 +30,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("vgripd.cli.demo", "run daemon, synthetic camera and a mock PLC on this computer"),
     "locate": ("vgripd.cli.locate", "locate the object in one image pair and print the pose"),
     "replay": ("vgripd.cli.replay", "run every image pair of a folder, JSON lines + summary"),
+    "calibrate": ("vgripd.cli.calibrate", "calibrate cameras, stereo rig, hand-eye; MCT files"),
+    "teach": ("vgripd.cli.teach", "measure the object at its reference place, store it"),
 }
 
 

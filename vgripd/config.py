@@ -380,6 +380,8 @@ class Config(Model):
     record: RecordConfig = RecordConfig()
     status: StatusConfig = StatusConfig()
     links: tuple[DriverSection, ...] = ()
+    # Free-form notes on where a file came from (result files of `vgripd calibrate` carry one).
+    about: dict[str, Any] = Field(default_factory=dict)
     # The demo cell applies only where a file does not say otherwise: a real camera without a
     # [calibration] is uncalibrated, a custom [object] without a [reference] is untaught.
     calibration: CalibrationConfig | None = DEMO_CALIBRATION
@@ -410,31 +412,90 @@ class Config(Model):
         return self
 
 
-def format_validation_error(err: ValidationError, source: str) -> str:
-    """One line per problem: ``source: field.path: message``."""
+def format_validation_error(
+    err: ValidationError, source: str, owner: dict[str, str] | None = None
+) -> str:
+    """One line per problem: ``source: field.path: message``.
+
+    ``owner`` maps leaf field paths to the file that set them (includes); a problem is blamed
+    on the file that set the field, or the one that set something below it.
+    """
     lines = []
     for e in err.errors():
         path = ".".join(str(p) for p in e["loc"]) or "<root>"
-        lines.append(f"{source}: {path}: {e['msg']}")
+        where = source
+        for key, file in (owner or {}).items():
+            if key == path or key.startswith(path + ".") or path.startswith(key + "."):
+                where = file
+                break
+        lines.append(f"{where}: {path}: {e['msg']}")
     return "\n".join(lines)
 
 
-def config_from_dict(data: dict[str, Any], source: str = "<config>") -> Config:
+def config_from_dict(
+    data: dict[str, Any], source: str = "<config>", owner: dict[str, str] | None = None
+) -> Config:
     try:
         return Config.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(format_validation_error(err, source)) from None
+        raise ConfigError(format_validation_error(err, source, owner)) from None
 
 
-def load_config(path: str | Path) -> Config:
-    """Read and validate a TOML config file; every failure is a ``ConfigError``."""
-    p = Path(path)
+def _read_toml(p: Path, what: str) -> dict[str, Any]:
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as err:
-        raise ConfigError(f"{p}: cannot read config: {err.strerror}") from None
+        raise ConfigError(f"{p}: cannot read {what}: {err.strerror}") from None
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{p}: not valid TOML: {err}") from None
-    return config_from_dict(data, str(p))
+
+
+def _merge(into: dict[str, Any], owner: dict[str, str], data: dict[str, Any],
+           source: str, prefix: str = "") -> None:
+    """Deep-merge ``data`` into ``into``; a leaf set by two files is an error naming both."""
+    for key, value in data.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, dict) and isinstance(into.get(key, {}), dict):
+            _merge(into.setdefault(key, {}), owner, value, source, path + ".")
+        elif key in into:
+            raise ConfigError(f"{source}: {path} is already set in {owner.get(path, '?')}")
+        else:
+            into[key] = value
+            owner[path] = source
+
+
+def read_config_data(
+    path: str | Path, owner: dict[str, str] | None = None
+) -> dict[str, Any]:
+    """The config file as a dict, with its ``include = [...]`` files merged in.
+
+    Included files (calibration results, the taught reference) are resolved relative to the
+    including file, may not include further files, and may not set what another file sets.
+    Their ``[about]`` tables (how a calibration was made) are dropped.
+    """
+    p = Path(path)
+    data = _read_toml(p, "config")
+    includes = data.pop("include", [])
+    if not isinstance(includes, list) or not all(isinstance(i, str) for i in includes):
+        raise ConfigError(f"{p}: include: must be a list of file names")
+    merged: dict[str, Any] = {}
+    owner = {} if owner is None else owner
+    _merge(merged, owner, data, str(p))
+    for name in includes:
+        inc = Path(name) if Path(name).is_absolute() else p.parent / name
+        part = _read_toml(inc, f"included file (from {p}: include)")
+        part.pop("about", None)
+        if "include" in part:
+            raise ConfigError(f"{inc}: include: included files may not include others")
+        _merge(merged, owner, part, str(inc))
+    return merged
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a TOML config file (with its includes); every failure is a
+    ``ConfigError``."""
+    owner: dict[str, str] = {}
+    data = read_config_data(path, owner)
+    return config_from_dict(data, str(path), owner)

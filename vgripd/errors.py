@@ -47,3 +47,7 @@ class LinkError(DriverError):
 
 class PoseRejected(VgripError):
     """A pose failed a safety gate and must not be published as valid."""
+
+
+class CalibrationError(VgripError):
+    """A calibration could not be computed or read (message names the image, sample or file)."""
