@@ -45,9 +45,15 @@ class DriverSection(BaseModel):
 
 
 class OutputConfig(Model):
-    """What the robot receives: the offset in one vendor's convention."""
+    """What the robot receives, in one vendor's convention.
+
+    ``mode = "offset"``: the base-frame correction ``T_offset`` (the robot applies it to its
+    own taught grip). ``mode = "grip"``: the absolute grip pose ``T_offset @ G`` with ``G`` =
+    ``reference.grip`` (taught with ``vgripd teach --grip``; see docs/teach.md).
+    """
 
     vendor: str = "kuka"
+    mode: Literal["offset", "grip"] = "offset"
 
 
 class LimitsConfig(Model):
@@ -113,6 +119,22 @@ class DaemonConfig(Model):
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     # Cycle-time percentiles in `vgripd status` are taken over this many most recent jobs.
     stats_window: int = Field(default=1000, ge=1)
+    # RECALIBRATE warning (docs/daemon.md): over the last `recalibrate_window` stereo jobs, the
+    # share whose median epipolar residual exceeds vision.epipolar_warn_px; judged only once
+    # `recalibrate_min_jobs` are in the window, raised while the share is above
+    # `recalibrate_share`.
+    recalibrate_window: int = Field(default=50, ge=1)
+    recalibrate_share: float = Field(default=0.2, ge=0, lt=1)
+    recalibrate_min_jobs: int = Field(default=10, ge=1)
+
+    @model_validator(mode="after")
+    def _recalibrate_window(self) -> DaemonConfig:
+        if self.recalibrate_min_jobs > self.recalibrate_window:
+            raise ValueError(
+                f"recalibrate_min_jobs ({self.recalibrate_min_jobs}) must not exceed "
+                f"recalibrate_window ({self.recalibrate_window})"
+            )
+        return self
 
 
 class RecordConfig(Model):
@@ -318,9 +340,17 @@ class ReferenceConfig(Model):
     Only for ``object.definition = "cad"``; with ``"reference"`` the object frame *is* the base
     frame at teach time (``T_base_obj_ref`` = identity) and this pose must not be set.
     Unset for a CAD object means "not taught yet": jobs end with NOT_CALIBRATED.
+
+    ``points_mm`` (``"reference"`` only): the feature points measured in the base frame at the
+    reference by ``vgripd teach``, one per feature name. When set, the pipeline fits these
+    instead of the features' ``xyz_mm`` (which then only need to be a nominal layout).
+    ``grip``: the robot's grip pose taught on the reference object (base frame); the absolute
+    grip for a found object is ``T_offset @ grip`` (``output.mode = "grip"``).
     """
 
     T_base_obj: PoseConfig | None = None
+    points_mm: dict[str, Vec3] | None = None
+    grip: PoseConfig | None = None
 
 
 # The embedded demo cell: two 1280x1024 cameras with 16 mm lenses (fx ~ 1800 px), 150 mm
@@ -409,6 +439,21 @@ class Config(Model):
                 'reference.T_base_obj must be unset when object.definition = "reference" '
                 "(the object frame is the base frame at teach time)"
             )
+        points = self.reference.points_mm
+        if points is not None:
+            if self.object.definition != "reference":
+                raise ValueError(
+                    'reference.points_mm is only for object.definition = "reference" '
+                    "(a CAD object takes reference.T_base_obj)"
+                )
+            names = [f.name for f in self.object.features]
+            missing = [n for n in names if n not in points]
+            unknown = sorted(set(points) - set(names))
+            if missing or unknown:
+                raise ValueError(
+                    f"reference.points_mm must name every feature of object {self.object.name!r}"
+                    f" exactly once: missing {missing}, unknown {unknown}"
+                )
         return self
 
 

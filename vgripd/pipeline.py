@@ -10,7 +10,11 @@ The chain (docs/pipeline.md has the whole story and the status table):
    ``T_cam_obj``;
 5. ``T_base_obj = T_base_camera @ T_cam_obj`` (fixed camera, or ``T_base_flange @
    T_flange_camera`` for a robot-mounted one), offset ``T_base_obj @ inv(T_base_obj_ref)``;
-6. gates (:func:`gate`), then the vendor convention of ``output.vendor`` for the offset.
+6. gates (:func:`gate`), then the vendor convention of ``output.vendor`` for the offset
+   (``output.mode = "offset"``) or for the grip ``T_offset @ reference.grip`` (``"grip"``).
+
+The model is the features' ``xyz_mm``, or for ``object.definition = "reference"`` the taught
+``reference.points_mm`` when set (base-frame points measured by ``vgripd teach``).
 
 ``Pipeline.process`` never raises for bad images: every job ends with one status, and a pose
 that failed a gate is never carried as a target. It is pure CPU and keeps no state between jobs,
@@ -214,6 +218,7 @@ class _Job:
 
     timings_ms: dict[str, float] = field(default_factory=dict)
     residuals: dict[str, float] = field(default_factory=dict)
+    points_base: dict[str, FloatArray] = field(default_factory=dict)
     used: tuple[str, ...] = ()
     missing: tuple[str, ...] = ()
     T_base_obj: FloatArray | None = None
@@ -234,6 +239,9 @@ class PoseEstimate:
     used: npt.NDArray[np.bool_]  # (n_model,) features that entered the fit
     ambiguous: bool
     residuals: dict[str, float]
+    # (n_used, 3) mm, left camera frame, rows in feature order of ``used``: triangulated points
+    # (stereo) or the model at the fitted pose (mono, which measures no 3D point of its own).
+    points_cam: FloatArray
 
 
 class Pipeline:
@@ -253,8 +261,16 @@ class Pipeline:
         self.left, self.right = scene.camera_models(config)
         self.rig: StereoRig | None = scene.stereo_rig(config)
         self.names = scene.feature_names(config)
-        self.model = scene.object_points(config)
+        self.model = model_points(config)
         self.T_base_obj_ref = scene.T_base_obj_ref(config)
+        self.T_base_grip_ref: FloatArray | None = None
+        if config.output.mode == "grip":
+            if config.reference.grip is None:
+                raise NotCalibratedError(
+                    'reference.grip: output.mode = "grip" needs the grip pose taught on the '
+                    "reference object (vgripd teach --grip)"
+                )
+            self.T_base_grip_ref = scene.matrix_from_pose(config.reference.grip)
         assert config.calibration is not None  # camera_models raised otherwise
         self.fixed_T_base_camera = (
             scene.T_base_camera(config)
@@ -290,6 +306,13 @@ class Pipeline:
     # ------------------------------------------------------------------ entry point
     def process(self, pair: ImagePair, job_id: int) -> JobResult:
         """Run one job. Never raises: failures become a status with a message."""
+        return self.process_with_points(pair, job_id)[0]
+
+    def process_with_points(
+        self, pair: ImagePair, job_id: int
+    ) -> tuple[JobResult, dict[str, FloatArray]]:
+        """:meth:`process`, plus the measured feature points (3,) mm in the base frame by name
+        (empty without a pose). ``vgripd teach`` stores them for the ``reference`` definition."""
         job = _Job()
         try:
             status, message, target = self._run(pair, job)
@@ -315,7 +338,7 @@ class Pipeline:
             features_missing=job.missing,
             t_capture_mono_ns=pair.t_mono_ns,
             t_done_mono_ns=time.monotonic_ns(),
-        )
+        ), job.points_base
 
     def _run(self, pair: ImagePair, job: _Job) -> tuple[Status, str, Any]:
         vision, limits = self.config.vision, self.config.limits
@@ -345,6 +368,9 @@ class Pipeline:
         offset = T_base_obj @ invert_transform(self.T_base_obj_ref)
         job.T_base_obj, job.offset = T_base_obj, offset
         job.residuals.update(estimate.residuals)
+        points_base = estimate.points_cam @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
+        job.points_base = dict(zip((self.names[i] for i in np.flatnonzero(estimate.used)),
+                                   points_base, strict=True))
         measurement = Measurement(
             found=int(estimate.used.sum()),
             needed=needed,
@@ -355,7 +381,8 @@ class Pipeline:
             residuals=estimate.residuals,
         )
         status, message = gate(measurement, vision, limits)
-        target = target_from_transform(self.config.output.vendor, offset) if (
+        sent = offset if self.T_base_grip_ref is None else offset @ self.T_base_grip_ref
+        target = target_from_transform(self.config.output.vendor, sent) if (
             status.pose_valid
         ) else None
         job.lap("output")
@@ -483,6 +510,7 @@ class Pipeline:
         job.missing = tuple(self.names[i] for i in np.flatnonzero(~used))
         kept_rows = assignment[keep]
         T, fit_rms = fit.T_to_from, fit.rms_mm
+        measured = points[kept_rows]
         circles = keep[self.is_circle[keep]]
         if circles.size:
             # Second pass with the perspective bias of circle centres removed (see
@@ -500,6 +528,7 @@ class Pipeline:
                 pass  # keep the first pass
             else:
                 T, fit_rms = refit.T_to_from, refit.rms_mm
+                measured = tri.points_mm
                 gap = gap.copy()
                 gap[kept_rows] = tri.gap_mm
         model_cam = self.model[keep] @ T[:3, :3].T + T[:3, 3]
@@ -515,7 +544,7 @@ class Pipeline:
             "epipolar_px": float(np.median(epi)),
             "ray_gap_mm": float(np.max(gap[kept_rows])),
         }
-        return PoseEstimate(T, used, ambiguous, residuals)
+        return PoseEstimate(T, used, ambiguous, residuals, measured)
 
     # ------------------------------------------------------------------ mono
     def _mono_pose(self, left: Found, job: _Job) -> PoseEstimate | None:
@@ -533,7 +562,18 @@ class Pipeline:
         except GeometryError:
             return None
         residuals = {"reprojection_px": result.rms_px}
-        return PoseEstimate(result.T_cam_obj, used, result.ambiguous, residuals)
+        T = result.T_cam_obj
+        return PoseEstimate(T, used, result.ambiguous, residuals,
+                            self.model[index] @ T[:3, :3].T + T[:3, 3])
+
+
+def model_points(config: Config) -> FloatArray:
+    """(n, 3) mm model points in feature order: ``reference.points_mm`` when taught (``reference``
+    definition), else the features' ``xyz_mm`` (``scene.object_points``)."""
+    taught = config.reference.points_mm
+    if config.object.definition == "reference" and taught is not None:
+        return np.array([taught[name] for name in scene.feature_names(config)], dtype=np.float64)
+    return scene.object_points(config)
 
 
 #: Rim vertices for predicting the imaged centre of a circle (bias error < 1e-4 px).
