@@ -15,6 +15,10 @@ Life of a job (``JobState``)::
   answering within milliseconds while a job is processed.
 - Every job ends with exactly one ``Status``: a camera failure is ``CAMERA_ERROR``, an
   unexpected exception ``INTERNAL`` (logged with its traceback), shutdown ``ABORTED``.
+- RECALIBRATE (``EpipolarMonitor``): the median epipolar residual of every stereo job goes
+  into a window of ``daemon.recalibrate_window`` jobs; while more than ``recalibrate_share``
+  of them exceed ``vision.epipolar_warn_px`` the status carries the warning (logged once when
+  it rises and once when it clears). The chapter's sign that the rig has moved.
 - Shutdown (SIGTERM/SIGINT) aborts the job in flight (unless it is already publishing), so the
   PLC gets ``ABORTED`` for its trigger at once instead of waiting; the links stay up for
   ``ABORT_LINGER_S`` so a polling PLC can read it, then links, the camera, the recorder and the
@@ -98,6 +102,47 @@ class JobRecord:
 JobListener = Callable[[ImagePair | None, JobRecord], None]
 
 
+class EpipolarMonitor:
+    """How often recent stereo jobs exceeded the epipolar warning level (the RECALIBRATE
+    warning). Jobs without an ``epipolar_px`` residual (mono, no pose) are not counted.
+
+    The warning is judged once ``min_jobs`` residuals are in the window of ``window``; it is up
+    while the share above ``threshold_px`` exceeds ``share``.
+    """
+
+    def __init__(self, window: int, share: float, min_jobs: int, threshold_px: float) -> None:
+        self.above: deque[bool] = deque(maxlen=window)
+        self.share_limit = share
+        self.min_jobs = min_jobs
+        self.threshold_px = threshold_px
+        self.warning = False
+        self.since_mono_ns = 0
+
+    def share(self) -> float:
+        return sum(self.above) / len(self.above) if self.above else 0.0
+
+    def add(self, epipolar_px: float, now_ns: int) -> bool:
+        """Count one job's median epipolar residual (px); True when the warning changed."""
+        self.above.append(epipolar_px > self.threshold_px)
+        warning = len(self.above) >= self.min_jobs and self.share() > self.share_limit
+        if warning == self.warning:
+            return False
+        self.warning, self.since_mono_ns = warning, now_ns
+        return True
+
+    def describe(self) -> str:
+        return (f"{sum(self.above)} of the last {len(self.above)} stereo jobs had a median "
+                f"epipolar residual above vision.epipolar_warn_px = {self.threshold_px} px "
+                f"(share {self.share():.2f}, daemon.recalibrate_share = {self.share_limit})")
+
+    def snapshot(self, now_ns: int) -> dict[str, Any]:
+        return {"warning": self.warning, "jobs": len(self.above), "above": sum(self.above),
+                "share": self.share(), "share_limit": self.share_limit,
+                "threshold_px": self.threshold_px, "window": self.above.maxlen,
+                "min_jobs": self.min_jobs,
+                "since_s": (now_ns - self.since_mono_ns) / 1e9 if self.warning else None}
+
+
 def configure_logging(level: str = "INFO") -> None:
     """One compact line per event on stderr; no timestamps under systemd (journald adds them)."""
     fmt = "%(levelname)s %(name)s: %(message)s"
@@ -159,6 +204,9 @@ class Daemon:
         self.counters: Counter[str] = Counter()
         self.cycle_ms: deque[float] = deque(maxlen=config.daemon.stats_window)
         self.last_job: JobRecord | None = None
+        d = config.daemon
+        self.epipolar = EpipolarMonitor(d.recalibrate_window, d.recalibrate_share,
+                                        d.recalibrate_min_jobs, config.vision.epipolar_warn_px)
 
         self._job_seq = 0
         self._job: tuple[int, Trigger, asyncio.Task[None]] | None = None
@@ -401,6 +449,13 @@ class Daemon:
         self.cycle_ms.append(record.cycle_ms)
         log.info("job %d: %s in %.1f ms%s", job_id, result.status.name, record.cycle_ms,
                  f" ({result.message})" if result.message else "")
+        epipolar_px = result.residuals.get("epipolar_px")
+        if epipolar_px is not None and self.epipolar.add(epipolar_px, done_ns):
+            if self.epipolar.warning:
+                log.warning("RECALIBRATE: %s; the stereo rig may have moved, recalibrate it",
+                            self.epipolar.describe())
+            else:
+                log.info("RECALIBRATE cleared: %s", self.epipolar.describe())
         if self.recorder is not None and pair is not None:
             self.recorder.submit(pair, result)
         for listener in self.listeners:
@@ -459,6 +514,8 @@ class Daemon:
         if self.last_job is not None:
             lj = self.last_job
             line += f"; last job {lj.job_id} {lj.result.status.name} {lj.cycle_ms:.0f} ms"
+        if self.epipolar.warning:
+            line += "; RECALIBRATE"
         return line
 
     def snapshot(self) -> dict[str, Any]:
@@ -494,6 +551,7 @@ class Daemon:
             "links": links,
             "counters": dict(self.counters),
             "cycle_ms": {"window": len(self.cycle_ms), **self.cycle_percentiles_ms()},
+            "recalibrate": self.epipolar.snapshot(now),
             "record": None if self.recorder is None else {
                 "folder": str(self.recorder.folder), "bytes": self.recorder.total_bytes},
         }

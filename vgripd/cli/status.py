@@ -65,6 +65,15 @@ def format_status(s: dict[str, Any]) -> str:
         lines.append(f"cycle time over the last {cyc['window']} jobs: p50 {cyc['p50']:.1f} ms, "
                      f"p95 {cyc['p95']:.1f} ms, p99 {cyc['p99']:.1f} ms, "
                      f"max {cyc['max']:.1f} ms")
+    rc = s.get("recalibrate")
+    if rc and rc["jobs"]:
+        head = "RECALIBRATE" if rc["warning"] else "epipolar"
+        since = f", for {_age(rc['since_s'])}" if rc["warning"] else ""
+        lines.append(
+            f"{head}: {rc['above']} of the last {rc['jobs']} stereo jobs above "
+            f"{rc['threshold_px']} px (share {rc['share']:.2f}, warning above "
+            f"{rc['share_limit']:.2f} once {rc['min_jobs']} jobs are in){since}"
+            + ("; the stereo rig may have moved: recalibrate" if rc["warning"] else ""))
     if s["record"]:
         lines.append(f"recording to {s['record']['folder']} "
                      f"({s['record']['bytes'] / 1e6:.1f} MB)")
