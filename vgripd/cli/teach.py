@@ -111,7 +111,9 @@ def run(args: argparse.Namespace) -> int:
     if output.exists() and not args.force:
         return _fail(f"{output} exists; nothing measured (--force overwrites it)")
 
-    pairs = asyncio.run(teach.acquire(config, args.shots))
+    # The camera sees the measuring config too: a driver that needs a reference (the synthetic
+    # one's random poses) must not stop the teaching of a new object.
+    pairs = asyncio.run(teach.acquire(teach.measuring_config(config), args.shots))
     taught = teach.measure(config, pairs)
     problems = taught.problems(args.max_spread_mm, args.max_spread_deg,
                                check_points=config.object.definition == "reference")
