@@ -75,7 +75,7 @@ class MctStereo:
 # ---------------------------------------------------------------------------------------------
 # reading the MATLAB script
 
-_ASSIGNMENT = re.compile(r"^[ \t]*([A-Za-z]\w*)[ \t]*=[ \t]*(\[[^\]]*\]'?|[^;\n]+)", re.M)
+_ASSIGNMENT = re.compile(r"\s*([A-Za-z]\w*)\s*=\s*(.*\S)\s*", re.S)
 _SEPARATORS = re.compile(r"[\s,;]+")
 
 
@@ -85,14 +85,36 @@ class _Var:
     line: int
 
 
+def _statements(text: str) -> list[tuple[str, int]]:
+    """``(statement, line)`` of a MATLAB script: split at ``;``, ``,`` and line ends outside
+    brackets; comments (``%`` to the end of the line) dropped."""
+    out: list[tuple[str, int]] = []
+    depth, start, line = 0, 1, 1
+    current: list[str] = []
+    code = "\n".join(raw.split("%", 1)[0] for raw in text.splitlines())
+    for ch in code + "\n":
+        if ch in "[(":
+            depth += 1
+        elif ch in "])":
+            depth = max(depth - 1, 0)
+        if depth == 0 and ch in ";,\n":
+            out.append(("".join(current), start))
+            current = []
+            start = line + (ch == "\n")
+        else:
+            current.append(ch)
+        line += ch == "\n"
+    return [(st, n) for st, n in out if st.strip()]
+
+
 def _assignments(text: str) -> dict[str, _Var]:
     """``name -> value`` of every ``name = literal`` statement (the last one wins, as when the
-    script runs); comments (``%`` to the end of the line) are ignored."""
-    code = "\n".join(line.split("%", 1)[0] for line in text.splitlines())
+    script runs)."""
     found: dict[str, _Var] = {}
-    for m in _ASSIGNMENT.finditer(code):
-        name, literal = m.group(1), m.group(2).strip().rstrip("'")
-        found[name] = _Var(_numbers(literal), code.count("\n", 0, m.start()) + 1)
+    for statement, line in _statements(text):
+        m = _ASSIGNMENT.fullmatch(statement)
+        if m:
+            found[m.group(1)] = _Var(_numbers(m.group(2).rstrip("'")), line)
     return found
 
 
@@ -156,9 +178,8 @@ def _camera_from(script: _Script, suffix: str) -> MctCamera:
     except ValidationError as err:
         why = "; ".join(e["msg"] for e in err.errors())
         raise CalibrationError(f"{script.source}: camera{suffix or ''}: {why}") from None
-    errors = [script.optional(n + suffix, s) for n, s in
-              (("fc_error", (2,)), ("cc_error", (2,)), ("alpha_c_error", (1,)),
-               ("kc_error", (4, 5)))]
+    errors = [script.optional(f"{n}{suffix}_error", s) for n, s in
+              (("fc", (2,)), ("cc", (2,)), ("alpha_c", (1,)), ("kc", (4, 5)))]
     std = None
     if all(e is not None for e in errors):
         fce, cce, ae, kce = (np.asarray(e) / SIGMAS_PER_ERROR for e in errors)
