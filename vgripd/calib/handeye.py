@@ -27,7 +27,10 @@ Pipeline of :func:`calibrate_hand_eye`:
    pixels through :class:`~vgripd.camera_model.CameraModel` (distortion included). Without
    corners (board poses given directly) it minimises the pose residuals instead: the
    translation difference in mm plus the rotation difference in rad times the median
-   camera-board distance (so a rotation error counts as the displacement it causes at the board);
+   camera-board distance (so a rotation error counts as the displacement it causes at the
+   board). The pixel objective takes the robot poses as exact; when its RMS stays far above
+   corner noise (> ``MAX_PIXEL_RMS``) the robot (or the intrinsics) is the larger error and
+   the pose residuals are used instead, with a warning (see ``objective``);
 4. per-sample residuals: reprojection RMS and how far that sample's implied board pose
    ``P_i X B_i`` lies from the consensus (deg, mm); samples far above the median are flagged;
 5. stability: the refinement repeated leaving out one sample at a time; the spread of X (largest
@@ -37,15 +40,19 @@ Pipeline of :func:`calibrate_hand_eye`:
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from vgripd.camera_model import CameraModel
-from vgripd.errors import CalibrationError, ConvergenceError, DegenerateInputError
+from vgripd.errors import CalibrationError, ConvergenceError, ConversionError, DegenerateInputError
 from vgripd.orientation import pnp
 from vgripd.transforms import (
     check_transform,
@@ -56,10 +63,15 @@ from vgripd.transforms import (
     quat_from_matrix,
     rotation_angle,
 )
+from vgripd.vendors import convention, transform_from_vendor
 
 FloatArray = npt.NDArray[np.float64]
 
 MODES = ("eye-in-hand", "eye-to-hand")
+#: What the refinement may minimise (see calibrate_hand_eye).
+OBJECTIVES = ("auto", "pixels", "poses", "none")
+#: Above this reprojection RMS (px) "auto" does not trust the robot poses to be exact.
+MAX_PIXEL_RMS = 1.0
 MIN_SAMPLES = 3  # two independent motions (three poses) are the least AX = XB can solve
 FEW_SAMPLES = 8  # below this, one bad sample moves the result a lot
 #: No pair of samples rotating more than this (deg): the rotation of X is not observable.
@@ -477,11 +489,12 @@ class _Problem:
     so the predicted board pose is ``T_cam_board_i = Y @ Q_i @ C`` with ``Q_i = P_i^-1``.
     """
 
-    def __init__(self, samples: Sequence[Sample], mode: str, camera: CameraModel | None):
+    def __init__(self, samples: Sequence[Sample], mode: str, camera: CameraModel | None,
+                 pixels: bool = True):
         self.P = _anchor_poses(samples, mode)
         self.Q = np.stack([invert_transform(p) for p in self.P])
         self.B = _board_poses(samples)
-        self.pixels = camera is not None and all(s.has_pixels for s in samples)
+        self.pixels = pixels and camera is not None and all(s.has_pixels for s in samples)
         self.camera = camera
         if self.pixels:
             self.counts = [len(s.px) for s in samples if s.px is not None]
@@ -614,7 +627,7 @@ def calibrate_hand_eye(
     camera: CameraModel | None = None,
     *,
     min_rotation_deg: float = 5.0,
-    do_refine: bool = True,
+    objective: str = "auto",
     stability: bool = True,
 ) -> HandEyeResult:
     """Solve X from the samples (see the module docstring for the steps).
@@ -625,6 +638,11 @@ def calibrate_hand_eye(
     mode : "eye-in-hand" or "eye-to-hand".
     camera : intrinsics of the images; None when the samples carry board poses only.
     min_rotation_deg : consecutive samples rotating less than this are reported.
+    objective : what the refinement minimises: "pixels" (reprojection error of the corners),
+        "poses" (board-pose residuals), "none" (keep the best linear solution) or "auto":
+        pixels, unless their RMS stays above ``MAX_PIXEL_RMS`` -- then the robot poses (or the
+        intrinsics) are the larger error, the pixel objective (which takes the robot as exact)
+        would bend X to absorb it, and the pose residuals are used instead, with a warning.
 
     Raises
     ------
@@ -633,6 +651,9 @@ def calibrate_hand_eye(
         every linear solver failing.
     """
     _check_mode(mode)
+    if objective not in OBJECTIVES:
+        raise CalibrationError(f"hand-eye objective {objective!r}: expected one of "
+                               f"{', '.join(OBJECTIVES)}")
     for i, s in enumerate(samples):
         check = s.T_cam_board if s.T_cam_board is not None else np.eye(4)
         try:
@@ -659,14 +680,29 @@ def calibrate_hand_eye(
         if sol.error:
             warnings.append(f"solver {sol.error}")
     start = min(usable, key=lambda k: usable[k].cost)
-    X, C = usable[start].T, usable[start].T_anchor_board
-    solver = start
-    if do_refine:
-        X, C, converged = refine(problem, X, C)
-        solver = "refined"
-        if not converged:
-            warnings.append("refinement stopped at its iteration limit; the result may not be "
-                            "the best fit")
+    X0, C0 = usable[start].T, usable[start].T_anchor_board
+    X, C, solver = X0, C0, start
+    on_pixels = problem.pixels and objective in ("auto", "pixels")
+    if on_pixels:
+        X, C, converged = refine(problem, X0, C0)
+        solver = "refined-pixels"
+        rms = math.sqrt(problem.cost(X, C) / len(problem.px))
+        if objective == "auto" and rms > MAX_PIXEL_RMS:
+            X_px = X
+            X, C, converged = refine(_Problem(samples, mode, camera, pixels=False), X0, C0)
+            solver, on_pixels = "refined-poses", False
+            deg, mm = transform_error(X_px, X)
+            warnings.append(
+                f"reprojection RMS {rms:.2f} px with the robot poses taken as exact: far above "
+                "corner noise, so the robot poses (or the intrinsics) carry the larger error; "
+                f"refined on the board-pose residuals instead (the pixel fit differs by "
+                f"{deg:.2f} deg, {mm:.1f} mm). Check the intrinsics and the robot's accuracy")
+    elif objective != "none":
+        X, C, converged = refine(problem, X0, C0)
+        solver = "refined-poses"
+    if solver.startswith("refined") and not converged:
+        warnings.append("refinement stopped at its iteration limit; the result may not be "
+                        "the best fit")
 
     per_sample, residuals_px, rms_px = _per_sample(problem, samples, X, C)
     outliers = [r for r in per_sample if r.outlier]
@@ -680,7 +716,8 @@ def calibrate_hand_eye(
               "before the robot settled)")
     stab = None
     if stability and len(samples) > MIN_SAMPLES:
-        stab = _leave_one_out(samples, mode, camera, X, C, start, do_refine)
+        how = "pixels" if on_pixels else "poses" if solver == "refined-poses" else start
+        stab = _leave_one_out(samples, mode, camera, X, C, how)
     return HandEyeResult(mode, X, C, solver, start, solvers, rms_px, per_sample, stab,
                          warnings, residuals_px)
 
@@ -729,17 +766,18 @@ def _outliers(values: FloatArray, floor: float) -> npt.NDArray[np.bool_]:
 
 
 def _leave_one_out(samples: Sequence[Sample], mode: str, camera: CameraModel | None,
-                   X: FloatArray, C: FloatArray, start: str, do_refine: bool) -> Stability:
-    """Re-solve without each sample in turn: refined from the full solution (one basin, so
-    it converges in a few steps), or the same linear solver when there is no refinement."""
+                   X: FloatArray, C: FloatArray, how: str) -> Stability:
+    """Re-solve without each sample in turn, the way X was found (``how``: "pixels", "poses"
+    or a linear solver's name); refinements start from the full solution (one basin, so they
+    converge in a few steps)."""
     deg, mm = [], []
     for k in range(len(samples)):
         subset = [s for i, s in enumerate(samples) if i != k]
-        problem = _Problem(subset, mode, camera)
-        if do_refine:
+        problem = _Problem(subset, mode, camera, pixels=how == "pixels")
+        if how in ("pixels", "poses"):
             Xk, _, _ = refine(problem, X, C)
         else:
-            Xk = solve_linear(problem.P, problem.B, start)
+            Xk = solve_linear(problem.P, problem.B, how)
         deg.append(math.degrees(rotation_angle(Xk[:3, :3].T @ X[:3, :3])))
         mm.append(float(np.linalg.norm(Xk[:3, 3] - X[:3, 3])))
     d, m = np.array(deg), np.array(mm)
@@ -798,3 +836,103 @@ def transform_error(T: FloatArray, T_true: FloatArray) -> tuple[float, float]:
     """(rotation angle deg, translation distance mm) between two transforms."""
     return (math.degrees(rotation_angle(T[:3, :3].T @ T_true[:3, :3])),
             float(np.linalg.norm(T[:3, 3] - T_true[:3, 3])))
+
+
+# ---------------------------------------------------------------------- files
+SAMPLES_FORMAT = "vgripd-handeye-samples/1"
+
+
+def read_poses(path: str | Path, pose_format: str) -> list[FloatArray]:
+    """Robot flange poses ``T_base_flange`` (mm) from a text file, one pose per line.
+
+    Each line holds the numbers of one pose in ``pose_format``'s field order and units as
+    ``vgripd.vendors`` defines them (e.g. kuka: X Y Z mm, A B C deg; ur: x y z m, rx ry rz rad;
+    matrix: 16 numbers row-major, mm), separated by spaces and/or commas. ``#`` starts a
+    comment; blank lines are skipped. CalibrationError names ``file:line`` for a bad line.
+    """
+    p = Path(path)
+    try:
+        convention(pose_format)
+    except ConversionError as err:
+        raise CalibrationError(f"--pose-format: {err}") from None
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise CalibrationError(f"{p}: cannot read robot poses: {err}") from None
+    poses = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        values = line.split("#", 1)[0].replace(",", " ").split()
+        if not values:
+            continue
+        try:
+            poses.append(transform_from_vendor(pose_format, values))
+        except ConversionError as err:
+            raise CalibrationError(f"{p}:{number}: {err}") from None
+    if not poses:
+        raise CalibrationError(f"{p}: no robot poses (one pose per line, '#' for comments)")
+    return poses
+
+
+def save_samples(path: str | Path, samples: Sequence[Sample], mode: str, board: str | None,
+                 camera: CameraModel | None) -> Path:
+    """Write the samples as JSON so that a calibration can be solved again without the robot
+    and the images: robot poses as 4x4 (mm), the detected corners (board points ``obj_mm`` and
+    their pixels ``px``) or, for pose-only samples, ``T_cam_board``; plus mode, board spec (for
+    information) and intrinsics."""
+    entries: list[dict[str, Any]] = []
+    for s in samples:
+        entry: dict[str, Any] = {"image": s.image, "T_base_flange": s.T_base_flange.tolist()}
+        if s.obj is not None and s.px is not None:
+            entry["obj_mm"] = s.obj.tolist()
+            entry["px"] = s.px.tolist()
+        else:
+            if s.T_cam_board is None:
+                raise CalibrationError(f"{s.image}: sample has neither corners nor a board pose")
+            entry["T_cam_board"] = s.T_cam_board.tolist()
+        entries.append(entry)
+    data = {"format": SAMPLES_FORMAT, "mode": mode, "board": board,
+            "camera": None if camera is None else dataclasses.asdict(camera),
+            "units": "mm, px (OpenCV convention)", "samples": entries}
+    p = Path(path)
+    try:
+        p.write_text(json.dumps(data, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    except (OSError, ValueError) as err:
+        raise CalibrationError(f"{p}: cannot write samples: {err}") from None
+    return p
+
+
+def load_samples(path: str | Path,
+                 ) -> tuple[str, str | None, CameraModel | None, list[Sample]]:
+    """Read :func:`save_samples`' file: (mode, board spec, camera, samples)."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise CalibrationError(f"{p}: cannot read samples: {err}") from None
+    if not isinstance(data, dict) or data.get("format") != SAMPLES_FORMAT:
+        raise CalibrationError(f"{p}: not a hand-eye samples file (format must be "
+                               f"{SAMPLES_FORMAT!r})")
+    mode, board = data.get("mode"), data.get("board")
+    _check_mode(str(mode))
+    try:
+        camera = None if data.get("camera") is None else CameraModel(**data["camera"])
+    except (TypeError, DegenerateInputError) as err:
+        raise CalibrationError(f"{p}: camera: {err}") from None
+    samples = []
+    for i, e in enumerate(data.get("samples", [])):
+        where = f"{p}: samples[{i}]"
+        try:
+            T = check_transform(e["T_base_flange"], "T_base_flange")
+            if "px" in e:
+                obj = np.asarray(e["obj_mm"], dtype=np.float64).reshape(-1, 3)
+                px = np.asarray(e["px"], dtype=np.float64).reshape(-1, 2)
+                if len(obj) != len(px) or len(px) < 4:
+                    raise CalibrationError(f"{where}: need at least 4 corners with as many "
+                                           f"obj_mm as px, got {len(obj)} and {len(px)}")
+                samples.append(Sample(T, None, str(e.get("image", "")), obj, px))
+            else:
+                B = check_transform(e["T_cam_board"], "T_cam_board")
+                samples.append(Sample(T, B, str(e.get("image", ""))))
+        except (KeyError, TypeError, ValueError, DegenerateInputError) as err:
+            raise CalibrationError(f"{where}: {type(err).__name__}: {err}") from None
+    return str(mode), board, camera, samples
