@@ -13,7 +13,7 @@ Examples::
     vgripd teach -c cell.toml --shots 10 --grip="612.5 98.1 55.0 180 0 180" --pose-format kuka
 
 Exit codes: 0 written; 1 refused (a bad shot, too much spread, the file exists without
-``--force``, camera failure); 2 bad ``--grip``; 78 configuration error.
+``--force``, camera failure); 2 bad ``--grip`` or ``--shots``; 78 configuration error.
 """
 
 from __future__ import annotations
