@@ -314,9 +314,37 @@ def test_inconsistent_R_and_camera_option_on_stereo(tmp_path, capsys):
     assert "holds both cameras" in err
 
 
-def test_binary_mat_file_and_metre_baseline(datasets, tmp_path, capsys):
-    with pytest.raises(CalibrationError, match="binary MAT-file"):
-        read_mct(datasets / "bouguet_stereo_example" / "Calib_Results_left.mat")
+def test_toolbox_mat_file_reads_like_its_script(datasets, tmp_path, capsys, stereo_mats):
+    """The binary Calib_Results_left.mat (MATLAB 5, 2001) gives what its script gives."""
+    mat_path = datasets / "bouguet_stereo_example" / "Calib_Results_left.mat"
+    from_mat = read_mct(mat_path)
+    from_script = parse_mct(calib_results_m(stereo_mats["left"]), "Calib_Results.m")
+    for k in ("fx", "fy", "cx", "cy", "skew", "dist", "width", "height"):
+        assert from_mat.camera[k] == pytest.approx(from_script.camera[k], abs=1e-12), k
+    assert from_mat.std["dist"] == pytest.approx(from_script.std["dist"], abs=1e-15)
+    rc, _, err = run_cli(["calibrate", "import-mct", str(mat_path), "-o",
+                          str(tmp_path / "c.toml")], capsys)
+    assert rc == 0, err
+
+
+def test_compressed_stereo_mat_file_written_by_scipy(tmp_path):
+    """A -v7 (zlib-compressed) Calib_Results_stereo.mat as scipy writes it, with the 3x3 R
+    stored column-major: R must agree with rodrigues(om), so a transposed read would fail."""
+    data = {k: np.array(v, dtype=float).reshape(-1, 1) for k, v in PUBLISHED_STEREO.items()}
+    data["R"] = matrix_from_rotvec(PUBLISHED_STEREO["om"])
+    data["calib_name_left"] = "left"  # a string variable is skipped
+    path = tmp_path / "Calib_Results_stereo.mat"
+    scipy.io.savemat(path, data, do_compression=True)
+    rig = read_mct(path)
+    assert rig.translation_mm == pytest.approx(PUBLISHED_STEREO["T"], abs=1e-12)
+    assert rig.right.camera["fy"] == 536.47649
+    assert rig.rotvec_std == pytest.approx(np.array(PUBLISHED_STEREO["om_error"]) / 3)
+    path.write_bytes(path.read_bytes()[:300])
+    with pytest.raises(CalibrationError, match="corrupt MAT-file"):
+        read_mct(path)
+
+
+def test_metre_baseline_warns(tmp_path, capsys):
     metres = published_stereo_m().replace("T = [ -99.801980000000000",
                                           "T = [ -0.099801980000000")
     _, summary = import_file(tmp_path, metres, capsys, name="Calib_Results_stereo.m")

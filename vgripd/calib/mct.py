@@ -2,10 +2,11 @@
 
 The toolbox saves a single-camera calibration as ``Calib_Results.m``, a MATLAB script of
 assignments (``fc = [ 657.46 ; 657.94 ];``, ``alpha_c = 0.0;``, ``nx = 640;`` ...). Its stereo
-calibration is saved only as a binary ``Calib_Results_stereo.mat``; for the stereo rig we read
-and write a script of the same style holding the .mat's variables (``fc_left``, ``cc_left``,
-``kc_left``, ``alpha_c_left``, ``fc_right`` ..., ``om``, ``T``, ``R``, ``nx``, ``ny`` and their
-``*_error``), so a MATLAB ``run`` of it gives the toolbox's stereo workspace.
+calibration is saved only as a binary ``Calib_Results_stereo.mat``; we read that directly
+(MAT-file level 5, what MATLAB's ``save`` writes by default) and also read and write a script of
+the ``Calib_Results.m`` style holding its variables (``fc_left``, ``cc_left``, ``kc_left``,
+``alpha_c_left``, ``fc_right`` ..., ``om``, ``T``, ``R``, ``nx``, ``ny`` and their ``*_error``),
+so a MATLAB ``run`` of it gives the toolbox's stereo workspace.
 
 Conventions (evidence in docs/calibration-mct.md and tests/unit/test_calib_mct.py):
 
@@ -26,6 +27,8 @@ from __future__ import annotations
 import math
 import os
 import re
+import struct
+import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -132,8 +135,8 @@ def _numbers(literal: str) -> NDArray[np.float64] | None:
 class _Script:
     """The variables of one script, with errors naming the file, line and variable."""
 
-    def __init__(self, text: str, source: str) -> None:
-        self.vars = _assignments(text)
+    def __init__(self, variables: dict[str, _Var], source: str) -> None:
+        self.vars = variables
         self.source = source
 
     def has(self, name: str) -> bool:
@@ -143,7 +146,7 @@ class _Script:
         var = self.vars.get(name)
         if var is None:
             raise CalibrationError(f"{self.source}: variable {name} missing")
-        where = f"{self.source}:{var.line}: {name}"
+        where = f"{self.source}:{var.line}: {name}" if var.line else f"{self.source}: {name}"
         if var.value is None:
             raise CalibrationError(f"{where}: not a numeric literal")
         if var.value.size not in sizes:
@@ -191,7 +194,11 @@ def _camera_from(script: _Script, suffix: str) -> MctCamera:
 def parse_mct(text: str, source: str) -> MctCamera | MctStereo:
     """A toolbox result script's camera (``fc``, ...) or stereo rig (``fc_left``, ..., ``om``,
     ``T``). CalibrationError names ``source``, the line and the variable that is wrong."""
-    script = _Script(text, source)
+    return _result_from(_Script(_assignments(text), source))
+
+
+def _result_from(script: _Script) -> MctCamera | MctStereo:
+    source = script.source
     if not script.has("fc") and not script.has("fc_left"):
         raise CalibrationError(
             f"{source}: not a Camera Calibration Toolbox result (no 'fc = [...]' or "
@@ -205,8 +212,7 @@ def parse_mct(text: str, source: str) -> MctCamera | MctStereo:
     if R is not None:  # MATLAB writes a matrix row by row: [r11 r12 r13 ; r21 ...]
         gap = float(np.abs(R.reshape(3, 3) - matrix_from_rotvec(om)).max())
         if gap > _R_TOL:
-            raise CalibrationError(
-                f"{source}:{script.vars['R'].line}: R disagrees with rodrigues(om) by {gap:.2g}")
+            raise CalibrationError(f"{source}: R disagrees with rodrigues(om) by {gap:.2g}")
     om_e, t_e = script.optional("om_error", (3,)), script.optional("T_error", (3,))
     warnings = []
     baseline = float(np.linalg.norm(t))
@@ -226,16 +232,15 @@ def _vec3(a: Any) -> tuple[float, float, float]:
 
 
 def read_mct(path: str | Path) -> MctCamera | MctStereo:
-    """Read ``Calib_Results.m`` or a stereo script (see :func:`parse_mct`)."""
+    """Read ``Calib_Results.m``, a stereo script (see :func:`parse_mct`) or the toolbox's
+    binary ``Calib_Results.mat`` / ``Calib_Results_stereo.mat`` (same variables)."""
     p = Path(path)
     try:
         raw = p.read_bytes()
     except OSError as err:
         raise CalibrationError(f"{p}: cannot read: {err.strerror}") from None
     if raw.startswith(b"MATLAB"):
-        raise CalibrationError(
-            f"{p}: a binary MAT-file; give the toolbox's script Calib_Results.m (for a stereo "
-            "result see docs/calibration-mct.md)")
+        return _result_from(_Script(_mat_variables(raw, str(p)), str(p)))
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
@@ -243,6 +248,64 @@ def read_mct(path: str | Path) -> MctCamera | MctStereo:
     if "\x00" in text:
         raise CalibrationError(f"{p}: not a text file (not a toolbox result script)")
     return parse_mct(text, str(p))
+
+
+# MAT-file level 5 (MATLAB 5 .. 7.2 "save" without -v7.3): a 128-byte header, then tagged
+# elements; a variable is an miMATRIX (flags, dims, name, data), possibly zlib-compressed.
+_MI_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 9: "f8",
+             12: "i8", 13: "u8"}
+_MI_MATRIX, _MI_COMPRESSED = 14, 15
+_NUMERIC_CLASSES = range(6, 16)  # mxDOUBLE .. mxUINT64
+
+
+def _mat_variables(raw: bytes, source: str) -> dict[str, _Var]:
+    """The numeric variables of a level-5 MAT-file as flat arrays in row-major order (so a
+    3x3 ``R`` reads as the script writes it); other classes (strings, cells) are skipped."""
+    if len(raw) < 128 or raw[124:126] not in (b"\x00\x01", b"\x01\x00"):
+        raise CalibrationError(
+            f"{source}: not a level-5 MAT-file (a -v7.3 HDF5 file? save with -v7)")
+    order = "<" if raw[126:128] == b"IM" else ">"
+    found: dict[str, _Var] = {}
+    try:
+        pos = 128
+        while pos + 8 <= len(raw):
+            kind, size, data, pos = _mat_element(raw, pos, order)
+            if kind == _MI_COMPRESSED:
+                kind, size, data, _ = _mat_element(zlib.decompress(data), 0, order)
+            if kind == _MI_MATRIX:
+                named = _mat_matrix(data, order)
+                if named is not None:
+                    found[named[0]] = _Var(named[1], 0)
+    except (ValueError, zlib.error, IndexError) as err:
+        raise CalibrationError(f"{source}: corrupt MAT-file ({err})") from None
+    return found
+
+
+def _mat_element(buf: bytes, pos: int, order: str) -> tuple[int, int, bytes, int]:
+    """``(type, size, data, next position)`` of the element at ``pos``."""
+    kind, size = struct.unpack_from(order + "II", buf, pos)
+    if kind >> 16:  # small element: size in the upper half, data in the tag's second word
+        size, kind = kind >> 16, kind & 0xFFFF
+        return kind, size, buf[pos + 4:pos + 4 + size], pos + 8
+    end = pos + 8 + size
+    if end > len(buf):
+        raise ValueError(f"element at byte {pos} runs past the end")
+    step = size if kind == _MI_COMPRESSED else (size + 7) // 8 * 8
+    return kind, size, buf[pos + 8:end], pos + 8 + step
+
+
+def _mat_matrix(data: bytes, order: str) -> tuple[str, NDArray[np.float64]] | None:
+    _, _, flags, pos = _mat_element(data, 0, order)
+    _, _, dims_raw, pos = _mat_element(data, pos, order)
+    _, _, name, pos = _mat_element(data, pos, order)
+    mx_class = struct.unpack_from(order + "I", flags)[0] & 0xFF
+    if mx_class not in _NUMERIC_CLASSES:
+        return None
+    dims = np.frombuffer(dims_raw, order + "i4")
+    kind, _, real, _ = _mat_element(data, pos, order)
+    values = np.frombuffer(real, order + _MI_TYPES[kind]).astype(np.float64)
+    matrix = values.reshape(tuple(int(d) for d in dims), order="F")  # MATLAB is column-major
+    return name.decode("ascii"), matrix.ravel()
 
 
 # ---------------------------------------------------------------------------------------------
