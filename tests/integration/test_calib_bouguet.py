@@ -20,11 +20,13 @@ import json
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import scipy.io
 
 from vgripd.__main__ import main
+from vgripd.calib.boards import Board, detect
 from vgripd.config import load_config
 
 # Bouguet, "First calibration example", PDF pages 10 (A) and 14 (B): value, +-
@@ -148,3 +150,22 @@ def test_stereo_example_single_cameras_agree_with_the_mat_files(datasets, tmp_pa
     assert_within(his_window, published, share=0.05)
     text = (tmp_path / "auto.toml").read_text()
     assert f"[calibration.{side}]" in text
+
+
+def test_stereo_corner_k_is_the_same_physical_corner_left_and_right(datasets):
+    """Bouguet clicked the same origin in both images of a pair, so his stored point j of x_i
+    is one physical corner in the left and the right file. Our corner k must map to the same
+    j on both sides (ordering consistency for stereo), and to within cornerSubPix accuracy."""
+    folder = datasets / "bouguet_stereo_example"
+    board = Board.parse("chessboard:9x6:30")
+    mats = {s: scipy.io.loadmat(folder / f"Calib_Results_{s}.mat") for s in ("left", "right")}
+    for i in range(1, 15):
+        index = {}
+        for side in ("left", "right"):
+            gray = cv2.imread(str(folder / f"{side}{i:02d}.jpg"), cv2.IMREAD_GRAYSCALE)
+            det = detect(board, gray, f"{side}{i:02d}.jpg", subpix_window=7)
+            his = mats[side][f"x_{i}"].T  # (54, 2)
+            dist = np.linalg.norm(det.px[:, None, :] - his[None, :, :], axis=2)
+            index[side] = dist.argmin(axis=1)
+            assert dist.min(axis=1).max() < 0.01, f"{side}{i:02d}: corners differ from his"
+        np.testing.assert_array_equal(index["left"], index["right"], err_msg=f"pair {i}")
