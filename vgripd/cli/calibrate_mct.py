@@ -1,7 +1,8 @@
 """Read and write Camera Calibration Toolbox for Matlab (Bouguet) result scripts.
 
-import-mct: ``Calib_Results.m`` -> ``camera.toml`` ([calibration.left], or .right with
-``--camera right``); a stereo script (fc_left, ..., om, T) -> ``rig.toml``.
+import-mct: ``Calib_Results.m`` (or ``.mat``) -> ``camera.toml`` ([calibration.left], or
+.right with ``--camera right``); ``Calib_Results_stereo.mat`` or a stereo script (fc_left, ...,
+om, T) -> ``rig.toml``.
 export-mct: a camera/rig result file or a config -> ``Calib_Results.m`` /
 ``Calib_Results_stereo.m``. See docs/calibration-mct.md for the conventions (kc order, alpha_c,
 pixel origin, om/T direction, *_error = 3 sigma).
@@ -27,7 +28,8 @@ from vgripd.errors import CalibrationError
 
 def add_arguments(parser: argparse.ArgumentParser, name: str) -> None:
     if name == "import-mct":
-        parser.add_argument("file", help="the toolbox's Calib_Results.m (or a stereo script)")
+        parser.add_argument("file", help="the toolbox's Calib_Results.m/.mat or "
+                                         "Calib_Results_stereo.mat/.m")
         parser.add_argument("-o", "--output", default=None,
                             help="result file (default camera.toml, rig.toml for a stereo rig)")
         parser.add_argument("--camera", choices=("left", "right"), default=None,
