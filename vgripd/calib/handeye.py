@@ -60,7 +60,6 @@ from vgripd.transforms import (
     make_transform,
     matrix_from_quat,
     matrix_from_rotvec,
-    quat_from_matrix,
     rotation_angle,
 )
 from vgripd.vendors import convention, transform_from_vendor
@@ -193,8 +192,18 @@ def _label(samples: Sequence[Sample], i: int) -> str:
 
 
 def _exp(step: FloatArray) -> FloatArray:
-    """4x4 transform of a 6-vector (rotation vector rad, translation mm)."""
-    return make_transform(matrix_from_rotvec(step[:3]), step[3:])
+    """4x4 transform of a 6-vector (rotation vector rad, translation mm); Rodrigues' formula
+    written out, as the refinement calls it thousands of times with known-good input."""
+    w = step[:3]
+    theta = math.sqrt(float(w @ w))
+    K = _skew(w[None])[0]
+    T = np.eye(4)
+    if theta < 1e-12:
+        T[:3, :3] += K
+    else:
+        T[:3, :3] += (math.sin(theta) / theta) * K + ((1.0 - math.cos(theta)) / theta**2) * (K @ K)
+    T[:3, 3] = step[3:]
+    return T
 
 
 def _project_rotation(M: FloatArray) -> FloatArray:
@@ -267,7 +276,7 @@ def check_motion(samples: Sequence[Sample], mode: str,
         warnings.append(f"only {n} samples; {FEW_SAMPLES} or more with varied rotations make "
                         "the result less sensitive to one bad sample")
     P = _anchor_poses(samples, mode)
-    q = np.stack([quat_from_matrix(T[:3, :3]) for T in P])  # (n, 4) w, x, y, z
+    q = _quats(P[:, :3, :3])
     i, j = np.triu_indices(n, 1)
     rel = _quat_mul(_quat_conj(q[i]), q[j])  # rotation of P_i^-1 P_j, in the mount frame
     s = np.linalg.norm(rel[:, 1:], axis=1)
@@ -339,7 +348,19 @@ def _skew(v: FloatArray) -> FloatArray:
 
 
 def _quats(R: FloatArray) -> FloatArray:
-    return np.stack([quat_from_matrix(r) for r in R])
+    """(m, 4) unit quaternions (w, x, y, z), w >= 0, of (m, 3, 3) rotations, vectorised: the
+    eigenvector of the largest eigenvalue of Bar-Itzhack's symmetric 4x4 matrix (accurate at
+    every angle, and the nearest quaternion when R is slightly off orthonormal)."""
+    xx, xy, xz, yx, yy, yz, zx, zy, zz = R.reshape(-1, 9).T
+    K = np.stack([
+        np.stack([xx - yy - zz, yx + xy, zx + xz, zy - yz], 1),
+        np.stack([yx + xy, yy - xx - zz, zy + yz, xz - zx], 1),
+        np.stack([zx + xz, zy + yz, zz - xx - yy, yx - xy], 1),
+        np.stack([zy - yz, xz - zx, yx - xy, xx + yy + zz], 1)], axis=1) / 3.0
+    v = np.linalg.eigh(K)[1][:, :, 3]  # (x, y, z, w)
+    q = np.concatenate([v[:, 3:], v[:, :3]], axis=1)
+    out: FloatArray = q * np.where(q[:, :1] < 0, -1.0, 1.0)
+    return out
 
 
 def _log(R: FloatArray) -> FloatArray:
@@ -412,7 +433,7 @@ def _rotation_andreff(A: FloatArray, Bm: FloatArray) -> FloatArray:
     """Andreff, Horaud & Espiau (2001): R_A R_X R_B^T = R_X is linear in vec(R_X):
     (I - R_A kron R_B) vec(R_X) = 0; the null vector, rescaled and projected onto SO(3)."""
     K = np.eye(9) - np.einsum("kij,klm->kiljm", A[:, :3, :3], Bm[:, :3, :3]).reshape(-1, 9, 9)
-    v = np.linalg.svd(K.reshape(-1, 9))[2][-1].reshape(3, 3)
+    v = np.linalg.svd(K.reshape(-1, 9), full_matrices=False)[2][-1].reshape(3, 3)
     return _project_rotation(v * np.sign(np.linalg.det(v)))
 
 
@@ -438,7 +459,7 @@ def _solve_daniilidis(A: FloatArray, Bm: FloatArray) -> FloatArray:
     S[:, 3:, 0] = da[:, 1:] - db[:, 1:]
     S[:, 3:, 1:4] = _skew(da[:, 1:] + db[:, 1:])
     S[:, 3:, 4:] = S[:, :3, :4]
-    V = np.linalg.svd(S.reshape(-1, 8))[2]
+    V = np.linalg.svd(S.reshape(-1, 8), full_matrices=False)[2]
     (u1, v1), (u2, v2) = (V[6, :4], V[6, 4:]), (V[7, :4], V[7, 4:])
     # lambda1 v7 + lambda2 v8 with s = lambda1 / lambda2: s^2 u1.v1 + s (u1.v2 + u2.v1) + u2.v2 = 0
     roots = np.roots([u1 @ v1, u1 @ v2 + u2 @ v1, u2 @ v2])
