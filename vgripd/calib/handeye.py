@@ -48,12 +48,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
 from vgripd.camera_model import CameraModel
 from vgripd.errors import CalibrationError, ConvergenceError, ConversionError, DegenerateInputError
-from vgripd.orientation import pnp
 from vgripd.transforms import (
     check_transform,
     invert_transform,
@@ -65,6 +65,8 @@ from vgripd.transforms import (
 from vgripd.vendors import convention, transform_from_vendor
 
 FloatArray = npt.NDArray[np.float64]
+#: What the Levenberg-Marquardt loop moves: (Y, C) for hand-eye, (T,) for a board pose.
+State = tuple[FloatArray, ...]
 
 MODES = ("eye-in-hand", "eye-to-hand")
 #: What the refinement may minimise (see calibrate_hand_eye).
@@ -526,7 +528,7 @@ class _Problem:
         # at the distance of the board.
         self.weight = float(np.median(np.linalg.norm(self.B[:, :3, 3], axis=1)))
 
-    def residual(self, state: tuple[FloatArray, FloatArray]) -> FloatArray | None:
+    def residual(self, state: State) -> FloatArray | None:
         """Residual vector, or None where a board corner falls behind the camera."""
         Y, C = state
         M = Y @ self.Q @ C  # predicted T_cam_board, (n, 4, 4)
@@ -543,7 +545,7 @@ class _Problem:
         res: FloatArray = (self.px - self.camera.project(pts)).ravel()
         return res
 
-    def pixel_residuals(self, state: tuple[FloatArray, FloatArray]) -> list[FloatArray]:
+    def pixel_residuals(self, state: State) -> list[FloatArray]:
         """Per sample (N, 2) observed - projected, px."""
         r = self.residual(state)
         if r is None:
@@ -555,8 +557,7 @@ class _Problem:
         return math.inf if r is None else float(r @ r)
 
 
-def _update(state: tuple[FloatArray, FloatArray], step: FloatArray,
-            ) -> tuple[FloatArray, FloatArray]:
+def _update(state: State, step: FloatArray) -> State:
     """Small motion of the camera frame (Y on the left) and of the board frame (C on the
     right); rotation parts in rad, translation parts in mm."""
     Y, C = state
@@ -568,15 +569,19 @@ _STEPS = np.array([1e-6] * 3 + [1e-4] * 3 + [1e-6] * 3 + [1e-4] * 3)
 
 
 def _levenberg_marquardt(
-    residual: Callable[[tuple[FloatArray, FloatArray]], FloatArray | None],
-    state: tuple[FloatArray, FloatArray],
+    residual: Callable[[State], FloatArray | None],
+    update: Callable[[State, FloatArray], State],
+    state: State,
+    steps: FloatArray,
     max_iter: int = 100,
-) -> tuple[tuple[FloatArray, FloatArray], bool]:
-    """Minimise |residual|^2 over the 12 motion parameters of :func:`_update`.
+) -> tuple[State, bool]:
+    """Minimise |residual|^2 over the motion parameters of ``update``.
 
-    The Jacobian is taken by central differences (12 columns, cheap next to the O(samples x
-    corners) residual), the damping is Marquardt's (scaled by diag(J^T J), so rad and mm
-    parameters are treated alike). Returns the state and whether it converged.
+    The Jacobian is taken by central differences with ``steps`` (one column per parameter,
+    cheap next to the O(samples x corners) residual); the damping is Marquardt's (scaled by
+    diag(J^T J), so rad and mm parameters are treated alike). ``residual`` returns None where
+    the model is undefined (a point behind the camera), which a trial step treats as worse.
+    Returns the state and whether it converged.
     """
     r = residual(state)
     if r is None:
@@ -585,10 +590,10 @@ def _levenberg_marquardt(
     mu = 1e-3
     for _ in range(max_iter):
         cols = []
-        for k, h in enumerate(_STEPS):
-            e = np.zeros(12)
+        for k, h in enumerate(steps):
+            e = np.zeros(len(steps))
             e[k] = h
-            rp, rm = residual(_update(state, e)), residual(_update(state, -e))
+            rp, rm = residual(update(state, e)), residual(update(state, -e))
             if rp is None or rm is None:
                 raise CalibrationError("hand-eye: a board corner lies on the camera plane")
             cols.append((rp - rm) / (2.0 * h))
@@ -598,7 +603,7 @@ def _levenberg_marquardt(
         damp = np.diag(H) + 1e-12 * float(np.diag(H).max())
         while True:
             step = np.linalg.solve(H + mu * np.diag(damp), -g)
-            trial = _update(state, step)
+            trial = update(state, step)
             r_new = residual(trial)
             cost_new = math.inf if r_new is None else float(r_new @ r_new)
             if cost_new <= cost:
@@ -618,25 +623,65 @@ def _levenberg_marquardt(
 def refine(problem: _Problem, X: FloatArray, C: FloatArray,
            ) -> tuple[FloatArray, FloatArray, bool]:
     """X and the board pose minimising the reprojection (or pose) residual, from (X, C)."""
-    (Y, C), converged = _levenberg_marquardt(problem.residual, (invert_transform(X), C))
+    (Y, C), converged = _levenberg_marquardt(problem.residual, _update,
+                                             (invert_transform(X), C), _STEPS)
     return invert_transform(Y), C, converged
 
 
-# ---------------------------------------------------------------------- the whole calibration
+# ---------------------------------------------------------------------- board poses
+#: A second planar pose fitting within this factor of the best (and of 0.1 px) is ambiguous.
+AMBIGUITY_RATIO = 2.0
+
+
+def board_pose(obj: FloatArray, px: FloatArray, camera: CameraModel,
+               ) -> tuple[FloatArray, float, bool]:
+    """``T_cam_board`` of a planar board (z = 0) from its corners: both IPPE poses (OpenCV, on
+    undistorted coordinates) refined on the pixel error with the camera model; returns the
+    best pose, its RMS (px) and whether the other pose fits about as well (ambiguous)."""
+    norm = camera.undistort(px)
+    _, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+        np.ascontiguousarray(obj).reshape(-1, 1, 3), np.ascontiguousarray(norm).reshape(-1, 1, 2),
+        np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+
+    def residual(state: State) -> FloatArray | None:
+        pts = obj @ state[0][:3, :3].T + state[0][:3, 3]
+        if (pts[:, 2] <= 0).any():
+            return None
+        out: FloatArray = (camera.project(pts) - px).ravel()
+        return out
+
+    fits = []
+    for rv, tv in zip(rvecs, tvecs, strict=True):
+        T0 = make_transform(matrix_from_rotvec(np.ravel(rv)), np.ravel(tv))
+        if residual((T0,)) is None:
+            continue
+        (T,), _ = _levenberg_marquardt(residual, lambda st, s: (_exp(s) @ st[0],), (T0,),
+                                       _STEPS[:6])
+        r = residual((T,))
+        assert r is not None
+        fits.append((math.sqrt(float(r @ r) / len(px)), T))
+    if not fits:
+        raise DegenerateInputError("the board lies behind the camera in every candidate pose")
+    fits.sort(key=lambda f: f[0])
+    rms, T = fits[0]
+    ambiguous = len(fits) > 1 and transform_error(fits[1][1], T)[0] > 0.1 and (
+        fits[1][0] < AMBIGUITY_RATIO * max(rms, 0.1))
+    return T, rms, ambiguous
+
+
 def measure_board_poses(samples: Sequence[Sample], camera: CameraModel) -> list[str]:
-    """Fill ``T_cam_board`` of samples that have corners (PnP with our camera model).
+    """Fill ``T_cam_board`` of samples that have corners (:func:`board_pose`).
 
     Returns warnings for ambiguous planar poses; CalibrationError names the sample."""
     warnings = []
     for i, s in enumerate(samples):
-        if s.T_cam_board is not None or not s.has_pixels:
+        if s.T_cam_board is not None or s.obj is None or s.px is None:
             continue
         try:
-            res = pnp(s.obj, s.px, camera)
-        except (DegenerateInputError, ConvergenceError) as err:
+            s.T_cam_board, _, ambiguous = board_pose(s.obj, s.px, camera)
+        except (DegenerateInputError, ConvergenceError, cv2.error) as err:
             raise CalibrationError(f"hand-eye: {_label(samples, i)}: board pose: {err}") from None
-        s.T_cam_board = res.T_cam_obj
-        if res.ambiguous:
+        if ambiguous:
             warnings.append(f"{_label(samples, i)}: the board pose is ambiguous (board seen "
                             "small or nearly face-on); tilt the board more")
     return warnings
