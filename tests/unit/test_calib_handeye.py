@@ -56,12 +56,15 @@ def test_noise_free_every_solver_and_the_refinement_are_exact(mode: str) -> None
                                                 "daniilidis"}
     for name, sol in res.solvers.items():
         deg, mm = transform_error(sol.T, X)
-        assert deg < 1e-9 and mm < 1e-8, name
+        assert deg < 1e-9, name
+        assert mm < 1e-8, name
     assert res.solver == "refined-pixels"
     deg, mm = transform_error(res.T, X)
-    assert deg < 1e-9 and mm < 1e-8
+    assert deg < 1e-9
+    assert mm < 1e-8
     assert transform_error(res.T_anchor_board, C)[1] < 1e-8
-    assert res.rms_px is not None and res.rms_px < 1e-9
+    assert res.rms_px is not None
+    assert res.rms_px < 1e-9
     assert res.warnings == []
 
 
@@ -86,10 +89,13 @@ def test_pose_only_samples_refine_on_pose_residuals() -> None:
         # T_cam_board from the truth, as a dataset of board poses would give it
         s.T_cam_board = invert_transform(X_EIH) @ invert_transform(m.T_base_flange) @ BOARD_IN_BASE
     res = calibrate_hand_eye(samples, "eye-in-hand", None)
-    assert res.solver == "refined-poses" and res.rms_px is None
+    assert res.solver == "refined-poses"
+    assert res.rms_px is None
     deg, mm = transform_error(res.T, X_EIH)
-    assert deg < 1e-9 and mm < 1e-8
-    assert res.stability is not None and res.stability.translation_mm < 1e-8
+    assert deg < 1e-9
+    assert mm < 1e-8
+    assert res.stability is not None
+    assert res.stability.translation_mm < 1e-8
 
 
 def test_noisy_refinement_is_at_least_as_good_as_the_best_linear_solver() -> None:
@@ -179,9 +185,11 @@ def test_auto_objective_falls_back_to_poses_when_robot_is_the_larger_error() -> 
     res = calibrate_hand_eye(samples, "eye-in-hand", CAMERA, stability=False)
     assert res.solver == "refined-poses"
     assert any("robot poses (or the intrinsics)" in w for w in res.warnings)
-    assert res.rms_px is not None and res.rms_px > 1.0  # still reported
+    assert res.rms_px is not None
+    assert res.rms_px > 1.0
     deg, mm = transform_error(res.T, X_EIH)
-    assert deg < 0.5 and mm < 10.0
+    assert deg < 0.5
+    assert mm < 10.0
 
 
 def test_bad_objective_and_mode() -> None:
@@ -198,7 +206,8 @@ def test_samples_file_round_trip(tmp_path) -> None:
     assert (mode, board, camera) == ("eye-to-hand", "chessboard:9x6:25", CAMERA)
     for a, b in zip(samples, loaded, strict=True):
         assert np.array_equal(a.T_base_flange, b.T_base_flange)
-        assert np.array_equal(a.px, b.px) and np.array_equal(a.obj, b.obj)
+        assert np.array_equal(a.px, b.px)
+        assert np.array_equal(a.obj, b.obj)
         assert a.image == b.image
     (tmp_path / "bad.json").write_text('{"format": "something else"}')
     with pytest.raises(CalibrationError, match="not a hand-eye samples file"):

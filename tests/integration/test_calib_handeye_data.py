@@ -1,0 +1,198 @@
+"""`vgripd calibrate handeye` on real public data with third-party reference results.
+
+- ViSP's Franka Panda eye-in-hand set (8 images + robot poses; visp_franka_eye_in_hand/
+  PROVENANCE.md): the real CLI from the images, the poses written in UR format (the YAMLs hold
+  theta-u vectors in metres, i.e. UR's x y z m, rx ry rz rad) and the intrinsics of
+  franka_camera.xml. Compared with ViSP's published eMc = T_flange_camera.
+- Tabb & Ahmad Yousef's dataset 1 (88 robot / board pose pairs, no images; tabb_rwhe_dataset1/
+  PROVENANCE.md): solved through ``--samples`` with the board poses of cali.txt; compared with
+  inverse(Z) of their published rwhe_AA_RPI solution.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vgripd.__main__ import main
+from vgripd.calib.handeye import SAMPLES_FORMAT, transform_error
+from vgripd.config import HandEyeConfig
+from vgripd.transforms import make_transform, matrix_from_rotvec
+
+VISP = "visp_franka_eye_in_hand"
+TABB = "tabb_rwhe_dataset1"
+# ViSP tutorial's eMc as a pose vector (m, rad): PROVENANCE.md "Published reference result"
+VISP_EMC = make_transform(matrix_from_rotvec([0.001783530191, 0.009173747947, 1.581782359]),
+                          np.array([0.05771519632, -0.03392488515, -0.04227690244]) * 1000.0)
+
+
+def _visp_inputs(datasets: Path, tmp_path: Path) -> tuple[Path, Path, str]:
+    src = datasets / VISP
+    lines = ["# ViSP rPe (flange in robot base), UR convention: x y z m, rx ry rz rad"]
+    for i in range(1, 9):
+        values = re.findall(r"- \[([^\]]+)\]", (src / f"franka_pose_rPe_{i}.yaml").read_text())
+        assert len(values) == 6
+        lines.append(" ".join(values) + f"  # franka_image-{i}.png")
+    poses = tmp_path / "poses.txt"
+    poses.write_text("\n".join(lines) + "\n")
+    xml = (src / "franka_camera.xml").read_text()
+
+    def tag(name: str) -> str:
+        m = re.search(rf"<{name}>([^<]+)</{name}>", xml)
+        assert m is not None, name
+        return m.group(1)
+
+    assert float(tag("kud")) == 0.0
+    assert float(tag("kdu")) == 0.0
+    camera = tmp_path / "camera.toml"
+    camera.write_text(
+        f"[calibration.left]\nfx = {tag('px')}\nfy = {tag('py')}\ncx = {tag('u0')}\n"
+        f"cy = {tag('v0')}\nwidth = {tag('image_width')}\nheight = {tag('image_height')}\n")
+    return poses, camera, str(src / "franka_image-*.png")
+
+
+def _run_json(capsys: pytest.CaptureFixture[str], argv: list[str]) -> dict:
+    rc = main(["calibrate", "handeye", *argv, "--json"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    return json.loads(out.out)
+
+
+def test_visp_eye_in_hand_agrees_with_published_emc(datasets: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """PROVENANCE: a correct AX = XB solver lands within about 2 mm and 0.3 deg of ViSP's eMc.
+
+    Measured (this code): refined on board-pose residuals 0.11 deg, 1.09 mm; Park 0.015 deg,
+    0.018 mm; Tsai 0.06 deg, 0.08 mm. The corners' reprojection RMS with the robot taken as
+    exact is ~6 px (far above corner noise), so ``auto`` refines on the pose residuals and says
+    why; refined on pixels instead, X moves by ~3.4 deg, 5.7 mm (checked below), the robot poses'
+    (or the factory intrinsics') error being absorbed into X.
+    """
+    poses, camera, images = _visp_inputs(datasets, tmp_path)
+    out = tmp_path / "handeye.toml"
+    common = ["--mode", "eye-in-hand", "--poses", str(poses), "--pose-format", "ur",
+              "--images", images, "--board", "chessboard:9x6:23.6", "--intrinsics", str(camera)]
+    summary = _run_json(capsys, [*common, "-o", str(out), "--report", str(tmp_path / "r.png")])
+    X = np.array(summary["matrix_mm"])
+    deg, mm = transform_error(X, VISP_EMC)
+    assert deg < 0.3
+    assert mm < 2.0
+    assert summary["mode"] == "eye-in-hand"
+    assert summary["solver"] == "refined-poses"
+    for name in ("tsai", "park", "horaud", "andreff"):
+        d, m = transform_error(np.array(summary["solvers"][name]["matrix_mm"]), VISP_EMC)
+        assert d < 0.3, name
+        assert m < 2.0, name
+    # ViSP's consistency figures of the implied base->board pose: mean 0.456 deg, 5.41 mm
+    park = summary["solvers"]["park"]
+    assert abs(park["rotation_deg"] - 0.456) < 0.1
+    assert abs(park["translation_mm"] - 5.41) < 1.0
+    assert len(summary["per_sample"]) == 8
+    assert all(s["rms_px"] > 0 for s in summary["per_sample"])
+    assert summary["stability"]["translation_mm"] < 5.0
+    assert (tmp_path / "r.png").stat().st_size > 1000
+
+    # the result file is what a config includes
+    data = tomllib.loads(out.read_text())
+    he = HandEyeConfig.model_validate(data["calibration"]["hand_eye"])
+    assert he.mounting == "robot"
+    assert he.T_flange_camera is not None
+    assert np.allclose(he.T_flange_camera.translation_mm, X[:3, 3])
+
+    # solved again from the saved samples, without robot or images: the same X
+    samples = tmp_path / "handeye.samples.json"
+    assert json.loads(samples.read_text())["format"] == SAMPLES_FORMAT
+    again = _run_json(capsys, ["--samples", str(samples), "-o", str(tmp_path / "again.toml")])
+    assert np.abs(np.array(again["matrix_mm"]) - X).max() < 1e-9
+
+    # the pixel objective with the robot as exact moves X by degrees on these data
+    pixels = _run_json(capsys, ["--samples", str(samples), "--objective", "pixels",
+                                "-o", str(tmp_path / "px.toml")])
+    d, m = transform_error(np.array(pixels["matrix_mm"]), X)
+    assert pixels["solver"] == "refined-pixels"
+    assert pixels["rms_px"] < summary["rms_px"]
+    assert 2.0 < d < 5.0
+    assert 3.0 < m < 10.0
+
+
+def test_visp_pose_count_mismatch_and_bad_line(datasets: Path, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    poses, camera, images = _visp_inputs(datasets, tmp_path)
+    lines = poses.read_text().splitlines()
+    short = tmp_path / "short.txt"
+    short.write_text("\n".join(lines[:-1]) + "\n")
+    common = ["calibrate", "handeye", "--mode", "eye-in-hand", "--pose-format", "ur",
+              "--images", images, "--board", "chessboard:9x6:23.6", "--intrinsics", str(camera),
+              "-o", str(tmp_path / "x.toml")]
+    assert main([*common, "--poses", str(short)]) == 1
+    assert "short.txt has 7 poses but --images matches 8 images" in capsys.readouterr().err
+    lines[3] = "0.4 0.1 0.3 -2.8 0.2"
+    bad = tmp_path / "bad.txt"
+    bad.write_text("\n".join(lines) + "\n")
+    assert main([*common, "--poses", str(bad)]) == 1
+    assert "bad.txt:4: ur: expected 6 values" in capsys.readouterr().err
+    assert main(["calibrate", "handeye", "--poses", str(poses)]) == 2
+    assert "missing --mode" in capsys.readouterr().err
+
+
+def _tabb_samples(datasets: Path, path: Path) -> np.ndarray:
+    """Write Tabb's pairs as a samples file; return inverse(Z) (OpenCV's cam2gripper).
+
+    cali.txt R, t = T_cam_board; robot_cali.txt = base->gripper, so T_base_flange is its
+    inverse (PROVENANCE "Conventions"). Text with 6 digits: rotations re-orthonormalised."""
+    src = datasets / TABB
+
+    def rigid(M: np.ndarray) -> np.ndarray:
+        U, _, Vt = np.linalg.svd(M[:3, :3])
+        return make_transform(U @ Vt, M[:3, 3])
+
+    rows = (src / "cali.txt").read_text().splitlines()
+    n = int(rows[0])
+    boards = []
+    for row in rows[1:1 + n]:
+        v = [float(x) for x in row.split()[1:]]
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = np.array(v[9:18]).reshape(3, 3), v[18:21]
+        boards.append(rigid(M))
+    robot = [float(x) for x in (src / "robot_cali.txt").read_text().split()[1:]]
+    assert len(robot) == 16 * n
+    flange = [rigid(np.linalg.inv(np.array(robot[16 * i:16 * i + 16]).reshape(4, 4)))
+              for i in range(n)]
+    path.write_text(json.dumps({
+        "format": SAMPLES_FORMAT, "mode": "eye-in-hand", "board": None, "camera": None,
+        "samples": [{"image": f"image{i}.png", "T_base_flange": f.tolist(),
+                     "T_cam_board": b.tolist()}
+                    for i, (f, b) in enumerate(zip(flange, boards, strict=True))]}))
+    text = (src / "transformations.txt").read_text()
+    z = [float(x) for x in text.split("Z 0", 1)[1].split()[:16]]
+    return np.linalg.inv(rigid(np.array(z).reshape(4, 4)))
+
+
+def test_tabb_dataset1_rotation_within_1_deg(datasets: Path, tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """PROVENANCE: rotation is well determined (<= 1 deg), translation is not: OpenCV's own
+    test accepts 50 mm, its AX = XB solvers land 41-46 mm off, Tabb's solution leaves 16 mm
+    mean per-pose residual. Measured (this code): refined 0.30 deg, 22 mm; Tsai/Park/Horaud/
+    Andreff 0.54-0.55 deg, 43.4 mm (as OpenCV's); Daniilidis fails (27 deg) as OpenCV's does."""
+    samples = tmp_path / "tabb.json"
+    ref = _tabb_samples(datasets, samples)
+    # the published translation of inverse(Z), PROVENANCE: [-11.120, -28.947, 3.328] mm
+    assert np.abs(ref[:3, 3] - [-11.120, -28.947, 3.328]).max() < 2e-3
+    summary = _run_json(capsys, ["--samples", str(samples), "-o", str(tmp_path / "he.toml")])
+    deg, mm = transform_error(np.array(summary["matrix_mm"]), ref)
+    assert summary["solver"] == "refined-poses"
+    assert summary["rms_px"] is None
+    assert deg < 1.0
+    assert mm < 50.0
+    for name in ("tsai", "park", "horaud", "andreff"):
+        d, m = transform_error(np.array(summary["solvers"][name]["matrix_mm"]), ref)
+        assert d < 1.0, name
+        assert m < 50.0, name
+    assert len(summary["per_sample"]) == 88
+    assert any("consecutive sample pair(s) rotate less than 5 deg" in w
+               for w in summary["warnings"])
