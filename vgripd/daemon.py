@@ -18,7 +18,10 @@ Life of a job (``JobState``)::
 - RECALIBRATE (``EpipolarMonitor``): the median epipolar residual of every stereo job goes
   into a window of ``daemon.recalibrate_window`` jobs; while more than ``recalibrate_share``
   of them exceed ``vision.epipolar_warn_px`` the status carries the warning (logged once when
-  it rises and once when it clears). The chapter's sign that the rig has moved.
+  it rises and once when it clears) and every link shows it (``RobotLink.set_warnings``: the
+  WARNINGS register, UR input_double_register 21). The chapter's sign that the rig has moved.
+  The job that changes it is counted before it is published, so the triggering link's warning
+  bits are in place before its acknowledge.
 - Shutdown (SIGTERM/SIGINT) aborts the job in flight (unless it is already publishing), so the
   PLC gets ``ABORTED`` for its trigger at once instead of waiting; the links stay up for
   ``ABORT_LINGER_S`` so a polling PLC can read it, then links, the camera, the recorder and the
@@ -46,7 +49,7 @@ import numpy as np
 
 from vgripd.config import Config
 from vgripd.errors import CameraError, NotCalibratedError
-from vgripd.protocol import RobotLink, Trigger
+from vgripd.protocol import RobotLink, Trigger, Warnings
 from vgripd.recorder import Recorder
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
 from vgripd.sdnotify import Notifier, watchdog_interval_s
@@ -440,6 +443,14 @@ class Daemon:
         self._set_state(JobState.PUBLISHING)
         if not result.t_done_mono_ns:
             result = dataclasses.replace(result, t_done_mono_ns=time.monotonic_ns())
+        epipolar_px = result.residuals.get("epipolar_px")
+        if epipolar_px is not None and self.epipolar.add(epipolar_px, result.t_done_mono_ns):
+            if self.epipolar.warning:
+                log.warning("RECALIBRATE: %s; the stereo rig may have moved, recalibrate it",
+                            self.epipolar.describe())
+            else:
+                log.info("RECALIBRATE cleared: %s", self.epipolar.describe())
+            await self._show_warnings(first=trigger.link)
         await self._link_call(trigger.link, "publish", trigger.seq, result)
         done_ns = time.monotonic_ns()
         record = JobRecord(job_id=job_id, link=trigger.link, seq=trigger.seq, result=result,
@@ -449,13 +460,6 @@ class Daemon:
         self.cycle_ms.append(record.cycle_ms)
         log.info("job %d: %s in %.1f ms%s", job_id, result.status.name, record.cycle_ms,
                  f" ({result.message})" if result.message else "")
-        epipolar_px = result.residuals.get("epipolar_px")
-        if epipolar_px is not None and self.epipolar.add(epipolar_px, done_ns):
-            if self.epipolar.warning:
-                log.warning("RECALIBRATE: %s; the stereo rig may have moved, recalibrate it",
-                            self.epipolar.describe())
-            else:
-                log.info("RECALIBRATE cleared: %s", self.epipolar.describe())
         if self.recorder is not None and pair is not None:
             self.recorder.submit(pair, result)
         for listener in self.listeners:
@@ -465,6 +469,27 @@ class Daemon:
                 log.exception("job listener failed")
         self._job = None
         self._set_state(JobState.IDLE)
+
+    def warning_bits(self) -> Warnings:
+        """The warnings every link shows (``RobotLink.set_warnings``)."""
+        return Warnings.RECALIBRATE if self.epipolar.warning else Warnings(0)
+
+    async def _show_warnings(self, first: str) -> None:
+        """Hand the warning bits to every link: ``first`` (about to publish) is waited for,
+        the others run in the background so a slow link never delays another's result. Each
+        link applies the bits in call order, so a later change cannot be overtaken."""
+        bits = int(self.warning_bits())
+        for name in self.links:
+            if name != first:
+                self._spawn(self._warnings_call(name, bits))
+        await self._warnings_call(first, bits)
+
+    async def _warnings_call(self, name: str, bits: int) -> None:
+        try:
+            async with asyncio.timeout(LINK_CALL_TIMEOUT_S):
+                await self.links[name].set_warnings(bits)
+        except Exception as err:
+            log.error("link %s: set_warnings(%#x) failed: %r", name, bits, err)
 
     async def _link_call(self, name: str, method: str, seq: int, arg: Any) -> None:
         """Call a link; a failing or hanging link is logged and never fails the job."""

@@ -17,7 +17,7 @@ addr  name           R/W   type    meaning
    1  REQ_SEQ        RW    u16     request sequence: a request is a write that changes it to a
                                    non-zero value (edge on the sequence, not on the level)
    2  RECIPE         RW    u16     job parameter handed to the daemon with the trigger
-   3  MAP_VERSION    R     u16     1
+   3  MAP_VERSION    R     u16     2 (version 1 was the same map without WARNINGS)
    4  CHECK_U16      R     u16     0x1234
    5  CHECK_U32      R     u32     0x12345678 in the configured word order
    7  CHECK_F32      R     f32     123.456 in the configured word order
@@ -35,6 +35,7 @@ addr  name           R/W   type    meaning
   23  N_VALUES       R     u16     number of valid pose values: 0, 6 (XYZ + 3 angles) or 7 (XYZ+q)
   24  VALUES         R     7x32    pose in the output vendor's convention and units
   38  FIT_RMS        R     32      fit residual in mm (VALUE_FORMAT encoding); -1 = unknown
+  40  WARNINGS       R     u16     live bit field (``Warnings``): bit 0 RECALIBRATE; others 0
 ====  =============  ====  ======  =================================================================
 
 Handshake: a request is answered exactly once, either by ``ACK_SEQ == seq`` (the job ran or
@@ -45,6 +46,11 @@ acknowledged under its own sequence).
 Ordering, so that a poller never pairs an acknowledged sequence with data of another request:
 a publish writes all data first and ``ACK_SEQ`` last; a new job retracts ``ACK_SEQ`` (0) first and
 only then clears the data. Servers apply each list of block writes without yielding to readers.
+
+WARNINGS is not part of a result: it is the daemon's current state (like HEARTBEAT), changed
+through ``RobotLink.set_warnings`` whenever a warning rises or clears, and neither a new job nor
+CLEAR touches it. The daemon sets it before it publishes the job that changed it, so a peer that
+sees ``ACK_SEQ == seq`` reads a WARNINGS that already counts that job.
 """
 
 from __future__ import annotations
@@ -130,6 +136,15 @@ class RobotLink(ABC):
     async def publish(self, seq: int, result: JobResult) -> None:
         """Publish a finished job atomically (data first, acknowledged sequence last)."""
 
+    async def set_warnings(self, bits: int) -> None:
+        """Show the daemon's current ``Warnings`` bits to the peer (live, not tied to a job).
+
+        Called whenever a warning rises or clears; a link starts with 0 and writes the last
+        bits again after a reconnect. A link that can hold the bits somewhere overrides this;
+        the default only checks them (the warning still shows in the status and the log).
+        """
+        checked_warnings(bits)
+
 
 # --- register map -------------------------------------------------------------------------
 
@@ -158,10 +173,18 @@ class Reg(enum.IntEnum):
     N_VALUES = 23
     VALUES = 24
     FIT_RMS = 38
+    WARNINGS = 40
 
 
-MAP_VERSION = 1
-MAP_SIZE = 40
+class Warnings(enum.IntFlag):
+    """Bits of the WARNINGS register (and of ``RobotLink.set_warnings``). Unlisted bits are
+    reserved and always 0."""
+
+    RECALIBRATE = 1  # the daemon's rolling epipolar warning: the stereo rig may have moved
+
+
+MAP_VERSION = 2  # 1 -> 2: WARNINGS (register 40) added; nothing else moved or changed
+MAP_SIZE = 41
 MAX_VALUES = 7  # ABB/quaternion conventions: XYZ + 4; the others use 6
 COMMAND_AREA = range(Reg.CMD, Reg.RECIPE + 1)
 CHECK_U16 = 0x1234
@@ -348,7 +371,7 @@ class RegisterImage:
     def empty_result_words(self) -> tuple[int, ...]:
         """``STATUS .. FIT_RMS`` meaning "no result"."""
         return (int(Status.IDLE), 0, 0, *self.codec.u32(NO_AGE), 0,
-                *([0] * (MAP_SIZE - Reg.VALUES)))
+                *([0] * (Reg.WARNINGS - Reg.VALUES)))
 
 
 class Action(enum.Enum):
@@ -500,6 +523,18 @@ class RegisterBank:
         self.image.apply([BlockWrite(Reg.HEARTBEAT, (self._heartbeat,))])
         return self._heartbeat
 
+    def set_warnings(self, bits: int) -> None:
+        """WARNINGS = ``bits``; ``LinkError`` for a bit that ``Warnings`` does not define."""
+        self.image.apply([BlockWrite(Reg.WARNINGS, (checked_warnings(bits),))])
+
+
+def checked_warnings(bits: int) -> int:
+    """``bits`` as a WARNINGS word; ``LinkError`` when it sets a reserved bit."""
+    known = sum(int(w) for w in Warnings)
+    if not 0 <= bits <= 0xFFFF or bits & ~known:
+        raise LinkError(f"warnings {bits:#x}: only bits {known:#x} (Warnings) are defined")
+    return bits
+
 
 # --- UR RTDE register map (drivers/links/ur_rtde.py, docs/ur_rtde.md) ---------------------
 
@@ -519,7 +554,9 @@ class URRegisterMap:
     trigger), ``command``, ``page_request`` (= seq once the robot has read the translation).
     vgripd -> robot (input_int_register_N): ``ack`` (= seq, written last), ``status``,
     ``captured`` (seq whose images are taken), ``job_id``, ``page_ack`` (= seq once the rotation
-    page is in place); input_double_register ``page`` (3 registers).
+    page is in place); input_double_register ``page`` (3 registers) and ``warnings`` (the
+    ``Warnings`` bits as a whole number, live like the Modbus WARNINGS register: every int
+    input ur_rtde can write is taken, and a double holds a 16-bit field exactly).
     """
 
     upper: bool = False
@@ -562,3 +599,7 @@ class URRegisterMap:
     @property
     def page(self) -> tuple[int, int, int]:
         return (self._n(18), self._n(19), self._n(20))
+
+    @property
+    def warnings(self) -> int:
+        return self._n(21)

@@ -25,7 +25,8 @@ port, Modbus exception, register). If the robot refuses a register of the block 
 contact (ILLEGAL_ADDRESS or ILLEGAL_FUNCTION) the link is FAILED and not retried: a wrong
 ``base_address`` does not fix itself; other exception codes (busy, device failure) are retried.
 
-RESULT_AGE_MS is live on the server link; here it is refreshed with every heartbeat.
+RESULT_AGE_MS is live on the server link; here it is refreshed with every heartbeat. WARNINGS
+(map register 40) is written when the daemon changes it, like any other mirror change.
 """
 
 from __future__ import annotations
@@ -199,6 +200,16 @@ class ModbusClientLink(RobotLink):
             log.warning("%s: request %d published as %s: a value did not fit the registers",
                         self.name, seq, status.name)
         await self._flushed()
+
+    async def set_warnings(self, bits: int) -> None:
+        """Set WARNINGS in the mirror; while the robot is connected, wait until it has it.
+
+        Unlike ``publish`` this does not raise while the robot is away: the mirror is written
+        whole at the reconnect, WARNINGS included.
+        """
+        self.bank.set_warnings(bits)
+        if self._health.state is LinkState.UP:
+            await self._flushed()
 
     async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
         """Wait until ``health().state`` is in ``states``; ``TimeoutError`` otherwise."""

@@ -189,6 +189,9 @@ class RegisterServerLink(RobotLink):
             log.warning("%s: request %d published as %s: a value did not fit the registers",
                         self.name, seq, status.name)
 
+    async def set_warnings(self, bits: int) -> None:
+        self.bank.set_warnings(bits)
+
     def dispatch(self, seq: int, command: int, recipe: int) -> None:
         """Hand a new job to the daemon, outside the Modbus request that triggered it (an error
         in the handler must not become a Modbus exception response)."""

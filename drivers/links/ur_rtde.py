@@ -15,10 +15,11 @@ child: it starts it, waits for ``up`` at most ``connect_timeout_s``, serves, and
 once per outage. A register ``IN_USE`` or a variable the controller does not know is FAILED, not
 retried: it is a configuration problem of the robot.
 
-After every reconnect the last ``image_captured``/``publish`` is written again, so a robot whose
-acknowledge was lost with the connection still gets its answer. A trigger that was already
-pending when the link first connected is not served (the robot's timeout retries it); one that
-arrives while the link is down is served at the reconnect.
+After every reconnect the warning bits (``set_warnings``, input_double_register 21) and the last
+``image_captured``/``publish`` are written again, so a robot whose acknowledge was lost with the
+connection still gets its answer, and a stale warning from an earlier run is overwritten. A
+trigger that was already pending when the link first connected is not served (the robot's
+timeout retries it); one that arrives while the link is down is served at the reconnect.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from vgripd.protocol import (
     Trigger,
     TriggerHandler,
     URRegisterMap,
+    checked_warnings,
 )
 from vgripd.types import JobResult, Status
 from vgripd.vendors import transform_from_vendor
@@ -166,6 +168,7 @@ class URRtdeLink(RobotLink):
         self._on_trigger: TriggerHandler | None = None
         self._last_seq: int | None = None
         self._replay: dict[str, tuple[str, tuple[Any, ...]]] = {}
+        self._warnings = 0
         self._pending: dict[int, asyncio.Future[None]] = {}
         self._ids = itertools.count(1)
 
@@ -224,6 +227,14 @@ class URRtdeLink(RobotLink):
         if problem:
             raise LinkError(f"link {self.name}: {problem}; answered INTERNAL")
 
+    async def set_warnings(self, bits: int) -> None:
+        """Write the bits to input_double_register ``regs.warnings``; while the link is down
+        they are kept and written at the reconnect (no error: they are state, not an answer)."""
+        self._warnings = checked_warnings(bits)
+        child = self._child
+        if child is not None and self._health.state is LinkState.UP:
+            await self._send(child, "warnings", (self._warnings,))
+
     async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
         """Wait until ``health().state`` is one of ``states``; ``TimeoutError`` otherwise."""
         wanted = {states} if isinstance(states, LinkState) else states
@@ -253,7 +264,7 @@ class URRtdeLink(RobotLink):
             child.send((req, kind, args))
             await asyncio.wait_for(done, self.options.write_timeout_s)
         except (OSError, TimeoutError):
-            raise LinkError(f"link {self.name} to {self._peer}: {kind} seq {args[0]} not "
+            raise LinkError(f"link {self.name} to {self._peer}: {kind} {args[0]} not "
                             f"confirmed within {self.options.write_timeout_s} s") from None
         finally:
             self._pending.pop(req, None)
@@ -323,6 +334,7 @@ class URRtdeLink(RobotLink):
         if was_down:
             log.info("link %s up again (%s)", self.name, self._peer)
         try:
+            child.send((0, "warnings", (self._warnings,)))
             for kind, args in list(self._replay.values()):
                 child.send((0, kind, args))  # nobody waits for these: no "done" is expected
         except OSError as err:

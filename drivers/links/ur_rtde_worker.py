@@ -9,9 +9,9 @@ its sockets.
 
 Pipe messages, parent -> child: ``(req, "captured", (seq, job_id))``,
 ``(req, "publish", (seq, status, job_id, translation | None, rotation | None))``,
-``(0, "close", ())``. Child -> parent: ``("up", peer, baseline_seq)``,
-``("trigger", seq, command, tcp_pose)``, ``("done", req)``, ``("error", fatal, message)`` (the
-child exits right after).
+``(req, "warnings", (bits,))``, ``(0, "close", ())``. Child -> parent:
+``("up", peer, baseline_seq)``, ``("trigger", seq, command, tcp_pose)``, ``("done", req)``,
+``("error", fatal, message)`` (the child exits right after).
 """
 
 from __future__ import annotations
@@ -141,14 +141,17 @@ class _Session:
         if not ok:
             raise _Lost(f"{self.peer}: writing input_int_register_{reg} failed")
 
+    def write_double(self, reg: int, value: float) -> None:
+        try:
+            ok = self.io.setInputDoubleRegister(reg, float(value))
+        except RuntimeError as err:
+            raise _Lost(f"{self.peer}: writing input_double_register_{reg}: {err}") from None
+        if not ok:
+            raise _Lost(f"{self.peer}: writing input_double_register_{reg} failed")
+
     def write_page(self, values: Sequence[float]) -> None:
         for reg, value in zip(self.regs.page, values, strict=True):
-            try:
-                ok = self.io.setInputDoubleRegister(reg, float(value))
-            except RuntimeError as err:
-                raise _Lost(f"{self.peer}: writing input_double_register_{reg}: {err}") from None
-            if not ok:
-                raise _Lost(f"{self.peer}: writing input_double_register_{reg} failed")
+            self.write_double(reg, value)
 
     def snapshot(self) -> tuple[float, int, int, int, list[float]]:
         """Timestamp, seq, command, page request and TCP pose from one data package.
@@ -178,6 +181,8 @@ class _Session:
             self.write_int(regs.job_id, job_id)
             self.write_int(regs.ack, seq)  # last: the robot reads nothing before it sees this
             self.pending_rotation = (seq, rotation) if rotation is not None else None
+        elif kind == "warnings":
+            self.write_double(regs.warnings, args[0])
         self.conn.send(("done", req))
 
     def step(self) -> None:

@@ -16,7 +16,17 @@ import pytest
 from drivers.links.modbus_client import ModbusClientLink, ModbusClientOptions, plan_writes
 from vgripd.errors import LinkError
 from vgripd.mock.robot_modbus import MockRobotModbus, RegisterWrite, RobotMode
-from vgripd.protocol import MAP_SIZE, BlockWrite, LinkState, Reg, RegisterBank, Trigger, ValueCodec
+from vgripd.protocol import (
+    MAP_SIZE,
+    MAP_VERSION,
+    BlockWrite,
+    LinkState,
+    Reg,
+    RegisterBank,
+    Trigger,
+    ValueCodec,
+    Warnings,
+)
 from vgripd.types import JobResult, RobotTarget, Status
 
 BASE = 128
@@ -119,7 +129,7 @@ async def test_header_words_and_heartbeat_reach_the_robot(robot: MockRobotModbus
     await link.open(Daemon(link).on_trigger)
     try:
         header = robot.read(BASE + Reg.MAP_VERSION, 9)
-        assert header[:2] == [1, 0x1234]
+        assert header[:2] == [MAP_VERSION, 0x1234]
         assert struct.unpack(">I", words_to_bytes(tuple(header[2:4]), "ABCD"))[0] == 0x12345678
         assert struct.unpack(">f", words_to_bytes(tuple(header[4:6]), "ABCD"))[0] == pytest.approx(123.456, abs=1e-4)
         beats = {robot.read(BASE + Reg.HEARTBEAT)[0]}
@@ -235,6 +245,39 @@ async def test_refused_range_at_start_fails_naming_the_register() -> None:
         health = link.health()
         assert health.state is LinkState.FAILED
         assert "exception 2 (ILLEGAL_ADDRESS)" in health.last_error
+    finally:
+        await link.close()
+        await robot.stop()
+
+
+async def test_warnings_reach_the_robot_and_are_rewritten_after_an_outage(
+    robot: MockRobotModbus,
+) -> None:
+    await robot.write(BASE + Reg.WARNINGS, [1])  # stale, from an earlier vgripd run
+    link = make_link(robot)
+    await link.open(Daemon(link).on_trigger)
+    try:
+        assert robot.read(BASE + Reg.WARNINGS) == [0]  # the first contact writes the mirror
+        await link.set_warnings(Warnings.RECALIBRATE)  # returns once the robot has it
+        assert robot.read(BASE + Reg.WARNINGS) == [1]
+        assert RegisterWrite(BASE + Reg.WARNINGS, (1,)) in robot.writes  # over the network
+        await robot.go_offline()
+        await link.wait_state(LinkState.DOWN, WAIT_S)
+        await link.set_warnings(0)  # no error while away: kept for the reconnect
+        await robot.come_back()
+        await link.wait_state(LinkState.UP, WAIT_S)
+        assert robot.read(BASE + Reg.WARNINGS) == [0]
+    finally:
+        await link.close()
+
+
+async def test_block_one_word_too_long_for_the_robot_names_warnings() -> None:
+    robot = MockRobotModbus()
+    await robot.start()
+    link = make_link(robot, base_address=216)  # 216 + 40 = 256: only WARNINGS is missing
+    try:
+        with pytest.raises(LinkError, match=r"registers 256\.\.256 .*map register WARNINGS"):
+            await link.open(Daemon(link).on_trigger)
     finally:
         await link.close()
         await robot.stop()

@@ -19,7 +19,7 @@ from pymodbus.exceptions import ModbusIOException
 
 from drivers.links.modbus_rtu import ModbusRtuLink
 from vgripd.errors import LinkError
-from vgripd.protocol import CHECK_F32, MAP_SIZE, LinkState, Reg, Trigger
+from vgripd.protocol import CHECK_F32, MAP_SIZE, MAP_VERSION, LinkState, Reg, Trigger, Warnings
 from vgripd.types import JobResult, RobotTarget, Status
 
 BAUD = 115200
@@ -77,6 +77,20 @@ async def test_rtu_cycle(rtu: tuple[ModbusRtuLink, asyncio.Queue[Trigger], Async
     assert (w[Reg.ACK_SEQ], w[Reg.STATUS], w[Reg.N_VALUES], w[Reg.CAPTURED_SEQ]) == (300, 1, 6, 300)
     got = client.convert_from_registers(w[Reg.VALUES:Reg.VALUES + 12], client.DATATYPE.FLOAT32)
     assert got == list(POSE)
+
+
+async def test_rtu_warnings_word(rtu: tuple[ModbusRtuLink, asyncio.Queue[Trigger], AsyncModbusSerialClient]) -> None:
+    link, _, client = rtu
+    r = await client.read_holding_registers(0, count=MAP_SIZE, device_id=7)
+    assert (r.registers[Reg.MAP_VERSION], r.registers[Reg.WARNINGS]) == (MAP_VERSION, 0) == (2, 0)
+    await link.set_warnings(Warnings.RECALIBRATE)
+    r = await client.read_holding_registers(Reg.WARNINGS, count=1, device_id=7)
+    assert r.registers == [1]
+    r = await client.read_holding_registers(Reg.WARNINGS, count=2, device_id=7)
+    assert (r.isError(), r.exception_code) == (True, 2)
+    await link.set_warnings(0)
+    r = await client.read_holding_registers(Reg.WARNINGS, count=1, device_id=7)
+    assert r.registers == [0]
 
 
 async def test_rtu_other_unit_is_not_answered(rtu: tuple[ModbusRtuLink, asyncio.Queue[Trigger], AsyncModbusSerialClient]) -> None:

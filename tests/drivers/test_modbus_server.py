@@ -20,7 +20,7 @@ from pymodbus.client import AsyncModbusTcpClient
 from drivers.links.modbus_server import ModbusServerLink
 from vgripd.errors import LinkError
 from vgripd.mock.plc import MockPlc
-from vgripd.protocol import CHECK_F32, MAP_SIZE, LinkState, Reg, Trigger
+from vgripd.protocol import CHECK_F32, MAP_SIZE, LinkState, Reg, Trigger, Warnings
 from vgripd.types import JobResult, RobotTarget, Status
 
 KUKA = ("X", "Y", "Z", "A", "B", "C")
@@ -233,15 +233,21 @@ async def test_port_in_use_is_a_link_error_naming_address_and_port(served: Harne
 MBPOLL = shutil.which("mbpoll") or "mbpoll"
 
 
-async def mbpoll(port: int, *args: str) -> dict[int, str]:
-    """Run mbpoll once with 0-based references; return {reference: printed value}."""
+async def mbpoll_run(port: int, *args: str) -> tuple[int | None, str]:
+    """Run mbpoll once with 0-based references; return its exit code and stdout + stderr."""
     proc = await asyncio.create_subprocess_exec(
         MBPOLL, "-m", "tcp", "-a", "1", "-0", "-1", "-o", "2", "-p", str(port), *args,
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
     )
     out, err = await proc.communicate()
-    assert proc.returncode == 0, (out.decode(), err.decode())
-    return {int(m[1]): m[2] for m in re.finditer(r"^\[(\d+)\]:\s+(\S+)", out.decode(), re.M)}
+    return proc.returncode, out.decode() + err.decode()
+
+
+async def mbpoll(port: int, *args: str) -> dict[int, str]:
+    """Run mbpoll once; return {reference: printed value}."""
+    code, text = await mbpoll_run(port, *args)
+    assert code == 0, text
+    return {int(m[1]): m[2] for m in re.finditer(r"^\[(\d+)\]:\s+(\S+)", text, re.M)}
 
 
 @pytest.mark.parametrize(("order", "flags"), [("ABCD", ["-B"]), ("CDAB", [])])
@@ -326,5 +332,55 @@ async def test_read_write_multiple_in_one_transaction(served: Harness) -> None:
             read_address=0, read_count=1, write_address=Reg.STATUS, values=[1], device_id=1
         )
         assert (r.isError(), r.exception_code) == (True, 2)
+    finally:
+        client.close()
+
+
+# --- WARNINGS (register 40, map version 2) ------------------------------------------------
+
+async def test_warnings_word_live_for_pymodbus_and_mbpoll(served: Harness) -> None:
+    link = served.link
+    client = AsyncModbusTcpClient("127.0.0.1", port=link.port, retries=0)
+    await client.connect()
+
+    async def warnings_word() -> int:
+        r = await client.read_holding_registers(Reg.WARNINGS, count=1, device_id=1)
+        assert not r.isError(), r
+        return int(r.registers[0])
+
+    try:
+        assert await mbpoll(link.port, "-t", "4", "-r", str(Reg.MAP_VERSION), "-c", "1",
+                            "127.0.0.1") == {Reg.MAP_VERSION: "2"}
+        assert await warnings_word() == 0
+        # the whole map is one read; one register past it is refused
+        r = await client.read_holding_registers(0, count=MAP_SIZE, device_id=1)
+        assert (len(r.registers), r.registers[Reg.WARNINGS]) == (41, 0)
+        r = await client.read_holding_registers(Reg.WARNINGS + 1, count=1, device_id=1)
+        assert (r.isError(), r.exception_code) == (True, 2)
+        r = await client.write_register(Reg.WARNINGS, 1, device_id=1)  # read-only
+        assert (r.isError(), r.exception_code) == (True, 2)
+
+        await link.set_warnings(Warnings.RECALIBRATE)
+        assert await warnings_word() == 1
+        assert await mbpoll(link.port, "-t", "4:hex", "-r", str(Reg.WARNINGS), "-c", "1",
+                            "127.0.0.1") == {Reg.WARNINGS: "0x0001"}
+        code, text = await mbpoll_run(link.port, "-t", "4", "-r", str(Reg.WARNINGS + 1), "-c",
+                                      "1", "127.0.0.1")
+        assert code != 0 and "Illegal data address" in text, (code, text)
+        # a job (new request, publish) and a CLEAR leave it alone: it is not a result
+        await client.write_registers(Reg.CMD, [1, 5, 0], device_id=1)
+        t = await served.next_trigger()
+        await link.image_captured(t.seq, 1)
+        await link.publish(t.seq, ok(1))
+        await client.write_registers(Reg.CMD, [2, 6, 0], device_id=1)
+        r = await client.read_holding_registers(Reg.ACK_SEQ, count=MAP_SIZE - Reg.ACK_SEQ,
+                                                device_id=1)
+        assert (r.registers[0], r.registers[-1]) == (6, 1)
+
+        await link.set_warnings(0)
+        assert await warnings_word() == 0
+        with pytest.raises(LinkError, match="only bits 0x1"):
+            await link.set_warnings(2)
+        assert await warnings_word() == 0
     finally:
         client.close()

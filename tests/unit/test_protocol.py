@@ -17,6 +17,7 @@ from vgripd.errors import LinkError
 from vgripd.protocol import (
     CHECK_F32,
     MAP_SIZE,
+    MAP_VERSION,
     NO_AGE,
     Action,
     BlockWrite,
@@ -28,6 +29,7 @@ from vgripd.protocol import (
     RegisterBank,
     RegisterOverflowError,
     ValueCodec,
+    Warnings,
 )
 from vgripd.types import JobResult, RobotTarget, Status
 
@@ -148,7 +150,8 @@ def test_publish_writes_data_first_and_ack_last() -> None:
     bank.publish(11, ok_result((1.0, 2.0, 3.0, 4.0, 5.0, 6.0)), now_ns=0)
     assert journal[-1] == BlockWrite(Reg.ACK_SEQ, (11,))
     touched = {a for w in journal[:-1] for a in range(w.address, w.address + len(w.words))}
-    assert set(range(Reg.STATUS, MAP_SIZE)) <= touched
+    assert set(range(Reg.STATUS, Reg.WARNINGS)) <= touched
+    assert Reg.WARNINGS not in touched  # not part of a result
 
 
 def test_new_job_retracts_ack_before_clearing_data() -> None:
@@ -165,7 +168,7 @@ def test_new_job_retracts_ack_before_clearing_data() -> None:
     assert ack < first_data
     w = bank.read(0, MAP_SIZE, 0)
     assert w[Reg.N_VALUES] == 0
-    assert w[Reg.VALUES:MAP_SIZE] == [0] * (MAP_SIZE - Reg.VALUES)
+    assert w[Reg.VALUES:Reg.WARNINGS] == [0] * (Reg.WARNINGS - Reg.VALUES)
     assert w[Reg.STATE] == HandshakeState.TRIGGERED
 
 
@@ -241,10 +244,42 @@ def test_writes_outside_the_command_area_are_refused(address: int, values: list[
     assert bank.read(0, MAP_SIZE, 0) == before
 
 
-@pytest.mark.parametrize(("address", "count"), [(39, 2), (-1, 1), (40, 1), (0, 0)])
+@pytest.mark.parametrize(("address", "count"), [(40, 2), (-1, 1), (41, 1), (0, 42), (0, 0)])
 def test_reads_outside_the_map_are_refused(address: int, count: int) -> None:
-    with pytest.raises(RegisterAccessError, match="outside 0..39"):
+    with pytest.raises(RegisterAccessError, match="outside 0..40"):
         RegisterBank(ValueCodec()).read(address, count, 0)
+
+
+def test_map_version_2_is_version_1_plus_the_warnings_word() -> None:
+    # The integrator's contract (docs/registers.md): version 2 only appends register 40.
+    assert (MAP_VERSION, MAP_SIZE, Reg.WARNINGS) == (2, 41, 40)
+    assert max(r for r in Reg if r != Reg.WARNINGS) + 2 == Reg.WARNINGS  # FIT_RMS ends at 39
+    bank = RegisterBank(ValueCodec())
+    assert bank.read(Reg.MAP_VERSION, 1, 0) == [2]
+    assert bank.read(Reg.WARNINGS, 1, 0) == [0]
+
+
+def test_warnings_are_live_and_survive_jobs_and_clear() -> None:
+    journal: list[BlockWrite] = []
+    bank = RegisterBank(ValueCodec(), journal)
+    journal.clear()
+    bank.set_warnings(Warnings.RECALIBRATE)
+    assert journal == [BlockWrite(Reg.WARNINGS, (1,))]
+    bank.write(Reg.CMD, [Command.TRIGGER, 1, 0])  # a new job clears the result area only
+    bank.captured(1, 1)
+    bank.publish(1, ok_result((1.0,) * 6), now_ns=0)
+    bank.write(Reg.CMD, [Command.CLEAR, 2, 0])
+    assert bank.read(0, MAP_SIZE, 0)[Reg.WARNINGS] == 1
+    bank.set_warnings(0)
+    assert bank.read(Reg.WARNINGS, 1, 0) == [0]
+
+
+@pytest.mark.parametrize("bits", [2, 0x8000, 0x10000, -1])
+def test_reserved_warning_bits_are_refused(bits: int) -> None:
+    bank = RegisterBank(ValueCodec())
+    with pytest.raises(LinkError, match=f"warnings {bits:#x}: only bits 0x1"):
+        bank.set_warnings(bits)
+    assert bank.read(Reg.WARNINGS, 1, 0) == [0]
 
 
 def test_heartbeat_wraps() -> None:
