@@ -52,6 +52,7 @@ FEW_PAIRS = 10  # below this, warn (as for a single camera)
 EPIPOLAR_WARN_MEDIAN_PX = 0.5
 EPIPOLAR_WARN_P95_PX = 1.5
 BASELINE_TOLERANCE = 0.05  # relative deviation from the hint that triggers a warning
+BASELINE_SIGMA_WARN = 0.005  # relative one-sigma uncertainty of |T| that triggers a warning
 CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
@@ -402,8 +403,12 @@ def _warnings(r: RigResult, baseline_hint_mm: float | None) -> list[str]:
             BASELINE_TOLERANCE * baseline_hint_mm):
         out.append(f"baseline {baseline:.2f} mm differs from the expected {baseline_hint_mm:g} "
                    f"mm by more than {BASELINE_TOLERANCE:.0%}: wrong board pitch or rig?")
-    sigma_t = float(np.linalg.norm(r.translation_std))
-    if sigma_t > 0.01 * baseline:
-        out.append(f"the left->right translation is uncertain: |std| {sigma_t:.2f} mm is more "
-                   f"than 1 % of the {baseline:.1f} mm baseline; add pairs at varied tilts")
+    # the baseline length sets the depth scale: its sigma along T, from the covariance block
+    i_t = r.parameter_names.index("T[0]")
+    direction = r.translation_mm / baseline
+    sigma_b = float(np.sqrt(direction @ r.covariance[i_t:i_t + 3, i_t:i_t + 3] @ direction))
+    if sigma_b > BASELINE_SIGMA_WARN * baseline:
+        out.append(f"the baseline is uncertain: {baseline:.2f} +- {sigma_b:.2f} mm (1 sigma, "
+                   f"> {BASELINE_SIGMA_WARN:.1%}; depth scale errors of that size); add pairs "
+                   "at varied tilts and distances")
     return out
