@@ -196,9 +196,9 @@ def _label(samples: Sequence[Sample], i: int) -> str:
 def _exp(step: FloatArray) -> FloatArray:
     """4x4 transform of a 6-vector (rotation vector rad, translation mm); Rodrigues' formula
     written out, as the refinement calls it thousands of times with known-good input."""
-    w = step[:3]
-    theta = math.sqrt(float(w @ w))
-    K = _skew(w[None])[0]
+    x, y, z = (float(v) for v in step[:3])
+    theta = math.sqrt(x * x + y * y + z * z)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     T = np.eye(4)
     if theta < 1e-12:
         T[:3, :3] += K
@@ -635,9 +635,10 @@ AMBIGUITY_RATIO = 2.0
 
 def board_pose(obj: FloatArray, px: FloatArray, camera: CameraModel,
                ) -> tuple[FloatArray, float, bool]:
-    """``T_cam_board`` of a planar board (z = 0) from its corners: both IPPE poses (OpenCV, on
-    undistorted coordinates) refined on the pixel error with the camera model; returns the
-    best pose, its RMS (px) and whether the other pose fits about as well (ambiguous)."""
+    """``T_cam_board`` of a planar board (z = 0) from its corners: the better of the two IPPE
+    poses (OpenCV, on undistorted coordinates) refined on the pixel error with the camera
+    model; returns the pose, its RMS (px) and whether the other pose fits about as well
+    (ambiguous)."""
     norm = camera.undistort(px)
     _, rvecs, tvecs, _ = cv2.solvePnPGeneric(
         np.ascontiguousarray(obj).reshape(-1, 1, 3), np.ascontiguousarray(norm).reshape(-1, 1, 2),
@@ -650,22 +651,24 @@ def board_pose(obj: FloatArray, px: FloatArray, camera: CameraModel,
         out: FloatArray = (camera.project(pts) - px).ravel()
         return out
 
-    fits = []
+    starts = []
     for rv, tv in zip(rvecs, tvecs, strict=True):
         T0 = make_transform(matrix_from_rotvec(np.ravel(rv)), np.ravel(tv))
-        if residual((T0,)) is None:
-            continue
-        (T,), _ = _levenberg_marquardt(residual, lambda st, s: (_exp(s) @ st[0],), (T0,),
-                                       _STEPS[:6])
-        r = residual((T,))
-        assert r is not None
-        fits.append((math.sqrt(float(r @ r) / len(px)), T))
-    if not fits:
+        r0 = residual((T0,))
+        if r0 is not None:
+            starts.append((math.sqrt(float(r0 @ r0) / len(px)), T0))
+    if not starts:
         raise DegenerateInputError("the board lies behind the camera in every candidate pose")
-    fits.sort(key=lambda f: f[0])
-    rms, T = fits[0]
-    ambiguous = len(fits) > 1 and transform_error(fits[1][1], T)[0] > 0.1 and (
-        fits[1][0] < AMBIGUITY_RATIO * max(rms, 0.1))
+    starts.sort(key=lambda f: f[0])
+    # IPPE's poses are near their minima already: refine the better one only, and call the
+    # board ambiguous when the other fits about as well even unrefined.
+    (T,), _ = _levenberg_marquardt(residual, lambda st, s: (_exp(s) @ st[0],), (starts[0][1],),
+                                   _STEPS[:6])
+    r = residual((T,))
+    assert r is not None
+    rms = math.sqrt(float(r @ r) / len(px))
+    ambiguous = len(starts) > 1 and transform_error(starts[1][1], T)[0] > 0.1 and (
+        starts[1][0] < AMBIGUITY_RATIO * max(rms, 0.1))
     return T, rms, ambiguous
 
 
