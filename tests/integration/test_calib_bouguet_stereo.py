@@ -205,3 +205,55 @@ def test_cli_report_and_about(cli_run):
     for section in ("[calibration.left]", "[calibration.right]",
                     "[calibration.stereo.T_right_left]", "[about]", "[about.epipolar_px]"):
         assert section in text
+
+
+def link_pairs(datasets: Path, folder: Path, numbers: list[int]) -> None:
+    """left{n}.jpg / right{n}.jpg in ``folder`` -> his pairs 1, 2, ... (symlinks, no copies)."""
+    source = datasets / "bouguet_stereo_example"
+    for k, n in enumerate(numbers, 1):
+        for side in ("left", "right"):
+            (folder / f"{side}{n}.jpg").symlink_to(source / f"{side}{k:02d}.jpg")
+
+
+def run_cli(*argv: str) -> tuple[int, str]:
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        rc = main(["calibrate", "stereo", *argv])
+    return rc, stdout.getvalue()
+
+
+def test_cli_pairs_by_natural_order_and_rejects_a_pair_without_board(datasets, tmp_path):
+    """Pairs follow numbers by value (left10 after left5); a right image without the board
+    drops its pair with the reason; few pairs are warned about."""
+    link_pairs(datasets, tmp_path, [1, 2, 3, 4, 5, 10])
+    (tmp_path / "right3.jpg").unlink()
+    cv2.imwrite(str(tmp_path / "right3.jpg"), np.full((480, 640), 128, np.uint8))
+    rc, out = run_cli("--left", str(tmp_path / "left*.jpg"), "--right",
+                      str(tmp_path / "right*.jpg"), "--board", "chessboard:9x6:30",
+                      "-o", str(tmp_path / "rig.toml"), "--json")
+    assert rc == 0
+    summary = json.loads(out)
+    assert [Path(p["left"]).name for p in summary["per_pair"]] == [
+        "left1.jpg", "left2.jpg", "left4.jpg", "left5.jpg", "left10.jpg"]
+    assert [Path(p["right"]).name for p in summary["per_pair"]] == [
+        "right1.jpg", "right2.jpg", "right4.jpg", "right5.jpg", "right10.jpg"]
+    assert len(summary["rejected"]) == 1
+    bad = summary["rejected"][0]
+    assert Path(bad["left"]).name == "left3.jpg"
+    assert bad["reason"].startswith("right image: board not found")
+    assert any("only 5 pairs" in w for w in summary["warnings"])
+
+
+def test_cli_mismatched_counts_and_empty_globs_are_errors(datasets, tmp_path, capsys):
+    link_pairs(datasets, tmp_path, [1, 2, 3])
+    (tmp_path / "right3.jpg").unlink()
+    rc, _ = run_cli("--left", str(tmp_path / "left*.jpg"), "--right",
+                    str(tmp_path / "right*.jpg"), "--board", "chessboard:9x6:30",
+                    "-o", str(tmp_path / "rig.toml"))
+    assert rc == 1
+    assert "--left matches 3 files but --right matches 2" in capsys.readouterr().err
+    rc, _ = run_cli("--left", str(tmp_path / "nothing*.png"), "--right",
+                    str(tmp_path / "right*.jpg"), "--board", "chessboard:9x6:30")
+    assert rc == 1
+    assert "--left" in capsys.readouterr().err
+    assert not (tmp_path / "rig.toml").exists()
