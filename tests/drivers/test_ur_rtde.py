@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
 from vgripd.errors import LinkError
 from vgripd.mock.ur_controller import URController
-from vgripd.protocol import LinkState, Trigger
+from vgripd.protocol import LinkState, Trigger, URRegisterMap, Warnings
 from vgripd.types import JobResult, RobotTarget, Status
 
 pytestmark = pytest.mark.timeout(60)
@@ -314,3 +314,39 @@ async def test_stream_pause_is_noticed_and_recovered() -> None:
         assert up.reconnects == 1
         trigger, result = await run_job(robot, link, triggers, job_id=1)
         assert result["offset"] == OFFSET
+
+
+async def test_warnings_register_live_and_rewritten_at_reconnect() -> None:
+    """input_double_register_21 holds the Warnings bits: written at every connect, before the
+    ack of a job published after it (the daemon's order), kept while the link is down."""
+    name = f"input_double_register_{URRegisterMap().warnings}"
+    assert name == "input_double_register_21"
+
+    def ack_index(log: list[tuple[str, object]], seq: int) -> int:
+        return log.index(("input_int_register_18", seq))
+
+    async with connected("127.0.5.18", **FAST) as (robot, link, triggers):
+        trigger, _ = await run_job(robot, link, triggers, job_id=1)
+        log = robot.input_log()
+        assert log.index((name, 0.0)) < ack_index(log, trigger.seq)  # the connect's write
+
+        seq = robot.start_program(1)
+        await triggers.next()
+        await link.set_warnings(Warnings.RECALIBRATE)
+        await link.publish(seq, ur_result(2))
+        result = robot.program_result(seq)  # the robot saw the ack (TCP keeps the order)
+        assert result["offset"] == OFFSET
+        log = robot.input_log()
+        assert log.index((name, 1.0), ack_index(log, trigger.seq)) < ack_index(log, seq)
+        assert robot.inputs(name) == {name: 1.0}
+
+        robot.drop(refuse=True)
+        await link.wait_state(LinkState.DOWN, timeout_s=10)
+        await link.set_warnings(0)  # no error: written at the reconnect
+        start = len(robot.input_log())
+        robot.listen()
+        await link.wait_state(LinkState.UP, timeout_s=15)
+        trigger, _ = await run_job(robot, link, triggers, job_id=3)
+        log = robot.input_log(start)
+        assert log.index((name, 0.0)) < ack_index(log, trigger.seq)
+        assert robot.inputs(name) == {name: 0.0}

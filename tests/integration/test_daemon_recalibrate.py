@@ -6,7 +6,9 @@ Images: the synthetic demo cell rendered once with the calibrated rig and once w
 camera turned by 1.2 mrad about the left camera's x axis (a rig knocked after calibration:
 right image rows move by ~2.2 px, inside the matching tolerance, above the 1 px warning level).
 The daemon replays them in a chosen order with the *calibrated* rig, driven by a real Modbus
-client over TCP; the status is read over a real HTTP socket.
+client over TCP; the status is read over a real HTTP socket. The PLC also reads the WARNINGS
+register (map version 2) of the link it triggers, in the same read as each ACK_SEQ, and of a
+second link that never triggers.
 """
 
 from __future__ import annotations
@@ -27,6 +29,9 @@ from tests.integration.test_daemon import Plc, running
 from vgripd.cli.status import format_status
 from vgripd.config import config_from_dict
 from vgripd.daemon import EpipolarMonitor
+from vgripd.mock.robot_modbus import UR_FIRST_REGISTER as BASE
+from vgripd.mock.robot_modbus import MockRobotModbus, RegisterWrite
+from vgripd.protocol import Reg, Warnings
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.types import ImagePair, Status
 
@@ -66,21 +71,27 @@ def _get_status(url: str) -> dict[str, Any]:
     return data
 
 
-async def test_recalibrate_warning_rises_and_clears(tmp_path: Path,
-                                                   caplog: pytest.LogCaptureFixture) -> None:
-    await _write_sequence(tmp_path)
-    config = config_from_dict({
-        "camera": {"type": "replay", "folder": str(tmp_path), "left_glob": "left_*.png",
+def _config(folder: Path, links: list[dict[str, Any]]) -> Any:
+    return config_from_dict({
+        "camera": {"type": "replay", "folder": str(folder), "left_glob": "left_*.png",
                    "right_glob": "right_*.png"},
         "calibration": config_from_dict({}).model_dump()["calibration"],
-        "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": 0}],
+        "links": links,
         "status": {"port": 0},
         "daemon": {"recalibrate_window": 4, "recalibrate_share": 0.5,
                    "recalibrate_min_jobs": 4},
     })
+
+
+async def test_recalibrate_warning_rises_and_clears(tmp_path: Path,
+                                                   caplog: pytest.LogCaptureFixture) -> None:
+    await _write_sequence(tmp_path)
+    config = _config(tmp_path, [{"type": "modbus_server", "host": "127.0.0.1", "port": 0}] * 2)
     caplog.set_level(logging.INFO, logger="vgripd")
     warning_after: list[bool] = []
-    async with running(config) as run, Plc(run.port()) as plc:
+    warnings_at_ack: list[int] = []  # WARNINGS in the read that shows ACK_SEQ == seq
+    warnings_other: list[int] = []  # WARNINGS of the second link, read after each job
+    async with running(config) as run, Plc(run.port()) as plc, Plc(run.port(1)) as hmi:
         run.daemon.listeners.append(
             lambda pair, rec: warning_after.append(run.daemon.epipolar.warning))
         assert run.daemon.status_server is not None
@@ -89,8 +100,11 @@ async def test_recalibrate_warning_rises_and_clears(tmp_path: Path,
         with ThreadPoolExecutor(1) as pool:
             for seq, kind in enumerate(SEQUENCE, start=1):
                 await plc.trigger(seq)
-                await plc.result(seq)
+                words = await plc.result(seq)
+                assert words[Reg.MAP_VERSION] == 2
+                warnings_at_ack.append(words[Reg.WARNINGS])
                 _, rec = await run.job_done(seq)
+                warnings_other.append((await hmi.read())[Reg.WARNINGS])
                 epi = rec.result.residuals["epipolar_px"]
                 if kind == "G":
                     assert rec.result.status is Status.OK, rec.result.message
@@ -112,11 +126,39 @@ async def test_recalibrate_warning_rises_and_clears(tmp_path: Path,
         assert not run.daemon.status_line().endswith("; RECALIBRATE")
     # 3 of 4 above (> 0.5) at job 7; 2 of 4 (not > 0.5) again at job 10.
     assert warning_after == [False] * 6 + [True] * 3 + [False] * 3
+    # the PLC sees the bit with the ack of the job that raised it, and of the one that cleared it
+    assert warnings_at_ack == [0] * 6 + [Warnings.RECALIBRATE] * 3 + [0] * 3
+    assert warnings_other == warnings_at_ack
     risen = [r for r in caplog.records if r.getMessage().startswith("RECALIBRATE:")]
     cleared = [r for r in caplog.records if r.getMessage().startswith("RECALIBRATE cleared")]
     assert len(risen) == 1
     assert risen[0].levelno == logging.WARNING
     assert len(cleared) == 1
+
+
+async def test_warnings_word_is_written_to_a_robot_before_the_ack(tmp_path: Path) -> None:
+    """modbus_client link: the robot's register server gets the WARNINGS write of the job that
+    raises (and clears) the warning before that job's ACK_SEQ write."""
+    await _write_sequence(tmp_path)
+    robot = MockRobotModbus()
+    await robot.start()
+    config = _config(tmp_path, [{"type": "modbus_client", "host": robot.host,
+                                 "port": robot.port, "poll_interval_s": 0.005}])
+    warnings_at_ack: list[int] = []
+    try:
+        async with running(config):
+            for seq in range(1, len(SEQUENCE) + 1):
+                seen = await robot.run_job(seq, 30.0)
+                warnings_at_ack.append(seen.words[Reg.WARNINGS])
+                ack = seen.writes.index(RegisterWrite(BASE + Reg.ACK_SEQ, (seq,)))
+                if seq in (7, 10):  # the jobs that raise and clear it
+                    bits = Warnings.RECALIBRATE if seq == 7 else 0
+                    assert seen.writes.index(RegisterWrite(BASE + Reg.WARNINGS, (bits,))) < ack
+                else:
+                    assert all(w.address != BASE + Reg.WARNINGS for w in seen.writes)
+    finally:
+        await robot.stop()
+    assert warnings_at_ack == [0] * 6 + [Warnings.RECALIBRATE] * 3 + [0] * 3
 
 
 def test_monitor_waits_for_min_jobs_and_judges_the_share() -> None:
