@@ -19,8 +19,8 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from drivers.links.modbus_server import ModbusServerLink
 from vgripd.errors import LinkError
-from vgripd.mock.plc import MockPlc
-from vgripd.protocol import CHECK_F32, MAP_SIZE, LinkState, Reg, Trigger, Warnings
+from vgripd.mock.plc import MockPlc, PlcCheckError
+from vgripd.protocol import CHECK_F32, MAP_SIZE, BlockWrite, LinkState, Reg, Trigger, Warnings
 from vgripd.types import JobResult, RobotTarget, Status
 
 KUKA = ("X", "Y", "Z", "A", "B", "C")
@@ -366,7 +366,8 @@ async def test_warnings_word_live_for_pymodbus_and_mbpoll(served: Harness) -> No
                             "127.0.0.1") == {Reg.WARNINGS: "0x0001"}
         code, text = await mbpoll_run(link.port, "-t", "4", "-r", str(Reg.WARNINGS + 1), "-c",
                                       "1", "127.0.0.1")
-        assert code != 0 and "Illegal data address" in text, (code, text)
+        assert code != 0, text
+        assert "Illegal data address" in text
         # a job (new request, publish) and a CLEAR leave it alone: it is not a result
         await client.write_registers(Reg.CMD, [1, 5, 0], device_id=1)
         t = await served.next_trigger()
@@ -384,3 +385,27 @@ async def test_warnings_word_live_for_pymodbus_and_mbpoll(served: Harness) -> No
         assert await warnings_word() == 0
     finally:
         client.close()
+
+
+async def test_mock_plc_reports_warnings_and_refuses_reserved_bits(served: Harness) -> None:
+    link = served.link
+
+    async def answer(job_id: int) -> None:
+        t = await served.next_trigger()
+        await link.image_captured(t.seq, job_id)
+        await link.publish(t.seq, ok(job_id))
+
+    async with MockPlc("127.0.0.1", link.port, poll_s=0.002) as plc:
+        stand_in = asyncio.create_task(answer(1))
+        assert (await plc.cycle()).warnings == 0
+        await stand_in
+        await link.set_warnings(Warnings.RECALIBRATE)
+        stand_in = asyncio.create_task(answer(2))
+        assert (await plc.cycle()).warnings is Warnings.RECALIBRATE
+        await stand_in
+        # a server that broke the contract (vgripd's own bank refuses this) is caught
+        link.bank.image.apply([BlockWrite(Reg.WARNINGS, (0x0003,))])
+        stand_in = asyncio.create_task(answer(3))
+        with pytest.raises(PlcCheckError, match="WARNINGS 0x0003 sets a reserved bit"):
+            await plc.cycle()
+        await stand_in

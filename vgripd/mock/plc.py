@@ -4,8 +4,8 @@ It triggers a job (command, recipe and a new request sequence in one write), pol
 request is answered (acknowledged or refused), and checks what a careful PLC program would:
 the acknowledged sequence is its own, the status is a known code, pose values are present only
 under a pose-valid status, the image-captured sequence was seen, and the byte-order check words
-decode correctly. 32-bit items are decoded with pymodbus' own converters, not vgripd's codec,
-so the check is independent of the server's encoder.
+decode correctly, and WARNINGS has no reserved bit set. 32-bit items are decoded with pymodbus'
+own converters, not vgripd's codec, so the check is independent of the server's encoder.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from vgripd.protocol import (
     Command,
     Reg,
     ValueFormat,
+    Warnings,
     WordOrder,
 )
 from vgripd.types import Status
@@ -46,7 +47,8 @@ class CycleResult:
 
     ``values``: the pose in the vendor convention (empty unless ``status.pose_valid``).
     ``fit_rms``: FIT_RMS as published (-1 = unknown). ``age_ms``: RESULT_AGE_MS at the answer.
-    ``cycle_ms``: trigger write to answer seen, on the PLC's clock.
+    ``cycle_ms``: trigger write to answer seen, on the PLC's clock. ``warnings``: the
+    WARNINGS bits (``vgripd.protocol.Warnings``) in the read that saw the answer.
     """
 
     seq: int
@@ -59,6 +61,7 @@ class CycleResult:
     age_ms: int
     polls: int
     cycle_ms: float
+    warnings: Warnings = Warnings(0)
 
 
 class MockPlc:
@@ -184,8 +187,13 @@ class MockPlc:
         except ValueError:
             raise PlcCheckError(f"request {seq}: unknown status code {code}") from None
         n = w[Reg.N_VALUES]
+        warnings = Warnings(w[Reg.WARNINGS])
+        if warnings & ~sum(int(bit) for bit in Warnings):
+            raise PlcCheckError(f"request {seq}: WARNINGS {w[Reg.WARNINGS]:#06x} sets a "
+                                "reserved bit")
         if rejected:
-            return CycleResult(seq, status, True, 0, (), -1.0, captured_seen, 0, polls, cycle_ms)
+            return CycleResult(seq, status, True, 0, (), -1.0, captured_seen, 0, polls, cycle_ms,
+                               warnings)
         if status.pose_valid != (n > 0) or n not in (0, 6, 7):
             raise PlcCheckError(f"request {seq}: status {status.name} with N_VALUES = {n}")
         if status.pose_valid and not captured_seen:
@@ -204,6 +212,7 @@ class MockPlc:
             age_ms=self._u32(w[Reg.RESULT_AGE_MS:Reg.RESULT_AGE_MS + 2]),
             polls=polls,
             cycle_ms=cycle_ms,
+            warnings=warnings,
         )
 
     async def cycle(self, recipe: int = 0) -> CycleResult:
