@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, NoReturn
+from functools import cached_property
+from typing import Any, NamedTuple, NoReturn, cast
 
 import cv2
 import numpy as np
@@ -37,6 +38,121 @@ _EYE3 = np.eye(3)
 # |k1| ~ 0.3 and cost ~2x the default 5; an EPS criterion would make OpenCV reproject every
 # iteration, several times slower than Newton's own check.
 _GUESS_CRITERIA = (cv2.TERM_CRITERIA_COUNT, 20, 0.0)
+
+#: Per-point distortion coefficients for :func:`_newton`: k1, k2, k3 (floats or (n,) arrays)
+#: and ``tang2 = 2 (p2, p1)`` as a (2, 1) or (2, n) array.
+Coefficients = tuple[Any, Any, Any, FloatArray]
+
+
+def _newton(target: FloatArray, P: FloatArray, coef: Coefficients, max_iter: int,
+            tol: float) -> tuple[FloatArray, FloatArray, FloatArray, bool]:
+    """Newton's method on ``distort(P) = target``, vectorised over the points (columns).
+
+    Parameters
+    ----------
+    target : (2, n) distorted normalized coordinates, one row per axis.
+    P : (2, n) starting point (undistorted normalized coordinates).
+    coef : the distortion, per point (the points may belong to different cameras).
+    max_iter : Newton steps allowed after the starting point.
+    tol : every point's residual must end below it (normalized units).
+
+    Returns
+    -------
+    P (2, n), its r2 = x^2 + y^2 (n,), the residual F (2, n), and whether
+    ``sum |F|^2 < tol^2`` (so every point converged); not finite stops at once.
+    """
+    k1, k2, k3, tang2 = coef
+    tang = 0.5 * tang2
+    for step in range(max_iter + 1):
+        P2 = P * P
+        r2 = P2[0] + P2[1]
+        # With c = p2 x + p1 y the tangential terms are 2 c (x, y) + (p2, p1) r2, which lets
+        # both coordinates share one array expression.
+        scale = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)) + np.add.reduce(tang2 * P)
+        F = scale * P + tang * r2
+        F -= target
+        ss = float(np.vdot(F, F))
+        converged = ss < tol * tol  # every point's residual < tol
+        if converged or step == max_iter or not math.isfinite(ss):
+            break
+        dradial = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2))  # 2 d(radial)/d(r2)
+        # The Jacobian of (xd, yd) w.r.t. (x, y) is symmetric: [[J0, Jxy], [Jxy, J1]].
+        J = scale + dradial * P2 + (tang2 + tang2) * P
+        Jxy = dradial * (P[0] * P[1]) + np.add.reduce(tang2[::-1] * P)
+        P = P - (J[::-1] * F - Jxy * F[::-1]) / (J[0] * J[1] - Jxy * Jxy)
+    return P, r2, F, converged
+
+
+class _Inverse(NamedTuple):
+    """What :meth:`CameraModel.undistort` needs on every call, prepared once."""
+
+    c: FloatArray  # (cx, cy), px
+    f: FloatArray  # (fx, fy), px
+    dist: FloatArray  # (5,), OpenCV order
+    distorted: bool  # any coefficient non-zero
+    coef: Coefficients  # for _newton
+    r2_safe: float  # see _safe_r2
+
+
+class PairInverse(NamedTuple):
+    """:class:`_Inverse` of two cameras, for n points of each stacked (left block first)."""
+
+    cameras: tuple[CameraModel, CameraModel]
+    c: FloatArray  # (2n, 2)
+    f: FloatArray  # (2n, 2)
+    skew: FloatArray | None  # (2n,), None when both cameras have none
+    coef: Coefficients  # k1, k2, k3 (2n,); tang2 (2, 2n)
+    r2_safe: float  # the smaller of both
+
+
+def undistort_pair(pc: PairInverse, px_a: FloatArray, px_b: FloatArray,
+                   ) -> tuple[FloatArray, FloatArray] | None:
+    """Both cameras' pixels (n, 2) each -> normalized coordinates, one Newton run for both.
+
+    The fast path of a stereo pair: what :meth:`CameraModel.undistort` does, with both cameras'
+    points in one set of arrays (half the numpy calls). Returns P (2, 2n), one row per axis,
+    the first camera's points first, and r2 = x^2 + y^2 (2n,) of P; or None when anything is
+    wrong or unusual (not finite, not converged, near the fold): then the caller undistorts each
+    camera on its own, which names the error.
+    """
+    n = px_a.shape[0]
+    d = np.concatenate((px_a, px_b)) - pc.c
+    if pc.skew is not None:
+        d[:, 0] -= pc.skew * (d[:, 1] / pc.f[:, 1])
+    target = d / pc.f
+    a, b = pc.cameras
+    guess = np.concatenate([
+        cv2.undistortPoints(t.reshape(-1, 1, 2), _EYE3, cam._inverse.dist, criteria=_GUESS_CRITERIA)
+        for t, cam in ((target[:n], a), (target[n:], b))
+    ])
+    P, r2, _, converged = _newton(target.T, guess.reshape(-1, 2).T, pc.coef, 20, 1e-12)
+    if converged and np.maximum.reduce(r2) < pc.r2_safe:
+        return P, r2
+    return None
+
+
+def _safe_r2(k1: float, k2: float, k3: float) -> float:
+    """An r2 = x^2 + y^2 below which the model is surely invertible (inf if everywhere).
+
+    The slope ``d(r_d)/dr = 1 + 3 k1 r2 + 5 k2 r2^2 + 7 k3 r2^3`` is at least ``g(r2)``, the
+    same polynomial without its positive terms, which falls monotonically from 1; found by
+    bisection where ``g`` is still 1e-6, so rounding cannot flip the sign of the slope. Points
+    inside need no slope evaluation; points outside get the exact one.
+    """
+    c1, c2, c3 = min(0.0, 3.0 * k1), min(0.0, 5.0 * k2), min(0.0, 7.0 * k3)
+    if not (c1 or c2 or c3):
+        return math.inf
+
+    def g(s: float) -> float:
+        return 1.0 + s * (c1 + s * (c2 + s * c3))
+
+    lo, hi = 0.0, 1.0
+    while g(hi) > 1e-6:
+        lo, hi = hi, 2.0 * hi
+    for _ in range(64):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if g(mid) > 1e-6 else (lo, mid)
+    return lo
 
 
 def _points(a: Any, dims: int, what: str) -> FloatArray:
@@ -93,6 +209,15 @@ class CameraModel:
                 f"camera model: negative image size {self.width}x{self.height}")
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
+
+    @cached_property
+    def _inverse(self) -> _Inverse:
+        """Constants of the undistortion hot path, computed once per camera."""
+        k1, k2, p1, p2, k3 = self.dist
+        return _Inverse(c=np.array([self.cx, self.cy]), f=np.array([self.fx, self.fy]),
+                        dist=self.dist_array, distorted=any(self.dist),
+                        coef=(k1, k2, k3, np.array([[2.0 * p2], [2.0 * p1]])),
+                        r2_safe=_safe_r2(k1, k2, k3))
 
     # ------------------------------------------------------------------ conversions
     @property
@@ -215,42 +340,65 @@ class CameraModel:
 
         Raises
         ------
+        DegenerateInputError
+            naming the first point that is not finite, or for a wrong shape.
         ConvergenceError
             if some point does not converge, or converges beyond the fold of the distortion
             polynomial (where distance from the centre stops growing with the true radius, so
             the model is not invertible); names the worst point's index and residual in pixels.
         """
-        p = _points(px, 2, "undistort")
-        target = np.empty((2, p.shape[0]))  # distorted normalized coordinates, one row per axis
-        target[1] = (p[:, 1] - self.cy) / self.fy
-        target[0] = (p[:, 0] - self.cx - self.skew * target[1]) / self.fx
-        if not any(self.dist) or p.shape[0] == 0:
-            return target.T.copy()
-        k1, k2, p1, p2, k3 = self.dist
-        guess = cv2.undistortPoints(target.T.reshape(-1, 1, 2), _EYE3, self.dist_array,
-                                    criteria=_GUESS_CRITERIA)
-        P: FloatArray = np.array(guess.reshape(-1, 2).T, dtype=np.float64)
-        # With c = p2 x + p1 y the tangential terms are 2 c (x, y) + (p2, p1) r2, which lets
-        # both coordinates share one array expression.
-        tang = np.array([p2, p1])
-        for step in range(max_iter + 1):
-            P2 = P * P
-            r2 = P2[0] + P2[1]
-            scale = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)) + 2.0 * (tang @ P)
-            F = scale * P + tang[:, None] * r2 - target
-            converged = bool(np.vdot(F, F) < tol * tol)  # every point's residual < tol
-            if converged or step == max_iter:
-                break
-            dradial = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2))  # 2 d(radial)/d(r2)
-            # The Jacobian of (xd, yd) w.r.t. (x, y) is symmetric: [[J0, Jxy], [Jxy, J1]].
-            J = scale + dradial * P2 + np.array([[4.0 * p2], [4.0 * p1]]) * P
-            Jxy = dradial * (P[0] * P[1]) + np.array([2.0 * p1, 2.0 * p2]) @ P
-            P -= (J[::-1] * F - Jxy * F[::-1]) / (J[0] * J[1] - Jxy * Jxy)
+        inv = self._inverse
+        p = np.asarray(px, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 2 or not p.shape[0] or not inv.distorted:
+            p = _points(p, 2, "undistort")  # the general path: shape and NaN checked up front
+            if not inv.distorted or not p.shape[0]:
+                return self._normalized(p)
+        # Not finite pixels are found (and named) only if Newton fails: NaN propagates there.
+        target = self._normalized(p)
+        guess = cast(FloatArray, cv2.undistortPoints(target.reshape(-1, 1, 2), _EYE3, inv.dist,
+                                                     criteria=_GUESS_CRITERIA))
+        P, r2, F, converged = _newton(target.T, guess.reshape(-1, 2).T, inv.coef, max_iter, tol)
+        if not (converged and np.maximum.reduce(r2) < inv.r2_safe):
+            self._check_inverse(p, P, r2, F, converged, tol)
+        return P.T.copy()
+
+    def _pair_constants(self, other: CameraModel, n: int) -> PairInverse:
+        """Constants for :func:`undistort_pair` of n points of this camera and of ``other``."""
+        cams = (self._inverse, other._inverse)
+        coef = [np.repeat([c.coef[i] for c in cams], n) for i in range(3)]
+        tang2 = np.repeat(np.hstack([c.coef[3] for c in cams]), n, axis=1)
+        return PairInverse(
+            cameras=(self, other),
+            c=np.repeat([c.c for c in cams], n, axis=0),
+            f=np.repeat([c.f for c in cams], n, axis=0),
+            skew=np.repeat([self.skew, other.skew], n) if self.skew or other.skew else None,
+            coef=(coef[0], coef[1], coef[2], tang2),
+            r2_safe=min(c.r2_safe for c in cams),
+        )
+
+    def _normalized(self, p: FloatArray) -> FloatArray:
+        """(n, 2) pixels -> (n, 2) distorted normalized coordinates (K^-1, skew included)."""
+        inv = self._inverse
+        d = p - inv.c
+        if self.skew:
+            d[:, 0] -= self.skew * (d[:, 1] / self.fy)
+        return d / inv.f
+
+    def _check_inverse(self, p: FloatArray, P: FloatArray, r2: FloatArray, F: FloatArray,
+                       converged: bool, tol: float) -> None:
+        """Raise unless the Newton result ``P`` (2, n) of pixels ``p`` is a valid inverse.
+
+        Called off the fast path only: when Newton did not converge (first: is a point not
+        finite?) or when some point lies beyond the radius below which the slope is known to be
+        positive (then the slope is evaluated exactly).
+        """
+        if not converged:
+            _points(p, 2, "undistort")
+        k1, k2, _, _, k3 = self.dist
         # d(r_d)/dr along the ray (r_d = r radial(r^2)); > 0 on the invertible side of the fold.
         slope = 1.0 + r2 * (3.0 * k1 + r2 * (5.0 * k2 + r2 * 7.0 * k3))
         if not converged or not slope.min() > 0:
             self._raise_not_converged(F, slope, tol)
-        return P.T.copy()
 
     def _raise_not_converged(self, F: FloatArray, slope: FloatArray, tol: float) -> NoReturn:
         with np.errstate(invalid="ignore"):

@@ -254,8 +254,9 @@ def horn(points_from: object, points_to: object, weights: object = None) -> Horn
     if n < 3:
         raise DegenerateInputError(f"need at least 3 point pairs, got {n}")
     ab = np.concatenate([a, b], axis=1)  # (n, 6): both sets in one pass
+    # ufunc.reduce: what .sum() runs, without its Python wrapper (this is a hot path).
     if weights is None:
-        c = ab.sum(axis=0) / n
+        c = np.add.reduce(ab) / n
         ab0 = ab - c
         S = (ab0.T @ ab0) / n
     else:
@@ -271,19 +272,22 @@ def horn(points_from: object, points_to: object, weights: object = None) -> Horn
         _check_finite(b, "points_to")
     _check_spread([row[:3] for row in m[:3]], "points_from")
     _check_spread([row[3:] for row in m[3:]], "points_to")
-    evals, evecs = np.linalg.eigh(_horn_n([row[3:] for row in m[:3]]))
-    # eigh sorts ascending; a repeated top eigenvalue means two rotations fit equally well.
-    if evals[3] - evals[2] <= 1e-12 * max(abs(evals[3]), 1e-300):
+    # OpenCV's Jacobi solver for symmetric matrices: as exact as LAPACK's, with a fraction of
+    # np.linalg.eigh's call overhead on a 4x4; eigenvalues descending, eigenvectors as rows.
+    _, evals, evecs = cv2.eigen(_horn_n([row[3:] for row in m[:3]]))
+    (l0,), (l1,), _, _ = evals.tolist()
+    # A repeated top eigenvalue means two rotations fit equally well.
+    if l0 - l1 <= 1e-12 * max(abs(l0), 1e-300):
         raise DegenerateInputError("the point sets do not determine a unique rotation")
     # R is orthonormal by construction: no make_transform check needed.
-    R = _rotation_quadratic(evecs[:, 3].tolist())
+    R = _rotation_quadratic(evecs[0].tolist())
     ca0, ca1, ca2, *cb = c.tolist()
     t = [cb_i - (r0 * ca0 + r1 * ca1 + r2 * ca2) for cb_i, (r0, r1, r2) in zip(cb, R, strict=True)]
     T = np.array([[*R[0], t[0]], [*R[1], t[1]], [*R[2], t[2]], [0.0, 0.0, 0.0, 1.0]])
-    diff = a @ T[:3, :3].T + T[:3, 3] - b
-    sq = np.einsum("ij,ij->i", diff, diff)
+    diff = ab0[:, :3] @ T[:3, :3].T - ab0[:, 3:]  # R a + t - b, as t = c_b - R c_a
+    sq = np.add.reduce(diff * diff, axis=1)
     return HornResult(
-        T_to_from=T, rms_mm=math.sqrt(float(sq.sum()) / n), residuals_mm=np.sqrt(sq)
+        T_to_from=T, rms_mm=math.sqrt(float(np.add.reduce(sq)) / n), residuals_mm=np.sqrt(sq)
     )
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vgripd.camera_model import CameraModel
+from vgripd.camera_model import CameraModel, PairInverse, undistort_pair
 from vgripd.errors import DegenerateInputError
 from vgripd.transforms import check_transform
 from vgripd.types import FloatArray
@@ -84,6 +84,10 @@ class StereoRig:
     F: FloatArray = field(init=False, repr=False)
     _R_lr: FloatArray = field(init=False, repr=False)  # right-camera axes in the left frame
     _c_right: FloatArray = field(init=False, repr=False)  # right-camera centre, left frame (mm)
+    # (2, 3, 3): I and _R_lr, to take both images' rays into the left frame in one product.
+    _to_left: FloatArray = field(init=False, repr=False)
+    # n -> constants of undistort_pair for n points per image (few distinct n in practice).
+    _pair_cache: dict[int, PairInverse] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         T = check_transform(self.T_right_left, "T_right_left").copy()
@@ -104,6 +108,8 @@ class StereoRig:
         set_(self, "F", F)
         set_(self, "_R_lr", np.ascontiguousarray(R.T))
         set_(self, "_c_right", -R.T @ t)
+        set_(self, "_to_left", np.stack([np.eye(3), R.T]))
+        set_(self, "_pair_cache", {})
 
     def triangulate(self, px_left: object, px_right: object) -> Triangulation:
         """3D points from corresponding pixels, by linear least squares on the chapter's eq. (14).
@@ -129,39 +135,65 @@ class StereoRig:
         ConvergenceError
             A pixel cannot be undistorted (beyond the fold of the distortion model).
         """
-        nl = _undistort(self.left, px_left, "px_left")
-        nr = _undistort(self.right, px_right, "px_right")
-        _same_count(nl, nr)
-        # Rows of V: the left ray d (z = 1) and the right ray e, both in the left frame. With
-        # u = (z1, -z2), eq. (14) reads u1 d + u2 e = c; its normal equations are G u = V c.
-        V = np.empty((nl.shape[0], 2, 3))
-        V[:, 0, :2] = nl
-        V[:, 0, 2] = 1.0
-        V[:, 1] = nr @ self._R_lr[:, :2].T + self._R_lr[:, 2]
-        G = V @ V.transpose(0, 2, 1)
-        a, b, cc = G[:, 0, 0], G[:, 0, 1], G[:, 1, 1]
-        ac = a * cc
+        P, r2 = self._undistort_both(px_left, px_right)
+        n = r2.shape[0] // 2
+        # Y[0] = d (rows x, y, z = 1) and Y[1] = e, both in the left frame, points as columns.
+        # With u = (z1, -z2), eq. (14) reads u1 d + u2 e = c; its normal equations are
+        # [[a, b], [b, cc]] u = (p, q) with a = |d|^2, b = d.e, cc = |e|^2, p = d.c, q = e.c.
+        H = np.empty((2, 3, n))
+        H[:, :2] = P.reshape(2, 2, n).transpose(1, 0, 2)
+        H[:, 2] = 1.0
+        Y = self._to_left @ H
+        pq = self._c_right @ Y  # (2, n): p, q
+        b = np.add.reduce(Y[0] * Y[1])
+        ac2 = (1.0 + r2).reshape(2, n)  # a, cc: the rotation keeps |e| = |(x_R, y_R, 1)|
+        ac = ac2[0] * ac2[1]
         det = ac - b * b  # = |d|^2 |e|^2 sin^2(angle between the rays)
-        parallel = det <= self.min_ray_angle_rad**2 * ac
-        if parallel.any():
+        if not np.minimum.reduce(det - self.min_ray_angle_rad**2 * ac) > 0:
+            parallel = ~(det > self.min_ray_angle_rad**2 * ac)
             i = int(np.argmax(parallel))
             raise DegenerateInputError(
                 f"point {i}: left and right rays are (nearly) parallel "
                 f"(angle {np.arcsin(np.sqrt(max(det[i], 0.0) / ac[i])):.3g} rad)"
             )
-        p, q = (V @ self._c_right).T
-        u1 = (cc * p - b * q) / det
-        u2 = (a * q - b * p) / det
-        behind = (u1 <= 0) | (u2 >= 0)
-        if behind.any():
-            i = int(np.argmax(behind))
+        u = (ac2[::-1] * pq - b * pq[::-1]) / det  # (2, n): u1, u2
+        if not (np.minimum.reduce(u[0]) > 0 and np.maximum.reduce(u[1]) < 0):
+            i = int(np.argmax((u[0] <= 0) | (u[1] >= 0)))
             raise DegenerateInputError(
-                f"point {i}: rays meet behind a camera (depth left {u1[i]:.4g} mm, "
-                f"right {-u2[i]:.4g} mm); wrong correspondence?"
+                f"point {i}: rays meet behind a camera (depth left {u[0, i]:.4g} mm, "
+                f"right {-u[1, i]:.4g} mm); wrong correspondence?"
             )
-        p1 = V[:, 0] * u1[:, None]  # closest point on the left ray
-        r = p1 - (self._c_right - V[:, 1] * u2[:, None])  # minus the closest on the right ray
-        return Triangulation(points_mm=p1 - 0.5 * r, gap_mm=np.sqrt(np.einsum("ij,ij->i", r, r)))
+        Y *= u[:, None]  # the closest points: u1 d on the left ray, c - u2 e on the right
+        r = Y[0] + Y[1] - self._c_right[:, None]  # left closest point minus right one
+        points = np.empty((n, 3))
+        np.subtract(Y[0], 0.5 * r, out=points.T)
+        return Triangulation(points_mm=points, gap_mm=np.sqrt(np.add.reduce(r * r)))
+
+    def _undistort_both(self, px_left: object, px_right: object) -> tuple[FloatArray, FloatArray]:
+        """Normalized coordinates of both images, stacked: P (2, 2n) (rows x, y; the left
+        image's n points first) and r2 = x^2 + y^2 (2n,).
+
+        The usual case takes :func:`~vgripd.camera_model.undistort_pair` (one Newton run for
+        both images); anything else, and every error, goes through each camera's ``undistort``
+        so that the errors name the image and point as they always have.
+        """
+        pl = np.asarray(px_left, dtype=np.float64)
+        pr = np.asarray(px_right, dtype=np.float64)
+        if pl.ndim == 2 and pl.shape[1] == 2 and pl.shape == pr.shape and pl.shape[0]:
+            n = pl.shape[0]
+            pc = self._pair_cache.get(n)
+            if pc is None:
+                if len(self._pair_cache) > 8:
+                    self._pair_cache.clear()
+                pc = self._pair_cache[n] = self.left._pair_constants(self.right, n)
+            fast = undistort_pair(pc, pl, pr)
+            if fast is not None:
+                return fast
+        nl = _undistort(self.left, pl, "px_left")
+        nr = _undistort(self.right, pr, "px_right")
+        _same_count(nl, nr)
+        P = np.concatenate((nl, nr)).T
+        return P, np.add.reduce(P * P)
 
     @staticmethod
     def _ideal_homogeneous(norm: FloatArray, camera: CameraModel) -> FloatArray:
