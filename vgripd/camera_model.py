@@ -39,9 +39,38 @@ _EYE3 = np.eye(3)
 # iteration, several times slower than Newton's own check.
 _GUESS_CRITERIA = (cv2.TERM_CRITERIA_COUNT, 20, 0.0)
 
-#: Per-point distortion coefficients for :func:`_newton`: k1, k2, k3 (floats or (n,) arrays)
-#: and ``tang2 = 2 (p2, p1)`` as a (2, 1) or (2, n) array.
-Coefficients = tuple[Any, Any, Any, FloatArray]
+_POWERS = np.array([[0.0], [1.0], [2.0], [3.0]])
+
+
+class Coefficients(NamedTuple):
+    """The distortion as :func:`_newton` takes it: one column per point, or one for all.
+
+    k1, k2, k3 are floats or (n,) arrays; tang = (p2, p1) and tang2 = 2 tang are (2, 1) or
+    (2, n); scale = (1, k1, k2, k3, 2 p2, 2 p1) is (6, 1) or (6, n).
+    """
+
+    k1: Any
+    k2: Any
+    k3: Any
+    tang: FloatArray
+    tang2: FloatArray
+    scale: FloatArray
+
+    @classmethod
+    def of(cls, dist: tuple[float, float, float, float, float]) -> Coefficients:
+        k1, k2, p1, p2, k3 = dist
+        return cls(k1, k2, k3, np.array([[p2], [p1]]), np.array([[2.0 * p2], [2.0 * p1]]),
+                   np.array([[1.0], [k1], [k2], [k3], [2.0 * p2], [2.0 * p1]]))
+
+    @classmethod
+    def stacked(cls, a: Coefficients, b: Coefficients, n: int) -> Coefficients:
+        """n points of camera a, then n of camera b."""
+        def per_point(x: Any, y: Any) -> FloatArray:
+            if np.ndim(x) == 0:  # k1, k2, k3 -> (2n,)
+                return np.repeat([x, y], n)
+            return np.repeat(np.hstack([x, y]), n, axis=1)  # (m, 1) columns -> (m, 2n)
+
+        return cls(*(per_point(x, y) for x, y in zip(a, b, strict=True)))
 
 
 def _newton(target: FloatArray, P: FloatArray, coef: Coefficients, max_iter: int,
@@ -61,14 +90,15 @@ def _newton(target: FloatArray, P: FloatArray, coef: Coefficients, max_iter: int
     P (2, n), its r2 = x^2 + y^2 (n,), the residual F (2, n), and whether
     ``sum |F|^2 < tol^2`` (so every point converged); not finite stops at once.
     """
-    k1, k2, k3, tang2 = coef
-    tang = 0.5 * tang2
+    k1, k2, k3, tang, tang2, scale_map = coef
     for step in range(max_iter + 1):
         P2 = P * P
         r2 = P2[0] + P2[1]
         # With c = p2 x + p1 y the tangential terms are 2 c (x, y) + (p2, p1) r2, which lets
-        # both coordinates share one array expression.
-        scale = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)) + np.add.reduce(tang2 * P)
+        # both coordinates share one array expression. The common factor
+        # scale = 1 + k1 r2 + k2 r2^2 + k3 r2^3 + 2 c is one product with the monomials
+        # (1, r2, r2^2, r2^3, x, y): fewer numpy calls than Horner's scheme (a hot path).
+        scale = np.add.reduce(scale_map * np.concatenate((r2 ** _POWERS, P)))
         F = scale * P + tang * r2
         F -= target
         ss = float(np.vdot(F, F))
@@ -216,7 +246,7 @@ class CameraModel:
         k1, k2, p1, p2, k3 = self.dist
         return _Inverse(c=np.array([self.cx, self.cy]), f=np.array([self.fx, self.fy]),
                         dist=self.dist_array, distorted=any(self.dist),
-                        coef=(k1, k2, k3, np.array([[2.0 * p2], [2.0 * p1]])),
+                        coef=Coefficients.of(self.dist),
                         r2_safe=_safe_r2(k1, k2, k3))
 
     # ------------------------------------------------------------------ conversions
@@ -365,14 +395,12 @@ class CameraModel:
     def _pair_constants(self, other: CameraModel, n: int) -> PairInverse:
         """Constants for :func:`undistort_pair` of n points of this camera and of ``other``."""
         cams = (self._inverse, other._inverse)
-        coef = [np.repeat([c.coef[i] for c in cams], n) for i in range(3)]
-        tang2 = np.repeat(np.hstack([c.coef[3] for c in cams]), n, axis=1)
         return PairInverse(
             cameras=(self, other),
             c=np.repeat([c.c for c in cams], n, axis=0),
             f=np.repeat([c.f for c in cams], n, axis=0),
             skew=np.repeat([self.skew, other.skew], n) if self.skew or other.skew else None,
-            coef=(coef[0], coef[1], coef[2], tang2),
+            coef=Coefficients.stacked(cams[0].coef, cams[1].coef, n),
             r2_safe=min(c.r2_safe for c in cams),
         )
 

@@ -61,6 +61,47 @@ def _skew(v: FloatArray) -> FloatArray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+def _triangulation_maps(
+    R_lr: FloatArray, c: FloatArray, min_angle_rad: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Linear maps that let :meth:`StereoRig.triangulate` work in a few array products.
+
+    With h = (x_L, y_L, 1, x_R, y_R, 1), d = h[:3], e = R_lr h[3:] and the right centre c
+    (left frame, mm):
+
+    * forms (36, 5): ``outer(h, h).ravel() @ forms = (a, b, cc, p, q)`` with a = d.d,
+      b = d.e, cc = e.e, p = d.c, q = e.c (q = (R_lr^T c).h[3:]);
+    * solve (25, 4): ``outer(Q, Q).ravel() @ solve`` of those five gives
+      ``(det, det - s^2 a cc, cc p - b q, b p - a q)`` with det = a cc - b^2 and s the sine of
+      the smallest ray angle: the 2x2 normal equations by Cramer's rule, the depths being
+      z1 = (cc p - b q) / det and z2 = (b p - a q) / det;
+    * mid (6, 6), mid0 (6,): ``(z1 h[:3], z2 h[3:]) @ mid + mid0 = (X, g)`` with the midpoint
+      X = (z1 d + z2 e + c) / 2 and the gap vector g = z1 d - (z2 e + c).
+
+    All entries are 0, +-1 or the rig's constants, so the products add the same terms as the
+    written-out formulas.
+    """
+    forms = np.zeros((6, 6, 5))
+    for i in range(3):
+        forms[i, i, 0] = forms[3 + i, 3 + i, 2] = 1.0
+        forms[i, 3:, 1] = R_lr[i]
+        forms[i, 2, 3] = c[i]
+    forms[3:, 5, 4] = R_lr.T @ c
+    solve = np.zeros((5, 5, 4))  # indices a 0, b 1, cc 2, p 3, q 4
+    solve[0, 2, 0] = 1.0
+    solve[1, 1, 0:2] = -1.0
+    solve[0, 2, 1] = 1.0 - min_angle_rad**2
+    solve[2, 3, 2] = solve[1, 3, 3] = 1.0
+    solve[1, 4, 2] = solve[0, 4, 3] = -1.0
+    mid = np.zeros((6, 6))
+    mid[:3, :3] = 0.5 * np.eye(3)
+    mid[3:, :3] = 0.5 * R_lr.T
+    mid[:3, 3:] = np.eye(3)
+    mid[3:, 3:] = -R_lr.T
+    mid0 = np.concatenate([0.5 * c, -c])
+    return forms.reshape(36, 5), solve.reshape(25, 4), mid, mid0
+
+
 @dataclass(frozen=True, eq=False)
 class StereoRig:
     """Two calibrated cameras and the pose between them.
@@ -84,8 +125,11 @@ class StereoRig:
     F: FloatArray = field(init=False, repr=False)
     _R_lr: FloatArray = field(init=False, repr=False)  # right-camera axes in the left frame
     _c_right: FloatArray = field(init=False, repr=False)  # right-camera centre, left frame (mm)
-    # (2, 3, 3): I and _R_lr, to take both images' rays into the left frame in one product.
-    _to_left: FloatArray = field(init=False, repr=False)
+    # Tabulated maps of triangulate (see _triangulation_maps).
+    _forms: FloatArray = field(init=False, repr=False)
+    _solve: FloatArray = field(init=False, repr=False)
+    _mid: FloatArray = field(init=False, repr=False)
+    _mid0: FloatArray = field(init=False, repr=False)
     # n -> constants of undistort_pair for n points per image (few distinct n in practice).
     _pair_cache: dict[int, PairInverse] = field(init=False, repr=False)
 
@@ -108,7 +152,9 @@ class StereoRig:
         set_(self, "F", F)
         set_(self, "_R_lr", np.ascontiguousarray(R.T))
         set_(self, "_c_right", -R.T @ t)
-        set_(self, "_to_left", np.stack([np.eye(3), R.T]))
+        maps = _triangulation_maps(self._R_lr, self._c_right, self.min_ray_angle_rad)
+        for name, value in zip(("_forms", "_solve", "_mid", "_mid0"), maps, strict=True):
+            set_(self, name, value)
         set_(self, "_pair_cache", {})
 
     def triangulate(self, px_left: object, px_right: object) -> Triangulation:
@@ -135,43 +181,43 @@ class StereoRig:
         ConvergenceError
             A pixel cannot be undistorted (beyond the fold of the distortion model).
         """
-        P, r2 = self._undistort_both(px_left, px_right)
-        n = r2.shape[0] // 2
-        # Y[0] = d (rows x, y, z = 1) and Y[1] = e, both in the left frame, points as columns.
-        # With u = (z1, -z2), eq. (14) reads u1 d + u2 e = c; its normal equations are
-        # [[a, b], [b, cc]] u = (p, q) with a = |d|^2, b = d.e, cc = |e|^2, p = d.c, q = e.c.
-        H = np.empty((2, 3, n))
-        H[:, :2] = P.reshape(2, 2, n).transpose(1, 0, 2)
-        H[:, 2] = 1.0
-        Y = self._to_left @ H
-        pq = self._c_right @ Y  # (2, n): p, q
-        b = np.add.reduce(Y[0] * Y[1])
-        ac2 = (1.0 + r2).reshape(2, n)  # a, cc: the rotation keeps |e| = |(x_R, y_R, 1)|
-        ac = ac2[0] * ac2[1]
-        det = ac - b * b  # = |d|^2 |e|^2 sin^2(angle between the rays)
-        if not np.minimum.reduce(det - self.min_ray_angle_rad**2 * ac) > 0:
-            parallel = ~(det > self.min_ray_angle_rad**2 * ac)
-            i = int(np.argmax(parallel))
+        P = self._undistort_both(px_left, px_right)
+        n = P.shape[1] // 2
+        # h = (x_L, y_L, 1, x_R, y_R, 1) per point: the left ray d (z = 1) and the right ray
+        # in its own frame. With u = (z1, -z2), eq. (14) reads u1 d + u2 e = c; its normal
+        # equations [[a, b], [b, cc]] u = (p, q) have a = |d|^2, b = d.e, cc = |e|^2, p = d.c,
+        # q = e.c, all quadratic forms in h, and the solution's numerators and determinant
+        # are quadratic forms in those: two outer products and two tabulated maps (see
+        # _triangulation_maps) replace some 20 small numpy calls per point set.
+        H = np.ones((n, 2, 3))
+        H[:, :, :2] = P.reshape(2, 2, n).transpose(2, 1, 0)
+        h = H.reshape(n, 6)
+        Q = (h[:, :, None] * h[:, None, :]).reshape(n, 36) @ self._forms  # a, b, cc, p, q
+        Z = (Q[:, :, None] * Q[:, None, :]).reshape(n, 25) @ self._solve
+        det = Z[:, 0]  # = |d|^2 |e|^2 sin^2(angle between the rays)
+        if not np.minimum.reduce(Z[:, 1]) > 0:  # Z[:, 1] = det - sin^2(min angle) a cc
+            i = int(np.argmax(~(Z[:, 1] > 0)))
+            ac = Q[i, 0] * Q[i, 2]
             raise DegenerateInputError(
                 f"point {i}: left and right rays are (nearly) parallel "
-                f"(angle {np.arcsin(np.sqrt(max(det[i], 0.0) / ac[i])):.3g} rad)"
+                f"(angle {np.arcsin(np.sqrt(max(det[i], 0.0) / ac)):.3g} rad)"
             )
-        u = (ac2[::-1] * pq - b * pq[::-1]) / det  # (2, n): u1, u2
-        if not (np.minimum.reduce(u[0]) > 0 and np.maximum.reduce(u[1]) < 0):
-            i = int(np.argmax((u[0] <= 0) | (u[1] >= 0)))
+        z = Z[:, 2:] / Z[:, :1]  # (n, 2): depth z1 in the left camera, z2 = -u2 in the right
+        if not np.minimum.reduce(z, axis=None) > 0:
+            i = int(np.argmax(~(z > 0).all(axis=1)))
             raise DegenerateInputError(
-                f"point {i}: rays meet behind a camera (depth left {u[0, i]:.4g} mm, "
-                f"right {-u[1, i]:.4g} mm); wrong correspondence?"
+                f"point {i}: rays meet behind a camera (depth left {z[i, 0]:.4g} mm, "
+                f"right {z[i, 1]:.4g} mm); wrong correspondence?"
             )
-        Y *= u[:, None]  # the closest points: u1 d on the left ray, c - u2 e on the right
-        r = Y[0] + Y[1] - self._c_right[:, None]  # left closest point minus right one
-        points = np.empty((n, 3))
-        np.subtract(Y[0], 0.5 * r, out=points.T)
-        return Triangulation(points_mm=points, gap_mm=np.sqrt(np.add.reduce(r * r)))
+        # The midpoint and the gap vector (left closest point minus right) are linear in
+        # (z1 h_L, z2 h_R): one more tabulated map.
+        mid = (z[:, :, None] * H).reshape(n, 6) @ self._mid + self._mid0
+        g = mid[:, 3:]
+        return Triangulation(points_mm=mid[:, :3].copy(), gap_mm=np.sqrt(np.add.reduce(g * g, 1)))
 
-    def _undistort_both(self, px_left: object, px_right: object) -> tuple[FloatArray, FloatArray]:
-        """Normalized coordinates of both images, stacked: P (2, 2n) (rows x, y; the left
-        image's n points first) and r2 = x^2 + y^2 (2n,).
+    def _undistort_both(self, px_left: object, px_right: object) -> FloatArray:
+        """Normalized coordinates of both images, stacked: P (2, 2n), rows x, y, the left
+        image's n points first.
 
         The usual case takes :func:`~vgripd.camera_model.undistort_pair` (one Newton run for
         both images); anything else, and every error, goes through each camera's ``undistort``
@@ -188,12 +234,11 @@ class StereoRig:
                 pc = self._pair_cache[n] = self.left._pair_constants(self.right, n)
             fast = undistort_pair(pc, pl, pr)
             if fast is not None:
-                return fast
+                return fast[0]
         nl = _undistort(self.left, pl, "px_left")
         nr = _undistort(self.right, pr, "px_right")
         _same_count(nl, nr)
-        P = np.concatenate((nl, nr)).T
-        return P, np.add.reduce(P * P)
+        return np.concatenate((nl, nr)).T
 
     @staticmethod
     def _ideal_homogeneous(norm: FloatArray, camera: CameraModel) -> FloatArray:
