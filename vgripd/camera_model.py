@@ -39,14 +39,11 @@ _EYE3 = np.eye(3)
 # iteration, several times slower than Newton's own check.
 _GUESS_CRITERIA = (cv2.TERM_CRITERIA_COUNT, 20, 0.0)
 
-_POWERS = np.array([[0.0], [1.0], [2.0], [3.0]])
-
-
 class Coefficients(NamedTuple):
     """The distortion as :func:`_newton` takes it: one column per point, or one for all.
 
     k1, k2, k3 are floats or (n,) arrays; tang = (p2, p1) and tang2 = 2 tang are (2, 1) or
-    (2, n); scale = (1, k1, k2, k3, 2 p2, 2 p1) is (6, 1) or (6, n).
+    (2, n).
     """
 
     k1: Any
@@ -54,13 +51,11 @@ class Coefficients(NamedTuple):
     k3: Any
     tang: FloatArray
     tang2: FloatArray
-    scale: FloatArray
 
     @classmethod
     def of(cls, dist: tuple[float, float, float, float, float]) -> Coefficients:
         k1, k2, p1, p2, k3 = dist
-        return cls(k1, k2, k3, np.array([[p2], [p1]]), np.array([[2.0 * p2], [2.0 * p1]]),
-                   np.array([[1.0], [k1], [k2], [k3], [2.0 * p2], [2.0 * p1]]))
+        return cls(k1, k2, k3, np.array([[p2], [p1]]), np.array([[2.0 * p2], [2.0 * p1]]))
 
     @classmethod
     def stacked(cls, a: Coefficients, b: Coefficients, n: int) -> Coefficients:
@@ -90,15 +85,13 @@ def _newton(target: FloatArray, P: FloatArray, coef: Coefficients, max_iter: int
     P (2, n), its r2 = x^2 + y^2 (n,), the residual F (2, n), and whether
     ``sum |F|^2 < tol^2`` (so every point converged); not finite stops at once.
     """
-    k1, k2, k3, tang, tang2, scale_map = coef
+    k1, k2, k3, tang, tang2 = coef
     for step in range(max_iter + 1):
         P2 = P * P
         r2 = P2[0] + P2[1]
         # With c = p2 x + p1 y the tangential terms are 2 c (x, y) + (p2, p1) r2, which lets
-        # both coordinates share one array expression. The common factor
-        # scale = 1 + k1 r2 + k2 r2^2 + k3 r2^3 + 2 c is one product with the monomials
-        # (1, r2, r2^2, r2^3, x, y): fewer numpy calls than Horner's scheme (a hot path).
-        scale = np.add.reduce(scale_map * np.concatenate((r2 ** _POWERS, P)))
+        # both coordinates share one array expression.
+        scale = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)) + np.add.reduce(tang2 * P)
         F = scale * P + tang * r2
         F -= target
         ss = float(np.vdot(F, F))

@@ -267,7 +267,8 @@ def horn(points_from: object, points_to: object, weights: object = None) -> Horn
     # One product gave both sets' scatter matrices (diagonal blocks) and Horn's M (off-diagonal
     # block); the small matrices are handled as Python floats, cheaper than numpy calls.
     m = S.tolist()
-    if not math.isfinite(sum(m[i][i] for i in range(6))):  # NaN/inf anywhere ends up here
+    if not math.isfinite(m[0][0] + m[1][1] + m[2][2] + m[3][3] + m[4][4] + m[5][5]):
+        # NaN/inf anywhere ends up on the diagonal
         _check_finite(a, "points_from")
         _check_finite(b, "points_to")
     _check_spread([row[:3] for row in m[:3]], "points_from")

@@ -185,3 +185,29 @@ def test_bouguet_toolbox_reprojection_reproduces_its_corners(datasets, side: str
     assert np.abs(std - err_std).max() < 1e-6
     assert np.abs(res.mean(axis=0)).max() < 0.02
     assert cv_err < 1e-9
+
+
+def test_safe_radius_lies_inside_the_fold() -> None:
+    # undistort skips the exact slope test for points with r2 below _safe_r2: it must be a true
+    # bound. Oracle: the smallest positive root of the slope polynomial (numpy's roots), and
+    # the slope itself on a fine grid below the bound.
+    for k1, k2, k3 in [(-0.25, 0.08, 0.01), (-0.32, 0.14, 0.02), (-0.5, 0.0, 0.0), (-1.0, 0.0, 0.0),
+                       (0.1, -0.3, 0.05), (-0.2, -0.1, -0.05), (0.2, 0.1, 0.0)]:
+        cam = CameraModel(600.0, 600.0, 320.0, 240.0, dist=(k1, k2, 0.0, 0.0, k3))
+        safe = cam._inverse.r2_safe
+        roots = np.roots([7 * k3, 5 * k2, 3 * k1, 1.0])
+        real = roots[(np.abs(roots.imag) < 1e-12) & (roots.real > 0)].real
+        if real.size:
+            assert safe < real.min()
+        s = np.linspace(0.0, safe if np.isfinite(safe) else 10.0, 10001)
+        assert (1 + s * (3 * k1 + s * (5 * k2 + s * 7 * k3))).min() > 0
+    assert np.isinf(CameraModel(600.0, 600.0, 320.0, 240.0, dist=(0.2, 0.1, 0.0, 0.0, 0.0))._inverse.r2_safe)
+
+
+def test_undistort_names_a_nan_found_after_the_fact() -> None:
+    # Finiteness is checked only when Newton fails (NaN propagates there): the error is the same.
+    px = np.array([[100.0, 100.0], [200.0, 300.0], [np.nan, 5.0], [400.0, 50.0]])
+    with pytest.raises(DegenerateInputError, match="undistort: point 2 is not finite"):
+        STRONG.undistort(px)
+    with pytest.raises(DegenerateInputError, match=r"undistort: expected shape \(n, 2\)"):
+        STRONG.undistort(np.zeros((3, 3)))

@@ -10,7 +10,7 @@ import pytest
 import scipy.io
 
 from vgripd.camera_model import CameraModel
-from vgripd.errors import DegenerateInputError
+from vgripd.errors import ConvergenceError, DegenerateInputError
 from vgripd.stereo import StereoRig
 from vgripd.transforms import make_transform, matrix_from_rotvec
 
@@ -200,3 +200,44 @@ def test_bouguet_stereo_grid_spacing(datasets: Path) -> None:
     assert np.median(e) < 0.3
     assert e.max() < 1.5
     assert max(cv_diff) < 0.2  # midpoint vs DLT on real corners (~0.1 px noise, Z ~ 450 mm)
+
+
+# ----------------------------------------------------------------------------- pair fast path
+def test_triangulate_matches_per_point_least_squares() -> None:
+    # triangulate solves both images in one Newton run and eq. (14) through tabulated maps;
+    # oracle: each camera's own undistort, then numpy's lstsq per point on z1 d - z2 e = c.
+    X, px_l, px_r, rig = _scene(30, seed=5)
+    rng = np.random.default_rng(6)
+    px_l = px_l + rng.normal(0, 0.5, px_l.shape)
+    px_r = px_r + rng.normal(0, 0.5, px_r.shape)
+    tri = rig.triangulate(px_l, px_r)
+    R, t = T_RIGHT_LEFT[:3, :3], T_RIGHT_LEFT[:3, 3]
+    c = -R.T @ t
+    nl, nr = LEFT.undistort(px_l), RIGHT.undistort(px_r)
+    for i in range(len(X)):
+        d = np.r_[nl[i], 1.0]
+        e = R.T @ np.r_[nr[i], 1.0]
+        (z1, z2), *_ = np.linalg.lstsq(np.c_[d, -e], c, rcond=None)
+        p_left, p_right = z1 * d, z2 * e + c
+        np.testing.assert_allclose(tri.points_mm[i], 0.5 * (p_left + p_right), rtol=0, atol=1e-9)
+        assert tri.gap_mm[i] == pytest.approx(np.linalg.norm(p_left - p_right), abs=1e-9)
+    assert tri.gap_mm.max() > 0.05  # the noise opens real gaps: the gap formula is exercised
+    assert tri.points_mm.flags.c_contiguous
+    assert tri.points_mm.shape == (30, 3)
+    # A single point as a (2,) pixel takes the general path and agrees.
+    one = rig.triangulate(px_l[4], px_r[4])
+    np.testing.assert_allclose(one.points_mm[0], tri.points_mm[4], rtol=0, atol=1e-9)
+
+
+def test_pair_path_errors_name_the_image_and_point() -> None:
+    _, px_l, px_r, rig = _scene(n=6)
+    bad = px_r.copy()
+    bad[3, 0] = np.nan
+    with pytest.raises(DegenerateInputError, match="px_right: undistort: point 3 is not finite"):
+        rig.triangulate(px_l, bad)
+    # A right camera whose model folds at x_d = 0.385: a pixel beyond has no inverse.
+    folding = CameraModel(500.0, 500.0, 320.0, 240.0, dist=(-1.0, 0.0, 0.0, 0.0, 0.0))
+    rig2 = StereoRig(LEFT, folding, T_RIGHT_LEFT)
+    px = np.array([[300.0, 240.0], [320.0, 250.0], [320.0 + 0.6 * 500, 240.0]])
+    with pytest.raises(ConvergenceError, match=r"point 2 .*fold"):
+        rig2.triangulate(px, px)
