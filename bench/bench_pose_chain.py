@@ -2,7 +2,7 @@
 
 Run from the repository root with the project's interpreter::
 
-    .venv/bin/python bench/bench_pose_chain.py
+    .venv/bin/python bench/bench_pose_chain.py [--write-results]
 
 Scene: a stereo rig (120 mm baseline, 4 deg vergence, strong Brown distortion k1 ~ -0.25),
 12 model points of a 160 x 120 x 60 mm object at ~600 mm, known pose T_left_obj; pixels get
@@ -17,11 +17,14 @@ T_left_obj.
 
 Prints median and p99 wall time per chain (microseconds, ``perf_counter_ns``, the chains
 interleaved so that load from other processes hits both alike), the ratio ours/peer, and the
-pose error of each chain against the ground truth.
+pose error of each chain against the ground truth. ``--write-results`` also replaces this
+benchmark's section of bench/RESULTS.md with the run's figures.
 """
 
 from __future__ import annotations
 
+import argparse
+import datetime
 import os
 import platform
 import sys
@@ -33,6 +36,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.results import write_section  # noqa: E402
 from vgripd.camera_model import CameraModel  # noqa: E402
 from vgripd.orientation import horn  # noqa: E402
 from vgripd.stereo import StereoRig  # noqa: E402
@@ -42,6 +46,7 @@ N_POINTS = 12
 NOISE_PX = 0.2
 REPS = 5000
 ACCURACY_TRIALS = 500
+SECTION = "## Pose chain (issue 2)"
 
 LEFT = CameraModel(810.0, 805.0, 330.0, 245.0, dist=(-0.25, 0.08, 0.001, -0.0005, 0.01))
 RIGHT = CameraModel(790.0, 792.0, 318.0, 236.0, dist=(-0.22, 0.06, -0.0007, 0.0004, 0.0))
@@ -84,6 +89,10 @@ def pose_error(T: np.ndarray) -> tuple[float, float]:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--write-results", action="store_true",
+                        help=f"replace the section {SECTION!r} in bench/RESULTS.md")
+    args = parser.parse_args()
     rng = np.random.default_rng(1)
     model = np.c_[rng.uniform(-80, 80, N_POINTS), rng.uniform(-60, 60, N_POINTS), rng.uniform(-30, 30, N_POINTS)]
     X_left = model @ T_LEFT_OBJ[:3, :3].T + T_LEFT_OBJ[:3, 3]
@@ -96,18 +105,22 @@ def main() -> None:
         "peer (OpenCV, converged undistort)": make_peer((cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-15)),
     }
 
-    print(f"pose chain, {N_POINTS} points; python {platform.python_version()}, numpy {np.__version__}, "
-          f"opencv {cv2.__version__}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
-    print("\naccuracy vs ground truth (max over trials):")
+    load_before = os.getloadavg()[0]
+    header = (f"pose chain, {N_POINTS} points; python {platform.python_version()}, numpy {np.__version__}, "
+              f"opencv {cv2.__version__}, {os.cpu_count()} cores, load average {load_before:.2f}")
+    print(header)
+    accuracy = ["accuracy vs ground truth (max over trials):"]
     for name, fn in chains.items():
         t0, r0 = pose_error(fn(model, clean_l, clean_r))
         errs = np.array([
             pose_error(fn(model, clean_l + rng.normal(0, NOISE_PX, clean_l.shape), clean_r + rng.normal(0, NOISE_PX, clean_r.shape)))
             for _ in range(ACCURACY_TRIALS)
         ])
-        print(f"  {name:36s} noise-free {t0:.2e} mm {r0:.2e} deg | {NOISE_PX} px noise, {ACCURACY_TRIALS} trials: "
-              f"RMS {np.sqrt((errs[:, 0] ** 2).mean()):.4f} mm {np.sqrt((errs[:, 1] ** 2).mean()):.4f} deg, "
-              f"max {errs[:, 0].max():.4f} mm {errs[:, 1].max():.4f} deg")
+        accuracy.append(
+            f"  {name:36s} noise-free {t0:.2e} mm {r0:.2e} deg | {NOISE_PX} px noise, {ACCURACY_TRIALS} trials: "
+            f"RMS {np.sqrt((errs[:, 0] ** 2).mean()):.4f} mm {np.sqrt((errs[:, 1] ** 2).mean()):.4f} deg, "
+            f"max {errs[:, 0].max():.4f} mm {errs[:, 1].max():.4f} deg")
+    print("\n" + "\n".join(accuracy))
 
     noisy_l = clean_l + rng.normal(0, NOISE_PX, clean_l.shape)
     noisy_r = clean_r + rng.normal(0, NOISE_PX, clean_r.shape)
@@ -129,12 +142,60 @@ def main() -> None:
                 start = time.perf_counter_ns()
                 fn(model, noisy_l, noisy_r)
                 t.append(time.perf_counter_ns() - start)
-    print(f"\ntime per call, {REPS} repetitions each (microseconds):")
+    timing = [f"time per call, {REPS} repetitions each (microseconds):"]
     med = {name: np.median(t) / 1e3 for name, t in times.items()}
     base = med["peer (OpenCV, default undistort)"]
     for name, t in times.items():
-        print(f"  {name:36s} median {med[name]:7.1f}  p99 {np.percentile(t, 99) / 1e3:7.1f}  ratio to peer {med[name] / base:.2f}")
-    print(f"load average after: {os.getloadavg()[0]:.2f}")
+        timing.append(f"  {name:36s} median {med[name]:7.1f}  p99 {np.percentile(t, 99) / 1e3:7.1f}  "
+                      f"ratio to peer {med[name] / base:.2f}")
+    load_after = os.getloadavg()[0]
+    print("\n" + "\n".join(timing))
+    print(f"load average after: {load_after:.2f}")
+    if args.write_results:
+        write_section(SECTION, results_text(header, timing, accuracy, med, load_before, load_after))
+
+
+def results_text(header: str, timing: list[str], accuracy: list[str], med: dict[str, float],
+                 load_before: float, load_after: float) -> str:
+    """This run's section of bench/RESULTS.md: figures from the run, the method around them."""
+    ratio = med["ours (vgripd)"] / med["peer (OpenCV, default undistort)"]
+    return "\n".join([
+        SECTION,
+        "",
+        f"`.venv/bin/python bench/bench_pose_chain.py --write-results`, {datetime.date.today()}, "
+        f"shared 2-core VM (load average {load_before:.2f} before, {load_after:.2f} after; absolute "
+        "times swing 1.5x with the other jobs, ratios much less: the chains are interleaved in "
+        "blocks of 50).",
+        "",
+        "What is timed: 12 corresponding pixels in a stereo pair (120 mm baseline, 4 deg vergence, "
+        "Brown distortion k1 = -0.25 / -0.22) -> `T_left_obj` of a 160 x 120 x 60 mm object at "
+        "~600 mm. *Ours*: `StereoRig.triangulate` (both images undistorted by Newton to 1e-12, "
+        "eq. (14) least squares, midpoint and gap) + `horn`, all checks on. *Peer*: "
+        "`cv2.undistortPoints` (default criteria) + `cv2.triangulatePoints` (DLT) + SVD Kabsch, "
+        "written plainly in the bench; a second peer iterates `undistortPoints` to convergence, "
+        "which exact results need under this distortion.",
+        "",
+        "```",
+        header,
+        *timing,
+        "",
+        *accuracy,
+        "```",
+        "",
+        f"Ours is **{ratio:.2f}x** the plain OpenCV chain's median time (before this round of work: "
+        "3.2-3.4x, 326-368 us against 102-112 us), with the same accuracy under noise and exact "
+        "results without noise, where the default `undistortPoints` stops at ~1e-6 mm. Done: both "
+        "images go through one Newton run (one set of numpy calls for 24 points), pixel validation "
+        "happens only when Newton fails (NaN propagates there and is then named), the slope test "
+        "against the distortion's fold is skipped below a radius proven safe at construction, the "
+        "normal equations, Cramer's rule and the midpoint are tabulated quadratic and linear maps "
+        "(three matrix products instead of ~25 small calls), and Horn's 4x4 eigenproblem goes to "
+        "`cv2.eigen` (a third of `np.linalg.eigh`'s overhead). What remains above the peer is the "
+        "price of exactness: the two 20-step OpenCV starting points plus the Newton residual check "
+        "cost about half the peer's whole chain, against the peer's two 5-step calls; the rest is "
+        "numpy's fixed cost per call (~1-3 us here), now some 40 calls per chain. At ~0.1-0.2 ms "
+        "per job the chain is negligible next to image acquisition and feature finding.",
+    ])
 
 
 if __name__ == "__main__":

@@ -39,6 +39,7 @@ _EYE3 = np.eye(3)
 # iteration, several times slower than Newton's own check.
 _GUESS_CRITERIA = (cv2.TERM_CRITERIA_COUNT, 20, 0.0)
 
+
 class Coefficients(NamedTuple):
     """The distortion as :func:`_newton` takes it: one column per point, or one for all.
 
@@ -382,7 +383,7 @@ class CameraModel:
                                                      criteria=_GUESS_CRITERIA))
         P, r2, F, converged = _newton(target.T, guess.reshape(-1, 2).T, inv.coef, max_iter, tol)
         if not (converged and np.maximum.reduce(r2) < inv.r2_safe):
-            self._check_inverse(p, P, r2, F, converged, tol)
+            self._check_inverse(p, r2, F, converged, tol)
         return P.T.copy()
 
     def _pair_constants(self, other: CameraModel, n: int) -> PairInverse:
@@ -405,9 +406,9 @@ class CameraModel:
             d[:, 0] -= self.skew * (d[:, 1] / self.fy)
         return d / inv.f
 
-    def _check_inverse(self, p: FloatArray, P: FloatArray, r2: FloatArray, F: FloatArray,
-                       converged: bool, tol: float) -> None:
-        """Raise unless the Newton result ``P`` (2, n) of pixels ``p`` is a valid inverse.
+    def _check_inverse(self, p: FloatArray, r2: FloatArray, F: FloatArray, converged: bool,
+                       tol: float) -> None:
+        """Raise unless Newton's result for pixels ``p`` (its r2 and residual F) is valid.
 
         Called off the fast path only: when Newton did not converge (first: is a point not
         finite?) or when some point lies beyond the radius below which the slope is known to be

@@ -195,7 +195,7 @@ class StereoRig:
         Q = (h[:, :, None] * h[:, None, :]).reshape(n, 36) @ self._forms  # a, b, cc, p, q
         Z = (Q[:, :, None] * Q[:, None, :]).reshape(n, 25) @ self._solve
         det = Z[:, 0]  # = |d|^2 |e|^2 sin^2(angle between the rays)
-        if not np.minimum.reduce(Z[:, 1]) > 0:  # Z[:, 1] = det - sin^2(min angle) a cc
+        if not np.minimum.reduce(Z[:, 1], initial=np.inf) > 0:  # det - sin^2(min angle) a cc
             i = int(np.argmax(~(Z[:, 1] > 0)))
             ac = Q[i, 0] * Q[i, 2]
             raise DegenerateInputError(
@@ -203,7 +203,7 @@ class StereoRig:
                 f"(angle {np.arcsin(np.sqrt(max(det[i], 0.0) / ac)):.3g} rad)"
             )
         z = Z[:, 2:] / Z[:, :1]  # (n, 2): depth z1 in the left camera, z2 = -u2 in the right
-        if not np.minimum.reduce(z, axis=None) > 0:
+        if not np.minimum.reduce(z, axis=None, initial=np.inf) > 0:
             i = int(np.argmax(~(z > 0).all(axis=1)))
             raise DegenerateInputError(
                 f"point {i}: rays meet behind a camera (depth left {z[i, 0]:.4g} mm, "

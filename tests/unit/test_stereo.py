@@ -241,3 +241,10 @@ def test_pair_path_errors_name_the_image_and_point() -> None:
     px = np.array([[300.0, 240.0], [320.0, 250.0], [320.0 + 0.6 * 500, 240.0]])
     with pytest.raises(ConvergenceError, match=r"point 2 .*fold"):
         rig2.triangulate(px, px)
+
+
+def test_empty_input_gives_empty_triangulation() -> None:
+    _, _, _, rig = _scene(n=3)
+    tri = rig.triangulate(np.zeros((0, 2)), np.zeros((0, 2)))
+    assert tri.points_mm.shape == (0, 3)
+    assert tri.gap_mm.shape == (0,)
