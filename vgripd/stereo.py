@@ -75,8 +75,9 @@ def _triangulation_maps(
       ``(det, det - s^2 a cc, cc p - b q, b p - a q)`` with det = a cc - b^2 and s the sine of
       the smallest ray angle: the 2x2 normal equations by Cramer's rule, the depths being
       z1 = (cc p - b q) / det and z2 = (b p - a q) / det;
-    * mid (6, 6), mid0 (6,): ``(z1 h[:3], z2 h[3:]) @ mid + mid0 = (X, g)`` with the midpoint
-      X = (z1 d + z2 e + c) / 2 and the gap vector g = z1 d - (z2 e + c).
+    * gap (6, 3), gap0 (3,): ``(z1 h[:3], z2 h[3:]) @ gap + gap0 = g``, the gap vector
+      z1 d - (z2 e + c) between the closest points of the two rays; their midpoint is
+      z1 d - g / 2.
 
     All entries are 0, +-1 or the rig's constants, so the products add the same terms as the
     written-out formulas.
@@ -93,13 +94,8 @@ def _triangulation_maps(
     solve[0, 2, 1] = 1.0 - min_angle_rad**2
     solve[2, 3, 2] = solve[1, 3, 3] = 1.0
     solve[1, 4, 2] = solve[0, 4, 3] = -1.0
-    mid = np.zeros((6, 6))
-    mid[:3, :3] = 0.5 * np.eye(3)
-    mid[3:, :3] = 0.5 * R_lr.T
-    mid[:3, 3:] = np.eye(3)
-    mid[3:, 3:] = -R_lr.T
-    mid0 = np.concatenate([0.5 * c, -c])
-    return forms.reshape(36, 5), solve.reshape(25, 4), mid, mid0
+    gap = np.concatenate([np.eye(3), -R_lr.T])
+    return forms.reshape(36, 5), solve.reshape(25, 4), gap, -c
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,8 +124,8 @@ class StereoRig:
     # Tabulated maps of triangulate (see _triangulation_maps).
     _forms: FloatArray = field(init=False, repr=False)
     _solve: FloatArray = field(init=False, repr=False)
-    _mid: FloatArray = field(init=False, repr=False)
-    _mid0: FloatArray = field(init=False, repr=False)
+    _gap: FloatArray = field(init=False, repr=False)
+    _gap0: FloatArray = field(init=False, repr=False)
     # n -> constants of undistort_pair for n points per image (few distinct n in practice).
     _pair_cache: dict[int, PairInverse] = field(init=False, repr=False)
 
@@ -153,7 +149,7 @@ class StereoRig:
         set_(self, "_R_lr", np.ascontiguousarray(R.T))
         set_(self, "_c_right", -R.T @ t)
         maps = _triangulation_maps(self._R_lr, self._c_right, self.min_ray_angle_rad)
-        for name, value in zip(("_forms", "_solve", "_mid", "_mid0"), maps, strict=True):
+        for name, value in zip(("_forms", "_solve", "_gap", "_gap0"), maps, strict=True):
             set_(self, name, value)
         set_(self, "_pair_cache", {})
 
@@ -209,11 +205,11 @@ class StereoRig:
                 f"point {i}: rays meet behind a camera (depth left {z[i, 0]:.4g} mm, "
                 f"right {z[i, 1]:.4g} mm); wrong correspondence?"
             )
-        # The midpoint and the gap vector (left closest point minus right) are linear in
-        # (z1 h_L, z2 h_R): one more tabulated map.
-        mid = (z[:, :, None] * H).reshape(n, 6) @ self._mid + self._mid0
-        g = mid[:, 3:]
-        return Triangulation(points_mm=mid[:, :3].copy(), gap_mm=np.sqrt(np.add.reduce(g * g, 1)))
+        # The closest point on the left ray is z1 d = zh[:, :3]; the gap vector (it minus the
+        # closest point z2 e + c on the right ray) is linear in zh: one more tabulated map.
+        zh = (z[:, :, None] * H).reshape(n, 6)
+        g = zh @ self._gap + self._gap0
+        return Triangulation(points_mm=zh[:, :3] - 0.5 * g, gap_mm=np.sqrt(np.add.reduce(g * g, 1)))
 
     def _undistort_both(self, px_left: object, px_right: object) -> FloatArray:
         """Normalized coordinates of both images, stacked: P (2, 2n), rows x, y, the left
