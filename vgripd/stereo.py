@@ -14,6 +14,7 @@ pixels because with lens distortion the epipolar "line" in the raw image is a cu
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NoReturn
 
 import numpy as np
 
@@ -185,31 +186,41 @@ class StereoRig:
         # q = e.c, all quadratic forms in h, and the solution's numerators and determinant
         # are quadratic forms in those: two outer products and two tabulated maps (see
         # _triangulation_maps) replace some 20 small numpy calls per point set.
-        H = np.ones((n, 2, 3))
+        H = np.empty((n, 2, 3))
         H[:, :, :2] = P.reshape(2, 2, n).transpose(2, 1, 0)
+        H[:, :, 2] = 1.0
         h = H.reshape(n, 6)
         Q = (h[:, :, None] * h[:, None, :]).reshape(n, 36) @ self._forms  # a, b, cc, p, q
         Z = (Q[:, :, None] * Q[:, None, :]).reshape(n, 25) @ self._solve
-        det = Z[:, 0]  # = |d|^2 |e|^2 sin^2(angle between the rays)
-        if not np.minimum.reduce(Z[:, 1], initial=np.inf) > 0:  # det - sin^2(min angle) a cc
-            i = int(np.argmax(~(Z[:, 1] > 0)))
-            ac = Q[i, 0] * Q[i, 2]
-            raise DegenerateInputError(
-                f"point {i}: left and right rays are (nearly) parallel "
-                f"(angle {np.arcsin(np.sqrt(max(det[i], 0.0) / ac)):.3g} rad)"
-            )
+        # Z[:, 1] = det - sin^2(min angle) a cc > 0: the rays are not (nearly) parallel; then
+        # det > 0 and the depths z = Z[:, 2:] / det are positive iff their numerators are.
+        if not np.minimum.reduce(Z[:, 1:], axis=None, initial=np.inf) > 0:
+            self._raise_degenerate(Q, Z)
         z = Z[:, 2:] / Z[:, :1]  # (n, 2): depth z1 in the left camera, z2 = -u2 in the right
-        if not np.minimum.reduce(z, axis=None, initial=np.inf) > 0:
-            i = int(np.argmax(~(z > 0).all(axis=1)))
-            raise DegenerateInputError(
-                f"point {i}: rays meet behind a camera (depth left {z[i, 0]:.4g} mm, "
-                f"right {z[i, 1]:.4g} mm); wrong correspondence?"
-            )
         # The closest point on the left ray is z1 d = zh[:, :3]; the gap vector (it minus the
         # closest point z2 e + c on the right ray) is linear in zh: one more tabulated map.
         zh = (z[:, :, None] * H).reshape(n, 6)
         g = zh @ self._gap + self._gap0
         return Triangulation(points_mm=zh[:, :3] - 0.5 * g, gap_mm=np.sqrt(np.add.reduce(g * g, 1)))
+
+    @staticmethod
+    def _raise_degenerate(Q: FloatArray, Z: FloatArray) -> NoReturn:
+        """The error of :meth:`triangulate` for its forms Q and Z: parallel rays (the first
+        such point) before rays meeting behind a camera (the first such point)."""
+        det = Z[:, 0]  # = |d|^2 |e|^2 sin^2(angle between the rays)
+        parallel = ~(Z[:, 1] > 0)
+        if parallel.any():
+            i = int(np.argmax(parallel))
+            raise DegenerateInputError(
+                f"point {i}: left and right rays are (nearly) parallel "
+                f"(angle {np.arcsin(np.sqrt(max(det[i], 0.0) / (Q[i, 0] * Q[i, 2]))):.3g} rad)"
+            )
+        z = Z[:, 2:] / det[:, None]
+        i = int(np.argmax(~(z > 0).all(axis=1)))
+        raise DegenerateInputError(
+            f"point {i}: rays meet behind a camera (depth left {z[i, 0]:.4g} mm, "
+            f"right {z[i, 1]:.4g} mm); wrong correspondence?"
+        )
 
     def _undistort_both(self, px_left: object, px_right: object) -> FloatArray:
         """Normalized coordinates of both images, stacked: P (2, 2n), rows x, y, the left
