@@ -1,7 +1,7 @@
 """Hand-eye calibration: where the camera sits on the robot flange, or in the robot base frame.
 
 Two mountings, one equation. Each sample pairs a robot flange pose ``T_base_flange_i`` (robot
-controller, taken as exact) with the pose of a calibration board seen by the camera,
+controller) with the pose of a calibration board seen by the camera,
 ``T_cam_board_i`` (from the board corners and the intrinsics, or given directly):
 
 - eye-in-hand (camera on the flange, board fixed in the cell): unknown ``X = T_flange_camera``;
@@ -23,14 +23,15 @@ Pipeline of :func:`calibrate_hand_eye`:
 2. every linear AX = XB solver (Tsai, Park, Horaud, Andreff, Daniilidis); for each, the
    consensus board pose (chordal mean of the ``P_i X B_i``) and its residual;
 3. Levenberg-Marquardt from the linear solution with the lowest residual, over the 12 unknowns
-   (X and the board pose, 6 each), minimising the reprojection error of all board corners in
-   pixels through :class:`~vgripd.camera_model.CameraModel` (distortion included). Without
-   corners (board poses given directly) it minimises the pose residuals instead: the
-   translation difference in mm plus the rotation difference in rad times the median
-   camera-board distance (so a rotation error counts as the displacement it causes at the
-   board). The pixel objective takes the robot poses as exact; when its RMS stays far above
-   corner noise (> ``MAX_PIXEL_RMS``) the robot (or the intrinsics) is the larger error and
-   the pose residuals are used instead, with a warning (see ``objective``);
+   (X and the board pose, 6 each). The default objective (``likelihood``, :class:`_Likelihood`)
+   treats both the images and the robot as noisy: each sample's residual is the 6-vector
+   between its measured and predicted board pose, weighted by the board pose's covariance from
+   its corners plus the robot pose noise carried into the camera frame; the robot noise is the
+   most likely one on a grid. With an exact robot this is the pixel objective, with a noisy
+   one it does not bend X to absorb the robot's error. Alternatives: ``pixels`` (reprojection
+   error of every corner through :class:`~vgripd.camera_model.CameraModel`, robot exact),
+   ``poses`` (unweighted board-pose residuals: translation mm plus rotation rad times the
+   median camera-board distance; the only choice for samples without corners), ``none``;
 4. per-sample residuals: reprojection RMS and how far that sample's implied board pose
    ``P_i X B_i`` lies from the consensus (deg, mm); samples far above the median are flagged;
 5. stability: the refinement repeated leaving out one sample at a time; the spread of X (largest
@@ -70,9 +71,12 @@ State = tuple[FloatArray, ...]
 
 MODES = ("eye-in-hand", "eye-to-hand")
 #: What the refinement may minimise (see calibrate_hand_eye).
-OBJECTIVES = ("auto", "pixels", "poses", "none")
-#: Above this reprojection RMS (px) "auto" does not trust the robot poses to be exact.
+OBJECTIVES = ("auto", "likelihood", "pixels", "poses", "none")
+#: Above this reprojection RMS (px) the pixel objective's result is not trusted: the robot
+#: poses (or the intrinsics) carry the larger error.
 MAX_PIXEL_RMS = 1.0
+#: Estimated robot pose noise (per axis) above which the result warns about the robot poses.
+ROBOT_WARN_DEG, ROBOT_WARN_MM = 0.1, 1.0
 MIN_SAMPLES = 3  # two independent motions (three poses) are the least AX = XB can solve
 FEW_SAMPLES = 8  # below this, one bad sample moves the result a lot
 #: No pair of samples rotating more than this (deg): the rotation of X is not observable.
@@ -173,6 +177,10 @@ class HandEyeResult:
     stability: Stability | None
     warnings: list[str] = field(default_factory=list)
     residuals_px: list[FloatArray] = field(default_factory=list)
+    #: likelihood objective: the corner noise (px per coordinate, from the images' own pose
+    #: fits) and the robot pose noise found most likely (deg, mm per axis); else None
+    sigma_px: float | None = None
+    robot_sigma: tuple[float, float] | None = None
 
     @property
     def transform_name(self) -> str:
@@ -514,6 +522,7 @@ class _Problem:
 
     def __init__(self, samples: Sequence[Sample], mode: str, camera: CameraModel | None,
                  pixels: bool = True):
+        self.mode = mode
         self.P = _anchor_poses(samples, mode)
         self.Q = np.stack([invert_transform(p) for p in self.P])
         self.B = _board_poses(samples)
@@ -628,6 +637,137 @@ def refine(problem: _Problem, X: FloatArray, C: FloatArray,
     return invert_transform(Y), C, converged
 
 
+# ---------------------------------------------------------------------- likelihood objective
+#: Robot pose noise levels (one standard deviation per axis, flange frame) among which the
+#: "likelihood" objective picks the most likely; the smallest mean "exact".
+ROBOT_SIGMA_DEG = (1e-4, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0)
+ROBOT_SIGMA_MM = (1e-3, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
+
+
+def _adjoint(T: FloatArray) -> FloatArray:
+    """(n, 6, 6) maps of a small motion (rotation rad, translation mm) in the frame of the
+    (n, 4, 4) transforms ``T`` to the same motion in their parent frame, to first order."""
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    out = np.zeros((len(T), 6, 6))
+    out[:, :3, :3] = R
+    out[:, 3:, 3:] = R
+    out[:, 3:, :3] = _skew(t) @ R
+    return out
+
+
+def _small_log(D: FloatArray) -> FloatArray:
+    """(n, 6) (rotation vector, translation) of (n, 4, 4) transforms with rotations below pi."""
+    w = _vee(D[:, :3, :3])
+    s = np.linalg.norm(w, axis=1)
+    angle = np.arctan2(s, (np.trace(D[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0)
+    scale = np.where(s > 1e-12, angle / np.maximum(s, 1e-300), 1.0)
+    out: FloatArray = np.concatenate([w * scale[:, None], D[:, :3, 3]], axis=1)
+    return out
+
+
+class _Likelihood:
+    """Hand-eye as a maximum-likelihood problem with noise in the images *and* the robot.
+
+    The measurements are the board poses ``B_i`` (from the corners, :func:`board_pose`), each
+    with its covariance ``s^2 (J_i^T J_i)^-1`` (``J_i``: the pixels' Jacobian with respect to a
+    small motion of the board in the camera frame; ``s^2``: the corner noise pooled over every
+    image's own PnP fit, which no robot error reaches). The reported robot poses get Gaussian
+    noise of ``sigma_deg`` / ``sigma_mm`` per axis in the flange frame, which reaches the
+    predicted board pose ``Y Q_i C`` through the adjoint of ``Y`` (eye-in-hand) or ``Y Q_i``
+    (eye-to-hand). The residual of a sample is the 6-vector between predicted and measured
+    board pose, whitened by the sum of both covariances. With the robot exact this is, to first
+    order, the pixel objective; with robot noise it stops the fit from bending X to absorb it.
+    The robot noise is chosen by profile likelihood among ``ROBOT_SIGMA_*``.
+    """
+
+    def __init__(self, problem: _Problem, samples: Sequence[Sample], camera: CameraModel):
+        self.problem = problem
+        self.Binv = np.stack([invert_transform(b) for b in problem.B])
+        info, ssr, dof = [], 0.0, 0
+        for s, B in zip(samples, problem.B, strict=True):
+            assert s.obj is not None
+            assert s.px is not None
+            J, r = _board_jacobian(s.obj, s.px, B, camera)
+            info.append(J.T @ J)
+            ssr += float(r @ r)
+            dof += len(r) - 6
+        if dof <= 0:
+            raise CalibrationError("hand-eye: too few corners per image to weigh the board poses")
+        #: corner noise, px per coordinate (pooled over the images' own pose fits)
+        self.sigma_px = math.sqrt(ssr / dof)
+        try:
+            self.cov_board = self.sigma_px**2 * np.linalg.inv(np.stack(info))
+        except np.linalg.LinAlgError:
+            raise CalibrationError("hand-eye: a board pose is not determined by its corners "
+                                   "(too few or collinear)") from None
+
+    def _whitening(self, Y: FloatArray, sigma_deg: float,
+                   sigma_mm: float) -> tuple[FloatArray, float]:
+        """(n, 6, 6) inverse Cholesky factors of the samples' covariances, and their summed
+        log determinant."""
+        p = self.problem
+        A = _adjoint(np.broadcast_to(Y, p.Q.shape) if p.mode == "eye-in-hand" else Y @ p.Q)
+        robot = np.array([math.radians(sigma_deg)] * 3 + [sigma_mm] * 3) ** 2
+        S = self.cov_board + (A * robot) @ np.swapaxes(A, 1, 2)
+        L = np.linalg.cholesky(S)
+        logdet = 2.0 * float(np.log(np.diagonal(L, axis1=1, axis2=2)).sum())
+        return np.linalg.inv(L), logdet
+
+    def fit(self, X: FloatArray, C: FloatArray, sigma_deg: float, sigma_mm: float,
+            passes: int = 2) -> tuple[FloatArray, FloatArray, float, bool]:
+        """X and the board pose maximising the likelihood for this robot noise, from (X, C);
+        the weights follow X (``passes`` times). Returns X, C, -2 log-likelihood (up to a
+        constant), converged."""
+        Q, Binv = self.problem.Q, self.Binv
+        state: State = (invert_transform(X), C)
+        converged, nll = False, math.inf
+        for _ in range(passes):
+            W, logdet = self._whitening(state[0], sigma_deg, sigma_mm)
+
+            def residual(st: State, W: FloatArray = W) -> FloatArray:
+                e = _small_log(st[0] @ Q @ st[1] @ Binv)
+                out: FloatArray = np.einsum("nij,nj->ni", W, e).ravel()
+                return out
+
+            state, converged = _levenberg_marquardt(residual, _update, state, _STEPS)
+            r = residual(state)
+            nll = float(r @ r) + logdet
+        return invert_transform(state[0]), state[1], nll, converged
+
+    def solve(self, X: FloatArray, C: FloatArray,
+              ) -> tuple[FloatArray, FloatArray, bool, tuple[float, float]]:
+        """The most likely robot noise among ``ROBOT_SIGMA_*`` and the fit under it: X, C,
+        converged, (sigma_deg, sigma_mm)."""
+        best: tuple[float, float, float] | None = None
+        Xw, Cw = X, C
+        for sigma_deg in ROBOT_SIGMA_DEG:
+            for sigma_mm in ROBOT_SIGMA_MM:
+                Xw, Cw, nll, _ = self.fit(Xw, Cw, sigma_deg, sigma_mm, passes=1)
+                if best is None or nll < best[0]:
+                    best = (nll, sigma_deg, sigma_mm)
+        assert best is not None
+        X, C, _, converged = self.fit(X, C, best[1], best[2])
+        return X, C, converged, (best[1], best[2])
+
+
+def _board_jacobian(obj: FloatArray, px: FloatArray, B: FloatArray, camera: CameraModel,
+                    ) -> tuple[FloatArray, FloatArray]:
+    """(2N, 6) Jacobian of the projected corners with respect to a small motion of the board
+    in the camera frame (central differences, as the refinement's), and the (2N,) residual
+    observed - projected at ``B``."""
+    pts = obj @ B[:3, :3].T + B[:3, 3]
+    moved = []
+    for k, h in enumerate(_STEPS[:6]):
+        for sign in (1.0, -1.0):
+            e = np.zeros(6)
+            e[k] = sign * h
+            E = _exp(e)
+            moved.append(pts @ E[:3, :3].T + E[:3, 3])
+    proj = camera.project(np.concatenate([pts, *moved])).reshape(13, -1, 2)
+    J = ((proj[1::2] - proj[2::2]).reshape(6, -1) / (2.0 * _STEPS[:6, None])).T
+    return J, (px - proj[0]).ravel()
+
+
 # ---------------------------------------------------------------------- board poses
 #: A second planar pose fitting within this factor of the best (and of 0.1 px) is ambiguous.
 AMBIGUITY_RATIO = 2.0
@@ -707,11 +847,11 @@ def calibrate_hand_eye(
     mode : "eye-in-hand" or "eye-to-hand".
     camera : intrinsics of the images; None when the samples carry board poses only.
     min_rotation_deg : consecutive samples rotating less than this are reported.
-    objective : what the refinement minimises: "pixels" (reprojection error of the corners),
-        "poses" (board-pose residuals), "none" (keep the best linear solution) or "auto":
-        pixels, unless their RMS stays above ``MAX_PIXEL_RMS`` -- then the robot poses (or the
-        intrinsics) are the larger error, the pixel objective (which takes the robot as exact)
-        would bend X to absorb it, and the pose residuals are used instead, with a warning.
+    objective : what the refinement minimises: "likelihood" (board poses weighted by their
+        pixel uncertainty plus an estimated robot pose noise, :class:`_Likelihood`), "pixels"
+        (reprojection error of the corners, robot taken as exact), "poses" (board-pose
+        residuals, unweighted), "none" (keep the best linear solution) or "auto": likelihood
+        with corner data, poses without.
 
     Raises
     ------
@@ -751,24 +891,35 @@ def calibrate_hand_eye(
     start = min(usable, key=lambda k: usable[k].cost)
     X0, C0 = usable[start].T, usable[start].T_anchor_board
     X, C, solver = X0, C0, start
-    on_pixels = problem.pixels and objective in ("auto", "pixels")
-    if on_pixels:
+    if objective == "auto":
+        objective = "likelihood" if problem.pixels else "poses"
+    if objective in ("likelihood", "pixels") and not problem.pixels:
+        raise CalibrationError(f"hand-eye objective {objective!r} needs board corners and "
+                               "intrinsics; these samples carry board poses only")
+    sigma_px = robot_sigma = None
+    if objective == "likelihood":
+        assert camera is not None
+        likelihood = _Likelihood(problem, samples, camera)
+        X, C, converged, robot_sigma = likelihood.solve(X0, C0)
+        sigma_px = likelihood.sigma_px
+        if robot_sigma[0] > ROBOT_WARN_DEG or robot_sigma[1] > ROBOT_WARN_MM:
+            warnings.append(
+                f"the robot poses disagree with the images by about {robot_sigma[0]:g} deg and "
+                f"{robot_sigma[1]:g} mm per axis (most likely noise; the corners' own noise is "
+                f"{sigma_px:.2f} px): check the robot's accuracy, that each pose was read after "
+                "the robot settled, and the intrinsics")
+    elif objective == "pixels":
         X, C, converged = refine(problem, X0, C0)
-        solver = "refined-pixels"
         rms = math.sqrt(problem.cost(X, C) / len(problem.px))
-        if objective == "auto" and rms > MAX_PIXEL_RMS:
-            X_px = X
-            X, C, converged = refine(_Problem(samples, mode, camera, pixels=False), X0, C0)
-            solver, on_pixels = "refined-poses", False
-            deg, mm = transform_error(X_px, X)
+        if rms > MAX_PIXEL_RMS:
             warnings.append(
                 f"reprojection RMS {rms:.2f} px with the robot poses taken as exact: far above "
-                "corner noise, so the robot poses (or the intrinsics) carry the larger error; "
-                f"refined on the board-pose residuals instead (the pixel fit differs by "
-                f"{deg:.2f} deg, {mm:.1f} mm). Check the intrinsics and the robot's accuracy")
-    elif objective != "none":
-        X, C, converged = refine(problem, X0, C0)
-        solver = "refined-poses"
+                "corner noise, so the robot poses (or the intrinsics) carry the larger error "
+                "and the pixel fit bends X to absorb it; use --objective likelihood")
+    elif objective == "poses":
+        X, C, converged = refine(_Problem(samples, mode, camera, pixels=False), X0, C0)
+    if objective != "none":
+        solver = f"refined-{objective}"
     if solver.startswith("refined") and not converged:
         warnings.append("refinement stopped at its iteration limit; the result may not be "
                         "the best fit")
@@ -785,10 +936,10 @@ def calibrate_hand_eye(
               "before the robot settled)")
     stab = None
     if stability and len(samples) > MIN_SAMPLES:
-        how = "pixels" if on_pixels else "poses" if solver == "refined-poses" else start
-        stab = _leave_one_out(samples, mode, camera, X, C, how)
+        how = start if objective == "none" else objective
+        stab = _leave_one_out(samples, mode, camera, X, C, how, robot_sigma)
     return HandEyeResult(mode, X, C, solver, start, solvers, rms_px, per_sample, stab,
-                         warnings, residuals_px)
+                         warnings, residuals_px, sigma_px, robot_sigma)
 
 
 def _linear_solution(problem: _Problem, name: str) -> LinearSolution:
@@ -835,15 +986,20 @@ def _outliers(values: FloatArray, floor: float) -> npt.NDArray[np.bool_]:
 
 
 def _leave_one_out(samples: Sequence[Sample], mode: str, camera: CameraModel | None,
-                   X: FloatArray, C: FloatArray, how: str) -> Stability:
-    """Re-solve without each sample in turn, the way X was found (``how``: "pixels", "poses"
-    or a linear solver's name); refinements start from the full solution (one basin, so they
-    converge in a few steps)."""
+                   X: FloatArray, C: FloatArray, how: str,
+                   robot_sigma: tuple[float, float] | None = None) -> Stability:
+    """Re-solve without each sample in turn, the way X was found (``how``: "likelihood" with
+    the robot noise found on all samples, "pixels", "poses" or a linear solver's name);
+    refinements start from the full solution (one basin, so they converge in a few steps)."""
     deg, mm = [], []
     for k in range(len(samples)):
         subset = [s for i, s in enumerate(samples) if i != k]
-        problem = _Problem(subset, mode, camera, pixels=how == "pixels")
-        if how in ("pixels", "poses"):
+        problem = _Problem(subset, mode, camera, pixels=how in ("pixels", "likelihood"))
+        if how == "likelihood":
+            assert camera is not None
+            assert robot_sigma is not None
+            Xk = _Likelihood(problem, subset, camera).fit(X, C, *robot_sigma)[0]
+        elif how in ("pixels", "poses"):
             Xk, _, _ = refine(problem, X, C)
         else:
             Xk = solve_linear(problem.P, problem.B, how)

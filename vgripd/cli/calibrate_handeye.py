@@ -26,7 +26,6 @@ import numpy as np
 from vgripd.calib.boards import Board, detect_files
 from vgripd.calib.files import pose_table, write_result
 from vgripd.calib.handeye import (
-    MAX_PIXEL_RMS,
     MODES,
     OBJECTIVES,
     HandEyeResult,
@@ -67,9 +66,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-rotation-deg", type=float, default=5.0, metavar="DEG",
                         help="warn about consecutive samples rotating less (default 5)")
     parser.add_argument("--objective", choices=OBJECTIVES, default="auto",
-                        help="what the refinement minimises: pixels (reprojection), poses "
-                             "(board-pose residuals), none (best linear solver), auto (pixels "
-                             f"unless their RMS exceeds {MAX_PIXEL_RMS:g} px; default)")
+                        help="what the refinement minimises: likelihood (board poses weighted "
+                             "by their pixel noise plus an estimated robot pose noise), pixels "
+                             "(reprojection, robot taken as exact), poses (board-pose residuals,"
+                             " unweighted), none (best linear solver), auto (likelihood with "
+                             "board corners, poses without; default)")
     add_output_arguments(parser, "handeye.toml")
 
 
@@ -171,6 +172,7 @@ def run(args: argparse.Namespace) -> int:
         "command": _command(args), "mode": mode, "board": board, "solver": result.solver,
         "start": result.start, "samples": len(samples), "samples_file": samples_file or "",
         "rms_px": result.rms_px if result.rms_px is not None else "n/a (board poses only)",
+        "noise": summary["noise"],
         result.board_name: pose_table(result.T_anchor_board),
         "stability": summary["stability"] or {}, "per_sample": summary["per_sample"],
         "rejected": rejected, "warnings": warnings}
@@ -209,6 +211,9 @@ def _summary(result: HandEyeResult, warnings: list[str], output: str, samples_fi
         "mode": result.mode, "matrix_mm": result.T, "transform": result.transform_name,
         "solver": result.solver, "start": result.start, "solvers": solvers,
         "rms_px": result.rms_px, result.board_name: result.T_anchor_board,
+        "noise": None if result.robot_sigma is None else {
+            "corners_px": result.sigma_px, "robot_deg": result.robot_sigma[0],
+            "robot_mm": result.robot_sigma[1]},
         "per_sample": [{"sample": r.sample, "image": r.image, "rms_px": r.rms_px,
                         "rotation_deg": r.rotation_deg, "translation_mm": r.translation_mm,
                         "outlier": r.outlier} for r in result.per_sample],
@@ -231,6 +236,9 @@ def _human(result: HandEyeResult, warnings: list[str], output: str,
     if result.rms_px is not None:
         lines.append(f"reprojection RMS {result.rms_px:.3f} px over {len(result.per_sample)} "
                      "samples")
+    if result.robot_sigma is not None:
+        lines.append(f"noise (1 sigma per axis): corners {result.sigma_px:.3f} px, robot poses "
+                     f"{result.robot_sigma[0]:g} deg {result.robot_sigma[1]:g} mm (most likely)")
     lines.append("solver       RMS px   rot RMS deg  trans RMS mm")
     for name, sol in result.solvers.items():
         if sol.error:
