@@ -304,6 +304,48 @@ def test_samples_file_round_trip(tmp_path) -> None:
         load_samples(tmp_path / "bad.json")
 
 
+def test_cli_exclude_leaves_out_an_outlier_and_keeps_sample_numbers(tmp_path, capsys) -> None:
+    """A robot pose read 2 deg off: the command names the sample and the --exclude that solves
+    again without it; with --exclude the per-sample numbers still refer to the samples file,
+    the left-out sample is listed with its reason, and X moves back to the truth."""
+    import json
+
+    from vgripd.__main__ import main
+
+    samples = make("eye-in-hand", n=12, noise_px=0.2)
+    samples[7].T_base_flange = samples[7].T_base_flange @ make_transform(
+        matrix_from_rotvec([math.radians(2.0), 0.0, 0.0]), [0.0, 0.0, 0.0])
+    path = save_samples(tmp_path / "s.json", samples, "eye-in-hand", None, CAMERA)
+
+    def run(*extra: str) -> tuple[int, str, str]:
+        rc = main(["calibrate", "handeye", "--samples", str(path), "-o",
+                   str(tmp_path / "he.toml"), "--json", *extra])
+        out = capsys.readouterr()
+        return rc, out.out, out.err
+
+    rc, out, _ = run()
+    assert rc == 0
+    first = json.loads(out)
+    assert [r["sample"] for r in first["per_sample"] if r["outlier"]] == [7]
+    assert any("--exclude 7" in w for w in first["warnings"]), first["warnings"]
+    rc, out, _ = run("--exclude", "7")
+    assert rc == 0
+    again = json.loads(out)
+    assert [r["sample"] for r in again["per_sample"]] == [k for k in range(12) if k != 7]
+    assert not any(r["outlier"] for r in again["per_sample"])
+    assert again["rejected"] == [{"image": "synthetic-07", "reason": "excluded with --exclude"}]
+    before = transform_error(np.array(first["matrix_mm"]), X_EIH)
+    after = transform_error(np.array(again["matrix_mm"]), X_EIH)
+    assert after[0] < before[0] / 2
+    assert after[1] < before[1] / 2
+    assert "--exclude 7" in (tmp_path / "he.toml").read_text()  # the command, in [about]
+    for bad, message in (("12", "sample 12 does not exist (the samples are numbered 0 to 11)"),
+                         ("3,x", "'x' is not a sample number")):
+        rc, _, err = run("--exclude", bad)
+        assert rc == 1
+        assert message in err
+
+
 # ---------------------------------------------------------------------- pose files
 def _truth_poses(n: int = 4) -> list[np.ndarray]:
     rng = np.random.default_rng(11)

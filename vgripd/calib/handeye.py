@@ -102,6 +102,8 @@ class Sample:
     image : name of the image (for messages), or "".
     obj : (N, 3) board points in the board frame, mm (None when only the pose is known).
     px : (N, 2) their detected pixels (OpenCV convention).
+    number : the sample's number in messages and residuals (its place in the samples file when
+        some are left out); None: its position in the list given.
     """
 
     T_base_flange: FloatArray
@@ -109,6 +111,7 @@ class Sample:
     image: str = ""
     obj: FloatArray | None = None
     px: FloatArray | None = None
+    number: int | None = None
 
     @property
     def has_pixels(self) -> bool:
@@ -197,8 +200,14 @@ def _check_mode(mode: str) -> None:
         raise CalibrationError(f"hand-eye mode {mode!r}: expected one of {', '.join(MODES)}")
 
 
+def _number(samples: Sequence[Sample], i: int) -> int:
+    n = samples[i].number
+    return i if n is None else n
+
+
 def _label(samples: Sequence[Sample], i: int) -> str:
-    return f"sample {i}" + (f" ({samples[i].image})" if samples[i].image else "")
+    return f"sample {_number(samples, i)}" + (f" ({samples[i].image})" if samples[i].image
+                                              else "")
 
 
 def _exp(step: FloatArray) -> FloatArray:
@@ -300,7 +309,8 @@ def check_motion(samples: Sequence[Sample], mode: str,
             "different axes between samples")
     consecutive = np.flatnonzero((j == i + 1) & (angle < min_rotation_deg))
     if consecutive.size:
-        shown = ", ".join(f"{i[k]}-{j[k]} ({angle[k]:.2g} deg)" for k in consecutive[:5])
+        shown = ", ".join(f"{_number(samples, int(i[k]))}-{_number(samples, int(j[k]))} "
+                          f"({angle[k]:.2g} deg)" for k in consecutive[:5])
         more = f" and {consecutive.size - 5} more" if consecutive.size > 5 else ""
         warnings.append(
             f"{consecutive.size} consecutive sample pair(s) rotate less than "
@@ -925,15 +935,15 @@ def calibrate_hand_eye(
                         "the best fit")
 
     per_sample, residuals_px, rms_px = _per_sample(problem, samples, X, C)
-    outliers = [r for r in per_sample if r.outlier]
+    outliers = [(k, r) for k, r in enumerate(per_sample) if r.outlier]
     if outliers:
         warnings.append(
             "outlier sample(s): " + ", ".join(
-                _label(samples, r.sample) + (f" {r.rms_px:.2f} px" if r.rms_px is not None
-                                             else "")
-                + f" {r.rotation_deg:.2f} deg {r.translation_mm:.1f} mm" for r in outliers)
+                _label(samples, k) + (f" {r.rms_px:.2f} px" if r.rms_px is not None else "")
+                + f" {r.rotation_deg:.2f} deg {r.translation_mm:.1f} mm" for k, r in outliers)
             + "; check the robot pose and image of each (wrong order, motion blur, pose read "
-              "before the robot settled)")
+              "before the robot settled), or solve again without them (--samples FILE "
+              f"--exclude {','.join(str(r.sample) for _, r in outliers)})")
     stab = None
     if stability and len(samples) > MIN_SAMPLES:
         how = start if objective == "none" else objective
@@ -973,7 +983,8 @@ def _per_sample(problem: _Problem, samples: Sequence[Sample], X: FloatArray, C: 
         flags = _outliers(px_arr, OUTLIER_FLOOR_PX)
     else:
         flags = _outliers(deg, OUTLIER_FLOOR_DEG) | _outliers(mm, OUTLIER_FLOOR_MM)
-    out = [SampleResidual(i, s.image, per_rms[i], float(deg[i]), float(mm[i]), bool(flags[i]))
+    out = [SampleResidual(_number(samples, i), s.image, per_rms[i], float(deg[i]), float(mm[i]),
+                          bool(flags[i]))
            for i, s in enumerate(samples)]
     return out, residuals, rms_px
 
@@ -1007,7 +1018,7 @@ def _leave_one_out(samples: Sequence[Sample], mode: str, camera: CameraModel | N
         mm.append(float(np.linalg.norm(Xk[:3, 3] - X[:3, 3])))
     d, m = np.array(deg), np.array(mm)
     return Stability(float(d.max()), float(m.max()), float(np.sqrt((d**2).mean())),
-                     float(np.sqrt((m**2).mean())), int(np.argmax(m)))
+                     float(np.sqrt((m**2).mean())), _number(samples, int(np.argmax(m))))
 
 
 # ---------------------------------------------------------------------- synthetic data

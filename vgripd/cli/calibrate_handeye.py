@@ -63,6 +63,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="solve from a saved samples file instead of --poses/--images")
     parser.add_argument("--save-samples", metavar="JSON",
                         help="where to save the samples (default <output stem>.samples.json)")
+    parser.add_argument("--exclude", metavar="N[,N...]",
+                        help="leave out these samples (numbers as in the per-sample table, "
+                             "i.e. positions in the samples file, from 0), e.g. an outlier")
     parser.add_argument("--min-rotation-deg", type=float, default=5.0, metavar="DEG",
                         help="warn about consecutive samples rotating less (default 5)")
     parser.add_argument("--objective", choices=OBJECTIVES, default="auto",
@@ -126,7 +129,7 @@ def _samples_from_robot(args: argparse.Namespace, camera: CameraModel,
 def _command(args: argparse.Namespace) -> str:
     words = ["vgripd", "calibrate", "handeye"]
     for flag in ("mode", "poses", "pose_format", "images", "board", "intrinsics", "samples",
-                 "objective"):
+                 "exclude", "objective"):
         value = getattr(args, flag)
         if value is not None:
             words += [f"--{flag.replace('_', '-')}", str(value)]
@@ -157,6 +160,13 @@ def run(args: argparse.Namespace) -> int:
             Path(args.output).with_name(Path(args.output).stem + ".samples.json"))
     if samples_file:
         save_samples(samples_file, samples, mode, board, camera)
+    for k, s in enumerate(samples):
+        s.number = k
+    if args.exclude:
+        excluded = _parse_exclude(args.exclude, len(samples))
+        rejected += [{"image": samples[k].image or f"sample {k}",
+                      "reason": "excluded with --exclude"} for k in sorted(excluded)]
+        samples = [s for k, s in enumerate(samples) if k not in excluded]
     if any(s.T_cam_board is None for s in samples) and camera is None:
         raise CalibrationError("the samples hold board corners: give --intrinsics")
     try:
@@ -187,6 +197,21 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"report: {args.report}")
     emit(args, summary, lines)
     return 0
+
+
+def _parse_exclude(text: str, n: int) -> set[int]:
+    """Sample numbers from ``--exclude`` ("3,7" or "3 7"), each checked against 0..n-1."""
+    out = set()
+    for word in re.split(r"[,\s]+", text.strip()):
+        try:
+            k = int(word)
+        except ValueError:
+            raise CalibrationError(f"--exclude {text!r}: {word!r} is not a sample number") from None
+        if not 0 <= k < n:
+            raise CalibrationError(f"--exclude {text!r}: sample {k} does not exist (the samples "
+                                   f"are numbered 0 to {n - 1})")
+        out.add(k)
+    return out
 
 
 def _plain(value: Any) -> Any:
