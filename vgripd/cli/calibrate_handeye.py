@@ -276,7 +276,7 @@ def _human(result: HandEyeResult, warnings: list[str], output: str,
         rms = "   n/a" if r.rms_px is None else f"{r.rms_px:6.3f}"
         flag = "  OUTLIER" if r.outlier else ""
         lines.append(f"  {r.sample:4d}  {rms}  {r.rotation_deg:7.3f}  {r.translation_mm:8.2f}"
-                     f"  {r.image}{flag}")
+                     f"  {Path(r.image).name}{flag}")
     if result.stability is not None:
         s = result.stability
         lines.append(f"stability (leave one out): up to {s.rotation_deg:.3f} deg, "
