@@ -50,6 +50,11 @@ def make(mode: str, n: int = 15, seed: int = 0, **kw: float) -> list[Sample]:
     return synthetic_samples(mode, X, C, CAMERA, BOARD, n, rng=np.random.default_rng(seed), **kw)
 
 
+def _fresh(samples: list[Sample]) -> list[Sample]:
+    """The same robot poses and corners, without the board poses a calibration filled in."""
+    return [Sample(s.T_base_flange, None, s.image, s.obj, s.px) for s in samples]
+
+
 @pytest.mark.parametrize("mode", ["eye-in-hand", "eye-to-hand"])
 def test_noise_free_every_solver_and_the_refinement_are_exact(mode: str) -> None:
     X, C = TRUTH[mode]
@@ -116,7 +121,7 @@ def test_noisy_refinement_is_at_least_as_good_as_the_best_linear_solver() -> Non
         assert res.robot_sigma[0] <= 0.003
         assert res.robot_sigma[1] <= 0.01
         assert res.sigma_px == pytest.approx(0.3, rel=0.1)
-        fresh = [Sample(s.T_base_flange, None, s.image, s.obj, s.px) for s in samples]
+        fresh = _fresh(samples)
         px = calibrate_hand_eye(fresh, "eye-in-hand", CAMERA, stability=False,
                                 objective="pixels")
         deg, mm = transform_error(res.T, px.T)
@@ -199,7 +204,7 @@ def test_outlier_sample_is_flagged() -> None:
 def _objectives(samples: list[Sample], *objectives: str) -> dict[str, tuple[float, float]]:
     out = {}
     for objective in objectives:
-        fresh = [Sample(s.T_base_flange, None, s.image, s.obj, s.px) for s in samples]
+        fresh = _fresh(samples)
         res = calibrate_hand_eye(fresh, "eye-in-hand", CAMERA, stability=False,
                                  objective=objective)
         out[objective] = transform_error(res.T, X_EIH)
@@ -233,7 +238,7 @@ def test_large_robot_noise_is_estimated_and_warned_about() -> None:
     and bends X by up to degrees); the default finds the robot noise to within a grid step,
     says so, and stays close to the truth."""
     samples = make("eye-in-hand", n=12, noise_px=0.2, robot_noise_deg=0.3, robot_noise_mm=0.5)
-    fresh = [Sample(s.T_base_flange, None, s.image, s.obj, s.px) for s in samples]
+    fresh = _fresh(samples)
     res = calibrate_hand_eye(samples, "eye-in-hand", CAMERA, stability=False)
     assert res.solver == "refined-likelihood"
     assert res.robot_sigma is not None
@@ -260,7 +265,7 @@ def test_likelihood_eye_to_hand_with_robot_noise() -> None:
         samples = make("eye-to-hand", n=15, seed=seed, noise_px=0.2, robot_noise_deg=0.05,
                        robot_noise_mm=0.2)
         for objective in err:
-            fresh = [Sample(s.T_base_flange, None, s.image, s.obj, s.px) for s in samples]
+            fresh = _fresh(samples)
             res = calibrate_hand_eye(fresh, "eye-to-hand", CAMERA, stability=False,
                                      objective=objective)
             err[objective].append(transform_error(res.T, X))

@@ -690,9 +690,18 @@ class _Likelihood:
     The robot noise is chosen by profile likelihood among ``ROBOT_SIGMA_*``.
     """
 
-    def __init__(self, problem: _Problem, samples: Sequence[Sample], camera: CameraModel):
+    def __init__(self, problem: _Problem, cov_board: FloatArray, sigma_px: float):
         self.problem = problem
         self.Binv = np.stack([invert_transform(b) for b in problem.B])
+        #: (n, 6, 6) covariance of each board pose from its corners
+        self.cov_board = cov_board
+        #: corner noise, px per coordinate (pooled over the images' own pose fits)
+        self.sigma_px = sigma_px
+
+    @classmethod
+    def from_corners(cls, problem: _Problem, samples: Sequence[Sample],
+                     camera: CameraModel) -> _Likelihood:
+        """Board-pose covariances from each sample's corners and the pooled corner noise."""
         info, ssr, dof = [], 0.0, 0
         for s, B in zip(samples, problem.B, strict=True):
             assert s.obj is not None
@@ -703,13 +712,17 @@ class _Likelihood:
             dof += len(r) - 6
         if dof <= 0:
             raise CalibrationError("hand-eye: too few corners per image to weigh the board poses")
-        #: corner noise, px per coordinate (pooled over the images' own pose fits)
-        self.sigma_px = math.sqrt(ssr / dof)
+        sigma_px = math.sqrt(ssr / dof)
         try:
-            self.cov_board = self.sigma_px**2 * np.linalg.inv(np.stack(info))
+            cov = sigma_px**2 * np.linalg.inv(np.stack(info))
         except np.linalg.LinAlgError:
             raise CalibrationError("hand-eye: a board pose is not determined by its corners "
                                    "(too few or collinear)") from None
+        return cls(problem, cov, sigma_px)
+
+    def without(self, k: int, problem: _Problem) -> _Likelihood:
+        """The same weights without sample k; ``problem`` holds the other samples."""
+        return _Likelihood(problem, np.delete(self.cov_board, k, axis=0), self.sigma_px)
 
     def _whitening(self, Y: FloatArray, sigma_deg: float,
                    sigma_mm: float) -> tuple[FloatArray, float]:
@@ -906,10 +919,10 @@ def calibrate_hand_eye(
     if objective in ("likelihood", "pixels") and not problem.pixels:
         raise CalibrationError(f"hand-eye objective {objective!r} needs board corners and "
                                "intrinsics; these samples carry board poses only")
-    sigma_px = robot_sigma = None
+    sigma_px = robot_sigma = likelihood = None
     if objective == "likelihood":
         assert camera is not None
-        likelihood = _Likelihood(problem, samples, camera)
+        likelihood = _Likelihood.from_corners(problem, samples, camera)
         X, C, converged, robot_sigma = likelihood.solve(X0, C0)
         sigma_px = likelihood.sigma_px
         if robot_sigma[0] > ROBOT_WARN_DEG or robot_sigma[1] > ROBOT_WARN_MM:
@@ -947,7 +960,7 @@ def calibrate_hand_eye(
     stab = None
     if stability and len(samples) > MIN_SAMPLES:
         how = start if objective == "none" else objective
-        stab = _leave_one_out(samples, mode, camera, X, C, how, robot_sigma)
+        stab = _leave_one_out(samples, mode, camera, X, C, how, likelihood, robot_sigma)
     return HandEyeResult(mode, X, C, solver, start, solvers, rms_px, per_sample, stab,
                          warnings, residuals_px, sigma_px, robot_sigma)
 
@@ -998,18 +1011,20 @@ def _outliers(values: FloatArray, floor: float) -> npt.NDArray[np.bool_]:
 
 def _leave_one_out(samples: Sequence[Sample], mode: str, camera: CameraModel | None,
                    X: FloatArray, C: FloatArray, how: str,
+                   likelihood: _Likelihood | None = None,
                    robot_sigma: tuple[float, float] | None = None) -> Stability:
     """Re-solve without each sample in turn, the way X was found (``how``: "likelihood" with
-    the robot noise found on all samples, "pixels", "poses" or a linear solver's name);
+    the weights and robot noise found on all samples, "pixels", "poses" or a linear solver's
+    name);
     refinements start from the full solution (one basin, so they converge in a few steps)."""
     deg, mm = [], []
     for k in range(len(samples)):
         subset = [s for i, s in enumerate(samples) if i != k]
         problem = _Problem(subset, mode, camera, pixels=how in ("pixels", "likelihood"))
         if how == "likelihood":
-            assert camera is not None
+            assert likelihood is not None
             assert robot_sigma is not None
-            Xk = _Likelihood(problem, subset, camera).fit(X, C, *robot_sigma)[0]
+            Xk = likelihood.without(k, problem).fit(X, C, *robot_sigma)[0]
         elif how in ("pixels", "poses"):
             Xk, _, _ = refine(problem, X, C)
         else:
