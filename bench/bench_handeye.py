@@ -50,8 +50,8 @@ from vgripd.calib.handeye import (  # noqa: E402
     synthetic_samples,
     transform_error,
 )
-from vgripd.camera_model import CameraModel  # noqa: E402
-from vgripd.transforms import make_transform, matrix_from_rotvec  # noqa: E402
+from vgripd.geometry.camera_model import CameraModel  # noqa: E402
+from vgripd.geometry.transforms import make_transform, matrix_from_rotvec  # noqa: E402
 
 N_POSES = 15
 #: calibrate_hand_eye objectives timed whole, with their row labels

@@ -33,10 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from drivers.cameras.synthetic import SyntheticCamera, SyntheticOptions  # noqa: E402
-from vgripd import scene  # noqa: E402
 from vgripd.config import Config, config_from_dict  # noqa: E402
-from vgripd.pipeline import Pipeline  # noqa: E402
-from vgripd.transforms import (  # noqa: E402
+from vgripd.geometry.transforms import (  # noqa: E402
     invert_transform,
     make_transform,
     matrix_from_rotvec,
@@ -44,6 +42,8 @@ from vgripd.transforms import (  # noqa: E402
     rotvec_from_matrix,
 )
 from vgripd.types import ImagePair  # noqa: E402
+from vgripd.vision import scene  # noqa: E402
+from vgripd.vision.pipeline import Pipeline  # noqa: E402
 
 W, H, F = 2448, 2048, 3500.0
 BASELINE, DEPTH = 200.0, 840.0

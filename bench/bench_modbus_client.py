@@ -22,8 +22,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pymodbus.client import AsyncModbusTcpClient  # noqa: E402
 
 from drivers.links.modbus_client import ModbusClientLink, ModbusClientOptions  # noqa: E402
-from vgripd.mock.robot_modbus import MockRobotModbus  # noqa: E402
-from vgripd.protocol import MAP_SIZE, Reg, Trigger  # noqa: E402
+from vgripd.service.protocol import MAP_SIZE, Reg, Trigger  # noqa: E402
+from vgripd.sim.robot_modbus import MockRobotModbus  # noqa: E402
 from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
 
 POLL_S = 0.002

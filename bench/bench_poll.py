@@ -39,7 +39,7 @@ sys.path.insert(0, str(REPO))
 
 from bench.results import write_section  # noqa: E402
 from drivers.links.modbus_server import ModbusServerLink  # noqa: E402
-from vgripd.protocol import MAP_SIZE, Reg, Trigger  # noqa: E402
+from vgripd.service.protocol import MAP_SIZE, Reg, Trigger  # noqa: E402
 from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
 
 POLL_PERIOD_S = 0.01
@@ -60,8 +60,8 @@ def cpu_job(image: np.ndarray) -> float:
 def pipeline_job_factory() -> tuple[object, str]:
     """The real job: ``Pipeline.process`` on pre-rendered demo-cell stereo pairs (1280x1024)."""
     from vgripd.config import Config, DriverSection
-    from vgripd.pipeline import Pipeline
     from vgripd.registry import CAMERAS, load_class, validate_options
+    from vgripd.vision.pipeline import Pipeline
 
     config = Config()
     cls = load_class(CAMERAS, "camera", "synthetic")

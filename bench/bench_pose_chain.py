@@ -37,10 +37,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.results import write_section  # noqa: E402
-from vgripd.camera_model import CameraModel  # noqa: E402
-from vgripd.orientation import horn  # noqa: E402
-from vgripd.stereo import StereoRig  # noqa: E402
-from vgripd.transforms import make_transform, matrix_from_rotvec, rotvec_from_matrix  # noqa: E402
+from vgripd.geometry.camera_model import CameraModel  # noqa: E402
+from vgripd.geometry.orientation import horn  # noqa: E402
+from vgripd.geometry.stereo import StereoRig  # noqa: E402
+from vgripd.geometry.transforms import make_transform, matrix_from_rotvec, rotvec_from_matrix  # noqa: E402
 
 N_POINTS = 12
 NOISE_PX = 0.2

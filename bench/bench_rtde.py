@@ -30,8 +30,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions  # noqa: E402
-from vgripd.mock.ur_controller import URController  # noqa: E402
-from vgripd.protocol import Trigger  # noqa: E402
+from vgripd.service.protocol import Trigger  # noqa: E402
+from vgripd.sim.ur_controller import URController  # noqa: E402
 from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
 
 HOST = "127.0.5.40"

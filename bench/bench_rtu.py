@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO))
 
 from bench.results import write_section  # noqa: E402
 from drivers.links.modbus_rtu import ModbusRtuLink  # noqa: E402
-from vgripd.protocol import MAP_SIZE, Reg, Trigger  # noqa: E402
+from vgripd.service.protocol import MAP_SIZE, Reg, Trigger  # noqa: E402
 from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
 
 BAUD = 115200

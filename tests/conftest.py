@@ -2,10 +2,18 @@
 
 An autouse fixture fails any test that leaves a thread behind (a leaked supervisor or executor
 would keep a real daemon from shutting down).
+
+Tests that need something from outside the repository (the public datasets, a system tool such
+as ``mbpoll`` or ``socat``) go through :func:`need` / :func:`need_tool` / the ``datasets``
+fixture: on a developer's machine they skip with one line saying what to install or where to put
+the data; with ``VGRIPD_REQUIRE_ALL=1`` (set by ``.ci/run``) the same line is a failure, so CI
+always runs them.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
 import threading
 import time
 from collections.abc import Iterator
@@ -14,8 +22,31 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
-DATASETS = SHARED / "datasets"
+REQUIRE_ALL = os.environ.get("VGRIPD_REQUIRE_ALL", "") not in ("", "0")
+
+
+def datasets_dir() -> Path | None:
+    """The public datasets: ``$VGRIPD_DATASETS``, else ``../shared/datasets`` beside the clone."""
+    env = os.environ.get("VGRIPD_DATASETS")
+    folder = Path(env) if env else REPO.parent / "shared" / "datasets"
+    return folder if folder.is_dir() else None
+
+
+def need(ok: bool, what: str) -> None:
+    """Skip (fail under VGRIPD_REQUIRE_ALL=1) with the one line ``what`` unless ``ok``."""
+    if ok:
+        return
+    if REQUIRE_ALL:
+        pytest.fail(f"{what} (VGRIPD_REQUIRE_ALL=1 makes this a failure)", pytrace=False)
+    pytest.skip(what)
+
+
+def need_tool(name: str, package: str | None = None) -> str:
+    """The path of system tool ``name``; skips with the apt-get line that installs it."""
+    path = shutil.which(name)
+    need(path is not None, f"needs {name}: apt-get install {package or name}")
+    assert path is not None
+    return path
 
 
 @pytest.fixture(autouse=True)
@@ -36,6 +67,10 @@ def no_leaked_threads() -> Iterator[None]:
 
 @pytest.fixture(scope="session")
 def datasets() -> Path:
-    """``../shared/datasets`` (CI has it beside the clone); missing is an error, not a skip."""
-    assert DATASETS.is_dir(), f"shared datasets not found at {DATASETS}"
-    return DATASETS
+    """The public calibration datasets (see each folder's PROVENANCE.md)."""
+    folder = datasets_dir()
+    need(folder is not None,
+         "needs the public datasets: set VGRIPD_DATASETS=/path/to/datasets "
+         "or put them at ../shared/datasets beside the clone")
+    assert folder is not None
+    return folder

@@ -25,7 +25,7 @@ from pydantic import (
 )
 
 from vgripd.errors import ConfigError, DegenerateInputError
-from vgripd.transforms import check_transform
+from vgripd.geometry.transforms import check_transform
 
 
 class Model(BaseModel):

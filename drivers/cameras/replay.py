@@ -33,8 +33,8 @@ from pydantic import ValidationError, model_validator
 from drivers.cameras.base import CameraDriver, DriverOptions
 from vgripd.config import Config, PoseConfig
 from vgripd.errors import CameraError, VgripError
-from vgripd.scene import matrix_from_pose
 from vgripd.types import FloatArray, ImagePair
+from vgripd.vision.scene import matrix_from_pose
 
 _DIGITS = re.compile(r"(\d+)")
 

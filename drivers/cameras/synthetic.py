@@ -43,12 +43,12 @@ import numpy as np
 from pydantic import Field
 
 from drivers.cameras.base import CameraDriver, DriverOptions
-from vgripd import scene
-from vgripd.camera_model import CameraModel
 from vgripd.config import CircleFeature, Config, PoseConfig
 from vgripd.errors import CameraError, ConfigError, VgripError
-from vgripd.transforms import make_transform, matrix_from_rotvec
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
 from vgripd.types import FloatArray, ImagePair
+from vgripd.vision import scene
 
 #: Vertices of the projected rim; the polygon is within 1e-3 px of the curve for 30 px marks.
 RIM_VERTICES = 256

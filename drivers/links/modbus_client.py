@@ -2,7 +2,7 @@
 
 Cells without a PLC: the robot (e.g. Universal Robots, port 502, general-purpose holding
 registers 128-255) serves the registers and its program polls them; vgripd is the client. The
-register block is ``vgripd.protocol``'s map (``MAP_SIZE`` words, same offsets, encoding and
+register block is ``vgripd.service.protocol``'s map (``MAP_SIZE`` words, same offsets, encoding and
 handshake as the Modbus server link), placed at ``base_address`` in the robot's register space:
 the robot program writes the command area (CMD, REQ_SEQ, RECIPE), vgripd writes the rest.
 
@@ -45,7 +45,7 @@ from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
 
 from vgripd.errors import LinkError
-from vgripd.protocol import (
+from vgripd.service.protocol import (
     COMMAND_AREA,
     MAP_SIZE,
     Action,

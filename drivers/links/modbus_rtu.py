@@ -15,7 +15,7 @@ from pymodbus.server import ModbusSerialServer
 from pymodbus.server.base import ModbusBaseServer
 
 from drivers.links.modbus_server import RegisterContext, RegisterServerLink
-from vgripd.protocol import RegisterOptions
+from vgripd.service.protocol import RegisterOptions
 
 
 class RtuOptions(RegisterOptions):

@@ -1,4 +1,5 @@
-"""Modbus/TCP server link: the PLC polls and writes vgripd's registers (map in vgripd.protocol).
+"""Modbus/TCP server link: the PLC polls and writes vgripd's registers (map in
+vgripd.service.protocol).
 
 pymodbus (3.16) has no write callback and its datastores are not safe against concurrent
 access, so the server is given ``RegisterContext``: its own datastore that answers every read
@@ -30,7 +31,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.server.base import ModbusBaseServer
 
 from vgripd.errors import LinkError
-from vgripd.protocol import (
+from vgripd.service.protocol import (
     Action,
     LinkHealth,
     LinkState,

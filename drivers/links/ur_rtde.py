@@ -1,8 +1,10 @@
 """Universal Robots RTDE link: the robot program triggers jobs and reads results through RTDE
 general-purpose registers (port 30004), with the ``ur_rtde`` client.
 
-The register map and handshake are ``vgripd.protocol.URRegisterMap`` (docs/ur_rtde.md); the robot
-side is ``urscript/vgripd.script``. The pose goes to the robot in two pages (translation, then
+The register map and handshake are ``vgripd.service.protocol.URRegisterMap`` (docs/ur_rtde.md); the
+robot
+side is ``robots/urscript/vgripd.script``. The pose goes to the robot in two pages (translation,
+then
 rotation vector) because ur_rtde can write only 5 input double registers; each page is written
 data first, acknowledge last.
 
@@ -38,7 +40,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.links import ur_rtde_worker
 from vgripd.errors import ConversionError, LinkError
-from vgripd.protocol import (
+from vgripd.geometry.vendors import transform_from_vendor
+from vgripd.service.protocol import (
     LinkHealth,
     LinkState,
     RobotLink,
@@ -48,7 +51,6 @@ from vgripd.protocol import (
     checked_warnings,
 )
 from vgripd.types import JobResult, Status
-from vgripd.vendors import transform_from_vendor
 
 log = logging.getLogger("vgripd.link.ur_rtde")
 

@@ -25,7 +25,7 @@ from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from typing import Any
 
-from vgripd.protocol import URRegisterMap
+from vgripd.service.protocol import URRegisterMap
 
 RTDE_PORT = 30004
 

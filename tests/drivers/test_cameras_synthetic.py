@@ -12,7 +12,6 @@ import pytest
 
 from drivers.cameras.replay import ReplayCamera, ReplayOptions
 from drivers.cameras.synthetic import SyntheticCamera
-from vgripd import scene
 from vgripd.config import (
     Config,
     DriverSection,
@@ -23,6 +22,7 @@ from vgripd.config import (
 from vgripd.errors import CameraError, ConfigError
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.types import ImagePair
+from vgripd.vision import scene
 
 DEMO = config_from_dict({})
 QUIET = {"noise_std": 0, "blur_px": 0}

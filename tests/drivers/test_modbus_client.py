@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from drivers.links.modbus_client import ModbusClientLink, ModbusClientOptions, plan_writes
+from tests.conftest import need_tool
 from vgripd.errors import LinkError
-from vgripd.mock.robot_modbus import MockRobotModbus, RegisterWrite, RobotMode
-from vgripd.protocol import (
+from vgripd.service.protocol import (
     MAP_SIZE,
     MAP_VERSION,
     BlockWrite,
@@ -27,6 +27,7 @@ from vgripd.protocol import (
     ValueCodec,
     Warnings,
 )
+from vgripd.sim.robot_modbus import MockRobotModbus, RegisterWrite, RobotMode
 from vgripd.types import JobResult, RobotTarget, Status
 
 BASE = 128
@@ -345,7 +346,7 @@ async def test_mbpoll_reads_the_pose_vgripd_wrote(
     finally:
         await link.close()
     proc = await asyncio.create_subprocess_exec(
-        "mbpoll", "-m", "tcp", "-a", "1", "-0", "-1", "-t", "4:float", *flags,
+        need_tool("mbpoll"), "-m", "tcp", "-a", "1", "-0", "-1", "-t", "4:float", *flags,
         "-r", str(BASE + Reg.VALUES), "-c", "6", "-p", str(robot.port), robot.host,
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
     )
@@ -397,8 +398,8 @@ async def test_daemon_jobs_through_the_robot_modbus_server(robot: MockRobotModbu
     """The real daemon (synthetic camera, full pipeline) with a modbus_client link: the robot
     program gets the pose the daemon computed, bit-exact in float32, ACK_SEQ last."""
     from vgripd.config import config_from_dict
-    from vgripd.daemon import Daemon as VgripDaemon
-    from vgripd.daemon import JobRecord
+    from vgripd.service.daemon import Daemon as VgripDaemon
+    from vgripd.service.daemon import JobRecord
 
     config = config_from_dict({
         "camera": {"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0},

@@ -7,7 +7,6 @@ Linux ptys refuse parity settings (tcsetattr EINVAL), so the line runs 8N1 here.
 from __future__ import annotations
 
 import asyncio
-import shutil
 import subprocess
 import time
 from collections.abc import AsyncIterator, Iterator
@@ -18,8 +17,17 @@ from pymodbus.client import AsyncModbusSerialClient
 from pymodbus.exceptions import ModbusIOException
 
 from drivers.links.modbus_rtu import ModbusRtuLink
+from tests.conftest import need_tool
 from vgripd.errors import LinkError
-from vgripd.protocol import CHECK_F32, MAP_SIZE, MAP_VERSION, LinkState, Reg, Trigger, Warnings
+from vgripd.service.protocol import (
+    CHECK_F32,
+    MAP_SIZE,
+    MAP_VERSION,
+    LinkState,
+    Reg,
+    Trigger,
+    Warnings,
+)
 from vgripd.types import JobResult, RobotTarget, Status
 
 BAUD = 115200
@@ -30,7 +38,7 @@ POSE = (612.5, -98.125, 10.75, 2.5, -0.75, 179.5)
 def pty_pair(tmp_path: Path) -> Iterator[tuple[Path, Path]]:
     a, b = tmp_path / "a", tmp_path / "b"
     proc = subprocess.Popen(
-        [shutil.which("socat") or "socat", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
+        [need_tool("socat"), f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
     try:
@@ -111,7 +119,7 @@ async def test_mbpoll_rtu_reads_check_words(pty_pair: tuple[Path, Path]) -> None
     await link.open(lambda t: None)
     try:
         proc = await asyncio.create_subprocess_exec(
-            shutil.which("mbpoll") or "mbpoll", "-m", "rtu", "-b", str(BAUD), "-P", "none",
+            need_tool("mbpoll"), "-m", "rtu", "-b", str(BAUD), "-P", "none",
             "-a", "1", "-0", "-1", "-o", "2", "-t", "4:float", "-r", str(Reg.CHECK_F32),
             "-c", "1", str(client_end),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,

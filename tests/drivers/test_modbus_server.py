@@ -10,7 +10,6 @@ from __future__ import annotations
 import asyncio
 import random
 import re
-import shutil
 import struct
 from collections.abc import AsyncIterator
 
@@ -18,9 +17,18 @@ import pytest
 from pymodbus.client import AsyncModbusTcpClient
 
 from drivers.links.modbus_server import ModbusServerLink
+from tests.conftest import need_tool
 from vgripd.errors import LinkError
-from vgripd.mock.plc import MockPlc, PlcCheckError
-from vgripd.protocol import CHECK_F32, MAP_SIZE, BlockWrite, LinkState, Reg, Trigger, Warnings
+from vgripd.service.protocol import (
+    CHECK_F32,
+    MAP_SIZE,
+    BlockWrite,
+    LinkState,
+    Reg,
+    Trigger,
+    Warnings,
+)
+from vgripd.sim.plc import MockPlc, PlcCheckError
 from vgripd.types import JobResult, RobotTarget, Status
 
 KUKA = ("X", "Y", "Z", "A", "B", "C")
@@ -230,13 +238,12 @@ async def test_port_in_use_is_a_link_error_naming_address_and_port(served: Harne
 
 # --- mbpoll, a third-party Modbus master --------------------------------------------------
 
-MBPOLL = shutil.which("mbpoll") or "mbpoll"
 
 
 async def mbpoll_run(port: int, *args: str) -> tuple[int | None, str]:
     """Run mbpoll once with 0-based references; return its exit code and stdout + stderr."""
     proc = await asyncio.create_subprocess_exec(
-        MBPOLL, "-m", "tcp", "-a", "1", "-0", "-1", "-o", "2", "-p", str(port), *args,
+        need_tool("mbpoll"), "-m", "tcp", "-a", "1", "-0", "-1", "-o", "2", "-p", str(port), *args,
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
     )
     out, err = await proc.communicate()

@@ -19,8 +19,8 @@ from scipy.spatial.transform import Rotation
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
 from vgripd.errors import LinkError
-from vgripd.mock.ur_controller import URController
-from vgripd.protocol import LinkState, Trigger, URRegisterMap, Warnings
+from vgripd.service.protocol import LinkState, Trigger, URRegisterMap, Warnings
+from vgripd.sim.ur_controller import URController
 from vgripd.types import JobResult, RobotTarget, Status
 
 pytestmark = pytest.mark.timeout(60)

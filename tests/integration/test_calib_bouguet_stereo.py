@@ -29,8 +29,8 @@ import scipy.io
 from vgripd.__main__ import main
 from vgripd.calib.rig import RigResult, calibrate_rig
 from vgripd.config import load_config
-from vgripd.scene import stereo_rig
-from vgripd.stereo import StereoRig
+from vgripd.geometry.stereo import StereoRig
+from vgripd.vision.scene import stereo_rig
 
 # Bouguet, "Fifth calibration example", PDF page 2: value, +- (about 3 sigma)
 PUBLISHED = {

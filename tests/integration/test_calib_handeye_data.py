@@ -22,7 +22,7 @@ import pytest
 from vgripd.__main__ import main
 from vgripd.calib.handeye import SAMPLES_FORMAT, transform_error
 from vgripd.config import HandEyeConfig
-from vgripd.transforms import make_transform, matrix_from_rotvec
+from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
 
 VISP = "visp_franka_eye_in_hand"
 TABB = "tabb_rwhe_dataset1"

@@ -26,9 +26,9 @@ from tests.conftest import REPO
 from vgripd.cli.status import format_status
 from vgripd.cli.status import run as status_run
 from vgripd.config import Config, config_from_dict
-from vgripd.daemon import Daemon, JobRecord, JobState
-from vgripd.protocol import MAP_SIZE, MAX_VALUES, Command, HandshakeState, Reg, ValueCodec
 from vgripd.registry import CAMERAS, load_class, validate_options
+from vgripd.service.daemon import Daemon, JobRecord, JobState
+from vgripd.service.protocol import MAP_SIZE, MAX_VALUES, Command, HandshakeState, Reg, ValueCodec
 from vgripd.types import ImagePair, Status
 
 WAIT_S = 30.0

@@ -17,8 +17,8 @@ import pytest
 
 from tests.integration.test_daemon import Plc, running, values
 from vgripd.config import Config, config_from_dict
-from vgripd.mock.ur_controller import URController
-from vgripd.protocol import LinkState, Reg
+from vgripd.service.protocol import LinkState, Reg
+from vgripd.sim.ur_controller import URController
 from vgripd.types import Status
 
 pytestmark = pytest.mark.timeout(90)

@@ -14,7 +14,7 @@ from pathlib import Path
 from pymodbus.client import AsyncModbusTcpClient
 
 from tests.conftest import REPO
-from vgripd.protocol import MAP_SIZE, Command, HandshakeState, Reg
+from vgripd.service.protocol import MAP_SIZE, Command, HandshakeState, Reg
 from vgripd.types import Status
 
 WAIT_S = 60.0

@@ -28,11 +28,11 @@ import pytest
 from tests.integration.test_daemon import Plc, running
 from vgripd.cli.status import format_status
 from vgripd.config import config_from_dict
-from vgripd.daemon import EpipolarMonitor
-from vgripd.mock.robot_modbus import UR_FIRST_REGISTER as BASE
-from vgripd.mock.robot_modbus import MockRobotModbus, RegisterWrite
-from vgripd.protocol import Reg, Warnings
 from vgripd.registry import CAMERAS, load_class, validate_options
+from vgripd.service.daemon import EpipolarMonitor
+from vgripd.service.protocol import Reg, Warnings
+from vgripd.sim.robot_modbus import UR_FIRST_REGISTER as BASE
+from vgripd.sim.robot_modbus import MockRobotModbus, RegisterWrite
 from vgripd.types import ImagePair, Status
 
 # good x4, knocked x4, good x4: with a window of 4, warning above a share of 0.5

@@ -18,16 +18,21 @@ from typing import Any
 import numpy as np
 import pytest
 
-from vgripd import teach
 from vgripd.__main__ import main
+from vgripd.calib import teach
 from vgripd.calib.files import pose_table
 from vgripd.config import DEMO_OBJECT, PoseConfig, load_config
-from vgripd.pipeline import Pipeline
-from vgripd.recorder import toml_from_dict
-from vgripd.scene import matrix_from_pose
-from vgripd.transforms import invert_transform, make_transform, matrix_from_rotvec, rotation_angle
+from vgripd.geometry.transforms import (
+    invert_transform,
+    make_transform,
+    matrix_from_rotvec,
+    rotation_angle,
+)
+from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
+from vgripd.serialize import toml_from_dict
 from vgripd.types import Status
-from vgripd.vendors import transform_from_vendor, vendor_from_transform
+from vgripd.vision.pipeline import Pipeline
+from vgripd.vision.scene import matrix_from_pose
 
 MAX_MM = 0.2
 MAX_DEG = 0.12

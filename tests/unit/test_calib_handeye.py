@@ -27,9 +27,9 @@ from vgripd.calib.handeye import (
     synthetic_samples,
     transform_error,
 )
-from vgripd.camera_model import CameraModel
 from vgripd.errors import CalibrationError
-from vgripd.transforms import invert_transform, make_transform, matrix_from_rotvec
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.transforms import invert_transform, make_transform, matrix_from_rotvec
 
 CAMERA = CameraModel(800.0, 805.0, 322.0, 241.0, dist=(-0.12, 0.08, 0.0005, -0.0003, 0.0),
                      width=640, height=480)
@@ -359,7 +359,7 @@ def _truth_poses(n: int = 4) -> list[np.ndarray]:
 
 
 def _line(fmt: str, T: np.ndarray) -> str:
-    """One pose in a vendor's convention, written with scipy (not vgripd.vendors)."""
+    """One pose in a vendor's convention, written with scipy (not vgripd.geometry.vendors)."""
     r = Rotation.from_matrix(T[:3, :3])
     t = T[:3, 3]
     if fmt == "kuka":  # A, B, C deg = intrinsic Z, Y', X''

@@ -27,10 +27,10 @@ import scipy.io
 
 from vgripd.__main__ import main
 from vgripd.calib.mct import parse_mct, read_mct
-from vgripd.camera_model import CameraModel
 from vgripd.errors import CalibrationError, DegenerateInputError
-from vgripd.stereo import StereoRig
-from vgripd.transforms import invert_transform, make_transform, matrix_from_rotvec
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.stereo import StereoRig
+from vgripd.geometry.transforms import invert_transform, make_transform, matrix_from_rotvec
 
 SQUARE_MM = 30.0
 

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from vgripd.calib.rig import EPIPOLAR_WARN_MEDIAN_PX, calibrate_rig
-from vgripd.camera_model import CameraModel
 from vgripd.errors import CalibrationError
+from vgripd.geometry.camera_model import CameraModel
 
 SIZE = (640, 480)
 K_LEFT = np.array([[800.0, 0.0, 322.0], [0.0, 805.0, 236.0], [0.0, 0.0, 1.0]])

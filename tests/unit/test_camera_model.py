@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import scipy.io
 
-from vgripd.camera_model import CameraModel
 from vgripd.errors import ConvergenceError, DegenerateInputError
+from vgripd.geometry.camera_model import CameraModel
 
 # Strong barrel distortion with all five terms, like a 4-6 mm lens on a 2/3" sensor (k3 > 0
 # keeps r_d(r) monotonic out to the image corners, i.e. the model is invertible there).

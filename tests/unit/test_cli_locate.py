@@ -12,7 +12,7 @@ import pytest
 from tests.conftest import REPO
 from vgripd.__main__ import EXIT_CONFIG, main
 from vgripd.config import load_config
-from vgripd.transforms import invert_transform, rotation_angle
+from vgripd.geometry.transforms import invert_transform, rotation_angle
 
 SAMPLES = REPO / "config" / "samples"
 EXAMPLE = REPO / "config" / "example.toml"

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vgripd import features as ft
+from vgripd.vision import features as ft
 
 SS = 8  # supersampling factor of the renderer
 

@@ -13,10 +13,10 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
-from vgripd.camera_model import CameraModel
 from vgripd.errors import DegenerateInputError, GeometryError
-from vgripd.orientation import horn, horn_robust, pnp
-from vgripd.transforms import make_transform, matrix_from_rotvec, rotvec_from_matrix
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.orientation import horn, horn_robust, pnp
+from vgripd.geometry.transforms import make_transform, matrix_from_rotvec, rotvec_from_matrix
 
 RNG_SEED = 11
 

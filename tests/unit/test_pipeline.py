@@ -12,14 +12,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from vgripd import features as ft
 from vgripd.config import Config, config_from_dict
 from vgripd.errors import ConfigError, NotCalibratedError
-from vgripd.pipeline import Measurement, Pipeline, gate
+from vgripd.geometry.transforms import invert_transform, make_transform, rotation_angle
+from vgripd.geometry.vendors import transform_from_vendor
 from vgripd.registry import CAMERAS, load_class, validate_options
-from vgripd.transforms import invert_transform, make_transform, rotation_angle
 from vgripd.types import ImagePair, Status
-from vgripd.vendors import transform_from_vendor
+from vgripd.vision import features as ft
+from vgripd.vision.pipeline import Measurement, Pipeline, gate
 
 # docs/pipeline.md: 1-sigma predictions 0.04 mm (depth of the object origin) and 0.025 deg,
 # bounds are 5x those.

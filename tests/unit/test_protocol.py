@@ -1,4 +1,4 @@
-"""Register map, codec, handshake and publish ordering (vgripd.protocol), without I/O.
+"""Register map, codec, handshake and publish ordering (vgripd.service.protocol), without I/O.
 
 Oracle for the encodings: ``struct`` packing written out here by hand (big-endian bytes, words
 swapped for CDAB), not the codec under test.
@@ -14,7 +14,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from vgripd.errors import LinkError
-from vgripd.protocol import (
+from vgripd.service.protocol import (
     CHECK_F32,
     MAP_SIZE,
     MAP_VERSION,

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from vgripd.config import Config, config_from_dict
-from vgripd.recorder import Recorder, dict_from_result, toml_from_dict
+from vgripd.serialize import toml_from_dict
+from vgripd.service.recorder import Recorder, dict_from_result
 from vgripd.types import ImagePair, JobResult, RobotTarget, Status
 
 
@@ -99,7 +100,7 @@ def test_broken_disk_is_logged_once_and_never_raises(
     blocker = tmp_path / "not-a-dir"
     blocker.write_text("x")
     rec = Recorder(blocker / "record", 10**9, {})
-    with caplog.at_level(logging.ERROR, logger="vgripd.recorder"):
+    with caplog.at_level(logging.ERROR, logger="vgripd.service.recorder"):
         rec.start()
         for i in range(3):
             rec.submit(_pair(i), _ok(i))

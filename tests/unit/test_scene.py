@@ -1,4 +1,4 @@
-"""Config sections calibration/object/reference and the geometry built from them (vgripd.scene)."""
+"""Config sections calibration/object/reference and the geometry built from them (vgripd.vision.scene)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vgripd import scene
 from vgripd.config import PoseConfig, config_from_dict, load_config
 from vgripd.errors import ConfigError, NotCalibratedError
+from vgripd.vision import scene
 
 LEFT = {"fx": 1000.0, "fy": 1000.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480}
 FIXED = {"mounting": "fixed", "T_base_camera": {"translation_mm": [0, 0, 500]}}

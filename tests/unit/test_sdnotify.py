@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from vgripd.sdnotify import Notifier, socket_address_from_env, watchdog_interval_s
+from vgripd.service.sdnotify import Notifier, socket_address_from_env, watchdog_interval_s
 
 
 @pytest.fixture

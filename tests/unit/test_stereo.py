@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import scipy.io
 
-from vgripd.camera_model import CameraModel
 from vgripd.errors import ConvergenceError, DegenerateInputError
-from vgripd.stereo import StereoRig
-from vgripd.transforms import make_transform, matrix_from_rotvec
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.stereo import StereoRig
+from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
 
 LEFT = CameraModel(810.0, 805.0, 330.0, 245.0, skew=0.4, dist=(-0.25, 0.08, 0.001, -0.0005, 0.01))
 RIGHT = CameraModel(790.0, 792.0, 318.0, 236.0, dist=(-0.22, 0.06, -0.0007, 0.0004, 0.0))

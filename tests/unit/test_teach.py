@@ -1,4 +1,4 @@
-"""vgripd.teach: averaging (against scipy's rotation mean), spread, shot refusal, the measuring
+"""vgripd.calib.teach: averaging (against scipy's rotation mean), spread, shot refusal, the measuring
 config, and the config's ``reference.points_mm`` / ``grip`` / ``output.mode`` checks."""
 
 from __future__ import annotations
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vgripd import teach
+from vgripd.calib import teach
 from vgripd.config import config_from_dict
 from vgripd.errors import CalibrationError, ConfigError, NotCalibratedError
-from vgripd.pipeline import Pipeline
-from vgripd.transforms import make_transform
+from vgripd.geometry.transforms import make_transform
 from vgripd.types import JobResult, Status
+from vgripd.vision.pipeline import Pipeline
 
 NAMES = ("a", "b", "c")
 

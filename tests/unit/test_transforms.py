@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from vgripd.errors import DegenerateInputError
-from vgripd.transforms import (
+from vgripd.geometry.transforms import (
     check_rotation,
     check_transform,
     compose,

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vgripd.mock.ur_controller import MockControllerError, URController, pose_trans
-from vgripd.protocol import URRegisterMap
+from vgripd.service.protocol import URRegisterMap
+from vgripd.sim.ur_controller import MockControllerError, URController, pose_trans
 
 pytestmark = pytest.mark.timeout(30)
 HOST = "127.0.5.30"
@@ -165,8 +165,8 @@ def test_pose_trans_matches_scipy() -> None:
 
 
 def test_urscript_uses_the_register_map() -> None:
-    """urscript/vgripd.script and the simulated program must use the same registers."""
-    text = (Path(__file__).resolve().parents[2] / "urscript" / "vgripd.script").read_text()
+    """robots/urscript/vgripd.script and the simulated program must use the same registers."""
+    text = (Path(__file__).resolve().parents[2] / "robots" / "urscript" / "vgripd.script").read_text()
     code = "\n".join(line.split("#", 1)[0] for line in text.splitlines())
 
     def used(function: str) -> set[int]:

@@ -9,14 +9,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from vgripd.errors import ConversionError
-from vgripd.types import RobotTarget
-from vgripd.vendors import (
+from vgripd.geometry.vendors import (
     CONVENTIONS,
     VENDORS,
     target_from_transform,
     transform_from_vendor,
     vendor_from_transform,
 )
+from vgripd.types import RobotTarget
 
 S2 = math.sqrt(0.5)  # cos 45 deg = sin 45 deg = 0.70710678...
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from vgripd.errors import CalibrationError
-from vgripd.recorder import jsonable, toml_from_dict
+from vgripd.serialize import jsonable, toml_from_dict
 
 Table = Mapping[str, Any]
 
@@ -67,7 +67,7 @@ def pose_table(T: Any) -> dict[str, Any]:
     """A 4x4 transform as a config pose table (``translation_mm`` + ``rotvec_rad``)."""
     import numpy as np
 
-    from vgripd.transforms import rotvec_from_matrix
+    from vgripd.geometry.transforms import rotvec_from_matrix
 
     M = np.asarray(T, dtype=float)
     return {

@@ -29,7 +29,7 @@ Pipeline of :func:`calibrate_hand_eye`:
    its corners plus the robot pose noise carried into the camera frame; the robot noise is the
    most likely one on a grid. With an exact robot this is the pixel objective, with a noisy
    one it does not bend X to absorb the robot's error. Alternatives: ``pixels`` (reprojection
-   error of every corner through :class:`~vgripd.camera_model.CameraModel`, robot exact),
+   error of every corner through :class:`~vgripd.geometry.camera_model.CameraModel`, robot exact),
    ``poses`` (unweighted board-pose residuals: translation mm plus rotation rad times the
    median camera-board distance; the only choice for samples without corners), ``none``;
 4. per-sample residuals: reprojection RMS and how far that sample's implied board pose
@@ -53,9 +53,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from vgripd.camera_model import CameraModel
 from vgripd.errors import CalibrationError, ConvergenceError, ConversionError, DegenerateInputError
-from vgripd.transforms import (
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.transforms import (
     check_transform,
     invert_transform,
     make_transform,
@@ -63,7 +63,7 @@ from vgripd.transforms import (
     matrix_from_rotvec,
     rotation_angle,
 )
-from vgripd.vendors import convention, transform_from_vendor
+from vgripd.geometry.vendors import convention, transform_from_vendor
 
 FloatArray = npt.NDArray[np.float64]
 #: What the Levenberg-Marquardt loop moves: (Y, C) for hand-eye, (T,) for a board pose.
@@ -1097,7 +1097,8 @@ def read_poses(path: str | Path, pose_format: str) -> list[FloatArray]:
     """Robot flange poses ``T_base_flange`` (mm) from a text file, one pose per line.
 
     Each line holds the numbers of one pose in ``pose_format``'s field order and units as
-    ``vgripd.vendors`` defines them (e.g. kuka: X Y Z mm, A B C deg; ur: x y z m, rx ry rz rad;
+    ``vgripd.geometry.vendors`` defines them (e.g. kuka: X Y Z mm, A B C deg; ur: x y z m, rx ry rz
+    rad;
     matrix: 16 numbers row-major, mm), separated by spaces and/or commas. ``#`` starts a
     comment; blank lines are skipped. CalibrationError names ``file:line`` for a bad line.
     """

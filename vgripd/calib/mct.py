@@ -40,8 +40,8 @@ from pydantic import ValidationError
 
 from vgripd.config import IntrinsicsConfig, PoseConfig, read_config_data
 from vgripd.errors import CalibrationError, ConfigError
-from vgripd.scene import matrix_from_pose
-from vgripd.transforms import matrix_from_rotvec, rotvec_from_matrix
+from vgripd.geometry.transforms import matrix_from_rotvec, rotvec_from_matrix
+from vgripd.vision.scene import matrix_from_pose
 
 SIGMAS_PER_ERROR = 3.0  # the toolbox's *_error is about 3 standard deviations
 INTRINSIC_KEYS = ("fx", "fy", "cx", "cy", "skew", "dist")

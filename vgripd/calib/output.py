@@ -12,7 +12,7 @@ import sys
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from vgripd.recorder import jsonable
+from vgripd.serialize import jsonable
 
 
 def add_output_arguments(parser: argparse.ArgumentParser, default_out: str) -> None:

@@ -27,7 +27,7 @@ Outliers: a pair whose RMS (both images) is above ``outlier_factor`` x the media
 ``calib.intrinsics`` does for single images).
 
 Epipolar residuals: the distance (ideal px) of every calibration point from the epipolar line
-of its partner, in both images, with ``vgripd.stereo.StereoRig``; a good rig gives a few
+of its partner, in both images, with ``vgripd.geometry.stereo.StereoRig``; a good rig gives a few
 tenths of a pixel. Large values mean corresponding points disagree with the geometry: a
 mismatched pair, a rig that moved between views, unsynchronised images.
 """
@@ -42,10 +42,10 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from vgripd.camera_model import CameraModel
 from vgripd.errors import CalibrationError, GeometryError
-from vgripd.stereo import StereoRig
-from vgripd.transforms import make_transform, matrix_from_rotvec
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.stereo import StereoRig
+from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
 
 MIN_PAIRS = 3
 FEW_PAIRS = 10  # below this, warn (as for a single camera)
@@ -103,7 +103,8 @@ class RigResult:
 
     @property
     def rig(self) -> StereoRig:
-        """The result as a :class:`vgripd.stereo.StereoRig` (triangulation, epipolar lines)."""
+        """The result as a :class:`vgripd.geometry.stereo.StereoRig` (triangulation, epipolar
+        lines)."""
         return StereoRig(camera_model(self.left), camera_model(self.right), self.T_right_left)
 
 

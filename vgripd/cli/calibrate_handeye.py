@@ -36,10 +36,10 @@ from vgripd.calib.handeye import (
     save_samples,
 )
 from vgripd.calib.output import add_output_arguments, emit
-from vgripd.camera_model import CameraModel
 from vgripd.config import IntrinsicsConfig, read_config_data
 from vgripd.errors import CalibrationError, ConfigError, DegenerateInputError
-from vgripd.vendors import VENDORS
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.vendors import VENDORS
 
 EXIT_USAGE = 2
 

@@ -6,8 +6,8 @@ import argparse
 
 from vgripd.cli.run import DEFAULT_CONFIG
 from vgripd.config import load_config
-from vgripd.daemon import Daemon
 from vgripd.errors import ConfigError
+from vgripd.service.daemon import Daemon
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

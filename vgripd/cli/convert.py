@@ -22,7 +22,7 @@ import sys
 from collections.abc import Sequence
 
 from vgripd.errors import ConversionError
-from vgripd.vendors import (
+from vgripd.geometry.vendors import (
     CONVENTIONS,
     VENDORS,
     convention,

@@ -2,7 +2,7 @@
 
 The daemon runs in-process on built-in defaults: the synthetic camera renders the demo object at
 a random pose around the taught reference (the truth is known), the Modbus/TCP server link
-listens on 127.0.0.1, and a scripted PLC (``vgripd.mock.plc``) triggers cycles over real TCP,
+listens on 127.0.0.1, and a scripted PLC (``vgripd.sim.plc``) triggers cycles over real TCP,
 polls for each answer and checks the handshake. One cycle also triggers a second time while the
 job runs, to show the refusal (BUSY). A last fault cycle restarts the daemon with the object
 placed beyond the offset limit, to show the safety gate (OUT_OF_LIMITS, no pose published).
@@ -25,12 +25,12 @@ from typing import Any
 import numpy as np
 
 from vgripd.config import config_from_dict
-from vgripd.daemon import Daemon, JobRecord, configure_logging
 from vgripd.errors import LinkError
-from vgripd.mock.plc import CycleResult, MockPlc
-from vgripd.protocol import MAX_VALUES
+from vgripd.geometry.vendors import CONVENTIONS, convention
+from vgripd.service.daemon import Daemon, JobRecord, configure_logging
+from vgripd.service.protocol import MAX_VALUES
+from vgripd.sim.plc import CycleResult, MockPlc
 from vgripd.types import FloatArray, ImagePair, Status
-from vgripd.vendors import CONVENTIONS, convention
 
 DEFAULT_PORT = 5020
 REGISTER_VENDORS = [n for n, c in CONVENTIONS.items() if len(c.fields) <= MAX_VALUES]

@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 
 from vgripd.config import load_config
-from vgripd.pipeline import Pipeline
-from vgripd.recorder import dict_from_result
+from vgripd.service.recorder import dict_from_result
 from vgripd.types import ImagePair, JobResult
+from vgripd.vision.pipeline import Pipeline
 
 
 class ImageFileError(Exception):

@@ -25,13 +25,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from vgripd.annotate import annotate
 from vgripd.config import DriverSection, load_config
 from vgripd.errors import CameraError
-from vgripd.pipeline import Pipeline
-from vgripd.recorder import dict_from_result
 from vgripd.registry import CAMERAS, load_class, validate_options
+from vgripd.service.recorder import dict_from_result
 from vgripd.types import ImagePair, JobResult
+from vgripd.vision.annotate import annotate
+from vgripd.vision.pipeline import Pipeline
 
 GRAB_TIMEOUT_S = 30.0
 

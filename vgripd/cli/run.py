@@ -7,7 +7,7 @@ import asyncio
 import signal
 
 from vgripd.config import load_config
-from vgripd.daemon import Daemon, configure_logging
+from vgripd.service.daemon import Daemon, configure_logging
 
 DEFAULT_CONFIG = "/etc/vgripd/vgripd.toml"
 

@@ -28,12 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from vgripd import teach
+from vgripd.calib import teach
 from vgripd.calib.files import pose_table, write_result
 from vgripd.calib.output import emit
 from vgripd.config import load_config
 from vgripd.errors import ConversionError
-from vgripd.vendors import VENDORS, transform_from_vendor
+from vgripd.geometry.vendors import VENDORS, transform_from_vendor
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from vgripd.camera_model import CameraModel
 from vgripd.config import Config, IntrinsicsConfig, PoseConfig
 from vgripd.errors import NotCalibratedError, VgripError
-from vgripd.stereo import StereoRig
-from vgripd.transforms import make_transform, matrix_from_rotvec
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.stereo import StereoRig
+from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
 from vgripd.types import FloatArray
 
 

@@ -15,10 +15,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from vgripd.camera_model import CameraModel
-from vgripd.pipeline import Pipeline
-from vgripd.transforms import invert_transform
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.transforms import invert_transform
 from vgripd.types import FloatArray, ImagePair, JobResult
+from vgripd.vision.pipeline import Pipeline
 
 GREEN, RED, BLUE, YELLOW, WHITE = (0, 200, 0), (0, 0, 255), (255, 80, 0), (0, 220, 255), (255,) * 3
 

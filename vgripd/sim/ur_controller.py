@@ -11,8 +11,9 @@ in-process handle: it spawns the server process and drives it over a pipe (set o
 inputs the client wrote, run the simulated robot program, switch faults on and off).
 
 The simulated robot program (``start_program`` / ``program_result``) is the Python twin of
-``urscript/vgripd.script``; the register map is in ``docs/ur_rtde.md``. Both take their register
-numbers from ``vgripd.protocol.URRegisterMap``.
+``robots/urscript/vgripd.script``; the register map is in ``docs/ur_rtde.md``. Both take their
+register
+numbers from ``vgripd.service.protocol.URRegisterMap``.
 
 Faults for tests: ``set_silent`` (accept connections, answer nothing), ``drop`` (close every
 connection, optionally stop listening so connects are refused), ``set_in_use`` (input names owned
@@ -34,9 +35,9 @@ from typing import Any
 import numpy as np
 
 from vgripd.errors import VgripError
-from vgripd.protocol import URRegisterMap
+from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
+from vgripd.service.protocol import URRegisterMap
 from vgripd.types import Status
-from vgripd.vendors import transform_from_vendor, vendor_from_transform
 
 RTDE_PORT = 30004
 PROTOCOL_VERSION = 2
@@ -305,7 +306,7 @@ class _Server:
         task.add_done_callback(self.tasks.discard)
         return task
 
-    # ---- simulated robot program (twin of urscript/vgripd.script)
+    # ---- simulated robot program (twin of robots/urscript/vgripd.script)
     async def wait_input(self, name: str, value: int, deadline: float) -> bool:
         while self.inputs.get(name) != value:
             remaining = deadline - time.monotonic()
@@ -561,7 +562,7 @@ class URController:
     # ---- simulated robot program
     def start_program(self, command: int = 1, *, timeout_s: float = 10.0, upper: bool = False,
                       taught_pose: Sequence[float] | None = None) -> int:
-        """Trigger a job the way urscript/vgripd.script does; returns its sequence number."""
+        """Trigger a job the way robots/urscript/vgripd.script does; returns its sequence number."""
         seq: int = self._call("start_program", command, timeout_s, upper,
                               None if taught_pose is None else tuple(taught_pose))
         return seq

@@ -6,7 +6,8 @@ run by pymodbus on 127.0.0.1 (a free port unless one is given):
 
 - holding registers ``first .. first+count-1`` only; any other address or table answers with
   the Modbus exception ILLEGAL_DATA_ADDRESS, as UR's server does;
-- a simulated robot program on ``vgripd.protocol``'s map (``run_job``, or ``start_program`` for
+- a simulated robot program on ``vgripd.service.protocol``'s map (``run_job``, or ``start_program``
+for
   a loop on an asyncio task): writes a new request sequence, waits until vgripd acknowledges
   (or refuses) it, snapshots the block and checks the byte-order words;
 - misbehaviour switches: ``go_offline``/``come_back`` (drop every connection and stop
@@ -30,7 +31,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from vgripd.errors import LinkError
-from vgripd.protocol import CHECK_U16, CHECK_U32, MAP_SIZE, Command, Reg, ValueCodec
+from vgripd.service.protocol import CHECK_U16, CHECK_U32, MAP_SIZE, Command, Reg, ValueCodec
 
 UR_FIRST_REGISTER = 128
 UR_REGISTER_COUNT = 128
@@ -170,7 +171,7 @@ class MockRobotModbus:
         self, seq: int, timeout_s: float, base: int = UR_FIRST_REGISTER,
         command: int = Command.TRIGGER, recipe: int = 0, codec: ValueCodec | None = None,
     ) -> JobSeen:
-        """One cycle of the robot program on ``vgripd.protocol``'s map at ``base``.
+        """One cycle of the robot program on ``vgripd.service.protocol``'s map at ``base``.
 
         Sets CMD and RECIPE, then raises REQ_SEQ to ``seq``; waits until ACK_SEQ or REJECT_SEQ
         equals ``seq``; snapshots the block and checks the byte-order words (``codec``: the

@@ -4,7 +4,7 @@ Naming convention: ``T_a_b`` is the pose of frame ``b`` expressed in frame ``a``
 homogeneous matrix, translation in mm), so that a point maps as ``p_a = T_a_b @ p_b`` and poses
 chain by matching inner names: ``T_a_c = T_a_b @ T_b_c`` (the chapter writes ``_A T^B``).
 Rotations are 3x3 orthonormal matrices with determinant +1; angles are radians everywhere in
-this module (degrees exist only in ``vgripd.vendors``).
+this module (degrees exist only in ``vgripd.geometry.vendors``).
 
 Euler sequences use scipy's spelling: three axis letters, upper case = intrinsic (rotations
 about the moving axes, ``"ZYX"``: R = Rz(a) Ry(b) Rx(c)), lower case = extrinsic (about the fixed

@@ -49,11 +49,11 @@ import numpy as np
 
 from vgripd.config import Config
 from vgripd.errors import CameraError, NotCalibratedError
-from vgripd.protocol import RobotLink, Trigger, Warnings
-from vgripd.recorder import Recorder
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
-from vgripd.sdnotify import Notifier, watchdog_interval_s
-from vgripd.statusapi import StatusServer
+from vgripd.service.protocol import RobotLink, Trigger, Warnings
+from vgripd.service.recorder import Recorder
+from vgripd.service.sdnotify import Notifier, watchdog_interval_s
+from vgripd.service.statusapi import StatusServer
 from vgripd.types import ImagePair, JobResult, Status
 
 log = logging.getLogger("vgripd")
@@ -85,7 +85,7 @@ class RunState(enum.Enum):
 
 
 class Processor(Protocol):
-    """What the daemon needs from the vision pipeline (``vgripd.pipeline.Pipeline``)."""
+    """What the daemon needs from the vision pipeline (``vgripd.vision.pipeline.Pipeline``)."""
 
     def process(self, pair: ImagePair, job_id: int) -> JobResult: ...
 
@@ -161,7 +161,7 @@ def _link_names(config: Config) -> list[str]:
 
 
 def _make_pipeline(config: Config) -> Processor:
-    from vgripd.pipeline import Pipeline  # heavy (OpenCV); only the daemon needs it
+    from vgripd.vision.pipeline import Pipeline  # heavy (OpenCV); only the daemon needs it
 
     pipeline: Processor = Pipeline(config)
     return pipeline

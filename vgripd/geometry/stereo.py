@@ -18,9 +18,9 @@ from typing import NoReturn
 
 import numpy as np
 
-from vgripd.camera_model import CameraModel, PairInverse, undistort_pair
 from vgripd.errors import DegenerateInputError
-from vgripd.transforms import check_transform
+from vgripd.geometry.camera_model import CameraModel, PairInverse, undistort_pair
+from vgripd.geometry.transforms import check_transform
 from vgripd.types import FloatArray
 
 __all__ = ["StereoRig", "Triangulation"]
@@ -226,7 +226,8 @@ class StereoRig:
         """Normalized coordinates of both images, stacked: P (2, 2n), rows x, y, the left
         image's n points first.
 
-        The usual case takes :func:`~vgripd.camera_model.undistort_pair` (one Newton run for
+        The usual case takes :func:`~vgripd.geometry.camera_model.undistort_pair` (one Newton run
+        for
         both images); anything else, and every error, goes through each camera's ``undistort``
         so that the errors name the image and point as they always have.
         """

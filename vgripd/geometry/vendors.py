@@ -1,13 +1,14 @@
 """Robot-vendor pose conventions: the only place where units change.
 
-Inside vgripd a pose is a 4x4 ``T_a_b`` in millimetres (see ``vgripd.transforms``). Robot
+Inside vgripd a pose is a 4x4 ``T_a_b`` in millimetres (see ``vgripd.geometry.transforms``). Robot
 controllers want six or seven numbers in their own field order, length unit (mm or m) and
 rotation convention (Euler angles in degrees in some sequence, a unit quaternion, a rotation
 vector in radians). ``CONVENTIONS`` tabulates them; ``transform_from_vendor`` and
 ``vendor_from_transform`` convert, validating everything a human or a PLC might get wrong.
 
 Euler sequences use scipy's spelling (upper case intrinsic, lower case extrinsic; see
-``vgripd.transforms``). KUKA's A, B, C (intrinsic Z, Y', X'') and FANUC's W, P, R (about the fixed
+``vgripd.geometry.transforms``). KUKA's A, B, C (intrinsic Z, Y', X'') and FANUC's W, P, R (about
+the fixed
 X, Y, Z) are the same matrix ``Rz Ry Rx`` with the angles listed in opposite orders. At gimbal
 lock the angle applied first to the tool (KUKA C, FANUC W, Kawasaki T, ...) is returned as 0.
 """
@@ -23,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vgripd.errors import ConversionError, DegenerateInputError
-from vgripd.transforms import (
+from vgripd.geometry.transforms import (
     check_transform,
     euler_from_matrix,
     matrix_from_euler,

@@ -24,14 +24,14 @@ import numpy as np
 from vgripd.calib.files import pose_table
 from vgripd.config import Config, PoseConfig, ReferenceConfig
 from vgripd.errors import CalibrationError
-from vgripd.registry import CAMERAS, load_class, validate_options
-from vgripd.transforms import (
+from vgripd.geometry.transforms import (
     invert_transform,
     make_transform,
     matrix_from_quat,
     quat_from_matrix,
     rotation_angle,
 )
+from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.types import FloatArray, ImagePair, JobResult, Status
 
 DEFAULT_SHOTS = 5
@@ -178,7 +178,7 @@ def average(shots: Sequence[Shot]) -> Taught:
 def measure(config: Config, pairs: Sequence[ImagePair]) -> Taught:
     """Run the pipeline on every pair and average; ``CalibrationError`` naming every refused
     shot and why."""
-    from vgripd.pipeline import Pipeline  # OpenCV; kept out of the import of this module
+    from vgripd.vision.pipeline import Pipeline  # OpenCV; kept out of the import of this module
 
     pipeline = Pipeline(measuring_config(config))
     shots: list[Shot] = []

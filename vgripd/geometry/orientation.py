@@ -25,9 +25,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from vgripd.camera_model import CameraModel
 from vgripd.errors import ConvergenceError, DegenerateInputError, GeometryError
-from vgripd.transforms import make_transform, matrix_from_rotvec
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
 from vgripd.types import FloatArray
 
 __all__ = [
@@ -218,7 +218,8 @@ _QUAT_MAP = _quadratic_map()
 def _matrices_from_quats(q: FloatArray) -> FloatArray:
     """Rotation matrices (m, 3, 3) from unit quaternions (m, 4), (w, x, y, z).
 
-    A stacked, unchecked twin of :func:`vgripd.transforms.matrix_from_quat` (which takes one
+    A stacked, unchecked twin of :func:`vgripd.geometry.transforms.matrix_from_quat` (which takes
+    one
     quaternion and validates it): the callers pass eigenvectors, unit by construction. One
     matrix product of the quaternions' outer products with a tabulated map.
     """

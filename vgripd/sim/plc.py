@@ -1,4 +1,5 @@
-"""A scripted PLC: the Modbus/TCP client side of the register handshake (``vgripd.protocol``).
+"""A scripted PLC: the Modbus/TCP client side of the register handshake
+(``vgripd.service.protocol``).
 
 It triggers a job (command, recipe and a new request sequence in one write), polls until the
 request is answered (acknowledged or refused), and checks what a careful PLC program would:
@@ -20,7 +21,7 @@ from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.client.mixin import ModbusClientMixin
 
 from vgripd.errors import LinkError
-from vgripd.protocol import (
+from vgripd.service.protocol import (
     CHECK_F32,
     CHECK_U16,
     CHECK_U32,
@@ -48,7 +49,7 @@ class CycleResult:
     ``values``: the pose in the vendor convention (empty unless ``status.pose_valid``).
     ``fit_rms``: FIT_RMS as published (-1 = unknown). ``age_ms``: RESULT_AGE_MS at the answer.
     ``cycle_ms``: trigger write to answer seen, on the PLC's clock. ``warnings``: the
-    WARNINGS bits (``vgripd.protocol.Warnings``) in the read that saw the answer.
+    WARNINGS bits (``vgripd.service.protocol.Warnings``) in the read that saw the answer.
     """
 
     seq: int

@@ -20,20 +20,18 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 import shutil
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
-from enum import Enum
 from pathlib import Path
 from typing import Any
 
 import cv2
-import numpy as np
 
+from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.types import ImagePair, JobResult
 
 log = logging.getLogger(__name__)
@@ -41,23 +39,6 @@ log = logging.getLogger(__name__)
 PARTIAL_PREFIX = ".partial-"
 # Jobs waiting for the disk beyond this are not recorded (a stalled disk must not eat memory).
 MAX_PENDING = 4
-
-
-def jsonable(value: Any) -> Any:
-    """Plain JSON data for numpy arrays/scalars, enums, mappings, tuples and paths."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Enum):
-        return value.name
-    if isinstance(value, Mapping):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [jsonable(v) for v in value]
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 def dict_from_result(result: JobResult) -> dict[str, Any]:
@@ -82,53 +63,6 @@ def dict_from_result(result: JobResult) -> dict[str, Any]:
         "t_capture_mono_ns": result.t_capture_mono_ns,
         "t_done_mono_ns": result.t_done_mono_ns,
     }
-
-
-_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
-
-
-def _toml_key(key: str) -> str:
-    return key if _BARE_KEY.fullmatch(key) else json.dumps(key)
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int | float):
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)  # JSON string escapes are valid TOML basic-string escapes
-    if isinstance(value, list):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
-    raise TypeError(f"cannot write {type(value).__name__} to TOML")
-
-
-def _is_table_array(value: Any) -> bool:
-    return isinstance(value, list) and bool(value) and all(isinstance(v, dict) for v in value)
-
-
-def toml_from_dict(data: Mapping[str, Any]) -> str:
-    """TOML text for JSON-like data (no None): tables as ``[a.b]``, lists of tables as
-    ``[[a]]`` with inline tables inside. ``tomllib.loads`` gives ``data`` back."""
-    lines: list[str] = []
-
-    def table(d: Mapping[str, Any], path: tuple[str, ...]) -> None:
-        if path:
-            lines.append(f"\n[{'.'.join(map(_toml_key, path))}]")
-        nested = {k: v for k, v in d.items() if isinstance(v, dict) or _is_table_array(v)}
-        lines.extend(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in d.items() if k not in nested)
-        for k, v in nested.items():
-            if isinstance(v, dict):
-                table(v, (*path, k))
-                continue
-            for item in v:
-                lines.append(f"\n[[{'.'.join(map(_toml_key, (*path, k)))}]]")
-                lines.extend(f"{_toml_key(ik)} = {_toml_value(iv)}" for ik, iv in item.items())
-
-    table(data, ())
-    return "\n".join(lines).lstrip("\n") + "\n"
 
 
 def _dir_bytes(path: Path) -> int:

@@ -3,7 +3,7 @@
 The chain (docs/pipeline.md has the whole story and the status table):
 
 1. image checks: 8-bit, the calibrated size, not black/flat (else CAMERA_ERROR);
-2. features in both images (``vgripd.features``);
+2. features in both images (``vgripd.vision.features``);
 3. stereo: left/right pairs on the epipolar line, triangulated in the left camera frame;
    mono: identified features (ArUco/template) only, PnP;
 4. model correspondence by rigid distances, robust Horn fit of the model onto the points:
@@ -34,16 +34,16 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from vgripd import features as ft
-from vgripd import scene
-from vgripd.camera_model import CameraModel
 from vgripd.config import Config, LimitsConfig, VisionConfig
 from vgripd.errors import ConfigError, GeometryError, NotCalibratedError
-from vgripd.orientation import horn, horn_robust, pnp
-from vgripd.stereo import StereoRig
-from vgripd.transforms import invert_transform, rotation_angle
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.orientation import horn, horn_robust, pnp
+from vgripd.geometry.stereo import StereoRig
+from vgripd.geometry.transforms import invert_transform, rotation_angle
+from vgripd.geometry.vendors import VENDORS, target_from_transform
 from vgripd.types import FloatArray, ImagePair, JobResult, Status
-from vgripd.vendors import VENDORS, target_from_transform
+from vgripd.vision import features as ft
+from vgripd.vision import scene
 
 #: Minimum number of matched features for PnP (three points have up to four poses).
 MIN_PNP_FEATURES = 4
