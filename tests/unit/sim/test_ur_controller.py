@@ -166,7 +166,7 @@ def test_pose_trans_matches_scipy() -> None:
 
 def test_urscript_uses_the_register_map() -> None:
     """robots/urscript/vgripd.script and the simulated program must use the same registers."""
-    text = (Path(__file__).resolve().parents[2] / "robots" / "urscript" / "vgripd.script").read_text()
+    text = (Path(__file__).resolve().parents[3] / "robots" / "urscript" / "vgripd.script").read_text()
     code = "\n".join(line.split("#", 1)[0] for line in text.splitlines())
 
     def used(function: str) -> set[int]:
