@@ -26,11 +26,12 @@ import numpy as np
 
 from vgripd.config import config_from_dict
 from vgripd.errors import LinkError
+from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import CONVENTIONS, convention
 from vgripd.service.daemon import Daemon, JobRecord, configure_logging
 from vgripd.service.protocol import MAX_VALUES
 from vgripd.sim.plc import CycleResult, MockPlc
-from vgripd.types import FloatArray, ImagePair, Status
+from vgripd.types import ImagePair, Status
 
 DEFAULT_PORT = 5020
 REGISTER_VENDORS = [n for n, c in CONVENTIONS.items() if len(c.fields) <= MAX_VALUES]
@@ -77,13 +78,6 @@ def fault_pose(config: Any) -> dict[str, Any]:
     x, y, z = ref.translation_mm
     shift = 1.6 * config.limits.max_translation_mm
     return {"translation_mm": [x + shift, y, z], "rotvec_rad": list(ref.rotvec_rad or (0, 0, 0))}
-
-
-def pose_error(truth: FloatArray, found: FloatArray) -> tuple[float, float]:
-    """Position error (mm) and rotation angle error (deg) between two 4x4 poses."""
-    dt = float(np.linalg.norm(truth[:3, 3] - found[:3, 3]))
-    cos = (np.trace(truth[:3, :3].T @ found[:3, :3]) - 1.0) / 2.0
-    return dt, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 class Demo:

@@ -359,3 +359,16 @@ def rotation_angle(R: Any) -> float:
     """Angle of a rotation in [0, pi] (rad), accurate at both ends (unlike acos of the trace)."""
     w, x, y, z = quat_from_matrix(R)
     return 2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), abs(w))
+
+
+def pose_error(T: Any, T_ref: Any) -> tuple[float, float]:
+    """How far pose ``T`` is from ``T_ref``: (translation distance, rotation angle in degrees).
+
+    The distance is in the transforms' length unit (mm inside vgripd); the angle is that of the
+    relative rotation ``R_ref^T R``. The one pose-error measure of the project: tests, benches,
+    the demo and the calibration reports all use it.
+    """
+    A = np.asarray(T, dtype=float)
+    B = np.asarray(T_ref, dtype=float)
+    return (float(np.linalg.norm(A[:3, 3] - B[:3, 3])),
+            math.degrees(rotation_angle(B[:3, :3].T @ A[:3, :3])))
