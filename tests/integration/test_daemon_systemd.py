@@ -3,6 +3,7 @@ daemon relies on are there (notify + watchdog, no restart on a config error, har
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -45,6 +46,7 @@ def test_unit_key_settings() -> None:
         "PrivateTmp": "yes", "CapabilityBoundingSet": "CAP_NET_BIND_SERVICE",
         "AmbientCapabilities": "CAP_NET_BIND_SERVICE", "SupplementaryGroups": "dialout",
         "RestrictAddressFamilies": "AF_UNIX AF_INET AF_INET6", "DevicePolicy": "closed",
+        "LimitNOFILE": "8192", "MemoryMax": "2G", "TasksMax": "256", "PrivateMounts": "yes",
     }
     for key, value in expected.items():
         assert s.get(key) == [value], f"{key}: {s.get(key)}"
@@ -53,3 +55,17 @@ def test_unit_key_settings() -> None:
     # The exit code systemd must not restart on is the one the CLI uses for config errors.
     from vgripd.__main__ import EXIT_CONFIG
     assert s["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
+
+
+def test_systemd_analyze_security_exposure_at_most_2_1(tmp_path: Path) -> None:
+    """`systemd-analyze security` rates the unit's exposure (0 = locked down, 10 = none): the
+    hardening must not slip above the 2.1 it had when the unit was first measured."""
+    analyze = need_tool("systemd-analyze", "systemd")
+    unit = tmp_path / "vgripd.service"
+    unit.write_text(UNIT.read_text().replace(
+        "/opt/vgripd/venv/bin/vgripd run", f"{sys.executable} -m vgripd run"))
+    proc = subprocess.run([analyze, "security", "--offline=true", str(unit)],
+                          capture_output=True, text=True, timeout=60, check=False)
+    match = re.search(r"Overall exposure level for vgripd.service: (\d+\.\d+)", proc.stdout)
+    assert match, proc.stdout + proc.stderr
+    assert float(match[1]) <= 2.1, proc.stdout
