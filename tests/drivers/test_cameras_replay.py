@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.cameras.replay import ReplayCamera, natural_key
+from drivers.cameras.replay import ReplayCamera, list_frames, natural_key
 from vgripd.config import DriverSection, config_from_dict
 from vgripd.errors import CameraError, ConfigError
 from vgripd.registry import CAMERAS, load_class, validate_options
@@ -89,7 +89,7 @@ async def test_mismatched_counts_fail_at_open(tmp_path: Path) -> None:
 
 async def test_no_match_and_missing_folder(tmp_path: Path) -> None:
     camera = make_camera(folder=str(tmp_path), glob="*.png")
-    with pytest.raises(CameraError, match=r"no files match .*\*\.png"):
+    with pytest.raises(CameraError, match=r"no image files match '\*\.png' in /"):
         await camera.open()
     camera = make_camera(folder=str(tmp_path / "nope"), glob="*.png")
     with pytest.raises(CameraError, match="nope does not exist"):
@@ -176,3 +176,65 @@ def test_natural_sort() -> None:
     names = ["a10.png", "a2.png", "a1.png", "b.png", "a02b.png"]
     assert [p.name for p in sorted(map(Path, names), key=natural_key)] == [
         "a1.png", "a2.png", "a02b.png", "a10.png", "b.png"]
+
+
+# ------------------------------------------------------------- listing and pairing
+
+
+def names(paths: list[Path] | None) -> list[str]:
+    assert paths is not None
+    return [p.name for p in paths]
+
+
+def test_pairs_by_the_wildcard_part_of_the_name(tmp_path: Path) -> None:
+    """``*_left.png`` / ``*_right.png``: scene_007_left pairs with scene_007_right; files of
+    other kinds that the patterns match are skipped, not read."""
+    for i in (0, 1, 2, 10):
+        cv2.imwrite(str(tmp_path / f"scene_{i:03d}_left.png"), frame(i))
+        cv2.imwrite(str(tmp_path / f"scene_{i:03d}_right.png"), frame(100 + i))
+    (tmp_path / "truth.json").write_text("{}")
+    (tmp_path / "notes_left.txt").write_text("not an image")
+    frames = list_frames(tmp_path, left_glob="*_left*", right_glob="*_right*")
+    assert frames.paired_by == "name"
+    assert names(frames.left) == [f"scene_{i:03d}_left.png" for i in (0, 1, 2, 10)]
+    assert names(frames.right) == [f"scene_{i:03d}_right.png" for i in (0, 1, 2, 10)]
+    assert names(frames.skipped) == ["notes_left.txt"]
+    single = list_frames(tmp_path, glob="*")
+    assert len(single) == 8
+    assert names(single.skipped) == ["notes_left.txt", "truth.json"]
+
+
+def test_a_missing_partner_is_named_instead_of_shifting_the_pairs(tmp_path: Path) -> None:
+    write_pairs(tmp_path, 5)
+    (tmp_path / "right_1.png").unlink()
+    (tmp_path / "right_9.png").write_bytes((tmp_path / "right_0.png").read_bytes())
+    with pytest.raises(CameraError, match=(
+            r"unpaired files in .* \(left_glob 'left_\*\.png', right_glob 'right_\*\.png'\): "
+            r"no right image for left_1\.png; no left image for right_9\.png")):
+        list_frames(tmp_path, left_glob="left_*.png", right_glob="right_*.png")
+
+
+def test_names_without_a_common_part_pair_by_position(tmp_path: Path) -> None:
+    (tmp_path / "cam0").mkdir()
+    (tmp_path / "cam1").mkdir()
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / "cam0" / f"t{1000 + i}.png"), frame(i))
+        cv2.imwrite(str(tmp_path / "cam1" / f"t{2000 + i}.png"), frame(100 + i))
+    frames = list_frames(tmp_path, left_glob="cam0/*.png", right_glob="cam1/*.png")
+    assert frames.paired_by == "position"
+    assert names(frames.right) == ["t2000.png", "t2001.png", "t2002.png"]
+    (tmp_path / "cam1" / "t2002.png").unlink()
+    with pytest.raises(CameraError, match="3 left images .* but 2 right images .* sorted position"):
+        list_frames(tmp_path, left_glob="cam0/*.png", right_glob="cam1/*.png")
+
+
+async def test_stereo_layout_with_only_left_images_is_refused_at_open(tmp_path: Path) -> None:
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"left_{i}.png"), frame(i))
+    (tmp_path / "right_notes.txt").write_text("no images here")
+    camera = make_camera(folder=str(tmp_path), left_glob="left_*.png", right_glob="right_*")
+    with pytest.raises(CameraError, match=(
+            r"stereo layout but no image files match right_glob 'right_\*' in .* \(3 match "
+            r"left_glob 'left_\*\.png'\): no pairs to replay")):
+        await camera.open()
+    await camera.close()

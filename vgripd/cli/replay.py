@@ -1,16 +1,30 @@
-"""Run every image pair of a folder through the pipeline: one JSON line per pair, then a summary.
+"""Run every frame (image pair) of a folder through the pipeline: one JSON line per frame, then a
+summary.
 
-Pairs are ``left*``/``right*`` files matched by natural sort order, read by the replay camera
-driver (a folder without ``right*`` files is single-camera: every ``left*`` file, or every file
-when there is no ``left*`` either). The last line is ``{"summary": {...}}``: pairs, found rate,
-counts per status, residual statistics (median, max over the found poses) and the total job
-time percentiles p50/p95/p99 (ms).
+Which files: the config's own replay layout when its ``[camera]`` is ``type = "replay"``
+(``left_glob`` + ``right_glob``, or ``glob``, plus ``grayscale`` and ``flange_poses``), with
+``DIR`` in place of its ``folder``. Any other camera type: ``left*`` + ``right*`` when the config
+calibrates a stereo rig, else ``left*`` (or every image when there is no ``left*``). A folder
+written by the job recorder (``pair.json`` beside ``left.png``) is replayed as recorded:
+``left.png`` (+ ``right.png``). Only image files count; others a pattern matches (``truth.json``)
+are skipped and named on stderr. Frames are listed and paired by
+``drivers.cameras.replay.list_frames``, the function the replay camera driver opens with, so
+this command and a daemon replaying the same folder see the same pairs.
+
+Refused before any job runs (one line naming the folder and the patterns, exit 1): no image
+matches; a stereo layout or a stereo config with no right image; a file without its partner;
+a stereo config whose ``[camera]`` replays single images.
+
+The last line is ``{"summary": {...}}``: frames, pairs processed, unreadable frames, found rate,
+counts per status, residual statistics (median, max over the found poses), the total job time
+percentiles p50/p95/p99 (ms) and the skipped non-image files.
 
 ``--annotate OUTDIR`` writes ``<name>_left.png`` (and ``_right.png``) per pair: the model
 features at the found pose, labelled, green used / red missing, the object axes, epipolar lines.
 
-Exit codes: 0 every pair was processed (whatever its status); 1 the folder has no images;
-78 configuration error.
+Exit codes: 0 every frame was read and processed (whatever its status); 1 a frame could not be
+read (corrupt or vanished file: its line has status ``CAMERA_ERROR``, the rest still run) or the
+folder was refused; 78 configuration error.
 """
 
 from __future__ import annotations
@@ -18,6 +32,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -25,7 +40,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from vgripd.config import DriverSection, load_config
+from drivers.cameras.replay import Frames, list_frames, list_images
+from vgripd.config import Config, DriverSection, load_config
 from vgripd.errors import CameraError
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.recorder import dict_from_result
@@ -34,22 +50,51 @@ from vgripd.vision.annotate import annotate
 from vgripd.vision.pipeline import Pipeline
 
 GRAB_TIMEOUT_S = 30.0
+LAYOUT_KEYS = ("glob", "left_glob", "right_glob")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-c", "--config", required=True, help="TOML configuration file")
-    parser.add_argument("folder", help="folder with left*/right* image files")
+    parser.add_argument("folder", help="folder with the images (replaces the config's "
+                                       "[camera] folder; its left_glob/right_glob apply)")
     parser.add_argument("--annotate", metavar="OUTDIR", help="write annotated images here")
 
 
-def replay_section(folder: Path) -> DriverSection:
-    """The replay camera options for a folder (stereo when it has ``right*`` files)."""
-    if any(folder.glob("right*")):
-        return DriverSection.model_validate(
-            {"type": "replay", "folder": str(folder), "left_glob": "left*", "right_glob": "right*"}
-        )
-    pattern = "left*" if any(folder.glob("left*")) else "*"
-    return DriverSection.model_validate({"type": "replay", "folder": str(folder), "glob": pattern})
+def is_stereo_config(config: Config) -> bool:
+    """True when the config calibrates a stereo rig (right camera and T_right_left)."""
+    cal = config.calibration
+    return cal is not None and cal.right is not None and cal.stereo is not None
+
+
+def replay_section(config: Config, folder: Path) -> DriverSection:
+    """The replay camera options for ``folder`` under ``config`` (module docstring)."""
+    if (folder / "pair.json").is_file() and (folder / "left.png").is_file():
+        layout: dict[str, Any] = (
+            {"left_glob": "left.png", "right_glob": "right.png"}
+            if (folder / "right.png").is_file() or is_stereo_config(config)
+            else {"glob": "left.png"})
+        return DriverSection.model_validate({"type": "replay", "folder": str(folder), **layout})
+    camera = config.camera
+    if camera.type == "replay":
+        options = camera.options()
+        options.update(folder=str(folder), loop=False)
+        if options.get("glob") is not None and is_stereo_config(config):
+            raise CameraError(
+                f"replay: the config calibrates a stereo rig but its [camera] replays single "
+                f"images (glob = {options['glob']!r}); set left_glob and right_glob to replay "
+                f"the pairs in {folder}")
+        return DriverSection.model_validate({"type": "replay", **options})
+    if is_stereo_config(config):
+        layout = {"left_glob": "left*", "right_glob": "right*"}
+    else:
+        layout = {"glob": "left*" if list_images(folder, "left*")[0] else "*"}
+    return DriverSection.model_validate({"type": "replay", "folder": str(folder), **layout})
+
+
+def frames_of(section: DriverSection) -> Frames:
+    """The frames the replay camera built from ``section`` will deliver (same function)."""
+    o = section.options()
+    return list_frames(Path(o["folder"]), **{k: o.get(k) for k in LAYOUT_KEYS})
 
 
 def summary(results: list[JobResult]) -> dict[str, Any]:
@@ -76,36 +121,44 @@ def summary(results: list[JobResult]) -> dict[str, Any]:
     }
 
 
-async def _grab_all(camera: Any, count: int, handle: Callable[[int, ImagePair], None]) -> None:
-    """Grab ``count`` frames from the open-able replay camera and hand each to ``handle``."""
+async def _grab_all(camera: Any, frames: Frames,
+                    handle: Callable[[int, ImagePair], None]) -> list[dict[str, Any]]:
+    """Grab every frame from the replay camera and hand each to ``handle``; frames that could
+    not be read are printed as ``CAMERA_ERROR`` lines and returned."""
+    unreadable = []
     await camera.open()
     try:
-        for job_id in range(1, count + 1):
+        for job_id in range(1, len(frames) + 1):
             try:
                 pair = await camera.grab(GRAB_TIMEOUT_S)
-            except CameraError as err:  # a corrupt file: report it and go on
-                print(json.dumps({"job_id": job_id, "status": "CAMERA_ERROR",
-                                  "message": str(err)}), flush=True)
+            except CameraError as err:  # a corrupt or vanished file: report it and go on
+                line = {"job_id": job_id, "source": f"replay:{frames.left[job_id - 1].name}",
+                        "status": "CAMERA_ERROR", "message": str(err)}
+                print(json.dumps(line), flush=True)
+                unreadable.append(line)
                 continue
             handle(job_id, pair)
     finally:
         await camera.close()
+    return unreadable
 
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    pipeline = Pipeline(config)
     folder = Path(args.folder)
     if not folder.is_dir():
         raise CameraError(f"replay: {folder} is not a folder")
-    section = replay_section(folder)
+    section = replay_section(config, folder)
+    frames = frames_of(section)  # refuses an empty or unpaired folder before any job
+    if frames.skipped:
+        print(f"replay: skipped {len(frames.skipped)} non-image file(s) in {folder}: "
+              + ", ".join(p.name for p in frames.skipped), file=sys.stderr)
+    pipeline = Pipeline(config)
     cls = load_class(CAMERAS, "camera", "replay")
-    camera = cls(validate_options(cls, section, "replay"), config)
+    camera = cls(validate_options(cls, section, "camera"), config)
     out = Path(args.annotate) if args.annotate else None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-    pattern = section.options().get("left_glob") or section.options()["glob"]
-    count = sum(1 for p in folder.glob(pattern) if p.is_file())
     results: list[JobResult] = []
 
     def handle(job_id: int, pair: ImagePair) -> None:
@@ -118,6 +171,12 @@ def run(args: argparse.Namespace) -> int:
             for side, image in zip(("left", "right"), images, strict=False):
                 cv2.imwrite(str(out / f"{stem}_{side}.png"), image)
 
-    asyncio.run(_grab_all(camera, count, handle))
-    print(json.dumps({"summary": summary(results)}))
+    unreadable = asyncio.run(_grab_all(camera, frames, handle))
+    print(json.dumps({"summary": {
+        "frames": len(frames), "unreadable": len(unreadable), **summary(results),
+        "skipped": [p.name for p in frames.skipped]}}))
+    if unreadable:
+        print(f"replay: {len(unreadable)} of {len(frames)} frame(s) in {folder} could not be "
+              "read (CAMERA_ERROR lines above)", file=sys.stderr)
+        return 1
     return 0
