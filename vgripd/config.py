@@ -7,6 +7,10 @@ plus options that the chosen driver validates against its own model (``vgripd.re
 Ownership of the sections (one room per job):
 - ``camera``, ``calibration``, ``object``, ``vision``, ``output``: the vision pipeline.
 - ``daemon``, ``links``, ``limits``, ``record``: the service and its robot links.
+
+Combinations that cannot work are refused here too, when the config is loaded: every link must
+be able to carry ``output.vendor`` (each link class declares its ``LinkCapabilities``, looked up
+through ``vgripd.registry``, so this module never imports ``drivers/``).
 """
 
 from __future__ import annotations
@@ -23,9 +27,15 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic_core import PydanticCustomError
 
 from vgripd.errors import ConfigError, DegenerateInputError
 from vgripd.geometry.transforms import check_transform
+from vgripd.geometry.vendors import VENDORS
+
+#: pydantic error type of a refused combination of fields: its message names every field
+#: involved, so it is shown without a field path (``format_validation_error``).
+COMBINATION = "combination"
 
 
 class Model(BaseModel):
@@ -54,6 +64,13 @@ class OutputConfig(Model):
 
     vendor: str = "kuka"
     mode: Literal["offset", "grip"] = "offset"
+
+    @field_validator("vendor")
+    @classmethod
+    def _known_vendor(cls, vendor: str) -> str:
+        if vendor not in VENDORS:
+            raise ValueError(f"unknown vendor {vendor!r} (known: {', '.join(sorted(VENDORS))})")
+        return vendor
 
 
 class LimitsConfig(Model):
@@ -456,6 +473,20 @@ class Config(Model):
                 )
         return self
 
+    @model_validator(mode="after")
+    def _links_carry_output(self) -> Config:
+        """Every link must be able to carry ``output.vendor`` (its class's capabilities)."""
+        if not self.links:
+            return self
+        from vgripd import registry  # registry imports this module; it reaches drivers/
+
+        default = "vendor" not in self.output.model_fields_set
+        problems = registry.link_problems(self.links, self.output.vendor, default)
+        if problems:
+            raise PydanticCustomError(COMBINATION, "{problems}",
+                                      {"problems": "\n".join(problems)})
+        return self
+
 
 def format_validation_error(
     err: ValidationError, source: str, owner: dict[str, str] | None = None
@@ -468,6 +499,11 @@ def format_validation_error(
     lines = []
     for e in err.errors():
         path = ".".join(str(p) for p in e["loc"]) or "<root>"
+        if e["type"] == COMBINATION:
+            # The message names its fields; blame the file that set the links.
+            where = (owner or {}).get("links", source)
+            lines += [f"{where}: {line}" for line in e["msg"].splitlines()]
+            continue
         where = source
         for key, file in (owner or {}).items():
             if key == path or key.startswith(path + ".") or path.startswith(key + "."):

@@ -1,18 +1,23 @@
 """Driver registry: a config ``type`` name -> the class that implements it, imported lazily.
 
 A missing optional SDK breaks only the driver that needs it, with a clear ``DriverError``.
-``vgripd`` reaches ``drivers/`` only through this table.
+``vgripd`` reaches ``drivers/`` only through this table. ``link_problems`` is how the config
+model (``vgripd.config``) judges the link sections against ``output.vendor`` when a config is
+loaded, without importing ``drivers/`` itself.
 """
 
 from __future__ import annotations
 
 import importlib
+from collections.abc import Sequence
 from typing import Any
 
 from pydantic import ValidationError
 
 from vgripd.config import DriverSection, format_validation_error
 from vgripd.errors import ConfigError, DriverError
+from vgripd.geometry.vendors import CONVENTIONS
+from vgripd.service.protocol import LinkCapabilities
 
 CAMERAS: dict[str, str] = {
     "replay": "drivers.cameras.replay:ReplayCamera",
@@ -50,3 +55,31 @@ def validate_options(cls: type[Any], section: DriverSection, where: str) -> Any:
         return cls.Options.model_validate(section.options())
     except ValidationError as err:
         raise ConfigError(format_validation_error(err, where)) from None
+
+
+def link_problems(links: Sequence[DriverSection], vendor: str,
+                  vendor_is_default: bool = False) -> list[str]:
+    """Why the link sections cannot work with ``output.vendor = vendor``, one line per section.
+
+    A section of an unknown type, or whose link class cannot carry the vendor's convention
+    (its ``capabilities``), is a problem; each line names both fields. The driver options are
+    not judged here (the daemon validates them when it builds the link). ``DriverError`` when
+    a link's module cannot be imported.
+    """
+    conv = CONVENTIONS[vendor]
+    shown = f'output.vendor = "{vendor}"' + (" (the default)" if vendor_is_default else "")
+    problems = []
+    for i, section in enumerate(links):
+        field = f'links[{i}].type = "{section.type}"'
+        if section.type not in LINKS:
+            problems.append(f"{field}: unknown link type (known: {', '.join(sorted(LINKS))})")
+            continue
+        caps: LinkCapabilities = load_class(LINKS, "link", section.type).capabilities
+        why = caps.refusal(conv)
+        if why is None:
+            continue
+        carried = [name for name, c in CONVENTIONS.items() if caps.refusal(c) is None]
+        hint = (f'set output.vendor = "{carried[0]}"' if len(carried) == 1
+                else f"output.vendor may be {', '.join(carried)}")
+        problems.append(f"{field} cannot carry {shown}: {why}; {hint}")
+    return problems

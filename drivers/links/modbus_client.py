@@ -36,7 +36,7 @@ import contextlib
 import functools
 import logging
 import time
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 
 from pydantic import Field
 from pymodbus.client import AsyncModbusTcpClient
@@ -48,6 +48,7 @@ from vgripd.errors import LinkError
 from vgripd.service.protocol import (
     COMMAND_AREA,
     MAP_SIZE,
+    REGISTER_CAPABILITIES,
     Action,
     BlockWrite,
     LinkHealth,
@@ -60,7 +61,7 @@ from vgripd.service.protocol import (
     TriggerHandler,
     ValueCodec,
 )
-from vgripd.types import JobResult
+from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
 
@@ -135,6 +136,7 @@ def full_image_writes(words: Sequence[int]) -> list[BlockWrite]:
 
 class ModbusClientLink(RobotLink):
     Options = ModbusClientOptions
+    capabilities = REGISTER_CAPABILITIES
     options: ModbusClientOptions
 
     def __init__(self, name: str, options: ModbusClientOptions) -> None:
@@ -189,17 +191,22 @@ class ModbusClientLink(RobotLink):
         self.bank.captured(seq, job_id)
         await self._flushed()
 
-    async def publish(self, seq: int, result: JobResult) -> None:
-        """Publish into the mirror, then wait until the robot has it.
+    async def publish(self, seq: int, result: JobResult) -> Status:
+        """Publish into the mirror, then wait until the robot has it; returns the status the
+        robot got.
 
         Raises ``LinkError`` when the robot is not connected; the result stays in the mirror and
         is written (ACK_SEQ last) as soon as the robot is back.
         """
-        status = self.bank.publish(seq, result, time.monotonic_ns())
-        if status is not result.status:
-            log.warning("%s: request %d published as %s: a value did not fit the registers",
-                        self.name, seq, status.name)
+        published = self.bank.publish(seq, result, time.monotonic_ns())
+        if published.status is not result.status:
+            log.warning("%s: request %d published as %s instead of %s: %s", self.name, seq,
+                        published.status.name, result.status.name, published.message)
         await self._flushed()
+        return published.status
+
+    def refusals(self) -> Mapping[str, int]:
+        return dict(self.bank.refusals)
 
     async def set_warnings(self, bits: int) -> None:
         """Set WARNINGS in the mirror; while the robot is connected, wait until it has it.

@@ -1,7 +1,8 @@
 """Modbus RTU server link on a serial line: the same register map and handshake as the TCP
 server (``RegisterServerLink``), over pymodbus' serial server and pyserial.
 
-An RTU slave answers only its own unit id; frames for other units are left unanswered.
+An RTU slave answers only its own unit id; frames for other units are left unanswered. FC23 is
+all or nothing as on TCP (``AllOrNothingReadWrite``, registered by the shared ``open``).
 """
 
 from __future__ import annotations

@@ -8,6 +8,13 @@ write to the command area runs the handshake and, for a new job, schedules the d
 handler; ``publish`` changes the image in one call. pymodbus serves one request at a time on
 the loop, so a poller sees a result either entirely before or entirely after a publish.
 
+FC23 (read/write multiple registers) is all or nothing: pymodbus applies the write before it
+looks at the read range, so the server decodes FC23 as ``AllOrNothingReadWrite``, which checks
+the read range first; a request with an illegal range changes nothing and triggers nothing.
+
+The link carries up to ``MAX_VALUES`` pose values in any vendor convention
+(``REGISTER_CAPABILITIES``); the config check refuses a vendor with more.
+
 ``RegisterServerLink`` holds everything but the transport; ``drivers.links.modbus_rtu`` reuses
 it for the serial line.
 """
@@ -20,30 +27,34 @@ import logging
 import socket
 import time
 from abc import abstractmethod
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from pydantic import Field
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusServerContext
 from pymodbus.exceptions import NoSuchIdException
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
+from pymodbus.pdu.register_message import ReadWriteMultipleRegistersRequest
 from pymodbus.server import ModbusTcpServer
 from pymodbus.server.base import ModbusBaseServer
 
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
+    REGISTER_CAPABILITIES,
     Action,
     LinkHealth,
     LinkState,
     RegisterAccessError,
     RegisterBank,
+    RegisterImage,
     RegisterOptions,
     RobotLink,
     Trigger,
     TriggerHandler,
     ValueCodec,
 )
-from vgripd.types import JobResult
+from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
 
@@ -79,16 +90,24 @@ class RegisterContext(ModbusServerContext):
             return ExcCodes.ILLEGAL_FUNCTION
         return None
 
-    async def async_getValues(
-        self, device_id: int, func_code: int, address: int, count: int = 1
-    ) -> list[int] | list[bool] | ExcCodes:
+    def read_refusal(self, device_id: int, func_code: int, address: int,
+                     count: int) -> ExcCodes | None:
+        """The exception a read of ``address``/``count`` gets, without reading anything."""
         if exc := self._check(device_id, func_code, HOLDING_READ):
             return exc
         try:
-            return self._link.bank.read(address, count, time.monotonic_ns())
+            RegisterImage.check_read(address, count)
         except RegisterAccessError as err:
             log.debug("%s: %s", self._link.name, err)
             return ExcCodes.ILLEGAL_ADDRESS
+        return None
+
+    async def async_getValues(
+        self, device_id: int, func_code: int, address: int, count: int = 1
+    ) -> list[int] | list[bool] | ExcCodes:
+        if exc := self.read_refusal(device_id, func_code, address, count):
+            return exc
+        return self._link.bank.read(address, count, time.monotonic_ns())
 
     async def async_setValues(
         self, device_id: int, func_code: int, address: int,
@@ -109,9 +128,31 @@ class RegisterContext(ModbusServerContext):
         return None
 
 
+class AllOrNothingReadWrite(ReadWriteMultipleRegistersRequest):
+    """FC23 whose read range is checked before the write is applied.
+
+    pymodbus writes first and reads after; with an illegal read range it would answer exception
+    02 although the write (perhaps a trigger) took effect. Here both ranges are checked before
+    anything changes (the write's by ``RegisterBank.write``, which refuses before applying), and
+    nothing awaits in between, so no other request runs between the write and the read.
+    """
+
+    async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:
+        # Bad quantities are left to pymodbus (exception 03 comes before 02 in the spec).
+        quantities_ok = (1 <= self.read_count <= self.MAX_READ_COUNT
+                         and 1 <= self.write_count <= self.MAX_WRITE_COUNT)
+        if isinstance(context, RegisterContext) and quantities_ok:
+            exc = context.read_refusal(device_id, self.function_code, self.read_address,
+                                       self.read_count)
+            if exc is not None:
+                return ExceptionResponse(self.function_code, exc)
+        return await super().datastore_update(context, device_id)
+
+
 class RegisterServerLink(RobotLink):
     """A Modbus server link over some transport: register bank, heartbeat, handshake."""
 
+    capabilities = REGISTER_CAPABILITIES
     options: RegisterOptions
 
     def __init__(self, name: str, options: Any) -> None:
@@ -144,6 +185,7 @@ class RegisterServerLink(RobotLink):
         self._on_trigger = on_trigger
         self._loop = asyncio.get_running_loop()
         server = self._make_server(RegisterContext(self, self._unit_id()))
+        server.decoder.register(AllOrNothingReadWrite)
         try:
             await server.serve_forever(background=True)
         except RuntimeError:
@@ -184,11 +226,15 @@ class RegisterServerLink(RobotLink):
     async def image_captured(self, seq: int, job_id: int) -> None:
         self.bank.captured(seq, job_id)
 
-    async def publish(self, seq: int, result: JobResult) -> None:
-        status = self.bank.publish(seq, result, time.monotonic_ns())
-        if status is not result.status:
-            log.warning("%s: request %d published as %s: a value did not fit the registers",
-                        self.name, seq, status.name)
+    async def publish(self, seq: int, result: JobResult) -> Status:
+        published = self.bank.publish(seq, result, time.monotonic_ns())
+        if published.status is not result.status:
+            log.warning("%s: request %d published as %s instead of %s: %s", self.name, seq,
+                        published.status.name, result.status.name, published.message)
+        return published.status
+
+    def refusals(self) -> Mapping[str, int]:
+        return dict(self.bank.refusals)
 
     async def set_warnings(self, bits: int) -> None:
         self.bank.set_warnings(bits)

@@ -1,12 +1,12 @@
 """Universal Robots RTDE link: the robot program triggers jobs and reads results through RTDE
 general-purpose registers (port 30004), with the ``ur_rtde`` client.
 
-The register map and handshake are ``vgripd.service.protocol.URRegisterMap`` (docs/ur_rtde.md); the
-robot
-side is ``robots/urscript/vgripd.script``. The pose goes to the robot in two pages (translation,
-then
-rotation vector) because ur_rtde can write only 5 input double registers; each page is written
-data first, acknowledge last.
+The register map and handshake are ``vgripd.service.protocol.URRegisterMap`` (docs/ur_rtde.md);
+the robot side is ``robots/urscript/vgripd.script``. The pose goes to the robot in two pages
+(translation, then rotation vector) because ur_rtde can write only 5 input double registers; each
+page is written data first, acknowledge last. The robot program uses the six numbers as
+``p[x, y, z, rx, ry, rz]``, so the link carries only the ``ur`` convention (``capabilities``;
+a config with another ``output.vendor`` is refused when it is loaded).
 
 ur_rtde runs in a child process (``ur_rtde_worker``): its constructors hold the GIL with no
 timeout and it aborts the process when it destroys an IO interface on a dead socket. The asyncio
@@ -42,6 +42,7 @@ from drivers.links import ur_rtde_worker
 from vgripd.errors import ConversionError, LinkError
 from vgripd.geometry.vendors import transform_from_vendor
 from vgripd.service.protocol import (
+    LinkCapabilities,
     LinkHealth,
     LinkState,
     RobotLink,
@@ -157,6 +158,9 @@ class URRtdeLink(RobotLink):
     """RobotLink over UR RTDE registers (see module docstring and docs/ur_rtde.md)."""
 
     Options = URRtdeOptions
+    capabilities = LinkCapabilities(
+        6, frozenset({"ur"}), "x, y, z in m and rotation vector rx, ry, rz in rad: the robot "
+        "program's p[x, y, z, rx, ry, rz]")
     options: URRtdeOptions
 
     def __init__(self, name: str, options: URRtdeOptions) -> None:
@@ -208,26 +212,28 @@ class URRtdeLink(RobotLink):
     async def image_captured(self, seq: int, job_id: int) -> None:
         await self._request("captured", (seq, job_id))
 
-    async def publish(self, seq: int, result: JobResult) -> None:
-        """Write status, job id and (for a valid pose) the translation page, then the ack.
+    async def publish(self, seq: int, result: JobResult) -> Status:
+        """Write status, job id and (for a valid pose) the translation page, then the ack;
+        returns the status the robot got.
 
         The rotation page follows when the robot asks for it (``page_request`` = seq). A valid
-        status whose target is not a UR pose is answered INTERNAL and raises ``LinkError``.
+        status whose target is not a UR pose of 6 finite values is answered INTERNAL without a
+        pose and logged as an error: the config check (``capabilities``) refuses any
+        ``output.vendor`` but ``ur``, so only a bug gets here.
         """
-        status, translation, rotation = int(result.status), None, None
-        problem = ""
+        status, translation, rotation = result.status, None, None
         if result.status.pose_valid:
             target = result.target
             if target is None or target.vendor != "ur" or len(target.values) != 6 or not all(
                     math.isfinite(v) for v in target.values):
-                problem = (f"job {result.job_id}: status {result.status.name} needs a 'ur' target "
-                           f"of 6 finite values, got {target}")
-                status = int(Status.INTERNAL)
+                log.error("link %s: job %d: status %s needs a 'ur' target of 6 finite values, "
+                          "got %s; answered INTERNAL", self.name, result.job_id,
+                          result.status.name, target)
+                status = Status.INTERNAL
             else:
                 translation, rotation = tuple(target.values[:3]), tuple(target.values[3:])
-        await self._request("publish", (seq, status, result.job_id, translation, rotation))
-        if problem:
-            raise LinkError(f"link {self.name}: {problem}; answered INTERNAL")
+        await self._request("publish", (seq, int(status), result.job_id, translation, rotation))
+        return status
 
     async def set_warnings(self, bits: int) -> None:
         """Write the bits to input_double_register ``regs.warnings``; while the link is down

@@ -343,6 +343,38 @@ async def test_read_write_multiple_in_one_transaction(served: Harness) -> None:
         client.close()
 
 
+async def test_read_write_multiple_is_all_or_nothing(served: Harness) -> None:
+    """FC23 with a valid write (a trigger) and an illegal read: exception 02 and nothing changed.
+
+    pymodbus applies the write before it looks at the read; the link checks both ranges first.
+    """
+    client = AsyncModbusTcpClient("127.0.0.1", port=served.link.port, retries=0)
+    await client.connect()
+    try:
+        before = (await client.read_holding_registers(0, count=MAP_SIZE, device_id=1)).registers
+        for read_address, read_count in [(MAP_SIZE - 2, 5), (MAP_SIZE, 1), (0, MAP_SIZE + 1)]:
+            r = await client.readwrite_registers(
+                read_address=read_address, read_count=read_count, write_address=Reg.CMD,
+                values=[1, 55, 3], device_id=1)
+            assert (r.isError(), r.exception_code) == (True, 2), (read_address, read_count)
+        after = (await client.read_holding_registers(0, count=MAP_SIZE, device_id=1)).registers
+        assert after[Reg.CMD:Reg.RECIPE + 1] == [0, 0, 0]  # the write did not happen
+        assert after[Reg.STATE] == before[Reg.STATE] == 0
+        assert after[Reg.REJECT_SEQ:Reg.ACK_SEQ + 1] == [0, 0, 0]
+        await asyncio.sleep(0.05)
+        assert served.triggers.empty()  # no job was started
+        # The same request with a legal read is the trigger, and its read sees it.
+        r = await client.readwrite_registers(
+            read_address=Reg.REQ_SEQ, read_count=2, write_address=Reg.CMD, values=[1, 55, 3],
+            device_id=1)
+        assert not r.isError()
+        assert r.registers == [55, 3]
+        t = await served.next_trigger()
+        assert (t.seq, t.recipe) == (55, 3)
+    finally:
+        client.close()
+
+
 # --- WARNINGS (register 40, map version 2) ------------------------------------------------
 
 async def test_warnings_word_live_for_pymodbus_and_mbpoll(served: Harness) -> None:

@@ -126,15 +126,36 @@ async def test_failed_job_answers_status_without_pose() -> None:
         assert result["offset"] == OFFSET
 
 
-async def test_valid_status_without_ur_target_answers_internal() -> None:
+async def test_valid_status_without_ur_target_answers_internal(caplog: pytest.LogCaptureFixture) -> None:
+    """Defensive only: a config whose output.vendor is not "ur" is refused when it is loaded
+    (URRtdeLink.capabilities), so no job of a running daemon gets here."""
     async with connected("127.0.5.3") as (robot, lnk, triggers):
         seq = robot.start_program(1)
         await triggers.next()
         kuka = RobotTarget("kuka", ("X", "Y", "Z", "A", "B", "C"), (1.0, 2.0, 3.0, 0.0, 0.0, 0.0))
-        with pytest.raises(Exception, match="needs a 'ur' target"):
-            await lnk.publish(seq, JobResult(8, Status.OK, target=kuka))
+        with caplog.at_level(logging.ERROR, logger="vgripd.link.ur_rtde"):
+            told = await lnk.publish(seq, JobResult(8, Status.OK, target=kuka))
+        assert told is Status.INTERNAL  # the daemon counts what the robot was told
+        assert "needs a 'ur' target" in caplog.text
         result = robot.program_result(seq)
         assert (result["status"], result["offset"]) == (int(Status.INTERNAL), None)
+
+
+async def test_publish_returns_the_status_the_robot_got() -> None:
+    async with connected("127.0.5.41") as (robot, lnk, triggers):
+        seq = robot.start_program(1, taught_pose=TAUGHT)
+        await triggers.next()
+        assert await lnk.publish(seq, ur_result(4)) is Status.OK
+        assert robot.program_result(seq)["status"] == int(Status.OK)
+
+
+def test_capabilities_carry_only_the_ur_convention() -> None:
+    from vgripd.geometry.vendors import CONVENTIONS
+    caps = URRtdeLink.capabilities
+    carried = [name for name, conv in CONVENTIONS.items() if caps.refusal(conv) is None]
+    assert carried == ["ur"]
+    assert "in m" in caps.units
+    assert "in rad" in caps.units
 
 
 async def test_upper_range_registers() -> None:

@@ -71,7 +71,7 @@ async def test_a_silent_ur_controller_does_not_stop_the_plc_link() -> None:
         robot.set_silent(True)
         config = make_config([
             {"type": "modbus_server", "host": "127.0.0.1", "port": 0},
-            {"type": "ur_rtde", "host": robot.host, "connect_timeout_s": 1.0}])
+            {"type": "ur_rtde", "host": robot.host, "connect_timeout_s": 1.0}], vendor="ur")
         async with running(config) as run:
             plc_name, ur_name = run.daemon.links  # in config order
             await run.daemon.wait_for(

@@ -117,6 +117,11 @@ def test_config_errors_exit_78_naming_the_field(tmp_path: Path) -> None:
         "[[links]]\ntype = 'modbus_server'\nprot = 5020\n": "links.0: prot",
         "[record]\nmax_mb = 0\n": "record.max_mb",
         "[status]\nport = 70000\n": "status.port",
+        # a link that cannot carry the vendor: both fields named (LinkCapabilities)
+        "[output]\nvendor = 'kuka'\n[[links]]\ntype = 'ur_rtde'\nhost = '10.0.0.2'\n":
+            'links[0].type = "ur_rtde" cannot carry output.vendor = "kuka"',
+        "[output]\nvendor = 'matrix'\n[[links]]\ntype = 'modbus_server'\nport = 5020\n":
+            'links[0].type = "modbus_server" cannot carry output.vendor = "matrix"',
     }
     for text, field in cases.items():
         cfg = tmp_path / "bad.toml"

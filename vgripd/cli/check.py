@@ -1,4 +1,5 @@
-"""Validate a config file (fields, driver options, calibration) without starting anything."""
+"""Validate a config file (fields, links against output.vendor, driver options, calibration)
+without starting anything."""
 
 from __future__ import annotations
 

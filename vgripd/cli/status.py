@@ -1,4 +1,4 @@
-"""Show a running daemon's status: state, last job, links, counters, cycle times."""
+"""Show a running daemon's status: state, last job, links, counters, refusals, cycle times."""
 
 from __future__ import annotations
 
@@ -30,6 +30,10 @@ def _age(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
+def _counts(counts: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+
+
 def format_status(s: dict[str, Any]) -> str:
     """The status JSON as a few readable lines."""
     cam = s["camera"]
@@ -46,20 +50,28 @@ def format_status(s: dict[str, Any]) -> str:
     lj = s["last_job"]
     if lj:
         msg = f": {lj['message']}" if lj["message"] else ""
-        lines.append(f"last job {lj['id']}: {lj['status']} ({lj['status_code']}){msg}, "
+        published = lj.get("published", lj["status"])
+        told = ("" if published == lj["status"] else
+                ", NOT DELIVERED" if published is None else f", published as {published}")
+        lines.append(f"last job {lj['id']}: {lj['status']} ({lj['status_code']}){msg}{told}, "
                      f"cycle {lj['cycle_ms']:.1f} ms, {_age(lj['age_s'])} ago")
     else:
         lines.append("no job yet")
     lines.append("links:")
     for link in s["links"]:
         extra = f", last error: {link['last_error']}" if link["last_error"] else ""
+        if link.get("refusals"):
+            extra = f", refused {_counts(link['refusals'])}{extra}"
         lines.append(f"  {link['name']}: {link['state']}"
                      f"{', ' + link['peer'] if link['peer'] else ''}, "
                      f"{link['peers']} peers, reconnects {link['reconnects']}{extra}")
     if not s["links"]:
         lines.append("  none")
-    counts = ", ".join(f"{k} {v}" for k, v in sorted(s["counters"].items())) or "none"
-    lines.append(f"counters: {counts}")
+    lines.append(f"counters: {_counts(s['counters']) or 'none'}")
+    if s.get("refusals"):
+        lines.append(f"  of which refusals: {_counts(s['refusals'])}")
+    if s.get("undelivered"):
+        lines.append(f"not delivered (the link's publish failed): {_counts(s['undelivered'])}")
     cyc = s["cycle_ms"]
     if cyc.get("window"):
         lines.append(f"cycle time over the last {cyc['window']} jobs: p50 {cyc['p50']:.1f} ms, "

@@ -15,6 +15,10 @@ Life of a job (``JobState``)::
   answering within milliseconds while a job is processed.
 - Every job ends with exactly one ``Status``: a camera failure is ``CAMERA_ERROR``, an
   unexpected exception ``INTERNAL`` (logged with its traceback), shutdown ``ABORTED``.
+- Counters count what the peers were told: ``publish`` returns the status the link actually
+  gave its peer (normally the job's), and an answer whose publish failed is counted apart
+  (``undelivered``, by the job's status). Refusals a register link makes on its own handshake
+  (``RobotLink.refusals``: BUSY, BAD_REQUEST) are added to the daemon's own in the status.
 - RECALIBRATE (``EpipolarMonitor``): the median epipolar residual of every stereo job goes
   into a window of ``daemon.recalibrate_window`` jobs; while more than ``recalibrate_share``
   of them exceed ``vision.epipolar_warn_px`` the status carries the warning (logged once when
@@ -92,7 +96,11 @@ class Processor(Protocol):
 
 @dataclasses.dataclass(frozen=True)
 class JobRecord:
-    """A finished job as the daemon remembers it (for status and listeners)."""
+    """A finished job as the daemon remembers it (for status and listeners).
+
+    ``published``: the status the triggering link gave its peer (``result.status`` unless the
+    link had to answer something else); None when the publish failed.
+    """
 
     job_id: int
     link: str
@@ -100,6 +108,7 @@ class JobRecord:
     result: JobResult
     cycle_ms: float  # trigger received -> result published
     t_done_mono_ns: int
+    published: Status | None = None
 
 
 JobListener = Callable[[ImagePair | None, JobRecord], None]
@@ -204,7 +213,11 @@ class Daemon:
         self.notifier = Notifier(self._env)
         self.status_server: StatusServer | None = None
         self.recorder: Recorder | None = None
+        # What the daemon's answers told the peers, by status name: job results as published
+        # and the daemon's own refusals. `snapshot()` adds the links' own refusals.
         self.counters: Counter[str] = Counter()
+        self.refusals: Counter[str] = Counter()  # the daemon's refusals among `counters`
+        self.undelivered: Counter[str] = Counter()  # answers whose publish failed (job status)
         self.cycle_ms: deque[float] = deque(maxlen=config.daemon.stats_window)
         self.last_job: JobRecord | None = None
         d = config.daemon
@@ -358,10 +371,7 @@ class Daemon:
             status = Status.BUSY if accepting else Status.ABORTED
             log.warning("trigger seq %d from %s refused: %s", trigger.seq, trigger.link,
                         status.name)
-            self.counters[status.name] += 1
-            refusal = JobResult(job_id=0, status=status, message=f"refused: {status.name}",
-                                t_done_mono_ns=time.monotonic_ns())
-            self._spawn(self._link_call(trigger.link, "publish", trigger.seq, refusal))
+            self._spawn(self._refuse(trigger, status))
             return
         self._job_seq += 1
         job_id = self._job_seq
@@ -451,15 +461,18 @@ class Daemon:
             else:
                 log.info("RECALIBRATE cleared: %s", self.epipolar.describe())
             await self._show_warnings(first=trigger.link)
-        await self._link_call(trigger.link, "publish", trigger.seq, result)
+        told = await self._publish(trigger.link, trigger.seq, result)
         done_ns = time.monotonic_ns()
         record = JobRecord(job_id=job_id, link=trigger.link, seq=trigger.seq, result=result,
-                           cycle_ms=(done_ns - trigger.t_mono_ns) / 1e6, t_done_mono_ns=done_ns)
+                           cycle_ms=(done_ns - trigger.t_mono_ns) / 1e6, t_done_mono_ns=done_ns,
+                           published=told)
         self.last_job = record
-        self.counters[result.status.name] += 1
+        self._count(result.status, told)
         self.cycle_ms.append(record.cycle_ms)
-        log.info("job %d: %s in %.1f ms%s", job_id, result.status.name, record.cycle_ms,
-                 f" ({result.message})" if result.message else "")
+        told_note = ("" if told is result.status else
+                     "; not delivered" if told is None else f"; published as {told.name}")
+        log.info("job %d: %s in %.1f ms%s%s", job_id, result.status.name, record.cycle_ms,
+                 f" ({result.message})" if result.message else "", told_note)
         if self.recorder is not None and pair is not None:
             self.recorder.submit(pair, result)
         for listener in self.listeners:
@@ -491,13 +504,48 @@ class Daemon:
         except Exception as err:
             log.error("link %s: set_warnings(%#x) failed: %r", name, bits, err)
 
-    async def _link_call(self, name: str, method: str, seq: int, arg: Any) -> None:
-        """Call a link; a failing or hanging link is logged and never fails the job."""
+    async def _link_call(self, name: str, method: str, seq: int, arg: Any) -> Any:
+        """Call a link and return its answer; a failing or hanging link is logged (None) and
+        never fails the job."""
         try:
             async with asyncio.timeout(LINK_CALL_TIMEOUT_S):
-                await getattr(self.links[name], method)(seq, arg)
+                return await getattr(self.links[name], method)(seq, arg)
         except Exception as err:
             log.error("link %s: %s(seq %d) failed: %r", name, method, seq, err)
+            return None
+
+    async def _publish(self, name: str, seq: int, result: JobResult) -> Status | None:
+        """Publish through a link: the status its peer was told, None when it was not."""
+        told = await self._link_call(name, "publish", seq, result)
+        if told is None:  # failed, logged by _link_call
+            return None
+        if not isinstance(told, Status):
+            log.error("link %s: publish(seq %d) returned %r, not a Status", name, seq, told)
+            return None
+        if told is not result.status:
+            log.warning("link %s: seq %d: %s published as %s", name, seq, result.status.name,
+                        told.name)
+        return told
+
+    async def _refuse(self, trigger: Trigger, status: Status) -> None:
+        """Answer a trigger that gets no job (BUSY, ABORTED) and count what the peer got."""
+        refusal = JobResult(job_id=0, status=status, message=f"refused: {status.name}",
+                            t_done_mono_ns=time.monotonic_ns())
+        try:
+            told = await self._publish(trigger.link, trigger.seq, refusal)
+        except asyncio.CancelledError:  # shut down before the answer went out
+            self._count(status, None)
+            raise
+        self._count(status, told, refusal=True)
+
+    def _count(self, status: Status, told: Status | None, refusal: bool = False) -> None:
+        """Count an answer by what the peer was told (``told``), or as undelivered."""
+        if told is None:
+            self.undelivered[status.name] += 1
+            return
+        self.counters[told.name] += 1
+        if refusal:
+            self.refusals[told.name] += 1
 
     # --- background tasks ---------------------------------------------------------------
 
@@ -531,11 +579,26 @@ class Daemon:
         return {"p50": float(p50), "p95": float(p95), "p99": float(p99),
                 "max": max(self.cycle_ms)}
 
+    def link_refusals(self) -> dict[str, Counter[str]]:
+        """Per link, the requests it refused on its own handshake, by status name."""
+        return {name: Counter(link.refusals()) for name, link in self.links.items()}
+
+    def answered(self) -> tuple[Counter[str], Counter[str]]:
+        """All answers the peers were told and the refusals among them, by status name: the
+        daemon's (``counters``, ``refusals``) plus the links' own refusals."""
+        by_links: Counter[str] = Counter()
+        for counts in self.link_refusals().values():
+            by_links.update(counts)
+        return self.counters + by_links, self.refusals + by_links
+
     def status_line(self) -> str:
         """One line for ``systemctl status`` (sd_notify STATUS=)."""
-        jobs = sum(self.counters.values())
-        counts = ", ".join(f"{k} {v}" for k, v in sorted(self.counters.items()))
-        line = f"{self.state.value}; {jobs} triggers" + (f" ({counts})" if counts else "")
+        told, _ = self.answered()
+        triggers = sum(told.values()) + sum(self.undelivered.values())
+        counts = ", ".join(f"{k} {v}" for k, v in sorted(told.items()))
+        if self.undelivered:
+            counts += (", " if counts else "") + f"{sum(self.undelivered.values())} not delivered"
+        line = f"{self.state.value}; {triggers} triggers" + (f" ({counts})" if counts else "")
         if self.last_job is not None:
             lj = self.last_job
             line += f"; last job {lj.job_id} {lj.result.status.name} {lj.cycle_ms:.0f} ms"
@@ -556,14 +619,17 @@ class Daemon:
             lj = self.last_job
             last = {"id": lj.job_id, "link": lj.link, "seq": lj.seq,
                     "status": lj.result.status.name, "status_code": int(lj.result.status),
+                    "published": None if lj.published is None else lj.published.name,
                     "message": lj.result.message, "cycle_ms": lj.cycle_ms,
                     "age_s": (now - lj.t_done_mono_ns) / 1e9}
         links = []
+        link_refusals = self.link_refusals()
         for name, link in self.links.items():
             h = link.health()
             links.append({"name": name, "state": h.state.value, "peer": h.peer,
                           "peers": h.peers, "last_error": h.last_error,
-                          "reconnects": h.reconnects})
+                          "reconnects": h.reconnects, "refusals": dict(link_refusals[name])})
+        told, refused = self.answered()
         return {
             "pid": os.getpid(),
             "run_state": self.run_state.value,
@@ -574,7 +640,9 @@ class Daemon:
             "job": job,
             "last_job": last,
             "links": links,
-            "counters": dict(self.counters),
+            "counters": dict(told),
+            "refusals": dict(refused),
+            "undelivered": dict(self.undelivered),
             "cycle_ms": {"window": len(self.cycle_ms), **self.cycle_percentiles_ms()},
             "recalibrate": self.epipolar.snapshot(now),
             "record": None if self.recorder is None else {

@@ -59,14 +59,18 @@ import enum
 import math
 import struct
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from vgripd.errors import LinkError
 from vgripd.types import FloatArray, JobResult, Status
+
+if TYPE_CHECKING:
+    from vgripd.geometry.vendors import Convention
 
 
 class LinkState(enum.Enum):
@@ -108,10 +112,44 @@ class Trigger:
 TriggerHandler = Callable[[Trigger], None]
 
 
+@dataclass(frozen=True)
+class LinkCapabilities:
+    """What a link can hand its peer as a pose, declared by each link class (``capabilities``).
+
+    A config is judged against it when it is loaded (``vgripd.registry.link_problems``): a link
+    that cannot carry ``output.vendor`` is a config error, not a failure of every job.
+
+    ``max_values``: the most pose values one result can carry.
+    ``conventions``: the vendor conventions (``vgripd.geometry.vendors``) the peer understands;
+    ``None``: any convention of at most ``max_values`` values (the link carries plain numbers).
+    ``units``: what the peer receives, in words (for messages and docs).
+    """
+
+    max_values: int
+    conventions: frozenset[str] | None = None
+    units: str = "the convention's own fields and units"
+
+    def refusal(self, conv: Convention) -> str | None:
+        """Why a pose in ``conv`` cannot be carried; None when it can."""
+        if self.conventions is not None and conv.name not in self.conventions:
+            names = " or ".join(f'"{n}"' for n in sorted(self.conventions))
+            return f"it carries only the {names} convention ({self.units})"
+        if len(conv.fields) > self.max_values:
+            return (f"it carries at most {self.max_values} pose values ({self.units}), "
+                    f'"{conv.name}" has {len(conv.fields)} ({conv.fields[0]} .. {conv.fields[-1]})')
+        return None
+
+
 class RobotLink(ABC):
-    """Base of every link driver. ``__init__`` does no I/O."""
+    """Base of every link driver. ``__init__`` does no I/O.
+
+    ``capabilities`` says which vendor conventions the link can carry; the config is checked
+    against it at load time, so ``publish`` never meets a pose it cannot write (it still answers
+    such a result with a failure status rather than a wrong number).
+    """
 
     Options: ClassVar[type[BaseModel]]
+    capabilities: ClassVar[LinkCapabilities]
 
     def __init__(self, name: str, options: Any) -> None:
         self.name = name
@@ -133,8 +171,22 @@ class RobotLink(ABC):
         """The job for ``seq`` has its images: the robot may move on."""
 
     @abstractmethod
-    async def publish(self, seq: int, result: JobResult) -> None:
-        """Publish a finished job atomically (data first, acknowledged sequence last)."""
+    async def publish(self, seq: int, result: JobResult) -> Status:
+        """Publish a finished job atomically (data first, acknowledged sequence last).
+
+        Returns the status the peer was given: ``result.status``, or the failure the link had
+        to put in its place (a register link answers a value that does not fit its register
+        format with ``OUT_OF_LIMITS``). Raises ``LinkError`` when the peer could not be given
+        the answer now (a link may still hand it over when the peer is back).
+        """
+
+    def refusals(self) -> Mapping[str, int]:
+        """Requests this link refused on its own, without the daemon, by status name.
+
+        Register links refuse on their handshake (``REJECT_SEQ``/``REJECT_CODE``: ``BUSY``,
+        ``BAD_REQUEST``); the daemon adds these to its counters. Default: none.
+        """
+        return {}
 
     async def set_warnings(self, bits: int) -> None:
         """Show the daemon's current ``Warnings`` bits to the peer (live, not tied to a job).
@@ -186,6 +238,8 @@ class Warnings(enum.IntFlag):
 MAP_VERSION = 2  # 1 -> 2: WARNINGS (register 40) added; nothing else moved or changed
 MAP_SIZE = 41
 MAX_VALUES = 7  # ABB/quaternion conventions: XYZ + 4; the others use 6
+REGISTER_CAPABILITIES = LinkCapabilities(
+    MAX_VALUES, None, "VALUES registers 24-37, the convention's fields in its own units")
 COMMAND_AREA = range(Reg.CMD, Reg.RECIPE + 1)
 CHECK_U16 = 0x1234
 CHECK_U32 = 0x12345678
@@ -231,6 +285,11 @@ class RegisterAccessError(LinkError):
 
 class RegisterOverflowError(LinkError):
     """A value cannot be represented in the configured register format."""
+
+
+class RegisterCapacityError(LinkError):
+    """A result has more pose values than the VALUES registers hold (``REGISTER_CAPABILITIES``
+    refuses such a config at load time, so this is a bug, not a job outcome)."""
 
 
 @dataclass(frozen=True)
@@ -329,12 +388,17 @@ class RegisterImage:
             if self.journal is not None:
                 self.journal.append(write)
 
-    def read(self, address: int, count: int, now_ns: int) -> list[int]:
-        """Words ``address .. address+count-1``, with ``RESULT_AGE_MS`` brought up to ``now_ns``."""
+    @staticmethod
+    def check_read(address: int, count: int) -> None:
+        """``RegisterAccessError`` unless ``address .. address+count-1`` lies in the map."""
         if count < 1 or address < 0 or address + count > MAP_SIZE:
             raise RegisterAccessError(
                 f"read of {count} registers at {address} outside 0..{MAP_SIZE - 1}"
             )
+
+    def read(self, address: int, count: int, now_ns: int) -> list[int]:
+        """Words ``address .. address+count-1``, with ``RESULT_AGE_MS`` brought up to ``now_ns``."""
+        self.check_read(address, count)
         if self._t_result_ns is not None:
             age_ms = min((now_ns - self._t_result_ns) // 1_000_000, NO_AGE - 1)
             self.words[Reg.RESULT_AGE_MS:Reg.RESULT_AGE_MS + 2] = self.codec.u32(max(age_ms, 0))
@@ -346,13 +410,15 @@ class RegisterImage:
 
     def result_words(self, result: JobResult) -> tuple[int, ...]:
         """``STATUS .. FIT_RMS`` for ``result``; raises ``RegisterOverflowError`` when a value
-        does not fit (the caller then publishes a failure, never a wrapped number)."""
+        does not fit the register format and ``RegisterCapacityError`` when there are more
+        values than registers (the caller then publishes a failure, never a wrapped number)."""
         values: tuple[float, ...] = ()
         if result.status.pose_valid and result.target is not None:
             values = result.target.values
             if len(values) > MAX_VALUES:
-                raise RegisterOverflowError(
-                    f"{len(values)} pose values do not fit the {MAX_VALUES} VALUES registers"
+                raise RegisterCapacityError(
+                    f"{len(values)} pose values ({result.target.vendor}) do not fit the "
+                    f"{MAX_VALUES} VALUES registers"
                 )
         value_words: list[int] = []
         for i, v in enumerate(values):
@@ -448,6 +514,8 @@ class RegisterBank:
         self.image = RegisterImage(codec, journal)
         self.handshake = Handshake()
         self._heartbeat = 0
+        #: requests refused by the handshake (REJECT_SEQ/REJECT_CODE), by status name
+        self.refusals: Counter[str] = Counter()
 
     def read(self, address: int, count: int, now_ns: int) -> list[int]:
         return self.image.read(address, count, now_ns)
@@ -486,6 +554,7 @@ class RegisterBank:
                 BlockWrite(Reg.REJECT_CODE, (int(decision.code),)),
                 BlockWrite(Reg.REJECT_SEQ, (decision.seq,)),
             ])
+            self.refusals[decision.code.name] += 1
         return decision
 
     def captured(self, seq: int, job_id: int) -> None:
@@ -496,18 +565,21 @@ class RegisterBank:
             BlockWrite(Reg.CAPTURED_SEQ, (seq,)),
         ])
 
-    def publish(self, seq: int, result: JobResult, now_ns: int) -> Status:
+    def publish(self, seq: int, result: JobResult, now_ns: int) -> JobResult:
         """Publish ``result`` for request ``seq``: data, then ``STATE``, then ``ACK_SEQ``.
 
         A value that does not fit the register format turns the result into ``OUT_OF_LIMITS``
-        without a pose. Returns the status actually published.
+        without a pose; more values than registers (a bug: the config check refuses such a
+        vendor) into ``INTERNAL``. Returns the result actually published.
         """
         self.handshake.check_running(seq, "publish")
         try:
             words = self.image.result_words(result)
-        except RegisterOverflowError as err:
-            result = JobResult(job_id=result.job_id, status=Status.OUT_OF_LIMITS,
-                               message=str(err))
+        except (RegisterOverflowError, RegisterCapacityError) as err:
+            status = (Status.OUT_OF_LIMITS if isinstance(err, RegisterOverflowError)
+                      else Status.INTERNAL)
+            result = JobResult(job_id=result.job_id, status=status, message=str(err),
+                               t_done_mono_ns=result.t_done_mono_ns)
             words = self.image.result_words(result)
         self.handshake.on_published(seq)
         self.image.apply([
@@ -516,7 +588,7 @@ class RegisterBank:
             BlockWrite(Reg.ACK_SEQ, (seq,)),
         ])
         self.image.set_result_time(result.t_done_mono_ns or now_ns)
-        return result.status
+        return result
 
     def beat(self) -> int:
         self._heartbeat = (self._heartbeat + 1) & 0xFFFF

@@ -14,16 +14,19 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from vgripd.errors import LinkError
+from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.service.protocol import (
     CHECK_F32,
     MAP_SIZE,
     MAP_VERSION,
     NO_AGE,
+    REGISTER_CAPABILITIES,
     Action,
     BlockWrite,
     Command,
     Handshake,
     HandshakeState,
+    LinkCapabilities,
     Reg,
     RegisterAccessError,
     RegisterBank,
@@ -195,8 +198,8 @@ def test_publish_content_quaternion_and_age() -> None:
     bank.write(Reg.CMD, [Command.TRIGGER, 3, 0])
     bank.captured(3, 0x01020304)
     values = (600.5, -100.25, 10.0, 0.5, 0.5, -0.5, 0.5)
-    status = bank.publish(3, ok_result(values, job_id=0x01020304, rms=0.125), now_ns=0)
-    assert status is Status.OK
+    published = bank.publish(3, ok_result(values, job_id=0x01020304, rms=0.125), now_ns=0)
+    assert published.status is Status.OK
     w = bank.read(0, MAP_SIZE, 1_000_000_000 + 1_234_000_000)
     assert w[Reg.N_VALUES] == 7
     got = [codec.decode_value(w[Reg.VALUES + 2 * i:Reg.VALUES + 2 * i + 2]) for i in range(7)]
@@ -210,11 +213,51 @@ def test_publish_content_quaternion_and_age() -> None:
 def test_unrepresentable_value_publishes_out_of_limits_without_pose() -> None:
     bank = RegisterBank(ValueCodec("ABCD", "int32", 10000))
     bank.write(Reg.CMD, [Command.TRIGGER, 9, 0])
-    status = bank.publish(9, ok_result((1e6, 0.0, 0.0, 0.0, 0.0, 0.0)), now_ns=0)
-    assert status is Status.OUT_OF_LIMITS
+    published = bank.publish(9, ok_result((1e6, 0.0, 0.0, 0.0, 0.0, 0.0)), now_ns=0)
+    assert published.status is Status.OUT_OF_LIMITS
+    assert "does not fit an int32" in published.message
     w = bank.read(0, MAP_SIZE, 0)
     assert (w[Reg.ACK_SEQ], w[Reg.STATUS], w[Reg.N_VALUES]) == (9, Status.OUT_OF_LIMITS, 0)
     assert w[Reg.VALUES:Reg.FIT_RMS] == [0] * 14
+
+
+def test_more_values_than_registers_is_internal_not_a_job_outcome() -> None:
+    # Defensive only: REGISTER_CAPABILITIES makes the config check refuse such a vendor.
+    bank = RegisterBank(ValueCodec())
+    bank.write(Reg.CMD, [Command.TRIGGER, 4, 0])
+    published = bank.publish(4, ok_result(tuple(float(i) for i in range(16))), now_ns=0)
+    assert published.status is Status.INTERNAL
+    assert "16 pose values (kuka) do not fit the 7 VALUES registers" in published.message
+    w = bank.read(0, MAP_SIZE, 0)
+    assert (w[Reg.ACK_SEQ], w[Reg.STATUS], w[Reg.N_VALUES]) == (4, Status.INTERNAL, 0)
+
+
+def test_register_capabilities_carry_every_six_or_seven_value_convention() -> None:
+    carried = {n for n, c in CONVENTIONS.items() if REGISTER_CAPABILITIES.refusal(c) is None}
+    assert carried == {n for n, c in CONVENTIONS.items() if len(c.fields) in (6, 7)}
+    assert carried >= {"kuka", "abb", "ur", "fanuc"}
+    why = REGISTER_CAPABILITIES.refusal(CONVENTIONS["matrix"])
+    assert why is not None
+    assert "at most 7 pose values" in why
+    assert '"matrix" has 16' in why
+
+
+def test_capabilities_limited_to_named_conventions() -> None:
+    caps = LinkCapabilities(6, frozenset({"ur"}), "m and rad")
+    assert caps.refusal(CONVENTIONS["ur"]) is None
+    assert caps.refusal(CONVENTIONS["kuka"]) == 'it carries only the "ur" convention (m and rad)'
+
+
+def test_handshake_refusals_are_counted_by_code() -> None:
+    bank = RegisterBank(ValueCodec())
+    bank.write(Reg.CMD, [Command.TRIGGER, 1, 0])
+    assert bank.write(Reg.CMD, [Command.TRIGGER, 2, 0]).code is Status.BUSY
+    assert bank.write(Reg.CMD, [Command.TRIGGER, 3, 0]).code is Status.BUSY
+    assert bank.write(Reg.CMD, [9, 4, 0]).code is Status.BAD_REQUEST
+    assert bank.write(Reg.CMD, [9, 4, 0]).action is Action.IGNORE  # same sequence: no request
+    assert bank.refusals == {"BUSY": 2, "BAD_REQUEST": 1}
+    bank.publish(1, ok_result((1.0,) * 6), now_ns=0)
+    assert bank.refusals == {"BUSY": 2, "BAD_REQUEST": 1}
 
 
 def test_clear_resets_result_and_acknowledges() -> None:

@@ -58,7 +58,8 @@ def test_a_recorded_job_reads_back_identically(tmp_path: Path) -> None:
 def test_config_snapshot_toml_loads_back_to_the_same_config() -> None:
     links = [{"type": "modbus_server", "host": "127.0.0.1", "port": 1502},
              {"type": "ur_rtde", "host": "ur \"cell\" 3", "upper": True}]
-    config = config_from_dict({"links": links, "record": {"enabled": True, "max_mb": 1.5}})
+    config = config_from_dict({"links": links, "output": {"vendor": "ur"},
+                               "record": {"enabled": True, "max_mb": 1.5}})
     data = config.model_dump(mode="json", exclude_none=True)
     text = toml_from_dict(data)
     assert tomllib.loads(text) == data
