@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 from vgripd.__main__ import main
-from vgripd.calib.handeye import SAMPLES_FORMAT, transform_error
+from vgripd.calib.handeye import SAMPLES_FORMAT
 from vgripd.config import HandEyeConfig
-from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
+from vgripd.geometry.transforms import make_transform, matrix_from_rotvec, pose_error
 
 VISP = "visp_franka_eye_in_hand"
 TABB = "tabb_rwhe_dataset1"
@@ -80,7 +80,7 @@ def test_visp_eye_in_hand_agrees_with_published_emc(datasets: Path, tmp_path: Pa
               "--images", images, "--board", "chessboard:9x6:23.6", "--intrinsics", str(camera)]
     summary = _run_json(capsys, [*common, "-o", str(out), "--report", str(tmp_path / "r.png")])
     X = np.array(summary["matrix_mm"])
-    deg, mm = transform_error(X, VISP_EMC)
+    mm, deg = pose_error(X, VISP_EMC)
     assert deg < 0.3
     assert mm < 2.0
     assert summary["mode"] == "eye-in-hand"
@@ -92,9 +92,9 @@ def test_visp_eye_in_hand_agrees_with_published_emc(datasets: Path, tmp_path: Pa
     poses_only = _run_json(capsys, [*common, "--objective", "poses",
                                     "-o", str(tmp_path / "poses.toml")])
     assert poses_only["solver"] == "refined-poses"
-    assert deg < transform_error(np.array(poses_only["matrix_mm"]), VISP_EMC)[0]
+    assert deg < pose_error(np.array(poses_only["matrix_mm"]), VISP_EMC)[1]
     for name in ("tsai", "park", "horaud", "andreff"):
-        d, m = transform_error(np.array(summary["solvers"][name]["matrix_mm"]), VISP_EMC)
+        m, d = pose_error(np.array(summary["solvers"][name]["matrix_mm"]), VISP_EMC)
         assert d < 0.3, name
         assert m < 2.0, name
     # ViSP's consistency figures of the implied base->board pose: mean 0.456 deg, 5.41 mm
@@ -122,7 +122,7 @@ def test_visp_eye_in_hand_agrees_with_published_emc(datasets: Path, tmp_path: Pa
     # the pixel objective with the robot as exact moves X by degrees on these data
     pixels = _run_json(capsys, ["--samples", str(samples), "--objective", "pixels",
                                 "-o", str(tmp_path / "px.toml")])
-    d, m = transform_error(np.array(pixels["matrix_mm"]), X)
+    m, d = pose_error(np.array(pixels["matrix_mm"]), X)
     assert pixels["solver"] == "refined-pixels"
     assert pixels["rms_px"] < summary["rms_px"]
     assert 2.0 < d < 5.0
@@ -193,13 +193,13 @@ def test_tabb_dataset1_rotation_within_1_deg(datasets: Path, tmp_path: Path,
     # the published translation of inverse(Z), PROVENANCE: [-11.120, -28.947, 3.328] mm
     assert np.abs(ref[:3, 3] - [-11.120, -28.947, 3.328]).max() < 2e-3
     summary = _run_json(capsys, ["--samples", str(samples), "-o", str(tmp_path / "he.toml")])
-    deg, mm = transform_error(np.array(summary["matrix_mm"]), ref)
+    mm, deg = pose_error(np.array(summary["matrix_mm"]), ref)
     assert summary["solver"] == "refined-poses"
     assert summary["rms_px"] is None
     assert deg < 1.0
     assert mm < 50.0
     for name in ("tsai", "park", "horaud", "andreff"):
-        d, m = transform_error(np.array(summary["solvers"][name]["matrix_mm"]), ref)
+        m, d = pose_error(np.array(summary["solvers"][name]["matrix_mm"]), ref)
         assert d < 1.0, name
         assert m < 50.0, name
     assert len(summary["per_sample"]) == 88

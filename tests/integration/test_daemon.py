@@ -26,6 +26,7 @@ from tests.conftest import REPO
 from vgripd.cli.status import format_status
 from vgripd.cli.status import run as status_run
 from vgripd.config import Config, config_from_dict
+from vgripd.geometry.transforms import pose_error
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.daemon import Daemon, JobRecord, JobState
 from vgripd.service.protocol import MAP_SIZE, MAX_VALUES, Command, HandshakeState, Reg, ValueCodec
@@ -113,13 +114,6 @@ class Plc:
 def values(words: list[int]) -> list[float]:
     n = words[Reg.N_VALUES]
     return [CODEC.decode_value(words[Reg.VALUES + 2 * i:Reg.VALUES + 2 * i + 2]) for i in range(n)]
-
-
-def pose_error(truth: np.ndarray, found: np.ndarray) -> tuple[float, float]:
-    """Translation error (mm) and rotation error (deg) between two 4x4 poses."""
-    dt = float(np.linalg.norm(truth[:3, 3] - found[:3, 3]))
-    c = (np.trace(truth[:3, :3].T @ found[:3, :3]) - 1) / 2
-    return dt, float(np.degrees(np.arccos(np.clip(c, -1, 1))))
 
 
 async def test_cycles_publish_accurate_poses_in_the_registers() -> None:

@@ -23,10 +23,9 @@ from vgripd.calib import teach
 from vgripd.calib.files import pose_table
 from vgripd.config import DEMO_OBJECT, PoseConfig, load_config
 from vgripd.geometry.transforms import (
-    invert_transform,
     make_transform,
     matrix_from_rotvec,
-    rotation_angle,
+    pose_error,
 )
 from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
 from vgripd.serialize import toml_from_dict
@@ -41,12 +40,6 @@ REF_POSE = {"translation_mm": [604.0, 97.0, 12.0], "rotvec_rad": [0.01, -0.02, 0
 MOVE = make_transform(matrix_from_rotvec([0.0, 0.0, np.radians(3.0)]), [0.0, 0.0, 0.0])
 MOVE = (make_transform(np.eye(3), [606.0, 96.0, 0.0]) @ MOVE
         @ make_transform(np.eye(3), [-600.0, -100.0, 0.0]))
-
-
-def errors(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    E = invert_transform(T_true) @ T
-    return float(np.linalg.norm(T[:3, 3] - T_true[:3, 3])), float(
-        np.degrees(rotation_angle(E[:3, :3])))
 
 
 def write_config(folder: Path, pose: dict[str, Any], seed: int = 3, **sections: Any) -> Path:
@@ -90,7 +83,7 @@ def test_teach_cad_reference_then_offsets(tmp_path: Path, capsys: pytest.Capture
     assert summary["include"] == "reference.toml"
     written = tomllib.loads(out.read_text())
     T = matrix_from_pose(load_config_pose(written["reference"]["T_base_obj"]))
-    err_mm, err_deg = errors(T, matrix_from_pose(load_config_pose(REF_POSE)))
+    err_mm, err_deg = pose_error(T, matrix_from_pose(load_config_pose(REF_POSE)))
     assert err_mm < MAX_MM
     assert err_deg < MAX_DEG
     assert summary["spread"]["mm"] < 0.1
@@ -110,13 +103,13 @@ def test_teach_cad_reference_then_offsets(tmp_path: Path, capsys: pytest.Capture
                           include=["reference.toml"])
     for result, _ in locate(at_ref):
         assert result.status is Status.OK, result.message
-        assert errors(result.offset, np.eye(4)) < (MAX_MM, MAX_DEG)
+        assert pose_error(result.offset, np.eye(4)) < (MAX_MM, MAX_DEG)
     moved = MOVE @ matrix_from_pose(load_config_pose(REF_POSE))
     cfg_moved = write_config(tmp_path, pose_dict(moved), seed=9, object=demo_object("cad"),
                              include=["reference.toml"])
     for result, _ in locate(cfg_moved):
         assert result.status is Status.OK, result.message
-        assert errors(result.offset, MOVE) < (MAX_MM, MAX_DEG)
+        assert pose_error(result.offset, MOVE) < (MAX_MM, MAX_DEG)
 
 
 def test_teach_reference_definition_measures_points(tmp_path: Path,
@@ -137,7 +130,7 @@ def test_teach_reference_definition_measures_points(tmp_path: Path,
                              include=["reference.toml"])
     for result, _ in locate(cfg_moved):
         assert result.status is Status.OK, result.message
-        assert errors(result.offset, MOVE) < (MAX_MM, MAX_DEG)
+        assert pose_error(result.offset, MOVE) < (MAX_MM, MAX_DEG)
         assert result.residuals["fit_rms_mm"] < 0.1
 
 
@@ -156,7 +149,7 @@ def test_grip_is_stored_and_published_as_offset_at_grip(tmp_path: Path):
         assert result.status is Status.OK, result.message
         sent = transform_from_vendor("kuka", result.target.values)
         np.testing.assert_allclose(sent, result.offset @ G, atol=1e-6)
-        assert errors(sent, MOVE @ G) < (MAX_MM + 0.5, MAX_DEG)  # the grip is 45 mm up
+        assert pose_error(sent, MOVE @ G) < (MAX_MM + 0.5, MAX_DEG)  # the grip is 45 mm up
         assert vendor_from_transform("kuka", sent) == pytest.approx(result.target.values)
 
 

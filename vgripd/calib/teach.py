@@ -25,11 +25,10 @@ from vgripd.calib.files import pose_table
 from vgripd.config import Config, PoseConfig, ReferenceConfig
 from vgripd.errors import CalibrationError
 from vgripd.geometry.transforms import (
-    invert_transform,
     make_transform,
     matrix_from_quat,
+    pose_error,
     quat_from_matrix,
-    rotation_angle,
 )
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.types import FloatArray, ImagePair, JobResult, Status
@@ -109,13 +108,6 @@ def mean_transform(Ts: Sequence[FloatArray]) -> FloatArray:
     return make_transform(matrix_from_quat(vectors[:, -1]), t)
 
 
-def deviation(T: FloatArray, T_mean: FloatArray) -> tuple[float, float]:
-    """Translation (mm) and rotation (deg) of ``T`` away from ``T_mean``."""
-    E = invert_transform(T_mean) @ T
-    return (float(np.linalg.norm(T[:3, 3] - T_mean[:3, 3])),
-            math.degrees(rotation_angle(E[:3, :3])))
-
-
 @dataclass(frozen=True)
 class Taught:
     """The averaged reference and its repeatability over the shots.
@@ -170,7 +162,7 @@ def average(shots: Sequence[Shot]) -> Taught:
         T_base_obj=T_mean,
         points_base=dict(zip(names, mean_points, strict=True)),
         shots=tuple(shots),
-        deviations=tuple(deviation(s.T_base_obj, T_mean) for s in shots),
+        deviations=tuple(pose_error(s.T_base_obj, T_mean) for s in shots),
         point_deviations_mm=tuple(float(d) for d in point_dev),
     )
 

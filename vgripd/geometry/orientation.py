@@ -27,7 +27,12 @@ import numpy.typing as npt
 
 from vgripd.errors import ConvergenceError, DegenerateInputError, GeometryError
 from vgripd.geometry.camera_model import CameraModel
-from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
+from vgripd.geometry.transforms import (
+    make_transform,
+    matrices_from_quats,
+    matrix_from_rotvec,
+    skew,
+)
 from vgripd.types import FloatArray
 
 __all__ = [
@@ -198,34 +203,6 @@ def _rotation_quadratic(q: list[float]) -> list[list[float]]:
     ]
 
 
-def _quadratic_map() -> FloatArray:
-    """(16, 9) map from ``outer(q, q).ravel()`` to ``R(q).ravel()``, by polarisation."""
-    def flat(q: FloatArray) -> FloatArray:
-        return np.ravel(_rotation_quadratic(q.tolist()))
-
-    basis = np.eye(4)
-    Q = np.zeros((4, 4, 9))
-    for k in range(4):
-        Q[k, k] = flat(basis[k])
-        for m in range(k + 1, 4):
-            Q[k, m] = Q[m, k] = 0.5 * (flat(basis[k] + basis[m]) - Q[k, k] - flat(basis[m]))
-    return Q.reshape(16, 9)
-
-
-_QUAT_MAP = _quadratic_map()
-
-
-def _matrices_from_quats(q: FloatArray) -> FloatArray:
-    """Rotation matrices (m, 3, 3) from unit quaternions (m, 4), (w, x, y, z).
-
-    A stacked, unchecked twin of :func:`vgripd.geometry.transforms.matrix_from_quat` (which takes
-    one
-    quaternion and validates it): the callers pass eigenvectors, unit by construction. One
-    matrix product of the quaternions' outer products with a tabulated map.
-    """
-    return ((q[:, :, None] * q[:, None, :]).reshape(-1, 16) @ _QUAT_MAP).reshape(-1, 3, 3)
-
-
 def horn(points_from: object, points_to: object, weights: object = None) -> HornResult:
     """Closed-form least-squares rigid transform (Horn 1987, unit quaternions).
 
@@ -298,7 +275,7 @@ def _triple_hypotheses(a: FloatArray, b: FloatArray, triples: npt.NDArray[np.int
     ta, tb = a[triples], b[triples]  # (m, 3, 3): triple, point, coordinate
     ca, cb = ta.mean(axis=1), tb.mean(axis=1)
     M = (ta - ca[:, None]).transpose(0, 2, 1) @ (tb - cb[:, None])
-    R = _matrices_from_quats(np.linalg.eigh(_horn_matrix(M))[1][:, :, 3])
+    R = matrices_from_quats(np.linalg.eigh(_horn_matrix(M))[1][:, :, 3])
     t = cb - np.einsum("mij,mj->mi", R, ca)
     return np.linalg.norm(np.einsum("mij,nj->mni", R, a) + t[:, None] - b[None], axis=2)
 
@@ -460,10 +437,7 @@ def _refine_lm(
         J_x = (proj[:, :3, :] - proj[:, 3:, :]).transpose(0, 2, 1) / (2.0 * h[:, 0, 0])[
             :, None, None
         ]  # (n, 2, 3): d pixel / d X
-        skew = np.zeros((n, 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -X[:, 2], X[:, 1], -X[:, 0]
-        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = X[:, 2], -X[:, 1], X[:, 0]
-        J = np.concatenate([J_x @ -skew, J_x], axis=2).reshape(2 * n, 6)
+        J = np.concatenate([J_x @ -skew(X), J_x], axis=2).reshape(2 * n, 6)
         g = J.T @ res.reshape(-1)
         H = J.T @ J
         while True:

@@ -372,3 +372,244 @@ def pose_error(T: Any, T_ref: Any) -> tuple[float, float]:
     B = np.asarray(T_ref, dtype=float)
     return (float(np.linalg.norm(A[:3, 3] - B[:3, 3])),
             math.degrees(rotation_angle(B[:3, :3].T @ A[:3, :3])))
+
+
+# ---------------------------------------------------------------------- stacked helpers
+# Vectorised over any leading axes and unchecked: the callers (the hand-eye solvers and
+# refinements, Horn's method) pass rotations they built themselves and call these on stacks,
+# often thousands of times, where the validating one-at-a-time functions above would cost more
+# than the arithmetic. Same conventions: (w, x, y, z) quaternions, rotation vectors in rad,
+# 6-vectors ``(rotation vector, translation)``.
+
+#: Below this angle (rad) the series of the Rodrigues / Jacobian coefficients are used.
+_SERIES_ANGLE = 1e-2
+
+
+def skew(v: Any) -> FloatArray:
+    """Cross-product matrices ``[v]x`` (``[v]x @ u == v x u``) of (..., 3) vectors, (..., 3, 3)."""
+    a = np.asarray(v, dtype=np.float64)
+    out = np.zeros((*a.shape[:-1], 3, 3))
+    x, y, z = a[..., 0], a[..., 1], a[..., 2]
+    out[..., 0, 1], out[..., 0, 2] = -z, y
+    out[..., 1, 0], out[..., 1, 2] = z, -x
+    out[..., 2, 0], out[..., 2, 1] = -y, x
+    return out
+
+
+def vee(M: Any) -> FloatArray:
+    """The vector of the antisymmetric part of (..., 3, 3) matrices: ``vee(skew(v)) == v``; for
+    a rotation by ``angle`` about unit ``axis`` it is ``axis * sin(angle)``."""
+    a = np.asarray(M, dtype=np.float64)
+    return 0.5 * np.stack([a[..., 2, 1] - a[..., 1, 2], a[..., 0, 2] - a[..., 2, 0],
+                           a[..., 1, 0] - a[..., 0, 1]], axis=-1)
+
+
+def project_rotation(M: Any) -> FloatArray:
+    """The rotation nearest (Frobenius norm) to each (..., 3, 3) matrix: ``U diag(1, 1, d) V^T``
+    from its SVD, ``d = det(U V^T)`` so that the result is never a reflection. Of a sum of
+    rotations this is their chordal mean."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
+    d = np.where(np.linalg.det(U @ Vt) < 0, -1.0, 1.0)
+    out: FloatArray = (U * np.stack([np.ones_like(d), np.ones_like(d), d], axis=-1)[..., None, :]
+                       ) @ Vt
+    return out
+
+
+def quat_multiply(a: Any, b: Any) -> FloatArray:
+    """Hamilton products ``a * b`` of (..., 4) quaternions (w, x, y, z); the rotation of the
+    product is ``R(a) @ R(b)``."""
+    p = np.asarray(a, dtype=np.float64)
+    q = np.asarray(b, dtype=np.float64)
+    w = p[..., :1] * q[..., :1] - (p[..., 1:] * q[..., 1:]).sum(axis=-1, keepdims=True)
+    v = p[..., :1] * q[..., 1:] + q[..., :1] * p[..., 1:] + np.cross(p[..., 1:], q[..., 1:])
+    return np.concatenate([w, v], axis=-1)
+
+
+def quat_conjugate(q: Any) -> FloatArray:
+    """Conjugates of (..., 4) quaternions (w, x, y, z): the inverse rotations of unit ones."""
+    out: FloatArray = np.asarray(q, dtype=np.float64) * np.array([1.0, -1.0, -1.0, -1.0])
+    return out
+
+
+def _canonical_quats(q: FloatArray) -> FloatArray:
+    """Sign rule of :func:`quat_from_matrix` on (..., 4): w > 0, or for w == 0 the first
+    non-zero of x, y, z positive."""
+    first = np.take_along_axis(q[..., 1:], np.argmax(q[..., 1:] != 0, axis=-1)[..., None],
+                               axis=-1)[..., 0]
+    lead = np.where(q[..., 0] != 0, q[..., 0], first)
+    out: FloatArray = q * np.where(lead < 0, -1.0, 1.0)[..., None]
+    return out
+
+
+def quats_from_matrices(R: Any) -> FloatArray:
+    """Unit quaternions (..., 4) (w, x, y, z) of (..., 3, 3) rotations, with the canonical sign
+    of :func:`quat_from_matrix`.
+
+    The eigenvector of the largest eigenvalue of Bar-Itzhack's symmetric 4x4 matrix: accurate
+    at every angle, and for a matrix slightly off orthonormal (a product of measured rotations)
+    the quaternion of the nearest rotation.
+    """
+    M = np.asarray(R, dtype=np.float64)
+    xx, xy, xz = M[..., 0, 0], M[..., 0, 1], M[..., 0, 2]
+    yx, yy, yz = M[..., 1, 0], M[..., 1, 1], M[..., 1, 2]
+    zx, zy, zz = M[..., 2, 0], M[..., 2, 1], M[..., 2, 2]
+    K = np.stack([
+        np.stack([xx - yy - zz, yx + xy, zx + xz, zy - yz], axis=-1),
+        np.stack([yx + xy, yy - xx - zz, zy + yz, xz - zx], axis=-1),
+        np.stack([zx + xz, zy + yz, zz - xx - yy, yx - xy], axis=-1),
+        np.stack([zy - yz, xz - zx, yx - xy, xx + yy + zz], axis=-1)], axis=-2) / 3.0
+    v = np.linalg.eigh(K)[1][..., :, 3]  # (x, y, z, w)
+    return _canonical_quats(np.concatenate([v[..., 3:], v[..., :3]], axis=-1))
+
+
+def matrices_from_quats(q: Any) -> FloatArray:
+    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) (w, x, y, z); the norm is not
+    checked (see :func:`matrix_from_quat` for parsed input)."""
+    a = np.asarray(q, dtype=np.float64)
+    w, x, y, z = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
+    ], axis=-2)
+
+
+def matrices_from_rotvecs(v: Any) -> FloatArray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (axis * angle, rad): the
+    exponential map of SO(3), Rodrigues' formula ``I + sin(t)/t K + (1 - cos t)/t^2 K^2`` with
+    both coefficients written through ``np.sinc`` (exact at t = 0)."""
+    a = np.asarray(v, dtype=np.float64)
+    theta = np.linalg.norm(a, axis=-1)[..., None, None]
+    K = skew(a)
+    half = np.sinc(theta / (2.0 * np.pi))
+    out: FloatArray = np.eye(3) + np.sinc(theta / np.pi) * K + 0.5 * half * half * (K @ K)
+    return out
+
+
+def rotation_angles(R: Any) -> FloatArray:
+    """Angles in [0, pi] (rad) of (..., 3, 3) rotations: ``atan2(|vee R|, (trace R - 1) / 2)``,
+    accurate at both ends (the sine carries small angles, the cosine angles near pi)."""
+    M = np.asarray(R, dtype=np.float64)
+    out: FloatArray = np.arctan2(np.linalg.norm(vee(M), axis=-1),
+                                 (np.trace(M, axis1=-2, axis2=-1) - 1.0) / 2.0)
+    return out
+
+
+def rotvecs_from_matrices(R: Any) -> FloatArray:
+    """Rotation vectors (..., 3), angle in [0, pi], of (..., 3, 3) rotations: the logarithm of
+    SO(3). Up to 90 deg the axis is the antisymmetric part's direction; beyond, where that part
+    shrinks to nothing at pi, it is the dominant column of the symmetric part
+    ``(R + R^T) / 2 - cos(angle) I = (1 - cos(angle)) axis axis^T``, signed by the
+    antisymmetric part. At exactly pi the sign of the axis is arbitrary."""
+    M = np.asarray(R, dtype=np.float64)
+    w = vee(M)
+    s = np.linalg.norm(w, axis=-1)
+    c = (np.trace(M, axis1=-2, axis2=-1) - 1.0) / 2.0
+    theta = np.arctan2(s, c)
+    # theta / sin(theta) -> 1 at 0; only used where c >= 0, so s > 0 unless theta == 0.
+    scale = np.where(s > 0, theta / np.where(s > 0, s, 1.0), 1.0)
+    out: FloatArray = w * scale[..., None]
+    wide = c < 0
+    if np.any(wide):
+        S = 0.5 * (M[wide] + np.swapaxes(M[wide], -1, -2)) - c[wide][:, None, None] * np.eye(3)
+        diag = np.diagonal(S, axis1=-2, axis2=-1)
+        k = np.argmax(diag, axis=-1)
+        col = np.take_along_axis(S, k[:, None, None], axis=-1)[..., 0]
+        pick = np.take_along_axis(diag, k[:, None], axis=-1)[:, 0]
+        axis = col / np.sqrt(pick * (1.0 - c[wide]))[:, None]
+        axis *= np.where((axis * w[wide]).sum(axis=-1) < 0, -1.0, 1.0)[:, None]
+        out[wide] = axis * theta[wide][:, None]
+    return out
+
+
+def transforms_from_vectors(v: Any) -> FloatArray:
+    """(..., 4, 4) transforms of (..., 6) vectors ``(rotation vector rad, translation)``.
+
+    The rotation is SO(3)'s exponential, the translation is taken as is (not the screw motion
+    of SE(3)'s exponential): the small-motion parametrisation of the refinements, whose
+    inverse is :func:`vectors_from_transforms`.
+    """
+    a = np.asarray(v, dtype=np.float64)
+    out = np.zeros((*a.shape[:-1], 4, 4))
+    out[..., :3, :3] = matrices_from_rotvecs(a[..., :3])
+    out[..., :3, 3] = a[..., 3:]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def vectors_from_transforms(T: Any) -> FloatArray:
+    """(..., 6) vectors ``(rotation vector rad, translation)`` of (..., 4, 4) transforms; the
+    inverse of :func:`transforms_from_vectors`."""
+    M = np.asarray(T, dtype=np.float64)
+    return np.concatenate([rotvecs_from_matrices(M[..., :3, :3]), M[..., :3, 3]], axis=-1)
+
+
+def invert_transforms(T: Any) -> FloatArray:
+    """:func:`invert_transform` of a (..., 4, 4) stack (R^T, -R^T t)."""
+    M = np.asarray(T, dtype=np.float64)
+    out = np.zeros_like(M)
+    Rt = np.swapaxes(M[..., :3, :3], -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ M[..., :3, 3, None])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def adjoint(T: Any) -> FloatArray:
+    """(..., 6, 6) adjoint maps of (..., 4, 4) transforms ``T_a_b``: a small motion
+    ``(rotation rad, translation)`` expressed in frame b, ``T_a_b @ exp(d) @ T_b_a``, is the
+    motion ``adjoint(T_a_b) @ d`` expressed in frame a (to first order)."""
+    M = np.asarray(T, dtype=np.float64)
+    R, t = M[..., :3, :3], M[..., :3, 3]
+    out = np.zeros((*M.shape[:-2], 6, 6))
+    out[..., :3, :3] = R
+    out[..., 3:, 3:] = R
+    out[..., 3:, :3] = skew(t) @ R
+    return out
+
+
+def _jacobian_coefficients(theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``(1 - cos t) / t^2``, ``(t - sin t) / t^3`` and ``(1 - (t/2) cot(t/2)) / t^2`` of
+    SO(3)'s Jacobians, with their series below ``_SERIES_ANGLE``."""
+    t = np.where(theta < _SERIES_ANGLE, _SERIES_ANGLE, theta)  # keeps the unused branch finite
+    t2 = theta * theta
+    half = np.sinc(theta / (2.0 * np.pi))
+    b = 0.5 * half * half
+    c = np.where(theta < _SERIES_ANGLE, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0,
+                 (t - np.sin(t)) / t**3)
+    d = np.where(theta < _SERIES_ANGLE, 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
+                 (1.0 - 0.5 * t * np.cos(0.5 * t) / np.sin(0.5 * t)) / (t * t))
+    return b, c, d
+
+
+def left_jacobians(v: Any) -> FloatArray:
+    """(..., 3, 3) left Jacobians of SO(3) at rotation vectors (..., 3):
+    ``matrix_from_rotvec(v + e) = matrix_from_rotvec(J e) @ matrix_from_rotvec(v)`` to first
+    order in ``e``. The right Jacobian is ``left_jacobians(-v)``."""
+    a = np.asarray(v, dtype=np.float64)
+    b, c, _ = _jacobian_coefficients(np.linalg.norm(a, axis=-1)[..., None, None])
+    K = skew(a)
+    out: FloatArray = np.eye(3) + b * K + c * (K @ K)
+    return out
+
+
+def inverse_left_jacobians(v: Any) -> FloatArray:
+    """Inverses of :func:`left_jacobians` (..., 3, 3): how the rotation vector of
+    ``matrix_from_rotvec(e) @ R`` changes with a small ``e`` (``v`` = rotation vector of R,
+    angle below pi)."""
+    a = np.asarray(v, dtype=np.float64)
+    _, _, d = _jacobian_coefficients(np.linalg.norm(a, axis=-1)[..., None, None])
+    K = skew(a)
+    out: FloatArray = np.eye(3) - 0.5 * K + d * (K @ K)
+    return out
+
+
+def pose_errors(T: Any, T_ref: Any) -> tuple[FloatArray, FloatArray]:
+    """:func:`pose_error` of stacks: (..., 4, 4) poses against (..., 4, 4) references
+    (broadcast); returns (translation distances, rotation angles in degrees)."""
+    A = np.asarray(T, dtype=np.float64)
+    B = np.asarray(T_ref, dtype=np.float64)
+    mm: FloatArray = np.linalg.norm(A[..., :3, 3] - B[..., :3, 3], axis=-1)
+    deg: FloatArray = np.degrees(rotation_angles(np.swapaxes(B[..., :3, :3], -1, -2)
+                                                 @ A[..., :3, :3]))
+    return mm, deg

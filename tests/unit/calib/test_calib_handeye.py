@@ -25,11 +25,15 @@ from vgripd.calib.handeye import (
     read_poses,
     save_samples,
     synthetic_samples,
-    transform_error,
 )
 from vgripd.errors import CalibrationError
 from vgripd.geometry.camera_model import CameraModel
-from vgripd.geometry.transforms import invert_transform, make_transform, matrix_from_rotvec
+from vgripd.geometry.transforms import (
+    invert_transform,
+    make_transform,
+    matrix_from_rotvec,
+    pose_error,
+)
 
 CAMERA = CameraModel(800.0, 805.0, 322.0, 241.0, dist=(-0.12, 0.08, 0.0005, -0.0003, 0.0),
                      width=640, height=480)
@@ -62,16 +66,16 @@ def test_noise_free_every_solver_and_the_refinement_are_exact(mode: str) -> None
     assert set(res.solvers) == set(SOLVERS) == {"tsai", "park", "horaud", "andreff",
                                                 "daniilidis"}
     for name, sol in res.solvers.items():
-        deg, mm = transform_error(sol.T, X)
+        mm, deg = pose_error(sol.T, X)
         assert deg < 1e-9, name
         assert mm < 1e-8, name
     assert res.solver == "refined-likelihood"
     assert res.robot_sigma is not None
     assert res.robot_sigma == (ROBOT_SIGMA_DEG[0], ROBOT_SIGMA_MM[0])  # exact robot
-    deg, mm = transform_error(res.T, X)
+    mm, deg = pose_error(res.T, X)
     assert deg < 1e-9
     assert mm < 1e-8
-    assert transform_error(res.T_anchor_board, C)[1] < 1e-8
+    assert pose_error(res.T_anchor_board, C)[0] < 1e-8
     assert res.rms_px is not None
     assert res.rms_px < 1e-9
     assert res.warnings == []
@@ -89,7 +93,7 @@ def test_eye_to_hand_result_is_base_camera_and_closes_the_loop() -> None:
         assert np.abs(lhs - rhs).max() < 1e-8
     # the same samples read as eye-in-hand do not fit: the mounting matters
     wrong = calibrate_hand_eye(samples, "eye-in-hand", CAMERA, stability=False, objective="none")
-    assert transform_error(wrong.T, X_ETH)[0] > 1.0
+    assert pose_error(wrong.T, X_ETH)[1] > 1.0
 
 
 def test_pose_only_samples_refine_on_pose_residuals() -> None:
@@ -100,7 +104,7 @@ def test_pose_only_samples_refine_on_pose_residuals() -> None:
     res = calibrate_hand_eye(samples, "eye-in-hand", None)
     assert res.solver == "refined-poses"
     assert res.rms_px is None
-    deg, mm = transform_error(res.T, X_EIH)
+    mm, deg = pose_error(res.T, X_EIH)
     assert deg < 1e-9
     assert mm < 1e-8
     assert res.stability is not None
@@ -124,18 +128,18 @@ def test_noisy_refinement_is_at_least_as_good_as_the_best_linear_solver() -> Non
         fresh = _fresh(samples)
         px = calibrate_hand_eye(fresh, "eye-in-hand", CAMERA, stability=False,
                                 objective="pixels")
-        deg, mm = transform_error(res.T, px.T)
+        mm, deg = pose_error(res.T, px.T)
         assert deg < 0.02
         assert mm < 0.05
-        errors.setdefault("refined", []).append(transform_error(res.T, X_EIH))
+        errors.setdefault("refined", []).append(pose_error(res.T, X_EIH))
         for name, sol in res.solvers.items():
-            errors.setdefault(name, []).append(transform_error(sol.T, X_EIH))
-    mean = {k: np.mean(v, axis=0) for k, v in errors.items()}
-    best_deg = min(m[0] for k, m in mean.items() if k != "refined")
-    best_mm = min(m[1] for k, m in mean.items() if k != "refined")
-    assert mean["refined"][0] <= best_deg
-    assert mean["refined"][1] <= best_mm
-    assert mean["refined"][1] < 0.5  # mm; and not by luck of a huge tolerance
+            errors.setdefault(name, []).append(pose_error(sol.T, X_EIH))
+    mean = {k: np.mean(v, axis=0) for k, v in errors.items()}  # (mm, deg)
+    best_deg = min(m[1] for k, m in mean.items() if k != "refined")
+    best_mm = min(m[0] for k, m in mean.items() if k != "refined")
+    assert mean["refined"][1] <= best_deg
+    assert mean["refined"][0] <= best_mm
+    assert mean["refined"][0] < 0.5  # mm; and not by luck of a huge tolerance
 
 
 def test_stability_reports_leave_one_out_spread() -> None:
@@ -207,9 +211,9 @@ def _objectives(samples: list[Sample], *objectives: str) -> dict[str, tuple[floa
         fresh = _fresh(samples)
         res = calibrate_hand_eye(fresh, "eye-in-hand", CAMERA, stability=False,
                                  objective=objective)
-        out[objective] = transform_error(res.T, X_EIH)
+        out[objective] = pose_error(res.T, X_EIH)
         for name, sol in res.solvers.items():
-            out[name] = transform_error(sol.T, X_EIH)
+            out[name] = pose_error(sol.T, X_EIH)
     return out
 
 
@@ -226,11 +230,11 @@ def test_likelihood_beats_pixels_and_linear_solvers_when_the_robot_is_noisy() ->
         for k, v in _objectives(samples, "likelihood", "pixels").items():
             errors.setdefault(k, []).append(v)
     mean = {k: np.mean(v, axis=0) for k, v in errors.items()}
-    best_deg = min(mean[k][0] for k in SOLVERS)
-    best_mm = min(mean[k][1] for k in SOLVERS)
-    assert mean["pixels"][0] > best_deg
-    assert mean["likelihood"][0] < min(best_deg, mean["pixels"][0])
-    assert mean["likelihood"][1] < min(best_mm, mean["pixels"][1])
+    best_deg = min(mean[k][1] for k in SOLVERS)  # pose_error: (mm, deg)
+    best_mm = min(mean[k][0] for k in SOLVERS)
+    assert mean["pixels"][1] > best_deg
+    assert mean["likelihood"][1] < min(best_deg, mean["pixels"][1])
+    assert mean["likelihood"][0] < min(best_mm, mean["pixels"][0])
 
 
 def test_large_robot_noise_is_estimated_and_warned_about() -> None:
@@ -248,12 +252,12 @@ def test_large_robot_noise_is_estimated_and_warned_about() -> None:
     assert any("robot poses disagree with the images" in w for w in res.warnings), res.warnings
     assert res.rms_px is not None
     assert res.rms_px > 1.0
-    deg, mm = transform_error(res.T, X_EIH)
+    mm, deg = pose_error(res.T, X_EIH)
     assert deg < 0.3
     assert mm < 3.0
     px = calibrate_hand_eye(fresh, "eye-in-hand", CAMERA, stability=False, objective="pixels")
     assert any("pixel fit bends X" in w for w in px.warnings), px.warnings
-    assert transform_error(px.T, X_EIH)[0] > deg
+    assert pose_error(px.T, X_EIH)[1] > deg
 
 
 def test_likelihood_eye_to_hand_with_robot_noise() -> None:
@@ -268,7 +272,7 @@ def test_likelihood_eye_to_hand_with_robot_noise() -> None:
             fresh = _fresh(samples)
             res = calibrate_hand_eye(fresh, "eye-to-hand", CAMERA, stability=False,
                                      objective=objective)
-            err[objective].append(transform_error(res.T, X))
+            err[objective].append(pose_error(res.T, X))
             if objective == "likelihood":
                 # within a grid step of the truth (the flange-frame noise carried through the
                 # wrong frame comes out at 0.003 deg on some of these sets)
@@ -339,8 +343,8 @@ def test_cli_exclude_leaves_out_an_outlier_and_keeps_sample_numbers(tmp_path, ca
     assert [r["sample"] for r in again["per_sample"]] == [k for k in range(12) if k != 7]
     assert not any(r["outlier"] for r in again["per_sample"])
     assert again["rejected"] == [{"image": "synthetic-07", "reason": "excluded with --exclude"}]
-    before = transform_error(np.array(first["matrix_mm"]), X_EIH)
-    after = transform_error(np.array(again["matrix_mm"]), X_EIH)
+    before = pose_error(np.array(first["matrix_mm"]), X_EIH)
+    after = pose_error(np.array(again["matrix_mm"]), X_EIH)
     assert after[0] < before[0] / 2
     assert after[1] < before[1] / 2
     assert "--exclude 7" in (tmp_path / "he.toml").read_text()  # the command, in [about]

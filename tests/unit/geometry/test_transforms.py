@@ -16,22 +16,40 @@ from scipy.spatial.transform import Rotation
 
 from vgripd.errors import DegenerateInputError
 from vgripd.geometry.transforms import (
+    adjoint,
     check_rotation,
     check_transform,
     compose,
     euler_from_matrix,
     euler_zyx_from_matrix,
+    inverse_left_jacobians,
     invert_transform,
+    invert_transforms,
+    left_jacobians,
     make_transform,
+    matrices_from_quats,
+    matrices_from_rotvecs,
     matrix_from_euler,
     matrix_from_euler_zyx,
     matrix_from_quat,
     matrix_from_rotvec,
+    pose_error,
+    pose_errors,
+    project_rotation,
+    quat_conjugate,
     quat_from_matrix,
+    quat_multiply,
+    quats_from_matrices,
     rotation_angle,
+    rotation_angles,
     rotvec_from_matrix,
+    rotvecs_from_matrices,
+    skew,
     solve_loop,
     transform_points,
+    transforms_from_vectors,
+    vectors_from_transforms,
+    vee,
 )
 
 RNG = np.random.default_rng(20240601)
@@ -232,3 +250,162 @@ def test_validation_messages() -> None:
         make_transform(np.eye(3), [1.0, np.inf, 0.0])
     with pytest.raises(DegenerateInputError, match=r"\(n, 3\)"):
         transform_points(np.eye(4), np.zeros(3))
+
+
+# ---------------------------------------------------------------------- stacked helpers
+# Angles from exactly 0 to exactly pi, with the ends where naive formulas lose digits.
+EDGE_ANGLES = [0.0, 1e-15, 1e-12, 1e-9, 1e-6, 1e-3, 0.01, math.pi / 2, math.pi - 1e-3,
+               math.pi - 1e-6, math.pi - 1e-9, math.pi - 1e-12, math.pi]
+rotation_angle_st = st.one_of(st.sampled_from(EDGE_ANGLES), st.floats(0.0, math.pi))
+axis_st = st.lists(st.floats(-1, 1, allow_nan=False), min_size=3, max_size=3).filter(
+    lambda v: np.linalg.norm(v) > 1e-3).map(lambda v: np.array(v) / np.linalg.norm(v))
+rotvecs_st = st.lists(st.tuples(axis_st, rotation_angle_st), min_size=1, max_size=8).map(
+    lambda pairs: np.array([a * t for a, t in pairs]))
+
+
+def _same_rotvec(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest difference of rotation vectors, where at pi v and -v are the same rotation."""
+    d = np.abs(a - b).max(axis=-1)
+    at_pi = np.linalg.norm(b, axis=-1) > math.pi - 1e-6
+    return float(np.where(at_pi, np.minimum(d, np.abs(a + b).max(axis=-1)), d).max())
+
+
+@settings(max_examples=200, deadline=None)
+@given(v=rotvecs_st)
+def test_stacked_rotvecs_and_matrices_against_scipy(v: np.ndarray) -> None:
+    ref = Rotation.from_rotvec(v)
+    R = ref.as_matrix()
+    assert np.abs(matrices_from_rotvecs(v) - R).max() < 4e-15
+    assert _same_rotvec(rotvecs_from_matrices(R), v) < 1e-12
+    assert np.abs(rotation_angles(R) - ref.magnitude()).max() < 1e-12
+    # the stacked functions agree with the one-at-a-time ones row by row
+    for vk, Rk in zip(v, R, strict=True):
+        assert np.abs(matrices_from_rotvecs(vk) - matrix_from_rotvec(vk)).max() < 4e-15
+        assert _same_rotvec(rotvecs_from_matrices(Rk), rotvec_from_matrix(Rk)) < 1e-12
+
+
+@settings(max_examples=200, deadline=None)
+@given(v=rotvecs_st)
+def test_stacked_quaternions_against_scipy(v: np.ndarray) -> None:
+    ref = Rotation.from_rotvec(v)
+    R = ref.as_matrix()
+    q = quats_from_matrices(R)
+    want = ref.as_quat(scalar_first=True)
+    want *= np.where(want[:, :1] < 0, -1.0, 1.0)
+    at_pi = np.abs(want[:, 0]) < 1e-9  # w ~ 0: q and -q are both canonical up to rounding
+    d = np.abs(q - want).max(axis=1)
+    d = np.where(at_pi, np.minimum(d, np.abs(q + want).max(axis=1)), d)
+    assert d.max() < 1e-12
+    assert np.all(q[:, 0] >= 0)
+    assert np.abs(matrices_from_quats(q) - R).max() < 1e-12
+    for qk, Rk in zip(q, R, strict=True):
+        if not abs(qk[0]) < 1e-9:
+            assert np.abs(qk - quat_from_matrix(Rk)).max() < 1e-12
+    # products and conjugates: R(a * b) = R(a) R(b), R(conj a) = R(a)^T
+    a, b = q, q[::-1]
+    assert np.abs(matrices_from_quats(quat_multiply(a, b)) - R @ R[::-1]).max() < 1e-12
+    assert np.abs(matrices_from_quats(quat_conjugate(a)) - np.swapaxes(R, 1, 2)).max() < 4e-15
+    prod = (ref * ref[::-1]).as_quat(scalar_first=True)
+    mine = quat_multiply(a, b)
+    assert np.abs(np.abs((mine * prod).sum(axis=1)) - 1.0).max() < 1e-12  # same up to sign
+
+
+def test_quaternion_at_half_turn_has_canonical_sign_stacked() -> None:
+    R = np.stack([np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])])
+    assert np.array_equal(quats_from_matrices(R), [[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+
+
+@settings(max_examples=100, deadline=None)
+@given(v=st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3).map(np.array),
+       w=st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3).map(np.array))
+def test_skew_vee(v: np.ndarray, w: np.ndarray) -> None:
+    K = skew(v)
+    assert np.array_equal(K, -K.T)
+    assert np.allclose(K @ w, np.cross(v, w), rtol=1e-12, atol=1e-9)
+    assert np.array_equal(vee(K), v)
+    assert np.array_equal(skew(np.stack([v, w])), np.stack([K, skew(w)]))
+
+
+@settings(max_examples=100, deadline=None)
+@given(v=rotvecs_st)
+def test_vee_of_a_rotation_is_axis_times_sine(v: np.ndarray) -> None:
+    theta = np.linalg.norm(v, axis=1, keepdims=True)
+    axis = np.where(theta > 0, v / np.where(theta > 0, theta, 1.0), 0.0)
+    R = Rotation.from_rotvec(v).as_matrix()
+    assert np.abs(vee(R) - axis * np.sin(theta)).max() < 4e-15
+
+
+def test_project_rotation_is_the_nearest_rotation() -> None:
+    R = RANDOM_ROTATIONS.as_matrix()[:50]
+    noisy = R + RNG.normal(scale=1e-3, size=R.shape)
+    P = project_rotation(noisy)
+    assert np.abs(np.swapaxes(P, 1, 2) @ P - np.eye(3)).max() < 1e-14
+    assert np.all(np.linalg.det(P) > 0)
+    assert np.abs(P - R).max() < 1e-2
+    # a reflection is mapped to a rotation, never to itself
+    assert np.linalg.det(project_rotation(np.diag([1.0, 1.0, -1.0]))) > 0
+    # of summed rotations: the chordal mean (scipy's Rotation.mean minimises the same)
+    group = RANDOM_ROTATIONS[:1] * Rotation.from_rotvec(RNG.normal(scale=0.1, size=(20, 3)))
+    mean = project_rotation(group.as_matrix().sum(axis=0))
+    assert np.abs(mean - group.mean().as_matrix()).max() < 1e-12
+    for Rk in R[:5]:
+        assert np.abs(project_rotation(Rk) - Rk).max() < 4e-15
+
+
+@settings(max_examples=100, deadline=None)
+@given(v=rotvecs_st, t=st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3).map(np.array))
+def test_transforms_from_vectors_round_trip(v: np.ndarray, t: np.ndarray) -> None:
+    vec = np.concatenate([v, np.broadcast_to(t, v.shape)], axis=1)
+    T = transforms_from_vectors(vec)
+    assert np.abs(T[:, :3, :3] - Rotation.from_rotvec(v).as_matrix()).max() < 4e-15
+    assert np.array_equal(T[:, :3, 3], vec[:, 3:])
+    assert np.array_equal(T[:, 3], np.broadcast_to([0.0, 0.0, 0.0, 1.0], (len(v), 4)))
+    back = vectors_from_transforms(T)
+    assert _same_rotvec(back[:, :3], v) < 1e-12
+    assert np.array_equal(back[:, 3:], vec[:, 3:])
+    inv = invert_transforms(T)
+    for Tk, Ik in zip(T, inv, strict=True):
+        assert np.abs(Ik - invert_transform(Tk)).max() < 1e-12
+
+
+@settings(max_examples=100, deadline=None)
+@given(v=rotvecs_st.filter(lambda v: np.linalg.norm(v, axis=1).max() < math.pi - 1e-3),
+       seed=st.integers(0, 2**31))
+def test_so3_jacobians_by_finite_differences(v: np.ndarray, seed: int) -> None:
+    """exp(v + e) = exp(J_l(v) e) exp(v) to first order, and J_l^-1 is the inverse."""
+    e = np.random.default_rng(seed).normal(size=v.shape) * 1e-7
+    J = left_jacobians(v)
+    lhs = Rotation.from_rotvec(v + e).as_matrix()
+    rhs = Rotation.from_rotvec(np.einsum("nij,nj->ni", J, e)).as_matrix() @ Rotation.from_rotvec(
+        v).as_matrix()
+    assert np.abs(lhs - rhs).max() < 1e-13
+    assert np.abs(inverse_left_jacobians(v) @ J - np.eye(3)).max() < 1e-12
+    # the right Jacobian: exp(v + e) = exp(v) exp(J_l(-v) e)
+    rhs = Rotation.from_rotvec(v).as_matrix() @ Rotation.from_rotvec(
+        np.einsum("nij,nj->ni", left_jacobians(-v), e)).as_matrix()
+    assert np.abs(lhs - rhs).max() < 1e-13
+
+
+def test_adjoint_moves_a_small_motion_between_frames() -> None:
+    T = make_transform(RANDOM_ROTATIONS[0].as_matrix(), [120.0, -40.0, 300.0])
+    d = np.array([1e-6, -2e-6, 3e-6, 1e-4, 2e-4, -1e-4])
+    lhs = T @ transforms_from_vectors(d) @ invert_transform(T)
+    rhs = transforms_from_vectors(adjoint(T) @ d)
+    # first order: what is left is |t| |w|^2 ~ 300 mm * 1e-11
+    assert np.abs(lhs - rhs).max() < 1e-8
+    assert np.abs(lhs - rhs).max() < 1e-3 * np.abs(lhs - np.eye(4)).max()
+
+
+@settings(max_examples=100, deadline=None)
+@given(v=rotvecs_st, t=st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3).map(np.array))
+def test_pose_errors_is_pose_error_of_a_stack(v: np.ndarray, t: np.ndarray) -> None:
+    T = transforms_from_vectors(np.concatenate([v, np.broadcast_to(t, v.shape)], axis=1))
+    ref = make_transform(RANDOM_ROTATIONS[1].as_matrix(), [1.0, 2.0, 3.0])
+    mm, deg = pose_errors(T, ref)
+    for k, Tk in enumerate(T):
+        one = pose_error(Tk, ref)
+        assert abs(mm[k] - one[0]) < 1e-12
+        assert abs(deg[k] - one[1]) < 1e-9
+    mm, deg = pose_errors(T, T)
+    assert np.all(mm == 0)
+    assert np.all(deg < 1e-12)

@@ -14,7 +14,7 @@ import pytest
 
 from vgripd.config import Config, config_from_dict
 from vgripd.errors import ConfigError, NotCalibratedError
-from vgripd.geometry.transforms import invert_transform, make_transform, rotation_angle
+from vgripd.geometry.transforms import invert_transform, make_transform, pose_error
 from vgripd.geometry.vendors import transform_from_vendor
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.types import ImagePair, Status
@@ -45,13 +45,6 @@ async def grab(config: Config, n: int = 1) -> list[ImagePair]:
         await camera.close()
 
 
-def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    E = invert_transform(T_true) @ T_est
-    return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), float(
-        np.degrees(rotation_angle(E[:3, :3]))
-    )
-
-
 async def test_pose_accuracy_against_truth():
     config = make_config({"gradient": 0.3})
     pipeline = Pipeline(config)
@@ -61,7 +54,7 @@ async def test_pose_accuracy_against_truth():
         assert result.status is Status.OK, result.message
         assert result.features_missing == ()
         assert result.T_base_obj is not None
-        err_t, err_r = pose_errors(result.T_base_obj, pair.truth["T_base_obj"])
+        err_t, err_r = pose_error(result.T_base_obj, pair.truth["T_base_obj"])
         worst_t, worst_r = max(worst_t, err_t), max(worst_r, err_r)
         # The published values are the offset in the KUKA convention (independent inverse).
         assert result.target is not None
@@ -95,7 +88,7 @@ async def test_spurious_blobs_are_rejected():
     for job_id, pair in enumerate(await grab(config, 3)):
         result = pipeline.process(pair, job_id)
         assert result.status is Status.OK, result.message
-        err_t, err_r = pose_errors(result.T_base_obj, pair.truth["T_base_obj"])
+        err_t, err_r = pose_error(result.T_base_obj, pair.truth["T_base_obj"])
         assert err_t < MAX_TRANSLATION_ERR_MM
         assert err_r < MAX_ROTATION_ERR_DEG
 
@@ -137,7 +130,7 @@ async def test_feature_outside_the_image_is_missing_not_wrong():
     assert outside, "the test pose must push a mark out of the image"
     assert set(outside) <= set(result.features_missing)
     if result.status.pose_valid:
-        err_t, _ = pose_errors(result.T_base_obj, pair.truth["T_base_obj"])
+        err_t, _ = pose_error(result.T_base_obj, pair.truth["T_base_obj"])
         assert err_t < MAX_TRANSLATION_ERR_MM
     else:
         assert result.status in (Status.PARTIAL, Status.NOT_FOUND)
@@ -307,7 +300,7 @@ def test_single_camera_pnp_on_aruco_markers():
     result = pipeline.process(ImagePair(left=image, right=None, t_mono_ns=0), 1)
     assert result.status is Status.OK, result.message
     assert set(result.residuals) == {"reprojection_px"}
-    err_t, err_r = pose_errors(result.T_base_obj, T_true)
+    err_t, err_r = pose_error(result.T_base_obj, T_true)
     # Marker centres from sub-pixel corners (~0.1 px); PnP depth error ~ Z * sigma / (f * spread
     # of the markers in px ~ 0.3) ~ 0.2 mm: bound 1 mm and 0.3 deg.
     assert err_t < 1.0
@@ -336,7 +329,7 @@ async def test_robot_mounted_camera_uses_the_flange_pose_of_each_image():
     pipeline = Pipeline(config)
     result = pipeline.process(pair, 1)
     assert result.status is Status.OK, result.message
-    err_t, err_r = pose_errors(result.T_base_obj, pair.truth["T_base_obj"])
+    err_t, err_r = pose_error(result.T_base_obj, pair.truth["T_base_obj"])
     assert err_t < MAX_TRANSLATION_ERR_MM
     assert err_r < MAX_ROTATION_ERR_DEG
     no_flange = ImagePair(left=pair.left, right=pair.right, t_mono_ns=0)
