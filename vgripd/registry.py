@@ -10,14 +10,43 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from pydantic import ValidationError
 
 from vgripd.config import DriverSection, format_validation_error
 from vgripd.errors import ConfigError, DriverError
-from vgripd.geometry.vendors import CONVENTIONS
-from vgripd.service.protocol import LinkCapabilities
+from vgripd.geometry.vendors import CONVENTIONS, Convention
+
+
+@dataclass(frozen=True)
+class LinkCapabilities:
+    """What a link can hand its peer as a pose, declared by each link class (``capabilities``).
+
+    A config is judged against it when it is loaded (``vgripd.registry.link_problems``): a link
+    that cannot carry ``output.vendor`` is a config error, not a failure of every job.
+
+    ``max_values``: the most pose values one result can carry.
+    ``conventions``: the vendor conventions (``vgripd.geometry.vendors``) the peer understands;
+    ``None``: any convention of at most ``max_values`` values (the link carries plain numbers).
+    ``units``: what the peer receives, in words (for messages and docs).
+    """
+
+    max_values: int
+    conventions: frozenset[str] | None = None
+    units: str = "the convention's own fields and units"
+
+    def refusal(self, conv: Convention) -> str | None:
+        """Why a pose in ``conv`` cannot be carried; None when it can."""
+        if self.conventions is not None and conv.name not in self.conventions:
+            names = " or ".join(f'"{n}"' for n in sorted(self.conventions))
+            return f"it carries only the {names} convention ({self.units})"
+        if len(conv.fields) > self.max_values:
+            return (f"it carries at most {self.max_values} pose values ({self.units}), "
+                    f'"{conv.name}" has {len(conv.fields)} ({conv.fields[0]} .. {conv.fields[-1]})')
+        return None
+
 
 CAMERAS: dict[str, str] = {
     "replay": "drivers.cameras.replay:ReplayCamera",

@@ -62,15 +62,13 @@ from abc import ABC, abstractmethod
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from vgripd.errors import LinkError
+from vgripd.registry import LinkCapabilities
 from vgripd.types import FloatArray, JobResult, Status
-
-if TYPE_CHECKING:
-    from vgripd.geometry.vendors import Convention
 
 
 class LinkState(enum.Enum):
@@ -110,34 +108,6 @@ class Trigger:
 
 
 TriggerHandler = Callable[[Trigger], None]
-
-
-@dataclass(frozen=True)
-class LinkCapabilities:
-    """What a link can hand its peer as a pose, declared by each link class (``capabilities``).
-
-    A config is judged against it when it is loaded (``vgripd.registry.link_problems``): a link
-    that cannot carry ``output.vendor`` is a config error, not a failure of every job.
-
-    ``max_values``: the most pose values one result can carry.
-    ``conventions``: the vendor conventions (``vgripd.geometry.vendors``) the peer understands;
-    ``None``: any convention of at most ``max_values`` values (the link carries plain numbers).
-    ``units``: what the peer receives, in words (for messages and docs).
-    """
-
-    max_values: int
-    conventions: frozenset[str] | None = None
-    units: str = "the convention's own fields and units"
-
-    def refusal(self, conv: Convention) -> str | None:
-        """Why a pose in ``conv`` cannot be carried; None when it can."""
-        if self.conventions is not None and conv.name not in self.conventions:
-            names = " or ".join(f'"{n}"' for n in sorted(self.conventions))
-            return f"it carries only the {names} convention ({self.units})"
-        if len(conv.fields) > self.max_values:
-            return (f"it carries at most {self.max_values} pose values ({self.units}), "
-                    f'"{conv.name}" has {len(conv.fields)} ({conv.fields[0]} .. {conv.fields[-1]})')
-        return None
 
 
 class RobotLink(ABC):
