@@ -1,9 +1,24 @@
 """Single-camera calibration from board detections (what Bouguet's toolbox calls "Calibration").
 
 Model: pinhole with two focal lengths, principal point, no skew, Brown distortion
-``dist = [k1, k2, p1, p2, k3]`` in OpenCV's order, which is Bouguet's ``kc``. The default is the
-toolbox default: k3 fixed at 0 (it is free with ``fix_k3=False``); skew is always 0 (OpenCV's
-``calibrateCamera`` has no skew parameter).
+``dist = [k1, k2, p1, p2, k3]`` in OpenCV's order, which is Bouguet's ``kc``; skew is always 0
+(OpenCV's ``calibrateCamera`` has no skew parameter). k1 and k2 are always estimated; whether
+the tangential pair p1, p2 and the 6th-order k3 are estimated or held at 0 is chosen from the
+data (:class:`DistortionModel`), unless the caller fixes it (``fix_k3``, ``fix_tangential``).
+
+Model choice: every candidate model (with and without p1 p2, with and without k3) is fitted to
+the same views and scored by the Bayesian information criterion of the reprojection residuals,
+``BIC = m ln(SSR / m) + p ln(m)`` (m residuals = 2 per point, p parameters: intrinsics and board
+poses). The lowest BIC wins, except that the reference model (Bouguet's default, k1 k2 p1 p2
+with k3 = 0, or the nearest to it that the options allow) is kept unless another beats it by
+more than ``BIC_MARGIN`` = 2 (Kass and Raftery's threshold for "positive" evidence): a term
+the data cannot tell from 0 is left out. Fixing k3 when the lens has one biases k2 by many of
+its (then too small) standard deviations; freeing it when the lens has none makes k2 and k3
+trade off (correlation ~0.98) and the distortion extrapolates badly beyond the views. Every
+candidate's RMS, BIC and k2/k3 are kept in ``IntrinsicsResult.model`` for the report. When the
+views cannot show k3 (a narrow lens, boards that never reach the corners), no criterion can
+find it: k3 = 0 is chosen and k2's sigma holds only for k3 = 0; the candidates table shows k2
+with k3 free next to it.
 
 Fit: ``cv2.calibrateCameraExtended`` (Zhang's planar initialisation, then Levenberg-Marquardt
 on the reprojection error of all points), which also gives one-sigma standard deviations of the
@@ -11,8 +26,10 @@ intrinsics and the per-view RMS. Bouguet's printed uncertainties are about three
 
 Outliers: an image whose per-image RMS is more than ``outlier_factor`` times the median and
 above ``outlier_floor_px`` (a misdetected corner, a motion-blurred view) is dropped and the
-calibration redone, one image at a time, worst first; it is reported with the numbers. Images
-with fewer than ``min_points`` points are dropped before the fit. At least 3 images must remain.
+calibration redone, one image at a time, worst first; it is reported with the numbers. This
+runs with the richest candidate model, so that a lens term left out cannot make the views that
+reach the image corners look like outliers. Images with fewer than ``min_points`` points are
+dropped before the fit. At least 3 images must remain.
 
 Errors: ``rms_px`` (and per image) is the root mean square of the reprojection error length,
 sqrt(mean(dx^2 + dy^2)) px, as OpenCV reports it; Bouguet's ``err`` is the standard deviation of
@@ -21,6 +38,7 @@ dx and of dy separately, so for round noise rms_px ~ sqrt(2) * err.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -36,6 +54,137 @@ MIN_IMAGES = 3
 FEW_IMAGES = 10  # below this, warn: too few views to pin down distortion and the principal point
 CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")
+BIC_MARGIN = 2.0  # another model must beat the reference model's BIC by more than this
+
+
+@dataclass(frozen=True)
+class DistortionModel:
+    """Which Brown terms are estimated: k1, k2 always, p1 p2 when ``tangential``, k3 when
+    ``k3``; the others are held at 0."""
+
+    tangential: bool
+    k3: bool
+
+    @property
+    def mask(self) -> tuple[bool, ...]:
+        """Per ``DIST_NAMES`` entry: estimated?"""
+        return (True, True, self.tangential, self.tangential, self.k3)
+
+    @property
+    def free(self) -> tuple[str, ...]:
+        """Names of the estimated distortion terms, in OpenCV order."""
+        return tuple(n for n, f in zip(DIST_NAMES, self.mask, strict=True) if f)
+
+    @property
+    def name(self) -> str:
+        return " ".join(self.free)
+
+    @property
+    def flags(self) -> int:
+        """The OpenCV calibration flags that hold the other terms at 0."""
+        return ((0 if self.k3 else cv2.CALIB_FIX_K3)
+                | (0 if self.tangential else cv2.CALIB_ZERO_TANGENT_DIST))
+
+
+BOUGUET_MODEL = DistortionModel(tangential=True, k3=False)
+
+
+def candidate_models(fix_k3: bool | None, fix_tangential: bool | None,
+                     ) -> tuple[list[DistortionModel], DistortionModel]:
+    """The models to choose from (simplest first) and the reference model, for the options:
+    ``fix_*`` True holds the term at 0, False estimates it, None lets the data choose."""
+    k3s = [False, True] if fix_k3 is None else [not fix_k3]
+    tangentials = [False, True] if fix_tangential is None else [not fix_tangential]
+    models = [DistortionModel(t, k) for k in k3s for t in tangentials]
+    reference = DistortionModel(tangential=True if fix_tangential is None else not fix_tangential,
+                                k3=False if fix_k3 is None else not fix_k3)
+    return models, reference
+
+
+def bic(ssr: float, m: int, p: int) -> float:
+    """Bayesian information criterion of a least-squares fit with Gaussian noise of unknown
+    variance: m residuals with sum of squares ``ssr``, p parameters."""
+    return m * math.log(max(ssr, 1e-300) / m) + p * math.log(m)
+
+
+def _evidence(delta: float) -> str:
+    """Kass and Raftery's words for a BIC difference."""
+    return ("weak" if delta < 2 else "positive" if delta < 6 else "strong" if delta < 10
+            else "very strong")
+
+
+@dataclass
+class ModelChoice:
+    """Which distortion model was used and why.
+
+    ``chosen_by`` is "BIC" or "options" (one candidate only); ``reason`` one line; per
+    candidate (simplest first): model, rms_px, dist and dist_std (one sigma, 0 where held),
+    bic, delta_bic (to the chosen one). ``notes``: what the choice means for the numbers (k2
+    when k3 was left out by the choice).
+    """
+
+    model: DistortionModel
+    chosen_by: str
+    reason: str
+    candidates: list[dict[str, Any]]
+    notes: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready: the chosen model's name, how, why, the candidates and the notes."""
+        return {"model": self.model.name, "chosen_by": self.chosen_by, "reason": self.reason,
+                "notes": self.notes, "candidates": self.candidates}
+
+    def table(self) -> list[str]:
+        """Human lines: one per candidate, the chosen one marked with ``*``."""
+        width = max(len(c["model"]) for c in self.candidates)
+        lines = [f"  {'model':{width}s}  RMS px    dBIC  {'k2':>20s}  {'k3':>20s}"]
+        for c in self.candidates:
+            mark = "*" if c["model"] == self.model.name else " "
+            k2 = f"{c['dist'][1]:.5f} +- {c['dist_std'][1]:.5f}"
+            k3 = (f"{c['dist'][4]:.5f} +- {c['dist_std'][4]:.5f}" if "k3" in c["model"].split()
+                  else "0 (held)")
+            lines.append(f"{mark} {c['model']:{width}s}  {c['rms_px']:6.4f}  {c['delta_bic']:6.1f}"
+                         f"  {k2:>20s}  {k3:>20s}")
+        return lines
+
+
+def choose_model(scores: dict[DistortionModel, float], reference: DistortionModel,
+                 rows: dict[DistortionModel, dict[str, Any]]) -> ModelChoice:
+    """Pick from ``scores`` (BIC per candidate) by the rule of the module docstring; ``rows``
+    are the candidates' table entries (rms_px, dist, dist_std), completed here."""
+    order = sorted(scores, key=lambda mdl: (len(mdl.free), mdl.k3))
+    best = min(order, key=lambda mdl: scores[mdl])
+    if len(order) == 1:
+        chosen, how, reason = best, "options", "the only model the options allow"
+    elif best == reference or reference not in scores:
+        chosen, how = best, "BIC"
+        second = min((mdl for mdl in order if mdl != best), key=lambda mdl: scores[mdl])
+        delta = scores[second] - scores[best]
+        reason = (f"lowest BIC; the next, {second.name}, is {delta:.1f} higher "
+                  f"({_evidence(delta)} evidence)")
+    else:
+        delta = scores[reference] - scores[best]
+        how = "BIC"
+        if delta > BIC_MARGIN:
+            chosen = best
+            reason = (f"lowest BIC, {delta:.1f} below the reference model {reference.name} "
+                      f"({_evidence(delta)} evidence)")
+        else:
+            chosen = reference
+            reason = (f"reference model kept: {best.name} has a BIC only {delta:.1f} lower "
+                      f"(not more than {BIC_MARGIN:g}: not worth its extra terms)")
+    candidates = [{"model": mdl.name, **rows[mdl], "bic": scores[mdl],
+                   "delta_bic": scores[mdl] - scores[chosen]} for mdl in order]
+    notes = []
+    with_k3 = DistortionModel(chosen.tangential, k3=True)
+    if not chosen.k3 and with_k3 in rows:
+        a, b = rows[chosen], rows[with_k3]
+        notes.append(
+            f"k3 left out by the choice: k2 = {a['dist'][1]:.5f} +- {a['dist_std'][1]:.5f} "
+            f"holds if k3 = 0; with k3 free, k3 = {b['dist'][4]:.5f} +- {b['dist_std'][4]:.5f} "
+            f"and k2 = {b['dist'][1]:.5f} +- {b['dist_std'][1]:.5f} (k2 and k3 trade off; both "
+            "fit the views, see the RMS column)")
+    return ModelChoice(chosen, how, reason, candidates, notes)
 
 
 @dataclass
@@ -46,7 +195,8 @@ class IntrinsicsResult:
     height; px); ``std`` the one-sigma standard deviations of the same keys (0 for what was
     fixed). Per used image ``i`` (same order as ``detections``): ``per_image[i]`` = {image,
     rms_px, points}, ``residuals_px[i]`` (N_i, 2) observed - projected px, and the board pose
-    ``T_cam_board[i]`` (4x4, mm; also as OpenCV ``rvecs[i]``, ``tvecs[i]``).
+    ``T_cam_board[i]`` (4x4, mm; also as OpenCV ``rvecs[i]``, ``tvecs[i]``). ``model``: the
+    distortion model used and the candidates it was chosen from.
     """
 
     camera: dict[str, Any]
@@ -58,6 +208,7 @@ class IntrinsicsResult:
     rvecs: list[NDArray[np.float64]]
     tvecs: list[NDArray[np.float64]]
     T_cam_board: list[NDArray[np.float64]]
+    model: ModelChoice
     rejected: list[dict[str, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
 
@@ -74,13 +225,16 @@ class IntrinsicsResult:
 
 
 def calibrate_intrinsics(board: Board, detections: Sequence[Detection],
-                         image_size: tuple[int, int], *, fix_k3: bool = True,
-                         min_points: int = 8, outlier_factor: float = 3.0,
+                         image_size: tuple[int, int], *, fix_k3: bool | None = None,
+                         fix_tangential: bool | None = None, min_points: int = 8,
+                         outlier_factor: float = 3.0,
                          outlier_floor_px: float = 0.5) -> IntrinsicsResult:
     """Calibrate one camera from board detections in images of ``image_size`` (w, h) px.
 
-    See the module docstring for the model, the outlier rule and the error measures. Raises
-    CalibrationError when fewer than 3 usable images remain or the fit fails.
+    ``fix_k3`` / ``fix_tangential``: True holds k3 / p1 p2 at 0, False estimates them, None
+    (default) chooses from the data. See the module docstring for the model choice, the
+    outlier rule and the error measures. Raises CalibrationError when fewer than 3 usable
+    images remain or the fit fails.
     """
     w, h = image_size
     rejected: list[dict[str, str]] = []
@@ -94,14 +248,15 @@ def calibrate_intrinsics(board: Board, detections: Sequence[Detection],
                                                            f"(need at least {min_points})"})
         else:
             used.append(det)
-    flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
+    models, reference = candidate_models(fix_k3, fix_tangential)
+    richest = models[-1]
     obj = board.object_points()
     while True:
         if len(used) < MIN_IMAGES:
             raise CalibrationError(
                 f"need at least {MIN_IMAGES} images with the board {board.spec}, have "
                 f"{len(used)}" + (f" ({len(rejected)} rejected)" if rejected else ""))
-        fit = _fit(obj, used, (w, h), flags)
+        fit = _fit(obj, used, (w, h), richest.flags)
         per_view = fit["per_view"]
         median = float(np.median(per_view))
         worst = int(np.argmax(per_view))
@@ -112,7 +267,20 @@ def calibrate_intrinsics(board: Board, detections: Sequence[Detection],
                          "reason": f"per-image RMS {per_view[worst]:.2f} px vs median "
                                    f"{median:.2f} px (outlier: > {outlier_factor:g}x median)"})
         del used[worst]
-    return _result(board, used, (w, h), fit, rejected, fix_k3)
+    fits = {mdl: fit if mdl == richest else _fit(obj, used, (w, h), mdl.flags) for mdl in models}
+    m = 2 * sum(len(d.ids) for d in used)
+    scores, rows = {}, {}
+    for mdl, f in fits.items():
+        scores[mdl] = bic(f["ssr"], m, 4 + len(mdl.free) + 6 * len(used))
+        rows[mdl] = {"rms_px": f["rms"], "dist": [float(v) for v in f["dist"]],
+                     "dist_std": _dist_std(f["std"], mdl)}
+    choice = choose_model(scores, reference, rows)
+    return _result(board, used, (w, h), fits[choice.model], rejected, choice)
+
+
+def _dist_std(std: NDArray[np.float64], model: DistortionModel) -> list[float]:
+    """One-sigma std of dist from calibrateCameraExtended's intrinsic std (0 where held)."""
+    return [float(v) if free else 0.0 for v, free in zip(std[4:9], model.mask, strict=True)]
 
 
 def _fit(obj: NDArray[np.float64], used: Sequence[Detection], size: tuple[int, int],
@@ -131,21 +299,21 @@ def _fit(obj: NDArray[np.float64], used: Sequence[Detection], size: tuple[int, i
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
         raise CalibrationError("calibration diverged (non-finite parameters); check the board "
                                "spec and the images")
-    return {"K": K, "dist": dist, "rvecs": rvecs, "tvecs": tvecs,
+    n_points = sum(len(d.ids) for d in used)
+    return {"K": K, "dist": dist, "rvecs": rvecs, "tvecs": tvecs, "rms": float(_rms),
+            "ssr": float(_rms) ** 2 * n_points,
             "std": np.asarray(std_int, dtype=np.float64).ravel(),
             "per_view": np.asarray(per_view, dtype=np.float64).ravel()}
 
 
 def _result(board: Board, used: list[Detection], size: tuple[int, int], fit: dict[str, Any],
-            rejected: list[dict[str, str]], fix_k3: bool) -> IntrinsicsResult:
+            rejected: list[dict[str, str]], choice: ModelChoice) -> IntrinsicsResult:
     K, dist, s = fit["K"], fit["dist"], fit["std"]
     w, h = size
     camera = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "skew": 0.0,
               "dist": [float(v) for v in dist], "width": w, "height": h}
     camera = {k: (float(v) if isinstance(v, np.floating) else v) for k, v in camera.items()}
-    std_dist = [float(v) for v in s[4:9]]
-    if fix_k3:
-        std_dist[4] = 0.0
+    std_dist = _dist_std(s, choice.model)
     std = {"fx": float(s[0]), "fy": float(s[1]), "cx": float(s[2]), "cy": float(s[3]),
            "skew": 0.0, "dist": std_dist}
     obj = board.object_points()
@@ -166,7 +334,7 @@ def _result(board: Board, used: list[Detection], size: tuple[int, int], fit: dic
     all_res = np.concatenate(residuals)
     rms = float(np.sqrt(np.mean(np.sum(all_res**2, axis=1))))
     result = IntrinsicsResult(camera, std, rms, list(used), per_image, residuals, rvecs, tvecs,
-                              poses, rejected)
+                              poses, choice, rejected)
     result.warnings = _warnings(result)
     return result
 

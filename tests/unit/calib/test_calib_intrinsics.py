@@ -2,7 +2,8 @@
 
 Two kinds of synthetic data: board images rendered through the camera (detection + fit, the
 CLI end to end), and exact projections (cv2.projectPoints) with controlled noise and
-corruption, for the fit's bookkeeping (outliers, too few points, warnings).
+corruption, for the fit's bookkeeping (outliers, too few points, warnings) and the choice of
+the distortion model (k3, p1 p2) from the data.
 """
 
 from __future__ import annotations
@@ -178,7 +179,7 @@ def test_free_k3_is_estimated_and_fixed_k3_stays_zero():
     free = calibrate_intrinsics(BOARD, dets, SIZE, fix_k3=False)
     assert abs(free.camera["dist"][4] - dist[4]) < max(4 * free.std["dist"][4], 0.01)
     assert free.std["dist"][4] > 0
-    fixed = calibrate_intrinsics(BOARD, dets, SIZE)
+    fixed = calibrate_intrinsics(BOARD, dets, SIZE, fix_k3=True)
     assert fixed.camera["dist"][4] == 0.0
     assert fixed.rms_px > free.rms_px
 
@@ -206,8 +207,118 @@ def test_json_summary_keys(rendered, tmp_path):
                          "-o", str(tmp_path / "c.toml"), "--json", "--free-k3")
     assert rc == 0
     summary = json.loads(out)
-    assert set(summary) == {"camera", "std", "rms_px", "per_image", "rejected", "warnings", "output"}
+    assert set(summary) == {"camera", "std", "rms_px", "model", "per_image", "rejected", "warnings",
+                            "output"}
+    assert summary["model"]["chosen_by"] == "BIC"  # k3 given, p1 p2 chosen
+    assert [c["model"] for c in summary["model"]["candidates"]] == ["k1 k2 k3", "k1 k2 p1 p2 k3"]
     assert set(summary["camera"]) == {"fx", "fy", "cx", "cy", "skew", "dist", "width", "height"}
     assert set(summary["std"]) == {"fx", "fy", "cx", "cy", "skew", "dist"}
     assert summary["std"]["dist"][4] > 0  # k3 was free
     assert [p["image"] for p in summary["per_image"]] == [str(folder / f"img{i:02d}.png") for i in range(10)]
+
+
+# ---------------------------------------------------------------- distortion model choice
+
+# A wide lens (about 75 degrees across 640 px): the board reaches radii where k3 = -0.01 moves
+# corners by pixels, so 15 views with 0.1 px noise resolve it.
+K_WIDE = np.array([[420.0, 0, 322.0], [0, 418.7, 236.0], [0, 0, 1]])
+LENSES = {  # name: (dist, the model that describes it)
+    "k3": ([-0.30, 0.10, 0.0, 0.0, -0.01], "k1 k2 k3"),
+    "plain": ([-0.30, 0.10, 0.0, 0.0, 0.0], "k1 k2"),
+    "tangential": ([-0.30, 0.10, 0.004, -0.003, 0.0], "k1 k2 p1 p2"),
+}
+
+
+def wide_views(dist, n: int = 15, noise_px: float = 0.1, seed: int = 0) -> list[Detection]:
+    """n views of the board through K_WIDE and ``dist`` (cv2.projectPoints), spread over the
+    whole image (corners included), tilted up to ~35 degrees, with Gaussian pixel noise."""
+    rng = np.random.default_rng(seed)
+    obj = BOARD.object_points()
+    centre = obj.mean(axis=0)
+    dets: list[Detection] = []
+    while len(dets) < n:
+        R = (cv2.Rodrigues(np.r_[rng.uniform(-0.6, 0.6, 2), 0.0])[0]
+             @ cv2.Rodrigues(np.r_[0.0, 0.0, rng.uniform(-0.6, 0.6)])[0])
+        z = rng.uniform(260.0, 360.0)
+        aim = np.r_[rng.uniform(-1, 1) * z * 300 / 420, rng.uniform(-1, 1) * z * 220 / 420, z]
+        px = cv2.projectPoints(obj, cv2.Rodrigues(R)[0], aim - R @ centre, K_WIDE,
+                               np.asarray(dist))[0].reshape(-1, 2)
+        if np.all((px > 2) & (px < np.array(SIZE) - 2)):
+            dets.append(Detection(f"view{len(dets)}", SIZE, np.arange(len(obj)),
+                                  px + rng.normal(0.0, noise_px, px.shape)))
+    return dets
+
+
+@pytest.mark.parametrize("lens", list(LENSES))
+def test_the_distortion_model_is_chosen_from_the_data(lens):
+    """The chosen model is the lens's own, k2 is within 2 sigma of the truth, the held terms
+    are exactly 0, and every candidate is reported. For the k3 lens, the old default (k3
+    fixed at 0) puts k2 many of its sigmas off (the issue: 3.8 sigma)."""
+    dist, expected = LENSES[lens]
+    r = calibrate_intrinsics(BOARD, wide_views(dist), SIZE)
+    assert r.model.model.name == expected, r.model.reason
+    assert r.model.chosen_by == "BIC"
+    cam, std = r.camera, r.std
+    assert abs(cam["dist"][1] - dist[1]) < 2 * std["dist"][1], (cam["dist"][1], std["dist"][1])
+    held = [i for i, name in enumerate(("k1", "k2", "p1", "p2", "k3")) if name not in expected.split()]
+    assert all(cam["dist"][i] == 0.0 and std["dist"][i] == 0.0 for i in held)
+    rows = {c["model"]: c for c in r.model.candidates}
+    assert list(rows) == ["k1 k2", "k1 k2 k3", "k1 k2 p1 p2", "k1 k2 p1 p2 k3"]
+    assert rows[expected]["delta_bic"] == 0.0
+    assert all(c["delta_bic"] > 2.0 for name, c in rows.items() if name != expected)
+    if lens == "k3":
+        fixed = rows["k1 k2"]  # what --fix-k3 gives on this lens
+        assert abs(fixed["dist"][1] - dist[1]) > 5 * fixed["dist_std"][1]
+        assert abs(cam["dist"][4] - dist[4]) < 2 * std["dist"][4]
+        assert "lowest BIC" in r.model.reason
+        assert r.model.notes == []
+    else:
+        assert r.model.notes[0].startswith("k3 left out by the choice: k2 = ")
+
+
+def test_options_override_the_choice():
+    k3_lens = wide_views(LENSES["k3"][0])
+    r = calibrate_intrinsics(BOARD, k3_lens, SIZE, fix_k3=True)
+    assert r.model.model.name == "k1 k2"  # p1 p2 still chosen: the lens has none
+    assert r.camera["dist"][4] == 0.0
+    assert [c["model"] for c in r.model.candidates] == ["k1 k2", "k1 k2 p1 p2"]
+    r = calibrate_intrinsics(BOARD, wide_views(LENSES["plain"][0]), SIZE, fix_k3=False,
+                             fix_tangential=False)
+    assert r.model.model.name == "k1 k2 p1 p2 k3"
+    assert r.model.chosen_by == "options"
+    assert len(r.model.candidates) == 1
+    assert all(s > 0 for s in r.std["dist"])
+
+
+def test_an_outlier_view_is_found_with_the_richest_model_and_not_a_lens_term():
+    """Outliers are judged with every term free: under k3 = 0 the views that reach the corners of
+    the k3 lens fit worse, and must not be the ones dropped."""
+    dets = wide_views(LENSES["k3"][0])
+    dets[6].px = dets[6].px + np.random.default_rng(1).normal(0.0, 1.5, dets[6].px.shape)
+    r = calibrate_intrinsics(BOARD, dets, SIZE)
+    assert [x["image"] for x in r.rejected] == ["view6"]
+    assert r.model.model.name == "k1 k2 k3"
+
+
+def test_cli_reports_the_model_choice(rendered, tmp_path):
+    """Human lines, --json and the result file's [about] say which model, why, and the
+    candidates; the command line in [about] has only the model options that were given."""
+    folder, _ = rendered
+    images = str(folder / "img*.png")
+    rc, out, _ = run_cli("--images", images, "--board", BOARD.spec, "-o", str(tmp_path / "a.toml"))
+    assert rc == 0
+    assert re.search(r"^distortion model: k1 k2 p1 p2 \(chosen by BIC: ", out, re.MULTILINE)
+    assert re.search(r"^\* k1 k2 p1 p2 +\d\.\d{4} +0\.0 ", out, re.MULTILINE)
+    assert "note: k3 left out by the choice" in out
+    about = tomllib.loads((tmp_path / "a.toml").read_text())["about"]
+    assert about["model"] == "pinhole fx fy cx cy, skew 0, dist k1 k2 p1 p2 (others 0)"
+    assert about["model_choice"]["model"] == "k1 k2 p1 p2"
+    assert len(about["model_choice"]["candidates"]) == 4
+    assert "-k3" not in about["command"]
+    rc, out, _ = run_cli("--images", images, "--board", BOARD.spec, "-o", str(tmp_path / "b.toml"),
+                         "--json", "--fix-k3", "--fix-tangential")
+    assert rc == 0
+    model = json.loads(out)["model"]
+    assert (model["model"], model["chosen_by"]) == ("k1 k2", "options")
+    about = tomllib.loads((tmp_path / "b.toml").read_text())["about"]
+    assert about["command"].endswith("--fix-k3 --fix-tangential -o " + str(tmp_path / "b.toml"))
