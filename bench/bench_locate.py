@@ -1,29 +1,44 @@
 """Locate latency and accuracy: vgripd's pipeline against a plain OpenCV peer, same images.
 
 A 5 MP stereo cell (2x 2448x2048 8-bit, f = 3500 px, 200 mm baseline toed in to meet at
-840 mm, the demo plate with six 10 mm dark marks ~42 px across) is rendered by the synthetic
-camera driver with blur 0.8 px, noise 2 grey levels and a 30 % lighting gradient. Each pair is
-located from memory by
+840 mm, the demo plate with six 10 mm dark marks ~42 px across) is imaged with blur 0.8 px,
+noise 2 grey levels and a 30 % lighting gradient, at random poses (+-20 mm, +-8 deg), by two
+renderers:
+
+* independent (the headline): ``bench/render_independent.py`` -- OpenCV's ``projectPoints`` and
+  distortion, supersampled rasterisation, no vgripd code; the truth is the pose it drew;
+* vgripd's own model: the synthetic camera driver, which projects through
+  ``vgripd.geometry.camera_model`` -- the model the pipeline's circle-centre correction uses, so
+  a modelling error common to both would not show there.
+
+Both renderers take the cell's numbers from the same place (``render_independent``'s
+``CAMERAS``, ``T_RIGHT_LEFT``, ``T_BASE_CAMERA`` and the plate in ``config/example.toml``); vgripd
+gets them as its calibration. Each pair is located from memory by
 
 * vgripd: ``Pipeline.process`` (features at 1/4 resolution + full-resolution refinement,
-  epipolar matching, model correspondence by distances, robust Horn, offset, vendor, gates);
+  epipolar matching, model correspondence by distances, robust Horn, circle-centre correction,
+  offset, vendor, gates);
 * the peer: adaptive (local mean) threshold + ``findContours`` + contour moments on the full image,
-  ``cv2.undistortPoints``, epipolar nearest neighbour with the fundamental matrix,
+  ``cv2.undistortPoints``, epipolar nearest neighbour with the essential matrix,
   ``cv2.triangulatePoints``, model correspondence by sorted distance signatures, Kabsch (SVD).
 
-Both poses are compared with the renderer's truth (object pose in the base frame, i.e. the
-left camera frame composed with the same hand-eye transform). Prints medians, p99 and worst
-errors, and the figures as the markdown section for bench/RESULTS.md.
+Poses are compared with the truth (object pose in the base frame) by
+``vgripd.geometry.transforms.pose_error``. Prints latency, RMS / median / max errors and the
+markdown section for bench/RESULTS.md (single-camera mode is not benchmarked: circle marks carry
+no identity, so vgripd locates them in stereo only).
 
-    .venv/bin/python bench/bench_locate.py [--pairs 60] [--write-results]
+    .venv/bin/python bench/bench_locate.py [--pairs 100] [--write-results]
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import datetime
+import os
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -32,56 +47,64 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench import render_independent as indep  # noqa: E402
+from bench.results import write_section  # noqa: E402
 from drivers.cameras.synthetic import SyntheticCamera, SyntheticOptions  # noqa: E402
 from vgripd.config import Config, config_from_dict  # noqa: E402
-from vgripd.geometry.transforms import (  # noqa: E402
-    invert_transform,
-    make_transform,
-    matrix_from_rotvec,
-    rotation_angle,
-    rotvec_from_matrix,
-)
+from vgripd.geometry.transforms import make_transform, pose_error  # noqa: E402
 from vgripd.types import ImagePair  # noqa: E402
+from vgripd.vision import pipeline as pipeline_module  # noqa: E402
 from vgripd.vision import scene  # noqa: E402
 from vgripd.vision.pipeline import Pipeline  # noqa: E402
 
-W, H, F = 2448, 2048, 3500.0
-BASELINE, DEPTH = 200.0, 840.0
-RESULTS = ROOT / "bench" / "RESULTS.md"
+W, H, F = indep.W, indep.H, indep.F
 SECTION = "## Locate latency and accuracy (issue 3)"
 
 
-def cell_config() -> Config:
-    toe = float(np.arctan2(BASELINE, DEPTH))
-    T_left_right = make_transform(matrix_from_rotvec([0.0, -toe, 0.0]), [BASELINE, 0.0, 0.0])
-    T_rl = invert_transform(T_left_right)
-    cam = {"fx": F, "fy": F, "cx": (W - 1) / 2 + 3.2, "cy": (H - 1) / 2 - 2.1,
-           "dist": [-0.05, 0.08, 0.0002, -0.0001, 0.0], "width": W, "height": H}
-    # Demo hand-eye, 150 mm higher: the camera looks down at the plate from ~840 mm.
+def cell_config(plate: indep.Plate) -> Config:
+    """vgripd's configuration of the benchmark cell: the renderer's numbers as calibration."""
     return config_from_dict({
         "camera": {"type": "synthetic"},
         "calibration": {
-            "left": cam,
-            "right": {**cam, "fx": F * 1.002, "cx": cam["cx"] - 5.0},
-            "stereo": {"T_right_left": {"translation_mm": T_rl[:3, 3].tolist(),
-                                        "rotvec_rad": rotvec_from_matrix(T_rl[:3, :3]).tolist()}},
-            "hand_eye": {"mounting": "fixed", "T_base_camera": {
-                "translation_mm": [600.0, 100.0, 850.0], "rotvec_rad": [np.pi, 0.0, 0.0]}},
+            "left": indep.CAMERAS["left"],
+            "right": indep.CAMERAS["right"],
+            "stereo": {"T_right_left": indep.T_RIGHT_LEFT},
+            "hand_eye": {"mounting": "fixed", "T_base_camera": indep.T_BASE_CAMERA},
         },
+        **plate.toml,
         "vision": {"working_distance_mm": [600.0, 1200.0], "downscale": 4},
         "limits": {"max_translation_mm": 100.0, "max_rotation_deg": 20.0},
     })
 
 
-async def render(config: Config, n: int, seed: int) -> list[ImagePair]:
-    options = SyntheticOptions(seed=seed, max_shift_mm=20.0, max_tilt_deg=8.0, blur_px=0.8,
-                               noise_std=2.0, gradient=0.3, supersample=4)
+Images = Iterator[tuple[ImagePair, np.ndarray]]  # (pair, truth T_base_obj), made one at a time
+
+
+def render_independent(plate: indep.Plate, n: int, seed: int) -> Images:
+    cell = indep.Cell(plate)
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        T_base_obj = cell.random_pose(rng)
+        left, right = cell.render_pair(T_base_obj, rng)
+        yield ImagePair(left=left, right=right, t_mono_ns=time.monotonic_ns(),
+                        source="render_independent"), T_base_obj
+
+
+def render_vgripd(config: Config, n: int, seed: int, supersample: int) -> Images:
+    options = SyntheticOptions(seed=seed, max_shift_mm=indep.MAX_SHIFT_MM,
+                               max_tilt_deg=indep.MAX_TILT_DEG, blur_px=indep.BLUR_PX,
+                               noise_std=indep.NOISE_STD, gradient=indep.GRADIENT,
+                               supersample=supersample)
     camera = SyntheticCamera(options, config)
-    await camera.open()
+    loop = asyncio.new_event_loop()
     try:
-        return [await camera.grab(60.0) for _ in range(n)]
+        loop.run_until_complete(camera.open())
+        for _ in range(n):
+            pair = loop.run_until_complete(camera.grab(60.0))
+            yield pair, pair.truth["T_base_obj"]
+        loop.run_until_complete(camera.close())
     finally:
-        await camera.close()
+        loop.close()
 
 
 class Peer:
@@ -146,81 +169,234 @@ class Peer:
         return self.T_base_camera @ make_transform(R, cb - R @ ca)
 
 
-def errors(T: np.ndarray | None, truth: np.ndarray) -> tuple[float, float]:
-    if T is None:
-        return np.inf, np.inf
-    E = invert_transform(truth) @ T
-    return float(np.linalg.norm(T[:3, 3] - truth[:3, 3])), float(
-        np.degrees(rotation_angle(E[:3, :3])))
+Row = tuple[float, float, float]  # latency ms, translation error mm, rotation error deg
+
+
+def run(pipeline: Pipeline, peer: Peer, images: Images, ablation: bool = False
+        ) -> tuple[dict[str, list[Row]], dict[str, int]]:
+    """Both pipelines on every pair in turn; per-pair rows and vgripd's status counts.
+
+    ``ablation``: also vgripd with its circle-centre correction switched off (the bias it
+    predicts replaced by zero), to show what the correction is worth against this truth.
+    """
+    rows: dict[str, list[Row]] = {"vgripd": [], "opencv peer": []}
+    if ablation:
+        rows[NO_CORRECTION] = []
+    statuses: dict[str, int] = {}
+
+    def vgripd(name: str, pair: ImagePair, truth: np.ndarray, i: int) -> None:
+        t = time.perf_counter()
+        result = pipeline.process(pair, i)
+        dt = (time.perf_counter() - t) * 1e3
+        if name == "vgripd":
+            statuses[result.status.name] = statuses.get(result.status.name, 0) + 1
+        T = result.T_base_obj
+        rows[name].append((dt, *(pose_error(T, truth) if T is not None else (np.inf, np.inf))))
+
+    for i, (pair, truth) in enumerate(images):
+        vgripd("vgripd", pair, truth, i)
+        t = time.perf_counter()
+        T_peer = peer.locate(pair)
+        dt = (time.perf_counter() - t) * 1e3
+        rows["opencv peer"].append((dt, *(pose_error(T_peer, truth) if T_peer is not None
+                                          else (np.inf, np.inf))))
+        if ablation:
+            saved = pipeline_module._circle_centre_bias
+            pipeline_module._circle_centre_bias = _no_bias
+            try:
+                vgripd(NO_CORRECTION, pair, truth, i)
+            finally:
+                pipeline_module._circle_centre_bias = saved
+    return rows, statuses
+
+
+NO_CORRECTION = "vgripd, circle-centre correction off"
+
+
+def _no_bias(camera: object, T_cam_obj: np.ndarray, centres: np.ndarray,
+             diameters: np.ndarray) -> np.ndarray:
+    return np.zeros((len(centres), 2))
+
+
+def collect(images: Images, truths: list[np.ndarray]) -> Images:
+    for pair, truth in images:
+        truths.append(truth)
+        yield pair, truth
+
+
+def bias_check(plate: indep.Plate, config: Config, poses: int, seed: int
+               ) -> tuple[float, float, float, float]:
+    """vgripd's predicted circle-centre bias against the independent renderer's geometry.
+
+    Returns the largest differences (px) between (1) the area centroid of the rendered disc
+    minus ``cv2.projectPoints`` of its 3-D centre and the bias vgripd predicts, (2)
+    ``cv2.projectPoints`` and ``CameraModel.project`` of the centres; then the smallest and the
+    largest predicted bias (px).
+    """
+    cell = indep.Cell(plate)
+    models = scene.camera_models(config)
+    rng = np.random.default_rng(seed)
+    worst_bias = worst_projection = 0.0
+    sizes: list[float] = []
+    for _ in range(poses):
+        for (cam, T), model in zip(cell.views(cell.random_pose(rng)), models, strict=True):
+            assert model is not None
+            predicted = pipeline_module._circle_centre_bias(model, T, plate.centres,
+                                                            plate.diameters)
+            sizes += np.linalg.norm(predicted, axis=1).tolist()
+            centres_cam = plate.centres @ T[:3, :3].T + T[:3, 3]
+            projected = cam.project(centres_cam)
+            worst_projection = max(worst_projection, float(
+                np.abs(projected - model.project(centres_cam)).max()))
+            for i in range(len(plate.names)):
+                rim = indep.rim_pixels(cam, T, plate.centres[i], plate.diameters[i])
+                box = indep.bounding_box(rim, cam.width, cam.height)
+                assert box is not None
+                measured = indep.scan_centroid(rim, box[1], box[3]) - projected[i]
+                worst_bias = max(worst_bias, float(np.linalg.norm(measured - predicted[i])))
+    return worst_bias, worst_projection, min(sizes), max(sizes)
+
+
+def summary(data: list[Row]) -> dict[str, float]:
+    a = np.array(data)
+    ok = np.isfinite(a[:, 1])
+    t, r = a[ok, 1], a[ok, 2]
+    return {"lat_med": float(np.median(a[:, 0])), "lat_p99": float(np.percentile(a[:, 0], 99)),
+            "t_rms": float(np.sqrt(np.mean(t**2))), "t_med": float(np.median(t)), "t_max": float(t.max()),
+            "r_rms": float(np.sqrt(np.mean(r**2))), "r_med": float(np.median(r)), "r_max": float(r.max()),
+            "failed": int((~ok).sum())}
+
+
+def table(results: dict[str, dict[str, list[Row]]]) -> list[str]:
+    lines = [
+        "| images | pipeline | translation err RMS / median / max mm | rotation err RMS / median / "
+        "max deg | failed | latency median / p99 ms |",
+        "|---|---|---|---|---|---|",
+    ]
+    for images, rows in results.items():
+        for name, data in rows.items():
+            s = summary(data)
+            lines.append(
+                f"| {images} | {name} | {s['t_rms']:.4f} / {s['t_med']:.4f} / {s['t_max']:.4f} | "
+                f"{s['r_rms']:.4f} / {s['r_med']:.4f} / {s['r_max']:.4f} | {s['failed']} | "
+                f"{s['lat_med']:.1f} / {s['lat_p99']:.1f} |")
+    return lines
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pairs", type=int, default=60)
+    parser.add_argument("--pairs", type=int, default=100)
     parser.add_argument("--seed", type=int, default=11)
+    parser.add_argument("--supersample", type=int, default=4,
+                        help="samples per pixel and axis of the synthetic camera (vgripd's model)")
     parser.add_argument("--write-results", action="store_true",
                         help=f"replace the section {SECTION!r} in bench/RESULTS.md")
     args = parser.parse_args()
-    config = cell_config()
+    plate = indep.Plate.from_toml()
+    config = cell_config(plate)
+    if not np.array_equal(scene.object_points(config), plate.centres):
+        raise SystemExit("the plate vgripd was given differs from the renderer's")
+    load_before = os.getloadavg()[0]
     t0 = time.perf_counter()
-    pairs = asyncio.run(render(config, args.pairs, args.seed))
-    print(f"rendered {len(pairs)} pairs of {W}x{H} in {time.perf_counter() - t0:.1f} s")
+    truths: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
+    sets = {
+        "independent (OpenCV projectPoints)":
+            lambda: collect(render_independent(plate, args.pairs, args.seed), truths[0]),
+        "vgripd's own model (synthetic camera)":
+            lambda: collect(render_vgripd(config, args.pairs, args.seed, args.supersample),
+                            truths[1]),
+    }
     pipeline, peer = Pipeline(config), Peer(config)
-    for pair in pairs[:3]:  # warm up both (first-call allocations, OpenCV dispatch)
+    for pair, _ in render_independent(plate, 3, args.seed + 1):  # warm up both
         pipeline.process(pair, 0)
         peer.locate(pair)
-    rows = {"vgripd": [], "opencv peer": []}
-    statuses: dict[str, int] = {}
-    for i, pair in enumerate(pairs):
-        truth = pair.truth["T_base_obj"]
-        t = time.perf_counter()
-        result = pipeline.process(pair, i)
-        dt = (time.perf_counter() - t) * 1e3
-        statuses[result.status.name] = statuses.get(result.status.name, 0) + 1
-        rows["vgripd"].append((dt, *errors(result.T_base_obj, truth)))
-        t = time.perf_counter()
-        T_peer = peer.locate(pair)
-        dt = (time.perf_counter() - t) * 1e3
-        rows["opencv peer"].append((dt, *errors(T_peer, truth)))
+    results: dict[str, dict[str, list[Row]]] = {}
+    statuses: dict[str, dict[str, int]] = {}
+    for k, (name, images) in enumerate(sets.items()):
+        results[name], statuses[name] = run(pipeline, peer, images(), ablation=k == 0)
+    print(f"rendered and located 2 x {args.pairs} pairs of {W}x{H} in "
+          f"{time.perf_counter() - t0:.1f} s")
+    load_after = os.getloadavg()[0]
+    first = next(iter(results))
+    v, p = summary(results[first]["vgripd"]), summary(results[first]["opencv peer"])
+    own = summary(results[list(results)[1]]["vgripd"])
+    off = summary(results[first][NO_CORRECTION])
+    worst_bias, worst_projection, bias_lo, bias_hi = bias_check(plate, config, 10, args.seed + 2)
+    paired = max(float(np.abs(a - b).max()) for a, b in zip(*truths, strict=True)) < 1e-9
+    check = indep.verify(indep.Cell(plate), 1, args.seed + 3)
     lines = [
         SECTION,
         "",
-        f"`bench/bench_locate.py --pairs {args.pairs}`: {W}x{H} 8-bit stereo pairs in memory -> "
-        "object pose in the base frame; synthetic demo plate at ~840 mm, f = 3500 px, 200 mm "
-        "baseline, blur 0.8 px, noise 2 grey levels, 30 % lighting gradient, random pose "
-        "(+-20 mm, +-8 deg). Same images, same run, this 2-core machine (shared).",
+        f"`.venv/bin/python bench/bench_locate.py --pairs {args.pairs} --write-results`, "
+        f"{datetime.date.today()}, 2-core machine shared with other work (load average "
+        f"{load_before:.2f} before, {load_after:.2f} after). {W}x{H} 8-bit stereo pairs in memory "
+        "-> object pose in the base frame; demo plate (six 10 mm dark marks, ~42 px) at ~840 mm, "
+        "f = 3500 px, 200 mm baseline toed in, Brown distortion k1 = -0.05, blur 0.8 px, noise 2 "
+        "grey levels, 30 % lighting gradient, random pose (+-20 mm, +-8 deg). Both pipelines "
+        "locate the same images in the same run; errors are `pose_error` against the drawn "
+        "3-D pose.",
         "",
-        "| pipeline | latency median ms | p99 ms | translation err median / max mm "
-        "| rotation err median / max deg | failed |",
-        "|---|---|---|---|---|---|",
-    ]
-    for name, data in rows.items():
-        a = np.array(data)
-        ok = np.isfinite(a[:, 1])
-        lat = a[:, 0]
-        lines.append(
-            f"| {name} | {np.median(lat):.1f} | {np.percentile(lat, 99):.1f} | "
-            f"{np.median(a[ok, 1]):.4f} / {a[ok, 1].max():.4f} | "
-            f"{np.median(a[ok, 2]):.4f} / {a[ok, 2].max():.4f} | {int((~ok).sum())} |"
-        )
-    v, p = np.array(rows["vgripd"]), np.array(rows["opencv peer"])
-    lines += [
+        "Two sets of images. *Independent*: `bench/render_independent.py`, which imports nothing "
+        "from vgripd or drivers: each mark's rim is projected by `cv2.projectPoints` (4096 "
+        "points) and rasterised with 128 scan lines per pixel row, exact along each line; its "
+        "self-check, run as part of this bench (a ray-casting render through "
+        "`cv2.undistortPoints` is the second path; its 16x16 grid limits that comparison to "
+        "~1e-3 px):",
         "",
-        f"vgripd statuses: {statuses}. Latency ratio vgripd/peer (median): "
-        f"{np.median(v[:, 0]) / np.median(p[:, 0]):.2f}; translation error ratio (median): "
-        f"{np.median(v[:, 1]) / np.median(p[np.isfinite(p[:, 1]), 1]):.2f}. vgripd's time "
-        "includes the gates, offset and vendor conversion; the peer has no spurious-blob "
-        "rejection (it fails when the blob count differs from the model).",
+        "```",
+        *check,
+        "```",
+        "",
+        "*vgripd's own model*: the synthetic camera driver, which projects through "
+        "`vgripd.geometry.camera_model`, the model the pipeline's circle-centre correction also "
+        "uses (kept for comparison: an error shared by renderer and pipeline would cancel there), "
+        f"with {args.supersample}x{args.supersample} samples per pixel. "
+        + ("Both sets draw the same poses and the same noise (same seed, same order of draws): "
+           "the images differ only in how the marks are rendered." if paired else
+           "The two sets draw different poses and noise."),
+        "",
+        *table(results),
+        "",
+        f"**Headline (independent images): vgripd {v['t_rms']:.4f} mm / {v['r_rms']:.4f} deg RMS "
+        f"(max {v['t_max']:.4f} mm / {v['r_max']:.4f} deg), the OpenCV peer {p['t_rms']:.4f} mm / "
+        f"{p['r_rms']:.4f} deg RMS (max {p['t_max']:.4f} mm / {p['r_max']:.4f} deg); ratio "
+        f"vgripd / peer {v['t_rms'] / p['t_rms']:.2f} (translation), "
+        f"{v['r_rms'] / p['r_rms']:.2f} (rotation).** On images rendered by vgripd's own model "
+        f"vgripd measures {own['t_rms']:.4f} mm / {own['r_rms']:.4f} deg RMS (median "
+        f"{own['t_med']:.4f} mm): "
+        + ("the independent figure is no worse" if v["t_rms"] <= own["t_rms"] else
+           f"the independent figure is {v['t_rms'] / own['t_rms']:.2f}x the self-rendered one")
+        + ". On 2026-11-24 the self-rendered figure was the higher one; the cause is the synthetic "
+        "camera's sampling, not the model: with `--pairs 30 --supersample 16` (16x16 samples per "
+        "pixel instead of 4x4, same poses and noise) the two sets gave vgripd 0.0039 and 0.0040 "
+        "mm RMS (0.0047 mm at 4x4).",
+        "",
+        "Cross-checks of the pipeline against the independent geometry (10 further poses, 2 "
+        f"cameras, 6 marks): `cv2.projectPoints` and vgripd's `CameraModel.project` agree to "
+        f"{worst_projection:.0e} px on the mark centres; the perspective bias of circle centres "
+        "that vgripd predicts (area centroid of its 48-vertex projected rim minus the projected "
+        f"centre, {bias_lo:.3f}-{bias_hi:.3f} px here) agrees with the area centroid of the independently rendered "
+        f"disc to {worst_bias:.1e} px. With that correction switched off, vgripd's error on the "
+        f"independent images is {off['t_rms']:.4f} mm / {off['r_rms']:.4f} deg RMS (max "
+        f"{off['t_max']:.4f} mm), as against {v['t_rms']:.4f} mm with it: without the correction "
+        "vgripd's translation error is the peer's size (the bias shifts every mark by about the "
+        "same depth), its rotation error hardly changes. The correction holds against a truth it "
+        "did not render.",
+        "",
+        "vgripd statuses: " + "; ".join(f"{k}: {d}" for k, d in statuses.items()) + " "
+        "(OUT_OF_LIMITS is the offset gate, 100 mm / 20 deg, on the largest random poses: the "
+        "pose is measured all the same and counted). vgripd's "
+        f"latency (median ratio vgripd / peer {v['lat_med'] / p['lat_med']:.2f} on the "
+        "independent images) includes the gates, offset and vendor conversion; the peer has no "
+        "spurious-blob rejection (it fails when the blob count differs from the model) and no "
+        "circle-centre correction. Latencies swing with the machine's load (load average above; "
+        "other work shares the 2 cores), the errors do not. No target is stated for this "
+        "benchmark.",
     ]
     text = "\n".join(lines)
     print(text)
     if args.write_results:
-        old = RESULTS.read_text() if RESULTS.exists() else "# Benchmark results\n"
-        start = old.find(SECTION)
-        if start >= 0:
-            end = old.find("\n## ", start + len(SECTION))
-            old = old[:start].rstrip("\n") + ("\n" + old[end:] if end >= 0 else "")
-        RESULTS.write_text(old.rstrip("\n") + "\n\n" + text + "\n")
+        write_section(SECTION, text + "\n")
 
 
 if __name__ == "__main__":
