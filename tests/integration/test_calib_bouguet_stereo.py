@@ -11,7 +11,12 @@ Two routes:
    (``|ours - published| <= published+-``), and the written rig.toml, loaded through a config
    ``include``, triangulates his stored corners into a 30 mm grid.
 
-Model as his: fx, fy, cx, cy, k1, k2, p1, p2, k3 = 0, skew 0; ``X_R = R(om) X_L + T``, mm.
+Model as his: fx, fy, cx, cy, k1, k2, p1, p2, k3 = 0, skew 0; ``X_R = R(om) X_L + T``, mm. That
+is also the model the joint fit chooses from the data here (BIC; k3 free is 7 higher on the
+JPEGs), so no model option is passed.
+
+Pairs that are not pairs: the same JPEGs with the right images shifted by one, or two right
+images swapped, are refused before the joint fit, naming the pairs (and the shift).
 """
 
 from __future__ import annotations
@@ -100,6 +105,7 @@ def test_stored_corners_reproduce_the_published_optimum(stored_fit):
     """Same corners, same model: |ours - his| within a hundredth of his +- or the rounding of
     his 5 printed decimals, for om, T and both cameras' fc, cc, kc."""
     assert stored_fit.rejected == []
+    assert stored_fit.model.model.name == "k1 k2 p1 p2"
     ours = from_result(stored_fit)
     for key, (value, pm) in PUBLISHED.items():
         diff = np.abs(ours[key][0] - np.asarray(value))
@@ -171,6 +177,9 @@ def test_cli_on_the_jpegs_agrees_with_published(cli_run):
         ratio = 3 * ours[key][1] / np.asarray(pm)
         assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), f"{key}: 3 sigma / his +- = {ratio}"
     assert summary["rms_px"] < 0.25
+    assert (summary["model"]["model"], summary["model"]["chosen_by"]) == ("k1 k2 p1 p2", "BIC")
+    rows = {c["model"]: c for c in summary["model"]["candidates"]}
+    assert rows["k1 k2 p1 p2 k3"]["delta_bic"] > 2.0
     assert summary["epipolar_px"]["median"] < 0.15
     assert summary["epipolar_px"]["p95"] < 0.5
     assert summary["warnings"] == []
@@ -207,16 +216,20 @@ def test_cli_report_and_about(cli_run):
     assert summary["report"] == str(report)
     text = out.read_text()
     for section in ("[calibration.left]", "[calibration.right]",
-                    "[calibration.stereo.T_right_left]", "[about]", "[about.epipolar_px]"):
+                    "[calibration.stereo.T_right_left]", "[about]", "[about.epipolar_px]",
+                    "[about.model_choice]"):
         assert section in text
 
 
-def link_pairs(datasets: Path, folder: Path, numbers: list[int]) -> None:
-    """left{n}.jpg / right{n}.jpg in ``folder`` -> his pairs 1, 2, ... (symlinks, no copies)."""
+def link_pairs(datasets: Path, folder: Path, numbers: list[int],
+               right_of: dict[int, int] | None = None) -> None:
+    """left{n}.jpg / right{n}.jpg in ``folder`` -> his pairs 1, 2, ... (symlinks, no copies);
+    ``right_of`` {k: j}: the k-th right file is his right image j instead."""
     source = datasets / "bouguet_stereo_example"
     for k, n in enumerate(numbers, 1):
-        for side in ("left", "right"):
-            (folder / f"{side}{n}.jpg").symlink_to(source / f"{side}{k:02d}.jpg")
+        j = (right_of or {}).get(k, k)
+        (folder / f"left{n}.jpg").symlink_to(source / f"left{k:02d}.jpg")
+        (folder / f"right{n}.jpg").symlink_to(source / f"right{j:02d}.jpg")
 
 
 def run_cli(*argv: str) -> tuple[int, str]:
@@ -261,3 +274,46 @@ def test_cli_mismatched_counts_and_empty_globs_are_errors(datasets, tmp_path, ca
     assert rc == 1
     assert "--left" in capsys.readouterr().err
     assert not (tmp_path / "rig.toml").exists()
+
+
+def test_cli_refuses_pairs_shifted_by_one_and_names_the_shift(datasets, tmp_path, capsys):
+    """left k with his right k+1 (as when right01 is missing and the rest renumbered): before,
+    the joint fit ended in "undistort: point 53 ... beyond the distortion's fold"."""
+    link_pairs(datasets, tmp_path, list(range(1, 14)), right_of={k: k + 1 for k in range(1, 14)})
+    rc, out = run_cli("--left", str(tmp_path / "left*.jpg"), "--right",
+                      str(tmp_path / "right*.jpg"), "--board", "chessboard:9x6:30",
+                      "-o", str(tmp_path / "rig.toml"))
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert out == ""
+    assert err.count("\n") == 1
+    assert "left and right images are not consistent pairs: 13 of 13 pairs disagree" in err
+    assert (f"fit the rig when left i goes with right i-1 (from {tmp_path / 'left2.jpg'} with "
+            f"{tmp_path / 'right1.jpg'}): the right images are shifted by 1") in err
+    assert "fold" not in err
+    assert not (tmp_path / "rig.toml").exists()
+
+
+def test_cli_names_two_swapped_right_images(datasets, tmp_path, capsys):
+    link_pairs(datasets, tmp_path, list(range(1, 11)), right_of={4: 8, 8: 4})
+    rc, _ = run_cli("--left", str(tmp_path / "left*.jpg"), "--right",
+                    str(tmp_path / "right*.jpg"), "--board", "chessboard:9x6:30",
+                    "-o", str(tmp_path / "rig.toml"))
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert "2 of 10 pairs disagree with the rig of the other 8" in err
+    for k in (4, 8):
+        assert f"{tmp_path / f'left{k}.jpg'} / {tmp_path / f'right{k}.jpg'} (" in err
+    assert "Likely: pairs shifted (left i with right i+1), images not taken at the same time" in err
+
+
+def test_cli_human_output_reports_the_model_choice(datasets, tmp_path):
+    link_pairs(datasets, tmp_path, list(range(1, 8)))
+    rc, out = run_cli("--left", str(tmp_path / "left*.jpg"), "--right",
+                      str(tmp_path / "right*.jpg"), "--board", "chessboard:9x6:30",
+                      "-o", str(tmp_path / "rig.toml"), "--fix-k3")
+    assert rc == 0
+    assert "distortion model, both cameras: k1 k2 p1 p2 (chosen by BIC: " in out
+    assert "left k2" in out
+    assert "right k2" in out
+    assert "--fix-k3" in (tmp_path / "rig.toml").read_text()  # the command in [about]

@@ -134,18 +134,38 @@ class ModelChoice:
         return {"model": self.model.name, "chosen_by": self.chosen_by, "reason": self.reason,
                 "notes": self.notes, "candidates": self.candidates}
 
-    def table(self) -> list[str]:
-        """Human lines: one per candidate, the chosen one marked with ``*``."""
+    def table(self, cameras: Sequence[tuple[str, str]] = (("", "dist"),)) -> list[str]:
+        """Human lines: one per candidate, the chosen one marked with ``*``; k2 and k3 of each
+        (label, key) in ``cameras`` (the candidates' ``key``/``key_std`` entries)."""
         width = max(len(c["model"]) for c in self.candidates)
-        lines = [f"  {'model':{width}s}  RMS px    dBIC  {'k2':>20s}  {'k3':>20s}"]
+        head = "".join(f"  {label + name:>20s}" for label, _ in cameras for name in ("k2", "k3"))
+        lines = [f"  {'model':{width}s}  RMS px    dBIC{head}"]
         for c in self.candidates:
             mark = "*" if c["model"] == self.model.name else " "
-            k2 = f"{c['dist'][1]:.5f} +- {c['dist_std'][1]:.5f}"
-            k3 = (f"{c['dist'][4]:.5f} +- {c['dist_std'][4]:.5f}" if "k3" in c["model"].split()
-                  else "0 (held)")
-            lines.append(f"{mark} {c['model']:{width}s}  {c['rms_px']:6.4f}  {c['delta_bic']:6.1f}"
-                         f"  {k2:>20s}  {k3:>20s}")
+            cells = ""
+            for _, key in cameras:
+                value, sigma = c[key], c[key + "_std"]
+                k3 = (f"{value[4]:.5f} +- {sigma[4]:.5f}" if "k3" in c["model"].split()
+                      else "0 (held)")
+                k2 = f"{value[1]:.5f} +- {sigma[1]:.5f}"
+                cells += f"  {k2:>20s}  {k3:>20s}"
+            lines.append(f"{mark} {c['model']:{width}s}  {c['rms_px']:6.4f}  "
+                         f"{c['delta_bic']:6.1f}{cells}")
         return lines
+
+
+def k3_note(choice: ModelChoice, camera: str = "", key: str = "dist") -> list[str]:
+    """When the choice left k3 out although a candidate had it: what k2 is with and without it
+    (``camera`` prefixes the line; ``key`` names the candidates' dist entries)."""
+    rows = {c["model"]: c for c in choice.candidates}
+    with_k3 = DistortionModel(choice.model.tangential, k3=True)
+    if choice.model.k3 or with_k3.name not in rows:
+        return []
+    a, b = rows[choice.model.name], rows[with_k3.name]
+    va, sa, vb, sb = a[key], a[key + "_std"], b[key], b[key + "_std"]
+    return [f"{camera}k3 left out by the choice: k2 = {va[1]:.5f} +- {sa[1]:.5f} holds if "
+            f"k3 = 0; with k3 free, k3 = {vb[4]:.5f} +- {sb[4]:.5f} and k2 = {vb[1]:.5f} +- "
+            f"{sb[1]:.5f} (k2 and k3 trade off; both fit the views, see the RMS column)"]
 
 
 def choose_model(scores: dict[DistortionModel, float], reference: DistortionModel,
@@ -175,16 +195,7 @@ def choose_model(scores: dict[DistortionModel, float], reference: DistortionMode
                       f"(not more than {BIC_MARGIN:g}: not worth its extra terms)")
     candidates = [{"model": mdl.name, **rows[mdl], "bic": scores[mdl],
                    "delta_bic": scores[mdl] - scores[chosen]} for mdl in order]
-    notes = []
-    with_k3 = DistortionModel(chosen.tangential, k3=True)
-    if not chosen.k3 and with_k3 in rows:
-        a, b = rows[chosen], rows[with_k3]
-        notes.append(
-            f"k3 left out by the choice: k2 = {a['dist'][1]:.5f} +- {a['dist_std'][1]:.5f} "
-            f"holds if k3 = 0; with k3 free, k3 = {b['dist'][4]:.5f} +- {b['dist_std'][4]:.5f} "
-            f"and k2 = {b['dist'][1]:.5f} +- {b['dist_std'][1]:.5f} (k2 and k3 trade off; both "
-            "fit the views, see the RMS column)")
-    return ModelChoice(chosen, how, reason, candidates, notes)
+    return ModelChoice(chosen, how, reason, candidates)
 
 
 @dataclass
@@ -275,6 +286,7 @@ def calibrate_intrinsics(board: Board, detections: Sequence[Detection],
         rows[mdl] = {"rms_px": f["rms"], "dist": [float(v) for v in f["dist"]],
                      "dist_std": _dist_std(f["std"], mdl)}
     choice = choose_model(scores, reference, rows)
+    choice.notes = k3_note(choice)
     return _result(board, used, (w, h), fits[choice.model], rejected, choice)
 
 

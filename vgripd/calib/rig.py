@@ -2,7 +2,11 @@
 stereo optimisation").
 
 Model: each camera is a pinhole with fx, fy, cx, cy, skew 0 and Brown distortion
-``[k1, k2, p1, p2, k3]`` (OpenCV order = Bouguet ``kc``; k3 fixed at 0 unless ``fix_k3=False``).
+``[k1, k2, p1, p2, k3]`` (OpenCV order = Bouguet ``kc``). Whether p1 p2 and k3 are estimated
+or held at 0 is chosen from the data as for one camera (``calib.intrinsics``: BIC over the four
+candidates, Bouguet's k1 k2 p1 p2 kept unless beaten by more than 2), here on the joint stereo
+fit, one model for both cameras (OpenCV's stereo flags apply to both); ``fix_k3`` /
+``fix_tangential`` override it. A held term is 0, also when ``initial`` intrinsics had it.
 The rig is ``X_R = R(om) X_L + T`` (mm): the pose of the left camera in the right camera,
 config ``T_right_left``, Bouguet's ``om``/``T``, OpenCV ``stereoCalibrate``'s ``R``/``T``.
 Board view ``i`` has one pose in the left camera, ``X_L = R_i X_board + t_i``; the right camera
@@ -22,9 +26,20 @@ residuals, p parameters). The projection Jacobians come from ``cv2.projectPoints
 camera's through ``cv2.composeRT`` (board pose composed with the rig). ``std`` = one sigma;
 Bouguet's printed ``+-`` is three sigma.
 
+Pair consistency, before any joint fit: each camera alone gives the board pose of every view
+(``cv2.calibrateCamera`` on its own images, or ``solvePnP`` with ``initial``), so every pair
+gives its own left -> right pose. A rigid rig makes them agree (a few tenths of a degree, a few
+mm); a pair off the others' consensus by more than ``PAIR_ROTATION_TOL_DEG`` or by more than
+``PAIR_TRANSLATION_TOL`` x the baseline (and ``PAIR_DEPTH_TOL`` x the board distance) is not a
+pair of this rig: the images were not taken at the same time, or are not partners (a right
+list shifted by one because a file is missing, globs that sort differently). Any such pair is
+refused with a CalibrationError naming it; when pairing left i with right i+s (s = +-1, +-2)
+makes the poses agree, the message says so. Without this check such input ends in a joint fit
+that diverges or distorts beyond its fold.
+
 Outliers: a pair whose RMS (both images) is above ``outlier_factor`` x the median and above
 ``outlier_floor_px`` is dropped and the rig refitted, worst first, one pair at a time (as
-``calib.intrinsics`` does for single images).
+``calib.intrinsics`` does for single images), with every candidate distortion term free.
 
 Epipolar residuals: the distance (ideal px) of every calibration point from the epipolar line
 of its partner, in both images, with ``vgripd.geometry.stereo.StereoRig``; a good rig gives a few
@@ -42,6 +57,14 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from vgripd.calib.intrinsics import (
+    DistortionModel,
+    ModelChoice,
+    bic,
+    candidate_models,
+    choose_model,
+    k3_note,
+)
 from vgripd.errors import CalibrationError, GeometryError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.stereo import StereoRig
@@ -55,6 +78,9 @@ BASELINE_TOLERANCE = 0.05  # relative deviation from the hint that triggers a wa
 BASELINE_SIGMA_WARN = 0.005  # relative one-sigma uncertainty of |T| that triggers a warning
 CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+PAIR_ROTATION_TOL_DEG = 5.0  # a pair's left->right rotation this far from the consensus: no pair
+PAIR_TRANSLATION_TOL = 0.3  # ... or its translation this far, relative to the baseline
+PAIR_DEPTH_TOL = 0.05  # ... and relative to the board distance (single-view depth is loose)
 
 FloatArray = NDArray[np.float64]
 
@@ -71,6 +97,8 @@ class RigResult:
     (N_i, 2) px) in each image, the board pose ``T_left_board[i]`` (4x4, mm) and the epipolar
     residuals ``epipolar_residuals_px[i]`` (N_i, 2) (left image, right image).
     ``covariance`` is the full parameter covariance in the order of ``parameter_names``.
+    ``model``: the distortion model (both cameras) and the candidates it was chosen from; their
+    ``dist``/``dist_std`` are the left camera's, ``right_dist``/``right_dist_std`` the right's.
     """
 
     left: dict[str, Any]
@@ -93,6 +121,7 @@ class RigResult:
     epipolar_px: dict[str, float]
     covariance: FloatArray
     parameter_names: list[str]
+    model: ModelChoice
     rejected: list[dict[str, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
 
@@ -133,7 +162,8 @@ def calibrate_rig(object_points: Sequence[ArrayLike], px_left: Sequence[ArrayLik
                   px_right: Sequence[ArrayLike], size_left: tuple[int, int],
                   size_right: tuple[int, int] | None = None, *,
                   initial: tuple[CameraModel, CameraModel] | None = None,
-                  names: Sequence[tuple[str, str]] | None = None, fix_k3: bool = True,
+                  names: Sequence[tuple[str, str]] | None = None,
+                  fix_k3: bool | None = None, fix_tangential: bool | None = None,
                   baseline_hint_mm: float | None = None, outlier_factor: float = 3.0,
                   outlier_floor_px: float = 0.5) -> RigResult:
     """Calibrate a stereo rig from board points seen by both cameras.
@@ -147,12 +177,14 @@ def calibrate_rig(object_points: Sequence[ArrayLike], px_left: Sequence[ArrayLik
     initial : intrinsics to start from (e.g. separate calibrations, skew 0); None = calibrate
         each camera on these views first.
     names : per view (left image, right image) for messages; default "pair 1", ...
-    fix_k3 : keep k3 at 0 in both cameras (Bouguet's default).
+    fix_k3, fix_tangential : True holds k3 / p1 p2 at 0 in both cameras, False estimates them,
+        None (default) chooses from the data (module docstring).
     baseline_hint_mm : expected |T|; a result off by more than 5 % is warned about.
     outlier_factor, outlier_floor_px : the pair outlier rule (module docstring).
 
-    Raises CalibrationError for inconsistent input (naming the view), fewer than 3 usable
-    pairs, or a fit that fails.
+    Raises CalibrationError for inconsistent input (naming the view), pairs whose left and
+    right board poses disagree with the rig (naming them and the likely cause), fewer than 3
+    usable pairs, or a fit that fails.
     """
     n = len(object_points)
     if len(px_left) != n or len(px_right) != n:
@@ -174,14 +206,17 @@ def calibrate_rig(object_points: Sequence[ArrayLike], px_left: Sequence[ArrayLik
             if cam.skew != 0.0:
                 raise CalibrationError(f"initial {side} intrinsics: skew {cam.skew} px is not "
                                        "supported (the stereo fit keeps skew at 0)")
-    flags = cv2.CALIB_USE_INTRINSIC_GUESS | (cv2.CALIB_FIX_K3 if fix_k3 else 0)
+    models, reference = candidate_models(fix_k3, fix_tangential)
+    richest = models[-1]
+    if len(views.names) >= MIN_PAIRS:
+        _check_pairs(views, sizes, initial, reference)
     rejected: list[dict[str, str]] = []
     while True:
         if len(views.names) < MIN_PAIRS:
             raise CalibrationError(
                 f"need at least {MIN_PAIRS} pairs with the board in both images, have "
                 f"{len(views.names)}" + (f" ({len(rejected)} rejected)" if rejected else ""))
-        fit = _fit(views, sizes, initial, flags, fix_k3)
+        fit = _fit(views, sizes, initial, richest)
         rms = fit["per_pair_rms"]
         median = float(np.median(rms))
         worst = int(np.argmax(rms))
@@ -193,7 +228,36 @@ def calibrate_rig(object_points: Sequence[ArrayLike], px_left: Sequence[ArrayLik
                          "reason": f"pair RMS {rms[worst]:.2f} px vs median {median:.2f} px "
                                    f"(outlier: > {outlier_factor:g}x median)"})
         views.drop(worst)
-    return _result(views, sizes, fit, fix_k3, rejected, baseline_hint_mm)
+    fits = {mdl: fit if mdl == richest else _fit(views, sizes, initial, mdl) for mdl in models}
+    m = 4 * sum(len(o) for o in views.obj)
+    scores, rows = {}, {}
+    for mdl, f in fits.items():
+        ssr = float(sum(np.sum(r**2) for r in f["res_l"] + f["res_r"]))
+        scores[mdl] = bic(ssr, m, 2 * (4 + len(mdl.free)) + 6 + 6 * len(views.obj))
+        cams = [[float(v) for v in d] for _, d in f["cams"]]
+        std_l, std_r = _stds(views, f, mdl)
+        rows[mdl] = {"rms_px": float(np.sqrt(2 * ssr / m)), "dist": cams[0],
+                     "dist_std": _dist_std(std_l, mdl), "right_dist": cams[1],
+                     "right_dist_std": _dist_std(std_r, mdl)}
+    choice = choose_model(scores, reference, rows)
+    choice.notes = (k3_note(choice, "left camera: ", "dist")
+                    + k3_note(choice, "right camera: ", "right_dist"))
+    return _result(views, sizes, fits[choice.model], choice, rejected, baseline_hint_mm)
+
+
+def _dist_std(s: FloatArray, model: DistortionModel) -> list[float]:
+    """One camera's std slice (fx fy cx cy, then the free dist terms) as a 5-entry dist std."""
+    free = iter(s[4:])
+    return [float(next(free)) if f else 0.0 for f in model.mask]
+
+
+def _stds(views: _Views, fit: dict[str, Any], model: DistortionModel,
+          ) -> tuple[FloatArray, FloatArray]:
+    """One-sigma std of each camera's free intrinsics (fx fy cx cy + free dist terms)."""
+    n_int = 4 + len(model.free)
+    ssr = float(sum(np.sum(r**2) for r in fit["res_l"] + fit["res_r"]))
+    std = np.sqrt(np.diag(_covariance(_jacobian(views, fit, model), ssr)))
+    return std[:n_int], std[n_int:2 * n_int]
 
 
 def _view_arrays(obj: ArrayLike, pl: ArrayLike, pr: ArrayLike,
@@ -218,28 +282,141 @@ def _view_arrays(obj: ArrayLike, pl: ArrayLike, pr: ArrayLike,
 
 
 def _initial_camera(views: _Views, side: str, size: tuple[int, ...],
-                    fix_k3: bool) -> tuple[FloatArray, FloatArray]:
-    """One camera calibrated on its own images of the views (the stereo fit's start)."""
+                    model: DistortionModel) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
+    """One camera calibrated on its own images of the views (the stereo fit's start): K, dist
+    and the board pose of every view (4x4, mm)."""
     px = views.left if side == "left" else views.right
     try:
-        _rms, K, dist, _r, _t = cv2.calibrateCamera(
+        _rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
             [o.astype(np.float32) for o in views.obj], [p.astype(np.float32) for p in px],
-            (int(size[0]), int(size[1])), np.eye(3), np.zeros(5),
-            flags=cv2.CALIB_FIX_K3 if fix_k3 else 0, criteria=CRITERIA)
+            (int(size[0]), int(size[1])), np.eye(3), np.zeros(5), flags=model.flags,
+            criteria=CRITERIA)
     except cv2.error as err:
         raise CalibrationError(f"initial calibration of the {side} camera failed: "
                                f"{err.msg}") from None
-    return np.asarray(K, dtype=np.float64), np.asarray(dist, dtype=np.float64).ravel()[:5]
+    poses = [_pose(r, t) for r, t in zip(rvecs, tvecs, strict=True)]
+    return (np.asarray(K, dtype=np.float64), np.asarray(dist, dtype=np.float64).ravel()[:5],
+            poses)
+
+
+def _pose(rvec: ArrayLike, tvec: ArrayLike) -> FloatArray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3))[0]
+    T[:3, 3] = np.asarray(tvec, dtype=np.float64).ravel()
+    return T
+
+
+def _board_poses(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]],
+                 initial: tuple[CameraModel, CameraModel] | None,
+                 model: DistortionModel) -> tuple[list[FloatArray], list[FloatArray]]:
+    """Each camera's own board pose of every view: from its own calibration, or solvePnP with
+    the given intrinsics."""
+    out = []
+    for k, side in enumerate(("left", "right")):
+        if initial is None:
+            out.append(_initial_camera(views, side, sizes[k], model)[2])
+            continue
+        K, dist = initial[k].to_opencv()
+        px = views.left if side == "left" else views.right
+        poses = []
+        for obj, p, names in zip(views.obj, px, views.names, strict=True):
+            ok, rvec, tvec = cv2.solvePnP(obj, p, K, dist)
+            if not ok:
+                raise CalibrationError(f"{names[k]}: no board pose with the initial {side} "
+                                       "intrinsics")
+            poses.append(_pose(rvec, tvec))
+        out.append(poses)
+    return out[0], out[1]
+
+
+def _angle_deg(R: FloatArray) -> float:
+    return float(np.degrees(np.linalg.norm(cv2.Rodrigues(R)[0])))
+
+
+def _agreement(left: list[FloatArray], right: list[FloatArray], pairs: list[tuple[int, int]],
+               reference: FloatArray | None = None,
+               ) -> tuple[FloatArray, list[float], list[float], list[bool]]:
+    """Left -> right poses of the view pairs (i, j) = (left view i, right view j): their
+    consensus (rotation: the medoid; translation: the median), or ``reference``, and each
+    pair's rotation (deg) and translation (mm) off it, and whether that is within tolerance."""
+    rel = [right[j] @ np.linalg.inv(left[i]) for i, j in pairs]
+    if reference is None:
+        spread = [sum(_angle_deg(a[:3, :3] @ b[:3, :3].T) for b in rel) for a in rel]
+        reference = rel[int(np.argmin(spread))].copy()
+        reference[:3, 3] = np.median([r[:3, 3] for r in rel], axis=0)
+    baseline = float(np.linalg.norm(reference[:3, 3]))
+    angles = [_angle_deg(r[:3, :3] @ reference[:3, :3].T) for r in rel]
+    shifts = [float(np.linalg.norm(r[:3, 3] - reference[:3, 3])) for r in rel]
+    ok = [a <= PAIR_ROTATION_TOL_DEG
+          and d <= max(PAIR_TRANSLATION_TOL * baseline, PAIR_DEPTH_TOL * float(
+              np.linalg.norm(left[i][:3, 3])))
+          for a, d, (i, _) in zip(angles, shifts, pairs, strict=True)]
+    return reference, angles, shifts, ok
+
+
+def _check_pairs(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]],
+                 initial: tuple[CameraModel, CameraModel] | None,
+                 model: DistortionModel) -> None:
+    """Refuse pairs whose left -> right pose disagrees with the others' (module docstring)."""
+    left, right = _board_poses(views, sizes, initial, model)
+    n = len(left)
+    consensus, angles, shifts, ok = _agreement(left, right, [(i, i) for i in range(n)])
+    reference: FloatArray | None = consensus
+    bad = [i for i in range(n) if not ok[i]]
+    if not bad:
+        return
+    majority = len(bad) < n / 2
+    if not majority:  # no consensus: look for a shift under which one appears
+        reference = None
+        for s in (1, -1, 2, -2):
+            pairs = [(i, i + s) for i in range(n) if 0 <= i + s < n]
+            if len(pairs) >= MIN_PAIRS:
+                ref, _a, _d, fine = _agreement(left, right, pairs)
+                if sum(fine) >= 0.8 * len(pairs):
+                    reference = ref
+                    break
+    hint = ""
+    if reference is not None:  # which partner would fit the rig for the bad pairs
+        moves = {}
+        for i in bad:
+            for s in (1, -1, 2, -2):
+                if 0 <= i + s < n and _agreement(left, right, [(i, i + s)], reference)[3][0]:
+                    moves[i] = s
+                    break
+        if moves and len(set(moves.values())) == 1:
+            s = next(iter(moves.values()))
+            first = min(moves)
+            hint = (f" {len(moves)} of them fit the rig when left i goes with right i{s:+d} "
+                    f"(from {views.names[first][0]} with {views.names[first + s][1]}): the "
+                    f"right images are shifted by {abs(s)} (a missing or extra file, or names "
+                    "that sort differently)")
+    worst = sorted(bad, key=lambda i: -angles[i])[:3]
+    named = ", ".join(f"{views.names[i][0]} / {views.names[i][1]} ({angles[i]:.1f} deg, "
+                      f"{shifts[i]:.0f} mm)" for i in worst)
+    more = f" and {len(bad) - len(worst)} more" if len(bad) > len(worst) else ""
+    what = (f"{len(bad)} of {n} pairs disagree with the rig of the other {n - len(bad)}"
+            if majority else
+            f"{len(bad)} of {n} pairs disagree with each other: no rig fits them")
+    cause = hint or (" Likely: pairs shifted (left i with right i+1), images not taken at "
+                     "the same time, or left and right globs that sort in different orders.")
+    raise CalibrationError(
+        f"left and right images are not consistent pairs: {what} (each pair's left->right "
+        f"pose, from each camera alone, is off by more than {PAIR_ROTATION_TOL_DEG:g} deg or "
+        f"{PAIR_TRANSLATION_TOL:.0%} of the baseline; a rigid rig gives < 1 deg): {named}{more}."
+        + (cause if not hint else hint + "."))
 
 
 def _fit(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]],
-         initial: tuple[CameraModel, CameraModel] | None, flags: int,
-         fix_k3: bool) -> dict[str, Any]:
+         initial: tuple[CameraModel, CameraModel] | None,
+         model: DistortionModel) -> dict[str, Any]:
     if initial is None:
-        (K1, d1), (K2, d2) = (_initial_camera(views, "left", sizes[0], fix_k3),
-                              _initial_camera(views, "right", sizes[1], fix_k3))
+        K1, d1, _ = _initial_camera(views, "left", sizes[0], model)
+        K2, d2, _ = _initial_camera(views, "right", sizes[1], model)
     else:
         (K1, d1), (K2, d2) = initial[0].to_opencv(), initial[1].to_opencv()
+        held = ~np.array(model.mask)
+        d1, d2 = np.where(held, 0.0, d1), np.where(held, 0.0, d2)
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | model.flags
     try:
         (_rms, K1_out, d1_out, K2_out, d2_out, R, T, _E, _F, rvecs, tvecs,
          _per_view) = cv2.stereoCalibrateExtended(
@@ -277,11 +454,13 @@ def _project(obj: FloatArray, rvec: FloatArray, tvec: FloatArray,
     return np.asarray(px, dtype=np.float64).reshape(-1, 2)
 
 
-def _jacobian(views: _Views, fit: dict[str, Any], fix_k3: bool) -> FloatArray:
+def _jacobian(views: _Views, fit: dict[str, Any], model: DistortionModel) -> FloatArray:
     """d(residual)/d(parameter), rows: per view the left then the right points (u, v
     interleaved); columns: see ``_parameter_names``. Sign: of the projection (the residual's
     sign does not matter for the covariance)."""
-    n_int = 9 if not fix_k3 else 8
+    # projectPoints' Jacobian columns: rvec(3), tvec(3), fx, fy, cx, cy, k1, k2, p1, p2, k3
+    cols = [6, 7, 8, 9] + [10 + k for k, free in enumerate(model.mask) if free]
+    n_int = len(cols)
     n_views = len(views.obj)
     p = 2 * n_int + 6 + 6 * n_views
     rows = 2 * sum(2 * len(o) for o in views.obj)
@@ -293,7 +472,7 @@ def _jacobian(views: _Views, fit: dict[str, Any], fix_k3: bool) -> FloatArray:
         pose_cols = slice(2 * n_int + 6 + 6 * i, 2 * n_int + 12 + 6 * i)
         # left image: direct
         Jl = _projection_jacobian(obj, rv, tv, fit["cams"][0])
-        J[r0:r0 + m, :n_int] = Jl[:, 6:6 + n_int]
+        J[r0:r0 + m, :n_int] = Jl[:, cols]
         J[r0:r0 + m, pose_cols] = Jl[:, :6]
         r0 += m
         # right image: board pose composed with the rig, chain rule through composeRT
@@ -301,7 +480,7 @@ def _jacobian(views: _Views, fit: dict[str, Any], fix_k3: bool) -> FloatArray:
          dt3dr1, dt3dt1, dt3dr2, dt3dt2) = cv2.composeRT(rv, tv, om, T)
         Jr = _projection_jacobian(obj, rv3.ravel(), tv3.ravel(), fit["cams"][1])
         d_r3, d_t3 = Jr[:, :3], Jr[:, 3:6]
-        J[r0:r0 + m, n_int:2 * n_int] = Jr[:, 6:6 + n_int]
+        J[r0:r0 + m, n_int:2 * n_int] = Jr[:, cols]
         J[r0:r0 + m, 2 * n_int:2 * n_int + 3] = d_r3 @ dr3dr2 + d_t3 @ dt3dr2
         J[r0:r0 + m, 2 * n_int + 3:2 * n_int + 6] = d_r3 @ dr3dt2 + d_t3 @ dt3dt2
         J[r0:r0 + m, pose_cols] = np.hstack([d_r3 @ dr3dr1 + d_t3 @ dt3dr1,
@@ -317,8 +496,8 @@ def _projection_jacobian(obj: FloatArray, rvec: FloatArray, tvec: FloatArray,
     return np.asarray(jac, dtype=np.float64)[:, :15]
 
 
-def _parameter_names(n_views: int, fix_k3: bool) -> list[str]:
-    intr = INTRINSIC_NAMES[:8] if fix_k3 else INTRINSIC_NAMES
+def _parameter_names(n_views: int, model: DistortionModel) -> list[str]:
+    intr = (*INTRINSIC_NAMES[:4], *model.free)
     names = [f"left.{k}" for k in intr] + [f"right.{k}" for k in intr]
     names += [f"om[{k}]" for k in range(3)] + [f"T[{k}]" for k in range(3)]
     for i in range(n_views):
@@ -344,13 +523,14 @@ def _covariance(J: FloatArray, ssr: float) -> FloatArray:
 
 
 def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: dict[str, Any],
-            fix_k3: bool, rejected: list[dict[str, str]],
+            choice: ModelChoice, rejected: list[dict[str, str]],
             baseline_hint_mm: float | None) -> RigResult:
-    n_int = 8 if fix_k3 else 9
+    model = choice.model
+    n_int = 4 + len(model.free)
     res_l, res_r = fit["res_l"], fit["res_r"]
     all_res = np.concatenate(res_l + res_r)
     ssr = float(np.sum(all_res**2))
-    cov = _covariance(_jacobian(views, fit, fix_k3), ssr)
+    cov = _covariance(_jacobian(views, fit, model), ssr)
     std = np.sqrt(np.diag(cov))
     cams, stds = [], []
     for k, ((K, dist), size) in enumerate(zip(fit["cams"], sizes, strict=True)):
@@ -359,7 +539,7 @@ def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: 
                      "width": int(size[0]), "height": int(size[1])})
         s = std[k * n_int:(k + 1) * n_int]
         stds.append({"fx": float(s[0]), "fy": float(s[1]), "cx": float(s[2]), "cy": float(s[3]),
-                     "skew": 0.0, "dist": [float(v) for v in s[4:]] + ([0.0] if fix_k3 else [])})
+                     "skew": 0.0, "dist": _dist_std(s, model)})
     poses = []
     for rv, tv in fit["poses"]:
         poses.append(make_transform(matrix_from_rotvec(rv), tv))
@@ -374,7 +554,8 @@ def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: 
         per_pair=per_pair, residuals_left_px=res_l, residuals_right_px=res_r,
         px_left=list(views.left), px_right=list(views.right), T_left_board=poses,
         epipolar_residuals_px=[], epipolar_px={}, covariance=cov,
-        parameter_names=_parameter_names(len(views.obj), fix_k3), rejected=rejected)
+        parameter_names=_parameter_names(len(views.obj), model), model=choice,
+        rejected=rejected)
     try:
         rig = result.rig
         result.epipolar_residuals_px = [rig.epipolar_residuals_px(a, b)

@@ -3,10 +3,15 @@
 ``--left`` and ``--right`` are globs (quote them); the i-th left image (sorted by name, numbers
 by value: img2 before img10) pairs with the i-th right image, so both globs must match the same
 number of files. Pairs where the board is found in only one image are left out (saying why).
-The rig is fitted as Bouguet's "global stereo optimisation" (both intrinsics, om, T, the board
-poses; see ``vgripd.calib.rig``), outlier pairs are dropped, and ``[calibration.left]``,
-``[calibration.right]`` and ``[calibration.stereo.T_right_left]`` (``X_R = R X_L + T``, mm) are
-written to ``-o`` for a config's ``include``. See docs/calibration-stereo.md.
+Before the joint fit, pairs whose left and right board poses do not fit one rigid rig (shifted
+pairs, unsynchronised images, globs sorting differently) are refused, naming them. The rig is
+fitted as Bouguet's "global stereo optimisation" (both intrinsics, om, T, the board poses; see
+``vgripd.calib.rig``), with the distortion model (k3, p1 p2; one for both cameras) chosen from
+the data unless ``--fix-k3``/``--free-k3``, ``--fix-tangential``/``--free-tangential`` say;
+outlier pairs are dropped, and ``[calibration.left]``, ``[calibration.right]`` and
+``[calibration.stereo.T_right_left]`` (``X_R = R X_L + T``, mm) are written to ``-o`` for a
+config's ``include``, with the model choice in ``[about.model_choice]``. See
+docs/calibration-stereo.md.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from vgripd.calib.files import pose_table, write_result
 from vgripd.calib.intrinsics import DIST_NAMES, empty_regions
 from vgripd.calib.output import add_output_arguments, emit
 from vgripd.calib.rig import RigResult, calibrate_rig
-from vgripd.cli.calibrate_intrinsics import _natural
+from vgripd.cli.calibrate_intrinsics import _natural, add_model_arguments, model_words
 from vgripd.errors import CalibrationError
 
 
@@ -37,11 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--board", required=True, metavar="SPEC",
                         help="chessboard:COLSxROWS:SQUARE_MM (inner corners), circles:..., "
                              "acircles:..., charuco:COLSxROWS:SQUARE_MM:MARKER_MM[:DICT]")
-    k3 = parser.add_mutually_exclusive_group()
-    k3.add_argument("--fix-k3", dest="fix_k3", action="store_true", default=True,
-                    help="keep the 6th-order radial term k3 at 0 (default, as Bouguet's toolbox)")
-    k3.add_argument("--free-k3", dest="fix_k3", action="store_false",
-                    help="estimate k3 too (wide-angle lenses)")
+    add_model_arguments(parser)
     parser.add_argument("--baseline-mm", type=float, default=None, metavar="MM",
                         help="expected distance between the cameras; warn if off by > 5%%")
     parser.add_argument("--subpix-window", type=int, default=None, metavar="N",
@@ -59,7 +60,7 @@ def _paths(pattern: str, option: str) -> list[str]:
 
 def _command(args: argparse.Namespace) -> str:
     words = ["vgripd", "calibrate", "stereo", "--left", args.left, "--right", args.right,
-             "--board", args.board, "--fix-k3" if args.fix_k3 else "--free-k3"]
+             "--board", args.board, *model_words(args)]
     if args.baseline_mm is not None:
         words += ["--baseline-mm", repr(args.baseline_mm)]
     if args.subpix_window is not None:
@@ -126,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     result = calibrate_rig([obj[dl.ids] for dl, _ in pairs], [dl.px for dl, _ in pairs],
                            [dr.px for _, dr in pairs], pairs[0][0].size, pairs[0][1].size,
                            names=[(dl.image, dr.image) for dl, dr in pairs], fix_k3=args.fix_k3,
-                           baseline_hint_mm=args.baseline_mm)
+                           fix_tangential=args.fix_tangential, baseline_hint_mm=args.baseline_mm)
     rejected = not_paired + result.rejected
     warnings = list(result.warnings)
     used = set(result.names)
@@ -139,8 +140,9 @@ def run(args: argparse.Namespace) -> int:
     summary = _summary(result, rejected, warnings, args)
     about = {
         "command": _command(args), "board": board.spec, "opencv": cv2.__version__,
-        "model": "pinhole fx fy cx cy, skew 0, dist k1 k2 p1 p2" + ("" if args.fix_k3 else " k3")
-                 + "; X_R = R(rotvec) X_L + T, mm",
+        "model": f"pinhole fx fy cx cy, skew 0, dist {result.model.model.name} (others 0), "
+                 "both cameras; X_R = R(rotvec) X_L + T, mm",
+        "model_choice": result.model.summary(),
         "rms_px": result.rms_px, "pairs_used": len(result.names),
         "std": {"left": result.left_std, "right": result.right_std,
                 "rotvec_rad": result.rotvec_std, "translation_mm": result.translation_std},
@@ -162,6 +164,7 @@ def run(args: argparse.Namespace) -> int:
         write_report(args.report, f"vgripd calibrate stereo  {board.spec}",
                      (result.left["width"], result.left["height"]), images,
                      lines=_parameter_lines(result) + [
+                         f"model {result.model.model.name}: {result.model.reason}"] + [
                          f"rejected: {r['left']} / {r['right']}: {r['reason']}"
                          for r in rejected])
         summary["report"] = str(args.report)
@@ -175,7 +178,7 @@ def _summary(r: RigResult, rejected: list[dict[str, str]], warnings: list[str],
     return {"left": r.left, "right": r.right, "left_std": r.left_std, "right_std": r.right_std,
             "rotvec_rad": r.rotvec_rad, "translation_mm": r.translation_mm,
             "rotvec_std": r.rotvec_std, "translation_std": r.translation_std,
-            "rms_px": r.rms_px,
+            "rms_px": r.rms_px, "model": r.model.summary(),
             "per_pair": [{k: p[k] for k in ("left", "right", "rms_px")} for p in r.per_pair],
             "epipolar_px": r.epipolar_px, "rejected": rejected, "warnings": warnings,
             "output": str(args.output)}
@@ -207,6 +210,11 @@ def _human(r: RigResult, rejected: list[dict[str, str]], args: argparse.Namespac
     lines.append(f"stereo rig, X_R = R(rotvec) X_L + T, baseline "
                  f"{float(np.linalg.norm(r.translation_mm)):.2f} mm, +- = 1 sigma:")
     lines += ["  " + line for line in _parameter_lines(r)]
+    choice = r.model
+    lines.append(f"distortion model, both cameras: {choice.model.name} (chosen by "
+                 f"{choice.chosen_by}: {choice.reason})")
+    lines += choice.table((("left ", "dist"), ("right ", "right_dist")))
+    lines += [f"note: {n}" for n in choice.notes]
     if rejected:
         lines.append(f"rejected {len(rejected)} pair(s):")
         lines += [f"  {x['left']} / {x['right']}: {x['reason']}" for x in rejected]

@@ -9,6 +9,8 @@ errors and warnings.
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -25,6 +27,9 @@ D_RIGHT = np.array([-0.22, 0.09, -0.0006, 0.0004, 0.0])
 OM = np.array([0.012, -0.035, 0.004])  # rad, X_R = R(OM) X_L + T
 T = np.array([-120.0, 1.5, 3.0])  # mm
 BOARD = np.array([[c * 30.0, r * 30.0, 0.0] for r in range(6) for c in range(9)])
+# The lenses' own model (k1 k2 p1 p2, k3 = 0), for the tests of the fit's statistics: at 0.3 px
+# noise the data would drop these small p1 p2 (tests of the choice itself are further down).
+TRUE_MODEL = {"fix_k3": True, "fix_tangential": False}
 
 
 def truth_vector() -> np.ndarray:
@@ -93,7 +98,7 @@ def test_noisy_views_recover_the_truth_within_predicted_std(views):
     estimates the noise (length of a 2D error: sqrt(2) * sigma)."""
     obj, left, right = views
     rng = np.random.default_rng(7)
-    r = calibrate_rig(obj, noisy(left, 0.3, rng), noisy(right, 0.3, rng), SIZE)
+    r = calibrate_rig(obj, noisy(left, 0.3, rng), noisy(right, 0.3, rng), SIZE, **TRUE_MODEL)
     values, std = result_vectors(r)
     z = (values - truth_vector()) / std
     assert np.all(np.abs(z) < 4), z
@@ -110,7 +115,7 @@ def test_predicted_std_matches_the_empirical_spread(views):
     rng = np.random.default_rng(11)
     errors, stds = [], []
     for _ in range(12):
-        r = calibrate_rig(obj, noisy(left, 0.3, rng), noisy(right, 0.3, rng), SIZE)
+        r = calibrate_rig(obj, noisy(left, 0.3, rng), noisy(right, 0.3, rng), SIZE, **TRUE_MODEL)
         values, std = result_vectors(r)
         errors.append(values - truth_vector())
         stds.append(std)
@@ -124,10 +129,10 @@ def test_given_initial_intrinsics_reach_the_same_optimum(views):
     obj, left, right = views
     rng = np.random.default_rng(3)
     left_n, right_n = noisy(left, 0.2, rng), noisy(right, 0.2, rng)
-    free = calibrate_rig(obj, left_n, right_n, SIZE)
+    free = calibrate_rig(obj, left_n, right_n, SIZE, **TRUE_MODEL)
     start = (CameraModel.from_opencv(K_LEFT * [[1.01], [1.01], [1]], np.zeros(5), SIZE),
              CameraModel.from_opencv(K_RIGHT * [[0.99], [0.99], [1]], np.zeros(5), SIZE))
-    guided = calibrate_rig(obj, left_n, right_n, SIZE, initial=start)
+    guided = calibrate_rig(obj, left_n, right_n, SIZE, initial=start, **TRUE_MODEL)
     values, std = result_vectors(free)
     assert np.all(np.abs(result_vectors(guided)[0] - values) < 0.01 * std)
 
@@ -135,7 +140,8 @@ def test_given_initial_intrinsics_reach_the_same_optimum(views):
 def test_free_k3_estimates_it_with_a_std(views):
     obj, left, right = views
     rng = np.random.default_rng(9)
-    r = calibrate_rig(obj, noisy(left, 0.2, rng), noisy(right, 0.2, rng), SIZE, fix_k3=False)
+    r = calibrate_rig(obj, noisy(left, 0.2, rng), noisy(right, 0.2, rng), SIZE, fix_k3=False,
+                      fix_tangential=False)
     for cam, std in ((r.left, r.left_std), (r.right, r.right_std)):
         assert std["dist"][4] > 0
         assert abs(cam["dist"][4]) < 4 * std["dist"][4]
@@ -150,7 +156,7 @@ def test_an_outlier_pair_is_rejected_with_the_reason(views):
     left_n, right_n = noisy(left, 0.2, rng), noisy(right, 0.2, rng)
     right_n[4] = right_n[4] + rng.normal(0.0, 4.0, right_n[4].shape)
     names = [(f"L{i}.png", f"R{i}.png") for i in range(len(obj))]
-    r = calibrate_rig(obj, left_n, right_n, SIZE, names=names)
+    r = calibrate_rig(obj, left_n, right_n, SIZE, names=names, **TRUE_MODEL)
     assert [(x["left"], x["right"]) for x in r.rejected] == [("L4.png", "R4.png")]
     assert "outlier" in r.rejected[0]["reason"]
     assert ("L4.png", "R4.png") not in r.names
@@ -206,3 +212,114 @@ def test_initial_skew_is_refused(views):
     skewed = CameraModel(800.0, 805.0, 322.0, 236.0, skew=1.5)
     with pytest.raises(CalibrationError, match="initial left intrinsics: skew 1.5"):
         calibrate_rig(*views, SIZE, initial=(skewed, skewed))
+
+
+# ---------------------------------------------------------------- distortion model choice
+
+K_WIDE_LEFT = np.array([[420.0, 0.0, 322.0], [0.0, 418.7, 236.0], [0.0, 0.0, 1.0]])
+K_WIDE_RIGHT = np.array([[415.0, 0.0, 318.0], [0.0, 414.0, 244.0], [0.0, 0.0, 1.0]])
+D_WIDE_LEFT = np.array([-0.30, 0.10, 0.0, 0.0, -0.01])  # k3 = -0.01, no tangential terms
+D_WIDE_RIGHT = np.array([-0.28, 0.09, 0.0, 0.0, -0.01])
+
+
+def make_wide_views(n: int, seed: int = 0, noise_px: float = 0.1) -> tuple[list, list, list]:
+    """n views of the board by a rig of two wide lenses (~75 degrees across), the board at
+    250-380 mm and anywhere in the left image, fully seen by both cameras; Gaussian noise."""
+    rng = np.random.default_rng(seed)
+    obj, left, right = [], [], []
+    centre = BOARD.mean(axis=0)
+    while len(obj) < n:
+        R = (cv2.Rodrigues(np.r_[rng.uniform(-0.6, 0.6, 2), 0.0])[0]
+             @ cv2.Rodrigues(np.r_[0.0, 0.0, rng.uniform(-0.5, 0.5)])[0])
+        z = rng.uniform(250.0, 380.0)
+        aim = np.r_[rng.uniform(-1, 1) * z * 300 / 420, rng.uniform(-1, 1) * z * 220 / 420, z]
+        rvec, tvec = cv2.Rodrigues(R)[0].ravel(), aim - R @ centre
+        pl = cv2.projectPoints(BOARD, rvec, tvec, K_WIDE_LEFT, D_WIDE_LEFT)[0].reshape(-1, 2)
+        rv_r, tv_r = cv2.composeRT(rvec, tvec, OM, T)[:2]
+        pr = cv2.projectPoints(BOARD, rv_r, tv_r, K_WIDE_RIGHT, D_WIDE_RIGHT)[0].reshape(-1, 2)
+        if all(np.all((p > 2) & (p < np.array(SIZE) - 2)) for p in (pl, pr)):
+            obj.append(BOARD.copy())
+            left.append(pl + rng.normal(0.0, noise_px, pl.shape))
+            right.append(pr + rng.normal(0.0, noise_px, pr.shape))
+    return obj, left, right
+
+
+def test_the_rig_chooses_k3_for_wide_lenses_that_have_it():
+    """Both lenses have k3 = -0.01 and no tangential terms: the joint fit chooses k1 k2 k3 for
+    both, and k2 lands within 2 sigma of the truth in both cameras; with k3 held at 0 (the old
+    default) k2 is many sigmas off."""
+    obj, left, right = make_wide_views(15)
+    r = calibrate_rig(obj, left, right, SIZE)
+    assert r.model.model.name == "k1 k2 k3", r.model.reason
+    rows = {c["model"]: c for c in r.model.candidates}
+    assert all(c["delta_bic"] > 2.0 for name, c in rows.items() if name != "k1 k2 k3")
+    for cam, std, truth in ((r.left, r.left_std, D_WIDE_LEFT), (r.right, r.right_std,
+                                                               D_WIDE_RIGHT)):
+        assert abs(cam["dist"][1] - truth[1]) < 2 * std["dist"][1]
+        assert abs(cam["dist"][4] - truth[4]) < 2 * std["dist"][4]
+        assert cam["dist"][2] == cam["dist"][3] == 0.0
+    assert "left.k3" in r.parameter_names
+    assert "left.p1" not in r.parameter_names
+    fixed = rows["k1 k2"]  # what the old default k3 = 0 gives
+    for key, truth in (("dist", D_WIDE_LEFT), ("right_dist", D_WIDE_RIGHT)):
+        assert abs(fixed[key][1] - truth[1]) > 5 * fixed[key + "_std"][1]
+    held = calibrate_rig(obj, left, right, SIZE, fix_k3=True, fix_tangential=True)
+    assert (held.model.model.name, held.model.chosen_by) == ("k1 k2", "options")
+    assert held.left["dist"][4] == 0.0
+
+
+def test_a_held_term_is_zero_even_if_the_initial_intrinsics_had_it(views):
+    obj, left, right = views
+    start = (CameraModel.from_opencv(K_LEFT, np.r_[D_LEFT[:4], 0.02], SIZE),
+             CameraModel.from_opencv(K_RIGHT, np.r_[D_RIGHT[:4], -0.02], SIZE))
+    r = calibrate_rig(obj, left, right, SIZE, initial=start, fix_k3=True)
+    assert r.left["dist"][4] == r.right["dist"][4] == 0.0
+
+
+# ---------------------------------------------------------------- pair consistency
+
+
+def test_pairs_shifted_by_one_are_refused_with_the_shift_named(views):
+    """left i with right i+1 (a right image missing at the start): each pair's left->right
+    pose is a different one; the message names the pairs and the shift that fits."""
+    obj, left, right = views
+    names = [(f"L{i}.png", f"R{i + 1}.png") for i in range(11)]
+    with pytest.raises(CalibrationError) as err:
+        calibrate_rig(obj[:11], left[:11], right[1:], SIZE, names=names)
+    text = str(err.value)
+    assert "left and right images are not consistent pairs: 11 of 11 pairs disagree" in text
+    assert re.search(r"\): L\d+\.png / R\d+\.png \(\d+\.\d deg, \d+ mm\), L", text)
+    assert ("fit the rig when left i goes with right i-1 (from L1.png with R1.png): the right "
+            "images are shifted by 1") in text
+    assert "\n" not in text
+
+
+def test_pairs_shifted_with_given_intrinsics_are_refused_too(views):
+    obj, left, right = views
+    start = (CameraModel.from_opencv(K_LEFT, D_LEFT, SIZE),
+             CameraModel.from_opencv(K_RIGHT, D_RIGHT, SIZE))
+    with pytest.raises(CalibrationError, match="right images are shifted by 1"):
+        calibrate_rig(obj[1:], left[1:], right[:-1], SIZE, initial=start)
+
+
+def test_a_wrong_partner_is_named_among_good_pairs(views):
+    """Two right images swapped: those two pairs disagree with the rig of the other ten."""
+    obj, left, right = views
+    right = list(right)
+    right[3], right[8] = right[8], right[3]
+    names = [(f"L{i}.png", f"R{i}.png") for i in range(12)]
+    with pytest.raises(CalibrationError, match=(
+            r"2 of 12 pairs disagree with the rig of the other 10 .*: (L3\.png / R3\.png|L8\.png "
+            r"/ R8\.png) \(\d+\.\d deg, \d+ mm\), (L3|L8)\.png .*Likely: pairs shifted")):
+        calibrate_rig(obj, left, right, SIZE, names=names)
+
+
+def test_noise_and_an_outlier_pair_do_not_look_like_wrong_pairs(views):
+    """1 px noise on 4 pairs, or one pair with 4 px errors: the poses still agree."""
+    obj, left, right = make_views(4, seed=2)
+    rng = np.random.default_rng(4)
+    calibrate_rig(obj, noisy(left, 1.0, rng), noisy(right, 1.0, rng), SIZE)
+    obj, left, right = views
+    right = noisy(right, 0.2, rng)
+    right[4] = right[4] + rng.normal(0.0, 4.0, right[4].shape)
+    calibrate_rig(obj, noisy(left, 0.2, rng), right, SIZE, **TRUE_MODEL)
