@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.cameras.replay import ReplayCamera, list_frames, natural_key
+from drivers.cameras.replay import ReplayCamera
 from vgripd.config import DriverSection, config_from_dict
 from vgripd.errors import CameraError, ConfigError
+from vgripd.imagefiles import list_frames, natural_key
 from vgripd.registry import CAMERAS, load_class, validate_options
 
 CFG = config_from_dict({})

@@ -15,7 +15,7 @@ from tests.conftest import REPO
 LAYERS = [
     {"types", "errors"},
     {"geometry"},
-    {"serialize", "config", "registry"},
+    {"serialize", "imagefiles", "config", "registry"},
     {"vision"},
     {"calib"},
     {"service"},
@@ -73,11 +73,10 @@ def test_every_room_has_a_level() -> None:
 @pytest.mark.parametrize("path", sorted((REPO / "drivers").rglob("*.py")),
                          ids=lambda p: str(p.relative_to(REPO)))
 def test_drivers_do_not_use_the_service_or_cli(path: Path) -> None:
-    """Drivers build on the core (vocabulary, geometry, config, vision, the link contract);
-    they never reach into the daemon, the simulators or the CLI."""
-    allowed_service = {"vgripd.service.protocol"}
+    """Drivers build on the core (vocabulary, geometry, config, vision, the link contract and
+    its helpers); they never reach into the daemon, the simulators or the CLI."""
+    forbidden_service = {"vgripd.service.daemon", "vgripd.service.statusapi"}
     bad = [f"line {line}: {name}" for line, name in _imports(path)
            if name.startswith("vgripd.") and (
-               _room(name) in {"cli", "sim", "__main__"}
-               or (_room(name) == "service" and name not in allowed_service))]
+               _room(name) in {"cli", "sim", "__main__"} or name in forbidden_service)]
     assert not bad, "\n".join(bad)

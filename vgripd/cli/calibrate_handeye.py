@@ -40,6 +40,7 @@ from vgripd.config import IntrinsicsConfig, read_config_data
 from vgripd.errors import CalibrationError, ConfigError, DegenerateInputError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.vendors import VENDORS
+from vgripd.imagefiles import natural_key
 
 EXIT_USAGE = 2
 
@@ -77,11 +78,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_output_arguments(parser, "handeye.toml")
 
 
-def _natural(name: str) -> list[Any]:
-    """Sort key putting img2 before img10."""
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
-
-
 def read_intrinsics(path: str) -> CameraModel:
     """``[calibration.left]`` of a result file or config (includes followed) as a camera."""
     try:
@@ -102,7 +98,7 @@ def _samples_from_robot(args: argparse.Namespace, camera: CameraModel,
                         ) -> tuple[list[Sample], list[dict[str, str]]]:
     board = Board.parse(args.board)
     poses = read_poses(args.poses, args.pose_format)
-    paths = sorted(glob.glob(os.path.expanduser(args.images), recursive=True), key=_natural)
+    paths = sorted(glob.glob(os.path.expanduser(args.images), recursive=True), key=natural_key)
     if not paths:
         raise CalibrationError(f"--images {args.images!r}: no file matches (relative to "
                                f"{os.getcwd()})")

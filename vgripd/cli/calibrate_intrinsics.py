@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import glob
 import os
-import re
 import shlex
 from typing import Any
 
@@ -31,6 +30,7 @@ from vgripd.calib.intrinsics import (
 )
 from vgripd.calib.output import add_output_arguments, emit
 from vgripd.errors import CalibrationError
+from vgripd.imagefiles import natural_key
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,11 +80,6 @@ def model_lines(choice: ModelChoice) -> list[str]:
             f"{choice.reason})", *choice.table(), *(f"note: {n}" for n in choice.notes)]
 
 
-def _natural(name: str) -> list[Any]:
-    """Sort key putting Image2 before Image10."""
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
-
-
 def _command(args: argparse.Namespace) -> str:
     words = ["vgripd", "calibrate", "intrinsics", "--images", args.images, "--board", args.board,
              "--camera", args.camera, *model_words(args)]
@@ -97,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     board = Board.parse(args.board)
     if args.subpix_window is not None and args.subpix_window < 1:
         raise CalibrationError(f"--subpix-window {args.subpix_window}: must be at least 1 px")
-    paths = sorted(glob.glob(os.path.expanduser(args.images), recursive=True), key=_natural)
+    paths = sorted(glob.glob(os.path.expanduser(args.images), recursive=True), key=natural_key)
     if not paths:
         raise CalibrationError(f"--images {args.images!r}: no file matches (relative to "
                                f"{os.getcwd()})")

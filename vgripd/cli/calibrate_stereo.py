@@ -30,8 +30,9 @@ from vgripd.calib.files import pose_table, write_result
 from vgripd.calib.intrinsics import DIST_NAMES, empty_regions
 from vgripd.calib.output import add_output_arguments, emit
 from vgripd.calib.rig import RigResult, calibrate_rig
-from vgripd.cli.calibrate_intrinsics import _natural, add_model_arguments, model_words
+from vgripd.cli.calibrate_intrinsics import add_model_arguments, model_words
 from vgripd.errors import CalibrationError
+from vgripd.imagefiles import natural_key
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -51,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _paths(pattern: str, option: str) -> list[str]:
-    paths = sorted(glob.glob(os.path.expanduser(pattern), recursive=True), key=_natural)
+    paths = sorted(glob.glob(os.path.expanduser(pattern), recursive=True), key=natural_key)
     if not paths:
         raise CalibrationError(f"{option} {pattern!r}: no file matches (relative to "
                                f"{os.getcwd()})")

@@ -8,7 +8,7 @@ calibrates a stereo rig, else ``left*`` (or every image when there is no ``left*
 written by the job recorder (``pair.json`` beside ``left.png``) is replayed as recorded:
 ``left.png`` (+ ``right.png``). Only image files count; others a pattern matches (``truth.json``)
 are skipped and named on stderr. Frames are listed and paired by
-``drivers.cameras.replay.list_frames``, the function the replay camera driver opens with, so
+``vgripd.imagefiles.list_frames``, the function the replay camera driver opens with, so
 this command and a daemon replaying the same folder see the same pairs.
 
 Refused before any job runs (one line naming the folder and the patterns, exit 1): no image
@@ -40,9 +40,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from drivers.cameras.replay import Frames, list_frames, list_images
 from vgripd.config import Config, DriverSection, load_config
 from vgripd.errors import CameraError
+from vgripd.imagefiles import Frames, list_frames, list_images
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.recorder import dict_from_result
 from vgripd.types import ImagePair, JobResult
