@@ -20,7 +20,7 @@ import numpy as np
 
 from vgripd.errors import DegenerateInputError
 from vgripd.geometry.camera_model import CameraModel, PairInverse, undistort_pair
-from vgripd.geometry.transforms import check_transform
+from vgripd.geometry.transforms import check_transform, skew
 from vgripd.types import FloatArray
 
 __all__ = ["StereoRig", "Triangulation"]
@@ -56,10 +56,6 @@ def _same_count(nl: FloatArray, nr: FloatArray) -> None:
         raise DegenerateInputError(
             f"px_left has {nl.shape[0]} points but px_right has {nr.shape[0]}"
         )
-
-
-def _skew(v: FloatArray) -> FloatArray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def _triangulation_maps(
@@ -140,7 +136,7 @@ class StereoRig:
                 f"min_ray_angle_rad must be in [0, pi/2), got {self.min_ray_angle_rad}"
             )
         T.flags.writeable = False
-        essential = _skew(t) @ R
+        essential = skew(t) @ R
         F = np.linalg.inv(self.right.K).T @ essential @ np.linalg.inv(self.left.K)
         F /= np.linalg.norm(F)
         F.flags.writeable = False

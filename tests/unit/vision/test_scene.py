@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from vgripd.config import PoseConfig, config_from_dict, load_config
 from vgripd.errors import ConfigError, NotCalibratedError
+from vgripd.geometry.transforms import pose_error
 from vgripd.vision import scene
 
 LEFT = {"fx": 1000.0, "fy": 1000.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480}
@@ -42,8 +43,9 @@ def test_empty_config_is_the_demo_stereo_cell() -> None:
         px = model.project(pts)
         assert np.all((px > 100) & (px < [model.width - 100, model.height - 100]))
     # Baseline ~150 mm, toe-in of a few degrees per camera.
-    assert 140 < np.linalg.norm(T_rl[:3, 3]) < 160
-    assert 5 < np.degrees(np.arccos((np.trace(T_rl[:3, :3]) - 1) / 2)) < 20
+    baseline_mm, toe_in_deg = pose_error(T_rl, np.eye(4))
+    assert 140 < baseline_mm < 160
+    assert 5 < toe_in_deg < 20
 
 
 def test_demo_object_has_no_symmetry_ambiguity() -> None:
