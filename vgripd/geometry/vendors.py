@@ -30,6 +30,7 @@ from vgripd.geometry.transforms import (
     matrix_from_euler,
     matrix_from_quat,
     matrix_from_rotvec,
+    project_rotation,
     quat_from_matrix,
     rotvec_from_matrix,
 )
@@ -133,9 +134,8 @@ def transform_from_vendor(name: str, values: Sequence[Any]) -> FloatArray:
         if conv.rotation == "matrix":
             T = check_transform(np.array(v).reshape(4, 4), f"{conv.name}")
             # Text with ~9 digits is not exactly orthonormal: snap to the nearest rotation.
-            U, _, Vt = np.linalg.svd(T[:3, :3])
             T = T.copy()
-            T[:3, :3] = U @ Vt
+            T[:3, :3] = project_rotation(T[:3, :3])
             return T
         if conv.rotation == "quat":
             R = matrix_from_quat(v[3:], scalar_first=True)
