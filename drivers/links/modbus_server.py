@@ -1,16 +1,43 @@
 """Modbus/TCP server link: the PLC polls and writes vgripd's registers (map in
 vgripd.service.protocol).
 
-pymodbus (3.16) has no write callback and its datastores are not safe against concurrent
-access, so the server is given ``RegisterContext``: its own datastore that answers every read
-and write from a ``RegisterBank`` on the event loop, with no ``await`` inside one request. A
-write to the command area runs the handshake and, for a new job, schedules the daemon's trigger
-handler; ``publish`` changes the image in one call. pymodbus serves one request at a time on
-the loop, so a poller sees a result either entirely before or entirely after a publish.
+Every read and write is answered from a ``RegisterBank`` on the event loop, with no ``await``
+inside one request. A write to the command area runs the handshake and, for a new job, schedules
+the daemon's trigger handler (``dispatch``); ``publish`` changes the image in one call. A poller
+therefore sees a result either entirely before or entirely after a publish.
 
-FC23 (read/write multiple registers) is all or nothing: pymodbus applies the write before it
-looks at the read range, so the server decodes FC23 as ``AllOrNothingReadWrite``, which checks
-the read range first; a request with an illegal range changes nothing and triggers nothing.
+The TCP server is this module's own asyncio protocol, not pymodbus' ``ModbusTcpServer``: the
+link has to survive its network (docs/registers.md, "Connections"), and pymodbus 3.16's server
+loop cannot be made to. It has no hook for a connection cap, an idle timeout, TCP keepalive or a
+bound on unsent output; its ``FramerSocket`` answers a wrong protocol id or a lying length with
+"wait for more data", so one malformed frame silences the connection for good; it decodes one
+request per received segment (pipelined requests go unanswered); its decoder refuses a read of
+0 or 126 registers at decode time, which the server answers with function code 0x80; and it
+logs decode failures and datastore errors with tracebacks, one per frame. MBAP framing is seven
+bytes and the register map is served by five function codes, so the link frames and answers
+them itself (``ModbusTcpConnection``, ``RegisterServerLink.answer_pdu``):
+
+- MBAP header: transaction id (echoed), protocol id 0, length 2..254 (unit id + PDU). Anything
+  else is a malformed frame. So is a request whose PDU length does not match its function code
+  (truncated, trailing bytes, a byte count the length contradicts) and a function code 0 or
+  >= 0x80. A malformed frame closes its connection (the stream cannot be trusted after it).
+- FC 3 read, 6 write single, 16 write multiple, 22 mask write, 23 read/write multiple holding
+  registers. A quantity out of range (FC3 1..125, FC16 1..123, FC23 read 1..125 and write
+  1..121, byte count = 2 x quantity) is exception 03; a register range outside the map or a
+  write outside the command area exception 02; any other function code exception 01.
+- Requests are answered in order, every request of a segment (pipelining), a batch at a time
+  so that one client cannot hold the loop.
+- Connections: at most ``max_connections``; a new connection evicts the longest-idle one (a
+  new PLC connection is always served). ``idle_timeout_s`` without a complete request closes a
+  connection; TCP keepalive finds peers that vanished without a FIN. A client whose unsent
+  answers exceed ``max_unsent_bytes`` (it does not read) is dropped.
+- Peer faults are logged through ``RateLimitedLog``: one line per client address and kind of
+  fault per ``log_interval_s``, with a count of the ones held back; never a traceback.
+
+FC23 is all or nothing: both ranges are checked before anything is written, so a request with
+an illegal read range changes nothing and triggers nothing. The RTU link still runs on
+pymodbus' serial server, through ``RegisterContext`` (pymodbus applies an FC23 write before it
+looks at the read range, so RTU decodes FC23 as ``AllOrNothingReadWrite``).
 
 The link carries up to ``MAX_VALUES`` pose values in any vendor convention
 (``REGISTER_CAPABILITIES``); the config check refuses a vendor with more.
@@ -24,23 +51,25 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import socket
+import struct
 import time
-from abc import abstractmethod
-from collections.abc import Mapping, Sequence
+from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusServerContext
 from pymodbus.exceptions import NoSuchIdException
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.pdu.register_message import ReadWriteMultipleRegistersRequest
-from pymodbus.server import ModbusTcpServer
 from pymodbus.server.base import ModbusBaseServer
 
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
+    MAP_SIZE,
     REGISTER_CAPABILITIES,
     Action,
     LinkHealth,
@@ -54,6 +83,7 @@ from vgripd.service.protocol import (
     TriggerHandler,
     ValueCodec,
 )
+from vgripd.service.ratelog import RateLimitedLog
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
@@ -63,9 +93,30 @@ log = logging.getLogger(__name__)
 HOLDING_WRITE = {6, 16, 22, 23}
 HOLDING_READ = {3} | HOLDING_WRITE
 
+# Quantity limits of the Modbus application protocol (V1.1b3), per function.
+MAX_READ = 125
+MAX_WRITE = 123
+MAX_RW_WRITE = 121
+
+MBAP_HEADER = 7  # transaction id, protocol id, length (2 bytes each), unit id
+MBAP_MAX_LENGTH = 254  # unit id + the largest PDU (253 bytes)
+REQUESTS_PER_BATCH = 64  # pipelined requests answered before other clients get the loop
+
+
+class MalformedFrame(Exception):
+    """A frame that is not a Modbus request at all: its connection is closed."""
+
+
+class Refused(Exception):
+    """A well-formed request answered with a Modbus exception (``code``)."""
+
+    def __init__(self, code: int, detail: str) -> None:
+        super().__init__(detail)
+        self.code = code
+
 
 class RegisterContext(ModbusServerContext):
-    """pymodbus datastore backed by a ``RegisterBank``; holding registers only.
+    """pymodbus datastore backed by a ``RegisterBank``; holding registers only (RTU link).
 
     pymodbus 3.16 calls ``async_getValues``/``async_setValues`` of a ``ModbusServerContext``
     flagged ``old_simulator`` directly; the base ``__init__`` (which builds pymodbus' own
@@ -116,20 +167,16 @@ class RegisterContext(ModbusServerContext):
         if exc := self._check(device_id, func_code, HOLDING_WRITE):
             return exc
         try:
-            decision = self._link.bank.write(address, [int(v) for v in values])
-        except RegisterAccessError as err:
-            log.info("%s: refused %s", self._link.name, err)
+            self._link.write_registers(address, [int(v) for v in values], "serial")
+        except Refused as refused:
+            self._link.fault("serial", "exception 02", logging.INFO,
+                             "function %d answered with exception 02: %s", func_code, refused)
             return ExcCodes.ILLEGAL_ADDRESS
-        if decision.action is Action.START:
-            self._link.dispatch(decision.seq, decision.command, decision.recipe)
-        elif decision.action is Action.REJECT:
-            log.info("%s: request %d refused: %s", self._link.name, decision.seq,
-                     decision.code.name)
         return None
 
 
 class AllOrNothingReadWrite(ReadWriteMultipleRegistersRequest):
-    """FC23 whose read range is checked before the write is applied.
+    """FC23 whose read range is checked before the write is applied (pymodbus servers: RTU).
 
     pymodbus writes first and reads after; with an illegal read range it would answer exception
     02 although the write (perhaps a trigger) took effect. Here both ranges are checked before
@@ -149,53 +196,98 @@ class AllOrNothingReadWrite(ReadWriteMultipleRegistersRequest):
         return await super().datastore_update(context, device_id)
 
 
+def _need_length(pdu: bytes, length: int) -> None:
+    if len(pdu) != length:
+        raise MalformedFrame(f"function {pdu[0]} needs a {length}-byte PDU, got {len(pdu)}")
+
+
+def _need_byte_count(pdu: bytes, fixed: int) -> int:
+    """The byte count at ``pdu[fixed - 1]``, which must be what follows it in the PDU."""
+    if len(pdu) < fixed:
+        raise MalformedFrame(f"function {pdu[0]}: PDU of {len(pdu)} bytes is truncated")
+    byte_count = pdu[fixed - 1]
+    if len(pdu) != fixed + byte_count:
+        raise MalformedFrame(f"function {pdu[0]}: byte count {byte_count} but "
+                             f"{len(pdu) - fixed} data bytes")
+    return byte_count
+
+
 class RegisterServerLink(RobotLink):
-    """A Modbus server link over some transport: register bank, heartbeat, handshake."""
+    """A Modbus server link over some transport: register bank, heartbeat, handshake.
+
+    The transport is started by ``_start_serving`` and stopped by ``_stop_serving``; the
+    default pair runs the pymodbus server ``_make_server`` returns (the RTU link). Requests
+    answered by the link itself go through ``answer_pdu``, writes of either path through
+    ``write_registers``.
+    """
 
     capabilities = REGISTER_CAPABILITIES
     options: RegisterOptions
+    LOG_INTERVAL_S = 60.0  # peer faults: one log line per client and kind per interval
 
     def __init__(self, name: str, options: Any) -> None:
         super().__init__(name, options)
         self.bank = RegisterBank(
             ValueCodec(options.word_order, options.value_format, options.scale)
         )
+        self.ratelog = RateLimitedLog(log, getattr(options, "log_interval_s", self.LOG_INTERVAL_S))
+        #: peer faults by kind (malformed, exception 01/02/03, unit, evicted, idle, not_reading)
+        self.faults: Counter[str] = Counter()
         self._server: ModbusBaseServer | None = None
+        self._serving = False
         self._heartbeat: asyncio.Task[None] | None = None
         self._on_trigger: TriggerHandler | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._state = LinkState.STOPPED
         self._since_ns = time.monotonic_ns()
         self._last_error = ""
+        self._functions: dict[int, Callable[[bytes, str], bytes]] = {
+            3: self._read_holding, 6: self._write_single, 16: self._write_multiple,
+            22: self._mask_write, 23: self._read_write,
+        }
 
-    @abstractmethod
     def _make_server(self, context: RegisterContext) -> ModbusBaseServer:
-        """The pymodbus server for this transport (created on the running loop)."""
+        """The pymodbus server for this transport (created on the running loop), for links
+        served by the default ``_start_serving``."""
+        raise NotImplementedError
 
-    @abstractmethod
     def _describe(self) -> str:
         """Where this link serves, for messages (``host:port``, ``/dev/ttyS0``)."""
+        raise NotImplementedError
 
     def _unit_id(self) -> int | None:
         return None
 
     async def open(self, on_trigger: TriggerHandler) -> None:
-        if self._server is not None:
+        if self._serving:
             raise LinkError(f"link {self.name}: already open")
         self._on_trigger = on_trigger
         self._loop = asyncio.get_running_loop()
+        try:
+            await self._start_serving()
+        except LinkError as err:
+            self._set_state(LinkState.FAILED, str(err))
+            raise LinkError(f"link {self.name}: {err}") from None
+        self._serving = True
+        self._heartbeat = asyncio.create_task(self._beat(), name=f"{self.name}-heartbeat")
+        self._set_state(LinkState.UP)
+        log.info("%s: serving Modbus registers on %s", self.name, self._describe())
+
+    async def _start_serving(self) -> None:
+        """Start the transport; ``LinkError`` saying why it cannot."""
         server = self._make_server(RegisterContext(self, self._unit_id()))
         server.decoder.register(AllOrNothingReadWrite)
         try:
             await server.serve_forever(background=True)
         except RuntimeError:
             await server.shutdown()
-            self._set_state(LinkState.FAILED, self._start_error())
-            raise LinkError(f"link {self.name}: {self._last_error}") from None
+            raise LinkError(self._start_error()) from None
         self._server = server
-        self._heartbeat = asyncio.create_task(self._beat(), name=f"{self.name}-heartbeat")
-        self._set_state(LinkState.UP)
-        log.info("%s: serving Modbus registers on %s", self.name, self._describe())
+
+    async def _stop_serving(self) -> None:
+        if self._server is not None:
+            await self._server.shutdown()
+            self._server = None
 
     def _start_error(self) -> str:
         return f"cannot serve on {self._describe()}"
@@ -206,9 +298,9 @@ class RegisterServerLink(RobotLink):
             with contextlib.suppress(asyncio.CancelledError):
                 await self._heartbeat
             self._heartbeat = None
-        if self._server is not None:
-            await self._server.shutdown()
-            self._server = None
+        await self._stop_serving()
+        self._serving = False
+        self.ratelog.flush(force=True)
         self._set_state(LinkState.STOPPED)
 
     def health(self) -> LinkHealth:
@@ -248,6 +340,102 @@ class RegisterServerLink(RobotLink):
                           t_mono_ns=time.monotonic_ns(), recipe=recipe)
         self._loop.call_soon(self._on_trigger, trigger)
 
+    # --- requests -----------------------------------------------------------------------
+
+    def fault(self, client: str, kind: str, level: int, msg: str, *args: Any) -> None:
+        """Count a peer fault and log it, rate limited per ``client`` and ``kind``."""
+        self.faults[kind] += 1
+        self.ratelog.log(level, client, kind, f"%s: {msg}", self.name, *args)
+
+    def answer_pdu(self, pdu: bytes, client: str) -> bytes:
+        """The response PDU to request ``pdu`` (function code first), answered from the bank.
+
+        Raises ``MalformedFrame`` for a PDU that is not a well-formed request. ``client`` names
+        the peer (its address) in the log, which is rate limited per client.
+        """
+        if not pdu or pdu[0] == 0 or pdu[0] & 0x80:
+            raise MalformedFrame(f"function code {pdu[0] if pdu else 'missing'} is not a request")
+        function = pdu[0]
+        handler = self._functions.get(function)
+        try:
+            if handler is None:
+                raise Refused(ExcCodes.ILLEGAL_FUNCTION, f"function code {function} is not served")
+            return handler(pdu, client)
+        except Refused as refused:
+            self.fault(client, f"exception {refused.code:02d}", logging.INFO,
+                       "%s: function %d answered with exception %02d: %s", client, function,
+                       refused.code, refused)
+            return bytes((function | 0x80, refused.code))
+
+    def write_registers(self, address: int, values: Sequence[int], client: str) -> None:
+        """A peer's write through the handshake; ``Refused`` (02) when it may not write there."""
+        try:
+            decision = self.bank.write(address, values)
+        except RegisterAccessError as err:
+            raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
+        if decision.action is Action.START:
+            self.dispatch(decision.seq, decision.command, decision.recipe)
+        elif decision.action is Action.REJECT:
+            self.ratelog.info(client, "handshake", "%s: %s: request %d refused: %s", self.name,
+                              client, decision.seq, decision.code.name)
+
+    def _read_words(self, address: int, count: int) -> list[int]:
+        if not 1 <= count <= MAX_READ:
+            raise Refused(ExcCodes.ILLEGAL_VALUE, f"read of {count} registers (1..{MAX_READ})")
+        try:
+            RegisterImage.check_read(address, count)
+        except RegisterAccessError as err:
+            raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
+        return self.bank.read(address, count, time.monotonic_ns())
+
+    def _read_holding(self, pdu: bytes, client: str) -> bytes:
+        _need_length(pdu, 5)
+        address, count = struct.unpack_from(">HH", pdu, 1)
+        words = self._read_words(address, count)
+        return struct.pack(f">BB{count}H", 3, 2 * count, *words)
+
+    def _write_single(self, pdu: bytes, client: str) -> bytes:
+        _need_length(pdu, 5)
+        address, value = struct.unpack_from(">HH", pdu, 1)
+        self.write_registers(address, [value], client)
+        return pdu
+
+    def _write_multiple(self, pdu: bytes, client: str) -> bytes:
+        byte_count = _need_byte_count(pdu, 6)
+        address, count = struct.unpack_from(">HH", pdu, 1)
+        if not 1 <= count <= MAX_WRITE or byte_count != 2 * count:
+            raise Refused(ExcCodes.ILLEGAL_VALUE,
+                          f"write of {count} registers in {byte_count} bytes (1..{MAX_WRITE})")
+        self.write_registers(address, struct.unpack_from(f">{count}H", pdu, 6), client)
+        return struct.pack(">BHH", 16, address, count)
+
+    def _mask_write(self, pdu: bytes, client: str) -> bytes:
+        _need_length(pdu, 7)
+        address, and_mask, or_mask = struct.unpack_from(">HHH", pdu, 1)
+        if address >= MAP_SIZE:
+            raise Refused(ExcCodes.ILLEGAL_ADDRESS, f"mask write at {address} outside the map")
+        current = self.bank.image.words[address]
+        self.write_registers(address, [(current & and_mask) | (or_mask & ~and_mask & 0xFFFF)],
+                             client)
+        return pdu
+
+    def _read_write(self, pdu: bytes, client: str) -> bytes:
+        byte_count = _need_byte_count(pdu, 10)
+        read_address, read_count, write_address, write_count = struct.unpack_from(">HHHH", pdu, 1)
+        if (not 1 <= read_count <= MAX_READ or not 1 <= write_count <= MAX_RW_WRITE
+                or byte_count != 2 * write_count):
+            raise Refused(ExcCodes.ILLEGAL_VALUE,
+                          f"read {read_count} / write {write_count} registers in {byte_count} "
+                          f"bytes (1..{MAX_READ} / 1..{MAX_RW_WRITE})")
+        try:  # all or nothing: the read range is checked before anything is written
+            RegisterImage.check_read(read_address, read_count)
+        except RegisterAccessError as err:
+            raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
+        self.write_registers(write_address, struct.unpack_from(f">{write_count}H", pdu, 10),
+                             client)
+        words = self.bank.read(read_address, read_count, time.monotonic_ns())
+        return struct.pack(f">BB{read_count}H", 23, 2 * read_count, *words)
+
     async def _beat(self) -> None:
         period_s = self.options.heartbeat_ms / 1000
         while True:
@@ -264,30 +452,192 @@ class RegisterServerLink(RobotLink):
 
 class TcpOptions(RegisterOptions):
     """``host``/``port``: where to listen (port 0 = any free port, see ``ModbusServerLink.port``).
-    ``unit_id``: answer only this unit id (None = any; most Modbus/TCP clients send 1 or 255)."""
+    ``unit_id``: answer only this unit id (None = any); with ``unit_id_wildcards`` also 0 and
+    255, the ids Modbus/TCP clients send to "the device behind this address".
+
+    Connections (docs/registers.md, "Connections"): ``max_connections`` (the longest-idle one
+    is evicted for a new one), ``idle_timeout_s`` without a complete request closes a
+    connection (0 = never), TCP keepalive (``keepalive_*``: probes after ``keepalive_idle_s``
+    of silence, every ``keepalive_interval_s``, ``keepalive_count`` unanswered ones end it), a
+    client with more than ``max_unsent_bytes`` of answers it has not read is dropped. Peer
+    faults are logged once per client and kind per ``log_interval_s``.
+    """
 
     host: str = "0.0.0.0"
     port: int = Field(502, ge=0, le=65535)
     unit_id: int | None = Field(None, ge=0, le=255)
+    unit_id_wildcards: bool = True
+    max_connections: int = Field(16, ge=1, le=1000)
+    idle_timeout_s: float = Field(60.0, ge=0.0, le=86400.0)
+    keepalive: bool = True
+    keepalive_idle_s: int = Field(10, ge=1, le=7200)
+    keepalive_interval_s: int = Field(5, ge=1, le=600)
+    keepalive_count: int = Field(3, ge=1, le=30)
+    max_unsent_bytes: int = Field(65536, ge=1024, le=16 * 1024 * 1024)
+    log_interval_s: float = Field(60.0, ge=0.1, le=3600.0)
+
+    @model_validator(mode="after")
+    def _idle_timeout_off_or_sane(self) -> TcpOptions:
+        if 0 < self.idle_timeout_s < 0.1:
+            raise ValueError("idle_timeout_s must be 0 (off) or at least 0.1 s")
+        return self
+
+
+class ModbusTcpConnection(asyncio.Protocol):
+    """One client connection: MBAP framing, requests answered in order, output bounded."""
+
+    def __init__(self, link: ModbusServerLink) -> None:
+        self.link = link
+        self.transport: asyncio.Transport | None = None
+        self.host = "?"  # the client's address: the rate-limited log's key
+        self.client = "?"  # address:port, for messages
+        self.connected_at = time.monotonic()
+        self.last_request = self.connected_at  # the idle clock: complete requests only
+        self.requests = 0
+        self.peak_unsent = 0  # the most answer bytes that ever waited for this client
+        self.closing = False
+        self._buffer = bytearray()
+        self._paused = False
+        self._continue: asyncio.Handle | None = None
+
+    # asyncio.Protocol ------------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        peer = transport.get_extra_info("peername")
+        if isinstance(peer, tuple) and len(peer) >= 2:
+            self.host = str(peer[0])
+            self.client = f"{peer[0]}:{peer[1]}"
+        self.link._admit(self)
+
+    def data_received(self, data: bytes) -> None:
+        if self.closing:
+            return
+        self._buffer += data
+        if not self._paused:
+            self._answer_batch()
+
+    def eof_received(self) -> bool:
+        return False  # answers already written are flushed, then the transport closes
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.closing = True
+        if self._continue is not None:
+            self._continue.cancel()
+            self._continue = None
+        self.link._forget(self)
+
+    # framing ---------------------------------------------------------------------------
+
+    def _answer_batch(self) -> None:
+        """Answer the complete requests in the buffer, at most a batch; when more remain,
+        stop reading and go on after the loop has served the others."""
+        buffer, pos, answered, more = self._buffer, 0, 0, False
+        now = time.monotonic()
+        try:
+            while len(buffer) - pos >= 6:
+                tid, protocol, length = struct.unpack_from(">HHH", buffer, pos)
+                if protocol != 0:
+                    raise MalformedFrame(f"MBAP protocol id {protocol} (Modbus is 0)")
+                if not 2 <= length <= MBAP_MAX_LENGTH:
+                    raise MalformedFrame(f"MBAP length {length} (2..{MBAP_MAX_LENGTH})")
+                end = pos + 6 + length
+                if end > len(buffer):
+                    break
+                if answered == REQUESTS_PER_BATCH:
+                    more = True
+                    break
+                unit = buffer[pos + 6]
+                pdu = bytes(buffer[pos + MBAP_HEADER:end])
+                pos = end
+                answered += 1
+                self.requests += 1
+                self.last_request = now
+                reply = self.link._answer(unit, pdu, self)
+                if reply is not None and not self._send(tid, unit, reply):
+                    return
+        except MalformedFrame as err:
+            self.link.fault(self.host, "malformed", logging.WARNING,
+                            "%s: malformed frame, connection closed: %s", self.client, err)
+            self.link._drop(self, abort=False)
+            return
+        del buffer[:pos]
+        if more:
+            self._yield_loop()
+        else:
+            self._resume()
+
+    def _send(self, tid: int, unit: int, reply: bytes) -> bool:
+        """Write one answer; False when the client was dropped for not reading."""
+        assert self.transport is not None
+        self.transport.write(struct.pack(">HHHB", tid, 0, len(reply) + 1, unit) + reply)
+        unsent = self.transport.get_write_buffer_size()
+        if unsent > self.peak_unsent:
+            self.peak_unsent = unsent
+            self.link.peak_unsent = max(self.link.peak_unsent, unsent)
+        if unsent <= self.link.options.max_unsent_bytes:
+            return True
+        self.link.fault(self.host, "not_reading", logging.WARNING,
+                        "%s: %d bytes of answers unread (max_unsent_bytes = %d), client dropped",
+                        self.client, unsent, self.link.options.max_unsent_bytes)
+        self.link._drop(self, abort=True)
+        return False
+
+    def _yield_loop(self) -> None:
+        assert self.transport is not None
+        if not self._paused:
+            self._paused = True
+            self.transport.pause_reading()
+        loop = asyncio.get_running_loop()
+        self._continue = loop.call_soon(self._go_on)
+
+    def _go_on(self) -> None:
+        self._continue = None
+        if not self.closing:
+            self._answer_batch()
+
+    def _resume(self) -> None:
+        if self._paused and not self.closing and self._continue is None:
+            self._paused = False
+            assert self.transport is not None
+            self.transport.resume_reading()
+
+    def close(self, abort: bool) -> None:
+        """Close (answers already written go out first) or, with ``abort`` or when answers are
+        still waiting for a client that does not read them, reset the connection."""
+        if self.closing or self.transport is None:
+            return
+        self.closing = True
+        if abort or self.transport.get_write_buffer_size():
+            self.transport.abort()
+        else:
+            self.transport.close()
 
 
 class ModbusServerLink(RegisterServerLink):
     Options = TcpOptions
     options: TcpOptions
 
+    def __init__(self, name: str, options: Any) -> None:
+        super().__init__(name, options)
+        self._listener: asyncio.Server | None = None
+        self._connections: dict[ModbusTcpConnection, None] = {}  # in order of arrival
+        #: the most answer bytes that ever waited in the link for one client
+        self.peak_unsent = 0
+        self._housekeeping: asyncio.Task[None] | None = None
+
     @property
     def port(self) -> int:
         """The bound port (the configured one, or the one chosen for port 0)."""
-        transport = self._server.transport if self._server is not None else None
-        if isinstance(transport, asyncio.Server) and transport.sockets:
-            port: int = transport.sockets[0].getsockname()[1]
+        if self._listener is not None and self._listener.sockets:
+            port: int = self._listener.sockets[0].getsockname()[1]
             return port
         return self.options.port
 
-    def _make_server(self, context: RegisterContext) -> ModbusBaseServer:
-        return ModbusTcpServer(
-            context, address=(self.options.host, self.options.port), ignore_missing_devices=True
-        )
+    def connections(self) -> list[ModbusTcpConnection]:
+        """The open client connections, oldest first."""
+        return list(self._connections)
 
     def _describe(self) -> str:
         return f"{self.options.host}:{self.port}"
@@ -295,12 +645,103 @@ class ModbusServerLink(RegisterServerLink):
     def _unit_id(self) -> int | None:
         return self.options.unit_id
 
-    def _start_error(self) -> str:
-        # pymodbus only logs why listen() failed; bind once more to name the reason.
-        reason = "unknown reason"
+    async def _start_serving(self) -> None:
+        o = self.options
+        loop = asyncio.get_running_loop()
         try:
-            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-                probe.bind((self.options.host, self.options.port))
+            self._listener = await loop.create_server(
+                lambda: ModbusTcpConnection(self), o.host, o.port,
+                backlog=max(128, 2 * o.max_connections))
         except OSError as err:
-            reason = err.strerror or str(err)
-        return f"cannot listen on {self.options.host}:{self.options.port}: {reason}"
+            reason = os.strerror(err.errno) if err.errno else str(err)
+            raise LinkError(f"cannot listen on {o.host}:{o.port}: {reason} (check host and "
+                            f"port of this [[links]] entry)") from None
+        self._housekeeping = asyncio.create_task(self._keep_house(),
+                                                 name=f"{self.name}-housekeeping")
+
+    async def _stop_serving(self) -> None:
+        if self._housekeeping is not None:
+            self._housekeeping.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._housekeeping
+            self._housekeeping = None
+        if self._listener is not None:
+            self._listener.close()
+            for conn in list(self._connections):
+                conn.close(abort=True)
+            self._connections.clear()
+            await self._listener.wait_closed()
+            self._listener = None
+
+    def peers(self) -> int:
+        return len(self._connections)
+
+    # connections -------------------------------------------------------------------------
+
+    def _admit(self, conn: ModbusTcpConnection) -> None:
+        """A new connection: evict the longest-idle ones beyond the cap, then set keepalive."""
+        o = self.options
+        while len(self._connections) >= o.max_connections:
+            victim = min(self._connections, key=lambda c: c.last_request)
+            self.fault(victim.host, "evicted", logging.WARNING,
+                       "%s evicted for %s (max_connections = %d; idle %.1f s)", victim.client,
+                       conn.client, o.max_connections, time.monotonic() - victim.last_request)
+            self._drop(victim, abort=False)
+        self._connections[conn] = None
+        self.ratelog.info(conn.host, "connected", "%s: client %s connected (%d open)",
+                          self.name, conn.client, len(self._connections))
+        if o.keepalive and conn.transport is not None:
+            sock = conn.transport.get_extra_info("socket")
+            if sock is not None:
+                set_keepalive(sock, o.keepalive_idle_s, o.keepalive_interval_s,
+                              o.keepalive_count)
+
+    def _drop(self, conn: ModbusTcpConnection, abort: bool) -> None:
+        self._connections.pop(conn, None)
+        conn.close(abort)
+
+    def _forget(self, conn: ModbusTcpConnection) -> None:
+        self._connections.pop(conn, None)
+
+    def _answer(self, unit: int, pdu: bytes, conn: ModbusTcpConnection) -> bytes | None:
+        """The response PDU, or None for a request to a unit id this link does not answer."""
+        o = self.options
+        if (o.unit_id is not None and unit != o.unit_id
+                and not (o.unit_id_wildcards and unit in (0, 255))):
+            self.fault(conn.host, "unit", logging.WARNING,
+                       "%s: request for unit id %d not answered (this link is unit %d%s)",
+                       conn.client, unit, o.unit_id,
+                       ", 0 and 255" if o.unit_id_wildcards else "")
+            return None
+        return self.answer_pdu(pdu, conn.host)
+
+    async def _keep_house(self) -> None:
+        """Close connections idle for ``idle_timeout_s``; report held log lines."""
+        idle_s = self.options.idle_timeout_s
+        period_s = min(1.0, idle_s / 4) if idle_s else 1.0
+        while True:
+            await asyncio.sleep(period_s)
+            if idle_s:
+                now = time.monotonic()
+                for conn in list(self._connections):
+                    if now - conn.last_request > idle_s:
+                        self.fault(conn.host, "idle", logging.INFO,
+                                   "%s: no request for %.1f s (idle_timeout_s), closed",
+                                   conn.client, now - conn.last_request)
+                        self._drop(conn, abort=False)
+            self.ratelog.flush()
+
+
+def set_keepalive(sock: Any, idle_s: int, interval_s: int, count: int) -> None:
+    """TCP keepalive on ``sock`` (Linux options where the platform has them). A peer that
+    stops answering probes is also given up on while answers are unacknowledged
+    (``TCP_USER_TIMEOUT``), so a vanished peer never holds a connection for long."""
+    options = [(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)]
+    for name, value in (("TCP_KEEPIDLE", idle_s), ("TCP_KEEPINTVL", interval_s),
+                        ("TCP_KEEPCNT", count),
+                        ("TCP_USER_TIMEOUT", 1000 * (idle_s + interval_s * count))):
+        if hasattr(socket, name):
+            options.append((socket.IPPROTO_TCP, getattr(socket, name), value))
+    for level, option, value in options:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(level, option, value)

@@ -1,5 +1,7 @@
 """Modbus/TCP server link against real peers: the pymodbus client (through the mock PLC and
-directly), raw sockets, and mbpoll (Debian's Modbus master, installed in CI).
+directly), raw sockets, and mbpoll (Debian's Modbus master, installed in CI). What a hostile or
+broken network does to it (malformed frames, floods, clients that do not read, fuzzing) is in
+tests/faults/.
 
 A stand-in daemon drives the link directly (image_captured/publish) so each handshake step is
 under the test's control; the end-to-end daemon tests live with the daemon.
@@ -230,7 +232,8 @@ async def test_health_counts_peers_and_heartbeat_runs() -> None:
 async def test_port_in_use_is_a_link_error_naming_address_and_port(served: Harness) -> None:
     busy_port = served.link.port
     other = ModbusServerLink("plc2", ModbusServerLink.Options(host="127.0.0.1", port=busy_port))
-    with pytest.raises(LinkError, match=rf"plc2: cannot listen on 127\.0\.0\.1:{busy_port}: Address already in use"):
+    with pytest.raises(LinkError, match=rf"plc2: cannot listen on 127\.0\.0\.1:{busy_port}: "
+                       r"Address already in use \(check host and port of this \[\[links\]\] entry\)"):
         await other.open(lambda t: None)
     assert other.health().state is LinkState.FAILED
     await other.close()
@@ -285,6 +288,24 @@ async def test_mbpoll_triggers_and_reads_published_pose(served: Harness) -> None
     assert head == {Reg.ACK_SEQ: "42", Reg.STATUS: str(int(Status.OK))}
     pose = await mbpoll(link.port, "-t", "4:float", "-B", "-r", str(Reg.VALUES), "-c", "6", "127.0.0.1")
     assert [float(pose[Reg.VALUES + 2 * i]) for i in range(6)] == pytest.approx(POSE, abs=1e-3)
+
+
+async def test_mbpoll_is_served_past_the_connection_cap() -> None:
+    """Idle connections beyond max_connections evict the longest-idle ones; a third-party
+    master connecting afterwards is served (tests/faults has the rest of the network faults)."""
+    link, _ = await open_link(max_connections=2)
+    idle = [await asyncio.open_connection("127.0.0.1", link.port) for _ in range(6)]
+    try:
+        for _ in range(3):
+            u16 = await mbpoll(link.port, "-t", "4:hex", "-r", str(Reg.CHECK_U16), "-c", "1",
+                               "127.0.0.1")
+            assert u16 == {Reg.CHECK_U16: "0x1234"}
+        assert link.peers() <= 2
+        assert link.faults["evicted"] >= 4
+    finally:
+        for _, writer in idle:
+            writer.close()
+        await link.close()
 
 
 def pose_for(seq: int) -> tuple[float, ...]:

@@ -11,13 +11,21 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 from collections.abc import Callable
 from typing import Any
+
+from vgripd.errors import VgripError
 
 log = logging.getLogger(__name__)
 
 _REQUEST_TIMEOUT_S = 2.0
 _MAX_HEADER_LINES = 100
+
+
+class StatusEndpointError(VgripError):
+    """The status endpoint cannot listen (port in use, address not on this host): the daemon
+    does not start (exit 1, like a link that cannot listen)."""
 
 
 class StatusServer:
@@ -36,7 +44,16 @@ class StatusServer:
         return port
 
     async def start(self) -> None:
-        self._server = await asyncio.start_server(self._serve, self.host, self._requested_port)
+        """Listen; ``StatusEndpointError`` in one line naming the address and the config keys."""
+        try:
+            self._server = await asyncio.start_server(self._serve, self.host,
+                                                      self._requested_port)
+        except OSError as err:
+            reason = os.strerror(err.errno) if err.errno else str(err)
+            raise StatusEndpointError(
+                f"status endpoint cannot listen on {self.host}:{self._requested_port}: {reason} "
+                f"(set [status] port = another port or 0 for any free one, [status] host, or "
+                f"[status] enabled = false)") from None
         log.info("status: http://%s:%d/status", self.host, self.port)
 
     async def close(self) -> None:
