@@ -134,6 +134,9 @@ class DaemonConfig(Model):
 
     job_timeout_s: float = Field(default=10.0, gt=0)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    # Camera driver, pipeline and recorder in a worker process (docs/daemon.md, "Worker
+    # process"); false runs them in the daemon's own interpreter (threads), as before.
+    worker: bool = True
     # Cycle-time percentiles in `vgripd status` are taken over this many most recent jobs.
     stats_window: int = Field(default=1000, ge=1)
     # RECALIBRATE warning (docs/daemon.md): over the last `recalibrate_window` stereo jobs, the

@@ -7,12 +7,17 @@ Life of a job (``JobState``)::
 - A trigger while a job runs is refused with ``Status.BUSY`` (published to the link that sent
   it, for its ``seq``, with ``job_id = 0``: no job was created); the running job is unaffected.
 - ``daemon.job_timeout_s`` bounds acquisition plus processing. Running out while acquiring is
-  ``CAMERA_ERROR``; while processing it is ``INTERNAL`` (the stale computation cannot be
-  interrupted; it finishes on the job thread and its result is discarded).
+  ``CAMERA_ERROR``; while processing it is ``INTERNAL``. With the worker process
+  (``daemon.worker``, the default) the busy worker is killed and a new one started; in-process
+  the stale computation cannot be interrupted (it finishes on the job thread, result discarded).
 - The image-captured signal goes to the triggering link as soon as ``grab()`` returns; the
   result goes only to the link that triggered (each link has its own handshake and sequence).
-- Processing runs on a single-thread executor, so links and the status endpoint keep
-  answering within milliseconds while a job is processed.
+- Grabbing, processing and recording run in a worker process (``vgripd.service.worker``:
+  images through shared memory, the rest pickled), so the event loop's interpreter only
+  handles links and state and answers a poll in about a millisecond while a job runs. A worker
+  that dies fails the job in flight with ``INTERNAL`` naming why ("worker process exited with
+  signal 9 (SIGKILL)") and is replaced. ``daemon.worker = false`` (or a ``Processor`` object
+  passed in) keeps the old in-process path: driver thread, single-thread job executor.
 - Every job ends with exactly one ``Status``: a camera failure is ``CAMERA_ERROR``, an
   unexpected exception ``INTERNAL`` (logged with its traceback), shutdown ``ABORTED``.
 - Counters count what the peers were told: ``publish`` returns the status the link actually
@@ -29,7 +34,8 @@ Life of a job (``JobState``)::
 - Shutdown (SIGTERM/SIGINT) aborts the job in flight (unless it is already publishing), so the
   PLC gets ``ABORTED`` for its trigger at once instead of waiting; the links stay up for
   ``ABORT_LINGER_S`` so a polling PLC can read it, then links, the camera, the recorder and the
-  job thread are closed. A CPU step already running (rendering, image processing) cannot be
+  job thread or worker process are closed (the worker writes queued recordings first). A CPU
+  step already running in the worker is ended by killing it; in-process it cannot be
   interrupted: the process exits when it ends, its result is discarded.
 """
 
@@ -58,6 +64,7 @@ from vgripd.service.protocol import RobotLink, Trigger, Warnings
 from vgripd.service.recorder import Recorder
 from vgripd.service.sdnotify import Notifier, watchdog_interval_s
 from vgripd.service.statusapi import StatusServer
+from vgripd.service.worker import DEFAULT_PROCESSOR, WorkerClient, WorkerError, WorkerRecorder
 from vgripd.types import ImagePair, JobResult, Status
 
 log = logging.getLogger("vgripd")
@@ -182,13 +189,17 @@ class Daemon:
     Raises ``ConfigError`` for a bad driver type or options. A missing/invalid calibration
     (``NotCalibratedError``) does not stop the service: every job then answers
     ``NOT_CALIBRATED``, so the PLC sees why (``not_calibrated`` says so).
+
+    ``pipeline``: a ``Processor`` object runs in this process (on the job thread, camera
+    included); a ``"module:Class"`` path names one built from the config in the worker process.
+    Default: the vision ``Pipeline``, in the worker unless ``daemon.worker = false``.
     """
 
     def __init__(
         self,
         config: Config,
         *,
-        pipeline: Processor | None = None,
+        pipeline: Processor | str | None = None,
         env: Mapping[str, str] | None = None,
     ) -> None:
         self.config = config
@@ -200,19 +211,25 @@ class Daemon:
             link_cls = load_class(LINKS, "link", section.type)
             self.links[name] = link_cls(name, validate_options(link_cls, section, f"links.{i}"))
         self.not_calibrated = ""
-        self._pipeline: Processor | None = pipeline
-        if pipeline is None:
+        self._pipeline: Processor | None = None if isinstance(pipeline, str) else pipeline
+        if self._pipeline is None:
             try:
-                self._pipeline = _make_pipeline(config)
+                self._pipeline = _make_pipeline(config)  # judges the config here, once
             except NotCalibratedError as err:
                 self.not_calibrated = str(err)
+        self._worker: WorkerClient | None = None
+        if isinstance(pipeline, str) or (pipeline is None and config.daemon.worker):
+            self._worker = WorkerClient(config, pipeline or DEFAULT_PROCESSOR,
+                                        self.camera.describe())
+            self.camera = self._worker.camera  # the driver runs in the worker
+            self._pipeline = None
 
         self.run_state = RunState.CREATED
         self.state = JobState.IDLE
         self.listeners: list[JobListener] = []
         self.notifier = Notifier(self._env)
         self.status_server: StatusServer | None = None
-        self.recorder: Recorder | None = None
+        self.recorder: Recorder | WorkerRecorder | None = None
         # What the daemon's answers told the peers, by status name: job results as published
         # and the daemon's own refusals. `snapshot()` adds the links' own refusals.
         self.counters: Counter[str] = Counter()
@@ -250,10 +267,13 @@ class Daemon:
             if self.not_calibrated:
                 log.error("not calibrated, every job will answer NOT_CALIBRATED: %s",
                           self.not_calibrated)
+            if self._worker is not None:
+                await self._worker.start()  # the camera open below waits until it is ready
             rec = self.config.record
             if rec.enabled:
-                self.recorder = Recorder(rec.folder, int(rec.max_mb * 1e6),
-                                         self.config.model_dump(mode="json", exclude_none=True))
+                self.recorder = self._worker.recorder if self._worker is not None else Recorder(
+                    rec.folder, int(rec.max_mb * 1e6),
+                    self.config.model_dump(mode="json", exclude_none=True))
                 self.recorder.start()
                 log.info("recording jobs to %s (max %.0f MB)", rec.folder, rec.max_mb)
             await self._open_camera()
@@ -324,6 +344,9 @@ class Daemon:
             self._camera_open = False
         if self.recorder is not None:
             self.recorder.close()
+        if self._worker is not None:
+            # Writes the recordings still queued, then unlinks the shared memory.
+            await self._worker.close()
         if self._executor is not None:
             # Waits only for a CPU step already running (its result is discarded).
             self._executor.shutdown(wait=True, cancel_futures=True)
@@ -430,12 +453,19 @@ class Daemon:
         await self._finish(trigger, job_id, pair, result)
 
     async def _process(self, pair: ImagePair, job_id: int) -> JobResult:
-        if self._pipeline is None:
+        if self.not_calibrated:
             return self._failure(job_id, Status.NOT_CALIBRATED, self.not_calibrated)
-        assert self._loop is not None
         t0 = time.monotonic_ns()
-        result = await self._loop.run_in_executor(
-            self._executor, self._pipeline.process, pair, job_id)
+        if self._worker is not None:
+            try:
+                result = await self._worker.process(pair, job_id)
+            except WorkerError as err:  # died or raised; the worker logged the traceback
+                return self._failure(job_id, Status.INTERNAL, str(err))
+        else:
+            assert self._loop is not None
+            assert self._pipeline is not None
+            result = await self._loop.run_in_executor(
+                self._executor, self._pipeline.process, pair, job_id)
         timings = {"acquire": (t0 - self._job_started_ns) / 1e6, **result.timings_ms,
                    "process": (time.monotonic_ns() - t0) / 1e6}
         return dataclasses.replace(
@@ -636,6 +666,7 @@ class Daemon:
             "state": self.state.value,
             "uptime_s": (now - self._t_start_ns) / 1e9 if self._t_start_ns else 0.0,
             "camera": {"type": self.config.camera.type, "open": self._camera_open},
+            "worker": None if self._worker is None else self._worker.snapshot(),
             "calibrated": not self.not_calibrated,
             "job": job,
             "last_job": last,

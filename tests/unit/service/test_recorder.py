@@ -117,3 +117,34 @@ def test_submit_writes_on_the_recorder_thread(tmp_path: Path) -> None:
     assert rec.submit(_pair(3), _ok(1))
     rec.close()
     assert len([p for p in tmp_path.iterdir() if p.name.endswith("-job000001")]) == 1
+
+
+async def test_the_worker_process_records_the_same_files(tmp_path: Path) -> None:
+    """Through the worker (images through shared memory, written there) a job's folder holds
+    the same files with the same contents as the in-process recorder writes."""
+    from vgripd.service.worker import WorkerClient
+
+    config = config_from_dict({"record": {"enabled": True, "folder": str(tmp_path / "worker"),
+                                          "max_mb": 50}})
+    pair, result = _pair(4), _ok(9)
+    client = WorkerClient(config)
+    await client.start()
+    try:
+        await client.wait_ready()
+        assert client.recorder.submit(pair, result)
+    finally:
+        await client.close()  # queued writes finish first
+    rec = Recorder(tmp_path / "here", 10**9, config.model_dump(mode="json", exclude_none=True))
+    rec.scan()
+    here = rec.write(pair, result)
+    (there,) = (tmp_path / "worker").iterdir()
+    assert there.name.endswith("-job000009")
+    names = sorted(p.name for p in here.iterdir())
+    assert sorted(p.name for p in there.iterdir()) == names
+    for name in names:
+        if name.endswith(".png"):
+            a = cv2.imread(str(here / name), cv2.IMREAD_UNCHANGED)
+            b = cv2.imread(str(there / name), cv2.IMREAD_UNCHANGED)
+            assert np.array_equal(a, b)
+        else:
+            assert (here / name).read_text() == (there / name).read_text(), name

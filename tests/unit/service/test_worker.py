@@ -1,0 +1,267 @@
+"""The worker process on its own (``WorkerClient``, no daemon): results equal to the in-process
+pipeline's, images through shared memory both ways, and every way a worker can fail: killed,
+segfault, an abandoned request, an exception, a request or an answer that cannot be unpickled,
+a worker that cannot start. Shared memory is gone from /dev/shm after ``close``.
+
+The processors below are built in the worker process from their ``module:Class`` path.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import time
+from collections.abc import AsyncIterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from vgripd.config import Config, config_from_dict
+from vgripd.errors import CameraError
+from vgripd.registry import CAMERAS, load_class, validate_options
+from vgripd.service.worker import (
+    WorkerClient,
+    WorkerError,
+    describe_exit,
+    images_nbytes,
+    read_images,
+    segments_of,
+    write_images,
+)
+from vgripd.types import ImagePair, JobResult, Status
+from vgripd.vision.pipeline import Pipeline
+
+pytestmark = pytest.mark.timeout(120)
+
+HERE = "tests.unit.service.test_worker"
+WAIT_S = 60.0
+
+
+class SlowPipeline(Pipeline):
+    """The pipeline, after sleeping ``pair.meta["sleep_s"]`` seconds."""
+
+    def process(self, pair: ImagePair, job_id: int) -> JobResult:
+        time.sleep(float(pair.meta.get("sleep_s", 0.0)))
+        return super().process(pair, job_id)
+
+
+class RaisingPipeline(Pipeline):
+    def process(self, pair: ImagePair, job_id: int) -> JobResult:
+        if pair.meta.get("raise"):
+            raise ValueError(f"job {job_id} refused")
+        return super().process(pair, job_id)
+
+
+def _explode() -> None:
+    raise RuntimeError("cannot be unpickled")
+
+
+class Unpicklable:
+    """Pickles fine; unpickling it raises."""
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_explode, ())
+
+
+class BadAnswerPipeline(Pipeline):
+    """Answers with a result the daemon cannot unpickle when asked to."""
+
+    def process(self, pair: ImagePair, job_id: int) -> JobResult:
+        result = super().process(pair, job_id)
+        if pair.meta.get("bad_answer"):
+            return JobResult(job_id=job_id, status=Status.NOT_FOUND,
+                             residuals={"x": Unpicklable()})  # type: ignore[dict-item]
+        return result
+
+
+def _config(**sections: Any) -> Config:
+    return config_from_dict({
+        "camera": {"type": "synthetic", "seed": 7, "max_tilt_deg": 2.0},
+        "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": 0}],
+        **sections,
+    })
+
+
+async def _local_pair(config: Config, **meta: Any) -> ImagePair:
+    cls = load_class(CAMERAS, "camera", config.camera.type)
+    camera = cls(validate_options(cls, config.camera, "camera"), config)
+    await camera.open()
+    try:
+        pair: ImagePair = await camera.grab(WAIT_S)
+    finally:
+        await camera.close()
+    return ImagePair(left=pair.left, right=pair.right, t_mono_ns=pair.t_mono_ns,
+                     source=pair.source, meta={**pair.meta, **meta},
+                     T_base_flange=pair.T_base_flange, truth=pair.truth)
+
+
+def _with(pair: ImagePair, **meta: Any) -> ImagePair:
+    """The same images (so the worker gets them again through shared memory), other meta."""
+    return ImagePair(left=pair.left.copy(), right=None if pair.right is None else
+                     pair.right.copy(), t_mono_ns=pair.t_mono_ns, meta=meta, truth=pair.truth)
+
+
+def _same(a: JobResult, b: JobResult) -> None:
+    assert a.status is b.status
+    assert a.target == b.target
+    assert a.T_base_obj is not None
+    assert b.T_base_obj is not None
+    np.testing.assert_allclose(a.T_base_obj, b.T_base_obj, rtol=0, atol=1e-9)
+    assert dict(a.residuals) == pytest.approx(dict(b.residuals), abs=1e-12)
+
+
+@contextlib.asynccontextmanager
+async def running(config: Config, processor: str | None = None) -> AsyncIterator[WorkerClient]:
+    client = WorkerClient(config, processor) if processor else WorkerClient(config)
+    await client.start()
+    try:
+        async with asyncio.timeout(WAIT_S):
+            await client.wait_ready()
+        yield client
+    finally:
+        await client.close()
+        assert segments_of(client.prefix) == []
+
+
+@pytest.fixture
+async def worker() -> AsyncIterator[WorkerClient]:
+    async with running(_config(), f"{HERE}:SlowPipeline") as client:
+        yield client
+
+
+def test_images_round_trip_through_a_buffer() -> None:
+    rng = np.random.default_rng(1)
+    for images in ([rng.integers(0, 256, (7, 13), np.uint8), None],
+                   [rng.integers(0, 256, (5, 9, 3), np.uint8),
+                    rng.integers(0, 65535, (4, 6), np.uint16)],
+                   [rng.integers(0, 256, (8, 10, 3), np.uint8)[:, ::2], None]):  # strided
+        buf = memoryview(bytearray(images_nbytes(images)))
+        layout = write_images(buf, images)
+        back = read_images(buf, layout)
+        for a, b in zip(images, back, strict=True):
+            if a is None:
+                assert b is None
+            else:
+                assert b is not None
+                assert b.dtype == a.dtype
+                assert np.array_equal(a, b)
+        buf.release()
+
+
+def test_exit_descriptions() -> None:
+    assert describe_exit(-9) == "worker process exited with signal 9 (SIGKILL)"
+    assert describe_exit(-11) == "worker process exited with signal 11 (SIGSEGV)"
+    assert describe_exit(3) == "worker process exited with code 3"
+
+
+async def test_results_equal_the_in_process_pipeline_both_ways() -> None:
+    config = _config()
+    pipeline = Pipeline(config)
+    async with running(config) as client:
+        assert client.pid is not None
+        assert client.pid != os.getpid()
+        assert len(segments_of(client.prefix)) == 1  # preallocated at start
+        # A pair from this process goes to the worker through shared memory ...
+        mine = await _local_pair(config)
+        _same(await client.process(mine, 1), pipeline.process(mine, 1))
+        # ... and a pair the worker's camera grabs comes back through it.
+        await client.camera.open()
+        grabbed = await client.camera.grab(WAIT_S)
+        assert grabbed.left.shape == (1024, 1280)
+        assert grabbed.right is not None
+        assert "T_base_obj" in grabbed.truth
+        result = await client.process(grabbed, 2)
+        assert result.status is Status.OK
+        _same(result, pipeline.process(grabbed, 2))
+        await client.camera.close()
+        assert len(segments_of(client.prefix)) == 1  # reused, not one per job
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSEGV], ids=["SIGKILL", "SIGSEGV"])
+async def test_a_worker_that_dies_fails_the_request_naming_why_and_is_replaced(
+    worker: WorkerClient, sig: signal.Signals
+) -> None:
+    pair = await _local_pair(worker.config)
+    first = worker.pid
+    assert first is not None
+    job = asyncio.create_task(worker.process(_with(pair, sleep_s=60), 1))
+    await asyncio.sleep(1.0)  # the worker is sleeping in process()
+    os.kill(first, sig)
+    with pytest.raises(WorkerError, match=f"worker process exited with signal {int(sig)} "
+                                          rf"\({sig.name}\)"):
+        await job
+    result = await worker.process(pair, 2)  # waits for the new worker
+    assert result.status is Status.OK
+    assert worker.pid not in (None, first)
+    assert worker.restarts == 1
+    assert worker.snapshot()["last_exit"] == f"worker process exited with signal {int(sig)} " \
+                                             f"({sig.name})"
+
+
+async def test_an_abandoned_request_kills_the_worker_and_a_new_one_serves(
+    worker: WorkerClient,
+) -> None:
+    pair = await _local_pair(worker.config)
+    first = worker.pid
+    t0 = time.monotonic()
+    with pytest.raises(TimeoutError):
+        async with asyncio.timeout(1.0):
+            await worker.process(_with(pair, sleep_s=60), 1)
+    assert (await worker.process(pair, 2)).status is Status.OK
+    assert worker.pid not in (None, first)
+    assert time.monotonic() - t0 < 30  # not the 60 s the stale computation would take
+
+
+async def test_requests_and_answers_that_cannot_be_unpickled_fail_only_themselves() -> None:
+    async with running(_config(), f"{HERE}:BadAnswerPipeline") as client:
+        pair = await _local_pair(client.config)
+        pid = client.pid
+        with pytest.raises(WorkerError, match="the worker cannot read the request: "
+                                              "RuntimeError: cannot be unpickled"):
+            await client.process(_with(pair, bomb=Unpicklable()), 1)
+        with pytest.raises(WorkerError, match="cannot read the worker's answer: "
+                                              "RuntimeError: cannot be unpickled"):
+            await client.process(_with(pair, bad_answer=True), 2)
+        assert (await client.process(pair, 3)).status is Status.OK
+        assert client.pid == pid
+        assert client.restarts == 0
+
+
+async def test_an_exception_in_the_worker_fails_the_request_and_the_worker_stays() -> None:
+    async with running(_config(), f"{HERE}:RaisingPipeline") as client:
+        pair = await _local_pair(client.config)
+        pid = client.pid
+        with pytest.raises(WorkerError, match=r"ValueError: job 1 refused \(in the worker"):
+            await client.process(_with(pair, **{"raise": True}), 1)
+        assert (await client.process(pair, 2)).status is Status.OK
+        assert client.pid == pid
+
+
+async def test_a_camera_failure_in_the_worker_is_a_camera_error(tmp_path: Any) -> None:
+    config = _config(camera={"type": "replay", "folder": str(tmp_path / "missing"),
+                             "glob": "*.png"})
+    async with running(config) as client:
+        with pytest.raises(CameraError, match="missing"):
+            await client.camera.open()
+        with pytest.raises(CameraError, match="missing"):
+            await client.camera.grab(5.0)
+        assert client.restarts == 0
+
+
+async def test_a_worker_that_cannot_start_is_retried_with_back_off() -> None:
+    client = WorkerClient(_config(), f"{HERE}:NoSuchPipeline")
+    await client.start()
+    try:
+        with pytest.raises(WorkerError, match="failed to start: AttributeError.*NoSuchPipeline"):
+            await client.wait_ready()
+        # Meanwhile requests fail at once, naming the reason and the next try.
+        t0 = time.monotonic()
+        with pytest.raises(WorkerError, match="NoSuchPipeline.*next start in"):
+            await client.wait_ready()
+        assert time.monotonic() - t0 < 0.5
+    finally:
+        await client.close()
+    assert segments_of(client.prefix) == []
