@@ -1,61 +1,462 @@
-"""Modbus RTU server link on a serial line: the same register map and handshake as the TCP
-server (``RegisterServerLink``), over pymodbus' serial server and pyserial.
+"""Modbus RTU server link on a serial line: the register map and handshake of the TCP server
+(``RegisterServerLink``: every request PDU is answered by ``answer_pdu``), framed here for RTU
+over pyserial.
 
-An RTU slave answers only its own unit id; frames for other units are left unanswered. FC23 is
-all or nothing as on TCP (``AllOrNothingReadWrite``, registered by the shared ``open``).
+An RTU slave answers only its own unit id; frames for other units (and broadcasts, unit 0) are
+left unanswered. FC23 is all or nothing as on TCP.
+
+Framing (``RtuFramer``). A frame is unit id, PDU, CRC-16. Its length follows from the function
+code (a byte count where the request has one); a function code without a known layout is a
+frame once the whole buffer carries a valid CRC. A CRC error, or bytes that start no frame,
+cost only themselves: the framer looks for the next valid frame one byte further on. Silence
+ends a frame (Modbus over serial line, 2.5.1.1): when at least 3.5 character times (1.75 ms
+above 19200 baud) pass with nothing on the line, a partial frame left in the buffer is dropped,
+so one stray byte never spoils the next request. The silence is judged from when data arrives
+minus the time the new bytes took on the wire; a USB adapter that hands over a frame in pieces
+therefore does not lose it, and a piece that completes a valid frame is always kept.
+
+Faults. A port that cannot take the configuration (not a tty, a parity or baud rate the
+adapter refuses) is a config error: ``open()`` raises ``LinkError`` and the link is FAILED.
+Anything else (device missing, unplugged, read/write errors, the port locked by another
+program) takes the link DOWN with the reason in ``health().last_error``; one supervisor task
+reopens the port with doubling back-off (``backoff_initial_s`` .. ``backoff_max_s``), logging
+the outage once (WARNING) and the recovery once (INFO). A port missing at start is DOWN too:
+a USB adapter may be plugged in later.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+import asyncio
+import contextlib
+import errno
+import logging
+import os
+import termios
+import time
+from collections.abc import Iterator
+from typing import Any, Literal
 
 import serial
-from pydantic import Field
-from pymodbus.framer import FramerType
-from pymodbus.server import ModbusSerialServer
-from pymodbus.server.base import ModbusBaseServer
+from pydantic import Field, model_validator
 
-from drivers.links.modbus_server import RegisterContext, RegisterServerLink
-from vgripd.service.protocol import RegisterOptions
+from drivers.links.modbus_server import MalformedFrame, RegisterServerLink
+from vgripd.errors import LinkError
+from vgripd.service.protocol import LinkHealth, LinkState, RegisterOptions, TriggerHandler
+
+log = logging.getLogger(__name__)
+
+MAX_ADU = 256  # the longest RTU frame: unit id + 253-byte PDU + CRC
+# Frame lengths by function code (unit id and CRC included), from the Modbus application
+# protocol. An int is a fixed length; (at, fixed) a byte count at index ``at``: fixed + count.
+# Requests are what this slave answers; responses are other slaves' answers on a shared line
+# (and an adapter's echo of our own), recognised so that they are skipped whole, never answered.
+Layout = int | tuple[int, int]
+_REQUEST: dict[int, Layout] = {
+    1: 8, 2: 8, 3: 8, 4: 8, 5: 8, 6: 8, 7: 4, 8: 8, 11: 4, 12: 4, 17: 4, 22: 10, 24: 6, 43: 7,
+    15: (6, 9), 16: (6, 9), 20: (2, 5), 21: (2, 5), 23: (10, 13),
+}
+_RESPONSE: dict[int, Layout] = {
+    1: (2, 5), 2: (2, 5), 3: (2, 5), 4: (2, 5), 23: (2, 5), 5: 8, 6: 8, 15: 8, 16: 8, 22: 10,
+}
+_EXCEPTION_LENGTH = 5  # unit, function | 0x80, exception code, CRC
+
+
+def _crc_table() -> list[int]:
+    table = []
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+        table.append(crc)
+    return table
+
+
+_CRC_TABLE = _crc_table()
+
+
+def crc16(data: bytes) -> int:
+    """Modbus CRC-16 (polynomial 0xA001 reflected, start 0xFFFF); sent low byte first."""
+    crc = 0xFFFF
+    for byte in data:
+        crc = (crc >> 8) ^ _CRC_TABLE[(crc ^ byte) & 0xFF]
+    return crc
+
+
+def with_crc(body: bytes) -> bytes:
+    """``body`` (unit id + PDU) with its CRC appended."""
+    return body + crc16(body).to_bytes(2, "little")
+
+
+def crc_ok(frame: bytes) -> bool:
+    return len(frame) >= 4 and crc16(frame[:-2]) == int.from_bytes(frame[-2:], "little")
+
+
+def char_time_s(baudrate: int, parity: str, stopbits: int) -> float:
+    """Time one character takes on the line: start bit, 8 data bits, parity bit, stop bits."""
+    return (1 + 8 + (parity != "N") + stopbits) / baudrate
+
+
+def silence_s(baudrate: int, parity: str, stopbits: int) -> float:
+    """The 3.5-character inter-frame silence; fixed at 1.75 ms above 19200 baud (the spec)."""
+    if baudrate > 19200:
+        return 0.00175
+    return 3.5 * char_time_s(baudrate, parity, stopbits)
+
+
+def _length(buffer: bytes, start: int, layout: Layout) -> int | None:
+    if isinstance(layout, int):
+        return layout
+    at, fixed = layout
+    if len(buffer) - start <= at:
+        return None
+    return fixed + buffer[start + at]
+
+
+class RtuFramer:
+    """Bytes from the line in, complete frames with a valid CRC out (any unit id).
+
+    ``feed(data, t)`` takes what one read returned and when (monotonic seconds) and returns the
+    requests it completed, in order (other slaves' responses are skipped). Counters:
+    ``garbage`` bytes skipped (CRC errors, noise, partial frames dropped at a silence),
+    ``frames`` requests returned, ``responses`` responses skipped.
+    """
+
+    def __init__(self, char_s: float, silence: float) -> None:
+        self.char_s = char_s
+        self.silence = silence
+        self.buffer = b""
+        self.garbage = 0
+        self.frames = 0
+        self.responses = 0
+        self._t_last: float | None = None
+
+    def feed(self, data: bytes, t: float) -> list[bytes]:
+        if self.buffer and self._t_last is not None:
+            quiet = (t - self._t_last) - len(data) * self.char_s
+            if quiet >= self.silence and self._frame_at(self.buffer + data, 0) is None:
+                # The line was silent after these bytes: they were a partial frame or noise.
+                self.garbage += len(self.buffer)
+                self.buffer = b""
+        self._t_last = t
+        self.buffer += data
+        return list(self._requests())
+
+    def _requests(self) -> Iterator[bytes]:
+        while self.buffer:
+            found = self._first_frame()
+            if found is None:
+                if len(self.buffer) > MAX_ADU:  # no frame can start this early any more
+                    self.garbage += len(self.buffer) - MAX_ADU
+                    self.buffer = self.buffer[-MAX_ADU:]
+                return
+            start, length, is_request = found
+            self.garbage += start
+            frame = self.buffer[start:start + length]
+            self.buffer = self.buffer[start + length:]
+            if is_request:
+                self.frames += 1
+                yield frame
+            else:
+                self.responses += 1
+
+    def _first_frame(self) -> tuple[int, int, bool] | None:
+        for start in range(len(self.buffer) - 3):
+            found = self._frame_at(self.buffer, start)
+            if found is not None:
+                return (start, *found)
+        return None
+
+    @staticmethod
+    def _frame_at(buffer: bytes, start: int) -> tuple[int, bool] | None:
+        """(length, is a request) of a complete, CRC-valid frame at ``start``, or None."""
+        rest = len(buffer) - start
+        if rest < 4:
+            return None
+        function = buffer[start + 1]
+        candidates: list[tuple[Layout, bool]] = []
+        if function & 0x80:
+            candidates.append((_EXCEPTION_LENGTH, False))
+        else:
+            if function in _REQUEST:
+                candidates.append((_REQUEST[function], True))
+            if function in _RESPONSE:
+                candidates.append((_RESPONSE[function], False))
+            if not candidates and start == 0 and rest <= MAX_ADU:
+                # A function without a known layout: a request if the whole buffer is one.
+                candidates.append((rest, True))
+        for layout, is_request in candidates:
+            length = _length(buffer, start, layout)
+            if length is not None and 4 <= length <= rest and crc_ok(
+                    buffer[start:start + length]):
+                return length, is_request
+        return None
+
+
+class PortFault(LinkError):
+    """The serial port could not be opened or used. ``permanent``: retrying cannot help (the
+    port refuses the configuration), a config error rather than a link fault."""
+
+    def __init__(self, message: str, permanent: bool = False) -> None:
+        super().__init__(message)
+        self.permanent = permanent
 
 
 class RtuOptions(RegisterOptions):
     """``port``: the serial device (``/dev/ttyUSB0``). ``parity``: N(one), E(ven), O(dd).
-    ``unit_id``: this slave's address on the line (1-247)."""
+    ``unit_id``: this slave's address on the line (1-247). ``backoff_initial_s`` ..
+    ``backoff_max_s``: reopen delay after the port is lost, doubling."""
 
-    port: str
+    port: str = Field(min_length=1)
     baudrate: int = Field(19200, ge=1200, le=921600)
     parity: Literal["N", "E", "O"] = "E"
     stopbits: Literal[1, 2] = 1
     unit_id: int = Field(1, ge=1, le=247)
+    backoff_initial_s: float = Field(0.5, gt=0, le=60)
+    backoff_max_s: float = Field(10.0, gt=0, le=600)
+
+    @model_validator(mode="after")
+    def _backoff_ordered(self) -> RtuOptions:
+        if self.backoff_max_s < self.backoff_initial_s:
+            raise ValueError(f"backoff_max_s = {self.backoff_max_s} is below backoff_initial_s "
+                             f"= {self.backoff_initial_s}")
+        return self
+
+
+def _reason(err: BaseException) -> str:
+    if isinstance(err, termios.error) and len(err.args) == 2:
+        return f"[Errno {err.args[0]}] {err.args[1]}"
+    if isinstance(err, OSError) and err.errno:  # pyserial repeats the path: the errno says it
+        return f"[Errno {err.errno}] {os.strerror(err.errno)}"
+    return str(err) or type(err).__name__
+
+
+def open_port(options: RtuOptions, describe: str) -> serial.Serial:
+    """The configured port, open and non-blocking; ``PortFault`` saying why not."""
+    port = serial.Serial(baudrate=options.baudrate, bytesize=8, parity=options.parity,
+                         stopbits=options.stopbits, timeout=0, write_timeout=0, exclusive=True)
+    port.port = options.port
+    try:
+        port.open()
+    except (termios.error, ValueError) as err:
+        # tcsetattr refused the settings (EINVAL: e.g. a parity this adapter cannot do)
+        raise PortFault(f"serial port {describe} refuses the configuration: {_reason(err)} "
+                        "(check baudrate, parity and stopbits for this adapter)",
+                        permanent=True) from None
+    except serial.SerialException as err:
+        text = _reason(err)
+        if "Could not configure port" in text or err.errno in (errno.ENOTTY, errno.EISDIR):
+            raise PortFault(f"{options.port} is not a serial port: {text}",
+                            permanent=True) from None
+        raise PortFault(f"cannot open serial port {describe}: {text}") from None
+    except OSError as err:
+        raise PortFault(f"cannot open serial port {describe}: {_reason(err)}") from None
+    return port
+
+
+class _Line:
+    """One open port on the event loop: reads feed the framer, answers are written back.
+
+    ``lost`` completes with the reason when a read or write fails (device gone).
+    """
+
+    def __init__(self, link: ModbusRtuLink, port: serial.Serial) -> None:
+        self.link = link
+        self.port = port
+        self.fd = port.fileno()
+        self.loop = asyncio.get_running_loop()
+        o = link.options
+        self.framer = RtuFramer(char_time_s(o.baudrate, o.parity, o.stopbits),
+                                silence_s(o.baudrate, o.parity, o.stopbits))
+        self.lost: asyncio.Future[str] = self.loop.create_future()
+        self._out = bytearray()
+        self.loop.add_reader(self.fd, self._readable)
+
+    def close(self) -> None:
+        with contextlib.suppress(ValueError, OSError):
+            self.loop.remove_reader(self.fd)
+            self.loop.remove_writer(self.fd)
+        with contextlib.suppress(OSError, serial.SerialException):
+            self.port.close()
+
+    def _fail(self, reason: str) -> None:
+        with contextlib.suppress(ValueError, OSError):
+            self.loop.remove_reader(self.fd)
+            self.loop.remove_writer(self.fd)
+        if not self.lost.done():
+            self.lost.set_result(reason)
+
+    def _readable(self) -> None:
+        try:
+            data = os.read(self.fd, 4096)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as err:
+            self._fail(f"reading serial port {self.link.describe()}: {_reason(err)}")
+            return
+        if not data:  # readable but empty: the device is gone (hang-up)
+            self._fail(f"serial port {self.link.describe()} hung up (device unplugged?)")
+            return
+        for frame in self.framer.feed(data, time.monotonic()):
+            answer = self.link.answer_frame(frame)
+            if answer:
+                self._write(answer)
+
+    def _write(self, data: bytes) -> None:
+        self._out += data
+        if len(self._out) == len(data):
+            self._writable()
+
+    def _writable(self) -> None:
+        try:
+            sent = os.write(self.fd, self._out)
+        except (BlockingIOError, InterruptedError):
+            sent = 0
+        except OSError as err:
+            self._fail(f"writing serial port {self.link.describe()}: {_reason(err)}")
+            return
+        del self._out[:sent]
+        if self._out:
+            self.loop.add_writer(self.fd, self._writable)
+        else:
+            self.loop.remove_writer(self.fd)
 
 
 class ModbusRtuLink(RegisterServerLink):
     Options = RtuOptions
     options: RtuOptions
 
-    def _make_server(self, context: RegisterContext) -> ModbusBaseServer:
-        o = self.options
-        return ModbusSerialServer(
-            context, framer=FramerType.RTU, port=o.port, baudrate=o.baudrate, parity=o.parity,
-            stopbits=o.stopbits, bytesize=8, ignore_missing_devices=True,
-        )
+    def __init__(self, name: str, options: Any) -> None:
+        super().__init__(name, options)
+        self._line: _Line | None = None
+        self._supervisor: asyncio.Task[None] | None = None
+        self._rtu_state = LinkState.STOPPED
+        self._rtu_error = ""
+        self._rtu_since_ns = time.monotonic_ns()
+        self._reconnects = 0
+        self._state_changed: asyncio.Event | None = None
+        self.frames_answered = 0
+        self.frames_other_units = 0
 
-    def _describe(self) -> str:
+    # -- RobotLink -----------------------------------------------------------------------
+
+    async def open(self, on_trigger: TriggerHandler) -> None:
+        """Open the port and serve. ``LinkError`` (FAILED) when the port refuses the
+        configuration; a missing or failing device is DOWN and reopened in the background."""
+        if self._supervisor is not None:
+            raise LinkError(f"link {self.name}: already open")
+        self._on_trigger = on_trigger
+        self._loop = asyncio.get_running_loop()
+        try:
+            self._line = _Line(self, open_port(self.options, self.describe()))
+        except PortFault as fault:
+            if fault.permanent:  # the caller (the daemon) reports it
+                self._set_rtu_state(LinkState.FAILED, str(fault))
+                raise LinkError(f"link {self.name}: {fault}") from None
+            self._set_rtu_state(LinkState.DOWN, str(fault))
+            log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, fault,
+                        self.options.backoff_max_s)
+        else:
+            self._set_rtu_state(LinkState.UP)
+            log.info("%s: serving Modbus registers on %s", self.name, self.describe())
+        self._heartbeat = asyncio.create_task(self._beat(), name=f"{self.name}-heartbeat")
+        self._supervisor = asyncio.create_task(self._supervise(),
+                                               name=f"{self.name}-supervisor")
+
+    async def close(self) -> None:
+        task, self._supervisor = self._supervisor, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        if self._line is not None:
+            self._line.close()
+            self._line = None
+        await super().close()
+        self._set_rtu_state(LinkState.STOPPED)
+
+    def health(self) -> LinkHealth:
+        return LinkHealth(state=self._rtu_state, peer=self.describe(),
+                          last_error=self._rtu_error, reconnects=self._reconnects,
+                          since_mono_ns=self._rtu_since_ns, peers=0)
+
+    def peers(self) -> int:
+        return 0  # a serial line has no connection to count
+
+    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
+        """Wait until ``health().state`` is one of ``states``; ``TimeoutError`` otherwise."""
+        wanted = {states} if isinstance(states, LinkState) else states
+        async with asyncio.timeout(timeout_s):
+            while self._rtu_state not in wanted:
+                if self._state_changed is None:
+                    self._state_changed = asyncio.Event()
+                await self._state_changed.wait()
+        return self.health()
+
+    def describe(self) -> str:
         o = self.options
         return f"{o.port} ({o.baudrate} 8{o.parity}{o.stopbits}, unit {o.unit_id})"
+
+    def _describe(self) -> str:
+        return self.describe()
 
     def _unit_id(self) -> int | None:
         return self.options.unit_id
 
-    def _start_error(self) -> str:
-        # pymodbus only logs why the port did not open; open it once more to name the reason.
-        reason = "unknown reason"
-        try:
-            serial.Serial(self.options.port).close()
-        except (serial.SerialException, OSError) as err:
-            reason = str(err)
-        return f"cannot open serial port {self._describe()}: {reason}"
+    # -- frames ----------------------------------------------------------------------------
 
-    def peers(self) -> int:
-        return 0  # a serial line has no connection to count
+    def answer_frame(self, frame: bytes) -> bytes | None:
+        """The answer ADU to a CRC-valid request frame; None when it is not for this unit."""
+        unit = frame[0]
+        if unit != self.options.unit_id:
+            self.frames_other_units += 1
+            return None
+        pdu = frame[1:-2]
+        try:
+            reply = self.answer_pdu(pdu, self.options.port)
+        except MalformedFrame as err:
+            # The CRC was right, the request is not: answer it as an illegal data value.
+            self.fault(self.options.port, "malformed", logging.INFO,
+                       "%s: malformed request answered with exception 03: %s",
+                       self.options.port, err)
+            reply = bytes((pdu[0] | 0x80, 3))
+        self.frames_answered += 1
+        return with_crc(bytes((unit,)) + reply)
+
+    # -- supervisor ------------------------------------------------------------------------
+
+    def _set_rtu_state(self, state: LinkState, error: str = "") -> None:
+        if state is not self._rtu_state:
+            self._rtu_state = state
+            self._rtu_since_ns = time.monotonic_ns()
+        self._rtu_error = error
+        changed, self._state_changed = self._state_changed, None
+        if changed is not None:
+            changed.set()  # wakes every waiter once; later waiters make a fresh event
+
+    async def _supervise(self) -> None:
+        o = self.options
+        delay = o.backoff_initial_s
+        while True:
+            line = self._line
+            if line is not None:
+                reason = await line.lost
+                line.close()
+                self._line = None
+                self._set_rtu_state(LinkState.DOWN, reason)
+                log.warning("%s: %s; reopening with back-off up to %.1f s", self.name, reason,
+                            o.backoff_max_s)
+                delay = o.backoff_initial_s
+            attempts = 0
+            while self._line is None:
+                await asyncio.sleep(delay)
+                delay = min(2 * delay, o.backoff_max_s)
+                attempts += 1
+                try:
+                    self._line = _Line(self, open_port(o, self.describe()))
+                except PortFault as fault:
+                    # Logged once per outage (above, or by open()); the state says the latest.
+                    self._set_rtu_state(LinkState.DOWN, str(fault))
+                    log.debug("%s: still down (attempt %d): %s", self.name, attempts, fault)
+            self._reconnects += 1
+            self._set_rtu_state(LinkState.UP)
+            log.info("%s: serial port %s is back (reconnects %d)", self.name, self.describe(),
+                     self._reconnects)
