@@ -20,10 +20,17 @@ the server link uses) and copies its changes to the robot, in the bank's order:
 
 One supervisor task owns the connection and is the only retry loop: pymodbus' own reconnect
 and retries are off (``reconnect_delay=0``, ``retries=0``). After a drop it reconnects with
-doubling back-off and logs once per outage; ``health()`` says DOWN with the reason (address,
-port, Modbus exception, register). If the robot refuses a register of the block at the first
-contact (ILLEGAL_ADDRESS or ILLEGAL_FUNCTION) the link is FAILED and not retried: a wrong
-``base_address`` does not fix itself; other exception codes (busy, device failure) are retried.
+doubling back-off and logs once per outage (one WARNING line, no traceback: every way a
+request can fail on a dropped or silent connection is a ``LinkError`` naming it);
+``health()`` says DOWN with the reason (address, port, Modbus exception, register). pymodbus
+logs its own line for each unanswered request and failed connect; ``quiet_pymodbus`` filters
+exactly those (the link reports the outage itself) unless the ``pymodbus`` logger is set to
+DEBUG for troubleshooting. A daemon call waiting for the robot (``publish``,
+``image_captured``) is always released with the outage, never left to time out.
+
+If the robot refuses a register of the block at the first contact (ILLEGAL_ADDRESS or
+ILLEGAL_FUNCTION) the link is FAILED and not retried: a wrong ``base_address`` does not fix
+itself; other exception codes (busy, device failure) are retried.
 
 RESULT_AGE_MS is live on the server link; here it is refreshed with every heartbeat. WARNINGS
 (map register 40) is written when the daemon changes it, like any other mirror change.
@@ -66,6 +73,38 @@ from vgripd.types import JobResult, Status
 log = logging.getLogger(__name__)
 
 MAX_WRITE_WORDS = 123  # Modbus limit of one write-multiple request
+
+# pymodbus' own log lines for what the supervisor reports once per outage (client side).
+PYMODBUS_NOISE = (
+    "No response received after",
+    "Failed to connect",
+    "Cancel send, because not connected",
+    "Not connected, trying to connect",
+    "received pdu without a corresponding request",
+)
+
+
+class _PymodbusNoise(logging.Filter):
+    """Drops pymodbus' per-request retry and connect lines (``PYMODBUS_NOISE``) unless the
+    ``pymodbus`` logger is at DEBUG: the links log one line per outage themselves."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno < logging.WARNING or logging.getLogger("pymodbus").isEnabledFor(
+                logging.DEBUG):
+            return True
+        text = record.getMessage()
+        return not any(noise in text for noise in PYMODBUS_NOISE)
+
+
+_NOISE_FILTER = _PymodbusNoise()
+
+
+def quiet_pymodbus() -> None:
+    """Install the noise filter on pymodbus' logger (idempotent; affects the whole process,
+    and only the lines in ``PYMODBUS_NOISE``)."""
+    logger = logging.getLogger("pymodbus.logging")
+    if _NOISE_FILTER not in logger.filters:
+        logger.addFilter(_NOISE_FILTER)
 
 
 class ModbusClientOptions(RegisterOptions):
@@ -166,6 +205,7 @@ class ModbusClientLink(RobotLink):
         """
         if self._task is not None:
             raise LinkError(f"link {self.name}: already open")
+        quiet_pymodbus()
         self._on_trigger = on_trigger
         self._health_changed = asyncio.Condition()
         self._wake = asyncio.Event()
@@ -302,6 +342,8 @@ class ModbusClientLink(RobotLink):
                     return
             except LinkError as err:
                 error = str(err)
+            except (OSError, ModbusException) as err:  # transport trouble pymodbus let through
+                error = f"{self._peer}: {err}"
             except Exception as err:  # a bug must not leave a dead link reporting UP
                 log.exception("%s: unexpected error talking to %s", self.name, self._peer)
                 error = f"internal error: {err!r}"
@@ -395,7 +437,7 @@ class ModbusClientLink(RobotLink):
         self._journal.clear()
         try:
             await self._write_plan(client, plan)
-        except LinkError:
+        except BaseException:
             self._waiters = waiters + self._waiters  # released with the outage's reason
             raise
         for w in waiters:
@@ -437,7 +479,12 @@ class ModbusClientLink(RobotLink):
         assert self._lost is not None
         self.transactions += 1
         where = f"{what} holding registers {address}..{address + count - 1} on {self._peer}"
-        task = asyncio.ensure_future(request())
+        if self._lost.done():
+            raise LinkError(f"connection lost before {where}")
+        try:
+            task = asyncio.ensure_future(request())
+        except ModbusException:  # pymodbus raises at once when its transport is already gone
+            raise LinkError(f"connection lost before {where}") from None
         try:
             await asyncio.wait((task, self._lost), return_when=asyncio.FIRST_COMPLETED)
         finally:
