@@ -20,8 +20,16 @@ retried: it is a configuration problem of the robot.
 After every reconnect the warning bits (``set_warnings``, input_double_register 21) and the last
 ``image_captured``/``publish`` are written again, so a robot whose acknowledge was lost with the
 connection still gets its answer, and a stale warning from an earlier run is overwritten. A
-trigger that was already pending when the link first connected is not served (the robot's
-timeout retries it); one that arrives while the link is down is served at the reconnect.
+request already pending when the link first connects (the robot's sequence differs from the
+acknowledge register, read back once at the first connect) is served, as is one that arrives
+while the link is down (at the reconnect); an answered one is never run again.
+
+A request whose command is not one of ``URRegisterMap.COMMANDS`` (1 = locate) is answered by
+the link itself with ``BAD_REQUEST`` (32) and job id 0, without a job; ``refusals()`` counts it.
+
+The child's stdout/stderr (ur_rtde prints its own errors there) is a pipe read on the loop:
+each line is logged through ``vgripd.link.ur_rtde`` (``link <name>: ur_rtde: <line>``, INFO),
+at most ``OUTPUT_LINES`` lines per ``OUTPUT_WINDOW_S`` and link, then a count of the held ones.
 """
 
 from __future__ import annotations
@@ -32,7 +40,10 @@ import itertools
 import logging
 import math
 import multiprocessing
+import os
 import time
+from collections import Counter
+from collections.abc import Callable, Mapping
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -54,6 +65,55 @@ from vgripd.service.protocol import (
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger("vgripd.link.ur_rtde")
+
+# The child's output lines logged per link and window; more are counted and reported once.
+OUTPUT_LINES = 20
+OUTPUT_WINDOW_S = 60.0
+OUTPUT_LINE_CHARS = 400
+
+
+class OutputLog:
+    """Logs the child's output one line per record, at most ``lines`` per ``window_s``."""
+
+    def __init__(self, link: str, lines: int = OUTPUT_LINES, window_s: float = OUTPUT_WINDOW_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.link, self.lines, self.window_s, self.clock = link, lines, window_s, clock
+        self._window_start = -float("inf")
+        self._in_window = 0
+        self.held = 0
+        self._partial = b""
+
+    def feed(self, data: bytes) -> None:
+        """Bytes from the pipe; b"" at its end (a last line without newline is logged too)."""
+        if not data:
+            rest, self._partial = self._partial, b""
+            self.line(rest.decode("utf-8", "replace"))
+            return
+        lines = (self._partial + data).split(b"\n")
+        self._partial = lines.pop()
+        if len(self._partial) > OUTPUT_LINE_CHARS:  # no newline coming: log what there is
+            lines.append(self._partial)
+            self._partial = b""
+        for raw in lines:
+            self.line(raw.decode("utf-8", "replace"))
+
+    def line(self, text: str) -> None:
+        text = text.strip()
+        if not text:
+            return
+        now = self.clock()
+        if now - self._window_start >= self.window_s:
+            if self.held:
+                log.info("link %s: ur_rtde: %d more output lines held back in the last %.0f s",
+                         self.link, self.held, now - self._window_start)
+            self._window_start, self._in_window, self.held = now, 0, 0
+        if self._in_window >= self.lines:
+            self.held += 1
+            return
+        self._in_window += 1
+        if len(text) > OUTPUT_LINE_CHARS:
+            text = text[:OUTPUT_LINE_CHARS] + " ..."
+        log.info("link %s: ur_rtde: %s", self.link, text)
 
 
 class URRtdeOptions(BaseModel):
@@ -77,27 +137,51 @@ class URRtdeOptions(BaseModel):
 
 
 class _Child:
-    """One worker process and the asyncio side of its pipe."""
+    """One worker process and the asyncio side of its pipes (messages; stdout/stderr)."""
 
-    def __init__(self, opts: URRtdeOptions, last_seq: int | None) -> None:
+    def __init__(self, opts: URRtdeOptions, last_seq: int | None, output: OutputLog) -> None:
         ctx = multiprocessing.get_context("spawn")
         self.conn, child_conn = ctx.Pipe()
+        self._output_r, output_w = os.pipe()
+        os.set_blocking(self._output_r, False)
+        # A Connection only to hand the pipe's write end to the spawned child (it dup2s it
+        # onto its fds 1 and 2); nothing is ever sent through it as a Connection.
+        child_output = Connection(output_w, readable=False)
+        self.output = output
         self.process = ctx.Process(
             target=ur_rtde_worker.main, name=f"ur_rtde {opts.host}", daemon=True,
-            args=(child_conn, opts.host, opts.use_upper_range_registers, opts.frequency_hz,
-                  opts.stale_after_s, opts.connect_timeout_s, last_seq))
-        self._child_conn: Connection | None = child_conn
+            args=(child_conn, child_output, opts.host, opts.use_upper_range_registers,
+                  opts.frequency_hz, opts.stale_after_s, opts.connect_timeout_s, last_seq))
+        self._child_conns: list[Connection] = [child_conn, child_output]
         self.messages: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue()
         self.exited: asyncio.Future[int] = asyncio.get_running_loop().create_future()
 
     def start(self) -> None:
         loop = asyncio.get_running_loop()
         self.process.start()
-        assert self._child_conn is not None
-        self._child_conn.close()
-        self._child_conn = None
+        for conn in self._child_conns:
+            conn.close()
+        self._child_conns = []
         loop.add_reader(self.conn.fileno(), self._on_readable)
         loop.add_reader(self.process.sentinel, self._on_exit)
+        loop.add_reader(self._output_r, self._on_output)
+
+    def _on_output(self) -> None:
+        try:
+            data = os.read(self._output_r, 65536)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:
+            self._close_output()
+        self.output.feed(data)
+
+    def _close_output(self) -> None:
+        if self._output_r >= 0:
+            asyncio.get_running_loop().remove_reader(self._output_r)
+            os.close(self._output_r)
+            self._output_r = -1
 
     def _on_readable(self) -> None:
         try:
@@ -144,8 +228,15 @@ class _Child:
         loop = asyncio.get_running_loop()
         loop.remove_reader(self.conn.fileno())
         self.conn.close()
-        if self._child_conn is not None:
-            self._child_conn.close()
+        for conn in self._child_conns:
+            conn.close()
+        self._child_conns = []
+        if self._output_r >= 0:  # the child is gone: log what it left
+            with contextlib.suppress(OSError):
+                while data := os.read(self._output_r, 65536):
+                    self.output.feed(data)
+            self.output.feed(b"")
+            self._close_output()
 
 
 def _describe_exit(code: int | None) -> str:
@@ -177,6 +268,8 @@ class URRtdeLink(RobotLink):
         self._warnings = 0
         self._pending: dict[int, asyncio.Future[None]] = {}
         self._ids = itertools.count(1)
+        self._refused: Counter[str] = Counter()
+        self._output = OutputLog(name)
 
     # -- RobotLink ----------------------------------------------------------------------------
 
@@ -208,6 +301,9 @@ class URRtdeLink(RobotLink):
 
     def health(self) -> LinkHealth:
         return self._health
+
+    def refusals(self) -> Mapping[str, int]:
+        return dict(self._refused)
 
     async def image_captured(self, seq: int, job_id: int) -> None:
         await self._request("captured", (seq, job_id))
@@ -295,7 +391,7 @@ class URRtdeLink(RobotLink):
         failures = 0
         ever_up = False
         while True:
-            child = _Child(self.options, self._last_seq)
+            child = _Child(self.options, self._last_seq, self._output)
             self._child = child
             try:
                 child.start()
@@ -337,6 +433,8 @@ class URRtdeLink(RobotLink):
             return False, f"{self._peer}: {_describe_exit(first[1])} during setup"
         if self._last_seq is None:
             self._last_seq = first[2]  # the baseline: later connects serve anything newer
+            if first[3]:
+                log.info("link %s: %s", self.name, first[3])
         was_down = self._health.state is LinkState.DOWN
         await self._set_health(LinkState.UP, "", reconnected=ever_up)
         if was_down:
@@ -350,7 +448,12 @@ class URRtdeLink(RobotLink):
         while True:
             msg = await child.next_message()
             if msg[0] == "trigger":
-                self._deliver(*msg[1:])
+                seq, command = msg[1], msg[2]
+                refusal = self.regs.refusal(command)
+                if refusal is None:
+                    self._deliver(*msg[1:])
+                elif not self._refuse(child, seq, command, refusal):
+                    return False, f"{self._peer}: the worker process pipe closed"
             elif msg[0] == "done":
                 fut = self._pending.get(msg[1])
                 if fut is not None and not fut.done():
@@ -359,6 +462,24 @@ class URRtdeLink(RobotLink):
                 return bool(msg[1]), str(msg[2])
             else:
                 return False, f"{self._peer}: {_describe_exit(msg[1])}"
+
+    def _refuse(self, child: _Child, seq: int, command: int, status: Status) -> bool:
+        """Answer request ``seq`` with ``status`` (no job, job id 0); False if the pipe broke.
+
+        Kept for the reconnect like any answer; a newer request replaces it."""
+        self._last_seq = seq
+        self._replay.clear()
+        args = (seq, int(status), 0, None, None)
+        self._replay["publish"] = ("publish", args)
+        self._refused[status.name] += 1
+        log.info("link %s: request %d refused: %s (command %d; the robot program may send %s)",
+                 self.name, seq, status.name, command,
+                 " or ".join(str(c) for c in sorted(self.regs.COMMANDS)))
+        try:
+            child.send((0, "publish", args))  # nobody waits: no "done" is expected
+        except OSError:
+            return False
+        return True
 
     def _deliver(self, seq: int, command: int, tcp_pose: list[float]) -> None:
         t_mono_ns = time.monotonic_ns()

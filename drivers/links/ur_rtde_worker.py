@@ -10,8 +10,17 @@ its sockets.
 Pipe messages, parent -> child: ``(req, "captured", (seq, job_id))``,
 ``(req, "publish", (seq, status, job_id, translation | None, rotation | None))``,
 ``(req, "warnings", (bits,))``, ``(0, "close", ())``. Child -> parent:
-``("up", peer, baseline_seq)``, ``("trigger", seq, command, tcp_pose)``, ``("done", req)``,
-``("error", fatal, message)`` (the child exits right after).
+``("up", peer, baseline_seq, note)``, ``("trigger", seq, command, tcp_pose)``,
+``("done", req)``, ``("error", fatal, message)`` (the child exits right after).
+
+The child's stdout and stderr (ur_rtde prints its errors there, e.g. ``RTDEReceiveInterface
+boost system Exception: (asio.misc:2) End of file``) are a pipe the parent reads and logs line by
+line through vgripd's logging.
+
+Pending request at the first connect: ur_rtde cannot read input registers, so the child asks the
+controller once over a raw RTDE connection for the robot's request sequence and vgripd's
+acknowledge register together (RTDE outputs may name input registers: "input read back"). A
+sequence that differs from the acknowledge is a request nobody answered yet: it is served.
 """
 
 from __future__ import annotations
@@ -85,6 +94,31 @@ def in_use_names(host: str, names: Sequence[str], timeout_s: float) -> list[str]
     return [n for n, t in zip(names, types, strict=False) if t == "IN_USE"]
 
 
+def read_pending(host: str, regs: URRegisterMap, timeout_s: float) -> tuple[int, int] | None:
+    """(robot's request sequence, vgripd's acknowledge) from one data package of a raw RTDE
+    connection; None when the controller does not offer input registers as outputs."""
+    names = f"output_int_register_{regs.seq},input_int_register_{regs.ack}".encode("ascii")
+    with socket.create_connection((host, RTDE_PORT), timeout=timeout_s) as sock:
+        sock.sendall(struct.pack(">HBH", 5, ord("V"), 2))
+        _recv_package(sock)
+        setup = struct.pack(">d", 125.0) + names
+        sock.sendall(struct.pack(">HB", 3 + len(setup), ord("O")) + setup)
+        letter, payload = _recv_package(sock)
+        while letter != "O":
+            letter, payload = _recv_package(sock)
+        if b"NOT_FOUND" in payload or not payload or payload[0] == 0:
+            return None
+        sock.sendall(struct.pack(">HB", 3, ord("S")))
+        while True:
+            letter, payload = _recv_package(sock)
+            if letter == "U" and len(payload) == 9:
+                seq, ack = struct.unpack(">ii", payload[1:])
+                break
+        with contextlib.suppress(OSError):
+            sock.sendall(struct.pack(">HB", 3, ord("P")))
+    return seq, ack
+
+
 def _connect(host: str, regs: URRegisterMap, frequency_hz: float,
              timeout_s: float) -> tuple[Any, Any]:
     import rtde_io
@@ -122,13 +156,36 @@ def _connect(host: str, regs: URRegisterMap, frequency_hz: float,
     return rcv, io
 
 
+def first_baseline(seq: int, pending: tuple[int, int] | None) -> tuple[int, str]:
+    """The sequence taken as already seen at the first connect, and a note for the log.
+
+    ``seq``: the robot's sequence now; ``pending``: (sequence, acknowledge) read together by
+    ``read_pending``. An unanswered request (sequence != acknowledge) is served: the baseline
+    is its acknowledge. An answered one is not run again. Without the acknowledge nothing
+    tells them apart, and the request is not served (the robot's retry asks again).
+    """
+    if pending is None:
+        note = "" if seq == 0 else (
+            f"cannot read the acknowledge register back (controller too old?): request {seq}, "
+            "if it is still pending, is left to the robot's retry")
+        return seq, note
+    req, ack = pending
+    if req != 0 and req != ack:
+        return ack, f"request {req} was pending at start (acknowledge {ack}): serving it"
+    return req, ""
+
+
 class _Session:
     def __init__(self, conn: Connection, rcv: Any, io: Any, regs: URRegisterMap,
-                 peer: str, last_seq: int | None, stale_after_s: float) -> None:
+                 peer: str, last_seq: int | None, stale_after_s: float,
+                 pending: tuple[int, int] | None = None) -> None:
         self.conn, self.rcv, self.io, self.regs, self.peer = conn, rcv, io, regs, peer
         self.stale_after_s = stale_after_s
-        # A request already pending at the first connect is older than this link: not served.
-        self.last_seq = self.snapshot()[1] if last_seq is None else last_seq
+        self.note = ""
+        if last_seq is None:  # first connect: serve a request nobody answered yet
+            self.last_seq, self.note = first_baseline(self.snapshot()[1], pending)
+        else:
+            self.last_seq = last_seq
         self.pending_rotation: tuple[int, Sequence[float]] | None = None
         self.last_ts = -1.0
         self.last_ts_change = time.monotonic()
@@ -215,16 +272,34 @@ class _Session:
             self.step()
 
 
-def main(conn: Connection, host: str, upper: bool, frequency_hz: float, stale_after_s: float,
-         probe_timeout_s: float, last_seq: int | None) -> None:
+def _redirect_output(output: Connection | None) -> None:
+    """Send this process's stdout and stderr (C++ and Python alike) into the parent's pipe."""
+    if output is None:
+        return
+    fd = output.fileno()
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    output.close()
+
+
+def main(conn: Connection, output: Connection | None, host: str, upper: bool,
+         frequency_hz: float, stale_after_s: float, probe_timeout_s: float,
+         last_seq: int | None) -> None:
     """Process entry point: connect, report ``up`` or ``error``, serve until closed or lost."""
+    _redirect_output(output)
     regs = URRegisterMap(upper)
     peer = f"{host}:{RTDE_PORT}"
     code = 0
     try:
         rcv, io = _connect(host, regs, frequency_hz, probe_timeout_s)
-        session = _Session(conn, rcv, io, regs, peer, last_seq, stale_after_s)
-        conn.send(("up", peer, session.last_seq))
+        pending = None
+        if last_seq is None:
+            try:
+                pending = read_pending(host, regs, min(probe_timeout_s, 2.0))
+            except (OSError, ConnectionError, struct.error):
+                pending = None
+        session = _Session(conn, rcv, io, regs, peer, last_seq, stale_after_s, pending)
+        conn.send(("up", peer, session.last_seq, session.note))
         session.run(1.0 / frequency_hz)
     except _Lost as err:
         with contextlib.suppress(OSError):

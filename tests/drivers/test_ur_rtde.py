@@ -78,10 +78,10 @@ async def test_trigger_pose_result_roundtrip() -> None:
         assert lnk.health().peer == "127.0.5.1:30004"
         log_start = len(robot.input_log())
 
-        trigger, result = await run_job(robot, lnk, triggers, job_id=17, command=3)
+        trigger, result = await run_job(robot, lnk, triggers, job_id=17, command=1)
 
         assert trigger.link == "ur"
-        assert trigger.command == 3
+        assert trigger.command == 1
         expected = np.eye(4)
         expected[:3, :3] = Rotation.from_rotvec(TCP[3:]).as_matrix()
         expected[:3, 3] = np.array(TCP[:3]) * 1000.0
@@ -170,19 +170,111 @@ async def test_upper_range_registers() -> None:
         assert robot.inputs("input_int_register_42")["input_int_register_42"] == trigger.seq
 
 
-async def test_pending_request_at_first_connect_is_not_served() -> None:
+async def test_pending_request_at_first_connect_is_served() -> None:
+    """A request the robot made before vgripd (re)started and nobody answered (its sequence
+    differs from the acknowledge register the controller kept) runs at the first connect."""
     with URController("127.0.5.5") as robot:
         robot.set_outputs(output_int_register_12=41, output_int_register_13=1)
+        robot.set_inputs(input_int_register_18=40)  # the last answer an earlier vgripd gave
         lnk = URRtdeLink("ur", URRtdeOptions(host=robot.host))
         triggers = Triggers()
         await lnk.open(triggers)
         try:
-            seq = robot.start_program(1)  # max(41, ack 0) + 1
+            trigger = await triggers.next()
+            assert (trigger.seq, trigger.command) == (41, 1)
+            await lnk.publish(41, ur_result(7))
+            assert robot.wait_input("input_int_register_18", 41)
+            seq = robot.start_program(1)  # max(41, ack 41) + 1
             assert seq == 42
             assert (await triggers.next()).seq == 42
             assert triggers.queue.empty()
         finally:
             await lnk.close()
+
+
+async def test_answered_request_is_not_run_again_after_a_restart() -> None:
+    """vgripd restarts after answering request 5: the robot's sequence equals the acknowledge,
+    so the new link instance does not run it again."""
+    with URController("127.0.5.6") as robot:
+        async with contextlib.AsyncExitStack() as stack:
+            first = URRtdeLink("ur", URRtdeOptions(host=robot.host))
+            triggers = Triggers()
+            await first.open(triggers)
+            stack.push_async_callback(first.close)
+            trigger, result = await run_job(robot, first, triggers, job_id=1)
+            assert result["offset"] == OFFSET
+        again = URRtdeLink("ur", URRtdeOptions(host=robot.host))
+        triggers = Triggers()
+        await again.open(triggers)
+        try:
+            with pytest.raises(TimeoutError):
+                await triggers.next(timeout_s=0.5)
+            seq = robot.start_program(1)
+            assert seq == trigger.seq + 1
+            assert (await triggers.next()).seq == seq
+        finally:
+            await again.close()
+
+
+@pytest.mark.parametrize("command", [7, 0, -1])
+async def test_unknown_command_is_bad_request_without_a_job(command: int) -> None:
+    async with connected(f"127.0.5.{22 + command}") as (robot, lnk, triggers):
+        seq = robot.start_program(command, taught_pose=TAUGHT)
+        result = await asyncio.to_thread(robot.program_result, seq)  # the link answers meanwhile
+        assert result["error"] is None
+        assert (result["status"], result["job_id"], result["offset"]) == (
+            int(Status.BAD_REQUEST), 0, None) == (32, 0, None)
+        assert triggers.queue.empty()  # no job for the daemon
+        assert lnk.refusals() == {"BAD_REQUEST": 1}
+        # A good request afterwards runs normally.
+        trigger, result = await run_job(robot, lnk, triggers, job_id=3)
+        assert trigger.seq == seq + 1
+        assert result["offset"] == OFFSET
+
+
+async def test_busy_answer_is_asked_again_after_a_pause() -> None:
+    """The robot program's BUSY handling: it waits and asks again with a new sequence."""
+    async with connected("127.0.5.24") as (robot, lnk, triggers):
+        first = robot.start_program(1, taught_pose=TAUGHT, busy_wait_s=0.05)
+        await triggers.next()
+        await lnk.publish(first, JobResult(0, Status.BUSY, message="refused: BUSY"))
+        again = await triggers.next()
+        assert again.seq == first + 1
+        await lnk.image_captured(again.seq, 5)
+        await lnk.publish(again.seq, ur_result(5))
+        result = robot.program_result(first)
+        assert result["error"] is None
+        assert (result["status"], result["busy"], result["requests"]) == (1, 1, [first, first + 1])
+        assert result["offset"] == OFFSET
+
+
+async def test_unanswered_request_is_asked_again_then_given_up() -> None:
+    async with connected("127.0.5.25") as (robot, lnk, triggers):
+        first = robot.start_program(1, timeout_s=0.3)
+        assert (await triggers.next()).seq == first  # never answered
+        second = await triggers.next()
+        assert second.seq == first + 1
+        await lnk.publish(second.seq, ur_result(6))
+        result = robot.program_result(first)
+        assert (result["status"], result["unanswered"], result["seq"]) == (1, 1, second.seq)
+
+        gave_up = robot.start_program(1, timeout_s=0.2, attempts=2)
+        result = robot.program_result(gave_up)
+        assert result["requests"] == [gave_up, gave_up + 1]
+        assert result["error"] == (f"no answer to 2 requests (popup, halt): timeout waiting for "
+                                   f"input_int_register_18 == {gave_up + 1}")
+
+
+async def test_worker_output_goes_through_the_log(caplog: pytest.LogCaptureFixture) -> None:
+    """ur_rtde prints its own errors on the child's stderr; they arrive as log records."""
+    caplog.set_level(logging.INFO, "vgripd.link.ur_rtde")
+    async with connected("127.0.5.26", **FAST) as (robot, lnk, triggers):
+        robot.drop()  # ur_rtde's receive thread prints "... End of file"
+        await lnk.wait_state(LinkState.DOWN, timeout_s=10)
+        await lnk.wait_state(LinkState.UP, timeout_s=15)
+    lines = [r.getMessage() for r in caplog.records if "ur_rtde: " in r.getMessage()]
+    assert any("End of file" in line for line in lines), lines
+    assert all(line.startswith("link ur: ur_rtde: ") and "\n" not in line for line in lines)
 
 
 # --- faults: drop mid-job, refuse, silent, IN_USE, stream pause ------------------------------
@@ -246,10 +338,10 @@ async def test_trigger_while_down_is_served_at_reconnect() -> None:
     async with connected("127.0.5.12", **FAST) as (robot, link, triggers):
         robot.drop(refuse=True)
         await link.wait_state(LinkState.DOWN, timeout_s=10)
-        seq = robot.start_program(2)
+        seq = robot.start_program(1)
         robot.listen()
         trigger = await triggers.next(timeout_s=10)
-        assert (trigger.seq, trigger.command) == (seq, 2)
+        assert (trigger.seq, trigger.command) == (seq, 1)
         await link.publish(seq, ur_result(9))
         assert robot.program_result(seq)["offset"] == OFFSET
 

@@ -603,6 +603,15 @@ class URRegisterMap:
 
     upper: bool = False
 
+    #: Commands the robot program may write to ``command``: 1 = locate (run a job). Any other
+    #: value (0, negative, unknown) is answered ``BAD_REQUEST`` without a job, as the Modbus
+    #: handshake answers an unknown CMD.
+    COMMANDS: ClassVar[frozenset[int]] = frozenset({1})
+
+    def refusal(self, command: int) -> Status | None:
+        """The status a request with ``command`` is refused with; None when it runs a job."""
+        return None if command in self.COMMANDS else Status.BAD_REQUEST
+
     def _n(self, n: int) -> int:
         return n + 24 if self.upper else n
 

@@ -11,9 +11,13 @@ in-process handle: it spawns the server process and drives it over a pipe (set o
 inputs the client wrote, run the simulated robot program, switch faults on and off).
 
 The simulated robot program (``start_program`` / ``program_result``) is the Python twin of
-``robots/urscript/vgripd.script``; the register map is in ``docs/ur_rtde.md``. Both take their
-register
-numbers from ``vgripd.service.protocol.URRegisterMap``.
+``robots/urscript/vgripd.script``, including what it does when vgripd does not answer (asks
+again, ``attempts`` requests in all, then gives up as the script's popup does) and when vgripd
+answers BUSY (waits ``busy_wait_s`` and asks again); the register map is in ``docs/ur_rtde.md``.
+Both take their register numbers from ``vgripd.service.protocol.URRegisterMap``.
+
+Input registers can also be named in an output recipe (the controller's "input read back"), as
+on a real controller; ``set_inputs`` presets them (values left by an earlier client).
 
 Faults for tests: ``set_silent`` (accept connections, answer nothing), ``drop`` (close every
 connection, optionally stop listening so connects are refused), ``set_in_use`` (input names owned
@@ -25,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import math
 import multiprocessing
 import struct
 import time
@@ -106,6 +111,9 @@ for _i in range(48):
     OUTPUT_TYPES[f"output_double_register_{_i}"] = "DOUBLE"
     INPUT_TYPES[f"input_int_register_{_i}"] = "INT32"
     INPUT_TYPES[f"input_double_register_{_i}"] = "DOUBLE"
+#: Input registers an output recipe may name (the RTDE guide's "input read back").
+READ_BACK_TYPES: dict[str, str] = {
+    name: kind for name, kind in INPUT_TYPES.items() if name.startswith("input_")}
 
 
 def frame(letter: str, payload: bytes = b"") -> bytes:
@@ -150,6 +158,10 @@ def default_value(kind: str) -> Any:
 #: Status codes under which the robot program reads a pose.
 POSE_VALID_STATUS = tuple(int(s) for s in Status if s.pose_valid)
 SEQ_MAX = 2**31 - 1
+#: The script's VGRIPD_ATTEMPTS and VGRIPD_BUSY_WAIT_S (a unit test keeps them equal).
+ATTEMPTS = 3
+BUSY_WAIT_S = 0.25
+NO_ANSWER = -1  # vgripd_request()'s "no answer within timeout_s"
 
 
 def pose_trans(p_from: Sequence[float], p_from_to: Sequence[float]) -> tuple[float, ...]:
@@ -231,7 +243,7 @@ class _Server:
         elif letter == "O":
             (s.frequency_hz,) = struct.unpack(">d", payload[:8])
             names = split_names(payload[8:])
-            types = [OUTPUT_TYPES.get(n, "NOT_FOUND") for n in names]
+            types = [OUTPUT_TYPES.get(n, READ_BACK_TYPES.get(n, "NOT_FOUND")) for n in names]
             ok = "NOT_FOUND" not in types and bool(names) and s.frequency_hz > 0
             s.output_names, s.output_types = (names, types) if ok else ([], [])
             w.write(frame("O", bytes([1 if ok else 0]) + ",".join(types).encode()))
@@ -276,6 +288,8 @@ class _Server:
     def output_value(self, name: str, kind: str) -> Any:
         if name == "timestamp":
             return time.monotonic() - self.t0
+        if name in READ_BACK_TYPES:
+            return self.inputs.get(name, default_value(kind))
         return self.outputs.get(name, default_value(kind))
 
     async def stream(self, s: _Session) -> None:
@@ -316,50 +330,86 @@ class _Server:
                 await asyncio.wait_for(self.changed.wait(), remaining)
         return True
 
-    async def program(self, seq: int, regs: URRegisterMap, timeout_s: float,
-                      taught_pose: Sequence[float] | None, t_start: float) -> dict[str, Any]:
-        def in_int(n: int) -> int:
-            return int(self.inputs.get(f"input_int_register_{n}", 0))
-
-        def in_page() -> list[float]:
-            return [float(self.inputs.get(f"input_double_register_{n}", 0.0)) for n in regs.page]
-
-        deadline = t_start + timeout_s
-        result: dict[str, Any] = {"seq": seq, "error": None, "offset": None, "target": None}
-        ack_name = f"input_int_register_{regs.ack}"
-        if not await self.wait_input(ack_name, seq, deadline):
-            result["error"] = f"timeout waiting for {ack_name} == {seq}"
-            return result
-        result["ack_log_index"] = len(self.input_log) - 1
-        result.update(status=in_int(regs.status), job_id=in_int(regs.job_id),
-                      captured=in_int(regs.captured), elapsed_s=time.monotonic() - t_start)
-        if result["status"] not in POSE_VALID_STATUS:
-            return result
-        translation = in_page()
-        self.outputs[f"output_int_register_{regs.page_request}"] = seq
-        page_ack_name = f"input_int_register_{regs.page_ack}"
-        if not await self.wait_input(page_ack_name, seq, deadline):
-            result["error"] = f"timeout waiting for {page_ack_name} == {seq}"
-            return result
-        result["offset"] = (*translation, *in_page())
-        result["elapsed_s"] = time.monotonic() - t_start
-        if taught_pose is not None:
-            # vgripd's offset is T_base_obj @ inv(T_base_obj_ref), in the base frame: it is
-            # applied on the left of the taught grip pose.
-            result["target"] = pose_trans(result["offset"], taught_pose)
-        return result
-
-    def start_program(self, command: int, timeout_s: float, upper: bool,
-                      taught_pose: Sequence[float] | None) -> int:
-        regs = URRegisterMap(upper)
+    def trigger(self, command: int, regs: URRegisterMap) -> int:
+        """A new request as the script's ``vgripd_request`` makes it; returns its sequence."""
         previous = max(int(self.outputs.get(f"output_int_register_{regs.seq}", 0)),
                        int(self.inputs.get(f"input_int_register_{regs.ack}", 0)))
         seq = previous + 1 if previous < SEQ_MAX else 1
         # Command and seq change in the same data package; the seq is the trigger.
         self.outputs[f"output_int_register_{regs.command}"] = command
         self.outputs[f"output_int_register_{regs.seq}"] = seq
-        self.programs[seq] = self.spawn(self.program(seq, regs, timeout_s, taught_pose,
-                                                     time.monotonic()))
+        return seq
+
+    async def request(self, seq: int, regs: URRegisterMap, timeout_s: float,
+                      result: dict[str, Any]) -> int:
+        """``vgripd_request`` after its trigger: the status, or ``NO_ANSWER`` (``error`` says
+        which wait ran out). Fills ``result`` with what the robot read."""
+        def in_int(n: int) -> int:
+            return int(self.inputs.get(f"input_int_register_{n}", 0))
+
+        def in_page() -> list[float]:
+            return [float(self.inputs.get(f"input_double_register_{n}", 0.0)) for n in regs.page]
+
+        deadline = time.monotonic() + timeout_s
+        ack_name = f"input_int_register_{regs.ack}"
+        if not await self.wait_input(ack_name, seq, deadline):
+            result["error"] = f"timeout waiting for {ack_name} == {seq}"
+            return NO_ANSWER
+        result["ack_log_index"] = len(self.input_log) - 1
+        status = in_int(regs.status)
+        result.update(status=status, job_id=in_int(regs.job_id), captured=in_int(regs.captured))
+        if status not in POSE_VALID_STATUS:
+            return status
+        translation = in_page()
+        self.outputs[f"output_int_register_{regs.page_request}"] = seq
+        page_ack_name = f"input_int_register_{regs.page_ack}"
+        if not await self.wait_input(page_ack_name, seq, deadline):
+            result["error"] = f"timeout waiting for {page_ack_name} == {seq}"
+            return NO_ANSWER
+        result["offset"] = (*translation, *in_page())
+        return status
+
+    async def program(self, command: int, seq: int, regs: URRegisterMap, timeout_s: float,
+                      taught_pose: Sequence[float] | None, t_start: float, attempts: int,
+                      busy_wait_s: float) -> dict[str, Any]:
+        """``vgripd_locate``: ask until answered (``attempts`` requests without an answer, then
+        give up: the script's popup and halt), waiting ``busy_wait_s`` after each BUSY (at most
+        ``ceil(timeout_s / busy_wait_s)`` times, then BUSY is the answer)."""
+        result: dict[str, Any] = {"seq": seq, "error": None, "offset": None, "target": None,
+                                  "requests": [seq], "unanswered": 0, "busy": 0}
+        busy_max = math.ceil(timeout_s / busy_wait_s)
+        while True:
+            result.update(error=None, offset=None, status=None)
+            status = await self.request(seq, regs, timeout_s, result)
+            if status == NO_ANSWER:
+                result["unanswered"] += 1
+                if result["unanswered"] >= attempts:
+                    result["error"] = (f"no answer to {attempts} requests (popup, halt): "
+                                       f"{result['error']}")
+                    result["elapsed_s"] = time.monotonic() - t_start
+                    return result
+            elif status == Status.BUSY and result["busy"] < busy_max:
+                result["busy"] += 1
+                await asyncio.sleep(busy_wait_s)
+            else:
+                break
+            seq = self.trigger(command, regs)
+            result["seq"] = seq
+            result["requests"].append(seq)
+        result["elapsed_s"] = time.monotonic() - t_start
+        if taught_pose is not None and result["offset"] is not None:
+            # vgripd's offset is T_base_obj @ inv(T_base_obj_ref), in the base frame: it is
+            # applied on the left of the taught grip pose.
+            result["target"] = pose_trans(result["offset"], taught_pose)
+        return result
+
+    def start_program(self, command: int, timeout_s: float, upper: bool,
+                      taught_pose: Sequence[float] | None, attempts: int = ATTEMPTS,
+                      busy_wait_s: float = BUSY_WAIT_S) -> int:
+        regs = URRegisterMap(upper)
+        seq = self.trigger(command, regs)
+        self.programs[seq] = self.spawn(self.program(command, seq, regs, timeout_s, taught_pose,
+                                                     time.monotonic(), attempts, busy_wait_s))
         return seq
 
     # ---- pipe commands from the handle
@@ -384,6 +434,16 @@ class _Server:
         if unknown:
             raise KeyError(f"unknown RTDE output name(s) {unknown}")
         self.outputs.update(values)
+
+    async def cmd_set_inputs(self, values: dict[str, Any]) -> None:
+        unknown = sorted(set(values) - set(INPUT_TYPES))
+        if unknown:
+            raise KeyError(f"unknown RTDE input name(s) {unknown}")
+        self.inputs.update(values)
+        self.notify()
+
+    async def cmd_wait_input(self, name: str, value: Any, timeout_s: float) -> bool:
+        return await self.wait_input(name, value, time.monotonic() + timeout_s)
 
     async def cmd_inputs(self, names: Sequence[str]) -> dict[str, Any]:
         return {n: self.inputs.get(n, default_value(INPUT_TYPES.get(n, "INT32"))) for n in names}
@@ -417,8 +477,9 @@ class _Server:
                  "sent": s.sent} for s in self.sessions]
 
     async def cmd_start_program(self, command: int, timeout_s: float, upper: bool,
-                                taught_pose: Sequence[float] | None) -> int:
-        return self.start_program(command, timeout_s, upper, taught_pose)
+                                taught_pose: Sequence[float] | None, attempts: int,
+                                busy_wait_s: float) -> int:
+        return self.start_program(command, timeout_s, upper, taught_pose, attempts, busy_wait_s)
 
     async def cmd_program_result(self, seq: int) -> dict[str, Any]:
         task = self.programs.pop(seq)
@@ -544,10 +605,21 @@ class URController:
             raise ValueError(f"TCP pose needs 6 finite numbers, got {list(pose)}")
         self._call("set_outputs", {"actual_TCP_pose": values})
 
+    def set_inputs(self, **values: Any) -> None:
+        """Preset input registers by RTDE name, as an earlier client (a vgripd that ran
+        before) left them; the controller keeps them across connections."""
+        self._call("set_inputs", values)
+
     def inputs(self, *names: str) -> dict[str, Any]:
         """Current values of input names as the client last wrote them (type default if never)."""
         result: dict[str, Any] = self._call("inputs", names)
         return result
+
+    def wait_input(self, name: str, value: Any, timeout_s: float = 5.0) -> bool:
+        """Wait until a client has written ``value`` to input ``name``; False after
+        ``timeout_s``."""
+        ok: bool = self._call("wait_input", name, value, timeout_s, timeout_s=timeout_s + 5.0)
+        return ok
 
     def input_log(self, start: int = 0) -> list[tuple[str, Any]]:
         """Every input value written by clients, in arrival order, from index ``start``."""
@@ -561,17 +633,22 @@ class URController:
 
     # ---- simulated robot program
     def start_program(self, command: int = 1, *, timeout_s: float = 10.0, upper: bool = False,
-                      taught_pose: Sequence[float] | None = None) -> int:
-        """Trigger a job the way robots/urscript/vgripd.script does; returns its sequence number."""
+                      taught_pose: Sequence[float] | None = None, attempts: int = ATTEMPTS,
+                      busy_wait_s: float = BUSY_WAIT_S) -> int:
+        """Run ``vgripd_locate(command, timeout_s)`` the way robots/urscript/vgripd.script does;
+        returns the sequence of its first request (the key for ``program_result``)."""
         seq: int = self._call("start_program", command, timeout_s, upper,
-                              None if taught_pose is None else tuple(taught_pose))
+                              None if taught_pose is None else tuple(taught_pose), attempts,
+                              busy_wait_s)
         return seq
 
     def program_result(self, seq: int, timeout_s: float = 15.0) -> dict[str, Any]:
-        """Wait for the program of ``seq``: ``status``, ``job_id``, ``captured``, ``offset``
-        (UR pose read from the registers), ``target`` (``pose_trans(offset, taught)``),
-        ``ack_log_index`` (index in ``input_log`` of the ack write), ``elapsed_s`` (trigger
-        to the last value read, on the mock's clock) or ``error``."""
+        """Wait for the program started as ``seq``: ``status``, ``job_id``, ``captured``,
+        ``offset`` (UR pose read from the registers), ``target`` (``pose_trans(offset,
+        taught)``), ``seq`` (the request that was answered), ``requests`` (every sequence
+        sent), ``unanswered`` / ``busy`` (requests that timed out / were answered BUSY),
+        ``ack_log_index`` (index in ``input_log`` of the last ack write), ``elapsed_s``
+        (first trigger to the last value read, on the mock's clock) or ``error`` (given up)."""
         result: dict[str, Any] = self._call("program_result", seq, timeout_s=timeout_s)
         return result
 

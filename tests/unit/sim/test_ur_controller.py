@@ -139,8 +139,39 @@ def test_in_use_by_fieldbus_and_by_another_client(robot: URController, client: s
 
 
 def test_program_times_out_naming_the_register(robot: URController) -> None:
-    seq = robot.start_program(1, timeout_s=0.2, upper=True)
-    assert robot.program_result(seq)["error"] == f"timeout waiting for input_int_register_42 == {seq}"
+    seq = robot.start_program(1, timeout_s=0.2, upper=True, attempts=1)
+    result = robot.program_result(seq)
+    assert result["error"] == ("no answer to 1 requests (popup, halt): "
+                               f"timeout waiting for input_int_register_42 == {seq}")
+    assert (result["requests"], result["status"]) == ([seq], None)
+
+
+def test_program_asks_again_with_a_new_sequence_each_time(robot: URController) -> None:
+    seq = robot.start_program(1, timeout_s=0.1, attempts=3)
+    result = robot.program_result(seq)
+    assert result["requests"] == [seq, seq + 1, seq + 2]
+    assert result["unanswered"] == 3
+    assert result["error"].endswith(f"input_int_register_18 == {seq + 2}")
+
+
+def test_input_registers_read_back_in_an_output_recipe(robot: URController,
+                                                       client: socket.socket) -> None:
+    """A real controller offers input registers as outputs ("input read back"): the link reads
+    vgripd's own acknowledge register that way at the first connect."""
+    robot.set_inputs(input_int_register_18=77)
+    robot.set_outputs(output_int_register_12=78)
+    send(client, "O", struct.pack(">d", 125.0) + b"output_int_register_12,input_int_register_18,")
+    assert recv(client) == ("O", b"\x01INT32,INT32")
+    send(client, "S")
+    assert recv(client) == ("S", b"\x01")
+    letter, payload = recv(client)
+    assert (letter, struct.unpack(">Bii", payload)) == ("U", (1, 78, 77))
+    send(client, "P")
+    while (reply := recv(client))[0] == "U":
+        pass
+    assert reply == ("P", b"\x01")
+    robot.set_inputs(input_int_register_18=0)
+    robot.set_outputs(output_int_register_12=0)
 
 
 def test_handle_rejects_unknown_output(robot: URController) -> None:
@@ -162,6 +193,27 @@ def test_pose_trans_matches_scipy() -> None:
         np.testing.assert_allclose(got[:3], a[:3] + Ra.apply(b[:3]), atol=1e-12)
         R = (Ra * Rb).as_matrix()
         np.testing.assert_allclose(Rotation.from_rotvec(got[3:]).as_matrix(), R, atol=1e-12)
+
+
+def _script_code() -> str:
+    text = (Path(__file__).resolve().parents[3] / "robots" / "urscript" / "vgripd.script").read_text()
+    return "\n".join(line.split("#", 1)[0] for line in text.splitlines())
+
+
+def test_script_and_twin_retry_alike() -> None:
+    """The script's retry constants and codes are the twin's (vgripd/sim/ur_controller.py)."""
+    from vgripd.sim import ur_controller as twin
+    from vgripd.types import Status
+
+    code = _script_code()
+    assert f"global VGRIPD_ATTEMPTS = {twin.ATTEMPTS}" in code
+    assert f"global VGRIPD_BUSY_WAIT_S = {twin.BUSY_WAIT_S}" in code
+    assert f"vgripd_status == {int(Status.BUSY)} and busy < busy_max" in code
+    assert "busy_max = ceil(timeout_s / VGRIPD_BUSY_WAIT_S)" in code
+    assert f"return {twin.NO_ANSWER}" in code
+    assert f"vgripd_status == {twin.NO_ANSWER}" in code
+    assert "popup(" in code
+    assert "halt" in code
 
 
 def test_urscript_uses_the_register_map() -> None:
