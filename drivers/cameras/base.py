@@ -7,6 +7,12 @@ single-thread executor: the event loop keeps serving the robot link while a fram
 SDK handles that are not thread-safe are only ever touched from that one thread.
 Every failure a driver expects (timeout, missing file, corrupt image, device gone) is a
 ``CameraError`` naming the file or device.
+
+A device call that never returns (a hung SDK) cannot be interrupted from Python. The executor's
+thread is therefore a daemon thread (``DriverThread``): ``grab`` times out, ``stuck_s()`` says
+how long the call has been running, and ``close()`` abandons a stuck thread instead of queueing
+the close behind it (the daemon then opens the camera again on a fresh thread: docs/cameras.md,
+"A camera that hangs"). An abandoned thread never keeps the process from exiting.
 """
 
 from __future__ import annotations
@@ -14,6 +20,9 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import queue
+import threading
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
@@ -25,6 +34,62 @@ from vgripd.errors import CameraError
 from vgripd.types import ImagePair
 
 R = TypeVar("R")
+
+
+class DriverThread:
+    """A single-thread executor on a daemon thread: calls run one at a time, in order.
+
+    Unlike ``ThreadPoolExecutor`` (whose threads the interpreter joins at exit), a thread stuck
+    in a device call forever does not keep the process alive; ``shutdown(wait=False)`` leaves it
+    behind. ``running_since`` is the monotonic time the current call started (None when idle).
+    """
+
+    def __init__(self, name: str) -> None:
+        self._calls: queue.SimpleQueue[tuple[concurrent.futures.Future[Any], Callable[..., Any],
+                                             tuple[Any, ...]] | None] = queue.SimpleQueue()
+        self.running_since: float | None = None
+        self._shut = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    @property
+    def name(self) -> str:
+        return self._thread.name
+
+    def submit(self, fn: Callable[..., R], *args: Any) -> concurrent.futures.Future[R]:
+        if self._shut:
+            raise RuntimeError(f"{self.name}: shut down")
+        future: concurrent.futures.Future[R] = concurrent.futures.Future()
+        self._calls.put((future, fn, args))
+        return future
+
+    def _run(self) -> None:
+        while (item := self._calls.get()) is not None:
+            future, fn, args = item
+            if not future.set_running_or_notify_cancel():
+                continue
+            self.running_since = time.monotonic()
+            try:
+                result = fn(*args)
+            except BaseException as err:
+                future.set_exception(err)
+            else:
+                future.set_result(result)
+            finally:
+                self.running_since = None
+
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        """No more calls; pending ones are cancelled with ``cancel_futures``; ``wait`` joins."""
+        self._shut = True
+        if cancel_futures:
+            with contextlib.suppress(queue.Empty):
+                while True:
+                    item = self._calls.get_nowait()
+                    if item is not None:
+                        item[0].cancel()
+        self._calls.put(None)
+        if wait:
+            self._thread.join()
 
 
 class DriverOptions(BaseModel):
@@ -47,16 +112,14 @@ class CameraDriver(ABC):
     def __init__(self, options: Any, config: Config) -> None:
         self.options = options
         self.config = config
-        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
+        self._executor: DriverThread | None = None
 
     # ---------------------------------------------------------------- async API
     async def open(self) -> None:
         """Connect to the device or index the files; raises ``CameraError`` naming them."""
         if self._executor is not None:
             raise CameraError(f"{self.type_name}: camera is already open")
-        self._executor = concurrent.futures.ThreadPoolExecutor(
-            1, thread_name_prefix=f"camera-{self.type_name}"
-        )
+        self._executor = DriverThread(f"camera-{self.type_name}")
         try:
             await self._run(self._open_blocking)
         except BaseException:
@@ -74,15 +137,28 @@ class CameraDriver(ABC):
                 f"{self.type_name}: no image from {self.describe()} within {timeout_s:g} s"
             ) from None
 
+    def stuck_s(self) -> float:
+        """How long the executor's current call has been running (s); 0 when it is idle.
+
+        After a ``grab`` timed out, a value that keeps growing means the device call hangs."""
+        since = self._executor.running_since if self._executor is not None else None
+        return 0.0 if since is None else time.monotonic() - since
+
     async def close(self) -> None:
-        """Release the device and stop the executor thread; safe to call more than once."""
+        """Release the device and stop the executor thread; safe to call more than once.
+
+        A thread stuck in a device call is abandoned (the close could only queue behind it):
+        the device is then released when the process exits."""
         executor, self._executor = self._executor, None
         if executor is None:
             return
+        if executor.running_since is not None:
+            executor.shutdown(wait=False, cancel_futures=True)
+            return
+        future = asyncio.wrap_future(executor.submit(self._close_blocking))
         try:
-            future = asyncio.wrap_future(executor.submit(self._close_blocking))
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(future, 5.0)
+                await asyncio.wait_for(asyncio.shield(future), 5.0)
         finally:
             # No work is pending any more (unless a device hangs), so the join is immediate.
             executor.shutdown(wait=future.done(), cancel_futures=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -61,4 +62,34 @@ async def test_misuse() -> None:
         with pytest.raises(CameraError, match="timeout must be > 0"):
             await camera.grab(0)
     finally:
+        await camera.close()
+
+
+async def test_a_hung_call_is_abandoned_by_close_and_open_starts_a_fresh_thread() -> None:
+    """A device call that never returns: ``stuck_s`` shows it, ``close`` does not queue behind
+    it (it would wait for ever), the stuck thread is a daemon thread (it cannot keep the process
+    alive), and ``open`` again serves on a new thread."""
+    camera = GatedCamera()
+    await camera.open()
+    try:
+        assert camera.stuck_s() == 0.0
+        with pytest.raises(CameraError, match="within 0.05 s"):
+            await camera.grab(0.05)
+        assert camera.stuck_s() > 0.0
+        stuck = next(t for t in threading.enumerate() if t.name in camera.grab_threads)
+        assert stuck.daemon
+        t0 = time.monotonic()
+        await camera.close()
+        assert time.monotonic() - t0 < 1.0
+        assert camera.closed_on is None  # the close was not queued behind the hung grab
+        assert camera.stuck_s() == 0.0
+
+        await camera.open()
+        camera.gate.set()
+        pair = await camera.grab(5.0)
+        assert pair.left.shape == (2, 2)
+        stuck.join(5.0)  # released, the abandoned thread finishes its call and ends
+        assert not stuck.is_alive()
+    finally:
+        camera.gate.set()
         await camera.close()

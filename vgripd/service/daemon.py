@@ -31,6 +31,12 @@ Life of a job (``JobState``)::
   WARNINGS register, UR input_double_register 21). The chapter's sign that the rig has moved.
   The job that changes it is counted before it is published, so the triggering link's warning
   bits are in place before its acknowledge.
+- Start-up opens the camera and every link at once (a silent controller delays no other link
+  and not the status endpoint); a link that cannot start is shown FAILED while the others
+  serve. READY=1 follows the first outcome of each.
+- A grab that runs out of time and still hangs in the driver is abandoned and the camera opened
+  again; if that fails or hangs too, ``camera_fault`` says why and the watchdog stops pinging
+  (``health_problem``), so systemd restarts the service.
 - Shutdown (SIGTERM/SIGINT) aborts the job in flight (unless it is already publishing), so the
   PLC gets ``ABORTED`` for its trigger at once instead of waiting; the links stay up for
   ``ABORT_LINGER_S`` so a polling PLC can read it, then links, the camera, the recorder and the
@@ -58,7 +64,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from vgripd.config import Config
-from vgripd.errors import CameraError, NotCalibratedError
+from vgripd.errors import CameraError, LinkError, NotCalibratedError
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
 from vgripd.service.protocol import RobotLink, Trigger, Warnings
 from vgripd.service.recorder import Recorder
@@ -77,6 +83,12 @@ ABORT_LINGER_S = 1.0
 # The watchdog stops pinging when a job runs this long past its timeout: the timeout should
 # have ended it, so the job machinery is wedged and systemd should restart the service.
 WATCHDOG_GRACE_S = 5.0
+# Opening the camera longer than this is a hang (the daemon's ``camera_open_timeout_s``).
+CAMERA_OPEN_TIMEOUT_S = 30.0
+# Closing a camera that hung (its driver abandons a stuck thread; the worker's close is bounded).
+CAMERA_CLOSE_TIMEOUT_S = 10.0
+# A grab that ran out of time and is still running this much later is hung, not just late.
+CAMERA_HUNG_GRACE_S = 1.0
 
 
 class JobState(enum.Enum):
@@ -245,6 +257,14 @@ class Daemon:
         self._job: tuple[int, Trigger, asyncio.Task[None]] | None = None
         self._job_started_ns = 0
         self._camera_open = False
+        self._camera_lock = asyncio.Lock()  # one open/close of the camera at a time
+        self._camera_error = ""  # why the last open failed
+        self._camera_recovery: asyncio.Task[None] | None = None
+        #: Why the camera cannot be used any more (a grab hung and opening it again failed or
+        #: hung too): the watchdog stops pinging, so systemd restarts the service.
+        self.camera_fault = ""
+        self.camera_open_timeout_s = CAMERA_OPEN_TIMEOUT_S
+        self._opening: list[asyncio.Task[Any]] = []  # start(): camera and links, concurrently
         self._executor: ThreadPoolExecutor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_thread = 0
@@ -276,17 +296,15 @@ class Daemon:
                     self.config.model_dump(mode="json", exclude_none=True))
                 self.recorder.start()
                 log.info("recording jobs to %s (max %.0f MB)", rec.folder, rec.max_mb)
-            await self._open_camera()
-            for name, link in self.links.items():
-                await link.open(self._on_trigger)
-                log.info("link %s open", name)
+            interval_s = watchdog_interval_s(self._env)
+            if interval_s is not None:  # pinged during a long start-up too
+                self._spawn(self._watchdog(interval_s / 2))
+            self._begin_opening()  # camera and links at once; the status endpoint meanwhile
             st = self.config.status
             if st.enabled:
                 self.status_server = StatusServer(st.host, st.port, self.snapshot)
                 await self.status_server.start()
-            interval_s = watchdog_interval_s(self._env)
-            if interval_s is not None:
-                self._spawn(self._watchdog(interval_s / 2))
+            await self._opened()
         except BaseException:
             await self._shutdown()
             raise
@@ -315,6 +333,10 @@ class Daemon:
         await self._shutdown()
 
     async def _shutdown(self) -> None:
+        opening, self._opening = self._opening, []  # start-up failed half way
+        for task in opening:
+            task.cancel()
+        await asyncio.gather(*opening, return_exceptions=True)
         if self._job is not None:
             task = self._job[2]
             aborting = self.state is not JobState.PUBLISHING
@@ -404,22 +426,130 @@ class Daemon:
         self._job = (job_id, trigger, asyncio.create_task(self._run_job(trigger, job_id)))
         self._set_state(JobState.TRIGGERED)
 
-    async def _open_camera(self) -> None:
+    def _begin_opening(self) -> None:
+        """Open the camera and every link at once (tasks; ``_opened`` waits for them), so a
+        silent controller or a slow camera delays nothing else: a PLC link serves at once."""
+        self._opening = [asyncio.create_task(self._open_link(name, link),
+                                             name=f"vgripd-open-link-{name}")
+                         for name, link in self.links.items()]
+        self._opening.append(asyncio.create_task(self._open_camera(), name="vgripd-open-camera"))
+
+    async def _opened(self) -> None:
+        """Wait until the camera and every link have reported their first outcome. A link that
+        cannot start is logged and shown FAILED while the others serve; ``LinkError`` only
+        when no link could start."""
+        results = await asyncio.gather(*self._opening)
+        self._opening = []
+        failed = [r for r in results if isinstance(r, str)]
+        if self.links and len(failed) == len(self.links):
+            raise LinkError(failed[0] if len(failed) == 1 else
+                            "no link could start: " + "; ".join(failed))
+        for why in failed:
+            log.error("%s; the other links serve without it", why)
+
+    async def _open_link(self, name: str, link: RobotLink) -> str | None:
+        """``link.open``; the error text when it cannot start (the link is FAILED)."""
         try:
-            await self.camera.open()
+            await link.open(self._on_trigger)
+        except LinkError as err:
+            return str(err)
+        log.info("link %s open (%s)", name, link.health().state.value)
+        return None
+
+    async def _open_camera(self, fault_on_hang: bool = True) -> None:
+        """Open the camera unless it is open; one open at a time. A camera that cannot open is
+        not fatal (the next job tries again and answers CAMERA_ERROR meanwhile); one whose
+        open hangs longer than ``camera_open_timeout_s`` is a camera fault (``fault_on_hang``;
+        otherwise the caller judges it by ``_camera_error``)."""
+        async with self._camera_lock:
+            if self._camera_open:
+                return
+            kind = self._camera_name()
+            try:
+                async with asyncio.timeout(self.camera_open_timeout_s):
+                    await self.camera.open()
+            except TimeoutError:
+                self._camera_error = (f"opening it hung for more than "
+                                      f"{self.camera_open_timeout_s:g} s")
+                if fault_on_hang:
+                    self._set_camera_fault(f"camera {kind}: {self._camera_error}")
+                return
+            except CameraError as err:
+                self._camera_error = str(err)
+                log.error("camera %s cannot open: %s", kind, err)
+                return
             self._camera_open = True
-            log.info("camera %s open", self.config.camera.type)
-        except CameraError as err:
-            # Not fatal: the next job tries again and answers CAMERA_ERROR meanwhile.
-            log.error("camera %s cannot open: %s", self.config.camera.type, err)
+            self._camera_error = ""
+            log.info("camera %s open", kind)
+
+    def _camera_name(self) -> str:
+        return str(getattr(self.camera, "type_name", "") or self.config.camera.type)
+
+    def _set_camera_fault(self, why: str) -> None:
+        self.camera_fault = why
+        log.error("%s: the camera is unusable; the watchdog stops pinging so that systemd "
+                  "restarts vgripd", why)
+        self._set_state(self.state)  # status line and waiters see it
+
+    def _camera_ran_out(self, waited_s: float) -> None:
+        """A grab did not deliver in time: check in the background whether it hangs."""
+        if self.run_state not in (RunState.STARTING, RunState.RUNNING):
+            return
+        if self._camera_recovery is None or self._camera_recovery.done():
+            self._camera_recovery = asyncio.create_task(self._recover_camera(waited_s),
+                                                        name="vgripd-camera-recovery")
+            self._tasks.add(self._camera_recovery)
+            self._camera_recovery.add_done_callback(self._tasks.discard)
+
+    async def _recover_camera(self, waited_s: float) -> None:
+        """After a grab ran out of time: if the driver's call still hangs (or, in the worker
+        process, cannot be seen), abandon it and open the camera again; when that fails or
+        hangs too, the camera is faulty (``camera_fault``) and the watchdog stops."""
+        camera, kind = self.camera, self._camera_name()
+        stuck_s = getattr(camera, "stuck_s", None)
+        if callable(stuck_s):
+            await asyncio.sleep(CAMERA_HUNG_GRACE_S)  # a late grab may still return meanwhile
+            if stuck_s() == 0:
+                return
+            what = f"a grab has been stuck in the driver for {stuck_s():.1f} s"
+        else:
+            what = f"no image within {waited_s:.1f} s"
+        log.error("camera %s: %s; closing it and opening it again", kind, what)
+        async with self._camera_lock:
+            self._camera_open = False
+            try:
+                async with asyncio.timeout(CAMERA_CLOSE_TIMEOUT_S):
+                    await camera.close()
+            except (TimeoutError, CameraError) as err:
+                log.warning("camera %s: close after the hang failed: %r", kind, err)
+        await self._open_camera(fault_on_hang=False)
+        if self._camera_open:
+            log.info("camera %s open again after the hang", kind)
+            self._set_state(self.state)  # status line and waiters see it
+        elif not self.camera_fault:
+            self._set_camera_fault(f"camera {kind}: {what}, and opening it again failed: "
+                                   f"{self._camera_error}")
 
     async def _acquire(self, trigger: Trigger, deadline_ns: int) -> ImagePair:
+        recovery = self._camera_recovery
+        if recovery is not None and not recovery.done():
+            await asyncio.shield(recovery)  # the camera is being opened again
+        if self.camera_fault:
+            raise CameraError(f"camera {self.config.camera.type} is unusable: "
+                              f"{self.camera_fault}")
         if not self._camera_open:
             await self._open_camera()
             if not self._camera_open:
                 raise CameraError(f"camera {self.config.camera.type} is not open")
         remaining_s = max(0.0, (deadline_ns - time.monotonic_ns()) / 1e9)
-        pair: ImagePair = await self.camera.grab(remaining_s)
+        t0 = time.monotonic()
+        try:
+            pair: ImagePair = await self.camera.grab(remaining_s)
+        except (CameraError, asyncio.CancelledError):
+            waited_s = time.monotonic() - t0
+            if remaining_s > 0 and waited_s >= 0.9 * remaining_s:  # out of time: hung?
+                self._camera_ran_out(waited_s)
+            raise
         if pair.T_base_flange is None and trigger.T_base_flange is not None:
             pair = dataclasses.replace(pair, T_base_flange=trigger.T_base_flange)
         return pair
@@ -584,20 +714,35 @@ class Daemon:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    def healthy(self) -> bool:
-        """False when a job has outlived its timeout by ``WATCHDOG_GRACE_S`` (wedged)."""
+    def health_problem(self) -> str:
+        """Why the service needs a restart ("" when healthy): the camera is faulty
+        (``camera_fault``), or a job has outlived its timeout by ``WATCHDOG_GRACE_S`` (wedged)."""
+        if self.camera_fault:
+            return self.camera_fault
         if self._job is None:
-            return True
+            return ""
         age_s = (time.monotonic_ns() - self._job_started_ns) / 1e9
-        return age_s < self.config.daemon.job_timeout_s + WATCHDOG_GRACE_S
+        limit_s = self.config.daemon.job_timeout_s + WATCHDOG_GRACE_S
+        if age_s < limit_s:
+            return ""
+        return (f"job {self._job[0]} running for {age_s:.1f} s (daemon.job_timeout_s + "
+                f"{WATCHDOG_GRACE_S:g} s = {limit_s:g} s): the job machinery is wedged")
+
+    def healthy(self) -> bool:
+        """False when the service needs a restart (``health_problem`` says why)."""
+        return not self.health_problem()
 
     async def _watchdog(self, period_s: float) -> None:
+        unhealthy = False  # logged once when it stops, once when it pings again
         while True:
-            if self.healthy():
+            problem = self.health_problem()
+            if not problem:
                 self.notifier.watchdog()
-            else:
-                log.error("watchdog: job running %.1f s, not pinging systemd",
-                          (time.monotonic_ns() - self._job_started_ns) / 1e9)
+                if unhealthy:
+                    log.info("watchdog: healthy again, pinging systemd")
+            elif not unhealthy:
+                log.error("watchdog: not pinging systemd (it will restart vgripd): %s", problem)
+            unhealthy = bool(problem)
             await asyncio.sleep(period_s)
 
     # --- status -------------------------------------------------------------------------
@@ -634,6 +779,8 @@ class Daemon:
             line += f"; last job {lj.job_id} {lj.result.status.name} {lj.cycle_ms:.0f} ms"
         if self.epipolar.warning:
             line += "; RECALIBRATE"
+        if self.camera_fault:
+            line += "; CAMERA FAULT"
         return line
 
     def snapshot(self) -> dict[str, Any]:
@@ -665,7 +812,10 @@ class Daemon:
             "run_state": self.run_state.value,
             "state": self.state.value,
             "uptime_s": (now - self._t_start_ns) / 1e9 if self._t_start_ns else 0.0,
-            "camera": {"type": self.config.camera.type, "open": self._camera_open},
+            "camera": {"type": self.config.camera.type, "open": self._camera_open,
+                       "error": self._camera_error or None, "fault": self.camera_fault or None},
+            "healthy": self.healthy(),
+            "health_problem": self.health_problem() or None,
             "worker": None if self._worker is None else self._worker.snapshot(),
             "calibrated": not self.not_calibrated,
             "job": job,

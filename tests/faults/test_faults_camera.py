@@ -1,0 +1,170 @@
+"""A camera grab that hangs for ever (a wedged SDK call), in the daemon with a PLC on the Modbus
+server link and systemd's watchdog socket bound by the test:
+
+- the job answers CAMERA_ERROR; the daemon abandons the stuck driver thread and opens the
+  camera again, and the next job runs normally; the watchdog keeps pinging;
+- when opening it again fails (or hangs too), the camera is faulty: the watchdog stops pinging
+  (systemd restarts the service), ``healthy()`` is False and the status says why; later jobs
+  answer CAMERA_ERROR at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+import threading
+import time
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivers.cameras.base import CameraDriver, DriverOptions
+from tests.integration.test_daemon import Plc
+from vgripd.config import Config, config_from_dict
+from vgripd.errors import CameraError
+from vgripd.service.daemon import Daemon
+from vgripd.types import ImagePair, JobResult, Status
+
+pytestmark = pytest.mark.timeout(90)
+JOB_TIMEOUT_S = 1.0
+
+
+class HangingCamera(CameraDriver):
+    """Its first grab blocks until the test ends; opening it again does ``reopen``."""
+
+    Options = DriverOptions
+    type_name = "hanging"
+
+    def __init__(self, config: Config, reopen: str = "ok") -> None:
+        super().__init__(DriverOptions(), config)
+        self.release = threading.Event()
+        self.reopen = reopen  # "ok", "fail" or "hang"
+        self.opens = 0
+        self.grabs = 0
+
+    def _open_blocking(self) -> None:
+        self.opens += 1
+        if self.opens > 1 and self.reopen == "fail":
+            raise CameraError("hanging: device gone")
+        if self.opens > 1 and self.reopen == "hang":
+            self.release.wait()
+
+    def _grab_blocking(self, timeout_s: float) -> ImagePair:
+        self.grabs += 1
+        if self.grabs == 1:
+            self.release.wait()  # the wedged device call
+        return ImagePair(left=np.zeros((4, 4), np.uint8), right=None,
+                         t_mono_ns=time.monotonic_ns(), source="hanging")
+
+
+class Stub:
+    """The processing step (in-process): every pair is answered NOT_FOUND at once."""
+
+    def process(self, pair: ImagePair, job_id: int) -> JobResult:
+        return JobResult(job_id=job_id, status=Status.NOT_FOUND, message="stub")
+
+
+@pytest.fixture
+def watchdog_socket(tmp_path: Path) -> Iterator[tuple[str, socket.socket]]:
+    path = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(path)
+    sock.setblocking(False)
+    yield path, sock
+    sock.close()
+
+
+def drain(sock: socket.socket) -> None:
+    """Forget what was sent so far (the daemon also sends STATUS= on every state change)."""
+    with contextlib.suppress(BlockingIOError):
+        while True:
+            sock.recv(4096)
+
+
+async def pings(sock: socket.socket, seconds: float) -> int:
+    """WATCHDOG=1 messages received within ``seconds`` from now."""
+    drain(sock)
+    loop = asyncio.get_running_loop()
+    count = 0
+    with contextlib.suppress(TimeoutError):
+        async with asyncio.timeout(seconds):
+            while True:
+                count += (await loop.sock_recv(sock, 4096)) == b"WATCHDOG=1"
+    return count
+
+
+@contextlib.asynccontextmanager
+async def hanging_daemon(notify: str, reopen: str, **daemon: Any) -> AsyncIterator[
+        tuple[Daemon, HangingCamera]]:
+    config = config_from_dict({
+        "camera": {"type": "synthetic", "seed": 1},
+        "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": 0}],
+        "status": {"port": 0},
+        "daemon": {"job_timeout_s": JOB_TIMEOUT_S},
+    })
+    d = Daemon(config, pipeline=Stub(),
+               env={"NOTIFY_SOCKET": notify, "WATCHDOG_USEC": "200000"})  # ping every 0.1 s
+    camera = HangingCamera(config, reopen)
+    d.camera = camera
+    for name, value in daemon.items():
+        setattr(d, name, value)
+    await d.start()
+    try:
+        yield d, camera
+    finally:
+        camera.release.set()  # lets the abandoned thread end
+        await d.stop()
+
+
+async def plc_job(daemon: Daemon, seq: int) -> list[int]:
+    port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+    async with Plc(port) as plc:
+        await plc.trigger(seq)
+        return await plc.result(seq)
+
+
+async def test_hung_grab_camera_opened_again_next_job_runs(
+        watchdog_socket: tuple[str, socket.socket]) -> None:
+    path, sock = watchdog_socket
+    async with hanging_daemon(path, "ok") as (daemon, camera):
+        words = await plc_job(daemon, 1)
+        assert words[18] == Status.CAMERA_ERROR
+        await daemon.wait_for(lambda: camera.opens == 2 and daemon.snapshot()["camera"]["open"],
+                              10)
+        words = await plc_job(daemon, 2)
+        assert words[18] == Status.NOT_FOUND  # the stub's answer: the grab worked
+        assert camera.grabs == 2
+        assert daemon.healthy()
+        assert await pings(sock, 0.5) >= 2
+
+
+@pytest.mark.parametrize("reopen", ["fail", "hang"])
+async def test_camera_that_cannot_be_opened_again_stops_the_watchdog(
+        watchdog_socket: tuple[str, socket.socket], reopen: str) -> None:
+    path, sock = watchdog_socket
+    async with hanging_daemon(path, reopen, camera_open_timeout_s=1.0) as (daemon, camera):
+        assert await pings(sock, 0.3) >= 1
+        words = await plc_job(daemon, 1)
+        assert words[18] == Status.CAMERA_ERROR
+        await daemon.wait_for(lambda: bool(daemon.camera_fault), 15)
+        await asyncio.sleep(0.15)  # a ping already on its way (0.1 s period) has arrived
+        assert await pings(sock, 0.6) == 0  # systemd will restart the service
+        assert not daemon.healthy()
+        status = daemon.snapshot()
+        assert status["healthy"] is False
+        problem = status["health_problem"]
+        assert problem == status["camera"]["fault"]
+        assert problem.startswith("camera hanging: a grab has been stuck in the driver")
+        assert ("opening it again failed: hanging: device gone" if reopen == "fail"
+                else "opening it hung for more than 1 s") in problem
+        assert "CAMERA FAULT" in daemon.status_line()
+        t0 = time.monotonic()
+        words = await plc_job(daemon, 2)
+        assert words[18] == Status.CAMERA_ERROR
+        assert time.monotonic() - t0 < JOB_TIMEOUT_S  # at once, not after a timeout
+        assert daemon.last_job is not None
+        assert "unusable" in daemon.last_job.result.message

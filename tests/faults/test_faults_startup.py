@@ -1,0 +1,122 @@
+"""Start-up with a UR controller that accepts TCP and never answers (listed first): the camera
+and the links open at once, so the PLC's Modbus server and the status endpoint answer within a
+second of ``start()`` while the UR link is still waiting for its controller; READY follows when
+every link has reported its first outcome (the UR link: DOWN after its connect_timeout_s)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+from pymodbus.client import AsyncModbusTcpClient
+
+from vgripd.config import config_from_dict
+from vgripd.service.daemon import Daemon, RunState
+from vgripd.service.protocol import CHECK_U16, MAP_SIZE, LinkState, Reg
+
+pytestmark = pytest.mark.timeout(120)
+SILENT_HOST = "127.0.8.1"
+CONNECT_TIMEOUT_S = 3.0
+
+
+@pytest.fixture
+async def silent_controller() -> AsyncIterator[str]:
+    """A TCP listener on SILENT_HOST:30004 that accepts and never sends a byte."""
+    held: list[asyncio.StreamWriter] = []
+
+    async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        held.append(writer)
+
+    server = await asyncio.start_server(hold, SILENT_HOST, 30004)
+    try:
+        yield SILENT_HOST
+    finally:
+        server.close()
+        for writer in held:
+            writer.close()
+        await server.wait_closed()
+
+
+async def read_map(port: int) -> list[int] | None:
+    client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=0.5, retries=0)
+    try:
+        if not await client.connect():
+            return None
+        rr = await client.read_holding_registers(0, count=MAP_SIZE)
+        return None if rr.isError() else list(rr.registers)
+    finally:
+        client.close()
+
+
+async def get_status(port: int) -> dict[str, object]:
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        writer.write(b"GET /status HTTP/1.0\r\nHost: localhost\r\n\r\n")
+        await writer.drain()
+        raw = await reader.read()
+    finally:
+        writer.close()
+    body = raw.split(b"\r\n\r\n", 1)[1]
+    status: dict[str, object] = json.loads(body)
+    return status
+
+
+async def test_silent_ur_controller_delays_neither_the_plc_nor_the_status(
+        silent_controller: str, tmp_path: Path) -> None:
+    config = config_from_dict({
+        "camera": {"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0},
+        "output": {"vendor": "ur"},
+        "links": [{"type": "ur_rtde", "host": silent_controller,
+                   "connect_timeout_s": CONNECT_TIMEOUT_S},
+                  {"type": "modbus_server", "host": "127.0.0.1", "port": 0}],
+        "status": {"port": 0},
+    })
+    daemon = Daemon(config)
+    ur, plc = daemon.links.values()
+    t0 = time.monotonic()
+    starting = asyncio.create_task(daemon.start())
+    try:
+        words = None
+        plc_s = status_s = None
+        status: dict[str, object] = {}
+        while time.monotonic() - t0 < CONNECT_TIMEOUT_S and (plc_s is None or status_s is None):
+            if plc_s is None and plc.health().state is LinkState.UP:
+                words = await read_map(plc.port)  # type: ignore[attr-defined]
+                if words is not None:
+                    plc_s = time.monotonic() - t0
+            server = daemon.status_server
+            if status_s is None and server is not None:
+                try:
+                    port = server.port
+                except RuntimeError:  # not listening yet
+                    port = 0
+                if port:
+                    status = await get_status(port)
+                    status_s = time.monotonic() - t0
+            await asyncio.sleep(0.01)  # a poller's period
+        assert plc_s is not None
+        assert plc_s < 1.0, plc_s
+        assert status_s is not None
+        assert status_s < 1.0, status_s
+        assert words is not None
+        assert words[Reg.CHECK_U16] == CHECK_U16
+        assert status["run_state"] == "starting"
+        assert not starting.done()  # READY waits for the UR link's first outcome
+        assert daemon.run_state is RunState.STARTING
+
+        await starting
+        ready_s = time.monotonic() - t0
+        assert CONNECT_TIMEOUT_S <= ready_s < CONNECT_TIMEOUT_S + 10
+        assert daemon.run_state is RunState.RUNNING
+        health = ur.health()
+        assert health.state is LinkState.DOWN
+        assert f"did not complete the RTDE setup within {CONNECT_TIMEOUT_S} s" in health.last_error
+    finally:
+        if not starting.done():
+            starting.cancel()
+            await asyncio.gather(starting, return_exceptions=True)
+        await daemon.stop()
