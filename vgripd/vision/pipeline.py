@@ -432,22 +432,25 @@ class Pipeline:
         circle_model = np.flatnonzero(self.is_circle)
         ambiguous = False
         if rows.size and circle_model.size:
-            T0 = None
+            sub = None
             if (assignment >= 0).sum() >= 3:
                 sel = np.flatnonzero(assignment >= 0)
                 T0 = ft.kabsch(self.model[sel], points[assignment[sel]])
-            elif circle_model.size >= 3:
-                match = ft.match_model(
-                    self.model[circle_model], points[rows], vision.model_tolerance_mm,
-                    [keys[r] for r in rows],
-                )
-                if match is not None:
-                    T0, ambiguous = match.T_points_model, match.ambiguous
-            if T0 is not None:
                 sub, _ = ft.assign_nearest(
                     self.model[circle_model], points[rows], T0, vision.model_tolerance_mm,
                     [keys[r] for r in rows],
                 )
+            elif circle_model.size >= 3:
+                # Hypothesise and verify over every model triple (features.match_model): a
+                # rival pose scoring about as well, or a match that the spurious points could
+                # have made by chance, makes the job AMBIGUOUS (docs/pipeline.md).
+                match = ft.match_model(
+                    self.model[circle_model], points[rows], vision.model_tolerance_mm,
+                    [keys[r] for r in rows], max_rms_mm=vision.max_fit_rms_mm,
+                )
+                if match is not None:
+                    sub, ambiguous = match.assignment, match.ambiguous
+            if sub is not None:
                 hit = sub >= 0
                 assignment[circle_model[hit]] = rows[sub[hit]]
         return self._fit_stereo(assignment, points, gap, np.array(px_l), np.array(px_r),

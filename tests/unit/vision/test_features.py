@@ -188,3 +188,148 @@ def test_match_model_reports_symmetric_model_as_ambiguous():
     match = ft.match_model(model, points, 1.0)
     assert match is not None
     assert match.ambiguous
+
+
+def _layout(rng, n):
+    """n marks on a 200 x 150 mm plate, some on bosses, at least 25 mm apart."""
+    marks: list[np.ndarray] = []
+    while len(marks) < n:
+        p = np.r_[rng.uniform([-100, -75], [100, 75]), rng.choice([0.0, 0.0, 12.0, 20.0])]
+        if all(np.linalg.norm(p[:2] - q[:2]) > 25 for q in marks):
+            marks.append(p)
+    return np.array(marks)
+
+
+def test_match_model_finds_every_subset_of_visible_marks():
+    # Every subset of >= 3 of 8 marks, among 12 spurious points on the plate's plane and above
+    # it, noise 0.05 mm. >= 4 visible: exactly the true assignment, not ambiguous; 3 visible:
+    # the true assignment (possibly flagged ambiguous by a clutter triangle), never a wrong
+    # assignment that is not flagged.
+    rng = np.random.default_rng(3)
+    model = _layout(rng, 8)
+    R = Rotation.from_rotvec([0.1, -0.2, 2.0])
+    t = np.array([15.0, -20.0, 690.0])
+    measured = R.apply(model) + t + rng.normal(0, 0.05, model.shape)
+    spurious = R.apply(np.c_[rng.uniform(-120, 120, (12, 2)), rng.uniform(-5, 25, 12)]) + t
+    from itertools import combinations
+
+    tried = 0
+    for k in range(3, 9):
+        for shown in combinations(range(8), k):
+            points = np.vstack([measured[list(shown)], spurious])
+            match = ft.match_model(model, points, 3.0, max_rms_mm=1.0)
+            assert match is not None
+            expected = np.full(8, -1)
+            expected[list(shown)] = np.arange(k)
+            right = np.array_equal(match.assignment, expected)
+            if k >= 4:
+                assert right, shown
+                assert not match.ambiguous, shown
+                assert match.complete, shown
+            else:
+                assert right or match.ambiguous, shown
+            tried += 1
+    assert tried == 219
+
+
+def test_match_model_work_stops_early_when_all_marks_are_seen():
+    rng = np.random.default_rng(5)
+    for n in (6, 12, 20):
+        model = _layout(rng, n)
+        points = np.vstack([model + (3.0, 4.0, 700.0), rng.uniform(-100, 100, (20, 3)) + 700])
+        match = ft.match_model(model, points, 3.0, max_rms_mm=1.0)
+        assert match is not None
+        assert match.count == n
+        # One seed triangle explains everything: nothing unseen could rival it.
+        assert match.hypotheses <= 3, (n, match.hypotheses)
+
+
+def test_match_model_work_bound_makes_an_unfinished_search_ambiguous():
+    # Four of eight marks among spurious points: the full search must try the triples of six
+    # marks. Cut short by max_seeds, a search that could still have missed a rival says so.
+    rng = np.random.default_rng(9)
+    model = _layout(rng, 8)
+    shown = [1, 3, 4, 6]
+    points = np.vstack([model[shown], rng.uniform(-120, 120, (12, 3)) * (1, 1, 0.1)]) + 700.0
+    expected = np.full(8, -1)
+    expected[shown] = np.arange(4)
+    full = ft.match_model(model, points, 3.0, max_rms_mm=1.0)
+    assert full is not None
+    assert full.complete
+    assert not full.ambiguous
+    np.testing.assert_array_equal(full.assignment, expected)
+    cut = 0
+    for budget in (1, 3, 10, 30, 100, 300, 1000):
+        match = ft.match_model(model, points, 3.0, max_rms_mm=1.0, max_seeds=budget)
+        if match is None:
+            continue
+        cut += not match.complete
+        assert match.complete or match.ambiguous
+        if not match.ambiguous:
+            np.testing.assert_array_equal(match.assignment, expected)
+    assert cut >= 2
+    # A regular grid: the model fits in many places, found and flagged.
+    g = np.arange(6) * 20.0
+    grid = np.array([(x, y, 0.0) for x in g for y in g])
+    match = ft.match_model(grid[[0, 7, 14, 21, 2, 30, 33, 11]], grid + 700.0, 1.0)
+    assert match is not None
+    assert match.count == 8
+    assert match.ambiguous
+
+
+def test_match_model_drops_one_gross_outlier_but_not_a_uniform_misfit():
+    rng = np.random.default_rng(8)
+    model = _layout(rng, 6)
+    points = model[:5] + (0.0, 0.0, 700.0)
+    # A blob 2.5 mm from where the hidden sixth mark would be: inside the 3 mm tolerance, but
+    # it lifts the RMS of the six over a 0.5 mm gate. It is dropped; the five marks stay.
+    blob = model[5] + (0.0, 0.0, 700.0) + (2.5, 0.0, 0.0)
+    points = np.vstack([points, blob])
+    with_blob = ft.match_model(model, points, 3.0)
+    assert with_blob is not None
+    assert with_blob.count == 6
+    assert with_blob.rms_mm > 0.5
+    match = ft.match_model(model, points, 3.0, max_rms_mm=0.5)
+    assert match is not None
+    assert match.assignment.tolist() == [0, 1, 2, 3, 4, -1]
+    assert match.rms_mm < 0.01
+    # Every point off in proportion to its distance from the centre (a scale error, like a
+    # drifted calibration): no point stands out, nothing is dropped, and the residual gate of
+    # the pipeline judges the whole fit.
+    scaled = (model - model.mean(axis=0)) * 1.015 + (0.0, 0.0, 700.0)
+    match = ft.match_model(model, scaled, 3.0, max_rms_mm=0.5)
+    assert match is not None
+    assert match.count == 6
+    assert match.rms_mm > 0.5
+
+
+def test_match_model_in_dense_clutter_never_trusts_a_coincidence():
+    # Twenty marks (a 260 x 200 mm plate) among holes on its plane, 40 candidates in all:
+    # four clutter points can fall within the tolerance of four marks' places and fit within
+    # the RMS gate. Such a pose must come out ambiguous (a rival, or an expected number of
+    # chance matches >= 1), never as an unflagged wrong pose.
+    rng = np.random.default_rng(20)
+    model = _layout(rng, 20) * (1.3, 1.3, 1.0)
+    R = Rotation.from_rotvec([0.1, -0.2, 2.0])
+    t = np.array([15.0, -20.0, 690.0])
+    measured = R.apply(model) + t + rng.normal(0, 0.05, model.shape)
+    wrong_flagged = 0
+    for k in (3, 4, 5, 10):
+        for _ in range(4):
+            shown = np.sort(rng.choice(20, k, replace=False))
+            holes = np.c_[rng.uniform(-150, 150, (40 - k, 2)), np.zeros(40 - k)]
+            points = np.vstack([measured[shown], R.apply(holes) + t])
+            match = ft.match_model(model, points, 3.0, max_rms_mm=1.0)
+            assert match is not None
+            expected = np.full(20, -1)
+            expected[shown] = np.arange(k)
+            # Right pose: every visible mark assigned as itself (a hole may sit on a hidden
+            # mark's place and be taken for it, the pose is still right).
+            right = (match.assignment[shown] == expected[shown]).all()
+            if k >= 10:
+                assert right, shown
+                assert not match.ambiguous, shown
+            elif not right:
+                assert match.ambiguous, (shown, match)
+                wrong_flagged += 1
+    assert wrong_flagged >= 1  # the scene does produce coincidences
