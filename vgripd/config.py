@@ -39,9 +39,10 @@ COMBINATION = "combination"
 
 
 class Model(BaseModel):
-    """Base of every config model: unknown keys are errors, values are immutable."""
+    """Base of every config model: unknown keys are errors, values are immutable, and numbers
+    are finite (TOML can spell ``inf`` and ``nan``; no setting means either)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class DriverSection(BaseModel):

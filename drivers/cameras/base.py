@@ -95,7 +95,7 @@ class DriverThread:
 class DriverOptions(BaseModel):
     """Base of each driver's ``Options``: unknown keys are errors (typos name their field)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class CameraDriver(ABC):

@@ -119,7 +119,7 @@ class OutputLog:
 class URRtdeOptions(BaseModel):
     """Options of ``type = "ur_rtde"`` (TOML ``[links.<name>]``)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     host: str = Field(min_length=1)
     #: Use registers 36..47 instead of 12..23 (leaves the lower range to a PLC/fieldbus).

@@ -174,8 +174,6 @@ def check_config_error(err: str, cfg: Path, changes: list[tuple[str, Path_]],
     assert any(name in line for line in lines for name in names), f"{where}: {err}"
 
 
-@pytest.mark.xfail(strict=True, reason="vgripd/config.py accepts inf/nan in calibration and "
-                   "reference poses: the pipeline build refuses them, exit 1 naming no field")
 @pytest.mark.parametrize("path", [
     ("calibration", "stereo", "T_right_left", "rotvec_rad", 0),
     ("calibration", "hand_eye", "T_base_camera", "translation_mm", 2),

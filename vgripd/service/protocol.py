@@ -241,7 +241,7 @@ class RegisterOptions(BaseModel):
     ``value_format``: ``int32`` for PLCs without floats; raw = round(value * ``scale``).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     word_order: WordOrder = "ABCD"
     value_format: ValueFormat = "float32"
