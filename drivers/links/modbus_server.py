@@ -35,9 +35,9 @@ them itself (``ModbusTcpConnection``, ``RegisterServerLink.answer_pdu``):
   fault per ``log_interval_s``, with a count of the ones held back; never a traceback.
 
 FC23 is all or nothing: both ranges are checked before anything is written, so a request with
-an illegal read range changes nothing and triggers nothing. The RTU link still runs on
-pymodbus' serial server, through ``RegisterContext`` (pymodbus applies an FC23 write before it
-looks at the read range, so RTU decodes FC23 as ``AllOrNothingReadWrite``).
+an illegal read range changes nothing and triggers nothing. The RTU link
+(``drivers.links.modbus_rtu``) does its own serial framing and answers through the same
+``answer_pdu``.
 
 The link carries up to ``MAX_VALUES`` pose values in any vendor convention
 (``REGISTER_CAPABILITIES``); the config check refuses a vendor with more.
@@ -61,11 +61,6 @@ from typing import Any
 
 from pydantic import Field, model_validator
 from pymodbus.constants import ExcCodes
-from pymodbus.datastore import ModbusServerContext
-from pymodbus.exceptions import NoSuchIdException
-from pymodbus.pdu import ExceptionResponse, ModbusPDU
-from pymodbus.pdu.register_message import ReadWriteMultipleRegistersRequest
-from pymodbus.server.base import ModbusBaseServer
 
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
@@ -115,87 +110,6 @@ class Refused(Exception):
         self.code = code
 
 
-class RegisterContext(ModbusServerContext):
-    """pymodbus datastore backed by a ``RegisterBank``; holding registers only (RTU link).
-
-    pymodbus 3.16 calls ``async_getValues``/``async_setValues`` of a ``ModbusServerContext``
-    flagged ``old_simulator`` directly; the base ``__init__`` (which builds pymodbus' own
-    simulated memory) is deliberately not called. Requests for another unit id raise
-    ``NoSuchIdException``, which the server (``ignore_missing_devices=True``) leaves unanswered,
-    as a Modbus RTU slave must.
-    """
-
-    def __init__(self, link: RegisterServerLink, unit_id: int | None) -> None:
-        self.old_simulator = True
-        self.simdevices = []
-        self._link = link
-        self._unit_id = unit_id
-
-    def device_ids(self) -> list[int]:
-        return [self._unit_id or 0]
-
-    def _check(self, device_id: int, func_code: int, allowed: set[int]) -> ExcCodes | None:
-        if self._unit_id is not None and device_id != self._unit_id:
-            raise NoSuchIdException(f"unit id {device_id} (this link answers {self._unit_id})")
-        if func_code not in allowed:
-            return ExcCodes.ILLEGAL_FUNCTION
-        return None
-
-    def read_refusal(self, device_id: int, func_code: int, address: int,
-                     count: int) -> ExcCodes | None:
-        """The exception a read of ``address``/``count`` gets, without reading anything."""
-        if exc := self._check(device_id, func_code, HOLDING_READ):
-            return exc
-        try:
-            RegisterImage.check_read(address, count)
-        except RegisterAccessError as err:
-            log.debug("%s: %s", self._link.name, err)
-            return ExcCodes.ILLEGAL_ADDRESS
-        return None
-
-    async def async_getValues(
-        self, device_id: int, func_code: int, address: int, count: int = 1
-    ) -> list[int] | list[bool] | ExcCodes:
-        if exc := self.read_refusal(device_id, func_code, address, count):
-            return exc
-        return self._link.bank.read(address, count, time.monotonic_ns())
-
-    async def async_setValues(
-        self, device_id: int, func_code: int, address: int,
-        values: Sequence[int] | Sequence[bool],
-    ) -> ExcCodes | None:
-        if exc := self._check(device_id, func_code, HOLDING_WRITE):
-            return exc
-        try:
-            self._link.write_registers(address, [int(v) for v in values], "serial")
-        except Refused as refused:
-            self._link.fault("serial", "exception 02", logging.INFO,
-                             "function %d answered with exception 02: %s", func_code, refused)
-            return ExcCodes.ILLEGAL_ADDRESS
-        return None
-
-
-class AllOrNothingReadWrite(ReadWriteMultipleRegistersRequest):
-    """FC23 whose read range is checked before the write is applied (pymodbus servers: RTU).
-
-    pymodbus writes first and reads after; with an illegal read range it would answer exception
-    02 although the write (perhaps a trigger) took effect. Here both ranges are checked before
-    anything changes (the write's by ``RegisterBank.write``, which refuses before applying), and
-    nothing awaits in between, so no other request runs between the write and the read.
-    """
-
-    async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:
-        # Bad quantities are left to pymodbus (exception 03 comes before 02 in the spec).
-        quantities_ok = (1 <= self.read_count <= self.MAX_READ_COUNT
-                         and 1 <= self.write_count <= self.MAX_WRITE_COUNT)
-        if isinstance(context, RegisterContext) and quantities_ok:
-            exc = context.read_refusal(device_id, self.function_code, self.read_address,
-                                       self.read_count)
-            if exc is not None:
-                return ExceptionResponse(self.function_code, exc)
-        return await super().datastore_update(context, device_id)
-
-
 def _need_length(pdu: bytes, length: int) -> None:
     if len(pdu) != length:
         raise MalformedFrame(f"function {pdu[0]} needs a {length}-byte PDU, got {len(pdu)}")
@@ -215,9 +129,8 @@ def _need_byte_count(pdu: bytes, fixed: int) -> int:
 class RegisterServerLink(RobotLink):
     """A Modbus server link over some transport: register bank, heartbeat, handshake.
 
-    The transport is started by ``_start_serving`` and stopped by ``_stop_serving``; the
-    default pair runs the pymodbus server ``_make_server`` returns (the RTU link). Requests
-    answered by the link itself go through ``answer_pdu``, writes of either path through
+    Each transport starts with ``_start_serving`` and stops with ``_stop_serving``; every
+    request, whatever its framing, is answered by ``answer_pdu`` and every write goes through
     ``write_registers``.
     """
 
@@ -233,7 +146,6 @@ class RegisterServerLink(RobotLink):
         self.ratelog = RateLimitedLog(log, getattr(options, "log_interval_s", self.LOG_INTERVAL_S))
         #: peer faults by kind (malformed, exception 01/02/03, unit, evicted, idle, not_reading)
         self.faults: Counter[str] = Counter()
-        self._server: ModbusBaseServer | None = None
         self._serving = False
         self._heartbeat: asyncio.Task[None] | None = None
         self._on_trigger: TriggerHandler | None = None
@@ -245,11 +157,6 @@ class RegisterServerLink(RobotLink):
             3: self._read_holding, 6: self._write_single, 16: self._write_multiple,
             22: self._mask_write, 23: self._read_write,
         }
-
-    def _make_server(self, context: RegisterContext) -> ModbusBaseServer:
-        """The pymodbus server for this transport (created on the running loop), for links
-        served by the default ``_start_serving``."""
-        raise NotImplementedError
 
     def _describe(self) -> str:
         """Where this link serves, for messages (``host:port``, ``/dev/ttyS0``)."""
@@ -275,22 +182,10 @@ class RegisterServerLink(RobotLink):
 
     async def _start_serving(self) -> None:
         """Start the transport; ``LinkError`` saying why it cannot."""
-        server = self._make_server(RegisterContext(self, self._unit_id()))
-        server.decoder.register(AllOrNothingReadWrite)
-        try:
-            await server.serve_forever(background=True)
-        except RuntimeError:
-            await server.shutdown()
-            raise LinkError(self._start_error()) from None
-        self._server = server
+        raise NotImplementedError
 
     async def _stop_serving(self) -> None:
-        if self._server is not None:
-            await self._server.shutdown()
-            self._server = None
-
-    def _start_error(self) -> str:
-        return f"cannot serve on {self._describe()}"
+        """Stop the transport (nothing to stop for a link that manages its own, like RTU)."""
 
     async def close(self) -> None:
         if self._heartbeat is not None:
@@ -313,7 +208,8 @@ class RegisterServerLink(RobotLink):
         )
 
     def peers(self) -> int:
-        return len(self._server.active_connections) if self._server is not None else 0
+        """Connected peers (TCP clients); 0 where the transport has none to count."""
+        return 0
 
     async def image_captured(self, seq: int, job_id: int) -> None:
         self.bank.captured(seq, job_id)
