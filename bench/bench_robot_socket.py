@@ -1,0 +1,146 @@
+"""Trigger -> result latency of the robot socket link vs a bare asyncio socket peer, same run.
+
+The robot side is one asyncio client (a kept connection, like the KUKA, ABB and Staubli
+programs) that writes a 16-byte LOCATE and waits for the 64-byte RESULT; the time is from the
+write to the RESULT being read, over TCP on 127.0.0.1. The daemon side answers at once
+(image_captured, then publish; no vision work), so what is timed is the link: framing, request
+judging, the trigger hand-off to the daemon's handler, CAPTURED and RESULT encoding.
+
+The named peer is a bare ``asyncio.start_server`` handler that reads 16 bytes and writes a
+prepared CAPTURED and RESULT with the request id patched in: the least any server speaking this
+format can do. Both run in blocks of 100 jobs, alternating, so load changes hit both.
+
+    cd /work/main && .venv/bin/python bench/bench_robot_socket.py [jobs]
+"""
+
+from __future__ import annotations
+
+import asyncio
+import statistics
+import struct
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions  # noqa: E402
+from vgripd.service.protocol import Trigger  # noqa: E402
+from vgripd.service.robot_socket_format import (  # noqa: E402
+    ANSWER_SIZE,
+    Answer,
+    AnswerKind,
+    Request,
+    SocketCommand,
+    ValueEncoding,
+    decode_answer,
+)
+from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
+
+POSE = (412.5, -133.25, 287.0625, 0.1234, -2.9, 179.5)
+BLOCK = 100
+
+
+class Robot:
+    """The robot program's side: one connection, one request at a time."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader, self.writer = reader, writer
+        self.seq = 0
+
+    async def job(self) -> float:
+        self.seq += 1
+        t0 = time.perf_counter()
+        self.writer.write(Request(SocketCommand.LOCATE, self.seq).encode())
+        while True:
+            answer = decode_answer(await self.reader.readexactly(ANSWER_SIZE))
+            if answer.kind is not AnswerKind.CAPTURED:
+                break
+        dt_ms = (time.perf_counter() - t0) * 1e3
+        assert (answer.request_id, answer.status) == (self.seq, Status.OK), answer
+        return dt_ms
+
+
+async def link_peer() -> tuple[RobotSocketLink, set[asyncio.Task[None]]]:
+    link = RobotSocketLink("bench", RobotSocketOptions(host="127.0.0.1", port=0))
+    tasks: set[asyncio.Task[None]] = set()
+    target = RobotTarget("kuka", ("X", "Y", "Z", "A", "B", "C"), POSE)
+
+    async def answer(t: Trigger) -> None:
+        await link.image_captured(t.seq, t.seq)
+        await link.publish(t.seq, JobResult(job_id=t.seq, status=Status.OK, target=target))
+
+    def on_trigger(t: Trigger) -> None:
+        task = asyncio.create_task(answer(t))
+        tasks.add(task)
+        task.add_done_callback(tasks.discard)
+
+    await link.open(on_trigger)
+    return link, tasks
+
+
+async def bare_peer(finished: asyncio.Event) -> asyncio.Server:
+    encoding = ValueEncoding()
+    captured = bytearray(Answer(AnswerKind.CAPTURED, 0, 0, 1).encode(encoding))
+    result = bytearray(Answer(AnswerKind.RESULT, 0, int(Status.OK), 1, 0, POSE).encode(encoding))
+
+    async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            while True:
+                request = await reader.readexactly(16)
+                captured[4:8] = result[4:8] = request[4:8]  # echo the request id
+                writer.write(bytes(captured))
+                writer.write(bytes(result))
+        except (asyncio.IncompleteReadError, ConnectionError):
+            writer.close()
+        finally:
+            finished.set()
+
+    return await asyncio.start_server(serve, "127.0.0.1", 0)
+
+
+def summary(name: str, ms: list[float]) -> str:
+    ms = sorted(ms)
+    p95 = ms[int(0.95 * (len(ms) - 1))]
+    p99 = ms[int(0.99 * (len(ms) - 1))]
+    return (f"{name:<26} median {statistics.median(ms):6.3f} ms  p95 {p95:6.3f} ms  "
+            f"p99 {p99:6.3f} ms  max {ms[-1]:6.3f} ms  (n={len(ms)})")
+
+
+async def main(jobs: int) -> None:
+    link, _tasks = await link_peer()
+    bare_done = asyncio.Event()
+    bare = await bare_peer(bare_done)
+    robots = {}
+    for name, port in (("link", link.port), ("bare", bare.sockets[0].getsockname()[1])):
+        robots[name] = Robot(*await asyncio.open_connection("127.0.0.1", port))
+    times: dict[str, list[float]] = {"link": [], "bare": []}
+    for name in ("link", "bare"):  # warm-up, not counted
+        for _ in range(20):
+            await robots[name].job()
+    done = 0
+    while done < jobs:
+        n = min(BLOCK, jobs - done)
+        for name in ("link", "bare"):
+            for _ in range(n):
+                times[name].append(await robots[name].job())
+        done += n
+    for robot in robots.values():
+        robot.writer.close()
+        await robot.writer.wait_closed()
+    await bare_done.wait()
+    await link.close()
+    bare.close()
+    await bare.wait_closed()
+    print(f"{jobs} jobs each, kept connection on 127.0.0.1, python "
+          f"{'.'.join(map(str, sys.version_info[:3]))}, blocks of {BLOCK} alternating")
+    print(summary("RobotSocketLink", times["link"]))
+    print(summary("bare asyncio socket peer", times["bare"]))
+    ratio = statistics.median(times["link"]) / statistics.median(times["bare"])
+    print(f"median ratio link / bare: {ratio:.2f}")
+    frame = struct.calcsize(">4I"), ANSWER_SIZE
+    print(f"bytes per job: {frame[0]} request + 2 x {frame[1]} answers (CAPTURED, RESULT)")
+
+
+if __name__ == "__main__":
+    asyncio.run(main(int(sys.argv[1]) if len(sys.argv) > 1 else 2000))

@@ -1,0 +1,186 @@
+/* vgripd robot socket server for Yaskawa controllers, a MotoPlus application (needs the
+ * MotoPlus SDK and its runtime option on the controller; INFORM has no socket instructions).
+ * @@GENERATED@@
+ *
+ * The controller is the server here: vg_accept_task listens on VG_PORT and vgripd's
+ * robot_socket link (mode = "client") dials in. The INFORM job VGLOCATE asks for a locate
+ * through variables: I050 = 1 request, I051 = 1 done, I052 recipe, I053 status, D050 job id,
+ * D051 warnings, D052..D057 the offset @@FIELDS@@ (@@CONVENTION@@) in position-variable units
+ * (0.001 mm, 0.0001 deg; so VG_SCALE must be at least 10000), base frame. Frames:
+ * docs/robot_socket.md.
+ */
+#include "motoPlus.h"
+
+#define VG_PORT @@PORT@@
+#define VG_SCALE @@SCALE@@
+#define VG_TIMEOUT_MS @@TIMEOUT_MS@@
+#define VG_BUSY_WAIT_MS @@BUSY_WAIT_MS@@
+#define VG_BUSY_TRIES @@BUSY_TRIES@@
+#define VG_ATTEMPTS @@ATTEMPTS@@
+#define VG_LOCATE @@LOCATE@@
+#define VG_CAPTURED @@CAPTURED@@
+#define VG_RESULT @@RESULT@@
+#define VG_REFUSED @@REFUSED@@
+#define VG_VAR 50 /* I050.., D050.. */
+#define VG_TICK_MS 4 /* one mpTaskDelay tick: the controller's interpolation period */
+
+static int vgClient = -1;
+static LONG vgId = 0;
+static LONG vgW[16];
+
+static LONG vgGet(USHORT vgType, USHORT vgIndex)
+{
+    MP_VAR_INFO vgInfo;
+    LONG vgValue = 0;
+    vgInfo.usType = vgType;
+    vgInfo.usIndex = vgIndex;
+    mpGetVarData(&vgInfo, &vgValue, 1);
+    return vgValue;
+}
+
+static void vgPut(USHORT vgType, USHORT vgIndex, LONG vgValue)
+{
+    MP_VAR_DATA vgData;
+    vgData.usType = vgType;
+    vgData.usIndex = vgIndex;
+    vgData.ulValue = vgValue;
+    mpPutVarData(&vgData, 1);
+}
+
+/* Drop the connection after a failure; vgripd dials in again (back-off). */
+static void vgDrop(void)
+{
+    if (vgClient >= 0) {
+        mpClose(vgClient);
+        vgClient = -1;
+    }
+}
+
+/* One LOCATE request: the status of its final answer, or -1 when none came in time. */
+static LONG vgRequest(LONG vgRecipe)
+{
+    LONG vgReq[4];
+    int vgGot, vgN, vgI, vgWaited = 0;
+    while (vgClient < 0) {
+        if (vgWaited >= VG_TIMEOUT_MS) {
+            return -1;
+        }
+        mpTaskDelay(1);
+        vgWaited += VG_TICK_MS;
+    }
+    vgReq[0] = mpHtonl(VG_LOCATE);
+    vgReq[1] = mpHtonl(vgId);
+    vgReq[2] = mpHtonl(vgRecipe);
+    vgReq[3] = 0;
+    if (mpSend(vgClient, (char *)vgReq, 16, 0) != 16) {
+        return -1;
+    }
+    for (;;) {
+        for (vgGot = 0; vgGot < 64; vgGot += vgN) {
+            /* each mpRecv waits at most VG_TIMEOUT_MS (SO_RCVTIMEO, set at accept) */
+            vgN = mpRecv(vgClient, (char *)vgW + vgGot, 64 - vgGot, 0);
+            if (vgN <= 0) {
+                return -1;
+            }
+        }
+        for (vgI = 0; vgI < 16; vgI++) {
+            vgW[vgI] = mpNtohl(vgW[vgI]);
+        }
+        if (vgW[0] != VG_CAPTURED && vgW[0] != VG_RESULT && vgW[0] != VG_REFUSED) {
+            return -1; /* not a vgripd answer: the stream is out of step */
+        }
+        if (vgW[1] == vgId && vgW[0] != VG_CAPTURED) {
+            vgPut(MP_RESTYPE_VAR_D, VG_VAR, vgW[3]);
+            vgPut(MP_RESTYPE_VAR_D, VG_VAR + 1, vgW[4]);
+            if (vgW[5] == 6) {
+                if (vgW[14] != VG_SCALE) {
+                    return -2; /* vgripd sends another scale: generate the program again */
+                }
+                for (vgI = 0; vgI < 3; vgI++) { /* mm x scale -> 0.001 mm */
+                    vgPut(MP_RESTYPE_VAR_D, VG_VAR + 2 + vgI, vgW[6 + vgI] / (VG_SCALE / 1000));
+                }
+                for (vgI = 3; vgI < 6; vgI++) { /* deg x scale -> 0.0001 deg */
+                    vgPut(MP_RESTYPE_VAR_D, VG_VAR + 2 + vgI, vgW[6 + vgI] / (VG_SCALE / 10000));
+                }
+            }
+            return vgW[2];
+        }
+    }
+}
+
+/* Ask vgripd for the offset; asks again after BUSY (40), gives up (-1) after VG_ATTEMPTS
+ * requests in a row without an answer. */
+static LONG vgLocate(LONG vgRecipe)
+{
+    LONG vgStatus;
+    int vgUnanswered = 0, vgBusy = 0;
+    for (;;) {
+        vgId = vgId >= 2147483646 ? 1 : vgId + 1;
+        vgStatus = vgRequest(vgRecipe);
+        if (vgStatus == -2) {
+            return -1;
+        }
+        if (vgStatus == -1) {
+            vgDrop();
+            if (++vgUnanswered >= VG_ATTEMPTS) {
+                return -1;
+            }
+        } else if (vgStatus == 40 && vgBusy < VG_BUSY_TRIES) {
+            vgBusy++;
+            mpTaskDelay(VG_BUSY_WAIT_MS / VG_TICK_MS);
+        } else {
+            return vgStatus;
+        }
+    }
+}
+
+/* Serves the INFORM job: I050 = 1 starts a locate, I051 = 1 says it is done. */
+static void vg_job_task(void)
+{
+    for (;;) {
+        if (vgGet(MP_RESTYPE_VAR_I, VG_VAR) == 1 && vgGet(MP_RESTYPE_VAR_I, VG_VAR + 1) == 0) {
+            vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3,
+                  vgLocate(vgGet(MP_RESTYPE_VAR_I, VG_VAR + 2)));
+            vgPut(MP_RESTYPE_VAR_I, VG_VAR + 1, 1);
+        }
+        mpTaskDelay(2);
+    }
+}
+
+/* Accepts vgripd's connection; a new one replaces the old (vgripd reconnected). */
+static void vg_accept_task(void)
+{
+    struct sockaddr_in vgAddr;
+    struct timeval vgTimeout;
+    int vgListener, vgNew, vgLen;
+    vgListener = mpSocket(AF_INET, SOCK_STREAM, 0);
+    memset(&vgAddr, 0, sizeof(vgAddr));
+    vgAddr.sin_family = AF_INET;
+    vgAddr.sin_addr.s_addr = mpHtonl(INADDR_ANY);
+    vgAddr.sin_port = mpHtons(VG_PORT);
+    mpBind(vgListener, (struct sockaddr *)&vgAddr, sizeof(vgAddr));
+    mpListen(vgListener, 1);
+    vgTimeout.tv_sec = VG_TIMEOUT_MS / 1000;
+    vgTimeout.tv_usec = (VG_TIMEOUT_MS % 1000) * 1000;
+    for (;;) {
+        vgLen = sizeof(vgAddr);
+        vgNew = mpAccept(vgListener, (struct sockaddr *)&vgAddr, &vgLen);
+        if (vgNew < 0) {
+            mpTaskDelay(100);
+            continue;
+        }
+        mpSetsockopt(vgNew, SOL_SOCKET, SO_RCVTIMEO, (char *)&vgTimeout, sizeof(vgTimeout));
+        vgDrop();
+        vgClient = vgNew;
+    }
+}
+
+void mpUsrRoot(int arg1, int arg2, int arg3, int arg4, int arg5,
+               int arg6, int arg7, int arg8, int arg9, int arg10)
+{
+    mpCreateTask(MP_PRI_TIME_NORMAL, MP_STACK_SIZE, (FUNCPTR)vg_accept_task,
+                 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
+    mpCreateTask(MP_PRI_TIME_NORMAL, MP_STACK_SIZE, (FUNCPTR)vg_job_task,
+                 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
+    mpExitUsrRoot;
+}

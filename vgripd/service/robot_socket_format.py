@@ -1,0 +1,287 @@
+"""The robot socket message format (``robot_socket`` link, docs/robot_socket.md), with no I/O.
+
+A robot program and vgripd exchange fixed-length binary frames over one TCP connection: the
+robot sends 16-byte requests, vgripd answers with 64-byte frames. Every field is a 32-bit
+big-endian word, so a robot language that reads integers more easily than bytes (KRL through
+EthernetKRL, Karel, URScript's ``socket_read_binary_integer``, MotoPlus C) reads a request or an
+answer as 4 or 16 integers. Pose values are int32 fixed-point (``raw = round(value * scale)``,
+scale a power of ten) or, for languages that unpack IEEE floats directly (RAPID's
+``UnpackRawBytes \\Float4``), float32.
+
+Request, robot -> vgripd (16 bytes)::
+
+    word  bytes  field
+       0   0-3   header: "V" "G" version command (0x56 0x47 0x01 cc); command 1 LOCATE,
+                 2 CLEAR, 3 NEXT (reserved for pick lists: refused BAD_REQUEST for now)
+       1   4-7   request id, 1 .. 2**31-1, echoed in every answer to this request
+       2   8-11  recipe, 0 .. 65535 (0 = default), handed to the job like the RECIPE register
+       3  12-15  reserved, 0
+
+Answer, vgripd -> robot (64 bytes)::
+
+    word  bytes  field
+       0   0-3   header: "V" "G" version kind; kind 0x81 CAPTURED, 0x82 RESULT, 0x83 REFUSED
+       1   4-7   request id of the request answered
+       2   8-11  status (``vgripd.types.Status``)
+       3  12-15  job id (u32; 0 when no job ran)
+       4  16-19  warnings (``vgripd.service.protocol.Warnings`` bits, live)
+       5  20-23  count: valid pose values, 0, 6 or 7
+       6  24-51  7 values in the output vendor's convention and units (int32 scaled or float32)
+      13  52-55  fit RMS in mm, same encoding; -1 = unknown
+      14  56-59  scale of the int32 values; 0 = the values are float32
+      15  60-63  remaining objects (reserved for pick lists, 0)
+
+A request is answered exactly once with a final frame (RESULT or REFUSED), for LOCATE preceded by
+CAPTURED once the images are taken (the robot may move on). REFUSED means no job ran: BUSY (a
+job is running), BAD_REQUEST (unknown command, id 0, recipe > 65535, reserved word not 0), or the
+daemon's own refusal. A frame that is not a request at all (wrong magic or version) ends the
+connection: the stream cannot be trusted after it.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import struct
+from dataclasses import dataclass
+from typing import Literal
+
+from vgripd.registry import LinkCapabilities
+from vgripd.service.protocol import FIT_RMS_KEY
+from vgripd.types import JobResult, Status
+
+VERSION = 1
+MAGIC = 0x5647  # "VG"
+REQUEST_SIZE = 16
+ANSWER_SIZE = 64
+N_VALUES = 7
+MAX_REQUEST_ID = 2**31 - 1
+MAX_RECIPE = 0xFFFF
+UNKNOWN_RMS = -1.0
+
+#: Any 6- or 7-value convention: the robot program reads plain numbers in its own convention.
+SOCKET_CAPABILITIES = LinkCapabilities(
+    N_VALUES, None, "answer words 6-12, the convention's fields in its own units")
+
+ValueFormat = Literal["int32", "float32"]
+
+
+class SocketCommand(enum.IntEnum):
+    LOCATE = 1
+    CLEAR = 2
+    NEXT = 3  # reserved for pick lists
+
+
+class AnswerKind(enum.IntEnum):
+    CAPTURED = 0x81
+    RESULT = 0x82
+    REFUSED = 0x83
+
+
+def header_word(code: int) -> int:
+    """Word 0 of a frame: "VG", the version and a command or answer kind."""
+    return (MAGIC << 16) | (VERSION << 8) | (code & 0xFF)
+
+
+class FrameError(ValueError):
+    """Bytes that are not a frame of this protocol (the connection is closed)."""
+
+
+class ValueOverflowError(ValueError):
+    """A value that the answer's value format cannot represent."""
+
+
+@dataclass(frozen=True)
+class Request:
+    command: int
+    request_id: int
+    recipe: int = 0
+    reserved: int = 0
+
+    def encode(self) -> bytes:
+        return struct.pack(">4I", header_word(self.command), self.request_id, self.recipe,
+                           self.reserved)
+
+    def refusal(self) -> Status | None:
+        """``BAD_REQUEST`` when the request is well framed but cannot be served; else None."""
+        if self.command not in (SocketCommand.LOCATE, SocketCommand.CLEAR):
+            return Status.BAD_REQUEST  # NEXT too, until pick lists land
+        if not 1 <= self.request_id <= MAX_REQUEST_ID:
+            return Status.BAD_REQUEST
+        if not 0 <= self.recipe <= MAX_RECIPE or self.reserved != 0:
+            return Status.BAD_REQUEST
+        return None
+
+
+def decode_request(frame: bytes) -> Request:
+    """A request frame; ``FrameError`` when it is not one (size, magic, version)."""
+    if len(frame) != REQUEST_SIZE:
+        raise FrameError(f"a request is {REQUEST_SIZE} bytes, got {len(frame)}")
+    header, request_id, recipe, reserved = struct.unpack(">4I", frame)
+    check_header(header, "request")
+    return Request(header & 0xFF, request_id, recipe, reserved)
+
+
+def check_header(header: int, what: str) -> None:
+    magic, version = header >> 16, (header >> 8) & 0xFF
+    if magic != MAGIC:
+        raise FrameError(f"{what} starts with {header >> 16:#06x}, not 'VG' (0x5647)")
+    if version != VERSION:
+        raise FrameError(f"{what} has protocol version {version}, this is version {VERSION}")
+
+
+@dataclass(frozen=True)
+class ValueEncoding:
+    """How pose values travel: ``int32`` scaled (``raw = round(value * scale)``) or float32."""
+
+    value_format: ValueFormat = "int32"
+    scale: int = 10000
+
+    def __post_init__(self) -> None:
+        if self.value_format == "int32" and not is_power_of_ten(self.scale):
+            raise ValueError(f"scale {self.scale} must be a power of ten, 1 .. 1e9")
+
+    @property
+    def scale_word(self) -> int:
+        return self.scale if self.value_format == "int32" else 0
+
+    def encode(self, value: float, where: str = "value") -> bytes:
+        if not math.isfinite(value):
+            raise ValueOverflowError(f"{where}: {value} is not a finite number")
+        if self.value_format == "float32":
+            try:
+                return struct.pack(">f", value)
+            except OverflowError:
+                raise ValueOverflowError(f"{where}: {value} exceeds the float32 range") from None
+        raw = round(value * self.scale)
+        if not -(2**31) <= raw < 2**31:
+            raise ValueOverflowError(
+                f"{where}: {value} x {self.scale} = {raw} does not fit an int32")
+        return struct.pack(">i", raw)
+
+    def decode(self, raw: bytes) -> float:
+        if self.value_format == "float32":
+            value: float = struct.unpack(">f", raw)[0]
+            return value
+        return int(struct.unpack(">i", raw)[0]) / self.scale
+
+
+def is_power_of_ten(n: int) -> bool:
+    return n in {10**e for e in range(10)}
+
+
+@dataclass(frozen=True)
+class Answer:
+    kind: AnswerKind
+    request_id: int
+    status: int
+    job_id: int = 0
+    warnings: int = 0
+    values: tuple[float, ...] = ()
+    fit_rms_mm: float = UNKNOWN_RMS
+    remaining: int = 0
+
+    def encode(self, encoding: ValueEncoding) -> bytes:
+        """The 64-byte frame; ``ValueOverflowError`` when a pose value does not fit (the fit
+        RMS does not fail an answer: it becomes -1)."""
+        if len(self.values) > N_VALUES:
+            raise ValueOverflowError(f"{len(self.values)} pose values, the answer holds "
+                                     f"{N_VALUES}")
+        values = b"".join(encoding.encode(v, f"word {6 + i} (value {i})")
+                          for i, v in enumerate(self.values))
+        values += encoding.encode(0.0) * (N_VALUES - len(self.values))
+        try:
+            rms = encoding.encode(self.fit_rms_mm, "fit RMS")
+        except ValueOverflowError:
+            rms = encoding.encode(UNKNOWN_RMS)
+        return (struct.pack(">6I", header_word(self.kind), self.request_id, self.status,
+                            self.job_id & 0xFFFFFFFF, self.warnings, len(self.values))
+                + values + rms + struct.pack(">2I", encoding.scale_word, self.remaining))
+
+
+def decode_answer(frame: bytes) -> Answer:
+    """An answer frame, values decoded by its own scale word; ``FrameError`` when it is not
+    one. What a robot program reads, for tests and the emulation clients."""
+    if len(frame) != ANSWER_SIZE:
+        raise FrameError(f"an answer is {ANSWER_SIZE} bytes, got {len(frame)}")
+    header, request_id, status, job_id, warnings, count = struct.unpack_from(">6I", frame)
+    check_header(header, "answer")
+    try:
+        kind = AnswerKind(header & 0xFF)
+    except ValueError:
+        raise FrameError(f"answer kind {header & 0xFF:#04x} is not 0x81..0x83") from None
+    scale, remaining = struct.unpack_from(">2I", frame, 56)
+    if count > N_VALUES:
+        raise FrameError(f"answer count {count} exceeds {N_VALUES}")
+    encoding = ValueEncoding("int32", scale) if scale else ValueEncoding("float32")
+    values = tuple(encoding.decode(frame[24 + 4 * i:28 + 4 * i]) for i in range(count))
+    return Answer(kind, request_id, status, job_id, warnings, values,
+                  encoding.decode(frame[52:56]), remaining)
+
+
+def result_answer(request_id: int, result: JobResult, warnings: int, encoding: ValueEncoding,
+                  captured: bool) -> tuple[bytes, JobResult]:
+    """The final frame for ``result`` and the result actually sent.
+
+    A pose value that does not fit the encoding turns the answer into ``OUT_OF_LIMITS`` without
+    a pose, more values than the frame holds (a bug: the config check refuses such a vendor)
+    into ``INTERNAL``. A request that never got a job (no images, job id 0: the daemon's BUSY
+    or ABORTED refusal) is answered REFUSED, every other one RESULT.
+    """
+    kind = AnswerKind.RESULT if captured or result.job_id else AnswerKind.REFUSED
+    values: tuple[float, ...] = ()
+    if result.status.pose_valid and result.target is not None:
+        values = result.target.values
+    rms = result.residuals.get(FIT_RMS_KEY, UNKNOWN_RMS)
+    answer = Answer(kind, request_id, int(result.status), result.job_id, warnings, values, rms)
+    try:
+        return answer.encode(encoding), result
+    except ValueOverflowError as err:
+        status = Status.INTERNAL if len(values) > N_VALUES else Status.OUT_OF_LIMITS
+        failed = JobResult(job_id=result.job_id, status=status, message=str(err),
+                           t_done_mono_ns=result.t_done_mono_ns)
+        answer = Answer(kind, request_id, int(status), result.job_id, warnings, (), rms)
+        return answer.encode(encoding), failed
+
+
+# --- robot programs (robots/<brand>/, ``vgripd robot-program``) ---------------------------
+
+
+@dataclass(frozen=True)
+class RobotBrand:
+    """One brand's generated program: what it needs from the link and how it connects.
+
+    ``convention``: the ``output.vendor`` its pose variable is in. ``value_format``: what its
+    socket instructions unpack (int32 where integers are easier: KRL, Karel, URScript,
+    MotoPlus, VAL3; float32 for RAPID, whose quaternion needs more than int32 x scale gives).
+    ``mode``: the link mode it pairs with (``client`` when the robot runs the server).
+    ``connection``: ``kept`` (connect once, reconnect after a failure), ``per_request``
+    (connect for each locate, close after its answer) or ``robot_server`` (vgripd dials in).
+    ``files``: the templates in ``robots/<name>/``. ``min_scale``: the smallest int32 scale
+    the program converts without losing its controller's resolution.
+    """
+
+    name: str
+    title: str
+    convention: str
+    value_format: ValueFormat
+    mode: Literal["server", "client"]
+    connection: Literal["kept", "per_request", "robot_server"]
+    files: tuple[str, ...]
+    min_scale: int = 1
+
+
+BRANDS: dict[str, RobotBrand] = {b.name: b for b in (
+    RobotBrand("kuka", "KUKA KRL with KUKA.EthernetKRL", "kuka", "int32", "server", "kept",
+               ("vgripd.src", "vgripd.dat", "VgripdEki.xml")),
+    RobotBrand("abb", "ABB RAPID socket messaging", "abb", "float32", "server", "kept",
+               ("VgripdSocket.mod",)),
+    RobotBrand("fanuc", "FANUC Karel socket messaging with a TP wrapper", "fanuc", "int32",
+               "server", "per_request", ("vgripd.kl", "VG_LOCATE.ls")),
+    RobotBrand("staubli", "Staubli VAL3 socket (sio)", "staubli", "int32", "server", "kept",
+               ("vgripd.pjx", "vgripd.dtx", "vgLocate.pgx", "vgRequest.pgx")),
+    RobotBrand("yaskawa", "Yaskawa MotoPlus task with an INFORM job", "yaskawa", "int32",
+               "client", "robot_server", ("vgripd_task.c", "VGLOCATE.JBI"), 10000),
+    RobotBrand("ur", "Universal Robots URScript socket_open", "ur", "int32", "server",
+               "per_request", ("vgripd_socket.script",)),
+)}
