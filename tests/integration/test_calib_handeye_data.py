@@ -7,22 +7,30 @@
 - Tabb & Ahmad Yousef's dataset 1 (88 robot / board pose pairs, no images; tabb_rwhe_dataset1/
   PROVENANCE.md): solved through ``--samples`` with the board poses of cali.txt; compared with
   inverse(Z) of their published rwhe_AA_RPI solution.
+
+Both also read wrong (the issue "Vision that keeps working and says why when it can't", 5):
+KUKA poses as FANUC's, metres as millimetres, poses out of step with the images, the other
+mounting, shuffled. Each is refused (exit 1, nothing written) naming the cause; ``--force``
+writes the result anyway with a warning.
 """
 
 from __future__ import annotations
 
 import json
+import random
 import re
 import tomllib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from vgripd.__main__ import main
-from vgripd.calib.handeye import SAMPLES_FORMAT
+from vgripd.calib.handeye import REFUSE_RATIO, SAMPLES_FORMAT, read_poses
 from vgripd.config import HandEyeConfig
 from vgripd.geometry.transforms import make_transform, matrix_from_rotvec, pose_error
+from vgripd.geometry.vendors import vendor_from_transform
 
 VISP = "visp_franka_eye_in_hand"
 TABB = "tabb_rwhe_dataset1"
@@ -89,6 +97,11 @@ def test_visp_eye_in_hand_agrees_with_published_emc(datasets: Path, tmp_path: Pa
     assert summary["noise"]["robot_deg"] >= 0.1
     assert summary["noise"]["robot_mm"] >= 1.0
     assert any("robot poses disagree" in w for w in summary["warnings"])
+    # the fit check: 0.28x what corner noise plus a robot off by up to 1 deg / 10 mm explain
+    assert summary["fit_check"]["ok"] is True
+    assert summary["fit_check"]["ratio"] < REFUSE_RATIO / 3
+    assert summary["fit_check"]["better_readings"] == []
+    assert summary["noise"]["robot_at_edge"] is False
     poses_only = _run_json(capsys, [*common, "--objective", "poses",
                                     "-o", str(tmp_path / "poses.toml")])
     assert poses_only["solver"] == "refined-poses"
@@ -196,6 +209,8 @@ def test_tabb_dataset1_rotation_within_1_deg(datasets: Path, tmp_path: Path,
     mm, deg = pose_error(np.array(summary["matrix_mm"]), ref)
     assert summary["solver"] == "refined-poses"
     assert summary["rms_px"] is None
+    assert summary["fit_check"]["ok"] is True
+    assert summary["fit_check"]["ratio"] < REFUSE_RATIO / 3  # 0.24
     assert deg < 1.0
     assert mm < 50.0
     for name in ("tsai", "park", "horaud", "andreff"):
@@ -205,3 +220,128 @@ def test_tabb_dataset1_rotation_within_1_deg(datasets: Path, tmp_path: Path,
     assert len(summary["per_sample"]) == 88
     assert any("consecutive sample pair(s) rotate less than 5 deg" in w
                for w in summary["warnings"])
+
+
+# ---------------------------------------------------------------------- input read wrong
+def _visp_poses(datasets: Path, tmp_path: Path, fmt: str, order: list[int] | None = None,
+                scale: float = 1.0) -> tuple[Path, Path, str]:
+    """ViSP's poses rewritten in ``fmt`` (positions times ``scale``, in ``order``)."""
+    poses, camera, images = _visp_inputs(datasets, tmp_path)
+    T = read_poses(poses, "ur")
+    lines = []
+    for k in order or range(len(T)):
+        v = list(vendor_from_transform(fmt, T[k]))
+        v[:3] = [x * scale for x in v[:3]]
+        lines.append(" ".join(f"{x:.10g}" for x in v))
+    path = tmp_path / f"poses_{fmt}.txt"
+    path.write_text("\n".join(lines) + "\n")
+    return path, camera, images
+
+
+def _visp_argv(datasets: Path, tmp_path: Path, fmt: str, read_as: str,
+               mode: str = "eye-in-hand", **kw: Any) -> list[str]:
+    poses, camera, images = _visp_poses(datasets, tmp_path, fmt, **kw)
+    return ["calibrate", "handeye", "--mode", mode, "--poses", str(poses), "--pose-format",
+            read_as, "--images", images, "--board", "chessboard:9x6:23.6", "--intrinsics",
+            str(camera), "-o", str(tmp_path / "he.toml")]
+
+
+def _refused(argv: list[str], capsys: pytest.CaptureFixture[str], out: Path) -> str:
+    rc = main(argv)
+    err = capsys.readouterr().err
+    assert rc == 1, err
+    assert not out.exists()
+    text = " ".join(err.split())
+    assert "refused: the fit does not explain the data" in text
+    for cause in ("--pose-format", "the units", "the pose order", "--exclude", "--mode"):
+        assert cause in text, cause
+    return text
+
+
+@pytest.mark.parametrize(("case", "fmt", "read_as", "mode", "kw", "named"), [
+    ("kuka as fanuc", "kuka", "fanuc", "eye-in-hand", {},
+     "Most likely the pose format: the data fit with --pose-format kuka"),
+    ("fanuc as kuka", "fanuc", "kuka", "eye-in-hand", {},
+     "Most likely the pose format: the data fit with --pose-format fanuc"),
+    ("m as mm", "kuka", "kuka", "eye-in-hand", {"scale": 0.001},
+     "Most likely the units: the data fit with the robot positions x1000"),
+    ("mm as m", "ur", "ur", "eye-in-hand", {"scale": 1000.0},
+     "Most likely the units: the data fit with the robot positions x0.001"),
+    ("shifted by one", "ur", "ur", "eye-in-hand", {"order": [1, 2, 3, 4, 5, 6, 7, 0]},
+     "Most likely the pose order: the data fit with each image with the pose one line "
+     "earlier"),
+    ("two swapped", "ur", "ur", "eye-in-hand", {"order": [0, 1, 6, 3, 4, 5, 2, 7]},
+     "Most likely bad samples"),
+    ("shuffled", "ur", "ur", "eye-in-hand", {"order": [5, 3, 7, 0, 6, 1, 4, 2]},
+     "No other pose format, units, shift by one, mounting"),
+    ("wrong mounting", "ur", "ur", "eye-to-hand", {},
+     "Most likely the mounting: the data fit with --mode eye-in-hand"),
+])
+def test_visp_read_wrong_is_refused_naming_the_cause(
+        datasets: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str,
+        fmt: str, read_as: str, mode: str, kw: dict[str, Any], named: str) -> None:
+    """Measured (ratio of the residual to what noise explains; the right input 0.28, the
+    limit 1.5): KUKA as FANUC 18, m as mm 1.9 (and x1000 fits at 0.28), mm as m: the board
+    behind the camera, shifted by one 44, shuffled 41, eye-to-hand 18."""
+    text = _refused(_visp_argv(datasets, tmp_path, fmt, read_as, mode, **kw), capsys,
+                    tmp_path / "he.toml")
+    assert named in text, case
+    if case == "two swapped":
+        assert "--exclude 2,6" in text
+
+
+def test_visp_kuka_read_as_fanuc_forced_is_written_with_a_warning(
+        datasets: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The issue's case, forced: written, far from ViSP's eMc, and flagged as such."""
+    argv = _visp_argv(datasets, tmp_path, "kuka", "fanuc")
+    summary = _run_json(capsys, [*argv[2:], "--force"])
+    assert summary["fit_check"]["ok"] is False
+    assert summary["fit_check"]["forced"] is True
+    assert summary["fit_check"]["rms_px"] > 100.0
+    assert summary["warnings"][0].startswith("FORCED (--force): this result is most likely WRONG")
+    assert not any("most likely (robot noise" in w for w in summary["warnings"])
+    assert summary["noise"]["robot_at_edge"] is True
+    assert pose_error(np.array(summary["matrix_mm"]), VISP_EMC)[1] > 10.0
+    about = tomllib.loads((tmp_path / "he.toml").read_text())["about"]
+    assert about["fit_check"]["forced"] is True
+
+
+def _tabb_variant(datasets: Path, tmp_path: Path, name: str, *, scale: float = 1.0,
+                  order: list[int] | None = None, mode: str = "eye-in-hand") -> Path:
+    """Tabb's samples file with the robot positions scaled, the robot poses reordered, or
+    another mode."""
+    path = tmp_path / f"{name}.json"
+    _tabb_samples(datasets, path)
+    data = json.loads(path.read_text())
+    flange = [np.array(e["T_base_flange"]) for e in data["samples"]]
+    for e, k in zip(data["samples"], order or range(len(flange)), strict=True):
+        T = flange[k].copy()
+        T[:3, 3] *= scale
+        e["T_base_flange"] = T.tolist()
+    data["mode"] = mode
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_tabb_read_wrong_is_refused(datasets: Path, tmp_path: Path,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Board poses only (no corners): the spread of the implied board poses against what a
+    robot off by up to 1 deg / 10 mm explains. Measured: the right input 0.24; m as mm 8.5,
+    shifted by one 5.4, shuffled 8.9, eye-to-hand 5.4 (limit 1.5)."""
+    shuffled = list(range(88))
+    random.Random(5).shuffle(shuffled)
+    cases: list[tuple[str, dict[str, Any], str]] = [
+        ("m", {"scale": 0.001}, "Most likely the units: the data fit with the robot positions "
+                                "x1000"),
+        ("shift", {"order": [*range(1, 88), 0]}, "Most likely the pose order"),
+        ("shuffled", {"order": shuffled}, "No other units, shift by one, mounting"),
+        ("eth", {"mode": "eye-to-hand"}, "Most likely the mounting: the data fit with --mode "
+                                         "eye-in-hand"),
+    ]
+    out = tmp_path / "he.toml"
+    for name, kw, named in cases:
+        path = _tabb_variant(datasets, tmp_path, name, **kw)
+        text = _refused(["calibrate", "handeye", "--samples", str(path), "-o", str(out)],
+                        capsys, out)
+        assert named in text, name
+        assert "the board poses the samples imply disagree by" in text

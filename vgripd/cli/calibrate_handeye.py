@@ -7,13 +7,21 @@ images (``--images`` glob sorted by name, numbers by value: img2 before img10), 
 A B C deg; ur: x y z m, rx ry rz rad; matrix: 16 numbers row-major, mm; ...). ``#`` starts a
 comment. The samples (robot poses and detected corners) are saved beside the output as
 ``<output stem>.samples.json`` (or ``--save-samples``); ``--samples FILE`` solves again from
-such a file without robot or images. See docs/calibration-handeye.md.
+such a file without robot or images.
+
+A fit whose residuals are far beyond what noise explains (corner noise plus robot poses off by
+up to 1 deg / 10 mm per axis) is refused: exit 1, nothing written, the message gives the
+residual against the expected one and the likely causes (pose format, units, pose order,
+mounting), naming the reading of the input that the data do fit when one does. ``--force``
+writes it anyway, with a warning. Exit status: 0 written, 1 calibration failure or refused
+fit, 2 missing arguments. See docs/calibration-handeye.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import glob
+import math
 import os
 import re
 import shlex
@@ -28,11 +36,15 @@ from vgripd.calib.files import pose_table, write_result
 from vgripd.calib.handeye import (
     MODES,
     OBJECTIVES,
+    ROBOT_SIGMA_DEG,
+    ROBOT_SIGMA_MM,
     HandEyeResult,
     Sample,
     calibrate_hand_eye,
     load_samples,
     read_poses,
+    refusal_lines,
+    robot_noise_text,
     save_samples,
 )
 from vgripd.calib.output import add_output_arguments, emit
@@ -75,6 +87,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(reprojection, robot taken as exact), poses (board-pose residuals,"
                              " unweighted), none (best linear solver), auto (likelihood with "
                              "board corners, poses without; default)")
+    parser.add_argument("--force", action="store_true",
+                        help="write the result even when its residuals are far beyond what "
+                             "noise explains (it is refused otherwise: exit 1, nothing written)")
     add_output_arguments(parser, "handeye.toml")
 
 
@@ -129,6 +144,8 @@ def _command(args: argparse.Namespace) -> str:
         value = getattr(args, flag)
         if value is not None:
             words += [f"--{flag.replace('_', '-')}", str(value)]
+    if args.force:
+        words.append("--force")
     return shlex.join([*words, "-o", args.output])
 
 
@@ -168,17 +185,34 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = calibrate_hand_eye(samples, mode, camera,
                                     min_rotation_deg=args.min_rotation_deg,
-                                    objective=args.objective)
+                                    objective=args.objective,
+                                    pose_format=None if args.samples else args.pose_format,
+                                    refine_refused=args.force)
     except DegenerateInputError as err:
         raise CalibrationError(f"hand-eye: {err}") from None
+    check = result.check
+    assert check is not None
+    refused = not check.ok
+    if refused:
+        why = refusal_lines(check, mode, None if args.samples else args.pose_format)
+        if not args.force:
+            kept = f"; the samples are in {samples_file}" if samples_file else ""
+            raise CalibrationError("\n  ".join(
+                ["calibrate handeye: refused: " + why[0], *why[1:],
+                 f"Nothing written to {args.output}{kept}; --force writes the result anyway."]))
+        result.warnings = [w for w in result.warnings
+                           if not w.startswith("the fit does not explain the data")]
+        result.warnings.insert(0, "FORCED (--force): this result is most likely WRONG, do not "
+                                  "use it for the robot: " + " ".join(why))
     warnings = [f"{r['image']}: left out: {r['reason']}" for r in rejected] + result.warnings
     summary = _summary(result, warnings, args.output, samples_file, rejected)
     mounting = "robot" if mode == "eye-in-hand" else "fixed"
     about = {
         "command": _command(args), "mode": mode, "board": board, "solver": result.solver,
         "start": result.start, "samples": len(samples), "samples_file": samples_file or "",
-        "rms_px": result.rms_px if result.rms_px is not None else "n/a (board poses only)",
-        "noise": summary["noise"],
+        "rms_px": result.rms_px if result.rms_px is not None else (
+            "n/a (board behind the camera)" if check.behind else "n/a (board poses only)"),
+        "noise": summary["noise"], "fit_check": summary["fit_check"],
         result.board_name: pose_table(result.T_anchor_board),
         "stability": summary["stability"] or {}, "per_sample": summary["per_sample"],
         "rejected": rejected, "warnings": warnings}
@@ -219,11 +253,49 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def _finite(value: float | None) -> float | None:
+    """JSON has no inf/nan: None instead."""
+    return value if value is None or math.isfinite(value) else None
+
+
+def _noise(result: HandEyeResult) -> dict[str, Any] | None:
+    """The likelihood objective's noise figures. A robot noise at an edge of its search grid
+    is a bound, not a figure: ``robot_deg`` / ``robot_mm`` are then None and
+    ``robot_deg_at_least`` (upper edge) or ``..._at_most`` (lower edge) holds the bound."""
+    if result.robot_sigma is None:
+        return None
+    out: dict[str, Any] = {"corners_px": result.sigma_px}
+    for value, unit, edge in zip(result.robot_sigma, ("deg", "mm"), result.robot_sigma_edges,
+                                 strict=True):
+        out[f"robot_{unit}"] = None if edge else value
+        out[f"robot_{unit}_at_least"] = value if edge == "upper" else None
+        out[f"robot_{unit}_at_most"] = value if edge == "lower" else None
+    out["robot_at_edge"] = any(result.robot_sigma_edges)
+    out["robot_search_range"] = {"deg": [ROBOT_SIGMA_DEG[0], ROBOT_SIGMA_DEG[-1]],
+                                 "mm": [ROBOT_SIGMA_MM[0], ROBOT_SIGMA_MM[-1]]}
+    out["robot_text"] = robot_noise_text(result.robot_sigma)
+    return out
+
+
+def _fit_check(result: HandEyeResult) -> dict[str, Any]:
+    c = result.check
+    assert c is not None
+    return {
+        "ok": c.ok, "ratio": _finite(c.ratio), "limit": c.limit, "behind_camera": c.behind,
+        "rms_px": _finite(c.rms_px), "expected_px": c.expected_px, "corners_px": c.corners_px,
+        "rotation_deg": c.rotation_deg, "translation_mm": c.translation_mm,
+        "expected_deg": c.expected_deg, "expected_mm": c.expected_mm,
+        "better_readings": [{"cause": r.cause, "change": r.change, "ratio": r.ratio,
+                             "residual": r.residual} for r in c.better],
+        "forced": not c.ok}
+
+
 def _summary(result: HandEyeResult, warnings: list[str], output: str, samples_file: str | None,
              rejected: list[dict[str, str]]) -> dict[str, Any]:
     solvers = {}
     for name, sol in result.solvers.items():
-        solvers[name] = {"matrix_mm": None if sol.error else sol.T, "rms_px": sol.rms_px,
+        solvers[name] = {"matrix_mm": None if sol.error else sol.T,
+                         "rms_px": _finite(sol.rms_px),
                          "rotation_deg": None if sol.error else sol.rotation_deg,
                          "translation_mm": None if sol.error else sol.translation_mm,
                          "error": sol.error or None}
@@ -232,9 +304,7 @@ def _summary(result: HandEyeResult, warnings: list[str], output: str, samples_fi
         "mode": result.mode, "matrix_mm": result.T, "transform": result.transform_name,
         "solver": result.solver, "start": result.start, "solvers": solvers,
         "rms_px": result.rms_px, result.board_name: result.T_anchor_board,
-        "noise": None if result.robot_sigma is None else {
-            "corners_px": result.sigma_px, "robot_deg": result.robot_sigma[0],
-            "robot_mm": result.robot_sigma[1]},
+        "noise": _noise(result), "fit_check": _fit_check(result),
         "per_sample": [{"sample": r.sample, "image": r.image, "rms_px": r.rms_px,
                         "rotation_deg": r.rotation_deg, "translation_mm": r.translation_mm,
                         "outlier": r.outlier} for r in result.per_sample],
@@ -254,12 +324,22 @@ def _human(result: HandEyeResult, warnings: list[str], output: str,
     lines += ["  " + " ".join(f"{v:12.6f}" for v in row) for row in T[:3]]
     lines.append("  translation_mm " + " ".join(f"{v:.3f}" for v in pose["translation_mm"])
                  + "  rotvec_rad " + " ".join(f"{v:.6f}" for v in pose["rotvec_rad"]))
+    if not (result.check is None or result.check.ok):
+        lines.insert(0, "!!! NOT A VALID CALIBRATION: the fit does not explain the data; "
+                        "written only because of --force (see the warnings) !!!")
     if result.rms_px is not None:
         lines.append(f"reprojection RMS {result.rms_px:.3f} px over {len(result.per_sample)} "
                      "samples")
     if result.robot_sigma is not None:
         lines.append(f"noise (1 sigma per axis): corners {result.sigma_px:.3f} px, robot poses "
-                     f"{result.robot_sigma[0]:g} deg {result.robot_sigma[1]:g} mm (most likely)")
+                     f"{robot_noise_text(result.robot_sigma)}, the most likely")
+    check = result.check
+    if check is not None:
+        verdict = "ok" if check.ok else "FAILED, written only because of --force"
+        figure = ("the fit puts the board behind the camera" if check.behind else
+                  f"{check.ratio:.2g}x what noise explains")
+        lines.append(f"fit check: {figure} (limit {check.limit:g}x; residual "
+                     f"{check.residual()} RMS): {verdict}")
     lines.append("solver       RMS px   rot RMS deg  trans RMS mm")
     for name, sol in result.solvers.items():
         if sol.error:
@@ -291,8 +371,9 @@ def _report(path: str, result: HandEyeResult, samples: list[Sample],
     from vgripd.calib.report import ImageResiduals, write_report
 
     if not result.residuals_px or camera is None:
-        raise CalibrationError("--report needs board corners (the samples hold board poses "
-                               "only)")
+        raise CalibrationError("--report needs board corners in front of the camera (the "
+                               "samples hold board poses only, or the fit puts the board "
+                               "behind the camera)")
     images = [ImageResiduals(s.image, np.asarray(s.px), r)
               for s, r in zip(samples, result.residuals_px, strict=True)]
     write_report(path, f"vgripd calibrate handeye  {result.mode}",

@@ -406,3 +406,48 @@ def test_read_poses_errors_name_file_and_line(tmp_path) -> None:
     p.write_text("# nothing\n")
     with pytest.raises(CalibrationError, match="no robot poses"):
         read_poses(p, "ur")
+
+
+# ---------------------------------------------------------------------- the fit check
+def test_fit_check_passes_the_right_input_and_names_the_reading_that_fits() -> None:
+    """The check's figures on the library level (the command's refusal is tested in
+    test_calib_handeye_refusal.py): the right input is well within the limit; the same poses
+    read as the wrong format fail it, and the format they were written in is named."""
+    from vgripd.calib.handeye import REFUSE_RATIO
+    from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
+
+    samples = make("eye-in-hand", n=12, seed=4, noise_px=0.2, robot_noise_deg=0.05,
+                   robot_noise_mm=0.3)
+    res = calibrate_hand_eye(_fresh(samples), "eye-in-hand", CAMERA, stability=False,
+                             pose_format="kuka")
+    assert res.check is not None
+    assert res.check.ok
+    assert res.check.ratio < REFUSE_RATIO / 3
+    assert res.check.better == []
+    assert res.check.rms_px == pytest.approx(res.rms_px)
+    assert res.check.corners_px == pytest.approx(res.sigma_px)
+
+    misread = [Sample(transform_from_vendor("fanuc", vendor_from_transform("kuka",
+                                                                           s.T_base_flange)),
+                      None, s.image, s.obj, s.px) for s in samples]
+    bad = calibrate_hand_eye(misread, "eye-in-hand", CAMERA, pose_format="fanuc",
+                             refine_refused=False)
+    assert bad.check is not None
+    assert not bad.check.ok
+    assert bad.check.ratio > 3 * REFUSE_RATIO
+    assert bad.check.better[0].cause == "the pose format"
+    assert bad.check.better[0].change.startswith("--pose-format kuka")
+    assert bad.solver == bad.start  # not refined: refused whatever a refinement does
+    assert bad.stability is None
+    assert any(w.startswith("the fit does not explain the data") for w in bad.warnings)
+    assert not any("robot poses disagree" in w or "outlier" in w for w in bad.warnings)
+
+
+def test_robot_noise_edges() -> None:
+    from vgripd.calib.handeye import robot_edges, robot_noise_text
+
+    assert robot_edges((ROBOT_SIGMA_DEG[0], ROBOT_SIGMA_MM[3])) == ("lower", None)
+    assert robot_edges((ROBOT_SIGMA_DEG[2], ROBOT_SIGMA_MM[-1])) == (None, "upper")
+    assert robot_noise_text((0.3, 3.0)) == "0.3 deg and 3 mm"
+    assert robot_noise_text((0.3, 10.0)).startswith(
+        "0.3 deg and >= 10 mm (at the edge of the search range")

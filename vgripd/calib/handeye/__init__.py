@@ -37,9 +37,16 @@ Pipeline of :func:`calibrate_hand_eye` (module in brackets):
 4. per-sample residuals [calibrate]: reprojection RMS and how far that sample's implied board
    pose ``P_i X B_i`` lies from the consensus (deg, mm); samples far above the median are
    flagged;
-5. stability [calibrate]: the refinement repeated leaving out one sample at a time; the spread
+5. fit check [plausibility]: the residuals against what noise explains (corner noise plus
+   robot poses off by up to 1 deg / 10 mm per axis): the reprojection RMS with the robot taken
+   as exact, and the spread of the implied board poses. Beyond ``REFUSE_RATIO`` times that,
+   or when another reading of the same input (pose format, units, poses shifted by one, the
+   other mounting) fits far better, the result's ``check`` fails and says which reading fits;
+   the command refuses such a result unless ``--force``;
+6. stability [calibrate]: the refinement repeated leaving out one sample at a time; the spread
    of X (largest and RMS rotation angle in deg and translation in mm against the full
-   solution) is what the result would move by if one sample were missing.
+   solution) is what the result would move by if one sample were missing (not for a fit that
+   fails the check).
 
 Files [io]: the robot poses file and the samples file. Test data [synth]:
 :func:`synthetic_samples`. Rotation and pose-error helpers: ``vgripd.geometry.transforms``.
@@ -55,9 +62,19 @@ from vgripd.calib.handeye.calibrate import (
     SampleResidual,
     Stability,
     calibrate_hand_eye,
+    robot_edges,
+    robot_noise_text,
 )
 from vgripd.calib.handeye.io import SAMPLES_FORMAT, load_samples, read_poses, save_samples
 from vgripd.calib.handeye.likelihood import ROBOT_SIGMA_DEG, ROBOT_SIGMA_MM
+from vgripd.calib.handeye.plausibility import (
+    REFUSE_RATIO,
+    ROBOT_BOUND_DEG,
+    ROBOT_BOUND_MM,
+    FitCheck,
+    Reading,
+    refusal_lines,
+)
 from vgripd.calib.handeye.pnp import board_pose, measure_board_poses
 from vgripd.calib.handeye.samples import MODES, Sample, anchor_poses, consensus_board
 from vgripd.calib.handeye.solvers import MIN_SAMPLES, SOLVERS, check_motion, solve_linear
@@ -68,12 +85,17 @@ __all__ = [
     "MIN_SAMPLES",
     "MODES",
     "OBJECTIVES",
+    "REFUSE_RATIO",
+    "ROBOT_BOUND_DEG",
+    "ROBOT_BOUND_MM",
     "ROBOT_SIGMA_DEG",
     "ROBOT_SIGMA_MM",
     "SAMPLES_FORMAT",
     "SOLVERS",
+    "FitCheck",
     "HandEyeResult",
     "LinearSolution",
+    "Reading",
     "Sample",
     "SampleResidual",
     "Stability",
@@ -85,6 +107,9 @@ __all__ = [
     "load_samples",
     "measure_board_poses",
     "read_poses",
+    "refusal_lines",
+    "robot_edges",
+    "robot_noise_text",
     "save_samples",
     "solve_linear",
     "synthetic_samples",

@@ -9,8 +9,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from vgripd.calib.handeye.likelihood import Likelihood
-from vgripd.calib.handeye.pnp import measure_board_poses
+from vgripd.calib.handeye.likelihood import ROBOT_SIGMA_DEG, ROBOT_SIGMA_MM, Likelihood
+from vgripd.calib.handeye.plausibility import (
+    HOPELESS_RATIO,
+    FitCheck,
+    Scorer,
+    better_readings,
+    exclusion_reading,
+)
+from vgripd.calib.handeye.pnp import corner_jacobians, measure_board_poses
 from vgripd.calib.handeye.refine import Problem, refine
 from vgripd.calib.handeye.samples import (
     FloatArray,
@@ -108,6 +115,13 @@ class HandEyeResult:
     #: fits) and the robot pose noise found most likely (deg, mm per axis); else None
     sigma_px: float | None = None
     robot_sigma: tuple[float, float] | None = None
+    #: whether the residuals are within what noise explains (None: not checked)
+    check: FitCheck | None = None
+
+    @property
+    def robot_sigma_edges(self) -> tuple[str | None, str | None]:
+        """:func:`robot_edges` of ``robot_sigma`` ((None, None) without it)."""
+        return (None, None) if self.robot_sigma is None else robot_edges(self.robot_sigma)
 
     @property
     def transform_name(self) -> str:
@@ -116,6 +130,36 @@ class HandEyeResult:
     @property
     def board_name(self) -> str:
         return "T_base_board" if self.mode == "eye-in-hand" else "T_flange_board"
+
+
+def robot_edges(robot_sigma: tuple[float, float]) -> tuple[str | None, str | None]:
+    """For (deg, mm): "lower" / "upper" when the most likely robot noise is the smallest /
+    largest of its search grid (``ROBOT_SIGMA_DEG``, ``ROBOT_SIGMA_MM``: the noise is at most /
+    at least that, not that figure), else None."""
+    def edge(value: float, grid: Sequence[float]) -> str | None:
+        if value <= grid[0]:
+            return "lower"
+        if value >= grid[-1]:
+            return "upper"
+        return None
+
+    return edge(robot_sigma[0], ROBOT_SIGMA_DEG), edge(robot_sigma[1], ROBOT_SIGMA_MM)
+
+
+def robot_noise_text(robot_sigma: tuple[float, float]) -> str:
+    """The robot noise found most likely, e.g. "0.3 deg and 3 mm", or at a grid edge
+    "0.3 deg and >= 10 mm (at the edge of the search range, ...)"."""
+    parts = []
+    for value, unit, edge in zip(robot_sigma, ("deg", "mm"), robot_edges(robot_sigma),
+                                 strict=True):
+        sign = {"upper": ">= ", "lower": "<= "}.get(edge or "", "")
+        parts.append(f"{sign}{value:g} {unit}")
+    text = " and ".join(parts)
+    if any(robot_edges(robot_sigma)):
+        text += (f" (at the edge of the search range, {ROBOT_SIGMA_DEG[0]:g}-"
+                 f"{ROBOT_SIGMA_DEG[-1]:g} deg and {ROBOT_SIGMA_MM[0]:g}-{ROBOT_SIGMA_MM[-1]:g}"
+                 " mm)")
+    return text
 
 
 def _check_samples(samples: Sequence[Sample], camera: CameraModel | None) -> None:
@@ -139,6 +183,8 @@ def calibrate_hand_eye(
     min_rotation_deg: float = 5.0,
     objective: str = "auto",
     stability: bool = True,
+    pose_format: str | None = None,
+    refine_refused: bool = True,
 ) -> HandEyeResult:
     """Solve X from the samples (see the package docstring for the steps).
 
@@ -153,6 +199,17 @@ def calibrate_hand_eye(
         "pixels" (reprojection error of the corners, robot taken as exact), "poses"
         (board-pose residuals, unweighted), "none" (keep the best linear solution) or "auto":
         likelihood with corner data, poses without.
+    pose_format : the convention the robot poses were read in (``vgripd.geometry.vendors``),
+        if known: the fit check then also tries the same numbers in the other formats.
+    refine_refused : False: a fit the check will refuse whatever the refinement does (the
+        linear solution already ``HOPELESS_RATIO`` times beyond what noise explains, or
+        another reading of the input fitting far better) keeps the linear solution, saving
+        the refinement (seconds on such data); the command refines only with ``--force``.
+
+    The result's ``check`` (:mod:`.plausibility`) says whether the residuals are within what
+    noise explains and which other reading of the input (pose format, units, pose order,
+    mounting) fits far better; a failed check is a warning here, callers decide whether to
+    refuse the result (the command does, unless ``--force``).
 
     Raises
     ------
@@ -184,37 +241,59 @@ def calibrate_hand_eye(
     if objective in ("likelihood", "pixels") and not problem.pixels:
         raise CalibrationError(f"hand-eye objective {objective!r} needs board corners and "
                                "intrinsics; these samples carry board poses only")
+    # the fit check's linear part: the given reading and the other readings of the input
+    scorer = _scorer(problem, samples, camera)
+    given = scorer.linear(samples, mode)
+    better = better_readings(scorer, samples, mode, pose_format, given)
+    given_ratio = math.inf if given is None else given.ratio
+    if not refine_refused and (better or scorer.check(problem, X0, C0).ratio > HOPELESS_RATIO):
+        objective = "none"  # refused whatever the refinement does: keep the linear solution
     sigma_px = robot_sigma = likelihood = None
     if objective == "likelihood":
         assert camera is not None
         likelihood = Likelihood.from_corners(problem, samples, camera)
         X, C, converged, robot_sigma = likelihood.solve(X0, C0)
         sigma_px = likelihood.sigma_px
-        if robot_sigma[0] > ROBOT_WARN_DEG or robot_sigma[1] > ROBOT_WARN_MM:
-            warnings.append(
-                f"the robot poses disagree with the images by about {robot_sigma[0]:g} deg and "
-                f"{robot_sigma[1]:g} mm per axis (most likely noise; the corners' own noise is "
-                f"{sigma_px:.2f} px): check the robot's accuracy, that each pose was read after "
-                "the robot settled, and the intrinsics")
     elif objective == "pixels":
-        X, C, converged = refine(problem, X0, C0)
-        rms = math.sqrt(problem.cost(X, C) / len(problem.px))
-        if rms > MAX_PIXEL_RMS:
-            warnings.append(
-                f"reprojection RMS {rms:.2f} px with the robot poses taken as exact: far above "
-                "corner noise, so the robot poses (or the intrinsics) carry the larger error "
-                "and the pixel fit bends X to absorb it; use --objective likelihood")
+        if problem.cost(X0, C0) == math.inf:
+            converged = False  # the check below says why
+        else:
+            X, C, converged = refine(problem, X0, C0)
+            rms = math.sqrt(problem.cost(X, C) / len(problem.px))
+            if rms > MAX_PIXEL_RMS:
+                warnings.append(
+                    f"reprojection RMS {rms:.2f} px with the robot poses taken as exact: far "
+                    "above corner noise, so the robot poses (or the intrinsics) carry the "
+                    "larger error and the pixel fit bends X to absorb it; use --objective "
+                    "likelihood")
     elif objective == "poses":
         X, C, converged = refine(Problem(samples, mode, camera, pixels=False), X0, C0)
     if objective != "none":
         solver = f"refined-{objective}"
-    if not converged:
+
+    per_sample, residuals_px, rms_px = _per_sample(problem, samples, X, C)
+    flagged = [k for k, r in enumerate(per_sample) if r.outlier]
+    check = scorer.check(problem, X, C)
+    check.linear_ratio, check.better = given_ratio, better
+    if check.ratio > check.limit and not check.better:
+        left_out = exclusion_reading(scorer, samples, mode, flagged, given)
+        if left_out is not None:
+            check.better.append(left_out)
+    if not check.ok:
+        warnings.append("the fit does not explain the data: " + check.residual_text())
+    if robot_sigma is not None and check.ok and (
+            robot_sigma[0] > ROBOT_WARN_DEG or robot_sigma[1] > ROBOT_WARN_MM):
+        warnings.append(
+            f"the robot poses disagree with the images by {robot_noise_text(robot_sigma)} per "
+            "axis, most likely (robot noise of that size explains the residuals; the corners' "
+            f"own noise is {sigma_px:.2f} px): check the robot's accuracy, that each pose was "
+            "read after the robot settled, and the intrinsics")
+    if not converged and check.ok:
         warnings.append("refinement stopped at its iteration limit; the result may not be "
                         "the best fit")
 
-    per_sample, residuals_px, rms_px = _per_sample(problem, samples, X, C)
     outliers = [(k, r) for k, r in enumerate(per_sample) if r.outlier]
-    if outliers:
+    if outliers and check.ok:  # a fit that explains nothing has no outliers to name
         warnings.append(
             "outlier sample(s): " + ", ".join(
                 label(samples, k) + (f" {r.rms_px:.2f} px" if r.rms_px is not None else "")
@@ -223,11 +302,22 @@ def calibrate_hand_eye(
               "before the robot settled), or solve again without them (--samples FILE "
               f"--exclude {','.join(str(r.sample) for _, r in outliers)})")
     stab = None
-    if stability and len(samples) > MIN_SAMPLES:
+    if stability and len(samples) > MIN_SAMPLES and check.ok:
         how = start if objective == "none" else objective
         stab = _leave_one_out(samples, mode, camera, X, C, how, likelihood, robot_sigma)
     return HandEyeResult(mode, X, C, solver, start, solvers, rms_px, per_sample, stab,
-                         warnings, residuals_px, sigma_px, robot_sigma)
+                         warnings, residuals_px, sigma_px, robot_sigma, check)
+
+
+def _scorer(problem: Problem, samples: Sequence[Sample], camera: CameraModel | None,
+            ) -> Scorer:
+    """The fit check's scorer (:mod:`.plausibility`), with the corners' Jacobians and noise
+    when the samples have corners."""
+    jacobians, corners_px = None, None
+    if problem.pixels:
+        assert camera is not None
+        jacobians, corners_px = corner_jacobians(samples, problem.B, camera)
+    return Scorer(camera, jacobians, corners_px)
 
 
 def _linear_solution(problem: Problem, name: str) -> LinearSolution:
@@ -252,13 +342,13 @@ def _per_sample(problem: Problem, samples: Sequence[Sample], X: FloatArray, C: F
     residuals: list[FloatArray] = []
     rms_px = None
     per_rms: list[float | None] = [None] * len(samples)
-    if problem.pixels:
+    if problem.pixels and math.isfinite(problem.cost(X, C)):
         residuals = problem.pixel_residuals((invert_transform(X), C))
         per_rms = [float(np.sqrt((r**2).sum(axis=1).mean())) for r in residuals]
         all_r = np.concatenate(residuals)
         rms_px = float(np.sqrt((all_r**2).sum(axis=1).mean()))
         flags = _outliers(np.array(per_rms, dtype=float), OUTLIER_FLOOR_PX)
-    else:
+    else:  # board poses only, or corners behind the camera (the fit check says so)
         flags = _outliers(deg, OUTLIER_FLOOR_DEG) | _outliers(mm, OUTLIER_FLOOR_MM)
     out = [SampleResidual(number(samples, i), s.image, per_rms[i], float(deg[i]), float(mm[i]),
                           bool(flags[i]))

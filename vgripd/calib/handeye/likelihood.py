@@ -20,7 +20,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from vgripd.calib.handeye.pnp import board_jacobian
+from vgripd.calib.handeye.pnp import corner_jacobians
 from vgripd.calib.handeye.refine import STATE_SIDES, Problem, minimise
 from vgripd.calib.handeye.samples import FloatArray, Sample
 from vgripd.errors import CalibrationError
@@ -40,6 +40,19 @@ ROBOT_SIGMA_DEG = (1e-4, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0)
 ROBOT_SIGMA_MM = (1e-3, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
 
 
+def robot_covariance(problem: Problem, Y: FloatArray, sigma_deg: float, sigma_mm: float,
+                     ) -> FloatArray:
+    """(n, 6, 6) covariance of each predicted board pose (a small motion in the camera frame)
+    from robot pose noise of ``sigma_deg`` / ``sigma_mm`` per axis in the flange frame, for
+    ``Y = X^-1``: carried through the adjoint of ``Y`` (eye-in-hand) or ``Y Q_i``
+    (eye-to-hand)."""
+    p = problem
+    A = adjoint(np.broadcast_to(Y, p.Q.shape) if p.mode == "eye-in-hand" else Y @ p.Q)
+    robot = np.array([math.radians(sigma_deg)] * 3 + [sigma_mm] * 3) ** 2
+    out: FloatArray = (A * robot) @ np.swapaxes(A, 1, 2)
+    return out
+
+
 class Likelihood:
     """Board-pose weights of a set of samples, and fits under a given robot noise."""
 
@@ -55,19 +68,9 @@ class Likelihood:
     def from_corners(cls, problem: Problem, samples: Sequence[Sample],
                      camera: CameraModel) -> Likelihood:
         """Board-pose covariances from each sample's corners and the pooled corner noise."""
-        info, ssr, dof = [], 0.0, 0
-        for s, B in zip(samples, problem.B, strict=True):
-            assert s.obj is not None
-            assert s.px is not None
-            J, r = board_jacobian(s.obj, s.px, B, camera)
-            info.append(J.T @ J)
-            ssr += float(r @ r)
-            dof += len(r) - 6
-        if dof <= 0:
-            raise CalibrationError("hand-eye: too few corners per image to weigh the board poses")
-        sigma_px = math.sqrt(ssr / dof)
+        jacobians, sigma_px = corner_jacobians(samples, problem.B, camera)
         try:
-            cov = sigma_px**2 * np.linalg.inv(np.stack(info))
+            cov = sigma_px**2 * np.linalg.inv(np.stack([J.T @ J for J in jacobians]))
         except np.linalg.LinAlgError:
             raise CalibrationError("hand-eye: a board pose is not determined by its corners "
                                    "(too few or collinear)") from None
@@ -81,10 +84,7 @@ class Likelihood:
                    sigma_mm: float) -> tuple[FloatArray, float]:
         """(n, 6, 6) inverse Cholesky factors of the samples' covariances, and their summed
         log determinant."""
-        p = self.problem
-        A = adjoint(np.broadcast_to(Y, p.Q.shape) if p.mode == "eye-in-hand" else Y @ p.Q)
-        robot = np.array([math.radians(sigma_deg)] * 3 + [sigma_mm] * 3) ** 2
-        S = self.cov_board + (A * robot) @ np.swapaxes(A, 1, 2)
+        S = self.cov_board + robot_covariance(self.problem, Y, sigma_deg, sigma_mm)
         L = np.linalg.cholesky(S)
         logdet = 2.0 * float(np.log(np.diagonal(L, axis1=1, axis2=2)).sum())
         return np.linalg.inv(L), logdet

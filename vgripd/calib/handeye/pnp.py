@@ -34,6 +34,24 @@ def board_jacobian(obj: FloatArray, px: FloatArray, B: FloatArray, camera: Camer
     return J, (px - camera.project(pts)).ravel()
 
 
+def corner_jacobians(samples: Sequence[Sample], boards: FloatArray, camera: CameraModel,
+                     ) -> tuple[list[FloatArray], float]:
+    """Each sample's :func:`board_jacobian` at its board pose (``boards``, (n, 4, 4)) and the
+    corner noise (px per coordinate) pooled over every image's own pose fit, which no robot
+    error reaches."""
+    jacobians, ssr, dof = [], 0.0, 0
+    for s, B in zip(samples, boards, strict=True):
+        assert s.obj is not None
+        assert s.px is not None
+        J, r = board_jacobian(s.obj, s.px, B, camera)
+        jacobians.append(J)
+        ssr += float(r @ r)
+        dof += len(r) - 6
+    if dof <= 0:
+        raise CalibrationError("hand-eye: too few corners per image to weigh the board poses")
+    return jacobians, math.sqrt(ssr / dof)
+
+
 def board_pose(obj: FloatArray, px: FloatArray, camera: CameraModel,
                ) -> tuple[FloatArray, float, bool]:
     """``T_cam_board`` of a planar board (z = 0) from its corners: the better of the two IPPE
