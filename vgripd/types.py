@@ -110,6 +110,7 @@ class JobResult:
     against the taught reference as a 4x4 transform (mm), before vendor conversion.
     ``residuals``: named figures (px for reprojection/epipolar, mm for fit RMS).
     ``timings_ms``: per-stage wall time.
+    ``diagnosis``: see the field's comment.
     """
 
     job_id: int
@@ -124,6 +125,9 @@ class JobResult:
     features_missing: tuple[str, ...] = ()
     t_capture_mono_ns: int | None = None
     t_done_mono_ns: int = 0
+    # A failed job's ``vgripd.vision.diagnosis.Diagnosis`` (what each stage saw, the likely
+    # causes with the config key to check); None for a successful job or a camera error.
+    diagnosis: Any = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if self.target is not None and not self.status.pose_valid:

@@ -2,7 +2,9 @@
 
 Prints the status, the object pose in the robot base frame, the offset against the taught
 reference, the values the robot would receive (with the vendor's field names), residuals and
-per-stage timings; ``--json`` prints the same as one JSON object.
+per-stage timings; ``--json`` prints the same as one JSON object. A job without a valid pose
+adds a "why" block (``diagnosis`` in JSON): what each stage saw and the likely causes, each
+naming the config key to check (``vgripd.vision.diagnosis``).
 
 Exit codes: 0 a pose was found (status OK or OK_RECALIBRATE); 1 no valid pose (any other
 status); 2 an image file is missing or unreadable; 78 configuration error.
@@ -74,6 +76,9 @@ def format_result(result: JobResult) -> str:
     if result.residuals:
         lines.append("residuals: " + "  ".join(f"{k}={v:.4f}" for k, v in result.residuals.items()))
     lines.append("timings:   " + "  ".join(f"{k}={v:.1f}ms" for k, v in result.timings_ms.items()))
+    if result.diagnosis is not None:
+        lines.append("why:")
+        lines.extend(result.diagnosis.lines())
     return "\n".join(lines)
 
 

@@ -62,6 +62,8 @@ def dict_from_result(result: JobResult) -> dict[str, Any]:
         "features_missing": list(result.features_missing),
         "t_capture_mono_ns": result.t_capture_mono_ns,
         "t_done_mono_ns": result.t_done_mono_ns,
+        # A failed job's diagnosis (vgripd.vision.diagnosis): stage counts, likely causes.
+        "diagnosis": None if result.diagnosis is None else result.diagnosis.as_dict(),
     }
 
 

@@ -6,6 +6,11 @@ pose, red when it was missing; the object axes (x red, y green, z blue) are draw
 origin; in the right image, the epipolar line of each used left feature is drawn as a straight
 line in ideal pixels (exact without lens distortion, within a pixel or so with the usual
 distortion near the image centre). Without a pose only the status line is written.
+
+A failed job (``result.diagnosis``) also shows every candidate blob the finders saw, circled in
+the colour of what became of it and labelled with the reason it was dropped (``CANDIDATE_COLOURS``:
+size, contrast, circularity, border, of the other polarity, no epipolar partner, outside the
+working distance, not matched to the model), and the top likely cause under the status line.
 """
 
 from __future__ import annotations
@@ -21,6 +26,20 @@ from vgripd.types import FloatArray, ImagePair, JobResult
 from vgripd.vision.pipeline import Pipeline
 
 GREEN, RED, BLUE, YELLOW, WHITE = (0, 200, 0), (0, 0, 255), (255, 80, 0), (0, 220, 255), (255,) * 3
+
+#: BGR colour per candidate fate (``vgripd.vision.diagnosis.CANDIDATE_REASONS``).
+CANDIDATE_COLOURS: dict[str, tuple[int, int, int]] = {
+    "used": GREEN,
+    "kept": GREEN,
+    "model": (0, 140, 255),  # orange: paired and triangulated, not matched to the model
+    "depth": (255, 0, 255),  # magenta: triangulated outside vision.working_distance_mm
+    "epipolar": (255, 255, 0),  # cyan: no partner on the epipolar line
+    "size": RED,
+    "contrast": (160, 0, 200),  # purple
+    "circularity": (0, 128, 255),
+    "border": (150, 150, 150),
+    "polarity": BLUE,  # a blob of the other polarity that would have passed
+}
 
 
 def _bgr(image: Any) -> np.ndarray:
@@ -58,6 +77,8 @@ def annotate(pipeline: Pipeline, pair: ImagePair, result: JobResult) -> list[np.
     for img in images:
         cv2.putText(img, text, (10, 30 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.8 * scale, YELLOW,
                     2 * scale)
+    if result.diagnosis is not None:
+        _draw_diagnosis(images, result.diagnosis, scale)
     if result.T_base_obj is None:
         return images
     T_cam_obj = invert_transform(pipeline.T_base_camera(pair)) @ result.T_base_obj
@@ -76,3 +97,23 @@ def annotate(pipeline: Pipeline, pair: ImagePair, result: JobResult) -> list[np.
                     cv2.line(images[1], (0, int(round(-c / b))), (w, int(round(-(c + a * w) / b))),
                              WHITE, scale)
     return images
+
+
+def _draw_diagnosis(images: list[np.ndarray], diagnosis: Any, scale: int) -> None:
+    """Every candidate blob of each image with its fate, and the top cause under the status."""
+    for img, stage in zip(images, diagnosis.images, strict=False):
+        for c in stage.candidates:
+            colour = CANDIDATE_COLOURS.get(c.reason, WHITE)
+            centre = (int(round(c.x)), int(round(c.y)))
+            radius = max(4, int(round(0.5 * c.diameter_px)) + 3)
+            cv2.circle(img, centre, radius, colour, scale)
+            if c.label:
+                cv2.putText(img, c.label, (centre[0] + radius + 2, centre[1] + 4),
+                            cv2.FONT_HERSHEY_SIMPLEX, 0.45 * scale, colour, scale)
+    top = diagnosis.top
+    if top is not None:
+        text = f"likely: {top.key}: {top.reason}"
+        for img in images:
+            for k in range(0, min(len(text), 360), 120):  # up to three lines
+                cv2.putText(img, text[k:k + 120], (10, (60 + 25 * (k // 120)) * scale),
+                            cv2.FONT_HERSHEY_SIMPLEX, 0.55 * scale, YELLOW, scale)

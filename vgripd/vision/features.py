@@ -33,7 +33,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import combinations
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -84,13 +84,36 @@ class CircleSpec:
     downscale: int = 2
 
 
+class Rejected(NamedTuple):
+    """A blob the circle finder dropped, and why: ``reason`` is one of ``REJECT_REASONS`` and
+    ``value`` the figure that failed (diameter px, contrast in grey levels, circularity; 0 for
+    ``border``). ``x``, ``y`` px (full resolution), ``diameter_px`` its equivalent diameter."""
+
+    x: float
+    y: float
+    diameter_px: float
+    reason: str
+    value: float
+
+
+#: Why ``find_circles`` drops a blob: its size is outside the spec's diameter range, its contrast
+#: under ``min_contrast``, its outline not round enough, or it touches the image border.
+REJECT_REASONS = ("size", "contrast", "circularity", "border")
+
+
 @dataclass(frozen=True)
 class Blobs:
-    """Circle candidates in one image: ``xy`` (N, 2) px, ``diameter_px`` (N,), ``contrast`` (N,)."""
+    """Circle candidates in one image: ``xy`` (N, 2) px, ``diameter_px`` (N,), ``contrast`` (N,).
+
+    ``rejected``: the blobs dropped on the way, with the reason (for the diagnosis of a failed
+    job, ``vgripd.vision.diagnosis``). Specks of noise under 40 % of the smallest diameter
+    searched for are not candidates and are not listed.
+    """
 
     xy: FloatArray
     diameter_px: FloatArray
     contrast: FloatArray
+    rejected: tuple[Rejected, ...] = ()
 
     def __len__(self) -> int:
         return int(self.xy.shape[0])
@@ -124,19 +147,33 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
     xs: list[tuple[float, float]] = []
     diameters: list[float] = []
     contrasts: list[float] = []
+    rejected: list[Rejected] = []
     sh, sw = small.shape
+    speck = 0.4 * spec.min_diameter_px
+
+    def drop(c: Any, d_px: float, reason: str, value: float) -> None:
+        # Only on the way out of the loop: costs nothing for the blobs that are kept.
+        bx, by, bw, bh = cv2.boundingRect(c)
+        rejected.append(Rejected((bx + 0.5 * bw) * s - 0.5, (by + 0.5 * bh) * s - 0.5, d_px,
+                                 reason, value))
+
     for c in contours:
         area = cv2.contourArea(c)
         if area < 2.0:
             continue
         d_px = 2.0 * np.sqrt(area / np.pi) * s
         if not spec.min_diameter_px * 0.8 <= d_px <= spec.max_diameter_px * 1.2:
+            if d_px >= speck:
+                drop(c, d_px, "size", d_px)
             continue
         bx, by, bw, bh = cv2.boundingRect(c)
         if bx <= 0 or by <= 0 or bx + bw >= sw or by + bh >= sh:
+            drop(c, d_px, "border", 0.0)
             continue
         perimeter = cv2.arcLength(c, True)
-        if perimeter <= 0 or 4.0 * np.pi * area / perimeter**2 < spec.min_circularity:
+        circularity = 4.0 * np.pi * area / perimeter**2 if perimeter > 0 else 0.0
+        if circularity < spec.min_circularity:
+            drop(c, d_px, "circularity", circularity)
             continue
         m = cv2.moments(c)
         # Centre of the small image's pixel (i, j) in full-resolution coordinates: s*i + (s-1)/2.
@@ -144,11 +181,17 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
         cy = m["m01"] / m["m00"] * s + (s - 1) / 2.0
         refined = _refine_centre(gray, cx, cy, d_px, spec.polarity)
         if refined is None:
+            # The refinement window left the image, or the mark has no contrast at all.
+            half = int(np.ceil(0.75 * d_px + 3.0)) + 2
+            near_edge = min(cx, cy, w - 1 - cx, h - 1 - cy) < half + 1
+            rejected.append(Rejected(cx, cy, d_px, "border" if near_edge else "contrast", 0.0))
             continue
         (rx, ry), d_ref, con = refined
         if con < spec.min_contrast:
+            rejected.append(Rejected(rx, ry, d_ref, "contrast", con))
             continue
         if not spec.min_diameter_px <= d_ref <= spec.max_diameter_px:
+            rejected.append(Rejected(rx, ry, d_ref, "size", d_ref))
             continue
         xs.append((rx, ry))
         diameters.append(d_ref)
@@ -157,6 +200,7 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
         xy=np.asarray(xs, dtype=np.float64).reshape(-1, 2),
         diameter_px=np.asarray(diameters, dtype=np.float64),
         contrast=np.asarray(contrasts, dtype=np.float64),
+        rejected=tuple(rejected),
     )
 
 

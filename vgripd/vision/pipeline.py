@@ -42,6 +42,7 @@ from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform, rotation_angle
 from vgripd.geometry.vendors import VENDORS, target_from_transform
 from vgripd.types import FloatArray, ImagePair, JobResult, Status
+from vgripd.vision import diagnosis as dg
 from vgripd.vision import features as ft
 from vgripd.vision import scene
 
@@ -136,6 +137,9 @@ class Found:
 
     identified: dict[int, FloatArray]  # feature index -> (2,) px
     circles: FloatArray  # (k, 2) px
+    # The circle finder's output per spec (``_Finder.specs``), rejected blobs included: what
+    # the diagnosis of a failed job reads.
+    blobs: tuple[ft.Blobs, ...] = ()
 
 
 class _Finder:
@@ -188,9 +192,9 @@ class _Finder:
             hit = ft.find_template(gray, patch, self.min_score)
             if hit is not None:
                 identified[index] = hit[0]
-        blobs = [ft.find_circles(gray, spec).xy for spec in self.specs]
-        circles = np.vstack(blobs) if blobs else np.zeros((0, 2))
-        return Found(identified, circles)
+        blobs = tuple(ft.find_circles(gray, spec) for spec in self.specs)
+        circles = np.vstack([b.xy for b in blobs]) if blobs else np.zeros((0, 2))
+        return Found(identified, circles, blobs)
 
 
 def _load_template(path: str, where: str) -> ft.UInt8Image:
@@ -223,6 +227,7 @@ class _Job:
     missing: tuple[str, ...] = ()
     T_base_obj: FloatArray | None = None
     offset: FloatArray | None = None
+    trace: dg.Trace = field(default_factory=dg.Trace)  # what each stage saw (diagnosis)
     _t: float = field(default_factory=time.perf_counter)
 
     def lap(self, stage: str) -> None:
@@ -309,10 +314,14 @@ class Pipeline:
         return self.process_with_points(pair, job_id)[0]
 
     def process_with_points(
-        self, pair: ImagePair, job_id: int
+        self, pair: ImagePair, job_id: int, *, diagnose: bool = False
     ) -> tuple[JobResult, dict[str, FloatArray]]:
         """:meth:`process`, plus the measured feature points (3,) mm in the base frame by name
-        (empty without a pose). ``vgripd teach`` stores them for the ``reference`` definition."""
+        (empty without a pose). ``vgripd teach`` stores them for the ``reference`` definition.
+
+        A job that found the images usable but no valid pose carries ``JobResult.diagnosis``
+        (``vgripd.vision.diagnosis``: what each stage saw, the likely causes with the config
+        key to check); ``diagnose=True`` attaches one to a successful job too."""
         job = _Job()
         try:
             status, message, target = self._run(pair, job)
@@ -325,6 +334,9 @@ class Pipeline:
             status, target = Status.INTERNAL, None
             message = f"{type(err).__name__}: {err} ({Path(last.filename).name}:{last.lineno})"
         job.timings_ms["total"] = sum(job.timings_ms.values())
+        diagnosis = None
+        if job.trace.found and (diagnose or status in dg.DIAGNOSED):
+            diagnosis = dg.explain(self, job, status, message)
         return JobResult(
             job_id=job_id,
             status=status,
@@ -338,6 +350,7 @@ class Pipeline:
             features_missing=job.missing,
             t_capture_mono_ns=pair.t_mono_ns,
             t_done_mono_ns=time.monotonic_ns(),
+            diagnosis=diagnosis,
         ), job.points_base
 
     def _run(self, pair: ImagePair, job: _Job) -> tuple[Status, str, Any]:
@@ -353,6 +366,8 @@ class Pipeline:
         if gray_r is not None and self.find_right is not None:
             found_r = self.find_right(gray_r)
         job.lap("features")
+        job.trace.grays = (gray_l, gray_r) if found_r is not None else (gray_l,)
+        job.trace.found = (found_l, found_r) if found_r is not None else (found_l,)
 
         if found_r is not None:
             estimate = self._stereo_pose(found_l, found_r, job)
@@ -412,7 +427,9 @@ class Pipeline:
             lines = self.rig.epipolar_lines_right(left.circles)
             ideal_r = self.rig.ideal_pixels(self.rig.right, right.circles)
             dist = np.abs(lines[:, :2] @ ideal_r.T + lines[:, 2:3])
-            for i, j in ft.match_epipolar(dist, vision.epipolar_tolerance_px):
+            pairs = ft.match_epipolar(dist, vision.epipolar_tolerance_px)
+            job.trace.pairs, job.trace.first_circle_row = pairs, len(px_l)
+            for i, j in pairs:
                 circle_rows.append(len(px_l))
                 keys.append((2 * int(i), 2 * int(j) + 1))  # left blob i, right blob j
                 px_l.append(left.circles[i])
@@ -421,6 +438,7 @@ class Pipeline:
             job.missing = self.names
             return None
         points, gap, valid = self._triangulate(np.array(px_l), np.array(px_r))
+        job.trace.depth_mm, job.trace.in_front = points[:, 2], valid.copy()
         near, far = vision.working_distance_mm
         valid &= (points[:, 2] >= near) & (points[:, 2] <= far)
 
@@ -450,9 +468,11 @@ class Pipeline:
                 )
                 if match is not None:
                     sub, ambiguous = match.assignment, match.ambiguous
+                    job.trace.hypotheses = match.hypotheses
             if sub is not None:
                 hit = sub >= 0
                 assignment[circle_model[hit]] = rows[sub[hit]]
+        job.trace.assignment = assignment
         return self._fit_stereo(assignment, points, gap, np.array(px_l), np.array(px_r),
                                 ambiguous, job)
 
