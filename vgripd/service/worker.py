@@ -53,6 +53,7 @@ import dataclasses
 import importlib
 import itertools
 import logging
+import mmap
 import multiprocessing
 import os
 import pickle
@@ -62,6 +63,7 @@ import socket
 import struct
 import time
 import traceback
+import weakref
 from collections.abc import Callable, Sequence
 from multiprocessing import shared_memory
 from multiprocessing.process import BaseProcess
@@ -89,6 +91,9 @@ STOP_TIMEOUT_S = 15.0
 CAMERA_CLOSE_TIMEOUT_S = 7.0
 #: Back-off for a worker that dies before it is ready: doubling from the first to the last.
 RESTART_BACKOFF_S = (1.0, 60.0)
+#: The worker's niceness above the daemon's: when they compete for a core, the daemon's event
+#: loop (answering a PLC) wins at once; alone on the machine the worker still gets all of it.
+WORKER_NICE = 5
 #: Image offsets in the segment are aligned to this (bytes).
 ALIGN = 64
 SHM_DIR = Path("/dev/shm")
@@ -147,13 +152,42 @@ def read_images(buf: memoryview, layout: ImageLayout) -> list[npt.NDArray[Any] |
 
 
 class ImageSegment:
-    """A shared-memory segment created by the daemon; the worker attaches it by name."""
+    """A shared-memory segment created by the daemon; the worker attaches it by name.
+
+    The daemon reads images from it as read-only views (``view_images``), never copying pixels
+    on the event loop. Each call maps the segment afresh, and that mapping lives exactly as long
+    as some array (or a slice of one) refers to it: ``in_use`` says whether images handed out
+    are still alive, in which case the segment must not be written again (a new one is made).
+    """
 
     def __init__(self, name: str, size: int) -> None:
         self.name = name
         self.size = size
         self._shm: shared_memory.SharedMemory | None = shared_memory.SharedMemory(
             name=name, create=True, size=size)
+        self._views: weakref.ref[mmap.mmap] | None = None
+
+    def in_use(self) -> bool:
+        """True while arrays from ``view_images`` are still referenced somewhere."""
+        return self._views is not None and self._views() is not None
+
+    def view_images(self, layout: ImageLayout) -> list[npt.NDArray[Any] | None]:
+        """Read-only views of the images described by ``layout`` (no copy)."""
+        fd = os.open(SHM_DIR / self.name, os.O_RDONLY)
+        try:
+            mapping = mmap.mmap(fd, self.size, prot=mmap.PROT_READ)
+        finally:
+            os.close(fd)
+        self._views = weakref.ref(mapping)
+        images: list[npt.NDArray[Any] | None] = []
+        for entry in layout:
+            if entry is None:
+                images.append(None)
+                continue
+            offset, shape, dtype = entry
+            count = int(np.prod(shape))
+            images.append(np.frombuffer(mapping, np.dtype(dtype), count, offset).reshape(shape))
+        return images
 
     @property
     def buf(self) -> memoryview:
@@ -364,6 +398,7 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
     """Entry point of the worker process (``multiprocessing`` spawn target)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    os.nice(WORKER_NICE)
     from vgripd.service.daemon import configure_logging
 
     configure_logging(log_level)
@@ -479,9 +514,10 @@ class WorkerClient:
         self._ids = itertools.count(1)
         self._segment_ids = itertools.count(1)
         self._segment: ImageSegment | None = None
-        # The pair whose images the current worker holds: (generation, token, left, right),
-        # the arrays being the daemon's, so that a pair handed back is named by its token.
-        self._held: tuple[_Generation, int, Any, Any] | None = None
+        # The pair whose images the current worker holds: generation, token and (weak
+        # references to) the daemon's arrays, so that a pair handed back is named by its token.
+        self._held: tuple[_Generation, int, weakref.ref[Any], weakref.ref[Any] | None] | None \
+            = None
 
     # --- life cycle --------------------------------------------------------------------
 
@@ -508,9 +544,30 @@ class WorkerClient:
     def _new_segment(self, size: int) -> ImageSegment:
         old, self._segment = self._segment, None
         if old is not None:
-            old.close()
+            old.close()  # unlinked; images still viewed keep their own mapping
         self._segment = ImageSegment(f"{self.prefix}{next(self._segment_ids)}", size)
         return self._segment
+
+    def _writable_segment(self, need: int = 0) -> ImageSegment | None:
+        """The segment to put the next images in: the current one unless it is too small or
+        images viewed from it are still alive (a listener kept a pair), else a new one."""
+        segment = self._segment
+        if segment is not None and segment.size >= need and not segment.in_use():
+            return segment
+        size = max(need, segment.size if segment is not None else 0)
+        return self._new_segment(size) if size else None
+
+    def _hold(self, gen: _Generation, token: int, pair: ImagePair) -> None:
+        self._held = (gen, token, weakref.ref(pair.left),
+                      None if pair.right is None else weakref.ref(pair.right))
+
+    def _holds(self, gen: _Generation, pair: ImagePair) -> int | None:
+        """The token under which ``gen`` holds ``pair``'s images, if it does."""
+        held = self._held
+        if held is None or held[0] is not gen or pair.left is not held[2]():
+            return None
+        right = None if held[3] is None else held[3]()
+        return held[1] if pair.right is right else None
 
     async def close(self) -> None:
         """Stop the worker (queued recordings are written first), unlink the shared memory."""
@@ -723,17 +780,15 @@ class WorkerClient:
              ) -> tuple[int, dict[str, Any], str | None, ImageLayout | None]:
         """How a request names ``pair``: by token when the worker holds its images, else the
         images go into the shared memory now."""
-        held = self._held
-        if held is not None and held[0] is gen and pair.left is held[2] and pair.right is held[3]:
-            return held[1], _pair_fields(pair), None, None
+        token = self._holds(gen, pair)
+        if token is not None:
+            return token, _pair_fields(pair), None, None
         images = (pair.left, pair.right)
-        need = images_nbytes(images)
-        segment = self._segment
-        if segment is None or segment.size < need:
-            segment = self._new_segment(need)
+        segment = self._writable_segment(images_nbytes(images))
+        assert segment is not None
         layout = write_images(segment.buf, images)
         token = next(self._ids)
-        self._held = (gen, token, pair.left, pair.right)
+        self._hold(gen, token, pair)
         return token, _pair_fields(pair), segment.name, layout
 
     async def process(self, pair: ImagePair, job_id: int) -> JobResult:
@@ -746,17 +801,18 @@ class WorkerClient:
     async def grab(self, timeout_s: float) -> ImagePair:
         """The camera driver's ``grab`` in the worker; the images come through shared memory."""
         gen = await self._ready_generation()
-        segment = self._segment
+        segment = self._writable_segment()
         token, fields, layout, need = await self._call(
             gen, "camera_grab", (timeout_s, None if segment is None else segment.name), "grab")
         if layout is None:  # no segment yet, or too small: a bigger one, then fetch again
             segment = self._new_segment(need)
             layout = await self._call(gen, "camera_put", (token, segment.name), "grab")
-        assert self._segment is not None
-        left, right = read_images(self._segment.buf, layout)
+        assert segment is not None
+        left, right = segment.view_images(layout)
         assert left is not None
-        self._held = (gen, token, left, right)
-        return ImagePair(left=left, right=right, **fields)
+        pair = ImagePair(left=left, right=right, **fields)
+        self._hold(gen, token, pair)
+        return pair
 
     def record(self, pair: ImagePair, result: JobResult) -> bool:
         """Queue ``pair`` and ``result`` for the worker's recorder; never waits."""

@@ -180,6 +180,25 @@ async def test_results_equal_the_in_process_pipeline_both_ways() -> None:
         assert len(segments_of(client.prefix)) == 1  # reused, not one per job
 
 
+async def test_grabbed_images_are_read_only_views_that_later_grabs_never_overwrite() -> None:
+    async with running(_config()) as client:
+        grabbed = await client.camera.grab(WAIT_S)  # opens the camera in the worker
+        first = client.snapshot()["shm"]
+        assert not grabbed.left.flags.writeable
+        kept = grabbed.left.copy()
+        corner = grabbed.left[:8, :8]  # a slice alone keeps the images alive too
+        del grabbed
+        again = await client.camera.grab(WAIT_S)
+        second = client.snapshot()["shm"]
+        assert second != first  # the kept images' segment is not written again
+        assert segments_of(client.prefix) == [second]  # the old one is unlinked already
+        assert np.array_equal(corner, kept[:8, :8])
+        assert not np.array_equal(again.left, kept)
+        del corner, again
+        await client.camera.grab(WAIT_S)
+        assert client.snapshot()["shm"] == second  # nothing kept: reused
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSEGV], ids=["SIGKILL", "SIGSEGV"])
 async def test_a_worker_that_dies_fails_the_request_naming_why_and_is_replaced(
     worker: WorkerClient, sig: signal.Signals
