@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("vgripd.cli.replay", "run every image pair of a folder, JSON lines + summary"),
     "calibrate": ("vgripd.cli.calibrate", "calibrate cameras, stereo rig, hand-eye; MCT files"),
     "teach": ("vgripd.cli.teach", "measure the object at its reference place, store it"),
+    "s7-udt": ("vgripd.cli.s7_udt", "print the S7 link's data block as SCL (UDT + DB) for TIA"),
     "robot-program": ("vgripd.cli.robot_program", "write a brand's robot socket program"),
 }
 

@@ -60,6 +60,7 @@ LINKS: dict[str, str] = {
     "modbus_client": "drivers.links.modbus_client:ModbusClientLink",
     "modbus_rtu": "drivers.links.modbus_rtu:ModbusRtuLink",
     "ur_rtde": "drivers.links.ur_rtde:URRtdeLink",
+    "s7": "drivers.links.s7:S7Link",
     "robot_socket": "drivers.links.robot_socket:RobotSocketLink",
 }
 

@@ -1,0 +1,528 @@
+"""Siemens S7 client link: vgripd reads and writes a data block of an S7-300/400/1200/1500 PLC.
+
+The PLC serves nothing of vgripd's: vgripd connects to it as a client (python-snap7, the
+classic S7 protocol over ISO-on-TCP, port 102, the "PUT/GET" access of S7-1200/1500) and uses
+``DB<db>`` bytes ``start .. start + 81`` as the register block of
+``vgripd.service.protocol``: the same items, in the same order, with the same handshake as the
+Modbus links; map register ``n`` is the 16-bit word at byte ``start + 2 n``. S7 is big-endian
+throughout (16-bit and 32-bit items alike), which is the map's ``ABCD`` order, so there is no
+word-order option. ``vgripd s7-udt`` prints the block as an S7 ``UDT`` (SCL source) for the PLC
+programmer; docs/s7.md has the table and the TIA Portal settings.
+
+The PLC program writes CMD, REQ_SEQ and RECIPE (bytes 0-5 of the block); vgripd writes the
+rest. The link keeps a mirror of the block in a ``RegisterBank`` (the handshake and image code
+every register link uses) and copies its changes to the PLC, in the bank's order:
+
+- every ``poll_ms`` it reads the whole block (one request: 82 bytes); a change of the command
+  area goes through the bank's handshake: a new request sequence calls ``on_trigger``, a
+  refusal (BUSY, BAD_REQUEST) writes REJECT_CODE, then REJECT_SEQ;
+- ``image_captured`` / ``publish`` / the heartbeat change the mirror and wake the supervisor,
+  which writes what changed: everything between two changes of ACK_SEQ in one write, and each
+  change of ACK_SEQ in a write of its own at its place in the bank's order (last for a
+  publish, first for a new job's retraction), so the PLC never pairs an acknowledged sequence
+  with data of another request (``plan_db_writes``);
+- after every (re)connect the PLC's block is read and whatever differs from the mirror is
+  written (data, then ACK_SEQ), so a result published while the PLC was away reaches it as
+  soon as it is back;
+- if vgripd's part of the block is not what vgripd last wrote (a DB re-initialised by a
+  download from TIA Portal, or a PLC program writing where it should not), the mirror is
+  written again (one WARNING line, then at most one a minute while it goes on).
+
+Blocking snap7 calls run on the link's own single-thread executor, never on the event loop;
+every call is bounded by ``timeout_s`` on the loop's side, and a call that overruns it is cut
+by shutting down its socket (snap7's own connect timeout is a fixed 5 s). One supervisor task
+owns the connection and is the only retry loop (snap7's auto-reconnect stays off). After a drop
+it reconnects with doubling back-off and logs once per outage (one WARNING line, no
+traceback); ``health()`` says DOWN with the reason. A daemon call waiting for the PLC is
+released with the outage. If the PLC refuses the block at the first contact (the DB does not
+exist, is too short, has optimized access, or PUT/GET is not allowed) the link is FAILED and
+not retried: that does not fix itself. snap7's own INFO lines (one per connect attempt) are
+kept out of the log unless the ``snap7`` logger is configured explicitly.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import logging
+import socket
+import struct
+import time
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Literal, TypeVar
+
+from pydantic import Field, field_validator
+from snap7 import Client
+from snap7.error import S7Error, S7ProtocolError, S7TimeoutError
+
+from vgripd.errors import LinkError
+from vgripd.registry import LinkCapabilities
+from vgripd.service.protocol import (
+    COMMAND_AREA,
+    MAP_SIZE,
+    MAX_VALUES,
+    Action,
+    BlockWrite,
+    LinkHealth,
+    LinkState,
+    Reg,
+    RegisterBank,
+    RegisterOptions,
+    RobotLink,
+    Trigger,
+    TriggerHandler,
+    ValueCodec,
+)
+from vgripd.types import JobResult, Status
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+DB_BYTES = 2 * MAP_SIZE  # bytes of the block in the DB
+OVERWRITE_LOG_S = 60.0  # at most one line per this long about foreign writes to vgripd's part
+S7_CAPABILITIES = LinkCapabilities(
+    MAX_VALUES, None,
+    f"VALUES at block bytes {2 * Reg.VALUES}-{2 * Reg.FIT_RMS - 1}, the convention's fields "
+    "in its own units")
+
+
+def quiet_snap7() -> None:
+    """snap7 logs INFO lines for every client it makes, connects and drops; the link reports
+    connections itself. Unless the ``snap7`` logger was configured, keep it at WARNING."""
+    logger = logging.getLogger("snap7")
+    if logger.level == logging.NOTSET:
+        logger.setLevel(logging.WARNING)
+
+
+class S7Options(RegisterOptions):
+    """Options of ``type = "s7"``; value format, scale and heartbeat as for every register link
+    (``RegisterOptions``); ``word_order`` can only be ``ABCD`` (S7 is big-endian).
+
+    ``rack``/``slot``: of the CPU (S7-300: 0/2; S7-400: see the hardware configuration;
+    S7-1200/1500: 0/1, or 0/0 for some; docs/s7.md). ``db``: the data block's number;
+    ``start``: the block's first byte in it (even: S7 aligns words on even bytes).
+    """
+
+    word_order: Literal["ABCD"] = "ABCD"
+    host: str = Field(min_length=1)
+    port: int = Field(102, ge=1, le=65535)
+    rack: int = Field(0, ge=0, le=7)
+    slot: int = Field(1, ge=0, le=31)
+    db: int = Field(ge=1, le=65535)
+    start: int = Field(0, ge=0, le=65536 - DB_BYTES, multiple_of=2)
+    poll_ms: int = Field(20, ge=1, le=10_000)
+    timeout_s: float = Field(1.0, gt=0, le=60)  # connect, and each request
+    backoff_initial_s: float = Field(0.1, gt=0, le=60)
+    backoff_max_s: float = Field(5.0, gt=0, le=600)
+
+    @field_validator("word_order", mode="before")
+    @classmethod
+    def _big_endian(cls, value: Any) -> Any:
+        if value != "ABCD":
+            raise ValueError("S7 is big-endian: 32-bit items are always high word first "
+                             "(ABCD); leave word_order out")
+        return value
+
+
+class S7Refused(LinkError):
+    """The PLC answered a request with an error (no such DB, address out of range, access
+    denied), as opposed to a lost or silent connection."""
+
+
+def plan_db_writes(sent: Sequence[int], journal: Sequence[BlockWrite]) -> list[BlockWrite]:
+    """The writes (map word addresses) that take the PLC's block from ``sent`` to the end of
+    the bank's ``journal``, in the journal's order.
+
+    The PLC's command area is never written. Between two changes of ACK_SEQ, every word that
+    changed travels in one write spanning the first to the last changed word (the words in
+    between carry what the PLC already has, ACK_SEQ included); a change of ACK_SEQ is a write
+    of its own at its place in the order. A publish is thus the data in one write and the
+    acknowledge in a second; a new job's retraction goes before its data is cleared.
+    """
+    image = list(sent)
+    plan: list[BlockWrite] = []
+    changed: set[int] = set()
+
+    def flush_span() -> None:
+        if changed:
+            lo, hi = min(changed), max(changed)
+            plan.append(BlockWrite(lo, tuple(image[lo:hi + 1])))
+            changed.clear()
+
+    for w in journal:
+        ack: int | None = None
+        for i, value in enumerate(w.words):
+            address = w.address + i
+            if address == Reg.ACK_SEQ:
+                ack = value
+            elif address >= COMMAND_AREA.stop and image[address] != value:
+                image[address] = value
+                changed.add(address)
+        if ack is not None and ack != image[Reg.ACK_SEQ]:
+            flush_span()  # the data written with (before) the acknowledge goes first
+            image[Reg.ACK_SEQ] = ack
+            plan.append(BlockWrite(Reg.ACK_SEQ, (ack,)))
+    flush_span()
+    return plan
+
+
+def block_bytes(words: Sequence[int]) -> bytearray:
+    return bytearray(struct.pack(f">{len(words)}H", *words))
+
+
+class S7Link(RobotLink):
+    Options = S7Options
+    capabilities = S7_CAPABILITIES
+    options: S7Options
+
+    def __init__(self, name: str, options: S7Options) -> None:
+        super().__init__(name, options)
+        self._peer = f"{options.host}:{options.port}"
+        self._area = f"DB{options.db} bytes {options.start}..{options.start + DB_BYTES - 1}"
+        self._journal: list[BlockWrite] = []
+        self.bank = RegisterBank(
+            ValueCodec("ABCD", options.value_format, options.scale), self._journal
+        )
+        self._sent = [0] * MAP_SIZE  # the block as the PLC has it, as far as vgripd knows
+        self._health = LinkHealth(LinkState.STOPPED, peer=f"{self._peer} {self._area}")
+        self._health_changed: asyncio.Condition | None = None
+        self._on_trigger: TriggerHandler | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._wake: asyncio.Event | None = None
+        self._waiters: list[asyncio.Future[None]] = []
+        self._executor: ThreadPoolExecutor | None = None
+        self._client: Client | None = None
+        self._primed = False
+        self._overwrites = 0  # foreign writes to vgripd's part not yet logged
+        self._overwrite_logged: float | None = None  # monotonic s of the last such line
+        self.transactions = 0  # S7 requests sent (benchmarks, tests)
+
+    # -- RobotLink ---------------------------------------------------------------------------
+
+    async def open(self, on_trigger: TriggerHandler) -> None:
+        """Start the supervisor and wait for the outcome of its first contact.
+
+        Raises ``LinkError`` (state FAILED) if the PLC refuses the block. An unreachable PLC
+        is not an error here: the supervisor keeps retrying (state DOWN).
+        """
+        if self._task is not None:
+            raise LinkError(f"link {self.name}: already open")
+        quiet_snap7()
+        self._on_trigger = on_trigger
+        self._health_changed = asyncio.Condition()
+        self._wake = asyncio.Event()
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"s7-{self.name}")
+        self._task = asyncio.create_task(self._supervise(), name=f"{self.name}-supervisor")
+        with contextlib.suppress(TimeoutError):
+            await self.wait_state({LinkState.UP, LinkState.DOWN, LinkState.FAILED},
+                                  2 * self.options.timeout_s + 1.0)
+        health = self._health
+        if health.state is LinkState.FAILED:
+            await self._stop()
+            raise LinkError(f"link {self.name}: {health.last_error}")
+
+    async def close(self) -> None:
+        await self._stop()
+        await self._set_health(LinkState.STOPPED)
+
+    def health(self) -> LinkHealth:
+        return self._health
+
+    async def image_captured(self, seq: int, job_id: int) -> None:
+        self.bank.captured(seq, job_id)
+        await self._flushed()
+
+    async def publish(self, seq: int, result: JobResult) -> Status:
+        """Publish into the mirror, then wait until the PLC has it; returns the status the PLC
+        got. Raises ``LinkError`` when the PLC is not connected; the result stays in the mirror
+        and is written (ACK_SEQ last) as soon as the PLC is back."""
+        published = self.bank.publish(seq, result, time.monotonic_ns())
+        if published.status is not result.status:
+            log.warning("%s: request %d published as %s instead of %s: %s", self.name, seq,
+                        published.status.name, result.status.name, published.message)
+        await self._flushed()
+        return published.status
+
+    def refusals(self) -> Mapping[str, int]:
+        return dict(self.bank.refusals)
+
+    async def set_warnings(self, bits: int) -> None:
+        """Set WARNINGS in the mirror; while the PLC is connected, wait until it has it (while
+        it is away the mirror is written at the reconnect, WARNINGS included)."""
+        self.bank.set_warnings(bits)
+        if self._health.state is LinkState.UP:
+            await self._flushed()
+
+    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
+        """Wait until ``health().state`` is in ``states``; ``TimeoutError`` otherwise."""
+        wanted = {states} if isinstance(states, LinkState) else states
+        if self._health_changed is None:
+            raise LinkError(f"link {self.name}: not open")
+        async with asyncio.timeout(timeout_s), self._health_changed:
+            await self._health_changed.wait_for(lambda: self._health.state in wanted)
+        return self._health
+
+    # -- daemon-facing helpers ---------------------------------------------------------------
+
+    async def _flushed(self) -> None:
+        if self._health.state is not LinkState.UP or self._wake is None:
+            raise LinkError(
+                f"link {self.name}: PLC {self._peer} is {self._health.state.value}"
+                f" ({self._health.last_error or 'not connected'}); kept for the reconnect"
+            )
+        done = asyncio.get_running_loop().create_future()
+        self._waiters.append(done)
+        self._wake.set()
+        await done
+
+    def _release_waiters(self, error: Exception) -> None:
+        waiters, self._waiters = self._waiters, []
+        for w in waiters:
+            if not w.done():
+                w.set_exception(error)
+
+    async def _stop(self) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        self._release_waiters(LinkError(f"link {self.name}: closed"))
+        executor, self._executor = self._executor, None
+        if executor is not None:
+            # The supervisor cut any call in progress; once this no-op has run, the thread is
+            # idle and shutting the executor down does not block the loop.
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(10.0):  # > snap7's fixed 5 s connect timeout
+                    await asyncio.wrap_future(executor.submit(lambda: None))
+            executor.shutdown(wait=True)
+
+    async def _set_health(self, state: LinkState, error: str = "", reconnect: bool = False) -> None:
+        h = self._health
+        if state is h.state and error == h.last_error:
+            return
+        self._health = LinkHealth(
+            state,
+            peer=h.peer,
+            last_error=error,
+            reconnects=h.reconnects + int(reconnect),
+            since_mono_ns=time.monotonic_ns() if state is not h.state else h.since_mono_ns,
+        )
+        if self._health_changed is not None:
+            async with self._health_changed:
+                self._health_changed.notify_all()
+
+    # -- blocking calls, on the link's own thread --------------------------------------------
+
+    async def _call(self, what: str, fn: Callable[[], T]) -> T:
+        """Run ``fn`` on the link's thread, bounded by ``timeout_s``; every way it can fail
+        becomes a ``LinkError`` naming ``what`` and the PLC (``S7Refused`` for an error the
+        PLC answered with)."""
+        assert self._executor is not None
+        self.transactions += 1
+        fut = asyncio.get_running_loop().run_in_executor(self._executor, fn)
+        # a cut call may still fail after nobody waits for it: retrieve that quietly
+        fut.add_done_callback(lambda f: f.cancelled() or f.exception())
+        timeout_s = self.options.timeout_s
+        try:
+            done, _ = await asyncio.wait({fut}, timeout=timeout_s)
+        except asyncio.CancelledError:
+            self._cut()
+            raise
+        if not done:
+            self._cut()
+            raise LinkError(f"no answer within {timeout_s:g} s {what} on {self._peer}")
+        try:
+            return fut.result()
+        except S7TimeoutError:
+            raise LinkError(f"no answer within {timeout_s:g} s {what} on {self._peer}") from None
+        except S7ProtocolError as err:
+            raise S7Refused(f"PLC {self._peer} refused {what}: {err}") from None
+        except (S7Error, OSError) as err:
+            raise LinkError(f"{what} on {self._peer}: {err}") from None
+        except Exception as err:  # snap7 choking on an answer that is not S7: the peer's fault
+            raise LinkError(f"{what} on {self._peer}: unreadable answer "
+                            f"({type(err).__name__}: {err})") from None
+
+    def _cut(self) -> None:
+        """Wake the link's thread out of a blocking socket call (the connection is dropped)."""
+        conn = getattr(self._client, "connection", None)
+        sock: socket.socket | None = getattr(conn, "socket", None)
+        if sock is not None:
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
+
+    def _drop(self, client: Client) -> None:
+        """Disconnect ``client`` on the link's thread, after whatever it is doing."""
+        self._cut()
+        if self._executor is not None:
+            self._executor.submit(self._disconnect_quietly, client)
+
+    @staticmethod
+    def _disconnect_quietly(client: Client) -> None:
+        with contextlib.suppress(Exception):
+            client.disconnect()
+
+    # -- supervisor --------------------------------------------------------------------------
+
+    async def _supervise(self) -> None:
+        opt = self.options
+        delay = opt.backoff_initial_s
+        error = ""
+        outage_logged = False
+        while True:
+            await self._set_health(LinkState.CONNECTING, error)
+            client = Client()
+            self._client = client
+            try:
+                await self._call(
+                    f"connecting (rack {opt.rack}, slot {opt.slot})",
+                    functools.partial(client.connect, opt.host, opt.rack, opt.slot, opt.port),
+                )
+                await self._first_contact(client)
+                await self._set_health(LinkState.UP, reconnect=outage_logged)
+                if outage_logged:
+                    log.info("%s: PLC %s is back", self.name, self._peer)
+                outage_logged = False
+                delay = opt.backoff_initial_s
+                await self._serve(client)
+            except S7Refused as err:
+                error = str(err)
+                if not self._primed:
+                    error += (f"; check db and start (the DB must hold {self._area}), that the "
+                              "DB has optimized block access off and that the CPU allows "
+                              "PUT/GET (docs/s7.md)")
+                    log.error("%s: %s", self.name, error)
+                    await self._set_health(LinkState.FAILED, error)
+                    return
+            except LinkError as err:
+                error = str(err)
+            except Exception as err:  # a bug must not leave a dead link reporting UP
+                log.exception("%s: unexpected error talking to %s", self.name, self._peer)
+                error = f"internal error: {err!r}"
+            finally:
+                self._drop(client)
+            self._release_waiters(LinkError(f"link {self.name}: {error}"))
+            if not outage_logged:
+                log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, error,
+                            opt.backoff_max_s)
+                outage_logged = True
+            await self._set_health(LinkState.DOWN, error)
+            await asyncio.sleep(delay)
+            delay = min(2 * delay, opt.backoff_max_s)
+
+    async def _first_contact(self, client: Client) -> None:
+        """Read the PLC's block, adopt its command area (first contact only), write the mirror
+        where the PLC's block differs from it."""
+        words = await self._read_block(client)
+        if not self._primed:
+            # A request the PLC made before this process ran counts only if it is still
+            # unanswered (its ACK_SEQ differs); otherwise it would rerun an old job.
+            if words[Reg.ACK_SEQ] == words[Reg.REQ_SEQ]:
+                cmd = tuple(words[COMMAND_AREA.start:COMMAND_AREA.stop])
+                self.bank.image.apply([BlockWrite(COMMAND_AREA.start, cmd)])
+                self.bank.handshake.last_req_seq = words[Reg.REQ_SEQ]
+            self._primed = True
+        self._sent = list(words)
+        self._journal[:] = [BlockWrite(COMMAND_AREA.stop,
+                                       tuple(self.bank.image.words[COMMAND_AREA.stop:]))]
+        await self._write_plan(client)
+
+    async def _serve(self, client: Client) -> None:
+        assert self._wake is not None
+        period_s = self.options.heartbeat_ms / 1000
+        poll_s = self.options.poll_ms / 1000
+        next_beat = time.monotonic() + period_s
+        while True:
+            for _ in range(3):  # what the daemon added meanwhile goes out before the next poll
+                await self._flush(client)
+                if not (self._journal or self._waiters):
+                    break
+            words = await self._read_block(client)
+            self._check_own_part(words)
+            cmd = words[COMMAND_AREA.start:COMMAND_AREA.stop]
+            if cmd != self.bank.image.words[COMMAND_AREA.start:COMMAND_AREA.stop]:
+                self._on_command(cmd)
+                continue  # write the handshake's answer (if any) before the next poll
+            now = time.monotonic()
+            if now >= next_beat:
+                self.bank.beat()
+                age = self.bank.read(Reg.RESULT_AGE_MS, 2, time.monotonic_ns())
+                self.bank.image.apply([BlockWrite(Reg.RESULT_AGE_MS, tuple(age))])
+                next_beat = max(next_beat + period_s, now)
+                continue
+            self._wake.clear()
+            if self._waiters or self._journal:
+                continue
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(min(poll_s, next_beat - now)):
+                    await self._wake.wait()
+
+    def _check_own_part(self, words: list[int]) -> None:
+        """vgripd's part of the block must be what vgripd last wrote; if not, write it again.
+
+        Logged at most once per ``OVERWRITE_LOG_S`` (with the count since the last line), so a
+        PLC program that keeps writing there does not flood the log.
+        """
+        own = slice(COMMAND_AREA.stop, MAP_SIZE)
+        if words[own] == self._sent[own]:
+            return
+        self._overwrites += 1
+        now = time.monotonic()
+        if self._overwrite_logged is None or now - self._overwrite_logged >= OVERWRITE_LOG_S:
+            first = next(a for a in range(own.start, MAP_SIZE) if words[a] != self._sent[a])
+            name = next(r.name for r in reversed(Reg) if r.value <= first)
+            log.warning("%s: vgripd's part of %s on %s was changed from the PLC side (first at "
+                        "block byte %d, %s; %d time(s) since the last such line): writing it "
+                        "again; only CMD, REQ_SEQ and RECIPE (bytes 0-5) are the PLC's",
+                        self.name, self._area, self._peer, 2 * first, name, self._overwrites)
+            self._overwrite_logged = now
+            self._overwrites = 0
+        self._sent[own] = words[own]
+        self._journal.append(BlockWrite(own.start, tuple(self.bank.image.words[own])))
+
+    def _on_command(self, cmd: list[int]) -> None:
+        decision = self.bank.write(COMMAND_AREA.start, cmd)
+        if decision.action is Action.START:
+            assert self._on_trigger is not None
+            trigger = Trigger(link=self.name, seq=decision.seq, command=decision.command,
+                              t_mono_ns=time.monotonic_ns(), recipe=decision.recipe)
+            asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
+        elif decision.action is Action.REJECT:
+            log.info("%s: request %d refused: %s", self.name, decision.seq, decision.code.name)
+
+    async def _flush(self, client: Client) -> None:
+        """Write the mirror's changes since the last flush, then release who waited for them."""
+        if not self._journal and not self._waiters:
+            return
+        waiters, self._waiters = self._waiters, []
+        try:
+            await self._write_plan(client)
+        except BaseException:
+            self._waiters = waiters + self._waiters  # released with the outage's reason
+            raise
+        for w in waiters:
+            if not w.done():
+                w.set_result(None)
+
+    async def _write_plan(self, client: Client) -> None:
+        plan = plan_db_writes(self._sent, self._journal)
+        self._journal.clear()
+        db, start = self.options.db, self.options.start
+        for w in plan:
+            first = start + 2 * w.address
+            await self._call(
+                f"writing DB{db} bytes {first}..{first + 2 * len(w.words) - 1}",
+                functools.partial(client.db_write, db, first, block_bytes(w.words)),
+            )
+            self._sent[w.address:w.address + len(w.words)] = w.words
+
+    async def _read_block(self, client: Client) -> list[int]:
+        db, start = self.options.db, self.options.start
+        raw = await self._call(f"reading {self._area}",
+                               functools.partial(client.db_read, db, start, DB_BYTES))
+        if len(raw) != DB_BYTES:
+            raise LinkError(f"{self._peer} returned {len(raw)} bytes for {self._area}")
+        return list(struct.unpack(f">{MAP_SIZE}H", raw))
