@@ -631,8 +631,10 @@ class Daemon:
         self.cycle_ms.append(record.cycle_ms)
         told_note = ("" if told is result.status else
                      "; not delivered" if told is None else f"; published as {told.name}")
-        log.info("job %d: %s in %.1f ms%s%s", job_id, result.status.name, record.cycle_ms,
-                 f" ({result.message})" if result.message else "", told_note)
+        # A failed job's line ends with its top likely cause and the config key to check.
+        why = f"; {result.diagnosis.summary()}" if result.diagnosis is not None else ""
+        log.info("job %d: %s in %.1f ms%s%s%s", job_id, result.status.name, record.cycle_ms,
+                 f" ({result.message})" if result.message else "", told_note, why)
         if self.recorder is not None and pair is not None:
             self.recorder.submit(pair, result)
         for listener in self.listeners:
@@ -798,6 +800,8 @@ class Daemon:
                     "status": lj.result.status.name, "status_code": int(lj.result.status),
                     "published": None if lj.published is None else lj.published.name,
                     "message": lj.result.message, "cycle_ms": lj.cycle_ms,
+                    "diagnosis": None if lj.result.diagnosis is None
+                    else lj.result.diagnosis.as_dict(),
                     "age_s": (now - lj.t_done_mono_ns) / 1e9}
         links = []
         link_refusals = self.link_refusals()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import json
+import logging
 import pickle
 from collections.abc import Callable
 from typing import Any
@@ -201,3 +202,38 @@ def test_locate_json_and_text_show_the_diagnosis(tmp_path, capsys, monkeypatch):
     # A successful job has no why block and a null diagnosis.
     assert main(["locate", "-c", str(EXAMPLE), *images, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["diagnosis"] is None
+
+
+class _Lines(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(record.getMessage())
+
+
+async def test_daemon_logs_the_top_cause_and_shows_it_in_the_status():
+    from tests.integration.test_daemon import Plc, running
+    from tests.integration.test_daemon import make_config as daemon_config
+
+    camera = {"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0, "dark_level": 172}
+    logger = logging.getLogger("vgripd")  # the daemon's logger
+    handler, level = _Lines(), logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        async with running(daemon_config(camera)) as run, Plc(run.port()) as plc:
+            await plc.trigger(1)
+            await plc.result(1)
+            _, rec = await run.job_done(1)
+            assert rec.result.status is Status.NOT_FOUND
+            last = run.daemon.snapshot()["last_job"]
+            assert last["diagnosis"]["causes"][0]["key"] == "vision.min_contrast"
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+    line = next(m for m in handler.lines if m.startswith("job 1: NOT_FOUND in "))
+    assert "NOT_FOUND" in line
+    assert "likely cause: vision.min_contrast:" in line
+    assert "\n" not in line
