@@ -75,19 +75,33 @@ class OutputConfig(Model):
 
 
 class LimitsConfig(Model):
-    """Safety gates applied before anything is published (offset against the taught reference).
+    """Safety gates applied before anything is published (found pose against the taught one).
 
+    ``max_translation_mm``: how far one point P of the object may have moved between the
+    taught reference and the found pose (``|T_base_obj @ P - T_base_obj_ref @ P|``), not the
+    length of the base-frame offset's translation (which adds the lever arm of any rotation
+    about the robot base). P is ``point_mm`` (object frame) when set, else ``point``:
+    ``"origin"`` (the object frame's origin), ``"centroid"`` (of the model points) or
+    ``"grip"`` (the position of ``reference.grip``); unset = ``"origin"`` for a CAD object,
+    ``"centroid"`` for ``object.definition = "reference"`` (whose origin is the robot base's).
+    ``max_rotation_deg``: the angle of the object's rotation between reference and found pose.
     ``workspace_min_mm``/``workspace_max_mm``: a box in the robot base frame that every model
     point of the found object must lie in (both or neither; unset = no box check).
+    See docs/pipeline.md, "Limits".
     """
 
     max_translation_mm: float = Field(default=50.0, gt=0)
     max_rotation_deg: float = Field(default=10.0, gt=0)
+    point: Literal["origin", "centroid", "grip"] | None = None
+    point_mm: tuple[float, float, float] | None = None
     workspace_min_mm: tuple[float, float, float] | None = None
     workspace_max_mm: tuple[float, float, float] | None = None
 
     @model_validator(mode="after")
     def _box(self) -> LimitsConfig:
+        if self.point is not None and self.point_mm is not None:
+            raise ValueError("give either point or point_mm (the point whose displacement "
+                             "max_translation_mm limits), not both")
         lo, hi = self.workspace_min_mm, self.workspace_max_mm
         if (lo is None) != (hi is None):
             raise ValueError("workspace_min_mm and workspace_max_mm go together")

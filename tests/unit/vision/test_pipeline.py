@@ -168,8 +168,12 @@ async def test_gates_on_real_jobs():
     assert ok.status is Status.OK
     assert run(vision={"max_fit_rms_mm": 1e-4}).status is Status.RESIDUAL_TOO_HIGH
     assert run(vision={"max_reprojection_px": 1e-4}).status is Status.RESIDUAL_TOO_HIGH
-    shift = float(np.linalg.norm(ok.offset[:3, 3]))
-    assert run(limits={"max_translation_mm": shift * 0.9}).status is Status.OUT_OF_LIMITS
+    # The translation limit is on how far the object origin moved (docs/pipeline.md, "Limits").
+    shift = float(np.linalg.norm(ok.T_base_obj[:3, 3] - (600.0, 100.0, 10.0)))
+    assert run(limits={"max_translation_mm": shift * 1.1}).status is Status.OK
+    gated = run(limits={"max_translation_mm": shift * 0.9})
+    assert gated.status is Status.OUT_OF_LIMITS
+    assert f"object origin moved {shift:.2f} mm > limits.max_translation_mm" in gated.message
     centre = ok.T_base_obj[:3, 3]
     box = {"workspace_min_mm": list(centre - 1000), "workspace_max_mm": list(centre + 1000)}
     assert run(limits=box).status is Status.OK
