@@ -1,0 +1,183 @@
+"""Commissioning checks of what the daemon will need around it (``vgripd check``, docs/daemon.md
+"vgripd check"): at least one link, the listening ports free, the replay folder readable with
+frames of the calibrated size. The scene (where the reference object lands in the images) is
+``vgripd.vision.commissioning``; this module gathers both.
+
+Levels: ERROR when the daemon could not work with this config here (no link at all; an address
+that is not this machine's; a replay folder without frames); WARNING when it may (a port taken,
+most likely by a vgripd that already runs; a privileged port).
+"""
+
+from __future__ import annotations
+
+import errno
+import socket
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from vgripd.config import Config
+from vgripd.errors import CameraError, VgripError
+from vgripd.imagefiles import list_frames
+from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
+from vgripd.vision.commissioning import Finding
+
+
+@dataclass(frozen=True)
+class Options:
+    """What ``vgripd check`` was told: ``running`` skips the port checks (the daemon holds
+    them), ``no_links_ok`` accepts a config without links (for locate/replay only)."""
+
+    running: bool = False
+    no_links_ok: bool = False
+
+
+def check_links(config: Config, options: Options) -> list[Finding]:
+    """A daemon without links can be triggered by nothing and answer nobody."""
+    if config.links:
+        return []
+    if options.no_links_ok:
+        return [Finding("NOTE", "links", "no [[links]] (accepted: --no-links-ok)")]
+    if config.status.enabled and getattr(config.status, "allow_trigger", False):
+        return [Finding("WARNING", "links", "no [[links]]: only the web view's test trigger "
+                        "(status.allow_trigger) can start a job, no robot can")]
+    return [Finding("ERROR", "links", "no [[links]]: no robot or PLC can trigger a job or "
+                    "receive a result; add one (config/example.toml) or pass --no-links-ok "
+                    "for a config used only with locate/replay")]
+
+
+def _listening(config: Config) -> list[tuple[str, str, int]]:
+    """``(key, host, port)`` of every address the daemon listens on (port 0 excluded): server
+    links (``type`` ending in ``_server``, or ``mode = "server"``) and the status endpoint."""
+    found = []
+    for i, section in enumerate(config.links):
+        cls = load_class(LINKS, "link", section.type)
+        opts: Any = validate_options(cls, section, f"links.{i}")
+        host, port = getattr(opts, "host", None), getattr(opts, "port", None)
+        server = section.type.endswith("_server") or getattr(opts, "mode", None) == "server"
+        if server and isinstance(host, str) and isinstance(port, int) and port:
+            found.append((f"links[{i}]", host, port))
+    if config.status.enabled and config.status.port:
+        found.append(("status", config.status.host, config.status.port))
+    return found
+
+
+def _bind(host: str, port: int) -> OSError | None:
+    """Try listening on ``host:port`` the way asyncio's ``create_server`` does; the error."""
+    try:
+        infos = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM,
+                                   flags=socket.AI_PASSIVE)
+    except socket.gaierror as err:
+        return OSError(errno.EADDRNOTAVAIL, f"cannot resolve {host!r}: {err.strerror}")
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(address)
+            sock.listen(1)
+        except OSError as err:
+            return err
+    return None
+
+
+def _overlap(a: str, b: str) -> bool:
+    wildcard = ("", "0.0.0.0", "::")
+    return a == b or a in wildcard or b in wildcard
+
+
+def check_ports(config: Config, options: Options) -> list[Finding]:
+    """Every listening address free and bindable here, and no two on one port."""
+    listening = _listening(config)
+    if options.running and listening:
+        return [Finding("NOTE", "links", "port checks skipped (--running: the daemon holds "
+                        "them)")]
+    findings: list[Finding] = []
+    for k, (key, host, port) in enumerate(listening):
+        for other, other_host, other_port in listening[:k]:
+            if port == other_port and _overlap(host, other_host):
+                findings.append(Finding("ERROR", f"{key}.port",
+                                        f"{host}:{port} is also where {other} listens"))
+    for key, host, port in listening:
+        err = _bind(host, port)
+        where = f"{key}.port" if key != "status" else "status.port"
+        if err is None:
+            continue
+        if err.errno == errno.EADDRINUSE:
+            findings.append(Finding("WARNING", where, f"{host}:{port} is in use: is vgripd "
+                                    "already running? (if not, another program holds it and "
+                                    f"{key} cannot start)"))
+        elif err.errno == errno.EACCES:
+            findings.append(Finding("WARNING", where, f"port {port} is privileged: the daemon "
+                                    "needs CAP_NET_BIND_SERVICE (the systemd unit grants it) or "
+                                    "a port above 1023"))
+        else:
+            findings.append(Finding("ERROR", f"{key}.host" if key != "status" else "status.host",
+                                    f"cannot listen on {host}:{port}: "
+                                    f"{err.strerror or err} (not an address of this machine?)"))
+    return findings
+
+
+def check_replay(config: Config) -> list[Finding]:
+    """A replay camera's folder exists and holds frames (pairs for stereo) of the size the
+    calibration says."""
+    if config.camera.type != "replay":
+        return []
+    cls = load_class(CAMERAS, "camera", "replay")
+    opts: Any = validate_options(cls, config.camera, "camera")
+    folder = Path(opts.folder or ".")
+    if not folder.is_dir():
+        return [Finding("ERROR", "camera.folder",
+                        f"replay folder {folder} does not exist (relative paths start at the "
+                        f"working directory {Path.cwd()})")]
+    try:
+        frames = list_frames(folder, glob=opts.glob, left_glob=opts.left_glob,
+                             right_glob=opts.right_glob)
+    except CameraError as err:
+        key = "camera.glob" if opts.glob is not None else "camera.left_glob"
+        return [Finding("ERROR", key, str(err))]
+    findings = []
+    if opts.flange_poses is not None and not (folder / opts.flange_poses).is_file():
+        findings.append(Finding("ERROR", "camera.flange_poses",
+                                f"flange pose file {folder / opts.flange_poses} does not exist"))
+    if config.calibration is not None:
+        first = [("left", frames.left[0], config.calibration.left)]
+        if frames.right is not None and config.calibration.right is not None:
+            first.append(("right", frames.right[0], config.calibration.right))
+        for side, path, intrinsics in first:
+            size = _image_size(path)
+            want = (intrinsics.width, intrinsics.height)
+            if size is not None and size != want:
+                findings.append(Finding(
+                    "ERROR", f"calibration.{side}.width",
+                    f"{path} is {size[0]}x{size[1]} but calibration.{side} is "
+                    f"{want[0]}x{want[1]}: every job would end with CAMERA_ERROR"))
+    return findings
+
+
+def _image_size(path: Path) -> tuple[int, int] | None:
+    import cv2  # heavy; only for a replay folder
+
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        return None
+    return int(image.shape[1]), int(image.shape[0])
+
+
+def check_scene(config: Config) -> list[Finding]:
+    """Where the reference object lands in the images (``vgripd.vision.commissioning``)."""
+    from vgripd.vision.commissioning import check_scene as scene_findings
+    from vgripd.vision.pipeline import Pipeline  # heavy (OpenCV)
+
+    try:
+        pipeline = Pipeline(config)
+    except VgripError:  # not calibrated or taught: vgripd check says so on its own
+        return []
+    return scene_findings(pipeline)
+
+
+def commission(config: Config, options: Options = Options()) -> list[Finding]:
+    """Every commissioning check, ERRORs first."""
+    findings = (check_scene(config) + check_replay(config) + check_links(config, options)
+                + check_ports(config, options))
+    order = {"ERROR": 0, "WARNING": 1, "NOTE": 2}
+    return sorted(findings, key=lambda f: order[f.level])
