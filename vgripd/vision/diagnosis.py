@@ -266,6 +266,10 @@ def explain(pipeline: Pipeline, job: _Job, status: Status, message: str) -> Diag
     if stereo:
         causes += _stereo_causes(pipeline, trace, d)
     causes += _gate_causes(pipeline, job, status, message, d)
+    if len(trace.found) == 1 and pipeline.rig is not None and _circle_features(pipeline.config):
+        causes.append((75.0, Cause(
+            "camera", "a stereo cell was given one image: circle marks carry no identity in "
+            "one image, give the right image too")))
     causes.sort(key=lambda sc: -sc[0])
     seen: set[str] = set()
     ordered = []
