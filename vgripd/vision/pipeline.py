@@ -64,6 +64,50 @@ class Measurement:
     offset: FloatArray | None = None
     model_base: FloatArray | None = None  # (n, 3) model points in the base frame at the pose
     residuals: Mapping[str, float] = field(default_factory=dict)
+    # The point whose displacement ``limits.max_translation_mm`` limits, in the object frame
+    # (None: the object origin), and its name for messages (``limit_point``).
+    limit_point: FloatArray | None = None
+    limit_point_name: str = "object origin"
+
+
+def displacement_mm(T_base_obj: FloatArray, offset: FloatArray,
+                    point_obj: FloatArray | None = None) -> float:
+    """How far the object point ``point_obj`` (object frame, default its origin) moved between
+    the taught reference and ``T_base_obj``, in mm: ``|T_base_obj @ P - T_base_obj_ref @ P|``
+    with ``T_base_obj_ref = inv(offset) @ T_base_obj``.
+
+    Unlike ``|offset[:3, 3]|`` this holds no lever arm: a rotation of the offset about the
+    robot base moves a far-away object's origin by much less than the offset's translation.
+    """
+    p = np.zeros(3) if point_obj is None else np.asarray(point_obj, dtype=np.float64)
+    found = T_base_obj[:3, :3] @ p + T_base_obj[:3, 3]
+    T_ref = invert_transform(offset) @ T_base_obj
+    return float(np.linalg.norm(found - (T_ref[:3, :3] @ p + T_ref[:3, 3])))
+
+
+def limit_point(config: Config, model: FloatArray,
+                T_base_obj_ref: FloatArray) -> tuple[FloatArray | None, str]:
+    """The point P of ``limits.point``/``limits.point_mm`` in the object frame and its name
+    (docs/pipeline.md, "Limits"). Raises NotCalibratedError for ``point = "grip"`` without a
+    taught ``reference.grip``."""
+    limits = config.limits
+    if limits.point_mm is not None:
+        xyz = np.asarray(limits.point_mm, dtype=np.float64)
+        return xyz, f"limits.point_mm {(np.round(xyz, 1) + 0.0).tolist()}"  # no -0.0
+    point = limits.point
+    if point is None:
+        point = "centroid" if config.object.definition == "reference" else "origin"
+    if point == "centroid":
+        return model.mean(axis=0), "mark centroid"
+    if point == "grip":
+        if config.reference.grip is None:
+            raise NotCalibratedError(
+                'reference.grip: limits.point = "grip" needs the grip pose taught on the '
+                "reference object (vgripd teach --grip)")
+        grip = scene.matrix_from_pose(config.reference.grip)
+        T_obj_base = invert_transform(T_base_obj_ref)
+        return T_obj_base[:3, :3] @ grip[:3, 3] + T_obj_base[:3, 3], "grip point"
+    return None, "object origin"
 
 
 def gate(m: Measurement, vision: VisionConfig, limits: LimitsConfig) -> tuple[Status, str]:
@@ -98,16 +142,19 @@ def gate(m: Measurement, vision: VisionConfig, limits: LimitsConfig) -> tuple[St
             f"reprojection RMS {reproj:.3f} px > vision.max_reprojection_px "
             f"{vision.max_reprojection_px}"
         )
-    shift = float(np.linalg.norm(m.offset[:3, 3]))
-    if shift > limits.max_translation_mm:
+    # Limits (docs/pipeline.md, "Limits"): the displacement of one point of the object and the
+    # angle of its rotation, both between the taught reference and the found pose.
+    moved = displacement_mm(m.T_base_obj, m.offset, m.limit_point)
+    if not moved <= limits.max_translation_mm:
         return Status.OUT_OF_LIMITS, (
-            f"offset translation {shift:.2f} mm > limits.max_translation_mm "
-            f"{limits.max_translation_mm}"
+            f"offset translation: {m.limit_point_name} moved {moved:.2f} mm > "
+            f"limits.max_translation_mm {limits.max_translation_mm:g}"
         )
     turn = float(np.degrees(rotation_angle(m.offset[:3, :3])))
-    if turn > limits.max_rotation_deg:
+    if not turn <= limits.max_rotation_deg:
         return Status.OUT_OF_LIMITS, (
-            f"offset rotation {turn:.2f} deg > limits.max_rotation_deg {limits.max_rotation_deg}"
+            f"offset rotation: object turned {turn:.2f} deg > limits.max_rotation_deg "
+            f"{limits.max_rotation_deg:g}"
         )
     if limits.workspace_min_mm is not None and limits.workspace_max_mm is not None:
         pts = m.model_base if m.model_base is not None else m.T_base_obj[None, :3, 3]
@@ -268,6 +315,8 @@ class Pipeline:
         self.names = scene.feature_names(config)
         self.model = model_points(config)
         self.T_base_obj_ref = scene.T_base_obj_ref(config)
+        self.limit_point, self.limit_point_name = limit_point(config, self.model,
+                                                              self.T_base_obj_ref)
         self.T_base_grip_ref: FloatArray | None = None
         if config.output.mode == "grip":
             if config.reference.grip is None:
@@ -396,6 +445,8 @@ class Pipeline:
             T_base_obj=T_base_obj,
             offset=offset,
             model_base=self.model @ T_base_obj[:3, :3].T + T_base_obj[:3, 3],
+            limit_point=self.limit_point,
+            limit_point_name=self.limit_point_name,
             residuals=estimate.residuals,
         )
         status, message = gate(measurement, vision, limits)
