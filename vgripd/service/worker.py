@@ -17,11 +17,11 @@ What runs where::
 
 The daemon asks in two steps, grab then process, so the image-captured signal goes out as soon
 as the grab returns. Images never travel through a pickle: the daemon owns one shared-memory
-segment (``/dev/shm/vgripd-<pid>-<token>-<n>``, created at start, reused, grown only when an
-image does not fit, always unlinked on close and when replaced). The worker writes a grabbed
-pair into it; the daemon copies it out (a memcpy that releases the GIL) for its listeners.
-A pair the worker did not grab itself (a test, a replayed pair) goes the other way through the
-same segment. The worker keeps the last pair it grabbed or received, so ``process`` and
+segment (``/dev/shm/vgripd-<pid>-<token>-<n>``, created at start, reused, replaced only when
+images do not fit or a listener still holds the previous pair's images; always unlinked on close
+and when replaced). The worker writes a grabbed pair into it; the daemon maps the images
+read-only without copying (``ImageSegment.view_images``) for its listeners. A pair the worker
+did not grab itself (a test, a replayed pair) goes the other way through the same segment. The worker keeps the last pair it grabbed or received, so ``process`` and
 ``record`` name it by a token instead of sending the pixels again.
 
 Requests and answers are length-prefixed pickles on a Unix socket pair: ``HEADER`` (payload

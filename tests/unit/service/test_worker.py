@@ -14,8 +14,10 @@ import os
 import signal
 import time
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 
@@ -199,6 +201,33 @@ async def test_grabbed_images_are_read_only_views_that_later_grabs_never_overwri
         assert client.snapshot()["shm"] == second  # nothing kept: reused
 
 
+async def test_images_that_do_not_fit_get_a_bigger_segment_both_ways(tmp_path: Path) -> None:
+    # Uncalibrated replay camera: no segment at start, so the first grab grows one.
+    rng = np.random.default_rng(2)
+    left = rng.integers(0, 256, (480, 640), np.uint8)
+    right = rng.integers(0, 256, (480, 640), np.uint8)
+    cv2.imwrite(str(tmp_path / "left_1.png"), left)
+    cv2.imwrite(str(tmp_path / "right_1.png"), right)
+    config = config_from_dict({"camera": {"type": "replay", "folder": str(tmp_path),
+                                          "left_glob": "left_*.png",
+                                          "right_glob": "right_*.png"}})
+    async with running(config) as client:
+        assert client.snapshot()["shm"] is None
+        grabbed = await client.camera.grab(WAIT_S)
+        assert np.array_equal(grabbed.left, left)
+        assert grabbed.right is not None
+        assert np.array_equal(grabbed.right, right)
+        assert client.snapshot()["shm"] is not None
+        del grabbed
+        # A bigger (colour) pair from this side: a new segment, the old one unlinked.
+        first = client.snapshot()["shm"]
+        big = ImagePair(left=np.zeros((960, 1280, 3), np.uint8), right=None, t_mono_ns=1)
+        with pytest.raises(WorkerError, match="NotCalibratedError"):
+            await client.process(big, 1)
+        assert segments_of(client.prefix) == [client.snapshot()["shm"]]
+        assert client.snapshot()["shm"] != first
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSEGV], ids=["SIGKILL", "SIGSEGV"])
 async def test_a_worker_that_dies_fails_the_request_naming_why_and_is_replaced(
     worker: WorkerClient, sig: signal.Signals
@@ -259,7 +288,7 @@ async def test_an_exception_in_the_worker_fails_the_request_and_the_worker_stays
         assert client.pid == pid
 
 
-async def test_a_camera_failure_in_the_worker_is_a_camera_error(tmp_path: Any) -> None:
+async def test_a_camera_failure_in_the_worker_is_a_camera_error(tmp_path: Path) -> None:
     config = _config(camera={"type": "replay", "folder": str(tmp_path / "missing"),
                              "glob": "*.png"})
     async with running(config) as client:
