@@ -21,8 +21,9 @@ segment (``/dev/shm/vgripd-<pid>-<token>-<n>``, created at start, reused, replac
 images do not fit or a listener still holds the previous pair's images; always unlinked on close
 and when replaced). The worker writes a grabbed pair into it; the daemon maps the images
 read-only without copying (``ImageSegment.view_images``) for its listeners. A pair the worker
-did not grab itself (a test, a replayed pair) goes the other way through the same segment. The worker keeps the last pair it grabbed or received, so ``process`` and
-``record`` name it by a token instead of sending the pixels again.
+did not grab itself (a test, a replayed pair) goes the other way through the same segment. The
+worker keeps the last pair it grabbed or received, so ``process`` and ``record`` name it by a
+token instead of sending the pixels again.
 
 Requests and answers are length-prefixed pickles on a Unix socket pair: ``HEADER`` (payload
 length, request id) then the payload. One request runs at a time in the worker, in order.
@@ -343,7 +344,7 @@ class _Worker:
             self.camera_open = True
 
     def grab(self, timeout_s: float, segment: str | None
-                    ) -> tuple[int, dict[str, Any], ImageLayout | None, int]:
+             ) -> tuple[int, dict[str, Any], ImageLayout | None, int]:
         """Grab (opening the camera first if needed); images into the segment if they fit.
 
         Returns (token, fields, layout or None, bytes the images need)."""
@@ -701,8 +702,11 @@ class WorkerClient:
             self.record_bytes = rec_bytes
             if not ok:
                 error = _remote_error(value)
-        fut = gen.ready if req_id == 0 else gen.pending.pop(req_id, None)
-        if fut is None:  # an answer nobody waits for (a recording)
+        if req_id == 0:  # "ready" (or failed to start), or a failed request that wanted no answer
+            fut = None if gen.ready.done() else gen.ready
+        else:
+            fut = gen.pending.pop(req_id, None)
+        if fut is None:  # nobody waits for it (a recording)
             if error is not None:
                 log.error("worker: %s", error)
         elif error is None:
