@@ -20,6 +20,7 @@ from vgripd.config import Config
 from vgripd.errors import CameraError, VgripError
 from vgripd.imagefiles import list_frames
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
+from vgripd.types import ImagePair
 from vgripd.vision.commissioning import Finding
 
 
@@ -175,9 +176,60 @@ def check_scene(config: Config) -> list[Finding]:
     return scene_findings(pipeline)
 
 
+#: Replay frames ``check_samples`` runs through the pipeline.
+SAMPLE_FRAMES = 3
+
+
+def check_samples(config: Config, frames_wanted: int = SAMPLE_FRAMES) -> list[Finding]:
+    """Run the first replay frames through the pipeline: when none gives a pose, the config
+    cannot work on these images and the diagnosis names the key (polarity, working distance,
+    the stereo transform's direction, the hand-eye ...); when some fail, a warning."""
+    if config.camera.type != "replay" or config.calibration is None:
+        return []
+    import cv2  # heavy; only for a replay folder
+
+    from vgripd.vision.diagnosis import diagnose
+
+    cls = load_class(CAMERAS, "camera", "replay")
+    opts: Any = validate_options(cls, config.camera, "camera")
+    try:
+        frames = list_frames(Path(opts.folder or "."), glob=opts.glob, left_glob=opts.left_glob,
+                             right_glob=opts.right_glob)
+    except (CameraError, OSError):
+        return []  # check_replay reports it
+    failed: list[tuple[str, str, str]] = []
+    tried = 0
+    for i in range(min(frames_wanted, len(frames.left))):
+        paths = [frames.left[i]] + ([frames.right[i]] if frames.right is not None else [])
+        read = [cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) for path in paths]
+        images = [image for image in read if image is not None]
+        if len(images) < len(paths):
+            continue  # check_replay and the job itself report unreadable files
+        pair = ImagePair(left=images[0], right=images[1] if len(images) > 1 else None,
+                         t_mono_ns=0, source=str(paths[0]))
+        try:
+            diagnosis = diagnose(config, pair)
+        except VgripError:
+            return []  # not calibrated or taught: vgripd check says so on its own
+        tried += 1
+        if diagnosis.causes:
+            top = diagnosis.causes[0]
+            failed.append((paths[0].name, top.key, top.reason))
+    if not failed:
+        return []
+    name, key, reason = failed[0]
+    if len(failed) == tried:
+        return [Finding("ERROR", key, f"no pose on any of the first {tried} replay frame(s) "
+                                      f"({diagnosis.status} on {name}): {reason}")]
+    return [Finding("WARNING", key, f"{len(failed)} of the first {tried} replay frames gave no "
+                                    f"pose ({name}): {reason}")]
+
+
 def commission(config: Config, options: Options = Options()) -> list[Finding]:
     """Every commissioning check, ERRORs first."""
     findings = (check_scene(config) + check_replay(config) + check_links(config, options)
                 + check_ports(config, options))
+    if not any(f.level == "ERROR" for f in findings):  # the scene must hold before images
+        findings += check_samples(config)
     order = {"ERROR": 0, "WARNING": 1, "NOTE": 2}
     return sorted(findings, key=lambda f: order[f.level])
