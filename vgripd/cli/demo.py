@@ -61,8 +61,8 @@ def _port(wanted: int) -> int:
 def demo_config(port: int, seed: int, vendor: str, pose: dict[str, Any] | None = None) -> Any:
     """The demo cell; ``pose`` fixes the object pose (else random around the reference)."""
     return config_from_dict({
-        # Tilt kept within 3 deg: the offset is taken in the base frame, where a tilt about the
-        # object moves its origin too, and 5 deg can exceed the 50 mm limit.
+        # Ordinary placements: up to 10 mm and 3 deg from the taught pose (the limits judge
+        # the object's own displacement, docs/pipeline.md "Limits"; the fault cycle exceeds them).
         "camera": {"type": "synthetic", "seed": seed, "max_shift_mm": 10.0, "max_tilt_deg": 3.0,
                    **({"pose": pose} if pose else {})},
         "output": {"vendor": vendor},
