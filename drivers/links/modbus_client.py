@@ -42,8 +42,7 @@ import asyncio
 import contextlib
 import functools
 import logging
-import time
-from collections.abc import Awaitable, Callable, Mapping, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 
 from pydantic import Field
 from pymodbus.client import AsyncModbusTcpClient
@@ -51,24 +50,16 @@ from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
 
+from drivers.links.mirror_client import MirrorClientLink
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
     COMMAND_AREA,
     MAP_SIZE,
     REGISTER_CAPABILITIES,
-    Action,
     BlockWrite,
-    LinkHealth,
-    LinkState,
     Reg,
-    RegisterBank,
     RegisterOptions,
-    RobotLink,
-    Trigger,
-    TriggerHandler,
-    ValueCodec,
 )
-from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
 
@@ -173,207 +164,60 @@ def full_image_writes(words: Sequence[int]) -> list[BlockWrite]:
     ]
 
 
-class ModbusClientLink(RobotLink):
+class ModbusClientLink(MirrorClientLink[AsyncModbusTcpClient]):
     Options = ModbusClientOptions
     capabilities = REGISTER_CAPABILITIES
     options: ModbusClientOptions
+    peer_kind = "robot"
+    _log = log
 
     def __init__(self, name: str, options: ModbusClientOptions) -> None:
         super().__init__(name, options)
-        self._peer = f"{options.host}:{options.port}"
-        self._journal: list[BlockWrite] = []
-        self.bank = RegisterBank(
-            ValueCodec(options.word_order, options.value_format, options.scale), self._journal
-        )
-        self._health = LinkHealth(LinkState.STOPPED, peer=self._peer)
-        self._health_changed: asyncio.Condition | None = None
-        self._on_trigger: TriggerHandler | None = None
-        self._task: asyncio.Task[None] | None = None
-        self._wake: asyncio.Event | None = None
-        self._waiters: list[asyncio.Future[None]] = []
         self._lost: asyncio.Future[None] | None = None
-        self._primed = False
-        self.transactions = 0  # requests sent to the robot (benchmarks, tests)
 
-    # -- RobotLink ---------------------------------------------------------------------------
+    # -- MirrorClientLink hooks ----------------------------------------------------------------
 
-    async def open(self, on_trigger: TriggerHandler) -> None:
-        """Start the supervisor and wait for the outcome of its first contact.
-
-        Raises ``LinkError`` (state FAILED) if the robot refuses a register of the block. An
-        unreachable robot is not an error here: the supervisor keeps retrying (state DOWN).
-        """
-        if self._task is not None:
-            raise LinkError(f"link {self.name}: already open")
+    def _starting(self) -> None:
         quiet_pymodbus()
-        self._on_trigger = on_trigger
-        self._health_changed = asyncio.Condition()
-        self._wake = asyncio.Event()
-        self._task = asyncio.create_task(self._supervise(), name=f"{self.name}-supervisor")
-        # connect + one read each take at most timeout_s; a slower first contact stays with
-        # the supervisor (CONNECTING) rather than failing the start
-        with contextlib.suppress(TimeoutError):
-            await self.wait_state({LinkState.UP, LinkState.DOWN, LinkState.FAILED},
-                                  2 * self.options.timeout_s + 1.0)
-        health = self._health
-        if health.state is LinkState.FAILED:
-            await self._stop_task()
-            raise LinkError(f"link {self.name}: {health.last_error}")
 
-    async def close(self) -> None:
-        await self._stop_task()
-        await self._set_health(LinkState.STOPPED)
+    @property
+    def _poll_s(self) -> float:
+        return self.options.poll_interval_s
 
-    def health(self) -> LinkHealth:
-        return self._health
-
-    async def image_captured(self, seq: int, job_id: int) -> None:
-        self.bank.captured(seq, job_id)
-        await self._flushed()
-
-    async def publish(self, seq: int, result: JobResult) -> Status:
-        """Publish into the mirror, then wait until the robot has it; returns the status the
-        robot got.
-
-        Raises ``LinkError`` when the robot is not connected; the result stays in the mirror and
-        is written (ACK_SEQ last) as soon as the robot is back.
-        """
-        published = self.bank.publish(seq, result, time.monotonic_ns())
-        if published.status is not result.status:
-            log.warning("%s: request %d published as %s instead of %s: %s", self.name, seq,
-                        published.status.name, result.status.name, published.message)
-        await self._flushed()
-        return published.status
-
-    def refusals(self) -> Mapping[str, int]:
-        return dict(self.bank.refusals)
-
-    async def set_warnings(self, bits: int) -> None:
-        """Set WARNINGS in the mirror; while the robot is connected, wait until it has it.
-
-        Unlike ``publish`` this does not raise while the robot is away: the mirror is written
-        whole at the reconnect, WARNINGS included.
-        """
-        self.bank.set_warnings(bits)
-        if self._health.state is LinkState.UP:
-            await self._flushed()
-
-    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
-        """Wait until ``health().state`` is in ``states``; ``TimeoutError`` otherwise."""
-        wanted = {states} if isinstance(states, LinkState) else states
-        if self._health_changed is None:
-            raise LinkError(f"link {self.name}: not open")
-        async with asyncio.timeout(timeout_s), self._health_changed:
-            await self._health_changed.wait_for(lambda: self._health.state in wanted)
-        return self._health
-
-    # -- helpers for the daemon-facing calls -------------------------------------------------
-
-    async def _flushed(self) -> None:
-        if self._health.state is not LinkState.UP or self._wake is None:
-            raise LinkError(
-                f"link {self.name}: robot {self._peer} is {self._health.state.value}"
-                f" ({self._health.last_error or 'not connected'}); kept for the reconnect"
-            )
-        done = asyncio.get_running_loop().create_future()
-        self._waiters.append(done)
-        self._wake.set()
-        await done
-
-    def _release_waiters(self, error: Exception) -> None:
-        waiters, self._waiters = self._waiters, []
-        for w in waiters:
-            if not w.done():
-                w.set_exception(error)
-
-    async def _stop_task(self) -> None:
-        task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
-        self._release_waiters(LinkError(f"link {self.name}: closed"))
-
-    async def _set_health(self, state: LinkState, error: str = "", reconnect: bool = False) -> None:
-        h = self._health
-        if state is h.state and error == h.last_error:
-            return
-        self._health = LinkHealth(
-            state,
-            peer=self._peer,
-            last_error=error,
-            reconnects=h.reconnects + int(reconnect),
-            since_mono_ns=time.monotonic_ns() if state is not h.state else h.since_mono_ns,
-        )
-        if self._health_changed is not None:
-            async with self._health_changed:
-                self._health_changed.notify_all()
-
-    # -- supervisor --------------------------------------------------------------------------
-
-    async def _supervise(self) -> None:
+    def _new_client(self) -> AsyncModbusTcpClient:
         opt = self.options
-        delay = opt.backoff_initial_s
-        error = ""
-        outage_logged = False
-        while True:
-            await self._set_health(LinkState.CONNECTING, error)
-            client = AsyncModbusTcpClient(
-                opt.host, port=opt.port, timeout=opt.timeout_s, retries=0,
-                reconnect_delay=0,  # the supervisor is the only reconnect loop
-                trace_connect=self._on_connection_change,
-            )
-            try:
-                self._lost = asyncio.get_running_loop().create_future()
-                if not await client.connect():
-                    raise LinkError(f"cannot connect to {self._peer} (refused, or no answer "
-                                    f"within {opt.timeout_s} s)")
-                await self._first_contact(client)
-                await self._set_health(LinkState.UP, reconnect=outage_logged)
-                if outage_logged:
-                    log.info("%s: robot %s is back", self.name, self._peer)
-                outage_logged = False
-                delay = opt.backoff_initial_s
-                await self._serve(client)
-            except RegisterRefused as err:
-                error = str(err)
-                if err.permanent and not self._primed:
-                    log.error("%s: %s", self.name, error)
-                    await self._set_health(LinkState.FAILED, error)
-                    return
-            except LinkError as err:
-                error = str(err)
-            except (OSError, ModbusException) as err:  # transport trouble pymodbus let through
-                error = f"{self._peer}: {err}"
-            except Exception as err:  # a bug must not leave a dead link reporting UP
-                log.exception("%s: unexpected error talking to %s", self.name, self._peer)
-                error = f"internal error: {err!r}"
-            finally:
-                client.close()
-                self._lost = None
-            self._release_waiters(LinkError(f"link {self.name}: {error}"))
-            if not outage_logged:
-                log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, error,
-                            opt.backoff_max_s)
-                outage_logged = True
-            await self._set_health(LinkState.DOWN, error)
-            await asyncio.sleep(delay)
-            delay = min(2 * delay, opt.backoff_max_s)
+        return AsyncModbusTcpClient(
+            opt.host, port=opt.port, timeout=opt.timeout_s, retries=0,
+            reconnect_delay=0,  # the supervisor is the only reconnect loop
+            trace_connect=self._on_connection_change,
+        )
+
+    async def _connect(self, client: AsyncModbusTcpClient) -> None:
+        self._lost = asyncio.get_running_loop().create_future()
+        if not await client.connect():
+            raise LinkError(f"cannot connect to {self._peer} (refused, or no answer "
+                            f"within {self.options.timeout_s} s)")
+
+    def _drop(self, client: AsyncModbusTcpClient) -> None:
+        client.close()
+        self._lost = None
+
+    def _refused_for_good(self, err: LinkError) -> str | None:
+        if isinstance(err, RegisterRefused) and err.permanent and not self._primed:
+            return str(err)
+        return None
+
+    def _transport_error(self, err: Exception) -> str | None:
+        if isinstance(err, (OSError, ModbusException)):  # transport trouble pymodbus let through
+            return f"{self._peer}: {err}"
+        return None
 
     def _on_connection_change(self, connected: bool) -> None:
         if not connected and self._lost is not None and not self._lost.done():
             self._lost.set_result(None)
 
-    async def _first_contact(self, client: AsyncModbusTcpClient) -> None:
-        """Check the robot serves the whole block, adopt its command area, write the mirror."""
-        words = await self._read_block(client)
-        if not self._primed:
-            # A request the robot made before this process ran counts only if it is still
-            # unanswered (its ACK_SEQ differs); otherwise it would rerun an old job.
-            cmd = tuple(words[COMMAND_AREA.start:COMMAND_AREA.stop])
-            if words[Reg.ACK_SEQ] == words[Reg.REQ_SEQ]:
-                self.bank.image.apply([BlockWrite(COMMAND_AREA.start, cmd)])
-                self.bank.handshake.last_req_seq = words[Reg.REQ_SEQ]
-            self._primed = True
+    async def _write_mirror(self, client: AsyncModbusTcpClient, words: list[int]) -> None:
+        """The whole mirror, whatever the robot has."""
         self._journal.clear()
         await self._write_plan(client, full_image_writes(self.bank.image.words))
 
@@ -393,56 +237,15 @@ class ModbusClientLink(RobotLink):
                     ) from None
             raise
 
-    async def _serve(self, client: AsyncModbusTcpClient) -> None:
-        assert self._wake is not None
-        period_s = self.options.heartbeat_ms / 1000
-        next_beat = time.monotonic() + period_s
-        while True:
-            await self._flush(client)
-            cmd = await self._read(client, self.options.base_address + COMMAND_AREA.start,
-                                   len(COMMAND_AREA))
-            if cmd != self.bank.image.words[COMMAND_AREA.start:COMMAND_AREA.stop]:
-                self._on_command(cmd)
-                continue  # write the handshake's answer (if any) before the next poll
-            now = time.monotonic()
-            if now >= next_beat:
-                self.bank.beat()
-                age = self.bank.read(Reg.RESULT_AGE_MS, 2, time.monotonic_ns())
-                self.bank.image.apply([BlockWrite(Reg.RESULT_AGE_MS, tuple(age))])
-                next_beat = max(next_beat + period_s, now)
-                continue
-            self._wake.clear()
-            if self._waiters or self._journal:
-                continue
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(min(self.options.poll_interval_s, next_beat - now)):
-                    await self._wake.wait()
+    async def _exchange(self, client: AsyncModbusTcpClient) -> list[int]:
+        await self._flush(client)
+        return await self._read(client, self.options.base_address + COMMAND_AREA.start,
+                                len(COMMAND_AREA))
 
-    def _on_command(self, cmd: list[int]) -> None:
-        decision = self.bank.write(COMMAND_AREA.start, cmd)
-        if decision.action is Action.START:
-            assert self._on_trigger is not None
-            trigger = Trigger(link=self.name, seq=decision.seq, command=decision.command,
-                              t_mono_ns=time.monotonic_ns(), recipe=decision.recipe)
-            asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
-        elif decision.action is Action.REJECT:
-            log.info("%s: request %d refused: %s", self.name, decision.seq, decision.code.name)
-
-    async def _flush(self, client: AsyncModbusTcpClient) -> None:
-        """Write the mirror's changes since the last flush, then release who waited for them."""
-        if not self._journal and not self._waiters:
-            return
-        waiters, self._waiters = self._waiters, []
+    async def _write_changes(self, client: AsyncModbusTcpClient) -> None:
         plan = plan_writes(self._journal)
         self._journal.clear()
-        try:
-            await self._write_plan(client, plan)
-        except BaseException:
-            self._waiters = waiters + self._waiters  # released with the outage's reason
-            raise
-        for w in waiters:
-            if not w.done():
-                w.set_result(None)
+        await self._write_plan(client, plan)
 
     async def _write_plan(self, client: AsyncModbusTcpClient, plan: Sequence[BlockWrite]) -> None:
         base, unit = self.options.base_address, self.options.unit_id

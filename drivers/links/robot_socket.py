@@ -366,12 +366,7 @@ class RobotSocketLink(RobotLink):
 
     async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
         """Wait until ``health().state`` is in ``states``; ``TimeoutError`` otherwise."""
-        wanted = {states} if isinstance(states, LinkState) else states
-        if self._health_changed is None:
-            raise LinkError(f"link {self.name}: not open")
-        async with asyncio.timeout(timeout_s), self._health_changed:
-            await self._health_changed.wait_for(lambda: self._health.state in wanted)
-        return self.health()
+        return await self._wait_health(self._health_changed, states, timeout_s)
 
     # -- requests ----------------------------------------------------------------------------
 

@@ -49,7 +49,7 @@ import logging
 import socket
 import struct
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Literal, TypeVar
 
@@ -57,25 +57,17 @@ from pydantic import Field, field_validator
 from snap7 import Client
 from snap7.error import S7Error, S7ProtocolError, S7TimeoutError
 
+from drivers.links.mirror_client import MirrorClientLink
 from vgripd.errors import LinkError
 from vgripd.registry import LinkCapabilities
 from vgripd.service.protocol import (
     COMMAND_AREA,
     MAP_SIZE,
     MAX_VALUES,
-    Action,
     BlockWrite,
-    LinkHealth,
-    LinkState,
     Reg,
-    RegisterBank,
     RegisterOptions,
-    RobotLink,
-    Trigger,
-    TriggerHandler,
-    ValueCodec,
 )
-from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
 
@@ -173,123 +165,72 @@ def block_bytes(words: Sequence[int]) -> bytearray:
     return bytearray(struct.pack(f">{len(words)}H", *words))
 
 
-class S7Link(RobotLink):
+class S7Link(MirrorClientLink[Client]):
     Options = S7Options
     capabilities = S7_CAPABILITIES
     options: S7Options
+    peer_kind = "PLC"
+    _log = log
 
     def __init__(self, name: str, options: S7Options) -> None:
-        super().__init__(name, options)
-        self._peer = f"{options.host}:{options.port}"
-        self._area = f"DB{options.db} bytes {options.start}..{options.start + DB_BYTES - 1}"
-        self._journal: list[BlockWrite] = []
-        self.bank = RegisterBank(
-            ValueCodec("ABCD", options.value_format, options.scale), self._journal
-        )
+        area = f"DB{options.db} bytes {options.start}..{options.start + DB_BYTES - 1}"
+        super().__init__(name, options, f"{options.host}:{options.port} {area}")
+        self._area = area
         self._sent = [0] * MAP_SIZE  # the block as the PLC has it, as far as vgripd knows
-        self._health = LinkHealth(LinkState.STOPPED, peer=f"{self._peer} {self._area}")
-        self._health_changed: asyncio.Condition | None = None
-        self._on_trigger: TriggerHandler | None = None
-        self._task: asyncio.Task[None] | None = None
-        self._wake: asyncio.Event | None = None
-        self._waiters: list[asyncio.Future[None]] = []
         self._executor: ThreadPoolExecutor | None = None
         self._client: Client | None = None
-        self._primed = False
         self._overwrites = 0  # foreign writes to vgripd's part not yet logged
         self._overwrite_logged: float | None = None  # monotonic s of the last such line
-        self.transactions = 0  # S7 requests sent (benchmarks, tests)
 
-    # -- RobotLink ---------------------------------------------------------------------------
+    # -- MirrorClientLink hooks ----------------------------------------------------------------
 
-    async def open(self, on_trigger: TriggerHandler) -> None:
-        """Start the supervisor and wait for the outcome of its first contact.
-
-        Raises ``LinkError`` (state FAILED) if the PLC refuses the block. An unreachable PLC
-        is not an error here: the supervisor keeps retrying (state DOWN).
-        """
-        if self._task is not None:
-            raise LinkError(f"link {self.name}: already open")
+    def _starting(self) -> None:
         quiet_snap7()
-        self._on_trigger = on_trigger
-        self._health_changed = asyncio.Condition()
-        self._wake = asyncio.Event()
         self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"s7-{self.name}")
-        self._task = asyncio.create_task(self._supervise(), name=f"{self.name}-supervisor")
-        with contextlib.suppress(TimeoutError):
-            await self.wait_state({LinkState.UP, LinkState.DOWN, LinkState.FAILED},
-                                  2 * self.options.timeout_s + 1.0)
-        health = self._health
-        if health.state is LinkState.FAILED:
-            await self._stop()
-            raise LinkError(f"link {self.name}: {health.last_error}")
 
-    async def close(self) -> None:
-        await self._stop()
-        await self._set_health(LinkState.STOPPED)
+    @property
+    def _poll_s(self) -> float:
+        return self.options.poll_ms / 1000
 
-    def health(self) -> LinkHealth:
-        return self._health
+    def _new_client(self) -> Client:
+        client = Client()
+        self._client = client
+        return client
 
-    async def image_captured(self, seq: int, job_id: int) -> None:
-        self.bank.captured(seq, job_id)
-        await self._flushed()
+    async def _connect(self, client: Client) -> None:
+        opt = self.options
+        await self._call(
+            f"connecting (rack {opt.rack}, slot {opt.slot})",
+            functools.partial(client.connect, opt.host, opt.rack, opt.slot, opt.port),
+        )
 
-    async def publish(self, seq: int, result: JobResult) -> Status:
-        """Publish into the mirror, then wait until the PLC has it; returns the status the PLC
-        got. Raises ``LinkError`` when the PLC is not connected; the result stays in the mirror
-        and is written (ACK_SEQ last) as soon as the PLC is back."""
-        published = self.bank.publish(seq, result, time.monotonic_ns())
-        if published.status is not result.status:
-            log.warning("%s: request %d published as %s instead of %s: %s", self.name, seq,
-                        published.status.name, result.status.name, published.message)
-        await self._flushed()
-        return published.status
+    def _refused_for_good(self, err: LinkError) -> str | None:
+        if not isinstance(err, S7Refused) or self._primed:
+            return None
+        return (f"{err}; check db and start (the DB must hold {self._area}), that the DB has "
+                "optimized block access off and that the CPU allows PUT/GET (docs/s7.md)")
 
-    def refusals(self) -> Mapping[str, int]:
-        return dict(self.bank.refusals)
+    async def _write_mirror(self, client: Client, words: list[int]) -> None:
+        """Write the mirror where the PLC's block differs from it."""
+        self._sent = list(words)
+        self._journal[:] = [BlockWrite(COMMAND_AREA.stop,
+                                       tuple(self.bank.image.words[COMMAND_AREA.stop:]))]
+        await self._write_plan(client)
 
-    async def set_warnings(self, bits: int) -> None:
-        """Set WARNINGS in the mirror; while the PLC is connected, wait until it has it (while
-        it is away the mirror is written at the reconnect, WARNINGS included)."""
-        self.bank.set_warnings(bits)
-        if self._health.state is LinkState.UP:
-            await self._flushed()
+    async def _exchange(self, client: Client) -> list[int]:
+        for _ in range(3):  # what the daemon added meanwhile goes out before the next poll
+            await self._flush(client)
+            if not (self._journal or self._waiters):
+                break
+        words = await self._read_block(client)
+        self._check_own_part(words)
+        return words[COMMAND_AREA.start:COMMAND_AREA.stop]
 
-    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
-        """Wait until ``health().state`` is in ``states``; ``TimeoutError`` otherwise."""
-        wanted = {states} if isinstance(states, LinkState) else states
-        if self._health_changed is None:
-            raise LinkError(f"link {self.name}: not open")
-        async with asyncio.timeout(timeout_s), self._health_changed:
-            await self._health_changed.wait_for(lambda: self._health.state in wanted)
-        return self._health
-
-    # -- daemon-facing helpers ---------------------------------------------------------------
-
-    async def _flushed(self) -> None:
-        if self._health.state is not LinkState.UP or self._wake is None:
-            raise LinkError(
-                f"link {self.name}: PLC {self._peer} is {self._health.state.value}"
-                f" ({self._health.last_error or 'not connected'}); kept for the reconnect"
-            )
-        done = asyncio.get_running_loop().create_future()
-        self._waiters.append(done)
-        self._wake.set()
-        await done
-
-    def _release_waiters(self, error: Exception) -> None:
-        waiters, self._waiters = self._waiters, []
-        for w in waiters:
-            if not w.done():
-                w.set_exception(error)
+    async def _write_changes(self, client: Client) -> None:
+        await self._write_plan(client)
 
     async def _stop(self) -> None:
-        task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
-        self._release_waiters(LinkError(f"link {self.name}: closed"))
+        await super()._stop()
         executor, self._executor = self._executor, None
         if executor is not None:
             # The supervisor cut any call in progress; once this no-op has run, the thread is
@@ -298,21 +239,6 @@ class S7Link(RobotLink):
                 async with asyncio.timeout(10.0):  # > snap7's fixed 5 s connect timeout
                     await asyncio.wrap_future(executor.submit(lambda: None))
             executor.shutdown(wait=True)
-
-    async def _set_health(self, state: LinkState, error: str = "", reconnect: bool = False) -> None:
-        h = self._health
-        if state is h.state and error == h.last_error:
-            return
-        self._health = LinkHealth(
-            state,
-            peer=h.peer,
-            last_error=error,
-            reconnects=h.reconnects + int(reconnect),
-            since_mono_ns=time.monotonic_ns() if state is not h.state else h.since_mono_ns,
-        )
-        if self._health_changed is not None:
-            async with self._health_changed:
-                self._health_changed.notify_all()
 
     # -- blocking calls, on the link's own thread --------------------------------------------
 
@@ -365,100 +291,7 @@ class S7Link(RobotLink):
         with contextlib.suppress(Exception):
             client.disconnect()
 
-    # -- supervisor --------------------------------------------------------------------------
-
-    async def _supervise(self) -> None:
-        opt = self.options
-        delay = opt.backoff_initial_s
-        error = ""
-        outage_logged = False
-        while True:
-            await self._set_health(LinkState.CONNECTING, error)
-            client = Client()
-            self._client = client
-            try:
-                await self._call(
-                    f"connecting (rack {opt.rack}, slot {opt.slot})",
-                    functools.partial(client.connect, opt.host, opt.rack, opt.slot, opt.port),
-                )
-                await self._first_contact(client)
-                await self._set_health(LinkState.UP, reconnect=outage_logged)
-                if outage_logged:
-                    log.info("%s: PLC %s is back", self.name, self._peer)
-                outage_logged = False
-                delay = opt.backoff_initial_s
-                await self._serve(client)
-            except S7Refused as err:
-                error = str(err)
-                if not self._primed:
-                    error += (f"; check db and start (the DB must hold {self._area}), that the "
-                              "DB has optimized block access off and that the CPU allows "
-                              "PUT/GET (docs/s7.md)")
-                    log.error("%s: %s", self.name, error)
-                    await self._set_health(LinkState.FAILED, error)
-                    return
-            except LinkError as err:
-                error = str(err)
-            except Exception as err:  # a bug must not leave a dead link reporting UP
-                log.exception("%s: unexpected error talking to %s", self.name, self._peer)
-                error = f"internal error: {err!r}"
-            finally:
-                self._drop(client)
-            self._release_waiters(LinkError(f"link {self.name}: {error}"))
-            if not outage_logged:
-                log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, error,
-                            opt.backoff_max_s)
-                outage_logged = True
-            await self._set_health(LinkState.DOWN, error)
-            await asyncio.sleep(delay)
-            delay = min(2 * delay, opt.backoff_max_s)
-
-    async def _first_contact(self, client: Client) -> None:
-        """Read the PLC's block, adopt its command area (first contact only), write the mirror
-        where the PLC's block differs from it."""
-        words = await self._read_block(client)
-        if not self._primed:
-            # A request the PLC made before this process ran counts only if it is still
-            # unanswered (its ACK_SEQ differs); otherwise it would rerun an old job.
-            if words[Reg.ACK_SEQ] == words[Reg.REQ_SEQ]:
-                cmd = tuple(words[COMMAND_AREA.start:COMMAND_AREA.stop])
-                self.bank.image.apply([BlockWrite(COMMAND_AREA.start, cmd)])
-                self.bank.handshake.last_req_seq = words[Reg.REQ_SEQ]
-            self._primed = True
-        self._sent = list(words)
-        self._journal[:] = [BlockWrite(COMMAND_AREA.stop,
-                                       tuple(self.bank.image.words[COMMAND_AREA.stop:]))]
-        await self._write_plan(client)
-
-    async def _serve(self, client: Client) -> None:
-        assert self._wake is not None
-        period_s = self.options.heartbeat_ms / 1000
-        poll_s = self.options.poll_ms / 1000
-        next_beat = time.monotonic() + period_s
-        while True:
-            for _ in range(3):  # what the daemon added meanwhile goes out before the next poll
-                await self._flush(client)
-                if not (self._journal or self._waiters):
-                    break
-            words = await self._read_block(client)
-            self._check_own_part(words)
-            cmd = words[COMMAND_AREA.start:COMMAND_AREA.stop]
-            if cmd != self.bank.image.words[COMMAND_AREA.start:COMMAND_AREA.stop]:
-                self._on_command(cmd)
-                continue  # write the handshake's answer (if any) before the next poll
-            now = time.monotonic()
-            if now >= next_beat:
-                self.bank.beat()
-                age = self.bank.read(Reg.RESULT_AGE_MS, 2, time.monotonic_ns())
-                self.bank.image.apply([BlockWrite(Reg.RESULT_AGE_MS, tuple(age))])
-                next_beat = max(next_beat + period_s, now)
-                continue
-            self._wake.clear()
-            if self._waiters or self._journal:
-                continue
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(min(poll_s, next_beat - now)):
-                    await self._wake.wait()
+    # -- polling ------------------------------------------------------------------------------
 
     def _check_own_part(self, words: list[int]) -> None:
         """vgripd's part of the block must be what vgripd last wrote; if not, write it again.
@@ -482,30 +315,6 @@ class S7Link(RobotLink):
             self._overwrites = 0
         self._sent[own] = words[own]
         self._journal.append(BlockWrite(own.start, tuple(self.bank.image.words[own])))
-
-    def _on_command(self, cmd: list[int]) -> None:
-        decision = self.bank.write(COMMAND_AREA.start, cmd)
-        if decision.action is Action.START:
-            assert self._on_trigger is not None
-            trigger = Trigger(link=self.name, seq=decision.seq, command=decision.command,
-                              t_mono_ns=time.monotonic_ns(), recipe=decision.recipe)
-            asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
-        elif decision.action is Action.REJECT:
-            log.info("%s: request %d refused: %s", self.name, decision.seq, decision.code.name)
-
-    async def _flush(self, client: Client) -> None:
-        """Write the mirror's changes since the last flush, then release who waited for them."""
-        if not self._journal and not self._waiters:
-            return
-        waiters, self._waiters = self._waiters, []
-        try:
-            await self._write_plan(client)
-        except BaseException:
-            self._waiters = waiters + self._waiters  # released with the outage's reason
-            raise
-        for w in waiters:
-            if not w.done():
-                w.set_result(None)
 
     async def _write_plan(self, client: Client) -> None:
         plan = plan_db_writes(self._sent, self._journal)

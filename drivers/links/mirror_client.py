@@ -1,0 +1,330 @@
+"""What the register client links share: a ``RegisterBank`` mirror pushed to a peer they poll.
+
+``MirrorClientLink`` is the base of the links where vgripd is the client of a peer holding the
+register block of ``vgripd.service.protocol`` (``drivers.links.s7``: a PLC data block;
+``drivers.links.modbus_client``: the robot's holding registers). It owns the mirror (a
+``RegisterBank`` and its journal), the daemon-facing calls that wait until the peer has a change
+(``_flushed`` and its waiters, released with an outage), the health and its condition, and the
+supervisor: one task that connects, makes the first contact, then polls and pushes until the
+connection drops, and reconnects with doubling back-off, logging once per outage (one WARNING
+line, no traceback). A subclass brings the transport through the hooks below (connect, read
+and write the block, disconnect) and says which refusal of the first contact is for good.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from abc import abstractmethod
+from collections.abc import Mapping
+from typing import Any, ClassVar, Generic, TypeVar
+
+from vgripd.errors import LinkError
+from vgripd.service.protocol import (
+    COMMAND_AREA,
+    Action,
+    BlockWrite,
+    LinkHealth,
+    LinkState,
+    Reg,
+    RegisterBank,
+    RobotLink,
+    Trigger,
+    TriggerHandler,
+    ValueCodec,
+)
+from vgripd.types import JobResult, Status
+
+C = TypeVar("C")  # the transport's client object, one per connection
+
+
+class MirrorClientLink(RobotLink, Generic[C]):
+    """A register block mirrored in a ``RegisterBank`` and copied to a polled peer.
+
+    Subclasses set ``peer_kind`` (``"PLC"``, ``"robot"``: it names the peer in messages) and
+    ``_log`` (their module's logger, so every line keeps its logger), and implement the hooks.
+    Their options have ``host``, ``port``, ``word_order``, ``value_format``, ``scale``,
+    ``heartbeat_ms``, ``timeout_s``, ``backoff_initial_s`` and ``backoff_max_s``.
+    """
+
+    peer_kind: ClassVar[str]
+    _log: ClassVar[logging.Logger]
+
+    def __init__(self, name: str, options: Any, health_peer: str | None = None) -> None:
+        super().__init__(name, options)
+        self._peer = f"{options.host}:{options.port}"
+        self._journal: list[BlockWrite] = []
+        self.bank = RegisterBank(
+            ValueCodec(options.word_order, options.value_format, options.scale), self._journal
+        )
+        self._health = LinkHealth(LinkState.STOPPED, peer=health_peer or self._peer)
+        self._health_changed: asyncio.Condition | None = None
+        self._on_trigger: TriggerHandler | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._wake: asyncio.Event | None = None
+        self._waiters: list[asyncio.Future[None]] = []
+        self._primed = False
+        self.transactions = 0  # requests sent to the peer (benchmarks, tests)
+
+    # -- hooks -------------------------------------------------------------------------------
+
+    def _starting(self) -> None:
+        """At ``open``, before the supervisor starts (quiet a library's logger, make threads)."""
+
+    @abstractmethod
+    def _new_client(self) -> C:
+        """A client for one connection attempt (no I/O)."""
+
+    @abstractmethod
+    async def _connect(self, client: C) -> None:
+        """Connect ``client``; ``LinkError`` if that fails."""
+
+    @abstractmethod
+    def _drop(self, client: C) -> None:
+        """Release ``client`` after a connection ended, however it ended (no waiting)."""
+
+    @abstractmethod
+    async def _read_block(self, client: C) -> list[int]:
+        """The peer's whole block (map words)."""
+
+    @abstractmethod
+    async def _write_mirror(self, client: C, words: list[int]) -> None:
+        """After (re)connecting: bring the peer's block (``words``) to the mirror."""
+
+    @abstractmethod
+    async def _write_changes(self, client: C) -> None:
+        """Write the journal (the mirror's changes since the last write) and clear it."""
+
+    @abstractmethod
+    async def _exchange(self, client: C) -> list[int]:
+        """One round of the serve loop: push what is pending, poll; the peer's command area."""
+
+    @abstractmethod
+    def _refused_for_good(self, err: LinkError) -> str | None:
+        """The FAILED reason if ``err`` at this point means the block is not there; else None."""
+
+    def _transport_error(self, err: Exception) -> str | None:
+        """The outage's reason for an exception the transport let through; None for a bug."""
+        return None
+
+    @property
+    @abstractmethod
+    def _poll_s(self) -> float:
+        """Longest wait between two polls of the command area."""
+
+    # -- RobotLink ---------------------------------------------------------------------------
+
+    async def open(self, on_trigger: TriggerHandler) -> None:
+        """Start the supervisor and wait for the outcome of its first contact.
+
+        Raises ``LinkError`` (state FAILED) if the peer refuses the block. An unreachable peer
+        is not an error here: the supervisor keeps retrying (state DOWN).
+        """
+        if self._task is not None:
+            raise LinkError(f"link {self.name}: already open")
+        self._starting()
+        self._on_trigger = on_trigger
+        self._health_changed = asyncio.Condition()
+        self._wake = asyncio.Event()
+        self._task = asyncio.create_task(self._supervise(), name=f"{self.name}-supervisor")
+        # connect + one read each take at most timeout_s; a slower first contact stays with
+        # the supervisor (CONNECTING) rather than failing the start
+        with contextlib.suppress(TimeoutError):
+            await self.wait_state({LinkState.UP, LinkState.DOWN, LinkState.FAILED},
+                                  2 * self.options.timeout_s + 1.0)
+        health = self._health
+        if health.state is LinkState.FAILED:
+            await self._stop()
+            raise LinkError(f"link {self.name}: {health.last_error}")
+
+    async def close(self) -> None:
+        await self._stop()
+        await self._set_health(LinkState.STOPPED)
+
+    def health(self) -> LinkHealth:
+        return self._health
+
+    async def image_captured(self, seq: int, job_id: int) -> None:
+        self.bank.captured(seq, job_id)
+        await self._flushed()
+
+    async def publish(self, seq: int, result: JobResult) -> Status:
+        """Publish into the mirror, then wait until the peer has it; returns the status the
+        peer got.
+
+        Raises ``LinkError`` when the peer is not connected; the result stays in the mirror and
+        is written (ACK_SEQ last) as soon as the peer is back.
+        """
+        published = self.bank.publish(seq, result, time.monotonic_ns())
+        if published.status is not result.status:
+            self._log.warning("%s: request %d published as %s instead of %s: %s", self.name,
+                              seq, published.status.name, result.status.name, published.message)
+        await self._flushed()
+        return published.status
+
+    def refusals(self) -> Mapping[str, int]:
+        return dict(self.bank.refusals)
+
+    async def set_warnings(self, bits: int) -> None:
+        """Set WARNINGS in the mirror; while the peer is connected, wait until it has it.
+
+        Unlike ``publish`` this does not raise while the peer is away: the mirror is written
+        at the reconnect, WARNINGS included.
+        """
+        self.bank.set_warnings(bits)
+        if self._health.state is LinkState.UP:
+            await self._flushed()
+
+    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
+        """Wait until ``health().state`` is in ``states``; ``TimeoutError`` otherwise."""
+        return await self._wait_health(self._health_changed, states, timeout_s)
+
+    # -- helpers for the daemon-facing calls -------------------------------------------------
+
+    async def _flushed(self) -> None:
+        if self._health.state is not LinkState.UP or self._wake is None:
+            raise LinkError(
+                f"link {self.name}: {self.peer_kind} {self._peer} is {self._health.state.value}"
+                f" ({self._health.last_error or 'not connected'}); kept for the reconnect"
+            )
+        done = asyncio.get_running_loop().create_future()
+        self._waiters.append(done)
+        self._wake.set()
+        await done
+
+    def _release_waiters(self, error: Exception) -> None:
+        waiters, self._waiters = self._waiters, []
+        for w in waiters:
+            if not w.done():
+                w.set_exception(error)
+
+    async def _stop(self) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        self._release_waiters(LinkError(f"link {self.name}: closed"))
+
+    async def _set_health(self, state: LinkState, error: str = "", reconnect: bool = False) -> None:
+        h = self._health
+        if state is h.state and error == h.last_error:
+            return
+        self._health = LinkHealth(
+            state,
+            peer=h.peer,
+            last_error=error,
+            reconnects=h.reconnects + int(reconnect),
+            since_mono_ns=time.monotonic_ns() if state is not h.state else h.since_mono_ns,
+        )
+        if self._health_changed is not None:
+            async with self._health_changed:
+                self._health_changed.notify_all()
+
+    # -- supervisor --------------------------------------------------------------------------
+
+    async def _supervise(self) -> None:
+        opt = self.options
+        delay = opt.backoff_initial_s
+        error = ""
+        outage_logged = False
+        while True:
+            await self._set_health(LinkState.CONNECTING, error)
+            client = self._new_client()
+            try:
+                await self._connect(client)
+                await self._first_contact(client)
+                await self._set_health(LinkState.UP, reconnect=outage_logged)
+                if outage_logged:
+                    self._log.info("%s: %s %s is back", self.name, self.peer_kind, self._peer)
+                outage_logged = False
+                delay = opt.backoff_initial_s
+                await self._serve(client)
+            except LinkError as err:
+                error = str(err)
+                failed = self._refused_for_good(err)
+                if failed is not None:
+                    self._log.error("%s: %s", self.name, failed)
+                    await self._set_health(LinkState.FAILED, failed)
+                    return
+            except Exception as err:
+                reason = self._transport_error(err)
+                if reason is None:  # a bug must not leave a dead link reporting UP
+                    self._log.exception("%s: unexpected error talking to %s", self.name,
+                                        self._peer)
+                    reason = f"internal error: {err!r}"
+                error = reason
+            finally:
+                self._drop(client)
+            self._release_waiters(LinkError(f"link {self.name}: {error}"))
+            if not outage_logged:
+                self._log.warning("%s: %s; retrying with back-off up to %.1f s", self.name,
+                                  error, opt.backoff_max_s)
+                outage_logged = True
+            await self._set_health(LinkState.DOWN, error)
+            await asyncio.sleep(delay)
+            delay = min(2 * delay, opt.backoff_max_s)
+
+    async def _first_contact(self, client: C) -> None:
+        """Read the peer's block, adopt its command area (first contact only), write the mirror
+        where it has to be."""
+        words = await self._read_block(client)
+        if not self._primed:
+            # A request the peer made before this process ran counts only if it is still
+            # unanswered (its ACK_SEQ differs); otherwise it would rerun an old job.
+            if words[Reg.ACK_SEQ] == words[Reg.REQ_SEQ]:
+                cmd = tuple(words[COMMAND_AREA.start:COMMAND_AREA.stop])
+                self.bank.image.apply([BlockWrite(COMMAND_AREA.start, cmd)])
+                self.bank.handshake.last_req_seq = words[Reg.REQ_SEQ]
+            self._primed = True
+        await self._write_mirror(client, words)
+
+    async def _serve(self, client: C) -> None:
+        assert self._wake is not None
+        period_s = self.options.heartbeat_ms / 1000
+        poll_s = self._poll_s
+        next_beat = time.monotonic() + period_s
+        while True:
+            cmd = await self._exchange(client)
+            if cmd != self.bank.image.words[COMMAND_AREA.start:COMMAND_AREA.stop]:
+                self._on_command(cmd)
+                continue  # write the handshake's answer (if any) before the next poll
+            now = time.monotonic()
+            if now >= next_beat:
+                self.bank.beat()
+                age = self.bank.read(Reg.RESULT_AGE_MS, 2, time.monotonic_ns())
+                self.bank.image.apply([BlockWrite(Reg.RESULT_AGE_MS, tuple(age))])
+                next_beat = max(next_beat + period_s, now)
+                continue
+            self._wake.clear()
+            if self._waiters or self._journal:
+                continue
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(min(poll_s, next_beat - now)):
+                    await self._wake.wait()
+
+    def _on_command(self, cmd: list[int]) -> None:
+        decision = self.bank.write(COMMAND_AREA.start, cmd)
+        if decision.action is Action.START:
+            assert self._on_trigger is not None
+            trigger = Trigger(link=self.name, seq=decision.seq, command=decision.command,
+                              t_mono_ns=time.monotonic_ns(), recipe=decision.recipe)
+            asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
+        elif decision.action is Action.REJECT:
+            self._log.info("%s: request %d refused: %s", self.name, decision.seq,
+                           decision.code.name)
+
+    async def _flush(self, client: C) -> None:
+        """Write the mirror's changes since the last flush, then release who waited for them."""
+        if not self._journal and not self._waiters:
+            return
+        waiters, self._waiters = self._waiters, []
+        try:
+            await self._write_changes(client)
+        except BaseException:
+            self._waiters = waiters + self._waiters  # released with the outage's reason
+            raise
+        for w in waiters:
+            if not w.done():
+                w.set_result(None)
