@@ -178,12 +178,16 @@ def check_scene(config: Config) -> list[Finding]:
 
 #: Replay frames ``check_samples`` runs through the pipeline.
 SAMPLE_FRAMES = 3
+#: Statuses of a job whose object was found and then stopped by a gate.
+GATED = frozenset({"OUT_OF_LIMITS", "OUT_OF_WORKSPACE"})
 
 
 def check_samples(config: Config, frames_wanted: int = SAMPLE_FRAMES) -> list[Finding]:
-    """Run the first replay frames through the pipeline: when none gives a pose, the config
-    cannot work on these images and the diagnosis names the key (polarity, working distance,
-    the stereo transform's direction, the hand-eye ...); when some fail, a warning."""
+    """Run the first replay frames through the pipeline: when the object is found on none, the
+    config cannot work on these images and the diagnosis names the key (polarity, working
+    distance, the stereo transform's direction, contrast ...); when some fail, or the object is
+    found but stopped by a limit (the samples may not show it at its taught place), a warning
+    with the key (a hand-eye or reference that is off, the limits)."""
     if config.camera.type != "replay" or config.calibration is None:
         return []
     import cv2  # heavy; only for a replay folder
@@ -197,7 +201,7 @@ def check_samples(config: Config, frames_wanted: int = SAMPLE_FRAMES) -> list[Fi
                              right_glob=opts.right_glob)
     except (CameraError, OSError):
         return []  # check_replay reports it
-    failed: list[tuple[str, str, str]] = []
+    failed: list[tuple[str, str, str, str]] = []
     tried = 0
     for i in range(min(frames_wanted, len(frames.left))):
         paths = [frames.left[i]] + ([frames.right[i]] if frames.right is not None else [])
@@ -214,15 +218,18 @@ def check_samples(config: Config, frames_wanted: int = SAMPLE_FRAMES) -> list[Fi
         tried += 1
         if diagnosis.causes:
             top = diagnosis.causes[0]
-            failed.append((paths[0].name, top.key, top.reason))
+            failed.append((paths[0].name, diagnosis.status, top.key, top.reason))
     if not failed:
         return []
-    name, key, reason = failed[0]
-    if len(failed) == tried:
+    name, status, key, reason = failed[0]
+    # Found but gated (OUT_OF_LIMITS, OUT_OF_WORKSPACE): the samples may show the object away
+    # from its taught place, so that is a warning; not found on any frame cannot work.
+    found = all(s in GATED for _, s, _, _ in failed)
+    if len(failed) == tried and not found:
         return [Finding("ERROR", key, f"no pose on any of the first {tried} replay frame(s) "
-                                      f"({diagnosis.status} on {name}): {reason}")]
+                                      f"({status} on {name}): {reason}")]
     return [Finding("WARNING", key, f"{len(failed)} of the first {tried} replay frames gave no "
-                                    f"pose ({name}): {reason}")]
+                                    f"pose ({status} on {name}): {reason}")]
 
 
 def commission(config: Config, options: Options = Options()) -> list[Finding]:
