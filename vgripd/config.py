@@ -15,6 +15,7 @@ through ``vgripd.registry``, so this module never imports ``drivers/``).
 
 from __future__ import annotations
 
+import ipaddress
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -184,11 +185,45 @@ class RecordConfig(Model):
 
 
 class StatusConfig(Model):
-    """The read-only HTTP ``GET /status`` endpoint behind ``vgripd status`` (port 0: any free)."""
+    """The operator web view, its JSON API (``GET /api/status`` behind ``vgripd status``) and
+    ``/metrics`` (port 0: any free). See docs/web.md.
+
+    Read-only unless an action is enabled here; an enabled action also needs a request that
+    carries ``token`` (``Authorization: Bearer <token>``). A bind that is not a loopback
+    address needs a ``token``: the view shows the cell's images and configuration.
+    ``history``: jobs kept for the history page; ``bundle_jobs``: recorded jobs put in a
+    support bundle.
+    """
 
     enabled: bool = True
     host: str = "127.0.0.1"
     port: int = Field(default=8730, ge=0, le=65535)
+    token: str | None = Field(default=None, min_length=16)
+    allow_trigger: bool = False
+    allow_support_bundle: bool = False
+    history: int = Field(default=100, ge=1, le=10000)
+    bundle_jobs: int = Field(default=5, ge=0, le=100)
+
+    @model_validator(mode="after")
+    def _token_where_needed(self) -> StatusConfig:
+        if self.token is None and not _is_loopback(self.host):
+            raise ValueError(
+                f"status.host = {self.host!r} is not a loopback address: set status.token "
+                f"(at least 16 characters) or bind status.host = \"127.0.0.1\"")
+        wanted = [k for k in ("allow_trigger", "allow_support_bundle") if getattr(self, k)]
+        if self.token is None and wanted:
+            raise ValueError(f"status.{wanted[0]} = true needs status.token (actions are "
+                             f"accepted only from requests that carry it)")
+        return self
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name other than localhost may resolve to anything
+        return False
 
 
 # --- camera calibration, object model, taught reference (owner: cameras/scene) -------------

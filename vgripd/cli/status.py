@@ -1,4 +1,6 @@
-"""Show a running daemon's status: state, last job, links, counters, refusals, cycle times."""
+"""Show a running daemon's status: state, last job, links, counters, refusals, cycle times.
+
+Reads the web view's ``GET /api/status`` (docs/web.md); the page itself is at ``/``."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ from typing import Any
 
 from vgripd.config import load_config
 
-DEFAULT_URL = "http://127.0.0.1:8730/status"
+DEFAULT_URL = "http://127.0.0.1:8730/api/status"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -96,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
     url = args.url or DEFAULT_URL
     if args.config:
         st = load_config(args.config).status
-        url = f"http://{st.host}:{st.port}/status"
+        host = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(st.host, st.host)  # bound to all
+        url = f"http://{'[' + host + ']' if ':' in host else host}:{st.port}/api/status"
     try:
         with urllib.request.urlopen(url, timeout=args.timeout) as resp:
             data = json.loads(resp.read())

@@ -69,7 +69,7 @@ from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
 from vgripd.service.protocol import RobotLink, Trigger, Warnings
 from vgripd.service.recorder import Recorder
 from vgripd.service.sdnotify import Notifier, watchdog_interval_s
-from vgripd.service.statusapi import StatusServer
+from vgripd.service.web import WEB_LINK, WebServer, WebTriggerLink
 from vgripd.service.worker import DEFAULT_PROCESSOR, WorkerClient, WorkerError, WorkerRecorder
 from vgripd.types import ImagePair, JobResult, Status
 
@@ -222,6 +222,8 @@ class Daemon:
         for i, (name, section) in enumerate(zip(_link_names(config), config.links, strict=True)):
             link_cls = load_class(LINKS, "link", section.type)
             self.links[name] = link_cls(name, validate_options(link_cls, section, f"links.{i}"))
+        if config.status.enabled and config.status.allow_trigger:  # the web view's test trigger
+            self.links[WEB_LINK] = WebTriggerLink()
         self.not_calibrated = ""
         self._pipeline: Processor | None = None if isinstance(pipeline, str) else pipeline
         if self._pipeline is None:
@@ -240,7 +242,7 @@ class Daemon:
         self.state = JobState.IDLE
         self.listeners: list[JobListener] = []
         self.notifier = Notifier(self._env)
-        self.status_server: StatusServer | None = None
+        self.status_server: WebServer | None = None  # the web view, /api/status, /metrics
         self.recorder: Recorder | WorkerRecorder | None = None
         # What the daemon's answers told the peers, by status name: job results as published
         # and the daemon's own refusals. `snapshot()` adds the links' own refusals.
@@ -302,7 +304,7 @@ class Daemon:
             self._begin_opening()  # camera and links at once; the status endpoint meanwhile
             st = self.config.status
             if st.enabled:
-                self.status_server = StatusServer(st.host, st.port, self.snapshot)
+                self.status_server = WebServer(self)
                 await self.status_server.start()
             await self._opened()
         except BaseException:

@@ -1,0 +1,257 @@
+"""The web view against a running daemon (synthetic camera, Modbus/TCP link on 127.0.0.1, a real
+pymodbus client as the PLC): the JSON API, server-sent events, images, /metrics parsed with
+prometheus_client's own parser, the guarded actions, ``vgripd status``, and the page in a real
+headless Chromium. Every wait is on an answer or a daemon state, with a timeout.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import os
+import time
+import zipfile
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import cv2
+import numpy as np
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from tests.conftest import need_tool
+from tests.integration.test_daemon import Plc, Run, make_config, running
+from vgripd.__main__ import EXIT_CONFIG
+from vgripd.__main__ import main as vgripd_main
+from vgripd.cli.status import run as status_run
+from vgripd.service.protocol import Reg
+from vgripd.types import Status
+
+TOKEN = "a-test-token-of-32-characters-xx"
+WAIT_S = 30.0
+
+
+def _base(run: Run) -> str:
+    assert run.daemon.status_server is not None
+    return f"http://127.0.0.1:{run.daemon.status_server.port}"
+
+
+async def _events(resp: aiohttp.ClientResponse) -> AsyncIterator[tuple[str, Any, float]]:
+    """Server-sent events as (event, data, monotonic receive time)."""
+    event, data = "message", ""
+    async for raw in resp.content:
+        line = raw.decode().rstrip("\n")
+        if line.startswith("event: "):
+            event = line[7:]
+        elif line.startswith("data: "):
+            data += line[6:]
+        elif line == "" and data:
+            yield event, json.loads(data), time.monotonic()
+            event, data = "message", ""
+
+
+async def _recorded(folder: Path, n: int) -> None:
+    """Until the recorder has renamed ``n`` finished job folders into place (its writes are
+    not daemon state changes, so this polls the folder, with a timeout)."""
+    def count() -> int:
+        return len(list(folder.glob("2*-job*")))
+
+    async with asyncio.timeout(WAIT_S):
+        while count() < n:  # noqa: ASYNC110 (a folder of a few entries; no event to wait on)
+            await asyncio.sleep(0.02)
+
+
+def _metrics(text: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    return {(s.name, tuple(sorted(s.labels.items()))): s.value
+            for fam in text_string_to_metric_families(text) for s in fam.samples}
+
+
+async def test_live_view_api_events_images_metrics_and_actions(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level("INFO", logger="vgripd")  # as configure_logging does in the service
+    config = make_config(
+        record={"enabled": True, "folder": str(tmp_path / "rec"), "max_mb": 50},
+        status={"port": 0, "token": TOKEN, "allow_trigger": True,
+                "allow_support_bundle": True, "bundle_jobs": 2})
+    async with running(config) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as http:
+        base = _base(run)
+        done_at: dict[int, float] = {}
+        run.daemon.listeners.append(lambda pair, rec: done_at.setdefault(rec.job_id,
+                                                                          time.monotonic()))
+        async with http.get(f"{base}/api/events") as sse:
+            assert sse.headers["Content-Type"].startswith("text/event-stream")
+            stream = _events(sse)
+            await plc.trigger(1)
+            assert (await plc.result(1))[Reg.STATUS] == Status.OK
+            async with asyncio.timeout(WAIT_S):
+                kinds = []
+                async for event, data, t_data in stream:
+                    kinds.append(event)
+                    if event == "job":
+                        job, t_seen = data, t_data
+                        break
+        assert set(kinds) <= {"job", "links"}  # the PLC's connection is a links event
+        assert job["id"] == 1
+        assert job["status"] == "OK"
+        assert job["images"]
+        assert job["stereo"]
+        assert t_seen - done_at[1] < 1.0  # within a second of the job
+        assert job["target"]["vendor"] == "kuka"
+        assert len(job["target"]["values"]) == 6
+        assert "epipolar_px" in job["residuals"]
+        assert "process" in job["timings_ms"]
+
+        # The status JSON, at the new path and at the old one `vgripd status` used.
+        async with http.get(f"{base}/api/status") as resp:
+            status = await resp.json()
+        async with http.get(f"{base}/status") as resp:
+            assert (await resp.json())["last_job"]["id"] == status["last_job"]["id"]
+        assert status["last_job"]["status"] == "OK"
+        assert status["web"] == {"trigger": True, "support_bundle": True, "history": 100}
+        async with http.get(f"{base}/api/jobs") as resp:
+            assert [j["id"] for j in await resp.json()] == [1]
+
+        # Images: annotated JPEGs, downscaled, for both cameras; older ones from the recorder.
+        sizes = []
+        for side in ("left", "right"):
+            async with http.get(f"{base}/api/jobs/1/image/{side}.jpg") as resp:
+                assert resp.status == 200
+                assert resp.content_type == "image/jpeg"
+                img = cv2.imdecode(np.frombuffer(await resp.read(), np.uint8), cv2.IMREAD_COLOR)
+            assert img is not None
+            assert img.shape[1] <= 1024
+            sizes.append(img.shape)
+        assert run.daemon.status_server is not None
+        run.daemon.status_server.images._cache.clear()  # as if job 1 were long gone
+        await _recorded(tmp_path / "rec", 1)
+        async with http.get(f"{base}/api/jobs/1/image/left.jpg") as resp:
+            assert resp.status == 200
+            again = cv2.imdecode(np.frombuffer(await resp.read(), np.uint8), cv2.IMREAD_COLOR)
+        assert again.shape == sizes[0]
+        async with http.get(f"{base}/api/jobs/99/image/left.jpg") as resp:
+            assert resp.status == 404
+
+        # The register map as the PLC reads it, decoded.
+        async with http.get(f"{base}/api/registers") as resp:
+            (view,) = await resp.json()
+        rows = {r["name"]: r for r in view["rows"]}
+        assert rows["STATUS"]["value"] == 1
+        assert rows["STATUS"]["meaning"] == "OK"
+        assert rows["ACK_SEQ"]["value"] == 1
+        assert rows["CHECK_U32"]["value"] == 0x12345678
+        assert rows["CHECK_F32"]["value"] == pytest.approx(123.456, rel=1e-6)
+        assert rows["VALUES[0]"]["value"] == pytest.approx(job["target"]["values"][0], abs=1e-3)
+
+        # The config, read-only, with the token redacted.
+        async with http.get(f"{base}/api/config") as resp:
+            cfg = await resp.json()
+        assert cfg["status"]["token"] == "<redacted>"
+        assert TOKEN not in json.dumps(cfg)
+
+        # Guarded actions: 403 without the token, 200 with it.
+        async with http.post(f"{base}/api/trigger") as resp:
+            assert resp.status == 403
+        async with http.post(f"{base}/api/trigger",
+                             headers={"Authorization": "Bearer wrong-token-xxxxxxxxxxx"}) as resp:
+            assert resp.status == 403
+        auth = {"Authorization": f"Bearer {TOKEN}"}
+        async with http.post(f"{base}/api/trigger", headers=auth) as resp:
+            assert resp.status == 200
+            answer = await resp.json()
+        assert answer["job_id"] == 2
+        assert answer["status"] == "OK"
+        async with http.get(f"{base}/api/support-bundle") as resp:
+            assert resp.status == 403
+        await _recorded(tmp_path / "rec", 2)
+        async with http.get(f"{base}/api/support-bundle", headers=auth) as resp:
+            assert resp.status == 200
+            assert resp.content_type == "application/zip"
+            bundle = zipfile.ZipFile(io.BytesIO(await resp.read()))
+        names = bundle.namelist()
+        assert {"config.toml", "status.json", "jobs.json", "metrics.txt", "log.txt"} <= set(names)
+        assert sum(n.endswith("/left.png") for n in names) == 2
+        assert TOKEN not in bundle.read("config.toml").decode()
+        assert "job 1: OK" in bundle.read("log.txt").decode()
+
+        # Metrics: jobs by status, the cycle histogram, stages, links.
+        async with http.get(f"{base}/metrics") as resp:
+            assert resp.status == 200
+            m = _metrics(await resp.text())
+        assert m[("vgripd_jobs_total", (("status", "OK"),))] == 2
+        assert m[("vgripd_jobs_total", (("status", "NOT_FOUND"),))] == 0
+        assert m[("vgripd_cycle_seconds_count", ())] == 2
+        assert m[("vgripd_stage_seconds_count", (("stage", "acquire"),))] == 2
+        assert m[("vgripd_link_up", (("link", "modbus_server"),))] == 1
+        assert m[("vgripd_link_up", (("link", "web"),))] == 1
+        assert m[("vgripd_link_reconnects_total", (("link", "modbus_server"),))] == 0
+        assert m[("vgripd_refusals_total", (("status", "BUSY"),))] == 0
+        assert m[("vgripd_epipolar_residual_px_count", ())] == 2
+        assert m[("vgripd_recalibrate_warning", ())] == 0
+
+        # `vgripd status` reads the same API (blocking client: from a thread).
+        with ThreadPoolExecutor(1) as pool:
+            import argparse
+            args = argparse.Namespace(url=f"{base}/api/status", config=None, json=False,
+                                      timeout=5.0)
+            rc = await asyncio.get_running_loop().run_in_executor(pool, status_run, args)
+        assert rc == 0
+
+
+async def test_actions_are_404_while_disabled_and_the_view_is_read_only() -> None:
+    async with running(make_config(daemon={"worker": False})) as run, \
+            aiohttp.ClientSession() as http:
+        base = _base(run)
+        assert "web" not in run.daemon.links
+        auth = {"Authorization": f"Bearer {TOKEN}"}
+        async with http.post(f"{base}/api/trigger", headers=auth) as resp:
+            assert resp.status == 404
+        async with http.get(f"{base}/api/support-bundle", headers=auth) as resp:
+            assert resp.status == 404
+        async with http.post(f"{base}/status") as resp:
+            assert resp.status == 404
+        async with http.get(f"{base}/") as resp:
+            assert resp.status == 200
+            assert "vgripd" in await resp.text()
+        async with http.get(f"{base}/static/app.js") as resp:
+            assert resp.status == 200
+
+
+def test_a_non_local_bind_without_a_token_is_a_config_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text('[status]\nhost = "0.0.0.0"\nport = 0\n')
+    assert vgripd_main(["run", "-c", str(cfg)]) == EXIT_CONFIG
+    err = capsys.readouterr().err
+    assert "status.host" in err
+    assert "status.token" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+async def test_the_page_in_headless_chromium_shows_the_live_job(tmp_path: Path) -> None:
+    chromium = need_tool("chromium")
+    async with running(make_config()) as run, Plc(run.port()) as plc:
+        await plc.trigger(1)
+        assert (await plc.result(1))[Reg.STATUS] == Status.OK
+        await run.job_done(1)
+        proc = await asyncio.create_subprocess_exec(
+            chromium, "--headless", "--no-sandbox", "--disable-gpu",
+            "--disable-background-networking", "--disable-component-update", "--disable-sync",
+            "--no-first-run", "--disable-dev-shm-usage", f"--user-data-dir={tmp_path / 'chr'}",
+            "--virtual-time-budget=800", "--dump-dom", _base(run) + "/",
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            env={**os.environ, "HOME": str(tmp_path)})
+        try:
+            async with asyncio.timeout(90):
+                out, err = await proc.communicate()
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+    dom = out.decode(errors="replace")
+    assert "job 1: OK (1)" in dom, err.decode(errors="replace")[-2000:]
+    assert 'src="/api/jobs/1/image/left.jpg' in dom
+    assert "modbus_server" in dom  # the links table

@@ -1,0 +1,190 @@
+"""The web view's parts without a daemon: the [status] config rules, redaction, the decoded
+register map, the metrics registry, the event hub's bound, the trigger link and the image
+rendering (in this process)."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import Counter
+from types import SimpleNamespace
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from vgripd.config import config_from_dict
+from vgripd.errors import ConfigError
+from vgripd.service.protocol import (
+    LinkHealth,
+    LinkState,
+    RegisterBank,
+    Trigger,
+    ValueCodec,
+)
+from vgripd.service.web.app import MAX_EVENTS_QUEUED, EventHub, redact
+from vgripd.service.web.images import render
+from vgripd.service.web.metrics import Metrics
+from vgripd.service.web.registers import register_views
+from vgripd.service.web.trigger import WebTriggerLink
+from vgripd.types import ImagePair, JobResult, Status
+
+TOKEN = "0123456789abcdef"
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "192.168.1.20", "::", "cellpc.local"])
+def test_a_non_loopback_bind_needs_a_token(host: str) -> None:
+    with pytest.raises(ConfigError, match=r"status\.host .* status\.token"):
+        config_from_dict({"status": {"host": host}})
+    assert config_from_dict({"status": {"host": host, "token": TOKEN}}).status.host == host
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "127.0.0.53", "::1", "localhost"])
+def test_loopback_binds_need_no_token(host: str) -> None:
+    assert config_from_dict({"status": {"host": host}}).status.token is None
+
+
+def test_actions_need_a_token_and_a_short_token_is_refused() -> None:
+    with pytest.raises(ConfigError, match=r"status\.allow_trigger = true needs status\.token"):
+        config_from_dict({"status": {"allow_trigger": True}})
+    with pytest.raises(ConfigError, match=r"status\.token"):
+        config_from_dict({"status": {"token": "short"}})
+    st = config_from_dict({"status": {"allow_support_bundle": True, "token": TOKEN}}).status
+    assert st.allow_support_bundle
+    assert not st.allow_trigger
+
+
+def test_redact_hides_every_secret_key_at_any_depth() -> None:
+    data = {"status": {"token": TOKEN, "port": 1}, "links": [{"password": "x", "host": "h"}],
+            "a": {"api_key": "k", "secret_file": None}}
+    out = redact(data)
+    assert out == {"status": {"token": "<redacted>", "port": 1},
+                   "links": [{"password": "<redacted>", "host": "h"}],
+                   "a": {"api_key": "<redacted>", "secret_file": None}}
+
+
+def test_register_map_is_decoded_with_names_in_either_word_order() -> None:
+    for order in ("ABCD", "CDAB"):
+        bank = RegisterBank(ValueCodec(order, "float32"))
+        assert bank.write(0, [1, 5]) is not None  # CMD TRIGGER, REQ_SEQ 5
+        bank.captured(5, 42)
+        result = JobResult(job_id=42, status=Status.NOT_FOUND, message="none")
+        bank.publish(5, result, time.monotonic_ns())
+        (view,) = register_views({"plc": SimpleNamespace(bank=bank), "other": object()})
+        rows = {r["name"]: r for r in view["rows"]}
+        assert view["link"] == "plc"
+        assert view["word_order"] == order
+        assert rows["CHECK_U32"]["value"] == 0x12345678
+        assert rows["CHECK_F32"]["value"] == pytest.approx(123.456, rel=1e-6)
+        assert rows["ACK_SEQ"]["value"] == 5
+        assert (rows["STATUS"]["value"], rows["STATUS"]["meaning"]) == (10, "NOT_FOUND")
+        assert rows["JOB_ID"]["value"] == 42
+        assert rows["STATE"]["meaning"] == "DONE"
+        assert rows["WARNINGS"]["meaning"] == "none"
+        assert [r["address"] for r in view["rows"]] == sorted(r["address"] for r in view["rows"])
+
+
+class _Link:
+    def __init__(self, state: LinkState, reconnects: int) -> None:
+        self._h = LinkHealth(state=state, reconnects=reconnects)
+
+    def health(self) -> LinkHealth:
+        return self._h
+
+
+def _fake_daemon() -> Any:
+    epipolar = SimpleNamespace(warning=False, share=lambda: 0.25)
+    return SimpleNamespace(
+        links={"plc": _Link(LinkState.UP, 2), "robot": _Link(LinkState.CONNECTING, 0)},
+        answered=lambda: (Counter({"OK": 3, "BUSY": 1}), Counter({"BUSY": 1})),
+        undelivered=Counter(), epipolar=epipolar, healthy=lambda: True,
+        snapshot=lambda: {"camera": {"open": True}}, recorder=None)
+
+
+def _samples(text: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    return {(s.name, tuple(sorted(s.labels.items()))): s.value
+            for fam in text_string_to_metric_families(text) for s in fam.samples}
+
+
+def test_metrics_count_jobs_by_status_and_read_links_at_scrape_time() -> None:
+    metrics = Metrics(_fake_daemon())
+    for i, (status, ms, epi) in enumerate([(Status.OK, 120.0, 0.4), (Status.OK, 180.0, 2.5),
+                                           (Status.NOT_FOUND, 90.0, None)]):
+        residuals = {} if epi is None else {"epipolar_px": epi}
+        result = JobResult(job_id=i + 1, status=status, residuals=residuals,
+                           timings_ms={"acquire": 10.0, "process": 60.0})
+        metrics.observe(SimpleNamespace(result=result, cycle_ms=ms, published=status))
+    m = _samples(metrics.render().decode())
+    assert m[("vgripd_jobs_total", (("status", "OK"),))] == 2
+    assert m[("vgripd_jobs_total", (("status", "NOT_FOUND"),))] == 1
+    assert m[("vgripd_jobs_total", (("status", "CAMERA_ERROR"),))] == 0
+    assert ("vgripd_jobs_total", (("status", "BUSY"),)) not in m  # a refusal, not a job
+    assert m[("vgripd_cycle_seconds_count", ())] == 3
+    assert m[("vgripd_cycle_seconds_sum", ())] == pytest.approx(0.39)
+    assert m[("vgripd_cycle_seconds_bucket", (("le", "0.15"),))] == 2
+    assert m[("vgripd_stage_seconds_count", (("stage", "process"),))] == 3
+    assert m[("vgripd_epipolar_residual_px_count", ())] == 2
+    assert m[("vgripd_epipolar_residual_last_px", ())] == 2.5
+    assert m[("vgripd_link_up", (("link", "plc"),))] == 1
+    assert m[("vgripd_link_up", (("link", "robot"),))] == 0
+    assert m[("vgripd_link_state", (("link", "robot"), ("state", "connecting")))] == 1
+    assert m[("vgripd_link_reconnects_total", (("link", "plc"),))] == 2
+    assert m[("vgripd_refusals_total", (("status", "BUSY"),))] == 1
+    assert m[("vgripd_epipolar_share_above", ())] == 0.25
+    # Its own registry: a second daemon in the same process does not clash.
+    assert Metrics(_fake_daemon()).registry is not metrics.registry
+
+
+async def test_a_page_that_does_not_read_is_dropped_not_buffered() -> None:
+    hub = EventHub()
+    from vgripd.service.web.app import _Client
+
+    slow, fast = _Client(), _Client()
+    hub.clients |= {slow, fast}
+    for i in range(MAX_EVENTS_QUEUED):
+        hub.publish("job", {"id": i})
+        await fast.queue.get()
+    assert slow in hub.clients
+    hub.publish("job", {"id": "one too many"})
+    assert slow not in hub.clients
+    assert fast in hub.clients
+    assert slow.queue.get_nowait() is None  # its stream ends
+    frame = await fast.queue.get()
+    assert frame == b'event: job\ndata: {"id": "one too many"}\n\n'
+
+
+async def test_the_trigger_link_waits_for_its_own_answer() -> None:
+    link = WebTriggerLink()
+    seen: list[Trigger] = []
+
+    def on_trigger(trigger: Trigger) -> None:
+        seen.append(trigger)
+        result = JobResult(job_id=7, status=Status.OK)
+        asyncio.get_running_loop().call_soon(
+            lambda: asyncio.ensure_future(link.publish(trigger.seq, result)))
+
+    with pytest.raises(RuntimeError, match="not open"):
+        await link.trigger(1.0)
+    await link.open(on_trigger)
+    assert link.health().state is LinkState.UP
+    result = await link.trigger(5.0)
+    assert (result.job_id, result.status) == (7, Status.OK)
+    assert seen[0].link == "web"
+    assert seen[0].seq == 1
+    await link.close()
+
+
+def test_render_draws_downscaled_jpegs_of_a_failed_job() -> None:
+    left = np.full((1200, 1600), 90, np.uint8)
+    pair = ImagePair(left=left, right=left.copy(), t_mono_ns=0)
+    jpegs = render(pair, JobResult(job_id=1, status=Status.NOT_FOUND, message="no blobs"))
+    assert len(jpegs) == 2
+    img = cv2.imdecode(np.frombuffer(jpegs[0], np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape == (768, 1024, 3)
+    assert (img[:40] != 90).any()  # the status line is written
+    mono = render((left, None, None), JobResult(job_id=2, status=Status.CAMERA_ERROR),
+                  max_width=400)
+    assert len(mono) == 1
+    assert cv2.imdecode(np.frombuffer(mono[0], np.uint8), cv2.IMREAD_COLOR).shape[1] == 400

@@ -1,0 +1,457 @@
+"""The operator web view, its JSON API and ``/metrics``: an aiohttp application served on the
+daemon's own event loop (``WebServer``).
+
+Why aiohttp: it is asyncio from the ground up, so it runs inside the daemon's loop beside the
+links (``AppRunner`` + ``TCPSite``, no second loop, no thread, no ASGI server to embed), has
+server-sent events as a plain streamed response, and a test client. What it serves is answered
+from memory (the daemon's snapshot, the job history kept here, cached JPEGs); what costs CPU
+(drawing and encoding images) runs in a helper process (``images.ImageRenderer``) and what
+touches the disk (support bundle, recorded images) runs off the loop, so a browser never makes
+the PLC wait.
+
+Routes (docs/web.md)::
+
+    GET  /                           the page (static/index.html, vanilla JS, no build step)
+    GET  /api/status  (/status)      the daemon's status JSON (``vgripd status`` reads it)
+    GET  /api/jobs                   the last ``status.history`` jobs, newest first
+    GET  /api/jobs/{id}              one job
+    GET  /api/jobs/{id}/image/{left|right}.jpg   annotated, downscaled JPEG
+    GET  /api/events                 server-sent events: ``job``, ``links``
+    GET  /api/config                 the loaded config, secrets redacted
+    GET  /api/registers              each register link's map as its peer reads it, decoded
+    GET  /metrics                    Prometheus text format
+    POST /api/trigger                test trigger      (status.allow_trigger + token)
+    GET  /api/support-bundle         zip download      (status.allow_support_bundle + token)
+
+Security model: read-only by default and bound to 127.0.0.1; the config refuses a non-loopback
+bind without ``status.token``. An action answers 404 while disabled and 403 without the token
+(``Authorization: Bearer <token>``, compared in constant time).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import json
+import logging
+import os
+import tempfile
+import time
+import zipfile
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import IO, TYPE_CHECKING, Any
+
+from aiohttp import web
+
+from vgripd.errors import VgripError
+from vgripd.serialize import jsonable, toml_from_dict
+from vgripd.service.recorder import PARTIAL_PREFIX, dict_from_result
+from vgripd.service.web.images import ImageRenderer
+from vgripd.service.web.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
+from vgripd.service.web.metrics import Metrics
+from vgripd.service.web.registers import register_views
+from vgripd.service.web.trigger import WEB_LINK, WebTriggerLink
+from vgripd.types import ImagePair
+
+if TYPE_CHECKING:
+    from vgripd.service.daemon import Daemon, JobRecord
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).parent / "static"
+# Server-sent event clients at once, and events one may have unsent before it is dropped.
+MAX_EVENT_CLIENTS = 32
+MAX_EVENTS_QUEUED = 64
+KEEPALIVE_S = 15.0
+LINK_POLL_S = 0.25
+LOG_LINES = 2000
+SHUTDOWN_TIMEOUT_S = 1.0
+REDACTED = "<redacted>"
+_SECRET_WORDS = ("token", "password", "passwd", "secret", "credential", "api_key", "apikey")
+
+
+class StatusEndpointError(VgripError):
+    """The web view cannot listen (port in use, address not on this host): the daemon does not
+    start (exit 1, like a link that cannot listen)."""
+
+
+def redact(data: Any) -> Any:
+    """``data`` with the value of every key that names a secret replaced by ``REDACTED``."""
+    if isinstance(data, dict):
+        return {k: (REDACTED if v is not None and any(w in str(k).lower() for w in _SECRET_WORDS)
+                    else redact(v)) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return [redact(v) for v in data]
+    return data
+
+
+class LogRing(logging.Handler):
+    """The last ``LOG_LINES`` log lines, for the support bundle (journald keeps the rest)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.lines: deque[str] = deque(maxlen=LOG_LINES)
+        self.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with contextlib.suppress(Exception):
+            self.lines.append(self.format(record))
+
+
+class _Client:
+    def __init__(self) -> None:
+        self.queue: asyncio.Queue[bytes | None] = asyncio.Queue(MAX_EVENTS_QUEUED)
+
+
+class EventHub:
+    """Server-sent events to every connected page; a page that does not read is dropped."""
+
+    def __init__(self) -> None:
+        self.clients: set[_Client] = set()
+
+    def publish(self, event: str, data: Any) -> None:
+        frame = f"event: {event}\ndata: {json.dumps(jsonable(data))}\n\n".encode()
+        for client in list(self.clients):
+            try:
+                client.queue.put_nowait(frame)
+            except asyncio.QueueFull:
+                self._drop(client)
+
+    def _drop(self, client: _Client) -> None:
+        self.clients.discard(client)
+        with contextlib.suppress(asyncio.QueueEmpty):
+            while True:
+                client.queue.get_nowait()
+        client.queue.put_nowait(None)  # ends its stream
+
+    def close(self) -> None:
+        for client in list(self.clients):
+            self._drop(client)
+
+
+def job_summary(record: JobRecord, t_wall: float, images: bool) -> dict[str, Any]:
+    """A finished job as the view shows it (JSON data)."""
+    r = dict_from_result(record.result)
+    return {
+        "id": record.job_id, "link": record.link, "seq": record.seq,
+        "status": r["status"], "status_code": r["status_code"], "message": r["message"],
+        "published": None if record.published is None else record.published.name,
+        "cycle_ms": record.cycle_ms, "t_wall": t_wall,
+        "target": r["target"], "residuals": r["residuals"], "timings_ms": r["timings_ms"],
+        "features_used": r.get("features_used", list(record.result.features_used)),
+        "features_missing": r.get("features_missing", list(record.result.features_missing)),
+        "images": images, "stereo": None,
+    }
+
+
+class WebServer:
+    """The web view of one daemon, on its loop. ``start`` listens (``StatusEndpointError`` in
+    one line), ``close`` stops; ``port`` is the bound port."""
+
+    def __init__(self, daemon: Daemon) -> None:
+        self.daemon = daemon
+        st = daemon.config.status
+        self.host = st.host
+        self._requested_port = st.port
+        self._token = st.token
+        self._allow_trigger = st.allow_trigger
+        self._allow_bundle = st.allow_support_bundle
+        self.history: deque[tuple[JobRecord, dict[str, Any]]] = deque(maxlen=st.history)
+        self.events = EventHub()
+        self.metrics = Metrics(daemon)
+        self.images = ImageRenderer(daemon.config)
+        self.logs = LogRing()
+        self._runner: web.AppRunner | None = None
+        self._port = 0
+        self._io: ThreadPoolExecutor | None = None
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._t_start_wall = time.time()
+        self.app = self._make_app()
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    @property
+    def port(self) -> int:
+        """The bound port (the real one when configured as 0)."""
+        if not self._port:
+            raise RuntimeError("web view not started")
+        return self._port
+
+    async def start(self) -> None:
+        runner = web.AppRunner(self.app, access_log=None, handle_signals=False,
+                               shutdown_timeout=SHUTDOWN_TIMEOUT_S)
+        await runner.setup()
+        site = web.TCPSite(runner, self.host, self._requested_port)
+        try:
+            await site.start()
+        except OSError as err:
+            await runner.cleanup()
+            reason = os.strerror(err.errno) if err.errno else str(err)
+            raise StatusEndpointError(
+                f"status endpoint cannot listen on {self.host}:{self._requested_port}: {reason} "
+                f"(set [status] port = another port or 0 for any free one, [status] host, or "
+                f"[status] enabled = false)") from None
+        self._runner = runner
+        server = site._server  # the asyncio.Server: the only place the bound port is known
+        assert isinstance(server, asyncio.Server)
+        self._port = server.sockets[0].getsockname()[1]
+        self._io = ThreadPoolExecutor(1, thread_name_prefix="vgripd-web-io")
+        self.daemon.listeners.append(self._on_job)
+        logging.getLogger().addHandler(self.logs)
+        self._spawn(self._watch_links())
+        log.info("web view: http://%s:%d/ (status JSON at /api/status, metrics at /metrics)",
+                 self.host, self.port)
+
+    async def close(self) -> None:
+        with contextlib.suppress(ValueError):
+            self.daemon.listeners.remove(self._on_job)
+        logging.getLogger().removeHandler(self.logs)
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self.events.close()
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+        self.images.close()
+        if self._io is not None:
+            self._io.shutdown(wait=True, cancel_futures=True)
+            self._io = None
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    # --- what the daemon tells us ---------------------------------------------------------
+
+    def _on_job(self, pair: ImagePair | None, record: JobRecord) -> None:
+        """Job listener (on the loop, after the result was published): history, metrics,
+        the event to every page, and the images handed to the helper process."""
+        summary = job_summary(record, time.time(), images=pair is not None)
+        summary["stereo"] = None if pair is None else pair.is_stereo
+        self.history.append((record, summary))
+        self.metrics.observe(record)
+        if pair is not None:
+            self.images.submit(record.job_id, pair, record.result, eager=True)
+        self.events.publish("job", summary)
+
+    async def _watch_links(self) -> None:
+        """One ``links`` event whenever a link's state, peer or reconnect count changes."""
+        last: list[tuple[Any, ...]] = []
+        while True:
+            now = [(name, h.state.value, h.peer, h.reconnects, h.peers)
+                   for name, h in ((n, link.health()) for n, link in self.daemon.links.items())]
+            if now != last:
+                if last:
+                    self.events.publish("links", self.daemon.snapshot()["links"])
+                last = now
+            await asyncio.sleep(LINK_POLL_S)
+
+    # --- the application ------------------------------------------------------------------
+
+    def _make_app(self) -> web.Application:
+        app = web.Application(client_max_size=64 * 1024)
+        r = app.router
+        r.add_get("/", self._index)
+        r.add_route("*", "/status", self._status)
+        r.add_get("/api/status", self._status)
+        r.add_get("/api/jobs", self._jobs)
+        r.add_get("/api/jobs/{id:\\d+}", self._job)
+        r.add_get("/api/jobs/{id:\\d+}/image/{side:left|right}.jpg", self._image)
+        r.add_get("/api/events", self._events)
+        r.add_get("/api/config", self._config)
+        r.add_get("/api/registers", self._registers)
+        r.add_get("/metrics", self._metrics)
+        r.add_route("*", "/api/trigger", self._trigger)
+        r.add_get("/api/support-bundle", self._bundle)
+        r.add_static("/static/", STATIC)
+        return app
+
+    async def _index(self, request: web.Request) -> web.StreamResponse:
+        return web.FileResponse(STATIC / "index.html",
+                                headers={"Cache-Control": "no-cache"})
+
+    async def _status(self, request: web.Request) -> web.Response:
+        if request.method != "GET":
+            return web.json_response({"error": "only GET /api/status"}, status=404)
+        status = self.daemon.snapshot()
+        status["web"] = {"trigger": self._allow_trigger, "support_bundle": self._allow_bundle,
+                         "history": self.history.maxlen}
+        return web.Response(text=json.dumps(jsonable(status), indent=1),
+                            content_type="application/json")
+
+    def _find(self, job_id: int) -> tuple[JobRecord, dict[str, Any]] | None:
+        for record, summary in reversed(self.history):
+            if record.job_id == job_id:
+                return record, summary
+        return None
+
+    async def _jobs(self, request: web.Request) -> web.Response:
+        return web.json_response([s for _, s in reversed(self.history)])
+
+    async def _job(self, request: web.Request) -> web.Response:
+        found = self._find(int(request.match_info["id"]))
+        if found is None:
+            raise web.HTTPNotFound(text="no such job in the history")
+        return web.json_response(found[1])
+
+    def _recorded_folder(self, job_id: int) -> str | None:
+        """The recorder's folder of ``job_id`` from this run (names sort by time; job ids
+        restart with the daemon, so only folders stamped after the start count)."""
+        rec = self.daemon.recorder
+        if rec is None:
+            return None
+        start = time.strftime("%Y%m%d-%H%M%S", time.localtime(self._t_start_wall - 1))
+        suffix = f"-job{job_id:06d}"
+        try:
+            names = sorted(e.name for e in os.scandir(rec.folder)
+                           if e.name.endswith(suffix) and not e.name.startswith(PARTIAL_PREFIX)
+                           and e.name >= start)
+        except OSError:
+            return None
+        return str(Path(rec.folder) / names[-1]) if names else None
+
+    async def _image(self, request: web.Request) -> web.Response:
+        job_id = int(request.match_info["id"])
+        side = 0 if request.match_info["side"] == "left" else 1
+        fut = self.images.cached(job_id)
+        if fut is None:
+            found = self._find(job_id)
+            if found is None or not found[1]["images"]:
+                raise web.HTTPNotFound(text="no images for this job")
+            loop = asyncio.get_running_loop()
+            folder = await loop.run_in_executor(self._io, self._recorded_folder, job_id)
+            if folder is None:
+                raise web.HTTPNotFound(text="the job's images are no longer kept (enable "
+                                            "[record] to open older jobs)")
+            fut = self.images.submit(job_id, folder, found[0].result)
+            assert fut is not None
+        try:
+            jpegs = await asyncio.shield(fut)
+        except Exception as err:
+            raise web.HTTPNotFound(text=f"images cannot be drawn: {err}") from None
+        if side >= len(jpegs):
+            raise web.HTTPNotFound(text="no right image (mono camera)")
+        return web.Response(body=jpegs[side], content_type="image/jpeg",
+                            headers={"Cache-Control": "private, max-age=3600"})
+
+    async def _events(self, request: web.Request) -> web.StreamResponse:
+        if len(self.events.clients) >= MAX_EVENT_CLIENTS:
+            raise web.HTTPServiceUnavailable(text="too many pages open")
+        resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
+                                           "Cache-Control": "no-cache"})
+        await resp.prepare(request)
+        client = _Client()
+        self.events.clients.add(client)
+        try:
+            await resp.write(b"retry: 2000\n\n")
+            while True:
+                try:
+                    async with asyncio.timeout(KEEPALIVE_S):
+                        frame = await client.queue.get()
+                except TimeoutError:
+                    frame = b": keepalive\n\n"
+                if frame is None:
+                    break
+                await resp.write(frame)
+        except (ConnectionError, asyncio.CancelledError):
+            pass
+        finally:
+            self.events.clients.discard(client)
+        return resp
+
+    async def _config(self, request: web.Request) -> web.Response:
+        data = self.daemon.config.model_dump(mode="json", exclude_none=True)
+        return web.json_response(redact(data))
+
+    async def _registers(self, request: web.Request) -> web.Response:
+        return web.json_response(jsonable(register_views(self.daemon.links)))
+
+    async def _metrics(self, request: web.Request) -> web.Response:
+        return web.Response(body=self.metrics.render(),
+                            headers={"Content-Type": METRICS_CONTENT_TYPE})
+
+    # --- guarded actions ------------------------------------------------------------------
+
+    def _guard(self, request: web.Request, enabled: bool) -> None:
+        """404 while the action is disabled, 403 unless the request carries the token."""
+        if not enabled:
+            raise web.HTTPNotFound(text="this action is disabled in the config")
+        header = request.headers.get("Authorization", "")
+        given = header.removeprefix("Bearer ").strip() if header.startswith("Bearer ") else ""
+        if not self._token or not hmac.compare_digest(given.encode(), self._token.encode()):
+            raise web.HTTPForbidden(text="this action needs the token: "
+                                         "Authorization: Bearer <status.token>")
+
+    async def _trigger(self, request: web.Request) -> web.Response:
+        self._guard(request, self._allow_trigger)
+        if request.method != "POST":
+            raise web.HTTPMethodNotAllowed(request.method, ["POST"])
+        link = self.daemon.links.get(WEB_LINK)
+        if not isinstance(link, WebTriggerLink):
+            raise web.HTTPNotFound(text="no web trigger link")
+        log.info("web view: test trigger from %s", request.remote)
+        timeout_s = self.daemon.config.daemon.job_timeout_s + 5.0
+        try:
+            result = await link.trigger(timeout_s)
+        except (TimeoutError, RuntimeError) as err:
+            raise web.HTTPServiceUnavailable(text=f"no answer: {err!r}") from None
+        return web.json_response(jsonable(dict_from_result(result)))
+
+    async def _bundle(self, request: web.Request) -> web.StreamResponse:
+        self._guard(request, self._allow_bundle)
+        log.info("web view: support bundle for %s", request.remote)
+        loop = asyncio.get_running_loop()
+        status = self.daemon.snapshot()
+        parts = {
+            "status.json": json.dumps(jsonable(status), indent=1),
+            "jobs.json": json.dumps([s for _, s in reversed(self.history)], indent=1),
+            "config.toml": toml_from_dict(redact(jsonable(
+                self.daemon.config.model_dump(mode="json", exclude_none=True)))),
+            "metrics.txt": self.metrics.render().decode(),
+            "log.txt": "\n".join(self.logs.lines) + "\n",
+        }
+        rec = self.daemon.recorder
+        folder = None if rec is None else Path(rec.folder)
+        n_jobs = self.daemon.config.status.bundle_jobs
+        file = await loop.run_in_executor(self._io, _write_bundle, parts, folder, n_jobs)
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        resp = web.StreamResponse(headers={
+            "Content-Type": "application/zip",
+            "Content-Disposition": f'attachment; filename="vgripd-support-{stamp}.zip"'})
+        try:
+            await resp.prepare(request)
+            while chunk := await loop.run_in_executor(self._io, file.read, 1 << 20):
+                await resp.write(chunk)
+            await resp.write_eof()
+        finally:
+            file.close()
+        return resp
+
+
+def _write_bundle(parts: dict[str, str], recorded: Path | None, n_jobs: int) -> IO[bytes]:
+    """The support bundle as a zip in an anonymous temporary file (read from the start)."""
+    file = tempfile.TemporaryFile()  # noqa: SIM115 (returned open, closed by the caller)
+    with zipfile.ZipFile(file, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, text in parts.items():
+            z.writestr(name, text)
+        jobs: list[Path] = []
+        if recorded is not None and n_jobs:
+            with contextlib.suppress(OSError):
+                jobs = sorted((p for p in recorded.iterdir()
+                               if p.is_dir() and not p.name.startswith(PARTIAL_PREFIX)),
+                              key=lambda p: p.name)[-n_jobs:]
+        for job in jobs:
+            for f in sorted(job.iterdir()):
+                if f.name == "config.toml":
+                    continue  # the config is at the top, secrets redacted
+                with contextlib.suppress(OSError):
+                    # PNGs are compressed already.
+                    kind = zipfile.ZIP_STORED if f.suffix == ".png" else zipfile.ZIP_DEFLATED
+                    z.write(f, f"jobs/{job.name}/{f.name}", compress_type=kind)
+    file.seek(0)
+    return file

@@ -1,0 +1,212 @@
+"""Annotated, downscaled JPEGs of a job for the browser, made outside the daemon's interpreter.
+
+The annotated full-resolution PNGs of ``vgripd replay --annotate`` are megabytes each; the
+browser gets JPEGs at most ``MAX_WIDTH_PX`` wide. Drawing and encoding hold the GIL for tens of
+milliseconds, so they run in one spawned helper process (``ImageRenderer``), never on the event
+loop and never in a thread of the daemon's interpreter: a PLC poll is not delayed by a browser.
+
+The helper builds its own ``Pipeline`` from the config (for the camera model and the object
+model the drawing needs); without a calibration it writes only the status line on the image.
+A job's images come either from the pair the daemon just handled (pickled to the helper once)
+or, for an older job, from the recorder's folder (the helper reads the PNGs itself).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import logging
+import multiprocessing
+import signal
+from collections import OrderedDict
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vgripd.config import Config
+from vgripd.types import ImagePair, JobResult
+
+log = logging.getLogger(__name__)
+
+MAX_WIDTH_PX = 1024
+JPEG_QUALITY = 80
+# Jobs whose images are kept encoded in memory (about 2 x 100 kB each).
+CACHE_JOBS = 32
+# Renders waiting for the helper beyond this are not started eagerly (rendered on request).
+MAX_PENDING = 2
+
+_pipeline: Any = None  # in the helper process: the Pipeline, or None when not calibrated
+
+
+def _init_helper(config: Config) -> None:
+    """Helper process start: ignore the signals meant for the daemon (it closes the helper),
+    build the pipeline once."""
+    global _pipeline
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        from vgripd.vision.pipeline import Pipeline
+
+        _pipeline = Pipeline(config)
+    except Exception as err:  # not calibrated, or a config the pipeline refuses
+        log.info("web images: drawing the status line only (%s)", err)
+        _pipeline = None
+
+
+def _status_only(pair: ImagePair, result: JobResult) -> list[np.ndarray]:
+    import cv2
+
+    images = []
+    for img in (pair.left, pair.right):
+        if img is None:
+            continue
+        arr = np.asarray(img)
+        bgr = cv2.cvtColor(arr, cv2.COLOR_GRAY2BGR) if arr.ndim == 2 else arr.copy()
+        scale = max(1, bgr.shape[1] // 1200)
+        cv2.putText(bgr, f"{result.status.name} {result.message}"[:120], (10, 30 * scale),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.8 * scale, (0, 220, 255), 2 * scale)
+        images.append(bgr)
+    return images
+
+
+def _load_recorded(folder: str) -> ImagePair:
+    import cv2
+
+    path = Path(folder)
+    left = cv2.imread(str(path / "left.png"), cv2.IMREAD_UNCHANGED)
+    if left is None:
+        raise FileNotFoundError(f"{path / 'left.png'}: cannot read")
+    right = cv2.imread(str(path / "right.png"), cv2.IMREAD_UNCHANGED)
+    flange = None
+    with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+        meta = json.loads((path / "pair.json").read_text())
+        if meta.get("T_base_flange") is not None:
+            flange = np.asarray(meta["T_base_flange"], dtype=np.float64)
+    return ImagePair(left=left, right=right, t_mono_ns=0, source=str(path),
+                     T_base_flange=flange)
+
+
+def _portable(pair: ImagePair | str, result: JobResult) -> tuple[Any, JobResult]:
+    """What the helper needs, picklable (the empty mappings of the value types are not)."""
+    result = dataclasses.replace(result, residuals=dict(result.residuals),
+                                 timings_ms=dict(result.timings_ms))
+    if isinstance(pair, str):
+        return pair, result
+    return (pair.left, pair.right, pair.T_base_flange), result
+
+
+def render(pair: ImagePair | str | tuple[Any, Any, Any], result: JobResult,
+           max_width: int = MAX_WIDTH_PX, quality: int = JPEG_QUALITY) -> list[bytes]:
+    """JPEGs (left, and right for stereo) of the job drawn as ``replay --annotate`` draws it.
+
+    ``pair``: the images (an ``ImagePair`` or its ``left, right, T_base_flange``), or a
+    recorded job's folder. Runs in the helper process (or anywhere in tests).
+    """
+    import cv2
+
+    if isinstance(pair, str):
+        pair = _load_recorded(pair)
+    elif isinstance(pair, tuple):
+        pair = ImagePair(left=pair[0], right=pair[1], t_mono_ns=0, T_base_flange=pair[2])
+    if _pipeline is not None:
+        from vgripd.vision.annotate import annotate
+
+        try:
+            images = annotate(_pipeline, pair, result)
+        except Exception as err:  # a drawing problem must not hide the images
+            log.warning("web images: job %d: annotation failed: %r", result.job_id, err)
+            images = _status_only(pair, result)
+    else:
+        images = _status_only(pair, result)
+    out = []
+    for img in images:
+        h, w = img.shape[:2]
+        if w > max_width:
+            img = cv2.resize(img, (max_width, max(1, round(h * max_width / w))),
+                             interpolation=cv2.INTER_AREA)
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if not ok:
+            raise RuntimeError("JPEG encoding failed")
+        out.append(buf.tobytes())
+    return out
+
+
+class ImageRenderer:
+    """Renders and caches each job's JPEGs in a helper process (one, spawned on first use)."""
+
+    def __init__(self, config: Config) -> None:
+        self._config = config
+        self._pool: ProcessPoolExecutor | None = None
+        self._cache: OrderedDict[int, asyncio.Future[list[bytes]]] = OrderedDict()
+        self._pending = 0
+
+    def _executor(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(
+                1, mp_context=multiprocessing.get_context("spawn"),
+                initializer=_init_helper, initargs=(self._config,))
+        return self._pool
+
+    def cached(self, job_id: int) -> asyncio.Future[list[bytes]] | None:
+        fut = self._cache.get(job_id)
+        if fut is not None:
+            self._cache.move_to_end(job_id)
+        return fut
+
+    def submit(self, job_id: int, pair: ImagePair | str, result: JobResult,
+               eager: bool = False) -> asyncio.Future[list[bytes]] | None:
+        """Start rendering a job (unless it is cached); None when ``eager`` and the helper is
+        behind (the job is rendered on request later, from the recorder)."""
+        fut = self.cached(job_id)
+        if fut is not None:
+            return fut
+        if eager and self._pending >= MAX_PENDING:
+            return None
+        loop = asyncio.get_running_loop()
+        args = _portable(pair, result)
+        try:
+            fut = asyncio.wrap_future(self._executor().submit(render, *args), loop=loop)
+        except BrokenProcessPool:
+            self._restart()
+            fut = asyncio.wrap_future(self._executor().submit(render, *args), loop=loop)
+        self._pending += 1
+        fut.add_done_callback(self._done)
+        self._cache[job_id] = fut
+        while len(self._cache) > CACHE_JOBS:
+            self._cache.popitem(last=False)
+        return fut
+
+    def _done(self, fut: asyncio.Future[list[bytes]]) -> None:
+        self._pending -= 1
+        if fut.cancelled():
+            return
+        err = fut.exception()
+        if err is None:
+            return
+        for job_id, cached in list(self._cache.items()):
+            if cached is fut:  # a failure is not cached: the next request tries again
+                del self._cache[job_id]
+        if isinstance(err, BrokenProcessPool):
+            log.warning("web images: the helper process died; starting another")
+            self._restart()
+        else:
+            log.warning("web images: rendering failed: %r", err)
+
+    def _restart(self) -> None:
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+
+    def close(self) -> None:
+        """Stop the helper (a render in progress is waited for: tens of milliseconds)."""
+        pool, self._pool = self._pool, None
+        for fut in self._cache.values():
+            fut.cancel()
+        self._cache.clear()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)

@@ -1,0 +1,250 @@
+// The vgripd operator page: plain DOM, no framework, no build step.
+// Data: /api/status, /api/jobs, /api/registers, /api/config; live: /api/events (SSE).
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const fmt = (x, d = 1) => (typeof x === "number" ? x.toFixed(d) : x == null ? "" : String(x));
+let jobs = [];
+let lastStatus = null;
+
+function rows(tbody, pairs) {
+  tbody.replaceChildren(...pairs.map(([k, v]) => {
+    const tr = document.createElement("tr");
+    for (const cell of [k, v]) {
+      const td = document.createElement("td");
+      td.textContent = cell;
+      tr.append(td);
+    }
+    return tr;
+  }));
+}
+
+function cells(values) {
+  const tr = document.createElement("tr");
+  for (const v of values) {
+    const td = document.createElement("td");
+    if (v instanceof Node) td.append(v); else td.textContent = v;
+    tr.append(td);
+  }
+  return tr;
+}
+
+async function getJSON(url) {
+  const resp = await fetch(url, { cache: "no-store" });
+  if (!resp.ok) throw new Error(`${url}: ${resp.status}`);
+  return resp.json();
+}
+
+function imageURL(job, side) {
+  return `/api/jobs/${job.id}/image/${side}.jpg?t=${Math.round(job.t_wall * 1000)}`;
+}
+
+function showJob(job) {
+  $("job-title").textContent = `${job.id} (seq ${job.seq} from ${job.link}, ` +
+    `${new Date(job.t_wall * 1000).toLocaleTimeString()})`;
+  const st = $("job-status");
+  const told = job.published === job.status ? "" :
+    job.published == null ? ", NOT DELIVERED" : `, published as ${job.published}`;
+  st.textContent = `job ${job.id}: ${job.status} (${job.status_code})` +
+    `${job.message ? ": " + job.message : ""}${told}, cycle ${fmt(job.cycle_ms)} ms`;
+  st.className = "status " + (job.status.startsWith("OK") ? "ok" : "bad");
+  for (const side of ["left", "right"]) {
+    const img = $(`img-${side}`);
+    const has = job.images && (side === "left" || job.stereo);
+    img.hidden = !has;
+    if (has) img.src = imageURL(job, side); else img.removeAttribute("src");
+  }
+  const t = job.target;
+  rows($("job-target").tBodies[0], t ? t.fields.map((f, i) => [f, fmt(t.values[i], 3)])
+    .concat([["vendor", t.vendor]]) : [["", "no pose sent"]]);
+  rows($("job-residuals").tBodies[0], Object.entries(job.residuals).map(([k, v]) => [k, fmt(v, 3)]));
+  rows($("job-timings").tBodies[0], Object.entries(job.timings_ms).map(([k, v]) => [k, fmt(v, 1)]));
+  const missing = job.features_missing.length ? `; missing: ${job.features_missing.join(", ")}` : "";
+  $("job-features").textContent = job.features_used.length || missing ?
+    `features used: ${job.features_used.join(", ") || "none"}${missing}` : "";
+}
+
+function showHistory() {
+  const tbody = $("jobs").tBodies[0];
+  tbody.replaceChildren(...jobs.map((j) => {
+    let links = "";
+    if (j.images) {
+      const span = document.createElement("span");
+      for (const side of j.stereo ? ["left", "right"] : ["left"]) {
+        const a = document.createElement("a");
+        a.href = imageURL(j, side);
+        a.target = "_blank";
+        a.textContent = side + " ";
+        span.append(a);
+      }
+      links = span;
+    }
+    const res = Object.entries(j.residuals).map(([k, v]) => `${k} ${fmt(v, 2)}`).join(", ");
+    return cells([j.id, new Date(j.t_wall * 1000).toLocaleTimeString(), j.link, j.status,
+      fmt(j.cycle_ms), res, links]);
+  }));
+  drawTrend();
+}
+
+// Inline SVG: cycle time (left axis) and epipolar residual (right axis), oldest on the left.
+function drawTrend() {
+  const svg = $("trend");
+  const W = 800, H = 200, L = 50, R = 50, T = 10, B = 20;
+  const pts = jobs.slice().reverse();
+  const ns = "http://www.w3.org/2000/svg";
+  const node = (name, attrs, text) => {
+    const n = document.createElementNS(ns, name);
+    for (const [k, v] of Object.entries(attrs)) n.setAttribute(k, v);
+    if (text != null) n.textContent = text;
+    return n;
+  };
+  const parts = [node("rect", { x: L, y: T, width: W - L - R, height: H - T - B, fill: "none", stroke: "#ccc" })];
+  if (pts.length) {
+    const cyc = pts.map((j) => j.cycle_ms);
+    const epi = pts.map((j) => j.residuals.epipolar_px ?? null);
+    const cmax = Math.max(...cyc) * 1.1 || 1;
+    const evals = epi.filter((v) => v != null);
+    const emax = Math.max(lastStatus?.recalibrate?.threshold_px ?? 0, ...evals) * 1.1 || 1;
+    const x = (i) => L + (pts.length === 1 ? 0.5 : i / (pts.length - 1)) * (W - L - R);
+    const y = (v, max) => H - B - (v / max) * (H - T - B);
+    const line = (vals, max, colour) => {
+      const d = vals.map((v, i) => (v == null ? null : `${x(i).toFixed(1)},${y(v, max).toFixed(1)}`))
+        .filter((p) => p).join(" ");
+      if (d) parts.push(node("polyline", { points: d, fill: "none", stroke: colour, "stroke-width": 1.5 }));
+    };
+    line(cyc, cmax, "#1f6fd0");
+    line(epi, emax, "#d07a1f");
+    const thr = lastStatus?.recalibrate?.threshold_px;
+    if (thr && evals.length) {
+      parts.push(node("line", { x1: L, x2: W - R, y1: y(thr, emax), y2: y(thr, emax), stroke: "#d07a1f", "stroke-dasharray": "4 3" }));
+    }
+    parts.push(node("text", { x: 4, y: T + 10, "font-size": 11, fill: "#1f6fd0" }, `${fmt(cmax, 0)} ms`));
+    parts.push(node("text", { x: 4, y: H - B, "font-size": 11, fill: "#1f6fd0" }, "0"));
+    parts.push(node("text", { x: W - R + 4, y: T + 10, "font-size": 11, fill: "#d07a1f" }, `${fmt(emax, 2)} px`));
+    parts.push(node("text", { x: L, y: H - 4, "font-size": 11 }, `job ${pts[0].id}`));
+    parts.push(node("text", { x: W - R - 60, y: H - 4, "font-size": 11 }, `job ${pts[pts.length - 1].id}`));
+  }
+  svg.replaceChildren(...parts);
+}
+
+function showStatus(s) {
+  lastStatus = s;
+  $("run-state").textContent = `pid ${s.pid}: ${s.run_state}, ${s.state}` +
+    (s.calibrated ? "" : ", NOT CALIBRATED") + (s.healthy ? "" : `, UNHEALTHY: ${s.health_problem}`);
+  const rc = s.recalibrate;
+  const warn = $("recalibrate");
+  warn.hidden = !(rc && rc.warning);
+  if (rc && rc.warning) {
+    warn.textContent = `RECALIBRATE: ${rc.above} of the last ${rc.jobs} stereo jobs above ` +
+      `${rc.threshold_px} px (share ${fmt(rc.share, 2)} > ${rc.share_limit})`;
+  }
+  $("link-table").tBodies[0].replaceChildren(...s.links.map((l) => cells([
+    l.name, l.state, l.peer, l.peers, l.reconnects,
+    Object.entries(l.refusals || {}).map(([k, v]) => `${k} ${v}`).join(", "), l.last_error || ""])));
+  const counts = Object.entries(s.counters).map(([k, v]) => `${k} ${v}`).join(", ") || "none";
+  const cyc = s.cycle_ms.window ? `; cycle p50 ${fmt(s.cycle_ms.p50)} ms, p95 ${fmt(s.cycle_ms.p95)} ms, ` +
+    `max ${fmt(s.cycle_ms.max)} ms over ${s.cycle_ms.window} jobs` : "";
+  $("counters").textContent = counts + cyc;
+  const cal = [`calibrated: ${s.calibrated ? "yes" : "NO"}`];
+  if (rc && rc.jobs) {
+    cal.push(`epipolar: ${rc.above} of the last ${rc.jobs} stereo jobs above ${rc.threshold_px} px ` +
+      `(share ${fmt(rc.share, 2)}, warning above ${rc.share_limit} once ${rc.min_jobs} jobs are in)` +
+      (rc.warning ? ` — RECALIBRATE for ${fmt(rc.since_s, 0)} s` : ""));
+  }
+  $("calibration").textContent = cal.join("; ");
+  const web = s.web || {};
+  $("actions-off").hidden = web.trigger || web.support_bundle;
+  $("actions-on").hidden = !(web.trigger || web.support_bundle);
+  $("btn-trigger").hidden = !web.trigger;
+  $("btn-bundle").hidden = !web.support_bundle;
+}
+
+async function loadRegisters() {
+  const views = await getJSON("/api/registers");
+  $("registers").replaceChildren(...views.map((v) => {
+    const div = document.createElement("div");
+    const h = document.createElement("h3");
+    h.textContent = `Register map of ${v.link} (as the PLC reads it; ${v.word_order}, ${v.value_format})`;
+    const table = document.createElement("table");
+    table.append(cells(["addr", "name", "words", "value", "meaning"]));
+    for (const r of v.rows) {
+      table.append(cells([r.address, r.name, r.words.join(" "),
+        typeof r.value === "number" && !Number.isInteger(r.value) ? fmt(r.value, 4) : r.value, r.meaning]));
+    }
+    div.append(h, table);
+    return div;
+  }));
+}
+
+async function refresh() {
+  try {
+    showStatus(await getJSON("/api/status"));
+  } catch (err) {
+    $("run-state").textContent = `daemon not reachable (${err.message})`;
+  }
+}
+
+async function action(url, opts) {
+  const headers = { Authorization: `Bearer ${$("token").value}` };
+  const resp = await fetch(url, { ...opts, headers });
+  if (!resp.ok) throw new Error(`${resp.status} ${await resp.text()}`);
+  return resp;
+}
+
+$("btn-trigger").addEventListener("click", async () => {
+  $("action-result").textContent = "triggered…";
+  try {
+    const r = await (await action("/api/trigger", { method: "POST" })).json();
+    $("action-result").textContent = `test job ${r.job_id}: ${r.status} ${r.message}`;
+  } catch (err) { $("action-result").textContent = err.message; }
+});
+
+$("btn-bundle").addEventListener("click", async () => {
+  try {
+    const resp = await action("/api/support-bundle", {});
+    const name = (resp.headers.get("Content-Disposition") || "").match(/filename="(.+)"/)?.[1] || "vgripd-support.zip";
+    const a = document.createElement("a");
+    a.href = URL.createObjectURL(await resp.blob());
+    a.download = name;
+    a.click();
+    URL.revokeObjectURL(a.href);
+  } catch (err) { $("action-result").textContent = err.message; }
+});
+
+async function loadJobs() {
+  jobs = await getJSON("/api/jobs");
+  if (jobs.length) showJob(jobs[0]);
+  showHistory();
+}
+
+// Live updates. Every (re)connection reloads the history first, so a job that finished while
+// the stream was down is not missed.
+function connectEvents() {
+  const events = new EventSource("/api/events");
+  events.addEventListener("open", () => { loadJobs().catch(() => {}); refresh(); });
+  events.addEventListener("job", (e) => {
+    const job = JSON.parse(e.data);
+    jobs.unshift(job);
+    jobs.length = Math.min(jobs.length, lastStatus?.web?.history ?? 100);
+    showJob(job);
+    showHistory();
+    refresh();
+  });
+  events.addEventListener("links", () => { refresh(); loadRegisters().catch(() => {}); });
+}
+
+async function main() {
+  await refresh();
+  try {
+    await loadJobs();
+    $("config-text").textContent = JSON.stringify(await getJSON("/api/config"), null, 2);
+    await loadRegisters();
+  } catch (err) { console.error(err); }
+  // The stream opens once the page has drawn what is there (a headless browser dumping the
+  // page after a virtual-time budget sees it complete; the open event catches up anyway).
+  setTimeout(connectEvents, 1000);
+  setInterval(refresh, 5000);
+  setInterval(() => loadRegisters().catch(() => {}), 2000);
+}
+
+main();
