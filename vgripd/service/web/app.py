@@ -169,6 +169,7 @@ class WebServer:
         self._io: ThreadPoolExecutor | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self._t_start_wall = time.time()
+        self._last_pair: tuple[int, ImagePair] | None = None
         self.app = self._make_app()
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -236,7 +237,12 @@ class WebServer:
         self.history.append((record, summary))
         self.metrics.observe(record)
         if pair is not None:
-            self.images.submit(record.job_id, pair, record.result, eager=True)
+            # Drawn at once while a page watches; otherwise on request (the last pair is
+            # kept for that, older jobs come from the recorder), so an unwatched cell spends
+            # no CPU on pictures.
+            self._last_pair = (record.job_id, pair)
+            if self.events.clients:
+                self.images.submit(record.job_id, pair, record.result, eager=True)
         self.events.publish("job", summary)
 
     async def _watch_links(self) -> None:
@@ -323,12 +329,16 @@ class WebServer:
             found = self._find(job_id)
             if found is None or not found[1]["images"]:
                 raise web.HTTPNotFound(text="no images for this job")
-            loop = asyncio.get_running_loop()
-            folder = await loop.run_in_executor(self._io, self._recorded_folder, job_id)
-            if folder is None:
+            source: ImagePair | str | None = None
+            if self._last_pair is not None and self._last_pair[0] == job_id:
+                source = self._last_pair[1]
+            else:
+                loop = asyncio.get_running_loop()
+                source = await loop.run_in_executor(self._io, self._recorded_folder, job_id)
+            if source is None:
                 raise web.HTTPNotFound(text="the job's images are no longer kept (enable "
                                             "[record] to open older jobs)")
-            fut = self.images.submit(job_id, folder, found[0].result)
+            fut = self.images.submit(job_id, source, found[0].result)
             assert fut is not None
         try:
             jpegs = await asyncio.shield(fut)
