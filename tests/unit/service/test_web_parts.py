@@ -188,3 +188,28 @@ def test_render_draws_downscaled_jpegs_of_a_failed_job() -> None:
                   max_width=400)
     assert len(mono) == 1
     assert cv2.imdecode(np.frombuffer(mono[0], np.uint8), cv2.IMREAD_COLOR).shape[1] == 400
+
+
+def test_the_grafana_dashboard_and_docs_use_only_exported_metrics() -> None:
+    """Every metric the shipped dashboard and docs/web.md query is one the daemon exports."""
+    import json
+    import re
+
+    from tests.conftest import REPO
+
+    daemon = _fake_daemon()
+    daemon.recorder = SimpleNamespace(total_bytes=10, dropped=0)
+    daemon.undelivered = Counter({"OK": 1})
+    metrics = Metrics(daemon)
+    result = JobResult(job_id=1, status=Status.OK, timings_ms={"process": 1.0})
+    metrics.observe(SimpleNamespace(result=result, cycle_ms=1.0, published=None))
+    exported = {s.name for fam in text_string_to_metric_families(metrics.render().decode())
+                for s in fam.samples}
+    dashboard = json.loads((REPO / "docs/grafana/vgripd.json").read_text())
+    exprs = [t["expr"] for p in dashboard["panels"] for t in p["targets"]]
+    assert exprs
+    used = {m for e in exprs for m in re.findall(r"vgripd_\w+", e)}
+    used |= set(re.findall(r"`(vgripd_\w+)", (REPO / "docs/web.md").read_text()))
+    unknown = sorted(m for m in used if m not in exported
+                     and not any(m + suffix in exported for suffix in ("_bucket", "_count")))
+    assert not unknown, unknown
