@@ -249,6 +249,7 @@ class Daemon:
         self.counters: Counter[str] = Counter()
         self.refusals: Counter[str] = Counter()  # the daemon's refusals among `counters`
         self.undelivered: Counter[str] = Counter()  # answers whose publish failed (job status)
+        self.record_dropped = 0  # jobs the recorder refused because the disk was behind
         self.cycle_ms: deque[float] = deque(maxlen=config.daemon.stats_window)
         self.last_job: JobRecord | None = None
         d = config.daemon
@@ -637,8 +638,8 @@ class Daemon:
         why = f"; {result.diagnosis.summary()}" if result.diagnosis is not None else ""
         log.info("job %d: %s in %.1f ms%s%s%s", job_id, result.status.name, record.cycle_ms,
                  f" ({result.message})" if result.message else "", told_note, why)
-        if self.recorder is not None and pair is not None:
-            self.recorder.submit(pair, result)
+        recorded = self.recorder is None or pair is None or self.recorder.submit(pair, result)
+        self.record_dropped += not recorded
         for listener in self.listeners:
             try:
                 listener(pair, record)

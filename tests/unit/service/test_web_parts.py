@@ -198,7 +198,8 @@ def test_the_grafana_dashboard_and_docs_use_only_exported_metrics() -> None:
     from tests.conftest import REPO
 
     daemon = _fake_daemon()
-    daemon.recorder = SimpleNamespace(total_bytes=10, dropped=0)
+    daemon.recorder = SimpleNamespace(total_bytes=10)
+    daemon.record_dropped = 0
     daemon.undelivered = Counter({"OK": 1})
     metrics = Metrics(daemon)
     result = JobResult(job_id=1, status=Status.OK, timings_ms={"process": 1.0})

@@ -86,10 +86,8 @@ class _DaemonCollector(Collector):
         if rec is not None:
             yield GaugeMetricFamily("vgripd_recorder_bytes", "Bytes in the recording folder",
                                     value=float(rec.total_bytes))
-            dropped = getattr(rec, "dropped", None)
-            if isinstance(dropped, int):
-                yield CounterMetricFamily("vgripd_recorder_dropped", "Jobs not recorded "
-                                          "because the disk was behind", value=dropped)
+            yield CounterMetricFamily("vgripd_recorder_dropped", "Jobs not recorded "
+                                      "because the disk was behind", value=d.record_dropped)
 
 
 class Metrics:
