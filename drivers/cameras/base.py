@@ -72,11 +72,11 @@ class DriverThread:
             try:
                 result = fn(*args)
             except BaseException as err:
+                self.running_since = None  # before the waiter wakes: it may ask stuck_s()
                 future.set_exception(err)
             else:
-                future.set_result(result)
-            finally:
                 self.running_since = None
+                future.set_result(result)
 
     def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
         """No more calls; pending ones are cancelled with ``cancel_futures``; ``wait`` joins."""
