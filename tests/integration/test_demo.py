@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -35,3 +36,38 @@ def test_demo_runs_cycles_with_a_busy_refusal_a_gated_fault_and_small_pose_error
     m = re.search(r"pose error vs synthetic truth: max ([\d.]+) mm", out)
     assert m is not None
     assert float(m.group(1)) < 0.5
+
+
+def test_demo_prints_the_web_view_url_and_serves_it_while_lingering() -> None:
+    import urllib.request
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vgripd", "demo", "--cycles", "2", "--port", "0",
+         "--web-port", "0", "--linger", "10"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"})
+    try:
+        assert proc.stdout is not None
+        seen = []
+        url = None
+        for line in proc.stdout:  # ends at the process's exit at the latest
+            seen.append(line)
+            m = re.search(r"web view on (http://127\.0\.0\.1:\d+/)$", line.strip())
+            if m:
+                url = m.group(1)
+            if "stays up 10 s" in line:
+                break
+        assert url is not None, "".join(seen)
+        assert f"web view: {url} stays up" in seen[-1]
+        with urllib.request.urlopen(url, timeout=10) as resp:
+            assert resp.status == 200
+            assert "vgripd" in resp.read().decode()
+        with urllib.request.urlopen(url + "api/jobs", timeout=10) as resp:
+            assert [j["status"] for j in json.loads(resp.read())] == ["OK", "OK"]
+        rest, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, "".join(seen) + rest + err
+    assert "OUT_OF_LIMITS" in rest

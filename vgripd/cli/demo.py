@@ -34,6 +34,7 @@ from vgripd.sim.plc import CycleResult, MockPlc
 from vgripd.types import ImagePair, Status
 
 DEFAULT_PORT = 5020
+DEFAULT_WEB_PORT = 8730
 REGISTER_VENDORS = [n for n, c in CONVENTIONS.items() if len(c.fields) <= MAX_VALUES]
 
 
@@ -45,6 +46,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=DEFAULT_PORT,
                         help=f"Modbus/TCP port on 127.0.0.1 (default {DEFAULT_PORT}; "
                              "a free one if taken)")
+    parser.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
+                        help=f"web view port on 127.0.0.1 (default {DEFAULT_WEB_PORT}; "
+                             "a free one if taken)")
+    parser.add_argument("--linger", type=float, default=0.0, metavar="SECONDS",
+                        help="keep the daemon and its web view up this long after the cycles, "
+                             "to look at the jobs in a browser (default 0; Ctrl-C ends it)")
     parser.add_argument("--verbose", action="store_true", help="show the daemon's log")
 
 
@@ -58,7 +65,8 @@ def _port(wanted: int) -> int:
     return wanted
 
 
-def demo_config(port: int, seed: int, vendor: str, pose: dict[str, Any] | None = None) -> Any:
+def demo_config(port: int, seed: int, vendor: str, pose: dict[str, Any] | None = None,
+                web_port: int = 0) -> Any:
     """The demo cell; ``pose`` fixes the object pose (else random around the reference)."""
     return config_from_dict({
         # Ordinary placements: up to 10 mm and 3 deg from the taught pose (the limits judge
@@ -67,7 +75,7 @@ def demo_config(port: int, seed: int, vendor: str, pose: dict[str, Any] | None =
                    **({"pose": pose} if pose else {})},
         "output": {"vendor": vendor},
         "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": port}],
-        "status": {"port": 0},
+        "status": {"port": web_port},
         "daemon": {"log_level": "WARNING"},
     })
 
@@ -151,13 +159,16 @@ async def _with_daemon(demo: Demo, config: Any,
 
 async def run_demo(args: argparse.Namespace) -> int:
     port = _port(args.port)
+    web_port = _port(args.web_port)
     demo = Demo(args.vendor)
-    config = demo_config(port, args.seed, args.vendor)
+    config = demo_config(port, args.seed, args.vendor, web_port=web_port)
 
     async def cycles(daemon: Daemon, plc: MockPlc) -> None:
+        nonlocal web_port
         assert daemon.status_server is not None
-        print(f"vgripd demo: daemon serving Modbus/TCP on {plc.where}, status on "
-              f"http://127.0.0.1:{daemon.status_server.port}/status")
+        web_port = daemon.status_server.port  # the real one; the fault daemon reuses it
+        print(f"vgripd demo: daemon serving Modbus/TCP on {plc.where}, web view on "
+              f"http://127.0.0.1:{web_port}/", flush=True)
         print(f"synthetic stereo camera, object {config.object.name!r}, offset against "
               f"the taught reference as {args.vendor.upper()} ({demo.conv.summary})\n")
         print(demo.header())
@@ -174,6 +185,10 @@ async def run_demo(args: argparse.Namespace) -> int:
             print(await demo.line(refused, f"job for seq {first} was running"), flush=True)
             if not (refused.rejected and refused.status is Status.BUSY):
                 raise LinkError(f"seq {second} sent while busy was not refused with BUSY")
+        if args.linger > 0:
+            print(f"\nweb view: http://127.0.0.1:{web_port}/ stays up {args.linger:g} s "
+                  "(Ctrl-C ends it)", flush=True)
+            await asyncio.sleep(args.linger)
 
     async def fault(daemon: Daemon, plc: MockPlc) -> None:
         answer = await plc.cycle()
@@ -186,8 +201,8 @@ async def run_demo(args: argparse.Namespace) -> int:
         print(f"\nfault cycle (daemon restarted): object placed "
               f"{1.6 * config.limits.max_translation_mm:.0f} mm from the reference, limit "
               f"{config.limits.max_translation_mm:.0f} mm")
-        await _with_daemon(demo, demo_config(port, args.seed, args.vendor, fault_pose(config)),
-                           fault)
+        await _with_daemon(demo, demo_config(port, args.seed, args.vendor, fault_pose(config),
+                                             web_port=web_port), fault)
     except (LinkError, TimeoutError) as err:
         print(f"\nvgripd demo: FAILED: {err}")
         return 1
@@ -203,4 +218,8 @@ def run(args: argparse.Namespace) -> int:
     configure_logging("INFO" if args.verbose else "WARNING")
     if not args.verbose:
         logging.getLogger("vgripd").setLevel(logging.ERROR)
-    return asyncio.run(run_demo(args))
+    try:
+        return asyncio.run(run_demo(args))
+    except KeyboardInterrupt:
+        print("\nvgripd demo: interrupted")
+        return 130
