@@ -1,20 +1,34 @@
-"""Modbus poll latency while jobs are processed (issue 4).
+"""Modbus poll latency of the real daemon while jobs run back to back, recording on.
 
-A PLC stand-in in a separate process (pymodbus' synchronous client, so its timing does not share
-a GIL with the server) reads the whole register map at 100 Hz and measures each request's
-response time. It runs against two servers in this process, each with a CPU-heavy ~50 ms job
-(OpenCV filtering of a 2 Mpx image) running back to back in an executor thread, as the real
-pipeline does:
+Issue 4 and "A PLC interface nothing on the network can stall", part 2. Target: poll p99 <= 2 ms
+and max <= 10 ms at 100 Hz while jobs run back to back with recording on, the job cycle no
+slower than the in-process path.
 
-- ``pymodbus static``: a plain pymodbus ``ModbusTcpServer`` with a static ``SimDevice``
-  datastore; the load runs but no vgripd logic (the named peer).
-- ``vgripd``: ``ModbusServerLink``; the PLC triggers jobs back to back through the handshake
-  and a stand-in daemon answers each trigger with image_captured -> job -> publish.
+Everything is a real process: ``python -m vgripd run -c CFG`` (synthetic stereo camera,
+1280x1024, rendered by the driver as in production; Modbus/TCP server link on 127.0.0.1;
+recording on, to a temporary folder), and a PLC stand-in in its own process (pymodbus'
+synchronous client, so its timing shares no GIL with the server) that reads all registers at
+100 Hz, triggering the next job as soon as it reads the previous result. Rows:
 
-Prints poll response time median/p99 for both, trigger-to-result latency, and appends the
-figures to bench/RESULTS.md (section "Modbus poll latency (issue 4)").
+- ``vgripd, daemon.worker = false``: the old in-process path (camera thread, job executor,
+  recorder thread in the daemon's interpreter): "before".
+- ``vgripd, daemon.worker = true``: camera, pipeline and recorder in the worker process: "after".
+- ``vgripd idle``: the same daemon, no jobs.
+- ``pymodbus static, vgripd jobs in another process``: the named peer, a plain pymodbus
+  ``ModbusTcpServer`` with a static datastore in this process, polled at 100 Hz while a worker
+  daemon runs jobs back to back (driven by a second PLC stand-in): what the machine allows a
+  server with nothing else to do.
+- ``pymodbus static, Pipeline.process in its thread``: the peer as this bench ran it before,
+  the job in an executor thread of the server's own process (no camera, no recording).
 
-Run: ``cd /work/main && .venv/bin/python bench/bench_poll.py [--seconds 5]``
+Job cycle: the daemon's own (trigger received -> result published, ``GET /status``) and the
+PLC's (trigger written -> result read, quantised by its 10 ms poll).
+
+The PLC stand-in runs under SCHED_FIFO when the system allows it (``--no-realtime-client`` to
+not): a real PLC is a device of its own, and on a loaded machine the stand-in's own wake-ups
+would otherwise be in every figure, the peer's too.
+
+Run: ``.venv/bin/python bench/bench_poll.py [--seconds 20] [--write-results]``
 """
 
 from __future__ import annotations
@@ -25,40 +39,255 @@ import contextlib
 import json
 import os
 import platform
+import signal
+import socket
 import statistics
 import sys
+import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
-import cv2
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.results import write_section  # noqa: E402
-from drivers.links.modbus_server import ModbusServerLink  # noqa: E402
-from vgripd.service.protocol import MAP_SIZE, Reg, Trigger  # noqa: E402
-from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
+from vgripd.service.protocol import MAP_SIZE, Reg  # noqa: E402
+from vgripd.types import Status  # noqa: E402
 
 POLL_PERIOD_S = 0.01
-JOB_PASSES = 5
 SECTION = "## Modbus poll latency (issue 4)"
+TARGET_P99_MS = 2.0
+TARGET_MAX_MS = 10.0
+START_TIMEOUT_S = 120.0
 
 
-def cpu_job(image: np.ndarray) -> float:
-    """~50 ms of the kind of work the pipeline does (filtering, gradients, thresholds)."""
-    out = image
-    for _ in range(JOB_PASSES):
-        out = cv2.GaussianBlur(out, (15, 15), 3.0)
-        gx = cv2.Sobel(out, cv2.CV_32F, 1, 0)
-        out = cv2.convertScaleAbs(gx)
-    return float(out.mean())
+# --- the PLC stand-in (child process) -----------------------------------------------------------
+
+def client_main(port: int, mode: str, seconds: float, jobs: int) -> None:
+    """Poll all registers at 100 Hz for ``seconds`` (or until ``jobs`` results in cycle mode);
+    in ``cycle`` mode trigger the next job as soon as the last result is read. JSON on stdout."""
+    from pymodbus.client import ModbusTcpClient
+
+    realtime = os.environ.get("BENCH_CLIENT_REALTIME") == "1"
+    if realtime:
+        try:  # a real PLC is a device of its own: keep our stand-in's wake-ups out of the figures
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+        except PermissionError:
+            realtime = False
+    client = ModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+    assert client.connect()
+    rtt_ms: list[float] = []
+    cycle_ms: list[float] = []
+    statuses: dict[str, int] = {}
+    end = time.monotonic() + seconds if seconds > 0 else float("inf")
+    try:
+        _poll_loop(client, mode, end, jobs, rtt_ms, cycle_ms, statuses)
+        error = ""
+    except Exception as err:  # the server went away: report what was measured until then
+        error = f"{type(err).__name__}: {err}"
+    client.close()
+    print(json.dumps({"rtt_ms": rtt_ms, "cycle_ms": cycle_ms, "statuses": statuses,
+                      "realtime": realtime, "error": error}))
 
 
-def pipeline_job_factory() -> tuple[object, str]:
-    """The real job: ``Pipeline.process`` on pre-rendered demo-cell stereo pairs (1280x1024)."""
+def _poll_loop(client: Any, mode: str, end: float, jobs: int, rtt_ms: list[float],
+               cycle_ms: list[float], statuses: dict[str, int]) -> None:
+    seq = 0
+    pending: tuple[int, float] | None = None
+    next_tick = time.monotonic()
+    while time.monotonic() < end and (not jobs or len(cycle_ms) < jobs):
+        if mode == "cycle" and pending is None:
+            seq = seq % 0xFFFF + 1
+            pending = (seq, time.perf_counter())
+            r = client.write_registers(Reg.CMD, [1, seq, 0], device_id=1)
+            assert not r.isError(), r
+        t0 = time.perf_counter()
+        r = client.read_holding_registers(0, count=MAP_SIZE, device_id=1)
+        t1 = time.perf_counter()
+        assert not r.isError(), r
+        rtt_ms.append(round((t1 - t0) * 1000, 4))
+        if pending is not None and r.registers[Reg.ACK_SEQ] == pending[0]:
+            name = Status(r.registers[Reg.STATUS]).name
+            statuses[name] = statuses.get(name, 0) + 1
+            cycle_ms.append(round((t1 - pending[1]) * 1000, 3))
+            pending = None
+        next_tick += POLL_PERIOD_S
+        delay = next_tick - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        else:
+            next_tick = time.monotonic()
+
+
+async def run_client(port: int, mode: str, seconds: float, jobs: int = 0,
+                     allow_error: bool = False) -> dict[str, Any]:
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, __file__, "--client", str(port), mode, str(seconds), str(jobs),
+        stdout=asyncio.subprocess.PIPE,
+    )
+    out, _ = await proc.communicate()
+    assert proc.returncode == 0, "bench client failed"
+    result: dict[str, Any] = json.loads(out)
+    if result["error"] and not allow_error:
+        raise RuntimeError(f"bench client: {result['error']}")
+    return result
+
+
+# --- the real daemon (child process) ---------------------------------------------------------
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+async def get_status(port: int) -> dict[str, Any]:
+    """``GET /status`` of a daemon (plain asyncio, no thread)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(b"GET /status HTTP/1.0\r\n\r\n")
+    data = await reader.read()
+    writer.close()
+    with contextlib.suppress(ConnectionError):
+        await writer.wait_closed()
+    status: dict[str, Any] = json.loads(data.partition(b"\r\n\r\n")[2])
+    return status
+
+
+class DaemonProcess:
+    """``python -m vgripd run`` on a generated config; its log goes to ``folder/daemon.log``."""
+
+    def __init__(self, folder: Path, worker: bool, record: bool = True, max_mb: float = 200.0,
+                 log_level: str = "INFO", command: list[str] | None = None) -> None:
+        self.folder = folder
+        self.port = free_port()
+        self.status_port = free_port()
+        self.config = folder / "vgripd.toml"
+        folder.mkdir(parents=True, exist_ok=True)
+        self.config.write_text(f"""
+[camera]
+type = "synthetic"
+seed = 3
+max_tilt_deg = 2.0
+
+[[links]]
+type = "modbus_server"
+host = "127.0.0.1"
+port = {self.port}
+
+[status]
+port = {self.status_port}
+
+[daemon]
+worker = {str(worker).lower()}
+log_level = "{log_level}"
+
+[record]
+enabled = {str(record).lower()}
+folder = "{folder / 'record'}"
+max_mb = {max_mb}
+""")
+        self.proc: asyncio.subprocess.Process | None = None
+        self.command = command or [sys.executable, "-m", "vgripd", "run", "-c", str(self.config)]
+
+    async def __aenter__(self) -> DaemonProcess:
+        log = (self.folder / "daemon.log").open("ab")
+        self.proc = await asyncio.create_subprocess_exec(
+            *self.command, cwd=REPO,
+            env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=log, stderr=log)
+        log.close()
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while True:
+            assert self.proc.returncode is None, f"daemon exited, see {self.folder}/daemon.log"
+            with contextlib.suppress(OSError, ValueError):
+                if (await self.status())["run_state"] == "running":
+                    return self
+            assert time.monotonic() < deadline, "daemon did not start"
+            await asyncio.sleep(0.2)
+
+    async def __aexit__(self, *exc: object) -> None:
+        assert self.proc is not None
+        if self.proc.returncode is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                async with asyncio.timeout(30):
+                    await self.proc.wait()
+            except TimeoutError:
+                self.proc.kill()
+                await self.proc.wait()
+
+    @property
+    def pid(self) -> int:
+        assert self.proc is not None
+        return self.proc.pid
+
+    async def status(self) -> dict[str, Any]:
+        return await get_status(self.status_port)
+
+
+def realtime_command(config: Path) -> list[str]:
+    """``vgripd run`` with the daemon under SCHED_FIFO, as systemd's
+    ``CPUSchedulingPolicy=fifo`` / ``CPUSchedulingPriority=5`` would start it."""
+    code = ("import os, sys; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5)); "
+            "from vgripd.__main__ import main; sys.exit(main(sys.argv[1:]))")
+    return [sys.executable, "-c", code, "run", "-c", str(config)]
+
+
+def realtime_allowed() -> bool:
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except PermissionError:
+        return False
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    return True
+
+
+async def bench_daemon(folder: Path, worker: bool, seconds: float, jobs: bool = True,
+                       realtime: bool = False) -> dict[str, Any]:
+    command = realtime_command(folder / "vgripd.toml") if realtime else None
+    async with DaemonProcess(folder, worker, command=command) as daemon:
+        got = await run_client(daemon.port, "cycle" if jobs else "poll", seconds)
+        status = await daemon.status()
+    got["daemon_cycle_ms"] = status["cycle_ms"]
+    got["worker"] = status.get("worker")
+    return got
+
+
+async def bench_peer_beside_daemon(folder: Path, seconds: float) -> dict[str, Any]:
+    """The plain pymodbus server polled while a worker daemon runs jobs back to back."""
+    server, port = await static_server()
+    try:
+        async with DaemonProcess(folder, worker=True) as daemon:
+            driver = asyncio.create_task(run_client(daemon.port, "cycle", seconds + 4))
+            await asyncio.sleep(2)  # jobs are running
+            got = await run_client(port, "poll", seconds)
+            jobs = await driver
+        got["load_jobs"] = len(jobs["cycle_ms"])
+        return got
+    finally:
+        await server.shutdown()
+
+
+# --- the peer as this bench ran it before: the job in the server's own process ---------------
+
+async def static_server() -> tuple[Any, int]:
+    from pymodbus.server import ModbusTcpServer
+    from pymodbus.simulator import DataType, SimData, SimDevice
+
+    device = SimDevice(1, simdata=[SimData(0, values=list(range(MAP_SIZE)),
+                                           datatype=DataType.REGISTERS)])
+    server = ModbusTcpServer(device, address=("127.0.0.1", 0))
+    await server.serve_forever(background=True)
+    port: int = server.transport.sockets[0].getsockname()[1]
+    return server, port
+
+
+def pipeline_job_factory() -> Any:
+    """``Pipeline.process`` on pre-rendered demo-cell stereo pairs (1280x1024)."""
     from vgripd.config import Config, DriverSection
     from vgripd.registry import CAMERAS, load_class, validate_options
     from vgripd.vision.pipeline import Pipeline
@@ -68,7 +297,7 @@ def pipeline_job_factory() -> tuple[object, str]:
     camera = cls(validate_options(cls, DriverSection(type="synthetic", seed=3, max_tilt_deg=2.0),
                                   "camera"), config)
 
-    async def grab() -> list[object]:
+    async def grab() -> list[Any]:
         await camera.open()
         try:
             return [await camera.grab(10.0) for _ in range(4)]
@@ -79,200 +308,150 @@ def pipeline_job_factory() -> tuple[object, str]:
     pipeline = Pipeline(config)
     count = 0
 
-    def job(_image: np.ndarray) -> float:
+    def job() -> None:
         nonlocal count
         count += 1
-        result = pipeline.process(pairs[count % len(pairs)], count)  # type: ignore[arg-type]
+        result = pipeline.process(pairs[count % len(pairs)], count)
         assert result.status.pose_valid, result
-        return 0.0
 
-    return job, "vgripd Pipeline.process on demo-cell 1280x1024 stereo pairs"
-
-
-def calibrate_job(image: np.ndarray) -> float:
-    t0 = time.perf_counter()
-    for _ in range(3):
-        cpu_job(image)
-    return (time.perf_counter() - t0) / 3 * 1000
+    return job
 
 
-# --- the PLC stand-in (child process) -----------------------------------------------------------
-
-def client_main(port: int, mode: str, seconds: float) -> None:
-    from pymodbus.client import ModbusTcpClient
-
-    client = ModbusTcpClient("127.0.0.1", port=port, timeout=2, retries=0)
-    assert client.connect()
-    rtt_ms: list[float] = []
-    cycle_ms: list[float] = []
-    seq = 0
-    pending: tuple[int, float] | None = None
-    end = time.monotonic() + seconds
-    next_tick = time.monotonic()
-    while time.monotonic() < end:
-        if mode == "cycle" and pending is None:
-            seq = seq % 0xFFFF + 1
-            pending = (seq, time.perf_counter())
-            r = client.write_registers(Reg.CMD, [1, seq, 0], device_id=1)
-            assert not r.isError()
-        t0 = time.perf_counter()
-        r = client.read_holding_registers(0, count=MAP_SIZE, device_id=1)
-        t1 = time.perf_counter()
-        assert not r.isError(), r
-        rtt_ms.append((t1 - t0) * 1000)
-        if pending is not None and r.registers[Reg.ACK_SEQ] == pending[0]:
-            assert (r.registers[Reg.STATUS], r.registers[Reg.N_VALUES]) == (Status.OK, 6)
-            cycle_ms.append((t1 - pending[1]) * 1000)
-            pending = None
-        next_tick += POLL_PERIOD_S
-        delay = next_tick - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
-        else:
-            next_tick = time.monotonic()
-    client.close()
-    print(json.dumps({"rtt_ms": rtt_ms, "cycle_ms": cycle_ms}))
-
-
-async def run_client(port: int, mode: str, seconds: float) -> dict[str, list[float]]:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, __file__, "--client", str(port), mode, str(seconds),
-        stdout=asyncio.subprocess.PIPE,
-    )
-    out, _ = await proc.communicate()
-    assert proc.returncode == 0, "bench client failed"
-    result: dict[str, list[float]] = json.loads(out)
-    return result
-
-
-# --- servers (this process) ----------------------------------------------------------------
-
-async def background_load(pool: ThreadPoolExecutor, image: np.ndarray, stop: asyncio.Event) -> int:
+async def bench_peer_in_process(seconds: float) -> dict[str, Any]:
+    job = await asyncio.to_thread(pipeline_job_factory)
+    server, port = await static_server()
+    stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     jobs = 0
-    while not stop.is_set():
-        await loop.run_in_executor(pool, cpu_job, image)
-        jobs += 1
-    return jobs
 
+    async def load(pool: ThreadPoolExecutor) -> None:
+        nonlocal jobs
+        while not stop.is_set():
+            await loop.run_in_executor(pool, job)
+            jobs += 1
 
-async def bench_static_peer(image: np.ndarray, seconds: float) -> dict[str, list[float]]:
-    from pymodbus.server import ModbusTcpServer
-    from pymodbus.simulator import DataType, SimData, SimDevice
-
-    device = SimDevice(1, simdata=[SimData(0, values=list(range(MAP_SIZE)), datatype=DataType.REGISTERS)])
-    server = ModbusTcpServer(device, address=("127.0.0.1", 0))
-    await server.serve_forever(background=True)
-    port = server.transport.sockets[0].getsockname()[1]
-    stop = asyncio.Event()
     with ThreadPoolExecutor(1, thread_name_prefix="bench-load") as pool:
-        load = asyncio.create_task(background_load(pool, image, stop))
+        task = asyncio.create_task(load(pool))
         try:
-            return await run_client(port, "poll", seconds)
+            got = await run_client(port, "poll", seconds)
         finally:
             stop.set()
-            await load
+            await task
             await server.shutdown()
+    got["load_jobs"] = jobs
+    return got
 
 
-async def bench_vgripd(image: np.ndarray, seconds: float) -> tuple[dict[str, list[float]], list[float]]:
-    link = ModbusServerLink("bench", ModbusServerLink.Options(host="127.0.0.1", port=0))
-    loop = asyncio.get_running_loop()
-    job_ms: list[float] = []
-    tasks: set[asyncio.Task[None]] = set()
-    pool = ThreadPoolExecutor(1, thread_name_prefix="bench-job")
-    job_id = 0
-
-    async def job(trigger: Trigger) -> None:
-        nonlocal job_id
-        job_id += 1
-        await link.image_captured(trigger.seq, job_id)
-        t0 = time.perf_counter()
-        await loop.run_in_executor(pool, cpu_job, image)
-        job_ms.append((time.perf_counter() - t0) * 1000)
-        target = RobotTarget("kuka", tuple("XYZABC"), (600.0, 100.0, 10.0, 2.9, 0.1, -0.2))
-        await link.publish(trigger.seq, JobResult(job_id=job_id, status=Status.OK, target=target))
-
-    def on_trigger(trigger: Trigger) -> None:
-        task = loop.create_task(job(trigger))
-        tasks.add(task)
-        task.add_done_callback(tasks.discard)
-
-    await link.open(on_trigger)
-    try:
-        stats = await run_client(link.port, "cycle", seconds)
-    finally:
-        for task in list(tasks):
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
-        await link.close()
-        pool.shutdown()
-    return stats, job_ms
-
+# --- report ------------------------------------------------------------------------------------
 
 def pct(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values), q)) if values else float("nan")
 
 
-async def main(seconds: float, cv_threads: int, job_name: str) -> None:
-    global cpu_job
-    cv2.setNumThreads(cv_threads)
-    what = "OpenCV filtering job"
-    if job_name == "pipeline":
-        cpu_job, what = await asyncio.to_thread(pipeline_job_factory)  # type: ignore[assignment]
-    rng = np.random.default_rng(0)
-    image = rng.integers(0, 255, (1200, 1600), dtype=np.uint8)
-    single_ms = calibrate_job(image)
-    peer = await bench_static_peer(image, seconds)
-    ours, job_ms = await bench_vgripd(image, seconds)
+def load_average() -> str:
+    return "{:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
 
-    rows = [
-        ("pymodbus static datastore + load", peer["rtt_ms"]),
-        ("vgripd ModbusServerLink, jobs back to back", ours["rtt_ms"]),
-    ]
+
+def row(name: str, got: dict[str, Any]) -> str:
+    rtt = got["rtt_ms"]
+    return (f"| {name} | {len(rtt)} | {statistics.median(rtt):.3f} | {pct(rtt, 99):.3f} | "
+            f"{max(rtt):.3f} |")
+
+
+def cycle_text(got: dict[str, Any]) -> str:
+    d = got["daemon_cycle_ms"]
+    plc = got["cycle_ms"]
+    return (f"{len(plc)} jobs {got['statuses']}, daemon cycle (trigger received -> result "
+            f"published) p50 {d['p50']:.1f} ms, p99 {d['p99']:.1f} ms; PLC trigger-to-result "
+            f"p50 {statistics.median(plc):.1f} ms")
+
+
+async def main(seconds: float, write: bool, realtime: bool) -> None:
+    os.environ["BENCH_CLIENT_REALTIME"] = "1" if realtime else "0"
+    before_load = load_average()
+    with tempfile.TemporaryDirectory(prefix="bench_poll-") as tmp:
+        folder = Path(tmp)
+        print(f"load average before: {before_load}", flush=True)
+        after = await bench_daemon(folder / "after", True, seconds)
+        print("after:", cycle_text(after), flush=True)
+        fifo = (await bench_daemon(folder / "fifo", True, seconds, realtime=True)
+                if realtime_allowed() else None)
+        before = await bench_daemon(folder / "before", False, seconds)
+        print("before:", cycle_text(before), flush=True)
+        idle = await bench_daemon(folder / "idle", True, seconds, jobs=False)
+        peer = await bench_peer_beside_daemon(folder / "peer", seconds)
+        peer_old = await bench_peer_in_process(seconds)
+    after_load = load_average()
+
+    a, b = after["rtt_ms"], before["rtt_ms"]
+    p99, worst = pct(a, 99), max(a)
+    met = p99 <= TARGET_P99_MS and worst <= TARGET_MAX_MS
+    verdict = "MET" if met else "MISSED"
+    ca, cb = after["daemon_cycle_ms"]["p50"], before["daemon_cycle_ms"]["p50"]
+    cycle_verdict = "MET" if ca <= cb else "MISSED"
+    fifo_text = "not measured (SCHED_FIFO not permitted here)"
+    if fifo is not None:
+        f = fifo["rtt_ms"]
+        fifo_met = pct(f, 99) <= TARGET_P99_MS and max(f) <= TARGET_MAX_MS
+        fifo_text = (f"p99 {pct(f, 99):.2f} / max {max(f):.2f} ms: **"
+                     f"{'MET' if fifo_met else 'MISSED'}**; job cycle p50 "
+                     f"{fifo['daemon_cycle_ms']['p50']:.1f} ms")
     lines = [
         SECTION,
         "",
-        f"`bench/bench_poll.py --seconds {seconds:g} --cv-threads {cv_threads} --job {job_name}`, "
-        f"{time.strftime('%Y-%m-%d')}, "
-        f"{platform.machine()}, {os.cpu_count()} cores (shared with other work), Python "
-        f"{platform.python_version()}. A PLC stand-in in its own process reads all {MAP_SIZE} "
-        f"registers at 100 Hz over 127.0.0.1 while a ~{single_ms:.0f} ms job ({what}) "
-        f"(cv2.setNumThreads({cv_threads})) runs back to back in an executor thread. "
-        "Target: poll p99 < 5 ms while processing.",
+        f"`.venv/bin/python bench/bench_poll.py --seconds {seconds:g} --write-results`, "
+        f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores shared "
+        f"with other work (load average {before_load} before, {after_load} after), Python "
+        f"{platform.python_version()}. The real daemon (`python -m vgripd run`: synthetic "
+        "stereo camera 1280x1024 rendered by its driver, Modbus/TCP server link, recording on) "
+        f"and a PLC stand-in in its own process reading all {MAP_SIZE} registers at 100 Hz, "
+        "triggering the next job as soon as it reads a result (jobs back to back); "
+        + ("the stand-in runs under SCHED_FIFO (a real PLC is a device of its own: its wake-ups "
+           "are not the daemon's latency). " if after.get("realtime") else
+           "the stand-in runs at normal priority (its own wake-ups are in the figures). ")
+        + f"{seconds:g} s per row. Target: poll p99 <= {TARGET_P99_MS:g} ms and max <= "
+        f"{TARGET_MAX_MS:g} ms while jobs run, the job cycle no slower than before.",
         "",
         "| server | polls | median ms | p99 ms | max ms |",
         "|---|---:|---:|---:|---:|",
-    ]
-    for name, rtt in rows:
-        lines.append(f"| {name} | {len(rtt)} | {statistics.median(rtt):.3f} | "
-                     f"{pct(rtt, 99):.3f} | {max(rtt):.3f} |")
-    ratio = pct(ours["rtt_ms"], 99) / pct(peer["rtt_ms"], 99)
-    cyc = ours["cycle_ms"]
-    lines += [
+        row("vgripd, worker process (after), jobs back to back, recording on", after),
+        *([row("vgripd, worker process, daemon under SCHED_FIFO (systemd "
+               "`CPUSchedulingPolicy=fifo`), same", fifo)] if fifo is not None else []),
+        row("vgripd, in-process (before: `daemon.worker = false`), same", before),
+        row("vgripd, worker process, idle", idle),
+        row(f"pymodbus static, while a vgripd worker daemon runs {peer['load_jobs']} jobs "
+            "in other processes", peer),
+        row(f"pymodbus static, Pipeline.process in its own executor thread "
+            f"({peer_old['load_jobs']} jobs; the old peer)", peer_old),
         "",
-        f"vgripd / peer poll p99 ratio: {ratio:.2f}.",
-        f"Trigger-to-result as the PLC sees it ({len(cyc)} jobs, polling every 10 ms): "
-        f"median {statistics.median(cyc):.1f} ms, p99 {pct(cyc, 99):.1f} ms; "
-        f"job compute time median {statistics.median(job_ms):.1f} ms (the rest is the "
-        "10 ms poll quantisation plus the trigger write and dispatch).",
+        f"Poll p99 / max: after {p99:.2f} / {worst:.2f} ms, before {pct(b, 99):.2f} / "
+        f"{max(b):.2f} ms (after / before p99 {p99 / pct(b, 99):.2f}, max "
+        f"{worst / max(b):.2f}); after / peer beside the daemon p99 "
+        f"{p99 / pct(peer['rtt_ms'], 99):.2f}. As shipped (normal scheduling): **{verdict}** "
+        f"(p99 <= {TARGET_P99_MS:g} ms and max <= {TARGET_MAX_MS:g} ms). With the daemon under "
+        f"SCHED_FIFO (its worker drops to normal scheduling, nice +5): {fifo_text}.",
+        "",
+        f"Job cycle, after: {cycle_text(after)}.  ",
+        f"Job cycle, before: {cycle_text(before)}.  ",
+        f"After / before daemon cycle p50: {ca / cb:.2f}: no slower **{cycle_verdict}**.",
         "",
     ]
     text = "\n".join(lines)
     print(text)
-    write_section(SECTION, text)
+    if write:
+        write_section(SECTION, text)
 
 
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--client":
-        client_main(int(sys.argv[2]), sys.argv[3], float(sys.argv[4]))
+        client_main(int(sys.argv[2]), sys.argv[3], float(sys.argv[4]), int(sys.argv[5]))
         sys.exit(0)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=5.0)
-    parser.add_argument("--cv-threads", type=int, default=-1,
-                        help="OpenCV worker threads of the job (-1 = OpenCV default, one per core, as the daemon runs)")
-    parser.add_argument("--job", choices=("pipeline", "opencv"), default="pipeline",
-                        help="the job run back to back: the real pipeline or OpenCV filtering")
+    parser.add_argument("--seconds", type=float, default=20.0, help="per row")
+    parser.add_argument("--write-results", action="store_true",
+                        help="write the section of bench/RESULTS.md")
+    parser.add_argument("--no-realtime-client", dest="realtime", action="store_false",
+                        help="run the PLC stand-in at normal priority (default: SCHED_FIFO when "
+                             "allowed)")
     args = parser.parse_args()
-    asyncio.run(main(args.seconds, args.cv_threads, args.job))
+    asyncio.run(main(args.seconds, args.write_results, args.realtime))

@@ -399,6 +399,10 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
     """Entry point of the worker process (``multiprocessing`` spawn target)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # A real-time policy given to the daemon (systemd CPUSchedulingPolicy=) is for its event
+    # loop: image work runs as a normal task, below the daemon.
+    if os.sched_getscheduler(0) not in (os.SCHED_OTHER, os.SCHED_BATCH, os.SCHED_IDLE):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     os.nice(WORKER_NICE)
     from vgripd.service.daemon import configure_logging
 

@@ -25,6 +25,7 @@ from vgripd.config import Config, config_from_dict
 from vgripd.errors import CameraError
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.worker import (
+    WORKER_NICE,
     WorkerClient,
     WorkerError,
     describe_exit,
@@ -226,6 +227,26 @@ async def test_images_that_do_not_fit_get_a_bigger_segment_both_ways(tmp_path: P
             await client.process(big, 1)
         assert segments_of(client.prefix) == [client.snapshot()["shm"]]
         assert client.snapshot()["shm"] != first
+
+
+async def test_the_worker_drops_a_real_time_policy_meant_for_the_event_loop() -> None:
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except PermissionError:
+        pytest.skip("needs permission for SCHED_FIFO (CAP_SYS_NICE)")
+    client = WorkerClient(_config())
+    try:
+        await client.start()
+        await client.wait_ready()  # spawned from this real-time thread
+    finally:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    try:
+        assert client.pid is not None
+        assert os.sched_getscheduler(client.pid) == os.SCHED_OTHER
+        assert os.getpriority(os.PRIO_PROCESS, client.pid) == min(
+            19, os.getpriority(os.PRIO_PROCESS, 0) + WORKER_NICE)
+    finally:
+        await client.close()
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSEGV], ids=["SIGKILL", "SIGSEGV"])
