@@ -7,12 +7,15 @@ headless Chromium. Every wait is on an answer or a daemon state, with a timeout.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import io
+import itertools
 import json
 import os
+import re
 import time
 import zipfile
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -259,3 +262,153 @@ async def test_the_page_in_headless_chromium_shows_the_live_job(tmp_path: Path) 
     assert "job 1: OK (1)" in dom, err.decode(errors="replace")[-2000:]
     assert 'src="/api/jobs/1/image/left.jpg' in dom
     assert "modbus_server" in dom  # the links table
+
+
+Evaluate = Callable[[str], Awaitable[Any]]
+
+
+@contextlib.asynccontextmanager
+async def _chromium(tmp_path: Path, url: str) -> AsyncIterator[Evaluate]:
+    """Headless Chromium showing ``url``, driven over the DevTools protocol (a websocket): yields
+    ``evaluate(js)``, the value of a JavaScript expression in the page (promises awaited)."""
+    chromium = need_tool("chromium")
+    proc = await asyncio.create_subprocess_exec(
+        chromium, "--headless", "--no-sandbox", "--disable-gpu",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync",
+        "--no-first-run", "--disable-dev-shm-usage", f"--user-data-dir={tmp_path / 'chr'}",
+        "--remote-debugging-port=0", url,
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE,
+        env={**os.environ, "HOME": str(tmp_path)})
+    assert proc.stderr is not None
+    drain: asyncio.Task[None] | None = None
+    try:
+        seen = b""
+        async with asyncio.timeout(60):
+            while not (m := re.search(rb"DevTools listening on ws://([\w.:\[\]]+)/", seen)):
+                line = await proc.stderr.readline()
+                assert line, "chromium exited: " + seen.decode(errors="replace")[-2000:]
+                seen += line
+
+        async def drain_stderr() -> None:  # keep the pipe from filling
+            assert proc.stderr is not None
+            while await proc.stderr.read(65536):
+                pass
+
+        drain = asyncio.create_task(drain_stderr())
+        async with aiohttp.ClientSession() as http:
+            async with asyncio.timeout(WAIT_S):
+                while True:  # the page's target appears once the tab opened
+                    async with http.get(f"http://{m.group(1).decode()}/json/list") as resp:
+                        pages = [t for t in await resp.json(content_type=None)
+                                 if t["type"] == "page" and t["url"].startswith(url)]
+                    if pages:
+                        break
+                    await asyncio.sleep(0.05)
+            async with http.ws_connect(pages[0]["webSocketDebuggerUrl"], max_msg_size=0) as ws:
+                ids = itertools.count(1)
+
+                async def evaluate(expression: str) -> Any:
+                    i = next(ids)
+                    await ws.send_json({"id": i, "method": "Runtime.evaluate", "params": {
+                        "expression": expression, "returnByValue": True, "awaitPromise": True}})
+                    async with asyncio.timeout(WAIT_S):
+                        async for msg in ws:
+                            data = json.loads(msg.data)
+                            if data.get("id") == i:
+                                assert "exceptionDetails" not in data["result"], data
+                                return data["result"]["result"].get("value")
+                    raise AssertionError("the DevTools connection closed")
+
+                yield evaluate
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+        await proc.wait()
+        if drain is not None:
+            await drain
+
+
+async def _until(evaluate: Evaluate, expression: str) -> Any:
+    """The first truthy value of ``expression`` in the page (polled, with a timeout)."""
+    async with asyncio.timeout(WAIT_S):
+        while not (value := await evaluate(expression)):  # noqa: ASYNC110 (the page has no event to push to the test)
+            await asyncio.sleep(0.05)
+    return value
+
+
+async def test_chromium_page_updates_live_links_images_and_refuses_actions_without_token(
+        tmp_path: Path) -> None:
+    config = make_config(status={"port": 0, "token": TOKEN, "allow_trigger": True})
+    async with running(config) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as http:
+        base = _base(run)
+        server = run.daemon.status_server
+        assert server is not None
+        await plc.trigger(1)
+        assert (await plc.result(1))[Reg.STATUS] == Status.OK
+        await run.job_done(1)
+        async with _chromium(tmp_path, base + "/") as evaluate:
+            text = "(id) => document.getElementById(id)?.textContent ?? ''"
+            assert "job 1: OK" in await _until(
+                evaluate, f"({text})('job-status').includes('job 1: OK') && "
+                          f"({text})('job-status')")
+            # The page's event stream is connected: a job triggered now shows up live.
+            # (a connection is no daemon state change to wait on: polled, with a timeout)
+            async with asyncio.timeout(WAIT_S):
+                while not server.events.clients:  # noqa: ASYNC110
+                    await asyncio.sleep(0.02)
+            await plc.trigger(2)
+            assert (await plc.result(2))[Reg.STATUS] == Status.OK
+            status = await _until(evaluate, f"({text})('job-status').includes('job 2') && "
+                                            f"({text})('job-status')")
+            assert "job 2: OK" in status
+            title = await evaluate(f"({text})('job-title')")
+            assert title.startswith("2 (seq 2 from modbus_server")
+            left = await evaluate("document.getElementById('img-left').src")
+            assert left.split("?")[0] == f"{base}/api/jobs/2/image/left.jpg"
+
+            # History: a row per job, each with links to its images, which answer JPEGs.
+            rows = await _until(evaluate, """(() => {
+                const rows = [...document.querySelectorAll('#jobs tbody tr')];
+                return rows.length === 2 && rows.map((r) => [r.cells[0].textContent,
+                    r.cells[3].textContent, [...r.querySelectorAll('a')].map((a) => a.href)]);
+            })()""")
+            assert [(r[0], r[1]) for r in rows] == [("2", "OK"), ("1", "OK")]
+            for job_id, _, hrefs in rows:
+                assert [h.split("?")[0] for h in hrefs] == [
+                    f"{base}/api/jobs/{job_id}/image/{side}.jpg" for side in ("left", "right")]
+                for href in hrefs:
+                    async with http.get(href) as resp:
+                        assert resp.status == 200
+                        assert resp.content_type == "image/jpeg"
+                        img = cv2.imdecode(np.frombuffer(await resp.read(), np.uint8),
+                                           cv2.IMREAD_COLOR)
+                    assert img is not None
+
+            # Actions: the page offers the test trigger; without the token the server refuses
+            # it (403), from the page's button as from a plain request, and no job runs.
+            assert await evaluate("document.getElementById('actions-off').hidden")
+            assert not await evaluate("document.getElementById('btn-trigger').hidden")
+            await evaluate("document.getElementById('btn-trigger').click()")
+            refusal = await _until(evaluate, f"({text})('action-result').startsWith('403') && "
+                                             f"({text})('action-result')")
+            assert "needs the token" in refusal
+            async with http.post(f"{base}/api/trigger") as resp:
+                assert resp.status == 403
+            assert len(run.jobs) == 2
+            assert "job 2: OK" in await evaluate(f"({text})('job-status')")
+
+
+async def test_chromium_page_shows_actions_disabled_on_a_read_only_config(
+        tmp_path: Path) -> None:
+    async with running(make_config()) as run, aiohttp.ClientSession() as http:
+        base = _base(run)
+        async with _chromium(tmp_path, base + "/") as evaluate:
+            await _until(evaluate, "document.getElementById('run-state')?.textContent"
+                                   "?.includes('running')")
+            assert not await evaluate("document.getElementById('actions-off').hidden")
+            assert await evaluate("document.getElementById('actions-on').hidden")
+            assert await evaluate("document.getElementById('btn-trigger').hidden")
+            assert "read-only" in await evaluate(
+                "document.getElementById('actions-off').textContent")
+        async with http.post(f"{base}/api/trigger") as resp:
+            assert resp.status == 404  # disabled: not there at all
