@@ -52,9 +52,10 @@ def proc_figures(pid: int) -> tuple[float, int, int]:
 def folder_mb(path: Path) -> float:
     """Size of a folder the recorder is writing and pruning meanwhile."""
     total = 0
-    for f in path.rglob("*"):
-        with contextlib.suppress(FileNotFoundError):
-            total += f.stat().st_size if f.is_file() else 0
+    for root, _dirs, files in os.walk(path):  # folders that vanish meanwhile are skipped
+        for name in files:
+            with contextlib.suppress(FileNotFoundError):
+                total += os.stat(os.path.join(root, name)).st_size
     return total / 1e6
 
 
