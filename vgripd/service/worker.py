@@ -395,15 +395,20 @@ class _Worker:
         self.loop.close()
 
 
+def run_below_daemon(nice: int) -> None:
+    """Make this helper process (image work) yield to the daemon's event loop: a real-time
+    policy inherited from the daemon (systemd ``CPUSchedulingPolicy=``) is for its event loop
+    only, so drop to normal scheduling, then lower the priority by ``nice``."""
+    if os.sched_getscheduler(0) not in (os.SCHED_OTHER, os.SCHED_BATCH, os.SCHED_IDLE):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    os.nice(nice)
+
+
 def worker_main(sock: socket.socket, config: Config, processor: str, log_level: str) -> None:
     """Entry point of the worker process (``multiprocessing`` spawn target)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    # A real-time policy given to the daemon (systemd CPUSchedulingPolicy=) is for its event
-    # loop: image work runs as a normal task, below the daemon.
-    if os.sched_getscheduler(0) not in (os.SCHED_OTHER, os.SCHED_BATCH, os.SCHED_IDLE):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    os.nice(WORKER_NICE)
+    run_below_daemon(WORKER_NICE)
     from vgripd.service.daemon import configure_logging
 
     configure_logging(log_level)

@@ -43,12 +43,20 @@ MAX_PENDING = 2
 _pipeline: Any = None  # in the helper process: the Pipeline, or None when not calibrated
 
 
+#: The image helper's niceness (the worker's is ``vgripd.service.worker.WORKER_NICE``).
+WEB_IMAGES_NICE = 10
+
+
 def _init_helper(config: Config) -> None:
     """Helper process start: ignore the signals meant for the daemon (it closes the helper),
     build the pipeline once."""
     global _pipeline
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # Pictures for a browser matter least: below the worker, far below the daemon's loop.
+    from vgripd.service.worker import run_below_daemon
+
+    run_below_daemon(WEB_IMAGES_NICE)
     try:
         from vgripd.vision.pipeline import Pipeline
 
