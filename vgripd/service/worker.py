@@ -58,6 +58,7 @@ import mmap
 import multiprocessing
 import os
 import pickle
+import re
 import secrets
 import signal
 import socket
@@ -215,6 +216,28 @@ class ImageSegment:
         seg = shared_memory.SharedMemory(name=name)
         seg.close()
         seg.unlink()
+
+
+_SEGMENT_NAME = re.compile(r"vgripd-(\d+)-[0-9a-f]+-\d+")
+
+
+def sweep_stale_segments() -> list[str]:
+    """Unlink the segments of vgripd daemons that no longer run (killed together with their
+    resource tracker, e.g. a whole process group at once); the names unlinked."""
+    swept = []
+    for name in segments_of("vgripd-"):
+        match = _SEGMENT_NAME.fullmatch(name)
+        if match is None:
+            continue
+        try:
+            os.kill(int(match.group(1)), 0)
+        except ProcessLookupError:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(SHM_DIR / name)
+                swept.append(name)
+        except PermissionError:
+            pass  # alive, another user's
+    return swept
 
 
 def segments_of(prefix: str) -> list[str]:
@@ -534,6 +557,10 @@ class WorkerClient:
     async def start(self) -> None:
         """Create the shared memory and spawn the worker; requests wait until it is ready."""
         self._closing = False
+        swept = sweep_stale_segments()
+        if swept:
+            log.warning("removed shared memory left by vgripd daemons that no longer run: %s",
+                        ", ".join(swept))
         size = self._initial_segment_bytes()
         if size:
             self._new_segment(size)

@@ -25,6 +25,7 @@ from vgripd.config import Config, config_from_dict
 from vgripd.errors import CameraError
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.worker import (
+    SHM_DIR,
     WORKER_NICE,
     WorkerClient,
     WorkerError,
@@ -247,6 +248,22 @@ async def test_the_worker_drops_a_real_time_policy_meant_for_the_event_loop() ->
             19, os.getpriority(os.PRIO_PROCESS, 0) + WORKER_NICE)
     finally:
         await client.close()
+
+
+async def test_segments_of_daemons_that_no_longer_run_are_removed_at_start() -> None:
+    gone = await asyncio.create_subprocess_exec("true")
+    await gone.wait()  # its pid is free now
+    stale = SHM_DIR / f"vgripd-{gone.pid}-abc123-1"
+    alive = SHM_DIR / f"vgripd-{os.getpid()}-abc123-1"  # this process: not swept
+    stale.write_bytes(b"x")
+    alive.write_bytes(b"x")
+    try:
+        async with running(_config()):
+            assert not stale.exists()
+            assert alive.exists()
+    finally:
+        stale.unlink(missing_ok=True)
+        alive.unlink(missing_ok=True)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSEGV], ids=["SIGKILL", "SIGSEGV"])
