@@ -103,6 +103,33 @@ class RobotTarget:
 
 
 @dataclass(frozen=True)
+class PickInstance:
+    """One object instance of a pick list (several identical objects in one job's images).
+
+    The same meaning as the ``JobResult`` fields of the same names, for this instance alone:
+    ``status`` is this instance's own gate (one instance out of limits does not hide the
+    others) and ``target`` is set only when ``status.pose_valid``. ``pick_id`` is the id of the
+    chosen pick point (``picking.pick_points``; 0 = the object's single grip/offset), ``score``
+    the detection score in 0..1 (1 = every model mark found with residuals at zero).
+    """
+
+    status: Status
+    message: str = ""
+    target: RobotTarget | None = None
+    T_base_obj: FloatArray | None = None
+    offset: FloatArray | None = None
+    pick_id: int = 0
+    score: float = 0.0
+    residuals: Mapping[str, float] = field(default_factory=lambda: _EMPTY)
+    features_used: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.target is not None and not self.status.pose_valid:
+            raise ValueError(f"PickInstance with status {self.status.name} must not carry a "
+                             "target")
+
+
+@dataclass(frozen=True)
 class JobResult:
     """The outcome of one job. ``target`` is set only when ``status.pose_valid``.
 
@@ -128,6 +155,10 @@ class JobResult:
     # A failed job's ``vgripd.vision.diagnosis.Diagnosis`` (what each stage saw, the likely
     # causes with the config key to check); None for a successful job or a camera error.
     diagnosis: Any = field(default=None, compare=False)
+    # Pick list (``picking.max_objects`` > 1): every instance found, in pick order (the
+    # pickable ones first, in the configured order; then the rejected ones). The top-level
+    # fields above describe ``instances[0]``; () for a single-object job.
+    instances: tuple[PickInstance, ...] = ()
 
     def __post_init__(self) -> None:
         if self.target is not None and not self.status.pose_valid:
