@@ -11,6 +11,12 @@ Ownership of the sections (one room per job):
 Combinations that cannot work are refused here too, when the config is loaded: every link must
 be able to carry ``output.vendor`` (each link class declares its ``LinkCapabilities``, looked up
 through ``vgripd.registry``, so this module never imports ``drivers/``).
+
+Recipes (docs/recipes.md): ``[recipes.N]`` (N = 1..65535) holds a ``name`` and any of the
+per-object sections (``RECIPE_SECTIONS``) as overlays over the top-level ones; recipe 0 is the
+top-level config itself. Each recipe's effective config (``Config.for_recipe``) is built and
+validated when the config is, so a bad recipe is refused at load with its own field path
+(``recipes.2.object.features.3.diameter_mm: ...``).
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    PrivateAttr,
     ValidationError,
     field_validator,
     model_validator,
@@ -37,6 +44,15 @@ from vgripd.geometry.vendors import VENDORS
 #: pydantic error type of a refused combination of fields: its message names every field
 #: involved, so it is shown without a field path (``format_validation_error``).
 COMBINATION = "combination"
+#: pydantic error type of a recipe whose effective config is invalid: its message is one line
+#: per problem, each starting with the full field path (``recipes.2.vision.downscale: ...``).
+RECIPE_PROBLEMS = "recipe_problems"
+
+#: The sections a recipe may overlay (``[recipes.N.<section>]``): what differs from one object
+#: to the next. Everything else (camera, calibration, links, daemon, ...) belongs to the cell.
+RECIPE_SECTIONS: tuple[str, ...] = ("object", "vision", "reference", "limits", "output")
+#: Highest recipe number: the RECIPE register is one 16-bit word.
+MAX_RECIPE = 65535
 
 
 class Model(BaseModel):
@@ -469,6 +485,39 @@ DEMO_REFERENCE = ReferenceConfig(
 )
 
 
+RecipeNumber = Annotated[int, Field(ge=1, le=MAX_RECIPE)]
+
+
+class RecipeConfig(BaseModel):
+    """``[recipes.N]``: a ``name`` and overlays of the ``RECIPE_SECTIONS`` (raw tables here;
+    they are judged as part of the recipe's effective config, ``Config.for_recipe``).
+
+    Overlay rule, per section: the keys a recipe gives replace the same keys of the top-level
+    section, the others are inherited (one level deep: a list such as ``object.features`` or a
+    table such as ``reference.T_base_obj`` is replaced as a whole). A recipe that gives its own
+    ``[recipes.N.object]`` inherits no reference: its ``[recipes.N.reference]`` is all it has
+    (none = not taught yet, its jobs answer NOT_CALIBRATED), since the top-level reference was
+    taught on another object.
+    """
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+    name: str = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _known_sections(self) -> RecipeConfig:
+        for key, value in (self.model_extra or {}).items():
+            if key not in RECIPE_SECTIONS:
+                raise ValueError(f"{key!r} cannot be set per recipe (a recipe may set name and "
+                                 f"{', '.join(RECIPE_SECTIONS)}; the rest belongs to the cell)")
+            if not isinstance(value, dict):
+                raise ValueError(f"{key} must be a table ([recipes.N.{key}])")
+        return self
+
+    def sections(self) -> dict[str, dict[str, Any]]:
+        """The overlaid sections, by name."""
+        return {k: v for k, v in (self.model_extra or {}).items() if k in RECIPE_SECTIONS}
+
+
 class Config(Model):
     """The whole file. Sections are filled in by their owners (see module docstring)."""
 
@@ -487,6 +536,10 @@ class Config(Model):
     calibration: CalibrationConfig | None = DEMO_CALIBRATION
     object: ObjectConfig = DEMO_OBJECT
     reference: ReferenceConfig = DEMO_REFERENCE
+    # Recipes selected by number with the trigger (docs/recipes.md); 0 is this config itself.
+    recipes: dict[RecipeNumber, RecipeConfig] = Field(default_factory=dict)
+    # Effective config of each recipe, built and validated with this one.
+    _recipe_configs: dict[int, Config] = PrivateAttr(default_factory=dict)
 
     @model_validator(mode="before")
     @classmethod
@@ -541,6 +594,72 @@ class Config(Model):
         return self
 
 
+    @model_validator(mode="after")
+    def _recipes_valid(self) -> Config:
+        """Build and validate every recipe's effective config; all problems at once, each with
+        its ``recipes.N.`` path."""
+        lines: list[str] = []
+        for number in sorted(self.recipes):
+            try:
+                self._recipe_configs[number] = Config.model_validate(self._recipe_data(number))
+            except ValidationError as err:
+                lines += [f"recipes.{number}.{line}" if not line.startswith("<root>") else
+                          f"recipes.{number}{line.removeprefix('<root>')}"
+                          for line in _problem_lines(err)]
+        if lines:
+            raise PydanticCustomError(RECIPE_PROBLEMS, "{lines}", {"lines": "\n".join(lines)})
+        return self
+
+    def _recipe_data(self, number: int) -> dict[str, Any]:
+        """The effective config data of recipe ``number`` (the overlay rule: RecipeConfig)."""
+        data = self.model_dump(exclude_unset=True, exclude={"recipes"})
+        overlays = self.recipes[number].sections()
+        for section, overlay in overlays.items():
+            top = getattr(self, section).model_dump(exclude_unset=True)
+            if section == "reference" and "object" in overlays:
+                top = {}  # taught on the top-level object, not on this one
+            data[section] = {**top, **overlay}
+        if "object" in overlays and "reference" not in overlays:
+            data["reference"] = {}
+        return data
+
+    def recipe_numbers(self) -> tuple[int, ...]:
+        """Every recipe a trigger may select: 0 (this config) and the configured ones."""
+        return (0, *sorted(self.recipes))
+
+    def recipe_name(self, number: int) -> str:
+        """The recipe's ``name``; recipe 0 is ``"default"``."""
+        return "default" if number == 0 else self.recipes[number].name
+
+    def for_recipe(self, number: int) -> Config:
+        """The full effective config of recipe ``number`` (0: this one). ``ConfigError`` for a
+        number that is not configured, naming the configured ones."""
+        if number == 0:
+            return self
+        if number not in self.recipes:
+            raise ConfigError(unknown_recipe(number, self.recipe_numbers()))
+        if number not in self._recipe_configs:  # a copy made without validation
+            self._recipe_configs[number] = Config.model_validate(self._recipe_data(number))
+        return self._recipe_configs[number]
+
+
+def unknown_recipe(number: int, known: tuple[int, ...]) -> str:
+    """The message for a recipe number that is not configured."""
+    return (f"recipe {number} is not configured (configured: "
+            f"{', '.join(str(n) for n in known)}; 0 = the top-level config)")
+
+
+def _problem_lines(err: ValidationError) -> list[str]:
+    """``path: message`` per problem (``<root>: message`` for whole-config ones)."""
+    lines = []
+    for e in err.errors():
+        if e["type"] in (COMBINATION, RECIPE_PROBLEMS):
+            lines += [f"<root>: {line}" for line in e["msg"].splitlines()]
+        else:
+            lines.append(f"{'.'.join(str(p) for p in e['loc']) or '<root>'}: {e['msg']}")
+    return lines
+
+
 def format_validation_error(
     err: ValidationError, source: str, owner: dict[str, str] | None = None
 ) -> str:
@@ -557,13 +676,23 @@ def format_validation_error(
             where = (owner or {}).get("links", source)
             lines += [f"{where}: {line}" for line in e["msg"].splitlines()]
             continue
-        where = source
-        for key, file in (owner or {}).items():
-            if key == path or key.startswith(path + ".") or path.startswith(key + "."):
-                where = file
-                break
-        lines.append(f"{where}: {path}: {e['msg']}")
+        if e["type"] == RECIPE_PROBLEMS:  # each line starts with its recipes.N... path
+            lines += [f"{_blame(line.split(':', 1)[0], source, owner)}: {line}"
+                      for line in e["msg"].splitlines()]
+            continue
+        if path.startswith("recipes.") and path.endswith(".[key]"):
+            path = path.removesuffix(".[key]")
+            e["msg"] = f"{e['msg']} (a recipe number is 1 .. {MAX_RECIPE}; 0 is the top level)"
+        lines.append(f"{_blame(path, source, owner)}: {path}: {e['msg']}")
     return "\n".join(lines)
+
+
+def _blame(path: str, source: str, owner: dict[str, str] | None) -> str:
+    """The file that set ``path`` (or something below or above it); ``source`` if none."""
+    for key, file in (owner or {}).items():
+        if key == path or key.startswith(path + ".") or path.startswith(key + "."):
+            return file
+    return source
 
 
 def config_from_dict(

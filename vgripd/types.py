@@ -159,6 +159,8 @@ class JobResult:
     # pickable ones first, in the configured order; then the rejected ones). The top-level
     # fields above describe ``instances[0]``; () for a single-object job.
     instances: tuple[PickInstance, ...] = ()
+    # The recipe the job ran (``Trigger.recipe``; 0 = the top-level config), set by the daemon.
+    recipe: int = 0
 
     def __post_init__(self) -> None:
         if self.target is not None and not self.status.pose_valid:

@@ -26,6 +26,8 @@ Options (``[camera]`` with ``type = "synthetic"``)::
     drop_features = []     # faults: marks not drawn (still in truth, listed as "dropped")
     extra_blobs = 0        # faults: spurious mark-like blobs
     black = false          # faults: black images (lens cap, flash failed)
+    recipe = 0             # render the object (and reference) of this recipe ([recipes.N]);
+                           # 0 = the top-level [object]. Which plate lies in the cell.
 
 ``ImagePair.truth``: ``T_base_obj``, ``T_cam_obj`` (left camera), ``feature_names``,
 ``pixels_left`` (n, 2) and ``pixels_right`` (n, 2) or None (projected 3D centres, px),
@@ -70,6 +72,7 @@ class SyntheticOptions(DriverOptions):
     drop_features: tuple[str, ...] = ()
     extra_blobs: int = Field(default=0, ge=0, le=100)
     black: bool = False
+    recipe: int = Field(default=0, ge=0, le=65535)
 
 
 def disc_coverage(rim_px: FloatArray, inside_px: FloatArray, x0: int, y0: int, w: int, h: int,
@@ -128,6 +131,11 @@ class SyntheticCamera(CameraDriver):
     options: SyntheticOptions
 
     def __init__(self, options: SyntheticOptions, config: Config) -> None:
+        if options.recipe:  # the plate of that recipe lies in the cell
+            try:
+                config = config.for_recipe(options.recipe)
+            except ConfigError as err:
+                raise ConfigError(f"camera.recipe: {err}") from None
         super().__init__(options, config)
         feats = config.object.features
         for i, f in enumerate(feats):

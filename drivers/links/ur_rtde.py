@@ -481,7 +481,7 @@ class URRtdeLink(RobotLink):
             return False
         return True
 
-    def _deliver(self, seq: int, command: int, tcp_pose: list[float]) -> None:
+    def _deliver(self, seq: int, command: int, tcp_pose: list[float], recipe: int = 0) -> None:
         t_mono_ns = time.monotonic_ns()
         self._last_seq = seq
         self._replay.clear()  # a new request: earlier answers are no longer wanted
@@ -491,7 +491,7 @@ class URRtdeLink(RobotLink):
             log.warning("link %s: trigger seq %d with unusable TCP pose %s: %s",
                         self.name, seq, tcp_pose, err)
             T_base_flange = None
-        trigger = Trigger(self.name, seq, command, t_mono_ns, T_base_flange)
+        trigger = Trigger(self.name, seq, command, t_mono_ns, T_base_flange, recipe=recipe)
         assert self._on_trigger is not None
         try:
             self._on_trigger(trigger)

@@ -127,7 +127,7 @@ def _connect(host: str, regs: URRegisterMap, frequency_hz: float,
     peer = f"{host}:{RTDE_PORT}"
     names = ["timestamp", "actual_TCP_pose", *(f"output_int_register_{n}"
                                                for n in (regs.seq, regs.command,
-                                                         regs.page_request))]
+                                                         regs.page_request, regs.recipe))]
     try:
         rcv = rtde_receive.RTDEReceiveInterface(host, frequency_hz, names, False, regs.upper)
     except RuntimeError as err:
@@ -210,8 +210,8 @@ class _Session:
         for reg, value in zip(self.regs.page, values, strict=True):
             self.write_double(reg, value)
 
-    def snapshot(self) -> tuple[float, int, int, int, list[float]]:
-        """Timestamp, seq, command, page request and TCP pose from one data package.
+    def snapshot(self) -> tuple[float, int, int, int, list[float], int]:
+        """Timestamp, seq, command, page request, TCP pose and recipe from one data package.
 
         The getters read the newest package one by one; reading the timestamp before and after
         proves that no new package arrived in between.
@@ -220,7 +220,8 @@ class _Session:
         while True:
             ts = r.getTimestamp()
             values = (r.getOutputIntRegister(regs.seq), r.getOutputIntRegister(regs.command),
-                      r.getOutputIntRegister(regs.page_request), list(r.getActualTCPPose()))
+                      r.getOutputIntRegister(regs.page_request), list(r.getActualTCPPose()),
+                      r.getOutputIntRegister(regs.recipe))
             if r.getTimestamp() == ts:
                 return (ts, *values)
 
@@ -245,7 +246,7 @@ class _Session:
     def step(self) -> None:
         if not self.rcv.isConnected():
             raise _Lost(f"{self.peer}: data stream closed by the controller")
-        ts, seq, command, page_request, pose = self.snapshot()
+        ts, seq, command, page_request, pose, recipe = self.snapshot()
         now = time.monotonic()
         if ts != self.last_ts:
             self.last_ts, self.last_ts_change = ts, now
@@ -254,7 +255,7 @@ class _Session:
         if seq != self.last_seq and seq != 0:
             self.last_seq = seq
             self.pending_rotation = None
-            self.conn.send(("trigger", seq, command, pose))
+            self.conn.send(("trigger", seq, command, pose, recipe))
         pending = self.pending_rotation
         if pending is not None and page_request == pending[0]:
             self.write_page(pending[1])

@@ -465,3 +465,17 @@ async def test_warnings_register_live_and_rewritten_at_reconnect() -> None:
         log = robot.input_log(start)
         assert log.index((name, 0.0)) < ack_index(log, trigger.seq)
         assert robot.inputs(name) == {name: 0.0}
+
+
+@pytest.mark.parametrize(("host", "upper"), [("127.0.5.40", False), ("127.0.5.41", True)])
+async def test_recipe_register_reaches_the_trigger(host: str, upper: bool) -> None:
+    """The script's VGRIPD_RECIPE (output_int_register 15, or 39 in the upper range) is the
+    trigger's recipe; a program that never sets it asks for recipe 0."""
+    async with connected(host, use_upper_range_registers=upper) as (robot, lnk, triggers):
+        for job_id, recipe in ((1, 2), (2, 0), (3, 65535)):
+            seq = robot.start_program(1, upper=upper, taught_pose=TAUGHT, recipe=recipe)
+            trigger = await triggers.next()
+            assert (trigger.seq, trigger.recipe) == (seq, recipe)
+            await lnk.image_captured(seq, job_id)
+            await lnk.publish(seq, ur_result(job_id))
+            assert robot.program_result(seq)["status"] == 1

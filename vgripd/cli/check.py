@@ -6,6 +6,11 @@ projected through each camera (in front, inside the image, at a size the finder 
 seen by both cameras), a replay folder with frames, at least one link, the listening ports
 free. An ERROR means the config cannot work here: exit 78, one line per problem naming the
 config key. WARNINGs are printed after the OK line; the exit code stays 0.
+
+Every recipe (docs/recipes.md) is checked: its effective config is validated with the file, a
+recipe that is not calibrated or taught is an error naming it (``recipe 2 (plate-b): not
+calibrated: ...``), and the scene check runs for each recipe's object and reference (its keys
+prefixed ``recipes.N.``). The replay samples are run through recipe 0 only: they show one plate.
 """
 
 from __future__ import annotations
@@ -15,8 +20,9 @@ import argparse
 from vgripd.cli.run import DEFAULT_CONFIG
 from vgripd.config import load_config
 from vgripd.errors import ConfigError
-from vgripd.service.commissioning import Options, commission
+from vgripd.service.commissioning import Options, check_scene, commission
 from vgripd.service.daemon import Daemon
+from vgripd.vision.commissioning import Finding
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,10 +36,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    daemon = Daemon(config)  # drivers validated and the pipeline built, no I/O
-    if daemon.not_calibrated:
-        raise ConfigError(f"{args.config}: not calibrated: {daemon.not_calibrated}")
+    daemon = Daemon(config)  # drivers validated and every recipe's pipeline built, no I/O
+    if daemon.recipe_problems:
+        raise ConfigError("\n".join(
+            f"{args.config}: not calibrated: {problem}" if number == 0 else
+            f"{args.config}: recipe {daemon.recipe_label(number)}: not calibrated: {problem}"
+            for number, problem in sorted(daemon.recipe_problems.items())))
     findings = commission(config, Options(running=args.running, no_links_ok=args.no_links_ok))
+    for number in config.recipe_numbers()[1:]:
+        findings += [Finding(f.level, f"recipes.{number}.{f.key}",
+                             f"recipe {daemon.recipe_label(number)}: {f.message}")
+                     for f in check_scene(config.for_recipe(number))]
     errors = [f for f in findings if f.level == "ERROR"]
     others = [f"{f.level.lower()}: {args.config}: {f}" for f in findings if f.level != "ERROR"]
     if errors:
@@ -41,9 +54,10 @@ def run(args: argparse.Namespace) -> int:
             print("\n".join(others))
         raise ConfigError("\n".join(f"{args.config}: {f}" for f in errors))
     links = ", ".join(daemon.links) or "none"
+    recipes = "".join(f", recipe {daemon.recipe_label(n)}" for n in config.recipe_numbers()[1:])
     print(f"OK {args.config}: camera {config.camera.type}, links {links}, "
           f"output {config.output.vendor}, job timeout {config.daemon.job_timeout_s:g} s, "
-          f"recording {'on' if config.record.enabled else 'off'}")
+          f"recording {'on' if config.record.enabled else 'off'}{recipes}")
     if others:
         print("\n".join(others))
     return 0

@@ -19,6 +19,9 @@ The last line is ``{"summary": {...}}``: frames, pairs processed, unreadable fra
 counts per status, residual statistics (median, max over the found poses), the total job time
 percentiles p50/p95/p99 (ms) and the skipped non-image files.
 
+Recipes (docs/recipes.md): the frames run through the pipeline of ``--recipe N``; without it,
+through the recipe a recorded job ran (its ``result.json``), else recipe 0.
+
 ``--annotate OUTDIR`` writes ``<name>_left.png`` (and ``_right.png``) per pair: the model
 features at the found pose, labelled, green used / red missing, the object axes, epipolar lines.
 
@@ -31,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import sys
 from collections.abc import Callable
@@ -58,6 +62,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("folder", help="folder with the images (replaces the config's "
                                        "[camera] folder; its left_glob/right_glob apply)")
     parser.add_argument("--annotate", metavar="OUTDIR", help="write annotated images here")
+    parser.add_argument("--recipe", type=int, default=None, metavar="N",
+                        help="run recipe N's pipeline (default: the recorded job's recipe, "
+                             "else 0)")
+
+
+def recorded_recipe(folder: Path) -> int:
+    """The recipe a job folder written by the recorder ran (0 when not recorded or older)."""
+    try:
+        recipe = json.loads((folder / "result.json").read_text(encoding="utf-8")).get("recipe", 0)
+    except (OSError, ValueError, AttributeError):
+        return 0
+    return recipe if isinstance(recipe, int) else 0
 
 
 def is_stereo_config(config: Config) -> bool:
@@ -153,7 +169,8 @@ def run(args: argparse.Namespace) -> int:
     if frames.skipped:
         print(f"replay: skipped {len(frames.skipped)} non-image file(s) in {folder}: "
               + ", ".join(p.name for p in frames.skipped), file=sys.stderr)
-    pipeline = Pipeline(config)
+    recipe = recorded_recipe(folder) if args.recipe is None else args.recipe
+    pipeline = Pipeline(config.for_recipe(recipe))
     cls = load_class(CAMERAS, "camera", "replay")
     camera = cls(validate_options(cls, section, "camera"), config)
     out = Path(args.annotate) if args.annotate else None
@@ -162,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     results: list[JobResult] = []
 
     def handle(job_id: int, pair: ImagePair) -> None:
-        result = pipeline.process(pair, job_id)
+        result = dataclasses.replace(pipeline.process(pair, job_id), recipe=recipe)
         results.append(result)
         print(json.dumps({"source": pair.source, **dict_from_result(result)}), flush=True)
         if out is not None:

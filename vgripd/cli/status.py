@@ -45,6 +45,13 @@ def format_status(s: dict[str, Any]) -> str:
         f"camera {cam['type']} ({'open' if cam['open'] else 'NOT OPEN'})"
         + ("" if s["calibrated"] else ", NOT CALIBRATED"),
     ]
+    rec = s.get("recipe")
+    if rec:
+        names = ", ".join(f"{r['number']} {r['name']}" + (" NOT CALIBRATED" if r["problem"]
+                                                            else "") for r in rec["recipes"])
+        active = ("none yet" if rec["active"] is None
+                  else f"{rec['active']} {rec['active_name']}")
+        lines.append(f"recipe {active} (configured: {names})")
     if s["job"]:
         j = s["job"]
         lines.append(f"running job {j['id']} (seq {j['seq']} from {j['link']}, "

@@ -7,10 +7,15 @@ otherwise writes the averaged reference (``[reference]``) for the config to ``in
 ``T_base_obj`` for a CAD object, the measured base-frame feature points (``points_mm``) for
 ``object.definition = "reference"``; with ``--grip`` also the taught grip pose.
 
+``--recipe N`` teaches recipe N's object (its effective config, docs/recipes.md) and writes
+``[recipes.N.reference]`` to ``reference-recipe-N.toml`` (default), where that recipe's
+reference lives; recipe 0 (the default) is the top-level ``[reference]``.
+
 Examples::
 
     vgripd teach -c cell.toml
     vgripd teach -c cell.toml --shots 10 --grip="612.5 98.1 55.0 180 0 180" --pose-format kuka
+    vgripd teach -c cell.toml --recipe 2
 
 Exit codes: 0 written; 1 refused (a bad shot, too much spread, the file exists without
 ``--force``, camera failure); 2 bad ``--grip`` or ``--shots``; 78 configuration error.
@@ -32,7 +37,7 @@ from vgripd.calib import teach
 from vgripd.calib.files import pose_table, write_result
 from vgripd.calib.output import emit
 from vgripd.config import load_config
-from vgripd.errors import ConversionError
+from vgripd.errors import ConfigError, ConversionError
 from vgripd.geometry.vendors import VENDORS, transform_from_vendor
 
 
@@ -47,8 +52,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              'and use "=" when it starts with a minus: --grip="-10 20 ..."')
     parser.add_argument("--pose-format", default="kuka", metavar="VENDOR",
                         help=f"convention of --grip, one of {', '.join(VENDORS)} (default kuka)")
+    parser.add_argument("--recipe", type=int, default=0, metavar="N",
+                        help="teach recipe N ([recipes.N]); 0 = the top-level object (default)")
     parser.add_argument("-o", "--output", default=None,
-                        help="result file (default reference.toml beside the config)")
+                        help="result file (default reference.toml beside the config, "
+                             "reference-recipe-N.toml with --recipe N)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing file")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--max-spread-mm", type=float, default=teach.DEFAULT_MAX_SPREAD_MM,
@@ -97,7 +105,11 @@ def _summary_lines(summary: dict[str, Any]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     config_path = Path(args.config)
-    config = load_config(config_path)
+    cell = load_config(config_path)
+    try:
+        config = cell.for_recipe(args.recipe)
+    except ConfigError as err:
+        return _fail(f"--recipe: {err}", 2)
     if args.shots < 1:
         return _fail(f"--shots must be at least 1, got {args.shots}", 2)
     T_base_grip = None
@@ -107,17 +119,22 @@ def run(args: argparse.Namespace) -> int:
                                                 args.grip.replace(",", " ").split())
         except ConversionError as err:
             return _fail(f"--grip: {err}", 2)
-    output = Path(args.output) if args.output else config_path.parent / "reference.toml"
+    default_name = f"reference-recipe-{args.recipe}.toml" if args.recipe else "reference.toml"
+    output = Path(args.output) if args.output else config_path.parent / default_name
     if output.exists() and not args.force:
         return _fail(f"{output} exists; nothing measured (--force overwrites it)")
 
     # The camera sees the measuring config too: a driver that needs a reference (the synthetic
     # one's random poses) must not stop the teaching of a new object.
-    pairs = asyncio.run(teach.acquire(teach.measuring_config(config), args.shots))
+    # (A recipe's camera is the cell's: the top-level config with its recipes, so a synthetic
+    # camera can render the plate of its own ``recipe`` option.)
+    camera_config = config if args.recipe == 0 else cell
+    pairs = asyncio.run(teach.acquire(teach.measuring_config(camera_config), args.shots))
     taught = teach.measure(config, pairs)
     problems = taught.problems(args.max_spread_mm, args.max_spread_deg,
                                check_points=config.object.definition == "reference")
     summary: dict[str, Any] = {
+        "recipe": args.recipe,
         "object": config.object.name,
         "definition": config.object.definition,
         "shots": [
@@ -142,9 +159,14 @@ def run(args: argparse.Namespace) -> int:
         return _fail("refused, nothing written: " + "; ".join(problems))
 
     sections = teach.reference_sections(config, taught, T_base_grip)
+    section_name = "[reference]"
+    if args.recipe:
+        sections = {"recipes": {str(args.recipe): sections}}
+        section_name = f"[recipes.{args.recipe}.reference]"
     about = {
         "command": "vgripd teach",
         "config": str(config_path),
+        "recipe": args.recipe,
         "object": config.object.name,
         "definition": config.object.definition,
         "camera": config.camera.type,
@@ -166,6 +188,6 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"{config_path} already includes it")
     else:
         lines.append(f'add to {config_path}: include = ["{name}"]  (with any other includes; '
-                     "remove the [reference] section it may still have)")
+                     f"remove the {section_name} section it may still have)")
     emit(args, summary, lines)
     return 0

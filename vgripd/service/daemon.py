@@ -37,6 +37,11 @@ Life of a job (``JobState``)::
 - A grab that runs out of time and still hangs in the driver is abandoned and the camera opened
   again; if that fails or hangs too, ``camera_fault`` says why and the watchdog stops pinging
   (``health_problem``), so systemd restarts the service.
+- Recipes (docs/recipes.md): a trigger names one (``Trigger.recipe``, 0 = the top-level config).
+  A pipeline is built per recipe at start (in the worker process too), so switching costs
+  nothing. An unknown number ends its job with ``BAD_REQUEST`` before any image is taken; a
+  recipe that is not calibrated or taught answers ``NOT_CALIBRATED`` for its own jobs only.
+  The recipe of the running or last job is the active one (``snapshot()["recipe"]``).
 - Shutdown (SIGTERM/SIGINT) aborts the job in flight (unless it is already publishing), so the
   PLC gets ``ABORTED`` for its trigger at once instead of waiting; the links stay up for
   ``ABORT_LINGER_S`` so a polling PLC can read it, then links, the camera, the recorder and the
@@ -63,7 +68,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from vgripd.config import Config
+from vgripd.config import Config, unknown_recipe
 from vgripd.errors import CameraError, LinkError, NotCalibratedError
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
 from vgripd.service.protocol import RobotLink, Trigger, Warnings
@@ -89,6 +94,10 @@ CAMERA_OPEN_TIMEOUT_S = 30.0
 CAMERA_CLOSE_TIMEOUT_S = 10.0
 # A grab that ran out of time and is still running this much later is hung, not just late.
 CAMERA_HUNG_GRACE_S = 1.0
+
+
+class _UnknownRecipe(Exception):
+    """A trigger named a recipe that is not configured (the job ends BAD_REQUEST)."""
 
 
 class JobState(enum.Enum):
@@ -128,6 +137,7 @@ class JobRecord:
     cycle_ms: float  # trigger received -> result published
     t_done_mono_ns: int
     published: Status | None = None
+    recipe: int = 0
 
 
 JobListener = Callable[[ImagePair | None, JobRecord], None]
@@ -200,7 +210,9 @@ class Daemon:
 
     Raises ``ConfigError`` for a bad driver type or options. A missing/invalid calibration
     (``NotCalibratedError``) does not stop the service: every job then answers
-    ``NOT_CALIBRATED``, so the PLC sees why (``not_calibrated`` says so).
+    ``NOT_CALIBRATED``, so the PLC sees why (``not_calibrated`` says so). The same holds per
+    recipe: a recipe not taught yet answers ``NOT_CALIBRATED`` (``recipe_problems``), the
+    others run.
 
     ``pipeline``: a ``Processor`` object runs in this process (on the job thread, camera
     included); a ``"module:Class"`` path names one built from the config in the worker process.
@@ -224,19 +236,28 @@ class Daemon:
             self.links[name] = link_cls(name, validate_options(link_cls, section, f"links.{i}"))
         if config.status.enabled and config.status.allow_trigger:  # the web view's test trigger
             self.links[WEB_LINK] = WebTriggerLink()
-        self.not_calibrated = ""
-        self._pipeline: Processor | None = None if isinstance(pipeline, str) else pipeline
-        if self._pipeline is None:
-            try:
-                self._pipeline = _make_pipeline(config)  # judges the config here, once
-            except NotCalibratedError as err:
-                self.not_calibrated = str(err)
+        #: Why a recipe cannot run (not calibrated or taught), by number; its jobs answer
+        #: NOT_CALIBRATED with it.
+        self.recipe_problems: dict[int, str] = {}
+        self._pipelines: dict[int, Processor] = {}
+        for number in config.recipe_numbers():
+            if pipeline is None or isinstance(pipeline, str):
+                try:  # judges each recipe's config here, once
+                    self._pipelines[number] = _make_pipeline(config.for_recipe(number))
+                except NotCalibratedError as err:
+                    self.recipe_problems[number] = str(err)
+            else:
+                self._pipelines[number] = pipeline
+        if isinstance(pipeline, str):
+            self._pipelines = {}
         self._worker: WorkerClient | None = None
         if isinstance(pipeline, str) or (pipeline is None and config.daemon.worker):
             self._worker = WorkerClient(config, pipeline or DEFAULT_PROCESSOR,
                                         self.camera.describe())
             self.camera = self._worker.camera  # the driver runs in the worker
-            self._pipeline = None
+            self._pipelines = {}
+        #: The recipe of the running or last job (None before the first).
+        self.active_recipe: int | None = None
 
         self.run_state = RunState.CREATED
         self.state = JobState.IDLE
@@ -277,6 +298,15 @@ class Daemon:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._t_start_ns = 0
 
+    @property
+    def not_calibrated(self) -> str:
+        """Why the top-level config (recipe 0) cannot run ("" when it can)."""
+        return self.recipe_problems.get(0, "")
+
+    def recipe_label(self, number: int) -> str:
+        """``2 (plate-b)`` for logs and messages."""
+        return f"{number} ({self.config.recipe_name(number)})"
+
     # --- lifecycle --------------------------------------------------------------------
 
     async def start(self) -> None:
@@ -287,9 +317,9 @@ class Daemon:
         self._set_run_state(RunState.STARTING)
         self._executor = ThreadPoolExecutor(1, thread_name_prefix="vgripd-job")
         try:
-            if self.not_calibrated:
-                log.error("not calibrated, every job will answer NOT_CALIBRATED: %s",
-                          self.not_calibrated)
+            for number, problem in self.recipe_problems.items():
+                log.error("recipe %s not calibrated, its jobs will answer NOT_CALIBRATED: %s",
+                          self.recipe_label(number), problem)
             if self._worker is not None:
                 await self._worker.start()  # the camera open below waits until it is ready
             rec = self.config.record
@@ -423,8 +453,10 @@ class Daemon:
             return
         self._job_seq += 1
         job_id = self._job_seq
-        log.info("job %d: trigger seq %d command %d from %s", job_id, trigger.seq,
-                 trigger.command, trigger.link)
+        log.info("job %d: trigger seq %d command %d recipe %d from %s", job_id, trigger.seq,
+                 trigger.command, trigger.recipe, trigger.link)
+        if trigger.recipe in self.config.recipe_numbers():
+            self.active_recipe = trigger.recipe
         self._job_started_ns = time.monotonic_ns()
         self._job = (job_id, trigger, asyncio.create_task(self._run_job(trigger, job_id)))
         self._set_state(JobState.TRIGGERED)
@@ -564,11 +596,16 @@ class Daemon:
         try:
             try:
                 async with asyncio.timeout(timeout_s):
+                    if trigger.recipe not in self.config.recipe_numbers():  # no image taken
+                        raise _UnknownRecipe(unknown_recipe(trigger.recipe,
+                                                            self.config.recipe_numbers()))
                     self._set_state(JobState.ACQUIRING)
                     pair = await self._acquire(trigger, deadline_ns)
                     await self._link_call(trigger.link, "image_captured", trigger.seq, job_id)
                     self._set_state(JobState.PROCESSING)
-                    result = await self._process(pair, job_id)
+                    result = await self._process(pair, job_id, trigger.recipe)
+            except _UnknownRecipe as err:
+                result = self._failure(job_id, Status.BAD_REQUEST, str(err))
             except TimeoutError:
                 stage = "acquisition" if pair is None else "processing"
                 status = Status.CAMERA_ERROR if pair is None else Status.INTERNAL
@@ -585,20 +622,21 @@ class Daemon:
             raise
         await self._finish(trigger, job_id, pair, result)
 
-    async def _process(self, pair: ImagePair, job_id: int) -> JobResult:
-        if self.not_calibrated:
-            return self._failure(job_id, Status.NOT_CALIBRATED, self.not_calibrated)
+    async def _process(self, pair: ImagePair, job_id: int, recipe: int = 0) -> JobResult:
+        problem = self.recipe_problems.get(recipe)
+        if problem:
+            where = f"recipe {self.recipe_label(recipe)}: " if recipe else ""
+            return self._failure(job_id, Status.NOT_CALIBRATED, where + problem)
         t0 = time.monotonic_ns()
         if self._worker is not None:
             try:
-                result = await self._worker.process(pair, job_id)
+                result = await self._worker.process(pair, job_id, recipe)
             except WorkerError as err:  # died or raised; the worker logged the traceback
                 return self._failure(job_id, Status.INTERNAL, str(err))
         else:
             assert self._loop is not None
-            assert self._pipeline is not None
             result = await self._loop.run_in_executor(
-                self._executor, self._pipeline.process, pair, job_id)
+                self._executor, self._pipelines[recipe].process, pair, job_id)
         timings = {"acquire": (t0 - self._job_started_ns) / 1e6, **result.timings_ms,
                    "process": (time.monotonic_ns() - t0) / 1e6}
         return dataclasses.replace(
@@ -614,8 +652,8 @@ class Daemon:
     async def _finish(self, trigger: Trigger, job_id: int, pair: ImagePair | None,
                       result: JobResult) -> None:
         self._set_state(JobState.PUBLISHING)
-        if not result.t_done_mono_ns:
-            result = dataclasses.replace(result, t_done_mono_ns=time.monotonic_ns())
+        result = dataclasses.replace(result, recipe=trigger.recipe,
+                                     t_done_mono_ns=result.t_done_mono_ns or time.monotonic_ns())
         epipolar_px = result.residuals.get("epipolar_px")
         if epipolar_px is not None and self.epipolar.add(epipolar_px, result.t_done_mono_ns):
             if self.epipolar.warning:
@@ -628,7 +666,7 @@ class Daemon:
         done_ns = time.monotonic_ns()
         record = JobRecord(job_id=job_id, link=trigger.link, seq=trigger.seq, result=result,
                            cycle_ms=(done_ns - trigger.t_mono_ns) / 1e6, t_done_mono_ns=done_ns,
-                           published=told)
+                           published=told, recipe=trigger.recipe)
         self.last_job = record
         self._count(result.status, told)
         self.cycle_ms.append(record.cycle_ms)
@@ -788,18 +826,31 @@ class Daemon:
             line += "; CAMERA FAULT"
         return line
 
+    def recipe_snapshot(self) -> dict[str, Any]:
+        """The active recipe (the running or last job's; None before the first job) and every
+        configured one with whether it can run."""
+        active = self.active_recipe
+        return {
+            "active": active,
+            "active_name": None if active is None else self.config.recipe_name(active),
+            "recipes": [{"number": n, "name": self.config.recipe_name(n),
+                         "object": self.config.for_recipe(n).object.name,
+                         "problem": self.recipe_problems.get(n)}
+                        for n in self.config.recipe_numbers()],
+        }
+
     def snapshot(self) -> dict[str, Any]:
         """The status as JSON data (served by ``GET /status``)."""
         now = time.monotonic_ns()
         job = None
         if self._job is not None:
             job_id, trig, _ = self._job
-            job = {"id": job_id, "link": trig.link, "seq": trig.seq,
+            job = {"id": job_id, "link": trig.link, "seq": trig.seq, "recipe": trig.recipe,
                    "age_s": (now - self._job_started_ns) / 1e9}
         last = None
         if self.last_job is not None:
             lj = self.last_job
-            last = {"id": lj.job_id, "link": lj.link, "seq": lj.seq,
+            last = {"id": lj.job_id, "link": lj.link, "seq": lj.seq, "recipe": lj.recipe,
                     "status": lj.result.status.name, "status_code": int(lj.result.status),
                     "published": None if lj.published is None else lj.published.name,
                     "message": lj.result.message, "cycle_ms": lj.cycle_ms,
@@ -825,6 +876,7 @@ class Daemon:
             "health_problem": self.health_problem() or None,
             "worker": None if self._worker is None else self._worker.snapshot(),
             "calibrated": not self.not_calibrated,
+            "recipe": self.recipe_snapshot(),
             "job": job,
             "last_job": last,
             "links": links,

@@ -606,7 +606,8 @@ class URRegisterMap:
     written data first and its acknowledge last.
 
     Robot -> vgripd (output_int_register_N): ``seq`` (a change to a new non-zero value is a
-    trigger), ``command``, ``page_request`` (= seq once the robot has read the translation).
+    trigger), ``command``, ``page_request`` (= seq once the robot has read the translation),
+    ``recipe`` (the job's recipe, read with the trigger; 0 = the default, docs/recipes.md).
     vgripd -> robot (input_int_register_N): ``ack`` (= seq, written last), ``status``,
     ``captured`` (seq whose images are taken), ``job_id``, ``page_ack`` (= seq once the rotation
     page is in place); input_double_register ``page`` (3 registers) and ``warnings`` (the
@@ -639,6 +640,10 @@ class URRegisterMap:
     @property
     def page_request(self) -> int:
         return self._n(14)
+
+    @property
+    def recipe(self) -> int:
+        return self._n(15)
 
     @property
     def ack(self) -> int:

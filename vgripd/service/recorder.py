@@ -46,6 +46,7 @@ def dict_from_result(result: JobResult) -> dict[str, Any]:
     target = result.target
     return {
         "job_id": result.job_id,
+        "recipe": result.recipe,
         "status": result.status.name,
         "status_code": int(result.status),
         "message": result.message,

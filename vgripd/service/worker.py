@@ -11,7 +11,7 @@ What runs where::
     ----------------                          ------------------------------------
     WorkerCamera.open/grab/close    ------->  the configured camera driver
         <- images in shared memory, metadata pickled
-    WorkerClient.process(pair, job_id) ---->  Pipeline.process (built once from the config)
+    WorkerClient.process(pair, job_id, recipe) -> Pipeline.process (one per recipe, built once)
         <- JobResult (pickled, a few kB)
     WorkerRecorder.submit(pair, result) --->  Recorder (PNG encoding + writing, its own thread)
 
@@ -314,7 +314,9 @@ class _Worker:
         cls = load_class(CAMERAS, "camera", config.camera.type)
         self.camera = cls(validate_options(cls, config.camera, "camera"), config)
         self.camera_open = False
-        self.processor = _load_processor(processor, config)
+        # One processor per recipe (config.recipes), so a recipe switch costs nothing.
+        self.processors = {n: _load_processor(processor, config.for_recipe(n))
+                           for n in config.recipe_numbers()}
         self.recorder: Recorder | None = None
         rec = config.record
         if rec.enabled:
@@ -399,10 +401,11 @@ class _Worker:
             self.camera_open = False
             self.loop.run_until_complete(self.camera.close())
 
-    def process(self, ref: Any, job_id: int) -> JobResult:
-        if self.processor is None:
-            raise NotCalibratedError("the worker has no calibrated pipeline")
-        return _wire_result(self.processor.process(self._pair(ref), job_id))
+    def process(self, ref: Any, job_id: int, recipe: int = 0) -> JobResult:
+        processor = self.processors.get(recipe)
+        if processor is None:
+            raise NotCalibratedError(f"the worker has no calibrated pipeline for recipe {recipe}")
+        return _wire_result(processor.process(self._pair(ref), job_id))
 
     def record(self, ref: Any, result: JobResult) -> bool:
         if self.recorder is None:
@@ -831,10 +834,11 @@ class WorkerClient:
         self._hold(gen, token, pair)
         return token, _pair_fields(pair), segment.name, layout
 
-    async def process(self, pair: ImagePair, job_id: int) -> JobResult:
-        """``Processor.process(pair, job_id)`` in the worker."""
+    async def process(self, pair: ImagePair, job_id: int, recipe: int = 0) -> JobResult:
+        """``Processor.process(pair, job_id)`` in the worker, by the pipeline of ``recipe``."""
         gen = await self._ready_generation()
-        result: JobResult = await self._call(gen, "process", (self._ref(gen, pair), job_id),
+        result: JobResult = await self._call(gen, "process",
+                                             (self._ref(gen, pair), job_id, recipe),
                                              f"job {job_id}")
         return result
 

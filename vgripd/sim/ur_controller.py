@@ -330,13 +330,14 @@ class _Server:
                 await asyncio.wait_for(self.changed.wait(), remaining)
         return True
 
-    def trigger(self, command: int, regs: URRegisterMap) -> int:
+    def trigger(self, command: int, regs: URRegisterMap, recipe: int = 0) -> int:
         """A new request as the script's ``vgripd_request`` makes it; returns its sequence."""
         previous = max(int(self.outputs.get(f"output_int_register_{regs.seq}", 0)),
                        int(self.inputs.get(f"input_int_register_{regs.ack}", 0)))
         seq = previous + 1 if previous < SEQ_MAX else 1
-        # Command and seq change in the same data package; the seq is the trigger.
+        # Command, recipe and seq change in the same data package; the seq is the trigger.
         self.outputs[f"output_int_register_{regs.command}"] = command
+        self.outputs[f"output_int_register_{regs.recipe}"] = recipe
         self.outputs[f"output_int_register_{regs.seq}"] = seq
         return seq
 
@@ -371,7 +372,7 @@ class _Server:
 
     async def program(self, command: int, seq: int, regs: URRegisterMap, timeout_s: float,
                       taught_pose: Sequence[float] | None, t_start: float, attempts: int,
-                      busy_wait_s: float) -> dict[str, Any]:
+                      busy_wait_s: float, recipe: int = 0) -> dict[str, Any]:
         """``vgripd_locate``: ask until answered (``attempts`` requests without an answer, then
         give up: the script's popup and halt), waiting ``busy_wait_s`` after each BUSY (at most
         ``ceil(timeout_s / busy_wait_s)`` times, then BUSY is the answer)."""
@@ -393,7 +394,7 @@ class _Server:
                 await asyncio.sleep(busy_wait_s)
             else:
                 break
-            seq = self.trigger(command, regs)
+            seq = self.trigger(command, regs, recipe)
             result["seq"] = seq
             result["requests"].append(seq)
         result["elapsed_s"] = time.monotonic() - t_start
@@ -405,11 +406,12 @@ class _Server:
 
     def start_program(self, command: int, timeout_s: float, upper: bool,
                       taught_pose: Sequence[float] | None, attempts: int = ATTEMPTS,
-                      busy_wait_s: float = BUSY_WAIT_S) -> int:
+                      busy_wait_s: float = BUSY_WAIT_S, recipe: int = 0) -> int:
         regs = URRegisterMap(upper)
-        seq = self.trigger(command, regs)
+        seq = self.trigger(command, regs, recipe)
         self.programs[seq] = self.spawn(self.program(command, seq, regs, timeout_s, taught_pose,
-                                                     time.monotonic(), attempts, busy_wait_s))
+                                                     time.monotonic(), attempts, busy_wait_s,
+                                                     recipe))
         return seq
 
     # ---- pipe commands from the handle
@@ -478,8 +480,9 @@ class _Server:
 
     async def cmd_start_program(self, command: int, timeout_s: float, upper: bool,
                                 taught_pose: Sequence[float] | None, attempts: int,
-                                busy_wait_s: float) -> int:
-        return self.start_program(command, timeout_s, upper, taught_pose, attempts, busy_wait_s)
+                                busy_wait_s: float, recipe: int = 0) -> int:
+        return self.start_program(command, timeout_s, upper, taught_pose, attempts, busy_wait_s,
+                                  recipe)
 
     async def cmd_program_result(self, seq: int) -> dict[str, Any]:
         task = self.programs.pop(seq)
@@ -634,12 +637,13 @@ class URController:
     # ---- simulated robot program
     def start_program(self, command: int = 1, *, timeout_s: float = 10.0, upper: bool = False,
                       taught_pose: Sequence[float] | None = None, attempts: int = ATTEMPTS,
-                      busy_wait_s: float = BUSY_WAIT_S) -> int:
-        """Run ``vgripd_locate(command, timeout_s)`` the way robots/urscript/vgripd.script does;
-        returns the sequence of its first request (the key for ``program_result``)."""
+                      busy_wait_s: float = BUSY_WAIT_S, recipe: int = 0) -> int:
+        """Run ``vgripd_locate(command, timeout_s)`` the way robots/urscript/vgripd.script does
+        (with ``VGRIPD_RECIPE = recipe``); returns the sequence of its first request (the key
+        for ``program_result``)."""
         seq: int = self._call("start_program", command, timeout_s, upper,
                               None if taught_pose is None else tuple(taught_pose), attempts,
-                              busy_wait_s)
+                              busy_wait_s, recipe)
         return seq
 
     def program_result(self, seq: int, timeout_s: float = 15.0) -> dict[str, Any]:

@@ -100,7 +100,9 @@ def _fake_daemon() -> Any:
         links={"plc": _Link(LinkState.UP, 2), "robot": _Link(LinkState.CONNECTING, 0)},
         answered=lambda: (Counter({"OK": 3, "BUSY": 1}), Counter({"BUSY": 1})),
         undelivered=Counter(), epipolar=epipolar, healthy=lambda: True,
-        snapshot=lambda: {"camera": {"open": True}}, recorder=None)
+        snapshot=lambda: {"camera": {"open": True}}, recorder=None,
+        recipe_snapshot=lambda: {"active": 2, "recipes": [
+            {"number": 0, "name": "default"}, {"number": 2, "name": "plate-b"}]})
 
 
 def _samples(text: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
@@ -128,6 +130,8 @@ def test_metrics_count_jobs_by_status_and_read_links_at_scrape_time() -> None:
     assert m[("vgripd_epipolar_residual_px_count", ())] == 2
     assert m[("vgripd_epipolar_residual_last_px", ())] == 2.5
     assert m[("vgripd_link_up", (("link", "plc"),))] == 1
+    assert m[("vgripd_recipe_active", (("name", "plate-b"), ("recipe", "2")))] == 1
+    assert m[("vgripd_recipe_active", (("name", "default"), ("recipe", "0")))] == 0
     assert m[("vgripd_link_up", (("link", "robot"),))] == 0
     assert m[("vgripd_link_state", (("link", "robot"), ("state", "connecting")))] == 1
     assert m[("vgripd_link_reconnects_total", (("link", "plc"),))] == 2

@@ -225,7 +225,8 @@ def test_urscript_uses_the_register_map() -> None:
         return {int(n) for n in re.findall(rf"{function}\((\d+) \+ o", code)}
 
     regs = URRegisterMap()
-    assert used("write_output_integer_register") == {regs.seq, regs.command, regs.page_request}
+    assert used("write_output_integer_register") == {regs.seq, regs.command, regs.page_request,
+                                                     regs.recipe}
     assert used("read_output_integer_register") == {regs.seq}
     assert used("vgripd_wait_int") == {regs.ack, regs.page_ack}
     assert used("read_input_integer_register") == {regs.ack, regs.status}

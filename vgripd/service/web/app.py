@@ -20,7 +20,7 @@ Routes (docs/web.md)::
     GET  /api/config                 the loaded config, secrets redacted
     GET  /api/registers              each register link's map as its peer reads it, decoded
     GET  /metrics                    Prometheus text format
-    POST /api/trigger                test trigger      (status.allow_trigger + token)
+    POST /api/trigger[?recipe=N]     test trigger      (status.allow_trigger + token)
     GET  /api/support-bundle         zip download      (status.allow_support_bundle + token)
 
 Security model: read-only by default and bound to 127.0.0.1; the config refuses a non-loopback
@@ -136,7 +136,7 @@ def job_summary(record: JobRecord, t_wall: float, images: bool) -> dict[str, Any
     """A finished job as the view shows it (JSON data)."""
     r = dict_from_result(record.result)
     return {
-        "id": record.job_id, "link": record.link, "seq": record.seq,
+        "id": record.job_id, "link": record.link, "seq": record.seq, "recipe": record.recipe,
         "status": r["status"], "status_code": r["status_code"], "message": r["message"],
         "published": None if record.published is None else record.published.name,
         "cycle_ms": record.cycle_ms, "t_wall": t_wall,
@@ -404,10 +404,13 @@ class WebServer:
         link = self.daemon.links.get(WEB_LINK)
         if not isinstance(link, WebTriggerLink):
             raise web.HTTPNotFound(text="no web trigger link")
-        log.info("web view: test trigger from %s", request.remote)
+        text = request.query.get("recipe", "0")
+        if not text.isdigit() or int(text) > 65535:
+            raise web.HTTPBadRequest(text=f"recipe={text!r}: a recipe number is 0 .. 65535")
+        log.info("web view: test trigger (recipe %s) from %s", text, request.remote)
         timeout_s = self.daemon.config.daemon.job_timeout_s + 5.0
         try:
-            result = await link.trigger(timeout_s)
+            result = await link.trigger(timeout_s, int(text))
         except (TimeoutError, RuntimeError) as err:
             raise web.HTTPServiceUnavailable(text=f"no answer: {err!r}") from None
         return web.json_response(jsonable(dict_from_result(result)))

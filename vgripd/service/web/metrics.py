@@ -71,6 +71,13 @@ class _DaemonCollector(Collector):
             undelivered.add_metric([name], n)
         yield undelivered
 
+        recipe = GaugeMetricFamily("vgripd_recipe_active", "1 for the recipe of the running "
+                                   "or last job (docs/recipes.md)", labels=["recipe", "name"])
+        recipes = d.recipe_snapshot()
+        for r in recipes["recipes"]:
+            recipe.add_metric([str(r["number"]), r["name"]],
+                              1.0 if r["number"] == recipes["active"] else 0.0)
+        yield recipe
         rc = d.epipolar
         yield GaugeMetricFamily("vgripd_recalibrate_warning", "1 while the RECALIBRATE "
                                 "warning is up", value=1.0 if rc.warning else 0.0)

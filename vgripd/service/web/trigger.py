@@ -60,8 +60,9 @@ class WebTriggerLink(RobotLink):
             fut.set_result(result)
         return result.status
 
-    async def trigger(self, timeout_s: float) -> JobResult:
-        """Start a job and wait for its answer (a BUSY refusal is an answer too)."""
+    async def trigger(self, timeout_s: float, recipe: int = 0) -> JobResult:
+        """Start a job of ``recipe`` and wait for its answer (a BUSY refusal is an answer
+        too)."""
         if self._on_trigger is None or self._state is not LinkState.UP:
             raise RuntimeError("the web trigger link is not open")
         self._seq += 1
@@ -70,7 +71,7 @@ class WebTriggerLink(RobotLink):
         self._waiting[seq] = fut
         try:
             self._on_trigger(Trigger(link=self.name, seq=seq, command=1,
-                                     t_mono_ns=time.monotonic_ns()))
+                                     t_mono_ns=time.monotonic_ns(), recipe=recipe))
             async with asyncio.timeout(timeout_s):
                 return await fut
         finally:

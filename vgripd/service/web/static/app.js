@@ -40,7 +40,7 @@ function imageURL(job, side) {
 }
 
 function showJob(job) {
-  $("job-title").textContent = `${job.id} (seq ${job.seq} from ${job.link}, ` +
+  $("job-title").textContent = `${job.id} (seq ${job.seq} from ${job.link}, recipe ${job.recipe}, ` +
     `${new Date(job.t_wall * 1000).toLocaleTimeString()})`;
   const st = $("job-status");
   const told = job.published === job.status ? "" :
@@ -80,7 +80,7 @@ function showHistory() {
       links = span;
     }
     const res = Object.entries(j.residuals).map(([k, v]) => `${k} ${fmt(v, 2)}`).join(", ");
-    return cells([j.id, new Date(j.t_wall * 1000).toLocaleTimeString(), j.link, j.status,
+    return cells([j.id, new Date(j.t_wall * 1000).toLocaleTimeString(), j.link, j.recipe, j.status,
       fmt(j.cycle_ms), res, links]);
   }));
   drawTrend();
@@ -127,10 +127,19 @@ function drawTrend() {
   svg.replaceChildren(...parts);
 }
 
+// "recipe 2 plate-b (of 0 default, 1 plate-a, 2 plate-b)"; recipes not taught are marked.
+function recipeText(r) {
+  if (!r) return "";
+  const all = r.recipes.map((x) => `${x.number} ${x.name}${x.problem ? " (NOT CALIBRATED)" : ""}`);
+  const active = r.active === null ? "recipe: none yet" : `recipe ${r.active} ${r.active_name}`;
+  return `${active} (of ${all.join(", ")})`;
+}
+
 function showStatus(s) {
   lastStatus = s;
   $("run-state").textContent = `pid ${s.pid}: ${s.run_state}, ${s.state}` +
     (s.calibrated ? "" : ", NOT CALIBRATED") + (s.healthy ? "" : `, UNHEALTHY: ${s.health_problem}`);
+  $("recipe").textContent = recipeText(s.recipe);
   const rc = s.recalibrate;
   const warn = $("recalibrate");
   warn.hidden = !(rc && rc.warning);
