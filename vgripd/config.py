@@ -51,6 +51,9 @@ RECIPE_PROBLEMS = "recipe_problems"
 #: The sections a recipe may overlay (``[recipes.N.<section>]``): what differs from one object
 #: to the next. Everything else (camera, calibration, links, daemon, ...) belongs to the cell.
 RECIPE_SECTIONS: tuple[str, ...] = ("object", "vision", "reference", "limits", "output")
+#: Sections a recipe replaces as a whole instead of key by key: another object is another
+#: object (its name and definition are not inherited from the top-level one).
+RECIPE_WHOLE_SECTIONS: tuple[str, ...] = ("object",)
 #: Highest recipe number: the RECIPE register is one 16-bit word.
 MAX_RECIPE = 65535
 
@@ -493,11 +496,12 @@ class RecipeConfig(BaseModel):
     they are judged as part of the recipe's effective config, ``Config.for_recipe``).
 
     Overlay rule, per section: the keys a recipe gives replace the same keys of the top-level
-    section, the others are inherited (one level deep: a list such as ``object.features`` or a
-    table such as ``reference.T_base_obj`` is replaced as a whole). A recipe that gives its own
-    ``[recipes.N.object]`` inherits no reference: its ``[recipes.N.reference]`` is all it has
-    (none = not taught yet, its jobs answer NOT_CALIBRATED), since the top-level reference was
-    taught on another object.
+    section, the others are inherited (one level deep: a list or a table such as
+    ``reference.T_base_obj`` is replaced as a whole). ``[recipes.N.object]`` replaces the
+    top-level object as a whole (``RECIPE_WHOLE_SECTIONS``), and a recipe with its own object
+    inherits no reference: its ``[recipes.N.reference]`` is all it has (none = not taught yet,
+    its jobs answer NOT_CALIBRATED), since the top-level reference was taught on another
+    object.
     """
 
     model_config = ConfigDict(extra="allow", frozen=True)
@@ -616,8 +620,9 @@ class Config(Model):
         overlays = self.recipes[number].sections()
         for section, overlay in overlays.items():
             top = getattr(self, section).model_dump(exclude_unset=True)
-            if section == "reference" and "object" in overlays:
-                top = {}  # taught on the top-level object, not on this one
+            if section in RECIPE_WHOLE_SECTIONS or (section == "reference"
+                                                    and "object" in overlays):
+                top = {}  # another object; a reference taught on the top-level object
             data[section] = {**top, **overlay}
         if "object" in overlays and "reference" not in overlays:
             data["reference"] = {}
