@@ -156,9 +156,15 @@ class SyntheticCamera(CameraDriver):
             flange = self.options.flange_pose
             self._T_base_flange = scene.matrix_from_pose(flange) if flange is not None else None
             self._T_base_camera = scene.T_base_camera(self.config, self._T_base_flange)
-            self._T_base_obj_ref = scene.T_base_obj_ref(self.config)
         except VgripError as err:
             raise CameraError(f"synthetic: cannot set up the scene: {err}") from None
+        # Random poses lie around the taught reference; a fixed pose needs none (teaching).
+        self._T_base_obj_ref: FloatArray | None = None
+        try:
+            self._T_base_obj_ref = scene.T_base_obj_ref(self.config)
+        except VgripError as err:
+            if self.options.pose is None:
+                raise CameraError(f"synthetic: cannot set up the scene: {err}") from None
         self._rng = np.random.default_rng(self.options.seed)
 
     def describe(self) -> str:
@@ -172,6 +178,7 @@ class SyntheticCamera(CameraDriver):
         shift = self._rng.uniform(-o.max_shift_mm, o.max_shift_mm, 3)
         tilt = np.radians(self._rng.uniform(-o.max_tilt_deg, o.max_tilt_deg, 3))
         ref = self._T_base_obj_ref
+        assert ref is not None  # _open_blocking refused random poses without a reference
         pts = scene.object_points(self.config)
         centre = ref[:3, :3] @ pts.mean(axis=0) + ref[:3, 3]
         R = matrix_from_rotvec(tilt)

@@ -53,7 +53,8 @@ def test_sections_merge_key_by_key_over_the_top_level() -> None:
     assert (r7.vision.min_contrast, r7.vision.downscale) == (60.0, 3)  # downscale inherited
     assert (r7.limits.max_translation_mm, r7.limits.max_rotation_deg) == (20.0, 2.0)
     assert r7.output.vendor == "abb"  # not overlaid: the top level's
-    assert r7.object == DEMO_OBJECT and r7.reference == DEMO_REFERENCE  # same object, taught
+    assert r7.object == DEMO_OBJECT
+    assert r7.reference == DEMO_REFERENCE
     assert r7.recipes == {}
     assert config.vision.min_contrast == 40.0  # the top level is untouched
     assert config.recipe_numbers() == (0, 7)
@@ -119,7 +120,8 @@ def test_every_recipe_output_is_checked_against_the_links() -> None:
 def test_all_bad_recipes_are_reported_at_once() -> None:
     message = refused({"recipes": {"1": {"name": "a", "vision": {"downscale": 0}},
                                    "2": {"name": "b", "limits": {"max_rotation_deg": -1}}}})
-    assert "recipes.1.vision.downscale" in message and "recipes.2.limits.max_rotation_deg" in message
+    assert "recipes.1.vision.downscale" in message
+    assert "recipes.2.limits.max_rotation_deg" in message
 
 
 def test_unknown_recipe_names_the_configured_ones() -> None:
@@ -144,7 +146,8 @@ def test_included_fragment_sets_a_recipe_reference(tmp_path: Path) -> None:
         for f in features()) + "]\n")
     cell.write_text('include = ["ref.toml"]\n' + body)
     ref = load_config(cell).for_recipe(2).reference.T_base_obj
-    assert ref is not None and ref.translation_mm == (1.0, 2.0, 3.0)
+    assert ref is not None
+    assert ref.translation_mm == (1.0, 2.0, 3.0)
     cell.write_text('include = ["ref.toml"]\n' + body
                     + "[recipes.2.reference.T_base_obj]\ntranslation_mm = [0.0, 0.0, 0.0]\n")
     with pytest.raises(ConfigError, match=r"recipes\.2\.reference\.T_base_obj\.translation_mm "
@@ -157,5 +160,7 @@ def test_sample_has_two_plates() -> None:
     assert config.recipe_numbers() == (0, 1, 2)
     a, b = config.for_recipe(1), config.for_recipe(2)
     assert {f.diameter_mm for f in a.object.features} != {f.diameter_mm for f in b.object.features}
-    assert a.reference.T_base_obj is not None and b.reference.T_base_obj is not None
-    assert b.limits.max_translation_mm == 60.0 and a.limits.max_translation_mm == 50.0
+    assert a.reference.T_base_obj is not None
+    assert b.reference.T_base_obj is not None
+    assert b.limits.max_translation_mm == 60.0
+    assert a.limits.max_translation_mm == 50.0

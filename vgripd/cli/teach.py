@@ -126,10 +126,9 @@ def run(args: argparse.Namespace) -> int:
 
     # The camera sees the measuring config too: a driver that needs a reference (the synthetic
     # one's random poses) must not stop the teaching of a new object.
-    # (A recipe's camera is the cell's: the top-level config with its recipes, so a synthetic
-    # camera can render the plate of its own ``recipe`` option.)
-    camera_config = config if args.recipe == 0 else cell
-    pairs = asyncio.run(teach.acquire(teach.measuring_config(camera_config), args.shots))
+    # The camera is the cell's (the top-level config with its recipes: a synthetic camera
+    # renders the plate of its own ``recipe`` option, the one lying in the cell).
+    pairs = asyncio.run(teach.acquire(teach.measuring_config(cell), args.shots))
     taught = teach.measure(config, pairs)
     problems = taught.problems(args.max_spread_mm, args.max_spread_deg,
                                check_points=config.object.definition == "reference")
