@@ -370,10 +370,13 @@ async def test_chromium_page_updates_live_links_images_and_refuses_actions_witho
             rows = await _until(evaluate, """(() => {
                 const rows = [...document.querySelectorAll('#jobs tbody tr')];
                 return rows.length === 2 && rows.map((r) => [r.cells[0].textContent,
-                    r.cells[3].textContent, [...r.querySelectorAll('a')].map((a) => a.href)]);
+                    r.cells[4].textContent, [...r.querySelectorAll('a')].map((a) => a.href),
+                    r.cells[3].textContent]);
             })()""")
-            assert [(r[0], r[1]) for r in rows] == [("2", "OK"), ("1", "OK")]
-            for job_id, _, hrefs in rows:
+            assert [(r[0], r[1], r[3]) for r in rows] == [("2", "OK", "0"), ("1", "OK", "0")]
+            recipe = await evaluate(f"({text})('recipe')")
+            assert recipe == "recipe 0 default (of 0 default)"  # the active one, of all
+            for job_id, _, hrefs, _ in rows:
                 assert [h.split("?")[0] for h in hrefs] == [
                     f"{base}/api/jobs/{job_id}/image/{side}.jpg" for side in ("left", "right")]
                 for href in hrefs:
