@@ -224,12 +224,14 @@ async def twin_for(brand: str, port: int, data: dict[str, Any],
 async def test_each_program_locates_against_the_daemon(brand: str) -> None:
     port = free_port()
     data = cell(brand, port)
+    data["recipes"] = {"3": {"name": "tighter", "limits": {"max_rotation_deg": 9.0}}}
     async with twin_for(brand, port, data) as twin, running(config_from_dict(data)) as run:
         link = next(iter(run.daemon.links.values()))
         await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
         for n, recipe in ((1, 0), (2, 3)):
             outcome = await twin.locate(recipe)
             _, record = await run.job_done(n)
+            assert record.recipe == recipe  # the program's recipe word selects the recipe
             assert outcome.status == Status.OK, outcome
             assert outcome.captured
             assert outcome.job_id == record.job_id
