@@ -203,3 +203,30 @@ def test_teach_recipe_writes_its_reference(tmp_path: Path,
                                        .reference.T_base_obj)) < (0.2, 0.12)
     assert main(["teach", "-c", str(cell), "--recipe", "5"]) == 2
     assert "recipe 5 is not configured" in capsys.readouterr().err
+
+
+def test_recorded_job_keeps_its_recipe_and_replays_with_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The recorder writes the job's recipe in result.json; ``vgripd replay`` of the job
+    folder runs that recipe's pipeline unless ``--recipe`` says otherwise."""
+    data = tomllib.loads(SAMPLE.read_text())
+    data["links"][0]["port"] = 0
+    data.update(status={"port": 0}, daemon={"worker": False},
+                record={"enabled": True, "folder": str(tmp_path / "rec")})
+
+    async def one_job() -> Status:
+        async with running(config_from_dict(data)) as run, \
+                MockPlc("127.0.0.1", run.port(), timeout_s=WAIT_S) as plc:
+            return (await plc.cycle(2)).status
+
+    assert asyncio.run(one_job()) is Status.OK  # the sample's camera shows plate B
+    (job,) = sorted((tmp_path / "rec").iterdir())
+    assert json.loads((job / "result.json").read_text())["recipe"] == 2
+    capsys.readouterr()
+    assert main(["replay", "-c", str(job / "config.toml"), str(job)]) == 0
+    line = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert (line["recipe"], line["status"]) == (2, "OK")
+    assert main(["replay", "-c", str(job / "config.toml"), str(job), "--recipe", "1"]) == 0
+    line = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert (line["recipe"], line["status"]) == (1, "NOT_FOUND")
+    assert main(["replay", "-c", str(job / "config.toml"), str(job), "--recipe", "4"]) == 78
