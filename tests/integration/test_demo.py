@@ -21,9 +21,15 @@ def test_demo_runs_cycles_with_a_busy_refusal_a_gated_fault_and_small_pose_error
     assert proc.returncode == 0, out + proc.stderr
     assert "q1" in out  # ABB quaternion fields in the header
     rows = [line.split() for line in out.splitlines() if re.match(r"\s+\d+\s+[A-Z_]+\s", line)]
-    assert [r[1] for r in rows] == ["OK", "OK", "OK", "BUSY", "OK", "OUT_OF_LIMITS"]
-    assert [int(r[0]) for r in rows] == [1, 2, 3, 4, 5, 1]  # the fault runs on a new daemon
+    assert [r[1] for r in rows] == ["OK", "OK", "OK", "BUSY", "OK", "OUT_OF_LIMITS",
+                                    "OK", "NOT_FOUND", "OK", "BAD_REQUEST"]
+    # The fault and the recipe cycles run on new daemons.
+    assert [int(r[0]) for r in rows] == [1, 2, 3, 4, 5, 1, 1, 2, 3, 4]
     assert "(no pose: offset translation" in out
+    # Plate B in view: its recipe (1) finds it, the demo plate's (0) does not, 7 is unknown.
+    assert [r[-2:] for r in rows[6:]] == [["recipe", str(n)] for n in (1, 0, 1, 7)]
+    assert "recipe 7 is not configured (configured: 0, 1;" in out
+    rows = [r[:-2] if r[-2] == "recipe" else r for r in rows]
     for r in rows:
         if r[1] == "OK":
             # x y z q1..q4, cycle ms, err mm, err deg
@@ -32,7 +38,7 @@ def test_demo_runs_cycles_with_a_busy_refusal_a_gated_fault_and_small_pose_error
             assert abs(sum(v * v for v in q) - 1.0) < 1e-3
             assert float(r[-2]) < 0.5
             assert float(r[-1]) < 0.1
-    assert "counts: BUSY 1, OK 4, OUT_OF_LIMITS 1" in out
+    assert "counts: BAD_REQUEST 1, BUSY 1, NOT_FOUND 1, OK 6, OUT_OF_LIMITS 1" in out
     m = re.search(r"pose error vs synthetic truth: max ([\d.]+) mm", out)
     assert m is not None
     assert float(m.group(1)) < 0.5

@@ -6,6 +6,9 @@ listens on 127.0.0.1, and a scripted PLC (``vgripd.sim.plc``) triggers cycles ov
 polls for each answer and checks the handshake. One cycle also triggers a second time while the
 job runs, to show the refusal (BUSY). A last fault cycle restarts the daemon with the object
 placed beyond the offset limit, to show the safety gate (OUT_OF_LIMITS, no pose published).
+A last daemon has two recipes (docs/recipes.md) with a second plate in view: the PLC selects
+them by number with the RECIPE register; the second plate's recipe finds it, the demo plate's
+recipe does not (NOT_FOUND), an unknown number is BAD_REQUEST without an image.
 Each result is printed with the offset in the robot vendor's convention and the pose error
 against the synthetic truth; a summary follows.
 
@@ -80,6 +83,25 @@ def demo_config(port: int, seed: int, vendor: str, pose: dict[str, Any] | None =
     })
 
 
+#: The second plate of the recipe cycles: five 14 mm marks in another layout.
+PLATE_B = {"name": "plate_b", "features": [
+    {"name": f"b{i + 1}", "kind": "circle", "diameter_mm": 14.0, "xyz_mm": xyz}
+    for i, xyz in enumerate([[-61.0, -2.0, 0.0], [68.0, 30.0, 0.0], [49.0, -35.0, 0.0],
+                             [-29.0, 11.0, 10.0], [22.0, 19.0, 0.0]])]}
+#: (recipe the PLC asks for, the answer that must come) with plate B in view.
+RECIPE_CYCLES = ((1, Status.OK), (0, Status.NOT_FOUND), (1, Status.OK), (7, Status.BAD_REQUEST))
+
+
+def recipes_config(port: int, seed: int, vendor: str, web_port: int = 0) -> Any:
+    """The demo cell with recipe 1 = plate B (taught), plate B in view of the camera."""
+    data = demo_config(port, seed, vendor, web_port=web_port).model_dump(
+        mode="json", exclude_unset=True)
+    data["camera"]["recipe"] = 1
+    data["recipes"] = {"1": {"name": "plate-b", "object": PLATE_B, "reference": {
+        "T_base_obj": {"translation_mm": [590.0, 110.0, 12.0], "rotvec_rad": [0.0, 0.0, -0.1]}}}}
+    return config_from_dict(data)
+
+
 def fault_pose(config: Any) -> dict[str, Any]:
     """The taught reference pose moved along base x by 1.6 times the translation limit."""
     ref = config.reference.T_base_obj
@@ -108,9 +130,10 @@ class Demo:
                        zip(self.conv.fields, units, strict=True))
         return f"{'seq':>4}  {'status':<15}{cols}{'cycle ms':>10}{'err mm':>9}{'err deg':>9}"
 
-    async def line(self, answer: CycleResult, note: str = "") -> str:
+    async def line(self, answer: CycleResult, note: str = "", recipe: int | None = None) -> str:
         self.answers.append(answer)
         head = f"{answer.seq:>4}  {answer.status.name:<15}"
+        tail = "" if recipe is None else f"  recipe {recipe}"
         if answer.rejected:
             return head + f"refused: {note or 'by the handshake'}"
         assert self.daemon is not None
@@ -123,7 +146,7 @@ class Demo:
             dt, dr = pose_error(pair.truth["T_base_obj"], rec.result.T_base_obj)
             self.errors.append((dt, dr))
             err = f"{dt:>9.3f}{dr:>9.3f}"
-        return f"{head}{cols}{answer.cycle_ms:>10.1f}{err}"
+        return f"{head}{cols}{answer.cycle_ms:>10.1f}{err}{tail}"
 
     def summary(self) -> list[str]:
         counts: dict[str, int] = {}
@@ -196,6 +219,14 @@ async def run_demo(args: argparse.Namespace) -> int:
         if answer.status is not Status.OUT_OF_LIMITS or answer.values:
             raise LinkError(f"fault cycle answered {answer.status.name}, not OUT_OF_LIMITS")
 
+    async def recipes(daemon: Daemon, plc: MockPlc) -> None:
+        for recipe, expected in RECIPE_CYCLES:
+            answer = await plc.cycle(recipe)
+            print(await demo.line(answer, recipe=recipe), flush=True)
+            if answer.status is not expected:
+                raise LinkError(f"recipe {recipe} on plate B answered {answer.status.name}, "
+                                f"not {expected.name}")
+
     try:
         await _with_daemon(demo, config, cycles)
         print(f"\nfault cycle (daemon restarted): object placed "
@@ -203,6 +234,10 @@ async def run_demo(args: argparse.Namespace) -> int:
               f"{config.limits.max_translation_mm:.0f} mm")
         await _with_daemon(demo, demo_config(port, args.seed, args.vendor, fault_pose(config),
                                              web_port=web_port), fault)
+        print("\nrecipes (daemon restarted): recipe 1 = plate B (14 mm marks, another layout) "
+              "in view, recipe 0 = the demo plate; the PLC writes RECIPE with each trigger")
+        await _with_daemon(demo, recipes_config(port, args.seed, args.vendor, web_port),
+                           recipes)
     except (LinkError, TimeoutError) as err:
         print(f"\nvgripd demo: FAILED: {err}")
         return 1
