@@ -22,6 +22,7 @@ import pytest
 from tests.conftest import REPO, need_tool
 from tests.integration.test_daemon import WAIT_S, Run, running
 from vgripd.__main__ import main
+from vgripd.cli.status import format_status
 from vgripd.config import config_from_dict, load_config
 from vgripd.geometry.transforms import pose_error
 from vgripd.serialize import toml_from_dict
@@ -94,6 +95,31 @@ async def test_each_recipe_finds_its_own_plate_only(plate: int, worker: bool) ->
             assert (status["recipe"]["active"], status["last_job"]["recipe"]) == (recipe, recipe)
             assert status["recipe"]["active_name"] == config.recipe_name(recipe)
         assert [s for r, s in seen if r == plate] == [Status.OK, Status.OK]
+        text = format_status(await api_status(run))  # what `vgripd status` prints
+        assert (f"recipe {plate} {config.recipe_name(plate)} (configured: 0 default, 1 plate-a, "
+                "2 plate-b, 3 plate-c NOT CALIBRATED)") in text
+        assert run.daemon.status_line().endswith(f"; recipe {plate} ({config.recipe_name(plate)})")
+
+
+async def test_web_test_trigger_takes_a_recipe() -> None:
+    token = "t" * 20
+    data = tomllib.loads(SAMPLE.read_text())
+    data["links"][0]["port"] = 0
+    data.update(status={"port": 0, "token": token, "allow_trigger": True},
+                daemon={"worker": False})
+    async with running(config_from_dict(data)) as run, aiohttp.ClientSession() as http:
+        assert run.daemon.status_server is not None
+        url = f"http://127.0.0.1:{run.daemon.status_server.port}/api/trigger"
+        auth = {"Authorization": f"Bearer {token}"}
+        for query, status in (("?recipe=2", "OK"), ("?recipe=1", "NOT_FOUND"),
+                              ("", "NOT_FOUND"), ("?recipe=5", "BAD_REQUEST")):
+            async with http.post(url + query, headers=auth) as resp:
+                assert resp.status == 200
+                result = await resp.json()
+            assert (result["status"], result["recipe"]) == (status, int(query[8:] or 0))
+        async with http.post(url + "?recipe=-1", headers=auth) as resp:
+            assert resp.status == 400
+            assert "a recipe number is 0 .. 65535" in await resp.text()
 
 
 async def test_unknown_recipe_is_bad_request_without_an_image() -> None:

@@ -820,6 +820,8 @@ class Daemon:
         if self.last_job is not None:
             lj = self.last_job
             line += f"; last job {lj.job_id} {lj.result.status.name} {lj.cycle_ms:.0f} ms"
+        if self.config.recipes and self.active_recipe is not None:
+            line += f"; recipe {self.recipe_label(self.active_recipe)}"
         if self.epipolar.warning:
             line += "; RECALIBRATE"
         if self.camera_fault:
