@@ -96,10 +96,6 @@ CAMERA_CLOSE_TIMEOUT_S = 10.0
 CAMERA_HUNG_GRACE_S = 1.0
 
 
-class _UnknownRecipe(Exception):
-    """A trigger named a recipe that is not configured (the job ends BAD_REQUEST)."""
-
-
 class JobState(enum.Enum):
     IDLE = "idle"
     TRIGGERED = "triggered"
@@ -590,22 +586,23 @@ class Daemon:
         return pair
 
     async def _run_job(self, trigger: Trigger, job_id: int) -> None:
+        known = self.config.recipe_numbers()
+        if trigger.recipe not in known:  # answered like any job, without taking an image
+            result = self._failure(job_id, Status.BAD_REQUEST,
+                                   unknown_recipe(trigger.recipe, known))
+            await self._finish(trigger, job_id, None, result)
+            return
         timeout_s = self.config.daemon.job_timeout_s
         deadline_ns = self._job_started_ns + int(timeout_s * 1e9)
         pair: ImagePair | None = None
         try:
             try:
                 async with asyncio.timeout(timeout_s):
-                    if trigger.recipe not in self.config.recipe_numbers():  # no image taken
-                        raise _UnknownRecipe(unknown_recipe(trigger.recipe,
-                                                            self.config.recipe_numbers()))
                     self._set_state(JobState.ACQUIRING)
                     pair = await self._acquire(trigger, deadline_ns)
                     await self._link_call(trigger.link, "image_captured", trigger.seq, job_id)
                     self._set_state(JobState.PROCESSING)
                     result = await self._process(pair, job_id, trigger.recipe)
-            except _UnknownRecipe as err:
-                result = self._failure(job_id, Status.BAD_REQUEST, str(err))
             except TimeoutError:
                 stage = "acquisition" if pair is None else "processing"
                 status = Status.CAMERA_ERROR if pair is None else Status.INTERNAL
