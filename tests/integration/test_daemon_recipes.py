@@ -256,3 +256,33 @@ def test_recorded_job_keeps_its_recipe_and_replays_with_it(
     line = json.loads(capsys.readouterr().out.splitlines()[0])
     assert (line["recipe"], line["status"]) == (1, "NOT_FOUND")
     assert main(["replay", "-c", str(job / "config.toml"), str(job), "--recipe", "4"]) == 78
+
+
+def test_locate_runs_the_recipe_asked_for(tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    import cv2
+
+    from vgripd.config import DriverSection
+    from vgripd.registry import CAMERAS, load_class, validate_options
+
+    cls = load_class(CAMERAS, "camera", "synthetic")
+    section = DriverSection.model_validate({"type": "synthetic", "recipe": 2, "seed": 5})
+    camera = cls(validate_options(cls, section, "camera"), load_config(SAMPLE))
+
+    async def grab() -> Any:
+        await camera.open()
+        try:
+            return await camera.grab(WAIT_S)
+        finally:
+            await camera.close()
+
+    pair = asyncio.run(grab())
+    images = [str(tmp_path / f"{side}.png") for side in ("left", "right")]
+    for path, image in zip(images, (pair.left, pair.right), strict=True):
+        cv2.imwrite(path, image)
+    for recipe, code, status in ((2, 0, "OK"), (1, 1, "NOT_FOUND")):
+        assert main(["locate", "-c", str(SAMPLE), *images, "--recipe", str(recipe),
+                     "--json"]) == code
+        line = json.loads(capsys.readouterr().out)
+        assert (line["recipe"], line["status"]) == (recipe, status)
+    assert main(["locate", "-c", str(SAMPLE), *images, "--recipe", "9"]) == 78

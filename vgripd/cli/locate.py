@@ -4,7 +4,8 @@ Prints the status, the object pose in the robot base frame, the offset against t
 reference, the values the robot would receive (with the vendor's field names), residuals and
 per-stage timings; ``--json`` prints the same as one JSON object. A job without a valid pose
 adds a "why" block (``diagnosis`` in JSON): what each stage saw and the likely causes, each
-naming the config key to check (``vgripd.vision.diagnosis``).
+naming the config key to check (``vgripd.vision.diagnosis``). ``--recipe N`` runs the
+pipeline of recipe N (docs/recipes.md; an unknown number is a configuration error).
 
 Exit codes: 0 a pose was found (status OK or OK_RECALIBRATE); 1 no valid pose (any other
 status); 2 an image file is missing or unreadable; 78 configuration error.
@@ -13,6 +14,7 @@ status); 2 an image file is missing or unreadable; 78 configuration error.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -37,6 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("left", help="left image (or the only image in single-camera mode)")
     parser.add_argument("right", nargs="?", help="right image of the stereo pair")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--recipe", type=int, default=0, metavar="N",
+                        help="the pipeline of recipe N ([recipes.N]; default 0, the top level)")
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -83,7 +87,7 @@ def format_result(result: JobResult) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
+    config = load_config(args.config).for_recipe(args.recipe)
     try:
         left = read_image(args.left)
         right = read_image(args.right) if args.right is not None else None
@@ -92,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     pipeline = Pipeline(config)
     pair = ImagePair(left=left, right=right, t_mono_ns=time.monotonic_ns(), source=args.left)
-    result = pipeline.process(pair, job_id=1)
+    result = dataclasses.replace(pipeline.process(pair, job_id=1), recipe=args.recipe)
     if args.json:
         print(json.dumps(dict_from_result(result)))
     else:
