@@ -638,7 +638,10 @@ class Config(Model):
 
     def for_recipe(self, number: int) -> Config:
         """The full effective config of recipe ``number`` (0: this one). ``ConfigError`` for a
-        number that is not configured, naming the configured ones."""
+        number that is not configured, naming the configured ones.
+
+        Built when this config was validated: a ``model_copy(update=...)`` of it keeps the
+        recipes of the original (validate a new config to change the top level under them)."""
         if number == 0:
             return self
         if number not in self.recipes:
