@@ -7,6 +7,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from tests.conftest import REPO
 from vgripd.config import (
@@ -14,6 +16,7 @@ from vgripd.config import (
     DEMO_REFERENCE,
     RECIPE_SECTIONS,
     Config,
+    VisionConfig,
     config_from_dict,
     load_config,
 )
@@ -164,3 +167,26 @@ def test_sample_has_two_plates() -> None:
     assert b.reference.T_base_obj is not None
     assert b.limits.max_translation_mm == 60.0
     assert a.limits.max_translation_mm == 50.0
+
+
+# Vision keys with values that keep the section valid in any combination.
+_VISION_VALUES = {"downscale": (1, 3), "min_contrast": (20.0, 45.0),
+                  "min_circularity": (0.5, 0.8), "min_features": (3, 5),
+                  "max_fit_rms_mm": (0.5, 2.0), "template_min_score": (0.6, 0.9)}
+
+
+@given(top=st.dictionaries(st.sampled_from(sorted(_VISION_VALUES)), st.integers(0, 1)),
+       recipe=st.dictionaries(st.sampled_from(sorted(_VISION_VALUES)), st.integers(0, 1)))
+@settings(max_examples=60, deadline=None)
+def test_overlay_takes_the_recipe_key_else_the_top_level_else_the_default(
+        top: dict[str, int], recipe: dict[str, int]) -> None:
+    top_vision = {k: _VISION_VALUES[k][i] for k, i in top.items()}
+    recipe_vision = {k: _VISION_VALUES[k][1 - i] for k, i in recipe.items()}
+    config = config_from_dict({"vision": top_vision,
+                               "recipes": {"9": {"name": "r", "vision": recipe_vision}}})
+    effective = config.for_recipe(9).vision
+    default = VisionConfig()
+    for key in _VISION_VALUES:
+        expected = recipe_vision.get(key, top_vision.get(key, getattr(default, key)))
+        assert getattr(effective, key) == expected, key
+    assert config.vision == VisionConfig(**top_vision)
