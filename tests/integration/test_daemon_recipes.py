@@ -26,7 +26,7 @@ from vgripd.cli.status import format_status
 from vgripd.config import config_from_dict, load_config
 from vgripd.geometry.transforms import pose_error
 from vgripd.serialize import toml_from_dict
-from vgripd.service.protocol import Reg
+from vgripd.service.protocol import LinkState, Reg
 from vgripd.sim.plc import MockPlc
 from vgripd.types import Status
 from vgripd.vision.scene import matrix_from_pose
@@ -286,3 +286,29 @@ def test_locate_runs_the_recipe_asked_for(tmp_path: Path,
         line = json.loads(capsys.readouterr().out)
         assert (line["recipe"], line["status"]) == (recipe, status)
     assert main(["locate", "-c", str(SAMPLE), *images, "--recipe", "9"]) == 78
+
+
+@pytest.mark.timeout(90)
+async def test_ur_robot_program_selects_the_recipe() -> None:
+    """The URScript twin with VGRIPD_RECIPE = 2, 1, 5 against the daemon (real ur_rtde client,
+    output_int_register 15): plate B found, the other plate's recipe NOT_FOUND, 5 unknown."""
+    from vgripd.sim.ur_controller import URController
+
+    data = tomllib.loads(SAMPLE.read_text())
+    with URController("127.0.7.20") as robot:
+        data.update(links=[{"type": "ur_rtde", "host": robot.host}], output={"vendor": "ur"},
+                    status={"port": 0}, daemon={"worker": False})
+        async with running(config_from_dict(data)) as run:
+            await run.daemon.wait_for(
+                lambda: all(link.health().state is LinkState.UP
+                            for link in run.daemon.links.values()), WAIT_S)
+            for n, (recipe, status) in enumerate(((2, Status.OK), (1, Status.NOT_FOUND),
+                                                  (5, Status.BAD_REQUEST)), start=1):
+                seq = robot.start_program(1, taught_pose=(0.3, 0.1, 0.2, 0.0, 3.1, 0.05),
+                                          recipe=recipe)
+                result = await asyncio.to_thread(robot.program_result, seq)
+                _, record = await run.job_done(n)
+                assert record.recipe == recipe
+                assert record.result.status is status
+                assert result["status"] == int(status)
+                assert (result["offset"] is not None) == (status is Status.OK)
