@@ -62,6 +62,7 @@ LINKS: dict[str, str] = {
     "ur_rtde": "drivers.links.ur_rtde:URRtdeLink",
     "s7": "drivers.links.s7:S7Link",
     "robot_socket": "drivers.links.robot_socket:RobotSocketLink",
+    "opcua": "drivers.links.opcua:OpcUaLink",
 }
 
 

@@ -1,0 +1,642 @@
+"""OPC UA server link: vgripd serves a vision system after OPC 40100 (Machine Vision).
+
+An asyncua ``Server`` runs on the daemon's own loop. A client (a PLC's OPC UA client, a robot,
+a cell computer) calls ``VisionSystem.StartSingleJob`` and gets a ``RequestId``; the daemon
+runs the job; ``Result.*`` variables and a ``ResultReadyEventType`` event carry the outcome.
+The address space is ``drivers/links/opcua_space.py``; docs/opcua.md has it in full, the job
+sequence a client follows, the security set-up and what of OPC 40100 is implemented.
+
+Semantics follow the register handshake: one job at a time per link; a start while this link's
+job runs is refused at once with ``BadInvalidState`` (the state machine is in SingleExecution)
+and counted as ``BUSY`` in ``refusals()``; a recipe outside 0..65535 or a wrong argument list is
+refused ``BadInvalidArgument`` / ``BadArgumentsMissing`` / ``BadTooManyArguments`` and counted
+``BAD_REQUEST``. A start the daemon refuses (another link's job runs, shutdown) is answered as
+a result, with status BUSY or ABORTED and ``JobId`` 0, as the Modbus links answer it.
+Results are written data first, ``Result.RequestId`` (retracted to 0 when a job starts) and
+``Result.Sequence`` last; one Read request is answered without interleaving with a publish.
+
+Security (``security``): endpoints exist only for the listed modes; ``"None"`` only when it is
+listed. Signing modes need the server certificate, generated self-signed into
+``certificate_dir`` at the first start. Users (``users``) log in with a password read from a
+file or an environment variable at ``open``, never from the TOML; anonymous sessions only with
+``allow_anonymous = true``.
+
+Faults are the peer's, never the daemon's: a connection whose first bytes are not an OPC UA
+Hello is closed, as is one that opens no session within ``activation_timeout_s`` or stays
+silent beyond its session timeout (at most ``max_session_timeout_s``), or one whose messages
+asyncua cannot process. Each is one log line per client and kind per ``log_interval_s``
+(``RateLimitedLog``), without a traceback; asyncua's own warnings are routed the same way
+unless the ``asyncua`` logger is configured explicitly. The server keeps serving.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime
+import hmac
+import logging
+import os
+import socket
+import time
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+try:
+    from asyncua import Server, ua
+    from asyncua.crypto.permission_rules import User, UserRole
+    from asyncua.server.binary_server_asyncio import BinaryServer, OPCUAProtocol
+    from asyncua.server.internal_session import SessionState
+    from asyncua.server.user_managers import UserManager
+except ImportError as err:  # the registry turns this into the one-line DriverError
+    raise ImportError(f"{err}; the opcua link needs asyncua: pip install 'vgripd[opcua]'") from None
+
+from drivers.links.opcua_space import Space, ensure_certificate, result_values
+from vgripd.errors import LinkError
+from vgripd.geometry.vendors import CONVENTIONS
+from vgripd.registry import LinkCapabilities
+from vgripd.service.protocol import (
+    LinkHealth,
+    LinkState,
+    RobotLink,
+    Trigger,
+    TriggerHandler,
+    checked_warnings,
+)
+from vgripd.service.ratelog import RateLimitedLog
+from vgripd.types import JobResult, Status
+
+log = logging.getLogger(__name__)
+
+OPCUA_CAPABILITIES = LinkCapabilities(
+    max(len(c.fields) for c in CONVENTIONS.values()), None,
+    "Result.Values (Double array) with Result.ValueNames, the convention's fields in its own "
+    "units")
+SECURITY_MODES = {
+    "None": ua.SecurityPolicyType.NoSecurity,
+    "Basic256Sha256_Sign": ua.SecurityPolicyType.Basic256Sha256_Sign,
+    "Basic256Sha256_SignAndEncrypt": ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
+}
+SecurityMode = Literal["None", "Basic256Sha256_Sign", "Basic256Sha256_SignAndEncrypt"]
+WILDCARD_HOSTS = ("", "0.0.0.0", "::")
+HELLO = b"HEL"  # every OPC UA TCP connection starts with a Hello message
+CLOSE_TIMEOUT_S = 5.0
+#: asyncua lines the link replaces with its own (per client, with the reason)
+_REPLACED = frozenset({
+    "Session timed out after %ss of inactivity",
+    "Closing idle connection from %s: no ActivateSession within %.1fs",
+    "Endpoints other than open requested but private key and certificate are not set.",
+    "Refusing connection from %s: at max_connections=%s",
+})
+
+
+class OpcUaUser(BaseModel):
+    """One login: ``name`` and where its password is: ``password_file`` (first line, trailing
+    newline stripped) or ``password_env`` (an environment variable's name)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(min_length=1, max_length=128)
+    password_file: Path | None = None
+    password_env: str | None = Field(None, min_length=1)
+
+    @model_validator(mode="after")
+    def _one_source(self) -> OpcUaUser:
+        if (self.password_file is None) == (self.password_env is None):
+            raise ValueError(f"user {self.name!r}: give exactly one of password_file and "
+                             "password_env (passwords are never written in the TOML)")
+        return self
+
+
+def _encrypted_only() -> list[SecurityMode]:
+    return ["Basic256Sha256_SignAndEncrypt"]
+
+
+class OpcUaOptions(BaseModel):
+    """Options of ``type = "opcua"`` (docs/opcua.md, "Options")."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    host: str = "0.0.0.0"
+    port: int = Field(4840, ge=0, le=65535)  # 0 = any free port (tests)
+    path: str = "/vgripd"  # endpoint URL: opc.tcp://HOST:PORT/PATH
+    security: list[SecurityMode] = Field(default_factory=_encrypted_only, min_length=1)
+    certificate_dir: Path | None = None
+    certificate_days: int = Field(3650, ge=1, le=36500)
+    users: list[OpcUaUser] = Field(default_factory=list)
+    allow_anonymous: bool = False
+    namespace_uri: str = Field("urn:vgripd:machine-vision", min_length=1)
+    max_connections: int = Field(8, ge=1, le=256)
+    activation_timeout_s: float = Field(10.0, ge=0.1, le=600.0)
+    max_session_timeout_s: float = Field(60.0, ge=1.0, le=3600.0)
+    log_interval_s: float = Field(60.0, ge=0.1, le=3600.0)
+
+    @field_validator("security")
+    @classmethod
+    def _unique(cls, value: list[str]) -> list[str]:
+        if len(set(value)) != len(value):
+            raise ValueError("each security mode may be listed once")
+        return value
+
+    @field_validator("path")
+    @classmethod
+    def _path(cls, value: str) -> str:
+        if not value.startswith("/") or any(c.isspace() for c in value):
+            raise ValueError("must start with / and contain no spaces (e.g. \"/vgripd\")")
+        return value
+
+    @model_validator(mode="after")
+    def _consistent(self) -> OpcUaOptions:
+        signed = [m for m in self.security if m != "None"]
+        if signed and self.certificate_dir is None:
+            raise ValueError(
+                f"certificate_dir: needed for security {signed[0]!r} (the server certificate "
+                "is generated there at the first start); or set security = [\"None\"]")
+        if not self.users and not self.allow_anonymous:
+            raise ValueError(
+                "users: give at least one user (name and password_file or password_env), or "
+                "set allow_anonymous = true")
+        names = [u.name for u in self.users]
+        if len(set(names)) != len(names):
+            raise ValueError("users: each name may be listed once")
+        return self
+
+
+class _Users(UserManager):
+    """Password check (constant time) and, when allowed, anonymous sessions. A user that is
+    refused gets ``BadUserAccessDenied`` from asyncua; the link logs it once per interval."""
+
+    def __init__(self, link: OpcUaLink, passwords: dict[str, bytes], anonymous: bool) -> None:
+        self.link = link
+        self.passwords = passwords
+        self.anonymous = anonymous
+
+    def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
+                 certificate: Any = None) -> User | None:
+        if username is None:
+            return User(role=UserRole.User, name="anonymous") if self.anonymous else None
+        expected = self.passwords.get(username)
+        given = (password or "").encode() if isinstance(password, str) else (password or b"")
+        if expected is not None and hmac.compare_digest(expected, given):
+            return User(role=UserRole.User, name=username)
+        self.link.fault("login", "login", logging.WARNING,
+                        "login of user %r refused (unknown user or wrong password)", username)
+        return None
+
+
+class _Protocol(OPCUAProtocol):
+    """asyncua's connection with vgripd's checks: Hello first, bounded silence, no crash on
+    garbage. ``reason`` is set when the link closed it (already logged)."""
+
+    def __init__(self, link: OpcUaLink, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.link = link
+        self.host = "?"
+        self.client = "?"
+        self.opened = time.monotonic()
+        self.last_data = self.opened
+        self.first = b""
+        self.reason = ""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        peer = transport.get_extra_info("peername")
+        if isinstance(peer, tuple) and len(peer) >= 2:
+            self.host, self.client = str(peer[0]), f"{peer[0]}:{peer[1]}"
+        super().connection_made(transport)
+        if self.transport is None:  # refused: max_connections
+            self.link.fault(self.host, "refused", logging.WARNING,
+                            "%s refused: %d connections open (max_connections)", self.client,
+                            self.link.options.max_connections)
+            return
+        self.link._admit(self)
+
+    def data_received(self, data: bytes) -> None:
+        if self.reason:
+            return
+        self.last_data = time.monotonic()
+        if len(self.first) < len(HELLO):
+            self.first += data[:len(HELLO) - len(self.first)]
+            if not HELLO.startswith(self.first):
+                self.drop("garbage", f"not OPC UA (first bytes {self.first!r}, expected a "
+                          "Hello)")
+                return
+        super().data_received(data)
+
+    async def _process_one_msg(self, header: Any, buf: Any) -> bool:
+        try:
+            return await super()._process_one_msg(header, buf)
+        except Exception as err:
+            self.drop("protocol", f"message not understood ({type(err).__name__}: {err})")
+            return False
+
+    def connection_lost(self, ex: BaseException | None) -> None:
+        super().connection_lost(ex)
+        self.link._forget(self, ex)
+
+    def session_timeout_s(self) -> float | None:
+        """The timeout of the session this connection activated (it may be closed since:
+        asyncua closes a timed-out session but not its socket); None before activation."""
+        session = self.processor.session if self.processor is not None else None
+        if session is None or session.state == SessionState.Created:
+            return None
+        timeout_s: float | None = session.session_timeout
+        return timeout_s
+
+    def drop(self, kind: str, why: str) -> None:
+        """Close the connection for a fault of the peer: one line, no traceback."""
+        if self.reason or self.transport is None:
+            return
+        self.reason = why
+        self.link.fault(self.host, kind, logging.WARNING, "%s: %s, connection closed",
+                        self.client, why)
+        self.transport.abort()
+
+
+class _BinaryServer(BinaryServer):
+    def __init__(self, link: OpcUaLink, *args: Any) -> None:
+        super().__init__(*args)
+        self.link = link
+
+    def _make_protocol(self) -> OPCUAProtocol:
+        return _Protocol(self.link, iserver=self.iserver, policies=self._policies,
+                         clients=self.clients, closing_tasks=self.closing_tasks,
+                         limits=self.limits)
+
+
+class _Server(Server):
+    """``Server.start`` with vgripd's connection class (the rest is asyncua's own)."""
+
+    def __init__(self, link: OpcUaLink, user_manager: UserManager) -> None:
+        super().__init__(user_manager=user_manager)
+        self.link = link
+
+    async def start(self) -> None:
+        await self._setup_server_nodes()
+        await self.iserver.start()
+        try:
+            host, port = self._get_bind_socket_info()
+            self.bserver = _BinaryServer(self.link, self.iserver, host, port, self.limits)
+            self.bserver.set_policies(self._policies)
+            await self.bserver.start()
+        except BaseException:
+            await self.iserver.stop()
+            raise
+
+
+class _AsyncuaLines(logging.Handler):
+    """asyncua's warnings and errors as one rate-limited line each, without tracebacks."""
+
+    def __init__(self, lines: RateLimitedLog) -> None:
+        super().__init__(logging.WARNING)
+        self.lines = lines
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.msg in _REPLACED:
+            return
+        try:
+            text = record.getMessage().splitlines()[0] if record.getMessage() else ""
+        except Exception:
+            text = str(record.msg)
+        if record.exc_info and record.exc_info[1] is not None:
+            text += f": {type(record.exc_info[1]).__name__}: {record.exc_info[1]}"
+        self.lines.log(record.levelno, "asyncua", str(record.msg)[:80], "opcua server: %s", text)
+
+
+_ASYNCUA_LINES = RateLimitedLog(log, 60.0)
+
+
+def route_asyncua_logs() -> None:
+    """Unless the ``asyncua`` logger was configured (a level or a handler of its own), its
+    WARNING and worse go through ``_AsyncuaLines`` and nothing else (no INFO chatter, no
+    tracebacks). Idempotent."""
+    logger = logging.getLogger("asyncua")
+    if any(isinstance(h, _AsyncuaLines) for h in logger.handlers):
+        return
+    if logger.level != logging.NOTSET or logger.handlers:
+        return
+    logger.setLevel(logging.WARNING)
+    logger.addHandler(_AsyncuaLines(_ASYNCUA_LINES))
+    logger.propagate = False
+
+
+@dataclass
+class _Job:
+    request_id: int
+    recipe: int
+
+
+class OpcUaLink(RobotLink):
+    Options = OpcUaOptions
+    capabilities = OPCUA_CAPABILITIES
+    options: OpcUaOptions
+
+    def __init__(self, name: str, options: OpcUaOptions) -> None:
+        super().__init__(name, options)
+        self.server: _Server | None = None
+        self.space: Space | None = None
+        self._on_trigger: TriggerHandler | None = None
+        self._conns: dict[_Protocol, None] = {}
+        self._job: _Job | None = None
+        self._next_request = 0
+        self._recipe = 0
+        self._warnings = 0
+        self._refusals: Counter[str] = Counter()
+        #: peer faults by kind (garbage, protocol, silent, login, refused)
+        self.faults: Counter[str] = Counter()
+        self.lines = RateLimitedLog(log, options.log_interval_s)
+        self._watch_task: asyncio.Task[None] | None = None
+        self._where = f"{options.host}:{options.port}"
+        self._health = LinkHealth(LinkState.STOPPED, peer=self._where)
+        self._health_changed: asyncio.Condition | None = None
+        self.certificate: Path | None = None  # the server certificate in use
+
+    # -- RobotLink ---------------------------------------------------------------------------
+
+    async def open(self, on_trigger: TriggerHandler) -> None:
+        if self.server is not None:
+            raise LinkError(f"link {self.name}: already open")
+        self._on_trigger = on_trigger
+        self._health_changed = asyncio.Condition()
+        route_asyncua_logs()
+        o = self.options
+        try:
+            passwords = self._passwords()
+            server = await self._make_server(passwords)
+        except LinkError as err:
+            await self._set_health(LinkState.FAILED, str(err))
+            raise LinkError(f"link {self.name}: {err}") from None
+        try:
+            await server.start()
+        except OSError as err:
+            reason = os.strerror(err.errno) if err.errno else str(err)
+            error = (f"cannot listen on {o.host}:{o.port}: {reason} (check host and port of "
+                     f"this [[links]] entry)")
+            await self._set_health(LinkState.FAILED, error)
+            raise LinkError(f"link {self.name}: {error}") from None
+        self.server = server
+        self._where = f"{o.host}:{self.port}"
+        self._watch_task = asyncio.create_task(self._watch(), name=f"{self.name}-watch")
+        await self._set_health(LinkState.UP)
+        log.info("%s: OPC UA server on %s (security %s; %s)", self.name, self.endpoint_url,
+                 ", ".join(o.security),
+                 "users " + ", ".join(u.name for u in o.users) if o.users else "anonymous")
+
+    async def close(self) -> None:
+        task, self._watch_task = self._watch_task, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        server, self.server = self.server, None
+        if server is not None:
+            try:
+                async with asyncio.timeout(CLOSE_TIMEOUT_S):
+                    await server.stop()
+            except Exception as err:  # closing must go on; say why once
+                log.warning("%s: stopping the OPC UA server: %r", self.name, err)
+        self._conns.clear()
+        self._job = None
+        self.space = None
+        self.lines.flush(force=True)
+        await self._set_health(LinkState.STOPPED)
+
+    def health(self) -> LinkHealth:
+        h = self._health
+        return LinkHealth(h.state, peer=self._where, last_error=h.last_error,
+                          reconnects=h.reconnects, since_mono_ns=h.since_mono_ns,
+                          peers=len(self._conns))
+
+    @property
+    def port(self) -> int:
+        """The bound port (the configured one, or the one chosen for port 0)."""
+        if self.server is not None and self.server.bserver is not None:
+            return int(self.server.bserver.port)
+        return self.options.port
+
+    @property
+    def endpoint_url(self) -> str:
+        """The URL clients connect to (the host name for a wildcard address)."""
+        o = self.options
+        host = socket.gethostname() if o.host in WILDCARD_HOSTS else o.host
+        host = f"[{host}]" if ":" in host else host
+        return f"opc.tcp://{host}:{self.port}{o.path}"
+
+    async def image_captured(self, seq: int, job_id: int) -> None:
+        self._running(seq, "image_captured")
+        assert self.space is not None
+        await self.space.captured(seq, job_id)
+
+    async def publish(self, seq: int, result: JobResult) -> Status:
+        """Write the result (data, RequestId, Sequence, state) and raise the event; the status
+        shown. The server holds it, so it is never undelivered while the link is open."""
+        job = self._running(seq, "publish")
+        self._job = None
+        assert self.space is not None
+        t_done = result.t_done_mono_ns or time.monotonic_ns()
+        stamp = datetime.datetime.now(datetime.UTC) - datetime.timedelta(
+            microseconds=max(0, time.monotonic_ns() - t_done) / 1000)
+        shown, sent = result_values(seq, job.recipe, result, stamp)
+        if sent.status is not result.status:
+            log.warning("%s: request %d answered %s instead of %s: %s", self.name, seq,
+                        sent.status.name, result.status.name, sent.message)
+        await self.space.publish_result(shown)
+        return sent.status
+
+    def refusals(self) -> Mapping[str, int]:
+        return dict(self._refusals)
+
+    async def set_warnings(self, bits: int) -> None:
+        self._warnings = checked_warnings(bits)
+        if self.space is not None:
+            await self.space.write([("Warnings", self._warnings)])
+
+    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
+        return await self._wait_health(self._health_changed, states, timeout_s)
+
+    # -- methods -----------------------------------------------------------------------------
+
+    async def _start_single_job(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        if args:
+            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadTooManyArguments,
+                                "StartSingleJob takes no arguments (SelectRecipe sets the "
+                                "recipe)")
+        if self._job is not None or self.space is None:
+            running = self._job.request_id if self._job is not None else "-"
+            return self._refuse(Status.BUSY, ua.StatusCodes.BadInvalidState,
+                                f"StartSingleJob while request {running} runs")
+        self._next_request = 1 if self._next_request >= 0xFFFFFFFF else self._next_request + 1
+        job = self._job = _Job(self._next_request, self._recipe)
+        await self.space.retract()
+        assert self._on_trigger is not None
+        trigger = Trigger(link=self.name, seq=job.request_id, command=1,
+                          t_mono_ns=time.monotonic_ns(), recipe=job.recipe)
+        asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
+        return [ua.Variant(job.request_id, ua.VariantType.UInt32)]
+
+    async def _select_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        if not args:
+            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadArgumentsMissing,
+                                "SelectRecipe needs RecipeId")
+        if len(args) > 1:
+            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadTooManyArguments,
+                                "SelectRecipe takes one argument (RecipeId)")
+        value = args[0].Value
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFFFF:
+            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadInvalidArgument,
+                                f"SelectRecipe: RecipeId {value!r} is not 0..65535")
+        self._recipe = value
+        assert self.space is not None
+        await self.space.write([("SelectedRecipe", value)])
+        return []
+
+    async def _reset(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        if args:
+            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadTooManyArguments,
+                                "Reset takes no arguments")
+        if self._job is not None or self.space is None:
+            return self._refuse(Status.BUSY, ua.StatusCodes.BadInvalidState,
+                                "Reset while a job runs")
+        await self.space.set_state("Ready")
+        return []
+
+    def _refuse(self, status: Status, code: int, why: str) -> ua.StatusCode:
+        self._refusals[status.name] += 1
+        self.lines.info("method", f"refused {status.name}", "%s: %s: refused %s (%s)",
+                        self.name, why, status.name, ua.StatusCode(ua.UInt32(code)).name)
+        return ua.StatusCode(ua.UInt32(code))
+
+    def _running(self, seq: int, what: str) -> _Job:
+        job = self._job
+        if job is None or job.request_id != seq:
+            running = "none" if job is None else job.request_id
+            raise LinkError(f"link {self.name}: {what} for request {seq}, but the running "
+                            f"request is {running}")
+        return job
+
+    # -- connections -------------------------------------------------------------------------
+
+    def fault(self, client: str, kind: str, level: int, msg: str, *args: Any) -> None:
+        """Count a peer fault and log it, at most once per client and kind per interval."""
+        self.faults[kind] += 1
+        self.lines.log(level, client, kind, f"%s: {msg}", self.name, *args)
+
+    def _admit(self, conn: _Protocol) -> None:
+        self._conns[conn] = None
+        self.lines.info(conn.host, "connected", "%s: client %s connected (%d open)", self.name,
+                        conn.client, len(self._conns))
+
+    def _forget(self, conn: _Protocol, ex: BaseException | None) -> None:
+        if conn not in self._conns:
+            return  # refused at max_connections, or the link is closed
+        del self._conns[conn]
+        if not conn.reason:
+            why = f"{ex}" if ex is not None else "closed the connection"
+            self.lines.info(conn.host, "disconnected", "%s: client %s %s (%d open)", self.name,
+                            conn.client, why, len(self._conns))
+
+    async def _watch(self) -> None:
+        """Close silent connections: no session within ``activation_timeout_s``, or no message
+        for longer than the session's timeout (asyncua closes the session then, not the
+        socket). Also writes held log lines."""
+        o = self.options
+        period = min(0.5, o.activation_timeout_s / 4)
+        while True:
+            await asyncio.sleep(period)
+            now = time.monotonic()
+            for conn in list(self._conns):
+                timeout_s = conn.session_timeout_s()
+                if timeout_s is None:
+                    if now - conn.last_data > o.activation_timeout_s and (
+                            now - conn.opened > o.activation_timeout_s):
+                        conn.drop("silent", f"no session within {o.activation_timeout_s:g} s "
+                                  "(activation_timeout_s)")
+                elif now - conn.last_data > timeout_s + 0.5:
+                    conn.drop("silent", f"silent for {now - conn.last_data:.1f} s (session "
+                              f"timeout {timeout_s:g} s)")
+            self.lines.flush()
+
+    # -- set-up ------------------------------------------------------------------------------
+
+    def _passwords(self) -> dict[str, bytes]:
+        """Each user's password from its file or environment variable; ``LinkError`` naming
+        the field when it is missing or empty."""
+        passwords: dict[str, bytes] = {}
+        for i, user in enumerate(self.options.users):
+            where = f"users[{i}] ({user.name!r})"
+            if user.password_env is not None:
+                value = os.environ.get(user.password_env)
+                if not value:
+                    raise LinkError(f"{where}.password_env: environment variable "
+                                    f"{user.password_env} is not set or empty")
+                passwords[user.name] = value.encode()
+                continue
+            assert user.password_file is not None
+            try:
+                text = user.password_file.read_text().splitlines()
+            except OSError as err:
+                raise LinkError(f"{where}.password_file: cannot read {user.password_file}: "
+                                f"{err.strerror or err}") from None
+            if not text or not text[0]:
+                raise LinkError(f"{where}.password_file: {user.password_file} is empty")
+            passwords[user.name] = text[0].encode()
+        return passwords
+
+    async def _make_server(self, passwords: dict[str, bytes]) -> _Server:
+        o = self.options
+        server = _Server(self, _Users(self, passwords, o.allow_anonymous))
+        await server.init()
+        bind = None if o.host in WILDCARD_HOSTS else o.host
+        server.set_endpoint(f"opc.tcp://{o.host or '0.0.0.0'}:{o.port}{o.path}")
+        server.socket_address = (bind or "0.0.0.0", o.port)
+        server.set_server_name(f"vgripd {self.name}")
+        app_uri = f"urn:vgripd:{socket.gethostname()}:{self.name}"
+        await server.set_application_uri(app_uri)
+        server.product_uri = "urn:vgripd"
+        server.manufacturer_name = "vgripd"
+        server.set_security_policy([SECURITY_MODES[m] for m in o.security])
+        if any(m != "None" for m in o.security):
+            assert o.certificate_dir is not None
+            hosts = [socket.gethostname(), "localhost"] + ([o.host] if bind else [])
+            try:
+                cert, key, made = await asyncio.to_thread(
+                    ensure_certificate, o.certificate_dir, app_uri, hosts, o.certificate_days)
+            except (OSError, ValueError) as err:
+                raise LinkError(f"certificate_dir {o.certificate_dir}: {err}") from None
+            if made:
+                log.info("%s: generated the server certificate %s (clients must trust it)",
+                         self.name, cert)
+            await server.load_certificate(str(cert))
+            await server.load_private_key(str(key))
+            self.certificate = cert
+        tokens: list[type] = []
+        if o.allow_anonymous:
+            tokens.append(ua.AnonymousIdentityToken)
+        if o.users:
+            tokens.append(ua.UserNameIdentityToken)
+        server.set_identity_tokens(tokens)
+        iserver = server.iserver
+        iserver.max_connections = o.max_connections
+        iserver.max_pending_activation_seconds = 0  # the link's own watch says why it closes
+        iserver.max_session_timeout_ms = o.max_session_timeout_s * 1000
+        iserver.min_session_timeout_ms = min(iserver.min_session_timeout_ms,
+                                             o.max_session_timeout_s * 1000)
+        idx = await server.register_namespace(o.namespace_uri)
+        space = Space(server, idx)
+        await space.build(self._start_single_job, self._select_recipe, self._reset)
+        self.space = space
+        return server
+
+    async def _set_health(self, state: LinkState, error: str = "") -> None:
+        h = self._health
+        if state is h.state and error == h.last_error:
+            return
+        self._health = LinkHealth(
+            state, peer=self._where, last_error=error, reconnects=h.reconnects,
+            since_mono_ns=time.monotonic_ns() if state is not h.state else h.since_mono_ns)
+        if self._health_changed is not None:
+            async with self._health_changed:
+                self._health_changed.notify_all()
+

@@ -1,0 +1,478 @@
+"""OpcUaLink against asyncua's client in another process (``vgripd.sim.opcua_client``), asyncua's
+command-line tools (``uals``, ``uaread``) and raw sockets, over real TCP on 127.0.0.1.
+
+The daemon is stood in for by ``Daemon`` below (it answers triggers with fixed results), so
+each check is about the link: the values a client reads are compared with the numbers the
+stand-in published, never with what the link thinks it wrote. The real daemon with the
+synthetic camera is tests/integration/test_daemon_opcua.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import socket
+import subprocess
+import sys
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivers.links.opcua import OpcUaLink, OpcUaOptions
+from tests.conftest import REPO, need
+from vgripd.errors import ConfigError, LinkError
+from vgripd.service.protocol import LinkState, Trigger
+from vgripd.sim.opcua_client import OpcUaClientProcess
+from vgripd.types import JobResult, RobotTarget, Status
+
+pytestmark = pytest.mark.timeout(120)
+
+WAIT_S = 20.0
+POSE = (412.5, -133.25, 287.0625, 12.34, -29.0, 179.5)  # KUKA X Y Z A B C (mm, deg)
+OFFSET = np.array([[0.0, -1.0, 0.0, 12.5], [1.0, 0.0, 0.0, -3.25],
+                   [0.0, 0.0, 1.0, 0.125], [0.0, 0.0, 0.0, 1.0]])
+BIN = Path(sys.executable).parent
+
+
+def kuka_result(job_id: int, values: tuple[float, ...] = POSE,
+                status: Status = Status.OK) -> JobResult:
+    if not status.pose_valid:
+        return JobResult(job_id=job_id, status=status, message="no marks")
+    target = RobotTarget("kuka", ("x", "y", "z", "a", "b", "c"), values)
+    return JobResult(job_id=job_id, status=status, target=target, offset=OFFSET,
+                     residuals={"fit_rms_mm": 0.042, "reprojection_px": 0.31})
+
+
+class Daemon:
+    """Stands in for vgripd's daemon: answers every trigger with ``result_for`` (captured, then
+    published), or holds it until ``release`` when ``hold`` is set."""
+
+    def __init__(self, result_for: Callable[[Trigger], JobResult] | None = None) -> None:
+        self.link: OpcUaLink | None = None
+        self.triggers: list[Trigger] = []
+        self.result_for = result_for or (lambda t: kuka_result(100 + t.seq))
+        self.hold = False
+        self.released = asyncio.Event()
+        self.tasks: set[asyncio.Task[None]] = set()
+
+    def on_trigger(self, trigger: Trigger) -> None:
+        self.triggers.append(trigger)
+        task = asyncio.create_task(self.answer(trigger))
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+
+    async def answer(self, trigger: Trigger) -> None:
+        assert self.link is not None
+        result = self.result_for(trigger)
+        if result.job_id:
+            await self.link.image_captured(trigger.seq, result.job_id)
+        if self.hold:
+            await self.released.wait()
+        await self.link.publish(trigger.seq, result)
+
+
+def options(**extra: Any) -> OpcUaOptions:
+    base: dict[str, Any] = {"host": "127.0.0.1", "port": 0, "security": ["None"],
+                            "allow_anonymous": True, "activation_timeout_s": 0.5,
+                            "log_interval_s": 60}
+    return OpcUaOptions.model_validate({**base, **extra})
+
+
+async def open_link(daemon: Daemon, opts: OpcUaOptions) -> OpcUaLink:
+    link = OpcUaLink("cell", opts)
+    daemon.link = link
+    await link.open(daemon.on_trigger)
+    return link
+
+
+@pytest.fixture
+async def daemon() -> AsyncIterator[Daemon]:
+    d = Daemon()
+    yield d
+    for task in list(d.tasks):
+        task.cancel()
+
+
+@pytest.fixture
+async def link(daemon: Daemon) -> AsyncIterator[OpcUaLink]:
+    lk = await open_link(daemon, options())
+    yield lk
+    await lk.close()
+
+
+def url(link: OpcUaLink) -> str:
+    return f"opc.tcp://127.0.0.1:{link.port}/vgripd"
+
+
+async def until(pred: Callable[[], bool], what: str) -> None:
+    async with asyncio.timeout(WAIT_S):
+        while True:
+            if pred():
+                return
+            await asyncio.sleep(0.01)  # polled: the link has no event for each of these
+
+
+def lines(caplog: pytest.LogCaptureFixture, text: str) -> list[logging.LogRecord]:
+    return [r for r in caplog.records if text in r.getMessage()]
+
+
+# -- jobs ------------------------------------------------------------------------------------
+
+
+async def test_jobs_results_exact_event_equal_and_state_ready(
+        link: OpcUaLink, daemon: Daemon) -> None:
+    async with OpcUaClientProcess(url(link)) as client:
+        assert client.connected["event"] == "connected", client.connected
+        seen = [await client.send("job") for _ in range(2)]
+    for n, r in enumerate(seen, start=1):
+        assert r["event"] == "result", r
+        assert r["request_id"] == n == daemon.triggers[n - 1].seq
+        assert (r["Status"], r["StatusName"], r["JobId"]) == (1, "OK", 100 + n)
+        assert r["Sequence"] == n
+        assert r["captured"] == n  # CapturedRequestId: the image of this request was taken
+        assert r["Vendor"] == "kuka"
+        assert r["ValueNames"] == ["x", "y", "z", "a", "b", "c"]
+        assert tuple(r["Values"]) == POSE  # Double: bit-exact
+        assert np.array_equal(np.array(r["Pose"]).reshape(4, 4), OFFSET)
+        assert r["FitRmsMm"] == 0.042
+        assert dict(zip(r["ResidualNames"], r["Residuals"], strict=True)) == {
+            "fit_rms_mm": 0.042, "reprojection_px": 0.31}
+        assert r["state"] == "Ready"
+        # The event carries the same result in one notification.
+        ev = r["ev"]
+        assert (ev["RequestId"], ev["JobId"], ev["ResultStatus"], ev["Sequence"]) == (
+            n, 100 + n, 1, n)
+        assert tuple(ev["Values"]) == POSE
+        assert ev["Pose"] == r["Pose"]
+    assert link.refusals() == {}
+
+
+async def test_recipe_reaches_the_daemon_and_the_result(link: OpcUaLink, daemon: Daemon) -> None:
+    async with OpcUaClientProcess(url(link)) as client:
+        assert (await client.send("recipe 12"))["event"] == "ok"
+        r = await client.send("job")
+    assert daemon.triggers[0].recipe == 12
+    assert r["RecipeId"] == 12
+    assert r["ev"]["RecipeId"] == 12
+
+
+async def test_busy_start_is_refused_and_the_running_job_completes(
+        link: OpcUaLink, daemon: Daemon) -> None:
+    daemon.hold = True
+    async with OpcUaClientProcess(url(link)) as client:
+        started = await client.send("start")
+        assert started["event"] == "started"
+        assert (await client.send("state"))["state"] == "SingleExecution"
+        refused = await client.send("start")
+        assert refused == {"event": "refused", "code": "BadInvalidState"}
+        assert (await client.send("reset"))["code"] == "BadInvalidState"
+        daemon.released.set()
+        r = await client.send(f"wait {started['request_id']}")
+    assert r["Status"] == Status.OK
+    assert len(daemon.triggers) == 1  # the refused start reached nobody
+    assert link.refusals() == {"BUSY": 2}
+
+
+async def test_wrong_arguments_are_bad_request(link: OpcUaLink) -> None:
+    from asyncua import Client, ua
+    from asyncua.ua.uaerrors import UaStatusCodeError
+
+    async with Client(url(link)) as c:
+        idx = await c.get_namespace_index("urn:vgripd:machine-vision")
+        vs = c.get_node(ua.NodeId("VisionSystem", idx))
+        codes = []
+        for method, args in [("SelectRecipe", [ua.Variant(70000, ua.VariantType.UInt32)]),
+                             ("SelectRecipe", [ua.Variant(-1, ua.VariantType.Int32)]),
+                             ("SelectRecipe", [ua.Variant("3", ua.VariantType.String)]),
+                             ("SelectRecipe", []),
+                             ("StartSingleJob", [ua.Variant(1, ua.VariantType.UInt16)])]:
+            with pytest.raises(UaStatusCodeError) as err:
+                await vs.call_method(ua.NodeId(f"VisionSystem.{method}", idx), *args)
+            codes.append(ua.StatusCode(err.value.code).name)
+        selected = await c.get_node(ua.NodeId("VisionSystem.SelectedRecipe", idx)).read_value()
+        # Result variables are read-only for clients.
+        with pytest.raises(UaStatusCodeError):
+            await c.get_node(ua.NodeId("VisionSystem.Result.Status", idx)).write_value(
+                ua.Variant(1, ua.VariantType.UInt16))
+    assert codes == ["BadInvalidArgument", "BadInvalidArgument", "BadInvalidArgument",
+                     "BadArgumentsMissing", "BadTooManyArguments"]
+    assert selected == 0
+    assert link.refusals() == {"BAD_REQUEST": 5}
+
+
+async def test_failures_show_no_pose_and_system_errors_enter_error_state(daemon: Daemon) -> None:
+    outcomes = iter([
+        kuka_result(1, status=Status.CAMERA_ERROR),
+        JobResult(job_id=0, status=Status.BUSY, message="refused: BUSY"),  # daemon refusal
+        kuka_result(3, values=(1.0, float("nan"), 3.0, 4.0, 5.0, 6.0)),  # must not reach a robot
+        kuka_result(4, status=Status.NOT_FOUND),
+    ])
+    daemon.result_for = lambda t: next(outcomes)
+    link = await open_link(daemon, options())
+    try:
+        async with OpcUaClientProcess(url(link)) as client:
+            camera = await client.send("job")
+            assert camera["state"] == "Error"
+            assert (await client.send("reset"))["state"] == "Ready"
+            busy = await client.send("job")
+            nan = await client.send("job")
+            not_found = await client.send("job")
+    finally:
+        await link.close()
+    assert (camera["Status"], camera["Values"], camera["Pose"]) == (30, [], [])
+    assert (busy["Status"], busy["JobId"], busy["state"]) == (40, 0, "Ready")
+    assert (nan["Status"], nan["Values"], nan["Pose"], nan["Vendor"]) == (
+        Status.OUT_OF_LIMITS, [], [], "")
+    assert nan["ev"]["ResultStatus"] == Status.OUT_OF_LIMITS
+    assert (not_found["Status"], not_found["state"], not_found["Message"]) == (
+        10, "Ready", "no marks")
+
+
+async def test_publish_for_another_request_is_a_link_error(link: OpcUaLink) -> None:
+    with pytest.raises(LinkError, match="running request is none"):
+        await link.publish(5, kuka_result(1))
+
+
+async def test_warnings_are_live(link: OpcUaLink) -> None:
+    from asyncua import Client, ua
+
+    await link.set_warnings(1)
+    with pytest.raises(LinkError):
+        await link.set_warnings(4)
+    async with Client(url(link)) as c:
+        idx = await c.get_namespace_index("urn:vgripd:machine-vision")
+        assert await c.get_node(ua.NodeId("VisionSystem.Warnings", idx)).read_value() == 1
+
+
+# -- faults ----------------------------------------------------------------------------------
+
+
+async def test_garbage_is_closed_with_one_line_and_the_server_serves_on(
+        link: OpcUaLink, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    for payload in (b"GET / HTTP/1.1\r\n\r\n", b"\x00" * 64, b"HEL" + os.urandom(200),
+                    b"MSGF\x10\x00\x00\x00" + os.urandom(8)):
+        reader, writer = await asyncio.open_connection("127.0.0.1", link.port)
+        writer.write(payload)
+        await writer.drain()
+        async with asyncio.timeout(WAIT_S):
+            await reader.read()  # the server closes the connection
+        writer.close()
+    await until(lambda: link.health().peers == 0, "connections closed")
+    async with OpcUaClientProcess(url(link)) as client:
+        assert (await client.send("job"))["Status"] == Status.OK
+    assert link.faults["garbage"] >= 2
+    assert len(lines(caplog, "not OPC UA")) == 1  # rate limited: one line per client and kind
+    assert not [r for r in caplog.records if r.exc_info or "Traceback" in r.getMessage()]
+    assert link.health().state is LinkState.UP
+
+
+async def test_silent_peers_are_closed_once_each(
+        daemon: Daemon, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    link = await open_link(daemon, options(max_session_timeout_s=1.5))
+    try:
+        # A TCP peer that never says Hello: closed after activation_timeout_s.
+        reader, writer = await asyncio.open_connection("127.0.0.1", link.port)
+        async with asyncio.timeout(WAIT_S):
+            assert await reader.read() == b""
+        writer.close()
+        # A client with a session that goes silent (SIGSTOP): closed after its session timeout.
+        async with OpcUaClientProcess(url(link)) as client:
+            assert (await client.send("job"))["Status"] == Status.OK
+            await until(lambda: link.health().peers == 1, "client connected")
+            client.freeze()
+            await until(lambda: link.health().peers == 0, "silent client closed")
+            client.thaw()
+        # ... and the server still serves.
+        async with OpcUaClientProcess(url(link)) as client:
+            assert (await client.send("job"))["Status"] == Status.OK
+    finally:
+        await link.close()
+    assert len(lines(caplog, "no session within 0.5 s")) == 1
+    assert len(lines(caplog, "session timeout 1.5 s")) == 1
+    assert link.faults["silent"] == 2
+    assert not [r for r in caplog.records if r.exc_info]
+
+
+async def test_client_killed_mid_job_then_a_new_client_works(
+        link: OpcUaLink, daemon: Daemon, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    daemon.hold = True
+    async with OpcUaClientProcess(url(link)) as client:
+        started = await client.send("start")
+        await client.kill()
+    await until(lambda: link.health().peers == 0, "killed client gone")
+    daemon.released.set()
+    await until(lambda: not daemon.tasks, "job published")
+    # The result stays readable for a client that comes back.
+    daemon.hold = False
+    async with OpcUaClientProcess(url(link)) as client:
+        assert (await client.send(f"fetch {started['request_id']}"))["Status"] == Status.OK
+        assert (await client.send("job"))["request_id"] == started["request_id"] + 1
+    assert len(lines(caplog, "connection reset")) + len(lines(caplog, "closed the connection")) >= 1
+    assert not [r for r in caplog.records if r.exc_info]
+
+
+async def test_port_in_use_fails_naming_the_address(daemon: Daemon) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        link = OpcUaLink("cell", options(port=port))
+        with pytest.raises(LinkError, match=f"cannot listen on 127.0.0.1:{port}"):
+            await link.open(daemon.on_trigger)
+        assert link.health().state is LinkState.FAILED
+        await link.close()
+
+
+# -- security --------------------------------------------------------------------------------
+
+
+def secure_options(tmp_path: Path, **extra: Any) -> OpcUaOptions:
+    return options(security=["Basic256Sha256_SignAndEncrypt"], allow_anonymous=False,
+                   certificate_dir=str(tmp_path / "pki"),
+                   users=[{"name": "robot", "password_env": "VGRIPD_TEST_OPCUA_PW"}], **extra)
+
+
+async def test_encrypted_session_with_generated_certificate_and_password(
+        daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("VGRIPD_TEST_OPCUA_PW", "s3cret pass")
+    link = await open_link(daemon, secure_options(tmp_path))
+    try:
+        cert = link.certificate
+        assert cert is not None
+        assert cert.exists()
+        assert (tmp_path / "pki" / "vgripd-server-key.pem").stat().st_mode & 0o077 == 0
+        common = ["--security", "Basic256Sha256_SignAndEncrypt", "--server-cert", str(cert),
+                  "--client-cert-dir", str(tmp_path / "client")]
+        env = {"PW": "s3cret pass", "BAD": "wrong"}
+        async with OpcUaClientProcess(url(link), *common, "--user", "robot",
+                                      "--password-env", "PW", env=env) as good:
+            assert good.connected["event"] == "connected", good.connected
+            r = await good.send("job")
+            assert tuple(r["Values"]) == POSE
+        async with OpcUaClientProcess(url(link), *common, "--user", "robot",
+                                      "--password-env", "BAD", env=env) as bad:
+            assert bad.connected["event"] == "error"
+            assert "BadUserAccessDenied" in bad.connected["error"]
+        async with OpcUaClientProcess(url(link), *common) as anonymous:
+            assert anonymous.connected["event"] == "error"
+        async with OpcUaClientProcess(url(link)) as plain:  # security None: no such endpoint
+            assert plain.connected["event"] == "error"
+        assert link.faults["login"] == 1
+        first = cert.read_bytes()
+    finally:
+        await link.close()
+    # The next start uses the same certificate (clients trust it once).
+    link = await open_link(daemon, secure_options(tmp_path))
+    try:
+        assert link.certificate is not None
+        assert link.certificate.read_bytes() == first
+    finally:
+        await link.close()
+
+
+async def test_missing_password_fails_naming_the_field(
+        daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("VGRIPD_TEST_OPCUA_PW", raising=False)
+    link = OpcUaLink("cell", secure_options(tmp_path))
+    with pytest.raises(LinkError, match=r"users\[0\] \('robot'\)\.password_env: environment "
+                                        r"variable VGRIPD_TEST_OPCUA_PW is not set"):
+        await link.open(daemon.on_trigger)
+    assert link.health().state is LinkState.FAILED
+    await link.close()
+    pw = tmp_path / "missing.txt"
+    link = OpcUaLink("cell", options(users=[{"name": "robot", "password_file": str(pw)}],
+                                     allow_anonymous=False))
+    with pytest.raises(LinkError, match=r"password_file: cannot read .*missing.txt"):
+        await link.open(daemon.on_trigger)
+    await link.close()
+
+
+def test_options_and_registry() -> None:
+    from vgripd.config import DriverSection, config_from_dict
+    from vgripd.registry import LINKS, load_class, validate_options
+
+    cls = load_class(LINKS, "link", "opcua")
+    assert cls is OpcUaLink
+
+    def check(**opts: Any) -> Any:
+        return validate_options(cls, DriverSection.model_validate({"type": "opcua", **opts}),
+                                "links.0")
+
+    ok = check(certificate_dir="/var/lib/vgripd/pki",
+               users=[{"name": "plc", "password_file": "/etc/vgripd/plc.pw"}])
+    assert (ok.port, ok.security, ok.allow_anonymous) == (
+        4840, ["Basic256Sha256_SignAndEncrypt"], False)
+    for bad, text in [
+        ({"allow_anonymous": True}, "certificate_dir: needed for security"),
+        ({"security": ["None"]}, "users: give at least one user"),
+        ({"security": ["None"], "allow_anonymous": True, "users": [{"name": "a"}]},
+         "exactly one of password_file and password_env"),
+        ({"security": ["None"], "allow_anonymous": True,
+          "users": [{"name": "a", "password": "x"}]}, "password"),
+        ({"security": ["Basic128"], "allow_anonymous": True}, "security"),
+        ({"security": ["None", "None"], "allow_anonymous": True}, "listed once"),
+        ({"security": ["None"], "allow_anonymous": True, "path": "x"}, "path"),
+    ]:
+        with pytest.raises(ConfigError, match=text):
+            check(**bad)
+    # Any convention fits, the 16 values of a 4x4 matrix included.
+    base = {"camera": {"type": "synthetic"},
+            "links": [{"type": "opcua", "security": ["None"], "allow_anonymous": True}]}
+    config_from_dict({**base, "output": {"vendor": "matrix"}})
+
+
+def test_missing_asyncua_says_how_to_install_it() -> None:
+    code = ("import sys; sys.modules['asyncua'] = None\n"
+            "from vgripd.registry import LINKS, load_class\n"
+            "try:\n    load_class(LINKS, 'link', 'opcua')\n"
+            "except Exception as err:\n    print(type(err).__name__, err)\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                         text=True, timeout=60, check=True).stdout
+    assert out.startswith("DriverError")
+    assert "pip install 'vgripd[opcua]'" in out
+
+
+# -- asyncua's command-line tools -----------------------------------------------------------
+
+
+def tool(name: str) -> str:
+    path = BIN / name
+    need(path.exists(), f"needs {name} (asyncua's command-line tools): pip install "
+                        "'vgripd[opcua]'")
+    return str(path)
+
+
+async def run_tool(*argv: str) -> str:
+    proc = await asyncio.create_subprocess_exec(*argv, stdout=subprocess.PIPE,
+                                                stderr=subprocess.PIPE)
+    async with asyncio.timeout(60):
+        out, err = await proc.communicate()
+    assert proc.returncode == 0, err.decode()
+    return out.decode()
+
+
+async def test_uals_and_uaread_browse_and_read_the_result(link: OpcUaLink) -> None:
+    uals, uaread = tool("uals"), tool("uaread")
+    async with OpcUaClientProcess(url(link)) as client:
+        r = await client.send("job")
+    listing = await run_tool(uals, "-u", url(link), "-n", "ns=2;s=VisionSystem.Result")
+    for name in ("RequestId", "Sequence", "Status", "Values", "ValueNames", "Pose", "JobId",
+                 "Timestamp", "FitRmsMm"):
+        assert f"2:{name}" in listing, listing
+    top = await run_tool(uals, "-u", url(link), "-n", "ns=2;s=VisionSystem")
+    for name in ("StartSingleJob", "SelectRecipe", "Reset", "VisionStateMachine", "Result"):
+        assert f"2:{name}" in top, top
+    status = await run_tool(uaread, "-u", url(link), "-n", "ns=2;s=VisionSystem.Result.Status")
+    values = await run_tool(uaread, "-u", url(link), "-n", "ns=2;s=VisionSystem.Result.Values")
+    rid = await run_tool(uaread, "-u", url(link), "-n",
+                         "ns=2;s=VisionSystem.Result.RequestId")
+    assert status.strip() == "1"
+    assert [float(v) for v in values.strip().strip("[]").split(",")] == list(POSE)
+    assert int(rid.strip()) == r["request_id"]
