@@ -1,0 +1,215 @@
+"""Trigger -> result latency of the opcua link vs a bare asyncua server, same run.
+
+Servers in this process, on one event loop: vgripd's ``OpcUaLink`` (security None, anonymous;
+a daemon stand-in that answers each trigger at once: image_captured, then publish, no vision
+work) and the named peer, a bare asyncua ``Server`` with one method that returns a constant
+result (status and six values) as its output arguments: the least an OPC UA server can do for
+"locate and tell me". The client is asyncua's ``Client`` in a child process (this script with
+``--client``), one session to each server, jobs in alternating blocks so load changes hit both.
+
+What a job is, measured in the client from the call to having the result:
+
+- link: ``StartSingleJob`` (returns the RequestId), then Read requests of ``Result.RequestId``
+  with the result variables, back to back, until the RequestId is the new one (the job
+  sequence of docs/opcua.md for a polling client); ``reads`` counts them;
+- bare: one ``Call`` whose output arguments are the result (one round trip).
+
+So the link's figure holds at least two round trips and the trigger hand-off to the daemon;
+the ratio says what the job sequence costs against the least possible exchange.
+
+    .venv/bin/python bench/bench_opcua.py [jobs] [--write-results]
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from asyncua import Client, Server, ua  # noqa: E402
+
+from bench.results import write_section  # noqa: E402
+from drivers.links.opcua import OpcUaLink, OpcUaOptions  # noqa: E402
+from vgripd.service.protocol import Trigger  # noqa: E402
+from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
+
+POSE = (412.5, -133.25, 287.0625, 0.1234, -2.9, 179.5)
+BLOCK = 100
+NS = "urn:vgripd:machine-vision"
+HEADING = "## OPC UA link (Beyond Modbus, section 2)"
+
+
+# -- servers (this process) ----------------------------------------------------------------
+
+
+async def link_server() -> tuple[OpcUaLink, set[asyncio.Task[None]]]:
+    link = OpcUaLink("bench", OpcUaOptions(host="127.0.0.1", port=0, security=["None"],
+                                           allow_anonymous=True))
+    tasks: set[asyncio.Task[None]] = set()
+    target = RobotTarget("kuka", ("x", "y", "z", "a", "b", "c"), POSE)
+
+    async def answer(t: Trigger) -> None:
+        await link.image_captured(t.seq, t.seq)
+        await link.publish(t.seq, JobResult(job_id=t.seq, status=Status.OK, target=target,
+                                            residuals={"fit_rms_mm": 0.01}))
+
+    def on_trigger(t: Trigger) -> None:
+        task = asyncio.create_task(answer(t))
+        tasks.add(task)
+        task.add_done_callback(tasks.discard)
+
+    await link.open(on_trigger)
+    return link, tasks
+
+
+async def bare_server() -> Server:
+    server = Server()
+    await server.init()
+    server.set_endpoint("opc.tcp://127.0.0.1:0/bare")
+    server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+    idx = await server.register_namespace("urn:bench:bare")
+    obj = await server.nodes.objects.add_object(ua.NodeId(ua.String("Bare"), ua.Int16(idx)),
+                                                "Bare")
+    out = [ua.Variant(int(Status.OK), ua.VariantType.UInt16),
+           ua.Variant(list(POSE), ua.VariantType.Double)]
+
+    async def locate(parent: ua.NodeId) -> list[ua.Variant]:
+        return out
+
+    await obj.add_method(ua.NodeId(ua.String("Bare.Locate"), ua.Int16(idx)), "Locate", locate,
+                         [], [ua.VariantType.UInt16, ua.VariantType.Double])
+    await server.start()
+    return server
+
+
+# -- client (child process) ------------------------------------------------------------------
+
+
+async def client_main(link_url: str, bare_url: str, jobs: int) -> None:
+    async with Client(link_url) as lc, Client(bare_url) as bc:
+        li = await lc.get_namespace_index(NS)
+        bi = await bc.get_namespace_index("urn:bench:bare")
+
+        def nid(path: str, idx: int) -> ua.NodeId:
+            return ua.NodeId(ua.String(path), ua.Int16(idx))
+
+        vs = lc.get_node(nid("VisionSystem", li))
+        start = nid("VisionSystem.StartSingleJob", li)
+        result = [lc.get_node(nid(f"VisionSystem.Result.{n}", li))
+                  for n in ("RequestId", "Status", "Values", "JobId")]
+        bare = bc.get_node(nid("Bare", bi))
+        locate = nid("Bare.Locate", bi)
+
+        async def link_job() -> tuple[float, int]:
+            t0 = time.perf_counter()
+            rid = await vs.call_method(start)
+            reads = 0
+            while True:
+                reads += 1
+                got = await lc.read_values(result)
+                if got[0] == rid:
+                    break
+            dt = (time.perf_counter() - t0) * 1e3
+            assert got[1] == Status.OK and tuple(got[2]) == POSE, got
+            return dt, reads
+
+        async def bare_job() -> tuple[float, int]:
+            t0 = time.perf_counter()
+            status, values = await bare.call_method(locate)
+            dt = (time.perf_counter() - t0) * 1e3
+            assert status == Status.OK and tuple(values) == POSE
+            return dt, 0
+
+        times: dict[str, list[float]] = {"link": [], "bare": []}
+        reads: list[int] = []
+        for job in (link_job, bare_job):  # warm-up, not counted
+            for _ in range(20):
+                await job()
+        done = 0
+        while done < jobs:
+            n = min(BLOCK, jobs - done)
+            for _ in range(n):
+                dt, r = await link_job()
+                times["link"].append(dt)
+                reads.append(r)
+            for _ in range(n):
+                times["bare"].append((await bare_job())[0])
+            done += n
+    print(json.dumps({"times": times, "reads": reads}))
+
+
+# -- report ----------------------------------------------------------------------------------
+
+
+def stats(ms: list[float]) -> dict[str, float]:
+    s = sorted(ms)
+    return {"median": statistics.median(s), "p95": s[int(0.95 * (len(s) - 1))],
+            "p99": s[int(0.99 * (len(s) - 1))], "max": s[-1]}
+
+
+async def main(jobs: int, write: bool) -> None:
+    link, _tasks = await link_server()
+    bare = await bare_server()
+    assert bare.bserver is not None
+    link_url = f"opc.tcp://127.0.0.1:{link.port}/vgripd"
+    bare_url = f"opc.tcp://127.0.0.1:{bare.bserver.port}/bare"
+    load_before = os.getloadavg()
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, __file__, "--client", link_url, bare_url, str(jobs),
+        stdout=subprocess.PIPE)
+    out, _ = await proc.communicate()
+    load_after = os.getloadavg()
+    await link.close()
+    await bare.stop()
+    assert proc.returncode == 0, "client failed"
+    data: dict[str, Any] = json.loads(out)
+    ls, bs = stats(data["times"]["link"]), stats(data["times"]["bare"])
+    reads = data["reads"]
+    ratio = ls["median"] / bs["median"]
+    rows = [("opcua link: StartSingleJob, poll Result until RequestId", ls),
+            ("bare asyncua server: one method call returning the result", bs)]
+    lines = [f"| {name} | {s['median']:.2f} | {s['p95']:.2f} | {s['p99']:.2f} | "
+             f"{s['max']:.2f} |" for name, s in rows]
+    import asyncua
+
+    head = (f"`.venv/bin/python bench/bench_opcua.py {jobs} --write-results`, "
+            f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores shared "
+            f"with other work (load average {' '.join(f'{x:.2f}' for x in load_before)} before, "
+            f"{' '.join(f'{x:.2f}' for x in load_after)} after), Python "
+            f"{platform.python_version()}, asyncua {asyncua.__version__ if hasattr(asyncua, '__version__') else '?'}. "
+            f"{jobs} jobs each, blocks of {BLOCK} alternating, security None, both servers on "
+            "one event loop in the bench process, asyncua's client in a child process; the "
+            "daemon stand-in answers each trigger at once (no vision work).")
+    text = "\n".join([
+        HEADING, "", head, "",
+        "| trigger -> result, ms | median | p95 | p99 | max |", "|---|---:|---:|---:|---:|",
+        *lines, "",
+        f"Median ratio link / bare: {ratio:.2f}. The link's job is the call plus "
+        f"{statistics.mean(reads):.2f} Read requests on average (min {min(reads)}, max "
+        f"{max(reads)}{'; the stand-in publishes before the first Read arrives' if max(reads) == 1 else ''}): "
+        "two round trips, the hand-off to the daemon's handler and the publish (15 variable "
+        "writes, the state machine twice, two events), against one round trip for the bare "
+        "method; a client that waits on the "
+        "ResultReady event or a subscription instead of polling pays the publishing "
+        "interval instead of the reads.",
+    ])
+    print(text)
+    if write:
+        write_section(HEADING, text)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "--client":
+        asyncio.run(client_main(sys.argv[2], sys.argv[3], int(sys.argv[4])))
+    else:
+        args = [a for a in sys.argv[1:] if not a.startswith("--")]
+        asyncio.run(main(int(args[0]) if args else 1000, "--write-results" in sys.argv))
