@@ -119,14 +119,16 @@ async def client_main(link_url: str, bare_url: str, jobs: int) -> None:
                 if got[0] == rid:
                     break
             dt = (time.perf_counter() - t0) * 1e3
-            assert got[1] == Status.OK and tuple(got[2]) == POSE, got
+            assert got[1] == Status.OK, got
+            assert tuple(got[2]) == POSE, got
             return dt, reads
 
         async def bare_job() -> tuple[float, int]:
             t0 = time.perf_counter()
             status, values = await bare.call_method(locate)
             dt = (time.perf_counter() - t0) * 1e3
-            assert status == Status.OK and tuple(values) == POSE
+            assert status == Status.OK
+            assert tuple(values) == POSE
             return dt, 0
 
         times: dict[str, list[float]] = {"link": [], "bare": []}
