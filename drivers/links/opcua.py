@@ -44,7 +44,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 try:
     from asyncua import Server, ua
@@ -125,10 +132,10 @@ class OpcUaOptions(BaseModel):
     port: int = Field(4840, ge=0, le=65535)  # 0 = any free port (tests)
     path: str = "/vgripd"  # endpoint URL: opc.tcp://HOST:PORT/PATH
     security: list[SecurityMode] = Field(default_factory=_encrypted_only, min_length=1)
-    certificate_dir: Path | None = None
+    certificate_dir: Path | None = Field(None, validate_default=True)
     certificate_days: int = Field(3650, ge=1, le=36500)
-    users: list[OpcUaUser] = Field(default_factory=list)
     allow_anonymous: bool = False
+    users: list[OpcUaUser] = Field(default_factory=list, validate_default=True)
     namespace_uri: str = Field("urn:vgripd:machine-vision", min_length=1)
     max_connections: int = Field(8, ge=1, le=256)
     activation_timeout_s: float = Field(10.0, ge=0.1, le=600.0)
@@ -149,21 +156,26 @@ class OpcUaOptions(BaseModel):
             raise ValueError("must start with / and contain no spaces (e.g. \"/vgripd\")")
         return value
 
-    @model_validator(mode="after")
-    def _consistent(self) -> OpcUaOptions:
-        signed = [m for m in self.security if m != "None"]
-        if signed and self.certificate_dir is None:
+    @field_validator("certificate_dir")
+    @classmethod
+    def _certificate_needed(cls, value: Path | None, info: ValidationInfo) -> Path | None:
+        signed = [m for m in info.data.get("security", []) if m != "None"]
+        if signed and value is None:
             raise ValueError(
-                f"certificate_dir: needed for security {signed[0]!r} (the server certificate "
-                "is generated there at the first start); or set security = [\"None\"]")
-        if not self.users and not self.allow_anonymous:
-            raise ValueError(
-                "users: give at least one user (name and password_file or password_env), or "
-                "set allow_anonymous = true")
-        names = [u.name for u in self.users]
+                f"needed for security {signed[0]!r} (the server certificate is generated "
+                "there at the first start); or set security = [\"None\"]")
+        return value
+
+    @field_validator("users")
+    @classmethod
+    def _someone(cls, value: list[OpcUaUser], info: ValidationInfo) -> list[OpcUaUser]:
+        if not value and not info.data.get("allow_anonymous"):
+            raise ValueError("give at least one user (name and password_file or "
+                             "password_env), or set allow_anonymous = true")
+        names = [u.name for u in value]
         if len(set(names)) != len(names):
-            raise ValueError("users: each name may be listed once")
-        return self
+            raise ValueError("each name may be listed once")
+        return value
 
 
 class _Users(UserManager):

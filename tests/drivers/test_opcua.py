@@ -410,10 +410,10 @@ def test_options_and_registry() -> None:
     assert (ok.port, ok.security, ok.allow_anonymous) == (
         4840, ["Basic256Sha256_SignAndEncrypt"], False)
     for bad, text in [
-        ({"allow_anonymous": True}, "certificate_dir: needed for security"),
-        ({"security": ["None"]}, "users: give at least one user"),
+        ({"allow_anonymous": True}, "certificate_dir: Value error, needed for security"),
+        ({"security": ["None"]}, "users: Value error, give at least one user"),
         ({"security": ["None"], "allow_anonymous": True, "users": [{"name": "a"}]},
-         "exactly one of password_file and password_env"),
+         "users.0: .*exactly one of password_file and password_env"),
         ({"security": ["None"], "allow_anonymous": True,
           "users": [{"name": "a", "password": "x"}]}, "password"),
         ({"security": ["Basic128"], "allow_anonymous": True}, "security"),
