@@ -344,6 +344,7 @@ class _Job:
 class OpcUaLink(RobotLink):
     Options = OpcUaOptions
     capabilities = OPCUA_CAPABILITIES
+    listens = True  # `vgripd check` tries its host and port
     options: OpcUaOptions
 
     def __init__(self, name: str, options: OpcUaOptions) -> None:

@@ -428,6 +428,17 @@ def test_options_and_registry() -> None:
     config_from_dict({**base, "output": {"vendor": "matrix"}})
 
 
+def test_check_tries_the_opcua_port() -> None:
+    from vgripd.config import config_from_dict
+    from vgripd.service.commissioning import _listening
+
+    config = config_from_dict({
+        "camera": {"type": "synthetic"}, "status": {"enabled": False},
+        "links": [{"type": "opcua", "host": "127.0.0.1", "port": 4841, "security": ["None"],
+                   "allow_anonymous": True}]})
+    assert _listening(config) == [("links[0]", "127.0.0.1", 4841)]
+
+
 def test_missing_asyncua_says_how_to_install_it() -> None:
     code = ("import sys; sys.modules['asyncua'] = None\n"
             "from vgripd.registry import LINKS, load_class\n"

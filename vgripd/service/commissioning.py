@@ -49,13 +49,15 @@ def check_links(config: Config, options: Options) -> list[Finding]:
 
 def _listening(config: Config) -> list[tuple[str, str, int]]:
     """``(key, host, port)`` of every address the daemon listens on (port 0 excluded): server
-    links (``type`` ending in ``_server``, or ``mode = "server"``) and the status endpoint."""
+    links (``type`` ending in ``_server``, ``mode = "server"``, or a class that says
+    ``listens = True``) and the status endpoint."""
     found = []
     for i, section in enumerate(config.links):
         cls = load_class(LINKS, "link", section.type)
         opts: Any = validate_options(cls, section, f"links.{i}")
         host, port = getattr(opts, "host", None), getattr(opts, "port", None)
-        server = section.type.endswith("_server") or getattr(opts, "mode", None) == "server"
+        server = (section.type.endswith("_server") or getattr(opts, "mode", None) == "server"
+                  or getattr(cls, "listens", False))
         if server and isinstance(host, str) and isinstance(port, int) and port:
             found.append((f"links[{i}]", host, port))
     if config.status.enabled and config.status.port:
