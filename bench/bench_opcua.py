@@ -51,9 +51,11 @@ HEADING = "## OPC UA link (Beyond Modbus, section 2)"
 # -- servers (this process) ----------------------------------------------------------------
 
 
-async def link_server() -> tuple[OpcUaLink, set[asyncio.Task[None]]]:
-    link = OpcUaLink("bench", OpcUaOptions(host="127.0.0.1", port=0, security=["None"],
-                                           allow_anonymous=True))
+async def link_server(pki: Path | None) -> tuple[OpcUaLink, set[asyncio.Task[None]]]:
+    security = ["Basic256Sha256_SignAndEncrypt"] if pki else ["None"]
+    link = OpcUaLink("bench", OpcUaOptions.model_validate({
+        "host": "127.0.0.1", "port": 0, "security": security, "allow_anonymous": True,
+        "certificate_dir": str(pki) if pki else None}))
     tasks: set[asyncio.Task[None]] = set()
     target = RobotTarget("kuka", ("x", "y", "z", "a", "b", "c"), POSE)
 
@@ -71,11 +73,18 @@ async def link_server() -> tuple[OpcUaLink, set[asyncio.Task[None]]]:
     return link, tasks
 
 
-async def bare_server() -> Server:
+async def bare_server(link: OpcUaLink) -> Server:
+    """The peer, with the link's security: the same certificate, anonymous sessions."""
     server = Server()
     await server.init()
     server.set_endpoint("opc.tcp://127.0.0.1:0/bare")
-    server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+    if link.certificate is not None:
+        server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+        await server.load_certificate(str(link.certificate))
+        await server.load_private_key(str(link.certificate.parent / "vgripd-server-key.pem"))
+    else:
+        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+    server.set_identity_tokens([ua.AnonymousIdentityToken])
     idx = await server.register_namespace("urn:bench:bare")
     obj = await server.nodes.objects.add_object(ua.NodeId(ua.String("Bare"), ua.Int16(idx)),
                                                 "Bare")
@@ -94,8 +103,25 @@ async def bare_server() -> Server:
 # -- client (child process) ------------------------------------------------------------------
 
 
-async def client_main(link_url: str, bare_url: str, jobs: int) -> None:
-    async with Client(link_url) as lc, Client(bare_url) as bc:
+async def secure(client: Client, server_cert: str, folder: Path) -> Client:
+    from asyncua.crypto import security_policies
+
+    client.application_uri = "urn:vgripd:bench:client"
+    cert, key = await client.setup_self_signed_certificate(
+        folder / "client-key.pem", folder / "client-cert.der", host_name="localhost")
+    await client.set_security(security_policies.SecurityPolicyBasic256Sha256, str(cert),
+                              str(key), server_certificate=server_cert,
+                              mode=ua.MessageSecurityMode.SignAndEncrypt)
+    return client
+
+
+async def client_main(link_url: str, bare_url: str, jobs: int, server_cert: str) -> None:
+    lc, bc = Client(link_url), Client(bare_url)
+    if server_cert:
+        folder = Path(server_cert).parent.parent / "client"
+        await secure(lc, server_cert, folder)
+        await secure(bc, server_cert, folder)
+    async with lc, bc:
         li = await lc.get_namespace_index(NS)
         bi = await bc.get_namespace_index("urn:bench:bare")
 
@@ -158,60 +184,84 @@ def stats(ms: list[float]) -> dict[str, float]:
             "p99": s[int(0.99 * (len(s) - 1))], "max": s[-1]}
 
 
-async def main(jobs: int, write: bool) -> None:
-    link, _tasks = await link_server()
-    bare = await bare_server()
+async def measure(jobs: int, pki: Path | None) -> dict[str, Any]:
+    link, _tasks = await link_server(pki)
+    bare = await bare_server(link)
     assert bare.bserver is not None
     link_url = f"opc.tcp://127.0.0.1:{link.port}/vgripd"
     bare_url = f"opc.tcp://127.0.0.1:{bare.bserver.port}/bare"
-    load_before = os.getloadavg()
+    cert = str(link.certificate) if link.certificate is not None else ""
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, __file__, "--client", link_url, bare_url, str(jobs),
+        sys.executable, __file__, "--client", link_url, bare_url, str(jobs), cert,
         stdout=subprocess.PIPE)
     out, _ = await proc.communicate()
-    load_after = os.getloadavg()
     await link.close()
     await bare.stop()
     assert proc.returncode == 0, "client failed"
     data: dict[str, Any] = json.loads(out)
-    ls, bs = stats(data["times"]["link"]), stats(data["times"]["bare"])
-    reads = data["reads"]
-    ratio = ls["median"] / bs["median"]
-    rows = [("opcua link: StartSingleJob, poll Result until RequestId", ls),
-            ("bare asyncua server: one method call returning the result", bs)]
-    lines = [f"| {name} | {s['median']:.2f} | {s['p95']:.2f} | {s['p99']:.2f} | "
-             f"{s['max']:.2f} |" for name, s in rows]
+    return data
+
+
+async def main(jobs: int, write: bool) -> None:
+    import tempfile
+
     import asyncua
 
+    load_before = os.getloadavg()
+    runs: dict[str, dict[str, Any]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        runs["None"] = await measure(jobs, None)
+        runs["Basic256Sha256 SignAndEncrypt"] = await measure(jobs, Path(tmp) / "pki")
+    load_after = os.getloadavg()
+    lines, ratios, notes = [], [], []
+    for mode, data in runs.items():
+        ls, bs = stats(data["times"]["link"]), stats(data["times"]["bare"])
+        reads = data["reads"]
+        ratios.append(f"{ratio_text(ls, bs)} ({mode})")
+        notes.append(f"{statistics.mean(reads):.2f} Read requests on average with {mode} "
+                     f"(min {min(reads)}, max {max(reads)})")
+        for name, st in ((f"opcua link, {mode}: StartSingleJob, poll Result until RequestId",
+                          ls),
+                         (f"bare asyncua server, {mode}: one method call returning the result",
+                          bs)):
+            lines.append(f"| {name} | {st['median']:.2f} | {st['p95']:.2f} | "
+                         f"{st['p99']:.2f} | {st['max']:.2f} |")
+    version = getattr(asyncua, "__version__", "?")
     head = (f"`.venv/bin/python bench/bench_opcua.py {jobs} --write-results`, "
             f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores shared "
             f"with other work (load average {' '.join(f'{x:.2f}' for x in load_before)} before, "
             f"{' '.join(f'{x:.2f}' for x in load_after)} after), Python "
-            f"{platform.python_version()}, asyncua {asyncua.__version__ if hasattr(asyncua, '__version__') else '?'}. "
-            f"{jobs} jobs each, blocks of {BLOCK} alternating, security None, both servers on "
-            "one event loop in the bench process, asyncua's client in a child process; the "
-            "daemon stand-in answers each trigger at once (no vision work).")
+            f"{platform.python_version()}, asyncua {version}. {jobs} jobs each per row, "
+            f"blocks of {BLOCK} alternating link and peer, both servers on one event loop in "
+            "the bench process (anonymous sessions; with encryption the peer uses the link's "
+            "generated certificate), asyncua's client in a child process; the daemon stand-in "
+            "answers each trigger at once (no vision work).")
     text = "\n".join([
         HEADING, "", head, "",
         "| trigger -> result, ms | median | p95 | p99 | max |", "|---|---:|---:|---:|---:|",
         *lines, "",
-        f"Median ratio link / bare: {ratio:.2f}. The link's job is the call plus "
-        f"{statistics.mean(reads):.2f} Read requests on average (min {min(reads)}, max "
-        f"{max(reads)}{'; the stand-in publishes before the first Read arrives' if max(reads) == 1 else ''}): "
-        "two round trips, the hand-off to the daemon's handler and the publish (15 variable "
-        "writes, the state machine twice, two events), against one round trip for the bare "
-        "method; a client that waits on the "
-        "ResultReady event or a subscription instead of polling pays the publishing "
-        "interval instead of the reads.",
+        f"Median ratio link / bare: {'; '.join(ratios)}. The link's job is the call plus "
+        f"the reads ({'; '.join(notes)}; one read means the stand-in had published before the "
+        "first Read arrived): two round trips, the hand-off to the daemon's handler and the "
+        "publish (15 variable writes, the state machine twice, two events), against one round "
+        "trip for the bare method. A client that waits on the ResultReady event or a "
+        "subscription instead of polling pays its publishing interval instead of the reads. "
+        "No target was set for this link; the figures are for comparison with the other links "
+        "(bench/RESULTS.md) and between security modes.",
     ])
     print(text)
     if write:
         write_section(HEADING, text)
 
 
+def ratio_text(ls: dict[str, float], bs: dict[str, float]) -> str:
+    return f"{ls['median'] / bs['median']:.2f}"
+
+
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--client":
-        asyncio.run(client_main(sys.argv[2], sys.argv[3], int(sys.argv[4])))
+        asyncio.run(client_main(sys.argv[2], sys.argv[3], int(sys.argv[4]),
+                                sys.argv[5] if len(sys.argv) > 5 else ""))
     else:
         args = [a for a in sys.argv[1:] if not a.startswith("--")]
         asyncio.run(main(int(args[0]) if args else 1000, "--write-results" in sys.argv))

@@ -439,15 +439,14 @@ class OpcUaLink(RobotLink):
 
     async def image_captured(self, seq: int, job_id: int) -> None:
         self._running(seq, "image_captured")
-        assert self.space is not None
-        await self.space.captured(seq, job_id)
+        await self._space().captured(seq, job_id)
 
     async def publish(self, seq: int, result: JobResult) -> Status:
         """Write the result (data, RequestId, Sequence, state) and raise the event; the status
         shown. The server holds it, so it is never undelivered while the link is open."""
         job = self._running(seq, "publish")
+        space = self._space()
         self._job = None
-        assert self.space is not None
         t_done = result.t_done_mono_ns or time.monotonic_ns()
         stamp = datetime.datetime.now(datetime.UTC) - datetime.timedelta(
             microseconds=max(0, time.monotonic_ns() - t_done) / 1000)
@@ -455,7 +454,7 @@ class OpcUaLink(RobotLink):
         if sent.status is not result.status:
             log.warning("%s: request %d answered %s instead of %s: %s", self.name, seq,
                         sent.status.name, result.status.name, sent.message)
-        await self.space.publish_result(shown)
+        await space.publish_result(shown)
         return sent.status
 
     def refusals(self) -> Mapping[str, int]:
@@ -501,8 +500,7 @@ class OpcUaLink(RobotLink):
             return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadInvalidArgument,
                                 f"SelectRecipe: RecipeId {value!r} is not 0..65535")
         self._recipe = value
-        assert self.space is not None
-        await self.space.write([("SelectedRecipe", value)])
+        await self._space().write([("SelectedRecipe", value)])
         return []
 
     async def _reset(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
@@ -520,6 +518,11 @@ class OpcUaLink(RobotLink):
         self.lines.info("method", f"refused {status.name}", "%s: %s: refused %s (%s)",
                         self.name, why, status.name, ua.StatusCode(ua.UInt32(code)).name)
         return ua.StatusCode(ua.UInt32(code))
+
+    def _space(self) -> Space:
+        if self.space is None:
+            raise LinkError(f"link {self.name}: not open")
+        return self.space
 
     def _running(self, seq: int, what: str) -> _Job:
         job = self._job

@@ -4,8 +4,9 @@ Everything vgripd serves lives under ``Objects/VisionSystem`` in the namespace
 ``options.namespace_uri`` (index 2 on a fresh server; clients should look the URI up in the
 ``NamespaceArray``). Own nodes have string node ids named by their browse path
 (``ns=2;s=VisionSystem.Result.RequestId``), so a PLC program can hard-code them; the state
-machine is built by asyncua's ``FiniteStateMachine`` helper (standard ``FiniteStateMachineType``,
-numeric ids: browse to it). docs/opcua.md has the table and what of OPC 40100 is left out.
+machine is built by asyncua's ``FiniteStateMachine`` helper (a subtype of the standard
+``FiniteStateMachineType``, numeric ids: browse to it) and its ``CurrentState`` written
+directly. docs/opcua.md has the table and what of OPC 40100 is left out.
 
 Writes go through ``Space.write`` in the order the caller gives; ``publish`` orders them so that
 a client never pairs a request id with another request's data (``Space.publish_result``).
@@ -142,7 +143,7 @@ class Space:
         self.nodes: dict[str, ua.NodeId] = {}
         self.types: dict[str, ua.VariantType] = {}
         self.vision_system: Node | None = None
-        self._machine: FiniteStateMachine | None = None
+        self._state_nodes: tuple[ua.NodeId, ...] = ()
         self._states: dict[str, State] = {}
         self._result_ready: EventGenerator | None = None
         self._acquisition_done: EventGenerator | None = None
@@ -171,7 +172,15 @@ class Space:
             state = State(name, name, number)
             await machine.add_state(state)
             self._states[name] = state
-        self._machine = machine
+        # CurrentState and its Id / Number, written directly (the helper's change_state goes
+        # through a session write per node: half the cost of a job's publish)
+        sm = await vs.get_child([f"{idx}:VisionStateMachine"])
+        current = await sm.get_child(["0:CurrentState"])
+        number_node = await current.add_property(  # optional in StateVariableType
+            node_id(idx, "VisionSystem.VisionStateMachine.CurrentState.Number"),
+            ua.QualifiedName("Number", 0), ua.Variant(0, ua.VariantType.UInt32))
+        self._state_nodes = (current.nodeid, (await current.get_child(["0:Id"])).nodeid,
+                             number_node.nodeid)
 
         await vs.add_method(node_id(idx, "VisionSystem.StartSingleJob"),
                             ua.QualifiedName("StartSingleJob", idx), start_job, [],
@@ -240,10 +249,19 @@ class Space:
             await self.server.write_attribute_value(self.nodes[key], dv)
 
     async def set_state(self, name: str) -> None:
-        assert self._machine is not None
-        if name != self.state:
-            await self._machine.change_state(self._states[name])
-            self.state = name
+        """CurrentState (LocalizedText), then its Id (the state object) and Number."""
+        if name == self.state:
+            return
+        state = self._states[name]
+        assert state.node is not None
+        now: Any = datetime.datetime.now(datetime.UTC)
+        for nid, variant in zip(self._state_nodes, (
+                ua.Variant(ua.LocalizedText(name, "en-US"), ua.VariantType.LocalizedText),
+                ua.Variant(state.node.nodeid, ua.VariantType.NodeId),
+                ua.Variant(STATES[name], ua.VariantType.UInt32)), strict=True):
+            await self.server.write_attribute_value(
+                nid, ua.DataValue(variant, SourceTimestamp=now, ServerTimestamp=now))
+        self.state = name
 
     async def retract(self) -> None:
         """A new request: the result area names no request until its result is in."""

@@ -248,6 +248,36 @@ async def test_warnings_are_live(link: OpcUaLink) -> None:
         assert await c.get_node(ua.NodeId("VisionSystem.Warnings", idx)).read_value() == 1
 
 
+async def test_state_machine_current_state_id_and_number(
+        link: OpcUaLink, daemon: Daemon) -> None:
+    from asyncua import Client, ua
+
+    daemon.hold = True
+    async with Client(url(link)) as c:
+        idx = await c.get_namespace_index("urn:vgripd:machine-vision")
+        vs = c.get_node(ua.NodeId(ua.String("VisionSystem"), ua.Int16(idx)))
+        sm = await vs.get_child([f"{idx}:VisionStateMachine"])
+        current = await sm.get_child(["0:CurrentState"])
+
+        async def state() -> tuple[str, Any, int]:
+            text = (await current.read_value()).Text
+            sid = await (await current.get_child(["0:Id"])).read_value()
+            number = await (await current.get_child(["0:Number"])).read_value()
+            return text, sid, number
+
+        ready = (await sm.get_child([f"{idx}:Ready"])).nodeid
+        running = (await sm.get_child([f"{idx}:SingleExecution"])).nodeid
+        before = await state()
+        await vs.call_method(ua.NodeId(ua.String("VisionSystem.StartSingleJob"), ua.Int16(idx)))
+        during = await state()
+        daemon.released.set()
+        await until(lambda: not daemon.tasks, "published")
+        after = await state()
+    assert before == ("Ready", ready, 1)
+    assert during == ("SingleExecution", running, 2)
+    assert after == ("Ready", ready, 1)
+
+
 # -- faults ----------------------------------------------------------------------------------
 
 
