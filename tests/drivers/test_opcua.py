@@ -278,6 +278,53 @@ async def test_state_machine_current_state_id_and_number(
     assert after == ("Ready", ready, 1)
 
 
+async def test_a_publish_never_shows_a_request_id_with_other_data(daemon: Daemon) -> None:
+    """Between any two steps of the loop (where a Read request could be served), the result
+    variables show either no request (RequestId 0) or a request with its own values, also
+    while a client's subscription on them publishes at once (interval 0)."""
+    from asyncua import Client, ua
+
+    daemon.result_for = lambda t: kuka_result(t.seq, values=(float(t.seq),) * 6)
+    link = await open_link(daemon, options())
+    seen: list[tuple[int, list[float]]] = []
+    assert link.server is not None
+    server = link.server
+    space = link.space
+    assert space is not None
+    rid_node, values_node = space.nodes["Result.RequestId"], space.nodes["Result.Values"]
+    stop = asyncio.Event()
+
+    async def observe() -> None:
+        while not stop.is_set():
+            rid = server.read_attribute_value(rid_node).Value.Value
+            values = server.read_attribute_value(values_node).Value.Value
+            seen.append((rid, list(values or [])))
+            await asyncio.sleep(0)
+
+    class Changes:
+        def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
+            pass
+
+    try:
+        async with Client(url(link)) as c:
+            sub = await c.create_subscription(0, Changes())
+            await sub.subscribe_data_change([c.get_node(rid_node), c.get_node(values_node)])
+            observer = asyncio.create_task(observe())
+            vs = c.get_node(ua.NodeId(ua.String("VisionSystem"), ua.Int16(space.idx)))
+            start = ua.NodeId(ua.String("VisionSystem.StartSingleJob"), ua.Int16(space.idx))
+            for _ in range(20):
+                await vs.call_method(start)
+                await until(lambda: not daemon.tasks, "published")
+            stop.set()
+            await observer
+    finally:
+        await link.close()
+    shown = {rid for rid, _ in seen}
+    assert {0, 20} <= shown
+    for rid, values in seen:
+        assert rid == 0 or values == [float(rid)] * 6, (rid, values)
+
+
 # -- faults ----------------------------------------------------------------------------------
 
 
