@@ -56,9 +56,11 @@ from pydantic import (
 try:
     from asyncua import Server, ua
     from asyncua.crypto.permission_rules import User, UserRole
+    from asyncua.crypto.truststore import TrustStore
     from asyncua.server.binary_server_asyncio import BinaryServer, OPCUAProtocol
     from asyncua.server.internal_session import SessionState
     from asyncua.server.user_managers import UserManager
+    from cryptography.hazmat.primitives import hashes  # an asyncua dependency
 except ImportError as err:  # the registry turns this into the one-line DriverError
     raise ImportError(f"{err}; the opcua link needs asyncua: pip install 'vgripd[opcua]'") from None
 
@@ -98,6 +100,7 @@ _REPLACED = frozenset({
     "Closing idle connection from %s: no ActivateSession within %.1fs",
     "Endpoints other than open requested but private key and certificate are not set.",
     "Refusing connection from %s: at max_connections=%s",
+    "Not trusted certificate used: [CN=%s]",
 })
 
 
@@ -134,6 +137,7 @@ class OpcUaOptions(BaseModel):
     security: list[SecurityMode] = Field(default_factory=_encrypted_only, min_length=1)
     certificate_dir: Path | None = Field(None, validate_default=True)
     certificate_days: int = Field(3650, ge=1, le=36500)
+    trusted_clients_dir: Path | None = None
     allow_anonymous: bool = False
     users: list[OpcUaUser] = Field(default_factory=list, validate_default=True)
     namespace_uri: str = Field("urn:vgripd:machine-vision", min_length=1)
@@ -164,6 +168,14 @@ class OpcUaOptions(BaseModel):
             raise ValueError(
                 f"needed for security {signed[0]!r} (the server certificate is generated "
                 "there at the first start); or set security = [\"None\"]")
+        return value
+
+    @field_validator("trusted_clients_dir")
+    @classmethod
+    def _trust_needs_signing(cls, value: Path | None, info: ValidationInfo) -> Path | None:
+        if value is not None and "None" in info.data.get("security", ["None"]):
+            raise ValueError("a client trust list needs every endpoint signed: with \"None\" "
+                             "in security any client connects without a certificate")
         return value
 
     @field_validator("users")
@@ -213,6 +225,7 @@ class _Protocol(OPCUAProtocol):
         self.last_data = self.opened
         self.first = b""
         self.reason = ""
+        self.cert_checked = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         peer = transport.get_extra_info("peername")
@@ -240,10 +253,21 @@ class _Protocol(OPCUAProtocol):
 
     async def _process_one_msg(self, header: Any, buf: Any) -> bool:
         try:
-            return await super()._process_one_msg(header, buf)
+            ok = await super()._process_one_msg(header, buf)
         except Exception as err:
             self.drop("protocol", f"message not understood ({type(err).__name__}: {err})")
             return False
+        if ok and not self.cert_checked and self.processor is not None:
+            # The secure channel's own client certificate, judged as soon as the channel is
+            # open (not only the one a client chooses to repeat in CreateSession).
+            der = getattr(self.processor._connection.security_policy, "peer_certificate", None)
+            if der:
+                self.cert_checked = True
+                why = self.link._untrusted(der)
+                if why:
+                    self.drop("untrusted", why)
+                    return False
+        return ok
 
     def connection_lost(self, ex: BaseException | None) -> None:
         super().connection_lost(ex)
@@ -366,6 +390,7 @@ class OpcUaLink(RobotLink):
         self._health = LinkHealth(LinkState.STOPPED, peer=self._where)
         self._health_changed: asyncio.Condition | None = None
         self.certificate: Path | None = None  # the server certificate in use
+        self._trust: TrustStore | None = None  # trusted_clients_dir, loaded at open
 
     # -- RobotLink ---------------------------------------------------------------------------
 
@@ -519,6 +544,39 @@ class OpcUaLink(RobotLink):
                         self.name, why, status.name, ua.StatusCode(ua.UInt32(code)).name)
         return ua.StatusCode(ua.UInt32(code))
 
+    def _untrusted(self, der: bytes) -> str:
+        """Why the client certificate ``der`` is refused ("" when it is trusted, or when no
+        trust list is configured). A refused certificate is kept in
+        ``certificate_dir/rejected`` for the integrator to move into the trust list."""
+        if self._trust is None:
+            return ""
+        from cryptography import x509
+
+        try:
+            cert = x509.load_der_x509_certificate(der)
+        except ValueError as err:
+            return f"client certificate unreadable ({err})"
+        now = datetime.datetime.now(datetime.UTC)
+        names = cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)
+        name = str(names[0].value) if names else "?"
+        if not cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
+            why = "expired or not yet valid"
+        elif self._trust.is_trusted(cert):
+            return ""
+        else:
+            why = "not in trusted_clients_dir"
+        kept = ""
+        if self.options.certificate_dir is not None:
+            folder = self.options.certificate_dir / "rejected"
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                path = folder / f"{cert.fingerprint(hashes.SHA256()).hex()[:16]}.der"
+                path.write_bytes(der)
+                kept = f"; kept as {path}"
+            except OSError:
+                pass
+        return f"client certificate CN={name} refused: {why}{kept}"
+
     def _space(self) -> Space:
         if self.space is None:
             raise LinkError(f"link {self.name}: not open")
@@ -627,6 +685,21 @@ class OpcUaLink(RobotLink):
             await server.load_certificate(str(cert))
             await server.load_private_key(str(key))
             self.certificate = cert
+        if o.trusted_clients_dir is not None:
+            if not o.trusted_clients_dir.is_dir():
+                raise LinkError(f"trusted_clients_dir: {o.trusted_clients_dir} is not a folder")
+            self._trust = TrustStore([o.trusted_clients_dir], [])
+            if any(o.trusted_clients_dir.iterdir()):
+                try:
+                    await self._trust.load_trust()
+                except (OSError, ValueError) as err:
+                    raise LinkError(f"trusted_clients_dir {o.trusted_clients_dir}: {err}") \
+                        from None
+            else:  # an unloaded store trusts nobody
+                log.warning("%s: trusted_clients_dir %s is empty: every client is refused "
+                            "(refused certificates are kept in %s)", self.name,
+                            o.trusted_clients_dir, o.certificate_dir / "rejected"
+                            if o.certificate_dir else "-")
         tokens: list[type] = []
         if o.allow_anonymous:
             tokens.append(ua.AnonymousIdentityToken)

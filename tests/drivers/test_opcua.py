@@ -564,3 +564,45 @@ async def test_uals_and_uaread_browse_and_read_the_result(link: OpcUaLink) -> No
     assert status.strip() == "1"
     assert [float(v) for v in values.strip().strip("[]").split(",")] == list(POSE)
     assert int(rid.strip()) == r["request_id"]
+
+
+async def test_client_trust_list_refuses_unknown_certificates_and_keeps_them(
+        daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    monkeypatch.setenv("VGRIPD_TEST_OPCUA_PW", "pw")
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    opts = secure_options(tmp_path, trusted_clients_dir=str(trusted))
+    args = ["--security", "Basic256Sha256_SignAndEncrypt", "--client-cert-dir",
+            str(tmp_path / "client"), "--user", "robot", "--password-env", "PW"]
+    link = await open_link(daemon, opts)
+    try:
+        assert link.certificate is not None
+        async with OpcUaClientProcess(url(link), *args, "--server-cert", str(link.certificate),
+                                      env={"PW": "pw"}) as client:
+            assert client.connected["event"] == "error"
+    finally:
+        await link.close()
+    rejected = list((tmp_path / "pki" / "rejected").iterdir())
+    assert len(rejected) == 1
+    assert rejected[0].read_bytes() == (tmp_path / "client" / "client-cert.der").read_bytes()
+    assert len(lines(caplog, "refused: not in trusted_clients_dir")) == 1
+    assert link.faults["untrusted"] == 1
+    # The integrator moves it into the trust list; after a restart the client is let in.
+    rejected[0].rename(trusted / rejected[0].name)
+    link = await open_link(daemon, opts)
+    try:
+        assert link.certificate is not None
+        async with OpcUaClientProcess(url(link), *args, "--server-cert", str(link.certificate),
+                                      env={"PW": "pw"}) as client:
+            assert client.connected["event"] == "connected", client.connected
+            assert (await client.send("job"))["Status"] == Status.OK
+    finally:
+        await link.close()
+    assert not [r for r in caplog.records if r.exc_info]
+
+
+def test_trust_list_needs_signed_endpoints() -> None:
+    with pytest.raises(ValueError, match="trusted_clients_dir"):
+        options(trusted_clients_dir="/tmp")
