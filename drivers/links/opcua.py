@@ -405,11 +405,13 @@ class OpcUaLink(RobotLink):
             passwords = self._passwords()
             server = await self._make_server(passwords)
         except LinkError as err:
+            self.space = None
             await self._set_health(LinkState.FAILED, str(err))
             raise LinkError(f"link {self.name}: {err}") from None
         try:
             await server.start()
         except OSError as err:
+            self.space = None
             reason = os.strerror(err.errno) if err.errno else str(err)
             error = (f"cannot listen on {o.host}:{o.port}: {reason} (check host and port of "
                      f"this [[links]] entry)")
@@ -419,9 +421,9 @@ class OpcUaLink(RobotLink):
         self._where = f"{o.host}:{self.port}"
         self._watch_task = asyncio.create_task(self._watch(), name=f"{self.name}-watch")
         await self._set_health(LinkState.UP)
+        logins = [f"user {u.name}" for u in o.users] + (["anonymous"] if o.allow_anonymous else [])
         log.info("%s: OPC UA server on %s (security %s; %s)", self.name, self.endpoint_url,
-                 ", ".join(o.security),
-                 "users " + ", ".join(u.name for u in o.users) if o.users else "anonymous")
+                 ", ".join(o.security), ", ".join(logins))
 
     async def close(self) -> None:
         task, self._watch_task = self._watch_task, None
