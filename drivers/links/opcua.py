@@ -359,6 +359,16 @@ def route_asyncua_logs() -> None:
     logger.propagate = False
 
 
+def _version() -> str:
+    """vgripd's version for the server's BuildInfo."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("vgripd")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 @dataclass
 class _Job:
     request_id: int
@@ -672,6 +682,8 @@ class OpcUaLink(RobotLink):
         await server.set_application_uri(app_uri)
         server.product_uri = "urn:vgripd"
         server.manufacturer_name = "vgripd"
+        await server.set_build_info("urn:vgripd", "vgripd", "vgripd", _version(), "0",
+                                    datetime.datetime.now(datetime.UTC))
         server.set_security_policy([SECURITY_MODES[m] for m in o.security])
         if any(m != "None" for m in o.security):
             assert o.certificate_dir is not None

@@ -246,6 +246,8 @@ async def test_warnings_are_live(link: OpcUaLink) -> None:
     async with Client(url(link)) as c:
         idx = await c.get_namespace_index("urn:vgripd:machine-vision")
         assert await c.get_node(ua.NodeId("VisionSystem.Warnings", idx)).read_value() == 1
+        maker = ua.NodeId(ua.ObjectIds.Server_ServerStatus_BuildInfo_ManufacturerName)
+        assert await c.get_node(maker).read_value() == "vgripd"
 
 
 async def test_state_machine_current_state_id_and_number(
