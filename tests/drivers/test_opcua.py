@@ -342,6 +342,11 @@ async def test_garbage_is_closed_with_one_line_and_the_server_serves_on(
             await reader.read()  # the server closes the connection
         writer.close()
     await until(lambda: link.health().peers == 0, "connections closed")
+    server = link.server
+    assert server is not None
+    assert server.bserver is not None
+    assert server.bserver.clients == []  # asyncua kept nothing of them
+    assert server.iserver.asyncio_transports == []
     async with OpcUaClientProcess(url(link)) as client:
         assert (await client.send("job"))["Status"] == Status.OK
     assert link.faults["garbage"] >= 2
