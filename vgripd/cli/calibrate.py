@@ -15,6 +15,7 @@ import importlib
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "intrinsics": ("vgripd.cli.calibrate_intrinsics", "one camera from board images"),
     "stereo": ("vgripd.cli.calibrate_stereo", "both cameras and the left->right transform"),
+    "cameras": ("vgripd.cli.calibrate_cameras", "2-8 cameras' poses from shared board views"),
     "handeye": ("vgripd.cli.calibrate_handeye", "camera to flange (or base) from robot poses"),
     "import-mct": ("vgripd.cli.calibrate_mct", "read a Matlab Calibration Toolbox result"),
     "export-mct": ("vgripd.cli.calibrate_mct", "write a result as an MCT Calib_Results*.m"),

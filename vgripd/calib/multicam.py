@@ -1,0 +1,598 @@
+"""N-camera calibration: every camera's pose relative to a reference camera, from board images
+taken at the same instants ("image sets"), then a joint bundle adjustment.
+
+Why not chain ``calibrate stereo`` results: each pair's fit sees only its own views, so a chain
+c1 -> c2 -> c3 -> c4 adds up every link's error, and a camera seen together with several others
+gets one answer per partner that disagree. Here every board corner seen by any camera constrains
+one common solution.
+
+Steps (frames: ``T_a_b`` is the pose of b in a, mm; the reference camera's frame is ``ref``):
+
+1. Board pose per camera and image set (``cv2.solvePnP`` with that camera's intrinsics).
+2. View graph: two cameras are joined when they saw the board in the same image set; each such
+   set gives one estimate of their relative pose ``T_b_a = T_b_board @ inv(T_a_board)``; the
+   pair's consensus is the medoid rotation and the median translation (robust to a bad set).
+3. Spanning tree over the graph, widest links first (most shared sets; Prim's algorithm from
+   the reference camera), so a camera that shares no set with the reference is reached through
+   others (chaining). Cameras the tree cannot reach are refused, naming them and the group they
+   form.
+4. Start values: each camera's pose by composing the tree's links; each image set's board pose
+   in ``ref`` from the camera that saw it best (lowest PnP error).
+5. Joint refinement: ``scipy.optimize.least_squares`` over all cameras' board-corner
+   reprojection errors (px), parameters the camera poses ``T_cam_ref`` (reference held at the
+   identity), the board poses ``T_ref_board`` of every set and, per camera, the intrinsics
+   chosen free (``free``; none by default). Every residual depends on one camera and one board
+   pose only, so the Jacobian is given to the solver as a sparsity pattern: its finite
+   differences then cost a few dozen evaluations whatever the number of cameras and sets, and
+   the linear algebra stays sparse (the cost grows about linearly with the observations).
+6. Outliers: an observation (one camera, one set) whose RMS is above ``outlier_factor`` x the
+   median and above ``outlier_floor_px`` is dropped (worst first, one at a time) and the fit
+   redone: an image taken at another instant, a board that moved, a bad detection.
+
+Residuals reported: per camera the RMS reprojection error; per pair the spread of the pair's
+own per-set estimates (step 2) around the final relative pose, in degrees and mm -- a camera
+that moved between sets or an image from another instant shows up here; per image set the RMS
+over all cameras that saw it.
+
+The projection model is OpenCV's pinhole + Brown (k1 k2 p1 p2 k3), written out here in numpy
+so all observations project in one vectorised call; tests check it against
+``cv2.projectPoints`` and the whole fit against ``cv2.stereoCalibrate``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix, csr_matrix
+
+from vgripd.errors import CalibrationError
+from vgripd.geometry.transforms import (
+    invert_transform,
+    left_jacobians,
+    make_transform,
+    matrices_from_rotvecs,
+    rotation_angle,
+    rotvec_from_matrix,
+    skew,
+)
+
+FloatArray = NDArray[np.float64]
+INTRINSIC_KEYS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+MAX_CAMERAS = 8
+MIN_POINTS = 6
+FEW_SETS = 3  # a camera in fewer image sets than this is warned about
+PAIR_WARN_DEG = 0.5  # pair spread (RMS) above these is warned about: a camera that moved?
+PAIR_WARN_MM = 2.0
+# The sparse trust-region steps are solved by LSMR; at its default tolerances the steps are
+# inexact and the fit crawls (linearly) towards the optimum. Tight ones give Gauss-Newton's
+# few-step convergence.
+LSMR = {"atol": 1e-14, "btol": 1e-14, "regularize": False}
+
+
+@dataclass
+class Observation:
+    """The board seen by one camera in one image set.
+
+    ``obj`` (N, 3) board points (mm, board frame), ``px`` (N, 2) their pixels (OpenCV
+    convention), ``image`` the file name for messages.
+    """
+
+    camera: int
+    set_key: str
+    obj: FloatArray
+    px: FloatArray
+    image: str
+
+
+@dataclass
+class MultiResult:
+    """Calibrated cameras and the evidence.
+
+    ``T_ref_camera[i]`` (4x4, mm): camera i in the reference camera's frame. ``intrinsics[i]``
+    IntrinsicsConfig keys (refined where ``free`` said so). ``cameras``: per camera {name,
+    rms_px, sets, points}. ``pairs``: per connected pair {a, b, shared_sets, rms_px,
+    rotation_deg {rms, max}, translation_mm {rms, max}}. ``graph``: {edges: [(a, b, shared)],
+    tree: [(parent, child)]}. ``sets``: per image set {set, cameras, rms_px}. ``T_ref_board``:
+    set key -> 4x4. ``residuals``: per kept observation (N, 2) observed - projected, px.
+    """
+
+    names: list[str]
+    reference: str
+    T_ref_camera: list[FloatArray]
+    intrinsics: list[dict[str, Any]]
+    cameras: list[dict[str, Any]]
+    pairs: list[dict[str, Any]]
+    graph: dict[str, Any]
+    sets: list[dict[str, Any]]
+    T_ref_board: dict[str, FloatArray]
+    observations: list[Observation]
+    residuals: list[FloatArray]
+    rms_px: float
+    rejected: list[dict[str, str]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+
+def pose_from_vector(v: Sequence[float]) -> FloatArray:
+    """4x4 from (rx, ry, rz, tx, ty, tz): rotation vector (rad) then translation (mm)."""
+    a = np.asarray(v, dtype=np.float64)
+    return make_transform(matrices_from_rotvecs(a[:3]), a[3:6])
+
+
+def vector_from_pose(T: FloatArray) -> FloatArray:
+    return np.r_[rotvec_from_matrix(T[:3, :3]), T[:3, 3]]
+
+
+def project(points_cam: FloatArray, k: FloatArray, skew: FloatArray | float = 0.0) -> FloatArray:
+    """Pixels (M, 2) of camera-frame points (M, 3), mm, through per-point intrinsics ``k``
+    (M, 9) in the order of ``INTRINSIC_KEYS`` (OpenCV's model; ``skew`` px, default 0)."""
+    x = points_cam[:, 0] / points_cam[:, 2]
+    y = points_cam[:, 1] / points_cam[:, 2]
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = k.T
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.column_stack([fx * xd + skew * yd + cx, fy * yd + cy])
+
+
+def intrinsic_vector(cam: dict[str, Any]) -> FloatArray:
+    """IntrinsicsConfig keys -> (9,) in the order of ``INTRINSIC_KEYS``."""
+    return np.r_[cam["fx"], cam["fy"], cam["cx"], cam["cy"], np.asarray(cam["dist"], float)]
+
+
+def _opencv(cam: dict[str, Any]) -> tuple[FloatArray, FloatArray]:
+    K = np.array([[cam["fx"], cam.get("skew", 0.0), cam["cx"]], [0.0, cam["fy"], cam["cy"]],
+                  [0.0, 0.0, 1.0]])
+    return K, np.asarray(cam["dist"], dtype=np.float64)
+
+
+def _pnp(obs: Observation, cam: dict[str, Any]) -> tuple[FloatArray, float]:
+    """Board pose in the camera (4x4) and the PnP RMS (px) of one observation."""
+    K, dist = _opencv(cam)
+    ok, rvec, tvec = cv2.solvePnP(obs.obj, obs.px, K, dist)
+    if not ok:
+        raise CalibrationError(f"{obs.image}: no board pose (solvePnP failed)")
+    proj = cv2.projectPoints(obs.obj, rvec, tvec, K, dist)[0].reshape(-1, 2)
+    rms = float(np.sqrt(np.mean(np.sum((obs.px - proj) ** 2, axis=1))))
+    return make_transform(cv2.Rodrigues(rvec)[0], tvec.ravel()), rms
+
+
+def _consensus(rel: list[FloatArray]) -> FloatArray:
+    """Robust mean of relative poses: the medoid rotation, the median translation."""
+    spread = [sum(rotation_angle(a[:3, :3] @ b[:3, :3].T) for b in rel) for a in rel]
+    out = rel[int(np.argmin(spread))].copy()
+    out[:3, 3] = np.median([r[:3, 3] for r in rel], axis=0)
+    return out
+
+
+def _spread(estimates: list[FloatArray], T: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Rotation (deg) and translation (mm) of each estimate off ``T``."""
+    deg = np.array([np.degrees(rotation_angle(e[:3, :3] @ T[:3, :3].T)) for e in estimates])
+    mm = np.array([float(np.linalg.norm(e[:3, 3] - T[:3, 3])) for e in estimates])
+    return deg, mm
+
+
+class _Problem:
+    """The observations as flat arrays for the vectorised residual."""
+
+    def __init__(self, obs: list[Observation], n_cams: int, set_keys: list[str],
+                 free: list[tuple[str, ...]], ref: int) -> None:
+        self.obs, self.n_cams, self.set_keys, self.ref = obs, n_cams, set_keys, ref
+        index = {k: i for i, k in enumerate(set_keys)}
+        self.X = np.concatenate([o.obj for o in obs])
+        self.px = np.concatenate([o.px for o in obs])
+        self.cam = np.concatenate([np.full(len(o.obj), o.camera) for o in obs])
+        self.view = np.concatenate([np.full(len(o.obj), index[o.set_key]) for o in obs])
+        self.sizes = [len(o.obj) for o in obs]
+        # parameter layout: camera poses (non-reference), board poses, free intrinsics
+        self.cam_col = {}
+        col = 0
+        for c in range(n_cams):
+            if c != ref:
+                self.cam_col[c] = col
+                col += 6
+        self.board_col0 = col
+        col += 6 * len(set_keys)
+        self.free_idx = [[INTRINSIC_KEYS.index(k) for k in f] for f in free]
+        self.intr_col = []
+        for f in self.free_idx:
+            self.intr_col.append(col)
+            col += len(f)
+        self.n_params = col
+
+    def pack(self, T_cam_ref: list[FloatArray], T_ref_board: list[FloatArray],
+             intr: FloatArray) -> FloatArray:
+        x = np.zeros(self.n_params)
+        for c, col in self.cam_col.items():
+            x[col:col + 6] = vector_from_pose(T_cam_ref[c])
+        for v, T in enumerate(T_ref_board):
+            x[self.board_col0 + 6 * v:self.board_col0 + 6 * v + 6] = vector_from_pose(T)
+        for c, idx in enumerate(self.free_idx):
+            x[self.intr_col[c]:self.intr_col[c] + len(idx)] = intr[c, idx]
+        return x
+
+    def unpack(self, x: FloatArray, intr0: FloatArray,
+               ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Camera rotations (C, 3, 3), translations (C, 3), board ones (V, 3, 3), (V, 3), and
+        the intrinsics (C, 9)."""
+        cam_v = np.zeros((self.n_cams, 6))
+        for c, col in self.cam_col.items():
+            cam_v[c] = x[col:col + 6]
+        board_v = x[self.board_col0:self.board_col0 + 6 * len(self.set_keys)].reshape(-1, 6)
+        intr = intr0.copy()
+        for c, idx in enumerate(self.free_idx):
+            intr[c, idx] = x[self.intr_col[c]:self.intr_col[c] + len(idx)]
+        return (matrices_from_rotvecs(cam_v[:, :3]), cam_v[:, 3:], matrices_from_rotvecs(
+            board_v[:, :3]), board_v[:, 3:], intr)
+
+    def _chain(self, x: FloatArray, intr0: FloatArray) -> tuple[FloatArray, ...]:
+        Rc, tc, Rb, tb, intr = self.unpack(x, intr0)
+        RbX = np.einsum("nij,nj->ni", Rb[self.view], self.X)
+        Xr = RbX + tb[self.view]
+        RcXr = np.einsum("nij,nj->ni", Rc[self.cam], Xr)
+        return Rc, RbX, RcXr, RcXr + tc[self.cam], intr
+
+    def residuals(self, x: FloatArray, intr0: FloatArray, skews: FloatArray) -> FloatArray:
+        """Projected - observed, (2M,) px, u and v interleaved."""
+        *_, Xc, intr = self._chain(x, intr0)
+        out: FloatArray = (project(Xc, intr[self.cam], skews[self.cam]) - self.px).ravel()
+        return out
+
+    def jacobian(self, x: FloatArray, intr0: FloatArray, skews: FloatArray) -> csr_matrix:
+        """The residuals' Jacobian, analytic and sparse (finite differences stall short of
+        the optimum at these scales: mm translations beside 1e-6 rad rotations).
+
+        With ``Xr = Rb X + tb`` and ``Xc = Rc Xr + tc``, a rotation vector's derivative is
+        ``d(R p)/dv = -[R p]x J_l(v)`` (J_l: SO(3)'s left Jacobian); the projection's chain
+        rule is written out below for OpenCV's distortion model.
+        """
+        Rc, RbX, RcXr, Xc, intr = self._chain(x, intr0)
+        n_cams_v = np.zeros((self.n_cams, 3))
+        for c, col in self.cam_col.items():
+            n_cams_v[c] = x[col:col + 3]
+        board_v = x[self.board_col0:self.board_col0 + 6 * len(self.set_keys)].reshape(-1, 6)
+        k = intr[self.cam]
+        fx, fy, _cx, _cy, k1, k2, p1, p2, k3 = k.T
+        sk = skews[self.cam]
+        X, Y, Z = Xc.T
+        xn, yn = X / Z, Y / Z
+        r2 = xn * xn + yn * yn
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        drad = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)  # d radial / d r2
+        xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+        yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+        dxd_dx = radial + 2.0 * xn * xn * drad + 2.0 * p1 * yn + 6.0 * p2 * xn
+        dxd_dy = 2.0 * xn * yn * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
+        dyd_dx = 2.0 * xn * yn * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
+        dyd_dy = radial + 2.0 * yn * yn * drad + 6.0 * p1 * yn + 2.0 * p2 * xn
+        # d(u, v)/d(xn, yn), (M, 2, 2)
+        A = np.empty((len(X), 2, 2))
+        A[:, 0, 0] = fx * dxd_dx + sk * dyd_dx
+        A[:, 0, 1] = fx * dxd_dy + sk * dyd_dy
+        A[:, 1, 0] = fy * dyd_dx
+        A[:, 1, 1] = fy * dyd_dy
+        # d(xn, yn)/d Xc, (M, 2, 3)
+        B = np.zeros((len(X), 2, 3))
+        B[:, 0, 0] = 1.0 / Z
+        B[:, 1, 1] = 1.0 / Z
+        B[:, 0, 2] = -X / Z**2
+        B[:, 1, 2] = -Y / Z**2
+        P = A @ B  # d(u, v)/d Xc
+        IntArray = NDArray[np.int64]
+        # (M, 2, k) derivative blocks, their first columns (M,), their points (M,)
+        blocks: list[tuple[FloatArray, IntArray, IntArray]] = []
+
+        def add(J: FloatArray, cols: Any, on: Any = None) -> None:
+            rows = np.arange(len(X)) if on is None else on
+            blocks.append((J, np.asarray(cols, np.int64), np.asarray(rows, np.int64)))
+
+        Jl_c = left_jacobians(n_cams_v)[self.cam]
+        Jl_b = left_jacobians(board_v[:, :3])[self.view]
+        d_vc = -P @ skew(RcXr) @ Jl_c
+        d_vb = -(P @ Rc[self.cam]) @ skew(RbX) @ Jl_b
+        d_tb = P @ Rc[self.cam]
+        non_ref = self.cam != self.ref
+        cam_cols = np.array([self.cam_col.get(c, 0) for c in self.cam])
+        add(np.concatenate([d_vc, P], axis=2)[non_ref], cam_cols[non_ref],
+            np.flatnonzero(non_ref))
+        add(np.concatenate([d_vb, d_tb], axis=2), self.board_col0 + 6 * self.view)
+        # intrinsics, (M, 2, 9) in INTRINSIC_KEYS order
+        Ji = np.zeros((len(X), 2, 9))
+        Ji[:, 0, 0] = xd
+        Ji[:, 1, 1] = yd
+        Ji[:, 0, 2] = 1.0
+        Ji[:, 1, 3] = 1.0
+        for j, powr in ((4, r2), (5, r2 * r2), (8, r2 * r2 * r2)):
+            Ji[:, 0, j] = (fx * xn + sk * yn) * powr
+            Ji[:, 1, j] = fy * yn * powr
+        dp1 = (2.0 * xn * yn, r2 + 2.0 * yn * yn)
+        dp2 = (r2 + 2.0 * xn * xn, 2.0 * xn * yn)
+        for j, (dx_, dy_) in ((6, dp1), (7, dp2)):
+            Ji[:, 0, j] = fx * dx_ + sk * dy_
+            Ji[:, 1, j] = fy * dy_
+        for c, idx in enumerate(self.free_idx):
+            on = np.flatnonzero(self.cam == c)
+            if idx and len(on):
+                add(Ji[on][:, :, idx], np.full(len(on), self.intr_col[c]), on)
+        rows, cols, vals = [], [], []
+        for J, c0, on in blocks:
+            width = J.shape[2]
+            r_idx = (2 * on[:, None, None] + np.arange(2)[None, :, None]) * np.ones((1, 1, width))
+            c_idx = c0[:, None, None] + np.arange(width)[None, None, :] * np.ones((1, 2, 1))
+            rows.append(r_idx.ravel())
+            cols.append(c_idx.ravel())
+            vals.append(J.ravel())
+        return coo_matrix((np.concatenate(vals), (np.concatenate(rows).astype(np.int64),
+                                                  np.concatenate(cols).astype(np.int64))),
+                          shape=(2 * len(X), self.n_params)).tocsr()
+
+
+def calibrate_cameras(names: Sequence[str], intrinsics: Sequence[dict[str, Any]],
+                      observations: Sequence[Observation], *, reference: str | None = None,
+                      free: Sequence[Sequence[str]] | None = None, outlier_factor: float = 3.0,
+                      outlier_floor_px: float = 0.5) -> MultiResult:
+    """Calibrate N cameras' poses (and optionally intrinsics) from board observations.
+
+    Parameters
+    ----------
+    names : camera names (2..8, unique).
+    intrinsics : per camera IntrinsicsConfig keys (fx fy cx cy skew dist width height), the
+        start values (fixed unless ``free`` says).
+    observations : the board per camera and image set (see :class:`Observation`).
+    reference : the camera whose frame is ``ref`` (default the first).
+    free : per camera the intrinsics refined in the joint fit (names from
+        ``INTRINSIC_KEYS``); default none.
+    outlier_factor, outlier_floor_px : the observation outlier rule (module docstring).
+
+    Raises CalibrationError naming the camera, image or pair at fault.
+    """
+    names = [str(n) for n in names]
+    n_cams = len(names)
+    if not 2 <= n_cams <= MAX_CAMERAS:
+        raise CalibrationError(f"{n_cams} cameras: need 2 to {MAX_CAMERAS}")
+    if len(set(names)) != n_cams:
+        raise CalibrationError(f"camera names are not unique: {names}")
+    if len(intrinsics) != n_cams:
+        raise CalibrationError(f"{len(intrinsics)} intrinsics for {n_cams} cameras")
+    ref_name = names[0] if reference is None else reference
+    if ref_name not in names:
+        raise CalibrationError(f"reference camera {ref_name!r} is not one of {names}")
+    ref = names.index(ref_name)
+    free_sets = [tuple(f) for f in free] if free is not None else [()] * n_cams
+    for c, f in enumerate(free_sets):
+        bad = [k for k in f if k not in INTRINSIC_KEYS]
+        if bad:
+            raise CalibrationError(f"camera {names[c]}: unknown intrinsic(s) {bad}; "
+                                   f"choose from {INTRINSIC_KEYS}")
+    obs = []
+    for o in observations:
+        if not 0 <= o.camera < n_cams:
+            raise CalibrationError(f"{o.image}: camera index {o.camera} out of range")
+        if len(o.obj) < MIN_POINTS:
+            raise CalibrationError(f"{o.image}: only {len(o.obj)} board points (need "
+                                   f"{MIN_POINTS})")
+        obs.append(Observation(o.camera, str(o.set_key), np.asarray(o.obj, np.float64),
+                               np.asarray(o.px, np.float64), o.image))
+    cams = [dict(c) for c in intrinsics]
+    pnp: dict[tuple[int, str], tuple[FloatArray, float]] = {
+        (o.camera, o.set_key): _pnp(o, cams[o.camera]) for o in obs}
+    rejected: list[dict[str, str]] = []
+    x: FloatArray | None = None
+    while True:
+        T_cam_ref, edges, tree = _initial_cameras(names, obs, pnp, ref)
+        set_keys = sorted({o.set_key for o in obs}, key=_set_order)
+        problem = _Problem(obs, n_cams, set_keys, list(free_sets), ref)
+        intr0 = np.array([intrinsic_vector(c) for c in cams])
+        skews = np.array([float(c.get("skew", 0.0)) for c in cams])
+        if x is None or len(x) != problem.n_params:
+            boards = _initial_boards(obs, pnp, T_cam_ref, set_keys)
+            x = problem.pack(T_cam_ref, boards, intr0)
+        sol = least_squares(problem.residuals, x, jac=problem.jacobian, args=(intr0, skews),
+                            x_scale="jac", method="trf", ftol=1e-12, xtol=1e-12, gtol=1e-10,
+                            max_nfev=200, tr_solver="lsmr", tr_options=LSMR)
+        if not np.all(np.isfinite(sol.x)):
+            raise CalibrationError("the joint fit diverged (non-finite parameters)")
+        res = sol.fun.reshape(-1, 2)
+        per_obs = np.split(res, np.cumsum(problem.sizes)[:-1])
+        rms = np.array([np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in per_obs])
+        median = float(np.median(rms))
+        worst = int(np.argmax(rms))
+        if rms[worst] <= outlier_factor * median or rms[worst] <= outlier_floor_px:
+            break
+        o = obs[worst]
+        rejected.append({"camera": names[o.camera], "set": o.set_key, "image": o.image,
+                         "reason": f"RMS {rms[worst]:.2f} px vs median {median:.2f} px "
+                                   f"(outlier: > {outlier_factor:g}x median)"})
+        del obs[worst]
+        del pnp[(o.camera, o.set_key)]
+        x = None  # the layout may change (a set or a camera gone): start again from PnP
+    return _result(names, ref, cams, problem, sol.x, intr0, per_obs, obs, pnp, edges, tree,
+                   rejected)
+
+
+def _set_order(key: str) -> tuple[int, str]:
+    return (int(key), "") if key.isdigit() else (1 << 62, key)
+
+
+def _initial_cameras(names: list[str], obs: list[Observation],
+                     pnp: dict[tuple[int, str], tuple[FloatArray, float]], ref: int,
+                     ) -> tuple[list[FloatArray], dict[tuple[int, int], list[FloatArray]],
+                                list[tuple[int, int]]]:
+    """Camera poses ``T_cam_ref`` composed along the widest spanning tree of the view graph;
+    also the per-set pair estimates (``edges[(a, b)]``: estimates of ``T_b_a``) and the tree."""
+    n = len(names)
+    by_set: dict[str, list[int]] = {}
+    for o in obs:
+        by_set.setdefault(o.set_key, []).append(o.camera)
+    edges: dict[tuple[int, int], list[FloatArray]] = {}
+    for key, cams in by_set.items():
+        for i, a in enumerate(sorted(cams)):
+            for b in sorted(cams)[i + 1:]:
+                rel = pnp[(b, key)][0] @ invert_transform(pnp[(a, key)][0])
+                edges.setdefault((a, b), []).append(rel)
+    seen_cams = {o.camera for o in obs}
+    unseen = [names[c] for c in range(n) if c not in seen_cams]
+    if unseen:
+        raise CalibrationError(f"camera(s) {', '.join(unseen)}: the board was not found in "
+                               "any of their images")
+    T_cam_ref: list[FloatArray | None] = [None] * n
+    T_cam_ref[ref] = np.eye(4)
+    tree: list[tuple[int, int]] = []
+    while True:  # Prim: add the widest edge from the tree to a camera outside it
+        best: tuple[int, int, int] | None = None
+        for (a, b), est in edges.items():
+            for parent, child in ((a, b), (b, a)):
+                if T_cam_ref[parent] is not None and T_cam_ref[child] is None and (
+                        best is None or len(est) > best[0]):
+                    best = (len(est), parent, child)
+        if best is None:
+            break
+        _, parent, child = best
+        pair = (min(parent, child), max(parent, child))
+        T_b_a = _consensus(edges[pair])
+        T_child_parent = T_b_a if parent == pair[0] else invert_transform(T_b_a)
+        T_parent_ref = T_cam_ref[parent]
+        assert T_parent_ref is not None
+        T_cam_ref[child] = T_child_parent @ T_parent_ref
+        tree.append((parent, child))
+    missing = [c for c in range(n) if T_cam_ref[c] is None]
+    if missing:
+        groups = _components(missing, edges)
+        told = "; ".join("{" + ", ".join(names[c] for c in g) + "}" for g in groups)
+        reached = ", ".join(names[c] for c in range(n) if T_cam_ref[c] is not None)
+        raise CalibrationError(
+            f"cannot connect camera(s) {', '.join(names[c] for c in missing)} to the reference "
+            f"{names[ref]}: they share no image set (board seen at the same instant) with "
+            f"{reached}, directly or through other cameras (unconnected groups: {told}); take "
+            "image sets where the board is seen by a camera of each group")
+    return [T for T in T_cam_ref if T is not None], edges, tree
+
+
+def _components(cams: list[int], edges: dict[tuple[int, int], list[FloatArray]],
+                ) -> list[list[int]]:
+    left = set(cams)
+    groups = []
+    while left:
+        stack, group = [min(left)], set()
+        while stack:
+            c = stack.pop()
+            if c in group:
+                continue
+            group.add(c)
+            stack += [b if a == c else a for a, b in edges if c in (a, b) and
+                      (b if a == c else a) in left]
+        left -= group
+        groups.append(sorted(group))
+    return groups
+
+
+def _initial_boards(obs: list[Observation], pnp: dict[tuple[int, str], tuple[FloatArray, float]],
+                    T_cam_ref: list[FloatArray], set_keys: list[str]) -> list[FloatArray]:
+    """Each set's board pose in ``ref`` from the camera with the lowest PnP error in it."""
+    best: dict[str, tuple[float, FloatArray]] = {}
+    for o in obs:
+        T_cam_board, rms = pnp[(o.camera, o.set_key)]
+        if o.set_key not in best or rms < best[o.set_key][0]:
+            best[o.set_key] = (rms, invert_transform(T_cam_ref[o.camera]) @ T_cam_board)
+    return [best[k][1] for k in set_keys]
+
+
+def _result(names: list[str], ref: int, cams: list[dict[str, Any]], problem: _Problem,
+            x: FloatArray, intr0: FloatArray, per_obs: list[FloatArray],
+            obs: list[Observation], pnp: dict[tuple[int, str], tuple[FloatArray, float]],
+            edges: dict[tuple[int, int], list[FloatArray]], tree: list[tuple[int, int]],
+            rejected: list[dict[str, str]]) -> MultiResult:
+    Rc, tc, Rb, tb, intr = problem.unpack(x, intr0)
+    T_cam_ref = [make_transform(R, t) for R, t in zip(Rc, tc, strict=True)]
+    n = len(names)
+    intrinsics = []
+    for c in range(n):
+        cam = dict(cams[c])
+        k = intr[c]
+        cam.update(fx=float(k[0]), fy=float(k[1]), cx=float(k[2]), cy=float(k[3]),
+                   dist=[float(v) for v in k[4:9]])
+        intrinsics.append(cam)
+    residuals = [-r for r in per_obs]  # observed - projected
+    sq = [np.sum(r**2, axis=1) for r in residuals]
+    cameras = []
+    for c in range(n):
+        mine = [s for s, o in zip(sq, obs, strict=True) if o.camera == c]
+        cameras.append({"name": names[c], "sets": len(mine),
+                        "points": int(sum(len(s) for s in mine)),
+                        "rms_px": float(np.sqrt(np.mean(np.concatenate(mine))))})
+    pairs = []
+    for (a, b), est in sorted(edges.items()):
+        T_b_a = T_cam_ref[b] @ invert_transform(T_cam_ref[a])
+        deg, mm = _spread(est, T_b_a)
+        shared = {o.set_key for o in obs if o.camera == a} & {o.set_key for o in obs
+                                                             if o.camera == b}
+        both = [s for s, o in zip(sq, obs, strict=True)
+                if o.camera in (a, b) and o.set_key in shared]
+        pairs.append({"a": names[a], "b": names[b], "shared_sets": len(est),
+                      "rms_px": float(np.sqrt(np.mean(np.concatenate(both)))),
+                      "rotation_deg": {"rms": float(np.sqrt(np.mean(deg**2))),
+                                       "max": float(deg.max())},
+                      "translation_mm": {"rms": float(np.sqrt(np.mean(mm**2))),
+                                         "max": float(mm.max())}})
+    sets = []
+    for key in problem.set_keys:
+        mine = [(s, o) for s, o in zip(sq, obs, strict=True) if o.set_key == key]
+        sets.append({"set": key, "cameras": [names[o.camera] for _, o in mine],
+                     "rms_px": float(np.sqrt(np.mean(np.concatenate([s for s, _ in mine]))))})
+    T_ref_camera = [invert_transform(T) for T in T_cam_ref]
+    boards = {k: make_transform(R, t) for k, R, t in zip(problem.set_keys, Rb, tb, strict=True)}
+    result = MultiResult(
+        names=names, reference=names[ref], T_ref_camera=T_ref_camera, intrinsics=intrinsics,
+        cameras=cameras, pairs=pairs,
+        graph={"edges": [(names[a], names[b], len(e)) for (a, b), e in sorted(edges.items())],
+               "tree": [(names[p], names[c]) for p, c in tree]},
+        sets=sets, T_ref_board=boards, observations=obs, residuals=residuals,
+        rms_px=float(np.sqrt(np.mean(np.concatenate(sq)))), rejected=rejected)
+    result.warnings = _warnings(result)
+    return result
+
+
+def _warnings(r: MultiResult) -> list[str]:
+    out = []
+    for cam in r.cameras:
+        if cam["sets"] < FEW_SETS:
+            out.append(f"camera {cam['name']} saw the board in only {cam['sets']} image "
+                       f"set(s); its pose rests on few views")
+    for p in r.pairs:
+        if p["rotation_deg"]["rms"] > PAIR_WARN_DEG or p["translation_mm"]["rms"] > PAIR_WARN_MM:
+            out.append(f"pair {p['a']} / {p['b']}: its own per-set estimates spread "
+                       f"{p['rotation_deg']['rms']:.2f} deg, {p['translation_mm']['rms']:.1f} "
+                       "mm (RMS) around the joint solution: did a camera move, or are some "
+                       "images not from the same instant?")
+    return out
+
+
+def place(result: MultiResult, T_base_ref: FloatArray) -> list[FloatArray]:
+    """Every camera's pose in the base frame, given the reference camera's frame there:
+    ``T_base_camera = T_base_ref @ T_ref_camera``."""
+    return [T_base_ref @ T for T in result.T_ref_camera]
+
+
+def base_from_board(result: MultiResult, set_key: str, T_base_board: FloatArray) -> FloatArray:
+    """``T_base_ref`` from the board's pose in the base frame in one image set."""
+    if set_key not in result.T_ref_board:
+        kept = ", ".join(result.T_ref_board)
+        raise CalibrationError(f"image set {set_key!r} is not in the fit (sets: {kept})")
+    out: FloatArray = T_base_board @ invert_transform(result.T_ref_board[set_key])
+    return out
+
+
+def base_from_camera(result: MultiResult, camera: str, T_base_camera: FloatArray) -> FloatArray:
+    """``T_base_ref`` from one camera's known pose (a hand-eye result); for a robot-mounted
+    camera pass ``T_flange_camera`` and read "base" as "flange"."""
+    if camera not in result.names:
+        raise CalibrationError(f"camera {camera!r} is not one of {result.names}")
+    out: FloatArray = T_base_camera @ invert_transform(
+        result.T_ref_camera[result.names.index(camera)])
+    return out
