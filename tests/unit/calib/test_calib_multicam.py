@@ -3,8 +3,9 @@ cameras.
 
 Oracles: ``cv2.projectPoints`` for the projection model and for the truth (every corner is
 projected by OpenCV through the true cameras and board poses, then noised); scipy's
-``approx_derivative`` for the analytic Jacobian; ``cv2.stereoCalibrate`` for a pair (same
-observations, same model: it must land on the same optimum).
+``approx_derivative`` for the analytic Jacobian and its MINPACK ``least_squares`` for the
+solver; ``cv2.stereoCalibrate`` for a pair (same observations, same model: it must land on the
+same optimum).
 
 The cell: four cameras 200 mm apart in a row, 900 mm above a table, looking down, each turned a
 little differently; boards at random poses 550-750 mm below them. Camera a and camera d are
@@ -21,6 +22,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.optimize import least_squares
 from scipy.optimize._numdiff import approx_derivative
 
 from vgripd.calib.multicam import (
@@ -31,6 +33,7 @@ from vgripd.calib.multicam import (
     base_from_camera,
     calibrate_cameras,
     intrinsic_vector,
+    levenberg_marquardt,
     place,
     project,
 )
@@ -361,3 +364,26 @@ def test_pair_with_refined_intrinsics_equals_stereo_calibrate():
     # and both near the truth (fx within 0.5 %: small board, 25 views)
     for c, cam in enumerate(r.intrinsics):
         assert cam["fx"] == pytest.approx(CAMERAS[c]["fx"], rel=0.005)
+
+
+def test_levenberg_marquardt_reaches_scipys_minimum():
+    """Our solver against scipy's MINPACK Levenberg-Marquardt (dense) on the same problem,
+    started off the optimum: the same cost and parameters."""
+    obs, boards = scene(n_sets=12, seed=9)
+    keys = sorted({o.set_key for o in obs}, key=int)
+    cams = sorted({o.camera for o in obs})
+    problem = _Problem(obs, 4, keys, [("fx", "k1")] * 4, ref=0)
+    intr0 = np.array([intrinsic_vector(c) for c in CAMERAS])
+    skews = np.zeros(4)
+    x0 = problem.pack([np.linalg.inv(truth_ref_camera(c)) for c in range(4)],
+                      [np.linalg.inv(T_BASE_CAMERA[0]) @ boards[k] for k in keys], intr0)
+    x0 = x0 + np.random.default_rng(2).normal(0, 1e-2, x0.shape)
+    x, r = levenberg_marquardt(lambda v: problem.residuals(v, intr0, skews),
+                               lambda v: problem.jacobian(v, intr0, skews), x0)
+    ref = least_squares(lambda v: problem.residuals(v, intr0, skews), x0,
+                        jac=lambda v: problem.jacobian(v, intr0, skews).toarray(), method="lm",
+                        xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    assert len(cams) == 4
+    assert r @ r <= 2 * ref.cost * (1 + 1e-9)
+    assert r @ r == pytest.approx(2 * ref.cost, rel=1e-9)
+    np.testing.assert_allclose(x, ref.x, atol=1e-5)
