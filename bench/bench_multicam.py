@@ -25,6 +25,7 @@ worst camera, the chain's far end, as median over trials), and the time per cali
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import sys
 import time
@@ -130,6 +131,7 @@ def main() -> None:
     ap.add_argument("--cameras", default="2,3,4,6,8")
     ap.add_argument("--write-results", action="store_true")
     args = ap.parse_args()
+    load_before = os.getloadavg()
     rows = []
     for n in [int(v) for v in args.cameras.split(",")]:
         ours_err, peer_err, ours_far, peer_far, t_ours, t_peer, n_obs = [], [], [], [], [], [], []
@@ -157,7 +159,7 @@ def main() -> None:
               f"{row['ours_deg']:.4f} deg, peer {row['peer_mm']:.3f} mm {row['peer_deg']:.4f} "
               f"deg; time ours {1e3 * row['t_ours']:.1f} ms, peer {1e3 * row['t_peer']:.1f} ms",
               flush=True)
-    text = report(rows, args)
+    text = report(rows, args, load_before, os.getloadavg())
     print()
     print(text)
     if args.write_results:
@@ -165,13 +167,15 @@ def main() -> None:
                       "stereoCalibrate (issue 15)", text)
 
 
-def report(rows: list[dict], args: argparse.Namespace) -> str:
+def report(rows: list[dict], args: argparse.Namespace, load_before: tuple[float, ...],
+           load_after: tuple[float, ...]) -> str:
     lines = [
         "## N-camera calibration: joint bundle adjustment vs chained stereoCalibrate (issue 15)",
         "",
         f"`.venv/bin/python bench/bench_multicam.py --trials {args.trials} --cameras "
         f"{args.cameras}`, {time.strftime('%Y-%m-%d')}, {platform.machine()}, 2 cores shared "
-        f"with other work, Python {platform.python_version()}, OpenCV {cv2.__version__}. "
+        f"with other work (load average {load_before[0]:.2f} before, {load_after[0]:.2f} "
+        f"after), Python {platform.python_version()}, OpenCV {cv2.__version__}. "
         f"Cameras in a row {SPACING_MM:g} mm apart, 900 mm up, 7x5 board (25 mm) 550-750 mm "
         f"away, {SETS_PER_CAMERA} image sets per camera, mostly where 2-3 neighbours see the "
         f"board; corners projected by OpenCV with {NOISE_PX} px noise; true intrinsics held "
