@@ -282,3 +282,41 @@ def test_files_without_a_set_number_are_refused(tmp_path):
                          f"b={tmp_path / 'b' / '*.png'}", "--board", SPEC])
     assert rc == 1
     assert "board.png: no number in the file name" in stderr
+
+
+def test_robot_mounted_hand_eye_puts_every_camera_on_the_flange(cell, tmp_path):
+    """A hand-eye result with T_flange_camera for a: both written as mounting = "robot" with
+    T_flange_camera = T_flange_a @ T_a_camera (here: the cell's base poses read as flange
+    poses); intrinsics read from one file's [calibration.right]; a PNG report."""
+    root = cell["root"]
+    he = tmp_path / "handeye.toml"
+    T = T_BASE_CAMERA[0]
+    he.write_text(toml_from_dict({"calibration": {"hand_eye": {
+        "mounting": "robot", "T_flange_camera": {
+            "translation_mm": [float(v) for v in T[:3, 3]],
+            "rotvec_rad": [float(v) for v in cv2.Rodrigues(T[:3, :3])[0].ravel()]}}}}))
+    both = tmp_path / "rig.toml"
+    both.write_text(toml_from_dict({"calibration": {"left": CAMERAS[1], "right": CAMERAS[0]}}))
+    out, png = tmp_path / "flange.toml", tmp_path / "report.png"
+    rc, stdout, _ = run(["--camera", f"a={root / 'a' / '*.png'}", "--camera",
+                         f"b={root / 'b' / '*.png'}", "--intrinsics", f"a={both}:right",
+                         "--intrinsics", f"b={both}", "--board", SPEC, "--hand-eye", f"a={he}",
+                         "-o", str(out), "--report", str(png), "--json"])
+    assert rc == 0
+    summary = json.loads(stdout)
+    assert summary["mounting"] == "robot"
+    entries = tomllib.loads(out.read_text())["calibration"]["cameras"]
+    assert [e["mounting"] for e in entries] == ["robot", "robot"]
+    assert entries[0]["intrinsics"]["fx"] == CAMERAS[0]["fx"]
+    assert entries[1]["intrinsics"]["fx"] == CAMERAS[1]["fx"]
+    for c, entry in enumerate(entries):
+        assert "T_base_camera" not in entry
+        pose = entry["T_flange_camera"]
+        mm, deg = pose_error(transform(pose["rotvec_rad"], pose["translation_mm"]),
+                             T_BASE_CAMERA[c])
+        assert mm < 1.0, (NAMES[c], mm)
+        assert deg < 0.1, (NAMES[c], deg)
+    image = cv2.imread(str(png))
+    assert image is not None
+    assert image.shape[0] > 100
+    assert summary["report"] == str(png)
