@@ -386,7 +386,14 @@ def calibrate_cameras(names: Sequence[str], intrinsics: Sequence[dict[str, Any]]
     rejected: list[dict[str, str]] = []
     x: FloatArray | None = None
     while True:
-        T_cam_ref, edges, tree = _initial_cameras(names, obs, pnp, ref)
+        try:
+            T_cam_ref, edges, tree = _initial_cameras(names, obs, pnp, ref)
+        except CalibrationError as err:
+            if not rejected:
+                raise
+            left_out = ", ".join(f"{x['image']} ({x['reason']})" for x in rejected)
+            raise CalibrationError(f"{err} [after leaving out outlier image(s): {left_out}]"
+                                   ) from None
         set_keys = sorted({o.set_key for o in obs}, key=_set_order)
         problem = _Problem(obs, n_cams, set_keys, list(free_sets), ref)
         intr0 = np.array([intrinsic_vector(c) for c in cams])

@@ -20,7 +20,7 @@ from collections import Counter
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import least_squares
 from scipy.optimize._numdiff import approx_derivative
@@ -387,3 +387,53 @@ def test_levenberg_marquardt_reaches_scipys_minimum():
     assert r @ r <= 2 * ref.cost * (1 + 1e-9)
     assert r @ r == pytest.approx(2 * ref.cost, rel=1e-9)
     np.testing.assert_allclose(x, ref.x, atol=1e-5)
+
+
+# ----------------------------------------------------------------- any relative pose
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
+    """T_0_cam of a camera at ``eye`` whose optical axis points at ``target``, rolled."""
+    z = (target - eye) / np.linalg.norm(target - eye)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    R = np.column_stack([x, np.cross(z, x), z]) @ cv2.Rodrigues(np.array([0, 0, roll]))[0]
+    return transform(cv2.Rodrigues(R)[0].ravel(), eye)
+
+
+@settings(max_examples=25, deadline=None)
+@given(polar=st.floats(0.0, np.pi), azimuth=st.floats(-np.pi, np.pi),
+       roll=st.floats(-np.pi, np.pi), seed=st.integers(0, 2**16))
+@example(polar=np.pi, azimuth=0.0, roll=0.0, seed=1)  # facing each other: a pi rotation
+@example(polar=0.0, azimuth=0.0, roll=np.pi, seed=2)  # same axis, turned upside down
+@example(polar=np.pi / 2, azimuth=0.5, roll=-3.0, seed=3)  # at right angles
+def test_any_relative_pose_is_recovered_exactly(polar, azimuth, roll, seed):
+    """Camera b anywhere on a sphere of 600 mm around the point camera a looks at, looking at
+    it too (relative rotations up to 180 deg, including exactly pi), rolled freely; boards
+    around that point turned to face both. Without noise the pose is exact: no sign or
+    parameterisation trouble anywhere, the rotation vector's pi included."""
+    rng = np.random.default_rng(seed)
+    P = np.array([0.0, 0.0, 600.0])
+    d = np.array([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth),
+                  np.cos(polar)])
+    T_a_b = look_at(P - 600.0 * d, P, roll)
+    z_a, z_b = np.array([0.0, 0.0, 1.0]), T_a_b[:3, 2]
+    s = 1.0 if z_a @ z_b >= 0 else -1.0
+    normal = z_a + s * z_b
+    normal = normal / np.linalg.norm(normal)
+    obs = []
+    for k in range(8):
+        n = cv2.Rodrigues(rng.uniform(-0.3, 0.3, 3))[0] @ normal
+        board_frame = look_at(P - n, P, rng.uniform(-np.pi, np.pi))  # board z along n
+        T_a_board = board_frame.copy()
+        T_a_board[:3, 3] = P + rng.uniform(-30, 30, 3) - board_frame[:3, :3] @ BOARD.mean(0)
+        for c, T_cam_a in ((0, np.eye(4)), (1, np.linalg.inv(T_a_b))):
+            T = T_cam_a @ T_a_board
+            K, dist = opencv(CAMERAS[c])
+            assert np.all((T[:3, :3] @ BOARD.T + T[:3, 3:])[2] > 100)
+            px = cv2.projectPoints(BOARD, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)[0]
+            obs.append(Observation(c, str(k), BOARD, px.reshape(-1, 2), f"{c}_{k}"))
+    r = calibrate_cameras(["a", "b"], CAMERAS[:2], obs)
+    assert_pose(r.T_ref_camera[1], T_a_b, 1e-6, 1e-6)
+    assert r.rms_px < 1e-6
