@@ -43,6 +43,7 @@ from vgripd.calib.files import pose_table, write_result
 from vgripd.calib.intrinsics import DIST_NAMES, calibrate_intrinsics
 from vgripd.calib.multicam import (
     MAX_CAMERAS,
+    MIN_POINTS,
     MultiResult,
     Observation,
     base_from_board,
@@ -241,8 +242,12 @@ def run(args: argparse.Namespace) -> int:
             intrinsics_source[name] = why
         intrinsics.append(cam)
         key_of = {p: k for k, p in paths.items()}
-        observations += [Observation(c, key_of[d.image], obj[d.ids], d.px, d.image)
-                         for d in found]
+        for d in found:
+            if len(d.ids) < MIN_POINTS:  # a ChArUco board seen in part
+                rejected.append({"camera": name, "image": d.image, "reason": f"only "
+                                 f"{len(d.ids)} board points (need at least {MIN_POINTS})"})
+            else:
+                observations.append(Observation(c, key_of[d.image], obj[d.ids], d.px, d.image))
     free = None
     if args.refine_intrinsics:
         free = [("fx", "fy", "cx", "cy", *[n for n, v in zip(DIST_NAMES, cam["dist"],

@@ -23,8 +23,10 @@ import pytest
 from tests.unit.calib.test_calib_boards import render
 from vgripd.__main__ import main
 from vgripd.calib.boards import Board
+from vgripd.cli.calibrate_cameras import _board_pose
 from vgripd.config import CalibrationConfig, IntrinsicsConfig, PoseConfig, load_config
 from vgripd.geometry.transforms import pose_error
+from vgripd.geometry.vendors import vendor_from_transform
 from vgripd.serialize import toml_from_dict
 
 NAMES = ["a", "b", "c", "d"]
@@ -320,3 +322,68 @@ def test_robot_mounted_hand_eye_puts_every_camera_on_the_flange(cell, tmp_path):
     assert image is not None
     assert image.shape[0] > 100
     assert summary["report"] == str(png)
+
+
+@pytest.mark.parametrize("vendor", ["kuka", "abb", "ur", "matrix"])
+def test_board_pose_in_any_vendor_format(vendor):
+    """--board-in-base in a robot's own format gives the same pose as in rotvec."""
+    T = transform([0.3, -1.2, 2.9], [812.5, -40.25, 3.5])
+    key, ours = _board_pose(f"0012={rotvec_pose(T)}", "rotvec")
+    assert key == "12"
+    np.testing.assert_allclose(ours, T, atol=1e-9)
+    values = " ".join(repr(float(v)) for v in vendor_from_transform(vendor, T))
+    key, theirs = _board_pose(f"12={values}", vendor)
+    np.testing.assert_allclose(theirs, T, atol=1e-9)
+
+
+def test_charuco_boards_seen_in_part(tmp_path):
+    """ChArUco: a camera may see only part of the board; the corners it found are used (by
+    their ids), so sets where the board hangs out of one image still link the pair."""
+    board = Board.parse("charuco:7x5:25:18")
+    rng = np.random.default_rng(3)
+    centre = board.object_points().mean(axis=0)
+    partial = 0
+    for k in range(1, 9):
+        R = cv2.Rodrigues(rng.uniform(-0.3, 0.3, 3))[0] @ cv2.Rodrigues(
+            np.array([np.pi, 0.0, 0.0]))[0]
+        T = np.eye(4)
+        T[:3, :3] = R
+        # alternately centred between a and b, and shifted so that one image cuts the board
+        x = 100.0 + (0.0 if k % 2 else rng.choice([-130.0, 130.0]))
+        T[:3, 3] = np.array([x, rng.uniform(-40, 40), rng.uniform(220, 300)]) - R @ centre
+        for c in (0, 1):
+            Tc = np.linalg.inv(T_BASE_CAMERA[c]) @ T
+            K, d = opencv(CAMERAS[c])
+            px = cv2.projectPoints(board.object_points(), cv2.Rodrigues(Tc[:3, :3])[0],
+                                   Tc[:3, 3], K, d)[0].reshape(-1, 2)
+            inside = ((px > 0) & (px < np.array(SIZE) - 1)).all(axis=1)
+            partial += int(0 < inside.sum() < len(px))
+            img = render(board, cv2.Rodrigues(Tc[:3, :3])[0].ravel(), Tc[:3, 3], K=K, dist=d,
+                         size=SIZE, seed=k * 10 + c)
+            (tmp_path / NAMES[c]).mkdir(exist_ok=True)
+            cv2.imwrite(str(tmp_path / NAMES[c] / f"{k:02d}.png"), img)
+    for c in (0, 1):
+        (tmp_path / f"{NAMES[c]}.toml").write_text(
+            toml_from_dict({"calibration": {"left": CAMERAS[c]}}))
+    assert partial >= 3
+    rc, stdout, _ = run([*camera_args(tmp_path, NAMES[:2]), "--board", board.spec,
+                         "--hand-eye", f"a={write_hand_eye(tmp_path, T_BASE_CAMERA[0])}",
+                         "-o", str(tmp_path / "c.toml"), "--json"])
+    assert rc == 0
+    summary = json.loads(stdout)
+    assert len(summary["sets"]) == 8
+    assert summary["pairs"][0]["shared_sets"] >= 6
+    pose = summary["cameras"][1]["T_base_camera"]
+    mm, deg = pose_error(transform(pose["rotvec_rad"], pose["translation_mm"]), T_BASE_CAMERA[1])
+    assert mm < 1.0
+    assert deg < 0.1
+    assert summary["cameras"][0]["points"] < 8 * len(board.object_points())
+
+
+def write_hand_eye(folder: Path, T: np.ndarray) -> Path:
+    path = folder / "handeye.toml"
+    path.write_text(toml_from_dict({"calibration": {"hand_eye": {
+        "mounting": "fixed", "T_base_camera": {
+            "translation_mm": [float(v) for v in T[:3, 3]],
+            "rotvec_rad": [float(v) for v in cv2.Rodrigues(T[:3, :3])[0].ravel()]}}}}))
+    return path
