@@ -97,7 +97,8 @@ class MultiResult:
 
     ``T_ref_camera[i]`` (4x4, mm): camera i in the reference camera's frame. ``intrinsics[i]``
     IntrinsicsConfig keys (refined where ``free`` said so). ``cameras``: per camera {name,
-    rms_px, sets, points}. ``pairs``: per connected pair {a, b, shared_sets, rms_px,
+    rms_px, sets, points, position_std_mm (3,), rotation_std_deg} (one sigma, in the
+    reference frame). ``pairs``: per connected pair {a, b, shared_sets, rms_px,
     rotation_deg {rms, max}, translation_mm {rms, max}}. ``graph``: {edges: [(a, b, shared)],
     tree: [(parent, child)]}. ``sets``: per image set {set, cameras, rms_px}. ``T_ref_board``:
     set key -> 4x4. ``residuals``: per kept observation (N, 2) observed - projected, px.
@@ -418,8 +419,52 @@ def calibrate_cameras(names: Sequence[str], intrinsics: Sequence[dict[str, Any]]
         del obs[worst]
         del pnp[(o.camera, o.set_key)]
         x = None  # the layout may change (a set or a camera gone): start again from PnP
-    return _result(names, ref, cams, problem, x, intr0, per_obs, obs, pnp, edges, tree,
-                   rejected)
+    result = _result(names, ref, cams, problem, x, intr0, per_obs, obs, pnp, edges, tree,
+                     rejected)
+    for row, std in zip(result.cameras, _camera_std(problem, x, intr0, skews, fun),
+                        strict=True):
+        row.update(std)
+    return result
+
+
+def _camera_std(problem: _Problem, x: FloatArray, intr0: FloatArray, skews: FloatArray,
+                fun: FloatArray) -> list[dict[str, Any]]:
+    """One-sigma uncertainty of every camera's pose in the reference camera, from the
+    fit's covariance ``s^2 (J^T J)^-1`` (``s^2 = SSR / (m - p)``): ``position_std_mm`` (x, y,
+    z of the camera centre in the reference frame) and ``rotation_std_deg`` (the root of the
+    rotation vector's variances). The reference camera: zeros."""
+    m, p = len(fun), problem.n_params
+    zero = {"position_std_mm": [0.0, 0.0, 0.0], "rotation_std_deg": 0.0}
+    if m <= p:
+        raise CalibrationError(f"{m} residuals for {p} parameters: too few board points")
+    J = problem.jacobian(x, intr0, skews)
+    normal = _Normal((J.T @ J).tocsr(), J.T @ fun, (problem.board_col0, len(problem.set_keys)))
+    try:
+        inv = normal.camera_inverse()
+    except np.linalg.LinAlgError:
+        raise CalibrationError("the views do not determine the camera poses (singular normal "
+                               "matrix)") from None
+    s2 = float(fun @ fun) / (m - p)
+    out = []
+    for c in range(problem.n_cams):
+        if c not in problem.cam_col:
+            out.append(dict(zero))
+            continue
+        col = problem.cam_col[c]
+        idx = np.searchsorted(normal.c, np.arange(col, col + 6))
+        cov = s2 * inv[np.ix_(idx, idx)]
+        v = x[col:col + 6]
+
+        def centre(u: FloatArray) -> FloatArray:
+            centre_ref: FloatArray = -matrices_from_rotvecs(u[:3]).T @ u[3:]
+            return centre_ref
+
+        # d(centre)/d(rotvec, t) by central differences (6 evaluations of a 3x3 product)
+        D = np.column_stack([(centre(v + h) - centre(v - h)) / 2e-7
+                             for h in np.eye(6) * 1e-7])
+        out.append({"position_std_mm": [float(q) for q in np.sqrt(np.diag(D @ cov @ D.T))],
+                    "rotation_std_deg": float(np.degrees(np.sqrt(np.trace(cov[:3, :3]))))})
+    return out
 
 
 def levenberg_marquardt(fun: Callable[[FloatArray], FloatArray],
@@ -493,6 +538,15 @@ class _Normal:
         dv = np.einsum("nii->ni", self.V)
         self.d_b = np.where(dv > 0, dv, 1.0)
         self.p = p
+
+    def camera_inverse(self) -> FloatArray:
+        """``(J^T J)^-1`` restricted to the non-board parameters (in the order of ``c``):
+        the inverse of the undamped Schur complement."""
+        V_inv = np.linalg.inv(self.V)
+        WV = np.einsum("pnj,njk->pnk", self.W.reshape(len(self.c), self.n, 6),
+                       V_inv).reshape(len(self.c), -1)
+        out: FloatArray = np.linalg.inv(self.U - WV @ self.W.T)
+        return out
 
     def solve(self, lam: float) -> FloatArray | None:
         """The damped step, or None when the damped matrix is not positive definite."""

@@ -415,12 +415,15 @@ def _summary(r: MultiResult, T_base: np.ndarray | None, mounting: str, base_word
 
 def _human(r: MultiResult, s: dict[str, Any], args: argparse.Namespace) -> list[str]:
     w = max(len(n) for n in r.names)
-    lines = [f"{'camera':{w}s}  sets  points  RMS px  pose in {r.reference} (mm, rotvec rad)"]
+    lines = [f"{'camera':{w}s}  sets  points  RMS px  pose in {r.reference} (mm, rotvec rad)"
+             "   +- position mm, rotation deg (1 sigma)"]
     for cam in s["cameras"]:
         p = cam["T_reference_camera"]
         lines.append(f"{cam['name']:{w}s}  {cam['sets']:4d}  {cam['points']:6d}  "
                      f"{cam['rms_px']:6.3f}  " + " ".join(f"{v:9.2f}" for v in p["translation_mm"])
-                     + "  " + " ".join(f"{v:8.5f}" for v in p["rotvec_rad"]))
+                     + "  " + " ".join(f"{v:8.5f}" for v in p["rotvec_rad"]) + "   +- "
+                     + " ".join(f"{v:.2f}" for v in cam["position_std_mm"])
+                     + f", {cam['rotation_std_deg']:.3f}")
     lines.append("")
     lines.append("pairs (shared sets; RMS px; spread of the per-set estimates around the joint "
                  "solution, RMS / max):")
