@@ -98,3 +98,16 @@ def test_pair_and_rig_residuals(both):
     assert pair["translation_mm"]["rms"] < 2.0
     assert ours["rigs"] == [{"name": "stereo", "cameras": ["left", "right"],
                              "rms_px": pytest.approx(ours["rms_px"], rel=1e-12)}]
+
+
+def test_uncertainty_equals_the_stereo_commands(both):
+    """Our one-sigma of the right camera's pose against ``calibrate stereo``'s covariance of
+    om, T (full Jacobian, both intrinsics free): the rotation's equal (it is the same rotation,
+    inverted), the camera centre's within 3 % of T's (the centre -R^T T also carries the
+    rotation's uncertainty times the 100 mm baseline)."""
+    ours, stereo = both
+    right = ours["cameras"][1]
+    assert right["rotation_std_deg"] == pytest.approx(
+        np.degrees(np.linalg.norm(stereo["rotvec_std"])), rel=1e-5)
+    np.testing.assert_allclose(right["position_std_mm"], stereo["translation_std"], rtol=0.03)
+    assert ours["cameras"][0]["position_std_mm"] == [0.0, 0.0, 0.0]
