@@ -337,6 +337,14 @@ def _rigs(texts: list[str], names: list[str]) -> dict[str, list[str]]:
             raise CalibrationError(f"--rig {rig}: no --camera {', '.join(unknown)}")
         if rig in rigs:
             raise CalibrationError(f"--rig {rig}: given twice")
+        if rig in names:
+            raise CalibrationError(f"--rig {rig}: also a camera's name (the config's "
+                                   "residuals are keyed by both)")
+        taken = [f"{m} (in rig {r})" for r, members in rigs.items() for m in cams
+                 if m in members]
+        if taken:
+            raise CalibrationError(f"--rig {rig}: a camera is in one rig at most: "
+                                   + ", ".join(taken))
         rigs[rig] = cams
     return rigs
 

@@ -264,6 +264,8 @@ def test_cameras_that_share_no_set_are_refused_by_name(cell, tmp_path):
     (["--camera", "A=x*.png"], "camera name 'A' must be [a-z0-9_]+"),
     (["--camera", "a"], "expected NAME=GLOB"),
     (["--rig", "r=a,zz"], "--rig r: no --camera zz"),
+    (["--rig", "a=a,b"], "--rig a: also a camera's name"),
+    (["--rig", "r=a", "--rig", "s=b,a"], "--rig s: a camera is in one rig at most: a (in rig r)"),
     (["--reference", "zz"], "--reference zz: no --camera"),
     (["--board-in-base", "1=1,2,3"], "rotvec needs 6 finite numbers"),
     (["--board-in-base", "1=1,2,3,0,0,0", "--pose-format", "nope"], "--board-in-base:"),
