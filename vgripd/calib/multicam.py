@@ -74,6 +74,7 @@ FEW_SETS = 3  # a camera in fewer image sets than this is warned about
 PAIR_WARN_DEG = 0.5
 PAIR_WARN_DISTANCE = 0.01
 MAX_ITERATIONS = 100
+OUTLIER_WARN_SHARE = 0.05  # more outlier images than this share (and > 2): warn
 
 
 @dataclass
@@ -730,6 +731,11 @@ def _warnings(r: MultiResult) -> list[str]:
                        f"{p['rotation_deg']['rms']:.2f} deg, {p['translation_mm']['rms']:.1f} "
                        "mm (RMS) around the joint solution: did a camera move, or are some "
                        "images not from the same instant?")
+    n_out = sum(1 for x in r.rejected if "outlier" in x["reason"])
+    if n_out > max(2, OUTLIER_WARN_SHARE * (n_out + len(r.observations))):
+        out.append(f"{n_out} images were left out as outliers, more than a few: usually a "
+                   "camera that moved during the session or images not from the same instants; "
+                   "the result rests on the rest, check it")
     return out
 
 

@@ -468,3 +468,34 @@ def test_predicted_uncertainty_matches_the_spread_over_noise_draws():
         rot_pred = np.mean([p[k][1] for p in predicted])
         rot_seen = np.degrees(np.sqrt(np.sum(np.var(angles[c], axis=0))))
         assert 1 / 1.5 < rot_seen / rot_pred < 1.5, (NAMES[c], rot_seen, rot_pred)
+
+
+def knocked_px(key: str, boards: dict, moved: np.ndarray) -> np.ndarray | None:
+    """Camera b's truth_px of set ``key`` with b at ``moved``."""
+    original = T_BASE_CAMERA[1]
+    T_BASE_CAMERA[1] = moved
+    try:
+        return truth_px(1, boards[key])
+    finally:
+        T_BASE_CAMERA[1] = original
+
+
+def test_a_camera_knocked_during_the_session_is_not_cleaned_away_silently():
+    """Camera b moves by 6 mm and 0.6 deg after set 20: no single pose explains its images.
+    The outlier rule drops the worst images one by one until the rest fit; that many outliers
+    is itself warned about, so the result is not taken as clean."""
+    obs, boards = scene(noise_px=0.1)
+    moved = T_BASE_CAMERA[1] @ transform([0.0, 0.01, 0.0], [6.0, 0.0, 0.0])
+    knocked = []
+    for o in obs:
+        if o.camera == 1 and int(o.set_key) > 20:
+            px = knocked_px(o.set_key, boards, moved)
+            if px is None:
+                continue
+            noise = np.random.default_rng(int(o.set_key)).normal(0, 0.1, px.shape)
+            o = Observation(1, o.set_key, o.obj, px + noise, o.image)
+        knocked.append(o)
+    r = calibrate_cameras(NAMES, CAMERAS, knocked)
+    outliers = [x for x in r.rejected if "outlier" in x["reason"]]
+    assert len(outliers) > 2
+    assert any("left out as outliers" in w and "camera that moved" in w for w in r.warnings)
