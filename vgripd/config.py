@@ -22,6 +22,7 @@ validated when the config is, so a bad recipe is refused at load with its own fi
 from __future__ import annotations
 
 import ipaddress
+import math
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -342,16 +343,108 @@ class HandEyeConfig(Model):
         return self
 
 
+#: Names of cameras and rigs: they become keys of residuals (``rig.<name>.reprojection_px``)
+#: and of messages, so plain lower-case words.
+NAME_PATTERN = r"^[a-z0-9_]+$"
+
+#: How many cameras one cell may have (``calibration.cameras``).
+MAX_CAMERAS = 8
+
+
+class CameraEntryConfig(Model):
+    """One camera of a multi-camera cell: its intrinsics and where it is.
+
+    ``mounting = "fixed"`` needs ``T_base_camera`` (the camera in the robot base frame);
+    ``mounting = "robot"`` needs ``T_flange_camera`` (the camera on the flange; the flange pose
+    comes with each acquisition). Same meaning as ``calibration.hand_eye``, per camera.
+    """
+
+    name: str = Field(pattern=NAME_PATTERN, max_length=32)
+    intrinsics: IntrinsicsConfig
+    mounting: Literal["fixed", "robot"] = "fixed"
+    T_base_camera: PoseConfig | None = None
+    T_flange_camera: PoseConfig | None = None
+
+    @model_validator(mode="after")
+    def _pose_matches_mounting(self) -> CameraEntryConfig:
+        HandEyeConfig(mounting=self.mounting, T_base_camera=self.T_base_camera,
+                      T_flange_camera=self.T_flange_camera)
+        return self
+
+    def hand_eye(self) -> HandEyeConfig:
+        """This camera's pose as the single-camera ``calibration.hand_eye`` section."""
+        return HandEyeConfig(mounting=self.mounting, T_base_camera=self.T_base_camera,
+                             T_flange_camera=self.T_flange_camera)
+
+
+class RigConfig(Model):
+    """A named group of cameras (usually a stereo pair on one side of the object).
+
+    Rigs do not change the fit (one pose over all marks of all cameras); they name the groups
+    whose residuals are reported apart and which the consistency check can blame (a camera
+    moved, a rig knocked). A camera belongs to at most one rig; one in no rig is a group of
+    its own, named after the camera.
+    """
+
+    name: str = Field(pattern=NAME_PATTERN, max_length=32)
+    cameras: tuple[str, ...] = Field(min_length=1)
+
+
+_PLACEHOLDER_INTRINSICS = IntrinsicsConfig(fx=1, fy=1, cx=0, cy=0, width=1, height=1)
+_PLACEHOLDER_HAND_EYE = HandEyeConfig(T_base_camera=PoseConfig(translation_mm=(0, 0, 0)))
+
+
 class CalibrationConfig(Model):
-    """Intrinsics of one or two cameras, the stereo rig and the hand-eye pose.
+    """Intrinsics of one or two cameras, the stereo rig and the hand-eye pose; or N cameras.
 
     Without ``right`` (and ``stereo``) the job runs in single-camera (PnP) mode.
+
+    ``cameras`` (2..8 entries) makes a multi-camera cell (docs/multicamera.md): every camera
+    has its own pose in the base frame or on the flange, ``rigs`` group them. Then ``right``,
+    ``stereo`` and ``hand_eye`` must not be given, and ``left`` / ``hand_eye`` are filled in
+    from the first camera, so that single-camera tools (commissioning, teach) see camera 0 as
+    "the" camera. (A ``left`` / ``hand_eye`` equal to camera 0 is accepted, so that a dumped
+    config loads again.)
     """
 
     left: IntrinsicsConfig
     right: IntrinsicsConfig | None = None
     stereo: StereoConfig | None = None
     hand_eye: HandEyeConfig
+    cameras: tuple[CameraEntryConfig, ...] | None = None
+    rigs: tuple[RigConfig, ...] = ()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _left_from_first_camera(cls, data: Any) -> Any:
+        if not isinstance(data, dict) or not data.get("cameras"):
+            return data
+        data = dict(data)
+        first = data["cameras"][0] if isinstance(data["cameras"], list | tuple) else None
+        try:
+            first = CameraEntryConfig.model_validate(first)
+        except ValidationError:
+            # The field validation reports calibration.cameras.0 and fails the whole config;
+            # placeholders keep it from also calling left and hand_eye missing.
+            data.setdefault("left", _PLACEHOLDER_INTRINSICS)
+            data.setdefault("hand_eye", _PLACEHOLDER_HAND_EYE)
+            return data
+        for key in ("right", "stereo"):
+            if data.get(key) is not None:
+                raise ValueError(f"calibration.{key} is not used with calibration.cameras: "
+                                 f"remove it (a pair is two entries of calibration.cameras)")
+        derived = {"left": first.intrinsics, "hand_eye": first.hand_eye()}
+        for key, value in derived.items():
+            given = data.get(key)
+            if given is None:
+                data[key] = value
+                continue
+            given_model = type(value).model_validate(given) if isinstance(given, dict) else given
+            if given_model != value:
+                raise ValueError(
+                    f"calibration.{key} is not used with calibration.cameras and differs from "
+                    f"the first camera ({first.name!r}): remove calibration.{key}")
+        return data
 
     @model_validator(mode="after")
     def _stereo_complete(self) -> CalibrationConfig:
@@ -359,10 +452,72 @@ class CalibrationConfig(Model):
             raise ValueError("calibration.right and calibration.stereo go together")
         return self
 
+    @model_validator(mode="after")
+    def _cameras_and_rigs(self) -> CalibrationConfig:
+        if self.cameras is None:
+            if self.rigs:
+                raise ValueError("calibration.rigs needs calibration.cameras")
+            return self
+        n = len(self.cameras)
+        if not 2 <= n <= MAX_CAMERAS:
+            raise ValueError(f"calibration.cameras: a multi-camera cell has 2 to {MAX_CAMERAS} "
+                             f"cameras, got {n} (one or two cameras: use calibration.left/right)")
+        names: dict[str, int] = {}
+        for i, cam in enumerate(self.cameras):
+            if cam.name in names:
+                raise ValueError(f"calibration.cameras.{i}.name: {cam.name!r} is already the "
+                                 f"name of calibration.cameras.{names[cam.name]}")
+            names[cam.name] = i
+        owner: dict[str, str] = {}
+        rig_names: set[str] = set()
+        for i, rig in enumerate(self.rigs):
+            where = f"calibration.rigs.{i}"
+            if rig.name in rig_names:
+                raise ValueError(f"{where}.name: duplicate rig name {rig.name!r}")
+            if rig.name in names:
+                raise ValueError(f"{where}.name: {rig.name!r} is also a camera's name (a camera "
+                                 "outside every rig is reported under its own name)")
+            rig_names.add(rig.name)
+            for j, cam_name in enumerate(rig.cameras):
+                if cam_name not in names:
+                    raise ValueError(f"{where}.cameras.{j}: no camera named {cam_name!r} in "
+                                     f"calibration.cameras (known: {', '.join(names)})")
+                if cam_name in owner:
+                    raise ValueError(f"{where}.cameras.{j}: camera {cam_name!r} is already in "
+                                     f"rig {owner[cam_name]!r} (a camera is in one rig at most)")
+                owner[cam_name] = rig.name
+        return self
+
+    def camera_groups(self) -> tuple[tuple[str, tuple[int, ...]], ...]:
+        """``(group name, camera indices)`` of a multi-camera cell: the rigs in config order,
+        then every camera outside all rigs as a group of its own; () without cameras."""
+        if self.cameras is None:
+            return ()
+        index = {cam.name: i for i, cam in enumerate(self.cameras)}
+        groups = [(rig.name, tuple(index[c] for c in rig.cameras)) for rig in self.rigs]
+        grouped = {i for _, members in groups for i in members}
+        groups += [(cam.name, (i,)) for i, cam in enumerate(self.cameras) if i not in grouped]
+        return tuple(groups)
+
 
 class _FeatureBase(Model):
+    """``normal``: optional outward normal of the mark's face (object frame, any length > 0).
+
+    A mark is seen only from the side its normal points to (a frame with marks on both sides:
+    each camera sees its own side). Unset: the object's z axis, and the mark counts as seen
+    from both sides (the single-rig cells that predate it look at the object from one side).
+    """
+
     name: str = Field(min_length=1)
     xyz_mm: Vec3
+    normal: Vec3 | None = None
+
+    @field_validator("normal")
+    @classmethod
+    def _nonzero_normal(cls, normal: Vec3 | None) -> Vec3 | None:
+        if normal is not None and not math.hypot(*normal) > 1e-9:
+            raise ValueError(f"normal must be a non-zero vector, got {list(normal)}")
+        return normal
 
 
 class CircleFeature(_FeatureBase):

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vgripd.config import Config, IntrinsicsConfig, PoseConfig
+from vgripd.config import CameraEntryConfig, Config, IntrinsicsConfig, PoseConfig
 from vgripd.errors import NotCalibratedError, VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.stereo import StereoRig
@@ -131,3 +131,74 @@ def T_base_obj_ref(cfg: Config) -> FloatArray:
             f"reference.T_base_obj: object {cfg.object.name!r} has no taught reference pose yet"
         )
     return matrix_from_pose(cfg.reference.T_base_obj)
+
+
+# --- multi-camera cells (calibration.cameras; docs/multicamera.md) ---------------------------
+
+
+def is_multi_camera(cfg: Config) -> bool:
+    """True for a cell configured with ``calibration.cameras`` (2..8 cameras)."""
+    return cfg.calibration is not None and cfg.calibration.cameras is not None
+
+
+def _cameras(cfg: Config) -> tuple[CameraEntryConfig, ...]:
+    _calibration(cfg, "multi-camera cell")
+    assert cfg.calibration is not None
+    if cfg.calibration.cameras is None:
+        raise NotCalibratedError("calibration.cameras: not a multi-camera cell")
+    return cfg.calibration.cameras
+
+
+def camera_names(cfg: Config) -> tuple[str, ...]:
+    """Names of the cameras of a multi-camera cell, in config order (the image order)."""
+    return tuple(cam.name for cam in _cameras(cfg))
+
+
+def multi_camera_models(cfg: Config) -> tuple[CameraModel, ...]:
+    """Camera models of a multi-camera cell, in config order."""
+    return tuple(_camera_model(cam.intrinsics, f"calibration.cameras.{i}.intrinsics")
+                 for i, cam in enumerate(_cameras(cfg)))
+
+
+def T_base_cameras(cfg: Config, T_base_flange: FloatArray | None = None) -> FloatArray:
+    """(N, 4, 4) poses of the cameras of a multi-camera cell in the base frame at capture.
+
+    ``T_base_flange`` is needed when any camera is robot-mounted (as for
+    :func:`T_base_camera`); fixed cameras ignore it.
+    """
+    out = []
+    for i, cam in enumerate(_cameras(cfg)):
+        if cam.mounting == "fixed":
+            assert cam.T_base_camera is not None
+            out.append(matrix_from_pose(cam.T_base_camera))
+            continue
+        assert cam.T_flange_camera is not None
+        if T_base_flange is None:
+            raise NotCalibratedError(
+                f"calibration.cameras.{i} ({cam.name!r}) is robot-mounted but no flange pose "
+                "came with the images (the camera driver must deliver T_base_flange)")
+        flange = np.asarray(T_base_flange, dtype=np.float64)
+        if flange.shape != (4, 4) or not np.all(np.isfinite(flange)):
+            raise NotCalibratedError(
+                f"flange pose at capture is not a finite 4x4 matrix: {flange!r}")
+        out.append(flange @ matrix_from_pose(cam.T_flange_camera))
+    return np.array(out)
+
+
+def camera_groups(cfg: Config) -> tuple[tuple[str, tuple[int, ...]], ...]:
+    """``(rig name, camera indices)``: the configured rigs, then each camera outside every rig
+    as a group of its own (``CalibrationConfig.camera_groups``)."""
+    _cameras(cfg)
+    assert cfg.calibration is not None
+    return cfg.calibration.camera_groups()
+
+
+def feature_normals(cfg: Config) -> FloatArray:
+    """(n, 3) unit outward normals of the features (object frame), NaN rows where a feature
+    has no ``normal`` (seen from both sides), rows in the order of ``feature_names``."""
+    out = np.full((len(cfg.object.features), 3), np.nan)
+    for i, f in enumerate(cfg.object.features):
+        if f.normal is not None:
+            v = np.asarray(f.normal, dtype=np.float64)
+            out[i] = v / np.linalg.norm(v)
+    return out
