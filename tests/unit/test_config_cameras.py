@@ -29,10 +29,12 @@ def _cfg(**calibration: Any) -> Any:
 def test_cameras_and_rigs_load_and_first_camera_stands_in_for_left() -> None:
     cfg = _cfg(cameras=_cams(4), rigs=[{"name": "north", "cameras": ["cam1", "cam0"]}])
     cal = cfg.calibration
-    assert cal is not None and cal.cameras is not None
+    assert cal is not None
+    assert cal.cameras is not None
     assert cal.left == cal.cameras[0].intrinsics
     assert cal.hand_eye.T_base_camera == cal.cameras[0].T_base_camera
-    assert cal.right is None and cal.stereo is None
+    assert cal.right is None
+    assert cal.stereo is None
     assert cal.camera_groups() == (("north", (1, 0)), ("cam2", (2,)), ("cam3", (3,)))
     assert scene.is_multi_camera(cfg)
     assert scene.camera_names(cfg) == ("cam0", "cam1", "cam2", "cam3")
