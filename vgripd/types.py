@@ -8,7 +8,7 @@ Every value carries its capture time on the monotonic clock (``t_mono_ns``, from
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from types import MappingProxyType
@@ -73,9 +73,14 @@ class Status(IntEnum):
 
 @dataclass(frozen=True)
 class ImagePair:
-    """One acquisition: a stereo pair, or a single image (``right is None``).
+    """One acquisition: a stereo pair, a single image (``right is None``), or the images of
+    all N cameras of a multi-camera cell (``views``).
 
     Images are 8-bit grey (H, W) or BGR (H, W, 3) arrays as the driver delivered them.
+    ``views`` holds every image in camera order (``calibration.cameras``); it defaults to
+    ``(left,)`` or ``(left, right)``, and ``left`` / ``right`` are always ``views[0]`` /
+    ``views[1]``, so code written for one or two cameras keeps working. Build an N-camera
+    acquisition with :meth:`of_views`.
     ``T_base_flange`` is the robot flange pose at capture (mm) for robot-mounted cameras.
     ``truth`` carries ground truth from the synthetic driver (e.g. ``{"T_cam_obj": 4x4}``).
     """
@@ -87,6 +92,27 @@ class ImagePair:
     meta: Mapping[str, Any] = field(default_factory=lambda: _EMPTY)
     T_base_flange: FloatArray | None = None
     truth: Mapping[str, Any] = field(default_factory=lambda: _EMPTY)
+    views: tuple[npt.NDArray[Any], ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.views:
+            views = (self.left,) if self.right is None else (self.left, self.right)
+            object.__setattr__(self, "views", views)
+            return
+        second = self.views[1] if len(self.views) > 1 else None
+        if self.views[0] is not self.left or second is not self.right:
+            raise ValueError("ImagePair: left and right must be views[0] and views[1] "
+                             "(build N images with ImagePair.of_views)")
+
+    @classmethod
+    def of_views(cls, views: Sequence[npt.NDArray[Any]], t_mono_ns: int,
+                 **fields: Any) -> ImagePair:
+        """An acquisition of ``len(views)`` >= 1 images in camera order."""
+        if not views:
+            raise ValueError("ImagePair.of_views: no images")
+        v = tuple(views)
+        return cls(left=v[0], right=v[1] if len(v) > 1 else None, t_mono_ns=t_mono_ns,
+                   views=v, **fields)
 
     @property
     def is_stereo(self) -> bool:

@@ -24,7 +24,7 @@ import queue
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, TypeVar
 
 from pydantic import BaseModel, ConfigDict
@@ -34,6 +34,9 @@ from vgripd.errors import CameraError
 from vgripd.types import ImagePair
 
 R = TypeVar("R")
+
+#: Threads a driver uses for the cameras of one multi-camera acquisition.
+MAX_HELPERS = 8
 
 
 class DriverThread:
@@ -113,6 +116,7 @@ class CameraDriver(ABC):
         self.options = options
         self.config = config
         self._executor: DriverThread | None = None
+        self._helpers: concurrent.futures.ThreadPoolExecutor | None = None
 
     # ---------------------------------------------------------------- async API
     async def open(self) -> None:
@@ -152,6 +156,9 @@ class CameraDriver(ABC):
         executor, self._executor = self._executor, None
         if executor is None:
             return
+        helpers, self._helpers = self._helpers, None
+        if helpers is not None:  # idle between grabs: its threads end at once
+            helpers.shutdown(wait=executor.running_since is None, cancel_futures=True)
         if executor.running_since is not None:
             executor.shutdown(wait=False, cancel_futures=True)
             return
@@ -179,6 +186,19 @@ class CameraDriver(ABC):
         return self.type_name
 
     # ---------------------------------------------------------------- helpers
+    def _per_camera(self, fn: Callable[[Any], R], items: Sequence[Any]) -> list[R]:
+        """``fn`` over ``items`` (one per camera) concurrently, results in order; called from
+        a blocking hook. A multi-camera acquisition takes all cameras' images at once: the
+        time of one job is the slowest camera's, not the sum (image decoding, rendering and
+        most device SDK calls release the GIL)."""
+        if len(items) < 2:
+            return [fn(item) for item in items]
+        if self._helpers is None:
+            self._helpers = concurrent.futures.ThreadPoolExecutor(
+                max_workers=min(len(items), MAX_HELPERS),
+                thread_name_prefix=f"camera-{self.type_name}-view")
+        return list(self._helpers.map(fn, items))
+
     async def _run(self, fn: Callable[..., R], *args: Any) -> R:
         if self._executor is None:
             raise CameraError(f"{self.type_name}: camera is not open")

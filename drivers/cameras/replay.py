@@ -6,6 +6,9 @@ Options (``[camera]`` with ``type = "replay"``)::
     left_glob = "left_*.png"           # stereo: the two patterns, paired by sorted position
     right_glob = "right_*.png"
     # glob = "cam_*.png"               # or single-camera: one pattern instead of the two
+    # globs = ["n_left_*.png", "n_right_*.png", "s_left_*.png", "s_right_*.png"]
+                                       # or a multi-camera cell: one pattern per camera, in
+                                       # the order of calibration.cameras
     loop = false                       # start again after the last frame
     flange_poses = "flange.txt"        # optional, robot-mounted cameras (format below)
     grayscale = true                   # read 8-bit grey (else as stored: grey or BGR)
@@ -41,7 +44,7 @@ import numpy as np
 from pydantic import ValidationError, model_validator
 
 from drivers.cameras.base import CameraDriver, DriverOptions
-from vgripd.config import Config, PoseConfig
+from vgripd.config import MAX_CAMERAS, Config, PoseConfig
 from vgripd.errors import CameraError, VgripError
 from vgripd.imagefiles import list_frames
 from vgripd.types import FloatArray, ImagePair
@@ -51,6 +54,7 @@ from vgripd.vision.scene import matrix_from_pose
 class ReplayOptions(DriverOptions):
     folder: str | None = None
     glob: str | None = None
+    globs: tuple[str, ...] | None = None
     left_glob: str | None = None
     right_glob: str | None = None
     loop: bool = False
@@ -60,8 +64,13 @@ class ReplayOptions(DriverOptions):
     @model_validator(mode="after")
     def _one_layout(self) -> ReplayOptions:
         stereo = self.left_glob is not None or self.right_glob is not None
-        if stereo == (self.glob is not None):
-            raise ValueError("give either glob (single camera) or left_glob and right_glob")
+        layouts = stereo + (self.glob is not None) + (self.globs is not None)
+        if layouts != 1:
+            raise ValueError("give one of glob (single camera), left_glob and right_glob "
+                             "(stereo) or globs (one per camera of a multi-camera cell)")
+        if self.globs is not None and not 2 <= len(self.globs) <= MAX_CAMERAS:
+            raise ValueError(f"globs: one pattern per camera, 2 to {MAX_CAMERAS}, "
+                             f"got {len(self.globs)}")
         if stereo and (self.left_glob is None or self.right_glob is None):
             raise ValueError("stereo replay needs both left_glob and right_glob")
         return self
@@ -106,19 +115,30 @@ class ReplayCamera(CameraDriver):
         super().__init__(options, config)
         self._left: list[Path] = []
         self._right: list[Path] | None = None
+        self._views: list[list[Path]] | None = None  # multi-camera: per camera, frame order
         self._flange: list[FloatArray] | None = None
         self._next = 0
 
     def describe(self) -> str:
         o = self.options
-        patterns = o.glob if o.glob is not None else f"{o.left_glob} + {o.right_glob}"
+        patterns = (o.glob if o.glob is not None else " + ".join(o.globs) if o.globs
+                    else f"{o.left_glob} + {o.right_glob}")
         return f"{o.folder or '.'}/{patterns}"
 
     def _open_blocking(self) -> None:
         o = self.options
-        frames = list_frames(Path(o.folder or "."), glob=o.glob, left_glob=o.left_glob,
-                             right_glob=o.right_glob)
-        self._left, self._right = frames.left, frames.right
+        if o.globs is not None:
+            self._left, self._views = self._list_views(Path(o.folder or "."), o.globs)
+        else:
+            frames = list_frames(Path(o.folder or "."), glob=o.glob, left_glob=o.left_glob,
+                                 right_glob=o.right_glob)
+            self._left, self._right = frames.left, frames.right
+        n_cams = len(o.globs or ())
+        cal = self.config.calibration
+        cameras = cal.cameras if cal is not None else None
+        if n_cams and cameras is not None and len(cameras) != n_cams:
+            raise CameraError(f"replay: {n_cams} globs for the {len(cameras)} cameras of "
+                              "calibration.cameras (one pattern per camera, in their order)")
         if o.flange_poses is not None:
             path = Path(o.folder or ".") / o.flange_poses
             self._flange = read_flange_poses(path)
@@ -127,6 +147,25 @@ class ReplayCamera(CameraDriver):
                     f"replay: {path} has {len(self._flange)} poses for {len(self._left)} frames"
                 )
         self._next = 0
+
+    @staticmethod
+    def _list_views(folder: Path, globs: tuple[str, ...]) -> tuple[list[Path], list[list[Path]]]:
+        """The files of every camera, frame by frame: each pattern is paired with the first
+        as a stereo pair would be (same wildcard key, else sorted position)."""
+        views: list[list[Path]] = []
+        first: list[Path] | None = None
+        for j, pattern in enumerate(globs[1:], start=1):
+            frames = list_frames(folder, left_glob=globs[0], right_glob=pattern)
+            assert frames.right is not None
+            if first is not None and frames.left != first:
+                raise CameraError(f"replay: globs.{j} {pattern!r} pairs with other frames of "
+                                  f"globs.0 {globs[0]!r} than globs.1 does in {folder}")
+            first = frames.left
+            if not views:
+                views.append(frames.left)
+            views.append(frames.right)
+        assert first is not None
+        return first, views
 
     def _read(self, path: Path) -> np.ndarray:
         if not path.is_file():
@@ -145,6 +184,13 @@ class ReplayCamera(CameraDriver):
             self._next = 0
         i = self._next
         self._next += 1
+        flange = self._flange[i] if self._flange is not None else None
+        if self._views is not None:
+            paths = [view[i] for view in self._views]
+            images = self._per_camera(self._read, paths)
+            return ImagePair.of_views(
+                images, time.monotonic_ns(), source=f"replay:{paths[0].name}",
+                meta={"frame": i, "paths": [str(p) for p in paths]}, T_base_flange=flange)
         left = self._read(self._left[i])
         right = self._read(self._right[i]) if self._right is not None else None
         t_mono_ns = time.monotonic_ns()

@@ -8,8 +8,13 @@ is the projection of the 3D circle centre, which is not the centre of the imaged
 two differ by a few thousandths of a pixel in the demo cell; the feature finder is judged
 against the projected centre, which is what it must recover).
 
-Marks lie in the object's xy plane (normal = object z axis), dark or bright per ``polarity``.
-Only ``kind = "circle"`` features can be rendered.
+Marks lie in the plane normal to their feature's ``normal`` (default: the object's z axis),
+dark or bright per ``polarity``. Only ``kind = "circle"`` features can be rendered.
+
+Multi-camera cells (``calibration.cameras``): every camera renders the same object at the same
+pose, concurrently. A mark with a ``normal`` is drawn only in cameras on the side it faces
+(back-face culling: marks on the far side of a large frame are hidden by it); a mark behind a
+camera is not drawn there either. ``ImagePair.views`` holds the N images in camera order.
 
 Options (``[camera]`` with ``type = "synthetic"``)::
 
@@ -31,7 +36,9 @@ Options (``[camera]`` with ``type = "synthetic"``)::
 
 ``ImagePair.truth``: ``T_base_obj``, ``T_cam_obj`` (left camera), ``feature_names``,
 ``pixels_left`` (n, 2) and ``pixels_right`` (n, 2) or None (projected 3D centres, px),
-``dropped`` (names) and ``extra_blobs_px`` (k, 2).
+``dropped`` (names) and ``extra_blobs_px`` (k, 2). Multi-camera cells add ``camera_names``
+and ``pixels_views`` (n, N, 2): each mark's projected centre in each camera, NaN where the
+camera does not see it (culled, behind it, or outside its image).
 """
 
 from __future__ import annotations
@@ -123,6 +130,17 @@ def paint_disc(albedo: FloatArray, rim_px: FloatArray, centre_px: FloatArray, le
     patch += cov * (level - patch)
 
 
+def _plane_axes(normal: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Two orthonormal axes spanning the plane normal to ``normal``; for the object z axis
+    exactly x and y (the rim the renderer has always drawn)."""
+    n = normal / np.linalg.norm(normal)
+    if abs(n[2]) > 1 - 1e-12:
+        return np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]) * np.sign(n[2])
+    u = np.cross([0.0, 0.0, 1.0], n)
+    u /= np.linalg.norm(u)
+    return u, np.cross(n, u)
+
+
 class SyntheticCamera(CameraDriver):
     """Renders the configured object at a fixed or random pose, with ground truth."""
 
@@ -150,7 +168,14 @@ class SyntheticCamera(CameraDriver):
             raise ConfigError(f"camera.drop_features: no such features {sorted(unknown)}")
 
     def _open_blocking(self) -> None:
+        self._multi: tuple[tuple[CameraModel, ...], FloatArray, tuple[str, ...]] | None = None
         try:
+            if scene.is_multi_camera(self.config):
+                flange = self.options.flange_pose
+                T_flange = scene.matrix_from_pose(flange) if flange is not None else None
+                self._multi = (scene.multi_camera_models(self.config),
+                               scene.T_base_cameras(self.config, T_flange),
+                               scene.camera_names(self.config))
             self._left, self._right = scene.camera_models(self.config)
             self._T_right_left = scene.T_right_left(self.config)
             flange = self.options.flange_pose
@@ -188,6 +213,8 @@ class SyntheticCamera(CameraDriver):
 
     def _grab_blocking(self, timeout_s: float) -> ImagePair:
         T_base_obj = self.next_pose()
+        if self._multi is not None:
+            return self._grab_views(T_base_obj, *self._multi)
         T_cam_obj = np.linalg.inv(self._T_base_camera) @ T_base_obj
         cams: list[tuple[str, CameraModel, FloatArray]] = [("left", self._left, T_cam_obj)]
         if self._right is not None and self._T_right_left is not None:
@@ -216,33 +243,78 @@ class SyntheticCamera(CameraDriver):
             truth=truth,
         )
 
-    def _render(self, model: CameraModel, T_cam_obj: FloatArray,
-                cam_name: str) -> tuple[np.ndarray, FloatArray, FloatArray]:
-        """One camera's image, the projected mark centres (n, 2) and spurious blobs (k, 2)."""
+    def _grab_views(self, T_base_obj: FloatArray, models: tuple[CameraModel, ...],
+                    T_base_cameras: FloatArray, names: tuple[str, ...]) -> ImagePair:
+        """All N cameras of a multi-camera cell, rendered concurrently (one thread each)."""
+        # One generator per camera, seeded from the driver's: the same seed gives the same
+        # images whatever order the threads run in.
+        seeds = self._rng.integers(0, 2**63, len(models))
+        jobs = [(models[j], np.linalg.inv(T_base_cameras[j]) @ T_base_obj, names[j],
+                 np.random.default_rng(int(seeds[j]))) for j in range(len(models))]
+        rendered = self._per_camera(
+            lambda job: self._render(job[0], job[1], job[2], job[3], cull=True), jobs)
+        pixels = np.stack([centres for _, centres, _ in rendered], axis=1)
+        truth: dict[str, Any] = {
+            "T_base_obj": T_base_obj,
+            "T_cam_obj": jobs[0][1],
+            "feature_names": tuple(f.name for f in self._circles),
+            "dropped": tuple(self.options.drop_features),
+            "camera_names": names,
+            "pixels_views": pixels,
+            "pixels_left": pixels[:, 0],
+            "pixels_right": pixels[:, 1],
+            "extra_blobs_px": rendered[0][2],
+        }
+        return ImagePair.of_views(
+            [image for image, _, _ in rendered], time.monotonic_ns(), source="synthetic",
+            meta={"seed": self.options.seed}, T_base_flange=self._T_base_flange, truth=truth)
+
+    def _render(self, model: CameraModel, T_cam_obj: FloatArray, cam_name: str,
+                rng: np.random.Generator | None = None, cull: bool = False
+                ) -> tuple[np.ndarray, FloatArray, FloatArray]:
+        """One camera's image, the projected mark centres (n, 2) and spurious blobs (k, 2).
+
+        ``cull``: a mark facing away from the camera (its ``normal``), behind it or outside
+        its image is not drawn and its centre is NaN (multi-camera cells); otherwise a mark
+        behind the camera is a CameraError, as a one-rig cell must see every mark.
+        """
         o = self.options
+        rng = self._rng if rng is None else rng
         w, h = model.width, model.height
         R, t = T_cam_obj[:3, :3], T_cam_obj[:3, 3]
+        eye_obj = -R.T @ t  # the camera centre in the object frame
         theta = np.linspace(0.0, 2 * np.pi, RIM_VERTICES, endpoint=False)
-        unit_rim = np.c_[np.cos(theta), np.sin(theta), np.zeros_like(theta)]
         albedo = np.full((h, w), float(o.background))
-        centres = np.empty((len(self._circles), 2))
+        centres = np.full((len(self._circles), 2), np.nan)
         radii_px = []
         for i, f in enumerate(self._circles):
             c_obj = np.asarray(f.xyz_mm)
+            normal = np.asarray(f.normal if f.normal is not None else (0.0, 0.0, 1.0))
+            if cull and (f.normal is not None and (eye_obj - c_obj) @ normal <= 0
+                         or (R @ c_obj + t)[2] <= 0):
+                continue
+            u, v = _plane_axes(normal)
+            unit_rim = np.cos(theta)[:, None] * u + np.sin(theta)[:, None] * v
             try:
                 centre_px = model.project(R @ c_obj + t)[0]
                 rim_px = model.project((c_obj + 0.5 * f.diameter_mm * unit_rim) @ R.T + t)
             except VgripError as err:
+                if cull:  # the rim reaches behind the camera: not visible
+                    continue
                 raise CameraError(
                     f"synthetic: mark {f.name!r} in camera {cam_name}: {err}"
                 ) from None
+            if cull and not (0 <= centre_px[0] < w and 0 <= centre_px[1] < h):
+                continue
             centres[i] = centre_px
             radii_px.append(float(np.linalg.norm(rim_px - centre_px, axis=1).mean()))
             if f.name in o.drop_features:
                 continue
             level = o.dark_level if f.polarity == "dark" else o.bright_level
             paint_disc(albedo, rim_px, centre_px, level, o.supersample)
-        blobs = self._spurious_blobs(albedo, centres, float(np.mean(radii_px)))
+        seen = ~np.isnan(centres[:, 0])
+        blobs = (self._spurious_blobs(albedo, centres[seen], float(np.mean(radii_px)), rng)
+                 if seen.any() else np.zeros((0, 2)))
         if o.black:
             return np.zeros((h, w), np.uint8), centres, blobs
         if o.gradient > 0:
@@ -251,11 +323,11 @@ class SyntheticCamera(CameraDriver):
         if o.blur_px > 0:
             albedo = cv2.GaussianBlur(albedo, (0, 0), o.blur_px)
         if o.noise_std > 0:
-            albedo += self._rng.normal(0.0, o.noise_std, albedo.shape)
+            albedo += rng.normal(0.0, o.noise_std, albedo.shape)
         return np.clip(np.rint(albedo), 0, 255).astype(np.uint8), centres, blobs
 
     def _spurious_blobs(self, albedo: FloatArray, centres: FloatArray,
-                        radius_px: float) -> FloatArray:
+                        radius_px: float, rng: np.random.Generator) -> FloatArray:
         """Paint ``extra_blobs`` dark discs near the object, clear of the real marks."""
         o = self.options
         h, w = albedo.shape
@@ -266,11 +338,11 @@ class SyntheticCamera(CameraDriver):
         for _ in range(100 * o.extra_blobs):
             if len(blobs) == o.extra_blobs:
                 break
-            c = self._rng.uniform(lo, hi)
+            c = rng.uniform(lo, hi)
             taken = np.vstack([centres, *blobs]) if blobs else centres
             if np.min(np.linalg.norm(taken - c, axis=1)) < 3 * radius_px:
                 continue
-            r = radius_px * self._rng.uniform(0.7, 1.3)
+            r = radius_px * rng.uniform(0.7, 1.3)
             rim = c + r * np.c_[np.cos(theta), np.sin(theta)]
             paint_disc(albedo, rim, c, o.dark_level, o.supersample)
             blobs.append(c)

@@ -3,7 +3,8 @@
 One folder per job, named so that names sort by time (job ids restart with the daemon)::
 
     <folder>/20261122-044158.123-job000042/
-        left.png  right.png   the images as grabbed (right.png only for stereo)
+        left.png  right.png   the images as grabbed (right.png only for stereo; a cell with
+                              more than two cameras: view0.png, view1.png, ... in camera order)
         pair.json             ImagePair source, capture time, meta, T_base_flange, truth
         config.toml           the configuration the job ran with (loadable as is)
         result.json           the JobResult
@@ -114,8 +115,10 @@ class Recorder:
         tmp = self.folder / (PARTIAL_PREFIX + name)
         tmp.mkdir(parents=True)
         try:
-            images = {"left": pair.left} if pair.right is None else {
-                "left": pair.left, "right": pair.right}
+            if len(pair.views) > 2:  # a multi-camera cell: camera order of the config
+                images = {f"view{j}": image for j, image in enumerate(pair.views)}
+            else:
+                images = dict(zip(("left", "right"), pair.views, strict=False))
             for side, image in images.items():
                 if not cv2.imwrite(str(tmp / f"{side}.png"), image):
                     raise OSError(f"{tmp / side}.png: cv2.imwrite failed")

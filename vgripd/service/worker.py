@@ -256,6 +256,14 @@ def _pair_fields(pair: ImagePair) -> dict[str, Any]:
             "T_base_flange": pair.T_base_flange, "truth": dict(pair.truth)}
 
 
+def _pair_of(images: Sequence[npt.NDArray[Any] | None], fields: dict[str, Any]) -> ImagePair:
+    """The acquisition of ``images`` read back from shared memory (all present, camera order)."""
+    views = [image for image in images if image is not None]
+    if len(views) != len(images) or not views:
+        raise WorkerError(f"shared memory held {len(views)} of {len(images)} images")
+    return ImagePair.of_views(views, **fields)
+
+
 def _wire_result(result: JobResult) -> JobResult:
     return dataclasses.replace(result, residuals=dict(result.residuals),
                                timings_ms=dict(result.timings_ms))
@@ -352,15 +360,12 @@ class _Worker:
         """The pair a request names: the held one (by token) or new images in the segment."""
         token, fields, segment, layout = ref
         if segment is not None and layout is not None:
-            left, right = read_images(self._buf(segment), layout)
-            assert left is not None
-            pair = ImagePair(left=left, right=right, **fields)
+            pair = _pair_of(read_images(self._buf(segment), layout), fields)
             self.held = (token, pair)
             return pair
         if self.held is None or self.held[0] != token:
             raise WorkerError(f"the worker no longer holds the images of pair {token}")
-        held = self.held[1]
-        return ImagePair(left=held.left, right=held.right, **fields)
+        return ImagePair.of_views(self.held[1].views, **fields)
 
     # requests
     def open_camera(self) -> None:
@@ -387,7 +392,7 @@ class _Worker:
         return layout
 
     def _put(self, pair: ImagePair, segment: str | None) -> tuple[ImageLayout | None, int]:
-        images = (pair.left, pair.right)
+        images = pair.views
         need = images_nbytes(images)
         if segment is None:
             return None, need
@@ -552,8 +557,7 @@ class WorkerClient:
         self._segment: ImageSegment | None = None
         # The pair whose images the current worker holds: generation, token and (weak
         # references to) the daemon's arrays, so that a pair handed back is named by its token.
-        self._held: tuple[_Generation, int, weakref.ref[Any], weakref.ref[Any] | None] | None \
-            = None
+        self._held: tuple[_Generation, int, tuple[weakref.ref[Any], ...]] | None = None
 
     # --- life cycle --------------------------------------------------------------------
 
@@ -578,6 +582,8 @@ class WorkerClient:
         if cal is None:
             return 0
         cams = [cal.left] + ([cal.right] if cal.right is not None else [])
+        if cal.cameras is not None:
+            cams = [cam.intrinsics for cam in cal.cameras]
         # 8-bit grey images of the calibrated size; colour or larger images grow it (once).
         return sum(_aligned(c.width * c.height) for c in cams)
 
@@ -598,16 +604,15 @@ class WorkerClient:
         return self._new_segment(size) if size else None
 
     def _hold(self, gen: _Generation, token: int, pair: ImagePair) -> None:
-        self._held = (gen, token, weakref.ref(pair.left),
-                      None if pair.right is None else weakref.ref(pair.right))
+        self._held = (gen, token, tuple(weakref.ref(image) for image in pair.views))
 
     def _holds(self, gen: _Generation, pair: ImagePair) -> int | None:
         """The token under which ``gen`` holds ``pair``'s images, if it does."""
         held = self._held
-        if held is None or held[0] is not gen or pair.left is not held[2]():
+        if held is None or held[0] is not gen or len(held[2]) != len(pair.views):
             return None
-        right = None if held[3] is None else held[3]()
-        return held[1] if pair.right is right else None
+        same = all(image is ref() for image, ref in zip(pair.views, held[2], strict=True))
+        return held[1] if same else None
 
     async def close(self) -> None:
         """Stop the worker (queued recordings are written first), unlink the shared memory."""
@@ -826,7 +831,7 @@ class WorkerClient:
         token = self._holds(gen, pair)
         if token is not None:
             return token, _pair_fields(pair), None, None
-        images = (pair.left, pair.right)
+        images = pair.views
         segment = self._writable_segment(images_nbytes(images))
         assert segment is not None
         layout = write_images(segment.buf, images)
@@ -852,9 +857,7 @@ class WorkerClient:
             segment = self._new_segment(need)
             layout = await self._call(gen, "camera_put", (token, segment.name), "grab")
         assert segment is not None
-        left, right = segment.view_images(layout)
-        assert left is not None
-        pair = ImagePair(left=left, right=right, **fields)
+        pair = _pair_of(segment.view_images(layout), fields)
         self._hold(gen, token, pair)
         return pair
 
