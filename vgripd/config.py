@@ -152,6 +152,11 @@ class VisionConfig(Model):
     max_fit_rms_mm: float = Field(default=1.0, gt=0)
     max_reprojection_px: float = Field(default=1.5, gt=0)
     epipolar_warn_px: float = Field(default=1.0, gt=0)
+    # Multi-camera cells (docs/multicamera.md): a rig whose own pose differs from the pose of
+    # the other rigs by more than this at its marks (mm) or in rotation (deg) is named as
+    # disagreeing (a camera moved since calibration).
+    rig_deviation_mm: float = Field(default=3.0, gt=0)
+    rig_deviation_deg: float = Field(default=0.5, gt=0)
 
     @model_validator(mode="after")
     def _ranges(self) -> VisionConfig:

@@ -45,6 +45,7 @@ from vgripd.types import FloatArray, ImagePair, JobResult, Status
 from vgripd.vision import diagnosis as dg
 from vgripd.vision import features as ft
 from vgripd.vision import scene
+from vgripd.vision.multicam import MultiCamera, MultiEstimate
 
 #: Minimum number of matched features for PnP (three points have up to four poses).
 MIN_PNP_FEATURES = 4
@@ -342,7 +343,13 @@ class Pipeline:
             [f.diameter_mm if f.kind == "circle" else 0.0 for f in config.object.features]
         )
         identified = int((~self.is_circle).sum())
-        if self.rig is None and identified < MIN_PNP_FEATURES:
+        # A multi-camera cell (calibration.cameras): its own path, one finder per camera.
+        self.multi: MultiCamera | None = None
+        self.finders: list[_Finder] = []
+        if scene.is_multi_camera(config):
+            self.multi = MultiCamera(config, self.model, self.T_base_obj_ref)
+            self.finders = [_Finder(config, cam.fx) for cam in self.multi.cameras]
+        elif self.rig is None and identified < MIN_PNP_FEATURES:
             raise ConfigError(
                 "object.features: single-camera (PnP) mode needs at least "
                 f"{MIN_PNP_FEATURES} aruco/template features, the object has {identified} "
@@ -406,6 +413,8 @@ class Pipeline:
         ), job.points_base
 
     def _run(self, pair: ImagePair, job: _Job) -> tuple[Status, str, Any]:
+        if self.multi is not None:
+            return self._run_multi(self.multi, pair, job)
         vision, limits = self.config.vision, self.config.limits
         gray_l = _checked_gray(pair.left, self.left, "left")
         stereo = pair.right is not None and self.rig is not None
@@ -432,30 +441,73 @@ class Pipeline:
             return (*gate(Measurement(found=len(job.used), needed=needed), vision, limits), None)
 
         T_base_obj = T_base_camera @ estimate.T_cam_obj
-        offset = T_base_obj @ invert_transform(self.T_base_obj_ref)
-        job.T_base_obj, job.offset = T_base_obj, offset
-        job.residuals.update(estimate.residuals)
         points_base = estimate.points_cam @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
         job.points_base = dict(zip((self.names[i] for i in np.flatnonzero(estimate.used)),
                                    points_base, strict=True))
-        measurement = Measurement(
-            found=int(estimate.used.sum()),
+        measurement = self._measurement(job, T_base_obj, int(estimate.used.sum()), needed,
+                                        estimate.ambiguous, estimate.residuals)
+        status, message = gate(measurement, vision, limits)
+        return self._output(job, status, message)
+
+    def _measurement(self, job: _Job, T_base_obj: FloatArray, found: int, needed: int,
+                     ambiguous: bool, residuals: dict[str, float]) -> Measurement:
+        """The gates' view of a pose (and the job's record of it)."""
+        offset = T_base_obj @ invert_transform(self.T_base_obj_ref)
+        job.T_base_obj, job.offset = T_base_obj, offset
+        job.residuals.update(residuals)
+        return Measurement(
+            found=found,
             needed=needed,
-            ambiguous=estimate.ambiguous,
+            ambiguous=ambiguous,
             T_base_obj=T_base_obj,
             offset=offset,
             model_base=self.model @ T_base_obj[:3, :3].T + T_base_obj[:3, 3],
             limit_point=self.limit_point,
             limit_point_name=self.limit_point_name,
-            residuals=estimate.residuals,
+            residuals=residuals,
         )
-        status, message = gate(measurement, vision, limits)
+
+    def _output(self, job: _Job, status: Status, message: str) -> tuple[Status, str, Any]:
+        """The vendor target of a job's offset (or grip), only for a publishable status."""
+        offset = job.offset
+        assert offset is not None
         sent = offset if self.T_base_grip_ref is None else offset @ self.T_base_grip_ref
         target = target_from_transform(self.config.output.vendor, sent) if (
             status.pose_valid
         ) else None
         job.lap("output")
         return status, message, target
+
+    # ------------------------------------------------------------------ multi-camera
+    def _run_multi(self, multi: MultiCamera, pair: ImagePair, job: _Job
+                   ) -> tuple[Status, str, Any]:
+        """A multi-camera cell (docs/multicamera.md): marks in every image, one joint fit."""
+        vision, limits = self.config.vision, self.config.limits
+        n_cams = len(multi.cameras)
+        if len(pair.views) != n_cams:
+            raise _Reject(Status.CAMERA_ERROR, f"{len(pair.views)} image(s) for the {n_cams} "
+                          "cameras of calibration.cameras")
+        grays = [_checked_gray(image, cam, f"camera {name}",
+                               f"calibration.cameras.{j}.intrinsics")
+                 for j, (image, cam, name) in enumerate(zip(pair.views, multi.cameras,
+                                                             multi.names, strict=True))]
+        job.lap("checks")
+        found = [finder(gray) for finder, gray in zip(self.finders, grays, strict=True)]
+        job.lap("features")
+        est = multi.locate([f.circles for f in found], [f.identified for f in found],
+                           pair.T_base_flange)
+        job.lap("pose")
+        job.used = tuple(self.names[i] for i in np.flatnonzero(est.used))
+        job.missing = tuple(self.names[i] for i in np.flatnonzero(~est.used))
+        needed = vision.min_features
+        if est.pose is None:
+            return (*gate(Measurement(found=len(job.used), needed=needed,
+                                      ambiguous=est.ambiguous), vision, limits), None)
+        job.points_base = est.points_base
+        measurement = self._measurement(job, est.pose.T_base_obj, len(job.used), needed,
+                                        est.ambiguous, est.residuals)
+        status, message = rig_verdict(*gate(measurement, vision, limits), est, vision)
+        return self._output(job, status, message)
 
     # ------------------------------------------------------------------ stereo
     def _stereo_pose(self, left: Found, right: Found, job: _Job) -> PoseEstimate | None:
@@ -644,6 +696,45 @@ class Pipeline:
                             self.model[index] @ T[:3, :3].T + T[:3, 3])
 
 
+def rig_verdict(status: Status, message: str, est: MultiEstimate,
+                vision: VisionConfig) -> tuple[Status, str]:
+    """The status of a multi-camera job after the common gates: every rig's own reprojection
+    RMS is gated too, and a rig that disagrees with the others is named; a pose that passed
+    every gate is still published then, but as OK_RECALIBRATE (docs/multicamera.md)."""
+    groups = est.pose.groups if est.pose is not None else ()
+    over = [(g.rms_px, g.name) for g in groups if g.rms_px > vision.max_reprojection_px]
+    if status.pose_valid and over:
+        rms, name = max(over)
+        status, message = Status.RESIDUAL_TOO_HIGH, (
+            f"rig {name}: reprojection RMS {rms:.3f} px > vision.max_reprojection_px "
+            f"{vision.max_reprojection_px}")
+    blame = _blame(est)
+    if not blame:
+        return status, message
+    if status.pose_valid:
+        return Status.OK_RECALIBRATE, blame
+    return status, f"{message}; {blame}"
+
+
+def _blame(est: MultiEstimate) -> str:
+    """The sentence naming the rig(s) the consistency check found odd ('' for none)."""
+    if not est.odd or est.pose is None:
+        return ""
+    if len(est.odd) > 1:
+        return (f"rigs {', '.join(est.odd)} disagree with each other (two rigs alone cannot "
+                "tell which one moved): check their cameras and calibration.cameras")
+    check = next(c for c in est.checks if c.name == est.odd[0])
+    group = next(g for g in est.pose.groups if g.name == check.name)
+    errors = est.pose.errors_px
+    cams = [(float(np.sqrt(np.nanmean(errors[:, j] ** 2))), est.camera_names[j])
+            for j in group.cameras if np.isfinite(errors[:, j]).any()]
+    worst = f" (worst camera {max(cams)[1]}, {max(cams)[0]:.2f} px)" if cams else ""
+    return (f"rig {check.name} disagrees with the other rigs: {check.predicted_rms_px:.2f} px "
+            f"under their pose, its own pose {check.deviation_mm:.2f} mm / "
+            f"{check.deviation_deg:.3f} deg from theirs{worst}: a camera moved? recalibrate "
+            "it (calibration.cameras)")
+
+
 def model_points(config: Config) -> FloatArray:
     """(n, 3) mm model points in feature order: ``reference.points_mm`` when taught (``reference``
     definition), else the features' ``xyz_mm`` (``scene.object_points``)."""
@@ -683,8 +774,10 @@ def _circle_centre_bias(
     return np.asarray(centroid - camera.project(centres @ R.T + t), dtype=np.float64)
 
 
-def _checked_gray(image: Any, camera: CameraModel | None, side: str) -> ft.UInt8Image:
-    """The 8-bit grey image of one side, or a CAMERA_ERROR naming what is wrong with it."""
+def _checked_gray(image: Any, camera: CameraModel | None, side: str,
+                  where: str | None = None) -> ft.UInt8Image:
+    """The 8-bit grey image of one side, or a CAMERA_ERROR naming what is wrong with it
+    (``where``: the calibration section of its size, default ``calibration.<side>``)."""
     if image is None or camera is None:
         raise _Reject(Status.CAMERA_ERROR, f"{side} image missing")
     arr = np.asarray(image)
@@ -696,7 +789,8 @@ def _checked_gray(image: Any, camera: CameraModel | None, side: str) -> ft.UInt8
     if (w, h) != (camera.width, camera.height):
         raise _Reject(
             Status.CAMERA_ERROR,
-            f"{side} image is {w}x{h} but calibration.{side} is {camera.width}x{camera.height}",
+            f"{side} image is {w}x{h} but {where or f'calibration.{side}'} is "
+            f"{camera.width}x{camera.height}",
         )
     lo, hi = cv2.minMaxLoc(gray)[:2]
     if hi < 16:
