@@ -8,6 +8,7 @@ calibration commands, so that all of them read a folder the same way. Pairing ru
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -165,3 +166,23 @@ def list_frames(folder: Path, *, glob: str | None = None, left_glob: str | None 
         raise CameraError(f"replay: {counts} (paired by sorted position: their names share "
                           "no wildcard part)")
     return Frames(folder, left, right, "position", skipped)
+
+
+def list_views(folder: Path, globs: Sequence[str]) -> list[list[Path]]:
+    """The files of a multi-camera replay: per camera (one pattern each, camera order), its
+    files in frame order. Every pattern pairs with the first as a stereo pair would
+    (:func:`list_frames`: same wildcard key, else sorted position), so all cameras get the
+    same frames or the error names the pattern that does not."""
+    if len(globs) < 2:
+        raise CameraError(f"replay: globs needs one pattern per camera, got {list(globs)}")
+    views: list[list[Path]] = []
+    for j, pattern in enumerate(globs[1:], start=1):
+        frames = list_frames(folder, left_glob=globs[0], right_glob=pattern)
+        assert frames.right is not None
+        if views and frames.left != views[0]:
+            raise CameraError(f"replay: globs.{j} {pattern!r} pairs with other frames of "
+                              f"globs.0 {globs[0]!r} than globs.1 does in {folder}")
+        if not views:
+            views.append(frames.left)
+        views.append(frames.right)
+    return views

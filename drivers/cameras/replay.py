@@ -46,7 +46,7 @@ from pydantic import ValidationError, model_validator
 from drivers.cameras.base import CameraDriver, DriverOptions
 from vgripd.config import MAX_CAMERAS, Config, PoseConfig
 from vgripd.errors import CameraError, VgripError
-from vgripd.imagefiles import list_frames
+from vgripd.imagefiles import list_frames, list_views
 from vgripd.types import FloatArray, ImagePair
 from vgripd.vision.scene import matrix_from_pose
 
@@ -128,7 +128,8 @@ class ReplayCamera(CameraDriver):
     def _open_blocking(self) -> None:
         o = self.options
         if o.globs is not None:
-            self._left, self._views = self._list_views(Path(o.folder or "."), o.globs)
+            self._views = list_views(Path(o.folder or "."), o.globs)
+            self._left = self._views[0]
         else:
             frames = list_frames(Path(o.folder or "."), glob=o.glob, left_glob=o.left_glob,
                                  right_glob=o.right_glob)
@@ -147,25 +148,6 @@ class ReplayCamera(CameraDriver):
                     f"replay: {path} has {len(self._flange)} poses for {len(self._left)} frames"
                 )
         self._next = 0
-
-    @staticmethod
-    def _list_views(folder: Path, globs: tuple[str, ...]) -> tuple[list[Path], list[list[Path]]]:
-        """The files of every camera, frame by frame: each pattern is paired with the first
-        as a stereo pair would be (same wildcard key, else sorted position)."""
-        views: list[list[Path]] = []
-        first: list[Path] | None = None
-        for j, pattern in enumerate(globs[1:], start=1):
-            frames = list_frames(folder, left_glob=globs[0], right_glob=pattern)
-            assert frames.right is not None
-            if first is not None and frames.left != first:
-                raise CameraError(f"replay: globs.{j} {pattern!r} pairs with other frames of "
-                                  f"globs.0 {globs[0]!r} than globs.1 does in {folder}")
-            first = frames.left
-            if not views:
-                views.append(frames.left)
-            views.append(frames.right)
-        assert first is not None
-        return first, views
 
     def _read(self, path: Path) -> np.ndarray:
         if not path.is_file():

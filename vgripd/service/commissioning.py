@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import errno
 import socket
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from vgripd.config import Config
 from vgripd.errors import CameraError, VgripError
-from vgripd.imagefiles import list_frames
+from vgripd.imagefiles import list_frames, list_views
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
 from vgripd.types import ImagePair
 from vgripd.vision.commissioning import Finding
@@ -132,6 +133,8 @@ def check_replay(config: Config) -> list[Finding]:
         return [Finding("ERROR", "camera.folder",
                         f"replay folder {folder} does not exist (relative paths start at the "
                         f"working directory {Path.cwd()})")]
+    if opts.globs is not None:
+        return _check_replay_views(config, folder, opts.globs)
     try:
         frames = list_frames(folder, glob=opts.glob, left_glob=opts.left_glob,
                              right_glob=opts.right_glob)
@@ -155,6 +158,46 @@ def check_replay(config: Config) -> list[Finding]:
                     f"{path} is {size[0]}x{size[1]} but calibration.{side} is "
                     f"{want[0]}x{want[1]}: every job would end with CAMERA_ERROR"))
     return findings
+
+
+def _check_replay_views(config: Config, folder: Path, globs: Sequence[str]) -> list[Finding]:
+    """A multi-camera replay: one glob per camera of ``calibration.cameras``, frames for all,
+    each camera's first image of its calibrated size."""
+    cameras = config.calibration.cameras if config.calibration is not None else None
+    if cameras is None:
+        return [Finding("ERROR", "camera.globs", "one glob per camera needs the cameras in "
+                                                 "calibration.cameras")]
+    if len(globs) != len(cameras):
+        return [Finding("ERROR", "camera.globs",
+                        f"{len(globs)} globs for the {len(cameras)} cameras of "
+                        "calibration.cameras (one pattern per camera, in their order)")]
+    try:
+        views = list_views(folder, globs)
+    except CameraError as err:
+        return [Finding("ERROR", "camera.globs", str(err))]
+    findings = []
+    for j, (files, cam) in enumerate(zip(views, cameras, strict=True)):
+        size = _image_size(files[0])
+        want = (cam.intrinsics.width, cam.intrinsics.height)
+        if size is not None and size != want:
+            findings.append(Finding(
+                "ERROR", f"calibration.cameras.{j}.intrinsics.width",
+                f"{files[0]} is {size[0]}x{size[1]} but camera {cam.name!r} is "
+                f"{want[0]}x{want[1]}: every job would end with CAMERA_ERROR"))
+    return findings
+
+
+def _replay_paths(opts: Any) -> list[list[Path]]:
+    """The files of each replay frame (all cameras, camera order), in frame order."""
+    folder = Path(opts.folder or ".")
+    if opts.globs is not None:
+        views = list_views(folder, opts.globs)
+        return [list(files) for files in zip(*views, strict=True)]
+    frames = list_frames(folder, glob=opts.glob, left_glob=opts.left_glob,
+                         right_glob=opts.right_glob)
+    if frames.right is None:
+        return [[path] for path in frames.left]
+    return [[a, b] for a, b in zip(frames.left, frames.right, strict=True)]
 
 
 def _image_size(path: Path) -> tuple[int, int] | None:
@@ -199,20 +242,17 @@ def check_samples(config: Config, frames_wanted: int = SAMPLE_FRAMES) -> list[Fi
     cls = load_class(CAMERAS, "camera", "replay")
     opts: Any = validate_options(cls, config.camera, "camera")
     try:
-        frames = list_frames(Path(opts.folder or "."), glob=opts.glob, left_glob=opts.left_glob,
-                             right_glob=opts.right_glob)
+        frames = _replay_paths(opts)
     except (CameraError, OSError):
         return []  # check_replay reports it
     failed: list[tuple[str, str, str, str]] = []
     tried = 0
-    for i in range(min(frames_wanted, len(frames.left))):
-        paths = [frames.left[i]] + ([frames.right[i]] if frames.right is not None else [])
+    for paths in frames[:frames_wanted]:
         read = [cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) for path in paths]
         images = [image for image in read if image is not None]
         if len(images) < len(paths):
             continue  # check_replay and the job itself report unreadable files
-        pair = ImagePair(left=images[0], right=images[1] if len(images) > 1 else None,
-                         t_mono_ns=0, source=str(paths[0]))
+        pair = ImagePair.of_views(images, 0, source=str(paths[0]))
         try:
             diagnosis = diagnose(config, pair)
         except VgripError:

@@ -27,6 +27,7 @@ from vgripd.errors import VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.transforms import invert_transform
 from vgripd.types import FloatArray
+from vgripd.vision.multicam import MultiCamera
 from vgripd.vision.pipeline import MIN_PNP_FEATURES, Pipeline
 
 Level = Literal["ERROR", "WARNING", "NOTE"]
@@ -195,6 +196,8 @@ def check_scene(pipeline: Pipeline) -> list[Finding]:
     """Where the taught reference object lands in each camera (module docstring)."""
     config = pipeline.config
     assert config.calibration is not None  # Pipeline() raised otherwise
+    if pipeline.multi is not None:
+        return check_cameras(pipeline, pipeline.multi)
     if pipeline.fixed_T_base_camera is None:
         return [Finding("NOTE", "calibration.hand_eye",
                         "robot-mounted camera: where the object lands in the images depends on "
@@ -324,4 +327,69 @@ def _distance_and_size(pipeline: Pipeline, views: Sequence[View], names: Sequenc
                 "WARNING", "reference.T_base_obj",
                 f"{_marks(names, slanted, angles, 'deg', 'is seen at')} off its normal "
                 f"(object z) by the {v.side} camera: seen {face}"))
+    return findings
+
+
+def check_cameras(pipeline: Pipeline, multi: MultiCamera) -> list[Finding]:
+    """A multi-camera cell (docs/multicamera.md): which marks of the reference object each
+    camera sees (in front, facing it, inside its image), their imaged size against the finder's
+    range, and whether enough marks are seen by two or more cameras for a pose."""
+    config = pipeline.config
+    if not multi.fixed:
+        return [Finding("NOTE", "calibration.cameras",
+                        "a robot-mounted camera: where the object lands in its image depends "
+                        "on the flange pose at capture, so the projection checks are skipped")]
+    names = list(pipeline.names)
+    view = multi.view(None)
+    T_ref = pipeline.T_base_obj_ref
+    seen = multi.visible(view, T_ref)  # (n, N)
+    X = pipeline.model @ T_ref[:3, :3].T + T_ref[:3, 3]
+    findings: list[Finding] = []
+    usable = seen.copy()
+    for j, (cam, cam_name) in enumerate(zip(multi.cameras, multi.names, strict=True)):
+        key = f"calibration.cameras.{j}"
+        if not seen[:, j].any():
+            findings.append(Finding(
+                "WARNING", f"{key}.T_base_camera",
+                f"camera {cam_name} sees none of the marks of the object at its taught place "
+                f"(reference.T_base_obj): check {key}.T_base_camera"))
+            continue
+        finder = pipeline.finders[j]
+        depth = np.linalg.norm(X - view.centres_mm[j], axis=1)
+        wrong = []
+        for i in np.flatnonzero(seen[:, j]):
+            f = config.object.features[i]
+            if f.kind != "circle":
+                continue
+            size = cam.fx * f.diameter_mm / depth[i]
+            spec = next(s for s in finder.specs if s.polarity == f.polarity)
+            if not spec.min_diameter_px <= size <= spec.max_diameter_px:
+                wrong.append((int(i), size, spec))
+        if wrong:
+            usable[[i for i, _, _ in wrong], j] = False
+            near, far = config.vision.working_distance_mm
+            rows = [i for i, _, _ in wrong]
+            spec = wrong[0][2]
+            findings.append(Finding(
+                "ERROR", "vision.working_distance_mm",
+                f"{_marks(names, rows, [s for _, s, _ in wrong], 'px', 'is')} across in camera "
+                f"{cam_name}'s image, the finder searches {spec.min_diameter_px:.1f}-"
+                f"{spec.max_diameter_px:.1f} px (the marks' diameter_mm over "
+                f"vision.working_distance_mm [{near:g}, {far:g}])"))
+    twice = int((usable.sum(axis=1) >= 2).sum())
+    needed = config.vision.min_features
+    if twice < needed:
+        findings.append(Finding(
+            "ERROR", "calibration.cameras",
+            f"only {twice} of {len(names)} marks are seen by two or more cameras at the taught "
+            f"place, a pose needs {needed} (vision.min_features = {needed})"))
+    else:
+        findings = [Finding("WARNING" if f.level == "ERROR" else f.level, f.key, f.message)
+                    for f in findings]
+    for g_name, members in multi.groups:
+        if len(members) >= 2 and not (usable[:, list(members)].sum(axis=1) >= 2).any():
+            findings.append(Finding(
+                "WARNING", "calibration.rigs",
+                f"rig {g_name} triangulates none of the marks at the taught place: its "
+                "residuals and the rig check have nothing to go on"))
     return findings

@@ -116,7 +116,7 @@ class MultiCamera:
         self.pairs = all_pairs
         if self.fixed:
             view = self._view = self.view(None)
-            seen = self._visible_table(view, T_base_obj_ref)
+            seen = self.visible(view, T_base_obj_ref)
             self.pairs = [(a, b) for a, b in all_pairs if (seen[:, a] & seen[:, b]).any()]
             self._rigs = self._stereo_rigs(view)
 
@@ -135,7 +135,7 @@ class MultiCamera:
                                   view.T_cameras_base[b] @ view.T_base_cameras[a])
                 for a, b in self.pairs}
 
-    def _visible_table(self, view: MultiView, T_base_obj: FloatArray) -> npt.NDArray[np.bool_]:
+    def visible(self, view: MultiView, T_base_obj: FloatArray) -> npt.NDArray[np.bool_]:
         """(n, N) which model points each camera sees at the object pose ``T_base_obj``."""
         X = self.model @ T_base_obj[:3, :3].T + T_base_obj[:3, 3]
         normals = self.normals @ T_base_obj[:3, :3].T
@@ -298,7 +298,7 @@ class MultiCamera:
         camera that has no pixel for it yet takes the nearest free image mark within the
         epipolar tolerance (a mark seen by one camera only, or a third view)."""
         tol = COMPLETE_FACTOR * self.config.vision.epipolar_tolerance_px
-        seen = self._visible_table(view, T_base_obj)
+        seen = self.visible(view, T_base_obj)
         X = self.model @ T_base_obj[:3, :3].T + T_base_obj[:3, 3]
         out = px.copy()
         for j, cam in enumerate(self.cameras):

@@ -133,3 +133,30 @@ def test_a_camera_moved_after_calibration_names_its_rig(
         assert result.target is None
     assert f"rig {rig} disagrees with the other rigs" in result.message
     assert f"rig {other} disagrees" not in result.message
+
+
+def test_commissioning_checks_every_camera() -> None:
+    from vgripd.service.commissioning import commission
+    from vgripd.vision.commissioning import check_scene
+
+    assert check_scene(Pipeline(config())) == []
+    data = copy.deepcopy(DATA)
+    # south_right turned to look away from the frame; the working distance too short.
+    data["calibration"]["cameras"][3]["T_base_camera"]["rotvec_rad"] = [0.0, 0.0, 0.0]
+    data["vision"]["working_distance_mm"] = [300.0, 1200.0]
+    findings = check_scene(Pipeline(config_from_dict(data)))
+    text = [f"{f.level} {f.key}: {f.message}" for f in findings]
+    assert any(t.startswith("WARNING calibration.cameras.3.T_base_camera: camera south_right "
+                            "sees none of the marks") for t in text), text
+    assert any(t.startswith("ERROR vision.working_distance_mm: 8 marks") for t in text), text
+    assert any(t.startswith("ERROR calibration.cameras: only 0 of 16 marks are seen by two or "
+                            "more cameras") for t in text), text
+    assert any("rig south triangulates none" in t for t in text), text
+    # A replay with one glob per camera: the count must match calibration.cameras.
+    data = copy.deepcopy(DATA)
+    data["camera"] = {"type": "replay", "folder": str(REPO / "config" / "samples"),
+                      "globs": ["left_*.png", "right_*.png"]}
+    findings = commission(config_from_dict(data))
+    assert [f"{f.key}: {f.message}" for f in findings if f.level == "ERROR"][0] == (
+        "camera.globs: 2 globs for the 4 cameras of calibration.cameras (one pattern per "
+        "camera, in their order)")
