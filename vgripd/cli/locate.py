@@ -38,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-c", "--config", required=True, help="TOML configuration file")
     parser.add_argument("left", help="left image (or the only image in single-camera mode)")
     parser.add_argument("right", nargs="?", help="right image of the stereo pair")
+    parser.add_argument("more", nargs="*", metavar="IMAGE",
+                        help="a multi-camera cell (calibration.cameras): the images of the "
+                             "third and further cameras, all in camera order")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--recipe", type=int, default=0, metavar="N",
                         help="the pipeline of recipe N ([recipes.N]; default 0, the top level)")
@@ -89,13 +92,14 @@ def format_result(result: JobResult) -> str:
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config).for_recipe(args.recipe)
     try:
-        left = read_image(args.left)
-        right = read_image(args.right) if args.right is not None else None
+        paths = [args.left] + ([args.right] if args.right is not None else []) + list(
+            getattr(args, "more", None) or [])
+        images = [read_image(path) for path in paths]
     except ImageFileError as err:
         print(f"vgripd locate: {err}", file=sys.stderr)
         return 2
     pipeline = Pipeline(config)
-    pair = ImagePair(left=left, right=right, t_mono_ns=time.monotonic_ns(), source=args.left)
+    pair = ImagePair.of_views(images, time.monotonic_ns(), source=args.left)
     result = dataclasses.replace(pipeline.process(pair, job_id=1), recipe=args.recipe)
     if args.json:
         print(json.dumps(dict_from_result(result)))

@@ -160,3 +160,28 @@ def test_commissioning_checks_every_camera() -> None:
     assert [f"{f.key}: {f.message}" for f in findings if f.level == "ERROR"][0] == (
         "camera.globs: 2 globs for the 4 cameras of calibration.cameras (one pattern per "
         "camera, in their order)")
+
+
+def test_locate_cli_takes_one_image_per_camera(frames: list[ImagePair], tmp_path: Any,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+    import json
+
+    import cv2
+
+    from vgripd.cli import locate
+
+    paths = []
+    for j, image in enumerate(frames[2].views):
+        paths.append(str(tmp_path / f"cam{j}.png"))
+        assert cv2.imwrite(paths[-1], image)
+    parser = argparse.ArgumentParser()
+    locate.add_arguments(parser)
+    args = parser.parse_args(["-c", str(SAMPLE), *paths, "--json"])
+    assert locate.run(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["status"] == "OK"
+    assert out["residuals"]["rig.south.marks"] == 16
+    args = parser.parse_args(["-c", str(SAMPLE), *paths[:2], "--json"])
+    assert locate.run(args) == 1
+    assert "2 image(s) for the 4 cameras" in json.loads(capsys.readouterr().out)["message"]
