@@ -46,7 +46,7 @@ import numpy as np
 
 from vgripd.config import Config, DriverSection, load_config
 from vgripd.errors import CameraError
-from vgripd.imagefiles import Frames, list_frames, list_images
+from vgripd.imagefiles import Frames, list_frames, list_images, list_views
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.recorder import dict_from_result
 from vgripd.types import ImagePair, JobResult
@@ -84,6 +84,16 @@ def is_stereo_config(config: Config) -> bool:
 
 def replay_section(config: Config, folder: Path) -> DriverSection:
     """The replay camera options for ``folder`` under ``config`` (module docstring)."""
+    cameras = config.calibration.cameras if config.calibration is not None else None
+    if cameras is not None:  # a multi-camera cell: one glob per camera
+        if (folder / "pair.json").is_file() and (folder / "view0.png").is_file():
+            globs = [f"view{j}.png" for j in range(len(cameras))]  # a recorded job
+        elif config.camera.type == "replay" and config.camera.options().get("globs"):
+            globs = list(config.camera.options()["globs"])
+        else:
+            globs = [f"{cam.name}*" for cam in cameras]
+        return DriverSection.model_validate({"type": "replay", "folder": str(folder),
+                                             "globs": globs})
     if (folder / "pair.json").is_file() and (folder / "left.png").is_file():
         layout: dict[str, Any] = (
             {"left_glob": "left.png", "right_glob": "right.png"}
@@ -110,6 +120,9 @@ def replay_section(config: Config, folder: Path) -> DriverSection:
 def frames_of(section: DriverSection) -> Frames:
     """The frames the replay camera built from ``section`` will deliver (same function)."""
     o = section.options()
+    if o.get("globs"):
+        views = list_views(Path(o["folder"]), o["globs"])
+        return Frames(Path(o["folder"]), views[0], None, "name")
     return list_frames(Path(o["folder"]), **{k: o.get(k) for k in LAYOUT_KEYS})
 
 
@@ -174,6 +187,9 @@ def run(args: argparse.Namespace) -> int:
     cls = load_class(CAMERAS, "camera", "replay")
     camera = cls(validate_options(cls, section, "camera"), config)
     out = Path(args.annotate) if args.annotate else None
+    if out is not None and pipeline.multi is not None:
+        print("replay: --annotate draws stereo pairs only; a multi-camera cell is replayed "
+              "without it", file=sys.stderr)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     results: list[JobResult] = []
@@ -182,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
         result = dataclasses.replace(pipeline.process(pair, job_id), recipe=recipe)
         results.append(result)
         print(json.dumps({"source": pair.source, **dict_from_result(result)}), flush=True)
-        if out is not None:
+        if out is not None and pipeline.multi is None:
             stem = Path(str(pair.meta.get("left_path", f"pair{job_id}"))).stem
             images = annotate(pipeline, pair, result)
             for side, image in zip(("left", "right"), images, strict=False):

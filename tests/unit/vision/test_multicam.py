@@ -185,3 +185,24 @@ def test_locate_cli_takes_one_image_per_camera(frames: list[ImagePair], tmp_path
     args = parser.parse_args(["-c", str(SAMPLE), *paths[:2], "--json"])
     assert locate.run(args) == 1
     assert "2 image(s) for the 4 cameras" in json.loads(capsys.readouterr().out)["message"]
+
+
+def test_replay_cli_reads_one_file_per_camera(frames: list[ImagePair], tmp_path: Any,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+    import json
+
+    import cv2
+
+    from vgripd.cli import replay
+
+    names = ["north_left", "north_right", "south_left", "south_right"]
+    for k, pair in enumerate(frames):
+        for name, image in zip(names, pair.views, strict=True):
+            assert cv2.imwrite(str(tmp_path / f"{name}_{k}.png"), image)
+    parser = argparse.ArgumentParser()
+    replay.add_arguments(parser)
+    assert replay.run(parser.parse_args(["-c", str(SAMPLE), str(tmp_path)])) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [line["status"] for line in lines[:-1]] == ["OK"] * 3
+    assert lines[-1]["summary"]["found"] == 3
