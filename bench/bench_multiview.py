@@ -240,62 +240,63 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     truths = [frame.random_pose(rng) for _ in range(args.poses)]
     load_before = os.getloadavg()
-    rows = []
     t_start = time.perf_counter()
+    cells = {}
     for n_cams in (2, 4, 6, 8):
         data, poses, rigs = cell(n_cams, copy.deepcopy(doc))
-        config = config_from_dict(data)
-        pipe, peer = Pipeline(config), Peer(frame, poses, rigs)
-        render_rng = np.random.default_rng(args.seed + 100)
-        sets = [[frame.render(T_cam, T, render_rng) for T_cam in poses] for T in truths]
-        pipe.process(ImagePair.of_views(sets[0], 0), 0)  # warm up
-        peer.locate(sets[0])
-        ours: dict[str, list[float]] = {"mm": [], "deg": [], "ms": [], "pose_ms": []}
-        theirs: dict[str, list[float]] = {"mm": [], "deg": [], "ms": []}
-        statuses: dict[str, int] = {}
-        peer_failed = 0
-        for k, (images, truth) in enumerate(zip(sets, truths, strict=True)):
-            t0 = time.perf_counter()
+        cells[n_cams] = (Pipeline(config_from_dict(data)), Peer(frame, poses, rigs), poses)
+    ours = {n: {"mm": [], "deg": [], "ms": [], "cpu_ms": [], "pose_ms": []} for n in cells}
+    theirs = {n: {"mm": [], "deg": [], "ms": [], "cpu_ms": []} for n in cells}
+    statuses: dict[int, dict[str, int]] = {n: {} for n in cells}
+    peer_failed = dict.fromkeys(cells, 0)
+    render_rng = np.random.default_rng(args.seed + 100)
+    # Pose by pose, every cell in turn: the machine's load (shared, 2 cores) falls on all rows
+    # alike. The first pose warms up and is not counted.
+    for k, truth in enumerate([truths[0], *truths]):
+        for n_cams, (pipe, peer, poses) in cells.items():
+            images = [frame.render(T_cam, truth, render_rng) for T_cam in poses]
+            t0, c0 = time.perf_counter(), time.process_time()
             result = pipe.process(ImagePair.of_views(images, 0), k)
-            ours["ms"].append((time.perf_counter() - t0) * 1e3)
-            statuses[result.status.name] = statuses.get(result.status.name, 0) + 1
+            t1, c1 = time.perf_counter(), time.process_time()
+            T = peer.locate(images)
+            t2, c2 = time.perf_counter(), time.process_time()
+            if k == 0:
+                continue
+            o, p = ours[n_cams], theirs[n_cams]
+            o["ms"].append((t1 - t0) * 1e3)
+            o["cpu_ms"].append((c1 - c0) * 1e3)
+            p["ms"].append((t2 - t1) * 1e3)
+            p["cpu_ms"].append((c2 - c1) * 1e3)
+            name = result.status.name
+            statuses[n_cams][name] = statuses[n_cams].get(name, 0) + 1
             if result.T_base_obj is not None and result.status.pose_valid:
                 mm, deg = errors(result.T_base_obj, truth, frame.centres)
-                ours["mm"].append(mm)
-                ours["deg"].append(deg)
-                ours["pose_ms"].append(result.timings_ms["pose"])
-            t0 = time.perf_counter()
-            T = peer.locate(images)
-            theirs["ms"].append((time.perf_counter() - t0) * 1e3)
+                o["mm"].append(mm)
+                o["deg"].append(deg)
+                o["pose_ms"].append(result.timings_ms["pose"])
             if T is None:
-                peer_failed += 1
-                continue
-            mm, deg = errors(T, truth, frame.centres)
-            theirs["mm"].append(mm)
-            theirs["deg"].append(deg)
-        rows.append((n_cams, ours, theirs, statuses, peer_failed))
-        print(f"N={n_cams}: {statuses}, vgripd mm RMS/max {stats(ours['mm'])}, "
-              f"peer {stats(theirs['mm']) if theirs['mm'] else None} ({peer_failed} failed)",
-              flush=True)
+                peer_failed[n_cams] += 1
+            else:
+                mm, deg = errors(T, truth, frame.centres)
+                p["mm"].append(mm)
+                p["deg"].append(deg)
+    rows = [(n, ours[n], theirs[n], statuses[n], peer_failed[n]) for n in cells]
     elapsed = time.perf_counter() - t_start
     load_after = os.getloadavg()
-    table = ["| cameras (rigs) | vgripd marks max-error RMS / max mm | vgripd rotation RMS / max "
-             "deg | peer mm RMS / max | peer deg RMS / max | vgripd job median ms (per camera) "
-             "| of it pose stage ms | peer median ms | statuses |",
+    table = ["| cameras (rigs) | vgripd mark error RMS / max mm | vgripd rotation RMS / max "
+             "deg | peer mm RMS / max | peer deg RMS / max | vgripd job median ms wall / CPU "
+             "(CPU per camera) | of it pose stage ms | peer median ms wall / CPU | statuses |",
              "|---|---|---|---|---|---|---|---|---|"]
-    base = None
-    for n_cams, ours, theirs, statuses, peer_failed in rows:
-        om, od, pm, pd = (stats(ours["mm"]), stats(ours["deg"]), stats(theirs["mm"]),
-                          stats(theirs["deg"]))
-        job = float(np.median(ours["ms"]))
-        pose_ms = float(np.median(ours["pose_ms"]))
-        base = base or job / n_cams
-        fail = f", peer failed {peer_failed}" if peer_failed else ""
+    for n_cams, o, p, st, failed in rows:
+        om, od, pm, pd = stats(o["mm"]), stats(o["deg"]), stats(p["mm"]), stats(p["deg"])
+        wall, cpu = float(np.median(o["ms"])), float(np.median(o["cpu_ms"]))
+        fail = f", peer failed {failed}" if failed else ""
         table.append(
             f"| {n_cams} ({n_cams // 2}) | {om[0]:.3f} / {om[1]:.3f} | {od[0]:.4f} / {od[1]:.4f} "
-            f"| {pm[0]:.3f} / {pm[1]:.3f} | {pd[0]:.4f} / {pd[1]:.4f} | {job:.1f} "
-            f"({job / n_cams:.1f}) | {pose_ms:.1f} | {float(np.median(theirs['ms'])):.1f} | "
-            f"{statuses}{fail} |")
+            f"| {pm[0]:.3f} / {pm[1]:.3f} | {pd[0]:.4f} / {pd[1]:.4f} | {wall:.1f} / {cpu:.1f} "
+            f"({cpu / n_cams:.1f}) | {float(np.median(o['pose_ms'])):.1f} | "
+            f"{float(np.median(p['ms'])):.1f} / {float(np.median(p['cpu_ms'])):.1f} | "
+            f"{st}{fail} |")
     text = "\n".join(table)
     print(text)
     print(f"{elapsed:.0f} s, load {load_before} -> {load_after}")
