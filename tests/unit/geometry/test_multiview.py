@@ -326,3 +326,23 @@ def test_linearised_leave_one_out_agrees_with_a_real_refit() -> None:
     assert south.predicted_rms_px == pytest.approx(pred, rel=0.05)
     assert south.odd
     assert not north.odd
+
+
+def test_one_camera_at_several_robot_poses_is_several_views() -> None:
+    """A robot-mounted camera taking images from several flange poses: each image is a view
+    whose pose is T_base_flange @ T_flange_camera, and the object pose is fitted over all."""
+    T_flange_camera = make_transform(Rotation.from_rotvec([0.0, 0.0, 0.1]).as_matrix(),
+                                     [0.0, 60.0, 120.0])
+    flanges = [look_at(e) @ invert_transform(T_flange_camera)
+               for e in [(-300, -1200, 500), (300, -1200, 500), (0, -1100, 900)]]
+    Ts = [F @ T_flange_camera for F in flanges]
+    mv = MultiView([CAM] * 3, Ts, names=["shot0", "shot1", "shot2"])
+    rng = np.random.default_rng(9)
+    model = rng.uniform(-150, 150, (10, 3))
+    T_true = make_transform(Rotation.from_rotvec([0.1, 0.0, -0.05]).as_matrix(), [5, 3, -2])
+    px = project_all(Ts, model @ T_true[:3, :3].T + T_true[:3, 3]) + rng.normal(0, 0.1,
+                                                                               (10, 3, 2))
+    fit = fit_pose(mv, model, px)
+    assert pose_error(fit.T_base_obj, T_true)[0] < 0.1
+    assert fit.rms_px < 0.2
+    assert [g.observations for g in fit.groups] == [10, 10, 10]

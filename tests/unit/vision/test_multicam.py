@@ -206,3 +206,19 @@ def test_replay_cli_reads_one_file_per_camera(frames: list[ImagePair], tmp_path:
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert [line["status"] for line in lines[:-1]] == ["OK"] * 3
     assert lines[-1]["summary"]["found"] == 3
+
+
+def test_a_robot_mounted_camera_needs_the_flange_pose(frames: list[ImagePair]) -> None:
+    data = copy.deepcopy(DATA)
+    cam = data["calibration"]["cameras"][1]
+    cam["mounting"] = "robot"
+    cam["T_flange_camera"] = cam.pop("T_base_camera")  # flange at the base origin
+    pipe = Pipeline(config_from_dict(data))
+    result = pipe.process(frames[0], 0)
+    assert result.status is Status.NOT_CALIBRATED
+    assert "calibration.cameras.1 ('north_right') is robot-mounted" in result.message
+    import dataclasses
+
+    with_flange = dataclasses.replace(frames[0], T_base_flange=np.eye(4))
+    result = pipe.process(with_flange, 0)
+    assert result.status is Status.OK, result.message
