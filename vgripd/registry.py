@@ -53,6 +53,7 @@ CAMERAS: dict[str, str] = {
     "synthetic": "drivers.cameras.synthetic:SyntheticCamera",
     "opencv": "drivers.cameras.opencv:OpenCVCamera",
     "genicam": "drivers.cameras.genicam:GenICamCamera",
+    "multi": "drivers.cameras.multi:MultiCamera",
 }
 
 LINKS: dict[str, str] = {

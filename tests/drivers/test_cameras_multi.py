@@ -135,3 +135,53 @@ async def test_a_mark_without_normal_is_seen_from_both_sides() -> None:
         await camera.close()
     seen = ~np.isnan(pair.truth["pixels_views"][..., 0])
     assert seen.all()  # no normals: nothing culled (a frame with see-through marks)
+
+
+def _write(folder: Path, name: str, frames: int, value: int) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for k in range(frames):
+        assert cv2.imwrite(str(folder / f"{name}_{k}.png"), np.full((8, 8), value + k, np.uint8))
+
+
+async def test_multi_driver_grabs_its_drivers_together_in_order(tmp_path: Path) -> None:
+    _write(tmp_path / "a", "img", 2, 10)
+    _write(tmp_path / "pair", "l", 2, 20)
+    _write(tmp_path / "pair", "r", 2, 30)
+    _write(tmp_path / "d", "img", 2, 40)
+    camera = make("multi", cameras=[
+        {"type": "replay", "folder": str(tmp_path / "a"), "glob": "img_*.png"},
+        {"type": "replay", "folder": str(tmp_path / "pair"), "left_glob": "l_*.png",
+         "right_glob": "r_*.png"},  # one driver, two images (a synchronised pair)
+        {"type": "replay", "folder": str(tmp_path / "d"), "glob": "img_*.png"},
+    ])
+    await camera.open()
+    try:
+        for k in range(2):
+            pair = await camera.grab(5.0)
+            assert [int(v[0, 0]) for v in pair.views] == [10 + k, 20 + k, 30 + k, 40 + k]
+            assert len(pair.meta["cameras"]) == 3
+        with pytest.raises(CameraError, match=r"camera.cameras.0 \(replay\): replay: no more"):
+            await camera.grab(5.0)
+    finally:
+        await camera.close()
+
+
+async def test_multi_driver_refuses_what_cannot_work(tmp_path: Path) -> None:
+    _write(tmp_path / "a", "img", 1, 10)
+    one = {"type": "replay", "folder": str(tmp_path / "a"), "glob": "img_*.png"}
+    camera = make("multi", cameras=[one, one])
+    await camera.open()
+    try:
+        with pytest.raises(CameraError, match="delivered 2 images for the 4 cameras"):
+            await camera.grab(5.0)
+    finally:
+        await camera.close()
+    with pytest.raises(ConfigError, match=r"camera.cameras.1: .*glob"):
+        make("multi", cameras=[one, {"type": "replay", "folder": "x"}])
+    with pytest.raises(ConfigError, match="unknown camera.cameras.0 type 'nope'"):
+        make("multi", cameras=[{"type": "nope"}])
+    with pytest.raises(ConfigError, match="cannot hold another"):
+        make("multi", cameras=[{"type": "multi", "cameras": [one]}])
+    missing = make("multi", cameras=[one, {**one, "folder": str(tmp_path / "gone")}])
+    with pytest.raises(CameraError, match=r"camera.cameras.1 \(replay\): replay: folder"):
+        await missing.open()
