@@ -69,7 +69,7 @@ def locate(config_path: Path, n: int = 2) -> list[Any]:
 
 
 def demo_object(definition: str) -> dict[str, Any]:
-    return {**DEMO_OBJECT.model_dump(mode="json"), "definition": definition}
+    return {**DEMO_OBJECT.model_dump(mode="json", exclude_none=True), "definition": definition}
 
 
 def test_teach_cad_reference_then_offsets(tmp_path: Path, capsys: pytest.CaptureFixture[str]):
