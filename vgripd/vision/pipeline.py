@@ -45,7 +45,7 @@ from vgripd.types import FloatArray, ImagePair, JobResult, Status
 from vgripd.vision import diagnosis as dg
 from vgripd.vision import features as ft
 from vgripd.vision import scene
-from vgripd.vision.multicam import MultiCamera, MultiEstimate
+from vgripd.vision.multicam import MultiCamera, rig_verdict
 
 #: Minimum number of matched features for PnP (three points have up to four poses).
 MIN_PNP_FEATURES = 4
@@ -694,45 +694,6 @@ class Pipeline:
         T = result.T_cam_obj
         return PoseEstimate(T, used, result.ambiguous, residuals,
                             self.model[index] @ T[:3, :3].T + T[:3, 3])
-
-
-def rig_verdict(status: Status, message: str, est: MultiEstimate,
-                vision: VisionConfig) -> tuple[Status, str]:
-    """The status of a multi-camera job after the common gates: every rig's own reprojection
-    RMS is gated too, and a rig that disagrees with the others is named; a pose that passed
-    every gate is still published then, but as OK_RECALIBRATE (docs/multicamera.md)."""
-    groups = est.pose.groups if est.pose is not None else ()
-    over = [(g.rms_px, g.name) for g in groups if g.rms_px > vision.max_reprojection_px]
-    if status.pose_valid and over:
-        rms, name = max(over)
-        status, message = Status.RESIDUAL_TOO_HIGH, (
-            f"rig {name}: reprojection RMS {rms:.3f} px > vision.max_reprojection_px "
-            f"{vision.max_reprojection_px}")
-    blame = _blame(est)
-    if not blame:
-        return status, message
-    if status.pose_valid:
-        return Status.OK_RECALIBRATE, blame
-    return status, f"{message}; {blame}"
-
-
-def _blame(est: MultiEstimate) -> str:
-    """The sentence naming the rig(s) the consistency check found odd ('' for none)."""
-    if not est.odd or est.pose is None:
-        return ""
-    if len(est.odd) > 1:
-        return (f"rigs {', '.join(est.odd)} disagree with each other (two rigs alone cannot "
-                "tell which one moved): check their cameras and calibration.cameras")
-    check = next(c for c in est.checks if c.name == est.odd[0])
-    group = next(g for g in est.pose.groups if g.name == check.name)
-    errors = est.pose.errors_px
-    cams = [(float(np.sqrt(np.nanmean(errors[:, j] ** 2))), est.camera_names[j])
-            for j in group.cameras if np.isfinite(errors[:, j]).any()]
-    worst = f" (worst camera {max(cams)[1]}, {max(cams)[0]:.2f} px)" if cams else ""
-    return (f"rig {check.name} disagrees with the other rigs: {check.predicted_rms_px:.2f} px "
-            f"under their pose, its own pose {check.deviation_mm:.2f} mm / "
-            f"{check.deviation_deg:.3f} deg from theirs{worst}: a camera moved? recalibrate "
-            "it (calibration.cameras)")
 
 
 def model_points(config: Config) -> FloatArray:
