@@ -200,6 +200,9 @@ class MultiCamera:
             for cam, blob in all_tracks[assignment[i]].items():
                 px[i, cam] = pixel(cam, blob)
                 taken.add((cam, blob))
+        for j, ids in enumerate(identified):  # identity known: every view counts, even alone
+            for index, p in ids.items():
+                px[index, j] = p
         try:
             pose = fit_pose(view, self.model, px)
             px = self._complete(view, pose.T_base_obj, px, circles, taken)

@@ -222,3 +222,37 @@ def test_a_robot_mounted_camera_needs_the_flange_pose(frames: list[ImagePair]) -
     with_flange = dataclasses.replace(frames[0], T_base_flange=np.eye(4))
     result = pipe.process(with_flange, 0)
     assert result.status is Status.OK, result.message
+
+
+def test_identified_features_pair_by_identity_even_in_one_camera() -> None:
+    """ArUco-like features carry their identity: seen by two cameras they are tracks without
+    any epipolar search, seen by one they still enter the joint fit."""
+    from vgripd.vision import scene
+    from vgripd.vision.multicam import MultiCamera
+    from vgripd.vision.pipeline import model_points
+
+    data = copy.deepcopy(DATA)
+    data["object"]["features"] = [
+        {"name": f["name"], "kind": "aruco", "marker_id": i, "size_mm": 40.0,
+         "xyz_mm": f["xyz_mm"], "normal": f["normal"]}
+        for i, f in enumerate(DATA["object"]["features"])]
+    cfg = config_from_dict(data)
+    T_ref = scene.T_base_obj_ref(cfg)
+    multi = MultiCamera(cfg, model_points(cfg), T_ref)
+    truth = T_ref.copy()
+    truth[:3, 3] += [4.0, -3.0, 2.0]
+    view = multi.view(None)
+    seen = multi.visible(view, truth)
+    X = multi.model @ truth[:3, :3].T + truth[:3, 3]
+    identified = []
+    for j, cam in enumerate(multi.cameras):
+        T = view.T_cameras_base[j]
+        px = cam.project(X @ T[:3, :3].T + T[:3, 3])
+        identified.append({int(i): px[i] for i in np.flatnonzero(seen[:, j])})
+    del identified[1][0]  # f1 now in north_left only
+    est = multi.locate([np.zeros((0, 2))] * 4, identified, None)
+    assert est.pose is not None
+    assert pose_error(est.pose.T_base_obj, truth)[0] < 1e-6
+    assert est.used.all()
+    assert est.residuals["camera.north_left.marks"] == 8
+    assert est.residuals["camera.north_right.marks"] == 7
