@@ -256,3 +256,29 @@ def test_identified_features_pair_by_identity_even_in_one_camera() -> None:
     assert est.used.all()
     assert est.residuals["camera.north_left.marks"] == 8
     assert est.residuals["camera.north_right.marks"] == 7
+
+
+def test_commissioning_runs_the_replay_frames_of_every_camera(frames: list[ImagePair],
+                                                              tmp_path: Any) -> None:
+    import cv2
+
+    from vgripd.service.commissioning import check_replay, check_samples
+
+    names = ["north_left", "north_right", "south_left", "south_right"]
+    for k, pair in enumerate(frames):
+        for name, image in zip(names, pair.views, strict=True):
+            assert cv2.imwrite(str(tmp_path / f"{name}_{k}.png"), image)
+    data = copy.deepcopy(DATA)
+    data["camera"] = {"type": "replay", "folder": str(tmp_path),
+                      "globs": [f"{n}_*.png" for n in names]}
+    assert check_replay(config_from_dict(data)) == []
+    assert check_samples(config_from_dict(data)) == []
+    # The same frames under a config whose north_right moved: the samples say so.
+    data["calibration"]["cameras"][1]["T_base_camera"]["translation_mm"][0] += 3.0
+    (finding,) = check_samples(config_from_dict(data))
+    assert finding.level == "ERROR"
+    assert "rig north disagrees" in finding.message
+    small = np.zeros((10, 10), np.uint8)
+    assert cv2.imwrite(str(tmp_path / "south_left_0.png"), small)
+    (finding,) = check_replay(config_from_dict(data))
+    assert finding.key == "calibration.cameras.2.intrinsics.width"
