@@ -206,8 +206,8 @@ class MultiCamera:
         try:
             pose = fit_pose(view, self.model, px)
             px = self._complete(view, pose.T_base_obj, px, circles, taken)
-            pose = fit_pose(view, self.model, self._unbiased(view, pose.T_base_obj, px),
-                            pose.T_base_obj)
+            px = self._unbiased(view, pose.T_base_obj, px)
+            pose = fit_pose(view, self.model, px, pose.T_base_obj)
         except GeometryError:
             est.used = assignment >= 0
             return est
