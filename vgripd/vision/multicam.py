@@ -298,8 +298,9 @@ class MultiCamera:
     def _complete(self, view: MultiView, T_base_obj: FloatArray, px: FloatArray,
                   circles: Sequence[FloatArray], taken: set[tuple[int, int]]) -> FloatArray:
         """Add the observations the tracks missed: each circle mark the pose predicts in a
-        camera that has no pixel for it yet takes the nearest free image mark within the
-        epipolar tolerance (a mark seen by one camera only, or a third view)."""
+        camera that has no pixel for it yet takes the nearest free image mark within
+        ``COMPLETE_FACTOR`` epipolar tolerances, when no other mark is nearly as near (a mark
+        seen by one camera only, or a third view)."""
         tol = COMPLETE_FACTOR * self.config.vision.epipolar_tolerance_px
         seen = self.visible(view, T_base_obj)
         X = self.model @ T_base_obj[:3, :3].T + T_base_obj[:3, 3]
