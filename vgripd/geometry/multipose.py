@@ -15,7 +15,7 @@ millimetres, radians, pixels.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -43,6 +43,11 @@ __all__ = ["GroupCheck", "GroupResidual", "MultiViewPose", "fit_pose", "rig_cons
 #: Stopping tolerances of the joint pose refinement (relative cost decrease, step, gradient).
 TOLERANCE = 1e-12
 MAX_EVALUATIONS = 100
+#: A group counts as odd only when the other groups agree about as well without it as they
+#: do without the best candidate: their RMS within this factor of the best rest's, or within
+#: this share of the gate above it (noise-free data has rests near 0).
+AGREE_FACTOR = 2.0
+AGREE_SLACK = 0.1
 #: Condition number of a 6x6 normal matrix above which a group (or the rest of the cameras)
 #: does not determine the pose on its own.
 MAX_CONDITION = 1e10
@@ -315,9 +320,11 @@ def rig_consistency(mv: MultiView, model_points: object, pixels: object, T_base_
     linearisation holds while the poses differ by small motions (well beyond the
     millimetres and tenths of a degree a knocked camera causes).
 
-    A group is ``odd`` when the rest agree (``rest_rms_px <= gate_px``) and g does not
+    A group is ``odd`` when the rest agree (``rest_rms_px <= gate_px``, and about as well as
+    the rest of the best candidate: ``AGREE_FACTOR``, ``AGREE_SLACK``) and g does not
     (``predicted_rms_px > gate_px``, or the deviation beyond ``max_deviation_mm`` /
-    ``max_deviation_deg``). With two groups both can be odd (a rig moved as a whole is
+    ``max_deviation_deg``). With three or more groups, a group moved as a whole is named
+    alone. With two groups both can be odd (a rig moved as a whole is
     self-consistent: nothing tells which of two moved); with one camera of a stereo rig
     moved, only that rig is.
     """
@@ -361,6 +368,15 @@ def rig_consistency(mv: MultiView, model_points: object, pixels: object, T_base_
                               alone_rms_px=alone_rms, deviation_mm=dev_mm,
                               deviation_deg=dev_deg,
                               odd=bool(rest_rms <= gate_px and off)))
+    # Of the candidates, only those whose rest agrees about as well as the best one's: with
+    # three rigs and one knocked, leaving out a good rig leaves the knocked one in its rest,
+    # whose RMS, though within the gate, is then far above the noise the best rest shows.
+    rests = [c.rest_rms_px for c in out if c.odd]
+    if rests:
+        best = min(rests)
+        agree = max(AGREE_FACTOR * best, best + AGREE_SLACK * gate_px)
+        out = [c if not c.odd or c.rest_rms_px <= agree else replace(c, odd=False)
+               for c in out]
     return tuple(out)
 
 

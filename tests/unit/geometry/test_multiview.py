@@ -346,3 +346,31 @@ def test_one_camera_at_several_robot_poses_is_several_views() -> None:
     assert pose_error(fit.T_base_obj, T_true)[0] < 0.1
     assert fit.rms_px < 0.2
     assert [g.observations for g in fit.groups] == [10, 10, 10]
+
+
+def test_with_three_rigs_a_rig_moved_as_a_whole_is_named() -> None:
+    """Two rigs cannot tell which of them moved as a whole (each is consistent in itself);
+    three can: the other two agree, and the moved one disagrees with them."""
+    rng = np.random.default_rng(12)
+    model = rng.uniform(-300, 300, (24, 3))
+    eyes = [(-150, -1500, 500), (150, -1500, 500), (1300, 700, 600), (1450, 450, 600),
+            (-1300, 700, 600), (-1450, 450, 600)]
+    Ts = [look_at(e) for e in eyes]
+    px = project_all(Ts, model) + rng.normal(0, 0.1, (24, 6, 2))
+    groups = [("a", (0, 1)), ("b", (2, 3)), ("c", (4, 5))]
+    knock = make_transform(Rotation.from_rotvec([0.0, 0.0, np.radians(0.3)]).as_matrix(),
+                           [2.0, 1.0, 0.0])
+    for moved in range(3):
+        Ts_config = [knock @ T if j // 2 == moved else T for j, T in enumerate(Ts)]
+        mv = MultiView([CAM] * 6, Ts_config, groups=groups)
+        fit = fit_pose(mv, model, px)
+        checks = rig_consistency(mv, model, px, fit.T_base_obj, gate_px=1.5,
+                                 max_deviation_mm=3.0, max_deviation_deg=0.5)
+        assert [c.name for c in checks if c.odd] == ["abc"[moved]]
+    # With only two of the rigs, the same knock makes both disagree: no single one to blame.
+    two = MultiView([CAM] * 4, [knock @ Ts[0], knock @ Ts[1], Ts[2], Ts[3]],
+                    groups=groups[:2])
+    fit = fit_pose(two, model, px[:, :4])
+    checks = rig_consistency(two, model, px[:, :4], fit.T_base_obj, gate_px=1.5,
+                             max_deviation_mm=3.0, max_deviation_deg=0.5)
+    assert [c.odd for c in checks] == [True, True]
