@@ -164,6 +164,63 @@ class VisionConfig(Model):
         return self
 
 
+class PickPointConfig(Model):
+    """One grip point of the object (``[[picking.pick_points]]``): ``pose`` is the gripper's
+    pose in the object frame (for ``object.definition = "reference"``: in the base frame with
+    the object at its reference). ``id`` goes to the robot with the result; ``priority``: a
+    smaller number is tried first (1 = first choice). See docs/picklists.md."""
+
+    id: int = Field(ge=1, le=32767)
+    priority: int = Field(default=1, ge=0, le=32767)
+    pose: PoseConfig
+
+
+class PickingConfig(Model):
+    """Pick lists: several identical objects in one job's images (docs/picklists.md).
+
+    ``max_objects = 1`` (the default) is the single-object job of before: one pose, no
+    instance list. Above 1 every instance found is located, gated and ordered, and up to
+    ``max_objects`` of them are returned, the pickable ones first in the order ``order``:
+
+    - ``"z"``: highest first (base-frame z of the instance's pick point, or its mark centroid
+      without pick points);
+    - ``"nearest"``: nearest first to ``point_mm`` (base frame);
+    - ``"axis"``: ascending along the direction ``axis`` (base frame; its length is ignored);
+    - ``"score"``: best detection score first.
+
+    ``pick_points``: grip points with ids and priorities; for each instance the first one in
+    priority order whose target passes the gates is chosen. Empty: the object's own grip
+    (``pick_id`` 0).
+    """
+
+    max_objects: int = Field(default=1, ge=1, le=64)
+    order: Literal["z", "nearest", "axis", "score"] = "z"
+    point_mm: Vec3 | None = None
+    axis: Vec3 | None = None
+    pick_points: tuple[PickPointConfig, ...] = ()
+
+    @model_validator(mode="after")
+    def _order_parameters(self) -> PickingConfig:
+        if self.order == "nearest" and self.point_mm is None:
+            raise ValueError('order = "nearest" needs point_mm (base frame, mm)')
+        if self.order == "axis":
+            if self.axis is None:
+                raise ValueError('order = "axis" needs axis (a direction in the base frame)')
+            if sum(a * a for a in self.axis) < 1e-12:
+                raise ValueError(f"axis {list(self.axis)} has no direction (zero length)")
+        if self.point_mm is not None and self.order != "nearest":
+            raise ValueError(f'point_mm is the parameter of order = "nearest", not of '
+                             f'order = "{self.order}"')
+        if self.axis is not None and self.order != "axis":
+            raise ValueError(f'axis is the parameter of order = "axis", not of '
+                             f'order = "{self.order}"')
+        ids = [p.id for p in self.pick_points]
+        twice = sorted({i for i in ids if ids.count(i) > 1})
+        if twice:
+            raise ValueError(f"pick_points: id {twice[0]} is used twice")
+        return self
+
+
 class DaemonConfig(Model):
     """The service: one job at a time, each bounded by ``job_timeout_s`` (see docs/daemon.md)."""
 
@@ -529,6 +586,7 @@ class Config(Model):
     output: OutputConfig = OutputConfig()
     limits: LimitsConfig = LimitsConfig()
     vision: VisionConfig = VisionConfig()
+    picking: PickingConfig = PickingConfig()
     daemon: DaemonConfig = DaemonConfig()
     record: RecordConfig = RecordConfig()
     status: StatusConfig = StatusConfig()
