@@ -214,6 +214,9 @@ class PickingConfig(Model):
         if self.axis is not None and self.order != "axis":
             raise ValueError(f'axis is the parameter of order = "axis", not of '
                              f'order = "{self.order}"')
+        if self.pick_points and self.max_objects == 1:
+            raise ValueError("pick_points need max_objects > 1 (a single-object job has no "
+                             "pick list to carry the pick id)")
         ids = [p.id for p in self.pick_points]
         twice = sorted({i for i in ids if ids.count(i) > 1})
         if twice:

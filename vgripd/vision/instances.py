@@ -1,0 +1,272 @@
+"""Several identical objects in one cloud of measured points: which points belong together.
+
+A pallet of identical plates gives the stereo chain one cloud of triangulated marks, six per
+plate, plus whatever the epipolar pairing made of neighbouring marks on the same image row.
+``features.match_model`` finds *one* object and calls a second pose that scores as well
+"ambiguous": with identical plates that second pose is simply the next plate. This module
+finds them all (docs/picklists.md, "Finding the instances"):
+
+1. **Hypothesise.** For every usable model triangle (thin ones are skipped, as in
+   ``match_model``) every point triple with the same three distances (within the tolerance) is
+   a seed; a seed already explained by a verified hypothesis is skipped, so a plate with all
+   its marks costs one verification, not twenty. A plate with a mark missing is still seeded by
+   the triangles of its visible marks.
+2. **Verify** each seed with ``features._verify``: assign the nearest free point to each model
+   point, refit, repeat until it settles, drop gross outliers. Score = the MSAC support of
+   ``match_model`` (a mark in place counts 1).
+3. **Select**, best score first. A hypothesis that uses a point (or an image blob, through
+   the ``keys``) already claimed by an accepted instance is verified again on the free points
+   only and goes back into the queue with its new score: two plates that touch, or a
+   hypothesis that straddles two plates, never become one merged pose; the plate explained
+   better keeps the contested marks and the other is judged on what remains.
+4. **Ambiguity** per instance: a hypothesis that shares points with an accepted instance,
+   still holds up on the points not claimed by the others, puts the object somewhere else
+   (the model moves by more than the tolerance) and scores within ``AMBIGUITY_MARGIN`` makes
+   that instance ambiguous (a symmetric subset of marks, or too few marks to tell).
+
+Pure numpy on points; the pipeline fits each instance again (robustly, circle bias removed).
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Sequence
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+import numpy.typing as npt
+
+from vgripd.types import FloatArray
+from vgripd.vision.features import (
+    AMBIGUITY_MARGIN,
+    MIN_SEED_ALTITUDE,
+    _altitudes,
+    _Hypothesis,
+    _moved,
+    _pairwise,
+    _spread_order,
+    _verify,
+    kabsch,
+    score_scale,
+)
+
+#: Hypotheses verified one by one at most (each costs one small assignment); a pallet of six
+#: plates with 40 candidate points needs a few hundred.
+MAX_VERIFIED = 4000
+
+#: Instances accepted at most (the config's ``picking.max_objects`` is at most 64).
+MAX_INSTANCES = 256
+
+
+@dataclass(frozen=True)
+class InstanceMatch:
+    """One object instance: which measured point is which model feature.
+
+    ``assignment`` (n_model,): row into the measured points, -1 where the feature was not found.
+    ``T_points_model``: rigid motion of the model onto the points (least squares over the
+    assigned ones). ``score``: MSAC support (``features.score_scale``), at most n_model.
+    ``rival``: score of the best other pose for some of the same points (0: none).
+    """
+
+    assignment: npt.NDArray[np.intp]
+    T_points_model: FloatArray
+    rms_mm: float
+    score: float
+    ambiguous: bool = False
+    rival: float = 0.0
+
+    @property
+    def count(self) -> int:
+        return int((self.assignment >= 0).sum())
+
+
+@dataclass(frozen=True)
+class Grouping:
+    """The instances (best score first) and the work done: seeds found, hypotheses verified,
+    and whether the work bound stopped the search (``complete`` False)."""
+
+    instances: tuple[InstanceMatch, ...]
+    seeds: int
+    verified: int
+    complete: bool
+
+
+class _Pool:
+    """The verified hypotheses and the seeds they already explain."""
+
+    def __init__(self, model: FloatArray, points: FloatArray, tolerance_mm: float,
+                 keys: Sequence[tuple[int, ...]], max_rms_mm: float) -> None:
+        self.model, self.points, self.tol, self.keys = model, points, tolerance_mm, keys
+        self.max_rms = max_rms_mm
+        self.scale = score_scale(tolerance_mm, max_rms_mm)
+        self.hyps: list[_Hypothesis] = []
+        self.seen: set[tuple[int, ...]] = set()
+        self.covered: set[tuple[tuple[int, int], ...]] = set()
+        self.verified = 0
+
+    def verify(self, T: FloatArray, free: npt.NDArray[np.bool_] | None = None
+               ) -> _Hypothesis | None:
+        """``features._verify`` of the motion ``T``, on the ``free`` points only (a claimed
+        point is made unreachable); None under three features."""
+        self.verified += 1
+        points = self.points
+        if free is not None and not free.all():
+            points = points.copy()
+            points[~free] = 1e12  # never within the tolerance of anything
+        return _verify(self.model, points, T, self.tol, self.keys, self.max_rms, self.scale)
+
+    def add(self, hyp: _Hypothesis) -> None:
+        assigned = tuple(int(x) for x in hyp.assignment)
+        if assigned in self.seen:
+            return
+        self.seen.add(assigned)
+        self.hyps.append(hyp)
+        inliers = [(f, q) for f, q in enumerate(assigned) if q >= 0]
+        self.covered.update(combinations(inliers, 3))
+
+
+def _exclusive_distances(points: FloatArray, keys: Sequence[tuple[int, ...]]) -> FloatArray:
+    """Pairwise distances, infinite between a point and itself and between two points that
+    share a key (two pairings of one image blob are never one object's two marks)."""
+    m = points.shape[0]
+    owners: dict[int, list[int]] = {}
+    for row, ks in enumerate(keys):
+        for key in ks:
+            owners.setdefault(key, []).append(row)
+    together = ~np.eye(m, dtype=bool)
+    for group in owners.values():
+        if len(group) > 1:
+            together[np.ix_(group, group)] = False
+    return np.where(together, _pairwise(points), np.inf)
+
+
+def _seeds(dm: FloatArray, dp: FloatArray, triple: tuple[int, int, int], tol: float
+           ) -> npt.NDArray[np.intp]:
+    """Point triples (h, 3) whose distances match the model triangle ``triple``."""
+    i, j, k = triple
+    ij = np.abs(dp - dm[i, j]) < tol
+    jk = np.abs(dp - dm[j, k]) < tol
+    ik = np.abs(dp - dm[i, k]) < tol
+    a, b = np.nonzero(ij)
+    if not a.size:
+        return np.zeros((0, 3), dtype=np.intp)
+    e, c = np.nonzero(jk[b] & ik[a])
+    return np.stack([a[e], b[e], c], axis=1).astype(np.intp)
+
+
+def find_instances(
+    model: FloatArray,
+    points: FloatArray,
+    tolerance_mm: float,
+    keys: Sequence[Sequence[int]] | None = None,
+    *,
+    max_rms_mm: float = float("inf"),
+    max_verified: int = MAX_VERIFIED,
+    max_instances: int = MAX_INSTANCES,
+) -> Grouping:
+    """Every instance of ``model`` among ``points`` (module docstring).
+
+    Parameters
+    ----------
+    model : (n, 3) model points (mm).
+    points : (m, 3) measured candidates (mm), several objects' marks, spurious points and
+        alternative pairings of one blob (``keys``).
+    tolerance_mm : how far a measured distance or point may deviate from the model.
+    keys : per point the keys it occupies (left and right blob ids); two points sharing a key
+        are never both used, by one instance or by two.
+    max_rms_mm : the fit gate (``vision.max_fit_rms_mm``): it sets the score scale; an
+        instance over it is still returned (the residual gate judges it).
+    max_verified : the work bound; a search stopped by it is not ``complete``.
+    """
+    n, m = model.shape[0], points.shape[0]
+    if m < 3 or n < 3:
+        return Grouping((), 0, 0, True)
+    key_list = ([tuple(k) for k in keys] if keys is not None
+                else [(i,) for i in range(m)])
+    pool = _Pool(model, points, tolerance_mm, key_list, max_rms_mm)
+    dp = _exclusive_distances(points, key_list)
+    dm = _pairwise(model)
+    seedable = _altitudes(model) >= MIN_SEED_ALTITUDE * tolerance_mm
+    order = _spread_order(model)
+    # Well-spread triangles first: they make the best-conditioned seeds.
+    triples = [(i, j, k) for r in range(2, n) for i, j in combinations(order[:r], 2)
+               for k in (order[r],) if seedable[i, j, k]]
+    seeds = 0
+    complete = True
+    for triple in triples:
+        found = _seeds(dm, dp, triple, tolerance_mm)
+        seeds += found.shape[0]
+        for a, b, c in found:
+            seed = tuple(sorted(zip(triple, (int(a), int(b), int(c)), strict=True)))
+            if seed in pool.covered:
+                continue
+            if pool.verified >= max_verified:
+                complete = False
+                break
+            T = kabsch(model[list(triple)], points[[a, b, c]])
+            hyp = pool.verify(T)
+            if hyp is not None:
+                pool.add(hyp)
+        if not complete:
+            break
+    accepted = _select(pool, max_instances)
+    return Grouping(tuple(_judge(pool, accepted)), seeds, pool.verified, complete)
+
+
+def _claims(hyp: _Hypothesis, keys: Sequence[tuple[int, ...]]) -> set[int]:
+    return {k for q in hyp.assignment if q >= 0 for k in keys[int(q)]}
+
+
+def _select(pool: _Pool, max_instances: int) -> list[_Hypothesis]:
+    """Best score first; a hypothesis touching claimed points is verified again on the free
+    points and requeued (never merged with the instance that claimed them)."""
+    keys = pool.keys
+    m = pool.points.shape[0]
+    heap = [(-h.score, h.rms, i, h) for i, h in enumerate(pool.hyps)]
+    heapq.heapify(heap)
+    tie = len(heap)
+    claimed: set[int] = set()
+    accepted: list[_Hypothesis] = []
+    while heap and len(accepted) < max_instances:
+        _, _, _, hyp = heapq.heappop(heap)
+        mine = _claims(hyp, keys)
+        if not mine & claimed:
+            accepted.append(hyp)
+            claimed |= mine
+            continue
+        free = np.array([not claimed.intersection(keys[r]) for r in range(m)])
+        again = pool.verify(hyp.T, free)
+        if again is not None:
+            tie += 1
+            heapq.heappush(heap, (-again.score, again.rms, tie, again))
+    return accepted
+
+
+def _judge(pool: _Pool, accepted: list[_Hypothesis]) -> list[InstanceMatch]:
+    """Each accepted hypothesis as an instance, with its rival (module docstring, step 4)."""
+    keys = pool.keys
+    m = pool.points.shape[0]
+    claims = [_claims(h, keys) for h in accepted]
+    out: list[InstanceMatch] = []
+    for idx, hyp in enumerate(accepted):
+        others = set().union(*(c for j, c in enumerate(claims) if j != idx))
+        free = np.array([not others.intersection(keys[r]) for r in range(m)])
+        rival = 0.0
+        for other in pool.hyps:
+            if other is hyp or other.score < hyp.score - AMBIGUITY_MARGIN - 1.0:
+                continue
+            if not _claims(other, keys) & claims[idx]:
+                continue
+            if _moved(pool.model, hyp.T, other.T) <= pool.tol:
+                continue
+            again = other if not (_claims(other, keys) & others) else pool.verify(other.T, free)
+            if again is None or _moved(pool.model, hyp.T, again.T) <= pool.tol:
+                continue
+            valid = again.rms <= pool.max_rms or hyp.rms > pool.max_rms
+            if valid:
+                rival = max(rival, again.score)
+        out.append(InstanceMatch(
+            assignment=hyp.assignment, T_points_model=hyp.T, rms_mm=hyp.rms,
+            score=hyp.score, ambiguous=rival >= hyp.score - AMBIGUITY_MARGIN, rival=rival))
+    return out
