@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vgripd.config import Config, PickingConfig
+from vgripd.geometry.transforms import invert_transform
 from vgripd.geometry.vendors import target_from_transform
 from vgripd.types import FloatArray, PickInstance, RobotTarget, Status
 from vgripd.vision import scene
@@ -180,7 +181,7 @@ def _instance(pipe: Pipeline, match: InstanceMatch, paired: StereoPoints,
         return Located(PickInstance(status=status, message=message,
                                     features_used=scratch.used), centre)
     T_base_obj = T_base_camera @ estimate.T_cam_obj
-    offset = T_base_obj @ np.linalg.inv(pipe.T_base_obj_ref)
+    offset = T_base_obj @ invert_transform(pipe.T_base_obj_ref)  # as the single path does
     status, message, point = choose(pipe, T_base_obj, offset, estimate, needed, points)
     target: RobotTarget | None = None
     if status.pose_valid:
