@@ -8,6 +8,7 @@ reports every instance's true pose; the vendor values are checked against scipy'
 from __future__ import annotations
 
 import asyncio
+import re
 from typing import Any
 
 import numpy as np
@@ -65,9 +66,10 @@ def _match(truths: np.ndarray, found: tuple[PickInstance, ...]) -> dict[int, Pic
 
 def test_pallet_every_plate_against_the_renderer_truth() -> None:
     """Six touching plates, one with a mark covered: every plate is in the list once, pickable,
-    its pose within 0.5 mm / 0.5 deg of the truth (measured over these 3 frames: 0.20 mm,
-    0.26 deg at worst, the two plates whose neighbouring marks come within 17 mm; the others
-    under 0.05 mm / 0.1 deg)."""
+    its pose within 0.1 mm / 0.1 deg of the truth (measured over these 3 frames: 0.018 mm,
+    0.032 deg at worst; before the finder split the pixels of marks closer than their
+    refinement windows, the two plates whose marks came within 17 mm were off by 0.20 mm,
+    0.26 deg)."""
     config = _config({"seed": 7, "drop_features": ["4/m3"]}, picking={"max_objects": 6})
     pipeline = Pipeline(config)
     worst_mm = worst_deg = 0.0
@@ -93,8 +95,8 @@ def test_pallet_every_plate_against_the_renderer_truth() -> None:
         assert result.T_base_obj is first.T_base_obj
         assert result.features_used == first.features_used
     print(f"pick list vs truth: worst {worst_mm:.3f} mm, {worst_deg:.3f} deg")
-    assert worst_mm < 0.5
-    assert worst_deg < 0.5
+    assert worst_mm < 0.1
+    assert worst_deg < 0.1
 
 
 def test_max_objects_1_is_the_single_object_job_and_one_plate_gives_the_same_pose() -> None:
@@ -128,7 +130,7 @@ def test_gates_apply_per_instance() -> None:
     result = Pipeline(config).process(pair, 1)
     assert [i.status for i in result.instances] == [Status.OK, Status.OK, Status.OUT_OF_LIMITS]
     last = result.instances[-1]
-    assert "object turned 29.8" in last.message
+    assert re.search(r"object turned 29\.[78]\d deg > limits.max_rotation_deg 10", last.message)
     assert last.target is None
     assert last.T_base_obj is not None  # reported, never sent
     assert result.status is Status.OK
