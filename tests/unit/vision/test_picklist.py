@@ -301,3 +301,31 @@ def test_pick_lists_need_stereo_circle_marks() -> None:
                                "picking": {"max_objects": 3}})
     with pytest.raises(ConfigError, match="picking.max_objects > 1 needs a stereo rig"):
         Pipeline(config)
+
+
+def test_a_plate_with_three_marks_is_listed_partial_one_with_two_is_not_found() -> None:
+    config = _config({"drop_features": ["2/m1", "2/m2", "2/m4", "5/m1", "5/m2", "5/m3",
+                                        "5/m4"]},
+                     picking={"max_objects": 6})
+    (pair,) = _grab(config)
+    result = Pipeline(config).process(pair, 1)
+    statuses = [i.status for i in result.instances]
+    assert statuses == [Status.OK] * 4 + [Status.PARTIAL]
+    partial = result.instances[-1]
+    assert partial.message == "3 feature(s) matched, need 4"
+    assert partial.target is None
+    assert partial.features_used == ("m3", "m5", "m6")
+    assert partial.T_base_obj is not None
+    dt, _ = _errors(pair.truth["instances_T_base_obj"][2], partial.T_base_obj)
+    assert dt < 0.5  # located, reported, never sent
+
+
+def test_no_instance_at_all_is_not_found_with_an_empty_list() -> None:
+    config = _config({"pallet": {**PALLET, "count": 2},
+                      "drop_features": ["m1", "m2", "m3", "m4"]}, picking={"max_objects": 6})
+    (pair,) = _grab(config)
+    result = Pipeline(config).process(pair, 1)
+    assert result.status is Status.NOT_FOUND
+    assert result.instances == ()
+    assert result.target is None
+    assert "no instance of 'demo_plate' found among" in result.message
