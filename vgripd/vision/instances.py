@@ -51,9 +51,9 @@ from vgripd.vision.features import (
     score_scale,
 )
 
-#: Hypotheses verified one by one at most (each costs one small assignment); a pallet of six
-#: plates with 40 candidate points needs a few hundred.
-MAX_VERIFIED = 4000
+#: Hypotheses verified one by one at most, per candidate point (each costs one small
+#: assignment): a pallet needs about two per point, spurious pairings included.
+MAX_VERIFIED_PER_POINT = 50
 
 #: Instances accepted at most (the config's ``picking.max_objects`` is at most 64).
 MAX_INSTANCES = 256
@@ -100,6 +100,9 @@ class _Pool:
         self.model, self.points, self.tol, self.keys = model, points, tolerance_mm, keys
         self.max_rms = max_rms_mm
         self.scale = score_scale(tolerance_mm, max_rms_mm)
+        self.centre = model.mean(axis=0)
+        radius = float(np.linalg.norm(model - self.centre, axis=1).max())
+        self.reach2 = (radius + 4.0 * tolerance_mm) ** 2
         self.hyps: list[_Hypothesis] = []
         self.seen: set[tuple[int, ...]] = set()
         self.covered: set[tuple[tuple[int, int], ...]] = set()
@@ -107,14 +110,26 @@ class _Pool:
 
     def verify(self, T: FloatArray, free: npt.NDArray[np.bool_] | None = None
                ) -> _Hypothesis | None:
-        """``features._verify`` of the motion ``T``, on the ``free`` points only (a claimed
-        point is made unreachable); None under three features."""
+        """``features._verify`` of the motion ``T`` on the (``free``) points near the moved
+        model; None under three features.
+
+        Only the points within reach of the object can take part (the refits move it by a few
+        tolerances at most), so the verification runs on those: a pallet's cost then grows
+        with its number of plates, not with its square."""
         self.verified += 1
-        points = self.points
-        if free is not None and not free.all():
-            points = points.copy()
-            points[~free] = 1e12  # never within the tolerance of anything
-        return _verify(self.model, points, T, self.tol, self.keys, self.max_rms, self.scale)
+        centre = T[:3, :3] @ self.centre + T[:3, 3]
+        near = np.sum((self.points - centre) ** 2, axis=1) <= self.reach2
+        if free is not None:
+            near &= free
+        rows = np.flatnonzero(near)
+        if rows.size < 3:
+            return None
+        hyp = _verify(self.model, self.points[rows], T, self.tol,
+                      [self.keys[int(r)] for r in rows], self.max_rms, self.scale)
+        if hyp is None:
+            return None
+        assignment = np.where(hyp.assignment >= 0, rows[np.maximum(hyp.assignment, 0)], -1)
+        return _Hypothesis(assignment, hyp.T, hyp.rms, hyp.score)
 
     def add(self, hyp: _Hypothesis) -> None:
         assigned = tuple(int(x) for x in hyp.assignment)
@@ -162,7 +177,7 @@ def find_instances(
     keys: Sequence[Sequence[int]] | None = None,
     *,
     max_rms_mm: float = float("inf"),
-    max_verified: int = MAX_VERIFIED,
+    max_verified: int | None = None,
     max_instances: int = MAX_INSTANCES,
 ) -> Grouping:
     """Every instance of ``model`` among ``points`` (module docstring).
@@ -177,7 +192,8 @@ def find_instances(
         are never both used, by one instance or by two.
     max_rms_mm : the fit gate (``vision.max_fit_rms_mm``): it sets the score scale; an
         instance over it is still returned (the residual gate judges it).
-    max_verified : the work bound; a search stopped by it is not ``complete``.
+    max_verified : the work bound (default ``MAX_VERIFIED_PER_POINT`` per point); a search
+        stopped by it is not ``complete``.
     """
     n, m = model.shape[0], points.shape[0]
     if m < 3 or n < 3:
@@ -185,6 +201,8 @@ def find_instances(
     key_list = ([tuple(k) for k in keys] if keys is not None
                 else [(i,) for i in range(m)])
     pool = _Pool(model, points, tolerance_mm, key_list, max_rms_mm)
+    if max_verified is None:
+        max_verified = MAX_VERIFIED_PER_POINT * m
     dp = _exclusive_distances(points, key_list)
     dm = _pairwise(model)
     seedable = _altitudes(model) >= MIN_SEED_ALTITUDE * tolerance_mm
@@ -218,25 +236,41 @@ def _claims(hyp: _Hypothesis, keys: Sequence[tuple[int, ...]]) -> set[int]:
     return {k for q in hyp.assignment if q >= 0 for k in keys[int(q)]}
 
 
+def _blocked_by(claimed: set[int], owners: dict[int, list[int]], m: int
+                ) -> npt.NDArray[np.bool_]:
+    """Rows (m,) that share a key with ``claimed``."""
+    blocked = np.zeros(m, dtype=bool)
+    for key in claimed:
+        blocked[owners.get(key, [])] = True
+    return blocked
+
+
+def _owners(keys: Sequence[tuple[int, ...]]) -> dict[int, list[int]]:
+    owners: dict[int, list[int]] = {}
+    for row, ks in enumerate(keys):
+        for key in ks:
+            owners.setdefault(key, []).append(row)
+    return owners
+
+
 def _select(pool: _Pool, max_instances: int) -> list[_Hypothesis]:
     """Best score first; a hypothesis touching claimed points is verified again on the free
     points and requeued (never merged with the instance that claimed them)."""
     keys = pool.keys
-    m = pool.points.shape[0]
+    owners = _owners(keys)
+    blocked = np.zeros(pool.points.shape[0], dtype=bool)
     heap = [(-h.score, h.rms, i, h) for i, h in enumerate(pool.hyps)]
     heapq.heapify(heap)
     tie = len(heap)
-    claimed: set[int] = set()
     accepted: list[_Hypothesis] = []
     while heap and len(accepted) < max_instances:
         _, _, _, hyp = heapq.heappop(heap)
-        mine = _claims(hyp, keys)
-        if not mine & claimed:
+        rows = hyp.assignment[hyp.assignment >= 0]
+        if not blocked[rows].any():
             accepted.append(hyp)
-            claimed |= mine
+            blocked |= _blocked_by(_claims(hyp, keys), owners, blocked.size)
             continue
-        free = np.array([not claimed.intersection(keys[r]) for r in range(m)])
-        again = pool.verify(hyp.T, free)
+        again = pool.verify(hyp.T, ~blocked)
         if again is not None:
             tie += 1
             heapq.heappush(heap, (-again.score, again.rms, tie, again))
@@ -246,21 +280,29 @@ def _select(pool: _Pool, max_instances: int) -> list[_Hypothesis]:
 def _judge(pool: _Pool, accepted: list[_Hypothesis]) -> list[InstanceMatch]:
     """Each accepted hypothesis as an instance, with its rival (module docstring, step 4)."""
     keys = pool.keys
+    owners = _owners(keys)
     m = pool.points.shape[0]
     claims = [_claims(h, keys) for h in accepted]
+    # Per hypothesis of the pool: the keys it uses (computed once).
+    pool_claims = [_claims(h, keys) for h in pool.hyps]
     out: list[InstanceMatch] = []
     for idx, hyp in enumerate(accepted):
         others = set().union(*(c for j, c in enumerate(claims) if j != idx))
-        free = np.array([not others.intersection(keys[r]) for r in range(m)])
+        free: npt.NDArray[np.bool_] | None = None
         rival = 0.0
-        for other in pool.hyps:
+        for other, used in zip(pool.hyps, pool_claims, strict=True):
             if other is hyp or other.score < hyp.score - AMBIGUITY_MARGIN - 1.0:
                 continue
-            if not _claims(other, keys) & claims[idx]:
+            if not used & claims[idx]:
                 continue
             if _moved(pool.model, hyp.T, other.T) <= pool.tol:
                 continue
-            again = other if not (_claims(other, keys) & others) else pool.verify(other.T, free)
+            if used & others:
+                if free is None:
+                    free = ~_blocked_by(others, owners, m)
+                again = pool.verify(other.T, free)
+            else:
+                again = other
             if again is None or _moved(pool.model, hyp.T, again.T) <= pool.tol:
                 continue
             valid = again.rms <= pool.max_rms or hyp.rms > pool.max_rms
