@@ -172,3 +172,37 @@ def test_random_pallets_every_plate_found_once(count: int, seed: int, yaw: float
     pts, owner, index = _scene(poses, seed=seed)
     grouping = find_instances(MODEL, pts, TOL, max_rms_mm=MAX_RMS)
     assert _check(list(grouping.instances), owner, index, poses) == {k: 6 for k in range(count)}
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(count=st.integers(1, 6), seed=st.integers(0, 10_000), clutter=st.integers(0, 12),
+       hidden=st.lists(st.tuples(st.integers(0, 5), st.integers(0, 5)), max_size=6))
+def test_random_pallets_with_clutter_and_hidden_marks(count: int, seed: int, clutter: int,
+                                                      hidden: list[tuple[int, int]]) -> None:
+    """Property: with spurious points (away from every mark's place, hidden ones included)
+    and up to two hidden marks per plate, every plate is found once with exactly its visible
+    marks, and no spurious point joins an instance."""
+    rng = np.random.default_rng(seed)
+    poses = []
+    for k in range(count):
+        r, c = divmod(k, 3)
+        poses.append(_pose(c * 135.0 + rng.uniform(-2, 2), r * 102.0 + rng.uniform(-2, 2),
+                           float(rng.uniform(-4.0, 4.0))))
+    drop: dict[int, list[int]] = {}
+    for plate, mark in hidden:
+        if plate < count and len(drop.get(plate, [])) < 2 and mark not in drop.get(plate, []):
+            drop.setdefault(plate, []).append(mark)
+    pts, owner, index = _scene(poses, seed=seed, drop=drop)
+    places = np.vstack([MODEL @ T[:3, :3].T + T[:3, 3] for T in poses])
+    extra: list[np.ndarray] = []
+    while len(extra) < clutter:
+        p = rng.uniform(places.min(axis=0) - 40.0, places.max(axis=0) + 40.0)
+        if np.linalg.norm(places - p, axis=1).min() > 3.0 * TOL:
+            extra.append(p)
+    all_pts = np.vstack([pts, *extra]) if extra else pts
+    owner2 = np.r_[owner, -np.arange(1, clutter + 1)]
+    index2 = np.r_[index, -np.ones(clutter, dtype=int)]
+    grouping = find_instances(MODEL, all_pts, TOL, max_rms_mm=MAX_RMS)
+    full = [i for i in grouping.instances if i.count >= 4]
+    seen = _check(full, owner2, index2, poses)
+    assert seen == {k: 6 - len(drop.get(k, [])) for k in range(count)}
