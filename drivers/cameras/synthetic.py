@@ -38,7 +38,8 @@ Several identical objects (pick lists, docs/picklists.md), instead of ``pose``::
 The pallet is a grid of ``count`` objects in ``cols`` columns, laid out in the taught
 reference's xy plane and centred on it: each object's footprint is the box of its marks (plus
 one mark diameter), ``gap_mm`` apart (0: the footprints touch; negative: they overlap, marks
-never do). Each frame every object moves by up to ``jitter_mm`` in x and y and turns by up to
+never do; ``pitch_mm = [x, y]`` sets the spacing of the centres instead). Each frame every
+object moves by up to ``jitter_mm`` in x and y and turns by up to
 ``jitter_deg`` about the reference's z axis through its own marks' centroid.
 
 ``ImagePair.truth``: ``T_base_obj``, ``T_cam_obj`` (left camera), ``feature_names``,
@@ -56,7 +57,7 @@ from typing import Any
 
 import cv2
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from drivers.cameras.base import CameraDriver, DriverOptions
 from vgripd.config import CircleFeature, Config, Model, PoseConfig
@@ -76,8 +77,18 @@ class PalletOptions(Model):
     count: int = Field(default=6, ge=1, le=64)
     cols: int = Field(default=3, ge=1, le=64)
     gap_mm: float = Field(default=20.0, ge=-50.0, le=1000.0)
+    pitch_mm: tuple[float, float] | None = None  # centre spacing (x, y); instead of gap_mm
     jitter_mm: float = Field(default=2.0, ge=0, le=100)
     jitter_deg: float = Field(default=3.0, ge=0, le=180)
+
+    @model_validator(mode="after")
+    def _pitch_or_gap(self) -> PalletOptions:
+        if self.pitch_mm is not None:
+            if "gap_mm" in self.model_fields_set:
+                raise ValueError("give gap_mm or pitch_mm, not both")
+            if min(self.pitch_mm) <= 0:
+                raise ValueError(f"pitch_mm {list(self.pitch_mm)} must be positive")
+        return self
 
 
 class SyntheticOptions(DriverOptions):
@@ -248,7 +259,8 @@ class SyntheticCamera(CameraDriver):
         pts = scene.object_points(self.config)
         diameter = max(f.diameter_mm for f in self._circles)
         lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
-        pitch = (hi - lo) + diameter + pallet.gap_mm
+        pitch = ((hi - lo) + diameter + pallet.gap_mm if pallet.pitch_mm is None
+                 else np.asarray(pallet.pitch_mm, dtype=np.float64))
         rows = -(-pallet.count // pallet.cols)
         cols = min(pallet.cols, pallet.count)
         centroid = pts.mean(axis=0)

@@ -266,3 +266,18 @@ async def test_explicit_instances_and_option_conflicts() -> None:
         make_camera(pose=poses[0], pallet={"count": 2})
     with pytest.raises(ConfigError, match="instance '7' is not one of 0..1"):
         make_camera(instances=poses, drop_features=["7/m1"])
+
+
+async def test_pallet_pitch_and_its_limits() -> None:
+    (pair,) = await grab(pallet={"count": 3, "cols": 3, "pitch_mm": [150.0, 110.0],
+                                 "jitter_mm": 0.0, "jitter_deg": 0.0}, **QUIET)
+    x = pair.truth["instances_T_base_obj"][:, :3, 3]
+    np.testing.assert_allclose(np.linalg.norm(np.diff(x, axis=0), axis=1), 150.0, atol=1e-9)
+    with pytest.raises(ConfigError, match="gap_mm or pitch_mm"):
+        make_camera(pallet={"count": 2, "gap_mm": 0.0, "pitch_mm": [150.0, 110.0]})
+    with pytest.raises(ConfigError, match="must be positive"):
+        make_camera(pallet={"count": 2, "pitch_mm": [0.0, 110.0]})
+    # Marks cannot overlap: a pitch under the marks' spacing is refused at the grab.
+    with pytest.raises(CameraError, match="cannot place the objects without overlapping"):
+        await grab(pallet={"count": 2, "pitch_mm": [2.0, 2.0], "jitter_mm": 0.0,
+                           "jitter_deg": 0.0})
