@@ -334,22 +334,30 @@ def _diagonal_intersection(c: FloatArray) -> FloatArray:
     return np.asarray(c[0] + t * d1, dtype=np.float64)
 
 
-def find_aruco(gray: UInt8Image, dictionary: str) -> dict[int, Marker]:
-    """Decode the markers of one dictionary. A marker id seen twice is dropped (no identity)."""
+def find_aruco_all(gray: UInt8Image, dictionary: str) -> list[Marker]:
+    """Every decoded marker of one dictionary, an id as often as it is seen (pick lists: the
+    same markers on every object)."""
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     detector = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), params)
     corners, ids, _ = detector.detectMarkers(gray)
-    found: dict[int, Marker] = {}
-    seen_twice: set[int] = set()
     if ids is None:
-        return found
+        return []
+    out = []
     for quad, mid in zip(corners, ids.ravel(), strict=True):
         c = np.asarray(quad, dtype=np.float64).reshape(4, 2)
-        key = int(mid)
-        if key in found:
-            seen_twice.add(key)
-        found[key] = Marker(key, c, _diagonal_intersection(c))
+        out.append(Marker(int(mid), c, _diagonal_intersection(c)))
+    return out
+
+
+def find_aruco(gray: UInt8Image, dictionary: str) -> dict[int, Marker]:
+    """Decode the markers of one dictionary. A marker id seen twice is dropped (no identity)."""
+    found: dict[int, Marker] = {}
+    seen_twice: set[int] = set()
+    for marker in find_aruco_all(gray, dictionary):
+        if marker.marker_id in found:
+            seen_twice.add(marker.marker_id)
+        found[marker.marker_id] = marker
     for key in seen_twice:
         del found[key]
     return found

@@ -37,6 +37,9 @@ from itertools import combinations
 import numpy as np
 import numpy.typing as npt
 
+from vgripd.errors import GeometryError
+from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.orientation import pnp
 from vgripd.types import FloatArray
 from vgripd.vision.features import (
     AMBIGUITY_MARGIN,
@@ -312,3 +315,153 @@ def _judge(pool: _Pool, accepted: list[_Hypothesis]) -> list[InstanceMatch]:
             assignment=hyp.assignment, T_points_model=hyp.T, rms_mm=hyp.rms,
             score=hyp.score, ambiguous=rival >= hyp.score - AMBIGUITY_MARGIN, rival=rival))
     return out
+
+
+# --------------------------------------------------------------------------- one camera
+
+@dataclass(frozen=True)
+class MonoInstance:
+    """One instance among identified detections in one image: ``assignment`` (n_model,) index
+    into the detections (-1: not seen), ``T_cam_obj`` from PnP, its reprojection RMS (px)."""
+
+    assignment: npt.NDArray[np.intp]
+    T_cam_obj: FloatArray
+    rms_px: float
+    ambiguous: bool
+
+    @property
+    def count(self) -> int:
+        return int((self.assignment >= 0).sum())
+
+
+def find_instances_mono(
+    model: FloatArray,
+    feature: npt.NDArray[np.intp],
+    px: FloatArray,
+    side_px: FloatArray,
+    size_mm: FloatArray,
+    camera: CameraModel,
+    tolerance_px: float,
+    *,
+    min_count: int = 4,
+) -> list[MonoInstance]:
+    """Every instance of an object of identified markers repeated on identical objects, seen by
+    one camera (``feature[i]``: the model feature of detection i, ``px[i]`` its centre,
+    ``side_px[i]`` its mean side; ``size_mm`` per model feature).
+
+    A marker's identity says which feature it is, not which object it belongs to. Two
+    detections of different features whose image distance fits the model distance at the
+    first one's scale (``side_px / size_mm``, within 40 %) seed a similarity of the model's xy
+    plane onto the image (both handednesses: the plate may be seen from either side of its
+    frame); the nearest detection of each further feature within a third of the smallest model
+    distance joins, PnP on the group gives the pose, and every feature is assigned again to the
+    nearest detection within ``tolerance_px`` of its projection and PnP repeated. Groups are
+    accepted most features first, then lowest RMS; one that shares a detection with an accepted
+    group is assigned again on the free detections (never merged).
+    """
+    k, n = px.shape[0], model.shape[0]
+    if k < min_count:
+        return []
+    by_feature = [np.flatnonzero(feature == f) for f in range(n)]
+    xy = model[:, :2]
+    dm = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+    spacing = float(dm[dm > 0].min()) if (dm > 0).any() else 1.0
+    hyps: dict[tuple[int, ...], MonoInstance] = {}
+    for a in range(k):
+        fa = int(feature[a])
+        scale = side_px[a] / size_mm[fa]
+        for b in range(k):
+            fb = int(feature[b])
+            if fb == fa or dm[fa, fb] <= 0:
+                continue
+            d = float(np.linalg.norm(px[b] - px[a]))
+            if not 0.6 * dm[fa, fb] * scale <= d <= 1.4 * dm[fa, fb] * scale:
+                continue
+            vm = complex(*(xy[fb] - xy[fa]))
+            vp = complex(*(px[b] - px[a]))
+            for mirror in (False, True):
+                z = vp / (vm.conjugate() if mirror else vm)
+                rel = xy - xy[fa]
+                w = rel[:, 0] - 1j * rel[:, 1] if mirror else rel[:, 0] + 1j * rel[:, 1]
+                pred = complex(*px[a]) + z * w
+                guess = np.stack([pred.real, pred.imag], axis=1)
+                assignment = _nearest_detections(guess, px, by_feature,
+                                                 spacing * abs(z) / 3.0)
+                hyp = _mono_fit(model, px, assignment, camera, by_feature, tolerance_px,
+                                min_count)
+                if hyp is not None:
+                    hyps.setdefault(tuple(int(x) for x in hyp.assignment), hyp)
+    return _select_mono(list(hyps.values()), model, px, camera, by_feature, tolerance_px,
+                        min_count)
+
+
+def _nearest_detections(guess: FloatArray, px: FloatArray,
+                        by_feature: list[npt.NDArray[np.intp]], radius_px: float,
+                        free: npt.NDArray[np.bool_] | None = None) -> npt.NDArray[np.intp]:
+    """Per model feature, the nearest (free) detection of that feature within ``radius_px`` of
+    its predicted pixel, -1 if none."""
+    out = np.full(len(by_feature), -1, dtype=np.intp)
+    for f, rows in enumerate(by_feature):
+        if free is not None:
+            rows = rows[free[rows]]
+        if not rows.size:
+            continue
+        d = np.linalg.norm(px[rows] - guess[f], axis=1)
+        j = int(np.argmin(d))
+        if d[j] <= radius_px:
+            out[f] = rows[j]
+    return out
+
+
+def _mono_fit(model: FloatArray, px: FloatArray, assignment: npt.NDArray[np.intp],
+              camera: CameraModel, by_feature: list[npt.NDArray[np.intp]],
+              tolerance_px: float, min_count: int,
+              free: npt.NDArray[np.bool_] | None = None) -> MonoInstance | None:
+    """PnP on the assigned features, reassignment within ``tolerance_px`` of the projections,
+    PnP again; None under ``min_count`` features or when PnP refuses the points."""
+    for _ in range(2):
+        sel = np.flatnonzero(assignment >= 0)
+        if sel.size < min_count:
+            return None
+        try:
+            result = pnp(model[sel], px[assignment[sel]], camera)
+        except GeometryError:
+            return None
+        T = result.T_cam_obj
+        cam_pts = model @ T[:3, :3].T + T[:3, 3]
+        if (cam_pts[:, 2] <= 0).any():
+            return None
+        again = _nearest_detections(camera.project(cam_pts), px, by_feature, tolerance_px,
+                                    free)
+        if np.array_equal(again, assignment):
+            break
+        assignment = again
+    sel = np.flatnonzero(assignment >= 0)
+    if sel.size < min_count:
+        return None
+    return MonoInstance(assignment, T, float(result.rms_px), bool(result.ambiguous))
+
+
+def _select_mono(hyps: list[MonoInstance], model: FloatArray, px: FloatArray,
+                 camera: CameraModel, by_feature: list[npt.NDArray[np.intp]],
+                 tolerance_px: float, min_count: int) -> list[MonoInstance]:
+    heap = [(-h.count, h.rms_px, i, h) for i, h in enumerate(hyps)]
+    heapq.heapify(heap)
+    tie = len(heap)
+    used = np.zeros(px.shape[0], dtype=bool)
+    accepted: list[MonoInstance] = []
+    while heap and len(accepted) < MAX_INSTANCES:
+        _, _, _, hyp = heapq.heappop(heap)
+        rows = hyp.assignment[hyp.assignment >= 0]
+        if not used[rows].any():
+            accepted.append(hyp)
+            used[rows] = True
+            continue
+        free = ~used
+        start = hyp.assignment.copy()
+        start[(start >= 0) & ~free[np.maximum(start, 0)]] = -1
+        again = _mono_fit(model, px, start, camera, by_feature, tolerance_px, min_count, free)
+        if again is not None:
+            tie += 1
+            heapq.heappush(heap, (-again.count, again.rms_px, tie, again))
+    return accepted

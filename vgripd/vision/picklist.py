@@ -27,10 +27,10 @@ from vgripd.geometry.vendors import target_from_transform
 from vgripd.types import FloatArray, PickInstance, RobotTarget, Status
 from vgripd.vision import scene
 from vgripd.vision.features import score_scale
-from vgripd.vision.instances import InstanceMatch, find_instances
+from vgripd.vision.instances import InstanceMatch, find_instances, find_instances_mono
 
 if TYPE_CHECKING:
-    from vgripd.vision.pipeline import Pipeline, PoseEstimate, StereoPoints, _Job
+    from vgripd.vision.pipeline import Found, Pipeline, PoseEstimate, StereoPoints, _Job
 
 #: Gate failures that one pick point may pass and another not (where the grip is): the
 #: others (counts, ambiguity, residuals) belong to the instance and end the search at once.
@@ -166,7 +166,7 @@ def _sent(pipe: Pipeline, T_base_obj: FloatArray, offset: FloatArray,
 def _instance(pipe: Pipeline, match: InstanceMatch, paired: StereoPoints,
               T_base_camera: FloatArray, needed: int, points: tuple[PickPoint, ...]
               ) -> Located:
-    """One grouped instance fitted, gated and given its pick point."""
+    """One grouped stereo instance fitted, gated and given its pick point."""
     from vgripd.vision.pipeline import Measurement, _Job, gate
 
     config = pipe.config
@@ -180,6 +180,16 @@ def _instance(pipe: Pipeline, match: InstanceMatch, paired: StereoPoints,
         centre = (pipe.model @ T[:3, :3].T + T[:3, 3]).mean(axis=0)
         return Located(PickInstance(status=status, message=message,
                                     features_used=scratch.used), centre)
+    scale = score_scale(config.vision.model_tolerance_mm, config.vision.max_fit_rms_mm)
+    return _judged(pipe, estimate, scratch.used, T_base_camera, needed, points,
+                   detection_score(pipe.model, estimate, scale))
+
+
+def _judged(pipe: Pipeline, estimate: PoseEstimate, used: tuple[str, ...],
+            T_base_camera: FloatArray, needed: int, points: tuple[PickPoint, ...],
+            score: float) -> Located:
+    """An instance's pose through the gates and the pick point choice."""
+    config = pipe.config
     T_base_obj = T_base_camera @ estimate.T_cam_obj
     offset = T_base_obj @ invert_transform(pipe.T_base_obj_ref)  # as the single path does
     status, message, point = choose(pipe, T_base_obj, offset, estimate, needed, points)
@@ -192,14 +202,64 @@ def _instance(pipe: Pipeline, match: InstanceMatch, paired: StereoPoints,
         position = T_base_obj[:3, :3] @ where.T_obj_pick[:3, 3] + T_base_obj[:3, 3]
     else:
         position = (pipe.model @ T_base_obj[:3, :3].T + T_base_obj[:3, 3]).mean(axis=0)
-    scale = score_scale(config.vision.model_tolerance_mm, config.vision.max_fit_rms_mm)
     instance = PickInstance(
         status=status, message=message, target=target, T_base_obj=T_base_obj, offset=offset,
-        pick_id=point.id if point is not None else 0,
-        score=detection_score(pipe.model, estimate, scale),
-        residuals=dict(estimate.residuals), features_used=scratch.used,
+        pick_id=point.id if point is not None else 0, score=score,
+        residuals=dict(estimate.residuals), features_used=used,
     )
     return Located(instance, position)
+
+
+def _finish(pipe: Pipeline, job: _Job, located: list[Located], found_what: str
+            ) -> tuple[Status, str, RobotTarget | None]:
+    """Order the list into ``job`` and return the first instance's status, message, target."""
+    config = pipe.config
+    job.instances = ordered(config.picking, located)
+    job.lap("output")
+    if not job.instances:
+        return Status.NOT_FOUND, (
+            f"no instance of {config.object.name!r} found among {found_what}"), None
+    first = job.instances[0]
+    job.T_base_obj, job.offset = first.T_base_obj, first.offset
+    job.residuals.update(first.residuals)
+    job.used = first.features_used
+    job.missing = tuple(n for n in pipe.names if n not in first.features_used)
+    return first.status, first.message, first.target
+
+
+def locate_all_mono(pipe: Pipeline, found: Found, job: _Job, T_base_camera: FloatArray,
+                    needed: int) -> tuple[Status, str, RobotTarget | None]:
+    """The pick list of a single-camera job on ArUco markers repeated per object
+    (``instances.find_instances_mono``); as :func:`locate_all` otherwise."""
+    from vgripd.vision.pipeline import PoseEstimate
+
+    config = pipe.config
+    marks = found.markers
+    feature = np.array([f for f, _ in marks], dtype=np.intp)
+    px = np.array([m.centre for _, m in marks], dtype=np.float64).reshape(-1, 2)
+    side = np.array([np.mean(np.linalg.norm(m.corners - np.roll(m.corners, 1, axis=0),
+                                            axis=1)) for _, m in marks]).reshape(-1)
+    size = np.array([getattr(f, "size_mm", 1.0) for f in config.object.features])
+    tolerance_px = 3.0 * config.vision.max_reprojection_px
+    groups = find_instances_mono(pipe.model, feature, px, side, size, pipe.left,
+                                 tolerance_px, min_count=needed)
+    job.lap("pose")
+    points = pick_points(config)
+    n = len(pipe.names)
+    scale_px = 2.0 * config.vision.max_reprojection_px
+    located = []
+    for g in groups:
+        sel = np.flatnonzero(g.assignment >= 0)
+        used = np.zeros(n, dtype=bool)
+        used[sel] = True
+        T = g.T_cam_obj
+        cam_pts = pipe.model[sel] @ T[:3, :3].T + T[:3, 3]
+        err = np.linalg.norm(pipe.left.project(cam_pts) - px[g.assignment[sel]], axis=1)
+        score = float(np.clip(1.0 - (err / scale_px) ** 2, 0.0, None).sum()) / n
+        estimate = PoseEstimate(T, used, g.ambiguous, {"reprojection_px": g.rms_px}, cam_pts)
+        located.append(_judged(pipe, estimate, tuple(pipe.names[i] for i in sel),
+                               T_base_camera, needed, points, score))
+    return _finish(pipe, job, located, f"{len(marks)} marker detection(s)")
 
 
 def locate_all(pipe: Pipeline, paired: StereoPoints | None, job: _Job,
@@ -225,15 +285,4 @@ def locate_all(pipe: Pipeline, paired: StereoPoints | None, job: _Job,
         remapped = InstanceMatch(assignment, match.T_points_model, match.rms_mm, match.score,
                                  match.ambiguous or not grouping.complete, match.rival)
         located.append(_instance(pipe, remapped, paired, T_base_camera, needed, points))
-    job.instances = ordered(config.picking, located)
-    job.lap("output")
-    if not job.instances:
-        return Status.NOT_FOUND, (
-            f"no instance of {config.object.name!r} found among {rows.size} triangulated "
-            "point(s)"), None
-    first = job.instances[0]
-    job.T_base_obj, job.offset = first.T_base_obj, first.offset
-    job.residuals.update(first.residuals)
-    job.used = first.features_used
-    job.missing = tuple(n for n in pipe.names if n not in first.features_used)
-    return first.status, first.message, first.target
+    return _finish(pipe, job, located, f"{rows.size} triangulated point(s)")

@@ -187,6 +187,9 @@ class Found:
     # The circle finder's output per spec (``_Finder.specs``), rejected blobs included: what
     # the diagnosis of a failed job reads.
     blobs: tuple[ft.Blobs, ...] = ()
+    # Pick lists with ArUco markers (``_Finder.keep_all``): every detection as (feature index,
+    # marker), an id as often as it is seen.
+    markers: tuple[tuple[int, ft.Marker], ...] = ()
 
 
 class _Finder:
@@ -228,10 +231,16 @@ class _Finder:
                 )
             )
         self.min_score = vision.template_min_score
+        self.keep_all = False  # set for pick lists: keep repeated marker ids (Found.markers)
 
     def __call__(self, gray: ft.UInt8Image) -> Found:
         identified: dict[int, FloatArray] = {}
+        markers: list[tuple[int, ft.Marker]] = []
         for dictionary, ids in self.aruco.items():
+            if self.keep_all:
+                markers += [(ids[m.marker_id], m) for m in ft.find_aruco_all(gray, dictionary)
+                            if m.marker_id in ids]
+                continue
             for marker_id, marker in ft.find_aruco(gray, dictionary).items():
                 if marker_id in ids:
                     identified[ids[marker_id]] = marker.centre
@@ -241,7 +250,7 @@ class _Finder:
                 identified[index] = hit[0]
         blobs = tuple(ft.find_circles(gray, spec) for spec in self.specs)
         circles = np.vstack([b.xy for b in blobs]) if blobs else np.zeros((0, 2))
-        return Found(identified, circles, blobs)
+        return Found(identified, circles, blobs, tuple(markers))
 
 
 def _load_template(path: str, where: str) -> ft.UInt8Image:
@@ -370,11 +379,14 @@ class Pipeline:
                 f"{MIN_PNP_FEATURES} aruco/template features, the object has {identified} "
                 "(circle marks cannot be told apart in one image)"
             )
-        if self.many and (self.rig is None or not self.is_circle.all()):
+        all_aruco = all(k == "aruco" for k in self.kinds)
+        if self.many and not ((self.rig is not None and self.is_circle.all())
+                              or (self.rig is None and all_aruco)):
             raise ConfigError(
-                "picking.max_objects > 1 needs a stereo rig and an object of circle marks only "
-                "(identical ArUco/template features cannot be grouped into instances yet)")
+                "picking.max_objects > 1 needs a stereo rig and an object of circle marks only, "
+                "or a single camera and an object of ArUco markers only (docs/picklists.md)")
         self.find_left = _Finder(config, self.left.fx)
+        self.find_left.keep_all = self.many and self.rig is None
         self.find_right = _Finder(config, self.right.fx) if self.right is not None else None
 
     def T_base_camera(self, pair: ImagePair) -> FloatArray:
@@ -453,6 +465,11 @@ class Pipeline:
 
             paired = self._stereo_points(found_l, found_r, job)
             return picklist.locate_all(self, paired, job, T_base_camera, vision.min_features)
+        if self.many and self.find_left.keep_all:
+            from vgripd.vision import picklist  # it imports this module
+
+            return picklist.locate_all_mono(self, found_l, job, T_base_camera,
+                                            max(vision.min_features, MIN_PNP_FEATURES))
         if found_r is not None:
             estimate = self._stereo_pose(found_l, found_r, job)
             needed = vision.min_features
