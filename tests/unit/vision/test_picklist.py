@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from vgripd.config import Config, DriverSection, config_from_dict
@@ -266,6 +268,32 @@ def test_order_rules_and_rejected_last() -> None:
     # Ties: the better score first.
     assert order_key(cfg, np.array([0.0, 0.0, 5.0]), 0.9) < order_key(
         cfg, np.array([0.0, 0.0, 5.0]), 0.8)
+
+
+@settings(max_examples=60, deadline=None)
+@given(items=st.lists(st.tuples(st.floats(-500, 500), st.floats(-500, 500), st.floats(0, 1),
+                                st.booleans()), max_size=12),
+       order=st.sampled_from(["z", "nearest", "axis", "score"]), limit=st.integers(1, 12))
+def test_ordering_property(items: list[tuple[float, float, float, bool]], order: str,
+                           limit: int) -> None:
+    """Any list: pickable before rejected, each part sorted by its own key, max_objects kept,
+    nothing invented."""
+    params: dict[str, Any] = {"nearest": {"point_mm": [10.0, 0.0, 0.0]},
+                              "axis": {"axis": [0.0, 1.0, 1.0]}}.get(order, {})
+    cfg = config_from_dict({"picking": {"max_objects": limit, "order": order,
+                                        **params}}).picking
+    located = [_located(z, x, score, Status.OK if ok else Status.PARTIAL)
+               for x, z, score, ok in items]
+    out = ordered(cfg, located)
+    assert len(out) == min(limit, len(items))
+    flags = [i.status.pose_valid for i in out]
+    assert flags == sorted(flags, reverse=True)
+    by_instance = {id(x.instance): x for x in located}
+    good = [by_instance[id(i)] for i in out if i.status.pose_valid]
+    keys = [order_key(cfg, x.position, x.instance.score) for x in good]
+    assert keys == sorted(keys)
+    bad = [i.score for i in out if not i.status.pose_valid]
+    assert bad == sorted(bad, reverse=True)
 
 
 @pytest.mark.parametrize(("picking", "message"), [
