@@ -16,10 +16,12 @@ ones by score, and keeps ``max_objects`` of them.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from vgripd.config import Config, PickingConfig
 from vgripd.geometry.transforms import invert_transform
@@ -60,7 +62,9 @@ class Located:
 
     instance: PickInstance
     position: FloatArray
-    key: tuple[float, ...] = field(default=())
+    # Stereo: the feature -> paired-row assignment behind it (what a failed job's diagnosis
+    # reads for the first instance); None for one camera.
+    assignment: npt.NDArray[np.intp] | None = field(default=None, compare=False)
 
 
 def order_key(picking: PickingConfig, position: FloatArray, score: float
@@ -220,6 +224,9 @@ def _finish(pipe: Pipeline, job: _Job, located: list[Located], found_what: str
         return Status.NOT_FOUND, (
             f"no instance of {config.object.name!r} found among {found_what}"), None
     first = job.instances[0]
+    behind = next(x for x in located if x.instance is first)
+    if behind.assignment is not None:
+        job.trace.assignment = behind.assignment
     job.T_base_obj, job.offset = first.T_base_obj, first.offset
     job.residuals.update(first.residuals)
     job.used = first.features_used
@@ -284,5 +291,6 @@ def locate_all(pipe: Pipeline, paired: StereoPoints | None, job: _Job,
         assignment = np.where(match.assignment >= 0, rows[np.maximum(match.assignment, 0)], -1)
         remapped = InstanceMatch(assignment, match.T_points_model, match.rms_mm, match.score,
                                  match.ambiguous or not grouping.complete, match.rival)
-        located.append(_instance(pipe, remapped, paired, T_base_camera, needed, points))
+        item = _instance(pipe, remapped, paired, T_base_camera, needed, points)
+        located.append(dataclasses.replace(item, assignment=assignment))
     return _finish(pipe, job, located, f"{rows.size} triangulated point(s)")
