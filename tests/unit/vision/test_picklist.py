@@ -457,3 +457,16 @@ def test_one_camera_aruco_markers_repeated_on_every_plate() -> None:
     two_hidden = _render_tags(config, poses, hide=((1, 2), (1, 3)))
     result = Pipeline(config).process(ImagePair(left=two_hidden, right=None, t_mono_ns=0), 2)
     assert sorted(_match(np.array(poses), result.instances)) == [0, 2, 3]
+
+
+def test_a_failed_pick_list_is_diagnosed_on_its_first_instance() -> None:
+    config = _config({"pallet": {**PALLET, "count": 2}, "drop_features": ["m1", "m2", "m3"]},
+                     picking={"max_objects": 6})
+    (pair,) = _grab(config)
+    result = Pipeline(config).process(pair, 1)
+    assert [i.status for i in result.instances] == [Status.PARTIAL, Status.PARTIAL]
+    assert result.status is Status.PARTIAL
+    assert result.diagnosis is not None
+    text = "\n".join(result.diagnosis.lines())
+    assert "best explains 3" in text
+    assert "marks m1 m2 m3 not found" in text
