@@ -470,3 +470,26 @@ def test_a_failed_pick_list_is_diagnosed_on_its_first_instance() -> None:
     text = "\n".join(result.diagnosis.lines())
     assert "best explains 3" in text
     assert "marks m1 m2 m3 not found" in text
+
+
+def test_annotation_draws_every_instance() -> None:
+    """The operator's picture (replay --annotate, the web view) shows every plate of the list,
+    not only the first: around each further plate's origin the picture differs from the one of
+    the same job without its list."""
+    import dataclasses
+
+    from vgripd.vision.annotate import annotate
+
+    config = _config({"pallet": {**PALLET, "count": 3}}, picking={"max_objects": 6})
+    (pair,) = _grab(config)
+    pipeline = Pipeline(config)
+    result = pipeline.process(pair, 1)
+    assert len(result.instances) == 3
+    with_list = annotate(pipeline, pair, result)[0]
+    without = annotate(pipeline, pair, dataclasses.replace(result, instances=()))[0]
+    T_cam_base = np.linalg.inv(pipeline.T_base_camera(pair))
+    for inst in result.instances[1:]:
+        assert inst.T_base_obj is not None
+        x, y = pipeline.left.project((T_cam_base @ inst.T_base_obj)[None, :3, 3])[0]
+        box = (slice(int(y) - 40, int(y) + 40), slice(int(x) - 40, int(x) + 40))
+        assert (with_list[box] != without[box]).any()
