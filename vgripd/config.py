@@ -50,7 +50,8 @@ RECIPE_PROBLEMS = "recipe_problems"
 
 #: The sections a recipe may overlay (``[recipes.N.<section>]``): what differs from one object
 #: to the next. Everything else (camera, calibration, links, daemon, ...) belongs to the cell.
-RECIPE_SECTIONS: tuple[str, ...] = ("object", "vision", "reference", "limits", "output")
+RECIPE_SECTIONS: tuple[str, ...] = ("object", "vision", "reference", "limits", "output",
+                                    "picking")
 #: Sections a recipe replaces as a whole instead of key by key: another object is another
 #: object (its name and definition are not inherited from the top-level one).
 RECIPE_WHOLE_SECTIONS: tuple[str, ...] = ("object",)
@@ -561,7 +562,8 @@ class RecipeConfig(BaseModel):
     top-level object as a whole (``RECIPE_WHOLE_SECTIONS``), and a recipe with its own object
     inherits no reference: its ``[recipes.N.reference]`` is all it has (none = not taught yet,
     its jobs answer NOT_CALIBRATED), since the top-level reference was taught on another
-    object.
+    object; for the same reason it inherits no ``picking.pick_points`` (grip points of the
+    other object), while ``max_objects`` and ``order`` are inherited.
     """
 
     model_config = ConfigDict(extra="allow", frozen=True)
@@ -684,9 +686,13 @@ class Config(Model):
             if section in RECIPE_WHOLE_SECTIONS or (section == "reference"
                                                     and "object" in overlays):
                 top = {}  # another object; a reference taught on the top-level object
+            if section == "picking" and "object" in overlays:
+                top.pop("pick_points", None)  # grip points of the top-level object
             data[section] = {**top, **overlay}
         if "object" in overlays and "reference" not in overlays:
             data["reference"] = {}
+        if "object" in overlays and "picking" not in overlays and "picking" in data:
+            data["picking"] = {k: v for k, v in data["picking"].items() if k != "pick_points"}
         return data
 
     def recipe_numbers(self) -> tuple[int, ...]:

@@ -212,12 +212,12 @@ class SyntheticCamera(CameraDriver):
             self._T_base_camera = scene.T_base_camera(self.config, self._T_base_flange)
         except VgripError as err:
             raise CameraError(f"synthetic: cannot set up the scene: {err}") from None
-        # Random poses lie around the taught reference; a fixed pose needs none (teaching).
+        # Random poses and pallets lie around the taught reference; fixed poses need none.
         self._T_base_obj_ref: FloatArray | None = None
         try:
             self._T_base_obj_ref = scene.T_base_obj_ref(self.config)
         except VgripError as err:
-            if self.options.pose is None:
+            if self.options.pose is None and not self.options.instances:
                 raise CameraError(f"synthetic: cannot set up the scene: {err}") from None
         self._rng = np.random.default_rng(self.options.seed)
 
@@ -256,6 +256,7 @@ class SyntheticCamera(CameraDriver):
         comes from the code under test). A jitter that would make two marks of different
         objects overlap is drawn again (plates may touch; marks printed on them cannot)."""
         ref = self._T_base_obj_ref
+        assert ref is not None  # _open_blocking refused a pallet without a reference
         pts = scene.object_points(self.config)
         diameter = max(f.diameter_mm for f in self._circles)
         lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
