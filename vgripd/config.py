@@ -5,7 +5,8 @@ Every model forbids unknown keys, so a typo is an error naming its field path
 plus options that the chosen driver validates against its own model (``vgripd.registry``).
 
 Ownership of the sections (one room per job):
-- ``camera``, ``calibration``, ``object``, ``vision``, ``output``: the vision pipeline.
+- ``camera``, ``calibration``, ``object``, ``vision``, ``output``, ``picking``: the vision
+  pipeline (``picking``: pick lists, docs/picklists.md).
 - ``daemon``, ``links``, ``limits``, ``record``: the service and its robot links.
 
 Combinations that cannot work are refused here too, when the config is loaded: every link must
