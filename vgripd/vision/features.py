@@ -74,6 +74,9 @@ class CircleSpec:
     at 60 deg tilt is about 0.9; pixelation lowers small blobs to about 0.7).
     ``downscale``: the detection step works on the image reduced by this factor; it is lowered
     automatically so that the smallest mark keeps at least 4 px across.
+    ``separate_neighbours``: marks closer than their refinement windows (touching plates of a
+    pallet) each keep only the pixels nearer to their own coarse centre; on for pick lists
+    (``picking.max_objects > 1``), off for one object, whose results it leaves as they were.
     """
 
     polarity: Polarity = "dark"
@@ -82,6 +85,7 @@ class CircleSpec:
     min_contrast: float = 20.0
     min_circularity: float = 0.6
     downscale: int = 2
+    separate_neighbours: bool = False
 
 
 class Rejected(NamedTuple):
@@ -188,6 +192,8 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
         # plates of a pallet): each keeps only the pixels nearer to its own coarse centre.
         reach = np.hypot(coarse[:, 0] - cx, coarse[:, 1] - cy) < 2.0 * d_px + 10.0
         reach[index] = False
+        if not spec.separate_neighbours:
+            reach[:] = False
         refined = _refine_centre(gray, cx, cy, d_px, spec.polarity, coarse[reach])
         if refined is None:
             # The refinement window left the image, or the mark has no contrast at all.

@@ -228,6 +228,7 @@ class _Finder:
                     min_contrast=vision.min_contrast,
                     min_circularity=vision.min_circularity,
                     downscale=vision.downscale,
+                    separate_neighbours=config.picking.max_objects > 1,
                 )
             )
         self.min_score = vision.template_min_score
