@@ -65,6 +65,9 @@ class Located:
     # Stereo: the feature -> paired-row assignment behind it (what a failed job's diagnosis
     # reads for the first instance); None for one camera.
     assignment: npt.NDArray[np.intp] | None = field(default=None, compare=False)
+    # The measured feature points (base frame, mm) by name, as ``process_with_points`` gives
+    # them for one object (``vgripd teach`` averages them).
+    points_base: dict[str, FloatArray] = field(default_factory=dict, compare=False)
 
 
 def order_key(picking: PickingConfig, position: FloatArray, score: float
@@ -211,7 +214,9 @@ def _judged(pipe: Pipeline, estimate: PoseEstimate, used: tuple[str, ...],
         pick_id=point.id if point is not None else 0, score=score,
         residuals=dict(estimate.residuals), features_used=used,
     )
-    return Located(instance, position)
+    measured = estimate.points_cam @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
+    names = (pipe.names[i] for i in np.flatnonzero(estimate.used))
+    return Located(instance, position, points_base=dict(zip(names, measured, strict=True)))
 
 
 def _finish(pipe: Pipeline, job: _Job, located: list[Located], found_what: str
@@ -227,6 +232,7 @@ def _finish(pipe: Pipeline, job: _Job, located: list[Located], found_what: str
     behind = next(x for x in located if x.instance is first)
     if behind.assignment is not None:
         job.trace.assignment = behind.assignment
+    job.points_base = dict(behind.points_base)
     job.T_base_obj, job.offset = first.T_base_obj, first.offset
     job.residuals.update(first.residuals)
     job.used = first.features_used

@@ -493,3 +493,19 @@ def test_annotation_draws_every_instance() -> None:
         x, y = pipeline.left.project((T_cam_base @ inst.T_base_obj)[None, :3, 3])[0]
         box = (slice(int(y) - 40, int(y) + 40), slice(int(x) - 40, int(x) + 40))
         assert (with_list[box] != without[box]).any()
+
+
+def test_measured_points_of_the_first_instance_for_teach() -> None:
+    """``process_with_points`` gives the first instance's measured marks (base frame), as for
+    one object: the plate taught from a pick-list config is the first of its list."""
+    config = _config({"pallet": {**PALLET, "count": 2}}, picking={"max_objects": 6})
+    (pair,) = _grab(config)
+    result, points = Pipeline(config).process_with_points(pair, 1)
+    first = result.instances[0]
+    assert first.T_base_obj is not None
+    assert sorted(points) == sorted(first.features_used)
+    model = Pipeline(config).model
+    names = Pipeline(config).names
+    for name, p in points.items():
+        expected = first.T_base_obj[:3, :3] @ model[names.index(name)] + first.T_base_obj[:3, 3]
+        assert np.linalg.norm(p - expected) < 0.2
