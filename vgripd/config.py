@@ -5,7 +5,8 @@ Every model forbids unknown keys, so a typo is an error naming its field path
 plus options that the chosen driver validates against its own model (``vgripd.registry``).
 
 Ownership of the sections (one room per job):
-- ``camera``, ``calibration``, ``object``, ``vision``, ``output``: the vision pipeline.
+- ``camera``, ``calibration``, ``object``, ``vision``, ``output``, ``picking``: the vision
+  pipeline (``picking``: pick lists, docs/picklists.md).
 - ``daemon``, ``links``, ``limits``, ``record``: the service and its robot links.
 
 Combinations that cannot work are refused here too, when the config is loaded: every link must
@@ -51,7 +52,8 @@ RECIPE_PROBLEMS = "recipe_problems"
 
 #: The sections a recipe may overlay (``[recipes.N.<section>]``): what differs from one object
 #: to the next. Everything else (camera, calibration, links, daemon, ...) belongs to the cell.
-RECIPE_SECTIONS: tuple[str, ...] = ("object", "vision", "reference", "limits", "output")
+RECIPE_SECTIONS: tuple[str, ...] = ("object", "vision", "reference", "limits", "output",
+                                    "picking")
 #: Sections a recipe replaces as a whole instead of key by key: another object is another
 #: object (its name and definition are not inherited from the top-level one).
 RECIPE_WHOLE_SECTIONS: tuple[str, ...] = ("object",)
@@ -167,6 +169,66 @@ class VisionConfig(Model):
             )
         if self.epipolar_warn_px > self.epipolar_tolerance_px:
             raise ValueError("epipolar_warn_px must not exceed epipolar_tolerance_px")
+        return self
+
+
+class PickPointConfig(Model):
+    """One grip point of the object (``[[picking.pick_points]]``): ``pose`` is the gripper's
+    pose in the object frame (for ``object.definition = "reference"``: in the base frame with
+    the object at its reference). ``id`` goes to the robot with the result; ``priority``: a
+    smaller number is tried first (1 = first choice). See docs/picklists.md."""
+
+    id: int = Field(ge=1, le=32767)
+    priority: int = Field(default=1, ge=0, le=32767)
+    pose: PoseConfig
+
+
+class PickingConfig(Model):
+    """Pick lists: several identical objects in one job's images (docs/picklists.md).
+
+    ``max_objects = 1`` (the default) is the single-object job of before: one pose, no
+    instance list. Above 1 every instance found is located, gated and ordered, and up to
+    ``max_objects`` of them are returned, the pickable ones first in the order ``order``:
+
+    - ``"z"``: highest first (base-frame z of the instance's pick point, or its mark centroid
+      without pick points);
+    - ``"nearest"``: nearest first to ``point_mm`` (base frame);
+    - ``"axis"``: ascending along the direction ``axis`` (base frame; its length is ignored);
+    - ``"score"``: best detection score first.
+
+    ``pick_points``: grip points with ids and priorities; for each instance the first one in
+    priority order whose target passes the gates is chosen. Empty: the object's own grip
+    (``pick_id`` 0).
+    """
+
+    max_objects: int = Field(default=1, ge=1, le=64)
+    order: Literal["z", "nearest", "axis", "score"] = "z"
+    point_mm: Vec3 | None = None
+    axis: Vec3 | None = None
+    pick_points: tuple[PickPointConfig, ...] = ()
+
+    @model_validator(mode="after")
+    def _order_parameters(self) -> PickingConfig:
+        if self.order == "nearest" and self.point_mm is None:
+            raise ValueError('order = "nearest" needs point_mm (base frame, mm)')
+        if self.order == "axis":
+            if self.axis is None:
+                raise ValueError('order = "axis" needs axis (a direction in the base frame)')
+            if sum(a * a for a in self.axis) < 1e-12:
+                raise ValueError(f"axis {list(self.axis)} has no direction (zero length)")
+        if self.point_mm is not None and self.order != "nearest":
+            raise ValueError(f'point_mm is the parameter of order = "nearest", not of '
+                             f'order = "{self.order}"')
+        if self.axis is not None and self.order != "axis":
+            raise ValueError(f'axis is the parameter of order = "axis", not of '
+                             f'order = "{self.order}"')
+        if self.pick_points and self.max_objects == 1:
+            raise ValueError("pick_points need max_objects > 1 (a single-object job has no "
+                             "pick list to carry the pick id)")
+        ids = [p.id for p in self.pick_points]
+        twice = sorted({i for i in ids if ids.count(i) > 1})
+        if twice:
+            raise ValueError(f"pick_points: id {twice[0]} is used twice")
         return self
 
 
@@ -661,7 +723,8 @@ class RecipeConfig(BaseModel):
     top-level object as a whole (``RECIPE_WHOLE_SECTIONS``), and a recipe with its own object
     inherits no reference: its ``[recipes.N.reference]`` is all it has (none = not taught yet,
     its jobs answer NOT_CALIBRATED), since the top-level reference was taught on another
-    object.
+    object; for the same reason it inherits no ``picking.pick_points`` (grip points of the
+    other object), while ``max_objects`` and ``order`` are inherited.
     """
 
     model_config = ConfigDict(extra="allow", frozen=True)
@@ -689,6 +752,7 @@ class Config(Model):
     output: OutputConfig = OutputConfig()
     limits: LimitsConfig = LimitsConfig()
     vision: VisionConfig = VisionConfig()
+    picking: PickingConfig = PickingConfig()
     daemon: DaemonConfig = DaemonConfig()
     record: RecordConfig = RecordConfig()
     status: StatusConfig = StatusConfig()
@@ -783,9 +847,13 @@ class Config(Model):
             if section in RECIPE_WHOLE_SECTIONS or (section == "reference"
                                                     and "object" in overlays):
                 top = {}  # another object; a reference taught on the top-level object
+            if section == "picking" and "object" in overlays:
+                top.pop("pick_points", None)  # grip points of the top-level object
             data[section] = {**top, **overlay}
         if "object" in overlays and "reference" not in overlays:
             data["reference"] = {}
+        if "object" in overlays and "picking" not in overlays and "picking" in data:
+            data["picking"] = {k: v for k, v in data["picking"].items() if k != "pick_points"}
         return data
 
     def recipe_numbers(self) -> tuple[int, ...]:

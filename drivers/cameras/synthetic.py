@@ -28,17 +28,32 @@ Options (``[camera]`` with ``type = "synthetic"``)::
     noise_std = 2.0        # Gaussian sensor noise (grey levels)
     background = 190       # grey level of the background; marks at dark_level / bright_level
     gradient = 0.0         # uneven lighting: relative brightness change across the image
-    drop_features = []     # faults: marks not drawn (still in truth, listed as "dropped")
+    drop_features = []     # faults: marks not drawn (still in truth, listed as "dropped");
+                           # "m3" on every instance, "2/m3" on instance 2 only (from 0)
     extra_blobs = 0        # faults: spurious mark-like blobs
     black = false          # faults: black images (lens cap, flash failed)
     recipe = 0             # render the object (and reference) of this recipe ([recipes.N]);
                            # 0 = the top-level [object]. Which plate lies in the cell.
 
+Several identical objects (pick lists, docs/picklists.md), instead of ``pose``::
+
+    instances = [{ translation_mm = [...], rotvec_rad = [...] }, ...]  # fixed T_base_obj each
+    pallet = { count = 6, cols = 3, gap_mm = 0.0, jitter_mm = 2.0, jitter_deg = 3.0 }
+
+The pallet is a grid of ``count`` objects in ``cols`` columns, laid out in the taught
+reference's xy plane and centred on it: each object's footprint is the box of its marks (plus
+one mark diameter), ``gap_mm`` apart (0: the footprints touch; negative: they overlap, marks
+never do; ``pitch_mm = [x, y]`` sets the spacing of the centres instead). Each frame every
+object moves by up to ``jitter_mm`` in x and y and turns by up to
+``jitter_deg`` about the reference's z axis through its own marks' centroid.
+
 ``ImagePair.truth``: ``T_base_obj``, ``T_cam_obj`` (left camera), ``feature_names``,
 ``pixels_left`` (n, 2) and ``pixels_right`` (n, 2) or None (projected 3D centres, px),
-``dropped`` (names) and ``extra_blobs_px`` (k, 2). Multi-camera cells add ``camera_names``
-and ``pixels_views`` (n, N, 2): each mark's projected centre in each camera, NaN where the
-camera does not see it (culled, behind it, or outside its image).
+``dropped`` (names) and ``extra_blobs_px`` (k, 2); these describe the first instance.
+``instances_T_base_obj``: (k, 4, 4) every instance's pose, ``instances_dropped``: per instance
+the names not drawn. Multi-camera cells add ``camera_names`` and ``pixels_views`` (n, N, 2):
+each mark's projected centre (first instance) in each camera, NaN where the camera does not see
+it (culled, behind it, or outside its image).
 """
 
 from __future__ import annotations
@@ -49,10 +64,10 @@ from typing import Any
 
 import cv2
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from drivers.cameras.base import CameraDriver, DriverOptions
-from vgripd.config import CircleFeature, Config, PoseConfig
+from vgripd.config import CircleFeature, Config, Model, PoseConfig
 from vgripd.errors import CameraError, ConfigError, VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
@@ -63,8 +78,30 @@ from vgripd.vision import scene
 RIM_VERTICES = 256
 
 
+class PalletOptions(Model):
+    """A grid of identical objects around the taught reference (see the module docstring)."""
+
+    count: int = Field(default=6, ge=1, le=64)
+    cols: int = Field(default=3, ge=1, le=64)
+    gap_mm: float = Field(default=20.0, ge=-50.0, le=1000.0)
+    pitch_mm: tuple[float, float] | None = None  # centre spacing (x, y); instead of gap_mm
+    jitter_mm: float = Field(default=2.0, ge=0, le=100)
+    jitter_deg: float = Field(default=3.0, ge=0, le=180)
+
+    @model_validator(mode="after")
+    def _pitch_or_gap(self) -> PalletOptions:
+        if self.pitch_mm is not None:
+            if "gap_mm" in self.model_fields_set:
+                raise ValueError("give gap_mm or pitch_mm, not both")
+            if min(self.pitch_mm) <= 0:
+                raise ValueError(f"pitch_mm {list(self.pitch_mm)} must be positive")
+        return self
+
+
 class SyntheticOptions(DriverOptions):
     pose: PoseConfig | None = None
+    instances: tuple[PoseConfig, ...] = ()
+    pallet: PalletOptions | None = None
     max_shift_mm: float = Field(default=10.0, ge=0)
     max_tilt_deg: float = Field(default=5.0, ge=0, le=45)
     seed: int | None = None
@@ -163,9 +200,26 @@ class SyntheticCamera(CameraDriver):
                     f"{f.name!r} is {f.kind!r}"
                 )
         self._circles = tuple(f for f in feats if isinstance(f, CircleFeature))
-        unknown = set(options.drop_features) - {f.name for f in feats}
+        given = [options.pose is not None, bool(options.instances), options.pallet is not None]
+        if sum(given) > 1:
+            raise ConfigError("camera: give one of pose, instances and pallet")
+        self._count = (len(options.instances) if options.instances
+                       else options.pallet.count if options.pallet is not None else 1)
+        self._drop: list[set[str]] = [set() for _ in range(self._count)]
+        names = {f.name for f in feats}
+        unknown = {e.rpartition("/")[2] for e in options.drop_features} - names
         if unknown:
             raise ConfigError(f"camera.drop_features: no such features {sorted(unknown)}")
+        for entry in options.drop_features:
+            where, _, name = entry.rpartition("/")
+            if not where:
+                for dropped in self._drop:
+                    dropped.add(name)
+            elif where.isdigit() and int(where) < self._count:
+                self._drop[int(where)].add(name)
+            else:
+                raise ConfigError(f"camera.drop_features: {entry!r}: instance {where!r} is not "
+                                  f"one of 0..{self._count - 1}")
 
     def _open_blocking(self) -> None:
         self._multi: tuple[tuple[CameraModel, ...], FloatArray, tuple[str, ...]] | None = None
@@ -183,12 +237,12 @@ class SyntheticCamera(CameraDriver):
             self._T_base_camera = scene.T_base_camera(self.config, self._T_base_flange)
         except VgripError as err:
             raise CameraError(f"synthetic: cannot set up the scene: {err}") from None
-        # Random poses lie around the taught reference; a fixed pose needs none (teaching).
+        # Random poses and pallets lie around the taught reference; fixed poses need none.
         self._T_base_obj_ref: FloatArray | None = None
         try:
             self._T_base_obj_ref = scene.T_base_obj_ref(self.config)
         except VgripError as err:
-            if self.options.pose is None:
+            if self.options.pose is None and not self.options.instances:
                 raise CameraError(f"synthetic: cannot set up the scene: {err}") from None
         self._rng = np.random.default_rng(self.options.seed)
 
@@ -211,21 +265,75 @@ class SyntheticCamera(CameraDriver):
         delta = make_transform(R, centre - R @ centre + shift)
         return delta @ ref
 
+    def next_poses(self) -> list[FloatArray]:
+        """T_base_obj of every instance for the next frame (one, several fixed, or a pallet)."""
+        o = self.options
+        if o.instances:
+            return [scene.matrix_from_pose(p) for p in o.instances]
+        if o.pallet is None:
+            return [self.next_pose()]
+        return self._pallet_poses(o.pallet)
+
+    def _pallet_poses(self, pallet: PalletOptions) -> list[FloatArray]:
+        """A grid of objects in the reference's xy plane, centred on it, each jittered.
+
+        The layout is the renderer's own arithmetic on the config's numbers (the truth never
+        comes from the code under test). A jitter that would make two marks of different
+        objects overlap is drawn again (plates may touch; marks printed on them cannot)."""
+        ref = self._T_base_obj_ref
+        assert ref is not None  # _open_blocking refused a pallet without a reference
+        pts = scene.object_points(self.config)
+        diameter = max(f.diameter_mm for f in self._circles)
+        lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
+        pitch = ((hi - lo) + diameter + pallet.gap_mm if pallet.pitch_mm is None
+                 else np.asarray(pallet.pitch_mm, dtype=np.float64))
+        rows = -(-pallet.count // pallet.cols)
+        cols = min(pallet.cols, pallet.count)
+        centroid = pts.mean(axis=0)
+        axis_z = ref[:3, 2]
+        poses: list[FloatArray] = []
+        placed: list[FloatArray] = []  # marks of the objects placed so far (base frame)
+        for k in range(pallet.count):
+            r, c = divmod(k, pallet.cols)
+            grid = np.array([(c - (cols - 1) / 2) * pitch[0], (r - (rows - 1) / 2) * pitch[1],
+                             0.0])
+            for _ in range(100):
+                jitter = np.r_[self._rng.uniform(-pallet.jitter_mm, pallet.jitter_mm, 2), 0.0]
+                turn = math.radians(self._rng.uniform(-pallet.jitter_deg, pallet.jitter_deg))
+                # Move in the reference's object frame, then turn about the base-frame normal
+                # of that plane through this object's own marks' centroid.
+                T = ref @ make_transform(np.eye(3), grid + jitter)
+                centre = T[:3, :3] @ centroid + T[:3, 3]
+                R = matrix_from_rotvec(turn * axis_z)
+                T = make_transform(R, centre - R @ centre) @ T
+                marks = pts @ T[:3, :3].T + T[:3, 3]
+                if not placed or np.min(np.linalg.norm(
+                        marks[:, None, :] - np.vstack(placed)[None, :, :], axis=2)) > diameter:
+                    break
+            else:
+                raise CameraError("synthetic: camera.pallet: cannot place the objects without "
+                                  "overlapping marks (raise gap_mm or lower jitter_mm)")
+            placed.append(marks)
+            poses.append(T)
+        return poses
+
     def _grab_blocking(self, timeout_s: float) -> ImagePair:
-        T_base_obj = self.next_pose()
+        poses = self.next_poses()
         if self._multi is not None:
-            return self._grab_views(T_base_obj, *self._multi)
-        T_cam_obj = np.linalg.inv(self._T_base_camera) @ T_base_obj
-        cams: list[tuple[str, CameraModel, FloatArray]] = [("left", self._left, T_cam_obj)]
+            return self._grab_views(poses, *self._multi)
+        inv_base_camera = np.linalg.inv(self._T_base_camera)
+        T_cam = [inv_base_camera @ T for T in poses]
+        cams: list[tuple[str, CameraModel, list[FloatArray]]] = [("left", self._left, T_cam)]
         if self._right is not None and self._T_right_left is not None:
-            cams.append(("right", self._right, self._T_right_left @ T_cam_obj))
+            cams.append(("right", self._right, [self._T_right_left @ T for T in T_cam]))
         images: dict[str, np.ndarray] = {}
         truth: dict[str, Any] = {
-            "T_base_obj": T_base_obj,
-            "T_cam_obj": T_cam_obj,
+            "T_base_obj": poses[0],
+            "T_cam_obj": T_cam[0],
             "feature_names": tuple(f.name for f in self._circles),
-            "dropped": tuple(self.options.drop_features),
+            "dropped": tuple(f.name for f in self._circles if f.name in self._drop[0]),
             "pixels_right": None,
+            **self._instances_truth(poses),
         }
         for name, model, T in cams:
             image, centres, blobs = self._render(model, T, name)
@@ -243,36 +351,47 @@ class SyntheticCamera(CameraDriver):
             truth=truth,
         )
 
-    def _grab_views(self, T_base_obj: FloatArray, models: tuple[CameraModel, ...],
+    def _instances_truth(self, poses: list[FloatArray]) -> dict[str, Any]:
+        """Truth entries of a frame with several instances (none for a single object)."""
+        if len(poses) < 2:
+            return {}
+        return {"instances_T_base_obj": np.array(poses),
+                "instances_dropped": tuple(
+                    tuple(f.name for f in self._circles if f.name in dropped)
+                    for dropped in self._drop)}
+
+    def _grab_views(self, poses: list[FloatArray], models: tuple[CameraModel, ...],
                     T_base_cameras: FloatArray, names: tuple[str, ...]) -> ImagePair:
         """All N cameras of a multi-camera cell, rendered concurrently (one thread each)."""
         # One generator per camera, seeded from the driver's: the same seed gives the same
         # images whatever order the threads run in.
         seeds = self._rng.integers(0, 2**63, len(models))
-        jobs = [(models[j], np.linalg.inv(T_base_cameras[j]) @ T_base_obj, names[j],
+        jobs = [(models[j], [np.linalg.inv(T_base_cameras[j]) @ T for T in poses], names[j],
                  np.random.default_rng(int(seeds[j]))) for j in range(len(models))]
         rendered = self._per_camera(
             lambda job: self._render(job[0], job[1], job[2], job[3], cull=True), jobs)
         pixels = np.stack([centres for _, centres, _ in rendered], axis=1)
         truth: dict[str, Any] = {
-            "T_base_obj": T_base_obj,
-            "T_cam_obj": jobs[0][1],
+            "T_base_obj": poses[0],
+            "T_cam_obj": jobs[0][1][0],
             "feature_names": tuple(f.name for f in self._circles),
-            "dropped": tuple(self.options.drop_features),
+            "dropped": tuple(f.name for f in self._circles if f.name in self._drop[0]),
             "camera_names": names,
             "pixels_views": pixels,
             "pixels_left": pixels[:, 0],
             "pixels_right": pixels[:, 1],
             "extra_blobs_px": rendered[0][2],
+            **self._instances_truth(poses),
         }
         return ImagePair.of_views(
             [image for image, _, _ in rendered], time.monotonic_ns(), source="synthetic",
             meta={"seed": self.options.seed}, T_base_flange=self._T_base_flange, truth=truth)
 
-    def _render(self, model: CameraModel, T_cam_obj: FloatArray, cam_name: str,
+    def _render(self, model: CameraModel, T_cam_objs: list[FloatArray], cam_name: str,
                 rng: np.random.Generator | None = None, cull: bool = False
                 ) -> tuple[np.ndarray, FloatArray, FloatArray]:
-        """One camera's image, the projected mark centres (n, 2) and spurious blobs (k, 2).
+        """One camera's image of every instance, the projected mark centres (n, 2) of the
+        first instance and the spurious blobs (k, 2).
 
         ``cull``: a mark facing away from the camera (its ``normal``), behind it or outside
         its image is not drawn and its centre is NaN (multi-camera cells); otherwise a mark
@@ -281,42 +400,44 @@ class SyntheticCamera(CameraDriver):
         o = self.options
         rng = self._rng if rng is None else rng
         w, h = model.width, model.height
-        R, t = T_cam_obj[:3, :3], T_cam_obj[:3, 3]
-        eye_obj = -R.T @ t  # the camera centre in the object frame
         theta = np.linspace(0.0, 2 * np.pi, RIM_VERTICES, endpoint=False)
         albedo = np.full((h, w), float(o.background))
-        centres = np.full((len(self._circles), 2), np.nan)
+        centres = np.full((len(T_cam_objs), len(self._circles), 2), np.nan)
         radii_px = []
-        for i, f in enumerate(self._circles):
-            c_obj = np.asarray(f.xyz_mm)
-            normal = np.asarray(f.normal if f.normal is not None else (0.0, 0.0, 1.0))
-            if cull and (f.normal is not None and (eye_obj - c_obj) @ normal <= 0
-                         or (R @ c_obj + t)[2] <= 0):
-                continue
-            u, v = _plane_axes(normal)
-            unit_rim = np.cos(theta)[:, None] * u + np.sin(theta)[:, None] * v
-            try:
-                centre_px = model.project(R @ c_obj + t)[0]
-                rim_px = model.project((c_obj + 0.5 * f.diameter_mm * unit_rim) @ R.T + t)
-            except VgripError as err:
-                if cull:  # the rim reaches behind the camera: not visible
+        for k, T_cam_obj in enumerate(T_cam_objs):
+            R, t = T_cam_obj[:3, :3], T_cam_obj[:3, 3]
+            eye_obj = -R.T @ t  # the camera centre in the object frame
+            for i, f in enumerate(self._circles):
+                c_obj = np.asarray(f.xyz_mm)
+                normal = np.asarray(f.normal if f.normal is not None else (0.0, 0.0, 1.0))
+                if cull and (f.normal is not None and (eye_obj - c_obj) @ normal <= 0
+                             or (R @ c_obj + t)[2] <= 0):
                     continue
-                raise CameraError(
-                    f"synthetic: mark {f.name!r} in camera {cam_name}: {err}"
-                ) from None
-            if cull and not (0 <= centre_px[0] < w and 0 <= centre_px[1] < h):
-                continue
-            centres[i] = centre_px
-            radii_px.append(float(np.linalg.norm(rim_px - centre_px, axis=1).mean()))
-            if f.name in o.drop_features:
-                continue
-            level = o.dark_level if f.polarity == "dark" else o.bright_level
-            paint_disc(albedo, rim_px, centre_px, level, o.supersample)
-        seen = ~np.isnan(centres[:, 0])
-        blobs = (self._spurious_blobs(albedo, centres[seen], float(np.mean(radii_px)), rng)
+                u, v = _plane_axes(normal)
+                unit_rim = np.cos(theta)[:, None] * u + np.sin(theta)[:, None] * v
+                try:
+                    centre_px = model.project(R @ c_obj + t)[0]
+                    rim_px = model.project((c_obj + 0.5 * f.diameter_mm * unit_rim) @ R.T + t)
+                except VgripError as err:
+                    if cull:  # the rim reaches behind the camera: not visible
+                        continue
+                    where = f"mark {f.name!r}" + (f" of instance {k}" if k else "")
+                    raise CameraError(f"synthetic: {where} in camera {cam_name}: {err}") from None
+                if cull and not (0 <= centre_px[0] < w and 0 <= centre_px[1] < h):
+                    continue
+                centres[k, i] = centre_px
+                radii_px.append(float(np.linalg.norm(rim_px - centre_px, axis=1).mean()))
+                if f.name in self._drop[k]:
+                    continue
+                level = o.dark_level if f.polarity == "dark" else o.bright_level
+                paint_disc(albedo, rim_px, centre_px, level, o.supersample)
+        flat = centres.reshape(-1, 2)
+        seen = ~np.isnan(flat[:, 0])
+        blobs = (self._spurious_blobs(albedo, flat[seen], float(np.mean(radii_px)), rng)
                  if seen.any() else np.zeros((0, 2)))
+        first = centres[0]
         if o.black:
-            return np.zeros((h, w), np.uint8), centres, blobs
+            return np.zeros((h, w), np.uint8), first, blobs
         if o.gradient > 0:
             ramp = (np.arange(w)[None, :] / w + np.arange(h)[:, None] / h) / 2 - 0.5
             albedo *= 1.0 + o.gradient * ramp
@@ -324,7 +445,7 @@ class SyntheticCamera(CameraDriver):
             albedo = cv2.GaussianBlur(albedo, (0, 0), o.blur_px)
         if o.noise_std > 0:
             albedo += rng.normal(0.0, o.noise_std, albedo.shape)
-        return np.clip(np.rint(albedo), 0, 255).astype(np.uint8), centres, blobs
+        return np.clip(np.rint(albedo), 0, 255).astype(np.uint8), first, blobs
 
     def _spurious_blobs(self, albedo: FloatArray, centres: FloatArray,
                         radius_px: float, rng: np.random.Generator) -> FloatArray:

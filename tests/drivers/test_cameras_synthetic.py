@@ -210,3 +210,74 @@ async def test_bundled_samples_are_current_renders() -> None:
             np.testing.assert_allclose(frame["pixels_left"], fresh.truth["pixels_left"], atol=1e-5)
     finally:
         await replay.close()
+
+
+async def test_pallet_renders_every_instance_with_its_truth() -> None:
+    """Several objects: each instance's marks are dark where OpenCV projects them from the
+    instance's true pose (a dropped mark stays background), no two marks of different
+    instances overlap, and touching footprints sit one pitch apart."""
+    (pair,) = await grab(seed=4, pallet={"count": 5, "cols": 3, "gap_mm": 0.0},
+                         drop_features=["1/m3"], **QUIET)
+    poses = pair.truth["instances_T_base_obj"]
+    assert poses.shape == (5, 4, 4)
+    assert pair.truth["instances_dropped"] == ((), ("m3",), (), (), ())
+    np.testing.assert_allclose(pair.truth["T_base_obj"], poses[0])
+    calib = DEMO.calibration
+    assert calib is not None
+    assert calib.right is not None
+    T_base_cam = scene.T_base_camera(DEMO)
+    T_rl = scene.T_right_left(DEMO)
+    assert T_rl is not None
+    pts = scene.object_points(DEMO)
+    marks = [pts @ T[:3, :3].T + T[:3, 3] for T in poses]
+    for a in range(5):
+        for b in range(a + 1, 5):
+            gap = np.linalg.norm(marks[a][:, None] - marks[b][None], axis=2).min()
+            assert gap > 10.0, (a, b, gap)
+    for k, T in enumerate(poses):
+        T_cam = np.linalg.inv(T_base_cam) @ T
+        for intr, T_side, image in ((calib.left, T_cam, pair.left),
+                                    (calib.right, T_rl @ T_cam, pair.right)):
+            assert image is not None
+            px = opencv_projection(intr, T_side, pts)
+            for name, (x, y) in zip(pair.truth["feature_names"], px, strict=True):
+                grey = int(image[int(round(y)), int(round(x))])
+                if k == 1 and name == "m3":
+                    assert grey > 150, (k, name, grey)
+                else:
+                    assert grey < 80, (k, name, grey)
+    # Neighbours in a row: one footprint apart (marks' box + one diameter), give or take the
+    # jitter (2 mm, 3 deg about the centroid).
+    centroids = np.array([m.mean(axis=0) for m in marks])
+    pitch_x = np.ptp(pts[:, 0]) + 10.0
+    assert abs(np.linalg.norm(centroids[1] - centroids[0]) - pitch_x) < 12.0
+
+
+async def test_explicit_instances_and_option_conflicts() -> None:
+    ref = scene.T_base_obj_ref(DEMO)
+    poses = [{"translation_mm": [600.0, 100.0, 10.0]},
+             {"translation_mm": [600.0, 250.0, 10.0], "rotvec_rad": [0.0, 0.0, 0.5]}]
+    (pair,) = await grab(instances=poses, **QUIET)
+    got = pair.truth["instances_T_base_obj"]
+    assert got.shape == (2, 4, 4)
+    np.testing.assert_allclose(got[1][:3, 3], [600.0, 250.0, 10.0])
+    assert not np.allclose(got[0], ref)  # rotvec 0 vs the reference's 0.05 about z
+    with pytest.raises(ConfigError, match="one of pose, instances and pallet"):
+        make_camera(pose=poses[0], pallet={"count": 2})
+    with pytest.raises(ConfigError, match="instance '7' is not one of 0..1"):
+        make_camera(instances=poses, drop_features=["7/m1"])
+
+
+async def test_pallet_pitch_and_its_limits() -> None:
+    (pair,) = await grab(pallet={"count": 3, "cols": 3, "pitch_mm": [150.0, 110.0],
+                                 "jitter_mm": 0.0, "jitter_deg": 0.0}, **QUIET)
+    x = pair.truth["instances_T_base_obj"][:, :3, 3]
+    np.testing.assert_allclose(np.linalg.norm(np.diff(x, axis=0), axis=1), 150.0, atol=1e-9)
+    with pytest.raises(ConfigError, match="gap_mm or pitch_mm"):
+        make_camera(pallet={"count": 2, "gap_mm": 0.0, "pitch_mm": [150.0, 110.0]})
+    with pytest.raises(ConfigError, match="must be positive"):
+        make_camera(pallet={"count": 2, "pitch_mm": [0.0, 110.0]})
+    # Marks cannot overlap: a pitch under the marks' spacing is refused at the grab.
+    with pytest.raises(CameraError, match="cannot place the objects without overlapping"):
+        await grab(pallet={"count": 2, "pitch_mm": [2.0, 2.0], "jitter_mm": 0.0,
+                           "jitter_deg": 0.0})

@@ -190,3 +190,27 @@ def test_overlay_takes_the_recipe_key_else_the_top_level_else_the_default(
         expected = recipe_vision.get(key, top_vision.get(key, getattr(default, key)))
         assert getattr(effective, key) == expected, key
     assert config.vision == VisionConfig(**top_vision)
+
+
+def test_picking_per_recipe_and_pick_points_stay_with_their_object() -> None:
+    """A pallet recipe sets its own pick list; a recipe with another object inherits the pick
+    list's size and order but not the grip points of the top-level object (docs/picklists.md)."""
+    picks = [{"id": 3, "priority": 1, "pose": {"translation_mm": [0.0, 0.0, 5.0]}}]
+    config = config_from_dict({
+        "picking": {"max_objects": 4, "order": "score", "pick_points": picks},
+        "recipes": {"1": {"name": "pallet", "picking": {"max_objects": 6}},
+                    "2": {"name": "other", "object": {"features": features()}},
+                    "3": {"name": "single", "picking": {"max_objects": 1,
+                                                        "pick_points": []}}},
+    })
+    r1, r2, r3 = (config.for_recipe(n) for n in (1, 2, 3))
+    assert (r1.picking.max_objects, r1.picking.order) == (6, "score")
+    assert [p.id for p in r1.picking.pick_points] == [3]
+    assert (r2.picking.max_objects, r2.picking.order) == (4, "score")
+    assert r2.picking.pick_points == ()
+    assert r3.picking.max_objects == 1
+    # Single object, inherited grip points: refused, naming the recipe.
+    message = refused({"picking": {"max_objects": 4, "pick_points": picks},
+                       "recipes": {"5": {"name": "one", "picking": {"max_objects": 1}}}})
+    assert "recipes.5" in message
+    assert "pick_points need max_objects > 1" in message

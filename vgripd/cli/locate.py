@@ -83,6 +83,15 @@ def format_result(result: JobResult) -> str:
     if result.residuals:
         lines.append("residuals: " + "  ".join(f"{k}={v:.4f}" for k, v in result.residuals.items()))
     lines.append("timings:   " + "  ".join(f"{k}={v:.1f}ms" for k, v in result.timings_ms.items()))
+    if result.instances:
+        pickable = sum(i.status.pose_valid for i in result.instances)
+        lines.append(f"pick list: {pickable} pickable of {len(result.instances)} "
+                     "(index status pick score x y z; message)")
+        for k, inst in enumerate(result.instances):
+            xyz = ("-" if inst.T_base_obj is None else
+                   " ".join(f"{v:.2f}" for v in np.asarray(inst.T_base_obj)[:3, 3]))
+            lines.append(f"  {k:2d} {inst.status.name:<17} {inst.pick_id:3d} {inst.score:5.3f} "
+                         f"{xyz}{'; ' + inst.message if inst.message else ''}")
     if result.diagnosis is not None:
         lines.append("why:")
         lines.extend(result.diagnosis.lines())

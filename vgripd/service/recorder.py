@@ -33,7 +33,7 @@ from typing import Any
 import cv2
 
 from vgripd.serialize import jsonable, toml_from_dict
-from vgripd.types import ImagePair, JobResult
+from vgripd.types import ImagePair, JobResult, PickInstance
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +66,27 @@ def dict_from_result(result: JobResult) -> dict[str, Any]:
         "t_done_mono_ns": result.t_done_mono_ns,
         # A failed job's diagnosis (vgripd.vision.diagnosis): stage counts, likely causes.
         "diagnosis": None if result.diagnosis is None else result.diagnosis.as_dict(),
+        # The pick list (picking.max_objects > 1, docs/picklists.md); [] for one object.
+        "instances": [dict_from_instance(i) for i in result.instances],
+    }
+
+
+def dict_from_instance(instance: PickInstance) -> dict[str, Any]:
+    """One instance of a pick list as JSON data (the JobResult fields of the same names)."""
+    target = instance.target
+    return {
+        "status": instance.status.name,
+        "status_code": int(instance.status),
+        "message": instance.message,
+        "pick_id": instance.pick_id,
+        "score": instance.score,
+        "target": None if target is None else {
+            "vendor": target.vendor, "fields": list(target.fields),
+            "values": list(target.values)},
+        "T_base_obj": jsonable(instance.T_base_obj),
+        "offset": jsonable(instance.offset),
+        "residuals": jsonable(instance.residuals),
+        "features_used": list(instance.features_used),
     }
 
 

@@ -265,8 +265,11 @@ def _pair_of(images: Sequence[npt.NDArray[Any] | None], fields: dict[str, Any]) 
 
 
 def _wire_result(result: JobResult) -> JobResult:
-    return dataclasses.replace(result, residuals=dict(result.residuals),
-                               timings_ms=dict(result.timings_ms))
+    """The result with its mappings as plain dicts (picklable), the pick list's too."""
+    return dataclasses.replace(
+        result, residuals=dict(result.residuals), timings_ms=dict(result.timings_ms),
+        instances=tuple(dataclasses.replace(i, residuals=dict(i.residuals))
+                        for i in result.instances))
 
 
 def _frame(req_id: int, payload: bytes) -> bytes:

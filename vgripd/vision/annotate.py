@@ -5,7 +5,8 @@ feature is projected at the found pose and labelled by name, green when it was u
 pose, red when it was missing; the object axes (x red, y green, z blue) are drawn from its
 origin; in the right image, the epipolar line of each used left feature is drawn as a straight
 line in ideal pixels (exact without lens distortion, within a pixel or so with the usual
-distortion near the image centre). Without a pose only the status line is written.
+distortion near the image centre). Without a pose only the status line is written. A pick list
+draws every instance, labelled with its place in the list, status, pick id and score.
 
 A failed job (``result.diagnosis``) also shows every candidate blob the finders saw, circled in
 the colour of what became of it and labelled with the reason it was dropped (``CANDIDATE_COLOURS``:
@@ -81,10 +82,28 @@ def annotate(pipeline: Pipeline, pair: ImagePair, result: JobResult) -> list[np.
         _draw_diagnosis(images, result.diagnosis, scale)
     if result.T_base_obj is None:
         return images
-    T_cam_obj = invert_transform(pipeline.T_base_camera(pair)) @ result.T_base_obj
+    T_camera_base = invert_transform(pipeline.T_base_camera(pair))
+    T_cam_obj = T_camera_base @ result.T_base_obj
     used = set(result.features_used)
     _draw_model(images[0], pipeline.left, T_cam_obj, pipeline, used, scale)
     rig = pipeline.rig
+    # A pick list: every other instance too, each labelled with its place in the list, its
+    # status and pick id (docs/picklists.md).
+    for k, inst in enumerate(result.instances):
+        if inst.T_base_obj is None:
+            continue
+        T_k = T_camera_base @ inst.T_base_obj
+        if k:
+            _draw_model(images[0], pipeline.left, T_k, pipeline, set(inst.features_used), scale)
+            if len(images) == 2 and rig is not None:
+                _draw_model(images[1], rig.right, rig.T_right_left @ T_k, pipeline,
+                            set(inst.features_used), scale)
+        if T_k[2, 3] > 0:
+            label = f"#{k} {inst.status.name} pick {inst.pick_id} score {inst.score:.2f}"
+            colour = GREEN if inst.status.pose_valid else RED
+            at = pipeline.left.project(T_k[None, :3, 3])[0] + (-40 * scale, 24 * scale)
+            cv2.putText(images[0], label, _pt(at), cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale,
+                        colour, 2 * scale)
     if len(images) == 2 and rig is not None:
         T_right_obj = rig.T_right_left @ T_cam_obj
         _draw_model(images[1], rig.right, T_right_obj, pipeline, used, scale)

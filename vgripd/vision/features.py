@@ -74,6 +74,9 @@ class CircleSpec:
     at 60 deg tilt is about 0.9; pixelation lowers small blobs to about 0.7).
     ``downscale``: the detection step works on the image reduced by this factor; it is lowered
     automatically so that the smallest mark keeps at least 4 px across.
+    ``separate_neighbours``: marks closer than their refinement windows (touching plates of a
+    pallet) each keep only the pixels nearer to their own coarse centre; on for pick lists
+    (``picking.max_objects > 1``), off for one object, whose results it leaves as they were.
     """
 
     polarity: Polarity = "dark"
@@ -82,6 +85,7 @@ class CircleSpec:
     min_contrast: float = 20.0
     min_circularity: float = 0.6
     downscale: int = 2
+    separate_neighbours: bool = False
 
 
 class Rejected(NamedTuple):
@@ -150,6 +154,7 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
     rejected: list[Rejected] = []
     sh, sw = small.shape
     speck = 0.4 * spec.min_diameter_px
+    candidates: list[tuple[float, float, float]] = []  # coarse centre (px) and diameter
 
     def drop(c: Any, d_px: float, reason: str, value: float) -> None:
         # Only on the way out of the loop: costs nothing for the blobs that are kept.
@@ -179,7 +184,17 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
         # Centre of the small image's pixel (i, j) in full-resolution coordinates: s*i + (s-1)/2.
         cx = m["m10"] / m["m00"] * s + (s - 1) / 2.0
         cy = m["m01"] / m["m00"] * s + (s - 1) / 2.0
-        refined = _refine_centre(gray, cx, cy, d_px, spec.polarity)
+        candidates.append((cx, cy, d_px))
+
+    coarse = np.array([(cx, cy) for cx, cy, _ in candidates]).reshape(-1, 2)
+    for index, (cx, cy, d_px) in enumerate(candidates):
+        # Marks so close that one's refinement window reaches into the other (touching
+        # plates of a pallet): each keeps only the pixels nearer to its own coarse centre.
+        reach = np.hypot(coarse[:, 0] - cx, coarse[:, 1] - cy) < 2.0 * d_px + 10.0
+        reach[index] = False
+        if not spec.separate_neighbours:
+            reach[:] = False
+        refined = _refine_centre(gray, cx, cy, d_px, spec.polarity, coarse[reach])
         if refined is None:
             # The refinement window left the image, or the mark has no contrast at all.
             half = int(np.ceil(0.75 * d_px + 3.0)) + 2
@@ -205,7 +220,8 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
 
 
 def _refine_centre(
-    gray: UInt8Image, cx: float, cy: float, d_px: float, polarity: Polarity
+    gray: UInt8Image, cx: float, cy: float, d_px: float, polarity: Polarity,
+    neighbours: FloatArray | None = None,
 ) -> tuple[tuple[float, float], float, float] | None:
     """Sub-pixel centre, equivalent diameter (px) and contrast of one mark near (cx, cy).
 
@@ -216,6 +232,9 @@ def _refine_centre(
     median ratio I/B in the mark's core: light multiplies mark and background alike, so the
     ratio, unlike a difference, is the same all over the mark. Two passes re-centre the window.
     The contrast returned is |B (k - 1)| in grey levels.
+    ``neighbours`` (k, 2): coarse centres of other marks whose window overlaps this one; the
+    pixels nearer to one of them than to this mark's coarse centre take no part (neither in the
+    background plane nor in the centroid). Without neighbours nothing changes.
     Returns None when the window leaves the image or the mark has no contrast.
     """
     h, w = gray.shape
@@ -235,10 +254,16 @@ def _refine_centre(
         ys = np.arange(y0, y1, dtype=np.float32)
         r2 = (xs[None, :] - cx) ** 2 + (ys[:, None] - cy) ** 2
         inside = r2 <= radius**2
+        mine = np.ones_like(inside)
+        if neighbours is not None and len(neighbours):
+            own2 = (xs[None, :] - ox) ** 2 + (ys[:, None] - oy) ** 2
+            for nx, ny in neighbours:
+                mine &= own2 <= (xs[None, :] - nx) ** 2 + (ys[:, None] - ny) ** 2
+            inside &= mine
         dx = np.broadcast_to(xs[None, :] - ox, roi.shape)
         dy = np.broadcast_to(ys[:, None] - oy, roi.shape)
         if plane is None:  # fitted once, on the first window; the second one reuses it
-            plane = _background_plane(roi, dx, dy, ~inside)
+            plane = _background_plane(roi, dx, dy, ~inside & mine)
         background = np.maximum(plane[0] + plane[1] * dx + plane[2] * dy, 1.0)
         ratio = roi / background
         if k == 0.0:
@@ -315,22 +340,30 @@ def _diagonal_intersection(c: FloatArray) -> FloatArray:
     return np.asarray(c[0] + t * d1, dtype=np.float64)
 
 
-def find_aruco(gray: UInt8Image, dictionary: str) -> dict[int, Marker]:
-    """Decode the markers of one dictionary. A marker id seen twice is dropped (no identity)."""
+def find_aruco_all(gray: UInt8Image, dictionary: str) -> list[Marker]:
+    """Every decoded marker of one dictionary, an id as often as it is seen (pick lists: the
+    same markers on every object)."""
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     detector = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), params)
     corners, ids, _ = detector.detectMarkers(gray)
-    found: dict[int, Marker] = {}
-    seen_twice: set[int] = set()
     if ids is None:
-        return found
+        return []
+    out = []
     for quad, mid in zip(corners, ids.ravel(), strict=True):
         c = np.asarray(quad, dtype=np.float64).reshape(4, 2)
-        key = int(mid)
-        if key in found:
-            seen_twice.add(key)
-        found[key] = Marker(key, c, _diagonal_intersection(c))
+        out.append(Marker(int(mid), c, _diagonal_intersection(c)))
+    return out
+
+
+def find_aruco(gray: UInt8Image, dictionary: str) -> dict[int, Marker]:
+    """Decode the markers of one dictionary. A marker id seen twice is dropped (no identity)."""
+    found: dict[int, Marker] = {}
+    seen_twice: set[int] = set()
+    for marker in find_aruco_all(gray, dictionary):
+        if marker.marker_id in found:
+            seen_twice.add(marker.marker_id)
+        found[marker.marker_id] = marker
     for key in seen_twice:
         del found[key]
     return found

@@ -41,7 +41,7 @@ from vgripd.geometry.orientation import horn, horn_robust, pnp
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform, rotation_angle
 from vgripd.geometry.vendors import VENDORS, target_from_transform
-from vgripd.types import FloatArray, ImagePair, JobResult, Status
+from vgripd.types import FloatArray, ImagePair, JobResult, PickInstance, Status
 from vgripd.vision import diagnosis as dg
 from vgripd.vision import features as ft
 from vgripd.vision import scene
@@ -188,6 +188,9 @@ class Found:
     # The circle finder's output per spec (``_Finder.specs``), rejected blobs included: what
     # the diagnosis of a failed job reads.
     blobs: tuple[ft.Blobs, ...] = ()
+    # Pick lists with ArUco markers (``_Finder.keep_all``): every detection as (feature index,
+    # marker), an id as often as it is seen.
+    markers: tuple[tuple[int, ft.Marker], ...] = ()
 
 
 class _Finder:
@@ -226,13 +229,20 @@ class _Finder:
                     min_contrast=vision.min_contrast,
                     min_circularity=vision.min_circularity,
                     downscale=vision.downscale,
+                    separate_neighbours=config.picking.max_objects > 1,
                 )
             )
         self.min_score = vision.template_min_score
+        self.keep_all = False  # set for pick lists: keep repeated marker ids (Found.markers)
 
     def __call__(self, gray: ft.UInt8Image) -> Found:
         identified: dict[int, FloatArray] = {}
+        markers: list[tuple[int, ft.Marker]] = []
         for dictionary, ids in self.aruco.items():
+            if self.keep_all:
+                markers += [(ids[m.marker_id], m) for m in ft.find_aruco_all(gray, dictionary)
+                            if m.marker_id in ids]
+                continue
             for marker_id, marker in ft.find_aruco(gray, dictionary).items():
                 if marker_id in ids:
                     identified[ids[marker_id]] = marker.centre
@@ -242,7 +252,7 @@ class _Finder:
                 identified[index] = hit[0]
         blobs = tuple(ft.find_circles(gray, spec) for spec in self.specs)
         circles = np.vstack([b.xy for b in blobs]) if blobs else np.zeros((0, 2))
-        return Found(identified, circles, blobs)
+        return Found(identified, circles, blobs, tuple(markers))
 
 
 def _load_template(path: str, where: str) -> ft.UInt8Image:
@@ -275,6 +285,7 @@ class _Job:
     missing: tuple[str, ...] = ()
     T_base_obj: FloatArray | None = None
     offset: FloatArray | None = None
+    instances: tuple[PickInstance, ...] = ()  # the pick list (picking.max_objects > 1)
     trace: dg.Trace = field(default_factory=dg.Trace)  # what each stage saw (diagnosis)
     _t: float = field(default_factory=time.perf_counter)
 
@@ -297,6 +308,21 @@ class PoseEstimate:
     points_cam: FloatArray
 
 
+@dataclass(frozen=True)
+class StereoPoints:
+    """The paired features of a stereo job, triangulated (rows: identified pairs first, then
+    circle pairs; a circle blob may sit in several rows, ``keys`` tell which)."""
+
+    px_l: FloatArray  # (k, 2) px
+    px_r: FloatArray  # (k, 2) px
+    points: FloatArray  # (k, 3) mm, left camera frame
+    gap: FloatArray  # (k,) mm between the two rays
+    valid: npt.NDArray[np.bool_]  # in front of both cameras and within the working distance
+    keys: list[tuple[int, ...]]  # per row: the image blobs it uses (exclusive)
+    fixed: dict[int, int]  # identified feature index -> row
+    circle_rows: list[int]
+
+
 class Pipeline:
     """The configured vision chain; construct once, call :meth:`process` per image pair.
 
@@ -316,10 +342,16 @@ class Pipeline:
         self.names = scene.feature_names(config)
         self.model = model_points(config)
         self.T_base_obj_ref = scene.T_base_obj_ref(config)
-        self.limit_point, self.limit_point_name = limit_point(config, self.model,
-                                                              self.T_base_obj_ref)
+        # Pick lists (docs/picklists.md): with pick points, "the grip" is each pick point.
+        self.many = config.picking.max_objects > 1
+        picks = bool(config.picking.pick_points)
+        if picks and config.limits.point == "grip" and config.limits.point_mm is None:
+            self.limit_point, self.limit_point_name = None, "object origin"
+        else:
+            self.limit_point, self.limit_point_name = limit_point(config, self.model,
+                                                                  self.T_base_obj_ref)
         self.T_base_grip_ref: FloatArray | None = None
-        if config.output.mode == "grip":
+        if config.output.mode == "grip" and not picks:
             if config.reference.grip is None:
                 raise NotCalibratedError(
                     'reference.grip: output.mode = "grip" needs the grip pose taught on the '
@@ -355,7 +387,14 @@ class Pipeline:
                 f"{MIN_PNP_FEATURES} aruco/template features, the object has {identified} "
                 "(circle marks cannot be told apart in one image)"
             )
+        all_aruco = all(k == "aruco" for k in self.kinds)
+        if self.many and not ((self.rig is not None and self.is_circle.all())
+                              or (self.rig is None and all_aruco)):
+            raise ConfigError(
+                "picking.max_objects > 1 needs a stereo rig and an object of circle marks only, "
+                "or a single camera and an object of ArUco markers only (docs/picklists.md)")
         self.find_left = _Finder(config, self.left.fx)
+        self.find_left.keep_all = self.many and self.rig is None
         self.find_right = _Finder(config, self.right.fx) if self.right is not None else None
 
     def T_base_camera(self, pair: ImagePair) -> FloatArray:
@@ -410,6 +449,7 @@ class Pipeline:
             t_capture_mono_ns=pair.t_mono_ns,
             t_done_mono_ns=time.monotonic_ns(),
             diagnosis=diagnosis,
+            instances=job.instances,
         ), job.points_base
 
     def _run(self, pair: ImagePair, job: _Job) -> tuple[Status, str, Any]:
@@ -430,6 +470,16 @@ class Pipeline:
         job.trace.grays = (gray_l, gray_r) if found_r is not None else (gray_l,)
         job.trace.found = (found_l, found_r) if found_r is not None else (found_l,)
 
+        if self.many and found_r is not None:
+            from vgripd.vision import picklist  # it imports this module
+
+            paired = self._stereo_points(found_l, found_r, job)
+            return picklist.locate_all(self, paired, job, T_base_camera, vision.min_features)
+        if self.many and self.find_left.keep_all:
+            from vgripd.vision import picklist  # it imports this module
+
+            return picklist.locate_all_mono(self, found_l, job, T_base_camera,
+                                            max(vision.min_features, MIN_PNP_FEATURES))
         if found_r is not None:
             estimate = self._stereo_pose(found_l, found_r, job)
             needed = vision.min_features
@@ -512,9 +562,16 @@ class Pipeline:
     # ------------------------------------------------------------------ stereo
     def _stereo_pose(self, left: Found, right: Found, job: _Job) -> PoseEstimate | None:
         """Pair, triangulate, match to the model and fit; None when fewer than 3 features."""
+        paired = self._stereo_points(left, right, job)
+        if paired is None:
+            return None
+        return self._stereo_match(paired, job)
+
+    def _stereo_points(self, left: Found, right: Found, job: _Job) -> StereoPoints | None:
+        """Pair the two images' features (identity, epipolar line) and triangulate them; None
+        (every feature missing) under three pairs."""
         assert self.rig is not None
         vision = self.config.vision
-        n = len(self.names)
         px_l: list[FloatArray] = []
         px_r: list[FloatArray] = []
         # Identified features pair by identity (and must still satisfy the epipolar constraint).
@@ -547,7 +604,16 @@ class Pipeline:
         job.trace.depth_mm, job.trace.in_front = points[:, 2], valid.copy()
         near, far = vision.working_distance_mm
         valid &= (points[:, 2] >= near) & (points[:, 2] <= far)
+        return StereoPoints(np.array(px_l), np.array(px_r), points, gap, valid, keys, fixed,
+                            circle_rows)
 
+    def _stereo_match(self, paired: StereoPoints, job: _Job) -> PoseEstimate | None:
+        """One object among the paired points: correspondence to the model, then the fit."""
+        vision = self.config.vision
+        n = len(self.names)
+        points, gap, valid = paired.points, paired.gap, paired.valid
+        keys, fixed, circle_rows = paired.keys, paired.fixed, paired.circle_rows
+        px_l, px_r = paired.px_l, paired.px_r
         assignment = np.full(n, -1, dtype=np.intp)
         for index, row in fixed.items():
             if valid[row]:
@@ -579,8 +645,7 @@ class Pipeline:
                 hit = sub >= 0
                 assignment[circle_model[hit]] = rows[sub[hit]]
         job.trace.assignment = assignment
-        return self._fit_stereo(assignment, points, gap, np.array(px_l), np.array(px_r),
-                                ambiguous, job)
+        return self._fit_stereo(assignment, points, gap, px_l, px_r, ambiguous, job)
 
     def _triangulate(
         self, px_l: FloatArray, px_r: FloatArray

@@ -62,3 +62,10 @@ def test_example_passes_with_its_sample_frames(capsys: pytest.CaptureFixture[str
     monkeypatch.chdir(REPO)
     assert main(["check", "-c", str(REPO / "config" / "example.toml"), "--running"]) == 0, \
         capsys.readouterr().err
+
+
+def test_pallet_sample_passes(capsys: pytest.CaptureFixture[str]) -> None:
+    """config/samples/pallet.toml (pick lists, docs/picklists.md) is a valid, commissionable
+    cell."""
+    assert main(["check", "-c", str(REPO / "config" / "samples" / "pallet.toml"),
+                 "--running"]) == 0, capsys.readouterr().err

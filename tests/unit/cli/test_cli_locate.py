@@ -102,3 +102,43 @@ def test_replay_folder_with_annotation(capsys, tmp_path):
     assert annotated.shape == (*plain.shape[:2], 3)
     # Green labels where the model features are: the drawing changed the image.
     assert (annotated[:, :, 1].astype(int) - annotated[:, :, 0] > 100).sum() > 100
+
+
+def test_locate_prints_the_pick_list_of_a_pallet(tmp_path, capsys, monkeypatch):
+    """config/samples/pallet.toml on a rendered pallet pair: the JSON carries every instance
+    (status, pick id, score, pose), the text a line per instance."""
+    import asyncio
+
+    from vgripd.registry import CAMERAS, load_class, validate_options
+
+    monkeypatch.chdir(REPO)
+    cfg_path = SAMPLES / "pallet.toml"
+    config = load_config(cfg_path)
+
+    async def grab():
+        cls = load_class(CAMERAS, "camera", "synthetic")
+        camera = cls(validate_options(cls, config.camera, "camera"), config)
+        await camera.open()
+        try:
+            return await camera.grab(30.0)
+        finally:
+            await camera.close()
+
+    pair = asyncio.run(grab())
+    left, right = tmp_path / "left.png", tmp_path / "right.png"
+    cv2.imwrite(str(left), pair.left)
+    cv2.imwrite(str(right), pair.right)
+    assert main(["locate", "-c", str(cfg_path), str(left), str(right), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert len(out["instances"]) == 6
+    assert {i["status"] for i in out["instances"]} == {"OK"}
+    assert {i["pick_id"] for i in out["instances"]} == {1}
+    assert out["target"] == out["instances"][0]["target"]
+    truths = pair.truth["instances_T_base_obj"]
+    for inst in out["instances"]:
+        T = np.array(inst["T_base_obj"])
+        mm = min(pose_error(T, t)[0] for t in truths)
+        assert mm < 0.5
+    assert main(["locate", "-c", str(cfg_path), str(left), str(right)]) == 0
+    text = capsys.readouterr().out
+    assert "pick list: 6 pickable of 6" in text

@@ -351,3 +351,26 @@ async def test_a_worker_that_cannot_start_is_retried_with_back_off() -> None:
     finally:
         await client.close()
     assert segments_of(client.prefix) == []
+
+
+def test_the_wire_format_carries_pick_instances() -> None:
+    """A result with a pick list pickles (an instance's residuals default to a mappingproxy,
+    which does not) and comes back equal."""
+    import pickle
+    from types import MappingProxyType
+
+    from vgripd.service.worker import _wire_result
+    from vgripd.types import PickInstance
+
+    instances = (PickInstance(status=Status.OK, T_base_obj=np.eye(4), pick_id=2, score=0.9,
+                              residuals=MappingProxyType({"fit_rms_mm": 0.1})),
+                 PickInstance(status=Status.PARTIAL, message="3 feature(s) matched, need 4"))
+    result = JobResult(job_id=1, status=Status.OK, instances=instances)
+    with pytest.raises(TypeError):
+        pickle.dumps(result)
+    back = pickle.loads(pickle.dumps(_wire_result(result)))
+    assert [i.status for i in back.instances] == [Status.OK, Status.PARTIAL]
+    assert back.instances[0].residuals == {"fit_rms_mm": 0.1}
+    assert back.instances[0].pick_id == 2
+    assert back.instances[1].message == "3 feature(s) matched, need 4"
+    np.testing.assert_array_equal(back.instances[0].T_base_obj, np.eye(4))

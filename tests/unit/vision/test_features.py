@@ -7,6 +7,8 @@ Gaussian noise (sigma 3 grey levels), so the true centre is known to about 0.01 
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -333,3 +335,34 @@ def test_match_model_in_dense_clutter_never_trusts_a_coincidence():
                 assert match.ambiguous, (shown, match)
                 wrong_flagged += 1
     assert wrong_flagged >= 1  # the scene does produce coincidences
+
+
+@pytest.mark.parametrize("gap_px", [4.0, 8.0, 14.0])
+def test_circle_centres_of_marks_closer_than_their_windows(gap_px):
+    """Marks of touching plates (pick lists): a neighbour inside the refinement window pulls a
+    centre towards it (2 px at a 4 px gap); with ``separate_neighbours`` each mark keeps the
+    pixels nearer to its own coarse centre. An isolated mark keeps exactly the centre it had
+    (no neighbours: nothing changes), and without the option the finder is as before."""
+    r = 13.0
+    discs = [(200.3, 300.6, r), (200.3 + 2 * r + gap_px, 300.6 - 3.1, r), (600.4, 250.2, r)]
+    img = render_discs((500, 800), discs, seed=int(gap_px))
+    spec = ft.CircleSpec(polarity="dark", min_diameter_px=10, max_diameter_px=36,
+                         min_contrast=20, min_circularity=0.6, downscale=2,
+                         separate_neighbours=True)
+    blobs = ft.find_circles(img, spec)
+    assert len(blobs) == 3
+    err = nearest_errors(blobs.xy, np.array(discs))
+    assert err.max() < 0.1, err
+    # Off (one object): the finder as before, the isolated mark's centre unchanged.
+    before = ft.find_circles(img, dataclasses.replace(spec, separate_neighbours=False))
+    if gap_px <= 4.0:
+        assert nearest_errors(before.xy, np.array(discs))[:2].max() > 0.5
+    k0 = int(np.argmin(np.linalg.norm(before.xy - discs[2][:2], axis=1)))
+    k1 = int(np.argmin(np.linalg.norm(blobs.xy - discs[2][:2], axis=1)))
+    assert tuple(before.xy[k0]) == tuple(blobs.xy[k1])
+    # The isolated mark: the same centre as a refinement that knows of no neighbour.
+    k = int(np.argmin(np.linalg.norm(blobs.xy - discs[2][:2], axis=1)))
+    alone = ft._refine_centre(img, *blobs.xy[k], 2 * r, "dark")
+    assert alone is not None
+    again = ft._refine_centre(img, *blobs.xy[k], 2 * r, "dark", np.zeros((0, 2)))
+    assert again == alone
