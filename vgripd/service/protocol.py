@@ -13,11 +13,12 @@ big-endian (Modbus).
 ====  =============  ====  ======  =================================================================
 addr  name           R/W   type    meaning
 ====  =============  ====  ======  =================================================================
-   0  CMD            RW    u16     command: 1 TRIGGER (run a job), 2 CLEAR (reset the result area)
+   0  CMD            RW    u16     command: 1 TRIGGER (run a job), 2 CLEAR (reset the result area),
+                                   3 NEXT (the next instance of the last job's pick list)
    1  REQ_SEQ        RW    u16     request sequence: a request is a write that changes it to a
                                    non-zero value (edge on the sequence, not on the level)
    2  RECIPE         RW    u16     job parameter handed to the daemon with the trigger
-   3  MAP_VERSION    R     u16     2 (version 1 was the same map without WARNINGS)
+   3  MAP_VERSION    R     u16     3 (2: 0-40 without the pick list; 1: also without WARNINGS)
    4  CHECK_U16      R     u16     0x1234
    5  CHECK_U32      R     u32     0x12345678 in the configured word order
    7  CHECK_F32      R     f32     123.456 in the configured word order
@@ -36,6 +37,11 @@ addr  name           R/W   type    meaning
   24  VALUES         R     7x32    pose in the output vendor's convention and units
   38  FIT_RMS        R     32      fit residual in mm (VALUE_FORMAT encoding); -1 = unknown
   40  WARNINGS       R     u16     live bit field (``Warnings``): bit 0 RECALIBRATE; others 0
+  41  COUNT          R     u16     pickable instances of the job (1 or 0 for a single-object job)
+  42  INDEX          R     u16     1-based index of the instance shown in 18-39 and 43-45; 0 = none
+                                   (no pose), COUNT + 1 = past the end of the list (after NEXT)
+  43  PICK_ID        R     u16     pick point id of the instance shown (0 = the object's grip)
+  44  SCORE          R     32      detection score 0..1 of the instance shown; -1 = none/unknown
 ====  =============  ====  ======  =================================================================
 
 Handshake: a request is answered exactly once, either by ``ACK_SEQ == seq`` (the job ran or
@@ -47,6 +53,18 @@ Ordering, so that a poller never pairs an acknowledged sequence with data of ano
 a publish writes all data first and ``ACK_SEQ`` last; a new job retracts ``ACK_SEQ`` (0) first and
 only then clears the data. Servers apply each list of block writes without yielding to readers.
 
+Pick lists (map version 3): a job that finds several instances (``JobResult.instances``)
+publishes COUNT and the first pickable instance (INDEX 1) in the same places as a single
+object, so a version 2 client that reads only 0-40 sees the first result. ``Command.NEXT``
+asks for the following instance of the same job: answered from the daemon's copy of the list,
+no acquisition, the same JOB_ID, RESULT_AGE_MS running from the original result (the images
+are that old). Past the end it answers ``NOT_FOUND`` without a pose and INDEX = COUNT + 1.
+NEXT is refused ``BAD_REQUEST`` (REJECT_SEQ/REJECT_CODE, nothing else changes) when the link
+holds no list: after start, CLEAR, a new TRIGGER, or a job that found nothing; ``BUSY`` while
+a request runs. The daemon refuses it too (answered ``BAD_REQUEST`` without a pose) when its
+list is not this link's (a job of another link came in between). COUNT .. SCORE are part of
+the result: cleared with it and written before ACK_SEQ.
+
 WARNINGS is not part of a result: it is the daemon's current state (like HEARTBEAT), changed
 through ``RobotLink.set_warnings`` whenever a warning rises or clears, and neither a new job nor
 CLEAR touches it. The daemon sets it before it publishes the job that changed it, so a peer that
@@ -56,6 +74,7 @@ sees ``ACK_SEQ == seq`` reads a WARNINGS that already counts that job.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import enum
 import math
 import struct
@@ -209,6 +228,10 @@ class Reg(enum.IntEnum):
     VALUES = 24
     FIT_RMS = 38
     WARNINGS = 40
+    COUNT = 41
+    INDEX = 42
+    PICK_ID = 43
+    SCORE = 44
 
 
 class Warnings(enum.IntFlag):
@@ -218,8 +241,12 @@ class Warnings(enum.IntFlag):
     RECALIBRATE = 1  # the daemon's rolling epipolar warning: the stereo rig may have moved
 
 
-MAP_VERSION = 2  # 1 -> 2: WARNINGS (register 40) added; nothing else moved or changed
-MAP_SIZE = 41
+# 1 -> 2: WARNINGS (register 40) added; 2 -> 3: the pick list (41-45) and Command.NEXT.
+# Neither moved or changed a register of the version before.
+MAP_VERSION = 3
+MAP_SIZE = 46
+#: The result area after WARNINGS (COUNT .. SCORE), written with STATUS .. FIT_RMS.
+PICK_AREA = range(Reg.COUNT, MAP_SIZE)
 MAX_VALUES = 7  # ABB/quaternion conventions: XYZ + 4; the others use 6
 REGISTER_CAPABILITIES = LinkCapabilities(
     MAX_VALUES, None, "VALUES registers 24-37, the convention's fields in its own units")
@@ -231,9 +258,101 @@ NO_AGE = 0xFFFFFFFF
 FIT_RMS_KEY = "fit_rms_mm"  # the JobResult.residuals entry shown in FIT_RMS
 
 
+UNKNOWN_SCORE = -1.0  # SCORE when no instance (or a single object without a score) is shown
+
+
+@dataclass(frozen=True)
+class NextAnswer(JobResult):
+    """The daemon's answer to a NEXT request: the job's result with the top-level fields
+    describing the instance at ``index`` (1-based, among ``instances``) instead of the first.
+
+    ``index`` = pickable count + 1 is the answer past the end of the list (``NOT_FOUND``, no
+    pose). ``job_id``, ``t_capture_mono_ns`` and ``t_done_mono_ns`` are the job's own: the
+    images are as old as the original result, and RESULT_AGE_MS says so.
+    """
+
+    index: int = 1
+
+
+@dataclass(frozen=True)
+class PickPosition:
+    """Where a published result stands in its job's pick list (COUNT, INDEX, PICK_ID, SCORE).
+
+    ``count``: pickable instances (a single-object job counts 1 with a pose, 0 without);
+    ``index``: 1-based index of the instance shown, 0 when no pose is shown, ``count + 1``
+    past the end; ``pick_id`` and ``score`` of the instance shown (0 and ``UNKNOWN_SCORE``
+    when none is, or for a single-object job, which has no score).
+    """
+
+    count: int
+    index: int
+    pick_id: int = 0
+    score: float = UNKNOWN_SCORE
+
+    @property
+    def listed(self) -> bool:
+        """True when NEXT may follow: the result belongs to a job with a pickable instance."""
+        return self.count > 0
+
+
+def pickable_count(result: JobResult) -> int:
+    """Pickable instances of ``result``'s job (``JobResult.instances`` are in pick order, the
+    pickable ones first); a single-object job: 1 with a pose, 0 without."""
+    if result.instances:
+        return sum(i.status.pose_valid for i in result.instances)
+    return int(result.status.pose_valid and result.target is not None)
+
+
+def pick_position(result: JobResult) -> PickPosition:
+    """The pick-list fields of a result to publish (a job's own result or a ``NextAnswer``).
+
+    Refusals and failures that never had a list (BUSY, BAD_REQUEST, a failed single-object
+    job) are ``count`` 0: NEXT cannot follow them.
+    """
+    count = pickable_count(result)
+    if isinstance(result, NextAnswer):
+        index = result.index
+    else:
+        index = 1 if count and result.status.pose_valid else 0
+    if result.instances and 1 <= index <= count:
+        shown = result.instances[index - 1]
+        return PickPosition(count, index, shown.pick_id, shown.score)
+    return PickPosition(count, index)
+
+
+def next_answer(result: JobResult, index: int) -> NextAnswer:
+    """The answer showing instance ``index`` (1-based) of job ``result``'s pick list; past the
+    end (``index > count``) a ``NOT_FOUND`` answer without a pose at ``count + 1``.
+
+    ``result`` is the job's own published result (the top-level fields of instance 1). Raises
+    ``ValueError`` for an index below 1 or a result without a list (the daemon refuses NEXT
+    before it gets here).
+    """
+    count = pickable_count(result)
+    if count == 0 or index < 1:
+        raise ValueError(f"job {result.job_id}: no pick list instance {index} "
+                         f"({count} pickable)")
+    end = NextAnswer(job_id=result.job_id, status=Status.NOT_FOUND, index=count + 1,
+                     message=f"pick list of job {result.job_id} exhausted: all {count} "
+                             "pickable instances were handed out",
+                     t_capture_mono_ns=result.t_capture_mono_ns,
+                     t_done_mono_ns=result.t_done_mono_ns, instances=result.instances)
+    if index > count:
+        return end
+    if not result.instances:  # a single object: instance 1 is the job's own result
+        return NextAnswer(**{f.name: getattr(result, f.name)
+                             for f in dataclasses.fields(result) if f.name != "index"}, index=1)
+    inst = result.instances[index - 1]
+    return dataclasses.replace(end, status=inst.status, message=inst.message, target=inst.target,
+                               T_base_obj=inst.T_base_obj, offset=inst.offset,
+                               residuals=inst.residuals, features_used=inst.features_used,
+                               index=index)
+
+
 class Command(enum.IntEnum):
     TRIGGER = 1
     CLEAR = 2
+    NEXT = 3  # the next instance of the last job's pick list (map version 3)
 
 
 class HandshakeState(enum.IntEnum):
@@ -422,6 +541,25 @@ class RegisterImage:
         return (int(Status.IDLE), 0, 0, *self.codec.u32(NO_AGE), 0,
                 *([0] * (Reg.WARNINGS - Reg.VALUES)))
 
+    def pick_words(self, position: PickPosition) -> tuple[int, ...]:
+        """``COUNT .. SCORE`` for ``position``; COUNT and INDEX beyond a word are a bug (the
+        config bounds ``picking.max_objects``) and raise ``RegisterOverflowError``."""
+        for name, v in (("COUNT", position.count), ("INDEX", position.index),
+                        ("PICK_ID", position.pick_id)):
+            if not 0 <= v <= 0xFFFF:
+                raise RegisterOverflowError(f"register {Reg[name]} ({name}): {v} is not a u16")
+        return (position.count, position.index, position.pick_id,
+                *self.codec.value(position.score, f"register {Reg.SCORE} (SCORE)"))
+
+    def empty_pick_words(self) -> tuple[int, ...]:
+        """``COUNT .. SCORE`` meaning "no result" (all 0, like the result area)."""
+        return (0,) * len(PICK_AREA)
+
+    def clear_result(self) -> list[BlockWrite]:
+        """The writes that empty the whole result area (18-39 and 41-45; WARNINGS stays)."""
+        return [BlockWrite(Reg.STATUS, self.empty_result_words()),
+                BlockWrite(Reg.COUNT, self.empty_pick_words())]
+
 
 class Action(enum.Enum):
     IGNORE = "ignore"  # not a new request
@@ -450,6 +588,9 @@ class Handshake:
         self.state = HandshakeState.IDLE
         self.running_seq = 0
         self.last_req_seq = 0
+        #: The result shown belongs to a job with a pick list (``PickPosition.listed``): NEXT
+        #: may follow. Set by ``on_published``; a new TRIGGER and CLEAR reset it.
+        self.listed = False
 
     @property
     def busy(self) -> bool:
@@ -461,13 +602,18 @@ class Handshake:
         self.last_req_seq = seq
         if seq == 0:
             return Decision(Action.IGNORE, seq)
-        if command not in (Command.TRIGGER, Command.CLEAR):
+        if command not in (Command.TRIGGER, Command.CLEAR, Command.NEXT):
             return Decision(Action.REJECT, seq, command, recipe, Status.BAD_REQUEST)
         if self.busy:
             return Decision(Action.REJECT, seq, command, recipe, Status.BUSY)
+        if command == Command.NEXT and not self.listed:  # nothing to go on from
+            return Decision(Action.REJECT, seq, command, recipe, Status.BAD_REQUEST)
         if command == Command.CLEAR:
             self.state = HandshakeState.IDLE
+            self.listed = False
             return Decision(Action.CLEAR, seq, command, recipe)
+        if command == Command.TRIGGER:
+            self.listed = False  # the old list is not this job's
         self.state = HandshakeState.TRIGGERED
         self.running_seq = seq
         return Decision(Action.START, seq, command, recipe)
@@ -476,9 +622,11 @@ class Handshake:
         self.check_running(seq, "image_captured")
         self.state = HandshakeState.BUSY
 
-    def on_published(self, seq: int) -> None:
+    def on_published(self, seq: int, listed: bool = False) -> None:
+        """``listed``: the published result has a pick list (NEXT may follow)."""
         self.check_running(seq, "publish")
         self.state = HandshakeState.DONE
+        self.listed = listed
 
     def check_running(self, seq: int, what: str) -> None:
         if not self.busy or seq != self.running_seq:
@@ -521,13 +669,13 @@ class RegisterBank:
         if decision.action is Action.START:
             self.image.apply([
                 BlockWrite(Reg.ACK_SEQ, (0,)),  # retract first: cleared data is nobody's result
-                BlockWrite(Reg.STATUS, self.image.empty_result_words()),
+                *self.image.clear_result(),
                 BlockWrite(Reg.STATE, (HandshakeState.TRIGGERED,)),
             ])
             self.image.set_result_time(None)
         elif decision.action is Action.CLEAR:
             self.image.apply([
-                BlockWrite(Reg.STATUS, self.image.empty_result_words()),
+                *self.image.clear_result(),
                 BlockWrite(Reg.STATE, (HandshakeState.IDLE,)),
                 BlockWrite(Reg.ACK_SEQ, (decision.seq,)),
             ])
@@ -556,17 +704,28 @@ class RegisterBank:
         vendor) into ``INTERNAL``. Returns the result actually published.
         """
         self.handshake.check_running(seq, "publish")
+        position = pick_position(result)
         try:
             words = self.image.result_words(result)
+            pick = self.image.pick_words(position)
         except (RegisterOverflowError, RegisterCapacityError) as err:
             status = (Status.OUT_OF_LIMITS if isinstance(err, RegisterOverflowError)
                       else Status.INTERNAL)
             result = JobResult(job_id=result.job_id, status=status, message=str(err),
                                t_done_mono_ns=result.t_done_mono_ns)
             words = self.image.result_words(result)
-        self.handshake.on_published(seq)
+            # The list stays walkable past an instance the registers cannot show (its INDEX
+            # still says which one it was); a bad COUNT/INDEX itself leaves no list.
+            try:
+                pick = self.image.pick_words(dataclasses.replace(position,
+                                                                 score=UNKNOWN_SCORE))
+            except RegisterOverflowError:
+                position = PickPosition(0, 0)
+                pick = self.image.empty_pick_words()
+        self.handshake.on_published(seq, position.listed)
         self.image.apply([
             BlockWrite(Reg.STATUS, words),
+            BlockWrite(Reg.COUNT, pick),
             BlockWrite(Reg.STATE, (HandshakeState.DONE,)),
             BlockWrite(Reg.ACK_SEQ, (seq,)),
         ])
@@ -610,17 +769,22 @@ class URRegisterMap:
     ``recipe`` (the job's recipe, read with the trigger; 0 = the default, docs/recipes.md).
     vgripd -> robot (input_int_register_N): ``ack`` (= seq, written last), ``status``,
     ``captured`` (seq whose images are taken), ``job_id``, ``page_ack`` (= seq once the rotation
-    page is in place); input_double_register ``page`` (3 registers) and ``warnings`` (the
+    page is in place); input_double_register ``page`` (3 registers), ``warnings`` (the
     ``Warnings`` bits as a whole number, live like the Modbus WARNINGS register: every int
-    input ur_rtde can write is taken, and a double holds a 16-bit field exactly).
+    input ur_rtde can write is taken, and a double holds a 16-bit field exactly) and ``pick``
+    (the pick list: ``1000 * COUNT + INDEX`` as a whole number, ``pick_word``; written with
+    the result, before ``ack``).
     """
 
     upper: bool = False
 
-    #: Commands the robot program may write to ``command``: 1 = locate (run a job). Any other
-    #: value (0, negative, unknown) is answered ``BAD_REQUEST`` without a job, as the Modbus
-    #: handshake answers an unknown CMD.
-    COMMANDS: ClassVar[frozenset[int]] = frozenset({1})
+    #: Commands the robot program may write to ``command``: 1 = locate (run a job), 3 = next
+    #: (the next instance of the last job's pick list, ``Command.NEXT``). Any other value (0,
+    #: negative, unknown) is answered ``BAD_REQUEST`` without a job, as the Modbus handshake
+    #: answers an unknown CMD.
+    COMMANDS: ClassVar[frozenset[int]] = frozenset({1, int(Command.NEXT)})
+    #: ``pick`` = PICK_BASE * COUNT + INDEX (both < PICK_BASE, ``pick_word``)
+    PICK_BASE: ClassVar[int] = 1000
 
     def refusal(self, command: int) -> Status | None:
         """The status a request with ``command`` is refused with; None when it runs a job."""
@@ -672,3 +836,15 @@ class URRegisterMap:
     @property
     def warnings(self) -> int:
         return self._n(21)
+
+    @property
+    def pick(self) -> int:
+        return self._n(22)
+
+    def pick_word(self, position: PickPosition) -> float:
+        """``pick`` register value: ``PICK_BASE * count + index`` (0 = no list). COUNT and
+        INDEX beyond ``PICK_BASE - 1`` (a list longer than 998 instances) raise ``LinkError``."""
+        if not (0 <= position.count < self.PICK_BASE and 0 <= position.index < self.PICK_BASE):
+            raise LinkError(f"pick list count {position.count} / index {position.index} do not "
+                            f"fit the pick register (each below {self.PICK_BASE})")
+        return float(self.PICK_BASE * position.count + position.index)

@@ -6,6 +6,7 @@ swapped for CDAB), not the codec under test.
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 
 import numpy as np
@@ -34,7 +35,7 @@ from vgripd.service.protocol import (
     ValueCodec,
     Warnings,
 )
-from vgripd.types import JobResult, RobotTarget, Status
+from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 
 def words_from_bytes(raw: bytes, order: str) -> list[int]:
@@ -46,6 +47,17 @@ def ok_result(values: tuple[float, ...], job_id: int = 7, rms: float = 0.25) -> 
     fields = tuple(f"v{i}" for i in range(len(values)))
     return JobResult(job_id=job_id, status=Status.OK, target=RobotTarget("kuka", fields, values),
                      residuals={"fit_rms_mm": rms}, t_done_mono_ns=1_000_000_000)
+
+
+def pallet(*values: tuple[float, ...], rejected: int = 0) -> tuple[PickInstance, ...]:
+    """Pickable instances with these values (pick ids 11, 12, ..., scores 0.9, 0.8, ...), then
+    ``rejected`` OUT_OF_LIMITS ones."""
+    fields = tuple(f"v{i}" for i in range(6))
+    ok = tuple(PickInstance(Status.OK, target=RobotTarget("kuka", fields, v), pick_id=11 + i,
+                            score=0.9 - 0.1 * i, residuals={"fit_rms_mm": 0.1 * (i + 1)})
+               for i, v in enumerate(values))
+    return ok + tuple(PickInstance(Status.OUT_OF_LIMITS, "offset beyond the limit", score=0.5)
+                      for _ in range(rejected))
 
 
 # --- codec ------------------------------------------------------------------------------------
@@ -287,19 +299,46 @@ def test_writes_outside_the_command_area_are_refused(address: int, values: list[
     assert bank.read(0, MAP_SIZE, 0) == before
 
 
-@pytest.mark.parametrize(("address", "count"), [(40, 2), (-1, 1), (41, 1), (0, 42), (0, 0)])
+@pytest.mark.parametrize(("address", "count"), [(45, 2), (-1, 1), (46, 1), (0, 47), (0, 0)])
 def test_reads_outside_the_map_are_refused(address: int, count: int) -> None:
-    with pytest.raises(RegisterAccessError, match="outside 0..40"):
+    with pytest.raises(RegisterAccessError, match="outside 0..45"):
         RegisterBank(ValueCodec()).read(address, count, 0)
 
 
-def test_map_version_2_is_version_1_plus_the_warnings_word() -> None:
-    # The integrator's contract (docs/registers.md): version 2 only appends register 40.
-    assert (MAP_VERSION, MAP_SIZE, Reg.WARNINGS) == (2, 41, 40)
-    assert max(r for r in Reg if r != Reg.WARNINGS) + 2 == Reg.WARNINGS  # FIT_RMS ends at 39
+# The version 2 map, written out here (docs/registers.md, map version 2): a version 3 server
+# must keep each of these at the same address, so a v2 client reading 0-40 keeps working.
+V2_MAP = {"CMD": 0, "REQ_SEQ": 1, "RECIPE": 2, "MAP_VERSION": 3, "CHECK_U16": 4, "CHECK_U32": 5,
+          "CHECK_F32": 7, "VALUE_FORMAT": 9, "VALUE_SCALE": 10, "HEARTBEAT": 12, "STATE": 13,
+          "CAPTURED_SEQ": 14, "REJECT_SEQ": 15, "REJECT_CODE": 16, "ACK_SEQ": 17, "STATUS": 18,
+          "JOB_ID": 19, "RESULT_AGE_MS": 21, "N_VALUES": 23, "VALUES": 24, "FIT_RMS": 38,
+          "WARNINGS": 40}
+
+
+def test_map_version_3_appends_the_pick_list_to_version_2() -> None:
+    assert (MAP_VERSION, MAP_SIZE) == (3, 46)
+    assert {r.name: int(r) for r in Reg if r < 41} == V2_MAP
+    assert [(r.name, int(r)) for r in Reg if r >= 41] == [
+        ("COUNT", 41), ("INDEX", 42), ("PICK_ID", 43), ("SCORE", 44)]  # SCORE: 44-45
+    assert (int(Command.TRIGGER), int(Command.CLEAR), int(Command.NEXT)) == (1, 2, 3)
     bank = RegisterBank(ValueCodec())
-    assert bank.read(Reg.MAP_VERSION, 1, 0) == [2]
-    assert bank.read(Reg.WARNINGS, 1, 0) == [0]
+    assert bank.read(Reg.MAP_VERSION, 1, 0) == [3]
+    assert bank.read(Reg.WARNINGS, 6, 0) == [0] * 6
+
+
+def test_v2_client_reading_0_to_40_sees_the_first_pickable_instance() -> None:
+    # A pick-list job and the same object as a single-object job give the same words 0-40 to
+    # a client that reads only those (apart from MAP_VERSION): version 2 clients keep working.
+    values = (10.0, 20.0, 30.0, 1.0, 2.0, 3.0)
+    single = ok_result(values, job_id=4, rms=0.5)
+    listed = dataclasses.replace(single, instances=pallet(values, (5.0,) * 6))
+    seen = []
+    for result in (single, listed):
+        bank = RegisterBank(ValueCodec())
+        bank.write(Reg.CMD, [Command.TRIGGER, 1, 0])
+        bank.captured(1, 4)
+        bank.publish(1, result, now_ns=0)
+        seen.append(bank.read(0, 41, 1_000_000_000))
+    assert seen[0] == seen[1]
 
 
 def test_warnings_are_live_and_survive_jobs_and_clear() -> None:
