@@ -24,6 +24,14 @@ Life of a job (``JobState``)::
   gave its peer (normally the job's), and an answer whose publish failed is counted apart
   (``undelivered``, by the job's status). Refusals a register link makes on its own handshake
   (``RobotLink.refusals``: BUSY, BAD_REQUEST) are added to the daemon's own in the status.
+- Pick lists (``JobResult.instances``, map version 3): the last job's result is kept with the
+  link that triggered it (``PickCursor``) when it has a pickable instance and was delivered. A
+  NEXT (``Command.NEXT``, the same code on every link) is answered from it through the same
+  publish path: the following instance (``next_answer``), no acquisition, the job's id and
+  age; past the end ``NOT_FOUND`` without a pose. Any new job drops the list at its trigger,
+  so a NEXT can never hand out a pose of an earlier job; a NEXT with no list of its link's is
+  answered ``BAD_REQUEST`` (job id 0), one while a job runs ``BUSY``. NEXT answers are counted
+  with the answers (``counters``) and apart (``next_answers``), and logged one line each.
 - RECALIBRATE (``EpipolarMonitor``): the median epipolar residual of every stereo job goes
   into a window of ``daemon.recalibrate_window`` jobs; while more than ``recalibrate_share``
   of them exceed ``vision.epipolar_warn_px`` the status carries the warning (logged once when
@@ -71,7 +79,15 @@ import numpy as np
 from vgripd.config import Config, unknown_recipe
 from vgripd.errors import CameraError, LinkError, NotCalibratedError
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
-from vgripd.service.protocol import RobotLink, Trigger, Warnings
+from vgripd.service.protocol import (
+    Command,
+    RobotLink,
+    Trigger,
+    Warnings,
+    next_answer,
+    pick_position,
+    pickable_count,
+)
 from vgripd.service.recorder import Recorder
 from vgripd.service.sdnotify import Notifier, watchdog_interval_s
 from vgripd.service.web import WEB_LINK, WebServer, WebTriggerLink
@@ -137,6 +153,25 @@ class JobRecord:
 
 
 JobListener = Callable[[ImagePair | None, JobRecord], None]
+
+
+@dataclasses.dataclass
+class PickCursor:
+    """The last job's pick list, as far as NEXT has walked it.
+
+    ``link``: the link that triggered the job (only it may walk the list); ``result``: the
+    job's result as published (the top level shows instance 1); ``index``: the 1-based index
+    last handed out (``count + 1`` once past the end).
+    """
+
+    link: str
+    seq: int
+    result: JobResult
+    index: int = 1
+
+    @property
+    def count(self) -> int:
+        return pickable_count(self.result)
 
 
 class EpipolarMonitor:
@@ -269,6 +304,9 @@ class Daemon:
         self.record_dropped = 0  # jobs the recorder refused because the disk was behind
         self.cycle_ms: deque[float] = deque(maxlen=config.daemon.stats_window)
         self.last_job: JobRecord | None = None
+        #: The last job's pick list (None: no job yet, a job running, or nothing pickable).
+        self.pick_list: PickCursor | None = None
+        self.next_answers: Counter[str] = Counter()  # NEXT answers, by the status told
         d = config.daemon
         self.epipolar = EpipolarMonitor(d.recalibrate_window, d.recalibrate_share,
                                         d.recalibrate_min_jobs, config.vision.epipolar_warn_px)
@@ -447,6 +485,10 @@ class Daemon:
                         status.name)
             self._spawn(self._refuse(trigger, status))
             return
+        if trigger.command == Command.NEXT:
+            self._next(trigger)
+            return
+        self.pick_list = None  # a new job: the old list is nobody's any more
         self._job_seq += 1
         job_id = self._job_seq
         log.info("job %d: trigger seq %d command %d recipe %d from %s", job_id, trigger.seq,
@@ -456,6 +498,33 @@ class Daemon:
         self._job_started_ns = time.monotonic_ns()
         self._job = (job_id, trigger, asyncio.create_task(self._run_job(trigger, job_id)))
         self._set_state(JobState.TRIGGERED)
+
+    def _next(self, trigger: Trigger) -> None:
+        """Answer a NEXT from the pick list of the last job (no acquisition). The cursor moves
+        here, synchronously, so two NEXTs in a row get two different instances."""
+        cursor = self.pick_list
+        if cursor is None or cursor.link != trigger.link:
+            why = ("no pick list: no job since start, or the last one found nothing pickable"
+                   if cursor is None else
+                   f"the last job's pick list belongs to link {cursor.link}")
+            log.warning("NEXT seq %d from %s refused: BAD_REQUEST (%s)", trigger.seq,
+                        trigger.link, why)
+            self._spawn(self._refuse(trigger, Status.BAD_REQUEST, why))
+            return
+        cursor.index = min(cursor.index + 1, cursor.count + 1)
+        answer = next_answer(cursor.result, cursor.index)
+        self._spawn(self._answer_next(trigger, answer))
+
+    async def _answer_next(self, trigger: Trigger, answer: JobResult) -> None:
+        told = await self._publish(trigger.link, trigger.seq, answer)
+        self._count(answer.status, told)
+        self.next_answers[(told or answer.status).name] += 1
+        pos = pick_position(answer)
+        log.info("job %d: NEXT seq %d from %s: instance %d of %d: %s%s", answer.job_id,
+                 trigger.seq, trigger.link, pos.index, pos.count, answer.status.name,
+                 "" if told is answer.status else
+                 "; not delivered" if told is None else f"; published as {told.name}")
+        self._set_state(self.state)  # status line and waiters see it
 
     def _begin_opening(self) -> None:
         """Open the camera and every link at once (tasks; ``_opened`` waits for them), so a
@@ -665,6 +734,8 @@ class Daemon:
                            cycle_ms=(done_ns - trigger.t_mono_ns) / 1e6, t_done_mono_ns=done_ns,
                            published=told, recipe=trigger.recipe)
         self.last_job = record
+        if told is not None and pickable_count(result):
+            self.pick_list = PickCursor(trigger.link, trigger.seq, result)
         self._count(result.status, told)
         self.cycle_ms.append(record.cycle_ms)
         told_note = ("" if told is result.status else
@@ -727,9 +798,11 @@ class Daemon:
                         told.name)
         return told
 
-    async def _refuse(self, trigger: Trigger, status: Status) -> None:
-        """Answer a trigger that gets no job (BUSY, ABORTED) and count what the peer got."""
-        refusal = JobResult(job_id=0, status=status, message=f"refused: {status.name}",
+    async def _refuse(self, trigger: Trigger, status: Status, why: str = "") -> None:
+        """Answer a trigger that gets no job (BUSY, ABORTED, a NEXT's BAD_REQUEST) and count
+        what the peer got."""
+        refusal = JobResult(job_id=0, status=status,
+                            message=f"refused: {status.name}" + (f": {why}" if why else ""),
                             t_done_mono_ns=time.monotonic_ns())
         try:
             told = await self._publish(trigger.link, trigger.seq, refusal)
@@ -819,6 +892,9 @@ class Daemon:
             line += f"; last job {lj.job_id} {lj.result.status.name} {lj.cycle_ms:.0f} ms"
         if self.config.recipes and self.active_recipe is not None:
             line += f"; recipe {self.recipe_label(self.active_recipe)}"
+        if self.pick_list is not None:
+            pl = self.pick_list
+            line += f"; pick list {min(pl.index, pl.count)}/{pl.count}"
         if self.epipolar.warning:
             line += "; RECALIBRATE"
         if self.camera_fault:
@@ -878,6 +954,11 @@ class Daemon:
             "recipe": self.recipe_snapshot(),
             "job": job,
             "last_job": last,
+            "pick_list": None if self.pick_list is None else {
+                "job_id": self.pick_list.result.job_id, "link": self.pick_list.link,
+                "count": self.pick_list.count, "index": self.pick_list.index,
+                "instances": len(self.pick_list.result.instances)},
+            "next_answers": dict(self.next_answers),
             "links": links,
             "counters": dict(told),
             "refusals": dict(refused),
