@@ -24,8 +24,12 @@ request already pending when the link first connects (the robot's sequence diffe
 acknowledge register, read back once at the first connect) is served, as is one that arrives
 while the link is down (at the reconnect); an answered one is never run again.
 
-A request whose command is not one of ``URRegisterMap.COMMANDS`` (1 = locate) is answered by
-the link itself with ``BAD_REQUEST`` (32) and job id 0, without a job; ``refusals()`` counts it.
+A request whose command is not one of ``URRegisterMap.COMMANDS`` (1 = locate, 3 = next) is
+answered by the link itself with ``BAD_REQUEST`` (32) and job id 0, without a job;
+``refusals()`` counts it. A next (``Command.NEXT``) goes to the daemon like a locate; the
+daemon answers it from the last job's pick list (or ``BAD_REQUEST`` when this link has none).
+Every answer carries the pick list position in input_double_register ``regs.pick``
+(``1000 * COUNT + INDEX``, written before the ack; 0 for refusals).
 
 The child's stdout/stderr (ur_rtde prints its own errors there) is a pipe read on the loop:
 each line is logged through ``vgripd.link.ur_rtde`` (``link <name>: ur_rtde: <line>``, INFO),
@@ -56,11 +60,13 @@ from vgripd.service.protocol import (
     LinkCapabilities,
     LinkHealth,
     LinkState,
+    PickPosition,
     RobotLink,
     Trigger,
     TriggerHandler,
     URRegisterMap,
     checked_warnings,
+    pick_position,
 )
 from vgripd.types import JobResult, Status
 
@@ -328,7 +334,12 @@ class URRtdeLink(RobotLink):
                 status = Status.INTERNAL
             else:
                 translation, rotation = tuple(target.values[:3]), tuple(target.values[3:])
-        await self._request("publish", (seq, int(status), result.job_id, translation, rotation))
+        position = pick_position(result)
+        if status is Status.INTERNAL or not position.listed:
+            position = PickPosition(0, 0)
+        pick = self.regs.pick_word(position)
+        await self._request("publish", (seq, int(status), result.job_id, translation, rotation,
+                                        pick))
         return status
 
     async def set_warnings(self, bits: int) -> None:
@@ -469,7 +480,7 @@ class URRtdeLink(RobotLink):
         Kept for the reconnect like any answer; a newer request replaces it."""
         self._last_seq = seq
         self._replay.clear()
-        args = (seq, int(status), 0, None, None)
+        args = (seq, int(status), 0, None, None, 0.0)
         self._replay["publish"] = ("publish", args)
         self._refused[status.name] += 1
         log.info("link %s: request %d refused: %s (command %d; the robot program may send %s)",

@@ -8,7 +8,7 @@ restarts. The child never runs destructors: it leaves with ``os._exit`` and lets
 its sockets.
 
 Pipe messages, parent -> child: ``(req, "captured", (seq, job_id))``,
-``(req, "publish", (seq, status, job_id, translation | None, rotation | None))``,
+``(req, "publish", (seq, status, job_id, translation | None, rotation | None, pick))``,
 ``(req, "warnings", (bits,))``, ``(0, "close", ())``. Child -> parent:
 ``("up", peer, baseline_seq, note)``, ``("trigger", seq, command, tcp_pose)``,
 ``("done", req)``, ``("error", fatal, message)`` (the child exits right after).
@@ -232,9 +232,10 @@ class _Session:
             self.write_int(regs.job_id, job_id)
             self.write_int(regs.captured, seq)
         elif kind == "publish":
-            seq, status, job_id, translation, rotation = args
+            seq, status, job_id, translation, rotation, pick = args
             if translation is not None:
                 self.write_page(translation)
+            self.write_double(regs.pick, pick)
             self.write_int(regs.status, status)
             self.write_int(regs.job_id, job_id)
             self.write_int(regs.ack, seq)  # last: the robot reads nothing before it sees this

@@ -19,9 +19,16 @@ from scipy.spatial.transform import Rotation
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
 from vgripd.errors import LinkError
-from vgripd.service.protocol import LinkState, Trigger, URRegisterMap, Warnings
+from vgripd.service.protocol import (
+    Command,
+    LinkState,
+    Trigger,
+    URRegisterMap,
+    Warnings,
+    next_answer,
+)
 from vgripd.sim.ur_controller import URController
-from vgripd.types import JobResult, RobotTarget, Status
+from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -479,3 +486,52 @@ async def test_recipe_register_reaches_the_trigger(host: str, upper: bool) -> No
             await lnk.image_captured(seq, job_id)
             await lnk.publish(seq, ur_result(job_id))
             assert robot.program_result(seq)["status"] == 1
+
+
+def ur_pallet(job_id: int, n: int) -> JobResult:
+    """A job result of ``n`` pickable instances (x = 0.1, 0.2, ... m), the first one on top."""
+    instances = tuple(
+        PickInstance(Status.OK, target=RobotTarget("ur", UR_FIELDS, (0.1 * (i + 1), *OFFSET[1:])),
+                     pick_id=i + 1, score=0.9)
+        for i in range(n))
+    return JobResult(job_id, Status.OK, target=instances[0].target, instances=instances)
+
+
+async def test_next_walks_the_pick_list_through_the_registers() -> None:
+    """The robot program's locate (1) then next (3) until NOT_FOUND: each answer carries its
+    pose and the pick register (1000 * count + index), written before the ack."""
+    async with connected("127.0.5.42") as (robot, lnk, triggers):
+        job = ur_pallet(21, 3)
+        seq = robot.start_program(1)
+        await triggers.next()
+        await lnk.image_captured(seq, 21)
+        await lnk.publish(seq, job)
+        first = await asyncio.to_thread(robot.program_result, seq)
+        assert (first["status"], first["count"], first["index"]) == (1, 3, 1)
+        assert first["offset"][0] == 0.1
+        log_start = len(robot.input_log())
+        seen = []
+        for index in (2, 3, 4):
+            seq = robot.start_program(int(Command.NEXT))
+            trigger = await triggers.next()
+            assert (trigger.seq, trigger.command) == (seq, 3)
+            await lnk.publish(seq, next_answer(job, index))
+            seen.append(await asyncio.to_thread(robot.program_result, seq))
+        assert [(r["status"], r["job_id"], r["count"], r["index"]) for r in seen] == [
+            (1, 21, 3, 2), (1, 21, 3, 3), (10, 21, 3, 4)]
+        assert [r["offset"][0] if r["offset"] else None for r in seen] == [0.1 * 2, 0.1 * 3, None]
+        log = robot.input_log(log_start)
+        ack = log.index(("input_int_register_18", seen[0]["seq"]))
+        assert log.index(("input_double_register_22", 3002.0)) < ack  # pick word before the ack
+        assert lnk.refusals() == {}  # NEXT is the daemon's to answer, not a link refusal
+
+
+async def test_refusal_clears_the_pick_register() -> None:
+    async with connected("127.0.5.43") as (robot, lnk, triggers):
+        seq = robot.start_program(1)
+        await triggers.next()
+        await lnk.publish(seq, ur_pallet(4, 2))
+        assert (await asyncio.to_thread(robot.program_result, seq))["count"] == 2
+        seq = robot.start_program(9)  # unknown command: the link's own BAD_REQUEST
+        result = await asyncio.to_thread(robot.program_result, seq)
+        assert (result["status"], result["pick"]) == (32, 0.0)

@@ -359,6 +359,10 @@ class _Server:
         result["ack_log_index"] = len(self.input_log) - 1
         status = in_int(regs.status)
         result.update(status=status, job_id=in_int(regs.job_id), captured=in_int(regs.captured))
+        # The pick list word, decoded as the script's vgripd_pick_count/vgripd_pick_index do.
+        pick = float(self.inputs.get(f"input_double_register_{regs.pick}", 0.0))
+        count = math.floor(pick / regs.PICK_BASE + 1e-9)
+        result.update(pick=pick, count=count, index=round(pick - regs.PICK_BASE * count))
         if status not in POSE_VALID_STATUS:
             return status
         translation = in_page()
@@ -651,7 +655,8 @@ class URController:
         ``offset`` (UR pose read from the registers), ``target`` (``pose_trans(offset,
         taught)``), ``seq`` (the request that was answered), ``requests`` (every sequence
         sent), ``unanswered`` / ``busy`` (requests that timed out / were answered BUSY),
-        ``ack_log_index`` (index in ``input_log`` of the last ack write), ``elapsed_s``
+        ``ack_log_index`` (index in ``input_log`` of the last ack write), ``pick`` / ``count`` /
+        ``index`` (the pick list register and its decoding), ``elapsed_s``
         (first trigger to the last value read, on the mock's clock) or ``error`` (given up)."""
         result: dict[str, Any] = self._call("program_result", seq, timeout_s=timeout_s)
         return result
