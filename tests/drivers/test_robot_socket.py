@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 
 from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
 from vgripd.errors import LinkError
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.protocol import LinkState, Trigger, next_answer
 from vgripd.service.robot_socket_format import (
     ANSWER_SIZE,
     Answer,
@@ -38,7 +38,7 @@ from vgripd.service.robot_socket_format import (
     header_word,
     result_answer,
 )
-from vgripd.types import JobResult, RobotTarget, Status
+from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 WAIT_S = 10.0
 KUKA = ("X", "Y", "Z", "A", "B", "C")
@@ -66,7 +66,8 @@ def test_request_bytes_and_refusals() -> None:
     assert decode_request(frame) == Request(1, 7, 3, 0)
     assert Request(SocketCommand.LOCATE, 1).refusal() is None
     assert Request(SocketCommand.CLEAR, 1).refusal() is None
-    for bad in (Request(SocketCommand.NEXT, 1), Request(9, 1), Request(1, 0),
+    assert Request(SocketCommand.NEXT, 1).refusal() is None  # the link judges its list
+    for bad in (Request(4, 1), Request(9, 1), Request(1, 0),
                 Request(1, 2**31), Request(1, 1, 65536), Request(1, 1, 0, 5)):
         assert bad.refusal() is Status.BAD_REQUEST, bad
     for garbage in (b"XG\x01\x01" + bytes(12), b"VG\x02\x01" + bytes(12), bytes(15)):
@@ -209,7 +210,7 @@ async def test_busy_and_bad_requests_are_refused_by_the_link() -> None:
         await b.request(1)  # same id from another robot: still a new request, refused BUSY
         busy = await b.answer()
         assert (busy.kind, busy.status, busy.job_id) == (AnswerKind.REFUSED, Status.BUSY, 0)
-        for seq, command, recipe in ((2, SocketCommand.NEXT, 0), (0, 1, 0), (3, 1, 70000)):
+        for seq, command, recipe in ((2, 9, 0), (0, 1, 0), (3, 1, 70000)):
             await b.request(seq, command, recipe)
             bad = await b.answer()
             assert (bad.kind, bad.request_id, bad.status) == (AnswerKind.REFUSED, seq,
@@ -449,3 +450,64 @@ async def test_client_mode_gives_up_on_a_connect_that_never_completes(
             s.close()
         hog.close()
     no_tracebacks(caplog)
+
+
+# --- pick lists (NEXT) ------------------------------------------------------------------------
+
+
+def pallet(job_id: int, n: int) -> JobResult:
+    """``n`` pickable instances (X = 100, 200, ... mm, pick ids 1..n), the first on top."""
+    instances = tuple(PickInstance(Status.OK, target=RobotTarget(
+        "kuka", tuple("XYZABC"), (100.0 * (i + 1), *POSE[1:6])), pick_id=i + 1, score=0.9)
+        for i in range(n))
+    return JobResult(job_id=job_id, status=Status.OK, target=instances[0].target,
+                     instances=instances)
+
+
+async def test_next_walks_the_pick_list_and_ends_with_not_found() -> None:
+    async with serving() as (link, triggers):
+        peer = await Peer.dial(link.port)
+        await peer.request(1, SocketCommand.NEXT)  # nothing located yet: no list
+        refused = await peer.answer()
+        assert (refused.kind, refused.status) == (AnswerKind.REFUSED, Status.BAD_REQUEST)
+        job = pallet(8, 3)
+        await peer.request(2)
+        await until(lambda: triggers)
+        await link.image_captured(2, 8)
+        assert (await peer.answer()).kind is AnswerKind.CAPTURED
+        await link.publish(2, job)
+        first = await peer.answer()
+        assert (first.status, first.values[0], first.remaining) == (Status.OK, 100.0, 2)
+        walked = []
+        for seq, index in ((3, 2), (4, 3), (5, 4)):
+            await peer.request(seq, SocketCommand.NEXT)
+            await until(lambda seq=seq: triggers[-1].seq == seq)
+            assert triggers[-1].command == SocketCommand.NEXT
+            await link.publish(seq, next_answer(job, index))
+            walked.append(await peer.answer())  # no CAPTURED frame before it: no image
+        assert [(a.kind, a.request_id, a.status, a.job_id, a.remaining) for a in walked] == [
+            (AnswerKind.RESULT, 3, Status.OK, 8, 1), (AnswerKind.RESULT, 4, Status.OK, 8, 0),
+            (AnswerKind.RESULT, 5, Status.NOT_FOUND, 8, 0)]
+        assert [a.values[0] if a.values else None for a in walked] == [200.0, 300.0, None]
+        await peer.request(6, SocketCommand.CLEAR)
+        assert (await peer.answer()).status == Status.IDLE
+        await peer.request(7, SocketCommand.NEXT)  # CLEAR ended the list
+        assert (await peer.answer()).status == Status.BAD_REQUEST
+        assert link.refusals() == {"BAD_REQUEST": 2}
+        await peer.close()
+
+
+async def test_a_new_locate_ends_the_old_list_even_before_its_result() -> None:
+    async with serving() as (link, triggers):
+        peer = await Peer.dial(link.port)
+        await peer.request(1)
+        await until(lambda: triggers)
+        await link.publish(1, pallet(1, 2))
+        await peer.answer()
+        await peer.request(2)
+        await until(lambda: len(triggers) == 2)
+        await link.publish(2, JobResult(job_id=2, status=Status.NOT_FOUND))
+        assert (await peer.answer()).status == Status.NOT_FOUND
+        await peer.request(3, SocketCommand.NEXT)
+        assert (await peer.answer()).status == Status.BAD_REQUEST  # never job 1's second
+        await peer.close()

@@ -12,7 +12,7 @@ Request, robot -> vgripd (16 bytes)::
 
     word  bytes  field
        0   0-3   header: "V" "G" version command (0x56 0x47 0x01 cc); command 1 LOCATE,
-                 2 CLEAR, 3 NEXT (reserved for pick lists: refused BAD_REQUEST for now)
+                 2 CLEAR, 3 NEXT (the next object of the last LOCATE's pick list)
        1   4-7   request id, 1 .. 2**31-1, echoed in every answer to this request
        2   8-11  recipe, 0 .. 65535 (0 = default), handed to the job like the RECIPE register
        3  12-15  reserved, 0
@@ -29,13 +29,16 @@ Answer, vgripd -> robot (64 bytes)::
        6  24-51  7 values in the output vendor's convention and units (int32 scaled or float32)
       13  52-55  fit RMS in mm, same encoding; -1 = unknown
       14  56-59  scale of the int32 values; 0 = the values are float32
-      15  60-63  remaining objects (reserved for pick lists, 0)
+      15  60-63  remaining objects: pickable objects of the job after the one in this
+                 answer (0 without a pick list, on the last one and past the end)
 
 A request is answered exactly once with a final frame (RESULT or REFUSED), for LOCATE preceded by
 CAPTURED once the images are taken (the robot may move on). REFUSED means no job ran: BUSY (a
-job is running), BAD_REQUEST (unknown command, id 0, recipe > 65535, reserved word not 0), or the
-daemon's own refusal. A frame that is not a request at all (wrong magic or version) ends the
-connection: the stream cannot be trusted after it.
+job is running), BAD_REQUEST (unknown command, id 0, recipe > 65535, reserved word not 0, NEXT
+without a pick list), or the daemon's own refusal. NEXT is answered RESULT without CAPTURED (no
+image is taken): the following pickable object of the last LOCATE, with that job's id, or
+NOT_FOUND without a pose once the list is used up. A frame that is not a request at all (wrong
+magic or version) ends the connection: the stream cannot be trusted after it.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from vgripd.registry import LinkCapabilities
-from vgripd.service.protocol import FIT_RMS_KEY
+from vgripd.service.protocol import FIT_RMS_KEY, PickPosition, pick_position
 from vgripd.types import JobResult, Status
 
 VERSION = 1
@@ -69,7 +72,7 @@ ValueFormat = Literal["int32", "float32"]
 class SocketCommand(enum.IntEnum):
     LOCATE = 1
     CLEAR = 2
-    NEXT = 3  # reserved for pick lists
+    NEXT = 3  # the next object of the last LOCATE's pick list (``Command.NEXT``)
 
 
 class AnswerKind(enum.IntEnum):
@@ -104,8 +107,8 @@ class Request:
 
     def refusal(self) -> Status | None:
         """``BAD_REQUEST`` when the request is well framed but cannot be served; else None."""
-        if self.command not in (SocketCommand.LOCATE, SocketCommand.CLEAR):
-            return Status.BAD_REQUEST  # NEXT too, until pick lists land
+        if self.command not in (SocketCommand.LOCATE, SocketCommand.CLEAR, SocketCommand.NEXT):
+            return Status.BAD_REQUEST
         if not 1 <= self.request_id <= MAX_REQUEST_ID:
             return Status.BAD_REQUEST
         if not 0 <= self.recipe <= MAX_RECIPE or self.reserved != 0:
@@ -233,15 +236,24 @@ def result_answer(request_id: int, result: JobResult, warnings: int, encoding: V
     if result.status.pose_valid and result.target is not None:
         values = result.target.values
     rms = result.residuals.get(FIT_RMS_KEY, UNKNOWN_RMS)
-    answer = Answer(kind, request_id, int(result.status), result.job_id, warnings, values, rms)
+    answer = Answer(kind, request_id, int(result.status), result.job_id, warnings, values, rms,
+                    remaining(pick_position(result)))
     try:
         return answer.encode(encoding), result
     except ValueOverflowError as err:
         status = Status.INTERNAL if len(values) > N_VALUES else Status.OUT_OF_LIMITS
         failed = JobResult(job_id=result.job_id, status=status, message=str(err),
                            t_done_mono_ns=result.t_done_mono_ns)
-        answer = Answer(kind, request_id, int(status), result.job_id, warnings, (), rms)
+        answer = Answer(kind, request_id, int(status), result.job_id, warnings, (), rms,
+                        remaining(pick_position(result)))
         return answer.encode(encoding), failed
+
+
+def remaining(position: PickPosition) -> int:
+    """Answer word 15: pickable objects after the one shown (0 when none is shown)."""
+    if not 1 <= position.index <= position.count:
+        return 0
+    return position.count - position.index
 
 
 # --- robot programs (robots/<brand>/, ``vgripd robot-program``) ---------------------------
