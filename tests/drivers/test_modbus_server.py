@@ -13,6 +13,7 @@ import asyncio
 import random
 import re
 import struct
+import time
 from collections.abc import AsyncIterator
 
 import pytest
@@ -25,13 +26,15 @@ from vgripd.service.protocol import (
     CHECK_F32,
     MAP_SIZE,
     BlockWrite,
+    Command,
     LinkState,
     Reg,
     Trigger,
     Warnings,
+    next_answer,
 )
 from vgripd.sim.plc import MockPlc, PlcCheckError
-from vgripd.types import JobResult, RobotTarget, Status
+from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 KUKA = ("X", "Y", "Z", "A", "B", "C")
 POSE = (612.5, -98.125, 10.75, 2.5, -0.75, 179.5)  # exactly representable in float32
@@ -410,12 +413,12 @@ async def test_warnings_word_live_for_pymodbus_and_mbpoll(served: Harness) -> No
 
     try:
         assert await mbpoll(link.port, "-t", "4", "-r", str(Reg.MAP_VERSION), "-c", "1",
-                            "127.0.0.1") == {Reg.MAP_VERSION: "2"}
+                            "127.0.0.1") == {Reg.MAP_VERSION: "3"}
         assert await warnings_word() == 0
         # the whole map is one read; one register past it is refused
         r = await client.read_holding_registers(0, count=MAP_SIZE, device_id=1)
-        assert (len(r.registers), r.registers[Reg.WARNINGS]) == (41, 0)
-        r = await client.read_holding_registers(Reg.WARNINGS + 1, count=1, device_id=1)
+        assert (len(r.registers), r.registers[Reg.WARNINGS]) == (46, 0)
+        r = await client.read_holding_registers(MAP_SIZE, count=1, device_id=1)
         assert (r.isError(), r.exception_code) == (True, 2)
         r = await client.write_register(Reg.WARNINGS, 1, device_id=1)  # read-only
         assert (r.isError(), r.exception_code) == (True, 2)
@@ -424,7 +427,7 @@ async def test_warnings_word_live_for_pymodbus_and_mbpoll(served: Harness) -> No
         assert await warnings_word() == 1
         assert await mbpoll(link.port, "-t", "4:hex", "-r", str(Reg.WARNINGS), "-c", "1",
                             "127.0.0.1") == {Reg.WARNINGS: "0x0001"}
-        code, text = await mbpoll_run(link.port, "-t", "4", "-r", str(Reg.WARNINGS + 1), "-c",
+        code, text = await mbpoll_run(link.port, "-t", "4", "-r", str(MAP_SIZE), "-c",
                                       "1", "127.0.0.1")
         assert code != 0, text
         assert "Illegal data address" in text
@@ -436,7 +439,7 @@ async def test_warnings_word_live_for_pymodbus_and_mbpoll(served: Harness) -> No
         await client.write_registers(Reg.CMD, [2, 6, 0], device_id=1)
         r = await client.read_holding_registers(Reg.ACK_SEQ, count=MAP_SIZE - Reg.ACK_SEQ,
                                                 device_id=1)
-        assert (r.registers[0], r.registers[-1]) == (6, 1)
+        assert (r.registers[0], r.registers[Reg.WARNINGS - Reg.ACK_SEQ]) == (6, 1)
 
         await link.set_warnings(0)
         assert await warnings_word() == 0
@@ -469,3 +472,100 @@ async def test_mock_plc_reports_warnings_and_refuses_reserved_bits(served: Harne
         with pytest.raises(PlcCheckError, match="WARNINGS 0x0003 sets a reserved bit"):
             await plc.cycle()
         await stand_in
+
+
+# --- pick lists (registers 41-45, Command.NEXT, map version 3) ----------------------------
+
+
+def pallet(job_id: int, n: int) -> JobResult:
+    """``n`` pickable instances (X = 100, 200, ... mm; pick ids 5, 6, ...; scores 0.9, 0.8,
+    ...), the first one on top."""
+    instances = tuple(PickInstance(Status.OK, target=RobotTarget(
+        "kuka", KUKA, (100.0 * (i + 1), *POSE[1:])), pick_id=5 + i, score=0.9 - 0.1 * i,
+        residuals={"fit_rms_mm": 0.25}) for i in range(n))
+    return JobResult(job_id=job_id, status=Status.OK, target=instances[0].target,
+                     residuals=instances[0].residuals, instances=instances,
+                     t_done_mono_ns=time.monotonic_ns())
+
+
+async def test_mbpoll_walks_a_pick_list_with_next(served: Harness) -> None:
+    """The integrator's session of docs/registers.md: trigger, read COUNT/INDEX and the pose,
+    then NEXT (CMD 3) with new sequences until INDEX = COUNT + 1, all with mbpoll."""
+    link = served.link
+    job = pallet(9, 2)
+
+    async def read_pick() -> dict[int, str]:
+        return await mbpoll(link.port, "-t", "4", "-r", str(Reg.COUNT), "-c", "3", "127.0.0.1")
+
+    await mbpoll(link.port, "-t", "4", "-r", "0", "127.0.0.1", "1", "10", "0")
+    t = await served.next_trigger()
+    await link.image_captured(t.seq, 9)
+    await link.publish(t.seq, job)
+    assert await read_pick() == {Reg.COUNT: "2", Reg.INDEX: "1", Reg.PICK_ID: "5"}
+    score = await mbpoll(link.port, "-t", "4:float", "-B", "-r", str(Reg.SCORE), "-c", "1",
+                         "127.0.0.1")
+    assert float(score[Reg.SCORE]) == pytest.approx(0.9, abs=1e-6)
+    for seq, index in ((11, 2), (12, 3)):
+        await mbpoll(link.port, "-t", "4", "-r", "0", "127.0.0.1", "3", str(seq), "0")
+        t = await served.next_trigger()
+        assert (t.seq, t.command) == (seq, Command.NEXT)
+        await link.publish(seq, next_answer(job, index))
+        head = await mbpoll(link.port, "-t", "4", "-r", str(Reg.ACK_SEQ), "-c", "2",
+                            "127.0.0.1")
+        job_id = await mbpoll(link.port, "-t", "4:int", "-B", "-r", str(Reg.JOB_ID), "-c", "1",
+                              "127.0.0.1")
+        x = await mbpoll(link.port, "-t", "4:float", "-B", "-r", str(Reg.VALUES), "-c", "1",
+                         "127.0.0.1")
+        pick = await read_pick()
+        assert (head[Reg.ACK_SEQ], job_id[Reg.JOB_ID], pick[Reg.COUNT], pick[Reg.INDEX]) == (
+            str(seq), "9", "2", str(index))
+        if index == 2:
+            assert head[Reg.STATUS] == str(int(Status.OK))
+            assert float(x[Reg.VALUES]) == pytest.approx(200.0)
+            assert pick[Reg.PICK_ID] == "6"
+        else:  # past the end: NOT_FOUND, no pose
+            assert head[Reg.STATUS] == str(int(Status.NOT_FOUND))
+            assert float(x[Reg.VALUES]) == 0.0
+            assert pick[Reg.PICK_ID] == "0"
+    # CLEAR, then NEXT: refused BAD_REQUEST by the handshake, no trigger for the daemon
+    await mbpoll(link.port, "-t", "4", "-r", "0", "127.0.0.1", "2", "13", "0")
+    await mbpoll(link.port, "-t", "4", "-r", "0", "127.0.0.1", "3", "14", "0")
+    refused = await mbpoll(link.port, "-t", "4", "-r", str(Reg.REJECT_SEQ), "-c", "3",
+                           "127.0.0.1")
+    assert refused == {Reg.REJECT_SEQ: "14", Reg.REJECT_CODE: str(int(Status.BAD_REQUEST)),
+                       Reg.ACK_SEQ: "13"}
+    assert served.triggers.empty()
+
+
+async def test_mock_plc_next_checks_the_walk(served: Harness) -> None:
+    link = served.link
+    job = pallet(4, 3)
+
+    async def answer(result_for: dict[int, JobResult]) -> None:
+        while True:
+            t = await served.next_trigger()
+            if t.command == Command.TRIGGER:
+                await link.image_captured(t.seq, 4)
+                await link.publish(t.seq, job)
+            else:
+                await link.publish(t.seq, result_for[t.seq])
+
+    async with MockPlc("127.0.0.1", link.port, poll_s=0.002) as plc:
+        await plc.check_byte_order()  # MAP_VERSION 3
+        first_next = plc.seq + 2
+        answers = {first_next: next_answer(job, 2), first_next + 1: next_answer(job, 3),
+                   first_next + 2: next_answer(job, 4),
+                   first_next + 3: next_answer(job, 2)}  # a broken server: goes backwards
+        stand_in = asyncio.create_task(answer(answers))
+        try:
+            got = await plc.cycle()
+            assert (got.count, got.index, got.pick_id, got.values[0]) == (3, 1, 5, 100.0)
+            assert got.score == pytest.approx(0.9)
+            walked = [await plc.next() for _ in range(3)]
+            assert [(a.status, a.index, a.job_id) for a in walked] == [
+                (Status.OK, 2, 4), (Status.OK, 3, 4), (Status.NOT_FOUND, 4, 4)]
+            assert [a.values[0] if a.values else None for a in walked] == [200.0, 300.0, None]
+            with pytest.raises(PlcCheckError, match="expected INDEX 4 of the same job"):
+                await plc.next()
+        finally:
+            stand_in.cancel()

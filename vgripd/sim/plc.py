@@ -7,6 +7,11 @@ the acknowledged sequence is its own, the status is a known code, pose values ar
 under a pose-valid status, the image-captured sequence was seen, and the byte-order check words
 decode correctly, and WARNINGS has no reserved bit set. 32-bit items are decoded with pymodbus'
 own converters, not vgripd's codec, so the check is independent of the server's encoder.
+
+Pick lists (map version 3): ``next()`` asks for the following instance of the last job
+(``Command.NEXT``) and checks the answer against the job it continues: the same JOB_ID, COUNT
+unchanged, INDEX one further (or ``COUNT + 1`` with ``NOT_FOUND`` and no pose past the end), a
+pose exactly when 1 <= INDEX <= COUNT, and RESULT_AGE_MS not younger than the job's.
 """
 
 from __future__ import annotations
@@ -63,6 +68,10 @@ class CycleResult:
     polls: int
     cycle_ms: float
     warnings: Warnings = Warnings(0)
+    count: int = 0  # COUNT: pickable instances of the job
+    index: int = 0  # INDEX: the instance shown (0 none, count + 1 past the end)
+    pick_id: int = 0
+    score: float = -1.0
 
 
 class MockPlc:
@@ -87,6 +96,7 @@ class MockPlc:
         self.poll_s = poll_s
         self.timeout_s = timeout_s
         self.seq = 0
+        self.last_job: CycleResult | None = None  # the last acknowledged TRIGGER (or NEXT)
 
     async def __aenter__(self) -> MockPlc:
         await self.connect()
@@ -162,8 +172,10 @@ class MockPlc:
         await self.write(Reg.CMD, [int(command), seq, recipe])
         return seq
 
-    async def wait_answer(self, seq: int, t0_ns: int | None = None) -> CycleResult:
-        """Poll until ``seq`` is acknowledged or refused; check what was read."""
+    async def wait_answer(self, seq: int, t0_ns: int | None = None,
+                          following: bool = False) -> CycleResult:
+        """Poll until ``seq`` is acknowledged or refused; check what was read. ``following``:
+        ``seq`` is a NEXT (no image is taken for it: CAPTURED_SEQ does not show it)."""
         t0_ns = time.monotonic_ns() if t0_ns is None else t0_ns
         deadline = time.monotonic() + self.timeout_s
         captured_seen = False
@@ -197,8 +209,12 @@ class MockPlc:
                                warnings)
         if status.pose_valid != (n > 0) or n not in (0, 6, 7):
             raise PlcCheckError(f"request {seq}: status {status.name} with N_VALUES = {n}")
-        if status.pose_valid and not captured_seen:
+        if status.pose_valid and not captured_seen and not following:
             raise PlcCheckError(f"request {seq}: pose acknowledged, CAPTURED_SEQ never showed it")
+        count, index = w[Reg.COUNT], w[Reg.INDEX]
+        if (status.pose_valid and not 1 <= index <= count) or index > count + 1:
+            raise PlcCheckError(f"request {seq}: status {status.name} with INDEX {index} of "
+                                f"COUNT {count}")
         values = tuple(
             self._value(w[Reg.VALUES + 2 * i:Reg.VALUES + 2 * i + 2]) for i in range(n)
         )
@@ -214,10 +230,43 @@ class MockPlc:
             polls=polls,
             cycle_ms=cycle_ms,
             warnings=warnings,
+            count=count,
+            index=index,
+            pick_id=w[Reg.PICK_ID],
+            score=self._value(w[Reg.SCORE:Reg.SCORE + 2]),
         )
 
     async def cycle(self, recipe: int = 0) -> CycleResult:
         """One job: trigger, then wait for the answer."""
         t0_ns = time.monotonic_ns()
         seq = await self.trigger(recipe)
-        return await self.wait_answer(seq, t0_ns)
+        answer = await self.wait_answer(seq, t0_ns)
+        if not answer.rejected:
+            self.last_job = answer
+        return answer
+
+    async def next(self) -> CycleResult:
+        """NEXT: the following instance of the last job's pick list, checked against it (see
+        the module docstring). A refusal (BAD_REQUEST without a list, BUSY) is returned as
+        such; an acknowledged answer becomes the position the next ``next()`` continues from."""
+        t0_ns = time.monotonic_ns()
+        seq = await self.trigger(command=Command.NEXT)
+        answer = await self.wait_answer(seq, t0_ns, following=True)
+        before = self.last_job
+        if answer.rejected or before is None or answer.status is Status.BAD_REQUEST:
+            return answer
+        want = min(before.index + 1, before.count + 1)
+        if (answer.job_id, answer.count, answer.index) != (before.job_id, before.count, want):
+            raise PlcCheckError(
+                f"NEXT {seq}: job {answer.job_id}, INDEX {answer.index} of COUNT {answer.count}"
+                f" after job {before.job_id}, INDEX {before.index} of COUNT {before.count} "
+                f"(expected INDEX {want} of the same job)")
+        if answer.index > answer.count and (answer.status is not Status.NOT_FOUND
+                                            or answer.values):
+            raise PlcCheckError(f"NEXT {seq}: past the end answered {answer.status.name} with "
+                                f"{len(answer.values)} values (expected NOT_FOUND, no pose)")
+        if answer.age_ms < before.age_ms:
+            raise PlcCheckError(f"NEXT {seq}: RESULT_AGE_MS {answer.age_ms} is younger than "
+                                f"the job's {before.age_ms}: not the job's images")
+        self.last_job = answer
+        return answer
