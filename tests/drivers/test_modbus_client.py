@@ -20,15 +20,17 @@ from vgripd.service.protocol import (
     MAP_SIZE,
     MAP_VERSION,
     BlockWrite,
+    Command,
     LinkState,
     Reg,
     RegisterBank,
     Trigger,
     ValueCodec,
     Warnings,
+    next_answer,
 )
 from vgripd.sim.robot_modbus import MockRobotModbus, RegisterWrite, RobotMode
-from vgripd.types import JobResult, RobotTarget, Status
+from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 BASE = 128
 WAIT_S = 5.0
@@ -73,7 +75,8 @@ class Daemon:
 
     async def answer(self, trigger: Trigger) -> None:
         assert self.result_for is not None
-        await self.link.image_captured(trigger.seq, 100 + trigger.seq)
+        if trigger.command != Command.NEXT:  # a NEXT takes no image
+            await self.link.image_captured(trigger.seq, 100 + trigger.seq)
         await self.link.publish(trigger.seq, self.result_for(trigger))
 
 
@@ -444,3 +447,29 @@ def test_options_typo_and_bounds_are_config_errors_naming_the_field() -> None:
     with pytest.raises(ConfigError, match="base_address"):
         validate_options(cls, DriverSection.model_validate(
             {"type": "modbus_client", "host": "h", "base_address": 65530}), "links.0")
+
+
+async def test_next_walks_the_pick_list_in_the_robot(robot: MockRobotModbus) -> None:
+    instances = tuple(PickInstance(Status.OK, target=RobotTarget(
+        "ur", ("x", "y", "z", "rx", "ry", "rz"), (100.0 * (i + 1), *UR_POSE[1:])), pick_id=7)
+        for i in range(2))
+    job = JobResult(job_id=5, status=Status.OK, target=instances[0].target, instances=instances)
+    link = make_link(robot)
+    daemon = Daemon(link, lambda t: job if t.command == Command.TRIGGER else next_answer(
+        job, t.seq))  # seq 2 -> instance 2, seq 3 -> past the end
+    await link.open(daemon.on_trigger)
+    try:
+        refused = await robot.run_job(1, WAIT_S, command=Command.NEXT)  # no list yet
+        seen = [await robot.run_job(seq, WAIT_S, command=cmd)
+                for seq, cmd in ((11, Command.TRIGGER), (2, Command.NEXT), (3, Command.NEXT))]
+    finally:
+        await link.close()
+    assert (refused.words[Reg.REJECT_SEQ], refused.words[Reg.REJECT_CODE]) == (
+        1, Status.BAD_REQUEST)
+    assert [(w[Reg.ACK_SEQ], w[Reg.STATUS], w[Reg.COUNT], w[Reg.INDEX], w[Reg.PICK_ID])
+            for w in (s.words for s in seen)] == [
+        (11, Status.OK, 2, 1, 7), (2, Status.OK, 2, 2, 7), (3, Status.NOT_FOUND, 2, 3, 0)]
+    xs = [struct.unpack(">f", words_to_bytes(s.words[Reg.VALUES:Reg.VALUES + 2], "ABCD"))[0]
+          for s in seen]
+    assert xs == [100.0, 200.0, 0.0]
+    assert seen[-1].writes[-1] == RegisterWrite(BASE + Reg.ACK_SEQ, (3,))  # ACK last

@@ -97,11 +97,11 @@ async def test_rtu_cycle(rtu: tuple[ModbusRtuLink, asyncio.Queue[Trigger], Async
 async def test_rtu_warnings_word(rtu: tuple[ModbusRtuLink, asyncio.Queue[Trigger], AsyncModbusSerialClient]) -> None:
     link, _, client = rtu
     r = await client.read_holding_registers(0, count=MAP_SIZE, device_id=7)
-    assert (r.registers[Reg.MAP_VERSION], r.registers[Reg.WARNINGS]) == (MAP_VERSION, 0) == (2, 0)
+    assert (r.registers[Reg.MAP_VERSION], r.registers[Reg.WARNINGS]) == (MAP_VERSION, 0) == (3, 0)
     await link.set_warnings(Warnings.RECALIBRATE)
     r = await client.read_holding_registers(Reg.WARNINGS, count=1, device_id=7)
     assert r.registers == [1]
-    r = await client.read_holding_registers(Reg.WARNINGS, count=2, device_id=7)
+    r = await client.read_holding_registers(Reg.SCORE, count=3, device_id=7)  # past the map
     assert (r.isError(), r.exception_code) == (True, 2)
     await link.set_warnings(0)
     r = await client.read_holding_registers(Reg.WARNINGS, count=1, device_id=7)

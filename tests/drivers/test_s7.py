@@ -29,15 +29,17 @@ from vgripd.service.protocol import (
     MAP_SIZE,
     MAP_VERSION,
     BlockWrite,
+    Command,
     LinkState,
     Reg,
     RegisterBank,
     Trigger,
     ValueCodec,
     Warnings,
+    next_answer,
 )
 from vgripd.sim.s7_plc import DbWrite, MockS7Plc, S7PlcServer
-from vgripd.types import JobResult, RobotTarget, Status
+from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -84,7 +86,8 @@ class Daemon:
 
     async def answer(self, trigger: Trigger) -> None:
         assert self.result_for is not None
-        await self.link.image_captured(trigger.seq, 100 + trigger.seq)
+        if trigger.command != Command.NEXT:  # a NEXT takes no image
+            await self.link.image_captured(trigger.seq, 100 + trigger.seq)
         await self.link.publish(trigger.seq, self.result_for(trigger))
 
 
@@ -368,8 +371,8 @@ async def test_a_peer_that_is_not_an_s7_plc_is_an_outage_without_traceback(
 
 
 @pytest.mark.parametrize(("db", "size", "message"), [
-    (11, DB_BYTES, r"Object does not exist.*DB11 bytes 0\.\.81"),
-    (DB, DB_BYTES - 2, r"Invalid address.*DB10 bytes 0\.\.81"),
+    (11, DB_BYTES, r"Object does not exist.*DB11 bytes 0\.\.91"),
+    (DB, DB_BYTES - 2, r"Invalid address.*DB10 bytes 0\.\.91"),
 ])
 async def test_block_the_plc_refuses_at_start_fails_naming_it(
     db: int, size: int, message: str
@@ -618,3 +621,42 @@ enabled = false
     stderr = err.decode()
     assert proc.returncode == 0, stderr
     assert "Traceback" not in stderr
+
+
+def kuka_pallet(job_id: int, n: int) -> JobResult:
+    """``n`` pickable instances (X = 100, 200, ... mm; pick ids 1..n), the first on top."""
+    instances = tuple(PickInstance(Status.OK, target=RobotTarget(
+        "kuka", tuple("XYZABC"), (100.0 * (i + 1), *POSE[1:])), pick_id=i + 1, score=0.75)
+        for i in range(n))
+    return JobResult(job_id=job_id, status=Status.OK, target=instances[0].target,
+                     instances=instances)
+
+
+async def test_next_walks_the_pick_list_through_the_db(server: S7PlcServer,
+                                                       plc: MockS7Plc) -> None:
+    """snap7's server as the PLC: TRIGGER, then NEXT (CMD 3) until the list is used up; the
+    pick items are read through the UDT's own layout."""
+    job = kuka_pallet(101, 2)
+    link = make_link(server)
+    daemon = Daemon(link, lambda t: job if t.command == Command.TRIGGER else next_answer(
+        job, t.seq))  # seq 2 -> instance 2, seq 3 -> past the end
+    await link.open(daemon.on_trigger)
+    layout = parse_udt(udt_source("float32"))
+
+    def field(raw: bytes, name: str) -> tuple[float, ...]:
+        offset, typ, count = layout[name]
+        return struct.unpack_from(">" + FORMATS[typ][1] * count, raw, offset)
+
+    try:
+        seen = [await plc.run_job(1, WAIT_S)]
+        seen += [await plc.run_job(seq, WAIT_S, command=Command.NEXT) for seq in (2, 3)]
+    finally:
+        await link.close()
+    assert [(field(r.raw, "ACK_SEQ")[0], field(r.raw, "STATUS")[0], field(r.raw, "JOB_ID")[0],
+             field(r.raw, "COUNT")[0], field(r.raw, "INDEX")[0], field(r.raw, "PICK_ID")[0])
+            for r in seen] == [(1, Status.OK, 101, 2, 1, 1), (2, Status.OK, 101, 2, 2, 2),
+                               (3, Status.NOT_FOUND, 101, 2, 3, 0)]
+    assert [field(r.raw, "VALUES")[0] for r in seen] == [100.0, 200.0, 0.0]
+    assert field(seen[1].raw, "SCORE")[0] == pytest.approx(0.75)
+    assert field(seen[2].raw, "SCORE")[0] == -1.0
+    assert field(seen[1].raw, "CAPTURED_SEQ") == (1,)  # no image for a NEXT

@@ -33,7 +33,7 @@ from vgripd.service.protocol import MAP_SIZE, MAP_VERSION, MAX_VALUES, Reg, Valu
 # the item's size in the map), "bits": a bit pattern, "real": float32, "value": a pose value in
 # the link's value format. Meaning in a few words for the UDT's comments.
 ITEMS: dict[str, tuple[str, str]] = {
-    "CMD": ("int", "PLC writes: 1 TRIGGER (run a job), 2 CLEAR"),
+    "CMD": ("int", "PLC writes: 1 TRIGGER (run a job), 2 CLEAR, 3 NEXT (pick list)"),
     "REQ_SEQ": ("int", "PLC writes: a change to a non-zero value is a request"),
     "RECIPE": ("int", "PLC writes: job parameter (0 = default)"),
     "MAP_VERSION": ("int", f"{MAP_VERSION}"),
@@ -55,6 +55,10 @@ ITEMS: dict[str, tuple[str, str]] = {
     "VALUES": ("value", "pose in the output vendor's convention and units"),
     "FIT_RMS": ("value", "fit residual in mm; -1 = unknown"),
     "WARNINGS": ("bits", "live warning bits: bit 0 RECALIBRATE"),
+    "COUNT": ("int", "pickable objects of the job"),
+    "INDEX": ("int", "object shown (1-based); 0 = none, COUNT + 1 = list used up"),
+    "PICK_ID": ("int", "pick point id of the object shown (0 = the object's grip)"),
+    "SCORE": ("value", "detection score 0..1 of the object shown; -1 = none"),
 }
 
 S7_TYPES = {("int", 2): "Int", ("int", 4): "DInt", ("bits", 2): "Word", ("bits", 4): "DWord",
@@ -119,7 +123,8 @@ def udt_source(value_format: ValueFormat = "float32", name: str = UDT_NAME) -> s
         "VERSION : 0.1\n"
         f"//vgripd register map {MAP_VERSION} as an S7 block: {2 * MAP_SIZE} bytes, big-endian, "
         "for a DB with optimized block access OFF.\n"
-        f"//VALUES and FIT_RMS: {VALUE_TYPES[value_format]} (value_format = \"{value_format}\")."
+        f"//VALUES, FIT_RMS and SCORE: {VALUE_TYPES[value_format]} "
+        f"(value_format = \"{value_format}\")."
         " The PLC writes CMD, REQ_SEQ, RECIPE; vgripd all the rest.\n"
         "   STRUCT\n"
         f"{body}\n"
