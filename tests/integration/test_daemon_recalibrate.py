@@ -101,7 +101,7 @@ async def test_recalibrate_warning_rises_and_clears(tmp_path: Path,
             for seq, kind in enumerate(SEQUENCE, start=1):
                 await plc.trigger(seq)
                 words = await plc.result(seq)
-                assert words[Reg.MAP_VERSION] == 2
+                assert words[Reg.MAP_VERSION] == 3
                 warnings_at_ack.append(words[Reg.WARNINGS])
                 _, rec = await run.job_done(seq)
                 warnings_other.append((await hmi.read())[Reg.WARNINGS])

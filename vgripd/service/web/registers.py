@@ -50,7 +50,7 @@ def decode(bank: RegisterBank, words: list[int]) -> list[dict[str, Any]]:
                 rows.append({"address": a + 2 * i, "name": f"VALUES[{i}]", "words": w,
                              "value": codec.decode_value(w), "meaning": ""})
             continue
-        if reg is Reg.FIT_RMS:
+        if reg in (Reg.FIT_RMS, Reg.SCORE):
             w = words[a:a + 2]
             value: float | int = codec.decode_value(w)
         elif reg is Reg.CHECK_F32:
