@@ -19,6 +19,10 @@ that ``vgripd robot-program`` wrote, and then does what the program does, step b
   ``VG_BUSY_TRIES`` times; no answer: drop the connection and ask again with a new id, and after
   ``VG_ATTEMPTS`` in a row stop (``ProgramStopped``: KRL HALT, RAPID Stop, Karel ABORT, URScript
   halt) or return -1 (VAL3 and the MotoPlus task, whose callers decide).
+
+``next()`` is what a program would do for a pick list's following object (command 3 NEXT,
+docs/robot_socket.md): the generated programs do not send it (yet), so its request word is the
+protocol's own, not read from a program text; the exchange is the program's ``vg_locate``.
 """
 
 from __future__ import annotations
@@ -30,7 +34,13 @@ import struct
 import time
 from dataclasses import dataclass, field
 
-from vgripd.service.robot_socket_format import ANSWER_SIZE, BRANDS, RobotBrand
+from vgripd.service.robot_socket_format import (
+    ANSWER_SIZE,
+    BRANDS,
+    RobotBrand,
+    SocketCommand,
+    header_word,
+)
 
 NO_ANSWER = -1
 BUSY = 40
@@ -109,6 +119,7 @@ class Outcome:
     warnings: int = 0
     captured: bool = False
     request_ids: list[int] = field(default_factory=list)
+    remaining: int = 0  # answer word 15: pickable objects after this one
 
 
 class ProgramTwin:
@@ -141,12 +152,20 @@ class ProgramTwin:
 
     async def locate(self, recipe: int = 0) -> Outcome:
         """``vg_locate(recipe)`` of the program; ``ProgramStopped`` where it stops itself."""
+        return await self._ask(self.s.words["LOCATE"], recipe)
+
+    async def next(self) -> Outcome:
+        """The following object of the last locate's pick list (command 3 NEXT), asked and
+        retried as the program's ``vg_locate`` does."""
+        return await self._ask(header_word(SocketCommand.NEXT), 0)
+
+    async def _ask(self, command_word: int, recipe: int) -> Outcome:
         unanswered = busy = 0
         ids: list[int] = []
         while True:
             self.vg_id = 1 if self.vg_id >= MAX_ID else self.vg_id + 1
             ids.append(self.vg_id)
-            outcome = await self._request(recipe)
+            outcome = await self._request(command_word, recipe)
             outcome.request_ids = ids
             if self.s.brand.connection == "per_request" or outcome.status == NO_ANSWER:
                 await self._drop()
@@ -165,12 +184,12 @@ class ProgramTwin:
 
     # -- one request ---------------------------------------------------------------------
 
-    async def _request(self, recipe: int) -> Outcome:
+    async def _request(self, command_word: int, recipe: int) -> Outcome:
         if not await self._connect():
             return Outcome(NO_ANSWER)
         assert self._writer is not None
         assert self._reader is not None
-        frame = struct.pack(">4I", self.s.words["LOCATE"], self.vg_id, recipe, 0)
+        frame = struct.pack(">4I", command_word, self.vg_id, recipe, 0)
         self.sent.append(frame)
         try:
             self._writer.write(frame)
@@ -208,7 +227,7 @@ class ProgramTwin:
                                    for v in struct.unpack(f">{self.s.n_values}i", raw))
                 else:
                     values = struct.unpack(f">{self.s.n_values}f", raw)
-            return Outcome(w[2], values, w[3], w[4], captured)
+            return Outcome(w[2], values, w[3], w[4], captured, remaining=w[15])
 
     # -- connections ---------------------------------------------------------------------
 

@@ -1,0 +1,221 @@
+"""A pallet of plates walked as a pick list over every link, through the real daemon (worker
+process, vision pipeline, synthetic pallet camera): the mock PLC over Modbus/TCP, the real
+ur_rtde client against the mock UR controller, and a robot program twin over the robot socket.
+
+Accuracy: each pose the peer read (vendor values decoded here with scipy, not vgripd's
+conventions) is turned back into the plate's pose and compared with the renderer's truth of
+the plate it is nearest to: every plate exactly once, within 0.5 mm / 0.5 deg.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Sequence
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from tests.integration.test_daemon import Run, make_config
+from tests.integration.test_robot_programs import free_port
+from vgripd.cli.robot_program import render
+from vgripd.config import Config, config_from_dict
+from vgripd.geometry.transforms import pose_error
+from vgripd.service.daemon import Daemon
+from vgripd.service.protocol import LinkState, Reg
+from vgripd.service.robot_socket_format import BRANDS
+from vgripd.sim.plc import MockPlc
+from vgripd.sim.robot_socket_client import ProgramSettings, ProgramTwin
+from vgripd.sim.ur_controller import URController
+from vgripd.types import Status
+
+pytestmark = pytest.mark.timeout(180)
+
+WAIT_S = 30.0
+PLATES = 5
+PALLET = {"type": "synthetic", "seed": 5,
+          "pallet": {"count": PLATES, "cols": 3, "gap_mm": 0.0}, "drop_features": ["1/m2"]}
+LIMITS = {"max_translation_mm": 300.0, "max_rotation_deg": 10.0}
+PICKING = {"max_objects": 6, "order": "score"}
+
+
+def pallet_config(vendor: str = "kuka", links: list[dict[str, Any]] | None = None) -> Config:
+    if links is None:
+        return make_config(PALLET, picking=PICKING, limits=LIMITS, output={"vendor": vendor})
+    return config_from_dict({"camera": PALLET, "picking": PICKING, "limits": LIMITS,
+                             "output": {"vendor": vendor}, "links": links,
+                             "status": {"port": 0}})
+
+
+def T_ref(config: Config) -> np.ndarray:
+    """The taught reference pose, from the config's numbers (scipy, not vgripd's geometry)."""
+    pose = config.reference.T_base_obj
+    if pose.matrix is not None:
+        return np.array(pose.matrix, dtype=float)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(pose.rotvec_rad or (0.0, 0.0, 0.0)).as_matrix()
+    T[:3, 3] = pose.translation_mm
+    return T
+
+
+def offset_of(vendor: str, values: Sequence[float]) -> np.ndarray:
+    """The 4x4 offset (mm) of a published pose: KUKA X Y Z A B C (mm, deg; A about z, then B
+    about y, then C about x) or UR x y z rx ry rz (m, rotation vector)."""
+    T = np.eye(4)
+    if vendor == "kuka":
+        T[:3, :3] = Rotation.from_euler("ZYX", values[3:6], degrees=True).as_matrix()
+        T[:3, 3] = values[:3]
+    else:
+        T[:3, :3] = Rotation.from_rotvec(values[3:6]).as_matrix()
+        T[:3, 3] = np.array(values[:3]) * 1000.0
+    return T
+
+
+def check_against_truth(config: Config, run: Run, vendor: str,
+                        walked: list[Sequence[float]]) -> None:
+    """``walked``: the poses the peer read, in order. Every truth plate exactly once, close."""
+    pair, _ = run.jobs[0]
+    assert pair is not None
+    truths = pair.truth["instances_T_base_obj"]
+    assert len(truths) == PLATES
+    seen: set[int] = set()
+    for values in walked:
+        T_base_obj = offset_of(vendor, values) @ T_ref(config)  # offset = T_obj inv(T_ref)
+        k = int(np.argmin([np.linalg.norm(T[:3, 3] - T_base_obj[:3, 3]) for T in truths]))
+        assert k not in seen, f"plate {k} handed out twice"
+        seen.add(k)
+        dt, dr = pose_error(truths[k], T_base_obj)
+        assert dt < 0.5, (k, dt)
+        assert dr < 0.5, (k, dr)
+    assert seen == set(range(PLATES))
+
+
+@contextlib.asynccontextmanager
+async def running(config: Config) -> AsyncIterator[Run]:
+    daemon = Daemon(config)
+    run = Run(daemon)
+    await daemon.start()
+    try:
+        yield run
+    finally:
+        await daemon.stop()
+
+
+# --- Modbus/TCP: the mock PLC ---------------------------------------------------------------
+
+
+async def test_mock_plc_walks_the_pallet_with_next() -> None:
+    config = pallet_config()
+    async with running(config) as run, MockPlc("127.0.0.1", run.port(), poll_s=0.005) as plc:
+        await plc.check_byte_order()  # MAP_VERSION 3
+        first = await plc.cycle()
+        assert (first.status, first.count, first.index) == (Status.OK, PLATES, 1)
+        walk = [first]
+        while walk[-1].status.pose_valid:
+            walk.append(await plc.next())  # checks job id, index, age itself
+        end = walk.pop()
+        assert (end.status, end.index, end.values, end.job_id) == (
+            Status.NOT_FOUND, PLATES + 1, (), first.job_id)
+        assert len(walk) == PLATES
+        assert [a.index for a in walk] == list(range(1, PLATES + 1))
+        scores = [a.score for a in walk]
+        assert scores == sorted(scores, reverse=True)  # order = "score", seen in SCORE
+        assert all(0.5 < s <= 1.0 for s in scores)
+        assert len(run.jobs) == 1  # NEXT took no image and made no job
+        check_against_truth(config, run, "kuka", [a.values for a in walk])
+        # The daemon kept count and shows where the list stands.
+        snap = run.daemon.snapshot()
+        assert snap["pick_list"] == {"job_id": first.job_id, "link": "modbus_server",
+                                     "count": PLATES, "index": PLATES + 1,
+                                     "instances": PLATES}
+        assert snap["next_answers"] == {"OK": PLATES - 1, "NOT_FOUND": 1}
+        assert snap["counters"] == {"OK": PLATES, "NOT_FOUND": 1}
+        # A new job starts a new list; CLEAR ends it (refused by the handshake).
+        again = await plc.cycle()
+        assert (again.job_id, again.count, again.index) == (first.job_id + 1, PLATES, 1)
+        assert (await plc.next()).index == 2
+        await plc.write(Reg.CMD, [2, plc.next_seq(), 0])  # CLEAR
+        refused = await plc.next()
+        assert (refused.rejected, refused.status) == (True, Status.BAD_REQUEST)
+
+
+async def test_next_after_another_links_job_is_bad_request_never_a_stale_pose() -> None:
+    config = make_config(PALLET, links=2, picking=PICKING, limits=LIMITS)
+    async with running(config) as run, \
+            MockPlc("127.0.0.1", run.port(0), poll_s=0.005) as a, \
+            MockPlc("127.0.0.1", run.port(1), poll_s=0.005) as b:
+        listed = await a.cycle()
+        assert listed.count == PLATES
+        other = await b.cycle()  # the other PLC's job: the scene may have changed
+        assert other.status is Status.OK
+        answer = await a.next()  # A's handshake still holds a list; the daemon refuses it
+        assert (answer.rejected, answer.status, answer.values, answer.job_id) == (
+            False, Status.BAD_REQUEST, (), 0)
+        assert (answer.count, answer.index) == (0, 0)
+        # and now A's handshake has no list either
+        assert (await a.next()).rejected
+        # b walks its own list
+        assert (await b.next()).index == 2
+
+
+async def test_next_with_no_job_since_start_is_refused() -> None:
+    async with running(pallet_config()) as run, MockPlc("127.0.0.1", run.port()) as plc:
+        refused = await plc.next()
+        assert (refused.rejected, refused.status) == (True, Status.BAD_REQUEST)
+        assert run.daemon.snapshot()["refusals"] == {"BAD_REQUEST": 1}
+        assert not run.jobs
+
+
+# --- UR RTDE: the real ur_rtde client against the mock controller --------------------------
+
+
+async def test_ur_program_walks_the_pallet_with_next() -> None:
+    with URController("127.0.7.31") as robot:
+        config = pallet_config("ur", [{"type": "ur_rtde", "host": robot.host}])
+        async with running(config) as run:
+            link = run.daemon.links["ur_rtde"]
+            await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
+            seq = robot.start_program(1)
+            results = [await asyncio.to_thread(robot.program_result, seq)]
+            while results[-1]["status"] in (1, 2):
+                seq = robot.start_program(3)  # next
+                results.append(await asyncio.to_thread(robot.program_result, seq))
+    end = results.pop()
+    assert (end["status"], end["offset"], end["count"], end["index"]) == (
+        int(Status.NOT_FOUND), None, PLATES, PLATES + 1)
+    assert [(r["count"], r["index"]) for r in results] == [
+        (PLATES, i) for i in range(1, PLATES + 1)]
+    assert {r["job_id"] for r in results} == {end["job_id"]} == {1}
+    assert len(run.jobs) == 1
+    _, rec = run.jobs[0]
+    # float-exact: what the robot read is the daemon's instance, in pick order
+    assert [tuple(r["offset"]) for r in results] == [
+        i.target.values for i in rec.result.instances if i.target is not None]
+    check_against_truth(config, run, "ur", [r["offset"] for r in results])
+
+
+# --- robot socket: a KUKA program twin --------------------------------------------------------
+
+
+async def test_robot_socket_program_walks_the_pallet_with_next() -> None:
+    brand = BRANDS["kuka"]
+    config = pallet_config("kuka", [{"type": "robot_socket", "host": "127.0.0.1",
+                                     "port": free_port(), "value_format": brand.value_format,
+                                     "scale": 10000}])
+    texts = render(brand, config, source="pallet.toml")
+    async with running(config) as run:
+        port = run.daemon.links["robot_socket"].port  # type: ignore[attr-defined]
+        async with ProgramTwin(ProgramSettings.parse("kuka", texts), "127.0.0.1", port) as twin:
+            walk = [await twin.locate()]
+            assert walk[0].captured
+            while walk[-1].status in (1, 2):
+                walk.append(await twin.next())
+    end = walk.pop()
+    assert (end.status, end.values, end.remaining, end.captured) == (
+        Status.NOT_FOUND, (), 0, False)
+    assert [o.remaining for o in walk] == list(range(PLATES - 1, -1, -1))
+    assert {o.job_id for o in walk} == {end.job_id} == {1}
+    assert not any(o.captured for o in walk[1:])  # no image for a NEXT
+    check_against_truth(config, run, "kuka", [o.values for o in walk])
