@@ -77,3 +77,28 @@ def test_demo_prints_the_web_view_url_and_serves_it_while_lingering() -> None:
             proc.wait()
     assert proc.returncode == 0, "".join(seen) + rest + err
     assert "OUT_OF_LIMITS" in rest
+
+
+def test_demo_pallet_scene_walks_the_pick_list_with_next() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "vgripd", "demo", "--scene", "pallet", "--cycles", "1",
+         "--port", "0", "--web-port", "0"],
+        capture_output=True, text=True, cwd=REPO, timeout=300, check=False,
+        env={**os.environ, "PYTHONPATH": str(REPO)})
+    out = proc.stdout
+    assert proc.returncode == 0, out + proc.stderr
+    rows = [line.split() for line in out.splitlines() if re.match(r"\s+\d+\s+[A-Z_]+\s", line)]
+    assert [(r[1], r[2]) for r in rows[:7]] == [("OK", f"{i}/6") for i in range(1, 7)] + [
+        ("NOT_FOUND", "7/6")]
+    assert [r[1] for r in rows[7:]] == ["BAD_REQUEST"]
+    for r in rows[:6]:
+        # seq status plate pick score X Y Z A B C ms err-mm err-deg
+        assert len(r) == 5 + 6 + 3
+        assert r[3] in ("1", "2")  # a configured pick point id
+        assert 0.5 < float(r[4]) <= 1.0
+        assert float(r[-2]) < 0.5
+        assert float(r[-1]) < 0.5
+    assert "6 NEXT answers (NOT_FOUND 1, OK 5), 1 jobs (images taken)" in out
+    m = re.search(r"plate pose error vs synthetic truth: max ([\d.]+) mm", out)
+    assert m is not None
+    assert float(m.group(1)) < 0.5

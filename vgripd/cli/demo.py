@@ -12,6 +12,13 @@ recipe does not (NOT_FOUND), an unknown number is BAD_REQUEST without an image.
 Each result is printed with the offset in the robot vendor's convention and the pose error
 against the synthetic truth; a summary follows.
 
+``--scene pallet`` shows a pick list instead: the camera renders a pallet of six touching
+plates (one with a mark covered), every plate is located, gated and ordered nearest first to a
+drop point, and for each cycle the PLC triggers once and then walks the list with NEXT (register
+map version 3, docs/registers.md): one line per plate with its INDEX of COUNT, pick point id,
+score, pose and error against the renderer's truth of that plate, until NOT_FOUND ends the
+list. A NEXT after CLEAR closes the run, refused BAD_REQUEST.
+
 Exit code 0 when every cycle got a consistent handshake answer (and the fault cycle was
 refused by the gate), 1 otherwise.
 """
@@ -42,7 +49,11 @@ REGISTER_VENDORS = [n for n, c in CONVENTIONS.items() if len(c.fields) <= MAX_VA
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--cycles", type=int, default=10, help="PLC cycles (default 10)")
+    parser.add_argument("--scene", choices=("plate", "pallet"), default="plate",
+                        help="plate: one object per image (default); pallet: six plates, "
+                             "walked as a pick list with NEXT")
+    parser.add_argument("--cycles", type=int, default=None,
+                        help="PLC cycles (default 10; with --scene pallet: 2 pallets)")
     parser.add_argument("--seed", type=int, default=1, help="synthetic poses/noise (default 1)")
     parser.add_argument("--vendor", default="kuka", choices=REGISTER_VENDORS,
                         help="robot convention of the published offset (default kuka)")
@@ -100,6 +111,38 @@ def recipes_config(port: int, seed: int, vendor: str, web_port: int = 0) -> Any:
     data["recipes"] = {"1": {"name": "plate-b", "object": PLATE_B, "reference": {
         "T_base_obj": {"translation_mm": [590.0, 110.0, 12.0], "rotvec_rad": [0.0, 0.0, -0.1]}}}}
     return config_from_dict(data)
+
+
+# The pallet scene (as config/samples/pallet.toml): six plates in two rows of three, touching,
+# plate 4 with its mark m3 covered; nearest first to a drop point; two grip points, the middle
+# of the plate first and its edge as the fallback.
+PALLET_SCENE: dict[str, Any] = {
+    "camera": {"pallet": {"count": 6, "cols": 3, "gap_mm": 0.0, "jitter_mm": 2.0,
+                          "jitter_deg": 3.0},
+               "drop_features": ["4/m3"]},
+    "picking": {"max_objects": 6, "order": "nearest", "point_mm": [600.0, -150.0, 10.0],
+                "pick_points": [
+                    {"id": 1, "priority": 1, "pose": {"translation_mm": [-10.0, 0.0, 0.0],
+                                                      "rotvec_rad": [3.14159265, 0.0, 0.0]}},
+                    {"id": 2, "priority": 2, "pose": {"translation_mm": [-50.0, 0.0, 0.0],
+                                                      "rotvec_rad": [3.14159265, 0.0, 0.0]}}]},
+    "limits": {"max_translation_mm": 200.0, "max_rotation_deg": 10.0, "point": "grip"},
+    "output": {"mode": "grip"},
+}
+
+
+def pallet_config(port: int, seed: int, vendor: str, web_port: int = 0) -> Any:
+    """The demo cell with the pallet scene."""
+    scene = PALLET_SCENE
+    return config_from_dict({
+        "camera": {"type": "synthetic", "seed": seed, **scene["camera"]},
+        "picking": scene["picking"],
+        "limits": scene["limits"],
+        "output": {"vendor": vendor, **scene["output"]},
+        "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": port}],
+        "status": {"port": web_port},
+        "daemon": {"log_level": "WARNING"},
+    })
 
 
 def fault_pose(config: Any) -> dict[str, Any]:
@@ -246,7 +289,108 @@ async def run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+class PalletDemo(Demo):
+    """The pick list lines: one per NEXT answer, the plate matched to the renderer's truth."""
+
+    def header(self) -> str:
+        base = super().header()
+        head, cols = base[:21], base[21:-28]
+        return (f"{head}{'plate':>7}{'pick':>5}{'score':>7}{cols}{'ms':>7}{'err mm':>9}"
+                f"{'err deg':>9}")
+
+    def summary(self) -> list[str]:
+        lines = super().summary()[:1]
+        jobs = np.array([a.cycle_ms for a in self.answers if not a.rejected and a.index <= 1])
+        nexts = np.array([a.cycle_ms for a in self.answers if not a.rejected and a.index > 1])
+        for what, ms in (("TRIGGER (a new image, every plate located)", jobs),
+                         ("NEXT (from the list, no image)", nexts)):
+            if ms.size:
+                lines.append(f"{what}: p50 {np.percentile(ms, 50):.1f} ms, max {ms.max():.1f} "
+                             f"ms over {ms.size} requests")
+        if self.errors:
+            e = np.array(self.errors)
+            lines.append(f"plate pose error vs synthetic truth: max {e[:, 0].max():.3f} mm, "
+                         f"{e[:, 1].max():.4f} deg (mean {e[:, 0].mean():.3f} mm) over "
+                         f"{len(e)} plates")
+        return lines
+
+    async def pick_line(self, answer: CycleResult) -> str:
+        self.answers.append(answer)
+        head = f"{answer.seq:>4}  {answer.status.name:<15}"
+        if answer.rejected:
+            return head + "refused: no pick list (after CLEAR)"
+        assert self.daemon is not None
+        await self.daemon.wait_for(lambda: answer.job_id in self.jobs, 5.0)
+        pair, rec = self.jobs[answer.job_id]
+        plate = f"{answer.index}/{answer.count}"
+        if not answer.values:
+            why = rec.result.message if answer.index <= answer.count else (
+                f"list used up: all {answer.count} plates handed out")
+            return f"{head}{plate:>7}{'':>12}  (no pose: {why})"
+        inst = rec.result.instances[answer.index - 1] if rec.result.instances else None
+        err = ""
+        truths = pair.truth.get("instances_T_base_obj") if pair is not None else None
+        if inst is not None and inst.T_base_obj is not None and truths is not None:
+            dt, dr = min((pose_error(T, inst.T_base_obj) for T in truths),
+                         key=lambda e: e[0])
+            self.errors.append((dt, dr))
+            err = f"{dt:>9.3f}{dr:>9.3f}"
+        cols = "".join(f"{v:>10.3f}" for v in answer.values)
+        return (f"{head}{plate:>7}{answer.pick_id:>5}{answer.score:>7.3f}{cols}"
+                f"{answer.cycle_ms:>7.1f}{err}")
+
+
+async def run_pallet(args: argparse.Namespace) -> int:
+    port = _port(args.port)
+    web_port = _port(args.web_port)
+    demo = PalletDemo(args.vendor)
+    config = pallet_config(port, args.seed, args.vendor, web_port=web_port)
+
+    async def pallets(daemon: Daemon, plc: MockPlc) -> None:
+        assert daemon.status_server is not None
+        print(f"vgripd demo: daemon serving Modbus/TCP on {plc.where}, web view on "
+              f"http://127.0.0.1:{daemon.status_server.port}/", flush=True)
+        print(f"synthetic stereo camera, a pallet of {config.picking.max_objects} plates "
+              f"{config.object.name!r} (touching, one with a mark covered), nearest first to "
+              f"{list(config.picking.point_mm or ())} mm; grip pose as "
+              f"{args.vendor.upper()} ({demo.conv.summary})")
+        print("each pallet: one TRIGGER (CMD 1), then NEXT (CMD 3) until NOT_FOUND\n")
+        print(demo.header())
+        for _ in range(args.cycles):
+            answer = await plc.cycle()
+            print(await demo.pick_line(answer), flush=True)
+            while answer.status.pose_valid:
+                answer = await plc.next()  # checks: same job, INDEX + 1, age
+                print(await demo.pick_line(answer), flush=True)
+            if answer.index != answer.count + 1 or answer.status is not Status.NOT_FOUND:
+                raise LinkError(f"pick list ended with {answer.status.name} at INDEX "
+                                f"{answer.index} of {answer.count}, not NOT_FOUND past the end")
+            print()
+        await plc.write(0, [2, plc.next_seq(), 0])  # CLEAR: the list is gone
+        refused = await plc.next()
+        print(await demo.pick_line(refused), flush=True)
+        if not (refused.rejected and refused.status is Status.BAD_REQUEST):
+            raise LinkError("NEXT after CLEAR was not refused with BAD_REQUEST")
+        snap = daemon.snapshot()
+        print(f"\ndaemon: {sum(snap['next_answers'].values())} NEXT answers "
+              f"({', '.join(f'{k} {v}' for k, v in sorted(snap['next_answers'].items()))}), "
+              f"{len(demo.jobs)} jobs (images taken)")
+        if args.linger > 0:
+            await asyncio.sleep(args.linger)
+
+    try:
+        await _with_daemon(demo, config, pallets)
+    except (LinkError, TimeoutError) as err:
+        print(f"\nvgripd demo: FAILED: {err}")
+        return 1
+    print("\n".join(demo.summary()))
+    print("every request got a consistent handshake answer")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.cycles is None:
+        args.cycles = 2 if args.scene == "pallet" else 10
     if args.cycles < 1:
         print("vgripd demo: --cycles must be at least 1")
         return 2
@@ -254,7 +398,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.verbose:
         logging.getLogger("vgripd").setLevel(logging.ERROR)
     try:
-        return asyncio.run(run_demo(args))
+        return asyncio.run(run_pallet(args) if args.scene == "pallet" else run_demo(args))
     except KeyboardInterrupt:
         print("\nvgripd demo: interrupted")
         return 130
