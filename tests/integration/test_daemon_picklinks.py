@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 from tests.integration.test_daemon import Run, make_config
 from tests.integration.test_robot_programs import free_port
 from vgripd.cli.robot_program import render
+from vgripd.cli.status import format_status
 from vgripd.config import Config, config_from_dict
 from vgripd.geometry.transforms import pose_error
 from vgripd.service.daemon import Daemon
@@ -132,6 +133,9 @@ async def test_mock_plc_walks_the_pallet_with_next() -> None:
                                      "instances": PLATES}
         assert snap["next_answers"] == {"OK": PLATES - 1, "NOT_FOUND": 1}
         assert snap["counters"] == {"OK": PLATES, "NOT_FOUND": 1}
+        assert (f"pick list of job {first.job_id} (modbus_server): used up ({PLATES} handed "
+                f"out), {PLATES} instances found; NEXT answers NOT_FOUND 1, OK {PLATES - 1}"
+                ) in format_status(snap)
         # A new job starts a new list; CLEAR ends it (refused by the handshake).
         again = await plc.cycle()
         assert (again.job_id, again.count, again.index) == (first.job_id + 1, PLATES, 1)

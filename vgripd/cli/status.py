@@ -66,6 +66,13 @@ def format_status(s: dict[str, Any]) -> str:
                      f"cycle {lj['cycle_ms']:.1f} ms, {_age(lj['age_s'])} ago")
     else:
         lines.append("no job yet")
+    pl = s.get("pick_list")
+    if pl:
+        where = (f"used up ({pl['count']} handed out)" if pl["index"] > pl["count"]
+                 else f"{pl['index']} of {pl['count']} shown")
+        lines.append(f"pick list of job {pl['job_id']} ({pl['link']}): {where}, "
+                     f"{pl['instances']} instances found; NEXT answers "
+                     f"{_counts(s.get('next_answers') or {}) or 'none'}")
     lines.append("links:")
     for link in s["links"]:
         extra = f", last error: {link['last_error']}" if link["last_error"] else ""

@@ -153,7 +153,10 @@ function showStatus(s) {
   const counts = Object.entries(s.counters).map(([k, v]) => `${k} ${v}`).join(", ") || "none";
   const cyc = s.cycle_ms.window ? `; cycle p50 ${fmt(s.cycle_ms.p50)} ms, p95 ${fmt(s.cycle_ms.p95)} ms, ` +
     `max ${fmt(s.cycle_ms.max)} ms over ${s.cycle_ms.window} jobs` : "";
-  $("counters").textContent = counts + cyc;
+  const pl = s.pick_list;
+  const pick = pl ? `; pick list of job ${pl.job_id} (${pl.link}): ` +
+    (pl.index > pl.count ? `used up (${pl.count} handed out)` : `${pl.index} of ${pl.count} shown`) : "";
+  $("counters").textContent = counts + cyc + pick;
   const cal = [`calibrated: ${s.calibrated ? "yes" : "NO"}`];
   if (rc && rc.jobs) {
     cal.push(`epipolar: ${rc.above} of the last ${rc.jobs} stereo jobs above ${rc.threshold_px} px ` +
