@@ -30,12 +30,14 @@ from vgripd.service.protocol import (
     CHECK_F32,
     MAP_SIZE,
     MAP_VERSION,
+    Command,
     LinkState,
     Reg,
     Trigger,
     Warnings,
+    next_answer,
 )
-from vgripd.types import JobResult, RobotTarget, Status
+from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 BAUD = 115200
 POSE = (612.5, -98.125, 10.75, 2.5, -0.75, 179.5)
@@ -236,3 +238,28 @@ def test_other_slaves_responses_and_our_echo_are_not_requests() -> None:
     f = framer()
     assert f.feed(READ_7 + response + exception + READ_7, 1.0) == [READ_7, READ_7]
     assert (f.responses, f.garbage) == (2, 0)
+
+
+async def test_rtu_next_walks_a_pick_list(rtu: tuple[ModbusRtuLink, asyncio.Queue[Trigger], AsyncModbusSerialClient]) -> None:
+    link, triggers, client = rtu
+    instances = tuple(PickInstance(Status.OK, target=RobotTarget(
+        "kuka", tuple("XYZABC"), (100.0 * (i + 1), *POSE[1:])), pick_id=3, score=0.5)
+        for i in range(2))
+    job = JobResult(job_id=9, status=Status.OK, target=instances[0].target, instances=instances)
+    assert not (await client.write_registers(Reg.CMD, [Command.NEXT, 1, 0], device_id=7)).isError()
+    r = await client.read_holding_registers(Reg.REJECT_SEQ, count=2, device_id=7)
+    assert r.registers == [1, Status.BAD_REQUEST]  # no list yet: refused by the handshake
+    assert not (await client.write_registers(Reg.CMD, [Command.TRIGGER, 2, 0], device_id=7)).isError()
+    t = await asyncio.wait_for(triggers.get(), 5)
+    await link.image_captured(t.seq, 9)
+    await link.publish(t.seq, job)
+    for seq, index, status in ((3, 2, Status.OK), (4, 3, Status.NOT_FOUND)):
+        assert not (await client.write_registers(Reg.CMD, [Command.NEXT, seq, 0], device_id=7)).isError()
+        t = await asyncio.wait_for(triggers.get(), 5)
+        assert (t.seq, t.command) == (seq, Command.NEXT)
+        await link.publish(seq, next_answer(job, index))
+        w = (await client.read_holding_registers(0, count=MAP_SIZE, device_id=7)).registers
+        assert (w[Reg.ACK_SEQ], w[Reg.STATUS], w[Reg.COUNT], w[Reg.INDEX]) == (
+            seq, status, 2, index)
+        x = client.convert_from_registers(w[Reg.VALUES:Reg.VALUES + 2], client.DATATYPE.FLOAT32)
+        assert x == (200.0 if index == 2 else 0.0)
