@@ -164,6 +164,22 @@ async def test_next_after_another_links_job_is_bad_request_never_a_stale_pose() 
         assert (await b.next()).index == 2
 
 
+async def test_next_while_another_links_job_runs_is_busy() -> None:
+    config = make_config(PALLET, links=2, picking=PICKING, limits=LIMITS)
+    async with running(config) as run, \
+            MockPlc("127.0.0.1", run.port(0), poll_s=0.005) as a, \
+            MockPlc("127.0.0.1", run.port(1), poll_s=0.005) as b:
+        assert (await a.cycle()).count == PLATES
+        seq_b = await b.trigger()
+        await run.busy()
+        busy = await a.next()  # the daemon's refusal, acknowledged, no pose
+        assert (busy.rejected, busy.status, busy.job_id, busy.values) == (
+            False, Status.BUSY, 0, ())
+        assert (await b.wait_answer(seq_b)).status is Status.OK
+        assert (await a.next()).status is Status.BAD_REQUEST  # A's list went with B's job
+        assert run.daemon.snapshot()["pick_list"]["link"] == "modbus_server.1"
+
+
 async def test_next_with_no_job_since_start_is_refused() -> None:
     async with running(pallet_config()) as run, MockPlc("127.0.0.1", run.port()) as plc:
         refused = await plc.next()

@@ -248,13 +248,14 @@ class MockPlc:
     async def next(self) -> CycleResult:
         """NEXT: the following instance of the last job's pick list, checked against it (see
         the module docstring). A refusal (BAD_REQUEST without a list, BUSY) is returned as
-        such; an acknowledged answer becomes the position the next ``next()`` continues from."""
+        such (also the daemon's, acknowledged with job id 0); any other acknowledged answer
+        becomes the position the next ``next()`` continues from."""
         t0_ns = time.monotonic_ns()
         seq = await self.trigger(command=Command.NEXT)
         answer = await self.wait_answer(seq, t0_ns, following=True)
         before = self.last_job
-        if answer.rejected or before is None or answer.status is Status.BAD_REQUEST:
-            return answer
+        if answer.rejected or before is None or answer.job_id == 0:
+            return answer  # refused (by the handshake, or by the daemon: no job, job id 0)
         want = min(before.index + 1, before.count + 1)
         if (answer.job_id, answer.count, answer.index) != (before.job_id, before.count, want):
             raise PlcCheckError(
