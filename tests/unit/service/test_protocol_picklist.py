@@ -11,6 +11,8 @@ import dataclasses
 import struct
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
@@ -286,3 +288,63 @@ def test_ur_pick_word() -> None:
     p = regs.pick_word(PickPosition(17, 18))
     assert (int(p // 1000), int(p - 1000 * (p // 1000))) == (17, 18)
     assert struct.unpack(">d", struct.pack(">d", p))[0] == p  # exact as a double
+
+
+# --- properties ----------------------------------------------------------------------------
+
+
+@given(st.integers(0, 6), st.integers(0, 3))
+def test_walking_a_list_hands_out_each_pickable_instance_once_in_order(n_ok: int,
+                                                                       rejected: int) -> None:
+    if n_ok + rejected == 0:
+        return
+    job = pallet_job(n_ok, rejected)
+    if n_ok == 0:
+        assert not pick_position(job).listed
+        return
+    walk = [job] + [next_answer(job, i) for i in range(2, n_ok + 3)]
+    shown = [a.target for a in walk if a.target is not None]
+    assert shown == [i.target for i in job.instances[:n_ok]]
+    assert [pick_position(a).index for a in walk] == [*range(1, n_ok + 2), n_ok + 1]
+    assert all(pick_position(a).count == n_ok for a in walk)
+    assert [a.status for a in walk[n_ok:]] == [Status.NOT_FOUND, Status.NOT_FOUND]
+
+
+OPS = st.lists(st.sampled_from(["trigger_list", "trigger_none", "next", "clear"]),
+               max_size=30)
+
+
+@given(OPS)
+def test_a_pose_shown_always_belongs_to_the_latest_job(ops: list[str]) -> None:
+    """Any sequence of PLC requests against the bank and a daemon stand-in that answers NEXT
+    from the last job's list (as the daemon does): whenever ACK_SEQ shows a pose, it is an
+    instance of the job triggered last, never of an earlier one, and never a second time."""
+    bank = RegisterBank(ValueCodec())
+    job_id = 0
+    cursor: tuple[JobResult, int] | None = None
+    handed: set[tuple[int, float]] = set()
+    for seq, op in enumerate(ops, start=1):
+        command = {"next": Command.NEXT, "clear": Command.CLEAR}.get(op, Command.TRIGGER)
+        decision = bank.write(Reg.CMD, [command, seq, 0])
+        if decision.action is Action.START and command == Command.TRIGGER:
+            job_id += 1
+            job = (pallet_job(3, job_id=job_id) if op == "trigger_list"
+                   else JobResult(job_id=job_id, status=Status.NOT_FOUND))
+            bank.captured(seq, job_id)
+            bank.publish(seq, job, now_ns=0)
+            cursor = (job, 1) if pick_position(job).listed else None
+        elif decision.action is Action.START:  # NEXT, accepted by the handshake
+            assert cursor is not None
+            assert cursor[0].job_id == job_id
+            index = min(cursor[1] + 1, pickable_count(cursor[0]) + 1)
+            cursor = (cursor[0], index)
+            bank.publish(seq, next_answer(cursor[0], index), now_ns=0)
+        elif decision.action is Action.CLEAR:
+            cursor = None
+        w = bank.read(0, MAP_SIZE, 0)
+        if w[Reg.ACK_SEQ] == seq and w[Reg.N_VALUES]:
+            shown_job = ValueCodec().decode_u32(w[Reg.JOB_ID:Reg.JOB_ID + 2])
+            assert shown_job == job_id
+            key = (shown_job, x_of(ValueCodec(), w))
+            assert key not in handed, f"instance {key} handed out twice"
+            handed.add(key)
