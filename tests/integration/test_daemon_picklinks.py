@@ -1,6 +1,7 @@
 """A pallet of plates walked as a pick list over every link, through the real daemon (worker
 process, vision pipeline, synthetic pallet camera): the mock PLC over Modbus/TCP, the real
-ur_rtde client against the mock UR controller, and a robot program twin over the robot socket.
+ur_rtde client against the mock UR controller, a robot program twin over the robot socket,
+snap7's server as an S7 PLC and the mock robot's Modbus registers (modbus_client).
 
 Accuracy: each pose the peer read (vendor values decoded here with scipy, not vgripd's
 conventions) is turned back into the plate's pose and compared with the renderer's truth of
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import struct
 from collections.abc import AsyncIterator, Sequence
 from typing import Any
 
@@ -25,10 +27,12 @@ from vgripd.cli.status import format_status
 from vgripd.config import Config, config_from_dict
 from vgripd.geometry.transforms import pose_error
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import LinkState, Reg
+from vgripd.service.protocol import Command, LinkState, Reg
 from vgripd.service.robot_socket_format import BRANDS
 from vgripd.sim.plc import MockPlc
+from vgripd.sim.robot_modbus import MockRobotModbus
 from vgripd.sim.robot_socket_client import ProgramSettings, ProgramTwin
+from vgripd.sim.s7_plc import MockS7Plc, S7PlcServer, words_of
 from vgripd.sim.ur_controller import URController
 from vgripd.types import Status
 
@@ -239,3 +243,47 @@ async def test_robot_socket_program_walks_the_pallet_with_next() -> None:
     assert {o.job_id for o in walk} == {end.job_id} == {1}
     assert not any(o.captured for o in walk[1:])  # no image for a NEXT
     check_against_truth(config, run, "kuka", [o.values for o in walk])
+
+
+# --- the client links: snap7's server as the PLC, the mock robot's Modbus registers ----------
+
+
+async def test_s7_plc_walks_the_pallet_with_next() -> None:
+    async with S7PlcServer(10) as server, MockS7Plc(server.host, server.port, 10) as plc:
+        config = pallet_config("kuka", [{"type": "s7", "host": server.host,
+                                         "port": server.port, "db": 10}])
+        async with running(config) as run:
+            link = run.daemon.links["s7"]
+            await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
+            seen = [words_of((await plc.run_job(1, WAIT_S)).raw)]
+            for seq in range(2, PLATES + 3):
+                seen.append(words_of((await plc.run_job(seq, WAIT_S, Command.NEXT)).raw))
+    assert [(w[Reg.ACK_SEQ], w[Reg.COUNT], w[Reg.INDEX]) for w in seen] == [
+        (i, PLATES, i) for i in range(1, PLATES + 2)] + [(PLATES + 2, PLATES, PLATES + 1)]
+    assert [w[Reg.STATUS] for w in seen] == [Status.OK] * PLATES + [Status.NOT_FOUND] * 2
+    assert {w[Reg.JOB_ID + 1] for w in seen} == {1}  # the job's id (low word), every answer
+    walked = [struct.unpack(">6f", struct.pack(">12H", *w[Reg.VALUES:Reg.VALUES + 12]))
+              for w in seen[:PLATES]]
+    check_against_truth(config, run, "kuka", walked)
+
+
+async def test_robot_modbus_registers_walk_the_pallet_with_next() -> None:
+    robot = MockRobotModbus()
+    await robot.start()
+    try:
+        config = pallet_config("ur", [{"type": "modbus_client", "host": robot.host,
+                                       "port": robot.port, "poll_interval_s": 0.005}])
+        async with running(config) as run:
+            link = run.daemon.links["modbus_client"]
+            await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
+            seen = [(await robot.run_job(1, WAIT_S)).words]
+            for seq in range(2, PLATES + 2):
+                seen.append((await robot.run_job(seq, WAIT_S, command=Command.NEXT)).words)
+    finally:
+        await robot.stop()
+    assert [(w[Reg.STATUS], w[Reg.COUNT], w[Reg.INDEX]) for w in seen] == [
+        (Status.OK, PLATES, i) for i in range(1, PLATES + 1)] + [
+        (Status.NOT_FOUND, PLATES, PLATES + 1)]
+    walked = [struct.unpack(">6f", struct.pack(">12H", *w[Reg.VALUES:Reg.VALUES + 12]))
+              for w in seen[:PLATES]]
+    check_against_truth(config, run, "ur", walked)
