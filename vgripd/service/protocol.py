@@ -267,8 +267,8 @@ class NextAnswer(JobResult):
     describing the instance at ``index`` (1-based, among ``instances``) instead of the first.
 
     ``index`` = pickable count + 1 is the answer past the end of the list (``NOT_FOUND``, no
-    pose). ``job_id``, ``t_capture_mono_ns`` and ``t_done_mono_ns`` are the job's own: the
-    images are as old as the original result, and RESULT_AGE_MS says so.
+    pose). ``job_id``, ``recipe``, ``t_capture_mono_ns`` and ``t_done_mono_ns`` are the job's
+    own: the images are as old as the original result, and RESULT_AGE_MS says so.
     """
 
     index: int = 1
@@ -336,7 +336,8 @@ def next_answer(result: JobResult, index: int) -> NextAnswer:
                      message=f"pick list of job {result.job_id} exhausted: all {count} "
                              "pickable instances were handed out",
                      t_capture_mono_ns=result.t_capture_mono_ns,
-                     t_done_mono_ns=result.t_done_mono_ns, instances=result.instances)
+                     t_done_mono_ns=result.t_done_mono_ns, instances=result.instances,
+                     recipe=result.recipe)
     if index > count:
         return end
     if not result.instances:  # a single object: instance 1 is the job's own result

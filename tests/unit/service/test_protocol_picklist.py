@@ -348,3 +348,8 @@ def test_a_pose_shown_always_belongs_to_the_latest_job(ops: list[str]) -> None:
             key = (shown_job, x_of(ValueCodec(), w))
             assert key not in handed, f"instance {key} handed out twice"
             handed.add(key)
+
+
+def test_next_answers_keep_the_jobs_recipe() -> None:
+    job = dataclasses.replace(pallet_job(2), recipe=4)
+    assert [next_answer(job, i).recipe for i in (2, 3)] == [4, 4]
