@@ -137,6 +137,7 @@ async def test_mock_plc_walks_the_pallet_with_next() -> None:
                                      "instances": PLATES}
         assert snap["next_answers"] == {"OK": PLATES - 1, "NOT_FOUND": 1}
         assert snap["counters"] == {"OK": PLATES, "NOT_FOUND": 1}
+        assert f"; pick list {PLATES}/{PLATES}" in run.daemon.status_line()
         assert (f"pick list of job {first.job_id} (modbus_server): used up ({PLATES} handed "
                 f"out), {PLATES} instances found; NEXT answers NOT_FOUND 1, OK {PLATES - 1}"
                 ) in format_status(snap)

@@ -67,7 +67,7 @@ def format_status(s: dict[str, Any]) -> str:
     else:
         lines.append("no job yet")
     pl = s.get("pick_list")
-    if pl:
+    if pl and pl["instances"]:  # a job of several objects (a single object is a list of one)
         where = (f"used up ({pl['count']} handed out)" if pl["index"] > pl["count"]
                  else f"{pl['index']} of {pl['count']} shown")
         lines.append(f"pick list of job {pl['job_id']} ({pl['link']}): {where}, "

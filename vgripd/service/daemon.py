@@ -892,7 +892,7 @@ class Daemon:
             line += f"; last job {lj.job_id} {lj.result.status.name} {lj.cycle_ms:.0f} ms"
         if self.config.recipes and self.active_recipe is not None:
             line += f"; recipe {self.recipe_label(self.active_recipe)}"
-        if self.pick_list is not None:
+        if self.pick_list is not None and self.pick_list.result.instances:  # several objects
             pl = self.pick_list
             line += f"; pick list {min(pl.index, pl.count)}/{pl.count}"
         if self.epipolar.warning:

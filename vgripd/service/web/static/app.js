@@ -154,7 +154,7 @@ function showStatus(s) {
   const cyc = s.cycle_ms.window ? `; cycle p50 ${fmt(s.cycle_ms.p50)} ms, p95 ${fmt(s.cycle_ms.p95)} ms, ` +
     `max ${fmt(s.cycle_ms.max)} ms over ${s.cycle_ms.window} jobs` : "";
   const pl = s.pick_list;
-  const pick = pl ? `; pick list of job ${pl.job_id} (${pl.link}): ` +
+  const pick = pl && pl.instances ? `; pick list of job ${pl.job_id} (${pl.link}): ` +
     (pl.index > pl.count ? `used up (${pl.count} handed out)` : `${pl.index} of ${pl.count} shown`) : "";
   $("counters").textContent = counts + cyc + pick;
   const cal = [`calibrated: ${s.calibrated ? "yes" : "NO"}`];
