@@ -15,6 +15,13 @@ a result, with status BUSY or ABORTED and ``JobId`` 0, as the Modbus links answe
 Results are written data first, ``Result.RequestId`` (retracted to 0 when a job starts) and
 ``Result.Sequence`` last; one Read request is answered without interleaving with a publish.
 
+Pick lists: ``VisionSystem.Next`` asks for the next object of the last job's list, answered by
+the daemon from that list (no image, the job's id) through the same publish, with
+``Result.Count``/``Index``/``PickId``/``Score`` saying where the list stands. While the link
+holds no list (nothing published yet, or the last result had none) the call fails
+``BadNoData`` and is counted ``BAD_REQUEST``; while its own job runs ``BadInvalidState``
+(``BUSY``), as the register handshake refuses them.
+
 Security (``security``): endpoints exist only for the listed modes; ``"None"`` only when it is
 listed. Signing modes need the server certificate, generated self-signed into
 ``certificate_dir`` at the first start. Users (``users``) log in with a password read from a
@@ -69,12 +76,14 @@ from vgripd.errors import LinkError
 from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.registry import LinkCapabilities
 from vgripd.service.protocol import (
+    Command,
     LinkHealth,
     LinkState,
     RobotLink,
     Trigger,
     TriggerHandler,
     checked_warnings,
+    pick_position,
 )
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.types import JobResult, Status
@@ -373,6 +382,7 @@ def _version() -> str:
 class _Job:
     request_id: int
     recipe: int
+    command: Command = Command.TRIGGER
 
 
 class OpcUaLink(RobotLink):
@@ -390,6 +400,7 @@ class OpcUaLink(RobotLink):
         self._job: _Job | None = None
         self._next_request = 0
         self._recipe = 0
+        self._listed = False  # the last result published has a pick list: Next may follow
         self._warnings = 0
         self._refusals: Counter[str] = Counter()
         #: peer faults by kind (garbage, protocol, silent, login, refused)
@@ -449,6 +460,7 @@ class OpcUaLink(RobotLink):
                 log.warning("%s: stopping the OPC UA server: %r", self.name, err)
         self._conns.clear()
         self._job = None
+        self._listed = False
         self.space = None
         self.lines.flush(force=True)
         await self._set_health(LinkState.STOPPED)
@@ -487,7 +499,10 @@ class OpcUaLink(RobotLink):
         t_done = result.t_done_mono_ns or time.monotonic_ns()
         stamp = datetime.datetime.now(datetime.UTC) - datetime.timedelta(
             microseconds=max(0, time.monotonic_ns() - t_done) / 1000)
-        shown, sent = result_values(seq, job.recipe, result, stamp)
+        # a NEXT answer carries its job's recipe; the selected one may have changed since
+        recipe = result.recipe if job.command == Command.NEXT else job.recipe
+        self._listed = pick_position(result).listed
+        shown, sent = result_values(seq, recipe, result, stamp)
         if sent.status is not result.status:
             log.warning("%s: request %d answered %s instead of %s: %s", self.name, seq,
                         sent.status.name, result.status.name, sent.message)
@@ -516,14 +531,36 @@ class OpcUaLink(RobotLink):
             running = self._job.request_id if self._job is not None else "-"
             return self._refuse(Status.BUSY, ua.StatusCodes.BadInvalidState,
                                 f"StartSingleJob while request {running} runs")
+        return await self._request(Command.TRIGGER)
+
+    async def _request(self, command: Command) -> Any:
+        """Start a request (a job, or a NEXT) with a new RequestId; the daemon is told after
+        this call returns."""
+        assert self.space is not None
         self._next_request = 1 if self._next_request >= 0xFFFFFFFF else self._next_request + 1
-        job = self._job = _Job(self._next_request, self._recipe)
-        await self.space.retract()
+        job = self._job = _Job(self._next_request, self._recipe, command)
+        await self.space.retract(executing=command == Command.TRIGGER)
         assert self._on_trigger is not None
-        trigger = Trigger(link=self.name, seq=job.request_id, command=1,
+        trigger = Trigger(link=self.name, seq=job.request_id, command=int(command),
                           t_mono_ns=time.monotonic_ns(), recipe=job.recipe)
         asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
         return [ua.Variant(job.request_id, ua.VariantType.UInt32)]
+
+    async def _next(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        """The next object of the last job's pick list: a request like StartSingleJob's (a new
+        RequestId, the result through ``Result.*``) that the daemon answers from the list."""
+        if args:
+            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadTooManyArguments,
+                                "Next takes no arguments")
+        if self._job is not None or self.space is None:
+            running = self._job.request_id if self._job is not None else "-"
+            return self._refuse(Status.BUSY, ua.StatusCodes.BadInvalidState,
+                                f"Next while request {running} runs")
+        if not self._listed:
+            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadNoData,
+                                "Next without a pick list (no result yet, or the last one "
+                                "had no pickable object)")
+        return await self._request(Command.NEXT)
 
     async def _select_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         if not args:
@@ -728,7 +765,7 @@ class OpcUaLink(RobotLink):
                                              o.max_session_timeout_s * 1000)
         idx = await server.register_namespace(o.namespace_uri)
         space = Space(server, idx)
-        await space.build(self._start_single_job, self._select_recipe, self._reset)
+        await space.build(self._start_single_job, self._select_recipe, self._reset, self._next)
         self.space = space
         return server
 

@@ -25,6 +25,7 @@ from asyncua import Node, Server, ua
 from asyncua.common.statemachine import FiniteStateMachine, State
 from asyncua.server.event_generator import EventGenerator
 
+from vgripd.service.protocol import UNKNOWN_SCORE, PickPosition, pick_position
 from vgripd.types import JobResult, Status
 
 #: ``VisionStateMachine`` states: name -> number (vgripd's numbers; OPC 40100 names).
@@ -59,6 +60,7 @@ class ResultValues:
     residual_names: list[str]
     residuals: list[float]
     timestamp: datetime.datetime
+    pick: PickPosition = PickPosition(0, 0)  # Count, Index, PickId, Score
 
     @property
     def status_name(self) -> str:
@@ -71,8 +73,10 @@ def result_values(request_id: int, recipe: int, result: JobResult,
 
     A pose is shown only with a pose-valid status; a pose or offset that is not finite (which
     the pipeline's gates should have stopped) is published as ``OUT_OF_LIMITS`` without a pose
-    rather than as numbers a robot might move by.
+    rather than as numbers a robot might move by. The pick-list position (``pick_position``:
+    a job's own result or a NEXT answer) keeps its count then, but shows no instance.
     """
+    pick = pick_position(result)
     values: list[float] = []
     names: list[str] = []
     pose: list[float] = []
@@ -89,11 +93,12 @@ def result_values(request_id: int, recipe: int, result: JobResult,
                                residuals=result.residuals,
                                t_done_mono_ns=result.t_done_mono_ns)
             values, names, pose, vendor = [], [], [], ""
+            pick = PickPosition(pick.count, 0)
     residuals = {k: float(v) for k, v in result.residuals.items() if math.isfinite(float(v))}
     fit = residuals.get("fit_rms_mm", -1.0)
     shown = ResultValues(request_id, result.job_id & 0xFFFFFFFF, recipe, result.status,
                          result.message, vendor, names, values, pose, fit,
-                         list(residuals), list(residuals.values()), timestamp)
+                         list(residuals), list(residuals.values()), timestamp, pick)
     return shown, result
 
 
@@ -118,6 +123,14 @@ RESULT_DATA: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
     ("ResidualNames", ua.VariantType.String, [], "names of Residuals"),
     ("Residuals", ua.VariantType.Double, [], "residual figures (px or mm by name)"),
     ("Timestamp", ua.VariantType.DateTime, None, "when the result was produced (UTC)"),
+    ("Count", ua.VariantType.UInt16, 0,
+     "pickable objects of the job (a single object: 1 with a pose, 0 without)"),
+    ("Index", ua.VariantType.UInt16, 0,
+     "1-based index of the object shown; 0 none shown; Count + 1 the list is used up"),
+    ("PickId", ua.VariantType.UInt16, 0,
+     "pick point id of the object shown (picking.pick_points; 0 the object's own grip)"),
+    ("Score", ua.VariantType.Double, UNKNOWN_SCORE,
+     "detection score 0..1 of the object shown (-1: none shown or unknown)"),
 )
 RESULT_LAST = (
     ("RequestId", ua.VariantType.UInt32, 0,
@@ -130,7 +143,9 @@ EVENT_FIELDS: tuple[tuple[str, ua.VariantType], ...] = (
     ("StatusName", ua.VariantType.String), ("Vendor", ua.VariantType.String),
     ("ValueNames", ua.VariantType.String), ("Values", ua.VariantType.Double),
     ("Pose", ua.VariantType.Double), ("FitRmsMm", ua.VariantType.Double),
-    ("Sequence", ua.VariantType.UInt32),
+    ("Sequence", ua.VariantType.UInt32), ("Count", ua.VariantType.UInt16),
+    ("Index", ua.VariantType.UInt16), ("PickId", ua.VariantType.UInt16),
+    ("Score", ua.VariantType.Double),
 )
 
 
@@ -151,7 +166,7 @@ class Space:
         self.sequence = 0
 
     async def build(self, start_job: MethodHandler, select_recipe: MethodHandler,
-                    reset: MethodHandler) -> None:
+                    reset: MethodHandler, next_object: MethodHandler) -> None:
         s, idx = self.server, self.idx
         vs_type = await s.create_custom_object_type(
             node_id(idx, "VisionSystemType"), ua.QualifiedName("VisionSystemType", idx))
@@ -192,6 +207,10 @@ class Space:
                                   "job parameter of the next jobs (0 = default)")], [])
         await vs.add_method(node_id(idx, "VisionSystem.Reset"), ua.QualifiedName("Reset", idx),
                             reset, [], [])
+        await vs.add_method(node_id(idx, "VisionSystem.Next"), ua.QualifiedName("Next", idx),
+                            next_object, [],
+                            [_arg("RequestId", ua.VariantType.UInt32,
+                                  "id of this request; the result shows it in Result.RequestId")])
         for name, vtype, value, text in (
             ("SelectedRecipe", ua.VariantType.UInt16, 0, "recipe of the next StartSingleJob"),
             ("CapturedRequestId", ua.VariantType.UInt32, 0,
@@ -263,10 +282,13 @@ class Space:
                 nid, ua.DataValue(variant, SourceTimestamp=now, ServerTimestamp=now))
         self.state = name
 
-    async def retract(self) -> None:
-        """A new request: the result area names no request until its result is in."""
+    async def retract(self, executing: bool = True) -> None:
+        """A new request: the result area names no request until its result is in. A job
+        (``executing``) also moves the state machine to SingleExecution; a NEXT takes no image
+        and leaves the state as it is."""
         await self.write([("Result.RequestId", 0)])
-        await self.set_state("SingleExecution")
+        if executing:
+            await self.set_state("SingleExecution")
 
     async def captured(self, request_id: int, job_id: int) -> None:
         await self.write([("CapturedRequestId", request_id)])
@@ -292,6 +314,8 @@ class Space:
             ("Result.Pose", r.pose), ("Result.FitRmsMm", r.fit_rms_mm),
             ("Result.ResidualNames", r.residual_names), ("Result.Residuals", r.residuals),
             ("Result.Timestamp", r.timestamp),
+            ("Result.Count", int(r.pick.count)), ("Result.Index", int(r.pick.index)),
+            ("Result.PickId", int(r.pick.pick_id)), ("Result.Score", float(r.pick.score)),
             ("Result.RequestId", r.request_id), ("Result.Sequence", self.sequence),
         ], r.timestamp)
         await self.set_state("Error" if r.status in ERROR_STATUSES else "Ready")
@@ -299,7 +323,9 @@ class Space:
         assert gen is not None
         ev: Any = gen.event
         for name, vtype in EVENT_FIELDS:
-            value = {"ResultStatus": int(r.status), "Sequence": self.sequence}.get(name)
+            value = {"ResultStatus": int(r.status), "Sequence": self.sequence,
+                     "Count": int(r.pick.count), "Index": int(r.pick.index),
+                     "PickId": int(r.pick.pick_id), "Score": float(r.pick.score)}.get(name)
             if value is None:
                 value = getattr(r, _EVENT_ATTR.get(name, name))
             setattr(ev, name, ua.Variant(value, vtype))

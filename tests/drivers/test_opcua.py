@@ -189,7 +189,9 @@ async def test_wrong_arguments_are_bad_request(link: OpcUaLink) -> None:
                              ("SelectRecipe", [ua.Variant(-1, ua.VariantType.Int32)]),
                              ("SelectRecipe", [ua.Variant("3", ua.VariantType.String)]),
                              ("SelectRecipe", []),
-                             ("StartSingleJob", [ua.Variant(1, ua.VariantType.UInt16)])]:
+                             ("StartSingleJob", [ua.Variant(1, ua.VariantType.UInt16)]),
+                             ("Next", [ua.Variant(1, ua.VariantType.UInt16)]),
+                             ("Next", [])]:  # no pick list: nothing published yet
             with pytest.raises(UaStatusCodeError) as err:
                 await vs.call_method(ua.NodeId(f"VisionSystem.{method}", idx), *args)
             codes.append(ua.StatusCode(err.value.code).name)
@@ -199,9 +201,10 @@ async def test_wrong_arguments_are_bad_request(link: OpcUaLink) -> None:
             await c.get_node(ua.NodeId("VisionSystem.Result.Status", idx)).write_value(
                 ua.Variant(1, ua.VariantType.UInt16))
     assert codes == ["BadInvalidArgument", "BadInvalidArgument", "BadInvalidArgument",
-                     "BadArgumentsMissing", "BadTooManyArguments"]
+                     "BadArgumentsMissing", "BadTooManyArguments", "BadTooManyArguments",
+                     "BadNoData"]
     assert selected == 0
-    assert link.refusals() == {"BAD_REQUEST": 5}
+    assert link.refusals() == {"BAD_REQUEST": 7}
 
 
 async def test_failures_show_no_pose_and_system_errors_enter_error_state(daemon: Daemon) -> None:
@@ -559,10 +562,11 @@ async def test_uals_and_uaread_browse_and_read_the_result(link: OpcUaLink) -> No
         r = await client.send("job")
     listing = await run_tool(uals, "-u", url(link), "-n", "ns=2;s=VisionSystem.Result")
     for name in ("RequestId", "Sequence", "Status", "Values", "ValueNames", "Pose", "JobId",
-                 "Timestamp", "FitRmsMm"):
+                 "Timestamp", "FitRmsMm", "Count", "Index", "PickId", "Score"):
         assert f"2:{name}" in listing, listing
     top = await run_tool(uals, "-u", url(link), "-n", "ns=2;s=VisionSystem")
-    for name in ("StartSingleJob", "SelectRecipe", "Reset", "VisionStateMachine", "Result"):
+    for name in ("StartSingleJob", "SelectRecipe", "Reset", "Next", "VisionStateMachine",
+                 "Result"):
         assert f"2:{name}" in top, top
     status = await run_tool(uaread, "-u", url(link), "-n", "ns=2;s=VisionSystem.Result.Status")
     values = await run_tool(uaread, "-u", url(link), "-n", "ns=2;s=VisionSystem.Result.Values")

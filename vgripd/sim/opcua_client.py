@@ -8,6 +8,8 @@ and exit 1), then reads commands from stdin, one per line, and answers each with
   until ``Result.RequestId`` equals the returned id, read every result variable in one Read
   request, and wait for the ``ResultReadyEventType`` event of that id (subscribed at connect);
   answers ``{"event": "result", "request_id", "status", ..., "ev": {the event's fields}}``;
+- ``next`` does the same with the ``Next`` method (the next object of the last job's pick
+  list): ``result``, or ``refused`` with the OPC UA status name;
 - ``start`` only calls ``StartSingleJob`` (``started`` with the id, or ``refused`` with the
   OPC UA status name); ``wait ID`` then does the rest of ``job`` for that id; ``fetch ID``
   the same without waiting for the event (a client that connected after it was raised);
@@ -36,9 +38,10 @@ from typing import Any
 
 RESULT_NAMES = ("RequestId", "Sequence", "JobId", "RecipeId", "Status", "StatusName", "Message",
                 "Vendor", "ValueNames", "Values", "Pose", "FitRmsMm", "ResidualNames",
-                "Residuals", "Timestamp")
+                "Residuals", "Timestamp", "Count", "Index", "PickId", "Score")
 EVENT_NAMES = ("RequestId", "JobId", "RecipeId", "ResultStatus", "StatusName", "Vendor",
-               "ValueNames", "Values", "Pose", "FitRmsMm", "Sequence")
+               "ValueNames", "Values", "Pose", "FitRmsMm", "Sequence", "Count", "Index",
+               "PickId", "Score")
 NAMESPACE = "urn:vgripd:machine-vision"
 
 
@@ -93,11 +96,11 @@ class Session:
     async def call(self, method: str, *args: Any) -> Any:
         return await self.vs.call_method(self.node_id(f"VisionSystem.{method}"), *args)
 
-    async def start(self) -> dict[str, Any]:
+    async def start(self, method: str = "StartSingleJob") -> dict[str, Any]:
         from asyncua.ua.uaerrors import UaStatusCodeError
 
         try:
-            rid = await self.call("StartSingleJob")
+            rid = await self.call(method)
         except UaStatusCodeError as err:
             return {"event": "refused", "code": self.ua.StatusCode(err.code).name}
         return {"event": "started", "request_id": int(rid), "t_start": time.monotonic()}
@@ -182,8 +185,8 @@ async def run(args: argparse.Namespace) -> int:
 async def command(session: Session, cmd: str, rest: list[str], timeout_s: float) -> Any:
     from asyncua.ua.uaerrors import UaStatusCodeError
 
-    if cmd == "job":
-        started = await session.start()
+    if cmd in ("job", "next"):
+        started = await session.start("StartSingleJob" if cmd == "job" else "Next")
         if started["event"] != "started":
             return started
         result = await session.wait(started["request_id"], timeout_s)
