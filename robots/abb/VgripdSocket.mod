@@ -7,6 +7,8 @@ MODULE VgripdSocket
   !     ! the offset is in the base frame: it goes on the left of the taught grip
   !     MoveL PoseMult(vgOffset, pGrip) ...
   !   ENDIF
+  ! A pallet (pick lists): vgStatus := vgLocate(0), then while vgStatus is 1 or 2 pick the
+  ! object and ask vgStatus := vgNext() until it answers 10 (NOT_FOUND: all picked).
   CONST string VG_HOST := "@@HOST@@";
   CONST num VG_PORT := @@PORT@@;
   CONST num VG_SCALE := @@SCALE@@; ! 0: the answer's values are float32
@@ -17,6 +19,7 @@ MODULE VgripdSocket
   CONST num VG_ATTEMPTS := @@ATTEMPTS@@; ! unanswered requests in a row before Stop
   ! Frame word 0: "VG", version 1, command or answer kind.
   CONST dnum VG_LOCATE := @@LOCATE@@;
+  CONST dnum VG_NEXT := @@NEXT@@;
   CONST dnum VG_CAPTURED := @@CAPTURED@@;
   CONST dnum VG_RESULT := @@RESULT@@;
   CONST dnum VG_REFUSED := @@REFUSED@@;
@@ -25,16 +28,27 @@ MODULE VgripdSocket
   VAR num vgStatus := 0;
   VAR dnum vgJob := 0;
   VAR num vgWarnings := 0;
+  VAR num vgRemaining := 0; ! pick lists: objects after this one
   VAR bool vgCaptured := FALSE;
   VAR dnum vgId := 0;
   VAR bool vgConnected := FALSE;
   VAR socketdev vgSocket;
   VAR rawbytes vgRaw;
 
-  ! Ask vgripd for the offset and return the status; 1 or 2: vgOffset is set. After BUSY (40)
-  ! it asks again every VG_BUSY_WAIT_S, VG_BUSY_TRIES times; it stops the program when
-  ! VG_ATTEMPTS requests in a row got no answer (check the link with `vgripd status`).
+  ! Ask vgripd for the offset and return the status; 1 or 2: vgOffset is set.
   FUNC num vgLocate(num vgRecipe)
+    RETURN vgAsk(VG_LOCATE, vgRecipe);
+  ENDFUNC
+
+  ! The next object of the last vgLocate's pick list (no new image); 10: none left.
+  FUNC num vgNext()
+    RETURN vgAsk(VG_NEXT, 0);
+  ENDFUNC
+
+  ! One request with retries. After BUSY (40) it asks again every VG_BUSY_WAIT_S,
+  ! VG_BUSY_TRIES times; it stops the program when VG_ATTEMPTS requests in a row got no
+  ! answer (check the link with `vgripd status`).
+  FUNC num vgAsk(dnum vgCmd, num vgRecipe)
     VAR num vgUnanswered := 0;
     VAR num vgBusy := 0;
     WHILE TRUE DO
@@ -42,7 +56,7 @@ MODULE VgripdSocket
       IF vgId > 2147483646 THEN
         vgId := 1;
       ENDIF
-      vgStatus := vgRequest(vgRecipe);
+      vgStatus := vgRequest(vgCmd, vgRecipe);
       IF vgStatus = -1 THEN
         vgClose;
         Incr vgUnanswered;
@@ -60,8 +74,9 @@ MODULE VgripdSocket
     RETURN -1;
   ENDFUNC
 
-  ! One LOCATE request: the status of its final answer, or -1 when none came in time.
-  FUNC num vgRequest(num vgRecipe)
+  ! One request (VG_LOCATE or VG_NEXT): the status of its final answer, or -1 when none came
+  ! in time.
+  FUNC num vgRequest(dnum vgCmd, num vgRecipe)
     VAR dnum vgWord;
     VAR dnum vgKind;
     VAR num vgCount;
@@ -73,7 +88,7 @@ MODULE VgripdSocket
     ENDIF
     vgCaptured := FALSE;
     ClearRawBytes vgRaw;
-    PackRawBytes VG_LOCATE, vgRaw \Network, 1 \IntX:=UDINT;
+    PackRawBytes vgCmd, vgRaw \Network, 1 \IntX:=UDINT;
     PackRawBytes vgId, vgRaw \Network, 5 \IntX:=UDINT;
     PackRawBytes vgRecipe, vgRaw \Network, 9 \IntX:=UDINT;
     PackRawBytes 0, vgRaw \Network, 13 \IntX:=UDINT;
@@ -93,6 +108,7 @@ MODULE VgripdSocket
           UnpackRawBytes vgRaw \Network, 13, vgJob \IntX:=UDINT;
           UnpackRawBytes vgRaw \Network, 17, vgWarnings \IntX:=UDINT;
           UnpackRawBytes vgRaw \Network, 21, vgCount \IntX:=UDINT;
+          UnpackRawBytes vgRaw \Network, 61, vgRemaining \IntX:=UDINT;
           IF vgCount = 7 THEN
             UnpackRawBytes vgRaw \Network, 57, vgWord \IntX:=UDINT;
             IF vgWord <> VG_SCALE THEN

@@ -4,10 +4,11 @@
  *
  * The controller is the server here: vg_accept_task listens on VG_PORT and vgripd's
  * robot_socket link (mode = "client") dials in. The INFORM job VGLOCATE asks for a locate
- * through variables: I050 = 1 request, I051 = 1 done, I052 recipe, I053 status, D050 job id,
- * D051 warnings, D052..D057 the offset @@FIELDS@@ (@@CONVENTION@@) in position-variable units
- * (0.001 mm, 0.0001 deg; so VG_SCALE must be at least 10000), base frame. Frames:
- * docs/robot_socket.md.
+ * (VGNEXT: the next object of its pick list) through variables: I050 = 1 request, I051 = 1
+ * done, I052 recipe, I053 status, I054 = 1 next instead of locate, D050 job id, D051 warnings,
+ * D052..D057 the offset @@FIELDS@@ (@@CONVENTION@@) in position-variable units (0.001 mm,
+ * 0.0001 deg; so VG_SCALE must be at least 10000), base frame, D058 pick-list objects after
+ * this one. Frames: docs/robot_socket.md.
  */
 #include "motoPlus.h"
 
@@ -18,6 +19,7 @@
 #define VG_BUSY_TRIES @@BUSY_TRIES@@
 #define VG_ATTEMPTS @@ATTEMPTS@@
 #define VG_LOCATE @@LOCATE@@
+#define VG_NEXT @@NEXT@@
 #define VG_CAPTURED @@CAPTURED@@
 #define VG_RESULT @@RESULT@@
 #define VG_REFUSED @@REFUSED@@
@@ -56,8 +58,9 @@ static void vgDrop(void)
     }
 }
 
-/* One LOCATE request: the status of its final answer, or -1 when none came in time. */
-static LONG vgRequest(LONG vgRecipe)
+/* One request (VG_LOCATE or VG_NEXT): the status of its final answer, or -1 when none came
+ * in time. */
+static LONG vgRequest(LONG vgCmd, LONG vgRecipe)
 {
     LONG vgReq[4];
     int vgGot, vgN, vgI, vgWaited = 0;
@@ -68,7 +71,7 @@ static LONG vgRequest(LONG vgRecipe)
         mpTaskDelay(1);
         vgWaited += VG_TICK_MS;
     }
-    vgReq[0] = mpHtonl(VG_LOCATE);
+    vgReq[0] = mpHtonl(vgCmd);
     vgReq[1] = mpHtonl(vgId);
     vgReq[2] = mpHtonl(vgRecipe);
     vgReq[3] = 0;
@@ -92,6 +95,7 @@ static LONG vgRequest(LONG vgRecipe)
         if (vgW[1] == vgId && vgW[0] != VG_CAPTURED) {
             vgPut(MP_RESTYPE_VAR_D, VG_VAR, vgW[3]);
             vgPut(MP_RESTYPE_VAR_D, VG_VAR + 1, vgW[4]);
+            vgPut(MP_RESTYPE_VAR_D, VG_VAR + 8, vgW[15]);
             if (vgW[5] == 6) {
                 if (vgW[14] != VG_SCALE) {
                     return -2; /* vgripd sends another scale: generate the program again */
@@ -108,15 +112,15 @@ static LONG vgRequest(LONG vgRecipe)
     }
 }
 
-/* Ask vgripd for the offset; asks again after BUSY (40), gives up (-1) after VG_ATTEMPTS
+/* One request with retries: asks again after BUSY (40), gives up (-1) after VG_ATTEMPTS
  * requests in a row without an answer. */
-static LONG vgLocate(LONG vgRecipe)
+static LONG vgAsk(LONG vgCmd, LONG vgRecipe)
 {
     LONG vgStatus;
     int vgUnanswered = 0, vgBusy = 0;
     for (;;) {
         vgId = vgId >= 2147483646 ? 1 : vgId + 1;
-        vgStatus = vgRequest(vgRecipe);
+        vgStatus = vgRequest(vgCmd, vgRecipe);
         if (vgStatus == -2) {
             return -1;
         }
@@ -134,13 +138,18 @@ static LONG vgLocate(LONG vgRecipe)
     }
 }
 
-/* Serves the INFORM job: I050 = 1 starts a locate, I051 = 1 says it is done. */
+/* Serves the INFORM jobs: I050 = 1 starts a locate (I054 = 1: a next), I051 = 1 says it is
+ * done. */
 static void vg_job_task(void)
 {
     for (;;) {
         if (vgGet(MP_RESTYPE_VAR_I, VG_VAR) == 1 && vgGet(MP_RESTYPE_VAR_I, VG_VAR + 1) == 0) {
-            vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3,
-                  vgLocate(vgGet(MP_RESTYPE_VAR_I, VG_VAR + 2)));
+            if (vgGet(MP_RESTYPE_VAR_I, VG_VAR + 4) == 1) {
+                vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3, vgAsk(VG_NEXT, 0));
+            } else {
+                vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3,
+                      vgAsk(VG_LOCATE, vgGet(MP_RESTYPE_VAR_I, VG_VAR + 2)));
+            }
             vgPut(MP_RESTYPE_VAR_I, VG_VAR + 1, 1);
         }
         mpTaskDelay(2);

@@ -1,7 +1,8 @@
 """A pallet of plates walked as a pick list over every link, through the real daemon (worker
 process, vision pipeline, synthetic pallet camera): the mock PLC over Modbus/TCP, the real
-ur_rtde client against the mock UR controller, a robot program twin over the robot socket,
-snap7's server as an S7 PLC and the mock robot's Modbus registers (modbus_client).
+ur_rtde client against the mock UR controller, snap7's server as an S7 PLC, the mock robot's
+Modbus registers (modbus_client), and each brand's generated robot program (its twin) with its
+locate and next routines over the robot socket.
 
 Accuracy: each pose the peer read (vendor values decoded here with scipy, not vgripd's
 conventions) is turned back into the plate's pose and compared with the renderer's truth of
@@ -21,14 +22,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tests.integration.test_daemon import Run, make_config
-from tests.integration.test_robot_programs import free_port
+from tests.integration.test_robot_programs import cell, free_port
 from vgripd.cli.robot_program import render
 from vgripd.cli.status import format_status
 from vgripd.config import Config, config_from_dict
 from vgripd.geometry.transforms import pose_error
 from vgripd.service.daemon import Daemon
 from vgripd.service.protocol import Command, LinkState, Reg
-from vgripd.service.robot_socket_format import BRANDS
+from vgripd.service.robot_socket_format import BRANDS, Request, SocketCommand
 from vgripd.sim.plc import MockPlc
 from vgripd.sim.robot_modbus import MockRobotModbus
 from vgripd.sim.robot_socket_client import ProgramSettings, ProgramTwin
@@ -66,20 +67,28 @@ def T_ref(config: Config) -> np.ndarray:
 
 
 def offset_of(vendor: str, values: Sequence[float]) -> np.ndarray:
-    """The 4x4 offset (mm) of a published pose: KUKA X Y Z A B C (mm, deg; A about z, then B
-    about y, then C about x) or UR x y z rx ry rz (m, rotation vector)."""
+    """The 4x4 offset (mm) of a published pose, decoded with scipy from each convention's
+    definition: KUKA A B C intrinsic Z Y' X''; FANUC W P R and Yaskawa Rx Ry Rz about fixed
+    x y z; Staubli Rx Ry Rz intrinsic X Y' Z''; ABB q1..q4 = w x y z (mm, deg); UR x y z in m
+    and a rotation vector in rad."""
     T = np.eye(4)
-    if vendor == "kuka":
-        T[:3, :3] = Rotation.from_euler("ZYX", values[3:6], degrees=True).as_matrix()
-        T[:3, 3] = values[:3]
+    v = [float(x) for x in values]
+    if vendor == "ur":
+        T[:3, :3] = Rotation.from_rotvec(v[3:6]).as_matrix()
+        T[:3, 3] = np.array(v[:3]) * 1000.0
+        return T
+    if vendor == "abb":
+        rot = Rotation.from_quat([v[4], v[5], v[6], v[3]])  # scipy: scalar last
     else:
-        T[:3, :3] = Rotation.from_rotvec(values[3:6]).as_matrix()
-        T[:3, 3] = np.array(values[:3]) * 1000.0
+        seq = {"kuka": "ZYX", "fanuc": "xyz", "yaskawa": "xyz", "staubli": "XYZ"}[vendor]
+        rot = Rotation.from_euler(seq, v[3:6], degrees=True)
+    T[:3, :3] = rot.as_matrix()
+    T[:3, 3] = v[:3]
     return T
 
 
 def check_against_truth(config: Config, run: Run, vendor: str,
-                        walked: list[Sequence[float]]) -> None:
+                        walked: Sequence[Sequence[float]]) -> None:
     """``walked``: the poses the peer read, in order. Every truth plate exactly once, close."""
     pair, _ = run.jobs[0]
     assert pair is not None
@@ -221,29 +230,45 @@ async def test_ur_program_walks_the_pallet_with_next() -> None:
     check_against_truth(config, run, "ur", [r["offset"] for r in results])
 
 
-# --- robot socket: a KUKA program twin --------------------------------------------------------
+# --- robot socket: each brand's program twin ------------------------------------------------
 
 
-async def test_robot_socket_program_walks_the_pallet_with_next() -> None:
-    brand = BRANDS["kuka"]
-    config = pallet_config("kuka", [{"type": "robot_socket", "host": "127.0.0.1",
-                                     "port": free_port(), "value_format": brand.value_format,
-                                     "scale": 10000}])
-    texts = render(brand, config, source="pallet.toml")
-    async with running(config) as run:
-        port = run.daemon.links["robot_socket"].port  # type: ignore[attr-defined]
-        async with ProgramTwin(ProgramSettings.parse("kuka", texts), "127.0.0.1", port) as twin:
-            walk = [await twin.locate()]
-            assert walk[0].captured
-            while walk[-1].status in (1, 2):
-                walk.append(await twin.next())
+@pytest.mark.parametrize("brand", sorted(BRANDS))
+async def test_each_robot_program_walks_the_pallet_with_next(brand: str) -> None:
+    """The program's locate, then its next until NOT_FOUND, as its twin sends them (the NEXT
+    word read from the generated program), against the daemon with the synthetic pallet."""
+    port = free_port()
+    data = cell(brand, port)
+    data.update(camera=PALLET, picking=PICKING, limits=LIMITS)
+    config = config_from_dict(data)
+    settings = ProgramSettings.parse(brand, render(BRANDS[brand], config, source="pallet.toml"))
+    async with ProgramTwin(settings, "127.0.0.1", port) as twin, running(config) as run:
+        link = run.daemon.links["robot_socket"]
+        await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
+        walk = [await twin.locate()]
+        assert walk[0].captured
+        while walk[-1].status in (1, 2):
+            walk.append(await twin.next())
+        again = await twin.next()  # past the end it stays so
+        _, rec = await run.job_done(1)
     end = walk.pop()
-    assert (end.status, end.values, end.remaining, end.captured) == (
-        Status.NOT_FOUND, (), 0, False)
+    for o in (end, again):
+        assert (o.status, o.values, o.remaining, o.captured, o.job_id) == (
+            Status.NOT_FOUND, (), 0, False, 1)
     assert [o.remaining for o in walk] == list(range(PLATES - 1, -1, -1))
-    assert {o.job_id for o in walk} == {end.job_id} == {1}
+    assert {o.job_id for o in walk} == {1}
     assert not any(o.captured for o in walk[1:])  # no image for a NEXT
-    check_against_truth(config, run, "kuka", [o.values for o in walk])
+    assert len(run.jobs) == 1
+    # the bytes on the wire: the protocol's own LOCATE and NEXT frames, recipe 0, ids 1, 2, ...
+    assert twin.sent == [Request(SocketCommand.LOCATE, 1, 0).encode()] + [
+        Request(SocketCommand.NEXT, i, 0).encode() for i in range(2, PLATES + 3)]
+    # what the program decoded is the daemon's instance, in pick order, to its resolution
+    targets = [i.target.values for i in rec.result.instances if i.target is not None]
+    assert len(targets) == PLATES
+    for o, want in zip(walk, targets, strict=True):
+        tol = 0.5 / settings.scale + 1e-12 if settings.scale else 1e-6 * max(map(abs, want))
+        assert max(abs(a - b) for a, b in zip(o.values, want, strict=True)) <= tol
+    check_against_truth(config, run, BRANDS[brand].convention, [o.values for o in walk])
 
 
 # --- the client links: snap7's server as the PLC, the mock robot's Modbus registers ----------

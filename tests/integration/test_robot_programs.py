@@ -105,6 +105,7 @@ def test_cli_writes_each_brand_filled_in(tmp_path: Path, capsys: pytest.CaptureF
         assert settings.scale == (0 if b.value_format == "float32" else
                                   1000000 if brand == "ur" else 10000)
         assert settings.words["LOCATE"] == 0x56470101
+        assert settings.words["NEXT"] == 0x56470103
         assert settings.attempts == 3
     assert "docs/robots/ur.md" in capsys.readouterr().out
 

@@ -165,6 +165,7 @@ def program_values(brand: RobotBrand, config: Config, link: int | None, host: st
         "ATTEMPTS": str(ATTEMPTS),
         "LOCATE": str(header_word(SocketCommand.LOCATE)),
         "CLEAR": str(header_word(SocketCommand.CLEAR)),
+        "NEXT": str(header_word(SocketCommand.NEXT)),
         "CAPTURED": str(header_word(AnswerKind.CAPTURED)),
         "RESULT": str(header_word(AnswerKind.RESULT)),
         "REFUSED": str(header_word(AnswerKind.REFUSED)),

@@ -20,9 +20,10 @@ that ``vgripd robot-program`` wrote, and then does what the program does, step b
   ``VG_ATTEMPTS`` in a row stop (``ProgramStopped``: KRL HALT, RAPID Stop, Karel ABORT, URScript
   halt) or return -1 (VAL3 and the MotoPlus task, whose callers decide).
 
-``next()`` is what a program would do for a pick list's following object (command 3 NEXT,
-docs/robot_socket.md): the generated programs do not send it (yet), so its request word is the
-protocol's own, not read from a program text; the exchange is the program's ``vg_locate``.
+``next()`` is the program's ``vg_next`` (``vgNext``, VG_NEXT.ls, VGNEXT.JBI): the following
+object of the last locate's pick list (command 3 NEXT, docs/robot_socket.md), with the
+program's own NEXT word, recipe word 0 and the same retries, timeouts and BUSY handling as its
+locate (every program sends both through one request routine).
 """
 
 from __future__ import annotations
@@ -34,13 +35,7 @@ import struct
 import time
 from dataclasses import dataclass, field
 
-from vgripd.service.robot_socket_format import (
-    ANSWER_SIZE,
-    BRANDS,
-    RobotBrand,
-    SocketCommand,
-    header_word,
-)
+from vgripd.service.robot_socket_format import ANSWER_SIZE, BRANDS, RobotBrand
 
 NO_ANSWER = -1
 BUSY = 40
@@ -69,7 +64,7 @@ class ProgramSettings:
     busy_wait_s: float
     busy_tries: int
     attempts: int
-    words: dict[str, int]  # LOCATE, CAPTURED, RESULT, REFUSED
+    words: dict[str, int]  # LOCATE, NEXT, CAPTURED, RESULT, REFUSED
 
     @classmethod
     def parse(cls, brand: str | RobotBrand, texts: dict[str, str]) -> ProgramSettings:
@@ -94,8 +89,8 @@ class ProgramSettings:
         connect_default = (int(connect_ms.group(1)) / 1000 if connect_ms
                            else 2.0 if b.name == "ur" else DEFAULT_CONNECT_TIMEOUT_S)
         try:
-            words = {k: int(values[f"VG_{k}"]) for k in ("LOCATE", "CAPTURED", "RESULT",
-                                                        "REFUSED")}
+            words = {k: int(values[f"VG_{k}"]) for k in ("LOCATE", "NEXT", "CAPTURED",
+                                                        "RESULT", "REFUSED")}
             return cls(b, values["VG_SCALE"], seconds("VG_TIMEOUT"),
                        seconds("VG_CONNECT_TIMEOUT", connect_default), seconds("VG_BUSY_WAIT"),
                        int(values["VG_BUSY_TRIES"]), int(values["VG_ATTEMPTS"]), words)
@@ -155,9 +150,9 @@ class ProgramTwin:
         return await self._ask(self.s.words["LOCATE"], recipe)
 
     async def next(self) -> Outcome:
-        """The following object of the last locate's pick list (command 3 NEXT), asked and
-        retried as the program's ``vg_locate`` does."""
-        return await self._ask(header_word(SocketCommand.NEXT), 0)
+        """``vg_next()`` of the program: the following object of the last locate's pick list
+        (its NEXT word, recipe 0), asked and retried as its locate is."""
+        return await self._ask(self.s.words["NEXT"], 0)
 
     async def _ask(self, command_word: int, recipe: int) -> Outcome:
         unanswered = busy = 0
