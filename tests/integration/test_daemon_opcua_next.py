@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
@@ -21,15 +20,15 @@ from tests.conftest import need
 from tests.integration.test_daemon import Plc, Run
 from tests.integration.test_daemon_picklinks import (
     PLATES,
+    GatedPipeline,
     check_against_truth,
     pallet_config,
     running,
 )
-from vgripd.config import Config
 from vgripd.service.daemon import Daemon
 from vgripd.service.protocol import LinkState, Reg
 from vgripd.sim.opcua_client import OpcUaClientProcess
-from vgripd.types import ImagePair, JobResult, Status
+from vgripd.types import Status
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -103,22 +102,6 @@ async def test_opcua_client_walks_the_pallet_with_next() -> None:
     assert snap["next_answers"] == {"OK": PLATES - 1, "NOT_FOUND": 2}
     assert read == {"Count": str(PLATES), "Index": str(PLATES + 1), "PickId": "0",
                     "Score": "-1.0", "Status": str(int(Status.NOT_FOUND)), "JobId": "1"}
-
-
-class GatedPipeline:
-    """The real pipeline, behind a gate the test closes to keep a job running as long as it
-    needs (no timed wait)."""
-
-    def __init__(self, config: Config) -> None:
-        from vgripd.vision.pipeline import Pipeline
-
-        self.pipeline = Pipeline(config)
-        self.gate = threading.Event()
-        self.gate.set()
-
-    def process(self, pair: ImagePair, job_id: int) -> JobResult:
-        self.gate.wait(60)
-        return self.pipeline.process(pair, job_id)
 
 
 async def test_opcua_next_refusals_never_show_a_stale_pose() -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import struct
+import threading
 from collections.abc import AsyncIterator, Sequence
 from typing import Any
 
@@ -35,7 +36,7 @@ from vgripd.sim.robot_modbus import MockRobotModbus
 from vgripd.sim.robot_socket_client import ProgramSettings, ProgramTwin
 from vgripd.sim.s7_plc import MockS7Plc, S7PlcServer, words_of
 from vgripd.sim.ur_controller import URController
-from vgripd.types import Status
+from vgripd.types import ImagePair, JobResult, Status
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -104,6 +105,22 @@ def check_against_truth(config: Config, run: Run, vendor: str,
         assert dt < 0.5, (k, dt)
         assert dr < 0.5, (k, dr)
     assert seen == set(range(PLATES))
+
+
+class GatedPipeline:
+    """The real pipeline, behind a gate the test closes to keep a job running as long as it
+    needs (no timed wait)."""
+
+    def __init__(self, config: Config) -> None:
+        from vgripd.vision.pipeline import Pipeline
+
+        self.pipeline = Pipeline(config)
+        self.gate = threading.Event()
+        self.gate.set()
+
+    def process(self, pair: ImagePair, job_id: int) -> JobResult:
+        self.gate.wait(60)
+        return self.pipeline.process(pair, job_id)
 
 
 @contextlib.asynccontextmanager
@@ -269,6 +286,47 @@ async def test_each_robot_program_walks_the_pallet_with_next(brand: str) -> None
         tol = 0.5 / settings.scale + 1e-12 if settings.scale else 1e-6 * max(map(abs, want))
         assert max(abs(a - b) for a, b in zip(o.values, want, strict=True)) <= tol
     check_against_truth(config, run, BRANDS[brand].convention, [o.values for o in walk])
+
+
+@pytest.mark.parametrize("brand", ["kuka", "ur"])  # a kept connection, one per request
+async def test_a_programs_next_waits_out_busy_and_never_gets_a_stale_pose(brand: str) -> None:
+    """NEXT while a PLC's job runs is BUSY; the program asks again as its locate does, and
+    since that job took the list the answer is BAD_REQUEST (32) without a pose: locate again."""
+    port = free_port()
+    data = cell(brand, port)
+    data.update(camera=PALLET, picking=PICKING, limits=LIMITS)
+    data["links"].append({"type": "modbus_server", "host": "127.0.0.1", "port": 0})
+    config = config_from_dict(data)
+    settings = ProgramSettings.parse(brand, render(BRANDS[brand], config, source="pallet.toml"))
+    gated = GatedPipeline(config)
+    daemon = Daemon(config, pipeline=gated)
+    run = Run(daemon)
+    await daemon.start()
+    try:
+        async with ProgramTwin(settings, "127.0.0.1", port) as twin, \
+                MockPlc("127.0.0.1", run.port(1), poll_s=0.005) as plc:
+            await run.daemon.wait_for(lambda: all(
+                link.health().state is LinkState.UP for link in daemon.links.values()), WAIT_S)
+            no_list = await twin.next()  # nothing located yet: refused at once, no retry
+            assert (await twin.locate()).remaining == PLATES - 1
+            gated.gate.clear()
+            seq = await plc.trigger()
+            await run.busy()
+            after_busy = await twin.next()
+            gated.gate.set()
+            assert (await plc.wait_answer(seq)).status is Status.OK
+            again = await twin.locate()  # a new list of the robot's own
+            second = await twin.next()
+    finally:
+        gated.gate.set()
+        await daemon.stop()
+    assert (no_list.status, no_list.values, no_list.request_ids) == (Status.BAD_REQUEST, (), [1])
+    assert (after_busy.status, after_busy.values, after_busy.job_id) == (
+        Status.BAD_REQUEST, (), 0)
+    assert after_busy.request_ids == [3, 4]  # BUSY, waited, asked again with a new id
+    assert daemon.snapshot()["refusals"]["BUSY"] == 1
+    assert (again.job_id, second.job_id, second.remaining) == (3, 3, PLATES - 2)
+    assert second.status == Status.OK
 
 
 # --- the client links: snap7's server as the PLC, the mock robot's Modbus registers ----------
