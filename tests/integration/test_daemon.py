@@ -343,3 +343,29 @@ async def test_without_calibration_every_job_answers_not_calibrated(tmp_path: Pa
         assert (await reader.read()).startswith(b"HTTP/1.0 404")
         writer.close()
         await writer.wait_closed()
+
+
+async def test_out_of_files_on_accept_is_one_line_without_traceback(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """asyncio reports an accept() that hits the file limit (a connection flood) through the
+    loop's error handler, by default with a traceback per accept. The daemon writes one line
+    per 10 s instead, and still hands every other loop error to asyncio's default handler."""
+    import errno
+
+    async with running(make_config()) as run:
+        loop = asyncio.get_running_loop()
+        emfile = {"message": "socket.accept() out of system resource",
+                  "exception": OSError(errno.EMFILE, "Too many open files")}
+        with caplog.at_level("WARNING"):
+            for _ in range(50):
+                loop.call_exception_handler(dict(emfile))
+            loop.call_exception_handler({"message": "something else broke",
+                                         "exception": ValueError("not a resource error")})
+        lines = [r for r in caplog.records if "out of system resource" in r.getMessage()]
+        assert len(lines) == 1, [r.getMessage() for r in lines]
+        assert "EMFILE" in lines[0].getMessage()
+        assert lines[0].exc_info is None
+        others = [r for r in caplog.records if "something else broke" in r.getMessage()]
+        assert len(others) == 1
+        assert others[0].exc_info is not None  # asyncio's default handler, traceback kept
+        assert run.daemon.run_state.name == "RUNNING"

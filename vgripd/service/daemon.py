@@ -64,6 +64,7 @@ import asyncio
 import contextlib
 import dataclasses
 import enum
+import errno
 import logging
 import os
 import sys
@@ -88,6 +89,7 @@ from vgripd.service.protocol import (
     pick_position,
     pickable_count,
 )
+from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.recorder import Recorder
 from vgripd.service.sdnotify import Notifier, watchdog_interval_s
 from vgripd.service.web import WEB_LINK, WebServer, WebTriggerLink
@@ -311,6 +313,7 @@ class Daemon:
         self.epipolar = EpipolarMonitor(d.recalibrate_window, d.recalibrate_share,
                                         d.recalibrate_min_jobs, config.vision.epipolar_warn_px)
 
+        self._resource_log = RateLimitedLog(log, interval_s=10.0)
         self._job_seq = 0
         self._job: tuple[int, Trigger, asyncio.Task[None]] | None = None
         self._job_started_ns = 0
@@ -347,6 +350,7 @@ class Daemon:
         """Open everything; READY=1 once the links serve. Raises (after cleanup) on failure."""
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
+        self._loop.set_exception_handler(self._loop_exception)
         self._t_start_ns = time.monotonic_ns()
         self._set_run_state(RunState.STARTING)
         self._executor = ThreadPoolExecutor(1, thread_name_prefix="vgripd-job")
@@ -378,6 +382,23 @@ class Daemon:
         self._set_run_state(RunState.RUNNING)
         self.notifier.ready(self.status_line())
         log.info("ready: %s", self.status_line())
+
+    #: Errors of a server's accept() that mean "out of file descriptors or memory": asyncio
+    #: pauses accepting for a second and tries again; nothing is broken in vgripd.
+    _RESOURCE_ERRNOS = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
+
+    def _loop_exception(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        """The event loop's error handler: a connection flood that exhausts the file limit
+        (asyncio's "socket.accept() out of system resource") is one rate-limited line, not a
+        traceback per accept; everything else goes to asyncio's default handler."""
+        exc = context.get("exception")
+        if isinstance(exc, OSError) and exc.errno in self._RESOURCE_ERRNOS:
+            self._resource_log.warning(
+                "*", "accept", "%s (%s): new connections wait (docs/registers.md, \"Connections\")",
+                context.get("message", "out of system resource"), errno.errorcode.get(
+                    exc.errno or 0, exc.errno))
+            return
+        loop.default_exception_handler(context)
 
     def request_stop(self) -> None:
         """Ask ``serve()`` to stop (signal handlers call this; also before start finished)."""
@@ -441,6 +462,9 @@ class Daemon:
             self._executor.shutdown(wait=True, cancel_futures=True)
             self._executor = None
         self.notifier.close()
+        self._resource_log.flush(force=True)
+        if self._loop is not None and self._loop.get_exception_handler() == self._loop_exception:
+            self._loop.set_exception_handler(None)  # the loop may outlive this daemon
         self._set_run_state(RunState.STOPPED)
         log.info("stopped")
 

@@ -343,11 +343,11 @@ async def test_a_worker_that_cannot_start_is_retried_with_back_off() -> None:
     try:
         with pytest.raises(WorkerError, match="failed to start: AttributeError.*NoSuchPipeline"):
             await client.wait_ready()
-        # Meanwhile requests fail at once, naming the reason and the next try.
-        t0 = time.monotonic()
+        # Meanwhile requests fail at once, naming the reason and the next try: one worker
+        # has died so far (a request that waited for the next start would see it die too).
         with pytest.raises(WorkerError, match="NoSuchPipeline.*next start in"):
             await client.wait_ready()
-        assert time.monotonic() - t0 < 0.5
+        assert client.restarts == 1
     finally:
         await client.close()
     assert segments_of(client.prefix) == []
