@@ -159,6 +159,14 @@ class VisionConfig(Model):
     # disagreeing (a camera moved since calibration).
     rig_deviation_mm: float = Field(default=3.0, gt=0)
     rig_deviation_deg: float = Field(default=0.5, gt=0)
+    # Several views per job for one robot-mounted camera (docs/multicamera.md, "Several
+    # views per job"): the robot takes ``views`` images from as many poses (CAPTURE 1..N),
+    # the last one runs one fit over all. ``view_poses``: the taught flange pose of each view,
+    # for links that cannot report the robot's pose (Modbus); ``view_timeout_s``: the longest
+    # wait for the next view before the job ends CAMERA_ERROR.
+    views: int = Field(default=1, ge=1, le=8)
+    view_poses: tuple[PoseConfig, ...] = ()
+    view_timeout_s: float = Field(default=30.0, gt=0, le=3600)
 
     @model_validator(mode="after")
     def _ranges(self) -> VisionConfig:
@@ -169,6 +177,9 @@ class VisionConfig(Model):
             )
         if self.epipolar_warn_px > self.epipolar_tolerance_px:
             raise ValueError("epipolar_warn_px must not exceed epipolar_tolerance_px")
+        if self.view_poses and len(self.view_poses) != self.views:
+            raise ValueError(f"view_poses has {len(self.view_poses)} poses for views = "
+                             f"{self.views}: give one flange pose per view, or none")
         return self
 
 
@@ -805,6 +816,25 @@ class Config(Model):
                     f"reference.points_mm must name every feature of object {self.object.name!r}"
                     f" exactly once: missing {missing}, unknown {unknown}"
                 )
+        return self
+
+    @model_validator(mode="after")
+    def _views_need_one_robot_camera(self) -> Config:
+        """``vision.views`` > 1 is one robot-mounted camera moved through the views."""
+        if self.vision.views == 1:
+            return self
+        cal = self.calibration
+        why = ("no [calibration]" if cal is None else
+               "calibration.cameras is set (a multi-camera cell takes its views at once)"
+               if cal.cameras is not None else
+               "calibration.right is set (one camera only)" if cal.right is not None else
+               'calibration.hand_eye.mounting is "fixed" (the camera must ride on the robot)'
+               if cal.hand_eye.mounting != "robot" else
+               "picking.max_objects > 1 (pick lists take one view)"
+               if self.picking.max_objects > 1 else "")
+        if why:
+            raise ValueError(f"vision.views = {self.vision.views} needs one robot-mounted "
+                             f"camera: {why}")
         return self
 
     @model_validator(mode="after")

@@ -72,6 +72,19 @@ class Status(IntEnum):
 
 
 @dataclass(frozen=True)
+class CaptureView:
+    """Which view of a several-view job an acquisition is (``vision.views``; the daemon hands
+    it to the camera driver's ``grab``). ``index`` is 1-based of ``count``; ``T_base_flange``
+    is the flange pose of the view (mm; the robot's own, or the taught ``vision.view_poses``),
+    None when neither is known. Real cameras ignore it (the robot has moved them there); the
+    synthetic camera renders from it and keeps the object still over the views of a job."""
+
+    index: int
+    count: int
+    T_base_flange: FloatArray | None = None
+
+
+@dataclass(frozen=True)
 class ImagePair:
     """One acquisition: a stereo pair, a single image (``right is None``), or the images of
     all N cameras of a multi-camera cell (``views``).
@@ -81,7 +94,9 @@ class ImagePair:
     ``(left,)`` or ``(left, right)``, and ``left`` / ``right`` are always ``views[0]`` /
     ``views[1]``, so code written for one or two cameras keeps working. Build an N-camera
     acquisition with :meth:`of_views`.
-    ``T_base_flange`` is the robot flange pose at capture (mm) for robot-mounted cameras.
+    ``T_base_flange`` is the robot flange pose at capture (mm) for robot-mounted cameras;
+    for the N views of one robot-mounted camera (``vision.views``) a (N, 4, 4) stack, one
+    flange pose per image.
     ``truth`` carries ground truth from the synthetic driver (e.g. ``{"T_cam_obj": 4x4}``).
     """
 

@@ -31,7 +31,7 @@ from pydantic import BaseModel, ConfigDict
 
 from vgripd.config import Config
 from vgripd.errors import CameraError
-from vgripd.types import ImagePair
+from vgripd.types import CaptureView, ImagePair
 
 R = TypeVar("R")
 
@@ -115,6 +115,8 @@ class CameraDriver(ABC):
     def __init__(self, options: Any, config: Config) -> None:
         self.options = options
         self.config = config
+        #: The view of a several-view job being grabbed (``grab``'s ``view``), or None.
+        self.view: CaptureView | None = None
         self._executor: DriverThread | None = None
         self._helpers: concurrent.futures.ThreadPoolExecutor | None = None
 
@@ -130,10 +132,14 @@ class CameraDriver(ABC):
             await self.close()
             raise
 
-    async def grab(self, timeout_s: float) -> ImagePair:
-        """Acquire one image pair (or single image); ``CameraError`` after ``timeout_s``."""
+    async def grab(self, timeout_s: float, view: CaptureView | None = None) -> ImagePair:
+        """Acquire one image pair (or single image); ``CameraError`` after ``timeout_s``.
+
+        ``view``: the view of a several-view job this image is (``self.view`` while the
+        blocking hook runs); drivers of real cameras ignore it."""
         if timeout_s <= 0:
             raise CameraError(f"{self.type_name}: grab timeout must be > 0 s, got {timeout_s}")
+        self.view = view
         try:
             return await asyncio.wait_for(self._run(self._grab_blocking, timeout_s), timeout_s)
         except TimeoutError:

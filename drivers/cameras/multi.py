@@ -30,7 +30,7 @@ from pydantic import Field
 from drivers.cameras.base import CameraDriver, DriverOptions
 from vgripd.config import MAX_CAMERAS, Config, DriverSection
 from vgripd.errors import CameraError, ConfigError
-from vgripd.types import ImagePair
+from vgripd.types import CaptureView, ImagePair
 
 
 class MultiOptions(DriverOptions):
@@ -79,10 +79,10 @@ class MultiCamera(CameraDriver):
                 await driver.close()
             raise
 
-    async def grab(self, timeout_s: float) -> ImagePair:
+    async def grab(self, timeout_s: float, view: CaptureView | None = None) -> ImagePair:
         if timeout_s <= 0:
             raise CameraError(f"multi: grab timeout must be > 0 s, got {timeout_s}")
-        results = await asyncio.gather(*(d.grab(timeout_s) for d in self.drivers),
+        results = await asyncio.gather(*(d.grab(timeout_s, view) for d in self.drivers),
                                        return_exceptions=True)
         for i, result in enumerate(results):
             if isinstance(result, BaseException):

@@ -71,7 +71,7 @@ from vgripd.config import CircleFeature, Config, Model, PoseConfig
 from vgripd.errors import CameraError, ConfigError, VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
-from vgripd.types import FloatArray, ImagePair
+from vgripd.types import CaptureView, FloatArray, ImagePair
 from vgripd.vision import scene
 
 #: Vertices of the projected rim; the polygon is within 1e-3 px of the curve for 30 px marks.
@@ -234,7 +234,11 @@ class SyntheticCamera(CameraDriver):
             self._T_right_left = scene.T_right_left(self.config)
             flange = self.options.flange_pose
             self._T_base_flange = scene.matrix_from_pose(flange) if flange is not None else None
-            self._T_base_camera = scene.T_base_camera(self.config, self._T_base_flange)
+            # Several views per job: each grab renders from the flange pose of its view.
+            self._view_poses: list[FloatArray] | None = None
+            self._T_base_camera: FloatArray | None = None
+            if self.config.vision.views == 1 or self._T_base_flange is not None:
+                self._T_base_camera = scene.T_base_camera(self.config, self._T_base_flange)
         except VgripError as err:
             raise CameraError(f"synthetic: cannot set up the scene: {err}") from None
         # Random poses and pallets lie around the taught reference; fixed poses need none.
@@ -318,9 +322,14 @@ class SyntheticCamera(CameraDriver):
         return poses
 
     def _grab_blocking(self, timeout_s: float) -> ImagePair:
+        if self.view is not None:
+            return self._grab_view(self.view)
         poses = self.next_poses()
         if self._multi is not None:
             return self._grab_views(poses, *self._multi)
+        if self._T_base_camera is None:
+            raise CameraError(f"synthetic: vision.views = {self.config.vision.views}: a grab "
+                              "needs its view's flange pose (or the flange_pose option)")
         inv_base_camera = np.linalg.inv(self._T_base_camera)
         T_cam = [inv_base_camera @ T for T in poses]
         cams: list[tuple[str, CameraModel, list[FloatArray]]] = [("left", self._left, T_cam)]
@@ -350,6 +359,37 @@ class SyntheticCamera(CameraDriver):
             T_base_flange=self._T_base_flange,
             truth=truth,
         )
+
+    def _grab_view(self, view: CaptureView) -> ImagePair:
+        """View ``view.index`` of a several-view job: the camera at the view's flange pose
+        (else ``flange_pose``). The object is placed anew at view 1 and stays put for the
+        job's other views, as on a real cell; marks outside the view are not drawn."""
+        flange = view.T_base_flange if view.T_base_flange is not None else self._T_base_flange
+        if flange is None:
+            raise CameraError(f"synthetic: view {view.index} of {view.count}: no flange pose "
+                              "to render from (none came with the request and no flange_pose)")
+        if view.index == 1 or self._view_poses is None:
+            self._view_poses = self.next_poses()
+        poses = self._view_poses
+        try:
+            T_base_camera = scene.T_base_camera(self.config, flange)
+        except VgripError as err:
+            raise CameraError(f"synthetic: view {view.index}: {err}") from None
+        inv_base_camera = np.linalg.inv(T_base_camera)
+        T_cam = [inv_base_camera @ T for T in poses]
+        image, centres, blobs = self._render(self._left, T_cam, f"view{view.index}",
+                                             cull=True)
+        truth: dict[str, Any] = {
+            "T_base_obj": poses[0], "T_cam_obj": T_cam[0],
+            "feature_names": tuple(f.name for f in self._circles),
+            "dropped": tuple(f.name for f in self._circles if f.name in self._drop[0]),
+            "pixels_left": centres, "pixels_right": None, "extra_blobs_px": blobs,
+            "view": view.index,
+        }
+        return ImagePair(left=image, right=None, t_mono_ns=time.monotonic_ns(),
+                         source="synthetic", meta={"seed": self.options.seed,
+                                                   "view": view.index},
+                         T_base_flange=np.asarray(flange, dtype=np.float64), truth=truth)
 
     def _instances_truth(self, poses: list[FloatArray]) -> dict[str, Any]:
         """Truth entries of a frame with several instances (none for a single object)."""

@@ -150,6 +150,10 @@ class MirrorClientLink(RobotLink, Generic[C]):
         self.bank.captured(seq, job_id)
         await self._flushed()
 
+    async def view_captured(self, seq: int, job_id: int) -> None:
+        self.bank.view_captured(seq, job_id)
+        await self._flushed()
+
     async def publish(self, seq: int, result: JobResult) -> Status:
         """Publish into the mirror, then wait until the peer has it; returns the status the
         peer got.
@@ -309,7 +313,8 @@ class MirrorClientLink(RobotLink, Generic[C]):
         if decision.action is Action.START:
             assert self._on_trigger is not None
             trigger = Trigger(link=self.name, seq=decision.seq, command=decision.command,
-                              t_mono_ns=time.monotonic_ns(), recipe=decision.recipe)
+                              t_mono_ns=time.monotonic_ns(), recipe=decision.recipe,
+                              view=decision.view)
             asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
         elif decision.action is Action.REJECT:
             self._log.info("%s: request %d refused: %s", self.name, decision.seq,

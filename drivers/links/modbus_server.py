@@ -214,6 +214,9 @@ class RegisterServerLink(RobotLink):
     async def image_captured(self, seq: int, job_id: int) -> None:
         self.bank.captured(seq, job_id)
 
+    async def view_captured(self, seq: int, job_id: int) -> None:
+        self.bank.view_captured(seq, job_id)
+
     async def publish(self, seq: int, result: JobResult) -> Status:
         published = self.bank.publish(seq, result, time.monotonic_ns())
         if published.status is not result.status:
@@ -227,13 +230,13 @@ class RegisterServerLink(RobotLink):
     async def set_warnings(self, bits: int) -> None:
         self.bank.set_warnings(bits)
 
-    def dispatch(self, seq: int, command: int, recipe: int) -> None:
+    def dispatch(self, seq: int, command: int, recipe: int, view: int = 0) -> None:
         """Hand a new job to the daemon, outside the Modbus request that triggered it (an error
         in the handler must not become a Modbus exception response)."""
         assert self._loop is not None
         assert self._on_trigger is not None
         trigger = Trigger(link=self.name, seq=seq, command=command,
-                          t_mono_ns=time.monotonic_ns(), recipe=recipe)
+                          t_mono_ns=time.monotonic_ns(), recipe=recipe, view=view)
         self._loop.call_soon(self._on_trigger, trigger)
 
     # --- requests -----------------------------------------------------------------------
@@ -270,7 +273,7 @@ class RegisterServerLink(RobotLink):
         except RegisterAccessError as err:
             raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
         if decision.action is Action.START:
-            self.dispatch(decision.seq, decision.command, decision.recipe)
+            self.dispatch(decision.seq, decision.command, decision.recipe, decision.view)
         elif decision.action is Action.REJECT:
             self.ratelog.info(client, "handshake", "%s: %s: request %d refused: %s", self.name,
                               client, decision.seq, decision.code.name)

@@ -50,6 +50,19 @@ Life of a job (``JobState``)::
   nothing. An unknown number ends its job with ``BAD_REQUEST`` before any image is taken; a
   recipe that is not calibrated or taught answers ``NOT_CALIBRATED`` for its own jobs only.
   The recipe of the running or last job is the active one (``snapshot()["recipe"]``).
+- Several views per job (``vision.views`` = N > 1, docs/multicamera.md "Several views per
+  job"): one robot-mounted camera, moved by the robot through N poses. Each view is a request
+  of its own (``Command.CAPTURE``, ``Trigger.view`` = 1..N) and an acquisition run like a job
+  (BUSY for others meanwhile), with the view's flange pose (the robot's, else the taught
+  ``vision.view_poses``) handed to the camera. Views 1..N-1 are answered ``view_captured`` (the
+  robot moves on); the last view's request runs one fit over the N images (each with its own
+  flange pose) and gets the job's result. Between views a ``ViewJob`` holds the images. The
+  job ends, answered to the request that ended it, with one status: ``BAD_REQUEST`` for a
+  view out of order or repeated, or a TRIGGER of the same link in the middle;
+  ``NOT_CALIBRATED`` for a view without a flange pose; ``CAMERA_ERROR`` for a failed grab or,
+  answered under the last view taken, no next view within ``vision.view_timeout_s``. A view
+  k > 1 without a job (after any of these) is refused ``BAD_REQUEST``: start again at view 1.
+  So the images of an unfinished job never reach a fit, and no pose mixes two jobs.
 - Shutdown (SIGTERM/SIGINT) aborts the job in flight (unless it is already publishing), so the
   PLC gets ``ABORTED`` for its trigger at once instead of waiting; the links stay up for
   ``ABORT_LINGER_S`` so a polling PLC can read it, then links, the camera, the recorder and the
@@ -94,7 +107,7 @@ from vgripd.service.recorder import Recorder
 from vgripd.service.sdnotify import Notifier, watchdog_interval_s
 from vgripd.service.web import WEB_LINK, WebServer, WebTriggerLink
 from vgripd.service.worker import DEFAULT_PROCESSOR, WorkerClient, WorkerError, WorkerRecorder
-from vgripd.types import ImagePair, JobResult, Status
+from vgripd.types import CaptureView, ImagePair, JobResult, Status
 
 log = logging.getLogger("vgripd")
 
@@ -176,6 +189,54 @@ class PickCursor:
         return pickable_count(self.result)
 
 
+@dataclasses.dataclass
+class ViewJob:
+    """A several-view job between its views (``vision.views``).
+
+    ``pairs``: the images taken so far, one per view in order; ``last``: the trigger of the
+    last view taken (its request is the one a timeout is answered under); ``first_ns``: view
+    1's trigger time (the job's cycle time counts from it); ``timer``: the wait for the next
+    view (``vision.view_timeout_s``).
+    """
+
+    job_id: int
+    link: str
+    recipe: int
+    count: int
+    first_ns: int
+    taught: tuple[np.ndarray, ...] = ()
+    pairs: list[ImagePair] = dataclasses.field(default_factory=list)
+    last: Trigger | None = None
+    timer: asyncio.TimerHandle | None = None
+
+    @property
+    def next_view(self) -> int:
+        return len(self.pairs) + 1
+
+    def flange(self, trigger: Trigger) -> np.ndarray | None:
+        """The flange pose of the view ``trigger`` asks for: the robot's, else the taught."""
+        if trigger.T_base_flange is not None:
+            return np.asarray(trigger.T_base_flange, dtype=np.float64)
+        return self.taught[trigger.view - 1] if self.taught else None
+
+    def ending(self, trigger: Trigger) -> Trigger:
+        """``trigger`` (the request that ends the job) as the job's: its sequence, the job's
+        recipe and view 1's time."""
+        return dataclasses.replace(trigger, recipe=self.recipe, t_mono_ns=self.first_ns)
+
+    def combined(self) -> ImagePair:
+        """The N views as one acquisition: images in view order, an (N, 4, 4) stack of their
+        flange poses (``scene.views_config`` makes each view a camera of its own)."""
+        first = self.pairs[0]
+        flanges = [p.T_base_flange for p in self.pairs]
+        assert all(f is not None for f in flanges)  # _acquire_view refused the view otherwise
+        return ImagePair.of_views(
+            [p.left for p in self.pairs], first.t_mono_ns, source=first.source,
+            meta={"views": [dict(p.meta) for p in self.pairs]},
+            T_base_flange=np.stack([np.asarray(f, dtype=np.float64) for f in flanges]),
+            truth=dict(first.truth))
+
+
 class EpipolarMonitor:
     """How often recent stereo jobs exceeded the epipolar warning level (the RECALIBRATE
     warning). Jobs without an ``epipolar_px`` residual (mono, no pose) are not counted.
@@ -229,6 +290,13 @@ def configure_logging(level: str = "INFO") -> None:
 def _link_names(config: Config) -> list[str]:
     types = [s.type for s in config.links]
     return [t if types.count(t) == 1 else f"{t}.{i}" for i, t in enumerate(types)]
+
+
+def scene_pose(pose: Any) -> np.ndarray:
+    """A config pose as a (4, 4) transform (the vision scene's reading of it)."""
+    from vgripd.vision.scene import matrix_from_pose  # heavy (OpenCV); only jobs need it
+
+    return matrix_from_pose(pose)
 
 
 def _make_pipeline(config: Config) -> Processor:
@@ -308,6 +376,8 @@ class Daemon:
         self.last_job: JobRecord | None = None
         #: The last job's pick list (None: no job yet, a job running, or nothing pickable).
         self.pick_list: PickCursor | None = None
+        #: A several-view job between two of its views (None otherwise).
+        self.views: ViewJob | None = None
         self.next_answers: Counter[str] = Counter()  # NEXT answers, by the status told
         d = config.daemon
         self.epipolar = EpipolarMonitor(d.recalibrate_window, d.recalibrate_share,
@@ -434,6 +504,13 @@ class Daemon:
                 await task
             if aborting and self.links:
                 await asyncio.sleep(ABORT_LINGER_S)
+        elif self.views is not None and self.views.last is not None:  # between two views
+            views, last = self.views, self.views.last
+            await self._finish(views.ending(last), views.job_id, None, self._failure(
+                views.job_id, Status.ABORTED, f"aborted by shutdown after view "
+                f"{views.next_view - 1} of {views.count}"))
+            if self.links:
+                await asyncio.sleep(ABORT_LINGER_S)
         for task in list(self._tasks):
             task.cancel()
         for task in list(self._tasks):
@@ -512,6 +589,105 @@ class Daemon:
         if trigger.command == Command.NEXT:
             self._next(trigger)
             return
+        if trigger.command == Command.CAPTURE or self._views_of(trigger.recipe) > 1:
+            self._capture(trigger)
+            return
+        self._start(trigger)
+
+    def _views_of(self, recipe: int) -> int:
+        """``vision.views`` of ``recipe`` (1 for a recipe not configured: its job answers
+        BAD_REQUEST the usual way)."""
+        if recipe not in self.config.recipe_numbers():
+            return 1
+        return self.config.for_recipe(recipe).vision.views
+
+    def _capture(self, trigger: Trigger) -> None:
+        """A CAPTURE (or a TRIGGER in a cell of several views): start, continue or end the
+        several-view job (the module docstring has the rules)."""
+        views = self.views
+        if trigger.command != Command.CAPTURE:
+            why = (f"recipe {self.recipe_label(trigger.recipe)} takes "
+                   f"{self._views_of(trigger.recipe)} views per job: CAPTURE views 1..N "
+                   "(CMD = view * 256 + 4), not TRIGGER")
+            if views is not None and views.link == trigger.link:
+                self._end_views(trigger, why)
+            else:
+                self._spawn(self._refuse(trigger, Status.BAD_REQUEST, why))
+            return
+        if views is not None and views.link != trigger.link:
+            self._spawn(self._refuse(trigger, Status.BUSY, f"link {views.link}'s views job "
+                                     f"{views.job_id} is at view {views.next_view - 1}"))
+            return
+        if views is None:
+            if trigger.recipe not in self.config.recipe_numbers():
+                self._start(trigger)  # answered BAD_REQUEST like any job's unknown recipe
+                return
+            count = self._views_of(trigger.recipe)
+            why = ("" if trigger.view == 1 and count > 1 else
+                   f"recipe {self.recipe_label(trigger.recipe)} takes one view per job: "
+                   "TRIGGER, not CAPTURE" if count == 1 else
+                   f"no views job running: CAPTURE view 1 first, not view {trigger.view}")
+            if why:
+                log.warning("CAPTURE seq %d from %s refused: BAD_REQUEST (%s)", trigger.seq,
+                            trigger.link, why)
+                self._spawn(self._refuse(trigger, Status.BAD_REQUEST, why))
+                return
+            vision = self.config.for_recipe(trigger.recipe).vision
+            self._job_seq += 1
+            self.pick_list = None
+            self.views = ViewJob(self._job_seq, trigger.link, trigger.recipe, count,
+                                 trigger.t_mono_ns,
+                                 tuple(scene_pose(p) for p in vision.view_poses))
+            if trigger.recipe in self.config.recipe_numbers():
+                self.active_recipe = trigger.recipe
+        elif trigger.view != views.next_view:
+            what = "repeated" if trigger.view < views.next_view else "out of order"
+            self._end_views(trigger, f"view {trigger.view} {what}: view {views.next_view} "
+                            f"of {views.count} expected; start again at view 1")
+            return
+        views = self.views
+        assert views is not None
+        if views.timer is not None:
+            views.timer.cancel()
+            views.timer = None
+        log.info("job %d: view %d of %d: seq %d from %s", views.job_id, trigger.view,
+                 views.count, trigger.seq, trigger.link)
+        self._job_started_ns = time.monotonic_ns()
+        self._job = (views.job_id, trigger,
+                     asyncio.create_task(self._run_job(trigger, views.job_id, views)))
+        self._set_state(JobState.TRIGGERED)
+
+    def _end_views(self, trigger: Trigger, why: str) -> None:
+        """End the several-view job with BAD_REQUEST, answered to ``trigger`` (the request
+        that broke the sequence); its images are dropped."""
+        views = self.views
+        assert views is not None
+        result = self._failure(views.job_id, Status.BAD_REQUEST,
+                               f"{why} (views job ended after view {views.next_view - 1} "
+                               f"of {views.count})")
+        self._finish_views(views.ending(trigger), result)
+
+    def _finish_views(self, trigger: Trigger, result: JobResult) -> None:
+        """End the waiting several-view job with ``result`` as a job of its own (BUSY for
+        others while it is published)."""
+        views = self.views
+        assert views is not None
+        assert self._job is None
+        self._job_started_ns = time.monotonic_ns()
+        self._job = (views.job_id, trigger, asyncio.create_task(
+            self._finish(trigger, views.job_id, None, result)))
+
+    def _views_timed_out(self, views: ViewJob) -> None:
+        if self.views is not views or self._job is not None or views.last is None:
+            return  # the next view came meanwhile
+        timeout_s = self.config.for_recipe(views.recipe).vision.view_timeout_s
+        self._finish_views(views.ending(views.last), self._failure(
+            views.job_id, Status.CAMERA_ERROR,
+            f"view {views.next_view} of {views.count} not requested within "
+            f"vision.view_timeout_s = {timeout_s:g} s after the previous one"))
+
+    def _start(self, trigger: Trigger) -> None:
+        """Run a one-acquisition job for ``trigger``."""
         self.pick_list = None  # a new job: the old list is nobody's any more
         self._job_seq += 1
         job_id = self._job_seq
@@ -654,7 +830,8 @@ class Daemon:
             self._set_camera_fault(f"camera {kind}: {what}, and opening it again failed: "
                                    f"{self._camera_error}")
 
-    async def _acquire(self, trigger: Trigger, deadline_ns: int) -> ImagePair:
+    async def _acquire(self, trigger: Trigger, deadline_ns: int,
+                       view: CaptureView | None = None) -> ImagePair:
         recovery = self._camera_recovery
         if recovery is not None and not recovery.done():
             await asyncio.shield(recovery)  # the camera is being opened again
@@ -668,18 +845,51 @@ class Daemon:
         remaining_s = max(0.0, (deadline_ns - time.monotonic_ns()) / 1e9)
         t0 = time.monotonic()
         try:
-            pair: ImagePair = await self.camera.grab(remaining_s)
+            pair: ImagePair = await self.camera.grab(remaining_s, view)
         except (CameraError, asyncio.CancelledError):
             waited_s = time.monotonic() - t0
             if remaining_s > 0 and waited_s >= 0.9 * remaining_s:  # out of time: hung?
                 self._camera_ran_out(waited_s)
             raise
-        if pair.T_base_flange is None and trigger.T_base_flange is not None:
-            pair = dataclasses.replace(pair, T_base_flange=trigger.T_base_flange)
+        flange = trigger.T_base_flange if view is None else view.T_base_flange
+        if pair.T_base_flange is None and flange is not None:
+            pair = dataclasses.replace(pair, T_base_flange=flange)
         return pair
 
-    async def _run_job(self, trigger: Trigger, job_id: int) -> None:
+    async def _acquire_view(self, trigger: Trigger, deadline_ns: int,
+                            views: ViewJob) -> ImagePair:
+        """One view of a several-view job, with its flange pose (NOT_CALIBRATED without)."""
+        flange = views.flange(trigger)
+        if flange is None:
+            raise NotCalibratedError(
+                f"view {trigger.view} of {views.count}: no flange pose: link {trigger.link} "
+                "does not report the robot's pose and vision.view_poses is not set")
+        pair = await self._acquire(trigger, deadline_ns,
+                                   CaptureView(trigger.view, views.count, flange))
+        if len(pair.views) != 1:
+            raise CameraError(f"view {trigger.view}: the camera delivered {len(pair.views)} "
+                              "images, a view is one")
+        return pair
+
+    async def _view_taken(self, trigger: Trigger, views: ViewJob, pair: ImagePair) -> None:
+        """A view before the last: keep its image, let the robot move on, wait for the next."""
+        views.pairs.append(pair)
+        views.last = trigger
+        await self._link_call(trigger.link, "view_captured", trigger.seq, views.job_id)
+        timeout_s = self.config.for_recipe(views.recipe).vision.view_timeout_s
+        assert self._loop is not None
+        views.timer = self._loop.call_later(timeout_s, self._views_timed_out, views)
+        log.info("job %d: view %d of %d taken", views.job_id, trigger.view, views.count)
+        self._job = None
+        self._set_state(JobState.IDLE)
+
+    async def _run_job(self, trigger: Trigger, job_id: int,
+                       views: ViewJob | None = None) -> None:
+        """Acquire, process and publish one job; with ``views``: one view of a several-view
+        job, the last of which processes all of them."""
         known = self.config.recipe_numbers()
+        if views is not None:
+            trigger = views.ending(trigger)  # the job's recipe, its cycle from view 1
         if trigger.recipe not in known:  # answered like any job, without taking an image
             result = self._failure(job_id, Status.BAD_REQUEST,
                                    unknown_recipe(trigger.recipe, known))
@@ -692,7 +902,15 @@ class Daemon:
             try:
                 async with asyncio.timeout(timeout_s):
                     self._set_state(JobState.ACQUIRING)
-                    pair = await self._acquire(trigger, deadline_ns)
+                    if views is None:
+                        pair = await self._acquire(trigger, deadline_ns)
+                    else:
+                        view_pair = await self._acquire_view(trigger, deadline_ns, views)
+                        if trigger.view < views.count:
+                            await self._view_taken(trigger, views, view_pair)
+                            return
+                        views.pairs.append(view_pair)
+                        pair = views.combined()
                     await self._link_call(trigger.link, "image_captured", trigger.seq, job_id)
                     self._set_state(JobState.PROCESSING)
                     result = await self._process(pair, job_id, trigger.recipe)
@@ -703,6 +921,8 @@ class Daemon:
                                        f"{stage} exceeded daemon.job_timeout_s = {timeout_s} s")
             except CameraError as err:
                 result = self._failure(job_id, Status.CAMERA_ERROR, str(err))
+            except NotCalibratedError as err:
+                result = self._failure(job_id, Status.NOT_CALIBRATED, str(err))
             except Exception as err:
                 log.exception("job %d: unexpected error", job_id)
                 result = self._failure(job_id, Status.INTERNAL, f"{type(err).__name__}: {err}")
@@ -742,6 +962,10 @@ class Daemon:
     async def _finish(self, trigger: Trigger, job_id: int, pair: ImagePair | None,
                       result: JobResult) -> None:
         self._set_state(JobState.PUBLISHING)
+        if self.views is not None and self.views.job_id == job_id:  # its images are done
+            if self.views.timer is not None:
+                self.views.timer.cancel()
+            self.views = None
         result = dataclasses.replace(result, recipe=trigger.recipe,
                                      t_done_mono_ns=result.t_done_mono_ns or time.monotonic_ns())
         epipolar_px = result.residuals.get("epipolar_px")
@@ -919,6 +1143,8 @@ class Daemon:
         if self.pick_list is not None and self.pick_list.result.instances:  # several objects
             pl = self.pick_list
             line += f"; pick list {min(pl.index, pl.count)}/{pl.count}"
+        if self.views is not None:
+            line += f"; views {self.views.next_view - 1}/{self.views.count}"
         if self.epipolar.warning:
             line += "; RECALIBRATE"
         if self.camera_fault:
@@ -983,6 +1209,9 @@ class Daemon:
                 "count": self.pick_list.count, "index": self.pick_list.index,
                 "instances": len(self.pick_list.result.instances)},
             "next_answers": dict(self.next_answers),
+            "views": None if self.views is None else {
+                "job_id": self.views.job_id, "link": self.views.link,
+                "taken": self.views.next_view - 1, "count": self.views.count},
             "links": links,
             "counters": dict(told),
             "refusals": dict(refused),

@@ -125,6 +125,8 @@ class Trigger:
     t_mono_ns: int
     T_base_flange: FloatArray | None = None
     recipe: int = 0
+    #: ``Command.CAPTURE``: the 1-based view of a several-view job (0 = not a view).
+    view: int = 0
 
 
 TriggerHandler = Callable[[Trigger], None]
@@ -169,6 +171,13 @@ class RobotLink(ABC):
         format with ``OUT_OF_LIMITS``). Raises ``LinkError`` when the peer could not be given
         the answer now (a link may still hand it over when the peer is back).
         """
+
+    async def view_captured(self, seq: int, job_id: int) -> None:
+        """The image of view request ``seq`` (not the job's last view) is taken: the robot
+        may move on to the next view. This answers the request (register links: CAPTURED_SEQ
+        and STATE 4 VIEWS, no ACK_SEQ); the job's result follows under the last view's
+        request. Links that cannot send CAPTURE never get here; the default refuses."""
+        raise LinkError(f"link {self.name}: cannot take several views per job")
 
     def refusals(self) -> Mapping[str, int]:
         """Requests this link refused on its own, without the daemon, by status name.
@@ -354,6 +363,30 @@ class Command(enum.IntEnum):
     TRIGGER = 1
     CLEAR = 2
     NEXT = 3  # the next instance of the last job's pick list (map version 3)
+    CAPTURE = 4  # one view of a several-view job (``vision.views``); the view in the high byte
+
+
+#: Views one job may have (``vision.views``), and so the largest view index of a CAPTURE.
+MAX_VIEWS = 8
+
+
+def capture_word(view: int) -> int:
+    """The CMD word of a CAPTURE of view ``view`` (1-based): ``view * 256 + 4``.
+
+    The low byte is the command, the high byte the view: one register, so the view and the
+    request arrive in the same write and no spare register (nor a new map version) is needed.
+    """
+    if not 1 <= view <= MAX_VIEWS:
+        raise ValueError(f"view {view}: views are 1..{MAX_VIEWS}")
+    return view << 8 | Command.CAPTURE
+
+
+def split_command(word: int) -> tuple[int, int]:
+    """``(command, view)`` of a CMD word: a CAPTURE carries its view in the high byte; any
+    other command keeps the whole word (so a high byte there stays an unknown command)."""
+    if word & 0xFF == Command.CAPTURE:
+        return int(Command.CAPTURE), word >> 8
+    return word, 0
 
 
 class HandshakeState(enum.IntEnum):
@@ -361,6 +394,7 @@ class HandshakeState(enum.IntEnum):
     TRIGGERED = 1  # request accepted, waiting for the image
     BUSY = 2  # image captured, processing
     DONE = 3  # result acknowledged
+    VIEWS = 4  # a view of a several-view job taken: the robot moves on to the next view
 
 
 WordOrder = Literal["ABCD", "CDAB"]
@@ -576,6 +610,7 @@ class Decision:
     command: int = 0
     recipe: int = 0
     code: Status = Status.IDLE
+    view: int = 0  # CAPTURE: the view (1-based)
 
 
 class Handshake:
@@ -603,25 +638,34 @@ class Handshake:
         self.last_req_seq = seq
         if seq == 0:
             return Decision(Action.IGNORE, seq)
-        if command not in (Command.TRIGGER, Command.CLEAR, Command.NEXT):
-            return Decision(Action.REJECT, seq, command, recipe, Status.BAD_REQUEST)
+        command, view = split_command(command)
+        if (command not in (Command.TRIGGER, Command.CLEAR, Command.NEXT, Command.CAPTURE)
+                or (command == Command.CAPTURE and not 1 <= view <= MAX_VIEWS)):
+            return Decision(Action.REJECT, seq, command, recipe, Status.BAD_REQUEST, view)
         if self.busy:
-            return Decision(Action.REJECT, seq, command, recipe, Status.BUSY)
+            return Decision(Action.REJECT, seq, command, recipe, Status.BUSY, view)
         if command == Command.NEXT and not self.listed:  # nothing to go on from
             return Decision(Action.REJECT, seq, command, recipe, Status.BAD_REQUEST)
         if command == Command.CLEAR:
             self.state = HandshakeState.IDLE
             self.listed = False
             return Decision(Action.CLEAR, seq, command, recipe)
-        if command == Command.TRIGGER:
+        if command in (Command.TRIGGER, Command.CAPTURE):
             self.listed = False  # the old list is not this job's
         self.state = HandshakeState.TRIGGERED
         self.running_seq = seq
-        return Decision(Action.START, seq, command, recipe)
+        return Decision(Action.START, seq, command, recipe, view=view)
 
     def on_captured(self, seq: int) -> None:
         self.check_running(seq, "image_captured")
         self.state = HandshakeState.BUSY
+
+    def on_view_captured(self, seq: int) -> None:
+        """A view (not the last) is taken: the request is over, the next may come. The job
+        may still end under this sequence (the next view timed out): ``check_running``
+        accepts a publish for it until a new request runs."""
+        self.check_running(seq, "view_captured")
+        self.state = HandshakeState.VIEWS
 
     def on_published(self, seq: int, listed: bool = False) -> None:
         """``listed``: the published result has a pick list (NEXT may follow)."""
@@ -630,7 +674,8 @@ class Handshake:
         self.listed = listed
 
     def check_running(self, seq: int, what: str) -> None:
-        if not self.busy or seq != self.running_seq:
+        waiting = self.state is HandshakeState.VIEWS and what == "publish"
+        if not (self.busy or waiting) or seq != self.running_seq:
             running = self.running_seq if self.busy else "none"
             raise LinkError(f"{what} for request {seq}, but the running request is {running}")
 
@@ -688,6 +733,15 @@ class RegisterBank:
             ])
             self.refusals[decision.code.name] += 1
         return decision
+
+    def view_captured(self, seq: int, job_id: int) -> None:
+        """View request ``seq`` has its image: JOB_ID, STATE 4 VIEWS, then CAPTURED_SEQ."""
+        self.handshake.on_view_captured(seq)
+        self.image.apply([
+            BlockWrite(Reg.JOB_ID, self.image.codec.u32(job_id & 0xFFFFFFFF)),
+            BlockWrite(Reg.STATE, (HandshakeState.VIEWS,)),
+            BlockWrite(Reg.CAPTURED_SEQ, (seq,)),
+        ])
 
     def captured(self, seq: int, job_id: int) -> None:
         self.handshake.on_captured(seq)

@@ -77,7 +77,7 @@ import numpy.typing as npt
 
 from vgripd.config import Config
 from vgripd.errors import CameraError, NotCalibratedError, VgripError
-from vgripd.types import ImagePair, JobResult
+from vgripd.types import CaptureView, ImagePair, JobResult
 
 log = logging.getLogger("vgripd.worker")
 
@@ -376,13 +376,13 @@ class _Worker:
             self.loop.run_until_complete(self.camera.open())
             self.camera_open = True
 
-    def grab(self, timeout_s: float, segment: str | None
+    def grab(self, timeout_s: float, segment: str | None, view: CaptureView | None = None
              ) -> tuple[int, dict[str, Any], ImageLayout | None, int]:
         """Grab (opening the camera first if needed); images into the segment if they fit.
 
         Returns (token, fields, layout or None, bytes the images need)."""
         self.open_camera()
-        pair: ImagePair = self.loop.run_until_complete(self.camera.grab(timeout_s))
+        pair: ImagePair = self.loop.run_until_complete(self.camera.grab(timeout_s, view))
         token = self._hold(pair)
         return (token, _pair_fields(pair), *self._put(pair, segment))
 
@@ -850,12 +850,13 @@ class WorkerClient:
                                              f"job {job_id}")
         return result
 
-    async def grab(self, timeout_s: float) -> ImagePair:
+    async def grab(self, timeout_s: float, view: CaptureView | None = None) -> ImagePair:
         """The camera driver's ``grab`` in the worker; the images come through shared memory."""
         gen = await self._ready_generation()
         segment = self._writable_segment()
         token, fields, layout, need = await self._call(
-            gen, "camera_grab", (timeout_s, None if segment is None else segment.name), "grab")
+            gen, "camera_grab", (timeout_s, None if segment is None else segment.name, view),
+            "grab")
         if layout is None:  # no segment yet, or too small: a bigger one, then fetch again
             segment = self._new_segment(need)
             layout = await self._call(gen, "camera_put", (token, segment.name), "grab")
@@ -919,8 +920,8 @@ class WorkerCamera:
         except WorkerError as err:
             raise CameraError(f"{self.type_name}: {err}") from None
 
-    async def grab(self, timeout_s: float) -> ImagePair:
-        return await self._client.grab(timeout_s)
+    async def grab(self, timeout_s: float, view: CaptureView | None = None) -> ImagePair:
+        return await self._client.grab(timeout_s, view)
 
     async def close(self) -> None:
         await self._client.close_camera()

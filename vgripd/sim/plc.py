@@ -33,10 +33,12 @@ from vgripd.service.protocol import (
     MAP_SIZE,
     MAP_VERSION,
     Command,
+    HandshakeState,
     Reg,
     ValueFormat,
     Warnings,
     WordOrder,
+    capture_word,
 )
 from vgripd.types import Status
 
@@ -244,6 +246,44 @@ class MockPlc:
         if not answer.rejected:
             self.last_job = answer
         return answer
+
+    async def capture_view(self, view: int, recipe: int = 0) -> CycleResult | None:
+        """CAPTURE view ``view`` of a several-view job (docs/registers.md, "Several views per
+        job"): write the request, poll until the view is taken or the request answered.
+
+        Returns None when the view is taken (CAPTURED_SEQ shows it with STATE 4 VIEWS and no
+        result: the robot moves on to the next view); otherwise the answer, checked as any (the
+        last view's result, or the status that ended the job)."""
+        seq = self.next_seq()
+        t0_ns = time.monotonic_ns()
+        await self.write(Reg.CMD, [capture_word(view), seq, recipe])
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            w = await self.read()
+            if w[Reg.ACK_SEQ] == seq or w[Reg.REJECT_SEQ] == seq:
+                return await self.wait_answer(seq, t0_ns)
+            if w[Reg.CAPTURED_SEQ] == seq and w[Reg.STATE] == HandshakeState.VIEWS:
+                if w[Reg.ACK_SEQ] != 0 or w[Reg.N_VALUES] != 0:
+                    raise PlcCheckError(f"view {view} (request {seq}): a result (ACK_SEQ "
+                                        f"{w[Reg.ACK_SEQ]}, N_VALUES {w[Reg.N_VALUES]}) shows "
+                                        "between the views")
+                return None
+            if time.monotonic() > deadline:
+                raise PlcCheckError(f"view {view} (request {seq}) not taken within "
+                                    f"{self.timeout_s} s (STATE {w[Reg.STATE]})")
+            await asyncio.sleep(self.poll_s)
+
+    async def views_cycle(self, views: int, recipe: int = 0) -> CycleResult:
+        """A whole several-view job: CAPTURE views 1..``views`` in order (a real robot moves
+        between them); the answer of the request that ended it."""
+        for view in range(1, views + 1):
+            answer = await self.capture_view(view, recipe)
+            if answer is not None:
+                if view < views and answer.status.pose_valid:
+                    raise PlcCheckError(f"view {view} of {views} answered with a pose")
+                self.last_job = answer
+                return answer
+        raise PlcCheckError(f"the last view ({views}) was taken without an answer")
 
     async def next(self) -> CycleResult:
         """NEXT: the following instance of the last job's pick list, checked against it (see

@@ -336,6 +336,8 @@ class Pipeline:
     """
 
     def __init__(self, config: Config) -> None:
+        # Several views of one robot-mounted camera are a multi-camera cell of N views.
+        config = scene.views_config(config)
         self.config = config
         self.left, self.right = scene.camera_models(config)
         self.rig: StereoRig | None = scene.stereo_rig(config)

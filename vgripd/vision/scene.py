@@ -164,10 +164,19 @@ def T_base_cameras(cfg: Config, T_base_flange: FloatArray | None = None) -> Floa
     """(N, 4, 4) poses of the cameras of a multi-camera cell in the base frame at capture.
 
     ``T_base_flange`` is needed when any camera is robot-mounted (as for
-    :func:`T_base_camera`); fixed cameras ignore it.
+    :func:`T_base_camera`); fixed cameras ignore it. A (N, 4, 4) stack gives each camera its
+    own flange pose: the views of one robot-mounted camera (:func:`views_config`).
     """
+    cameras = _cameras(cfg)
+    if T_base_flange is not None and np.ndim(T_base_flange) == 3:
+        if len(T_base_flange) != len(cameras):
+            raise NotCalibratedError(f"{len(T_base_flange)} flange poses came with the images "
+                                     f"of {len(cameras)} cameras (views)")
+        flanges: list[FloatArray | None] = list(T_base_flange)
+    else:
+        flanges = [T_base_flange] * len(cameras)
     out = []
-    for i, cam in enumerate(_cameras(cfg)):
+    for i, (cam, T_base_flange) in enumerate(zip(cameras, flanges, strict=True)):
         if cam.mounting == "fixed":
             assert cam.T_base_camera is not None
             out.append(matrix_from_pose(cam.T_base_camera))
@@ -183,6 +192,29 @@ def T_base_cameras(cfg: Config, T_base_flange: FloatArray | None = None) -> Floa
                 f"flange pose at capture is not a finite 4x4 matrix: {flange!r}")
         out.append(flange @ matrix_from_pose(cam.T_flange_camera))
     return np.array(out)
+
+
+def views_config(cfg: Config) -> Config:
+    """A cell of ``vision.views`` > 1 as the multi-camera cell it is: its one robot-mounted
+    camera repeated as cameras ``view1`` .. ``viewN``, each seen through its own flange pose
+    (an (N, 4, 4) ``ImagePair.T_base_flange``). The fit, the residuals per view (each view is
+    a group of its own) and the disagreeing-view check are then the multi-camera path's.
+    Other configs come back unchanged."""
+    if cfg.vision.views == 1:
+        return cfg
+    _calibration(cfg, "views")
+    assert cfg.calibration is not None
+    cal = cfg.calibration
+    cameras = tuple(CameraEntryConfig(name=f"view{k + 1}", intrinsics=cal.left,
+                                      mounting="robot",
+                                      T_flange_camera=cal.hand_eye.T_flange_camera)
+                    for k in range(cfg.vision.views))
+    data = cfg.model_dump(mode="json", exclude_none=True)
+    data["calibration"] = {"cameras": [c.model_dump(mode="json", exclude_none=True)
+                                       for c in cameras]}
+    data["vision"]["views"] = 1  # the expanded cell takes its N images at once
+    data["vision"].pop("view_poses", None)
+    return Config.model_validate(data)
 
 
 def camera_groups(cfg: Config) -> tuple[tuple[str, tuple[int, ...]], ...]:
