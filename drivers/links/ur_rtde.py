@@ -67,6 +67,7 @@ from vgripd.service.protocol import (
     URRegisterMap,
     checked_warnings,
     pick_position,
+    split_command,
 )
 from vgripd.types import JobResult, Status
 
@@ -314,6 +315,11 @@ class URRtdeLink(RobotLink):
     async def image_captured(self, seq: int, job_id: int) -> None:
         await self._request("captured", (seq, job_id))
 
+    async def view_captured(self, seq: int, job_id: int) -> None:
+        """A view before the last is taken: ``captured`` = seq, the robot moves to the next
+        view (it knows which view is its last; only that one gets ``ack``)."""
+        await self._request("captured", (seq, job_id))
+
     async def publish(self, seq: int, result: JobResult) -> Status:
         """Write status, job id and (for a valid pose) the translation page, then the ack;
         returns the status the robot got.
@@ -502,7 +508,9 @@ class URRtdeLink(RobotLink):
             log.warning("link %s: trigger seq %d with unusable TCP pose %s: %s",
                         self.name, seq, tcp_pose, err)
             T_base_flange = None
-        trigger = Trigger(self.name, seq, command, t_mono_ns, T_base_flange, recipe=recipe)
+        command, view = split_command(command)
+        trigger = Trigger(self.name, seq, command, t_mono_ns, T_base_flange, recipe=recipe,
+                          view=view)
         assert self._on_trigger is not None
         try:
             self._on_trigger(trigger)

@@ -13,6 +13,7 @@ flange pose) ends the job with its documented status and never a pose.
 
 from __future__ import annotations
 
+import asyncio
 import copy
 from typing import Any
 
@@ -30,8 +31,9 @@ from vgripd.geometry.transforms import (
     pose_error,
     rotvec_from_matrix,
 )
-from vgripd.service.protocol import Command, HandshakeState, Reg, capture_word
+from vgripd.service.protocol import Command, HandshakeState, LinkState, Reg, capture_word
 from vgripd.sim.plc import MockPlc
+from vgripd.sim.ur_controller import URController
 from vgripd.types import Status
 
 SAMPLE = REPO / "config" / "samples" / "two_rigs_frame.toml"
@@ -222,3 +224,38 @@ async def test_mbpoll_drives_a_two_view_job() -> None:
         assert answer == {Reg.ACK_SEQ: 8, Reg.STATUS: int(Status.OK)}
         assert (await mbpoll(p, "-t", "4", "-r", str(Reg.N_VALUES), "127.0.0.1")
                 == {Reg.N_VALUES: 6})
+
+
+def ur_pose(T: np.ndarray) -> list[float]:
+    """A flange pose as UR's actual_TCP_pose: metres and a rotation vector."""
+    return [*(T[:3, 3] / 1000.0), *rotvec_from_matrix(T[:3, :3])]
+
+
+async def test_a_ur_robot_reports_its_own_pose_for_each_view() -> None:
+    """The real ur_rtde client (in the link's child process) against the mock UR controller:
+    no taught view poses, the flange pose of each view is the robot's TCP pose read with its
+    request; the synthetic camera renders each view from it."""
+    with URController("127.0.7.9") as robot:
+        data = views_config(3, taught=False).model_dump(mode="json", exclude_none=True)
+        data["links"] = [{"type": "ur_rtde", "host": robot.host}]
+        data["output"] = {"vendor": "ur"}
+        async with running(config_from_dict(data)) as run:
+            await run.daemon.wait_for(
+                lambda: all(link.health().state is LinkState.UP
+                            for link in run.daemon.links.values()), WAIT_S)
+            flanges = view_flanges(3)
+            answers = [await asyncio.to_thread(robot.capture_view, k, ur_pose(F), last=k == 3)
+                       for k, F in enumerate(flanges, start=1)]
+            pair, rec = await run.job_done(1)
+    assert [a["error"] for a in answers] == [None] * 3
+    assert [a.get("captured") for a in answers[:2]] == [answers[0]["seq"], answers[1]["seq"]]
+    assert answers[2]["status"] == Status.OK, rec.result.message
+    assert answers[2]["job_id"] == rec.job_id
+    assert rec.result.target is not None
+    assert tuple(answers[2]["offset"]) == rec.result.target.values
+    assert pair is not None
+    np.testing.assert_allclose(pair.T_base_flange, np.stack(flanges), atol=1e-6)
+    assert rec.result.T_base_obj is not None
+    dt, dr = pose_error(rec.result.T_base_obj, pair.truth["T_base_obj"])
+    assert dt < 0.1
+    assert dr < 0.02

@@ -842,8 +842,15 @@ class URRegisterMap:
     PICK_BASE: ClassVar[int] = 1000
 
     def refusal(self, command: int) -> Status | None:
-        """The status a request with ``command`` is refused with; None when it runs a job."""
-        return None if command in self.COMMANDS else Status.BAD_REQUEST
+        """The status a request with ``command`` is refused with; None when it runs a job.
+        A CAPTURE (``capture_word``: view * 256 + 4, view 1..8) is one view of a several-view
+        job; the TCP pose read with it is the view's flange pose."""
+        if command in self.COMMANDS:
+            return None
+        kind, view = split_command(command)
+        if kind == Command.CAPTURE and 1 <= view <= MAX_VIEWS:
+            return None
+        return Status.BAD_REQUEST
 
     def _n(self, n: int) -> int:
         return n + 24 if self.upper else n

@@ -41,7 +41,7 @@ import numpy as np
 
 from vgripd.errors import VgripError
 from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
-from vgripd.service.protocol import URRegisterMap
+from vgripd.service.protocol import URRegisterMap, capture_word
 from vgripd.types import Status
 
 RTDE_PORT = 30004
@@ -488,6 +488,31 @@ class _Server:
         return self.start_program(command, timeout_s, upper, taught_pose, attempts, busy_wait_s,
                                   recipe)
 
+    async def cmd_capture_view(self, view: int, tcp_pose: Sequence[float], last: bool,
+                               timeout_s: float, upper: bool) -> dict[str, Any]:
+        """One view of a several-view job, as a robot program does it: the robot stands at
+        ``tcp_pose`` (m, rotation vector), requests CAPTURE of ``view``, and waits until the
+        view is taken (``captured`` = seq: it may move on; not for its ``last`` view) or the
+        request is answered (``ack``: the job's result, or the status that ended it)."""
+        regs = URRegisterMap(upper)
+        self.outputs["actual_TCP_pose"] = tuple(float(v) for v in tcp_pose)
+        seq = self.trigger(capture_word(view), regs)
+        result: dict[str, Any] = {"seq": seq, "error": None, "offset": None, "status": None}
+        deadline = time.monotonic() + timeout_s
+        ack, captured = (f"input_int_register_{n}" for n in (regs.ack, regs.captured))
+        while self.inputs.get(ack) != seq and (last or self.inputs.get(captured) != seq):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                result["error"] = f"view {view} (request {seq}) neither taken nor answered"
+                return result
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.changed.wait(), remaining)
+        if self.inputs.get(ack) == seq:
+            await self.request(seq, regs, timeout_s, result)
+        else:
+            result["captured"] = seq
+        return result
+
     async def cmd_program_result(self, seq: int) -> dict[str, Any]:
         task = self.programs.pop(seq)
         return await task
@@ -649,6 +674,16 @@ class URController:
                               None if taught_pose is None else tuple(taught_pose), attempts,
                               busy_wait_s, recipe)
         return seq
+
+    def capture_view(self, view: int, tcp_pose: Sequence[float], *, last: bool = False,
+                     timeout_s: float = 15.0, upper: bool = False) -> dict[str, Any]:
+        """A robot program's CAPTURE of ``view`` at ``tcp_pose`` (``cmd_capture_view``):
+        ``captured`` = seq when the view was taken without an answer, else ``status``,
+        ``job_id``, ``offset`` as ``program_result`` has them. ``last``: the job's last view,
+        whose answer the robot waits for."""
+        result: dict[str, Any] = self._call("capture_view", view, tuple(tcp_pose), last,
+                                            timeout_s, upper, timeout_s=timeout_s + 5.0)
+        return result
 
     def program_result(self, seq: int, timeout_s: float = 15.0) -> dict[str, Any]:
         """Wait for the program started as ``seq``: ``status``, ``job_id``, ``captured``,
