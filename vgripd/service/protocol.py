@@ -14,7 +14,8 @@ big-endian (Modbus).
 addr  name           R/W   type    meaning
 ====  =============  ====  ======  =================================================================
    0  CMD            RW    u16     command: 1 TRIGGER (run a job), 2 CLEAR (reset the result area),
-                                   3 NEXT (the next instance of the last job's pick list)
+                                   3 NEXT (the next instance of the last job's pick list),
+                                   view * 256 + 4 CAPTURE (view 1..8 of a several-view job)
    1  REQ_SEQ        RW    u16     request sequence: a request is a write that changes it to a
                                    non-zero value (edge on the sequence, not on the level)
    2  RECIPE         RW    u16     job parameter handed to the daemon with the trigger
@@ -25,7 +26,8 @@ addr  name           R/W   type    meaning
    9  VALUE_FORMAT   R     u16     1 = float32 values, 2 = int32 values scaled by VALUE_SCALE
   10  VALUE_SCALE    R     u32     int32 mode: raw = round(value * scale); 0 in float32 mode
   12  HEARTBEAT      R     u16     +1 every ``heartbeat_ms`` while the link is healthy (wraps)
-  13  STATE          R     u16     0 IDLE, 1 TRIGGERED, 2 BUSY (image captured), 3 DONE
+  13  STATE          R     u16     0 IDLE, 1 TRIGGERED, 2 BUSY (image captured), 3 DONE,
+                                   4 VIEWS (a view taken, waiting for the next CAPTURE)
   14  CAPTURED_SEQ   R     u16     request whose image is taken: the robot may move on
   15  REJECT_SEQ     R     u16     last refused request (written after REJECT_CODE)
   16  REJECT_CODE    R     u16     why it was refused: 40 BUSY, 32 BAD_REQUEST
@@ -64,6 +66,14 @@ holds no list: after start, CLEAR, a new TRIGGER, or a job that found nothing; `
 a request runs. The daemon refuses it too (answered ``BAD_REQUEST`` without a pose) when its
 list is not this link's (a job of another link came in between). COUNT .. SCORE are part of
 the result: cleared with it and written before ACK_SEQ.
+
+Several views per job (``vision.views``; no new register, so the map version stays 3): CMD
+= view * 256 + 4 (``capture_word``) asks for one view. A view before the last is answered by
+CAPTURED_SEQ = seq with STATE 4 VIEWS and no ACK_SEQ (the handshake is free for the next
+view; ``RobotLink.view_captured``); the last view's request is answered like a TRIGGER's with
+the result over all views. A job the daemon ends between views (no next view in time) is
+acknowledged under the last view's sequence, which the handshake still accepts until a new
+request runs. A CAPTURE without a view 1..8 is refused BAD_REQUEST like an unknown command.
 
 WARNINGS is not part of a result: it is the daemon's current state (like HEARTBEAT), changed
 through ``RobotLink.set_warnings`` whenever a warning rises or clears, and neither a new job nor
