@@ -33,6 +33,7 @@ from vgripd.geometry.transforms import (
 )
 from vgripd.service.protocol import Command, HandshakeState, LinkState, Reg, capture_word
 from vgripd.sim.plc import MockPlc
+from vgripd.sim.robot_modbus import UR_FIRST_REGISTER, MockRobotModbus
 from vgripd.sim.ur_controller import URController
 from vgripd.types import Status
 
@@ -259,3 +260,43 @@ async def test_a_ur_robot_reports_its_own_pose_for_each_view() -> None:
     dt, dr = pose_error(rec.result.T_base_obj, pair.truth["T_base_obj"])
     assert dt < 0.1
     assert dr < 0.02
+
+
+async def test_views_over_the_modbus_client_link() -> None:
+    """The mirror links (``modbus_client`` here, ``s7`` alike) carry the same block: the mock
+    robot's own registers, polled and written by vgripd's Modbus client."""
+    robot = MockRobotModbus()
+    await robot.start()
+    try:
+        data = views_config(2).model_dump(mode="json", exclude_none=True)
+        data["links"] = [{"type": "modbus_client", "host": robot.host, "port": robot.port,
+                          "poll_interval_s": 0.005}]
+        async with running(config_from_dict(data)) as run:
+            link = run.daemon.links["modbus_client"]
+            await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
+            base = UR_FIRST_REGISTER
+            await robot.write(base + Reg.CMD, [capture_word(1)])
+            await robot.write(base + Reg.REQ_SEQ, [31])
+            async with asyncio.timeout(WAIT_S):
+                while robot.read(base + Reg.STATE, 2) != [HandshakeState.VIEWS, 31]:
+                    await robot.changed()
+            assert robot.read(base + Reg.ACK_SEQ) == [0]
+            seen = await robot.run_job(32, WAIT_S, command=capture_word(2))
+            _, rec = await run.job_done(1)
+    finally:
+        await robot.stop()
+    assert seen.words[Reg.ACK_SEQ] == 32
+    assert seen.words[Reg.STATUS] == Status.OK, rec.result.message
+    assert seen.words[Reg.N_VALUES] == 6
+
+
+async def test_stopping_between_views_answers_aborted_under_the_last_view() -> None:
+    async with running(views_config(3)) as run, \
+            MockPlc("127.0.0.1", port(run), timeout_s=WAIT_S) as plc:
+        assert await plc.capture_view(1) is None
+        assert await plc.capture_view(2) is None
+        stopping = asyncio.ensure_future(run.daemon.stop())
+        answer = await plc.wait_answer(plc.seq)  # the links linger for the answer
+        await stopping
+    assert answer.status is Status.ABORTED
+    assert answer.values == ()
