@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import copy
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,7 @@ import pytest
 from tests.conftest import REPO
 from tests.integration.test_daemon import WAIT_S, running
 from tests.integration.test_daemon_recipes import mbpoll
+from vgripd.__main__ import main
 from vgripd.config import config_from_dict, read_config_data
 from vgripd.geometry.transforms import (
     invert_transform,
@@ -31,6 +33,7 @@ from vgripd.geometry.transforms import (
     pose_error,
     rotvec_from_matrix,
 )
+from vgripd.serialize import toml_from_dict
 from vgripd.service.protocol import Command, HandshakeState, LinkState, Reg, capture_word
 from vgripd.sim.plc import MockPlc
 from vgripd.sim.robot_modbus import UR_FIRST_REGISTER, MockRobotModbus
@@ -300,3 +303,23 @@ async def test_stopping_between_views_answers_aborted_under_the_last_view() -> N
         await stopping
     assert answer.status is Status.ABORTED
     assert answer.values == ()
+
+
+def test_check_places_the_object_in_each_taught_view(tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """`vgripd check` projects the reference into every view at its taught flange pose and
+    names the view pose that sees nothing (here view 2 turned half round)."""
+    data = views_config(3).model_dump(mode="json", exclude_none=True)
+    good = tmp_path / "good.toml"
+    good.write_text(toml_from_dict(data))
+    assert main(["check", "-c", str(good)]) == 0
+    assert "view_poses" not in capsys.readouterr().err
+    away = view_flanges(3)[1] @ make_transform(matrix_from_rotvec([0.0, np.pi, 0.0]),
+                                               [0.0, 0.0, 0.0])
+    data["vision"]["view_poses"][1] = pose_dict(away)
+    bad = tmp_path / "bad.toml"
+    bad.write_text(toml_from_dict(data))
+    main(["check", "-c", str(bad)])
+    out = capsys.readouterr()
+    assert "camera view2 sees none of the marks" in out.out + out.err
+    assert "check vision.view_poses.1" in out.out + out.err

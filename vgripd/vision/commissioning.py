@@ -335,24 +335,29 @@ def check_cameras(pipeline: Pipeline, multi: MultiCamera) -> list[Finding]:
     camera sees (in front, facing it, inside its image), their imaged size against the finder's
     range, and whether enough marks are seen by two or more cameras for a pose."""
     config = pipeline.config
+    flanges = None
     if not multi.fixed:
-        return [Finding("NOTE", "calibration.cameras",
-                        "a robot-mounted camera: where the object lands in its image depends "
-                        "on the flange pose at capture, so the projection checks are skipped")]
+        if not pipeline.view_poses:
+            return [Finding("NOTE", "calibration.cameras",
+                            "a robot-mounted camera: where the object lands in its image "
+                            "depends on the flange pose at capture, so the projection checks "
+                            "are skipped")]
+        flanges = np.stack(pipeline.view_poses)  # several views: each at its taught pose
     names = list(pipeline.names)
-    view = multi.view(None)
+    view = multi.view(flanges)
     T_ref = pipeline.T_base_obj_ref
     seen = multi.visible(view, T_ref)  # (n, N)
     X = pipeline.model @ T_ref[:3, :3].T + T_ref[:3, 3]
     findings: list[Finding] = []
     usable = seen.copy()
     for j, (cam, cam_name) in enumerate(zip(multi.cameras, multi.names, strict=True)):
-        key = f"calibration.cameras.{j}"
+        pose_key = (f"calibration.cameras.{j}.T_base_camera" if flanges is None
+                    else f"vision.view_poses.{j}")
         if not seen[:, j].any():
             findings.append(Finding(
-                "WARNING", f"{key}.T_base_camera",
+                "WARNING", pose_key,
                 f"camera {cam_name} sees none of the marks of the object at its taught place "
-                f"(reference.T_base_obj): check {key}.T_base_camera"))
+                f"(reference.T_base_obj): check {pose_key}"))
             continue
         finder = pipeline.finders[j]
         depth = np.linalg.norm(X - view.centres_mm[j], axis=1)

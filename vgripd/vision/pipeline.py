@@ -336,7 +336,9 @@ class Pipeline:
     """
 
     def __init__(self, config: Config) -> None:
-        # Several views of one robot-mounted camera are a multi-camera cell of N views.
+        # Several views of one robot-mounted camera are a multi-camera cell of N views; their
+        # taught flange poses (if any) let `vgripd check` place the object in each view.
+        self.view_poses = tuple(scene.matrix_from_pose(p) for p in config.vision.view_poses)
         config = scene.views_config(config)
         self.config = config
         self.left, self.right = scene.camera_models(config)
