@@ -229,7 +229,8 @@ def test_urscript_uses_the_register_map() -> None:
                                                      regs.recipe}
     assert used("read_output_integer_register") == {regs.seq}
     assert used("vgripd_wait_int") == {regs.ack, regs.page_ack}
-    assert used("read_input_integer_register") == {regs.ack, regs.status}
+    # vgripd_capture (several views per job) also watches ``captured``.
+    assert used("read_input_integer_register") == {regs.ack, regs.status, regs.captured}
     assert used("read_input_float_register") == {*regs.page, regs.warnings}
     assert URRegisterMap(upper=True).ack - regs.ack == 24
     assert "global VGRIPD_OFFSET = 0" in code
