@@ -845,7 +845,10 @@ class Daemon:
         remaining_s = max(0.0, (deadline_ns - time.monotonic_ns()) / 1e9)
         t0 = time.monotonic()
         try:
-            pair: ImagePair = await self.camera.grab(remaining_s, view)
+            # Only a view passes ``view``: any driver (or stand-in) of the one-image contract
+            # keeps working unchanged.
+            pair: ImagePair = await (self.camera.grab(remaining_s) if view is None
+                                     else self.camera.grab(remaining_s, view))
         except (CameraError, asyncio.CancelledError):
             waited_s = time.monotonic() - t0
             if remaining_s > 0 and waited_s >= 0.9 * remaining_s:  # out of time: hung?
