@@ -31,10 +31,12 @@ from vgripd.service.protocol import (
     MAP_SIZE,
     MAP_VERSION,
     Command,
+    HandshakeState,
     LinkState,
     Reg,
     Trigger,
     Warnings,
+    capture_word,
     next_answer,
 )
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
@@ -263,3 +265,26 @@ async def test_rtu_next_walks_a_pick_list(rtu: tuple[ModbusRtuLink, asyncio.Queu
             seq, status, 2, index)
         x = client.convert_from_registers(w[Reg.VALUES:Reg.VALUES + 2], client.DATATYPE.FLOAT32)
         assert x == (200.0 if index == 2 else 0.0)
+
+
+async def test_rtu_views_of_one_job(rtu: tuple[ModbusRtuLink, asyncio.Queue[Trigger], AsyncModbusSerialClient]) -> None:
+    """CAPTURE (view * 256 + 4) over the serial line: a view before the last is answered by
+    CAPTURED_SEQ and STATE 4 without a result; the last view gets the job's result."""
+    link, triggers, client = rtu
+    assert not (await client.write_registers(Reg.CMD, [capture_word(1), 400, 0],
+                                             device_id=7)).isError()
+    t = await asyncio.wait_for(triggers.get(), 5)
+    assert (t.seq, t.command, t.view) == (400, Command.CAPTURE, 1)
+    await link.view_captured(400, 12)
+    w = (await client.read_holding_registers(0, count=MAP_SIZE, device_id=7)).registers
+    assert (w[Reg.CAPTURED_SEQ], w[Reg.STATE], w[Reg.ACK_SEQ], w[Reg.N_VALUES]) == (
+        400, HandshakeState.VIEWS, 0, 0)
+    assert not (await client.write_registers(Reg.CMD, [capture_word(2), 401, 0],
+                                             device_id=7)).isError()
+    t = await asyncio.wait_for(triggers.get(), 5)
+    assert (t.seq, t.command, t.view) == (401, Command.CAPTURE, 2)
+    await link.image_captured(401, 12)
+    await link.publish(401, JobResult(job_id=12, status=Status.OK,
+                                      target=RobotTarget("kuka", tuple("XYZABC"), POSE)))
+    w = (await client.read_holding_registers(0, count=MAP_SIZE, device_id=7)).registers
+    assert (w[Reg.ACK_SEQ], w[Reg.STATUS], w[Reg.N_VALUES]) == (401, Status.OK, 6)
