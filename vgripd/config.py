@@ -835,6 +835,12 @@ class Config(Model):
         if why:
             raise ValueError(f"vision.views = {self.vision.views} needs one robot-mounted "
                              f"camera: {why}")
+        from vgripd import registry  # registry imports this module; it reaches drivers/
+
+        problems = registry.views_problems(self.links, self.vision.views)
+        if problems:
+            raise PydanticCustomError(COMBINATION, "{problems}",
+                                      {"problems": "\n".join(problems)})
         return self
 
     @model_validator(mode="after")

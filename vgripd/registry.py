@@ -90,6 +90,21 @@ def validate_options(cls: type[Any], section: DriverSection, where: str) -> Any:
         raise ConfigError(format_validation_error(err, where)) from None
 
 
+def views_problems(links: Sequence[DriverSection], views: int) -> list[str]:
+    """Why the link sections cannot serve a cell of ``vision.views`` > 1: one line per known
+    link type whose class cannot send a CAPTURE (``takes_views`` is not set), since every
+    job there is N CAPTUREs and such a link could only ever be refused."""
+    if views == 1:
+        return []
+    able = sorted(t for t in LINKS if getattr(load_class(LINKS, "link", t), "takes_views",
+                                              False))
+    return [f'links[{i}].type = "{s.type}" cannot send CAPTURE, and vision.views = {views} '
+            f"makes every job {views} CAPTUREs: use {', '.join(able)}"
+            for i, s in enumerate(links)
+            if s.type in LINKS and not getattr(load_class(LINKS, "link", s.type),
+                                               "takes_views", False)]
+
+
 def link_problems(links: Sequence[DriverSection], vendor: str,
                   vendor_is_default: bool = False) -> list[str]:
     """Why the link sections cannot work with ``output.vendor = vendor``, one line per section.

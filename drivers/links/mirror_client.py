@@ -150,6 +150,8 @@ class MirrorClientLink(RobotLink, Generic[C]):
         self.bank.captured(seq, job_id)
         await self._flushed()
 
+    takes_views = True
+
     async def view_captured(self, seq: int, job_id: int) -> None:
         self.bank.view_captured(seq, job_id)
         await self._flushed()

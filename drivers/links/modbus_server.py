@@ -214,6 +214,8 @@ class RegisterServerLink(RobotLink):
     async def image_captured(self, seq: int, job_id: int) -> None:
         self.bank.captured(seq, job_id)
 
+    takes_views = True
+
     async def view_captured(self, seq: int, job_id: int) -> None:
         self.bank.view_captured(seq, job_id)
 

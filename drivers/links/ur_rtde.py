@@ -315,6 +315,8 @@ class URRtdeLink(RobotLink):
     async def image_captured(self, seq: int, job_id: int) -> None:
         await self._request("captured", (seq, job_id))
 
+    takes_views = True
+
     async def view_captured(self, seq: int, job_id: int) -> None:
         """A view before the last is taken: ``captured`` = seq, the robot moves to the next
         view (it knows which view is its last; only that one gets ``ack``)."""

@@ -152,6 +152,8 @@ class RobotLink(ABC):
 
     Options: ClassVar[type[BaseModel]]
     capabilities: ClassVar[LinkCapabilities]
+    #: The link can send CAPTURE requests and implements ``view_captured`` (``vision.views``).
+    takes_views: ClassVar[bool] = False
 
     def __init__(self, name: str, options: Any) -> None:
         self.name = name

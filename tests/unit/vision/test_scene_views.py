@@ -84,3 +84,14 @@ def test_each_view_is_seen_through_its_own_flange_pose(flanges: list[Any]) -> No
     stack = np.stack([_pose(r, t) for r, t in flanges])
     T_fc = _pose(T_FC["rotvec_rad"], T_FC["translation_mm"])
     np.testing.assert_allclose(scene.T_base_cameras(cell, stack), stack @ T_fc, atol=1e-8)
+
+
+def test_views_refuse_a_link_that_cannot_capture() -> None:
+    """opcua and robot_socket have no CAPTURE: in a views cell they could only be refused."""
+    with pytest.raises(ConfigError, match='links.1..type = "robot_socket" cannot send CAPTURE.*'
+                       "use modbus_client, modbus_rtu, modbus_server, s7, ur_rtde"):
+        config_from_dict({"calibration": {"left": LEFT, "hand_eye": ROBOT},
+                          "vision": {"views": 2},
+                          "links": [{"type": "modbus_server"}, {"type": "robot_socket"}]})
+    config_from_dict({"calibration": {"left": LEFT, "hand_eye": ROBOT}, "vision": {"views": 1},
+                      "links": [{"type": "robot_socket"}]})
