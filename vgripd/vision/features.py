@@ -40,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vgripd.types import FloatArray
+from vgripd.vision.touching import split_touching
 
 Polarity = Literal["dark", "bright"]
 UInt8Image = npt.NDArray[np.uint8]
@@ -167,7 +168,8 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
         if area < 2.0:
             continue
         d_px = 2.0 * np.sqrt(area / np.pi) * s
-        if not spec.min_diameter_px * 0.8 <= d_px <= spec.max_diameter_px * 1.2:
+        too_big = d_px > spec.max_diameter_px * 1.2
+        if d_px < spec.min_diameter_px * 0.8 or (too_big and not spec.separate_neighbours):
             if d_px >= speck:
                 drop(c, d_px, "size", d_px)
             continue
@@ -175,6 +177,16 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
         if bx <= 0 or by <= 0 or bx + bw >= sw or by + bh >= sh:
             drop(c, d_px, "border", 0.0)
             continue
+        if spec.separate_neighbours:
+            # Marks of touching plates merged into one blob (round enough to pass as one
+            # mark, or not): each disc becomes a candidate of its own.
+            parts = _touching_parts(c, s, spec)
+            if parts:
+                candidates += parts
+                continue
+            if too_big:
+                drop(c, d_px, "size", d_px)
+                continue
         perimeter = cv2.arcLength(c, True)
         circularity = 4.0 * np.pi * area / perimeter**2 if perimeter > 0 else 0.0
         if circularity < spec.min_circularity:
@@ -186,10 +198,10 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
         cy = m["m01"] / m["m00"] * s + (s - 1) / 2.0
         candidates.append((cx, cy, d_px))
 
-    coarse = np.array([(cx, cy) for cx, cy, _ in candidates]).reshape(-1, 2)
+    coarse = np.array(candidates).reshape(-1, 3)
     for index, (cx, cy, d_px) in enumerate(candidates):
         # Marks so close that one's refinement window reaches into the other (touching
-        # plates of a pallet): each keeps only the pixels nearer to its own coarse centre.
+        # plates of a pallet): each keeps only the pixels nearer to its own rim.
         reach = np.hypot(coarse[:, 0] - cx, coarse[:, 1] - cy) < 2.0 * d_px + 10.0
         reach[index] = False
         if not spec.separate_neighbours:
@@ -219,6 +231,19 @@ def find_circles(gray: UInt8Image, spec: CircleSpec) -> Blobs:
     )
 
 
+def _touching_parts(contour: Any, s: int, spec: CircleSpec) -> list[tuple[float, float, float]]:
+    """The discs of one blob that holds several (``touching.split_touching``: marks of two
+    plates that touch in the image), as coarse candidates (full-resolution centre px,
+    diameter px); empty when the blob is one disc or not made of discs."""
+    bx, by, bw, bh = cv2.boundingRect(contour)
+    mask = np.zeros((bh, bw), np.uint8)
+    cv2.drawContours(mask, [contour], -1, 255, thickness=cv2.FILLED, offset=(-bx, -by))
+    discs = split_touching(mask, 0.4 * spec.min_diameter_px / s - 1.0,
+                           0.6 * spec.max_diameter_px / s + 1.0)
+    return [((bx + x) * s + (s - 1) / 2.0, (by + y) * s + (s - 1) / 2.0, 2.0 * r * s)
+            for x, y, r in discs]
+
+
 def _refine_centre(
     gray: UInt8Image, cx: float, cy: float, d_px: float, polarity: Polarity,
     neighbours: FloatArray | None = None,
@@ -234,7 +259,10 @@ def _refine_centre(
     The contrast returned is |B (k - 1)| in grey levels.
     ``neighbours`` (k, 2): coarse centres of other marks whose window overlaps this one; the
     pixels nearer to one of them than to this mark's coarse centre take no part (neither in the
-    background plane nor in the centroid). Without neighbours nothing changes.
+    background plane nor in the centroid). Without neighbours nothing changes. (k, 3): coarse
+    centres and diameters; the pixels then part along the power line of the two rims
+    (``|p - c| - d / 2`` compared) rather than the bisector of the centres, so that a large
+    mark touching a small one keeps its own rim.
     Returns None when the window leaves the image or the mark has no contrast.
     """
     h, w = gray.shape
@@ -257,8 +285,14 @@ def _refine_centre(
         mine = np.ones_like(inside)
         if neighbours is not None and len(neighbours):
             own2 = (xs[None, :] - ox) ** 2 + (ys[:, None] - oy) ** 2
-            for nx, ny in neighbours:
-                mine &= own2 <= (xs[None, :] - nx) ** 2 + (ys[:, None] - ny) ** 2
+            if neighbours.shape[1] == 2:
+                for nx, ny in neighbours:
+                    mine &= own2 <= (xs[None, :] - nx) ** 2 + (ys[:, None] - ny) ** 2
+            else:
+                own = np.sqrt(own2) - 0.5 * d_px
+                for nx, ny, nd in neighbours:
+                    mine &= own <= np.sqrt((xs[None, :] - nx) ** 2
+                                           + (ys[:, None] - ny) ** 2) - 0.5 * nd
             inside &= mine
         dx = np.broadcast_to(xs[None, :] - ox, roi.shape)
         dy = np.broadcast_to(ys[:, None] - oy, roi.shape)
