@@ -20,6 +20,8 @@ must be one the spec searches for.
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 import numpy.typing as npt
@@ -75,7 +77,7 @@ def split_touching(mask: npt.NDArray[np.uint8], min_radius: float, max_radius: f
     return np.array(out, dtype=np.float64)
 
 
-def _valley(dist: npt.NDArray[np.float32], a: tuple[int, int], b: tuple[int, int]) -> float:
+def _valley(dist: npt.NDArray[Any], a: tuple[int, int], b: tuple[int, int]) -> float:
     """Lowest distance-transform value on the straight path from pixel a to pixel b."""
     steps = int(np.ceil(np.hypot(b[0] - a[0], b[1] - a[1]) * 2.0)) + 1
     t = np.linspace(0.0, 1.0, steps + 1)
