@@ -367,12 +367,15 @@ def find_instances_mono(
     dm = np.linalg.norm(xy[:, None] - xy[None], axis=2)
     spacing = float(dm[dm > 0].min()) if (dm > 0).any() else 1.0
     hyps: dict[tuple[int, ...], MonoInstance] = {}
+    # Detection pairs inside a hypothesis already found: seeding from them again finds the
+    # same group (each PnP costs milliseconds; a plate of five markers has twenty such pairs).
+    covered: set[tuple[int, int]] = set()
     for a in range(k):
         fa = int(feature[a])
         scale = side_px[a] / size_mm[fa]
         for b in range(k):
             fb = int(feature[b])
-            if fb == fa or dm[fa, fb] <= 0:
+            if fb == fa or dm[fa, fb] <= 0 or (min(a, b), max(a, b)) in covered:
                 continue
             d = float(np.linalg.norm(px[b] - px[a]))
             if not 0.6 * dm[fa, fb] * scale <= d <= 1.4 * dm[fa, fb] * scale:
@@ -391,6 +394,10 @@ def find_instances_mono(
                                 min_count)
                 if hyp is not None:
                     hyps.setdefault(tuple(int(x) for x in hyp.assignment), hyp)
+                    group = sorted(int(x) for x in hyp.assignment if x >= 0)
+                    covered.update(combinations(group, 2))
+                    if (min(a, b), max(a, b)) in covered:
+                        break  # this seed's other handedness: the same pair, covered
     return _select_mono(list(hyps.values()), model, px, camera, by_feature, tolerance_px,
                         min_count)
 
