@@ -46,6 +46,7 @@ from vgripd.vision.features import (
     MIN_SEED_ALTITUDE,
     _altitudes,
     _Hypothesis,
+    _kabsch_many,
     _moved,
     _pairwise,
     _spread_order,
@@ -215,24 +216,75 @@ def find_instances(
                for k in (order[r],) if seedable[i, j, k]]
     seeds = 0
     complete = True
+    # Bare triangles (nothing but their own three points near the moved model) are verified
+    # last, and only when a point of theirs is not already explained by a plate of four or
+    # more marks: on a pallet most seeds are such triangles across neighbouring plates, and
+    # each cost a verification and a re-verification in the selection (docs/picklists.md,
+    # "Finding the instances").
+    deferred: list[tuple[tuple[tuple[int, int], ...], tuple[int, int, int],
+                         tuple[int, int, int]]] = []
     for triple in triples:
         found = _seeds(dm, dp, triple, tolerance_mm)
         seeds += found.shape[0]
-        for a, b, c in found:
+        bare = _bare(model, points, model[list(triple)], found, tolerance_mm)
+        for (a, b, c), is_bare in zip(found, bare, strict=True):
             seed = tuple(sorted(zip(triple, (int(a), int(b), int(c)), strict=True)))
             if seed in pool.covered:
+                continue
+            if is_bare:
+                deferred.append((seed, triple, (int(a), int(b), int(c))))
                 continue
             if pool.verified >= max_verified:
                 complete = False
                 break
-            T = kabsch(model[list(triple)], points[[a, b, c]])
-            hyp = pool.verify(T)
+            hyp = pool.verify(kabsch(model[list(triple)], points[[a, b, c]]))
             if hyp is not None:
                 pool.add(hyp)
         if not complete:
             break
+    if complete:
+        explained = _explained(pool)
+        for seed, triple, rows in deferred:
+            if seed in pool.covered or all(q in explained for q in rows):
+                continue
+            if pool.verified >= max_verified:
+                complete = False
+                break
+            hyp = pool.verify(kabsch(model[list(triple)], points[list(rows)]))
+            if hyp is not None:
+                pool.add(hyp)
     accepted = _select(pool, max_instances)
     return Grouping(tuple(_judge(pool, accepted)), seeds, pool.verified, complete)
+
+
+def _bare(model: FloatArray, points: FloatArray, seed_model: FloatArray,
+          found: npt.NDArray[np.intp], tolerance_mm: float) -> npt.NDArray[np.bool_]:
+    """(h,) per seed of ``found`` (h, 3): no model point but the seed's three comes within
+    the tolerance of a measured point at the seed's motion (a bare triangle, at least before a
+    refit; a plate's own well-spread seeds find its other marks at once)."""
+    out = np.zeros(found.shape[0], dtype=bool)
+    reach2 = tolerance_mm**2
+    p2 = (points**2).sum(axis=1)
+    for start in range(0, found.shape[0], 256):
+        chunk = found[start:start + 256]
+        R, t = _kabsch_many(seed_model, points[chunk])
+        moved = np.einsum("hij,nj->hni", R, model) + t[:, None, :]
+        d2 = (moved**2).sum(axis=2)[:, :, None] + p2 - 2.0 * moved @ points.T
+        out[start:start + 256] = (d2.min(axis=2) <= reach2).sum(axis=1) <= 3
+    return out
+
+
+def _explained(pool: _Pool) -> set[int]:
+    """Points that share an image blob (a key) with a verified hypothesis of four or more
+    features that fits within the gate and scores more than a bare triangle could come within
+    ``AMBIGUITY_MARGIN`` of: a bare triangle made only of such points can neither be selected
+    (its blobs are taken by a better instance) nor make one of those ambiguous. The shared
+    blob covers the other epipolar pairings of a plate's marks, too."""
+    keys: set[int] = set()
+    for hyp in pool.hyps:
+        if hyp.count >= 4 and hyp.rms <= pool.max_rms and hyp.score > 3.0 + AMBIGUITY_MARGIN:
+            keys |= _claims(hyp, pool.keys)
+    return {row for row, ks in enumerate(pool.keys) if keys.intersection(ks)}
 
 
 def _claims(hyp: _Hypothesis, keys: Sequence[tuple[int, ...]]) -> set[int]:
