@@ -36,6 +36,7 @@ from itertools import combinations
 
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial import cKDTree
 
 from vgripd.errors import GeometryError
 from vgripd.geometry.camera_model import CameraModel
@@ -223,12 +224,16 @@ def find_instances(
     # "Finding the instances").
     deferred: list[tuple[tuple[tuple[int, int], ...], tuple[int, int, int],
                          tuple[int, int, int]]] = []
+    tree = cKDTree(points)
     for triple in triples:
         found = _seeds(dm, dp, triple, tolerance_mm)
         seeds += found.shape[0]
-        bare = _bare(model, points, model[list(triple)], found, tolerance_mm)
-        for (a, b, c), is_bare in zip(found, bare, strict=True):
-            seed = tuple(sorted(zip(triple, (int(a), int(b), int(c)), strict=True)))
+        named = [tuple(sorted(zip(triple, map(int, f), strict=True))) for f in found]
+        fresh = [i for i, seed in enumerate(named) if seed not in pool.covered]
+        found = found[fresh]
+        bare = _bare(model, points, tree, model[list(triple)], found, tolerance_mm)
+        for i, (a, b, c), is_bare in zip(fresh, found, bare, strict=True):
+            seed = named[i]
             if seed in pool.covered:
                 continue
             if is_bare:
@@ -257,21 +262,19 @@ def find_instances(
     return Grouping(tuple(_judge(pool, accepted)), seeds, pool.verified, complete)
 
 
-def _bare(model: FloatArray, points: FloatArray, seed_model: FloatArray,
+def _bare(model: FloatArray, points: FloatArray, tree: cKDTree, seed_model: FloatArray,
           found: npt.NDArray[np.intp], tolerance_mm: float) -> npt.NDArray[np.bool_]:
     """(h,) per seed of ``found`` (h, 3): no model point but the seed's three comes within
     the tolerance of a measured point at the seed's motion (a bare triangle, at least before a
-    refit; a plate's own well-spread seeds find its other marks at once)."""
-    out = np.zeros(found.shape[0], dtype=bool)
-    reach2 = tolerance_mm**2
-    p2 = (points**2).sum(axis=1)
-    for start in range(0, found.shape[0], 256):
-        chunk = found[start:start + 256]
-        R, t = _kabsch_many(seed_model, points[chunk])
-        moved = np.einsum("hij,nj->hni", R, model) + t[:, None, :]
-        d2 = (moved**2).sum(axis=2)[:, :, None] + p2 - 2.0 * moved @ points.T
-        out[start:start + 256] = (d2.min(axis=2) <= reach2).sum(axis=1) <= 3
-    return out
+    refit; a plate's own well-spread seeds find its other marks at once). ``tree``: the
+    points' k-d tree."""
+    if not found.size:
+        return np.zeros(0, dtype=bool)
+    R, t = _kabsch_many(seed_model, points[found])
+    moved = np.einsum("hij,nj->hni", R, model) + t[:, None, :]
+    dist, _ = tree.query(moved.reshape(-1, 3), distance_upper_bound=tolerance_mm)
+    near = np.isfinite(dist).reshape(moved.shape[:2])
+    return np.asarray(near.sum(axis=1) <= 3)
 
 
 def _explained(pool: _Pool) -> set[int]:
