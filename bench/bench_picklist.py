@@ -67,20 +67,22 @@ def cell_config(plate: indep.Plate, max_objects: int) -> Config:
     })
 
 
-def pallet(plate: indep.Plate, count: int, rng: np.random.Generator) -> list[np.ndarray]:
-    """T_base_obj of each plate: a 3-column grid in the reference's xy plane centred on it,
-    footprints touching, each jittered; redrawn while two marks of different plates overlap."""
+def pallet(plate: indep.Plate, count: int, rng: np.random.Generator, columns: int = 3
+           ) -> list[np.ndarray]:
+    """T_base_obj of each plate: a grid of ``columns`` columns in the reference's xy plane
+    centred on it, footprints touching, each jittered; redrawn while two marks of different
+    plates overlap."""
     ref = plate.T_base_obj_ref
     pts = plate.centres
     d = float(plate.diameters.max())
     pitch = np.ptp(pts[:, :2], axis=0) + d
-    cols = min(3, count)
-    rows = math.ceil(count / 3)
+    cols = min(columns, count)
+    rows = math.ceil(count / columns)
     centroid = pts.mean(axis=0)
     poses: list[np.ndarray] = []
     placed: list[np.ndarray] = []
     for k in range(count):
-        r, c = divmod(k, 3)
+        r, c = divmod(k, columns)
         for _ in range(1000):
             grid = np.array([(c - (cols - 1) / 2) * pitch[0] + rng.uniform(-JITTER_MM, JITTER_MM),
                              (r - (rows - 1) / 2) * pitch[1] + rng.uniform(-JITTER_MM, JITTER_MM),
