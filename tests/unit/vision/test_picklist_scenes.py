@@ -440,3 +440,21 @@ def test_one_camera_aruco_on_every_plate(name: str, poses: list[np.ndarray],
         dt, dr = _errors(one.T_base_obj, inst.T_base_obj)
         assert dt < 0.05, (k, dt)
         assert dr < 0.05, (k, dr)
+
+
+def test_a_mark_partly_covered_by_a_neighbours_mark_is_left_out_of_the_fit() -> None:
+    """Two plates at different heights (17 mm apart), tilted, so that in the left image a mark
+    of plate 1 overlaps one of plate 0 and is partly covered (found in a random stress scene):
+    its centre is pulled by 0.7 px, well inside every gate, and before the fit left it out,
+    plate 1 was 0.29-0.31 mm and 0.50-0.52 deg off in three frames of noise. Leaving each mark
+    out in turn shows the one the others do not agree with: now 0.002-0.023 mm, 0.01-0.02
+    deg, with four marks."""
+    inst = [{"translation_mm": [605.8, 7.8, 18.4], "rotvec_rad": [0.193, -0.0789, 0.7732]},
+            {"translation_mm": [750.2, -10.5, 1.9], "rotvec_rad": [0.1199, -0.0108, 0.1794]}]
+    for seed in (1, 2, 3):
+        config = _config({"instances": inst, "drop_features": ["0/m2", "1/m4"],
+                          "seed": seed}, None)
+        ((result, truths, _, found),) = _run(config, bound=(0.1, 0.1), every=False)
+        assert sorted(found) == [0, 1]
+        assert found[1].features_used == ("m2", "m3", "m5", "m6")
+        assert len(found[0].features_used) == 5
