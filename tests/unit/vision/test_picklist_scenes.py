@@ -458,3 +458,40 @@ def test_a_mark_partly_covered_by_a_neighbours_mark_is_left_out_of_the_fit() -> 
         assert sorted(found) == [0, 1]
         assert found[1].features_used == ("m2", "m3", "m5", "m6")
         assert len(found[0].features_used) == 5
+
+
+@pytest.mark.parametrize(("design", "seed"), [("demo", 2), ("four", 4), ("ten", 3),
+                                              ("rect5", 1)])
+def test_random_scenes_never_send_another_plate(design: str, seed: int) -> None:
+    """Random scenes: eight plates at any yaw, tilted up to 15 deg, 0-30 mm high, 10 % of the
+    marks covered, up to 14 clutter blobs. No pickable pose is another plate's or a plate's
+    turned pose (bound 1 mm, 1 deg). Measured over 84 such scenes (672 plates, four designs):
+    none; 4 plates with exactly four marks, one of them partly covered by another plate's mark
+    in one image, were 0.07-0.26 mm, 0.17-0.51 deg off (docs/picklists.md, limits)."""
+    model = np.array({"demo": DEMO, "four": FOUR, "ten": TEN,
+                      "rect5": [*RECT, (10.0, 5.0, 0.0)]}[design], dtype=float)
+    obj = None if design == "demo" else _object([(p[0], p[1], p[2]) for p in model])
+    rng = np.random.default_rng(seed)
+    for trial in range(2):
+        poses: list[np.ndarray] = []
+        for _ in range(3000):
+            if len(poses) == 8:
+                break
+            T = np.eye(4)
+            T[:3, :3] = Rotation.from_euler("zx", [rng.uniform(-180, 180), rng.uniform(0, 15)],
+                                            degrees=True).as_matrix()
+            T[:3, 3] = (rng.uniform(420, 780), rng.uniform(-20, 220), rng.uniform(0, 30))
+            marks = model @ T[:3, :3].T + T[:3, 3]
+            if all(np.linalg.norm(marks[:, None, :2] - (model @ P[:3, :3].T + P[:3, 3])[None, :, :2],
+                                  axis=2).min() > 11.0 for P in poses):
+                poses.append(T)
+        drop = [f"{k}/m{i + 1}" for k in range(len(poses)) for i in range(len(model))
+                if rng.random() < 0.1]
+        instances = [{"translation_mm": P[:3, 3].tolist(),
+                      "rotvec_rad": Rotation.from_matrix(P[:3, :3]).as_rotvec().tolist()}
+                     for P in poses]
+        config = _config({"instances": instances, "drop_features": drop,
+                          "extra_blobs": int(rng.integers(0, 15)), "seed": 100 * seed + trial},
+                         obj)
+        ((_, truths, visible, found),) = _run(config, bound=(1.0, 1.0), every=False)
+        assert len(found) >= sum(n >= 5 for n in visible)  # every plate showing five marks
