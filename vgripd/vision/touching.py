@@ -61,11 +61,12 @@ def split_touching(mask: npt.NDArray[np.uint8], min_radius: float, max_radius: f
             accepted.append((int(x), int(y), height))
     if len(accepted) < 2:
         return np.zeros((0, 3))
-    # Each blob pixel belongs to its nearest accepted peak: the disc's share of the blob.
+    # Each blob pixel belongs to the disc whose rim it is deepest inside (the power line of
+    # the two rims, as the refinement parts them): the disc's share of the blob.
     by, bx = np.nonzero(padded > 0)
-    centres = np.array([(x, y) for x, y, _ in accepted], dtype=np.float64)
-    owner = np.argmin((bx[:, None] - centres[None, :, 0]) ** 2
-                      + (by[:, None] - centres[None, :, 1]) ** 2, axis=1)
+    centres = np.array([(x, y, h) for x, y, h in accepted], dtype=np.float64)
+    owner = np.argmin(np.hypot(bx[:, None] - centres[None, :, 0],
+                               by[:, None] - centres[None, :, 1]) - centres[None, :, 2], axis=1)
     out = []
     for k, (x, y, height) in enumerate(accepted):
         area = float((owner == k).sum())

@@ -9,6 +9,8 @@ import dataclasses
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from tests.unit.vision.test_features import nearest_errors, render_discs
 from vgripd.vision import features as ft
@@ -69,3 +71,36 @@ def test_one_disc_an_ellipse_a_bar_and_a_blot_are_not_split() -> None:
     np.testing.assert_allclose(np.sort(found[:, 0]), [20.0, 45.0], atol=1.0)
     # Discs the spec does not search for (too small) are not made of the blob either.
     assert split_touching(pair, 14.0, 20.0).shape == (0, 3)
+
+
+@settings(max_examples=60, deadline=None)
+@given(r1=st.floats(5.0, 18.0), r2=st.floats(5.0, 18.0), gap=st.floats(0.0, 3.0),
+       angle=st.floats(0.0, np.pi))
+def test_split_property_two_discs_any_size_and_direction(r1: float, r2: float, gap: float,
+                                                         angle: float) -> None:
+    """Any two discs 0-3 px apart, any radii in 5-18 px, any direction: two discs, each
+    centre within 1.5 px of the truth (the mask is pixelated), radii within 1.5 px."""
+    d = r1 + r2 + gap
+    c1 = np.array([70.0, 70.0])
+    c2 = c1 + d * np.array([np.cos(angle), np.sin(angle)])
+    yy, xx = np.mgrid[0:140, 0:140]
+    mask = ((((xx - c1[0]) ** 2 + (yy - c1[1]) ** 2) <= r1**2)
+            | (((xx - c2[0]) ** 2 + (yy - c2[1]) ** 2) <= r2**2)).astype(np.uint8) * 255
+    found = split_touching(mask, 4.0, 20.0)
+    assert found.shape == (2, 3), (r1, r2, gap, found)
+    for c, r in ((c1, r1), (c2, r2)):
+        k = int(np.argmin(np.linalg.norm(found[:, :2] - c, axis=1)))
+        assert np.linalg.norm(found[k, :2] - c) < 1.5
+        assert abs(found[k, 2] - r) < 1.5
+
+
+@settings(max_examples=60, deadline=None)
+@given(a=st.floats(5.0, 25.0), ratio=st.floats(0.35, 1.0), angle=st.floats(0.0, 180.0))
+def test_split_property_one_ellipse_is_never_split(a: float, ratio: float, angle: float
+                                                   ) -> None:
+    """A mark seen at up to 70 deg (axis ratio down to 0.35), any orientation: not split."""
+    size = int(2 * a + 20)
+    mask = np.zeros((size, size), np.uint8)
+    cv2.ellipse(mask, (size // 2, size // 2), (int(round(a)), max(1, int(round(a * ratio)))),
+                angle, 0, 360, 255, -1)
+    assert split_touching(mask, 2.0, 30.0).shape == (0, 3)
