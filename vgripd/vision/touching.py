@@ -13,8 +13,9 @@ radius. Two discs that touch or overlap a little are separated by a neck where t
 drops; an ellipse (a disc seen at an angle) has a ridge along its long axis instead, along
 which the distance stays high. So a local maximum is a disc of its own only when the straight
 path from it to every stronger accepted peak dips below ``NECK`` times the smaller of the two
-peaks. Each accepted disc must also be a disc: the blob pixels nearest to its peak must cover
-about the area of a disc of that radius (an irregular blot of dirt does not), and its diameter
+peaks, and by ``MIN_DIP`` at least. Each accepted disc must also be a disc: the blob pixels
+inside its rim rather than another's (the power line of the two rims) must cover about the area
+of a disc of that radius (an irregular blot of dirt does not), and its diameter
 must be one the spec searches for.
 """
 
@@ -31,6 +32,10 @@ from vgripd.types import FloatArray
 #: A valley between two peaks deeper than this share of the lower peak separates two discs
 #: (two touching discs: the neck is near 0; an ellipse of axis ratio 2: the ridge stays at 1).
 NECK = 0.7
+
+#: ... and deeper than this (mask pixels) below the lower peak: the distance transform of a
+#: blob a few pixels wide steps by fractions of a pixel along its ridge.
+MIN_DIP = 1.0
 
 #: The blob pixels nearest to a peak cover this range of the area of a disc of the peak's
 #: radius (a disc cut by its neighbour along their bisector keeps nearly all of its area; the
@@ -56,7 +61,8 @@ def split_touching(mask: npt.NDArray[np.uint8], min_radius: float, max_radius: f
     accepted: list[tuple[int, int, float]] = []
     for y, x in zip(ys[order], xs[order], strict=True):
         height = float(dist[y, x])
-        if all(_valley(dist, (x, y), (ax, ay)) < NECK * min(height, ah)
+        if all(_valley(dist, (x, y), (ax, ay)) < min(NECK * min(height, ah),
+                                                    min(height, ah) - MIN_DIP)
                for ax, ay, ah in accepted):
             accepted.append((int(x), int(y), height))
     if len(accepted) < 2:
