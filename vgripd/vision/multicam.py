@@ -49,6 +49,22 @@ EDGE_MARGIN_PX = 4.0
 #: one within this many epipolar tolerances (wider than the pairing, so that the marks of a
 #: camera knocked a few pixels off still enter the fit and the rig check can name it).
 COMPLETE_FACTOR = 4.0
+#: An observation this many times the RMS of its camera's other observations (and above
+#: ``OUTLIER_FLOOR`` of ``vision.max_reprojection_px``) is an outlier of its own camera
+#: (:meth:`MultiCamera._without_outliers`); at most ``MAX_OUTLIERS`` are dropped per job.
+OUTLIER_FACTOR = 8.0
+OUTLIER_FLOOR = 0.2
+MAX_OUTLIERS = 8
+#: A match over all tracks that identifies fewer than this share of them (or of the model's
+#: marks) is checked against each rig's own match: a rig whose camera moved triangulates its
+#: marks several mm off, which can leave the correct pose over all tracks beyond
+#: ``vision.max_fit_rms_mm`` and let a small chance match of a few tracks win.
+FALLBACK_SHARE = 0.5
+#: A rig fitted alone leaving this many times the residuals of the best other rig is
+#: inconsistent in itself (:func:`self_inconsistent`) ...
+SELF_FACTOR = 10.0
+#: ... provided its RMS is also above this fraction of ``vision.max_reprojection_px``.
+SELF_FLOOR = 0.1
 
 
 @dataclass
@@ -208,23 +224,69 @@ class MultiCamera:
             px = self._complete(view, pose.T_base_obj, px, circles, taken)
             px = self._unbiased(view, pose.T_base_obj, px)
             pose = fit_pose(view, self.model, px, pose.T_base_obj)
+            pose, px, dropped = self._without_outliers(view, pose, px)
         except GeometryError:
             est.used = assignment >= 0
             return est
-        return self._measure(view, rigs, est, pose, px)
+        est = self._measure(view, rigs, est, pose, px)
+        est.residuals["outliers"] = float(dropped)
+        return est
+
+    def _without_outliers(self, view: MultiView, pose: MultiViewPose, px: FloatArray
+                          ) -> tuple[MultiViewPose, FloatArray, int]:
+        """The fit again without observations that stand out in their own camera.
+
+        One image mark can be wrong while its camera is right: a blob touching a mark or a
+        glint on its rim shifts its centroid by pixels. Such an observation is far off while
+        the other marks of the same camera fit to the finder's noise. A knocked camera is
+        different: all its marks are off alike, none stands out, so the rig check still sees
+        it. Dropped, worst first and refitting each time: an observation whose error is
+        above ``OUTLIER_FACTOR`` times the RMS of its camera's other observations and above
+        ``OUTLIER_FLOOR`` of the gate; at most a quarter of a camera's observations, and
+        never below 3 marks per camera."""
+        gate = self.config.vision.max_reprojection_px
+        dropped = 0
+        out = px
+        for _ in range(MAX_OUTLIERS):
+            worst: tuple[float, int, int] | None = None
+            for j in range(len(self.cameras)):
+                e = pose.errors_px[:, j]
+                rows = np.flatnonzero(np.isfinite(e))
+                if rows.size < 4 or rows.size <= 3 * dropped_in(out, px, j):
+                    continue
+                k = rows[int(np.argmax(e[rows]))]
+                rest = e[rows[rows != k]]
+                limit = max(OUTLIER_FACTOR * float(np.sqrt(np.mean(rest * rest))),
+                            OUTLIER_FLOOR * gate)
+                if e[k] > limit and (worst is None or e[k] / limit > worst[0]):
+                    worst = (float(e[k] / limit), int(k), j)
+            if worst is None:
+                break
+            _, k, j = worst
+            trial = out.copy()
+            trial[k, j] = np.nan
+            try:
+                pose = fit_pose(view, self.model, trial, pose.T_base_obj)
+            except GeometryError:
+                break
+            out = trial
+            dropped += 1
+        return pose, out, dropped
 
     def _identify(self, points: FloatArray, keys: list[tuple[int, ...]],
                   tracks: list[dict[int, int]]
                   ) -> tuple[npt.NDArray[np.intp] | None, bool]:
         """Which track is which circle mark: the rigid-distance match over all tracks; when
-        that is ambiguous or fails, the best unambiguous match of one rig's own tracks, whose
-        pose then assigns the other tracks (a rig whose camera moved triangulates its marks
-        a few mm off, which can spoil the match of the whole set but not of the others)."""
+        that is ambiguous, fails or explains few of the tracks, the best unambiguous match of
+        one rig's own tracks, whose pose then assigns the other tracks (a rig whose camera
+        moved triangulates its marks a few mm off, which can spoil the match of the whole set
+        but not of the others), unless the match over all tracks still explains more."""
         vision = self.config.vision
         model = self.model[self.is_circle]
         match = ft.match_model(model, points, vision.model_tolerance_mm, keys,
                                max_rms_mm=vision.max_fit_rms_mm)
-        if match is not None and not match.ambiguous:
+        if (match is not None and not match.ambiguous
+                and match.count >= FALLBACK_SHARE * min(len(points), len(model))):
             return match.assignment, False
         best: ft.ModelMatch | None = None
         for _, members in self.groups:
@@ -241,6 +303,11 @@ class MultiCamera:
             return (None, False) if match is None else (match.assignment, match.ambiguous)
         sub, _ = ft.assign_nearest(model, points, best.T_points_model,
                                    2 * vision.model_tolerance_mm, keys)
+        # A valid match over all tracks that explains more of them than the rig's pose does
+        # stands (the rigs were asked only because it explained few).
+        if (match is not None and not match.ambiguous
+                and match.count >= int((sub >= 0).sum())):
+            return match.assignment, False
         return sub, False
 
     def _tracks(self, view: MultiView, rigs: dict[tuple[int, int], StereoRig],
@@ -409,6 +476,7 @@ class MultiCamera:
                             if own_fit.get(c.name, 0.0) > vision.max_fit_rms_mm
                             or rig_epi.get(c.name, 0.0) > vision.epipolar_warn_px
                             or c.alone_rms_px > vision.max_reprojection_px}
+            inconsistent |= self_inconsistent(est.checks, vision.max_reprojection_px)
             # Or, failing that, the one rig whose residuals under the joint pose break a gate
             # while the others' do not (its residuals dominate the job's).
             dominant = {g.name for g in pose.groups
@@ -442,6 +510,31 @@ class MultiCamera:
                 d = np.linalg.norm(tri[ok] - model_base[ok], axis=1)
                 joint[name] = float(np.sqrt(np.mean(d * d)))
         return out, joint
+
+
+def dropped_in(now: FloatArray, before: FloatArray, camera: int) -> int:
+    """How many observations of ``camera`` the outlier check has dropped so far."""
+    return int((np.isnan(now[:, camera, 0]) & ~np.isnan(before[:, camera, 0])).sum())
+
+
+def self_inconsistent(checks: Sequence[GroupCheck], gate_px: float) -> set[str]:
+    """Groups whose own fit is far worse than every other group's (names).
+
+    The absolute gates judge a rig by pixels, but a pixel means little at one rig and much
+    at another: a low-resolution rig far away whose camera moved 2 mm sees it as half a
+    pixel, under every gate, yet its wrong rays pull the joint pose by half a millimetre. The
+    finder's noise is about the same in every camera, so a rig fitted alone leaving
+    ``SELF_FACTOR`` times the residuals of the most consistent other rig (and more than
+    ``SELF_FLOOR`` of the gate, so that noise among good rigs never counts) is inconsistent in
+    itself: one of its cameras moved.
+    """
+    alone = {c.name: c.alone_rms_px for c in checks if np.isfinite(c.alone_rms_px)}
+    out = set()
+    for name, rms in alone.items():
+        others = [v for other, v in alone.items() if other != name]
+        if others and rms > max(SELF_FACTOR * min(others), SELF_FLOOR * gate_px):
+            out.add(name)
+    return out
 
 
 def rig_verdict(status: Status, message: str, est: MultiEstimate,
