@@ -25,7 +25,7 @@ Pure CPU, no state between jobs.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 
 import numpy as np
@@ -81,6 +81,7 @@ class MultiEstimate:
     points_base: dict[str, FloatArray] = field(default_factory=dict)
     checks: tuple[GroupCheck, ...] = ()
     odd: tuple[str, ...] = ()
+    excluded: str = ""
 
 
 def visible(camera: CameraModel, T_camera_base: FloatArray, points_base: FloatArray,
@@ -230,7 +231,34 @@ class MultiCamera:
             return est
         est = self._measure(view, rigs, est, pose, px)
         est.residuals["outliers"] = float(dropped)
+        self._without_odd_rig(view, est, px)
         return est
+
+    def _without_odd_rig(self, view: MultiView, est: MultiEstimate, px: FloatArray) -> None:
+        """When one rig is named and the others agree among themselves, the pose the job
+        gives is theirs: the named rig's calibration is wrong, so its rays only pull the
+        joint pose off (by up to a millimetre, measured). Residuals, gates and the verdict
+        stay those of the joint fit: a job refused for its residuals is still refused; one
+        published with OK_RECALIBRATE gets the better pose. ``est.excluded`` names the rig."""
+        if len(est.odd) != 1 or est.pose is None:
+            return
+        check = next(c for c in est.checks if c.name == est.odd[0])
+        if not check.rest_rms_px <= self.config.vision.max_reprojection_px:
+            return  # NaN (the others cannot fix a pose alone) or they do not agree
+        members = next(m for name, m in self.groups if name == check.name)
+        rest = px.copy()
+        rest[:, list(members)] = np.nan
+        try:
+            pose = fit_pose(view, self.model, rest, est.pose.T_base_obj)
+        except GeometryError:
+            return
+        joint, T = est.pose.T_base_obj, pose.T_base_obj
+        est.pose = replace(est.pose, T_base_obj=T)
+        est.excluded = check.name
+        # How far leaving the rig out moved the marks: what its calibration error cost.
+        est.residuals["excluded_shift_mm"] = float(np.max(np.linalg.norm(
+            (self.model @ T[:3, :3].T + T[:3, 3]) - (self.model @ joint[:3, :3].T + joint[:3, 3]),
+            axis=1)))
 
     def _without_outliers(self, view: MultiView, pose: MultiViewPose, px: FloatArray
                           ) -> tuple[MultiViewPose, FloatArray, int]:
@@ -425,19 +453,19 @@ class MultiCamera:
             d = np.linalg.norm(tri.points_mm[ok] - model_base[ok], axis=1)
             r["fit_rms_mm"] = float(np.sqrt(np.mean(d * d)))
             r["ray_distance_mm"] = float(np.nanmax(tri.ray_distance_mm[ok]))
-        epi: dict[int, list[FloatArray]] = {}  # camera -> residuals of the pairs it is in
+        epi: dict[tuple[int, int], FloatArray] = {}  # camera pair -> its marks' residuals
         for (a, b), rig in rigs.items():
             both = seen[:, a] & seen[:, b]
             if both.any():
-                e = rig.epipolar_residuals_px(px[both, a], px[both, b]).max(axis=1)
-                epi.setdefault(a, []).append(e)
-                epi.setdefault(b, []).append(e)
+                epi[a, b] = rig.epipolar_residuals_px(px[both, a], px[both, b]).max(axis=1)
         if epi:
-            r["epipolar_px"] = float(np.median(np.concatenate([e for v in epi.values()
-                                                               for e in v])))
+            r["epipolar_px"] = float(np.median(np.concatenate(list(epi.values()))))
+        # A rig's own epipolar residual: the pairs of its own cameras only. A pair across two
+        # groups says nothing about either alone (a knocked camera would make every camera
+        # it overlaps with look inconsistent, and single cameras have no pair of their own).
         rig_epi = {}
         for name, members in self.groups:
-            mine = [e for j in members for e in epi.get(j, [])]
+            mine = [e for (a, b), e in epi.items() if a in members and b in members]
             if mine:
                 rig_epi[name] = r[f"rig.{name}.epipolar_px"] = float(
                     np.median(np.concatenate(mine)))
@@ -483,7 +511,13 @@ class MultiCamera:
                         if joint_fit.get(g.name, 0.0) > vision.max_fit_rms_mm
                         or g.rms_px > vision.max_reprojection_px}
             alone = inconsistent if len(inconsistent) < len(est.checks) else set()
-            if not alone and not any(c.odd for c in est.checks) and len(dominant) == 1:
+            if alone:
+                # A rig inconsistent in itself is in the rest of every other rig, so their
+                # leave-one-out verdicts are judged against a pose it spoiled: it alone is
+                # named (a knocked camera of three rigs made the wrong rig look odd too).
+                est.odd = tuple(c.name for c in est.checks if c.name in alone)
+                return est
+            if not any(c.odd for c in est.checks) and len(dominant) == 1:
                 alone = dominant
             est.odd = tuple(c.name for c in est.checks if c.odd or c.name in alone)
         return est
@@ -573,7 +607,8 @@ def _blame(est: MultiEstimate) -> str:
     return (f"rig {check.name} disagrees with the other rigs: {check.predicted_rms_px:.2f} px "
             f"under their pose, its own pose {check.deviation_mm:.2f} mm / "
             f"{check.deviation_deg:.3f} deg from theirs{worst}: a camera moved? recalibrate "
-            "it (calibration.cameras)")
+            "it (calibration.cameras)"
+            + ("; the pose is the other rigs' alone" if est.excluded == check.name else ""))
 
 
 #: Rim vertices for predicting the imaged centre of a circle (bias error < 1e-4 px).

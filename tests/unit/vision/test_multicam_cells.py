@@ -206,23 +206,31 @@ KNOCKS = [((3.0, 0.0, 0.0), (0.0, 0.0, 0.0)), ((0.0, 0.0, 2.0), (0.0, 0.0, 0.0))
           ((0.0, 0.0, 0.0), (0.0, 0.0035, 0.0))]
 
 
-@pytest.mark.parametrize("name", ["three_rigs", "mixed", "top_side"])
+@pytest.mark.parametrize("name", list(CELLS))
 def test_a_knocked_camera_in_any_rig_position_names_its_rig(name: str) -> None:
     """Each camera moved 3 mm along x, 2 mm up or turned 0.2 deg after calibration: never a
-    plain OK, never a pose off by more than the knock explains, and its own rig named alone
-    (on the mixed cell a knock of the low-resolution rig is half a pixel there)."""
+    plain OK, a published pose (the other rigs') within 0.3 mm of the truth, and its own rig
+    (a camera in no rig: itself) named alone. On the mixed cell a knock of the
+    low-resolution rig is half a pixel there; on the three-camera cell a knocked camera can
+    leave two poses that explain the marks (AMBIGUOUS, refused, the camera still named)."""
     cell, pairs = frames(name)
     data = cell.data()
     rig_of = {c: r for r, cams in cell.rigs.items() for c in cams}
+    groups = set(rig_of.values()) | {c.name for c in cell.cams if c.name not in rig_of}
     pair = pairs[0]
     for j, cam in enumerate(cell.cams):
         for dt, drot in KNOCKS:
             result = Pipeline(moved(data, j, dt, drot)).process(pair, 0)
             what = (name, cam.name, dt, drot, result.message)
-            assert result.status in (Status.RESIDUAL_TOO_HIGH, Status.OK_RECALIBRATE), what
-            if result.T_base_obj is not None:
-                assert pose_error(result.T_base_obj, pair.truth["T_base_obj"])[0] < 5.0, what
-            mine = rig_of[cam.name]
+            assert result.status in (Status.RESIDUAL_TOO_HIGH, Status.OK_RECALIBRATE,
+                                     Status.AMBIGUOUS), what
+            if result.status.pose_valid:
+                assert result.T_base_obj is not None
+                assert pose_error(result.T_base_obj, pair.truth["T_base_obj"])[0] < 0.3, what
+            else:
+                assert result.target is None
+            mine = rig_of.get(cam.name, cam.name)
             assert f"rig {mine} disagrees with the other rigs" in result.message, what
-            assert not [r for r in cell.rigs if r != mine and f"rig {r} disagrees" in
+            assert "rigs " not in result.message, what
+            assert not [g for g in groups if g != mine and f"rig {g} disagrees" in
                         result.message], what
