@@ -415,3 +415,67 @@ async def test_chromium_page_shows_actions_disabled_on_a_read_only_config(
                 "document.getElementById('actions-off').textContent")
         async with http.post(f"{base}/api/trigger") as resp:
             assert resp.status == 404  # disabled: not there at all
+
+
+async def test_chromium_page_shows_every_camera_of_a_multi_camera_cell(tmp_path: Path) -> None:
+    """config/samples/two_rigs_frame.toml (four cameras): the page shows one annotated image
+    per camera, captioned with its name, and the history links each; every JPEG decodes and
+    shows that camera's own image (the marks it sees are drawn where the renderer put them)."""
+    from tests.integration.test_daemon_multicam import cell
+
+    config = cell(tmp_path, record=True)
+    names = [c.name for c in config.calibration.cameras]
+    async with running(config) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as http:
+        base = _base(run)
+        await plc.trigger(1)
+        assert (await plc.result(1))[Reg.STATUS] == Status.OK
+        pair, _ = await run.job_done(1)
+        assert pair is not None
+        async with _chromium(tmp_path, base + "/") as evaluate:
+            shown = await _until(evaluate, """(() => {
+                const figs = [...document.querySelectorAll('#live .images figure')];
+                const ok = figs.length === 4 && figs.every((f) => f.querySelector('img').complete
+                    && f.querySelector('img').naturalWidth > 0);
+                return ok && figs.map((f) => [f.querySelector('img').id,
+                    f.querySelector('figcaption').textContent,
+                    f.querySelector('img').src.split('?')[0]]);
+            })()""")
+            assert shown == [[f"img-view{j}", name, f"{base}/api/jobs/1/image/view{j}.jpg"]
+                             for j, name in enumerate(names)]
+            links = await _until(evaluate, """(() => {
+                const row = document.querySelector('#jobs tbody tr');
+                return row && [...row.querySelectorAll('a')].map((a) => [a.textContent.trim(),
+                    a.href.split('?')[0]]);
+            })()""")
+            assert links == [[name, f"{base}/api/jobs/1/image/view{j}.jpg"]
+                             for j, name in enumerate(names)]
+        px = pair.truth["pixels_views"]
+        for j in range(4):
+            async with http.get(f"{base}/api/jobs/1/image/view{j}.jpg") as resp:
+                assert resp.status == 200
+                img = cv2.imdecode(np.frombuffer(await resp.read(), np.uint8), cv2.IMREAD_COLOR)
+            assert img.shape == (819, 1024, 3)  # 1280x1024 downscaled to the view's width
+            # A green circle (a used mark, 6 px radius) around each mark this camera sees;
+            # the grey image has none of that colour anywhere.
+            bgr = img.astype(int)
+            green = (bgr[..., 1] - np.maximum(bgr[..., 0], bgr[..., 2])) > 40
+            seen = px[:, j][~np.isnan(px[:, j, 0])] * 1024 / 1280
+            assert len(seen) == 8
+            for x, y in seen:
+                x0, y0 = int(x), int(y)
+                assert green[y0 - 7:y0 + 8, x0 - 7:x0 + 8].any(), (j, x, y)
+        async with http.get(f"{base}/api/jobs/1/image/view4.jpg") as resp:
+            assert resp.status == 404
+            assert "the job has 4" in await resp.text()
+        # An older job, out of the cache and not the last pair: from the recorder's view*.png.
+        server = run.daemon.status_server
+        assert server is not None
+        await plc.trigger(2)
+        assert (await plc.result(2))[Reg.STATUS] == Status.OK
+        await run.job_done(2)
+        server.images._cache.clear()
+        await _recorded(tmp_path / "record", 1)
+        async with http.get(f"{base}/api/jobs/1/image/view3.jpg") as resp:
+            assert resp.status == 200
+            again = cv2.imdecode(np.frombuffer(await resp.read(), np.uint8), cv2.IMREAD_COLOR)
+        assert again.shape == (819, 1024, 3)

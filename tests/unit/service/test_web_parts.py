@@ -188,7 +188,7 @@ def test_render_draws_downscaled_jpegs_of_a_failed_job() -> None:
     img = cv2.imdecode(np.frombuffer(jpegs[0], np.uint8), cv2.IMREAD_COLOR)
     assert img.shape == (768, 1024, 3)
     assert (img[:40] != 90).any()  # the status line is written
-    mono = render((left, None, None), JobResult(job_id=2, status=Status.CAMERA_ERROR),
+    mono = render(((left,), None), JobResult(job_id=2, status=Status.CAMERA_ERROR),
                   max_width=400)
     assert len(mono) == 1
     assert cv2.imdecode(np.frombuffer(mono[0], np.uint8), cv2.IMREAD_COLOR).shape[1] == 400

@@ -234,3 +234,50 @@ def test_a_knocked_camera_in_any_rig_position_names_its_rig(name: str) -> None:
             assert "rigs " not in result.message, what
             assert not [g for g in groups if g != mine and f"rig {g} disagrees" in
                         result.message], what
+
+
+def test_replay_annotate_draws_every_camera(tmp_path: Any,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """``vgripd replay --annotate`` on six cameras: one picture per camera and frame, the
+    marks that camera sees circled where the renderer put them (green used, red missing),
+    nothing drawn for the marks it cannot see (faces turned away)."""
+    import argparse
+
+    from vgripd.cli import replay
+    from vgripd.serialize import toml_from_dict
+
+    cell, pairs = frames("three_rigs")
+    names = [c.name for c in cell.cams]
+    data = cell.data()
+    data["camera"] = {"type": "replay", "folder": str(tmp_path / "in"),
+                      "globs": [f"{n}_*.png" for n in names]}
+    (tmp_path / "in").mkdir()
+    config_path = tmp_path / "cell.toml"
+    config_path.write_text(toml_from_dict(data))
+    for k, pair in enumerate(pairs[:2]):
+        for name, image in zip(names, pair.views, strict=True):
+            assert cv2.imwrite(str(tmp_path / "in" / f"{name}_{k}.png"), image)
+    parser = argparse.ArgumentParser()
+    replay.add_arguments(parser)
+    out = tmp_path / "out"
+    args = parser.parse_args(["-c", str(config_path), str(tmp_path / "in"), "--annotate",
+                              str(out)])
+    assert replay.run(args) == 0
+    assert '"status": "OK"' in capsys.readouterr().out
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        f"frame{k:04d}_{n}.png" for k in (1, 2) for n in names)
+    for k, pair in enumerate(pairs[:2]):
+        for j, name in enumerate(names):
+            img = cv2.imread(str(out / f"frame{k + 1:04d}_{name}.png")).astype(int)
+            # Green (used) or red (missing: too oblique for the finder in every camera).
+            green = (img[..., 1] - np.maximum(img[..., 0], img[..., 2])) > 60
+            green |= (img[..., 2] - np.maximum(img[..., 0], img[..., 1])) > 60
+            px = pair.truth["pixels_views"][:, j]
+            for x, y in px[~np.isnan(px[:, 0])]:
+                assert green[int(y) - 8:int(y) + 9, int(x) - 8:int(x) + 9].any(), (name, x, y)
+            # Circles are drawn only where this camera sees a mark.
+            ys, xs = np.nonzero(green)
+            seen = px[~np.isnan(px[:, 0])]
+            near = np.linalg.norm(np.c_[xs, ys][:, None] - seen[None], axis=2).min(axis=1)
+            labels_and_axes = near > 60
+            assert labels_and_axes.mean() < 0.5, name
