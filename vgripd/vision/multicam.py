@@ -255,6 +255,17 @@ class MultiCamera:
         joint, T = est.pose.T_base_obj, pose.T_base_obj
         est.pose = replace(est.pose, T_base_obj=T)
         est.excluded = check.name
+        # Which of its cameras moved: under the others' pose the knocked camera's marks are
+        # off, its partner's are not (under the joint pose both share the error).
+        X = self.model @ T[:3, :3].T + T[:3, 3]
+        for j in members:
+            rows = np.flatnonzero(~np.isnan(px[:, j, 0]))
+            if rows.size:
+                Tc = view.T_cameras_base[j]
+                e = np.linalg.norm(self.cameras[j].project(X[rows] @ Tc[:3, :3].T + Tc[:3, 3])
+                                   - px[rows, j], axis=1)
+                est.residuals[f"camera.{self.names[j]}.rest_px"] = float(
+                    np.sqrt(np.mean(e * e)))
         # How far leaving the rig out moved the marks: what its calibration error cost.
         est.residuals["excluded_shift_mm"] = float(np.max(np.linalg.norm(
             (self.model @ T[:3, :3].T + T[:3, 3]) - (self.model @ joint[:3, :3].T + joint[:3, 3]),
@@ -603,6 +614,10 @@ def _blame(est: MultiEstimate) -> str:
     errors = est.pose.errors_px
     cams = [(float(np.sqrt(np.nanmean(errors[:, j] ** 2))), est.camera_names[j])
             for j in group.cameras if np.isfinite(errors[:, j]).any()]
+    rest = [(est.residuals[f"camera.{est.camera_names[j]}.rest_px"], est.camera_names[j])
+            for j in group.cameras if f"camera.{est.camera_names[j]}.rest_px" in est.residuals]
+    if rest:  # under the other rigs' pose: the camera that moved stands out
+        cams = rest
     worst = f" (worst camera {max(cams)[1]}, {max(cams)[0]:.2f} px)" if cams else ""
     return (f"rig {check.name} disagrees with the other rigs: {check.predicted_rms_px:.2f} px "
             f"under their pose, its own pose {check.deviation_mm:.2f} mm / "

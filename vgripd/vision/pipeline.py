@@ -548,9 +548,14 @@ class Pipeline:
         job.lap("checks")
         found = [finder(gray) for finder, gray in zip(self.finders, grays, strict=True)]
         job.lap("features")
+        job.trace.grays, job.trace.found = tuple(grays), tuple(found)
+        job.trace.T_base_flange = pair.T_base_flange
         est = multi.locate([f.circles for f in found], [f.identified for f in found],
                            pair.T_base_flange)
         job.lap("pose")
+        job.trace.odd = est.odd
+        job.trace.camera_marks = tuple(int(est.residuals.get(f"camera.{name}.marks", 0))
+                                       for name in multi.names)
         job.used = tuple(self.names[i] for i in np.flatnonzero(est.used))
         job.missing = tuple(self.names[i] for i in np.flatnonzero(~est.used))
         needed = vision.min_features

@@ -231,6 +231,11 @@ def test_a_knocked_camera_in_any_rig_position_names_its_rig(name: str) -> None:
                 assert result.target is None
             mine = rig_of.get(cam.name, cam.name)
             assert f"rig {mine} disagrees with the other rigs" in result.message, what
+            assert f"(worst camera {cam.name}, " in result.message, what
+            if result.diagnosis is not None:  # refused: the "why" names the camera's pose
+                assert result.diagnosis.top is not None
+                assert result.diagnosis.top.key == f"calibration.cameras.{j}.T_base_camera", (
+                    what, result.diagnosis.top)
             assert "rigs " not in result.message, what
             assert not [g for g in groups if g != mine and f"rig {g} disagrees" in
                         result.message], what
@@ -281,3 +286,30 @@ def test_replay_annotate_draws_every_camera(tmp_path: Any,
             near = np.linalg.norm(np.c_[xs, ys][:, None] - seen[None], axis=2).min(axis=1)
             labels_and_axes = near > 60
             assert labels_and_axes.mean() < 0.5, name
+
+
+def test_the_diagnosis_names_the_cameras_that_saw_nothing() -> None:
+    """Five of six cameras blank: NOT_FOUND, and the "why" names each blank camera's config
+    entry with what it should have seen at the taught reference; every camera has its stage."""
+    cell, pairs = frames("three_rigs")
+    pair = pairs[0]
+    blank = np.full_like(pair.views[0], 190)
+    blank[0, 0] = 0
+    views = [pair.views[0]] + [blank] * 5
+    pipe = Pipeline(cell.config())
+    result = pipe.process(ImagePair.of_views(views, pair.t_mono_ns), 0)
+    assert result.status is Status.NOT_FOUND
+    d = result.diagnosis
+    assert d is not None
+    assert [st.side for st in d.images] == [c.name for c in cell.cams]
+    assert d.images[0].found == 7
+    assert [st.found for st in d.images[1:]] == [0] * 5
+    keys = [c.key for c in d.causes]
+    assert {f"calibration.cameras.{j}" for j in range(1, 6)} <= set(keys), d.causes
+    text = "\n".join(d.lines())
+    assert "camera a_r found 0 mark(s) but sees 7 at the taught reference" in text, text
+    # The annotated pictures draw every camera's candidates and status.
+    from vgripd.vision.annotate import annotate
+
+    images = annotate(pipe, ImagePair.of_views(views, pair.t_mono_ns), result)
+    assert len(images) == 6
