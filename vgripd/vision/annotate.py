@@ -60,7 +60,7 @@ def _draw_model(img: np.ndarray, cam: CameraModel, T_cam_obj: FloatArray, pipeli
     cell: those this camera can see), default all; a feature behind the camera draws none."""
     keep = np.ones(len(pipeline.names), dtype=bool) if shown is None else np.asarray(shown)
     pts = pipeline.model @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
-    if (pts[keep, 2] <= 0).any() or T_cam_obj[2, 3] <= 0:
+    if (pts[keep, 2] <= 0).any():
         return
     px = np.full((len(pts), 2), np.nan)
     if keep.any():
@@ -72,6 +72,8 @@ def _draw_model(img: np.ndarray, cam: CameraModel, T_cam_obj: FloatArray, pipeli
         cv2.circle(img, _pt(p), 6 * scale, colour, scale)
         cv2.putText(img, name, _pt(p + 8 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.5 * scale, colour,
                     scale)
+    if shown is not None and T_cam_obj[2, 3] <= 0:
+        return  # a multi-camera view with the object's origin behind it: no axes
     size = float(np.ptp(pipeline.model, axis=0).max()) / 2.0 or 10.0
     axes = np.array([[0, 0, 0], [size, 0, 0], [0, size, 0], [0, 0, size]], dtype=np.float64)
     ends = cam.project(axes @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3])
