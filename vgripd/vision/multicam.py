@@ -65,6 +65,8 @@ FALLBACK_SHARE = 0.5
 SELF_FACTOR = 10.0
 #: ... provided its RMS is also above this fraction of ``vision.max_reprojection_px``.
 SELF_FLOOR = 0.1
+#: ... and the best other rig has at least this many residual degrees of freedom.
+MIN_DOF = 6
 
 
 @dataclass
@@ -515,7 +517,9 @@ class MultiCamera:
                             if own_fit.get(c.name, 0.0) > vision.max_fit_rms_mm
                             or rig_epi.get(c.name, 0.0) > vision.epipolar_warn_px
                             or c.alone_rms_px > vision.max_reprojection_px}
-            inconsistent |= self_inconsistent(est.checks, vision.max_reprojection_px)
+            inconsistent |= self_inconsistent(
+                est.checks, {g.name: g.observations for g in pose.groups},
+                vision.max_reprojection_px)
             # Or, failing that, the one rig whose residuals under the joint pose break a gate
             # while the others' do not (its residuals dominate the job's).
             dominant = {g.name for g in pose.groups
@@ -562,7 +566,8 @@ def dropped_in(now: FloatArray, before: FloatArray, camera: int) -> int:
     return int((np.isnan(now[:, camera, 0]) & ~np.isnan(before[:, camera, 0])).sum())
 
 
-def self_inconsistent(checks: Sequence[GroupCheck], gate_px: float) -> set[str]:
+def self_inconsistent(checks: Sequence[GroupCheck], observations: dict[str, int],
+                      gate_px: float) -> set[str]:
     """Groups whose own fit is far worse than every other group's (names).
 
     The absolute gates judge a rig by pixels, but a pixel means little at one rig and much
@@ -571,12 +576,22 @@ def self_inconsistent(checks: Sequence[GroupCheck], gate_px: float) -> set[str]:
     finder's noise is about the same in every camera, so a rig fitted alone leaving
     ``SELF_FACTOR`` times the residuals of the most consistent other rig (and more than
     ``SELF_FLOOR`` of the gate, so that noise among good rigs never counts) is inconsistent in
-    itself: one of its cameras moved.
+    itself: one of its cameras moved. RMS values are compared per degree of freedom
+    (``observations``: pixel observations per group), and only groups with ``MIN_DOF`` of them
+    serve as the reference.
     """
-    alone = {c.name: c.alone_rms_px for c in checks if np.isfinite(c.alone_rms_px)}
+    alone: dict[str, float] = {}
+    for c in checks:
+        n = observations.get(c.name, 0)
+        dof = 2 * n - 6  # residual degrees of freedom of a 6-DOF fit of n pixel observations
+        if np.isfinite(c.alone_rms_px) and dof > 0:
+            # Per degree of freedom: a camera alone with 3-4 marks fits them almost exactly,
+            # which says nothing about its noise (and would make every other rig look bad).
+            alone[c.name] = c.alone_rms_px * float(np.sqrt(2 * n / dof))
+    reference = {name: v for name, v in alone.items() if 2 * observations[name] - 6 >= MIN_DOF}
     out = set()
     for name, rms in alone.items():
-        others = [v for other, v in alone.items() if other != name]
+        others = [v for other, v in reference.items() if other != name]
         if others and rms > max(SELF_FACTOR * min(others), SELF_FLOOR * gate_px):
             out.add(name)
     return out

@@ -315,3 +315,39 @@ def test_the_diagnosis_names_the_cameras_that_saw_nothing() -> None:
 
     images = annotate(pipe, ImagePair.of_views(views, pair.t_mono_ns), result)
     assert len(images) == 6
+
+
+@pytest.mark.parametrize("marks", [3, 4])
+def test_a_lone_camera_with_few_marks_does_not_make_the_rigs_look_bad(marks: int) -> None:
+    """A camera alone on a face of 3 or 4 marks fits its own pose almost exactly (0 or 2
+    residual degrees of freedom); compared per degree of freedom it does not make the rigs
+    look inconsistent: clean frames stay OK."""
+    cell = Cell(rig("n", (1, 0, 0)) + rig("s", (-1, 0, 0)) + [Cam("side", (X, Y + 2000, Z + 100))],
+                box_marks((1000, 800, 600), {"+x": 8, "-x": 8, "+y": marks}, 30.0),
+                rigs("n", "s"))
+    cfg = cell.config(noise_std=4.0)
+    pipe = Pipeline(cfg)
+    for k, pair in enumerate(grab(cfg, 3)):
+        result = pipe.process(pair, k)
+        assert result.status is Status.OK, result.message
+        assert result.residuals["camera.side.marks"] == marks
+
+
+def test_self_consistency_is_compared_per_degree_of_freedom() -> None:
+    """Real cameras: rigs at 0.3 px RMS, a lone camera with 4 marks at 0.01 px (it fits its
+    own pose almost exactly). Neither rig is inconsistent; a rig at 10 x the other's is."""
+    from vgripd.geometry.multipose import GroupCheck
+    from vgripd.vision.multicam import self_inconsistent
+
+    def check(name: str, alone: float) -> GroupCheck:
+        return GroupCheck(name=name, rest_rms_px=0.3, predicted_rms_px=0.4, alone_rms_px=alone,
+                          deviation_mm=0.1, deviation_deg=0.01, odd=False)
+
+    obs = {"n": 32, "s": 32, "side": 4}
+    assert self_inconsistent([check("n", 0.3), check("s", 0.28), check("side", 0.01)], obs,
+                             1.5) == set()
+    assert self_inconsistent([check("n", 3.2), check("s", 0.28), check("side", 0.01)], obs,
+                             1.5) == {"n"}
+    # Three marks in one camera: no degree of freedom left, no verdict on it either way.
+    assert self_inconsistent([check("n", 0.3), check("side", 0.0)], {"n": 32, "side": 3},
+                             1.5) == set()
