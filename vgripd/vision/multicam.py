@@ -319,9 +319,10 @@ class MultiCamera:
                   ) -> tuple[npt.NDArray[np.intp] | None, bool]:
         """Which track is which circle mark: the rigid-distance match over all tracks; when
         that is ambiguous, fails or explains few of the tracks, the best unambiguous match of
-        one rig's own tracks, whose pose then assigns the other tracks (a rig whose camera
-        moved triangulates its marks a few mm off, which can spoil the match of the whole set
-        but not of the others), unless the match over all tracks still explains more."""
+        one rig's own tracks (or of all tracks but one rig's), whose pose then assigns the
+        other tracks (a rig whose camera moved triangulates its marks a few mm off, which can
+        spoil the match of the whole set but not of the others), unless the match over all
+        tracks still explains more."""
         vision = self.config.vision
         model = self.model[self.is_circle]
         match = ft.match_model(model, points, vision.model_tolerance_mm, keys,
@@ -330,9 +331,16 @@ class MultiCamera:
                 and match.count >= FALLBACK_SHARE * min(len(points), len(model))):
             return match.assignment, False
         best: ft.ModelMatch | None = None
+        # Each rig's own tracks, and every rig's tracks but one rig's (a cell of single
+        # cameras has no own tracks: leaving the knocked camera out is what helps there).
+        subsets: dict[bytes, npt.NDArray[np.bool_]] = {}
         for _, members in self.groups:
-            own = np.array([set(t) <= set(members) for t in tracks])
-            if own.sum() < 3:
+            cams = set(members)
+            for mask in (np.array([set(t) <= cams for t in tracks]),
+                         np.array([not set(t) & cams for t in tracks])):
+                subsets.setdefault(mask.tobytes(), mask)
+        for own in subsets.values():
+            if own.sum() < 3 or own.all():
                 continue
             rig_match = ft.match_model(model, points[own], vision.model_tolerance_mm,
                                        [k for k, o in zip(keys, own, strict=True) if o],

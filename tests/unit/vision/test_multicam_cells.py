@@ -212,9 +212,8 @@ KNOCKS = [((3.0, 0.0, 0.0), (0.0, 0.0, 0.0)), ((0.0, 0.0, 2.0), (0.0, 0.0, 0.0))
 def test_a_knocked_camera_in_any_rig_position_names_its_rig(name: str) -> None:
     """Each camera moved 3 mm along x, 2 mm up or turned 0.2 deg after calibration: never a
     plain OK, a published pose (the other rigs') within 0.3 mm of the truth, and its own rig
-    (a camera in no rig: itself) named alone. On the mixed cell a knock of the
-    low-resolution rig is half a pixel there; on the three-camera cell a knocked camera can
-    leave two poses that explain the marks (AMBIGUOUS, refused, the camera still named)."""
+    (a camera in no rig: itself) named alone, and the camera itself as the worst one. On the
+    mixed cell a knock of the low-resolution rig is half a pixel there."""
     cell, pairs = frames(name)
     data = cell.data()
     rig_of = {c: r for r, cams in cell.rigs.items() for c in cams}
@@ -224,8 +223,7 @@ def test_a_knocked_camera_in_any_rig_position_names_its_rig(name: str) -> None:
         for dt, drot in KNOCKS:
             result = Pipeline(moved(data, j, dt, drot)).process(pair, 0)
             what = (name, cam.name, dt, drot, result.message)
-            assert result.status in (Status.RESIDUAL_TOO_HIGH, Status.OK_RECALIBRATE,
-                                     Status.AMBIGUOUS), what
+            assert result.status in (Status.RESIDUAL_TOO_HIGH, Status.OK_RECALIBRATE), what
             if result.status.pose_valid:
                 assert result.T_base_obj is not None
                 assert pose_error(result.T_base_obj, pair.truth["T_base_obj"])[0] < 0.3, what
