@@ -84,6 +84,7 @@ class MultiEstimate:
     checks: tuple[GroupCheck, ...] = ()
     odd: tuple[str, ...] = ()
     excluded: str = ""
+    lost: tuple[str, ...] = ()
 
 
 def visible(camera: CameraModel, T_camera_base: FloatArray, points_base: FloatArray,
@@ -234,7 +235,20 @@ class MultiCamera:
         est = self._measure(view, rigs, est, pose, px)
         est.residuals["outliers"] = float(dropped)
         self._without_odd_rig(view, est, px)
+        est.lost = self._lost(view, est, px, [len(c) + len(i) for c, i in
+                                              zip(circles, identified, strict=True)])
         return est
+
+    def _lost(self, view: MultiView, est: MultiEstimate, px: FloatArray, blobs: list[int]
+              ) -> tuple[str, ...]:
+        """Cameras that found mark-like blobs (3 or more) and should see 3 or more marks at
+        the found pose, yet contribute no observation: their image is not what their
+        calibration predicts (images given in the wrong order, or a camera turned far away).
+        The others' pose can be right; the job must not look healthy."""
+        assert est.pose is not None
+        seen = self.visible(view, est.pose.T_base_obj).sum(axis=0)
+        return tuple(name for j, name in enumerate(self.names)
+                     if seen[j] >= 3 and blobs[j] >= 3 and np.isnan(px[:, j, 0]).all())
 
     def _without_odd_rig(self, view: MultiView, est: MultiEstimate, px: FloatArray) -> None:
         """When one rig is named and the others agree among themselves, the pose the job
@@ -618,6 +632,11 @@ def rig_verdict(status: Status, message: str, est: MultiEstimate,
             f"rig {name}: reprojection RMS {rms:.3f} px > vision.max_reprojection_px "
             f"{vision.max_reprojection_px}")
     blame = _blame(est)
+    if est.lost:
+        lost = (f"camera{'s' if len(est.lost) > 1 else ''} {', '.join(est.lost)}: mark-like "
+                "blobs, but none where the calibration puts the marks it should see: is each "
+                "image the one of its camera (calibration.cameras order), or did it move far?")
+        blame = f"{blame}; {lost}" if blame else lost
     if not blame:
         return status, message
     if status.pose_valid:

@@ -95,8 +95,11 @@ def frames(name: str) -> tuple[Cell, tuple[ImagePair, ...]]:
 
 @pytest.mark.parametrize("name", list(CELLS))
 def test_every_cell_is_located_within_a_tenth_of_a_mm(name: str) -> None:
+    from vgripd.vision.commissioning import check_scene
+
     cell, pairs = frames(name)
     pipe = Pipeline(cell.config())
+    assert check_scene(pipe) == []  # vgripd check finds nothing wrong with the cell
     for k, pair in enumerate(pairs):
         result = pipe.process(pair, k)
         assert result.status is Status.OK, (name, k, result.message)
@@ -349,3 +352,19 @@ def test_self_consistency_is_compared_per_degree_of_freedom() -> None:
     # Three marks in one camera: no degree of freedom left, no verdict on it either way.
     assert self_inconsistent([check("n", 0.3), check("side", 0.0)], {"n": 32, "side": 3},
                              1.5) == set()
+
+
+def test_two_images_swapped_between_rigs_are_not_a_silent_ok() -> None:
+    """a_r's and b_r's images exchanged (a wiring or config-order mistake) on four rigs: the
+    other six cameras still fix the pose, but the job names both cameras (OK_RECALIBRATE),
+    it does not pass as healthy."""
+    cell, pairs = frames("four_rigs")
+    pipe = Pipeline(cell.config())
+    for k, pair in enumerate(pairs):
+        views = list(pair.views)
+        views[1], views[3] = views[3], views[1]
+        result = pipe.process(ImagePair.of_views(views, pair.t_mono_ns), k)
+        assert result.status is Status.OK_RECALIBRATE, result.message
+        assert result.message.startswith("cameras a_r, b_r: mark-like blobs, but none where")
+        assert result.T_base_obj is not None
+        assert pose_error(result.T_base_obj, pair.truth["T_base_obj"])[0] < 0.1
