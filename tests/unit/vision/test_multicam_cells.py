@@ -178,10 +178,11 @@ def test_one_bad_image_is_a_camera_error_naming_that_camera(camera: int) -> None
                                      f"calibration.cameras.{camera}.intrinsics is 1280x1024")
 
 
-#: Clutter blob centres at least this far from every mark centre: 10 px blobs by ~10.5 px
-#: marks, a few pixels of background between them. Such a neighbour shifts the mark's
-#: centroid by up to 2.5 px (measured): an outlier in its own camera, dropped by the fit.
-GAP_PX = 25
+#: Clutter blob centres at least this far from every mark centre (10 px blobs, ~10.5 px
+#: marks). 0: anywhere, some touching a mark: such a neighbour shifts the mark's centroid by
+#: up to 6.5 px (measured), an outlier in its own camera that the fit drops (before it did,
+#: 2 of these 3 cameras' clutter made the job RESIDUAL_TOO_HIGH or OK_RECALIBRATE).
+GAP_PX = 0
 
 
 @pytest.mark.parametrize("camera", [0, 2, 4])
@@ -196,7 +197,7 @@ def test_clutter_in_one_camera_leaves_the_pose(camera: int) -> None:
         px = px[~np.isnan(px[:, 0])]
         rng = np.random.default_rng(k)
         blobs: list[Any] = []
-        while len(blobs) < 8:  # clear of the real marks (which they would deform)
+        while len(blobs) < 8:
             c = px[rng.integers(len(px))] + rng.uniform(-80, 80, 2)
             if np.linalg.norm(px - c, axis=1).min() > GAP_PX:
                 blobs.append(c)
