@@ -45,7 +45,8 @@ from vgripd.types import FloatArray, ImagePair, JobResult, PickInstance, Status
 from vgripd.vision import diagnosis as dg
 from vgripd.vision import features as ft
 from vgripd.vision import scene
-from vgripd.vision.multicam import MultiCamera, rig_verdict
+from vgripd.vision.multicam import MultiCamera
+from vgripd.vision.rigcheck import rig_verdict
 
 #: Minimum number of matched features for PnP (three points have up to four poses).
 MIN_PNP_FEATURES = 4

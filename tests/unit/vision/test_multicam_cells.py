@@ -339,7 +339,7 @@ def test_self_consistency_is_compared_per_degree_of_freedom() -> None:
     """Real cameras: rigs at 0.3 px RMS, a lone camera with 4 marks at 0.01 px (it fits its
     own pose almost exactly). Neither rig is inconsistent; a rig at 10 x the other's is."""
     from vgripd.geometry.multipose import GroupCheck
-    from vgripd.vision.multicam import self_inconsistent
+    from vgripd.vision.rigcheck import self_inconsistent
 
     def check(name: str, alone: float) -> GroupCheck:
         return GroupCheck(name=name, rest_rms_px=0.3, predicted_rms_px=0.4, alone_rms_px=alone,
