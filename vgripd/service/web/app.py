@@ -150,11 +150,13 @@ def job_summary(record: JobRecord, t_wall: float, images: bool) -> dict[str, Any
 
 def view_names(config: Any, pair: ImagePair) -> list[list[str]]:
     """``[url side, caption]`` of each image of a job: left (and right), or every camera of a
-    multi-camera cell as ``view<j>`` with its name from ``calibration.cameras``."""
+    multi-camera cell as ``view<j>`` with its name from ``calibration.cameras`` (a cell of
+    ``vision.views``: its views ``view1`` .. ``viewN``, as ``scene.views_config`` names them)."""
     cameras = config.calibration.cameras if config.calibration is not None else None
-    if cameras is None:
+    if cameras is None and config.vision.views == 1:
         return [[side, side] for side in ("left", "right")[:len(pair.views)]]
-    names = [c.name for c in cameras]
+    names = ([c.name for c in cameras] if cameras is not None
+             else [f"view{k + 1}" for k in range(config.vision.views)])
     return [[f"view{j}", names[j] if j < len(names) else f"image {j}"]
             for j in range(len(pair.views))]
 
