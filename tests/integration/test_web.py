@@ -503,7 +503,8 @@ async def test_a_views_job_shows_every_view_annotated() -> None:
         # the view's flange pose (marks facing away from the view left out).
         config = run.daemon.config
         cal = config.calibration
-        assert cal is not None and cal.hand_eye.T_flange_camera is not None
+        assert cal is not None
+        assert cal.hand_eye.T_flange_camera is not None
         from vgripd.vision import scene
 
         T_fc = scene.matrix_from_pose(cal.hand_eye.T_flange_camera)
