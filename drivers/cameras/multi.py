@@ -61,6 +61,7 @@ class MultiCamera(CameraDriver):
             self.drivers.append(cls(validate_options(cls, section, where), config))
         cameras = config.calibration.cameras if config.calibration is not None else None
         self.expected = len(cameras) if cameras is not None else None
+        self.names = tuple(c.name for c in cameras) if cameras is not None else None
 
     def describe(self) -> str:
         return " + ".join(d.describe() for d in self.drivers)
@@ -87,8 +88,8 @@ class MultiCamera(CameraDriver):
         for i, result in enumerate(results):
             if isinstance(result, BaseException):
                 if isinstance(result, CameraError):
-                    raise CameraError(f"camera.cameras.{i} ({self.drivers[i].type_name}): "
-                                      f"{result}") from None
+                    raise CameraError(f"camera.cameras.{i} ({self.drivers[i].type_name}"
+                                      f"{self._which(i, results)}): {result}") from None
                 raise result
         pairs = [r for r in results if isinstance(r, ImagePair)]
         views = [image for pair in pairs for image in pair.views]
@@ -100,6 +101,23 @@ class MultiCamera(CameraDriver):
             views, min(p.t_mono_ns for p in pairs),
             source=" + ".join(p.source for p in pairs),
             meta={"cameras": [dict(p.meta) for p in pairs]}, T_base_flange=flange)
+
+    def _which(self, failed: int, results: list[Any]) -> str:
+        """The calibrated camera names a failed driver stands for (', camera north_left'),
+        so the message names the camera the integrator knows. Its images are the slots left
+        between the other drivers' images: known when it is the only driver that failed
+        (each driver may deliver one image or a pair), '' otherwise."""
+        if self.names is None:
+            return ""
+        counts = [len(r.views) if isinstance(r, ImagePair) else None for r in results]
+        if sum(c is None for c in counts) != 1:
+            return ""
+        start = sum(c for c in counts[:failed] if c is not None)
+        count = len(self.names) - sum(c for c in counts if c is not None)
+        names = self.names[start:start + count]
+        if not names:
+            return ""
+        return f", camera{'s' if len(names) > 1 else ''} {', '.join(names)}"
 
     def stuck_s(self) -> float:
         return max(d.stuck_s() for d in self.drivers)

@@ -185,3 +185,42 @@ async def test_multi_driver_refuses_what_cannot_work(tmp_path: Path) -> None:
     missing = make("multi", cameras=[one, {**one, "folder": str(tmp_path / "gone")}])
     with pytest.raises(CameraError, match=r"camera.cameras.1 \(replay\): replay: folder"):
         await missing.open()
+
+
+async def test_multi_driver_names_the_calibrated_camera_that_failed(tmp_path: Path) -> None:
+    """One driver of several fails: the error names the cameras of calibration.cameras whose
+    images it stands for, a single camera or a synchronised pair."""
+    _write(tmp_path / "a", "img", 3, 10)
+    _write(tmp_path / "pair", "l", 2, 20)
+    _write(tmp_path / "pair", "r", 2, 30)
+    _write(tmp_path / "d", "img", 3, 40)
+    camera = make("multi", cameras=[
+        {"type": "replay", "folder": str(tmp_path / "a"), "glob": "img_*.png"},
+        {"type": "replay", "folder": str(tmp_path / "pair"), "left_glob": "l_*.png",
+         "right_glob": "r_*.png"},
+        {"type": "replay", "folder": str(tmp_path / "d"), "glob": "img_*.png"},
+    ])
+    await camera.open()
+    try:
+        for _ in range(2):
+            await camera.grab(5.0)
+        with pytest.raises(CameraError) as err:
+            await camera.grab(5.0)
+    finally:
+        await camera.close()
+    assert str(err.value).startswith(
+        "camera.cameras.1 (replay, cameras north_right, south_left): replay: no more")
+    _write(tmp_path / "e", "img", 1, 50)
+    camera = make("multi", cameras=[
+        {"type": "replay", "folder": str(tmp_path / "a"), "glob": "img_*.png"},
+        {"type": "replay", "folder": str(tmp_path / "a"), "glob": "img_*.png"},
+        {"type": "replay", "folder": str(tmp_path / "a"), "glob": "img_*.png"},
+        {"type": "replay", "folder": str(tmp_path / "e"), "glob": "img_*.png"},
+    ])
+    await camera.open()
+    try:
+        await camera.grab(5.0)
+        with pytest.raises(CameraError, match=r"^camera.cameras.3 \(replay, camera south_right\)"):
+            await camera.grab(5.0)
+    finally:
+        await camera.close()

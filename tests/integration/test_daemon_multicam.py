@@ -123,3 +123,27 @@ async def test_a_moved_camera_names_its_rig_and_publishes_nothing(
     async with running(cell(tmp_path, camera=replay)) as run, Plc(run.port()) as plc:
         await plc.trigger(1)
         assert (await plc.result(1))[Reg.STATUS] == Status.OK
+
+
+async def test_one_camera_of_the_multi_driver_failing_names_it(tmp_path: Path) -> None:
+    """Four replay drivers in a ``multi`` camera, south_left's folder one frame short: its
+    second job ends CAMERA_ERROR naming south_left, nothing is published, and the daemon
+    keeps serving (the third trigger is answered too)."""
+    globs = await render(tmp_path, 2)
+    names = ["north_left", "north_right", "south_left", "south_right"]
+    (tmp_path / "south_left_01.png").unlink()
+    multi = {"type": "multi", "cameras": [
+        {"type": "replay", "folder": str(tmp_path), "glob": glob, "loop": False}
+        for glob in globs]}
+    assert [g.split("_*")[0] for g in globs] == names
+    async with running(cell(tmp_path, camera=multi)) as run, Plc(run.port()) as plc:
+        await plc.trigger(1)
+        assert (await plc.result(1))[Reg.STATUS] == Status.OK
+        await plc.trigger(2)
+        words = await plc.result(2)
+        _, rec = await run.job_done(2)
+        assert words[Reg.STATUS] == Status.CAMERA_ERROR
+        assert words[Reg.N_VALUES] == 0
+        assert "camera.cameras.2 (replay, camera south_left)" in rec.result.message
+        await plc.trigger(3)
+        assert (await plc.result(3))[Reg.STATUS] == Status.CAMERA_ERROR

@@ -415,3 +415,117 @@ async def test_chromium_page_shows_actions_disabled_on_a_read_only_config(
                 "document.getElementById('actions-off').textContent")
         async with http.post(f"{base}/api/trigger") as resp:
             assert resp.status == 404  # disabled: not there at all
+
+
+async def test_chromium_page_shows_every_camera_of_a_multi_camera_cell(tmp_path: Path) -> None:
+    """config/samples/two_rigs_frame.toml (four cameras): the page shows one annotated image
+    per camera, captioned with its name, and the history links each; every JPEG decodes and
+    shows that camera's own image (the marks it sees are drawn where the renderer put them)."""
+    from tests.integration.test_daemon_multicam import cell
+
+    config = cell(tmp_path, record=True)
+    names = [c.name for c in config.calibration.cameras]
+    async with running(config) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as http:
+        base = _base(run)
+        await plc.trigger(1)
+        assert (await plc.result(1))[Reg.STATUS] == Status.OK
+        pair, _ = await run.job_done(1)
+        assert pair is not None
+        async with _chromium(tmp_path, base + "/") as evaluate:
+            shown = await _until(evaluate, """(() => {
+                const figs = [...document.querySelectorAll('#live .images figure')];
+                const ok = figs.length === 4 && figs.every((f) => f.querySelector('img').complete
+                    && f.querySelector('img').naturalWidth > 0);
+                return ok && figs.map((f) => [f.querySelector('img').id,
+                    f.querySelector('figcaption').textContent,
+                    f.querySelector('img').src.split('?')[0]]);
+            })()""")
+            assert shown == [[f"img-view{j}", name, f"{base}/api/jobs/1/image/view{j}.jpg"]
+                             for j, name in enumerate(names)]
+            links = await _until(evaluate, """(() => {
+                const row = document.querySelector('#jobs tbody tr');
+                return row && [...row.querySelectorAll('a')].map((a) => [a.textContent.trim(),
+                    a.href.split('?')[0]]);
+            })()""")
+            assert links == [[name, f"{base}/api/jobs/1/image/view{j}.jpg"]
+                             for j, name in enumerate(names)]
+        px = pair.truth["pixels_views"]
+        for j in range(4):
+            async with http.get(f"{base}/api/jobs/1/image/view{j}.jpg") as resp:
+                assert resp.status == 200
+                img = cv2.imdecode(np.frombuffer(await resp.read(), np.uint8), cv2.IMREAD_COLOR)
+            assert img.shape == (819, 1024, 3)  # 1280x1024 downscaled to the view's width
+            # A green circle (a used mark, 6 px radius) around each mark this camera sees;
+            # the grey image has none of that colour anywhere.
+            bgr = img.astype(int)
+            green = (bgr[..., 1] - np.maximum(bgr[..., 0], bgr[..., 2])) > 40
+            seen = px[:, j][~np.isnan(px[:, j, 0])] * 1024 / 1280
+            assert len(seen) == 8
+            for x, y in seen:
+                x0, y0 = int(x), int(y)
+                assert green[y0 - 7:y0 + 8, x0 - 7:x0 + 8].any(), (j, x, y)
+        async with http.get(f"{base}/api/jobs/1/image/view4.jpg") as resp:
+            assert resp.status == 404
+            assert "the job has 4" in await resp.text()
+        # An older job, out of the cache and not the last pair: from the recorder's view*.png.
+        server = run.daemon.status_server
+        assert server is not None
+        await plc.trigger(2)
+        assert (await plc.result(2))[Reg.STATUS] == Status.OK
+        await run.job_done(2)
+        server.images._cache.clear()
+        await _recorded(tmp_path / "record", 1)
+        async with http.get(f"{base}/api/jobs/1/image/view3.jpg") as resp:
+            assert resp.status == 200
+            again = cv2.imdecode(np.frombuffer(await resp.read(), np.uint8), cv2.IMREAD_COLOR)
+        assert again.shape == (819, 1024, 3)
+
+
+async def test_a_views_job_shows_every_view_annotated() -> None:
+    """One robot-mounted camera, three views of the sample frame (tests/integration/
+    test_daemon_views.py's cell): the job lists view1..view3, and each JPEG is that view's
+    image with the marks it sees circled at the renderer's pixels, drawn from the flange pose
+    each view carried."""
+    from tests.integration.test_daemon_views import port, views_config
+    from vgripd.sim.plc import MockPlc
+
+    async with running(views_config(3)) as run, aiohttp.ClientSession() as http, \
+            MockPlc("127.0.0.1", port(run), timeout_s=WAIT_S) as plc:
+        base = _base(run)
+        answer = await plc.views_cycle(3)
+        assert answer.status is Status.OK
+        pair, rec = await run.job_done(1)
+        assert pair is not None
+        async with http.get(f"{base}/api/jobs/1") as resp:
+            job = await resp.json()
+        assert job["views"] == [["view0", "view1"], ["view1", "view2"], ["view2", "view3"]]
+        # Where each view saw the marks, by OpenCV's projection of the rendered pose through
+        # the view's flange pose (marks facing away from the view left out).
+        config = run.daemon.config
+        cal = config.calibration
+        assert cal is not None
+        assert cal.hand_eye.T_flange_camera is not None
+        from vgripd.vision import scene
+
+        T_fc = scene.matrix_from_pose(cal.hand_eye.T_flange_camera)
+        K = np.array([[cal.left.fx, 0, cal.left.cx], [0, cal.left.fy, cal.left.cy], [0, 0, 1]])
+        marks = np.array([f.xyz_mm for f in config.object.features])
+        normals = np.array([f.normal for f in config.object.features])
+        T_obj = pair.truth["T_base_obj"]
+        for j in range(3):
+            async with http.get(f"{base}/api/jobs/1/image/view{j}.jpg") as resp:
+                assert resp.status == 200
+                img = cv2.imdecode(np.frombuffer(await resp.read(), np.uint8), cv2.IMREAD_COLOR)
+            T_cam_obj = np.linalg.inv(pair.T_base_flange[j] @ T_fc) @ T_obj
+            eye = np.linalg.inv(T_cam_obj)[:3, 3]
+            facing = ((eye - marks) * normals).sum(axis=1) > 0
+            px, _ = cv2.projectPoints(marks[facing], cv2.Rodrigues(T_cam_obj[:3, :3])[0],
+                                      T_cam_obj[:3, 3], K, np.array(cal.left.dist))
+            px = px.reshape(-1, 2)
+            inside = ((px >= 0) & (px < [cal.left.width, cal.left.height])).all(axis=1)
+            bgr = img.astype(int)
+            green = (bgr[..., 1] - np.maximum(bgr[..., 0], bgr[..., 2])) > 40
+            seen = px[inside] * img.shape[1] / pair.views[j].shape[1]
+            assert len(seen) >= 4
+            for x, y in seen:
+                assert green[int(y) - 7:int(y) + 8, int(x) - 7:int(x) + 8].any(), (j, x, y)

@@ -24,6 +24,8 @@ through the recipe a recorded job ran (its ``result.json``), else recipe 0.
 
 ``--annotate OUTDIR`` writes ``<name>_left.png`` (and ``_right.png``) per pair: the model
 features at the found pose, labelled, green used / red missing, the object axes, epipolar lines.
+A multi-camera cell: ``frame<NNNN>_<camera>.png`` for every camera of every frame (job number
+from 1), each with the marks that camera can see at the found pose.
 
 Exit codes: 0 every frame was read and processed (whatever its status); 1 a frame could not be
 read (corrupt or vanished file: its line has status ``CAMERA_ERROR``, the rest still run) or the
@@ -187,9 +189,6 @@ def run(args: argparse.Namespace) -> int:
     cls = load_class(CAMERAS, "camera", "replay")
     camera = cls(validate_options(cls, section, "camera"), config)
     out = Path(args.annotate) if args.annotate else None
-    if out is not None and pipeline.multi is not None:
-        print("replay: --annotate draws stereo pairs only; a multi-camera cell is replayed "
-              "without it", file=sys.stderr)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     results: list[JobResult] = []
@@ -198,11 +197,16 @@ def run(args: argparse.Namespace) -> int:
         result = dataclasses.replace(pipeline.process(pair, job_id), recipe=recipe)
         results.append(result)
         print(json.dumps({"source": pair.source, **dict_from_result(result)}), flush=True)
-        if out is not None and pipeline.multi is None:
-            stem = Path(str(pair.meta.get("left_path", f"pair{job_id}"))).stem
-            images = annotate(pipeline, pair, result)
-            for side, image in zip(("left", "right"), images, strict=False):
-                cv2.imwrite(str(out / f"{stem}_{side}.png"), image)
+        if out is None:
+            return
+        images = annotate(pipeline, pair, result)
+        if pipeline.multi is not None:  # <frame>_<camera>.png, one per camera
+            for name, image in zip(pipeline.multi.names, images, strict=False):
+                cv2.imwrite(str(out / f"frame{job_id:04d}_{name}.png"), image)
+            return
+        stem = Path(str(pair.meta.get("left_path", f"pair{job_id}"))).stem
+        for side, image in zip(("left", "right"), images, strict=False):
+            cv2.imwrite(str(out / f"{stem}_{side}.png"), image)
 
     unreadable = asyncio.run(_grab_all(camera, frames, handle))
     print(json.dumps({"summary": {

@@ -51,6 +51,14 @@ AGREE_SLACK = 0.1
 #: Condition number of a 6x6 normal matrix above which a group (or the rest of the cameras)
 #: does not determine the pose on its own.
 MAX_CONDITION = 1e10
+#: How many standard deviations of the poses' noise a rig's disagreement must exceed, on top of
+#: the gates, before the rig is blamed. A rig far away, with a short baseline or a low
+#: resolution fixes the object's pose loosely; a near high-resolution rig then sees that
+#: pose's noise as pixels beyond the gate although no camera moved. The noise comes from the
+#: same Jacobian (covariance s^2 H^-1, s^2 from the residuals), so it costs nothing extra. A
+#: knocked camera leaves the residuals of the others at the finder's noise: its allowance
+#: stays a small fraction of a pixel.
+UNCERTAINTY_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -352,9 +360,16 @@ def rig_consistency(mv: MultiView, model_points: object, pixels: object, T_base_
         d_rest = _solve(H - Hg, -(b - bg))
         d_alone = _solve(Hg, -bg)
         rest_rms = pred_rms = alone_rms = dev_mm = dev_deg = math.nan
+        # What the noise alone explains (0 when a pose is missing): see _noise_allowance.
+        slack_px = slack_mm = slack_deg = 0.0
         if d_rest is not None:
-            rest_rms = _rms_rows(r[~rows] + J[~rows] @ d_rest)
+            res_rest = r[~rows] + J[~rows] @ d_rest
+            rest_rms = _rms_rows(res_rest)
             pred_rms = _rms_rows(rg + Jg @ d_rest)
+            var = _coordinate_variance(res_rest)
+            cov_rest = var * np.linalg.inv(H - Hg)
+            slack_px = UNCERTAINTY_SIGMAS * math.sqrt(
+                max(float(np.trace(Jg @ cov_rest @ Jg.T)), 0.0) / max(rg.size // 2, 1))
         if d_alone is not None:
             alone_rms = _rms_rows(rg + Jg @ d_alone)
         if d_rest is not None and d_alone is not None:
@@ -362,8 +377,13 @@ def rig_consistency(mv: MultiView, model_points: object, pixels: object, T_base_
             marks = np.unique(point_of_obs[in_g])
             dev_mm = float(np.linalg.norm(dX[marks] @ diff, axis=1).max())
             dev_deg = math.degrees(float(np.linalg.norm(diff[:3])))
-        off = (pred_rms > gate_px or dev_mm > max_deviation_mm
-               or dev_deg > max_deviation_deg)
+            cov = cov_rest + _coordinate_variance(rg + Jg @ d_alone) * np.linalg.inv(Hg)
+            slack_mm = UNCERTAINTY_SIGMAS * math.sqrt(max(float(np.max(
+                np.einsum("kij,jl,kil->k", dX[marks], cov, dX[marks]))), 0.0))
+            slack_deg = UNCERTAINTY_SIGMAS * math.degrees(math.sqrt(max(float(np.trace(
+                cov[:3, :3])), 0.0)))
+        off = (pred_rms > gate_px + slack_px or dev_mm > max_deviation_mm + slack_mm
+               or dev_deg > max_deviation_deg + slack_deg)
         out.append(GroupCheck(name=name, rest_rms_px=rest_rms, predicted_rms_px=pred_rms,
                               alone_rms_px=alone_rms, deviation_mm=dev_mm,
                               deviation_deg=dev_deg,
@@ -378,6 +398,13 @@ def rig_consistency(mv: MultiView, model_points: object, pixels: object, T_base_
         out = [c if not c.odd or c.rest_rms_px <= agree else replace(c, odd=False)
                for c in out]
     return tuple(out)
+
+
+def _coordinate_variance(residuals: FloatArray) -> float:
+    """Per-coordinate pixel noise variance of stacked (u, v) residuals after a 6-DOF fit
+    (the sum of squares over the degrees of freedom left; 0 when none are)."""
+    dof = residuals.size - 6
+    return float(residuals @ residuals) / dof if dof > 0 else 0.0
 
 
 def _solve(H: FloatArray, g: FloatArray) -> FloatArray | None:

@@ -21,6 +21,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from vgripd.errors import VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.transforms import invert_transform
 from vgripd.types import FloatArray, ImagePair, JobResult
@@ -53,16 +54,26 @@ def _pt(p: FloatArray) -> tuple[int, int]:
 
 
 def _draw_model(img: np.ndarray, cam: CameraModel, T_cam_obj: FloatArray, pipeline: Pipeline,
-                used: set[str], scale: int) -> None:
+                used: set[str], scale: int, shown: Any = None) -> None:
+    """The model at a pose in one camera: each feature circled and named (green used, red
+    missing), and the object's axes. ``shown``: (n,) which features to draw (a multi-camera
+    cell: those this camera can see), default all; a feature behind the camera draws none."""
+    keep = np.ones(len(pipeline.names), dtype=bool) if shown is None else np.asarray(shown)
     pts = pipeline.model @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
-    if (pts[:, 2] <= 0).any():
+    if (pts[keep, 2] <= 0).any():
         return
-    px = cam.project(pts)
-    for name, p in zip(pipeline.names, px, strict=True):
+    px = np.full((len(pts), 2), np.nan)
+    if keep.any():
+        px[keep] = cam.project(pts[keep])
+    for name, p, k in zip(pipeline.names, px, keep, strict=True):
+        if not k:
+            continue
         colour = GREEN if name in used else RED
         cv2.circle(img, _pt(p), 6 * scale, colour, scale)
         cv2.putText(img, name, _pt(p + 8 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.5 * scale, colour,
                     scale)
+    if shown is not None and T_cam_obj[2, 3] <= 0:
+        return  # a multi-camera view with the object's origin behind it: no axes
     size = float(np.ptp(pipeline.model, axis=0).max()) / 2.0 or 10.0
     axes = np.array([[0, 0, 0], [size, 0, 0], [0, size, 0], [0, 0, size]], dtype=np.float64)
     ends = cam.project(axes @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3])
@@ -71,7 +82,10 @@ def _draw_model(img: np.ndarray, cam: CameraModel, T_cam_obj: FloatArray, pipeli
 
 
 def annotate(pipeline: Pipeline, pair: ImagePair, result: JobResult) -> list[np.ndarray]:
-    """BGR images (left, and right for a stereo pair) with the job drawn on them."""
+    """BGR images (left, and right for a stereo pair; every camera's in camera order for a
+    multi-camera cell) with the job drawn on them."""
+    if pipeline.multi is not None:
+        return _annotate_views(pipeline, pair, result)
     images = [_bgr(pair.left)] + ([_bgr(pair.right)] if pair.right is not None else [])
     scale = max(1, images[0].shape[1] // 1200)
     text = f"{result.status.name} {result.message}"[:120]
@@ -115,6 +129,38 @@ def annotate(pipeline: Pipeline, pair: ImagePair, result: JobResult) -> list[np.
                 if abs(b) > 1e-9:
                     cv2.line(images[1], (0, int(round(-c / b))), (w, int(round(-(c + a * w) / b))),
                              WHITE, scale)
+    return images
+
+
+def _annotate_views(pipeline: Pipeline, pair: ImagePair, result: JobResult
+                    ) -> list[np.ndarray]:
+    """A multi-camera job: every camera's image with its name and the status; with a pose,
+    the model in each camera where that camera can see it (a mark facing away, or outside
+    the image, is left out rather than drawn through the object)."""
+    multi = pipeline.multi
+    assert multi is not None
+    images = [_bgr(v) for v in pair.views]
+    scale = max(1, max(img.shape[1] for img in images) // 1200)
+    text = f"{result.status.name} {result.message}"[:120]
+    names = list(multi.names) + [f"image {j}" for j in range(len(multi.names), len(images))]
+    for img, name in zip(images, names, strict=False):
+        cv2.putText(img, text, (10, 30 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.8 * scale, YELLOW,
+                    2 * scale)
+        cv2.putText(img, f"camera {name}", (10, img.shape[0] - 12 * scale),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.7 * scale, YELLOW, 2 * scale)
+    if result.diagnosis is not None:
+        _draw_diagnosis(images, result.diagnosis, scale)
+    if result.T_base_obj is None or len(images) != len(multi.cameras):
+        return images
+    try:
+        view = multi.view(pair.T_base_flange)
+    except VgripError:  # robot-mounted without the flange pose: the status says why
+        return images
+    seen = multi.visible(view, result.T_base_obj)
+    used = set(result.features_used)
+    for j, (img, cam) in enumerate(zip(images, multi.cameras, strict=True)):
+        T_cam_obj = view.T_cameras_base[j] @ result.T_base_obj
+        _draw_model(img, cam, T_cam_obj, pipeline, used, scale, shown=seen[:, j])
     return images
 
 

@@ -61,6 +61,9 @@ class Trace:
     in_front: npt.NDArray[np.bool_] | None = None  # (rows,) triangulated in front of both
     hypotheses: int = 0
     assignment: npt.NDArray[np.intp] | None = None  # (n_model,) row per feature, -1 missing
+    odd: tuple[str, ...] = ()  # multi-camera: the rigs the consistency check named
+    camera_marks: tuple[int, ...] = ()  # multi-camera: observations in the fit, per camera
+    T_base_flange: FloatArray | None = None  # multi-camera: the flange pose at capture
 
 
 class Cause(NamedTuple):
@@ -235,6 +238,8 @@ def diagnose(config: Config, pair: ImagePair) -> Diagnosis:
 def explain(pipeline: Pipeline, job: _Job, status: Status, message: str) -> Diagnosis:
     """The diagnosis of one job from its trace (``Pipeline.process_with_points`` calls it)."""
     trace = job.trace
+    if pipeline.multi is not None:
+        return _explain_multi(pipeline, job, status, message)
     finders = [pipeline.find_left, pipeline.find_right]
     failed = not status.pose_valid
     stereo = len(trace.found) == 2 and pipeline.rig is not None
@@ -270,6 +275,11 @@ def explain(pipeline: Pipeline, job: _Job, status: Status, message: str) -> Diag
         causes.append((75.0, Cause(
             "camera", "a stereo cell was given one image: circle marks carry no identity in "
             "one image, give the right image too")))
+    return replace(d, causes=_ranked(causes))
+
+
+def _ranked(causes: list[tuple[float, Cause]]) -> tuple[Cause, ...]:
+    """Causes strongest first, one per config key."""
     causes.sort(key=lambda sc: -sc[0])
     seen: set[str] = set()
     ordered = []
@@ -277,7 +287,91 @@ def explain(pipeline: Pipeline, job: _Job, status: Status, message: str) -> Diag
         if c.key not in seen:
             seen.add(c.key)
             ordered.append(c)
-    return replace(d, causes=tuple(ordered))
+    return tuple(ordered)
+
+
+def _explain_multi(pipeline: Pipeline, job: _Job, status: Status, message: str) -> Diagnosis:
+    """The diagnosis of a multi-camera job: the finders in every camera (named), and causes
+    that name the camera's own config entry (``calibration.cameras.<j>``).
+
+    Beyond the image causes of one camera (polarity, contrast, size, circularity), a camera
+    that found fewer marks than it sees at the found pose (or, without a pose, at the taught
+    reference) is named with both counts, and a rig the consistency check named points at the
+    pose of its worst camera."""
+    multi = pipeline.multi
+    assert multi is not None
+    trace = job.trace
+    failed = not status.pose_valid
+    images = []
+    for j, found in enumerate(trace.found):
+        gray = trace.grays[j]
+        assert gray is not None
+        images.append(_image_stage(multi.names[j], found, pipeline.finders[j].specs, gray, {},
+                                   probe=failed))
+    d = Diagnosis(status=status.name, images=tuple(images), used=len(job.used),
+                  best_explained=len(job.used))
+    if not failed:
+        return d
+    causes = _image_causes(pipeline, trace, d, cams=list(multi.cameras),
+                           finders=list(pipeline.finders))
+    T = job.T_base_obj if job.T_base_obj is not None else pipeline.T_base_obj_ref
+    try:
+        view = multi.view(trace.T_base_flange)
+        sees = multi.visible(view, T).sum(axis=0)
+    except VgripError:  # robot-mounted cameras: where they were is not kept in the trace
+        sees = None
+    where = "at the found pose" if job.T_base_obj is not None else "at the taught reference"
+    if sees is not None:
+        for j, st in enumerate(d.images):
+            if sees[j] >= 3 and st.found + st.identified < min(3, int(sees[j])):
+                causes.append((65.0 + sees[j] - st.found, Cause(
+                    f"calibration.cameras.{j}",
+                    f"camera {multi.names[j]} found {st.found} mark(s) but sees {sees[j]} "
+                    f"{where}: is it aimed at the object, in focus, and its image the one "
+                    "given for it (image order = calibration.cameras order)?")))
+    for name in trace.odd:
+        members = next((m for g, m in multi.groups if g == name), ())
+        # Under the other rigs' pose (``rest_px``) the camera that moved stands out; under
+        # the joint pose (``reprojection_px``) its partner shares the error.
+        errors = [(job.residuals.get(f"camera.{multi.names[j]}.rest_px",
+                                     job.residuals.get(
+                                         f"camera.{multi.names[j]}.reprojection_px", 0.0)), j)
+                  for j in members]
+        if not errors:
+            continue
+        rms, j = max(errors)
+        mounted = pipeline.config.calibration
+        kind = ("T_flange_camera" if mounted is not None and mounted.cameras is not None
+                and mounted.cameras[j].mounting == "robot" else "T_base_camera")
+        causes.append((90.0, Cause(
+            f"calibration.cameras.{j}.{kind}",
+            f"rig {name} disagrees with the others (its worst camera {multi.names[j]}, "
+            f"{rms:.2f} px RMS): that camera moved since calibration, recalibrate it "
+            "(vgripd calibrate cameras)")))
+    if status is Status.AMBIGUOUS:
+        causes.append((50.0, Cause(
+            "object.features",
+            "two poses explain the marks about equally well: make the marks' pairwise "
+            "distances differ by a few mm, or remove clutter near the object")))
+    elif status is Status.RESIDUAL_TOO_HIGH and not trace.odd:
+        causes.append((55.0, Cause(
+            "calibration.cameras",
+            f"{message}: no single rig stands out: the model's xyz_mm, or several cameras' "
+            "calibration")))
+    elif status in (Status.PARTIAL, Status.NOT_FOUND):
+        seen_by = [j for j, n in enumerate(trace.camera_marks) if n]
+        causes.append((30.0, Cause(
+            "object.features",
+            f"{len(job.used)} mark(s) located from {len(seen_by)} camera(s); marks "
+            f"{' '.join(job.missing) or '-'} not located: each needs two cameras (or one, "
+            "once three marks fix the pose)")))
+    elif status in (Status.OUT_OF_LIMITS, Status.OUT_OF_WORKSPACE):
+        causes.append((40.0, Cause(
+            "limits.max_translation_mm" if status is Status.OUT_OF_LIMITS
+            else "limits.workspace_min_mm",
+            f"{message}: the object may really lie there; else reference.T_base_obj or "
+            "calibration.cameras (the base frame of every camera) is off")))
+    return replace(d, causes=_ranked(causes))
 
 
 def _image_stage(side: str, found: Found, specs: list[ft.CircleSpec], gray: ft.UInt8Image,
@@ -390,7 +484,10 @@ def _feature_key(config: Config, field_name: str, polarity: str | None = None) -
     return f"object.features[*].{field_name}"
 
 
-def _image_causes(pipeline: Pipeline, trace: Trace, d: Diagnosis) -> list[tuple[float, Cause]]:
+def _image_causes(pipeline: Pipeline, trace: Trace, d: Diagnosis, cams: list[Any] | None = None,
+                  finders: list[Any] | None = None) -> list[tuple[float, Cause]]:
+    """Causes seen in single images (``cams``/``finders`` per image: default the stereo
+    pair's)."""
     config = pipeline.config
     vision = config.vision
     circles = _circle_features(config)
@@ -398,8 +495,9 @@ def _image_causes(pipeline: Pipeline, trace: Trace, d: Diagnosis) -> list[tuple[
         return []
     need = min(3, len(circles))
     out: list[tuple[float, Cause]] = []
-    cams = [pipeline.left, pipeline.right]
-    finders = [pipeline.find_left, pipeline.find_right]
+    if cams is None or finders is None:
+        cams = [pipeline.left, pipeline.right]
+        finders = [pipeline.find_left, pipeline.find_right]
     for k, st in enumerate(d.images):
         short = st.found < need  # this image lost the job
         lacking = st.found < len(circles)

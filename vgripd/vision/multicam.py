@@ -25,13 +25,13 @@ Pure CPU, no state between jobs.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 
 import numpy as np
 import numpy.typing as npt
 
-from vgripd.config import Config, VisionConfig
+from vgripd.config import Config
 from vgripd.errors import GeometryError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.multipose import GroupCheck, MultiViewPose, fit_pose, rig_consistency
@@ -39,9 +39,10 @@ from vgripd.geometry.multiview import MultiView
 from vgripd.geometry.orientation import horn
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform
-from vgripd.types import FloatArray, Status
+from vgripd.types import FloatArray
 from vgripd.vision import features as ft
 from vgripd.vision import scene
+from vgripd.vision.rigcheck import self_inconsistent
 
 #: Pixels a mark's predicted centre must be inside the image to count as visible there.
 EDGE_MARGIN_PX = 4.0
@@ -49,6 +50,17 @@ EDGE_MARGIN_PX = 4.0
 #: one within this many epipolar tolerances (wider than the pairing, so that the marks of a
 #: camera knocked a few pixels off still enter the fit and the rig check can name it).
 COMPLETE_FACTOR = 4.0
+#: An observation this many times the RMS of its camera's other observations (and above
+#: ``OUTLIER_FLOOR`` of ``vision.max_reprojection_px``) is an outlier of its own camera
+#: (:meth:`MultiCamera._without_outliers`); at most ``MAX_OUTLIERS`` are dropped per job.
+OUTLIER_FACTOR = 8.0
+OUTLIER_FLOOR = 0.2
+MAX_OUTLIERS = 8
+#: A match over all tracks that identifies fewer than this share of them (or of the model's
+#: marks) is checked against each rig's own match: a rig whose camera moved triangulates its
+#: marks several mm off, which can leave the correct pose over all tracks beyond
+#: ``vision.max_fit_rms_mm`` and let a small chance match of a few tracks win.
+FALLBACK_SHARE = 0.5
 
 
 @dataclass
@@ -65,6 +77,8 @@ class MultiEstimate:
     points_base: dict[str, FloatArray] = field(default_factory=dict)
     checks: tuple[GroupCheck, ...] = ()
     odd: tuple[str, ...] = ()
+    excluded: str = ""
+    lost: tuple[str, ...] = ()
 
 
 def visible(camera: CameraModel, T_camera_base: FloatArray, points_base: FloatArray,
@@ -208,28 +222,133 @@ class MultiCamera:
             px = self._complete(view, pose.T_base_obj, px, circles, taken)
             px = self._unbiased(view, pose.T_base_obj, px)
             pose = fit_pose(view, self.model, px, pose.T_base_obj)
+            pose, px, dropped = self._without_outliers(view, pose, px)
         except GeometryError:
             est.used = assignment >= 0
             return est
-        return self._measure(view, rigs, est, pose, px)
+        est = self._measure(view, rigs, est, pose, px)
+        est.residuals["outliers"] = float(dropped)
+        self._without_odd_rig(view, est, px)
+        est.lost = self._lost(view, est, px, [len(c) + len(i) for c, i in
+                                              zip(circles, identified, strict=True)])
+        return est
+
+    def _lost(self, view: MultiView, est: MultiEstimate, px: FloatArray, blobs: list[int]
+              ) -> tuple[str, ...]:
+        """Cameras that found mark-like blobs (3 or more) and should see 3 or more marks at
+        the found pose, yet contribute no observation: their image is not what their
+        calibration predicts (images given in the wrong order, or a camera turned far away).
+        The others' pose can be right; the job must not look healthy."""
+        assert est.pose is not None
+        seen = self.visible(view, est.pose.T_base_obj).sum(axis=0)
+        return tuple(name for j, name in enumerate(self.names)
+                     if seen[j] >= 3 and blobs[j] >= 3 and np.isnan(px[:, j, 0]).all())
+
+    def _without_odd_rig(self, view: MultiView, est: MultiEstimate, px: FloatArray) -> None:
+        """When one rig is named and the others agree among themselves, the pose the job
+        gives is theirs: the named rig's calibration is wrong, so its rays only pull the
+        joint pose off (by up to a millimetre, measured). Residuals, gates and the verdict
+        stay those of the joint fit: a job refused for its residuals is still refused; one
+        published with OK_RECALIBRATE gets the better pose. ``est.excluded`` names the rig."""
+        if len(est.odd) != 1 or est.pose is None:
+            return
+        check = next(c for c in est.checks if c.name == est.odd[0])
+        if not check.rest_rms_px <= self.config.vision.max_reprojection_px:
+            return  # NaN (the others cannot fix a pose alone) or they do not agree
+        members = next(m for name, m in self.groups if name == check.name)
+        rest = px.copy()
+        rest[:, list(members)] = np.nan
+        try:
+            pose = fit_pose(view, self.model, rest, est.pose.T_base_obj)
+        except GeometryError:
+            return
+        joint, T = est.pose.T_base_obj, pose.T_base_obj
+        est.pose = replace(est.pose, T_base_obj=T)
+        est.excluded = check.name
+        # Which of its cameras moved: under the others' pose the knocked camera's marks are
+        # off, its partner's are not (under the joint pose both share the error).
+        X = self.model @ T[:3, :3].T + T[:3, 3]
+        for j in members:
+            rows = np.flatnonzero(~np.isnan(px[:, j, 0]))
+            if rows.size:
+                Tc = view.T_cameras_base[j]
+                e = np.linalg.norm(self.cameras[j].project(X[rows] @ Tc[:3, :3].T + Tc[:3, 3])
+                                   - px[rows, j], axis=1)
+                est.residuals[f"camera.{self.names[j]}.rest_px"] = float(
+                    np.sqrt(np.mean(e * e)))
+        # How far leaving the rig out moved the marks: what its calibration error cost.
+        est.residuals["excluded_shift_mm"] = float(np.max(np.linalg.norm(
+            (self.model @ T[:3, :3].T + T[:3, 3]) - (self.model @ joint[:3, :3].T + joint[:3, 3]),
+            axis=1)))
+
+    def _without_outliers(self, view: MultiView, pose: MultiViewPose, px: FloatArray
+                          ) -> tuple[MultiViewPose, FloatArray, int]:
+        """The fit again without observations that stand out in their own camera.
+
+        One image mark can be wrong while its camera is right: a blob touching a mark or a
+        glint on its rim shifts its centroid by pixels. Such an observation is far off while
+        the other marks of the same camera fit to the finder's noise. A knocked camera is
+        different: all its marks are off alike, none stands out, so the rig check still sees
+        it. Dropped, worst first and refitting each time: an observation whose error is
+        above ``OUTLIER_FACTOR`` times the RMS of its camera's other observations and above
+        ``OUTLIER_FLOOR`` of the gate; at most a quarter of a camera's observations, and
+        never below 3 marks per camera."""
+        gate = self.config.vision.max_reprojection_px
+        dropped = 0
+        out = px
+        for _ in range(MAX_OUTLIERS):
+            worst: tuple[float, int, int] | None = None
+            for j in range(len(self.cameras)):
+                e = pose.errors_px[:, j]
+                rows = np.flatnonzero(np.isfinite(e))
+                if rows.size < 4 or rows.size <= 3 * dropped_in(out, px, j):
+                    continue
+                k = rows[int(np.argmax(e[rows]))]
+                rest = e[rows[rows != k]]
+                limit = max(OUTLIER_FACTOR * float(np.sqrt(np.mean(rest * rest))),
+                            OUTLIER_FLOOR * gate)
+                if e[k] > limit and (worst is None or e[k] / limit > worst[0]):
+                    worst = (float(e[k] / limit), int(k), j)
+            if worst is None:
+                break
+            _, k, j = worst
+            trial = out.copy()
+            trial[k, j] = np.nan
+            try:
+                pose = fit_pose(view, self.model, trial, pose.T_base_obj)
+            except GeometryError:
+                break
+            out = trial
+            dropped += 1
+        return pose, out, dropped
 
     def _identify(self, points: FloatArray, keys: list[tuple[int, ...]],
                   tracks: list[dict[int, int]]
                   ) -> tuple[npt.NDArray[np.intp] | None, bool]:
         """Which track is which circle mark: the rigid-distance match over all tracks; when
-        that is ambiguous or fails, the best unambiguous match of one rig's own tracks, whose
-        pose then assigns the other tracks (a rig whose camera moved triangulates its marks
-        a few mm off, which can spoil the match of the whole set but not of the others)."""
+        that is ambiguous, fails or explains few of the tracks, the best unambiguous match of
+        one rig's own tracks (or of all tracks but one rig's), whose pose then assigns the
+        other tracks (a rig whose camera moved triangulates its marks a few mm off, which can
+        spoil the match of the whole set but not of the others), unless the match over all
+        tracks still explains more."""
         vision = self.config.vision
         model = self.model[self.is_circle]
         match = ft.match_model(model, points, vision.model_tolerance_mm, keys,
                                max_rms_mm=vision.max_fit_rms_mm)
-        if match is not None and not match.ambiguous:
+        if (match is not None and not match.ambiguous
+                and match.count >= FALLBACK_SHARE * min(len(points), len(model))):
             return match.assignment, False
         best: ft.ModelMatch | None = None
+        # Each rig's own tracks, and every rig's tracks but one rig's (a cell of single
+        # cameras has no own tracks: leaving the knocked camera out is what helps there).
+        subsets: dict[bytes, npt.NDArray[np.bool_]] = {}
         for _, members in self.groups:
-            own = np.array([set(t) <= set(members) for t in tracks])
-            if own.sum() < 3:
+            cams = set(members)
+            for mask in (np.array([set(t) <= cams for t in tracks]),
+                         np.array([not set(t) & cams for t in tracks])):
+                subsets.setdefault(mask.tobytes(), mask)
+        for own in subsets.values():
+            if own.sum() < 3 or own.all():
                 continue
             rig_match = ft.match_model(model, points[own], vision.model_tolerance_mm,
                                        [k for k, o in zip(keys, own, strict=True) if o],
@@ -241,6 +360,11 @@ class MultiCamera:
             return (None, False) if match is None else (match.assignment, match.ambiguous)
         sub, _ = ft.assign_nearest(model, points, best.T_points_model,
                                    2 * vision.model_tolerance_mm, keys)
+        # A valid match over all tracks that explains more of them than the rig's pose does
+        # stands (the rigs were asked only because it explained few).
+        if (match is not None and not match.ambiguous
+                and match.count >= int((sub >= 0).sum())):
+            return match.assignment, False
         return sub, False
 
     def _tracks(self, view: MultiView, rigs: dict[tuple[int, int], StereoRig],
@@ -358,19 +482,19 @@ class MultiCamera:
             d = np.linalg.norm(tri.points_mm[ok] - model_base[ok], axis=1)
             r["fit_rms_mm"] = float(np.sqrt(np.mean(d * d)))
             r["ray_distance_mm"] = float(np.nanmax(tri.ray_distance_mm[ok]))
-        epi: dict[int, list[FloatArray]] = {}  # camera -> residuals of the pairs it is in
+        epi: dict[tuple[int, int], FloatArray] = {}  # camera pair -> its marks' residuals
         for (a, b), rig in rigs.items():
             both = seen[:, a] & seen[:, b]
             if both.any():
-                e = rig.epipolar_residuals_px(px[both, a], px[both, b]).max(axis=1)
-                epi.setdefault(a, []).append(e)
-                epi.setdefault(b, []).append(e)
+                epi[a, b] = rig.epipolar_residuals_px(px[both, a], px[both, b]).max(axis=1)
         if epi:
-            r["epipolar_px"] = float(np.median(np.concatenate([e for v in epi.values()
-                                                               for e in v])))
+            r["epipolar_px"] = float(np.median(np.concatenate(list(epi.values()))))
+        # A rig's own epipolar residual: the pairs of its own cameras only. A pair across two
+        # groups says nothing about either alone (a knocked camera would make every camera
+        # it overlaps with look inconsistent, and single cameras have no pair of their own).
         rig_epi = {}
         for name, members in self.groups:
-            mine = [e for j in members for e in epi.get(j, [])]
+            mine = [e for (a, b), e in epi.items() if a in members and b in members]
             if mine:
                 rig_epi[name] = r[f"rig.{name}.epipolar_px"] = float(
                     np.median(np.concatenate(mine)))
@@ -409,13 +533,22 @@ class MultiCamera:
                             if own_fit.get(c.name, 0.0) > vision.max_fit_rms_mm
                             or rig_epi.get(c.name, 0.0) > vision.epipolar_warn_px
                             or c.alone_rms_px > vision.max_reprojection_px}
+            inconsistent |= self_inconsistent(
+                est.checks, {g.name: g.observations for g in pose.groups},
+                vision.max_reprojection_px)
             # Or, failing that, the one rig whose residuals under the joint pose break a gate
             # while the others' do not (its residuals dominate the job's).
             dominant = {g.name for g in pose.groups
                         if joint_fit.get(g.name, 0.0) > vision.max_fit_rms_mm
                         or g.rms_px > vision.max_reprojection_px}
             alone = inconsistent if len(inconsistent) < len(est.checks) else set()
-            if not alone and not any(c.odd for c in est.checks) and len(dominant) == 1:
+            if alone:
+                # A rig inconsistent in itself is in the rest of every other rig, so their
+                # leave-one-out verdicts are judged against a pose it spoiled: it alone is
+                # named (a knocked camera of three rigs made the wrong rig look odd too).
+                est.odd = tuple(c.name for c in est.checks if c.name in alone)
+                return est
+            if not any(c.odd for c in est.checks) and len(dominant) == 1:
                 alone = dominant
             est.odd = tuple(c.name for c in est.checks if c.odd or c.name in alone)
         return est
@@ -444,43 +577,9 @@ class MultiCamera:
         return out, joint
 
 
-def rig_verdict(status: Status, message: str, est: MultiEstimate,
-                vision: VisionConfig) -> tuple[Status, str]:
-    """The status of a multi-camera job after the common gates: every rig's own reprojection
-    RMS is gated too, and a rig that disagrees with the others is named; a pose that passed
-    every gate is still published then, but as OK_RECALIBRATE (docs/multicamera.md)."""
-    groups = est.pose.groups if est.pose is not None else ()
-    over = [(g.rms_px, g.name) for g in groups if g.rms_px > vision.max_reprojection_px]
-    if status.pose_valid and over:
-        rms, name = max(over)
-        status, message = Status.RESIDUAL_TOO_HIGH, (
-            f"rig {name}: reprojection RMS {rms:.3f} px > vision.max_reprojection_px "
-            f"{vision.max_reprojection_px}")
-    blame = _blame(est)
-    if not blame:
-        return status, message
-    if status.pose_valid:
-        return Status.OK_RECALIBRATE, blame
-    return status, f"{message}; {blame}"
-
-
-def _blame(est: MultiEstimate) -> str:
-    """The sentence naming the rig(s) the consistency check found odd ('' for none)."""
-    if not est.odd or est.pose is None:
-        return ""
-    if len(est.odd) > 1:
-        return (f"rigs {', '.join(est.odd)} disagree with each other (two rigs alone cannot "
-                "tell which one moved): check their cameras and calibration.cameras")
-    check = next(c for c in est.checks if c.name == est.odd[0])
-    group = next(g for g in est.pose.groups if g.name == check.name)
-    errors = est.pose.errors_px
-    cams = [(float(np.sqrt(np.nanmean(errors[:, j] ** 2))), est.camera_names[j])
-            for j in group.cameras if np.isfinite(errors[:, j]).any()]
-    worst = f" (worst camera {max(cams)[1]}, {max(cams)[0]:.2f} px)" if cams else ""
-    return (f"rig {check.name} disagrees with the other rigs: {check.predicted_rms_px:.2f} px "
-            f"under their pose, its own pose {check.deviation_mm:.2f} mm / "
-            f"{check.deviation_deg:.3f} deg from theirs{worst}: a camera moved? recalibrate "
-            "it (calibration.cameras)")
+def dropped_in(now: FloatArray, before: FloatArray, camera: int) -> int:
+    """How many observations of ``camera`` the outlier check has dropped so far."""
+    return int((np.isnan(now[:, camera, 0]) & ~np.isnan(before[:, camera, 0])).sum())
 
 
 #: Rim vertices for predicting the imaged centre of a circle (bias error < 1e-4 px).

@@ -45,7 +45,8 @@ from vgripd.types import FloatArray, ImagePair, JobResult, PickInstance, Status
 from vgripd.vision import diagnosis as dg
 from vgripd.vision import features as ft
 from vgripd.vision import scene
-from vgripd.vision.multicam import MultiCamera, rig_verdict
+from vgripd.vision.multicam import MultiCamera
+from vgripd.vision.rigcheck import rig_verdict
 
 #: Minimum number of matched features for PnP (three points have up to four poses).
 MIN_PNP_FEATURES = 4
@@ -548,9 +549,14 @@ class Pipeline:
         job.lap("checks")
         found = [finder(gray) for finder, gray in zip(self.finders, grays, strict=True)]
         job.lap("features")
+        job.trace.grays, job.trace.found = tuple(grays), tuple(found)
+        job.trace.T_base_flange = pair.T_base_flange
         est = multi.locate([f.circles for f in found], [f.identified for f in found],
                            pair.T_base_flange)
         job.lap("pose")
+        job.trace.odd = est.odd
+        job.trace.camera_marks = tuple(int(est.residuals.get(f"camera.{name}.marks", 0))
+                                       for name in multi.names)
         job.used = tuple(self.names[i] for i in np.flatnonzero(est.used))
         job.missing = tuple(self.names[i] for i in np.flatnonzero(~est.used))
         needed = vision.min_features

@@ -188,7 +188,7 @@ def test_render_draws_downscaled_jpegs_of_a_failed_job() -> None:
     img = cv2.imdecode(np.frombuffer(jpegs[0], np.uint8), cv2.IMREAD_COLOR)
     assert img.shape == (768, 1024, 3)
     assert (img[:40] != 90).any()  # the status line is written
-    mono = render((left, None, None), JobResult(job_id=2, status=Status.CAMERA_ERROR),
+    mono = render(((left,), None), JobResult(job_id=2, status=Status.CAMERA_ERROR),
                   max_width=400)
     assert len(mono) == 1
     assert cv2.imdecode(np.frombuffer(mono[0], np.uint8), cv2.IMREAD_COLOR).shape[1] == 400
@@ -218,3 +218,28 @@ def test_the_grafana_dashboard_and_docs_use_only_exported_metrics() -> None:
     unknown = sorted(m for m in used if m not in exported
                      and not any(m + suffix in exported for suffix in ("_bucket", "_count")))
     assert not unknown, unknown
+
+
+def test_view_names_cover_stereo_n_cameras_and_views() -> None:
+    """The web view's image list: left/right, every camera by name, every view of a views
+    cell (the same names the pipeline gives them)."""
+    from tests.conftest import REPO
+    from vgripd.config import config_from_dict, read_config_data
+    from vgripd.service.web.app import view_names
+
+    img = np.zeros((4, 4), np.uint8)
+    stereo = ImagePair(left=img, right=img, t_mono_ns=0)
+    plain = config_from_dict({})
+    assert view_names(plain, stereo) == [["left", "left"], ["right", "right"]]
+    cell = config_from_dict(read_config_data(REPO / "config" / "samples" /
+                                             "two_rigs_frame.toml"))
+    four = ImagePair.of_views([img] * 4, 0)
+    assert view_names(cell, four) == [["view0", "north_left"], ["view1", "north_right"],
+                                      ["view2", "south_left"], ["view3", "south_right"]]
+    left = {"fx": 1000.0, "fy": 1000.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480}
+    views = config_from_dict({"calibration": {"left": left, "hand_eye": {
+        "mounting": "robot", "T_flange_camera": {"translation_mm": [0, 0, 100]}}},
+        "vision": {"views": 3}})
+    three = ImagePair.of_views([img] * 3, 0)
+    assert view_names(views, three) == [["view0", "view1"], ["view1", "view2"],
+                                        ["view2", "view3"]]

@@ -16,6 +16,7 @@ Routes (docs/web.md)::
     GET  /api/jobs                   the last ``status.history`` jobs, newest first
     GET  /api/jobs/{id}              one job
     GET  /api/jobs/{id}/image/{left|right}.jpg   annotated, downscaled JPEG
+    GET  /api/jobs/{id}/image/view{j}.jpg        camera j of a multi-camera cell (from 0)
     GET  /api/events                 server-sent events: ``job``, ``links``
     GET  /api/config                 the loaded config, secrets redacted
     GET  /api/registers              each register link's map as its peer reads it, decoded
@@ -143,8 +144,21 @@ def job_summary(record: JobRecord, t_wall: float, images: bool) -> dict[str, Any
         "target": r["target"], "residuals": r["residuals"], "timings_ms": r["timings_ms"],
         "features_used": r.get("features_used", list(record.result.features_used)),
         "features_missing": r.get("features_missing", list(record.result.features_missing)),
-        "images": images, "stereo": None,
+        "images": images, "stereo": None, "views": [],
     }
+
+
+def view_names(config: Any, pair: ImagePair) -> list[list[str]]:
+    """``[url side, caption]`` of each image of a job: left (and right), or every camera of a
+    multi-camera cell as ``view<j>`` with its name from ``calibration.cameras`` (a cell of
+    ``vision.views``: its views ``view1`` .. ``viewN``, as ``scene.views_config`` names them)."""
+    cameras = config.calibration.cameras if config.calibration is not None else None
+    if cameras is None and config.vision.views == 1:
+        return [[side, side] for side in ("left", "right")[:len(pair.views)]]
+    names = ([c.name for c in cameras] if cameras is not None
+             else [f"view{k + 1}" for k in range(config.vision.views)])
+    return [[f"view{j}", names[j] if j < len(names) else f"image {j}"]
+            for j in range(len(pair.views))]
 
 
 class WebServer:
@@ -234,6 +248,7 @@ class WebServer:
         the event to every page, and the images handed to the helper process."""
         summary = job_summary(record, time.time(), images=pair is not None)
         summary["stereo"] = None if pair is None else pair.is_stereo
+        summary["views"] = [] if pair is None else view_names(self.daemon.config, pair)
         self.history.append((record, summary))
         self.metrics.observe(record)
         if pair is not None:
@@ -267,7 +282,7 @@ class WebServer:
         r.add_get("/api/status", self._status)
         r.add_get("/api/jobs", self._jobs)
         r.add_get("/api/jobs/{id:\\d+}", self._job)
-        r.add_get("/api/jobs/{id:\\d+}/image/{side:left|right}.jpg", self._image)
+        r.add_get("/api/jobs/{id:\\d+}/image/{side:left|right|view\\d+}.jpg", self._image)
         r.add_get("/api/events", self._events)
         r.add_get("/api/config", self._config)
         r.add_get("/api/registers", self._registers)
@@ -323,7 +338,10 @@ class WebServer:
 
     async def _image(self, request: web.Request) -> web.Response:
         job_id = int(request.match_info["id"])
-        side = 0 if request.match_info["side"] == "left" else 1
+        name = request.match_info["side"]
+        side = {"left": 0, "right": 1}.get(name) if not name.startswith("view") else int(
+            name[4:])
+        assert side is not None  # the route admits nothing else
         fut = self.images.cached(job_id)
         if fut is None:
             found = self._find(job_id)
@@ -345,7 +363,8 @@ class WebServer:
         except Exception as err:
             raise web.HTTPNotFound(text=f"images cannot be drawn: {err}") from None
         if side >= len(jpegs):
-            raise web.HTTPNotFound(text="no right image (mono camera)")
+            raise web.HTTPNotFound(text="no right image (mono camera)" if name == "right"
+                                   else f"no image {name}: the job has {len(jpegs)}")
         return web.Response(body=jpegs[side], content_type="image/jpeg",
                             headers={"Cache-Control": "private, max-age=3600"})
 

@@ -70,9 +70,7 @@ def _status_only(pair: ImagePair, result: JobResult) -> list[np.ndarray]:
     import cv2
 
     images = []
-    for img in (pair.left, pair.right):
-        if img is None:
-            continue
+    for img in pair.views:
         arr = np.asarray(img)
         bgr = cv2.cvtColor(arr, cv2.COLOR_GRAY2BGR) if arr.ndim == 2 else arr.copy()
         scale = max(1, bgr.shape[1] // 1200)
@@ -86,15 +84,23 @@ def _load_recorded(folder: str) -> ImagePair:
     import cv2
 
     path = Path(folder)
-    left = cv2.imread(str(path / "left.png"), cv2.IMREAD_UNCHANGED)
-    if left is None:
-        raise FileNotFoundError(f"{path / 'left.png'}: cannot read")
-    right = cv2.imread(str(path / "right.png"), cv2.IMREAD_UNCHANGED)
     flange = None
     with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
         meta = json.loads((path / "pair.json").read_text())
         if meta.get("T_base_flange") is not None:
             flange = np.asarray(meta["T_base_flange"], dtype=np.float64)
+    if (path / "view0.png").exists():  # a multi-camera cell: view0.png ... in camera order
+        views: list[np.ndarray] = []
+        while (path / f"view{len(views)}.png").exists():
+            image = cv2.imread(str(path / f"view{len(views)}.png"), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                raise FileNotFoundError(f"{path / f'view{len(views)}.png'}: cannot read")
+            views.append(image)
+        return ImagePair.of_views(views, 0, source=str(path), T_base_flange=flange)
+    left = cv2.imread(str(path / "left.png"), cv2.IMREAD_UNCHANGED)
+    if left is None:
+        raise FileNotFoundError(f"{path / 'left.png'}: cannot read")
+    right = cv2.imread(str(path / "right.png"), cv2.IMREAD_UNCHANGED)
     return ImagePair(left=left, right=right, t_mono_ns=0, source=str(path),
                      T_base_flange=flange)
 
@@ -105,22 +111,23 @@ def _portable(pair: ImagePair | str, result: JobResult) -> tuple[Any, JobResult]
                                  timings_ms=dict(result.timings_ms))
     if isinstance(pair, str):
         return pair, result
-    return (pair.left, pair.right, pair.T_base_flange), result
+    return (pair.views, pair.T_base_flange), result
 
 
-def render(pair: ImagePair | str | tuple[Any, Any, Any], result: JobResult,
+def render(pair: ImagePair | str | tuple[Any, Any], result: JobResult,
            max_width: int = MAX_WIDTH_PX, quality: int = JPEG_QUALITY) -> list[bytes]:
-    """JPEGs (left, and right for stereo) of the job drawn as ``replay --annotate`` draws it.
+    """JPEGs of the job drawn as ``replay --annotate`` draws it: left (and right for stereo),
+    or every camera's in camera order for a multi-camera cell.
 
-    ``pair``: the images (an ``ImagePair`` or its ``left, right, T_base_flange``), or a
-    recorded job's folder. Runs in the helper process (or anywhere in tests).
+    ``pair``: the images (an ``ImagePair`` or its ``views, T_base_flange``), or a recorded
+    job's folder. Runs in the helper process (or anywhere in tests).
     """
     import cv2
 
     if isinstance(pair, str):
         pair = _load_recorded(pair)
     elif isinstance(pair, tuple):
-        pair = ImagePair(left=pair[0], right=pair[1], t_mono_ns=0, T_base_flange=pair[2])
+        pair = ImagePair.of_views(pair[0], 0, T_base_flange=pair[1])
     if _pipeline is not None:
         from vgripd.vision.annotate import annotate
 

@@ -39,6 +39,36 @@ function imageURL(job, side) {
   return `/api/jobs/${job.id}/image/${side}.jpg?t=${Math.round(job.t_wall * 1000)}`;
 }
 
+// [url side, caption] of each image of a job: left (and right), or every camera of a
+// multi-camera cell (view0, view1, ... captioned with the camera's name).
+function jobViews(job) {
+  if (!job.images) return [];
+  if (job.views && job.views.length) return job.views;
+  return job.stereo ? [["left", "left"], ["right", "right"]] : [["left", "left"]];
+}
+
+// One figure per image of the job (rebuilt only when the set of cameras changes).
+function showImages(job) {
+  const box = document.querySelector("#live .images");
+  const views = jobViews(job);
+  const want = views.map(([side, caption]) => `${side}=${caption}`).join(",");
+  if (box.dataset.views !== want) {
+    box.replaceChildren(...views.map(([side, caption]) => {
+      const fig = document.createElement("figure");
+      const img = document.createElement("img");
+      img.id = `img-${side}`;
+      img.alt = `${caption} image of the last job`;
+      const cap = document.createElement("figcaption");
+      cap.textContent = caption;
+      fig.append(img, cap);
+      return fig;
+    }));
+    box.dataset.views = want;
+    box.classList.toggle("many", views.length > 2);
+  }
+  for (const [side] of views) $(`img-${side}`).src = imageURL(job, side);
+}
+
 function showJob(job) {
   $("job-title").textContent = `${job.id} (seq ${job.seq} from ${job.link}, recipe ${job.recipe}, ` +
     `${new Date(job.t_wall * 1000).toLocaleTimeString()})`;
@@ -48,12 +78,7 @@ function showJob(job) {
   st.textContent = `job ${job.id}: ${job.status} (${job.status_code})` +
     `${job.message ? ": " + job.message : ""}${told}, cycle ${fmt(job.cycle_ms)} ms`;
   st.className = "status " + (job.status.startsWith("OK") ? "ok" : "bad");
-  for (const side of ["left", "right"]) {
-    const img = $(`img-${side}`);
-    const has = job.images && (side === "left" || job.stereo);
-    img.hidden = !has;
-    if (has) img.src = imageURL(job, side); else img.removeAttribute("src");
-  }
+  showImages(job);
   const t = job.target;
   rows($("job-target").tBodies[0], t ? t.fields.map((f, i) => [f, fmt(t.values[i], 3)])
     .concat([["vendor", t.vendor]]) : [["", "no pose sent"]]);
@@ -70,11 +95,11 @@ function showHistory() {
     let links = "";
     if (j.images) {
       const span = document.createElement("span");
-      for (const side of j.stereo ? ["left", "right"] : ["left"]) {
+      for (const [side, caption] of jobViews(j)) {
         const a = document.createElement("a");
         a.href = imageURL(j, side);
         a.target = "_blank";
-        a.textContent = side + " ";
+        a.textContent = caption + " ";
         span.append(a);
       }
       links = span;
