@@ -2,6 +2,10 @@
 
 A driver is built from its validated options and the whole vgripd config (``__init__`` does no
 I/O), then ``await open()``, any number of ``await grab(timeout_s)``, ``await close()``.
+``grab`` takes an optional ``recipe``: the recipe the job is for, a hint only a simulated camera
+uses (the synthetic camera with ``recipe = "job"`` renders that recipe's object, so one daemon
+can show each recipe's plate in turn); a real camera ignores it, as it sees whatever lies in the
+cell. A driver that wants it overrides ``_grab_for`` instead of ``_grab_blocking``.
 All blocking work (file reads, device SDK calls, rendering) runs on the driver's own
 single-thread executor: the event loop keeps serving the robot link while a frame is read, and
 SDK handles that are not thread-safe are only ever touched from that one thread.
@@ -132,16 +136,19 @@ class CameraDriver(ABC):
             await self.close()
             raise
 
-    async def grab(self, timeout_s: float, view: CaptureView | None = None) -> ImagePair:
+    async def grab(self, timeout_s: float, view: CaptureView | None = None,
+                   recipe: int = 0) -> ImagePair:
         """Acquire one image pair (or single image); ``CameraError`` after ``timeout_s``.
 
         ``view``: the view of a several-view job this image is (``self.view`` while the
-        blocking hook runs); drivers of real cameras ignore it."""
+        blocking hook runs); ``recipe``: the recipe of the job (0 = the top-level config).
+        Both are hints that drivers of real cameras ignore (see the module docstring)."""
         if timeout_s <= 0:
             raise CameraError(f"{self.type_name}: grab timeout must be > 0 s, got {timeout_s}")
         self.view = view
         try:
-            return await asyncio.wait_for(self._run(self._grab_blocking, timeout_s), timeout_s)
+            return await asyncio.wait_for(self._run(self._grab_for, timeout_s, recipe),
+                                          timeout_s)
         except TimeoutError:
             raise CameraError(
                 f"{self.type_name}: no image from {self.describe()} within {timeout_s:g} s"
@@ -183,6 +190,11 @@ class CameraDriver(ABC):
     @abstractmethod
     def _grab_blocking(self, timeout_s: float) -> ImagePair:
         """Runs on the executor in ``grab()``; returns one acquisition."""
+
+    def _grab_for(self, timeout_s: float, recipe: int) -> ImagePair:
+        """Runs on the executor in ``grab()``: a driver that uses the recipe hint overrides
+        this; every other driver grabs what is in view."""
+        return self._grab_blocking(timeout_s)
 
     def _close_blocking(self) -> None:  # noqa: B027 - optional hook
         """Runs on the executor in ``close()``; releases handles."""

@@ -80,10 +80,11 @@ class MultiCamera(CameraDriver):
                 await driver.close()
             raise
 
-    async def grab(self, timeout_s: float, view: CaptureView | None = None) -> ImagePair:
+    async def grab(self, timeout_s: float, view: CaptureView | None = None,
+                   recipe: int = 0) -> ImagePair:
         if timeout_s <= 0:
             raise CameraError(f"multi: grab timeout must be > 0 s, got {timeout_s}")
-        results = await asyncio.gather(*(d.grab(timeout_s, view) for d in self.drivers),
+        results = await asyncio.gather(*(d.grab(timeout_s, view, recipe) for d in self.drivers),
                                        return_exceptions=True)
         for i, result in enumerate(results):
             if isinstance(result, BaseException):

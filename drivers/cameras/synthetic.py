@@ -34,6 +34,8 @@ Options (``[camera]`` with ``type = "synthetic"``)::
     black = false          # faults: black images (lens cap, flash failed)
     recipe = 0             # render the object (and reference) of this recipe ([recipes.N]);
                            # 0 = the top-level [object]. Which plate lies in the cell.
+                           # "job": the object of each job's recipe (the grab's hint), so
+                           # one daemon shows every recipe's plate in turn (demos, tests)
 
 Several identical objects (pick lists, docs/picklists.md), instead of ``pose``::
 
@@ -60,7 +62,8 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
@@ -116,7 +119,30 @@ class SyntheticOptions(DriverOptions):
     drop_features: tuple[str, ...] = ()
     extra_blobs: int = Field(default=0, ge=0, le=100)
     black: bool = False
-    recipe: int = Field(default=0, ge=0, le=65535)
+    recipe: Annotated[int, Field(ge=0, le=65535)] | Literal["job"] = 0
+
+
+@dataclass
+class _Plate:
+    """One recipe's object as the renderer needs it: its effective config, the marks, which
+    of them are not drawn per instance, and the taught pose (set when the camera opens)."""
+
+    config: Config
+    circles: tuple[CircleFeature, ...]
+    drop: list[set[str]]
+    T_ref: FloatArray | None = None
+
+    @classmethod
+    def of(cls, config: Config, recipe: int, drop: list[set[str]]) -> _Plate:
+        where = f"recipes.{recipe}.object" if recipe else "object"
+        circles = []
+        for i, f in enumerate(config.object.features):
+            if not isinstance(f, CircleFeature):
+                raise ConfigError(f"{where}.features.{i}: the synthetic camera renders circles "
+                                  f"only, {f.name!r} is {f.kind!r}")
+            circles.append(f)
+        names = {f.name for f in circles}
+        return cls(config, tuple(circles), [d & names for d in drop])
 
 
 def disc_coverage(rim_px: FloatArray, inside_px: FloatArray, x0: int, y0: int, w: int, h: int,
@@ -186,40 +212,78 @@ class SyntheticCamera(CameraDriver):
     options: SyntheticOptions
 
     def __init__(self, options: SyntheticOptions, config: Config) -> None:
-        if options.recipe:  # the plate of that recipe lies in the cell
+        if options.recipe != "job":  # that recipe's cell as before (vision.views included)
             try:
-                config = config.for_recipe(options.recipe)
+                super().__init__(options, config.for_recipe(options.recipe))
             except ConfigError as err:
                 raise ConfigError(f"camera.recipe: {err}") from None
-        super().__init__(options, config)
-        feats = config.object.features
-        for i, f in enumerate(feats):
-            if not isinstance(f, CircleFeature):
-                raise ConfigError(
-                    f"object.features.{i}: the synthetic camera renders circles only, "
-                    f"{f.name!r} is {f.kind!r}"
-                )
-        self._circles = tuple(f for f in feats if isinstance(f, CircleFeature))
+        else:
+            super().__init__(options, config)
         given = [options.pose is not None, bool(options.instances), options.pallet is not None]
         if sum(given) > 1:
             raise ConfigError("camera: give one of pose, instances and pallet")
         self._count = (len(options.instances) if options.instances
                        else options.pallet.count if options.pallet is not None else 1)
-        self._drop: list[set[str]] = [set() for _ in range(self._count)]
-        names = {f.name for f in feats}
+        # The plate of each recipe it may render: one with a fixed ``recipe``, every
+        # configured recipe with "job". A recipe whose object cannot be rendered is refused
+        # here with a fixed recipe, and only when a job asks for it with "job" (the others
+        # still render).
+        self._plates: dict[int, _Plate | str] = {}
+        if options.recipe == "job":
+            numbers: tuple[int, ...] = config.recipe_numbers()
+            names = set().union(*({f.name for f in config.for_recipe(n).object.features}
+                                  for n in numbers))
+        else:
+            numbers = (options.recipe,)
+            try:
+                names = {f.name for f in config.for_recipe(options.recipe).object.features}
+            except ConfigError as err:
+                raise ConfigError(f"camera.recipe: {err}") from None
         unknown = {e.rpartition("/")[2] for e in options.drop_features} - names
         if unknown:
             raise ConfigError(f"camera.drop_features: no such features {sorted(unknown)}")
+        drop: list[set[str]] = [set() for _ in range(self._count)]
         for entry in options.drop_features:
             where, _, name = entry.rpartition("/")
             if not where:
-                for dropped in self._drop:
+                for dropped in drop:
                     dropped.add(name)
             elif where.isdigit() and int(where) < self._count:
-                self._drop[int(where)].add(name)
+                drop[int(where)].add(name)
             else:
                 raise ConfigError(f"camera.drop_features: {entry!r}: instance {where!r} is not "
                                   f"one of 0..{self._count - 1}")
+        for number in numbers:
+            try:
+                self._plates[number] = _Plate.of(config.for_recipe(number), number, drop)
+            except ConfigError as err:
+                if options.recipe != "job":
+                    raise
+                self._plates[number] = str(err)
+        self._use_first()
+
+    def _use_first(self) -> None:
+        """Start with the first recipe that can be rendered (the top level, normally)."""
+        usable = [n for n, plate in self._plates.items() if not isinstance(plate, str)]
+        if not usable:
+            raise ConfigError("camera.recipe: no recipe's object can be rendered: "
+                              + "; ".join(str(p) for p in self._plates.values()))
+        self._use(usable[0])
+
+    def _use(self, recipe: int) -> None:
+        """Render ``recipe``'s object from now on (the state the render methods read)."""
+        plate = self._plates.get(recipe)
+        if plate is None:
+            raise CameraError(f"synthetic: no object for recipe {recipe} (camera.recipe = "
+                              f"{self.options.recipe!r}; configured: "
+                              f"{', '.join(map(str, sorted(self._plates)))})")
+        if isinstance(plate, str):
+            raise CameraError(f"synthetic: cannot render recipe {recipe}: {plate}")
+        self._plate = plate
+        self._object_config = plate.config
+        self._circles = plate.circles
+        self._drop = plate.drop
+        self._T_base_obj_ref = plate.T_ref
 
     def _open_blocking(self) -> None:
         self._multi: tuple[tuple[CameraModel, ...], FloatArray, tuple[str, ...]] | None = None
@@ -242,12 +306,24 @@ class SyntheticCamera(CameraDriver):
         except VgripError as err:
             raise CameraError(f"synthetic: cannot set up the scene: {err}") from None
         # Random poses and pallets lie around the taught reference; fixed poses need none.
-        self._T_base_obj_ref: FloatArray | None = None
+        # With recipe = "job" an untaught recipe fails only its own grabs.
+        fixed = self.options.pose is not None or bool(self.options.instances)
+        for number, plate in list(self._plates.items()):
+            if isinstance(plate, str):
+                continue
+            try:
+                plate.T_ref = scene.T_base_obj_ref(plate.config)
+            except VgripError as err:
+                if fixed:
+                    continue
+                why = f"cannot set up the scene: {err}"
+                if self.options.recipe != "job":
+                    raise CameraError(f"synthetic: {why}") from None
+                self._plates[number] = f"recipes.{number}: {why}" if number else why
         try:
-            self._T_base_obj_ref = scene.T_base_obj_ref(self.config)
-        except VgripError as err:
-            if self.options.pose is None and not self.options.instances:
-                raise CameraError(f"synthetic: cannot set up the scene: {err}") from None
+            self._use_first()
+        except ConfigError as err:
+            raise CameraError(f"synthetic: {err}") from None
         self._rng = np.random.default_rng(self.options.seed)
 
     def describe(self) -> str:
@@ -262,7 +338,7 @@ class SyntheticCamera(CameraDriver):
         tilt = np.radians(self._rng.uniform(-o.max_tilt_deg, o.max_tilt_deg, 3))
         ref = self._T_base_obj_ref
         assert ref is not None  # _open_blocking refused random poses without a reference
-        pts = scene.object_points(self.config)
+        pts = scene.object_points(self._object_config)
         centre = ref[:3, :3] @ pts.mean(axis=0) + ref[:3, 3]
         R = matrix_from_rotvec(tilt)
         # Rotate about the marks' centroid (base frame), then shift.
@@ -286,7 +362,7 @@ class SyntheticCamera(CameraDriver):
         objects overlap is drawn again (plates may touch; marks printed on them cannot)."""
         ref = self._T_base_obj_ref
         assert ref is not None  # _open_blocking refused a pallet without a reference
-        pts = scene.object_points(self.config)
+        pts = scene.object_points(self._object_config)
         diameter = max(f.diameter_mm for f in self._circles)
         lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
         pitch = ((hi - lo) + diameter + pallet.gap_mm if pallet.pitch_mm is None
@@ -320,6 +396,12 @@ class SyntheticCamera(CameraDriver):
             placed.append(marks)
             poses.append(T)
         return poses
+
+    def _grab_for(self, timeout_s: float, recipe: int) -> ImagePair:
+        """With ``recipe = "job"`` the job's recipe chooses the plate; else the fixed one."""
+        if self.options.recipe == "job":
+            self._use(recipe)
+        return self._grab_blocking(timeout_s)
 
     def _grab_blocking(self, timeout_s: float) -> ImagePair:
         if self.view is not None:

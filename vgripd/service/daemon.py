@@ -91,7 +91,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from vgripd.config import Config, unknown_recipe
-from vgripd.errors import CameraError, LinkError, NotCalibratedError
+from vgripd.errors import CameraError, ConfigError, LinkError, NotCalibratedError
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
 from vgripd.service.protocol import (
     Command,
@@ -347,6 +347,10 @@ class Daemon:
                     self._pipelines[number] = _make_pipeline(config.for_recipe(number))
                 except NotCalibratedError as err:
                     self.recipe_problems[number] = str(err)
+                except ConfigError as err:  # a template file, an ArUco id: name the recipe
+                    if not number:
+                        raise
+                    raise ConfigError(f"recipes.{number}.{err}") from None
             else:
                 self._pipelines[number] = pipeline
         if isinstance(pipeline, str):
@@ -845,10 +849,12 @@ class Daemon:
         remaining_s = max(0.0, (deadline_ns - time.monotonic_ns()) / 1e9)
         t0 = time.monotonic()
         try:
-            # Only a view passes ``view``: any driver (or stand-in) of the one-image contract
-            # keeps working unchanged.
-            pair: ImagePair = await (self.camera.grab(remaining_s) if view is None
-                                     else self.camera.grab(remaining_s, view))
+            # Only a view or a recipe passes its hint: any driver (or stand-in) of the
+            # one-image contract keeps working unchanged.
+            hints: dict[str, Any] = {"view": view} if view is not None else {}
+            if trigger.recipe:
+                hints["recipe"] = trigger.recipe
+            pair: ImagePair = await self.camera.grab(remaining_s, **hints)
         except (CameraError, asyncio.CancelledError):
             waited_s = time.monotonic() - t0
             if remaining_s > 0 and waited_s >= 0.9 * remaining_s:  # out of time: hung?

@@ -376,13 +376,16 @@ class _Worker:
             self.loop.run_until_complete(self.camera.open())
             self.camera_open = True
 
-    def grab(self, timeout_s: float, segment: str | None, view: CaptureView | None = None
+    def grab(self, timeout_s: float, segment: str | None, view: CaptureView | None = None,
+             recipe: int = 0
              ) -> tuple[int, dict[str, Any], ImageLayout | None, int]:
-        """Grab (opening the camera first if needed); images into the segment if they fit.
+        """Grab (opening the camera first if needed) for a job of ``recipe``; images into the
+        segment if they fit.
 
         Returns (token, fields, layout or None, bytes the images need)."""
         self.open_camera()
-        pair: ImagePair = self.loop.run_until_complete(self.camera.grab(timeout_s, view))
+        pair: ImagePair = self.loop.run_until_complete(
+            self.camera.grab(timeout_s, view, recipe))
         token = self._hold(pair)
         return (token, _pair_fields(pair), *self._put(pair, segment))
 
@@ -850,12 +853,14 @@ class WorkerClient:
                                              f"job {job_id}")
         return result
 
-    async def grab(self, timeout_s: float, view: CaptureView | None = None) -> ImagePair:
+    async def grab(self, timeout_s: float, view: CaptureView | None = None,
+                   recipe: int = 0) -> ImagePair:
         """The camera driver's ``grab`` in the worker; the images come through shared memory."""
         gen = await self._ready_generation()
         segment = self._writable_segment()
         token, fields, layout, need = await self._call(
-            gen, "camera_grab", (timeout_s, None if segment is None else segment.name, view),
+            gen, "camera_grab",
+            (timeout_s, None if segment is None else segment.name, view, recipe),
             "grab")
         if layout is None:  # no segment yet, or too small: a bigger one, then fetch again
             segment = self._new_segment(need)
@@ -920,8 +925,9 @@ class WorkerCamera:
         except WorkerError as err:
             raise CameraError(f"{self.type_name}: {err}") from None
 
-    async def grab(self, timeout_s: float, view: CaptureView | None = None) -> ImagePair:
-        return await self._client.grab(timeout_s, view)
+    async def grab(self, timeout_s: float, view: CaptureView | None = None,
+                   recipe: int = 0) -> ImagePair:
+        return await self._client.grab(timeout_s, view, recipe)
 
     async def close(self) -> None:
         await self._client.close_camera()
