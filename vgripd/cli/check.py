@@ -36,7 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    daemon = Daemon(config)  # drivers validated and every recipe's pipeline built, no I/O
+    try:  # drivers validated and every recipe's pipeline built, no I/O
+        daemon = Daemon(config)
+    except ConfigError as err:  # a template file, driver options: name the file judged
+        raise ConfigError(f"{args.config}: {err}") from None
     if daemon.recipe_problems:
         raise ConfigError("\n".join(
             f"{args.config}: not calibrated: {problem}" if number == 0 else

@@ -7,6 +7,7 @@ import asyncio
 import signal
 
 from vgripd.config import load_config
+from vgripd.errors import ConfigError
 from vgripd.service.daemon import Daemon, configure_logging
 
 DEFAULT_CONFIG = "/etc/vgripd/vgripd.toml"
@@ -32,5 +33,9 @@ async def serve(daemon: Daemon) -> None:
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     configure_logging(config.daemon.log_level)
-    asyncio.run(serve(Daemon(config)))
+    try:
+        daemon = Daemon(config)
+    except ConfigError as err:  # a template file, driver options: name the file judged
+        raise ConfigError(f"{args.config}: {err}") from None
+    asyncio.run(serve(daemon))
     return 0

@@ -257,9 +257,14 @@ class _Finder:
 
 
 def _load_template(path: str, where: str) -> ft.UInt8Image:
-    image = cv2.imread(str(Path(path)), cv2.IMREAD_GRAYSCALE)
+    """The template image; a relative path is taken from the working directory (as every path
+    of the config is), so the message names the file actually tried."""
+    file = Path(path)
+    image = cv2.imread(str(file), cv2.IMREAD_GRAYSCALE) if file.is_file() else None
     if image is None:
-        raise ConfigError(f"{where}.template: cannot read image file {path!r}")
+        why = "not an image" if file.is_file() else "no such file"
+        tried = "" if file.is_absolute() else f", tried {file.absolute()}"
+        raise ConfigError(f"{where}.template: cannot read image file {path!r} ({why}{tried})")
     return np.asarray(image, dtype=np.uint8)
 
 
