@@ -8,6 +8,9 @@ conversion.
 
 from __future__ import annotations
 
+import copy
+import os
+import signal
 import tomllib
 from typing import Any
 
@@ -17,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from tests.conftest import REPO
 from tests.integration.test_daemon import WAIT_S, running
+from vgripd.cli.demo import PALLET_SCENE
 from vgripd.config import config_from_dict
 from vgripd.geometry.transforms import pose_error
 from vgripd.sim.plc import MockPlc
@@ -68,3 +72,52 @@ async def test_the_camera_renders_the_plate_of_each_jobs_recipe(worker: bool) ->
             np.testing.assert_allclose(answer.values[:3], offset[:3, 3], atol=1e-3)
             np.testing.assert_allclose(rotation_of(answer.values, vendor), offset[:3, :3],
                                        atol=1e-5)
+
+
+async def test_recipes_survive_a_worker_restart() -> None:
+    """The worker process is killed between jobs: the new one builds every recipe's pipeline
+    and renders every plate again (recipe 2's jobs, then 1's, then 2's, all OK)."""
+    config = switching_config(worker=True)
+    async with running(config) as run, MockPlc("127.0.0.1", run.port(), timeout_s=WAIT_S) as plc:
+        assert (await plc.cycle(2)).status is Status.OK
+        first = run.daemon.snapshot()["worker"]["pid"]
+        os.kill(first, signal.SIGKILL)  # the next job waits for the new worker
+        for n, recipe in enumerate((1, 2, 0), start=2):
+            answer = await plc.cycle(recipe)
+            pair, record = await run.job_done(n)
+            assert answer.status is Status.OK, (recipe, record.result.message)
+            assert pair is not None
+            assert {f.name for f in config.for_recipe(recipe).object.features} == set(
+                pair.truth["feature_names"])
+        worker = run.daemon.snapshot()["worker"]
+        assert (worker["restarts"], worker["pid"] != first) == (1, True)
+
+
+async def test_a_pick_list_recipe_next_to_a_single_object_recipe() -> None:
+    """A pallet in view; recipe 7 walks it as a pick list (KUKA), recipe 8 too (ABB
+    quaternion), recipe 0 is a single-object job: on six plates it is AMBIGUOUS, never a pose,
+    and a NEXT after it is refused (BAD_REQUEST), never a pose of the earlier list."""
+    scene = copy.deepcopy(PALLET_SCENE)
+    picking = {"picking": scene["picking"], "limits": scene["limits"]}
+    config = config_from_dict({
+        "camera": {"type": "synthetic", "seed": 3, **scene["camera"]},
+        "limits": {"max_translation_mm": 200.0},
+        "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": 0}],
+        "status": {"port": 0}, "daemon": {"worker": False},
+        "recipes": {"7": {"name": "pallet", **picking, "output": scene["output"]},
+                    "8": {"name": "pallet-abb", **picking,
+                          "output": {"vendor": "abb", **scene["output"]}}}})
+    async with running(config) as run, MockPlc("127.0.0.1", run.port(), timeout_s=WAIT_S) as plc:
+        seen = []
+        for step in ("T7", "N", "N", "T0", "N", "T8", "N", "T0", "N"):
+            if step == "N":
+                answer = await plc.next()  # checks index, job id and age against the list
+            else:
+                answer = await plc.cycle(int(step[1:]))
+            seen.append((step, answer.status, answer.job_id, answer.index, len(answer.values)))
+        assert seen == [
+            ("T7", Status.OK, 1, 1, 6), ("N", Status.OK, 1, 2, 6), ("N", Status.OK, 1, 3, 6),
+            ("T0", Status.AMBIGUOUS, 2, 0, 0), ("N", Status.BAD_REQUEST, 0, 0, 0),
+            ("T8", Status.OK, 3, 1, 7), ("N", Status.OK, 3, 2, 7),
+            ("T0", Status.AMBIGUOUS, 4, 0, 0), ("N", Status.BAD_REQUEST, 0, 0, 0)]
+        assert [r.result.recipe for _, r in run.jobs] == [7, 0, 8, 0]

@@ -932,6 +932,8 @@ class Daemon:
                 result = self._failure(job_id, Status.CAMERA_ERROR, str(err))
             except NotCalibratedError as err:
                 result = self._failure(job_id, Status.NOT_CALIBRATED, str(err))
+            except WorkerError as err:  # died during the grab; it logged its own traceback
+                result = self._failure(job_id, Status.INTERNAL, str(err))
             except Exception as err:
                 log.exception("job %d: unexpected error", job_id)
                 result = self._failure(job_id, Status.INTERNAL, f"{type(err).__name__}: {err}")

@@ -855,13 +855,23 @@ class WorkerClient:
 
     async def grab(self, timeout_s: float, view: CaptureView | None = None,
                    recipe: int = 0) -> ImagePair:
-        """The camera driver's ``grab`` in the worker; the images come through shared memory."""
+        """The camera driver's ``grab`` in the worker; the images come through shared memory.
+
+        A worker that died while idle is only noticed when the next request fails; a grab
+        touches nothing on the robot's side, so it is tried once more on the new worker
+        instead of failing the job of a PLC that triggered just after the death."""
         gen = await self._ready_generation()
         segment = self._writable_segment()
-        token, fields, layout, need = await self._call(
-            gen, "camera_grab",
-            (timeout_s, None if segment is None else segment.name, view, recipe),
-            "grab")
+        args = (timeout_s, None if segment is None else segment.name, view, recipe)
+        try:
+            token, fields, layout, need = await self._call(gen, "camera_grab", args, "grab")
+        except WorkerError:
+            if self._gen is gen or gen.killed_because:  # not a death, or one we caused
+                raise
+            log.warning("grab: the worker process had died (%s); grabbing on a new one",
+                        self.last_exit)
+            gen = await self._ready_generation()
+            token, fields, layout, need = await self._call(gen, "camera_grab", args, "grab")
         if layout is None:  # no segment yet, or too small: a bigger one, then fetch again
             segment = self._new_segment(need)
             layout = await self._call(gen, "camera_put", (token, segment.name), "grab")
