@@ -8,11 +8,12 @@ sequence a client follows, the security set-up and what of OPC 40100 is implemen
 
 Semantics follow the register handshake: one job at a time per link; a start while this link's
 job runs is refused at once with ``BadInvalidState`` (the state machine is in SingleExecution)
-and counted as ``BUSY`` in ``refusals()``; a recipe outside 0..65535 or a wrong argument list is
-refused ``BadInvalidArgument`` / ``BadArgumentsMissing`` / ``BadTooManyArguments`` and counted
-``BAD_REQUEST``. A start the daemon refuses (another link's job runs, shutdown) is answered as
-a result, with status BUSY or ABORTED and ``JobId`` 0, as the Modbus links answer it.
-Results are written data first, ``Result.RequestId`` (retracted to 0 when a job starts) and
+and counted as ``BUSY`` in ``refusals()``; a recipe that is not configured (the daemon tells the
+link its recipes, ``set_recipes``) or a wrong argument list is refused ``BadInvalidArgument`` /
+``BadArgumentsMissing`` / ``BadTooManyArguments`` and counted ``BAD_REQUEST``; the selected
+recipe stays what it was. A start the daemon refuses (another link's job runs, shutdown) is
+answered as a result, with status BUSY or ABORTED and ``JobId`` 0, as the Modbus links answer
+it. Results are written data first, ``Result.RequestId`` (retracted to 0 when a job starts) and
 ``Result.Sequence`` last; one Read request is answered without interleaving with a publish.
 
 Pick lists: ``VisionSystem.Next`` asks for the next object of the last job's list, answered by
@@ -401,6 +402,9 @@ class OpcUaLink(RobotLink):
         self._next_request = 0
         self._recipe = 0
         self._listed = False  # the last result published has a pick list: Next may follow
+        #: The configured recipes (``set_recipes``); None: not told, every number is taken
+        #: and the daemon judges it at the job.
+        self._recipes: dict[int, str] | None = None
         self._warnings = 0
         self._refusals: Counter[str] = Counter()
         #: peer faults by kind (garbage, protocol, silent, login, refused)
@@ -512,6 +516,9 @@ class OpcUaLink(RobotLink):
     def refusals(self) -> Mapping[str, int]:
         return dict(self._refusals)
 
+    def set_recipes(self, recipes: Mapping[int, str]) -> None:
+        self._recipes = dict(recipes)
+
     async def set_warnings(self, bits: int) -> None:
         self._warnings = checked_warnings(bits)
         if self.space is not None:
@@ -573,6 +580,11 @@ class OpcUaLink(RobotLink):
         if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFFFF:
             return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadInvalidArgument,
                                 f"SelectRecipe: RecipeId {value!r} is not 0..65535")
+        if self._recipes is not None and value not in self._recipes:
+            known = ", ".join(f"{n} {name}" for n, name in sorted(self._recipes.items()))
+            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadInvalidArgument,
+                                f"SelectRecipe: recipe {value} is not configured "
+                                f"(configured: {known})")
         self._recipe = value
         await self._space().write([("SelectedRecipe", value)])
         return []

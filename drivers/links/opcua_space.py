@@ -132,6 +132,9 @@ RESULT_DATA: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
     ("Score", ua.VariantType.Double, UNKNOWN_SCORE,
      "detection score 0..1 of the object shown (-1: none shown or unknown)"),
 )
+#: The status of the result data while a job runs: the values are the previous result's.
+UNCERTAIN = ua.StatusCodes.UncertainLastUsableValue
+
 RESULT_LAST = (
     ("RequestId", ua.VariantType.UInt32, 0,
      "request (StartSingleJob's RequestId) whose result this is; 0 while a job runs"),
@@ -157,6 +160,7 @@ class Space:
         self.idx = idx
         self.nodes: dict[str, ua.NodeId] = {}
         self.types: dict[str, ua.VariantType] = {}
+        self.values: dict[str, Any] = {}  # the last value written to each variable
         self.vision_system: Node | None = None
         self._state_nodes: tuple[ua.NodeId, ...] = ()
         self._states: dict[str, State] = {}
@@ -256,16 +260,19 @@ class Space:
                                   ua.DataValue(ua.Variant(ua.LocalizedText(text))))
         self.nodes[key] = var.nodeid
         self.types[key] = vtype
+        self.values[key] = value
 
     async def write(self, items: Sequence[tuple[str, Any]],
-                    t: datetime.datetime | None = None) -> None:
+                    t: datetime.datetime | None = None, status: int = 0) -> None:
         """Write ``(key, value)`` pairs in order (keys: ``CapturedRequestId``,
-        ``Result.Values``, ...)."""
+        ``Result.Values``, ...), with the OPC UA status code ``status`` (0: Good)."""
         now: Any = t or datetime.datetime.now(datetime.UTC)  # ua.DateTime is one
         for key, value in items:
-            dv = ua.DataValue(ua.Variant(value, self.types[key]), SourceTimestamp=now,
+            dv = ua.DataValue(ua.Variant(value, self.types[key]),
+                              StatusCode=ua.StatusCode(ua.UInt32(status)), SourceTimestamp=now,
                               ServerTimestamp=now)
             await self.server.write_attribute_value(self.nodes[key], dv)
+            self.values[key] = value
 
     async def set_state(self, name: str) -> None:
         """CurrentState (LocalizedText), then its Id (the state object) and Number."""
@@ -285,7 +292,16 @@ class Space:
     async def retract(self, executing: bool = True) -> None:
         """A new request: the result area names no request until its result is in. A job
         (``executing``) also moves the state machine to SingleExecution; a NEXT takes no image
-        and leaves the state as it is."""
+        and leaves the state as it is.
+
+        The data variables keep their values but turn ``UncertainLastUsableValue`` first, so
+        each is a data change now and Good again with the result. That fixes the order a
+        subscriber receives them in: asyncua's server orders one publish response by the item
+        that changed first in the publishing interval, so without this a RequestId retracted
+        and set again within one interval came *before* the data of its own result, and a
+        client acting on each notification in turn paired the new id with the old pose."""
+        await self.write([(f"Result.{name}", self.values[f"Result.{name}"])
+                          for name, *_ in RESULT_DATA], status=UNCERTAIN)
         await self.write([("Result.RequestId", 0)])
         if executing:
             await self.set_state("SingleExecution")

@@ -52,15 +52,14 @@ async def test_jobs_through_the_opcua_link_carry_the_computed_pose() -> None:
         async with OpcUaClientProcess(url) as client:
             assert client.connected["event"] == "connected", client.connected
             seen = [await client.send("job") for _ in range(2)]
-            # A recipe the config does not have: the daemon judges it (BAD_REQUEST, no image).
-            assert (await client.send("recipe 9"))["event"] == "ok"
-            unknown = await client.send("job")
-        records = [(await run.job_done(n))[1] for n in (1, 2)]
+            # A recipe the config does not have: the daemon told the link its recipes, so
+            # SelectRecipe refuses it at once and the selection stays recipe 0.
+            assert (await client.send("recipe 9")) == {"event": "refused",
+                                                       "code": "BadInvalidArgument"}
+            seen.append(await client.send("job"))
+        records = [(await run.job_done(n))[1] for n in (1, 2, 3)]
         snapshot = run.daemon.snapshot()
-    assert (unknown["Status"], unknown["RecipeId"], unknown["Values"]) == (
-        Status.BAD_REQUEST, 9, [])
-    assert unknown["state"] == "Ready"
-    assert "recipe 9" in unknown["Message"]
+    assert seen[2]["RecipeId"] == 0
     for r, rec in zip(seen, records, strict=True):
         assert rec.result.status is Status.OK
         assert rec.result.target is not None
@@ -72,8 +71,8 @@ async def test_jobs_through_the_opcua_link_carry_the_computed_pose() -> None:
         assert r["ev"]["Values"] == r["Values"]
         assert r["captured"] == rec.seq
     assert snapshot["links"][0]["state"] == "up"
-    assert snapshot["counters"]["OK"] == 2
-    assert snapshot["counters"]["BAD_REQUEST"] == 1
+    assert snapshot["counters"]["OK"] == 3
+    assert snapshot["counters"]["BAD_REQUEST"] == 1  # the link's refusal of SelectRecipe
 
 
 class HeldPipeline:

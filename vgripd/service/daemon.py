@@ -337,6 +337,9 @@ class Daemon:
             self.links[name] = link_cls(name, validate_options(link_cls, section, f"links.{i}"))
         if config.status.enabled and config.status.allow_trigger:  # the web view's test trigger
             self.links[WEB_LINK] = WebTriggerLink()
+        recipes = {number: config.recipe_name(number) for number in config.recipe_numbers()}
+        for link in self.links.values():
+            link.set_recipes(recipes)
         #: Why a recipe cannot run (not calibrated or taught), by number; its jobs answer
         #: NOT_CALIBRATED with it.
         self.recipe_problems: dict[int, str] = {}

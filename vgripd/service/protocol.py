@@ -199,6 +199,13 @@ class RobotLink(ABC):
         """
         return {}
 
+    def set_recipes(self, recipes: Mapping[int, str]) -> None:  # noqa: B027 - optional
+        """The recipes a trigger may name (number -> name, 0 = the top-level config), told by
+        the daemon before ``open``. A link whose peer selects the recipe apart from the
+        trigger (OPC UA ``SelectRecipe``) refuses any other number at once, where the peer
+        can see why; a link that carries the number with each trigger leaves it to the
+        daemon, whose job answers ``BAD_REQUEST``. Default: ignored."""
+
     async def set_warnings(self, bits: int) -> None:
         """Show the daemon's current ``Warnings`` bits to the peer (live, not tied to a job).
 
