@@ -498,6 +498,8 @@ class Daemon:
         await self._shutdown()
 
     async def _shutdown(self) -> None:
+        if self._worker is not None:  # a worker killed with the aborted job stays dead
+            self._worker.stopping()
         opening, self._opening = self._opening, []  # start-up failed half way
         for task in opening:
             task.cancel()

@@ -558,6 +558,7 @@ class WorkerClient:
         self._next_start_mono = 0.0
         self._backoff_s = 0.0
         self._closing = False
+        self._stopping = False  # ``stopping()``: no new worker after a death
         self._ids = itertools.count(1)
         self._segment_ids = itertools.count(1)
         self._segment: ImageSegment | None = None
@@ -569,7 +570,7 @@ class WorkerClient:
 
     async def start(self) -> None:
         """Create the shared memory and spawn the worker; requests wait until it is ready."""
-        self._closing = False
+        self._closing = self._stopping = False
         swept = sweep_stale_segments()
         if swept:
             log.warning("removed shared memory left by vgripd daemons that no longer run: %s",
@@ -654,8 +655,13 @@ class WorkerClient:
             self._kill(gen, f"did not stop within {STOP_TIMEOUT_S:g} s")
             await gen.reader_task
 
+    def stopping(self) -> None:
+        """The daemon is shutting down: a worker that dies from now on (killed with the job
+        it abandons) is not replaced; ``close`` follows."""
+        self._stopping = True
+
     def _spawn_soon(self, delay_s: float) -> None:
-        if self._closing or self._starting is not None:
+        if self._closing or self._stopping or self._starting is not None:
             return
         self._next_start_mono = time.monotonic() + delay_s
         self._starting = asyncio.create_task(self._spawn(delay_s), name="vgripd-worker-start")
@@ -780,6 +786,9 @@ class WorkerClient:
         if self._held is not None and self._held[0] is gen:
             self._held = None
         if self._closing:
+            return
+        if self._stopping:
+            log.info("%s; not replaced, vgripd is stopping", reason)
             return
         self.restarts += 1
         if was_ready:
