@@ -128,10 +128,10 @@ async def test_unknown_recipe_is_bad_request_without_an_image() -> None:
         grabs = 0
         grab = run.daemon.camera.grab
 
-        async def counting_grab(timeout_s: float, recipe: int = 0) -> Any:
+        async def counting_grab(timeout_s: float, *hints: Any, **named: Any) -> Any:
             nonlocal grabs
             grabs += 1
-            return await grab(timeout_s, recipe)
+            return await grab(timeout_s, *hints, **named)
 
         run.daemon.camera.grab = counting_grab  # type: ignore[method-assign]
         answer = await plc.cycle(7)
