@@ -57,6 +57,8 @@ RECIPE_SECTIONS: tuple[str, ...] = ("object", "vision", "reference", "limits", "
 #: Sections a recipe replaces as a whole instead of key by key: another object is another
 #: object (its name and definition are not inherited from the top-level one).
 RECIPE_WHOLE_SECTIONS: tuple[str, ...] = ("object",)
+#: Longest recipe name (characters).
+MAX_RECIPE_NAME = 64
 #: Highest recipe number: the RECIPE register is one 16-bit word.
 MAX_RECIPE = 65535
 
@@ -739,7 +741,17 @@ class RecipeConfig(BaseModel):
     """
 
     model_config = ConfigDict(extra="allow", frozen=True)
-    name: str = Field(min_length=1)
+    # Shown in every log line of its jobs, the status line, the web view's header and a
+    # metric label: one short line.
+    name: str = Field(min_length=1, max_length=MAX_RECIPE_NAME)
+
+    @field_validator("name")
+    @classmethod
+    def _one_line(cls, value: str) -> str:
+        if any(ord(c) < 32 or ord(c) == 127 for c in value):
+            raise ValueError(f"{value!r}: a recipe name is one line without control "
+                             "characters (it appears in log lines and the status)")
+        return value
 
     @model_validator(mode="after")
     def _known_sections(self) -> RecipeConfig:

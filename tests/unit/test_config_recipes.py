@@ -214,3 +214,28 @@ def test_picking_per_recipe_and_pick_points_stay_with_their_object() -> None:
                        "recipes": {"5": {"name": "one", "picking": {"max_objects": 1}}}})
     assert "recipes.5" in message
     assert "pick_points need max_objects > 1" in message
+
+
+@pytest.mark.parametrize(("name", "expected"), [
+    ("a\nb", "recipes.1.name: Value error, 'a\\nb': a recipe name is one line without control "
+             "characters"),
+    ("tab\there", "recipes.1.name: Value error, 'tab\\there': a recipe name is one line"),
+    ("x" * 65, "recipes.1.name: String should have at most 64 characters"),
+])
+def test_a_recipe_name_is_one_short_line(name: str, expected: str) -> None:
+    assert expected in refused({"recipes": {"1": {"name": name}}})
+    assert config_from_dict({"recipes": {"1": {"name": "x" * 64}}}).recipe_name(1) == "x" * 64
+
+
+def test_recipe_numbers_at_the_edges() -> None:
+    """1 and 65535 are the first and last recipe numbers (the RECIPE register is one word);
+    0 is the top level and 65536 does not fit, both refused naming the range."""
+    config = config_from_dict({"recipes": {"1": {"name": "first"}, "65535": {"name": "last"}}})
+    assert config.recipe_numbers() == (0, 1, 65535)
+    assert config.for_recipe(65535).object == config.object
+    for number in ("0", "65536"):
+        assert (f"recipes.{number}:" in refused({"recipes": {number: {"name": "x"}}})
+                and "a recipe number is 1 .. 65535; 0 is the top level" in
+                refused({"recipes": {number: {"name": "x"}}}))
+    with pytest.raises(ConfigError, match="recipe 65536 is not configured"):
+        config.for_recipe(65536)
