@@ -234,8 +234,8 @@ def test_recipe_numbers_at_the_edges() -> None:
     assert config.recipe_numbers() == (0, 1, 65535)
     assert config.for_recipe(65535).object == config.object
     for number in ("0", "65536"):
-        assert (f"recipes.{number}:" in refused({"recipes": {number: {"name": "x"}}})
-                and "a recipe number is 1 .. 65535; 0 is the top level" in
-                refused({"recipes": {number: {"name": "x"}}}))
+        message = refused({"recipes": {number: {"name": "x"}}})
+        assert f"recipes.{number}:" in message
+        assert "a recipe number is 1 .. 65535; 0 is the top level" in message
     with pytest.raises(ConfigError, match="recipe 65536 is not configured"):
         config.for_recipe(65536)
