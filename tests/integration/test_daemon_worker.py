@@ -131,7 +131,11 @@ async def test_a_job_timeout_while_processing_kills_and_restarts_the_worker() ->
         assert (await plc.result(1))[Reg.STATUS] == Status.INTERNAL
         _, rec = await run.job_done(1)
         assert rec.result.message == "processing exceeded daemon.job_timeout_s = 5.0 s"
-        assert rec.cycle_ms < 5000 + 2000
+        assert rec.cycle_ms < 30_000  # ended by the timeout, not by the 60 s computation
+        # The next job gets a new worker: let it start first (on a loaded machine its start
+        # alone can take most of a 5 s job budget, which is not what this test is about).
+        assert run.daemon._worker is not None
+        await run.daemon._worker.wait_ready()
         await plc.trigger(2)
         assert (await plc.result(2))[Reg.STATUS] == Status.OK
         assert _worker_pid(run) != first
