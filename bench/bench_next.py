@@ -43,17 +43,50 @@ CONFIG: dict[str, Any] = {
                           "jitter_deg": 3.0}},
     "picking": {"max_objects": PLATES, "order": "nearest", "point_mm": [600.0, -150.0, 10.0]},
     "limits": {"max_translation_mm": 200.0, "max_rotation_deg": 10.0},
-    "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": 0}],
     "status": {"enabled": False},
     "daemon": {"log_level": "WARNING"},
 }
 
 
-async def main(pallets: int) -> None:
-    daemon = Daemon(config_from_dict(CONFIG))
+async def started_daemon(
+        links: list[dict[str, Any]]) -> tuple[Daemon, dict[int, tuple[ImagePair | None, JobRecord]]]:
+    """The pallet cell with ``links``, started; the second value fills with every job."""
+    daemon = Daemon(config_from_dict({**CONFIG, "links": links}))
     jobs: dict[int, tuple[ImagePair | None, JobRecord]] = {}
     daemon.listeners.append(lambda pair, rec: jobs.__setitem__(rec.job_id, (pair, rec)))
     await daemon.start()
+    return daemon, jobs
+
+
+def plate_errors(job: tuple[ImagePair | None, JobRecord]) -> list[tuple[float, float]]:
+    """Each listed plate's pose error against the nearest true plate (mm, deg)."""
+    pair, rec = job
+    assert pair is not None
+    truths = pair.truth["instances_T_base_obj"]
+    errors = []
+    for inst in rec.result.instances:
+        assert inst.T_base_obj is not None
+        errors.append(min((pose_error(T, inst.T_base_obj) for T in truths), key=lambda e: e[0]))
+    return errors
+
+
+def report(what: str, listed: list[float], per_plate: list[float],
+           errors: list[tuple[float, float]], list_way: str, peer_way: str) -> None:
+    a, b = statistics.median(listed), statistics.median(per_plate)
+    e = np.array(errors)
+    print(what)
+    print(f"pick list ({list_way}):  median {a:7.1f} ms per plate "
+          f"(min {min(listed):.1f}, max {max(listed):.1f})")
+    print(f"a job per plate ({peer_way} x {PLATES}): median {b:7.1f} ms per plate "
+          f"(min {min(per_plate):.1f}, max {max(per_plate):.1f})")
+    print(f"ratio (job per plate / pick list): x{b / a:.2f}")
+    print(f"sanity: pick list poses vs the synthetic camera's truth over {len(e)} plates: "
+          f"max {e[:, 0].max():.3f} mm, {e[:, 1].max():.3f} deg (mean {e[:, 0].mean():.3f} mm)")
+
+
+async def main(pallets: int) -> None:
+    daemon, jobs = await started_daemon([{"type": "modbus_server", "host": "127.0.0.1",
+                                          "port": 0}])
     listed: list[float] = []
     per_plate: list[float] = []
     errors: list[tuple[float, float]] = []
@@ -68,29 +101,15 @@ async def main(pallets: int) -> None:
                     answers.append(await plc.next())
                 listed.append((time.perf_counter() - t0) * 1e3 / PLATES)
                 assert len(answers) == PLATES + 1, [a.status.name for a in answers]
-                pair, rec = jobs[answers[0].job_id]
-                assert pair is not None
-                truths = pair.truth["instances_T_base_obj"]
-                for inst in rec.result.instances:
-                    assert inst.T_base_obj is not None
-                    errors.append(min((pose_error(T, inst.T_base_obj) for T in truths),
-                                      key=lambda e: e[0]))
+                errors += plate_errors(jobs[answers[0].job_id])
                 t0 = time.perf_counter()
                 for _ in range(PLATES):
                     assert (await plc.cycle()).status is Status.OK
                 per_plate.append((time.perf_counter() - t0) * 1e3 / PLATES)
     finally:
         await daemon.stop()
-    a, b = statistics.median(listed), statistics.median(per_plate)
-    e = np.array(errors)
-    print(f"{pallets} pallets of {PLATES} plates, Modbus/TCP on 127.0.0.1, PLC polling 5 ms")
-    print(f"pick list (1 TRIGGER + NEXT):  median {a:7.1f} ms per plate "
-          f"(min {min(listed):.1f}, max {max(listed):.1f})")
-    print(f"a job per plate (TRIGGER x {PLATES}): median {b:7.1f} ms per plate "
-          f"(min {min(per_plate):.1f}, max {max(per_plate):.1f})")
-    print(f"ratio (job per plate / pick list): x{b / a:.2f}")
-    print(f"sanity: pick list poses vs the synthetic camera's truth over {len(e)} plates: max {e[:, 0].max():.3f} mm, "
-          f"{e[:, 1].max():.3f} deg (mean {e[:, 0].mean():.3f} mm)")
+    report(f"{pallets} pallets of {PLATES} plates, Modbus/TCP on 127.0.0.1, PLC polling 5 ms",
+           listed, per_plate, errors, "1 TRIGGER + NEXT", "TRIGGER")
 
 
 if __name__ == "__main__":

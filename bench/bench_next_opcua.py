@@ -32,26 +32,12 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np  # noqa: E402
-
-from vgripd.config import config_from_dict  # noqa: E402
-from vgripd.geometry.transforms import pose_error  # noqa: E402
-from vgripd.service.daemon import Daemon, JobRecord  # noqa: E402
+from bench.bench_next import PLATES, plate_errors, report, started_daemon  # noqa: E402
 from vgripd.sim.opcua_client import OpcUaClientProcess  # noqa: E402
-from vgripd.types import ImagePair, Status  # noqa: E402
+from vgripd.types import Status  # noqa: E402
 
-PLATES = 6
-CONFIG: dict[str, Any] = {
-    "camera": {"type": "synthetic", "seed": 3,
-               "pallet": {"count": PLATES, "cols": 3, "gap_mm": 0.0, "jitter_mm": 2.0,
-                          "jitter_deg": 3.0}},
-    "picking": {"max_objects": PLATES, "order": "nearest", "point_mm": [600.0, -150.0, 10.0]},
-    "limits": {"max_translation_mm": 200.0, "max_rotation_deg": 10.0},
-    "links": [{"type": "opcua", "host": "127.0.0.1", "port": 0, "security": ["None"],
-               "allow_anonymous": True}],
-    "status": {"enabled": False},
-    "daemon": {"log_level": "WARNING"},
-}
+LINK = {"type": "opcua", "host": "127.0.0.1", "port": 0, "security": ["None"],
+        "allow_anonymous": True}
 
 
 async def timed(client: OpcUaClientProcess, line: str) -> tuple[dict[str, Any], float]:
@@ -62,10 +48,7 @@ async def timed(client: OpcUaClientProcess, line: str) -> tuple[dict[str, Any], 
 
 
 async def main(pallets: int) -> None:
-    daemon = Daemon(config_from_dict(CONFIG))
-    jobs: dict[int, tuple[ImagePair | None, JobRecord]] = {}
-    daemon.listeners.append(lambda pair, rec: jobs.__setitem__(rec.job_id, (pair, rec)))
-    await daemon.start()
+    daemon, jobs = await started_daemon([LINK])
     listed: list[float] = []
     per_plate: list[float] = []
     next_ms: list[float] = []
@@ -87,13 +70,7 @@ async def main(pallets: int) -> None:
                     answers.append(answer)
                 listed.append((time.perf_counter() - t0) * 1e3 / PLATES)
                 assert len(answers) == PLATES + 1, [a["StatusName"] for a in answers]
-                pair, rec = jobs[first["JobId"]]
-                assert pair is not None
-                truths = pair.truth["instances_T_base_obj"]
-                for inst in rec.result.instances:
-                    assert inst.T_base_obj is not None
-                    errors.append(min((pose_error(T, inst.T_base_obj) for T in truths),
-                                      key=lambda e: e[0]))
+                errors += plate_errors(jobs[first["JobId"]])
                 t0 = time.perf_counter()
                 for _ in range(PLATES):
                     answer, ms = await timed(client, "job")
@@ -102,20 +79,12 @@ async def main(pallets: int) -> None:
                 per_plate.append((time.perf_counter() - t0) * 1e3 / PLATES)
     finally:
         await daemon.stop()
-    a, b = statistics.median(listed), statistics.median(per_plate)
+    report(f"{pallets} pallets of {PLATES} plates, OPC UA (asyncua client process) on 127.0.0.1",
+           listed, per_plate, errors, "StartSingleJob + Next", "StartSingleJob")
     n, j = statistics.median(next_ms), statistics.median(job_ms)
-    e = np.array(errors)
-    print(f"{pallets} pallets of {PLATES} plates, OPC UA (asyncua client process) on 127.0.0.1")
-    print(f"pick list (StartSingleJob + Next):    median {a:7.1f} ms per plate "
-          f"(min {min(listed):.1f}, max {max(listed):.1f})")
-    print(f"a job per plate (StartSingleJob x {PLATES}): median {b:7.1f} ms per plate "
-          f"(min {min(per_plate):.1f}, max {max(per_plate):.1f})")
-    print(f"ratio (job per plate / pick list): x{b / a:.2f}")
     print(f"one Next: median {n:.1f} ms (min {min(next_ms):.1f}, max {max(next_ms):.1f}, "
           f"{len(next_ms)} calls); one StartSingleJob: median {j:.1f} ms "
           f"({len(job_ms)} calls); ratio x{j / n:.1f}")
-    print(f"sanity: pick list poses vs the synthetic camera's truth over {len(e)} plates: "
-          f"max {e[:, 0].max():.3f} mm, {e[:, 1].max():.3f} deg (mean {e[:, 0].mean():.3f} mm)")
 
 
 if __name__ == "__main__":
