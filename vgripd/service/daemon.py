@@ -356,14 +356,12 @@ class Daemon:
                     raise ConfigError(f"recipes.{number}.{err}") from None
             else:
                 self._pipelines[number] = pipeline
-        if isinstance(pipeline, str):
-            self._pipelines = {}
         self._worker: WorkerClient | None = None
         if isinstance(pipeline, str) or (pipeline is None and config.daemon.worker):
             self._worker = WorkerClient(config, pipeline or DEFAULT_PROCESSOR,
                                         self.camera.describe())
             self.camera = self._worker.camera  # the driver runs in the worker
-            self._pipelines = {}
+            self._pipelines = {}  # built above only to judge the config; the worker runs them
         #: The recipe of the running or last job (None before the first).
         self.active_recipe: int | None = None
 
