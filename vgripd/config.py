@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -68,6 +69,24 @@ class Model(BaseModel):
     are finite (TOML can spell ``inf`` and ``nan``; no setting means either)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def _allow_entry(entry: str) -> str:
+    """One ``allow`` entry: an address (``10.0.0.5``) or a network (``10.0.1.0/24``). Judged
+    here, once, so a typo is a config error naming ``...allow.<index>``, not an open door."""
+    try:
+        ipaddress.ip_network(entry.strip(), strict=False)
+    except ValueError:
+        raise ValueError(f"{entry!r} is not an IP address or network (e.g. \"10.0.0.5\" or "
+                         f"\"10.0.1.0/24\")") from None
+    return entry.strip()
+
+
+#: ``allow = ["10.0.0.5", "10.0.1.0/24"]`` of a server surface (a link or the web view): other
+#: client addresses are closed at accept (vgripd.service.gate); unset = every address. An
+#: empty list is refused (it would lock every client out).
+AllowList = Annotated[list[Annotated[str, AfterValidator(_allow_entry)]], Field(min_length=1)] \
+    | None
 
 
 class DriverSection(BaseModel):
@@ -262,6 +281,10 @@ class DaemonConfig(Model):
     recalibrate_window: int = Field(default=50, ge=1)
     recalibrate_share: float = Field(default=0.2, ge=0, lt=1)
     recalibrate_min_jobs: int = Field(default=10, ge=1)
+    # File descriptors kept out of the server surfaces' share of RLIMIT_NOFILE: PLC client
+    # links, the worker's pipes, shared-memory segments, recordings, the camera (docs/daemon.md,
+    # "File budget").
+    fd_reserve: int = Field(default=256, ge=32, le=1_000_000)
 
     @model_validator(mode="after")
     def _recalibrate_window(self) -> DaemonConfig:
@@ -303,6 +326,14 @@ class StatusConfig(Model):
     allow_support_bundle: bool = False
     history: int = Field(default=100, ge=1, le=10000)
     bundle_jobs: int = Field(default=5, ge=0, le=100)
+    # Connections (docs/web.md, "Connections"): at most `max_connections` at once (ones that
+    # never completed a request are evicted first), complete request headers within
+    # `header_timeout_s` of connecting or of the previous answer, a body within
+    # `body_timeout_s`; `allow` = client addresses/networks (unset: any).
+    max_connections: int = Field(default=64, ge=2, le=4096)
+    header_timeout_s: float = Field(default=10.0, ge=0.5, le=600.0)
+    body_timeout_s: float = Field(default=10.0, ge=0.5, le=600.0)
+    allow: AllowList = None
 
     @model_validator(mode="after")
     def _token_where_needed(self) -> StatusConfig:

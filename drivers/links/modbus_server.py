@@ -27,10 +27,13 @@ them itself (``ModbusTcpConnection``, ``RegisterServerLink.answer_pdu``):
   write outside the command area exception 02; any other function code exception 01.
 - Requests are answered in order, every request of a segment (pipelining), a batch at a time
   so that one client cannot hold the loop.
-- Connections: at most ``max_connections``; a new connection evicts the longest-idle one (a
-  new PLC connection is always served). ``idle_timeout_s`` without a complete request closes a
-  connection; TCP keepalive finds peers that vanished without a FIN. A client whose unsent
-  answers exceed ``max_unsent_bytes`` (it does not read) is dropped.
+- Connections go through the daemon's one connection manager (``vgripd.service.gate``):
+  addresses outside ``allow`` are closed at accept; at most ``max_connections`` (the daemon's
+  file budget may lower it); beyond that a new connection evicts the oldest one that never got
+  a normal answer, and is refused when every connection has (a flood of newcomers never evicts
+  a polling PLC). ``idle_timeout_s`` without a complete request closes a connection; TCP
+  keepalive finds peers that vanished without a FIN. A client whose unsent answers exceed
+  ``max_unsent_bytes`` (it does not read) is dropped.
 - Peer faults are logged through ``RateLimitedLog``: one line per client address and kind of
   fault per ``log_interval_s``, with a count of the ones held back; never a traceback.
 
@@ -62,6 +65,7 @@ from typing import Any
 from pydantic import Field, model_validator
 from pymodbus.constants import ExcCodes
 
+from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
     MAP_SIZE,
@@ -78,6 +82,7 @@ from vgripd.service.protocol import (
     TriggerHandler,
     ValueCodec,
 )
+from vgripd.service.gate import Gate
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.types import JobResult, Status
 
@@ -356,9 +361,10 @@ class TcpOptions(RegisterOptions):
     ``unit_id``: answer only this unit id (None = any); with ``unit_id_wildcards`` also 0 and
     255, the ids Modbus/TCP clients send to "the device behind this address".
 
-    Connections (docs/registers.md, "Connections"): ``max_connections`` (the longest-idle one
-    is evicted for a new one), ``idle_timeout_s`` without a complete request closes a
-    connection (0 = never), TCP keepalive (``keepalive_*``: probes after ``keepalive_idle_s``
+    Connections (docs/registers.md, "Connections"): ``allow`` (client addresses and networks;
+    unset = any), ``max_connections`` (beyond it the oldest connection that never got a normal
+    answer is evicted for a new one; if every one has, the new one is refused),
+    ``idle_timeout_s`` without a complete request closes a connection (0 = never), TCP keepalive (``keepalive_*``: probes after ``keepalive_idle_s``
     of silence, every ``keepalive_interval_s``, ``keepalive_count`` unanswered ones end it), a
     client with more than ``max_unsent_bytes`` of answers it has not read is dropped. Peer
     faults are logged once per client and kind per ``log_interval_s``.
@@ -376,6 +382,7 @@ class TcpOptions(RegisterOptions):
     keepalive_count: int = Field(3, ge=1, le=30)
     max_unsent_bytes: int = Field(65536, ge=1024, le=16 * 1024 * 1024)
     log_interval_s: float = Field(60.0, ge=0.1, le=3600.0)
+    allow: AllowList = None
 
     @model_validator(mode="after")
     def _idle_timeout_off_or_sane(self) -> TcpOptions:
@@ -397,6 +404,7 @@ class ModbusTcpConnection(asyncio.Protocol):
         self.requests = 0
         self.peak_unsent = 0  # the most answer bytes that ever waited for this client
         self.closing = False
+        self.refused = False  # closed at accept by the gate (allow, full)
         self._buffer = bytearray()
         self._paused = False
         self._continue: asyncio.Handle | None = None
@@ -428,6 +436,10 @@ class ModbusTcpConnection(asyncio.Protocol):
             self._continue.cancel()
             self._continue = None
         self.link._forget(self)
+
+    def shut(self, reason: str) -> None:
+        """Closed by the gate (evicted, timed out; already logged)."""
+        self.close(abort=False)
 
     # framing ---------------------------------------------------------------------------
 
@@ -523,10 +535,12 @@ class ModbusServerLink(RegisterServerLink):
     def __init__(self, name: str, options: Any) -> None:
         super().__init__(name, options)
         self._listener: asyncio.Server | None = None
-        self._connections: dict[ModbusTcpConnection, None] = {}  # in order of arrival
+        o: TcpOptions = options
+        #: the connections (in order of arrival), their cap, eviction, idle timeout, allow
+        self.gate = Gate(name, o.max_connections, allow=o.allow, idle_timeout_s=o.idle_timeout_s,
+                         lines=self.ratelog, faults=self.faults)
         #: the most answer bytes that ever waited in the link for one client
         self.peak_unsent = 0
-        self._housekeeping: asyncio.Task[None] | None = None
 
     @property
     def port(self) -> int:
@@ -538,7 +552,7 @@ class ModbusServerLink(RegisterServerLink):
 
     def connections(self) -> list[ModbusTcpConnection]:
         """The open client connections, oldest first."""
-        return list(self._connections)
+        return self.gate.connections()
 
     def _describe(self) -> str:
         return f"{self.options.host}:{self.port}"
@@ -551,46 +565,38 @@ class ModbusServerLink(RegisterServerLink):
         loop = asyncio.get_running_loop()
         try:
             self._listener = await loop.create_server(
-                lambda: ModbusTcpConnection(self), o.host, o.port,
-                backlog=max(128, 2 * o.max_connections))
+                lambda: ModbusTcpConnection(self), o.host, o.port, backlog=self.gate.backlog)
         except OSError as err:
             reason = os.strerror(err.errno) if err.errno else str(err)
             raise LinkError(f"cannot listen on {o.host}:{o.port}: {reason} (check host and "
                             f"port of this [[links]] entry)") from None
-        self._housekeeping = asyncio.create_task(self._keep_house(),
-                                                 name=f"{self.name}-housekeeping")
+        self.gate.start()
 
     async def _stop_serving(self) -> None:
-        if self._housekeeping is not None:
-            self._housekeeping.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._housekeeping
-            self._housekeeping = None
+        await self.gate.stop()
         if self._listener is not None:
             self._listener.close()
-            for conn in list(self._connections):
+            for conn in self.gate.connections():
+                self.gate.forget(conn)
                 conn.close(abort=True)
-            self._connections.clear()
             await self._listener.wait_closed()
             self._listener = None
 
     def peers(self) -> int:
-        return len(self._connections)
+        return len(self.gate)
 
     # connections -------------------------------------------------------------------------
 
     def _admit(self, conn: ModbusTcpConnection) -> None:
-        """A new connection: evict the longest-idle ones beyond the cap, then set keepalive."""
+        """A new connection: the gate admits it (evicting never-answered ones beyond the cap)
+        or it is closed at once; then keepalive."""
         o = self.options
-        while len(self._connections) >= o.max_connections:
-            victim = min(self._connections, key=lambda c: c.last_request)
-            self.fault(victim.host, "evicted", logging.WARNING,
-                       "%s evicted for %s (max_connections = %d; idle %.1f s)", victim.client,
-                       conn.client, o.max_connections, time.monotonic() - victim.last_request)
-            self._drop(victim, abort=False)
-        self._connections[conn] = None
+        if not self.gate.admit(conn):
+            conn.refused = True
+            conn.close(abort=True)
+            return
         self.ratelog.info(conn.host, "connected", "%s: client %s connected (%d open)",
-                          self.name, conn.client, len(self._connections))
+                          self.name, conn.client, len(self.gate))
         if o.keepalive and conn.transport is not None:
             sock = conn.transport.get_extra_info("socket")
             if sock is not None:
@@ -598,11 +604,11 @@ class ModbusServerLink(RegisterServerLink):
                               o.keepalive_count)
 
     def _drop(self, conn: ModbusTcpConnection, abort: bool) -> None:
-        self._connections.pop(conn, None)
+        self.gate.forget(conn)
         conn.close(abort)
 
     def _forget(self, conn: ModbusTcpConnection) -> None:
-        self._connections.pop(conn, None)
+        self.gate.forget(conn)
 
     def _answer(self, unit: int, pdu: bytes, conn: ModbusTcpConnection) -> bytes | None:
         """The response PDU, or None for a request to a unit id this link does not answer."""
@@ -613,24 +619,12 @@ class ModbusServerLink(RegisterServerLink):
                        "%s: request for unit id %d not answered (this link is unit %d%s)",
                        conn.client, unit, o.unit_id,
                        ", 0 and 255" if o.unit_id_wildcards else "")
+            self.gate.activity(conn, valid=False)
             return None
-        return self.answer_pdu(pdu, conn.host)
-
-    async def _keep_house(self) -> None:
-        """Close connections idle for ``idle_timeout_s``; report held log lines."""
-        idle_s = self.options.idle_timeout_s
-        period_s = min(1.0, idle_s / 4) if idle_s else 1.0
-        while True:
-            await asyncio.sleep(period_s)
-            if idle_s:
-                now = time.monotonic()
-                for conn in list(self._connections):
-                    if now - conn.last_request > idle_s:
-                        self.fault(conn.host, "idle", logging.INFO,
-                                   "%s: no request for %.1f s (idle_timeout_s), closed",
-                                   conn.client, now - conn.last_request)
-                        self._drop(conn, abort=False)
-            self.ratelog.flush()
+        reply = self.answer_pdu(pdu, conn.host)
+        # valid: answered normally (not an exception): what a polling PLC gets
+        self.gate.activity(conn, valid=bool(reply) and reply[0] < 0x80)
+        return reply
 
 
 def set_keepalive(sock: Any, idle_s: int, interval_s: int, count: int) -> None:

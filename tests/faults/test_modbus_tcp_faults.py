@@ -240,8 +240,11 @@ async def test_clients_that_do_not_read_are_dropped_and_their_output_is_bounded(
 
 # --- connection cap, eviction, idle timeout, keepalive --------------------------------------
 
-async def test_connection_cap_evicts_the_longest_idle_and_a_new_plc_is_served() -> None:
-    """Today: no cap; 1,100 idle connections exhaust the file limit and nothing new connects."""
+async def test_connection_cap_evicts_never_answered_ones_and_a_new_plc_is_served() -> None:
+    """Today (before the cap): 1,100 idle connections exhaust the file limit and nothing new
+    connects. Then (issue 20, row 6): a newcomer evicted the longest-idle connection, so a
+    flood evicted clients that had been polling. Now only connections that never got a normal
+    answer are evicted; when every one has, the newcomer is refused."""
     served = await Served.open(max_connections=4)
     link = served.link
     conns: list[tuple[asyncio.StreamReader, asyncio.StreamWriter]] = []
@@ -250,7 +253,7 @@ async def test_connection_cap_evicts_the_longest_idle_and_a_new_plc_is_served() 
             reader, writer = await served.connect()
             conns.append((reader, writer))
             await served.until(lambda: link.peers() == len(conns))
-        # requests make a connection busy: #2 is now the longest idle, then #0 ...
+        # #0, #1, #3 get normal answers; #2 never sends anything
         for i in (0, 1, 3):
             conns[i][1].write(read_request(i, Reg.CHECK_U16, 1))
             await recv_frame(conns[i][0])
@@ -259,8 +262,11 @@ async def test_connection_cap_evicts_the_longest_idle_and_a_new_plc_is_served() 
         assert link.peers() == 4
         for i in (0, 1, 3):
             assert await silent(conns[i][0], 0.05)
-        conns.append(await served.connect())
-        assert await closed_by_server(conns[0][0])
+        conns.append(await served.connect())  # #5 evicts #4, the one that never asked
+        assert await closed_by_server(conns[4][0])
+        for i in (0, 1, 3):  # the clients that have talked are still answered
+            conns[i][1].write(read_request(10 + i, Reg.CHECK_U16, 1))
+            assert (await recv_frame(conns[i][0]))[0] == 10 + i
 
         # max + N idle connections: the link never holds more than max, and a PLC still works
         flood = [await served.connect() for _ in range(40)]
@@ -276,9 +282,88 @@ async def test_connection_cap_evicts_the_longest_idle_and_a_new_plc_is_served() 
             assert result.status is Status.OK
         assert link.peers() <= 4
         assert link.faults["evicted"] >= 40
+        for i in (0, 1, 3):
+            conns[i][1].write(read_request(20 + i, Reg.CHECK_U16, 1))
+            assert (await recv_frame(conns[i][0]))[0] == 20 + i
+        # all four slots answered once: a newcomer is refused, nobody evicted
+        fourth = await served.connect()
+        conns.append(fourth)
+        fourth[1].write(read_request(30, Reg.CHECK_U16, 1))
+        assert (await recv_frame(fourth[0]))[0] == 30
+        conns.append(await served.connect())
+        assert await closed_by_server(conns[-1][0])
+        assert link.faults["full"] >= 1
+        for i in (0, 1, 3):
+            conns[i][1].write(read_request(40 + i, Reg.CHECK_U16, 1))
+            assert (await recv_frame(conns[i][0]))[0] == 40 + i
     finally:
         for _, writer in conns:
             await close_quietly(writer)
+        await link.close()
+
+
+async def test_flood_of_never_valid_newcomers_never_evicts_a_polling_plc() -> None:
+    """Issue 20, row 6: a PLC polling every 100 ms was evicted 15 times in 12 s by newcomers
+    that never sent a request (the longest-idle connection went first, and a newcomer's clock
+    starts at its connect). Now the flood evicts only itself; the PLC's connection stays."""
+    served = await Served.open(max_connections=4)
+    link = served.link
+    flood: list[tuple[asyncio.StreamReader, asyncio.StreamWriter]] = []
+    try:
+        async with MockPlc("127.0.0.1", link.port) as plc:
+            await plc.read(Reg.CHECK_U16, 1)
+            assert len(link.connections()) == 1
+            the_plc = link.connections()[0]
+            stop = asyncio.Event()
+            polls = 0
+
+            async def poll() -> None:
+                nonlocal polls
+                while not stop.is_set():
+                    await plc.read(Reg.CHECK_U16, 1)
+                    polls += 1
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(stop.wait(), 0.1)
+
+            poller = asyncio.create_task(poll())
+            for _ in range(200):
+                flood.append(await served.connect())
+            await served.until(lambda: link.faults["evicted"] >= 190)
+            stop.set()
+            await poller
+            assert polls >= 1
+            assert the_plc in link.connections() and not the_plc.closing
+            assert link.peers() <= 4
+    finally:
+        for _, writer in flood:
+            await close_quietly(writer)
+        await link.close()
+
+
+async def test_allow_list_closes_other_addresses_at_accept(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """``allow``: a client from 127.0.0.2 is closed at accept with one rate-limited log line;
+    127.0.0.1 is served. Today the option does not exist (the config is refused)."""
+    caplog.set_level(logging.INFO, logger="drivers.links.modbus_server")
+    served = await Served.open(allow=["127.0.0.1"])
+    link = served.link
+    try:
+        for _ in range(5):
+            sock = socket.socket()
+            sock.bind(("127.0.0.2", 0))
+            sock.setblocking(False)
+            await asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", link.port))
+            reader, writer = await asyncio.open_connection(sock=sock)
+            writer.write(read_request(1, Reg.CHECK_U16, 1))
+            assert await closed_by_server(reader)
+            await close_quietly(writer)
+        async with MockPlc("127.0.0.1", link.port) as plc:
+            assert await plc.read(Reg.CHECK_U16, 1) == [CHECK_U16]
+        assert link.faults["not_allowed"] == 5
+        lines = [r for r in caplog.records if "not in allow" in r.getMessage()]
+        assert len(lines) == 1, [r.getMessage() for r in lines]
+        assert "127.0.0.2" in lines[0].getMessage()
+    finally:
         await link.close()
 
 
@@ -385,6 +470,7 @@ async def test_options_are_bounded() -> None:
 
     for bad in ({"max_connections": 0}, {"idle_timeout_s": -1}, {"idle_timeout_s": 0.01},
                 {"keepalive_idle_s": 0}, {"max_unsent_bytes": 100}, {"log_interval_s": 0},
-                {"unit_id": 256}, {"max_conections": 4}):
+                {"unit_id": 256}, {"max_conections": 4}, {"allow": []},
+                {"allow": ["10.0.0.300"]}):
         with pytest.raises(ValidationError):
             TcpOptions.model_validate(bad)
