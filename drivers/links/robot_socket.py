@@ -23,9 +23,12 @@ a new image.
 
 Faults are the peer's, never the daemon's: a frame that is not a request (magic, version) closes
 that connection, as does a request left incomplete for ``frame_timeout_s`` (a silent peer) or a
-peer that does not read its answers (``max_unsent_bytes``). Connections are bounded
-(``max_connections``; a new one evicts the longest idle, a connection waiting for its job's
-result last), TCP keepalive finds peers that vanished without a FIN, and fault lines are rate
+peer that does not read its answers (``max_unsent_bytes``). Connections go through the daemon's
+one connection manager (``vgripd.service.gate``): addresses outside ``allow`` are closed at
+accept; at most ``max_connections``, beyond which a new one evicts the oldest connection that
+never sent a valid request and is refused when every one has (a robot that has talked is never
+evicted by newcomers); ``idle_timeout_s`` closes a silent one, never the one waiting for its
+job's result. TCP keepalive finds peers that vanished without a FIN, and fault lines are rate
 limited per client address and kind (``log_interval_s``), without tracebacks.
 """
 
@@ -44,7 +47,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from vgripd.config import AllowList
 from vgripd.errors import LinkError
+from vgripd.service.gate import Gate
 from vgripd.service.protocol import (
     LinkHealth,
     LinkState,
@@ -54,6 +59,7 @@ from vgripd.service.protocol import (
     checked_warnings,
     pick_position,
 )
+from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.robot_socket_format import (
     REQUEST_SIZE,
     SOCKET_CAPABILITIES,
@@ -96,6 +102,7 @@ class RobotSocketOptions(BaseModel):
     backoff_initial_s: float = Field(0.2, gt=0.0, le=60.0)
     backoff_max_s: float = Field(10.0, gt=0.0, le=600.0)
     log_interval_s: float = Field(60.0, ge=0.1, le=3600.0)
+    allow: AllowList = None  # server: client addresses/networks accepted (unset: any)
 
     @model_validator(mode="after")
     def _consistent(self) -> RobotSocketOptions:
@@ -107,35 +114,10 @@ class RobotSocketOptions(BaseModel):
                              "address or port 0)")
         if 0 < self.idle_timeout_s < 0.1:
             raise ValueError("idle_timeout_s must be 0 (off) or at least 0.1 s")
+        if self.mode == "client" and self.allow is not None:
+            raise ValueError('allow is for mode = "server" (in client mode vgripd dials the '
+                             "robot's host)")
         return self
-
-
-class _Lines:
-    """One log line per (client, kind) per ``interval_s``; the ones held back are counted and
-    mentioned in the next line for that key. The number of keys is bounded."""
-
-    MAX_KEYS = 256
-
-    def __init__(self, interval_s: float) -> None:
-        self.interval_s = interval_s
-        self._keys: dict[tuple[str, str], tuple[float, int]] = {}
-        self.lines = 0
-
-    def log(self, level: int, client: str, kind: str, msg: str, *args: Any) -> None:
-        now = time.monotonic()
-        key = (client, kind)
-        if key not in self._keys and len(self._keys) >= self.MAX_KEYS:
-            self._keys = {k: v for k, v in self._keys.items() if now - v[0] < self.interval_s}
-            if len(self._keys) >= self.MAX_KEYS:
-                key = ("*", kind)
-        last = self._keys.get(key)
-        if last is not None and now - last[0] < self.interval_s:
-            self._keys[key] = (last[0], last[1] + 1)
-            return
-        self._keys[key] = (now, 0)
-        held = f" (and {last[1]} more like it from {key[0]})" if last and last[1] else ""
-        log.log(level, msg + "%s", *args, held)
-        self.lines += 1
 
 
 @dataclass
@@ -237,6 +219,10 @@ class RobotConnection(asyncio.Protocol):
         self.close(f"{self.client} did not read its answers", abort=True)
         return False
 
+    def shut(self, reason: str) -> None:
+        """Closed by the gate (evicted, idle; already logged)."""
+        self.close(reason)
+
     def close(self, reason: str, abort: bool = False) -> None:
         if self.closing or self.transport is None:
             return
@@ -257,7 +243,6 @@ class RobotSocketLink(RobotLink):
         super().__init__(name, options)
         self.encoding = ValueEncoding(options.value_format, options.scale)
         self._where = f"{options.host}:{options.port}"
-        self._connections: dict[RobotConnection, None] = {}  # in order of arrival
         self._listener: asyncio.Server | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._on_trigger: TriggerHandler | None = None
@@ -268,7 +253,11 @@ class RobotSocketLink(RobotLink):
         #: peer faults by kind (malformed, incomplete, not_reading, evicted, idle)
         self.faults: Counter[str] = Counter()
         self.attempts = 0  # client mode: connection attempts made
-        self._lines = _Lines(options.log_interval_s)
+        self._lines = RateLimitedLog(log, options.log_interval_s)
+        #: the connections (in order of arrival), their cap, eviction, idle timeout, allow
+        self.gate = Gate(name, options.max_connections, allow=options.allow,
+                         idle_timeout_s=options.idle_timeout_s, lines=self._lines,
+                         faults=self.faults)
         self._health = LinkHealth(LinkState.STOPPED, peer=self._where)
         self._health_changed: asyncio.Condition | None = None
 
@@ -285,8 +274,7 @@ class RobotSocketLink(RobotLink):
         if o.mode == "server":
             try:
                 self._listener = await asyncio.get_running_loop().create_server(
-                    lambda: RobotConnection(self), o.host, o.port,
-                    backlog=max(16, 2 * o.max_connections))
+                    lambda: RobotConnection(self), o.host, o.port, backlog=self.gate.backlog)
             except OSError as err:
                 reason = os.strerror(err.errno) if err.errno else str(err)
                 error = (f"cannot listen on {o.host}:{o.port}: {reason} (check host and port of "
@@ -301,20 +289,20 @@ class RobotSocketLink(RobotLink):
             self._spawn(self._supervise(), "supervisor")
             with contextlib.suppress(TimeoutError):
                 await self.wait_state({LinkState.UP, LinkState.DOWN}, o.connect_timeout_s + 1.0)
-        if o.idle_timeout_s:
-            self._spawn(self._close_idle(), "idle")
+        self.gate.start()
 
     async def close(self) -> None:
         tasks, self._tasks = self._tasks, []
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+        await self.gate.stop()
         listener, self._listener = self._listener, None
         if listener is not None:
             listener.close()
-        for conn in list(self._connections):
+        for conn in self.gate.connections():
+            self.gate.forget(conn)
             conn.close("link closed", abort=True)
-        self._connections.clear()
         if listener is not None:
             await listener.wait_closed()
         self._job = None
@@ -324,7 +312,7 @@ class RobotSocketLink(RobotLink):
         h = self._health
         return LinkHealth(h.state, peer=self._where, last_error=h.last_error,
                           reconnects=h.reconnects, since_mono_ns=h.since_mono_ns,
-                          peers=len(self._connections))
+                          peers=len(self.gate))
 
     @property
     def port(self) -> int:
@@ -336,7 +324,7 @@ class RobotSocketLink(RobotLink):
 
     def connections(self) -> list[RobotConnection]:
         """Open robot connections, oldest first."""
-        return list(self._connections)
+        return self.gate.connections()
 
     async def image_captured(self, seq: int, job_id: int) -> None:
         job = self._running(seq, "image_captured")
@@ -352,6 +340,7 @@ class RobotSocketLink(RobotLink):
         """
         job = self._running(seq, "publish")
         self._job = None
+        self.gate.busy(job.conn, False)
         frame, sent = result_answer(seq, result, self._warnings, self.encoding, job.captured)
         self._listed = pick_position(result).listed
         if sent.status is not result.status:
@@ -386,6 +375,8 @@ class RobotSocketLink(RobotLink):
         request = decode_request(frame)
         seq = request.request_id
         refusal = request.refusal()
+        # valid: a request whose fields are in range (what a robot program sends)
+        self.gate.activity(conn, valid=refusal is None)
         if refusal is None and self._job is not None:
             refusal = Status.BUSY
         if refusal is None and request.command == SocketCommand.NEXT and not self._listed:
@@ -405,6 +396,7 @@ class RobotSocketLink(RobotLink):
                              warnings=self._warnings).encode(self.encoding))
             return
         self._job = _Job(seq, conn)
+        self.gate.busy(conn, True)  # waiting for its result: never idle, never evicted
         assert self._on_trigger is not None
         trigger = Trigger(link=self.name, seq=seq, command=request.command,
                           t_mono_ns=time.monotonic_ns(), recipe=request.recipe)
@@ -421,51 +413,31 @@ class RobotSocketLink(RobotLink):
     # -- connections -------------------------------------------------------------------------
 
     def _admit(self, conn: RobotConnection) -> None:
-        """A new connection: evict beyond ``max_connections`` (the longest idle first, the one
-        waiting for a result last), then set keepalive."""
+        """A new connection: the gate admits it (evicting never-valid ones beyond the cap) or
+        it is closed at once; then keepalive."""
         o = self.options
-        while len(self._connections) >= o.max_connections:
-            waiting = self._job.conn if self._job is not None else None
-            victim = min(self._connections, key=lambda c: (c is waiting, c.last_request))
-            self.fault(victim.host, "evicted", logging.WARNING,
-                       "%s: %s evicted for %s (max_connections = %d; idle %.1f s)", self.name,
-                       victim.client, conn.client, o.max_connections,
-                       time.monotonic() - victim.last_request)
-            self._connections.pop(victim, None)
-            victim.close(f"evicted for {conn.client} (max_connections = {o.max_connections})")
-        self._connections[conn] = None
+        if not self.gate.admit(conn):
+            conn.close("refused at accept (allow, max_connections)", abort=True)
+            return
         if o.mode == "server":  # client mode: the supervisor says it
             self._lines.log(logging.INFO, conn.host, "connected",
                             "%s: robot %s connected (%d open)", self.name, conn.client,
-                            len(self._connections))
+                            len(self.gate))
         if o.keepalive and conn.transport is not None:
             sock = conn.transport.get_extra_info("socket")
             if sock is not None:
                 set_keepalive(sock, o.keepalive_idle_s, o.keepalive_interval_s, o.keepalive_count)
 
     def _forget(self, conn: RobotConnection) -> None:
-        self._connections.pop(conn, None)
+        held = self.gate.forget(conn)
         if self._job is not None and self._job.conn is conn:
             self._lines.log(logging.WARNING, conn.host, "lost",
                             "%s: %s gone while request %d runs (%s); its answer cannot be "
                             "delivered", self.name, conn.client, self._job.seq,
                             conn.close_reason)
-        elif self.options.mode == "server":
+        elif held and self.options.mode == "server":
             self._lines.log(logging.INFO, conn.host, "disconnected", "%s: %s",
                             self.name, conn.close_reason)
-
-    async def _close_idle(self) -> None:
-        idle_s = self.options.idle_timeout_s
-        while True:
-            await asyncio.sleep(min(1.0, idle_s / 4))
-            now = time.monotonic()
-            for conn in list(self._connections):
-                waiting = self._job is not None and self._job.conn is conn
-                if not waiting and now - conn.last_request > idle_s:
-                    self.fault(conn.host, "idle", logging.INFO,
-                               "%s: %s: no request for %.1f s (idle_timeout_s), closed",
-                               self.name, conn.client, now - conn.last_request)
-                    conn.close(f"no request for {idle_s:g} s (idle_timeout_s)")
 
     # -- client mode -------------------------------------------------------------------------
 

@@ -295,7 +295,7 @@ async def test_connections_are_bounded_and_the_waiting_one_is_kept(
         caplog: pytest.LogCaptureFixture) -> None:
     async with serving(max_connections=2) as (link, triggers):
         waiting = await Peer.dial(link.port)
-        await waiting.request(1)  # its job runs: it is evicted last although it is oldest
+        await waiting.request(1)  # its job runs: never evicted
         await until(lambda: triggers)
         idle = await Peer.dial(link.port)
         await until(lambda: link.health().peers == 2)
@@ -308,6 +308,58 @@ async def test_connections_are_bounded_and_the_waiting_one_is_kept(
         for p in (waiting, idle, newest):
             await p.close()
     no_tracebacks(caplog)
+
+
+async def test_a_flood_of_never_valid_newcomers_never_evicts_the_robot_that_talked(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 20, row 6: the idle robot was evicted by newcomers that never sent a request (the
+    longest idle went first). Now the flood evicts only itself; the robot's next LOCATE is
+    answered on the same connection, and the eviction lines are rate limited."""
+    async with serving(max_connections=4) as (link, triggers):
+        robot = await Peer.dial(link.port)
+        await robot.request(1, SocketCommand.CLEAR)
+        assert (await robot.answer()).kind == AnswerKind.RESULT
+        flood = [await Peer.dial(link.port) for _ in range(100)]
+        await until(lambda: link.faults["evicted"] >= 97)
+        assert link.health().peers <= 4
+        await robot.request(2)
+        await until(lambda: triggers)
+        await link.image_captured(2, 5)
+        assert (await robot.answer()).kind == AnswerKind.CAPTURED
+        assert await link.publish(2, ok(5)) is Status.OK
+        assert (await robot.answer()).status == Status.OK
+        for p in [robot, *flood]:
+            await p.close()
+        assert lines(caplog, " evicted for ") <= 2
+    no_tracebacks(caplog)
+
+
+async def test_allow_list_closes_other_addresses_at_accept(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """``allow = ["127.0.0.1"]``: a robot socket client from 127.0.0.2 is closed at accept,
+    with one log line for many; 127.0.0.1 is served. Today the option is refused."""
+    async with serving(allow=["127.0.0.1"]) as (link, triggers):
+        loop = asyncio.get_running_loop()
+        for _ in range(4):
+            sock = socket.socket()
+            sock.bind(("127.0.0.2", 0))
+            sock.setblocking(False)
+            await loop.sock_connect(sock, ("127.0.0.1", link.port))
+            other = Peer(*await asyncio.open_connection(sock=sock))
+            with contextlib.suppress(ConnectionError):
+                await other.request(1)
+            with contextlib.suppress(ConnectionError):
+                await other.closed_by_link()
+            await other.close()
+        assert not triggers
+        robot = await Peer.dial(link.port)
+        await robot.request(3)
+        await until(lambda: triggers)
+        assert link.faults["not_allowed"] == 4
+        assert lines(caplog, "not in allow") == 1
+        await robot.close()
+    with pytest.raises(ValueError, match="allow"):
+        RobotSocketOptions(allow=["127.0.0.1", "localhost"])
 
 
 async def test_an_answer_for_a_gone_robot_is_undelivered_and_the_link_serves_on(
