@@ -29,6 +29,11 @@ listed. Signing modes need the server certificate, generated self-signed into
 file or an environment variable at ``open``, never from the TOML; anonymous sessions only with
 ``allow_anonymous = true``.
 
+Connections go through the daemon's one connection manager (``vgripd.service.gate``) at accept:
+addresses outside ``allow`` are closed at once; beyond ``max_connections`` (which the daemon's
+file budget may lower) a newcomer evicts the oldest connection that has not activated a session,
+and is refused when every connection has one.
+
 Faults are the peer's, never the daemon's: a connection whose first bytes are not an OPC UA
 Hello is closed, as is one that opens no session within ``activation_timeout_s`` or stays
 silent beyond its session timeout (at most ``max_session_timeout_s``), or one whose messages
@@ -73,6 +78,7 @@ except ImportError as err:  # the registry turns this into the one-line DriverEr
     raise ImportError(f"{err}; the opcua link needs asyncua: pip install 'vgripd[opcua]'") from None
 
 from drivers.links.opcua_space import Space, ensure_certificate, result_values
+from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.registry import LinkCapabilities
@@ -86,6 +92,7 @@ from vgripd.service.protocol import (
     checked_warnings,
     pick_position,
 )
+from vgripd.service.gate import Gate
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.types import JobResult, Status
 
@@ -155,6 +162,7 @@ class OpcUaOptions(BaseModel):
     activation_timeout_s: float = Field(10.0, ge=0.1, le=600.0)
     max_session_timeout_s: float = Field(60.0, ge=1.0, le=3600.0)
     log_interval_s: float = Field(60.0, ge=0.1, le=3600.0)
+    allow: AllowList = None  # client addresses/networks accepted (unset: any)
 
     @field_validator("security")
     @classmethod
@@ -236,11 +244,16 @@ class _Protocol(OPCUAProtocol):
         self.first = b""
         self.reason = ""
         self.cert_checked = False
+        self.activated = False  # a session was activated on it: the gate never evicts it
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         peer = transport.get_extra_info("peername")
         if isinstance(peer, tuple) and len(peer) >= 2:
             self.host, self.client = str(peer[0]), f"{peer[0]}:{peer[1]}"
+        if not self.link.gate.admit(self):  # not allowed, or full of activated sessions
+            self.reason = "refused at accept"
+            transport.abort()
+            return
         super().connection_made(transport)
         if self.transport is None:  # refused: max_connections
             self.link.fault(self.host, "refused", logging.WARNING,
@@ -267,6 +280,9 @@ class _Protocol(OPCUAProtocol):
         except Exception as err:
             self.drop("protocol", f"message not understood ({type(err).__name__}: {err})")
             return False
+        if ok and not self.activated and self.session_timeout_s() is not None:
+            self.activated = True
+            self.link.gate.activity(self, valid=True)
         if ok and not self.cert_checked and self.processor is not None:
             # The secure channel's own client certificate, judged as soon as the channel is
             # open (not only the one a client chooses to repeat in CreateSession).
@@ -292,6 +308,13 @@ class _Protocol(OPCUAProtocol):
         timeout_s: float | None = session.session_timeout
         return timeout_s
 
+    def shut(self, reason: str) -> None:
+        """Closed by the gate (evicted; already logged)."""
+        if self.reason or self.transport is None:
+            return
+        self.reason = reason
+        self.transport.abort()
+
     def drop(self, kind: str, why: str) -> None:
         """Close the connection for a fault of the peer: one line, no traceback."""
         if self.reason or self.transport is None:
@@ -311,6 +334,14 @@ class _BinaryServer(BinaryServer):
         return _Protocol(self.link, iserver=self.iserver, policies=self._policies,
                          clients=self.clients, closing_tasks=self.closing_tasks,
                          limits=self.limits)
+
+    async def start(self) -> None:
+        """asyncua's ``start`` with the gate's accept backlog (counted in the file budget)."""
+        self._server = await asyncio.get_running_loop().create_server(
+            self._make_protocol, self.hostname, self.port, backlog=self.link.gate.backlog)
+        if self.port == 0 and len(self._server.sockets) == 1:
+            self.hostname, self.port = self._server.sockets[0].getsockname()[:2]
+        self.cleanup_task = asyncio.create_task(self._close_task_loop())
 
 
 class _Server(Server):
@@ -397,7 +428,6 @@ class OpcUaLink(RobotLink):
         self.server: _Server | None = None
         self.space: Space | None = None
         self._on_trigger: TriggerHandler | None = None
-        self._conns: dict[_Protocol, None] = {}
         self._job: _Job | None = None
         self._next_request = 0
         self._recipe = 0
@@ -410,6 +440,9 @@ class OpcUaLink(RobotLink):
         #: peer faults by kind (garbage, protocol, silent, login, refused)
         self.faults: Counter[str] = Counter()
         self.lines = RateLimitedLog(log, options.log_interval_s)
+        #: the connections (in order of arrival), their cap, eviction, allow
+        self.gate = Gate(name, options.max_connections, allow=options.allow, lines=self.lines,
+                         faults=self.faults)
         self._watch_task: asyncio.Task[None] | None = None
         self._where = f"{options.host}:{options.port}"
         self._health = LinkHealth(LinkState.STOPPED, peer=self._where)
@@ -462,7 +495,8 @@ class OpcUaLink(RobotLink):
                     await server.stop()
             except Exception as err:  # closing must go on; say why once
                 log.warning("%s: stopping the OPC UA server: %r", self.name, err)
-        self._conns.clear()
+        for conn in self.gate.connections():
+            self.gate.forget(conn)
         self._job = None
         self._listed = False
         self.space = None
@@ -473,7 +507,7 @@ class OpcUaLink(RobotLink):
         h = self._health
         return LinkHealth(h.state, peer=self._where, last_error=h.last_error,
                           reconnects=h.reconnects, since_mono_ns=h.since_mono_ns,
-                          peers=len(self._conns))
+                          peers=len(self.gate))
 
     @property
     def port(self) -> int:
@@ -659,18 +693,16 @@ class OpcUaLink(RobotLink):
         self.lines.log(level, client, kind, f"%s: {msg}", self.name, *args)
 
     def _admit(self, conn: _Protocol) -> None:
-        self._conns[conn] = None
         self.lines.info(conn.host, "connected", "%s: client %s connected (%d open)", self.name,
-                        conn.client, len(self._conns))
+                        conn.client, len(self.gate))
 
     def _forget(self, conn: _Protocol, ex: BaseException | None) -> None:
-        if conn not in self._conns:
-            return  # refused at max_connections, or the link is closed
-        del self._conns[conn]
+        if not self.gate.forget(conn):
+            return  # refused or evicted by the gate, or the link is closed
         if not conn.reason:
             why = f"{ex}" if ex is not None else "closed the connection"
             self.lines.info(conn.host, "disconnected", "%s: client %s %s (%d open)", self.name,
-                            conn.client, why, len(self._conns))
+                            conn.client, why, len(self.gate))
 
     async def _watch(self) -> None:
         """Close silent connections: no session within ``activation_timeout_s``, or no message
@@ -681,7 +713,7 @@ class OpcUaLink(RobotLink):
         while True:
             await asyncio.sleep(period)
             now = time.monotonic()
-            for conn in list(self._conns):
+            for conn in self.gate.connections():
                 timeout_s = conn.session_timeout_s()
                 if timeout_s is None:
                     if now - conn.last_data > o.activation_timeout_s and (
@@ -770,7 +802,9 @@ class OpcUaLink(RobotLink):
             tokens.append(ua.UserNameIdentityToken)
         server.set_identity_tokens(tokens)
         iserver = server.iserver
-        iserver.max_connections = o.max_connections
+        # The gate bounds connections before asyncua sees them; an evicted connection is
+        # still in asyncua's list until its close completes, so asyncua's own cap sits above.
+        iserver.max_connections = 2 * o.max_connections + 64
         iserver.max_pending_activation_seconds = 0  # the link's own watch says why it closes
         iserver.max_session_timeout_ms = o.max_session_timeout_s * 1000
         iserver.min_session_timeout_ms = min(iserver.min_session_timeout_ms,
