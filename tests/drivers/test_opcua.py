@@ -10,6 +10,7 @@ synthetic camera is tests/integration/test_daemon_opcua.py.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import socket
@@ -384,6 +385,57 @@ async def test_silent_peers_are_closed_once_each(
     assert len(lines(caplog, "session timeout 1.5 s")) == 1
     assert link.faults["silent"] == 2
     assert not [r for r in caplog.records if r.exc_info]
+
+
+async def test_a_flood_of_silent_connections_neither_evicts_a_session_nor_locks_out_a_client(
+        daemon: Daemon, caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 20: connections that never say Hello held every slot (asyncua refused newcomers at
+    max_connections) until activation_timeout_s. Through the gate they evict each other, the
+    oldest first; the client with an activated session is never evicted and a new client is
+    served at once."""
+    link = await open_link(daemon, options(max_connections=3, activation_timeout_s=60))
+    flood: list[asyncio.StreamWriter] = []
+    try:
+        async with OpcUaClientProcess(url(link)) as client:
+            assert (await client.send("job"))["Status"] == Status.OK
+            for _ in range(30):
+                _, writer = await asyncio.open_connection("127.0.0.1", link.port)
+                flood.append(writer)
+            await until(lambda: link.faults["evicted"] >= 28, "flood evicted")
+            assert link.health().peers <= 3
+            async with OpcUaClientProcess(url(link)) as newcomer:
+                assert (await newcomer.send("job"))["Status"] == Status.OK
+            assert (await client.send("job"))["Status"] == Status.OK  # never evicted
+    finally:
+        for writer in flood:
+            writer.close()
+        await link.close()
+    assert len(lines(caplog, " evicted for ")) <= 2
+    assert not [r for r in caplog.records if r.exc_info]
+
+
+async def test_allow_list_closes_other_addresses_at_accept(
+        daemon: Daemon, caplog: pytest.LogCaptureFixture) -> None:
+    link = await open_link(daemon, options(allow=["127.0.0.1"]))
+    loop = asyncio.get_running_loop()
+    try:
+        for _ in range(3):
+            sock = socket.socket()
+            sock.bind(("127.0.0.2", 0))
+            sock.setblocking(False)
+            await loop.sock_connect(sock, ("127.0.0.1", link.port))
+            reader, writer = await asyncio.open_connection(sock=sock)
+            with contextlib.suppress(ConnectionError):
+                writer.write(b"HEL" + bytes(29))
+                async with asyncio.timeout(WAIT_S):
+                    assert await reader.read() == b""
+            writer.close()
+        async with OpcUaClientProcess(url(link)) as client:
+            assert (await client.send("job"))["Status"] == Status.OK
+        assert link.faults["not_allowed"] == 3
+        assert len(lines(caplog, "not in allow")) == 1  # the count follows at the interval
+    finally:
+        await link.close()
 
 
 async def test_client_killed_mid_job_then_a_new_client_works(
