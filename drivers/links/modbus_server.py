@@ -67,6 +67,7 @@ from pymodbus.constants import ExcCodes
 
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
+from vgripd.service.gate import Gate
 from vgripd.service.protocol import (
     MAP_SIZE,
     REGISTER_CAPABILITIES,
@@ -82,7 +83,6 @@ from vgripd.service.protocol import (
     TriggerHandler,
     ValueCodec,
 )
-from vgripd.service.gate import Gate
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.types import JobResult, Status
 
@@ -364,9 +364,10 @@ class TcpOptions(RegisterOptions):
     Connections (docs/registers.md, "Connections"): ``allow`` (client addresses and networks;
     unset = any), ``max_connections`` (beyond it the oldest connection that never got a normal
     answer is evicted for a new one; if every one has, the new one is refused),
-    ``idle_timeout_s`` without a complete request closes a connection (0 = never), TCP keepalive (``keepalive_*``: probes after ``keepalive_idle_s``
-    of silence, every ``keepalive_interval_s``, ``keepalive_count`` unanswered ones end it), a
-    client with more than ``max_unsent_bytes`` of answers it has not read is dropped. Peer
+    ``idle_timeout_s`` without a complete request closes a connection (0 = never), TCP
+    keepalive (``keepalive_*``: probes after ``keepalive_idle_s`` of silence, every
+    ``keepalive_interval_s``, ``keepalive_count`` unanswered ones end it), a client with more
+    than ``max_unsent_bytes`` of answers it has not read is dropped. Peer
     faults are logged once per client and kind per ``log_interval_s``.
     """
 

@@ -82,6 +82,7 @@ from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.registry import LinkCapabilities
+from vgripd.service.gate import Gate
 from vgripd.service.protocol import (
     Command,
     LinkHealth,
@@ -92,7 +93,6 @@ from vgripd.service.protocol import (
     checked_warnings,
     pick_position,
 )
-from vgripd.service.gate import Gate
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.types import JobResult, Status
 
@@ -252,7 +252,7 @@ class _Protocol(OPCUAProtocol):
             self.host, self.client = str(peer[0]), f"{peer[0]}:{peer[1]}"
         if not self.link.gate.admit(self):  # not allowed, or full of activated sessions
             self.reason = "refused at accept"
-            transport.abort()
+            transport.close()  # nothing written yet: closes at once
             return
         super().connection_made(transport)
         if self.transport is None:  # refused: max_connections

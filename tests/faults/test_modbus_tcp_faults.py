@@ -332,7 +332,8 @@ async def test_flood_of_never_valid_newcomers_never_evicts_a_polling_plc() -> No
             stop.set()
             await poller
             assert polls >= 1
-            assert the_plc in link.connections() and not the_plc.closing
+            assert the_plc in link.connections()
+            assert not the_plc.closing
             assert link.peers() <= 4
     finally:
         for _, writer in flood:

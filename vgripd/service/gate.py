@@ -76,11 +76,15 @@ class Admission:
 class Slots:
     """Bookkeeping and eviction of one surface's connections; no I/O."""
 
-    def __init__(self, cap: int) -> None:
+    def __init__(self, cap: int, reclaim_idle: bool = False) -> None:
         if cap < 1:
             raise ValueError("cap must be >= 1")
         self.cap = cap
+        #: when no never-valid connection is left, evict the longest-idle one that is not busy
+        #: instead of refusing the newcomer (HTTP: a keep-alive connection between requests)
+        self.reclaim_idle = reclaim_idle
         self._slots: dict[Any, Slot] = {}  # in order of arrival
+        self._gone: dict[Any, bool] = {}  # the last admission's victims: were they valid
 
     def __len__(self) -> int:
         return len(self._slots)
@@ -96,18 +100,27 @@ class Slots:
 
     def admit(self, conn: Any, now: float) -> Admission:
         """A new connection. Beyond the cap the oldest never-valid connections go; if all
-        have been valid, the newcomer is refused."""
+        have been valid, the newcomer is refused (or, with ``reclaim_idle``, the longest-idle
+        connection without anything in flight goes)."""
         victims: list[Any] = []
+        self._gone.clear()
         while len(self._slots) - len(victims) >= self.cap:
-            pending = [c for c, s in self._slots.items() if not s.valid and not s.busy
-                       and c not in victims]
-            if not pending:
+            free = [c for c, s in self._slots.items() if not s.busy and c not in victims]
+            pending = [c for c in free if not self._slots[c].valid]
+            if pending:
+                victims.append(min(pending, key=lambda c: self._slots[c].opened))
+            elif self.reclaim_idle and free:
+                victims.append(min(free, key=lambda c: self._slots[c].last))
+            else:
                 return Admission(False)
-            victims.append(min(pending, key=lambda c: self._slots[c].opened))
         for victim in victims:
-            del self._slots[victim]
+            self._gone[victim] = self._slots.pop(victim).valid
         self._slots[conn] = Slot(opened=now, last=now)
         return Admission(True, victims)
+
+    def was_valid(self, victim: Any) -> bool:
+        """Whether an evicted connection had completed a valid request (for its log line)."""
+        return self._gone.pop(victim, False)
 
     def activity(self, conn: Any, now: float, valid: bool) -> None:
         """A complete request arrived (``valid``: one the surface answered as such)."""
@@ -176,9 +189,10 @@ class Gate:
                  idle_timeout_s: float = 0.0, pending_timeout_s: float = 0.0,
                  log_interval_s: float = 60.0, lines: RateLimitedLog | None = None,
                  faults: Counter[str] | None = None, logger: logging.Logger | None = None,
+                 reclaim_idle: bool = False,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.surface = surface
-        self.slots = Slots(cap)
+        self.slots = Slots(cap, reclaim_idle)
         self.networks = parse_allow(allow)
         self.idle_timeout_s = idle_timeout_s
         self.pending_timeout_s = pending_timeout_s
@@ -233,8 +247,10 @@ class Gate:
             return False
         for victim in decision.victims:
             self.fault(victim.host, "evicted", logging.WARNING,
-                       "%s: %s evicted for %s (max_connections = %d; it never completed a "
-                       "valid request)", self.surface, victim.client, conn.client, self.cap)
+                       "%s: %s evicted for %s (max_connections = %d; %s)", self.surface,
+                       victim.client, conn.client, self.cap,
+                       "idle between requests" if self.slots.was_valid(victim)
+                       else "it never completed a valid request")
             victim.shut(f"evicted for {conn.client} (max_connections = {self.cap})")
         return True
 

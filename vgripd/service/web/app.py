@@ -50,6 +50,7 @@ from aiohttp import web
 from vgripd.errors import VgripError
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.recorder import PARTIAL_PREFIX, dict_from_result
+from vgripd.service.web.guard import GuardedSite, make_guard
 from vgripd.service.web.images import ImageRenderer
 from vgripd.service.web.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from vgripd.service.web.metrics import Metrics
@@ -196,10 +197,13 @@ class WebServer:
         return self._port
 
     async def start(self) -> None:
+        # connections: the daemon's gate at accept, HTTP read timeouts (guard.py)
+        self.guard = make_guard(self.daemon)
+        self.app.middlewares.append(self.guard.middleware)
         runner = web.AppRunner(self.app, access_log=None, handle_signals=False,
                                shutdown_timeout=SHUTDOWN_TIMEOUT_S)
         await runner.setup()
-        site = web.TCPSite(runner, self.host, self._requested_port)
+        site = GuardedSite(runner, self.host, self._requested_port, self.guard)
         try:
             await site.start()
         except OSError as err:
@@ -210,9 +214,8 @@ class WebServer:
                 f"(set [status] port = another port or 0 for any free one, [status] host, or "
                 f"[status] enabled = false)") from None
         self._runner = runner
-        server = site._server  # the asyncio.Server: the only place the bound port is known
-        assert isinstance(server, asyncio.Server)
-        self._port = server.sockets[0].getsockname()[1]
+        self._port = site.port
+        self.guard.start()
         self._io = ThreadPoolExecutor(1, thread_name_prefix="vgripd-web-io")
         self.daemon.listeners.append(self._on_job)
         logging.getLogger().addHandler(self.logs)
@@ -229,6 +232,7 @@ class WebServer:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self.events.close()
         if self._runner is not None:
+            await self.guard.stop()
             await self._runner.cleanup()
             self._runner = None
         self.images.close()
