@@ -45,7 +45,7 @@ def _taken_port() -> Iterator[int]:
         yield s.getsockname()[1]
 
 
-def _config(tmp_path: Path, port: int, status_port: int) -> Path:
+def _config(tmp_path: Path, port: int, status_port: int, status_extra: str = "") -> Path:
     cfg = tmp_path / "vgripd.toml"
     cfg.write_text(f"""
 [camera]
@@ -61,6 +61,7 @@ port = {port}
 [status]
 host = "127.0.0.1"
 port = {status_port}
+{status_extra}
 
 [record]
 enabled = true
@@ -72,6 +73,10 @@ max_mb = 50
 
 def _limit_files() -> None:
     resource.setrlimit(resource.RLIMIT_NOFILE, (NOFILE, NOFILE))
+
+
+def _limit_files_1024() -> None:
+    resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 1024))
 
 
 def _cpu_s(pid: int) -> float:
@@ -208,3 +213,91 @@ def test_port_in_use_is_one_clear_line_and_exit_1(tmp_path: Path, taken: str) ->
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith(expected), proc.stderr
     assert [line for line in proc.stderr.splitlines() if line.startswith("vgripd: ")] == [last]
+
+
+async def _closed_by_server(reader: asyncio.StreamReader) -> bool:
+    try:
+        async with asyncio.timeout(WAIT_S):
+            while await reader.read(4096):
+                pass
+    except TimeoutError:
+        return False
+    except ConnectionError:
+        pass
+    return True
+
+
+async def test_web_flood_of_idle_and_slow_loris_connections_fails_no_plc_job(
+        tmp_path: Path) -> None:
+    """Issue 20, row 4: 1,000 idle and 1,000 slow-loris (partial header) connections to the web
+    view were all held (no header timeout, no cap); with the file limit at 1024 a Modbus job on
+    an already open PLC connection ended INTERNAL ("Too many open files: /dev/shm/...") and new
+    PLC connections were not served. Now the web view holds at most its share of the file
+    budget, closes partial headers after header_timeout_s, and the PLC side is untouched."""
+    port, status_port = _free_port(), _free_port()
+    cfg = _config(tmp_path, port, status_port, "header_timeout_s = 2.0")
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(tmp_path / "notify.sock"))
+    notify.setblocking(False)
+    log_path = tmp_path / "stderr.log"
+    flood: list[tuple[asyncio.StreamReader, asyncio.StreamWriter]] = []
+    with log_path.open("wb") as log_file:
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "vgripd", "run", "-c", str(cfg), cwd=REPO,
+            env={**ENV, "NOTIFY_SOCKET": str(tmp_path / "notify.sock")},
+            stdout=subprocess.DEVNULL, stderr=log_file, preexec_fn=_limit_files_1024)
+    plc = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+    try:
+        await _recv_until(notify, "READY=1")
+        assert await plc.connect()
+        assert not (await plc.read_holding_registers(0, count=MAP_SIZE)).isError()
+
+        async def web_connection(partial: bytes) -> None:
+            with contextlib.suppress(OSError, TimeoutError):
+                reader, writer = await asyncio.wait_for(
+                    asyncio.open_connection("127.0.0.1", status_port), 10)
+                flood.append((reader, writer))
+                if partial:
+                    writer.write(partial)
+
+        loris = b"GET /api/status HTTP/1.1\r\nHost: 127.0.0.1\r\nX-a: "
+        for batch in range(20):  # 1,000 idle and 1,000 slow-loris, 100 at a time
+            await asyncio.gather(*(web_connection(loris if batch % 2 else b"")
+                                   for _ in range(100)))
+        assert len(flood) > 1024, len(flood)
+
+        # a job on the PLC connection opened before the flood
+        r = await plc.write_registers(Reg.CMD, [Command.TRIGGER, 1, 0])
+        assert not r.isError(), r
+        async with asyncio.timeout(WAIT_S):
+            while True:
+                rr = await plc.read_holding_registers(0, count=MAP_SIZE)
+                assert not rr.isError(), rr
+                if rr.registers[Reg.ACK_SEQ] == 1:
+                    break
+                await asyncio.sleep(0.01)
+        assert rr.registers[Reg.STATUS] == Status.OK, rr.registers
+        words = await _job(port, 2)  # a new PLC connection is served
+        assert words[Reg.STATUS] == Status.OK, words
+        # every flood connection is closed by the server (cap at accept, header timeout)
+        closed = await asyncio.gather(*(_closed_by_server(reader) for reader, _ in flood))
+        assert all(closed), f"{closed.count(False)} flood connections still open"
+        status = await _get_status(status_port)
+        assert status["links"][0]["state"] == "up"  # type: ignore[index]
+        proc.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(WAIT_S):
+            await proc.wait()
+    finally:
+        plc.close()
+        for _, writer in flood:
+            writer.close()
+        notify.close()
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+    log = log_path.read_text()
+    assert proc.returncode == 0, log[-3000:]
+    assert "Traceback" not in log
+    assert "Too many open files" not in log
+    assert "file budget: limit 1024" in log
+    assert len(log) < 16_000, f"{len(log)} bytes of log:\n{log[:3000]}"

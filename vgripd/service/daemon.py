@@ -93,6 +93,7 @@ import numpy as np
 from vgripd.config import Config, unknown_recipe
 from vgripd.errors import CameraError, ConfigError, LinkError, NotCalibratedError
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
+from vgripd.service.gate import WEB_SURFACE, Budget, Gate, file_limit, open_files, plan_budget
 from vgripd.service.protocol import (
     Command,
     RobotLink,
@@ -389,6 +390,8 @@ class Daemon:
                                         d.recalibrate_min_jobs, config.vision.epipolar_warn_px)
 
         self._resource_log = RateLimitedLog(log, interval_s=10.0)
+        #: How RLIMIT_NOFILE is split between the server surfaces and the reserve (at start).
+        self.fd_budget: Budget | None = None
         self._job_seq = 0
         self._job: tuple[int, Trigger, asyncio.Task[None]] | None = None
         self._job_started_ns = 0
@@ -445,6 +448,7 @@ class Daemon:
             interval_s = watchdog_interval_s(self._env)
             if interval_s is not None:  # pinged during a long start-up too
                 self._spawn(self._watchdog(interval_s / 2))
+            self.fd_budget = self._plan_files()
             self._begin_opening()  # camera and links at once; the status endpoint meanwhile
             st = self.config.status
             if st.enabled:
@@ -457,6 +461,29 @@ class Daemon:
         self._set_run_state(RunState.RUNNING)
         self.notifier.ready(self.status_line())
         log.info("ready: %s", self.status_line())
+
+    def _plan_files(self) -> Budget:
+        """Split the file limit between the server surfaces (web view, each listening link)
+        and ``daemon.fd_reserve`` (docs/daemon.md, "File budget"); set each gate's cap and
+        log the split once."""
+        gates: dict[str, Gate] = {}
+        for name, link in self.links.items():
+            gate = getattr(link, "gate", None)
+            if isinstance(gate, Gate) and getattr(link.options, "mode", "server") == "server":
+                gates[name] = gate
+        wanted = [(name, gate.configured_cap) for name, gate in gates.items()]
+        if self.config.status.enabled:
+            wanted.insert(0, (WEB_SURFACE, self.config.status.max_connections))
+        budget = plan_budget(file_limit(), open_files(), self.config.daemon.fd_reserve, wanted)
+        for name, gate in gates.items():
+            gate.cap = budget.caps[name]
+        log.info("%s", budget.describe())
+        if budget.scaled:
+            log.warning("the configured max_connections do not fit the file limit %d: lowered "
+                        "to %s (raise LimitNOFILE= in the unit, or lower max_connections or "
+                        "daemon.fd_reserve)", budget.limit,
+                        ", ".join(f"{n} {c}" for n, c in budget.caps.items()))
+        return budget
 
     #: Errors of a server's accept() that mean "out of file descriptors or memory": asyncio
     #: pauses accepting for a second and tries again; nothing is broken in vgripd.

@@ -42,6 +42,8 @@ from vgripd.service.ratelog import RateLimitedLog
 log = logging.getLogger(__name__)
 
 Network = ipaddress.IPv4Network | ipaddress.IPv6Network
+#: The web view's name in the file budget (the links go by their names).
+WEB_SURFACE = "web view"
 
 
 class Guarded(Protocol):
@@ -344,8 +346,10 @@ def plan_budget(limit: int, in_use: int, reserve: int,
                 wanted: Iterable[tuple[str, int]]) -> Budget:
     """Split ``limit`` file descriptors: ``in_use`` and ``reserve`` first, then each surface
     its wanted cap plus its accept backlog. When they do not fit, every cap is scaled down in
-    proportion (at least 1 each; the backlogs shrink with them)."""
+    proportion (at least 1 each; the backlogs shrink with them). Under a small limit the
+    reserve takes at most half of what is free, so that the surfaces keep the other half."""
     wanted = list(wanted)
+    reserve = max(0, min(reserve, (limit - in_use) // 2))
     free = limit - in_use - reserve
     caps = {name: cap for name, cap in wanted}
     need = sum(c + backlog_for(c) for c in caps.values())

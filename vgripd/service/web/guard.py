@@ -24,7 +24,7 @@ from typing import Any
 
 from aiohttp import web
 
-from vgripd.service.gate import Gate
+from vgripd.service.gate import WEB_SURFACE, Gate
 
 log = logging.getLogger(__name__)
 
@@ -198,10 +198,6 @@ class GuardedSite(web.TCPSite):
             reuse_address=self._reuse_address, reuse_port=self._reuse_port)
         self._bound_port = (self._server.sockets[0].getsockname()[1] if self._server.sockets
                             else self._port)
-
-
-#: The web view's name in the daemon's file budget (``Daemon.fd_budget``).
-WEB_SURFACE = "web"
 
 
 def make_guard(daemon: Any) -> WebGuard:
