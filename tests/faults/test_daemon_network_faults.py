@@ -235,7 +235,7 @@ async def test_web_flood_of_idle_and_slow_loris_connections_fails_no_plc_job(
     PLC connections were not served. Now the web view holds at most its share of the file
     budget, closes partial headers after header_timeout_s, and the PLC side is untouched."""
     port, status_port = _free_port(), _free_port()
-    cfg = _config(tmp_path, port, status_port, "header_timeout_s = 2.0")
+    cfg = _config(tmp_path, port, status_port)  # the defaults: header_timeout_s = 10
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(tmp_path / "notify.sock"))
     notify.setblocking(False)
