@@ -186,6 +186,9 @@ async def test_idle_connection_flood_past_the_file_limit(tmp_path: Path) -> None
     assert len(log) < 16_000, f"{len(log)} bytes of log:\n{log[:3000]}"
     evictions = [line for line in log.splitlines() if " evicted for " in line]
     assert 1 <= len(evictions) <= 3, evictions  # rate limited, with the count
+    # the file budget: 256 files cannot hold the configured caps; they were lowered, once
+    assert log.count("file budget: limit 256") == 1
+    assert log.count("do not fit the file limit 256") == 1
 
 
 def _run(cfg: Path) -> subprocess.CompletedProcess[str]:
