@@ -46,6 +46,7 @@ import logging
 import os
 import socket
 import time
+import weakref
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -72,6 +73,13 @@ try:
 except ImportError as err:  # the registry turns this into the one-line DriverError
     raise ImportError(f"{err}; the opcua link needs asyncua: pip install 'vgripd[opcua]'") from None
 
+from drivers.links.opcua_guard import (
+    LoginThrottle,
+    RejectedStore,
+    SessionGuard,
+    allowed_channels,
+    mute_asyncua_refusals,
+)
 from drivers.links.opcua_space import Space, ensure_certificate, result_values
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import CONVENTIONS
@@ -155,6 +163,10 @@ class OpcUaOptions(BaseModel):
     activation_timeout_s: float = Field(10.0, ge=0.1, le=600.0)
     max_session_timeout_s: float = Field(60.0, ge=1.0, le=3600.0)
     log_interval_s: float = Field(60.0, ge=0.1, le=3600.0)
+    login_failures: int = Field(10, ge=1, le=1000)
+    login_rate_per_s: float = Field(10.0, gt=0.0, le=1000.0)
+    login_lockout_s: float = Field(60.0, ge=0.0, le=86400.0)
+    rejected_max_files: int = Field(64, ge=0, le=10000)
 
     @field_validator("security")
     @classmethod
@@ -202,10 +214,9 @@ class OpcUaOptions(BaseModel):
 
 class _Users(UserManager):
     """Password check (constant time) and, when allowed, anonymous sessions. A user that is
-    refused gets ``BadUserAccessDenied`` from asyncua; the link logs it once per interval."""
+    refused gets ``BadUserAccessDenied`` from asyncua; ``SessionGuard`` counts and logs it."""
 
-    def __init__(self, link: OpcUaLink, passwords: dict[str, bytes], anonymous: bool) -> None:
-        self.link = link
+    def __init__(self, passwords: dict[str, bytes], anonymous: bool) -> None:
         self.passwords = passwords
         self.anonymous = anonymous
 
@@ -217,8 +228,6 @@ class _Users(UserManager):
         given = (password or "").encode() if isinstance(password, str) else (password or b"")
         if expected is not None and hmac.compare_digest(expected, given):
             return User(role=UserRole.User, name=username)
-        self.link.fault("login", "login", logging.WARNING,
-                        "login of user %r refused (unknown user or wrong password)", username)
         return None
 
 
@@ -247,6 +256,9 @@ class _Protocol(OPCUAProtocol):
                             "%s refused: %d connections open (max_connections)", self.client,
                             self.link.options.max_connections)
             return
+        self.processor = SessionGuard(self.link, self.host, self.client, self.iserver,
+                                      self.transport, self.limits)
+        self.processor.set_policies(self.policies)
         self.link._admit(self)
 
     def data_received(self, data: bytes) -> None:
@@ -407,8 +419,21 @@ class OpcUaLink(RobotLink):
         self._recipes: dict[int, str] | None = None
         self._warnings = 0
         self._refusals: Counter[str] = Counter()
-        #: peer faults by kind (garbage, protocol, silent, login, refused)
+        #: peer faults by kind (garbage, protocol, silent, login, lockout, locked, insecure,
+        #: session, untrusted, refused)
         self.faults: Counter[str] = Counter()
+        self.throttle = LoginThrottle(options.login_failures, options.login_rate_per_s,
+                                      options.login_lockout_s)
+        #: (SecurityPolicyUri, MessageSecurityMode) a session may be activated on
+        self.channels = allowed_channels([SECURITY_MODES[m] for m in options.security])
+        #: a password can travel encrypted (a signed mode is configured: the server has a key)
+        self.can_encrypt = any(m != "None" for m in options.security)
+        #: the client certificate each session was created with (SessionGuard)
+        self.session_certs: weakref.WeakKeyDictionary[Any, bytes | None] = \
+            weakref.WeakKeyDictionary()
+        self.rejected = RejectedStore(
+            (options.certificate_dir or Path(".")) / "rejected", options.rejected_max_files
+            if options.certificate_dir is not None else 0)
         self.lines = RateLimitedLog(log, options.log_interval_s)
         self._watch_task: asyncio.Task[None] | None = None
         self._where = f"{options.host}:{options.port}"
@@ -425,6 +450,7 @@ class OpcUaLink(RobotLink):
         self._on_trigger = on_trigger
         self._health_changed = asyncio.Condition()
         route_asyncua_logs()
+        mute_asyncua_refusals()
         o = self.options
         try:
             passwords = self._passwords()
@@ -626,16 +652,8 @@ class OpcUaLink(RobotLink):
             return ""
         else:
             why = "not in trusted_clients_dir"
-        kept = ""
-        if self.options.certificate_dir is not None:
-            folder = self.options.certificate_dir / "rejected"
-            try:
-                folder.mkdir(parents=True, exist_ok=True)
-                path = folder / f"{cert.fingerprint(hashes.SHA256()).hex()[:16]}.der"
-                path.write_bytes(der)
-                kept = f"; kept as {path}"
-            except OSError:
-                pass
+        path = self.rejected.keep(der, cert.fingerprint(hashes.SHA256()).hex()[:16])
+        kept = f"; kept as {path}" if path is not None else ""
         return f"client certificate CN={name} refused: {why}{kept}"
 
     def _space(self) -> Space:
@@ -721,7 +739,7 @@ class OpcUaLink(RobotLink):
 
     async def _make_server(self, passwords: dict[str, bytes]) -> _Server:
         o = self.options
-        server = _Server(self, _Users(self, passwords, o.allow_anonymous))
+        server = _Server(self, _Users(passwords, o.allow_anonymous))
         await server.init()
         bind = None if o.host in WILDCARD_HOSTS else o.host
         server.set_endpoint(f"opc.tcp://{o.host or '0.0.0.0'}:{o.port}{o.path}")
