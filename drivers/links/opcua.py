@@ -495,6 +495,25 @@ class OpcUaLink(RobotLink):
         self.lines.flush(force=True)
         await self._set_health(LinkState.STOPPED)
 
+    @staticmethod
+    def exposure(options: OpcUaOptions) -> list[tuple[str, str, str]]:
+        """``vgripd check``'s warnings about what these options open to the cell network:
+        ``(level, field, message)``."""
+        found = []
+        if "None" in options.security:
+            who = ", ".join([f"user {u.name}" for u in options.users]
+                            + (["anonymous"] if options.allow_anonymous else []))
+            found.append(("WARNING", "security", "\"None\" is listed: any client on the "
+                          "network opens a session without a certificate, unsigned and "
+                          f"unencrypted, as {who}"
+                          + (" (passwords travel in clear)" if options.users and
+                             options.security == ["None"] else "")))
+        elif options.allow_anonymous and options.trusted_clients_dir is None:
+            found.append(("WARNING", "allow_anonymous", "anonymous sessions without "
+                          "trusted_clients_dir: any client with a certificate it made itself "
+                          "opens a session"))
+        return found
+
     def health(self) -> LinkHealth:
         h = self._health
         return LinkHealth(h.state, peer=self._where, last_error=h.last_error,

@@ -48,6 +48,12 @@ REFUSED = frozenset(ua.NodeId(ua.Int32(i)) for i in (
     ua.ObjectIds.RegisterServerRequest_Encoding_DefaultBinary,
     ua.ObjectIds.RegisterServer2Request_Encoding_DefaultBinary,
 ))
+#: Requests asyncua serves without an activated session.
+SESSIONLESS = DISCOVERY | REFUSED | frozenset(ua.NodeId(ua.Int32(i)) for i in (
+    ua.ObjectIds.CreateSessionRequest_Encoding_DefaultBinary,
+    ua.ObjectIds.ActivateSessionRequest_Encoding_DefaultBinary,
+    ua.ObjectIds.CloseSessionRequest_Encoding_DefaultBinary,
+))
 CREATE_SESSION = ua.NodeId(ua.Int32(ua.ObjectIds.CreateSessionRequest_Encoding_DefaultBinary))
 ACTIVATE_SESSION = ua.NodeId(
     ua.Int32(ua.ObjectIds.ActivateSessionRequest_Encoding_DefaultBinary))
@@ -94,6 +100,13 @@ def allowed_channels(policy_types: list[ua.SecurityPolicyType]) -> frozenset[tup
         assert isinstance(mode, ua.MessageSecurityMode)
         found.add((str(getattr(policy, "URI", "")), int(mode)))
     return frozenset(found)
+
+
+def _request_name(typeid: ua.NodeId) -> str:
+    """``CreateSession`` for the CreateSessionRequest's encoding id."""
+    ident = typeid.Identifier
+    name = ua.ObjectIdNames.get(ident, str(ident)) if isinstance(ident, int) else str(ident)
+    return str(name).removesuffix("Request_Encoding_DefaultBinary")
 
 
 def status_name(code: int) -> str:
@@ -270,21 +283,28 @@ class SessionGuard(UaProcessor):
             return False
         if typeid == ACTIVATE_SESSION:
             return await self._activate(typeid, requesthdr, seqhdr, body)
+        if typeid not in SESSIONLESS and (self.session is None
+                                          or not self.session.is_activated()):
+            code = (ua.StatusCodes.BadSessionIdInvalid if self.session is None
+                    else ua.StatusCodes.BadSessionNotActivated)
+            self.link.fault(self.host, "session", logging.WARNING, "%s: %s refused (%s)",
+                            self.client, _request_name(typeid), status_name(code))
+            self._fault(requesthdr, seqhdr, code)
+            return True
+        token = _QUIET.set(typeid == CREATE_SESSION)
+        try:
+            ok = await super()._process_message(typeid, requesthdr, seqhdr, body)
+        except (ServiceError, ua.UaStatusCodeError) as err:
+            # a client's mistake: our one line (per client and interval), not asyncua's ERROR
+            self.link.fault(self.host, "service", logging.WARNING, "%s: %s refused (%s)",
+                            self.client, _request_name(typeid), status_name(err.code))
+            self._fault(requesthdr, seqhdr, err.code)
+            return True
+        finally:
+            _QUIET.reset(token)
         if typeid == CREATE_SESSION:
-            token = _QUIET.set(True)
-            try:
-                ok = await super()._process_message(typeid, requesthdr, seqhdr, body)
-                self.remember_certificate()
-                return ok
-            except (ServiceError, ua.UaStatusCodeError) as err:
-                self.link.fault(self.host, "session", logging.WARNING,
-                                "%s: CreateSession refused (%s)", self.client,
-                                status_name(err.code))
-                self._fault(requesthdr, seqhdr, err.code)
-                return True
-            finally:
-                _QUIET.reset(token)
-        return await super()._process_message(typeid, requesthdr, seqhdr, body)
+            self.remember_certificate()
+        return ok
 
     async def _activate(self, typeid: Any, requesthdr: Any, seqhdr: Any, body: Any) -> bool:
         throttle = self.link.throttle

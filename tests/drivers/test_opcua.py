@@ -820,3 +820,30 @@ async def test_timestamp_before_the_first_result_reads_in_one_read(
     assert stamp.Value.Value == datetime.datetime(1601, 1, 1, tzinfo=datetime.UTC)
     assert (status.Value.Value, rid.Value.Value) == (int(Status.IDLE), 0)
     assert not library_errors(caplog)
+
+
+def test_check_warns_about_security_none_and_open_anonymous_sessions(tmp_path: Path) -> None:
+    from vgripd.config import config_from_dict
+    from vgripd.service.commissioning import check_link_exposure
+
+    def found(**link: Any) -> list[str]:
+        config = config_from_dict({
+            "camera": {"type": "synthetic"}, "status": {"enabled": False},
+            "links": [{"type": "opcua", "host": "127.0.0.1", "port": 0, **link}]})
+        return [f"{f.level} {f.key}: {f.message}" for f in check_link_exposure(config)]
+
+    user = [{"name": "plc", "password_env": "X"}]
+    none = found(security=["None"], users=user)
+    assert len(none) == 1
+    assert none[0].startswith('WARNING links[0].security: "None" is listed')
+    assert "as user plc (passwords travel in clear)" in none[0]
+    pki = str(tmp_path / "pki")
+    both = found(security=["None", "Basic256Sha256_SignAndEncrypt"], certificate_dir=pki,
+                 users=user, allow_anonymous=True)
+    assert both == ['WARNING links[0].security: "None" is listed: any client on the network '
+                    'opens a session without a certificate, unsigned and unencrypted, as user '
+                    'plc, anonymous']
+    assert "allow_anonymous" in found(certificate_dir=pki, allow_anonymous=True)[0]
+    assert found(certificate_dir=pki, users=user) == []
+    trusted = found(certificate_dir=pki, allow_anonymous=True, trusted_clients_dir=pki)
+    assert trusted == []

@@ -12,6 +12,7 @@ asyncua's ``UaStatusCodeError`` subclass for its status (``BadUserAccessDenied``
 
 from __future__ import annotations
 
+import logging
 from types import TracebackType
 from typing import Any
 
@@ -55,6 +56,8 @@ class RawOpcUa:
         self.host = host
         self.port = port
         self.url = f"opc.tcp://{host}:{port}{path}"
+        # each refusal is the point of a probe, not a warning of the prober's
+        logging.getLogger("asyncua.client.ua_client.UASocketProtocol").setLevel(logging.ERROR)
         self.client = UaClient(timeout=timeout_s)
         if policy is not None:
             self.client.set_security(policy)
