@@ -560,7 +560,8 @@ async def run_tool(*argv: str) -> str:
     return out.decode()
 
 
-async def test_uals_and_uaread_browse_and_read_the_result(link: OpcUaLink) -> None:
+async def test_uals_and_uaread_browse_and_read_the_result(link: OpcUaLink,
+                                                        daemon: Daemon) -> None:
     uals, uaread = tool("uals"), tool("uaread")
     async with OpcUaClientProcess(url(link)) as client:
         r = await client.send("job")
@@ -579,6 +580,10 @@ async def test_uals_and_uaread_browse_and_read_the_result(link: OpcUaLink) -> No
     assert status.strip() == "1"
     assert [float(v) for v in values.strip().strip("[]").split(",")] == list(POSE)
     assert int(rid.strip()) == r["request_id"]
+    # docs/opcua.md's uacall line (asyncua 2.1: -m takes the method's browse name)
+    await run_tool(tool("uacall"), "-u", url(link), "-n", "ns=2;s=VisionSystem",
+                   "-m", "2:StartSingleJob")
+    await until(lambda: len(daemon.triggers) == 2, "the second job")
 
 
 async def test_client_trust_list_refuses_unknown_certificates_and_keeps_them(
@@ -768,6 +773,35 @@ async def test_raw_right_password_after_a_few_guesses_is_let_in(
             assert await refused(raw.activate("robot", "s3cret")) == "BadIdentityTokenRejected"
         assert link.faults["login"] == 3
         assert link.faults["lockout"] == 0
+    finally:
+        await link.close()
+    assert not library_errors(caplog)
+
+
+async def test_raw_session_is_not_taken_over_from_another_certificate(
+        daemon: Daemon, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A session activated by one client certificate cannot be activated on another client's
+    channel, even by one that knows its AuthenticationToken and nonce; its owner goes on."""
+    from asyncua import ua
+
+    opts = options(security=["Basic256Sha256_SignAndEncrypt"], allow_anonymous=True,
+                   certificate_dir=str(tmp_path / "pki"))
+    link = await open_link(daemon, opts)
+    try:
+        assert link.certificate is not None
+        server_cert = link.certificate.read_bytes()
+        mode = ua.MessageSecurityMode.SignAndEncrypt
+        owner_policy, thief_policy = [await asyncio.to_thread(client_policy, server_cert, mode)
+                                      for _ in range(2)]
+        async with RawOpcUa("127.0.0.1", link.port, policy=owner_policy) as owner:
+            await owner.create_session()
+            await owner.activate()
+            async with RawOpcUa("127.0.0.1", link.port, policy=thief_policy) as thief:
+                thief.adopt(owner)
+                assert await refused(thief.activate()) == "BadSecurityChecksFailed"
+                assert await refused(thief.read(f"{RESULT}.Status")) == "BadSessionIdInvalid"
+            (value,) = await owner.read(f"{RESULT}.Status")
+            assert value.StatusCode.is_good()
     finally:
         await link.close()
     assert not library_errors(caplog)

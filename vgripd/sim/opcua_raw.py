@@ -107,6 +107,13 @@ class RawOpcUa:
         self.nonce = self.session.ServerNonce
         return self.session
 
+    def adopt(self, other: RawOpcUa) -> None:
+        """Use ``other``'s session (its AuthenticationToken and nonce) on this connection, as a
+        client taking a session over to a new channel does, or one that stole the token."""
+        assert other.session is not None
+        self.session, self.nonce = other.session, other.nonce
+        self.client.session.restore_authentication_token(other.session.AuthenticationToken)
+
     async def activate(self, user: str | None = None, password: str = "") -> None:
         """ActivateSession with an anonymous token, or a UserName token with the password in
         clear (no EncryptionAlgorithm), whatever the server's endpoints ask for. On a signed
