@@ -27,7 +27,10 @@ Security (``security``): endpoints exist only for the listed modes; ``"None"`` o
 listed. Signing modes need the server certificate, generated self-signed into
 ``certificate_dir`` at the first start. Users (``users``) log in with a password read from a
 file or an environment variable at ``open``, never from the TOML; anonymous sessions only with
-``allow_anonymous = true``.
+``allow_anonymous = true``. A session is created and activated only on a secure channel whose
+policy and mode are listed (a SecurityPolicy None channel serves endpoint discovery only unless
+``"None"`` is listed); failed logins are slowed and locked out per client address; refused
+client certificates are kept, bounded, in ``certificate_dir/rejected`` (``opcua_guard``).
 
 Faults are the peer's, never the daemon's: a connection whose first bytes are not an OPC UA
 Hello is closed, as is one that opens no session within ``activation_timeout_s`` or stays
@@ -653,7 +656,8 @@ class OpcUaLink(RobotLink):
     def _untrusted(self, der: bytes) -> str:
         """Why the client certificate ``der`` is refused ("" when it is trusted, or when no
         trust list is configured). A refused certificate is kept in
-        ``certificate_dir/rejected`` for the integrator to move into the trust list."""
+        ``certificate_dir/rejected`` (``RejectedStore``: bounded, one file per thumbprint) for
+        the integrator to move into the trust list."""
         if self._trust is None:
             return ""
         from cryptography import x509
