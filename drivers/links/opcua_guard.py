@@ -5,10 +5,13 @@ refused client certificates are kept (docs/opcua.md, "Security").
   secure channel whose SecurityPolicy and MessageSecurityMode are not configured (asyncua opens
   a SecurityPolicy None channel whatever the server offers, for GetEndpoints) only endpoint
   discovery is served; anything else, CreateSession and ActivateSession included, is answered
-  ``BadSecurityPolicyRejected`` and the connection closed. A password sent in clear on a channel
-  that does not encrypt is refused ``BadIdentityTokenRejected`` when the server could have had
-  it encrypted. RegisterServer(2) is refused (vgripd is no discovery server). A refused
-  ActivateSession is answered without asyncua's ERROR lines: one rate-limited WARNING of ours.
+  ``BadSecurityPolicyRejected`` and the connection closed. A password sent in clear on a
+  channel that does not encrypt is refused ``BadIdentityTokenRejected`` when the server could
+  have had it encrypted. A session moves to another connection only with its client
+  certificate. A connection holds one session: a second CreateSession closes the first
+  (asyncua would keep both, and a watchdog task for each). RegisterServer(2) is refused (vgripd
+  is no discovery server). A refused session request is answered without asyncua's ERROR
+  lines: one rate-limited WARNING of ours.
 - ``LoginThrottle`` (no I/O, the clock passed in) slows failed logins per client address and
   locks an address out after ``login_failures`` failures in a row.
 - ``RejectedStore`` keeps refused client certificates, one file per thumbprint, the oldest
@@ -291,6 +294,8 @@ class SessionGuard(UaProcessor):
                             self.client, _request_name(typeid), status_name(code))
             self._fault(requesthdr, seqhdr, code)
             return True
+        if typeid == CREATE_SESSION and self.session is not None:
+            await self._drop_session()
         token = _QUIET.set(typeid == CREATE_SESSION)
         try:
             ok = await super()._process_message(typeid, requesthdr, seqhdr, body)
@@ -364,6 +369,19 @@ class SessionGuard(UaProcessor):
         if isinstance(token, ua.X509IdentityToken):
             return "certificate", 0, ""
         return "anonymous", 0, ""
+
+    async def _drop_session(self) -> None:
+        """A second CreateSession on this connection: asyncua keeps one session per
+        connection and would leave the previous one registered and its watchdog task running
+        (one more of each per request, without bound); close them first."""
+        task, self._session_watchdog_task = self._session_watchdog_task, None
+        if task is not None and not task.done():
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        session, self.session = self.session, None
+        if session is not None:
+            self.link.session_certs.pop(session, None)
+            await session.close_session(True)
 
     def remember_certificate(self) -> None:
         """After CreateSession: the session belongs to this channel's client certificate."""

@@ -807,6 +807,26 @@ async def test_raw_session_is_not_taken_over_from_another_certificate(
     assert not library_errors(caplog)
 
 
+async def test_raw_create_session_flood_on_one_connection_holds_one_session(
+        link: OpcUaLink) -> None:
+    """300 CreateSession requests on one connection: asyncua alone kept 300 sessions and 300
+    watchdog tasks; the link closes the previous session, so one of each is left."""
+    assert link.server is not None
+
+    def watchdogs() -> int:
+        return sum(1 for t in asyncio.all_tasks()
+                   if getattr(t.get_coro(), "__name__", "") == "_session_watchdog_loop")
+
+    async with RawOpcUa("127.0.0.1", link.port) as raw:
+        for _ in range(300):
+            await raw.create_session()
+        await raw.activate()
+        (value,) = await raw.read(f"{RESULT}.Status")
+        assert value.StatusCode.is_good()
+        assert len(link.server.iserver._external_sessions) == 1
+        assert watchdogs() == 1
+
+
 async def test_rejected_certificates_are_capped_and_deduplicated(
         daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 20 row 14: 70 distinct self-signed client certificates against a trust list, then
