@@ -778,6 +778,30 @@ async def test_raw_right_password_after_a_few_guesses_is_let_in(
     assert not library_errors(caplog)
 
 
+async def test_raw_clear_password_on_a_listed_none_channel_is_refused(
+        daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """``"None"`` listed beside an encrypting mode: a None channel carries sessions, but a
+    password in clear on it is refused even when right (the endpoint asks for it encrypted
+    with the server certificate); the None channel's own session works when the config says
+    so (anonymous here)."""
+    monkeypatch.setenv("VGRIPD_TEST_OPCUA_PW", "s3cret")
+    opts = secure_options(tmp_path, security=["None", "Basic256Sha256_SignAndEncrypt"],
+                          allow_anonymous=True)
+    link = await open_link(daemon, opts)
+    try:
+        async with RawOpcUa("127.0.0.1", link.port) as raw:
+            await raw.create_session()
+            assert await refused(raw.activate("robot", "s3cret")) == "BadIdentityTokenRejected"
+            assert await refused(raw.activate()) == ""
+            (value,) = await raw.read(f"{RESULT}.Status")
+            assert value.StatusCode.is_good()
+        assert link.faults["login"] == 1
+    finally:
+        await link.close()
+    assert not library_errors(caplog)
+
+
 async def test_raw_session_is_not_taken_over_from_another_certificate(
         daemon: Daemon, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A session activated by one client certificate cannot be activated on another client's
