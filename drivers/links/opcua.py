@@ -27,7 +27,10 @@ Security (``security``): endpoints exist only for the listed modes; ``"None"`` o
 listed. Signing modes need the server certificate, generated self-signed into
 ``certificate_dir`` at the first start. Users (``users``) log in with a password read from a
 file or an environment variable at ``open``, never from the TOML; anonymous sessions only with
-``allow_anonymous = true``.
+``allow_anonymous = true``. A session is created and activated only on a secure channel whose
+policy and mode are listed (a SecurityPolicy None channel serves endpoint discovery only unless
+``"None"`` is listed); failed logins are slowed and locked out per client address; refused
+client certificates are kept, bounded, in ``certificate_dir/rejected`` (``opcua_guard``).
 
 Connections go through the daemon's one connection manager (``vgripd.service.gate``) at accept:
 addresses outside ``allow`` are closed at once; beyond ``max_connections`` (which the daemon's
@@ -51,6 +54,7 @@ import logging
 import os
 import socket
 import time
+import weakref
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -77,6 +81,13 @@ try:
 except ImportError as err:  # the registry turns this into the one-line DriverError
     raise ImportError(f"{err}; the opcua link needs asyncua: pip install 'vgripd[opcua]'") from None
 
+from drivers.links.opcua_guard import (
+    LoginThrottle,
+    RejectedStore,
+    SessionGuard,
+    allowed_channels,
+    mute_asyncua_refusals,
+)
 from drivers.links.opcua_space import Space, ensure_certificate, result_values
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
@@ -163,6 +174,10 @@ class OpcUaOptions(BaseModel):
     max_session_timeout_s: float = Field(60.0, ge=1.0, le=3600.0)
     log_interval_s: float = Field(60.0, ge=0.1, le=3600.0)
     allow: AllowList = None  # client addresses/networks accepted (unset: any)
+    login_failures: int = Field(10, ge=1, le=1000)
+    login_rate_per_s: float = Field(10.0, gt=0.0, le=1000.0)
+    login_lockout_s: float = Field(60.0, ge=0.0, le=86400.0)
+    rejected_max_files: int = Field(64, ge=0, le=10000)
 
     @field_validator("security")
     @classmethod
@@ -210,10 +225,9 @@ class OpcUaOptions(BaseModel):
 
 class _Users(UserManager):
     """Password check (constant time) and, when allowed, anonymous sessions. A user that is
-    refused gets ``BadUserAccessDenied`` from asyncua; the link logs it once per interval."""
+    refused gets ``BadUserAccessDenied`` from asyncua; ``SessionGuard`` counts and logs it."""
 
-    def __init__(self, link: OpcUaLink, passwords: dict[str, bytes], anonymous: bool) -> None:
-        self.link = link
+    def __init__(self, passwords: dict[str, bytes], anonymous: bool) -> None:
         self.passwords = passwords
         self.anonymous = anonymous
 
@@ -225,8 +239,6 @@ class _Users(UserManager):
         given = (password or "").encode() if isinstance(password, str) else (password or b"")
         if expected is not None and hmac.compare_digest(expected, given):
             return User(role=UserRole.User, name=username)
-        self.link.fault("login", "login", logging.WARNING,
-                        "login of user %r refused (unknown user or wrong password)", username)
         return None
 
 
@@ -260,6 +272,9 @@ class _Protocol(OPCUAProtocol):
                             "%s refused: %d connections open (max_connections)", self.client,
                             self.link.options.max_connections)
             return
+        self.processor = SessionGuard(self.link, self.host, self.client, self.iserver,
+                                      self.transport, self.limits)
+        self.processor.set_policies(self.policies)
         self.link._admit(self)
 
     def data_received(self, data: bytes) -> None:
@@ -437,8 +452,21 @@ class OpcUaLink(RobotLink):
         self._recipes: dict[int, str] | None = None
         self._warnings = 0
         self._refusals: Counter[str] = Counter()
-        #: peer faults by kind (garbage, protocol, silent, login, refused)
+        #: peer faults by kind (garbage, protocol, silent, login, lockout, locked, insecure,
+        #: session, untrusted, refused)
         self.faults: Counter[str] = Counter()
+        self.throttle = LoginThrottle(options.login_failures, options.login_rate_per_s,
+                                      options.login_lockout_s)
+        #: (SecurityPolicyUri, MessageSecurityMode) a session may be activated on
+        self.channels = allowed_channels([SECURITY_MODES[m] for m in options.security])
+        #: a password can travel encrypted (a signed mode is configured: the server has a key)
+        self.can_encrypt = any(m != "None" for m in options.security)
+        #: the client certificate each session was created with (SessionGuard)
+        self.session_certs: weakref.WeakKeyDictionary[Any, bytes | None] = \
+            weakref.WeakKeyDictionary()
+        self.rejected = RejectedStore(
+            (options.certificate_dir or Path(".")) / "rejected", options.rejected_max_files
+            if options.certificate_dir is not None else 0)
         self.lines = RateLimitedLog(log, options.log_interval_s)
         #: the connections (in order of arrival), their cap, eviction, allow
         self.gate = Gate(name, options.max_connections, allow=options.allow, lines=self.lines,
@@ -458,6 +486,7 @@ class OpcUaLink(RobotLink):
         self._on_trigger = on_trigger
         self._health_changed = asyncio.Condition()
         route_asyncua_logs()
+        mute_asyncua_refusals()
         o = self.options
         try:
             passwords = self._passwords()
@@ -502,6 +531,25 @@ class OpcUaLink(RobotLink):
         self.space = None
         self.lines.flush(force=True)
         await self._set_health(LinkState.STOPPED)
+
+    @staticmethod
+    def exposure(options: OpcUaOptions) -> list[tuple[str, str, str]]:
+        """``vgripd check``'s warnings about what these options open to the cell network:
+        ``(level, field, message)``."""
+        found = []
+        if "None" in options.security:
+            who = ", ".join([f"user {u.name}" for u in options.users]
+                            + (["anonymous"] if options.allow_anonymous else []))
+            found.append(("WARNING", "security", "\"None\" is listed: any client on the "
+                          "network opens a session without a certificate, unsigned and "
+                          f"unencrypted, as {who}"
+                          + (" (passwords travel in clear)" if options.users and
+                             options.security == ["None"] else "")))
+        elif options.allow_anonymous and options.trusted_clients_dir is None:
+            found.append(("WARNING", "allow_anonymous", "anonymous sessions without "
+                          "trusted_clients_dir: any client with a certificate it made itself "
+                          "opens a session"))
+        return found
 
     def health(self) -> LinkHealth:
         h = self._health
@@ -642,7 +690,8 @@ class OpcUaLink(RobotLink):
     def _untrusted(self, der: bytes) -> str:
         """Why the client certificate ``der`` is refused ("" when it is trusted, or when no
         trust list is configured). A refused certificate is kept in
-        ``certificate_dir/rejected`` for the integrator to move into the trust list."""
+        ``certificate_dir/rejected`` (``RejectedStore``: bounded, one file per thumbprint) for
+        the integrator to move into the trust list."""
         if self._trust is None:
             return ""
         from cryptography import x509
@@ -660,16 +709,8 @@ class OpcUaLink(RobotLink):
             return ""
         else:
             why = "not in trusted_clients_dir"
-        kept = ""
-        if self.options.certificate_dir is not None:
-            folder = self.options.certificate_dir / "rejected"
-            try:
-                folder.mkdir(parents=True, exist_ok=True)
-                path = folder / f"{cert.fingerprint(hashes.SHA256()).hex()[:16]}.der"
-                path.write_bytes(der)
-                kept = f"; kept as {path}"
-            except OSError:
-                pass
+        path = self.rejected.keep(der, cert.fingerprint(hashes.SHA256()).hex()[:16])
+        kept = f"; kept as {path}" if path is not None else ""
         return f"client certificate CN={name} refused: {why}{kept}"
 
     def _space(self) -> Space:
@@ -753,7 +794,7 @@ class OpcUaLink(RobotLink):
 
     async def _make_server(self, passwords: dict[str, bytes]) -> _Server:
         o = self.options
-        server = _Server(self, _Users(self, passwords, o.allow_anonymous))
+        server = _Server(self, _Users(passwords, o.allow_anonymous))
         await server.init()
         bind = None if o.host in WILDCARD_HOSTS else o.host
         server.set_endpoint(f"opc.tcp://{o.host or '0.0.0.0'}:{o.port}{o.path}")

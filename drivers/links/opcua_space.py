@@ -122,7 +122,9 @@ RESULT_DATA: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
     ("FitRmsMm", ua.VariantType.Double, -1.0, "fit residual, mm (-1: unknown)"),
     ("ResidualNames", ua.VariantType.String, [], "names of Residuals"),
     ("Residuals", ua.VariantType.Double, [], "residual figures (px or mm by name)"),
-    ("Timestamp", ua.VariantType.DateTime, None, "when the result was produced (UTC)"),
+    ("Timestamp", ua.VariantType.DateTime, ua.uatypes.FILETIME_EPOCH_AS_UTC_DATETIME,
+     "when the result was produced (UTC); the null DateTime (1601-01-01, 0 on the wire) "
+     "before the first result"),
     ("Count", ua.VariantType.UInt16, 0,
      "pickable objects of the job (a single object: 1 with a pose, 0 without)"),
     ("Index", ua.VariantType.UInt16, 0,

@@ -28,6 +28,7 @@ from tests.conftest import REPO, need
 from vgripd.errors import ConfigError, LinkError
 from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.opcua_client import OpcUaClientProcess
+from vgripd.sim.opcua_raw import RawOpcUa, client_policy, status_of
 from vgripd.types import JobResult, RobotTarget, Status
 
 pytestmark = pytest.mark.timeout(120)
@@ -473,9 +474,11 @@ async def test_port_in_use_fails_naming_the_address(daemon: Daemon) -> None:
 
 
 def secure_options(tmp_path: Path, **extra: Any) -> OpcUaOptions:
-    return options(security=["Basic256Sha256_SignAndEncrypt"], allow_anonymous=False,
-                   certificate_dir=str(tmp_path / "pki"),
-                   users=[{"name": "robot", "password_env": "VGRIPD_TEST_OPCUA_PW"}], **extra)
+    base: dict[str, Any] = {
+        "security": ["Basic256Sha256_SignAndEncrypt"], "allow_anonymous": False,
+        "certificate_dir": str(tmp_path / "pki"),
+        "users": [{"name": "robot", "password_env": "VGRIPD_TEST_OPCUA_PW"}]}
+    return options(**{**base, **extra})
 
 
 async def test_encrypted_session_with_generated_certificate_and_password(
@@ -503,7 +506,7 @@ async def test_encrypted_session_with_generated_certificate_and_password(
             assert anonymous.connected["event"] == "error"
         async with OpcUaClientProcess(url(link)) as plain:  # security None: no such endpoint
             assert plain.connected["event"] == "error"
-        assert link.faults["login"] == 1
+        assert link.faults["login"] == 2  # the wrong password, the refused anonymous login
         first = cert.read_bytes()
     finally:
         await link.close()
@@ -608,7 +611,8 @@ async def run_tool(*argv: str) -> str:
     return out.decode()
 
 
-async def test_uals_and_uaread_browse_and_read_the_result(link: OpcUaLink) -> None:
+async def test_uals_and_uaread_browse_and_read_the_result(link: OpcUaLink,
+                                                        daemon: Daemon) -> None:
     uals, uaread = tool("uals"), tool("uaread")
     async with OpcUaClientProcess(url(link)) as client:
         r = await client.send("job")
@@ -627,6 +631,10 @@ async def test_uals_and_uaread_browse_and_read_the_result(link: OpcUaLink) -> No
     assert status.strip() == "1"
     assert [float(v) for v in values.strip().strip("[]").split(",")] == list(POSE)
     assert int(rid.strip()) == r["request_id"]
+    # docs/opcua.md's uacall line (asyncua 2.1: -m takes the method's browse name)
+    await run_tool(tool("uacall"), "-u", url(link), "-n", "ns=2;s=VisionSystem",
+                   "-m", "2:StartSingleJob")
+    await until(lambda: len(daemon.triggers) == 2, "the second job")
 
 
 async def test_client_trust_list_refuses_unknown_certificates_and_keeps_them(
@@ -669,3 +677,302 @@ async def test_client_trust_list_refuses_unknown_certificates_and_keeps_them(
 def test_trust_list_needs_signed_endpoints() -> None:
     with pytest.raises(ValueError, match="trusted_clients_dir"):
         options(trusted_clients_dir="/tmp")
+
+
+# -- a raw client doing what an attacker does (issue 20) --------------------------------------
+# asyncua's high-level Client refuses SecurityPolicy None against a secure server on its own;
+# RawOpcUa builds the channel and the session requests itself.
+
+RESULT = "ns=2;s=VisionSystem.Result"
+
+
+def library_errors(caplog: pytest.LogCaptureFixture) -> list[logging.LogRecord]:
+    """ERROR lines and tracebacks: a refused client must leave neither."""
+    return [r for r in caplog.records if r.levelno >= logging.ERROR or r.exc_info]
+
+
+async def refused(coro: Any) -> str:
+    """The status name a raw request was refused with ("" when it was answered)."""
+    from asyncua import ua
+
+    try:
+        await coro
+    except ua.UaStatusCodeError as err:
+        return status_of(err)
+    return ""
+
+
+async def test_raw_none_channel_serves_discovery_only_on_a_secure_server(
+        daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 20 row 1: OpenSecureChannel with SecurityPolicy None, then CreateSession +
+    ActivateSession with the password in clear, against a Basic256Sha256 SignAndEncrypt
+    server: discovery answers, every session step is refused, no job runs."""
+    caplog.set_level(logging.INFO)
+    monkeypatch.setenv("VGRIPD_TEST_OPCUA_PW", "s3cret")
+    link = await open_link(daemon, secure_options(tmp_path))
+    try:
+        async with RawOpcUa("127.0.0.1", link.port) as raw:
+            endpoints = await raw.get_endpoints()
+            assert {e.SecurityPolicyUri.rsplit("#")[-1] for e in endpoints} == {"Basic256Sha256"}
+            assert await refused(raw.create_session()) == "BadSecurityPolicyRejected"
+            await until(lambda: raw.closed, "the server closes the connection")
+        # skipping CreateSession: ActivateSession, Read and Call straight away
+        for step in ("activate", "read", "call"):
+            async with RawOpcUa("127.0.0.1", link.port) as raw:
+                coro = {"activate": lambda: raw.activate("robot", "s3cret"),
+                        "read": lambda: raw.read(f"{RESULT}.Status"),
+                        "call": lambda: raw.call("ns=2;s=VisionSystem",
+                                                 "ns=2;s=VisionSystem.StartSingleJob")}[step]()
+                assert await refused(coro) == "BadSecurityPolicyRejected", step
+        async with RawOpcUa("127.0.0.1", link.port) as raw:  # vgripd is no discovery server
+            from asyncua import ua
+
+            server = ua.RegisteredServer(ServerUri="urn:evil", IsOnline=True)
+            assert await refused(raw.client.register_server(server)) == "BadServiceUnsupported"
+        assert daemon.triggers == []
+        assert link.faults["insecure"] == 4
+    finally:
+        await link.close()
+    # one line per client address and interval: the first, and the count of the others
+    # when the link closes
+    first, *rest = lines(caplog, "refused (BadSecurityPolicyRejected")
+    assert "CreateSession on a channel with SecurityPolicy None, mode None" in first.getMessage()
+    assert len(rest) <= 1
+    assert not library_errors(caplog)
+
+
+async def test_raw_anonymous_on_none_channel_does_not_bypass_the_trust_list(
+        daemon: Daemon, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 20 row 2: ``trusted_clients_dir`` and ``allow_anonymous``: a None channel has no
+    certificate to judge, so it carries no session at all."""
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    opts = options(security=["Basic256Sha256_SignAndEncrypt"], allow_anonymous=True,
+                   certificate_dir=str(tmp_path / "pki"), trusted_clients_dir=str(trusted))
+    link = await open_link(daemon, opts)
+    try:
+        async with RawOpcUa("127.0.0.1", link.port) as raw:
+            assert await refused(raw.create_session()) == "BadSecurityPolicyRejected"
+        async with RawOpcUa("127.0.0.1", link.port) as raw:
+            assert await refused(raw.activate()) == "BadSecurityPolicyRejected"
+        assert daemon.triggers == []
+    finally:
+        await link.close()
+    assert not library_errors(caplog)
+
+
+async def test_raw_password_guessing_is_slowed_then_locked_out(
+        daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 20 row 3: 60 ActivateSession guesses on one SignAndEncrypt connection: the first
+    ``login_failures`` are checked (BadUserAccessDenied), the rest refused unchecked
+    (BadRequestNotAllowed), the right password too; one lockout line, no library ERROR."""
+    from asyncua import ua
+
+    caplog.set_level(logging.INFO)
+    monkeypatch.setenv("VGRIPD_TEST_OPCUA_PW", "s3cret")
+    link = await open_link(daemon, secure_options(tmp_path))  # login_failures = 10
+    try:
+        assert link.certificate is not None
+        policy = await asyncio.to_thread(client_policy, link.certificate.read_bytes(),
+                                         ua.MessageSecurityMode.SignAndEncrypt)
+        async with RawOpcUa("127.0.0.1", link.port, policy=policy) as raw:
+            await raw.create_session()
+            answers = [await refused(raw.activate("robot", f"guess{n}")) for n in range(60)]
+            assert answers.count("BadUserAccessDenied") == 10, answers
+            assert answers[10:] == ["BadRequestNotAllowed"] * 50
+            assert await refused(raw.activate("robot", "s3cret")) == "BadRequestNotAllowed"
+            assert not raw.closed
+        assert (link.faults["login"], link.faults["lockout"]) == (10, 1)
+        assert link.faults["locked"] == 51
+        assert daemon.triggers == []
+    finally:
+        await link.close()
+    assert len(lines(caplog, "10 failed logins in a row")) == 1
+    assert len(lines(caplog, "refused for 60 s (login_lockout_s)")) == 1
+    assert not library_errors(caplog)
+
+
+async def test_raw_right_password_after_a_few_guesses_is_let_in(
+        daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """An operator who mistypes gets in on the next try; a password in clear on a channel that
+    does not encrypt (Sign) is refused even when right, the answer is the same without
+    library ERROR lines; a refused anonymous login counts as a failed login."""
+    from asyncua import ua
+
+    monkeypatch.setenv("VGRIPD_TEST_OPCUA_PW", "s3cret")
+    opts = secure_options(tmp_path, security=["Basic256Sha256_Sign",
+                                              "Basic256Sha256_SignAndEncrypt"])
+    link = await open_link(daemon, opts)
+    try:
+        assert link.certificate is not None
+        server_cert = link.certificate.read_bytes()
+        policy = await asyncio.to_thread(client_policy, server_cert,
+                                         ua.MessageSecurityMode.SignAndEncrypt)
+        async with RawOpcUa("127.0.0.1", link.port, policy=policy) as raw:
+            await raw.create_session()
+            assert await refused(raw.activate("robot", "typo")) == "BadUserAccessDenied"
+            assert await refused(raw.activate()) == "BadIdentityTokenRejected"
+            assert await refused(raw.activate("robot", "s3cret")) == ""
+            values = await raw.read(f"{RESULT}.Status")
+            assert values[0].StatusCode.is_good()
+        sign = await asyncio.to_thread(client_policy, server_cert, ua.MessageSecurityMode.Sign)
+        async with RawOpcUa("127.0.0.1", link.port, policy=sign) as raw:
+            await raw.create_session()
+            assert await refused(raw.activate("robot", "s3cret")) == "BadIdentityTokenRejected"
+        assert link.faults["login"] == 3
+        assert link.faults["lockout"] == 0
+    finally:
+        await link.close()
+    assert not library_errors(caplog)
+
+
+async def test_raw_clear_password_on_a_listed_none_channel_is_refused(
+        daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """``"None"`` listed beside an encrypting mode: a None channel carries sessions, but a
+    password in clear on it is refused even when right (the endpoint asks for it encrypted
+    with the server certificate); the None channel's own session works when the config says
+    so (anonymous here)."""
+    monkeypatch.setenv("VGRIPD_TEST_OPCUA_PW", "s3cret")
+    opts = secure_options(tmp_path, security=["None", "Basic256Sha256_SignAndEncrypt"],
+                          allow_anonymous=True)
+    link = await open_link(daemon, opts)
+    try:
+        async with RawOpcUa("127.0.0.1", link.port) as raw:
+            await raw.create_session()
+            assert await refused(raw.activate("robot", "s3cret")) == "BadIdentityTokenRejected"
+            assert await refused(raw.activate()) == ""
+            (value,) = await raw.read(f"{RESULT}.Status")
+            assert value.StatusCode.is_good()
+        assert link.faults["login"] == 1
+    finally:
+        await link.close()
+    assert not library_errors(caplog)
+
+
+async def test_raw_session_is_not_taken_over_from_another_certificate(
+        daemon: Daemon, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A session activated by one client certificate cannot be activated on another client's
+    channel, even by one that knows its AuthenticationToken and nonce; its owner goes on."""
+    from asyncua import ua
+
+    opts = options(security=["Basic256Sha256_SignAndEncrypt"], allow_anonymous=True,
+                   certificate_dir=str(tmp_path / "pki"))
+    link = await open_link(daemon, opts)
+    try:
+        assert link.certificate is not None
+        server_cert = link.certificate.read_bytes()
+        mode = ua.MessageSecurityMode.SignAndEncrypt
+        owner_policy, thief_policy = [await asyncio.to_thread(client_policy, server_cert, mode)
+                                      for _ in range(2)]
+        async with RawOpcUa("127.0.0.1", link.port, policy=owner_policy) as owner:
+            await owner.create_session()
+            await owner.activate()
+            async with RawOpcUa("127.0.0.1", link.port, policy=thief_policy) as thief:
+                thief.adopt(owner)
+                assert await refused(thief.activate()) == "BadSecurityChecksFailed"
+                assert await refused(thief.read(f"{RESULT}.Status")) == "BadSessionIdInvalid"
+            (value,) = await owner.read(f"{RESULT}.Status")
+            assert value.StatusCode.is_good()
+    finally:
+        await link.close()
+    assert not library_errors(caplog)
+
+
+async def test_raw_create_session_flood_on_one_connection_holds_one_session(
+        link: OpcUaLink) -> None:
+    """300 CreateSession requests on one connection: asyncua alone kept 300 sessions and 300
+    watchdog tasks; the link closes the previous session, so one of each is left."""
+    assert link.server is not None
+
+    def watchdogs() -> int:
+        return sum(1 for t in asyncio.all_tasks()
+                   if getattr(t.get_coro(), "__name__", "") == "_session_watchdog_loop")
+
+    async with RawOpcUa("127.0.0.1", link.port) as raw:
+        for _ in range(300):
+            await raw.create_session()
+        await raw.activate()
+        (value,) = await raw.read(f"{RESULT}.Status")
+        assert value.StatusCode.is_good()
+        assert len(link.server.iserver._external_sessions) == 1
+        assert watchdogs() == 1
+
+
+async def test_rejected_certificates_are_capped_and_deduplicated(
+        daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 20 row 14: 70 distinct self-signed client certificates against a trust list, then
+    the first again: the rejected store keeps the last ``rejected_max_files`` (64), one file
+    per thumbprint (the first's file refreshed, not doubled)."""
+    from asyncua import ua
+    from asyncua.crypto import cert_gen
+
+    monkeypatch.setenv("VGRIPD_TEST_OPCUA_PW", "pw")
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    link = await open_link(daemon, secure_options(tmp_path, trusted_clients_dir=str(trusted)))
+    rejected = tmp_path / "pki" / "rejected"
+    try:
+        assert link.certificate is not None
+        server_cert = link.certificate.read_bytes()
+        key = await asyncio.to_thread(cert_gen.generate_private_key)
+        policies = [client_policy(server_cert, ua.MessageSecurityMode.SignAndEncrypt,
+                                  f"raw{n}", key) for n in range(70)]
+        for n, policy in enumerate([*policies, policies[0]]):
+            with contextlib.suppress(Exception):  # the server drops the channel
+                async with RawOpcUa("127.0.0.1", link.port, policy=policy) as raw:
+                    await raw.create_session()
+            await until(lambda n=n: link.faults["untrusted"] == n + 1, "refused")
+    finally:
+        await link.close()
+    kept = {p.read_bytes() for p in rejected.iterdir()}
+    assert len(kept) == 64
+    assert kept == {p.host_certificate for p in [policies[0], *policies[7:]]}
+
+
+async def test_timestamp_before_the_first_result_reads_in_one_read(
+        link: OpcUaLink, caplog: pytest.LogCaptureFixture) -> None:
+    """Before any result, Result.Timestamp is the null DateTime and the Read's other values are
+    answered with it (not BadInternalError with an AttributeError logged)."""
+    import datetime
+
+    async with RawOpcUa("127.0.0.1", link.port) as raw:  # security None is listed here
+        await raw.create_session()
+        await raw.activate()
+        stamp, status, rid = await raw.read(f"{RESULT}.Timestamp", f"{RESULT}.Status",
+                                            f"{RESULT}.RequestId")
+    assert stamp.StatusCode.is_good()
+    assert status.StatusCode.is_good()
+    assert stamp.Value.Value == datetime.datetime(1601, 1, 1, tzinfo=datetime.UTC)
+    assert (status.Value.Value, rid.Value.Value) == (int(Status.IDLE), 0)
+    assert not library_errors(caplog)
+
+
+def test_check_warns_about_security_none_and_open_anonymous_sessions(tmp_path: Path) -> None:
+    from vgripd.config import config_from_dict
+    from vgripd.service.commissioning import check_link_exposure
+
+    def found(**link: Any) -> list[str]:
+        config = config_from_dict({
+            "camera": {"type": "synthetic"}, "status": {"enabled": False},
+            "links": [{"type": "opcua", "host": "127.0.0.1", "port": 0, **link}]})
+        return [f"{f.level} {f.key}: {f.message}" for f in check_link_exposure(config)]
+
+    user = [{"name": "plc", "password_env": "X"}]
+    none = found(security=["None"], users=user)
+    assert len(none) == 1
+    assert none[0].startswith('WARNING links[0].security: "None" is listed')
+    assert "as user plc (passwords travel in clear)" in none[0]
+    pki = str(tmp_path / "pki")
+    both = found(security=["None", "Basic256Sha256_SignAndEncrypt"], certificate_dir=pki,
+                 users=user, allow_anonymous=True)
+    assert both == ['WARNING links[0].security: "None" is listed: any client on the network '
+                    'opens a session without a certificate, unsigned and unencrypted, as user '
+                    'plc, anonymous']
+    assert "allow_anonymous" in found(certificate_dir=pki, allow_anonymous=True)[0]
+    assert found(certificate_dir=pki, users=user) == []
+    trusted = found(certificate_dir=pki, allow_anonymous=True, trusted_clients_dir=pki)
+    assert trusted == []

@@ -48,6 +48,22 @@ def check_links(config: Config, options: Options) -> list[Finding]:
                     "for a config used only with locate/replay")]
 
 
+def check_link_exposure(config: Config) -> list[Finding]:
+    """What a link's own options open to the network: a link class may say so with
+    ``exposure(options)``, a list of ``(level, field, message)`` (the opcua link warns when
+    SecurityPolicy None is listed)."""
+    findings: list[Finding] = []
+    for i, section in enumerate(config.links):
+        cls = load_class(LINKS, "link", section.type)
+        exposure = getattr(cls, "exposure", None)
+        if exposure is None:
+            continue
+        opts: Any = validate_options(cls, section, f"links.{i}")
+        findings += [Finding(level, f"links[{i}].{field}", message)
+                     for level, field, message in exposure(opts)]
+    return findings
+
+
 def _listening(config: Config) -> list[tuple[str, str, int]]:
     """``(key, host, port)`` of every address the daemon listens on (port 0 excluded): server
     links (``type`` ending in ``_server``, ``mode = "server"``, or a class that says
@@ -277,7 +293,7 @@ def check_samples(config: Config, frames_wanted: int = SAMPLE_FRAMES) -> list[Fi
 def commission(config: Config, options: Options = Options()) -> list[Finding]:
     """Every commissioning check, ERRORs first."""
     findings = (check_scene(config) + check_replay(config) + check_links(config, options)
-                + check_ports(config, options))
+                + check_ports(config, options) + check_link_exposure(config))
     if not any(f.level == "ERROR" for f in findings):  # the scene must hold before images
         findings += check_samples(config)
     order = {"ERROR": 0, "WARNING": 1, "NOTE": 2}
