@@ -24,7 +24,8 @@ from vgripd.service.protocol import (
     Trigger,
     ValueCodec,
 )
-from vgripd.service.web.app import MAX_EVENTS_QUEUED, EventHub, redact
+from vgripd.redaction import redact
+from vgripd.service.web.app import MAX_EVENTS_QUEUED, EventHub
 from vgripd.service.web.images import render
 from vgripd.service.web.metrics import Metrics
 from vgripd.service.web.registers import register_views
