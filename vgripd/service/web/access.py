@@ -233,5 +233,7 @@ class ServerLogLimit(logging.Filter):
         if record.exc_info and record.exc_info[1] is not None:
             err = record.exc_info[1]
             text += f": {type(err).__name__}: {str(err)[:200]}"
-        self.ratelog.log(record.levelno, client, str(record.msg), "%s", text)
+        # A client's broken request is no fault of the daemon: a warning at most.
+        self.ratelog.log(min(record.levelno, logging.WARNING), client, str(record.msg), "%s",
+                         text)
         return False
