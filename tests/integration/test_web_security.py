@@ -13,7 +13,6 @@ import contextlib
 import io
 import json
 import logging
-import os
 import stat
 import tomllib
 import zipfile
@@ -139,8 +138,8 @@ async def test_public_read_opens_the_reads_but_not_the_actions(tmp_path: Path) -
             status, _, _ = await _raw(port, _get(path), read_body=False)
             assert status == 200, path
         status, _, _ = await _raw(port, (
-            "POST /api/trigger HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 0\r\n"
-            "Connection: close\r\n\r\n").encode())
+            b"POST /api/trigger HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 0\r\n"
+            b"Connection: close\r\n\r\n"))
         assert status == 403
 
 
@@ -282,23 +281,23 @@ async def test_event_streams_are_capped_per_address_and_the_operator_is_served()
             assert max(served.values()) <= MAX_EVENT_CLIENTS_PER_ADDRESS
             assert sum(served.values()) == MAX_EVENT_CLIENTS
             # The operator: the token in the header, and a browser with the login cookie.
+            base = f"http://127.0.0.1:{port}"
+            auth = {"Authorization": f"Bearer {TOKEN}"}
             async with aiohttp.ClientSession(cookie_jar=aiohttp.CookieJar(unsafe=True)) as http, \
                     aiohttp.ClientSession() as other:
-                base = f"http://127.0.0.1:{port}"
-                async with http.post(f"{base}/login", data={"token": TOKEN}) as resp:
-                    assert resp.status == 200  # followed to the page
-                auth = {"Authorization": f"Bearer {TOKEN}"}
-                async with http.get(f"{base}/api/events", headers=auth) as sse, \
-                        http.get(f"{base}/api/events") as by_cookie:
+                async with http.get(f"{base}/api/events", headers=auth) as sse:
                     assert sse.status == 200
-                    assert by_cookie.status == 200
-                    await plc.trigger(1)
-                    assert (await plc.result(1))[Reg.STATUS] == Status.OK
-                    for stream in (sse, by_cookie):
-                        async with asyncio.timeout(WAIT_S):
-                            async for raw in stream.content:
-                                if raw.startswith(b"event: job"):
-                                    break
+                    async with http.post(f"{base}/login", data={"token": TOKEN}) as resp:
+                        assert resp.status == 200  # followed to the page
+                    async with http.get(f"{base}/api/events") as by_cookie:
+                        assert by_cookie.status == 200
+                        await plc.trigger(1)
+                        assert (await plc.result(1))[Reg.STATUS] == Status.OK
+                        for stream in (sse, by_cookie):
+                            async with asyncio.timeout(WAIT_S):
+                                async for raw in stream.content:
+                                    if raw.startswith(b"event: job"):
+                                        break
                 async with other.get(f"{base}/api/events") as anon:
                     assert anon.status == 503  # still full for the others
         finally:
@@ -382,25 +381,3 @@ async def test_the_support_bundle_follows_no_planted_link(tmp_path: Path) -> Non
         assert not [n for n in names if "job999999" in n or "view7" in n or "notes" in n]
         assert not [n for n in names if n.endswith("job999998/result.json")]
 
-
-def test_the_recorded_folder_modes_hold_under_a_wide_umask(tmp_path: Path) -> None:
-    """The recorder sets its modes itself: a umask of 0 still gives 0640 / 0750."""
-    import numpy as np
-
-    from vgripd.service.recorder import Recorder
-    from vgripd.types import ImagePair, JobResult
-
-    old = os.umask(0)
-    try:
-        rec = Recorder(tmp_path / "rec", 10**8, {"status": {"token": TOKEN}})
-        rec.scan()
-        job = rec.write(ImagePair.of_views([np.zeros((8, 8), np.uint8)], 0, source=CAMERA_URL),
-                        JobResult(job_id=1, status=Status.OK))
-    finally:
-        os.umask(old)
-    assert stat.S_IMODE((tmp_path / "rec").stat().st_mode) == 0o750
-    assert stat.S_IMODE(job.stat().st_mode) == 0o750
-    for f in job.iterdir():
-        assert stat.S_IMODE(f.stat().st_mode) == 0o640, f.name
-    pair = json.loads((job / "pair.json").read_text())
-    assert pair["source"] == "rtsp://<redacted>@cam.local/stream"
