@@ -381,3 +381,70 @@ async def test_the_support_bundle_follows_no_planted_link(tmp_path: Path) -> Non
         assert not [n for n in names if "job999999" in n or "view7" in n or "notes" in n]
         assert not [n for n in names if n.endswith("job999998/result.json")]
 
+
+
+SCRAPE_CONFIG = Path(__file__).parents[2] / "docs" / "prometheus" / "prometheus.yml"
+
+
+async def test_the_shipped_prometheus_config_scrapes_a_guarded_view(tmp_path: Path) -> None:
+    """A real Prometheus with docs/prometheus/prometheus.yml (its token file and target pointed
+    at this daemon, bound to 0.0.0.0 with the token): the vgripd job is up and its metrics are
+    queryable; the same job with a wrong token is down with a 401 (on the old code /metrics
+    answered anyone)."""
+    import socket
+
+    from tests.conftest import need_tool
+
+    prometheus = need_tool("prometheus")
+    shipped = SCRAPE_CONFIG.read_text()
+    assert "credentials_file: /etc/prometheus/vgripd.token" in shipped
+    assert 'targets: ["127.0.0.1:8730"]' in shipped
+    good, bad = tmp_path / "vgripd.token", tmp_path / "wrong.token"
+    good.write_text(TOKEN + "\n")
+    bad.write_text("not-the-token-of-this-daemon\n")
+    with socket.socket() as s:  # a free port for Prometheus' own API (loopback only)
+        s.bind(("127.0.0.1", 0))
+        api_port = s.getsockname()[1]
+    async with _guarded(tmp_path) as run:
+        target = f"127.0.0.1:{_port(run)}"
+        config = shipped.replace("scrape_interval: 5s", "scrape_interval: 1s").replace(
+            "127.0.0.1:8730", target)
+        wrong = config[config.index("  - job_name: vgripd"):config.index("# either")].replace(
+            "job_name: vgripd", "job_name: wrong").replace("/etc/prometheus/vgripd.token",
+                                                           str(bad))
+        config = config.replace("/etc/prometheus/vgripd.token", str(good)).replace(
+            "# either", wrong + "# either", 1)
+        (tmp_path / "prometheus.yml").write_text(config)
+        proc = await asyncio.create_subprocess_exec(
+            prometheus, f"--config.file={tmp_path / 'prometheus.yml'}",
+            f"--storage.tsdb.path={tmp_path / 'tsdb'}",
+            f"--web.listen-address=127.0.0.1:{api_port}",
+            stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL)
+        try:
+            async with aiohttp.ClientSession() as http, asyncio.timeout(60):
+                api = f"http://127.0.0.1:{api_port}/api/v1"
+                while True:  # noqa: ASYNC110 (Prometheus pushes nothing: its API is polled)
+                    with contextlib.suppress(aiohttp.ClientError):
+                        async with http.get(f"{api}/targets") as resp:
+                            active = (await resp.json())["data"]["activeTargets"]
+                        health = {t["labels"]["job"]: t for t in active}
+                        if len(health) == 2 and all(t["health"] != "unknown"
+                                                    for t in health.values()):
+                            break
+                    await asyncio.sleep(0.2)
+                assert health["vgripd"]["health"] == "up", health["vgripd"]["lastError"]
+                assert health["wrong"]["health"] == "down"
+                assert "401" in health["wrong"]["lastError"]
+                while True:  # noqa: ASYNC110
+                    async with http.get(f"{api}/query",
+                                        params={"query": 'vgripd_jobs_total{status="OK"}'}) as resp:
+                        result = (await resp.json())["data"]["result"]
+                    if result:
+                        break
+                    await asyncio.sleep(0.2)
+                assert result[0]["metric"]["job"] == "vgripd"
+                assert result[0]["value"][1] == "1"
+        finally:
+            if proc.returncode is None:
+                proc.terminate()
+            await proc.wait()
