@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("vgripd.service.web")
 
-SESSION_COOKIE = "vgripd_session"
+SESSION_COOKIE = "vgripd-session"
 # Routes that answer without the token even where reads are guarded: the login form.
 OPEN_PATHS = frozenset({"/login"})
 SECURITY_HEADERS = {
