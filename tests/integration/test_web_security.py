@@ -185,6 +185,23 @@ async def test_a_foreign_host_header_is_refused(caplog: pytest.LogCaptureFixture
             assert status == 200, host
     refused = [r for r in caplog.records if "refused Host" in r.getMessage()]
     assert len(refused) == 1  # 20 refusals from one client: one line
+    # Bound to all addresses: an address literal is the view's name only when it is the
+    # address the client connected to.
+    config = make_config(status={"host": "0.0.0.0", "port": 0, "token": TOKEN,
+                                 "public_read": True})
+    async with running(config) as run:
+        port = _port(run)
+        for host in ["192.0.2.7", "127.0.0.2", f"[::ffff:127.0.0.9]:{port}", "evil.example"]:
+            status, _, _ = await _raw(port, _get("/api/status", host=host))
+            assert status == 421, host
+        for host in ["127.0.0.1", f"127.0.0.1:{port}", "localhost"]:
+            status, _, _ = await _raw(port, _get("/api/status", host=host))
+            assert status == 200, host
+        reader, writer = await asyncio.open_connection("127.0.0.3", port)
+        writer.write(_get("/api/status", host=f"127.0.0.3:{port}"))
+        async with asyncio.timeout(WAIT_S):
+            assert b" 200 " in await reader.readline()
+        writer.close()
 
 
 async def test_every_answer_carries_the_security_headers(tmp_path: Path) -> None:

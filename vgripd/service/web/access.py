@@ -2,8 +2,9 @@
 and one response hook, apart from the routes themselves:
 
 - the ``Host:`` header must name the view (its bind address, ``localhost`` on a loopback or
-  wildcard bind, an address literal on a wildcard bind, or ``status.allowed_hosts``); anything
-  else is a DNS-rebinding attempt or a misdirected request: 421;
+  wildcard bind, on a wildcard bind the address the client connected to, or
+  ``status.allowed_hosts``); anything else is a DNS-rebinding attempt or a misdirected
+  request: 421;
 - with a non-loopback bind every route needs the token (``status.guards_reads``) unless
   ``status.public_read``: ``Authorization: Bearer <token>``, or the session cookie that
   ``POST /login`` sets for a browser (HttpOnly, SameSite=Strict). Actions take the header only,
@@ -80,12 +81,15 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-def _is_ip(host: str) -> bool:
+def _same_ip(a: str, b: str) -> bool:
+    """Two address literals name the same address (an IPv4-mapped IPv6 one as its IPv4)."""
     try:
-        ipaddress.ip_address(host)
+        x, y = ipaddress.ip_address(a), ipaddress.ip_address(b.split("%", 1)[0])
     except ValueError:
         return False
-    return True
+    x = getattr(x, "ipv4_mapped", None) or x
+    y = getattr(y, "ipv4_mapped", None) or y
+    return x == y
 
 
 def host_name(header: str) -> str:
@@ -126,13 +130,16 @@ class Access:
 
     # --- checks ---------------------------------------------------------------------------
 
-    def host_ok(self, header: str | None) -> bool:
+    def host_ok(self, header: str | None, local: str | None = None) -> bool:
         """Whether a ``Host:`` header names this view. A request without one (HTTP/1.0) has
-        no name to rebind, and an address literal on a wildcard bind reached one of ours."""
+        no name to rebind; on a wildcard bind an address literal is accepted when it is the
+        address the client connected to (``local``, the socket's own)."""
         if header is None:
             return True
         name = host_name(header)
-        return name in self.allowed_hosts or (self._wildcard and _is_ip(name))
+        if name in self.allowed_hosts:
+            return True
+        return self._wildcard and local is not None and _same_ip(name, local)
 
     def bearer_ok(self, request: web.Request) -> bool:
         """The request carries ``Authorization: Bearer <token>`` (constant-time compare)."""
@@ -153,7 +160,9 @@ class Access:
     @web.middleware
     async def middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         client = request.remote or "?"
-        if not self.host_ok(request.headers.get("Host")):
+        sockname = request.transport.get_extra_info("sockname") if request.transport else None
+        local = sockname[0] if isinstance(sockname, tuple) and sockname else None
+        if not self.host_ok(request.headers.get("Host"), local):
             self.ratelog.warning(client, "host", "web view: refused Host %r from %s (not the "
                                  "bind address or status.allowed_hosts)",
                                  request.headers.get("Host", "")[:100], client)
