@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import hmac
 import json
 import logging
 import os
@@ -215,7 +214,6 @@ class WebServer:
             raise StatusEndpointError(
                 f"status.token is {REDACTED!r} (a recorded or bundled config): set the real "
                 f"token, or [status] enabled = false")
-        self._token = st.token
         self.access = Access(st)
         self._log_limit = ServerLogLimit(self.access.ratelog)
         self._allow_trigger = st.allow_trigger
@@ -474,9 +472,7 @@ class WebServer:
         """404 while the action is disabled, 403 unless the request carries the token."""
         if not enabled:
             raise web.HTTPNotFound(text="this action is disabled in the config")
-        header = request.headers.get("Authorization", "")
-        given = header.removeprefix("Bearer ").strip() if header.startswith("Bearer ") else ""
-        if not self._token or not hmac.compare_digest(given.encode(), self._token.encode()):
+        if not self.access.bearer_ok(request):  # the header only: never the login cookie
             raise web.HTTPForbidden(text="this action needs the token: "
                                          "Authorization: Bearer <status.token>")
 
@@ -527,4 +523,3 @@ class WebServer:
         finally:
             file.close()
         return resp
-
