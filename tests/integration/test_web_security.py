@@ -179,6 +179,13 @@ async def test_a_foreign_host_header_is_refused(caplog: pytest.LogCaptureFixture
             for path in ["/api/status", "/", "/api/config", "/metrics"]:
                 status, _, _ = await _raw(port, _get(path, host=host))
                 assert status == 421, (host, path)
+        # An absolute-form target names the host too (aiohttp goes by it).
+        status, _, _ = await _raw(port, b"GET http://evil.example/api/status HTTP/1.1\r\n"
+                                        b"Host: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        assert status == 421
+        status, _, _ = await _raw(port, b"GET http://localhost/api/status HTTP/1.1\r\n"
+                                        b"Host: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        assert status == 200
         for host in ["127.0.0.1", f"127.0.0.1:{port}", f"localhost:{port}", "LOCALHOST",
                      "cell-07.plant.example", f"Cell-07.Plant.Example.:{port}"]:
             status, _, _ = await _raw(port, _get("/api/status", host=host))

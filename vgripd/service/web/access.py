@@ -162,7 +162,11 @@ class Access:
         client = request.remote or "?"
         sockname = request.transport.get_extra_info("sockname") if request.transport else None
         local = sockname[0] if isinstance(sockname, tuple) and sockname else None
-        if not self.host_ok(request.headers.get("Host"), local):
+        # An absolute-form target (``GET http://name/path``) names the host too, and aiohttp
+        # goes by it: both must be ours.
+        absolute = None if request.raw_path.startswith("/") else request.host
+        if not (self.host_ok(request.headers.get("Host"), local)
+                and (absolute is None or self.host_ok(absolute, local))):
             self.ratelog.warning(client, "host", "web view: refused Host %r from %s (not the "
                                  "bind address or status.allowed_hosts)",
                                  request.headers.get("Host", "")[:100], client)
