@@ -43,6 +43,7 @@ from pydantic_core import PydanticCustomError
 from vgripd.errors import ConfigError, DegenerateInputError
 from vgripd.geometry.transforms import check_transform
 from vgripd.geometry.vendors import VENDORS
+from vgripd.redaction import REDACTED
 
 #: pydantic error type of a refused combination of fields: its message names every field
 #: involved, so it is shown without a field path (``format_validation_error``).
@@ -313,15 +314,20 @@ class StatusConfig(Model):
 
     Read-only unless an action is enabled here; an enabled action also needs a request that
     carries ``token`` (``Authorization: Bearer <token>``). A bind that is not a loopback
-    address needs a ``token``: the view shows the cell's images and configuration.
-    ``history``: jobs kept for the history page; ``bundle_jobs``: recorded jobs put in a
-    support bundle.
+    address needs a ``token``, and then every route needs it too (the header, or the cookie
+    of ``/login``) unless ``public_read`` opens the read-only routes to anyone who can reach
+    the port. ``allowed_hosts``: host names (or addresses) a browser may call the view by,
+    besides the bind address (and ``localhost`` on a loopback or wildcard bind); any other
+    ``Host:`` is refused (421), which stops DNS rebinding. ``history``: jobs kept for the
+    history page; ``bundle_jobs``: recorded jobs put in a support bundle.
     """
 
     enabled: bool = True
     host: str = "127.0.0.1"
     port: int = Field(default=8730, ge=0, le=65535)
-    token: str | None = Field(default=None, min_length=16)
+    token: str | None = None
+    public_read: bool = False
+    allowed_hosts: list[str] = Field(default_factory=list, max_length=64)
     allow_trigger: bool = False
     allow_support_bundle: bool = False
     history: int = Field(default=100, ge=1, le=10000)
@@ -335,6 +341,25 @@ class StatusConfig(Model):
     body_timeout_s: float = Field(default=10.0, ge=0.5, le=600.0)
     allow: AllowList = None
 
+    @field_validator("token")
+    @classmethod
+    def _long_token(cls, token: str | None) -> str | None:
+        # The redaction marker: a recorded or bundled config stays loadable (replay); the
+        # web view refuses to serve with it.
+        if token is not None and token != REDACTED and len(token) < 16:
+            raise ValueError("status.token must have at least 16 characters")
+        return token
+
+    @field_validator("allowed_hosts")
+    @classmethod
+    def _host_names(cls, hosts: list[str]) -> list[str]:
+        for i, host in enumerate(hosts):
+            name = host.strip("[]")
+            if not name or any(c in name for c in "/@ ?#") or (":" in name and not _is_ip(name)):
+                raise ValueError(f"status.allowed_hosts[{i}] = {host!r}: a host name or address "
+                                 f"as a browser puts it in the URL, without scheme, port or path")
+        return [h.strip("[]").lower().rstrip(".") for h in hosts]
+
     @model_validator(mode="after")
     def _token_where_needed(self) -> StatusConfig:
         if self.token is None and not _is_loopback(self.host):
@@ -346,6 +371,20 @@ class StatusConfig(Model):
             raise ValueError(f"status.{wanted[0]} = true needs status.token (actions are "
                              f"accepted only from requests that carry it)")
         return self
+
+    @property
+    def guards_reads(self) -> bool:
+        """Whether the read-only routes need the token too (a non-loopback bind, unless
+        ``public_read``)."""
+        return not _is_loopback(self.host) and not self.public_read
+
+
+def _is_ip(text: str) -> bool:
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _is_loopback(host: str) -> bool:

@@ -529,3 +529,65 @@ async def test_a_views_job_shows_every_view_annotated() -> None:
             assert len(seen) >= 4
             for x, y in seen:
                 assert green[int(y) - 7:int(y) + 8, int(x) - 7:int(x) + 8].any(), (j, x, y)
+
+
+async def test_chromium_page_behind_the_token_works_under_the_csp(tmp_path: Path) -> None:
+    """A view bound to 0.0.0.0 (reached through 127.0.0.1) with the token: the browser gets the
+    login form, logs in once (the cookie), and then the page works as on loopback under the
+    Content-Security-Policy: script and stylesheet load, the images (sent with the cookie), the
+    live event stream (served as the token holder's), the redacted config, and the test trigger
+    with the token typed in."""
+    config = make_config(status={"host": "0.0.0.0", "port": 0, "token": TOKEN,
+                                 "allow_trigger": True})
+    async with running(config) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as http:
+        base = _base(run)
+        server = run.daemon.status_server
+        assert server is not None
+        await plc.trigger(1)
+        assert (await plc.result(1))[Reg.STATUS] == Status.OK
+        await run.job_done(1)
+        async with http.get(base + "/") as resp:
+            assert resp.status == 401
+            assert "frame-ancestors 'none'" in resp.headers["Content-Security-Policy"]
+        async with _chromium(tmp_path, base + "/") as evaluate:
+            text = "(id) => document.getElementById(id)?.textContent ?? ''"
+            assert await _until(evaluate, "document.querySelector('form[action=\"/login\"]') "
+                                          "!== null")
+            assert not await evaluate("document.getElementById('job-status') !== null")
+            await evaluate(f"""(() => {{
+                document.querySelector('input[name=token]').value = {json.dumps(TOKEN)};
+                document.querySelector('form').submit();
+                return true;
+            }})()""")
+            assert "job 1: OK" in await _until(
+                evaluate, f"({text})('job-status').includes('job 1: OK') && "
+                          f"({text})('job-status')")
+            # The stylesheet (style-src 'self') and the images (img-src 'self', the cookie).
+            assert await _until(evaluate, "getComputedStyle(document.querySelector('header'))"
+                                          ".backgroundColor === 'rgb(34, 34, 51)'")
+            assert await _until(evaluate, """(() => {
+                const img = document.getElementById('img-left');
+                return img && img.complete && img.naturalWidth > 0;
+            })()""")
+            assert "<redacted>" in await _until(evaluate, f"({text})('config-text')")
+            assert TOKEN not in await evaluate(f"({text})('config-text')")
+            csp = await evaluate("fetch('/api/status').then((r) => "
+                                 "r.headers.get('content-security-policy'))")
+            assert "script-src 'self'" in csp
+            # The page's stream is the token holder's (its cookie); a job shows up live.
+            async with asyncio.timeout(WAIT_S):
+                while not [c for c in server.events.clients if c.holder]:  # noqa: ASYNC110
+                    await asyncio.sleep(0.02)
+            await plc.trigger(2)
+            assert (await plc.result(2))[Reg.STATUS] == Status.OK
+            assert "job 2: OK" in await _until(
+                evaluate, f"({text})('job-status').includes('job 2') && ({text})('job-status')")
+            # An action with the token typed in (the header; the cookie alone is refused).
+            await evaluate(f"""(() => {{
+                document.getElementById('token').value = {json.dumps(TOKEN)};
+                document.getElementById('btn-trigger').click();
+                return true;
+            }})()""")
+            result = await _until(evaluate, f"({text})('action-result').startsWith('test job') "
+                                            f"&& ({text})('action-result')")
+            assert result.startswith("test job 3: OK")

@@ -1,11 +1,14 @@
 """Show a running daemon's status: state, last job, links, counters, refusals, cycle times.
 
-Reads the web view's ``GET /api/status`` (docs/web.md); the page itself is at ``/``."""
+Reads the web view's ``GET /api/status`` (docs/web.md); the page itself is at ``/``. Where the
+view needs the token (a non-loopback bind), it is sent as ``Authorization: Bearer``, taken from
+``--token-file``, else ``$VGRIPD_TOKEN``, else the config given with ``-c``."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import urllib.error
 import urllib.request
@@ -14,6 +17,7 @@ from typing import Any
 from vgripd.config import load_config
 
 DEFAULT_URL = "http://127.0.0.1:8730/api/status"
+TOKEN_ENV = "VGRIPD_TOKEN"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,6 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     where.add_argument("-c", "--config", help="take host and port from this config's [status]")
     parser.add_argument("--json", action="store_true", help="print the raw JSON")
     parser.add_argument("--timeout", type=float, default=3.0, help="seconds (default 3)")
+    parser.add_argument("--token-file", metavar="FILE",
+                        help=f"send the token in FILE (default: ${TOKEN_ENV}, else the -c "
+                             f"config's status.token)")
 
 
 def _age(seconds: float) -> str:
@@ -110,13 +117,30 @@ def format_status(s: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     url = args.url or DEFAULT_URL
+    token = os.environ.get(TOKEN_ENV) or None
+    if getattr(args, "token_file", None):
+        try:
+            with open(args.token_file, encoding="utf-8") as f:
+                token = f.read().strip()
+        except OSError as err:
+            print(f"vgripd status: --token-file {args.token_file}: {err.strerror}",
+                  file=sys.stderr)
+            return 1
     if args.config:
         st = load_config(args.config).status
         host = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(st.host, st.host)  # bound to all
         url = f"http://{'[' + host + ']' if ':' in host else host}:{st.port}/api/status"
+        token = token or st.token
+    request = urllib.request.Request(url, headers={} if not token else {
+        "Authorization": f"Bearer {token}"})
     try:
-        with urllib.request.urlopen(url, timeout=args.timeout) as resp:
+        with urllib.request.urlopen(request, timeout=args.timeout) as resp:
             data = json.loads(resp.read())
+    except urllib.error.HTTPError as err:
+        hint = (f" (the view needs the token: --token-file, ${TOKEN_ENV} or -c CONFIG)"
+                if err.code in (401, 403) else "")
+        print(f"vgripd status: {url} answered {err.code} {err.reason}{hint}", file=sys.stderr)
+        return 1
     except (urllib.error.URLError, OSError, ValueError) as err:
         print(f"vgripd status: cannot read {url}: {err} (is the daemon running?)",
               file=sys.stderr)

@@ -11,6 +11,7 @@ most likely by a vgripd that already runs; a privileged port).
 from __future__ import annotations
 
 import errno
+import ipaddress
 import socket
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -62,6 +63,31 @@ def check_link_exposure(config: Config) -> list[Finding]:
         findings += [Finding(level, f"links[{i}].{field}", message)
                      for level, field, message in exposure(opts)]
     return findings
+
+
+def check_web(config: Config) -> list[Finding]:
+    """What the web view lets others do (docs/web.md, "Security model"): a test trigger that
+    starts jobs from a browser, and read routes open to the network without the token."""
+    st = config.status
+    if not st.enabled:
+        return []
+    found = []
+    if st.allow_trigger:
+        found.append(Finding("WARNING", "status.allow_trigger", "the web view's test trigger "
+                             "is on: whoever holds status.token can start jobs from a browser "
+                             "(BUSY for the PLC meanwhile); turn it off for production"))
+    if st.public_read and st.host != "localhost" and not _loopback(st.host):
+        found.append(Finding("WARNING", "status.public_read", f"status.public_read = true on "
+                             f"{st.host}: anyone who reaches the port sees the cell's images, "
+                             f"jobs, registers and (redacted) config without the token"))
+    return found
+
+
+def _loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def _listening(config: Config) -> list[tuple[str, str, int]]:
@@ -293,7 +319,7 @@ def check_samples(config: Config, frames_wanted: int = SAMPLE_FRAMES) -> list[Fi
 def commission(config: Config, options: Options = Options()) -> list[Finding]:
     """Every commissioning check, ERRORs first."""
     findings = (check_scene(config) + check_replay(config) + check_links(config, options)
-                + check_ports(config, options) + check_link_exposure(config))
+                + check_ports(config, options) + check_link_exposure(config) + check_web(config))
     if not any(f.level == "ERROR" for f in findings):  # the scene must hold before images
         findings += check_samples(config)
     order = {"ERROR": 0, "WARNING": 1, "NOTE": 2}

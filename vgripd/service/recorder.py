@@ -6,8 +6,13 @@ One folder per job, named so that names sort by time (job ids restart with the d
         left.png  right.png   the images as grabbed (right.png only for stereo; a cell with
                               more than two cameras: view0.png, view1.png, ... in camera order)
         pair.json             ImagePair source, capture time, meta, T_base_flange, truth
-        config.toml           the configuration the job ran with (loadable as is)
+        config.toml           the configuration the job ran with, secrets redacted
+                              (``vgripd.redaction``; loadable as is)
         result.json           the JobResult
+
+Files are written mode 0640 and folders 0750 (whatever the umask): a recording shows the cell
+and is for the service and its group only. ``pair.json`` and ``result.json`` pass through the
+same redaction as the config (a camera source may be a URL with a password).
 
 A job folder is written under a ``.partial-`` name and renamed when complete, so a reader
 never sees half a job. ``vgripd replay -c JOB/config.toml JOB`` reproduces the job offline
@@ -21,6 +26,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
 import threading
 import time
@@ -32,6 +38,7 @@ from typing import Any
 
 import cv2
 
+from vgripd.redaction import redact
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.types import ImagePair, JobResult, PickInstance
 
@@ -40,6 +47,8 @@ log = logging.getLogger(__name__)
 PARTIAL_PREFIX = ".partial-"
 # Jobs waiting for the disk beyond this are not recorded (a stalled disk must not eat memory).
 MAX_PENDING = 4
+FILE_MODE = 0o640
+FOLDER_MODE = 0o750
 
 
 def dict_from_result(result: JobResult) -> dict[str, Any]:
@@ -90,6 +99,14 @@ def dict_from_instance(instance: PickInstance) -> dict[str, Any]:
     }
 
 
+def _write_text(path: Path, text: str) -> None:
+    """``text`` to a new file created mode ``FILE_MODE`` (never wider, whatever the umask)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, FILE_MODE)
+    os.fchmod(fd, FILE_MODE)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+
+
 def _dir_bytes(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
@@ -99,13 +116,14 @@ class Recorder:
 
     ``config_snapshot`` is the configuration as JSON data without None values
     (``Config.model_dump(mode="json", exclude_none=True)``), written beside every job as TOML
-    so that a recorded job can be reproduced even after the live config changed.
+    so that a recorded job can be reproduced even after the live config changed; its secrets
+    are redacted (a recording is for replay and support, not for the token).
     """
 
     def __init__(self, folder: Path, max_bytes: int, config_snapshot: Mapping[str, Any]) -> None:
         self.folder = folder
         self.max_bytes = max_bytes
-        self._config_toml = toml_from_dict(jsonable(config_snapshot))
+        self._config_toml = toml_from_dict(redact(jsonable(config_snapshot)))
         self._jobs: OrderedDict[str, int] = OrderedDict()  # name -> bytes, oldest first
         # Kept as a plain int (not summed on demand) so the event loop can read it while the
         # writer thread changes ``_jobs``.
@@ -117,7 +135,9 @@ class Recorder:
 
     def scan(self) -> None:
         """Take stock of jobs already in the folder; drop leftovers of interrupted writes."""
-        self.folder.mkdir(parents=True, exist_ok=True)
+        if not self.folder.is_dir():
+            self.folder.mkdir(mode=FOLDER_MODE, parents=True, exist_ok=True)
+            os.chmod(self.folder, FOLDER_MODE)
         self._jobs.clear()
         for entry in sorted(self.folder.iterdir()):
             if not entry.is_dir():
@@ -134,8 +154,9 @@ class Recorder:
         stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(t)) + f".{int(t % 1 * 1000):03d}"
         name = f"{stamp}-job{result.job_id:06d}"
         tmp = self.folder / (PARTIAL_PREFIX + name)
-        tmp.mkdir(parents=True)
+        tmp.mkdir(mode=FOLDER_MODE, parents=True)
         try:
+            os.chmod(tmp, FOLDER_MODE)  # before anything is in it (mkdir's mode meets the umask)
             if len(pair.views) > 2:  # a multi-camera cell: camera order of the config
                 images = {f"view{j}": image for j, image in enumerate(pair.views)}
             else:
@@ -143,16 +164,19 @@ class Recorder:
             for side, image in images.items():
                 if not cv2.imwrite(str(tmp / f"{side}.png"), image):
                     raise OSError(f"{tmp / side}.png: cv2.imwrite failed")
+                os.chmod(tmp / f"{side}.png", FILE_MODE)
             meta = {
-                "source": pair.source,
+                "source": redact(pair.source),
                 "t_mono_ns": pair.t_mono_ns,
                 "meta": jsonable(pair.meta),
                 "T_base_flange": jsonable(pair.T_base_flange),
                 "truth": jsonable(pair.truth),
             }
-            (tmp / "pair.json").write_text(json.dumps(meta, indent=2))
-            (tmp / "config.toml").write_text(self._config_toml)
-            (tmp / "result.json").write_text(json.dumps(dict_from_result(result), indent=2))
+            meta["meta"] = redact(meta["meta"])
+            _write_text(tmp / "pair.json", json.dumps(meta, indent=2))
+            _write_text(tmp / "config.toml", self._config_toml)
+            _write_text(tmp / "result.json",
+                        json.dumps(redact(dict_from_result(result)), indent=2))
             final = self.folder / name
             tmp.rename(final)
         except BaseException:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import stat
 import tomllib
 from pathlib import Path
 
@@ -148,3 +150,27 @@ async def test_the_worker_process_records_the_same_files(tmp_path: Path) -> None
             assert np.array_equal(a, b)
         else:
             assert (here / name).read_text() == (there / name).read_text(), name
+
+
+def test_modes_and_redaction_hold_under_a_wide_umask(tmp_path: Path) -> None:
+    """The recorder sets its modes itself (0640 files, 0750 folders, also under a umask of 0)
+    and writes no secret: the token and a camera URL's password are redacted."""
+    token = "a-test-token-of-32-characters-xx"
+    url = "rtsp://admin:pw-of-the-camera@cam.local/stream"
+    old = os.umask(0)
+    try:
+        rec = Recorder(tmp_path / "rec", 10**8, {"status": {"token": token}, "about": {"u": url}})
+        rec.scan()
+        pair = ImagePair.of_views([np.zeros((8, 8), np.uint8)], 0, source=url)
+        job = rec.write(pair, JobResult(job_id=1, status=Status.OK, message=f"from {url}"))
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "rec").stat().st_mode) == 0o750
+    assert stat.S_IMODE(job.stat().st_mode) == 0o750
+    for f in job.iterdir():
+        assert stat.S_IMODE(f.stat().st_mode) == 0o640, f.name
+        assert b"pw-of-the-camera" not in f.read_bytes(), f.name
+        assert token.encode() not in f.read_bytes(), f.name
+    assert json.loads((job / "pair.json").read_text())["source"] == (
+        "rtsp://<redacted>@cam.local/stream")
+    assert tomllib.loads((job / "config.toml").read_text())["status"]["token"] == "<redacted>"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections import Counter
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -17,6 +18,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from vgripd.config import config_from_dict
 from vgripd.errors import ConfigError
+from vgripd.redaction import redact
 from vgripd.service.protocol import (
     LinkHealth,
     LinkState,
@@ -24,7 +26,7 @@ from vgripd.service.protocol import (
     Trigger,
     ValueCodec,
 )
-from vgripd.service.web.app import MAX_EVENTS_QUEUED, EventHub, redact
+from vgripd.service.web.app import MAX_EVENTS_QUEUED, EventHub
 from vgripd.service.web.images import render
 from vgripd.service.web.metrics import Metrics
 from vgripd.service.web.registers import register_views
@@ -243,3 +245,82 @@ def test_view_names_cover_stereo_n_cameras_and_views() -> None:
     three = ImagePair.of_views([img] * 3, 0)
     assert view_names(views, three) == [["view0", "view1"], ["view1", "view2"],
                                         ["view2", "view3"]]
+
+
+def test_redact_hides_credentials_in_urls_anywhere() -> None:
+    """Row 12 of issue 20: ``rtsp://admin:pw@host/stream`` in a camera option stayed in
+    /api/config (redaction went by key name only)."""
+    data = {"camera": {"type": "opencv", "left": "rtsp://admin:pw@cam/stream",
+                       "right": "http://u:p%40ss@10.0.0.5:8080/mjpg?x=1&token=abc&key=k"},
+            "about": {"notes": ["see rtsp://op:p@ss@cam2/s for the spare", "x@y.z"]},
+            "links": [{"endpoint": "opc.tcp://plc:4840", "apikey": 7}]}
+    out = redact(data)
+    assert out["camera"]["left"] == "rtsp://<redacted>@cam/stream"
+    assert out["camera"]["right"] == ("http://<redacted>@10.0.0.5:8080/mjpg?x=1&token=<redacted>"
+                                      "&key=<redacted>")
+    assert out["about"]["notes"] == ["see rtsp://<redacted>@cam2/s for the spare", "x@y.z"]
+    assert out["links"] == [{"endpoint": "opc.tcp://plc:4840", "apikey": "<redacted>"}]
+    # The same function serves a real config (driver options are extra keys).
+    cfg = config_from_dict({"camera": {"type": "opencv", "left": "rtsp://admin:pw@cam/stream"}})
+    assert "admin:pw" not in str(redact(cfg.model_dump(mode="json", exclude_none=True)))
+
+
+def test_allowed_hosts_are_names_and_a_redacted_token_loads() -> None:
+    st = config_from_dict({"status": {"allowed_hosts": ["Cell-07.Plant.Example.", "[::1]",
+                                                         "10.0.0.5"]}}).status
+    assert st.allowed_hosts == ["cell-07.plant.example", "::1", "10.0.0.5"]
+    for bad in ["http://cell", "cell:8730", "cell/x", ""]:
+        with pytest.raises(ConfigError, match=r"status\.allowed_hosts"):
+            config_from_dict({"status": {"allowed_hosts": [bad]}})
+    # A recorded config (token redacted) still loads for replay; the web view refuses it.
+    assert config_from_dict({"status": {"token": "<redacted>"}}).status.token == "<redacted>"
+    assert config_from_dict({"status": {"host": "0.0.0.0", "token": TOKEN}}).status.guards_reads
+    assert not config_from_dict({"status": {"host": "0.0.0.0", "token": TOKEN,
+                                            "public_read": True}}).status.guards_reads
+    assert not config_from_dict({"status": {"token": TOKEN}}).status.guards_reads
+
+
+def test_event_streams_without_the_token_are_capped_and_holders_always_admitted() -> None:
+    from vgripd.service.web.app import (
+        MAX_EVENT_CLIENTS,
+        MAX_EVENT_CLIENTS_PER_ADDRESS,
+        MAX_HOLDER_STREAMS,
+    )
+
+    hub = EventHub()
+    admitted = [hub.admit(f"10.0.0.{i % 50}", holder=False) for i in range(200)]
+    assert sum(c is not None for c in admitted) == MAX_EVENT_CLIENTS
+    assert hub.admit("10.0.0.1", holder=False) is None
+    first = [hub.admit("10.0.1.1", holder=True) for _ in range(MAX_HOLDER_STREAMS)]
+    assert all(first)
+    newest = hub.admit("10.0.1.1", holder=True)
+    assert newest is not None
+    assert first[0] not in hub.clients  # the oldest holder stream made room
+    assert newest in hub.clients
+    hub2 = EventHub()
+    one = [hub2.admit("10.0.0.9", holder=False) for _ in range(10)]
+    assert sum(c is not None for c in one) == MAX_EVENT_CLIENTS_PER_ADDRESS
+
+
+def test_check_warns_about_the_test_trigger_and_public_reads(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Row 16 of issue 20: ``vgripd check`` printed OK and no warning with allow_trigger on."""
+    from vgripd.__main__ import main
+
+    cfg = tmp_path / "cell.toml"
+    cell = (f'[[links]]\ntype = "modbus_server"\nhost = "127.0.0.1"\nport = 0\n'
+            f'[status]\nport = 0\ntoken = "{TOKEN}"\n')
+    cfg.write_text(cell)
+    assert main(["check", "-c", str(cfg)]) == 0
+    assert "warning:" not in capsys.readouterr().out
+    cfg.write_text(cell + "allow_trigger = true\n")
+    assert main(["check", "-c", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("OK ")
+    assert "warning:" in out
+    assert "status.allow_trigger" in out
+    cfg.write_text(cell.replace("[status]", '[status]\nhost = "0.0.0.0"') + "public_read = true\n")
+    assert main(["check", "-c", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "status.public_read" in out
+    assert "status.allow_trigger" not in out

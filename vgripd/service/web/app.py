@@ -23,34 +23,37 @@ Routes (docs/web.md)::
     GET  /metrics                    Prometheus text format
     POST /api/trigger[?recipe=N]     test trigger      (status.allow_trigger + token)
     GET  /api/support-bundle         zip download      (status.allow_support_bundle + token)
+    GET  /login, POST /login         the token form; sets the session cookie (guarded reads)
 
-Security model: read-only by default and bound to 127.0.0.1; the config refuses a non-loopback
-bind without ``status.token``. An action answers 404 while disabled and 403 without the token
-(``Authorization: Bearer <token>``, compared in constant time).
+Security model (``access.Access``, docs/web.md): read-only by default and bound to 127.0.0.1;
+the config refuses a non-loopback bind without ``status.token``, and such a bind needs the
+token on every route unless ``status.public_read``. A foreign ``Host:`` gets 421; every answer
+carries the security headers. An action answers 404 while disabled and 403 without the token
+(``Authorization: Bearer <token>`` only, compared in constant time: the cookie is not enough).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import hmac
 import json
 import logging
 import os
-import tempfile
 import time
-import zipfile
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
 
 from vgripd.errors import VgripError
+from vgripd.redaction import REDACTED, redact
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.recorder import PARTIAL_PREFIX, dict_from_result
 from vgripd.service.web.guard import GuardedSite, make_guard
+from vgripd.service.web.access import Access, ServerLogLimit
+from vgripd.service.web.bundle import write_bundle
 from vgripd.service.web.images import ImageRenderer
 from vgripd.service.web.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from vgripd.service.web.metrics import Metrics
@@ -64,15 +67,23 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).parent / "static"
-# Server-sent event clients at once, and events one may have unsent before it is dropped.
+# Server-sent event streams: of clients without the token at once (all of them, and from one
+# address), of token holders (the oldest is dropped for a new one: the operator is always
+# served), and the events one may have unsent before it is dropped.
 MAX_EVENT_CLIENTS = 32
+MAX_EVENT_CLIENTS_PER_ADDRESS = 4
+MAX_HOLDER_STREAMS = 16
 MAX_EVENTS_QUEUED = 64
 KEEPALIVE_S = 15.0
 LINK_POLL_S = 0.25
 LOG_LINES = 2000
 SHUTDOWN_TIMEOUT_S = 1.0
-REDACTED = "<redacted>"
-_SECRET_WORDS = ("token", "password", "passwd", "secret", "credential", "api_key", "apikey")
+LOG_FLUSH_S = 10.0
+# Job ids and camera numbers in a path: more digits than this is no job (and int() of
+# thousands of digits raises).
+MAX_ID_DIGITS = 18
+# The loggers whose lines about bad requests are rate-limited while the view runs.
+SERVER_LOGGERS = ("aiohttp.server", "aiohttp.web")
 
 
 class StatusEndpointError(VgripError):
@@ -80,14 +91,12 @@ class StatusEndpointError(VgripError):
     start (exit 1, like a link that cannot listen)."""
 
 
-def redact(data: Any) -> Any:
-    """``data`` with the value of every key that names a secret replaced by ``REDACTED``."""
-    if isinstance(data, dict):
-        return {k: (REDACTED if v is not None and any(w in str(k).lower() for w in _SECRET_WORDS)
-                    else redact(v)) for k, v in data.items()}
-    if isinstance(data, list | tuple):
-        return [redact(v) for v in data]
-    return data
+def _id(text: str) -> int:
+    """A job id or camera number from the path (the route admits digits only): 404 when it
+    cannot be one."""
+    if not text.isascii() or not text.isdigit() or len(text) > MAX_ID_DIGITS:
+        raise web.HTTPNotFound(text="no such job in the history")
+    return int(text)
 
 
 class LogRing(logging.Handler):
@@ -104,15 +113,45 @@ class LogRing(logging.Handler):
 
 
 class _Client:
-    def __init__(self) -> None:
+    def __init__(self, address: str = "", holder: bool = False) -> None:
         self.queue: asyncio.Queue[bytes | None] = asyncio.Queue(MAX_EVENTS_QUEUED)
+        self.address = address
+        self.holder = holder  # the request carried the token
 
 
 class EventHub:
-    """Server-sent events to every connected page; a page that does not read is dropped."""
+    """Server-sent events to every connected page; a page that does not read is dropped.
+
+    Streams are bounded so that no crowd locks the operator out: clients without the token
+    get at most ``MAX_EVENT_CLIENTS`` streams in all and ``MAX_EVENT_CLIENTS_PER_ADDRESS``
+    from one address; a token holder is always served, the oldest holder stream dropped
+    beyond ``MAX_HOLDER_STREAMS``.
+    """
 
     def __init__(self) -> None:
         self.clients: set[_Client] = set()
+        self._holders: deque[_Client] = deque()  # oldest first
+
+    def admit(self, address: str, holder: bool) -> _Client | None:
+        """A new stream's client, or None when its kind is full (answer 503)."""
+        if holder:
+            while len(self._holders) >= MAX_HOLDER_STREAMS:
+                self._drop(self._holders[0])
+        else:
+            anonymous = [c for c in self.clients if not c.holder]
+            if (len(anonymous) >= MAX_EVENT_CLIENTS or sum(
+                    c.address == address for c in anonymous) >= MAX_EVENT_CLIENTS_PER_ADDRESS):
+                return None
+        client = _Client(address, holder)
+        self.clients.add(client)
+        if holder:
+            self._holders.append(client)
+        return client
+
+    def leave(self, client: _Client) -> None:
+        self.clients.discard(client)
+        with contextlib.suppress(ValueError):
+            self._holders.remove(client)
 
     def publish(self, event: str, data: Any) -> None:
         frame = f"event: {event}\ndata: {json.dumps(jsonable(data))}\n\n".encode()
@@ -123,7 +162,7 @@ class EventHub:
                 self._drop(client)
 
     def _drop(self, client: _Client) -> None:
-        self.clients.discard(client)
+        self.leave(client)
         with contextlib.suppress(asyncio.QueueEmpty):
             while True:
                 client.queue.get_nowait()
@@ -135,8 +174,9 @@ class EventHub:
 
 
 def job_summary(record: JobRecord, t_wall: float, images: bool) -> dict[str, Any]:
-    """A finished job as the view shows it (JSON data)."""
-    r = dict_from_result(record.result)
+    """A finished job as the view shows it (JSON data; a message that quotes a camera URL
+    does not show its credentials)."""
+    r = redact(dict_from_result(record.result))
     return {
         "id": record.job_id, "link": record.link, "seq": record.seq, "recipe": record.recipe,
         "status": r["status"], "status_code": r["status_code"], "message": r["message"],
@@ -171,7 +211,12 @@ class WebServer:
         st = daemon.config.status
         self.host = st.host
         self._requested_port = st.port
-        self._token = st.token
+        if st.token == REDACTED:
+            raise StatusEndpointError(
+                f"status.token is {REDACTED!r} (a recorded or bundled config): set the real "
+                f"token, or [status] enabled = false")
+        self.access = Access(st)
+        self._log_limit = ServerLogLimit(self.access.ratelog)
         self._allow_trigger = st.allow_trigger
         self._allow_bundle = st.allow_support_bundle
         self.history: deque[tuple[JobRecord, dict[str, Any]]] = deque(maxlen=st.history)
@@ -219,7 +264,10 @@ class WebServer:
         self._io = ThreadPoolExecutor(1, thread_name_prefix="vgripd-web-io")
         self.daemon.listeners.append(self._on_job)
         logging.getLogger().addHandler(self.logs)
+        for name in SERVER_LOGGERS:
+            logging.getLogger(name).addFilter(self._log_limit)
         self._spawn(self._watch_links())
+        self._spawn(self._flush_logs())
         log.info("web view: http://%s:%d/ (status JSON at /api/status, metrics at /metrics)",
                  self.host, self.port)
 
@@ -227,6 +275,8 @@ class WebServer:
         with contextlib.suppress(ValueError):
             self.daemon.listeners.remove(self._on_job)
         logging.getLogger().removeHandler(self.logs)
+        for name in SERVER_LOGGERS:
+            logging.getLogger(name).removeFilter(self._log_limit)
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -272,16 +322,25 @@ class WebServer:
                    for name, h in ((n, link.health()) for n, link in self.daemon.links.items())]
             if now != last:
                 if last:
-                    self.events.publish("links", self.daemon.snapshot()["links"])
+                    self.events.publish("links", redact(self.daemon.snapshot()["links"]))
                 last = now
             await asyncio.sleep(LINK_POLL_S)
+
+    async def _flush_logs(self) -> None:
+        """Report held rate-limited log lines whose minute is over (a burst that stopped)."""
+        while True:
+            await asyncio.sleep(LOG_FLUSH_S)
+            self.access.ratelog.flush()
 
     # --- the application ------------------------------------------------------------------
 
     def _make_app(self) -> web.Application:
-        app = web.Application(client_max_size=64 * 1024)
+        app = web.Application(client_max_size=64 * 1024, middlewares=[self.access.middleware])
+        app.on_response_prepare.append(self.access.add_headers)
         r = app.router
         r.add_get("/", self._index)
+        r.add_get("/login", self.access.login_form)
+        r.add_post("/login", self.access.login)
         r.add_route("*", "/status", self._status)
         r.add_get("/api/status", self._status)
         r.add_get("/api/jobs", self._jobs)
@@ -306,7 +365,7 @@ class WebServer:
         status = self.daemon.snapshot()
         status["web"] = {"trigger": self._allow_trigger, "support_bundle": self._allow_bundle,
                          "history": self.history.maxlen}
-        return web.Response(text=json.dumps(jsonable(status), indent=1),
+        return web.Response(text=json.dumps(redact(jsonable(status)), indent=1),
                             content_type="application/json")
 
     def _find(self, job_id: int) -> tuple[JobRecord, dict[str, Any]] | None:
@@ -319,7 +378,7 @@ class WebServer:
         return web.json_response([s for _, s in reversed(self.history)])
 
     async def _job(self, request: web.Request) -> web.Response:
-        found = self._find(int(request.match_info["id"]))
+        found = self._find(_id(request.match_info["id"]))
         if found is None:
             raise web.HTTPNotFound(text="no such job in the history")
         return web.json_response(found[1])
@@ -341,9 +400,9 @@ class WebServer:
         return str(Path(rec.folder) / names[-1]) if names else None
 
     async def _image(self, request: web.Request) -> web.Response:
-        job_id = int(request.match_info["id"])
+        job_id = _id(request.match_info["id"])
         name = request.match_info["side"]
-        side = {"left": 0, "right": 1}.get(name) if not name.startswith("view") else int(
+        side = {"left": 0, "right": 1}.get(name) if not name.startswith("view") else _id(
             name[4:])
         assert side is not None  # the route admits nothing else
         fut = self.images.cached(job_id)
@@ -373,14 +432,17 @@ class WebServer:
                             headers={"Cache-Control": "private, max-age=3600"})
 
     async def _events(self, request: web.Request) -> web.StreamResponse:
-        if len(self.events.clients) >= MAX_EVENT_CLIENTS:
-            raise web.HTTPServiceUnavailable(text="too many pages open")
+        address = request.remote or "?"
+        client = self.events.admit(address, self.access.holds_token(request))
+        if client is None:
+            self.access.ratelog.info(address, "streams", "web view: event stream refused to "
+                                     "%s: too many open without the token", address)
+            raise web.HTTPServiceUnavailable(text="too many pages open (log in with the token "
+                                                  "at /login to be served always)")
         resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
                                            "Cache-Control": "no-cache"})
-        await resp.prepare(request)
-        client = _Client()
-        self.events.clients.add(client)
         try:
+            await resp.prepare(request)
             await resp.write(b"retry: 2000\n\n")
             while True:
                 try:
@@ -394,7 +456,7 @@ class WebServer:
         except (ConnectionError, asyncio.CancelledError):
             pass
         finally:
-            self.events.clients.discard(client)
+            self.events.leave(client)
         return resp
 
     async def _config(self, request: web.Request) -> web.Response:
@@ -414,9 +476,7 @@ class WebServer:
         """404 while the action is disabled, 403 unless the request carries the token."""
         if not enabled:
             raise web.HTTPNotFound(text="this action is disabled in the config")
-        header = request.headers.get("Authorization", "")
-        given = header.removeprefix("Bearer ").strip() if header.startswith("Bearer ") else ""
-        if not self._token or not hmac.compare_digest(given.encode(), self._token.encode()):
+        if not self.access.bearer_ok(request):  # the header only: never the login cookie
             raise web.HTTPForbidden(text="this action needs the token: "
                                          "Authorization: Bearer <status.token>")
 
@@ -428,7 +488,7 @@ class WebServer:
         if not isinstance(link, WebTriggerLink):
             raise web.HTTPNotFound(text="no web trigger link")
         text = request.query.get("recipe", "0")
-        if not text.isdigit() or int(text) > 65535:
+        if not text.isascii() or not text.isdigit() or len(text) > 5 or int(text) > 65535:
             raise web.HTTPBadRequest(text=f"recipe={text!r}: a recipe number is 0 .. 65535")
         log.info("web view: test trigger (recipe %s) from %s", text, request.remote)
         timeout_s = self.daemon.config.daemon.job_timeout_s + 5.0
@@ -444,17 +504,17 @@ class WebServer:
         loop = asyncio.get_running_loop()
         status = self.daemon.snapshot()
         parts = {
-            "status.json": json.dumps(jsonable(status), indent=1),
+            "status.json": json.dumps(redact(jsonable(status)), indent=1),
             "jobs.json": json.dumps([s for _, s in reversed(self.history)], indent=1),
             "config.toml": toml_from_dict(redact(jsonable(
                 self.daemon.config.model_dump(mode="json", exclude_none=True)))),
             "metrics.txt": self.metrics.render().decode(),
-            "log.txt": "\n".join(self.logs.lines) + "\n",
+            "log.txt": "\n".join(redact(list(self.logs.lines))) + "\n",
         }
         rec = self.daemon.recorder
         folder = None if rec is None else Path(rec.folder)
         n_jobs = self.daemon.config.status.bundle_jobs
-        file = await loop.run_in_executor(self._io, _write_bundle, parts, folder, n_jobs)
+        file = await loop.run_in_executor(self._io, write_bundle, parts, folder, n_jobs)
         stamp = time.strftime("%Y%m%d-%H%M%S")
         resp = web.StreamResponse(headers={
             "Content-Type": "application/zip",
@@ -467,27 +527,3 @@ class WebServer:
         finally:
             file.close()
         return resp
-
-
-def _write_bundle(parts: dict[str, str], recorded: Path | None, n_jobs: int) -> IO[bytes]:
-    """The support bundle as a zip in an anonymous temporary file (read from the start)."""
-    file = tempfile.TemporaryFile()  # noqa: SIM115 (returned open, closed by the caller)
-    with zipfile.ZipFile(file, "w", zipfile.ZIP_DEFLATED) as z:
-        for name, text in parts.items():
-            z.writestr(name, text)
-        jobs: list[Path] = []
-        if recorded is not None and n_jobs:
-            with contextlib.suppress(OSError):
-                jobs = sorted((p for p in recorded.iterdir()
-                               if p.is_dir() and not p.name.startswith(PARTIAL_PREFIX)),
-                              key=lambda p: p.name)[-n_jobs:]
-        for job in jobs:
-            for f in sorted(job.iterdir()):
-                if f.name == "config.toml":
-                    continue  # the config is at the top, secrets redacted
-                with contextlib.suppress(OSError):
-                    # PNGs are compressed already.
-                    kind = zipfile.ZIP_STORED if f.suffix == ".png" else zipfile.ZIP_DEFLATED
-                    z.write(f, f"jobs/{job.name}/{f.name}", compress_type=kind)
-    file.seek(0)
-    return file
