@@ -51,9 +51,9 @@ from vgripd.errors import VgripError
 from vgripd.redaction import REDACTED, redact
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.recorder import PARTIAL_PREFIX, dict_from_result
-from vgripd.service.web.guard import GuardedSite, make_guard
 from vgripd.service.web.access import Access, ServerLogLimit
 from vgripd.service.web.bundle import write_bundle
+from vgripd.service.web.guard import GuardedSite, make_guard
 from vgripd.service.web.images import ImageRenderer
 from vgripd.service.web.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from vgripd.service.web.metrics import Metrics
