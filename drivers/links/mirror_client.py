@@ -6,9 +6,14 @@ register block of ``vgripd.service.protocol`` (``drivers.links.s7``: a PLC data 
 ``RegisterBank`` and its journal), the daemon-facing calls that wait until the peer has a change
 (``_flushed`` and its waiters, released with an outage), the health and its condition, and the
 supervisor: one task that connects, makes the first contact, then polls and pushes until the
-connection drops, and reconnects with doubling back-off, logging once per outage (one WARNING
-line, no traceback). A subclass brings the transport through the hooks below (connect, read
-and write the block, disconnect) and says which refusal of the first contact is for good.
+connection drops, and reconnects with doubling back-off after any error, logging once per
+outage (one line, no traceback). A subclass brings the transport through the hooks below
+(connect, read and write the block, disconnect) and explains a refusal of the block.
+
+No peer error stops the retrying (issue 20): a peer that answers garbage, a block the peer
+refuses (a wrong address, a DB not yet downloaded, access not yet allowed) are outages like a
+lost connection, since the peer can be fixed or replaced while vgripd runs. A refusal of the
+block is logged at ERROR with what to check (it needs a person), anything else at WARNING.
 """
 
 from __future__ import annotations
@@ -102,8 +107,8 @@ class MirrorClientLink(RobotLink, Generic[C]):
         """One round of the serve loop: push what is pending, poll; the peer's command area."""
 
     @abstractmethod
-    def _refused_for_good(self, err: LinkError) -> str | None:
-        """The FAILED reason if ``err`` at this point means the block is not there; else None."""
+    def _refusal_hint(self, err: LinkError) -> str | None:
+        """``err`` with what to check, if it means the peer refuses the block; else None."""
 
     def _transport_error(self, err: Exception) -> str | None:
         """The outage's reason for an exception the transport let through; None for a bug."""
@@ -119,8 +124,8 @@ class MirrorClientLink(RobotLink, Generic[C]):
     async def open(self, on_trigger: TriggerHandler) -> None:
         """Start the supervisor and wait for the outcome of its first contact.
 
-        Raises ``LinkError`` (state FAILED) if the peer refuses the block. An unreachable peer
-        is not an error here: the supervisor keeps retrying (state DOWN).
+        Neither an unreachable peer nor one that refuses the block is an error here: the
+        supervisor keeps retrying (state DOWN, with the reason).
         """
         if self._task is not None:
             raise LinkError(f"link {self.name}: already open")
@@ -234,6 +239,7 @@ class MirrorClientLink(RobotLink, Generic[C]):
         opt = self.options
         delay = opt.backoff_initial_s
         error = ""
+        refusal = False
         outage_logged = False
         while True:
             await self._set_health(LinkState.CONNECTING, error)
@@ -248,25 +254,23 @@ class MirrorClientLink(RobotLink, Generic[C]):
                 delay = opt.backoff_initial_s
                 await self._serve(client)
             except LinkError as err:
-                error = str(err)
-                failed = self._refused_for_good(err)
-                if failed is not None:
-                    self._log.error("%s: %s", self.name, failed)
-                    await self._set_health(LinkState.FAILED, failed)
-                    return
+                hint = self._refusal_hint(err)
+                refusal = hint is not None
+                error = hint or str(err)
             except Exception as err:
                 reason = self._transport_error(err)
                 if reason is None:  # a bug must not leave a dead link reporting UP
                     self._log.exception("%s: unexpected error talking to %s", self.name,
                                         self._peer)
                     reason = f"internal error: {err!r}"
-                error = reason
+                error, refusal = reason, False
             finally:
                 self._drop(client)
             self._release_waiters(LinkError(f"link {self.name}: {error}"))
             if not outage_logged:
-                self._log.warning("%s: %s; retrying with back-off up to %.1f s", self.name,
-                                  error, opt.backoff_max_s)
+                self._log.log(logging.ERROR if refusal else logging.WARNING,
+                              "%s: %s; retrying with back-off up to %.1f s", self.name,
+                              error, opt.backoff_max_s)
                 outage_logged = True
             await self._set_health(LinkState.DOWN, error)
             await asyncio.sleep(delay)

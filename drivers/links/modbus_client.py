@@ -28,9 +28,10 @@ exactly those (the link reports the outage itself) unless the ``pymodbus`` logge
 DEBUG for troubleshooting. A daemon call waiting for the robot (``publish``,
 ``image_captured``) is always released with the outage, never left to time out.
 
-If the robot refuses a register of the block at the first contact (ILLEGAL_ADDRESS or
-ILLEGAL_FUNCTION) the link is FAILED and not retried: a wrong ``base_address`` does not fix
-itself; other exception codes (busy, device failure) are retried.
+Every error is retried, whatever the robot did. A register of the block the robot refuses
+(ILLEGAL_ADDRESS or ILLEGAL_FUNCTION: a wrong ``base_address``, a robot whose Modbus setup is
+being changed) is logged once at ERROR, naming the register, and retried like any outage;
+other exception codes (busy, device failure) and answers that are not Modbus are outages too.
 
 RESULT_AGE_MS is live on the server link; here it is refreshed with every heartbeat. WARNINGS
 (map register 40) is written when the daemon changes it, like any other mirror change.
@@ -202,9 +203,9 @@ class ModbusClientLink(MirrorClientLink[AsyncModbusTcpClient]):
         client.close()
         self._lost = None
 
-    def _refused_for_good(self, err: LinkError) -> str | None:
-        if isinstance(err, RegisterRefused) and err.permanent and not self._primed:
-            return str(err)
+    def _refusal_hint(self, err: LinkError) -> str | None:
+        if isinstance(err, RegisterRefused) and err.permanent:
+            return f"{err}; check base_address against the robot's register range"
         return None
 
     def _transport_error(self, err: Exception) -> str | None:

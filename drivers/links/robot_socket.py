@@ -447,6 +447,10 @@ class RobotSocketLink(RobotLink):
         delay = o.backoff_initial_s
         error = ""
         outage_logged = False
+        # The last connection carried no valid request (the peer sent garbage at once, or
+        # nothing): not a recovery, so the outage, its single log line and its growing
+        # back-off go on (issue 20: any peer error is retried with back-off, logged once).
+        fruitless = False
         while True:
             await self._set_health(LinkState.CONNECTING, error)
             conn: RobotConnection | None = None
@@ -465,11 +469,15 @@ class RobotSocketLink(RobotLink):
                 error = f"internal error: {err!r}"
             if conn is not None:
                 await self._set_health(LinkState.UP, reconnect=outage_logged)
-                log.info("%s: connected to the robot at %s%s", self.name, self._where,
-                         " again" if outage_logged else "")
-                outage_logged = False
-                delay = o.backoff_initial_s
+                if not fruitless:
+                    log.info("%s: connected to the robot at %s%s", self.name, self._where,
+                             " again" if outage_logged else "")
                 await asyncio.shield(conn.closed)
+                malformed = conn.close_reason.startswith("malformed")
+                fruitless = conn.requests <= int(malformed)
+                if not fruitless:
+                    outage_logged = False
+                    delay = o.backoff_initial_s
                 error = f"connection to {self._where} lost: {conn.close_reason}"
             if not outage_logged:
                 log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, error,

@@ -34,10 +34,12 @@ by shutting down its socket (snap7's own connect timeout is a fixed 5 s). One su
 owns the connection and is the only retry loop (snap7's auto-reconnect stays off). After a drop
 it reconnects with doubling back-off and logs once per outage (one WARNING line, no
 traceback); ``health()`` says DOWN with the reason. A daemon call waiting for the PLC is
-released with the outage. If the PLC refuses the block at the first contact (the DB does not
-exist, is too short, has optimized access, or PUT/GET is not allowed) the link is FAILED and
-not retried: that does not fix itself. snap7's own INFO lines (one per connect attempt) are
-kept out of the log unless the ``snap7`` logger is configured explicitly.
+released with the outage. Every error is retried, whatever the peer did: a peer that
+completes the ISO-on-TCP connect and then answers garbage, or a PLC that refuses the block (the
+DB does not exist, is too short, has optimized access, or PUT/GET is not allowed: logged at
+ERROR with what to check, since a download from TIA Portal fixes it while vgripd runs). snap7's
+own INFO lines (one per connect attempt) are kept out of the log unless the ``snap7`` logger
+is configured explicitly.
 """
 
 from __future__ import annotations
@@ -199,13 +201,16 @@ class S7Link(MirrorClientLink[Client]):
 
     async def _connect(self, client: Client) -> None:
         opt = self.options
-        await self._call(
-            f"connecting (rack {opt.rack}, slot {opt.slot})",
-            functools.partial(client.connect, opt.host, opt.rack, opt.slot, opt.port),
-        )
+        try:
+            await self._call(
+                f"connecting (rack {opt.rack}, slot {opt.slot})",
+                functools.partial(client.connect, opt.host, opt.rack, opt.slot, opt.port),
+            )
+        except S7Refused as err:  # no block asked for yet: a peer that does not speak S7
+            raise LinkError(f"{self._peer} is not an S7 PLC as expected ({err})") from None
 
-    def _refused_for_good(self, err: LinkError) -> str | None:
-        if not isinstance(err, S7Refused) or self._primed:
+    def _refusal_hint(self, err: LinkError) -> str | None:
+        if not isinstance(err, S7Refused):
             return None
         return (f"{err}; check db and start (the DB must hold {self._area}), that the DB has "
                 "optimized block access off and that the CPU allows PUT/GET (docs/s7.md)")

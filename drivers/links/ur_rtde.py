@@ -14,8 +14,9 @@ side reads the child's pipe with ``add_reader`` (no threads) and one supervisor 
 child: it starts it, waits for ``up`` at most ``connect_timeout_s``, serves, and on any failure
 (silent controller, refused connection, dropped socket, data stream older than
 ``stale_after_s``, child crash) kills it and starts a new one after a doubling back-off, logging
-once per outage. A register ``IN_USE`` or a variable the controller does not know is FAILED, not
-retried: it is a configuration problem of the robot.
+once per outage. No error of the controller stops the retrying (issue 20): a register
+``IN_USE`` or a variable the controller does not know is a configuration problem of the robot,
+fixed on the robot while vgripd runs, so it is an outage too, logged once at ERROR naming it.
 
 After every reconnect the warning bits (``set_warnings``, input_double_register 21) and the last
 ``image_captured``/``publish`` are written again, so a robot whose acknowledge was lost with the
@@ -158,7 +159,8 @@ class _Child:
         self.process = ctx.Process(
             target=ur_rtde_worker.main, name=f"ur_rtde {opts.host}", daemon=True,
             args=(child_conn, child_output, opts.host, opts.use_upper_range_registers,
-                  opts.frequency_hz, opts.stale_after_s, opts.connect_timeout_s, last_seq))
+                  opts.frequency_hz, opts.stale_after_s, opts.connect_timeout_s, last_seq,
+                  os.getpid()))
         self._child_conns: list[Connection] = [child_conn, child_output]
         self.messages: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue()
         self.exited: asyncio.Future[int] = asyncio.get_running_loop().create_future()
@@ -283,9 +285,8 @@ class URRtdeLink(RobotLink):
     async def open(self, on_trigger: TriggerHandler) -> None:
         """Start the supervisor and wait for the first attempt's outcome.
 
-        Raises ``LinkError`` (state FAILED) for problems retrying cannot fix (register IN_USE,
-        variable NOT_FOUND). An unreachable or silent controller is not an error here: the link
-        is DOWN and keeps retrying.
+        Nothing the controller does is an error here: unreachable, silent, or refusing a
+        register (IN_USE, NOT_FOUND), the link is DOWN with the reason and keeps retrying.
         """
         if self._task is not None:
             raise LinkError(f"link {self.name}: already open")
@@ -423,14 +424,11 @@ class URRtdeLink(RobotLink):
                 await child.stop(grace_s=1.0)
             if self._health.state is LinkState.UP:
                 ever_up, failures, backoff = True, 0, self.options.backoff_initial_s
-            if fatal:
-                log.error("link %s: %s", self.name, error)
-                await self._set_health(LinkState.FAILED, error)
-                return
             failures += 1
-            if failures == 1:
-                log.warning("link %s down: %s (retrying with back-off up to %.0f s)",
-                            self.name, error, self.options.backoff_max_s)
+            if failures == 1:  # a refused register needs a person: ERROR, else WARNING
+                log.log(logging.ERROR if fatal else logging.WARNING,
+                        "link %s down: %s (retrying with back-off up to %.0f s)",
+                        self.name, error, self.options.backoff_max_s)
             else:
                 log.debug("link %s still down (attempt %d): %s", self.name, failures, error)
             await self._set_health(LinkState.DOWN, error)

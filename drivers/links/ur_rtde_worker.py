@@ -34,6 +34,7 @@ from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from typing import Any
 
+from vgripd.service.lifetime import die_with_daemon
 from vgripd.service.protocol import URRegisterMap
 
 RTDE_PORT = 30004
@@ -286,8 +287,13 @@ def _redirect_output(output: Connection | None) -> None:
 
 def main(conn: Connection, output: Connection | None, host: str, upper: bool,
          frequency_hz: float, stale_after_s: float, probe_timeout_s: float,
-         last_seq: int | None) -> None:
-    """Process entry point: connect, report ``up`` or ``error``, serve until closed or lost."""
+         last_seq: int | None, daemon_pid: int | None = None) -> None:
+    """Process entry point: connect, report ``up`` or ``error``, serve until closed or lost.
+
+    ``daemon_pid``: the process that spawned this one; the kernel kills this one when it dies.
+    """
+    if daemon_pid is not None:
+        die_with_daemon(daemon_pid)
     _redirect_output(output)
     regs = URRegisterMap(upper)
     peer = f"{host}:{RTDE_PORT}"

@@ -7,6 +7,7 @@ word-order or scaling bug in the link cannot cancel out.
 from __future__ import annotations
 
 import asyncio
+import re
 import struct
 from collections.abc import AsyncIterator, Callable
 
@@ -21,6 +22,7 @@ from vgripd.service.protocol import (
     MAP_VERSION,
     BlockWrite,
     Command,
+    LinkHealth,
     LinkState,
     Reg,
     RegisterBank,
@@ -239,15 +241,29 @@ async def test_silent_robot_times_out_and_loop_stays_responsive(robot: MockRobot
     assert link.health().state is LinkState.STOPPED
 
 
-async def test_refused_range_at_start_fails_naming_the_register() -> None:
+async def _refused_and_retried(link: ModbusClientLink,
+                               caplog: pytest.LogCaptureFixture) -> LinkHealth:
+    """Open ``link`` on a robot that refuses part of its block: DOWN with the reason, retried
+    (never FAILED: the robot's setup can change while vgripd runs), one ERROR line."""
+    with caplog.at_level("INFO", logger="drivers.links.modbus_client"):
+        await link.open(Daemon(link).on_trigger)
+        for _ in range(3):
+            await link.wait_state(LinkState.CONNECTING, WAIT_S)
+            health = await link.wait_state({LinkState.DOWN, LinkState.FAILED}, WAIT_S)
+            assert health.state is LinkState.DOWN
+    records = [r for r in caplog.records if r.name == "drivers.links.modbus_client"]
+    assert [r.levelname for r in records] == ["ERROR"]
+    return health
+
+
+async def test_refused_range_at_start_is_an_outage_naming_the_register(
+        caplog: pytest.LogCaptureFixture) -> None:
     robot = MockRobotModbus()
     await robot.start()
     link = make_link(robot, base_address=240)  # 240 + 40 words runs past UR's 255
     try:
-        with pytest.raises(LinkError, match=r"registers 256\.\.256 .*map register REJECT_CODE"):
-            await link.open(Daemon(link).on_trigger)
-        health = link.health()
-        assert health.state is LinkState.FAILED
+        health = await _refused_and_retried(link, caplog)
+        assert re.search(r"registers 256\.\.256 .*map register REJECT_CODE", health.last_error)
         assert "exception 2 (ILLEGAL_ADDRESS)" in health.last_error
     finally:
         await link.close()
@@ -275,13 +291,14 @@ async def test_warnings_reach_the_robot_and_are_rewritten_after_an_outage(
         await link.close()
 
 
-async def test_block_one_word_too_long_for_the_robot_names_warnings() -> None:
+async def test_block_one_word_too_long_for_the_robot_names_warnings(
+        caplog: pytest.LogCaptureFixture) -> None:
     robot = MockRobotModbus()
     await robot.start()
     link = make_link(robot, base_address=216)  # 216 + 40 = 256: only WARNINGS is missing
     try:
-        with pytest.raises(LinkError, match=r"registers 256\.\.256 .*map register WARNINGS"):
-            await link.open(Daemon(link).on_trigger)
+        health = await _refused_and_retried(link, caplog)
+        assert re.search(r"registers 256\.\.256 .*map register WARNINGS", health.last_error)
     finally:
         await link.close()
         await robot.stop()
@@ -473,3 +490,49 @@ async def test_next_walks_the_pick_list_in_the_robot(robot: MockRobotModbus) -> 
           for s in seen]
     assert xs == [100.0, 200.0, 0.0]
     assert seen[-1].writes[-1] == RegisterWrite(BASE + Reg.ACK_SEQ, (3,))  # ACK last
+
+
+@pytest.mark.parametrize("garbage", [
+    b"\xde\xad\xbe\xef" * 8,  # not Modbus/TCP at all
+    b"\x00\x01\x00\x00\x00\x03\x01\x83",  # an MBAP header whose PDU is cut short
+    b"HTTP/1.1 400 Bad Request\r\n\r\n",  # another server on the port
+])
+async def test_a_peer_answering_garbage_is_retried_and_the_robot_comes_back(
+        garbage: bytes, caplog: pytest.LogCaptureFixture) -> None:
+    """Any peer error is an outage: DOWN, retried with back-off (never FAILED), logged once;
+    the real robot on the same port brings the link UP."""
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            while await reader.read(1024):
+                writer.write(garbage)
+                await writer.drain()
+        except ConnectionError:
+            pass
+        finally:
+            writer.close()
+
+    peer = await asyncio.start_server(handle, "127.0.0.1", 0)
+    port = peer.sockets[0].getsockname()[1]
+    robot = MockRobotModbus(port=port)
+    link = make_link(robot)
+    try:
+        with caplog.at_level("INFO", logger="drivers.links.modbus_client"):
+            await link.open(Daemon(link).on_trigger)
+            for _ in range(3):
+                await link.wait_state(LinkState.CONNECTING, WAIT_S)
+                down = await link.wait_state({LinkState.DOWN, LinkState.FAILED}, WAIT_S)
+                assert down.state is LinkState.DOWN
+            peer.close()
+            await peer.wait_closed()
+            await robot.start()
+            up = await link.wait_state(LinkState.UP, WAIT_S)
+            assert up.reconnects == 1
+            records = [r for r in caplog.records
+                       if r.name == "drivers.links.modbus_client"]
+        assert [r.levelname for r in records] == ["WARNING", "INFO"], records
+        assert all(r.exc_info is None for r in records)
+    finally:
+        await link.close()
+        peer.close()
+        await robot.stop()

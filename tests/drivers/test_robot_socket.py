@@ -477,6 +477,46 @@ async def test_client_mode_reconnects_with_back_off_and_one_line_per_outage(
     no_tracebacks(caplog)
 
 
+async def test_client_mode_peer_sending_garbage_at_once_is_one_outage_until_a_robot_answers(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A peer on the robot's port that sends garbage on every connection (issue 20): one
+    outage, logged once and retried with back-off; a real robot on that port then serves."""
+    caplog.set_level(logging.INFO)
+    port = free_port()
+    garbage_peers: list[asyncio.StreamWriter] = []
+
+    def garbage(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(b"\xff" * 16)  # one frame's worth, not a request
+        garbage_peers.append(writer)
+
+    fake = await asyncio.start_server(garbage, "127.0.0.1", port)
+    async with serving(mode="client", port=port, backoff_initial_s=0.02,
+                       backoff_max_s=0.1) as (link, triggers):
+        await until(lambda: len(garbage_peers) >= 4)  # dialled again and again
+        await link.wait_state(LinkState.DOWN, WAIT_S)
+        assert "malformed frame" in link.health().last_error
+        assert lines(caplog, "retrying with back-off") == 1
+        assert lines(caplog, "connected to the robot", logging.INFO) <= 1
+        fake.close()
+        for w in garbage_peers:
+            w.close()
+        await fake.wait_closed()
+        robot = RobotServer(port)
+        await robot.start()
+        peer = await robot.accepted()
+        await link.wait_state(LinkState.UP, WAIT_S)
+        await peer.request(1)
+        await until(lambda: triggers)
+        await link.image_captured(1, 1)
+        assert await link.publish(1, ok(1)) is Status.OK
+        assert (await peer.answer()).kind is AnswerKind.CAPTURED
+        assert (await peer.answer()).values == pytest.approx(POSE, abs=1e-4)
+        assert lines(caplog, "retrying with back-off") == 1
+        await peer.close()
+    await robot.stop()
+    no_tracebacks(caplog)
+
+
 async def test_client_mode_gives_up_on_a_connect_that_never_completes(
         caplog: pytest.LogCaptureFixture) -> None:
     """A robot that takes the TCP connection nowhere (its accept queue full, SYNs dropped)."""

@@ -374,17 +374,24 @@ async def test_a_peer_that_is_not_an_s7_plc_is_an_outage_without_traceback(
     (11, DB_BYTES, r"Object does not exist.*DB11 bytes 0\.\.91"),
     (DB, DB_BYTES - 2, r"Invalid address.*DB10 bytes 0\.\.91"),
 ])
-async def test_block_the_plc_refuses_at_start_fails_naming_it(
-    db: int, size: int, message: str
+async def test_block_the_plc_refuses_is_an_outage_naming_it_and_retried(
+    db: int, size: int, message: str, caplog: pytest.LogCaptureFixture
 ) -> None:
+    """A refused block (a DB not downloaded yet, PUT/GET not allowed yet) can be fixed while
+    vgripd runs: DOWN naming the block and what to check, one ERROR line, retried."""
     async with S7PlcServer(DB, size=size) as server:
         link = make_link(server, db=db)
         try:
-            with pytest.raises(LinkError, match=message):
+            with caplog.at_level("INFO", logger="drivers.links.s7"):
                 await link.open(Daemon(link).on_trigger)
-            health = link.health()
-            assert health.state is LinkState.FAILED
+                for _ in range(3):
+                    await link.wait_state(LinkState.CONNECTING, WAIT_S)
+                    health = await link.wait_state({LinkState.DOWN, LinkState.FAILED}, WAIT_S)
+                    assert health.state is LinkState.DOWN
+            assert re.search(message, health.last_error), health.last_error
             assert "PUT/GET" in health.last_error
+            records = [r for r in caplog.records if r.name == "drivers.links.s7"]
+            assert [r.levelname for r in records] == ["ERROR"]
         finally:
             await link.close()
 
@@ -660,3 +667,76 @@ async def test_next_walks_the_pick_list_through_the_db(server: S7PlcServer,
     assert field(seen[1].raw, "SCORE")[0] == pytest.approx(0.75)
     assert field(seen[2].raw, "SCORE")[0] == -1.0
     assert field(seen[1].raw, "CAPTURED_SEQ") == (1,)  # no image for a NEXT
+
+
+# -- a misbehaving peer (issue 20) -----------------------------------------------------------
+
+
+async def _garbage_peer(port: int, garbage: bytes) -> asyncio.Server:
+    """A TCP peer on 127.0.0.1:``port`` that answers the COTP connect request with a connect
+    confirm (the request echoed with type CC), then answers everything with ``garbage``."""
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            head = await reader.readexactly(4)  # TPKT: version, reserved, length
+            body = await reader.readexactly(struct.unpack(">H", head[2:])[0] - 4)
+            cc = bytearray(head + body)
+            cc[5] = 0xD0  # COTP CR (0xE0) -> CC
+            writer.write(bytes(cc))
+            while await reader.read(1024):
+                writer.write(garbage)
+                await writer.drain()
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            writer.close()
+
+    return await asyncio.start_server(handle, "127.0.0.1", port)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+@pytest.mark.parametrize("garbage", [
+    b"\x03\x00\x00\x0b\x02\xf0\x80\xde\xad\xbe\xef",  # a TPKT + COTP DT holding no S7 header
+    b"\x03\x00\x00\x1b\x02\xf0\x80\x32\x03" + bytes(18),  # an S7 ack-data that makes no sense
+    b"\x03\x00\x00\x07\x02\xf0\x80",  # an empty COTP data frame
+])
+async def test_garbage_after_cotp_connect_is_retried_and_comes_back_with_a_real_plc(
+        garbage: bytes, caplog: pytest.LogCaptureFixture) -> None:
+    """A peer that completes the COTP connect, then sends garbage: the link is DOWN and retried
+    with back-off (never FAILED), logged once; snap7's server on the same port brings it UP."""
+    port = _free_port()
+    peer = await _garbage_peer(port, garbage)
+    link = S7Link("plc", S7Options(host="127.0.0.1", port=port, db=DB, timeout_s=0.3,
+                                   backoff_initial_s=0.02, backoff_max_s=0.1, poll_ms=2))
+    daemon = Daemon(link, lambda t: kuka_result(100 + t.seq))
+    try:
+        with caplog.at_level("INFO", logger="drivers.links.s7"):
+            await link.open(daemon.on_trigger)  # the daemon starts; the link retries
+            for _ in range(3):  # retried, each attempt ending DOWN again
+                await link.wait_state(LinkState.CONNECTING, WAIT_S)
+                down = await link.wait_state({LinkState.DOWN, LinkState.FAILED}, WAIT_S)
+                assert down.state is LinkState.DOWN, down
+            assert f"127.0.0.1:{port}" in down.last_error
+            peer.close()
+            await peer.wait_closed()
+            async with S7PlcServer(DB, port=port) as server:
+                up = await link.wait_state(LinkState.UP, WAIT_S)
+                assert up.reconnects == 1
+                async with MockS7Plc(server.host, server.port, DB) as plc:
+                    seen = await plc.run_job(5, WAIT_S)
+                    assert (seen.words[Reg.ACK_SEQ], seen.words[Reg.STATUS]) == (5, Status.OK)
+                records = [r for r in caplog.records if r.name == "drivers.links.s7"]
+        assert [r.levelname for r in records] == ["WARNING", "INFO"], records  # down, back
+        assert "is back" in records[1].getMessage()
+        assert all(r.exc_info is None for r in records)
+    finally:
+        await link.close()
+        peer.close()

@@ -11,6 +11,7 @@ import asyncio
 import contextlib
 import logging
 import multiprocessing
+import re
 from collections.abc import AsyncIterator, Iterator
 
 import numpy as np
@@ -384,25 +385,39 @@ async def test_silent_controller_does_not_block_the_loop() -> None:
             await asyncio.gather(beat, return_exceptions=True)
 
 
-async def test_register_in_use_fails_naming_the_register() -> None:
+async def test_register_in_use_is_an_outage_naming_it_until_released(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A register another client owns can be freed on the robot while vgripd runs: DOWN naming
+    it, one ERROR line, retried, UP once it is free (issue 20: never FAILED for good)."""
     with URController("127.0.5.14") as robot:
         robot.set_in_use("input_int_register_19")
-        link = URRtdeLink("ur", URRtdeOptions(host=robot.host))
-        with pytest.raises(LinkError, match="input_int_register_19 IN_USE"):
-            await link.open(Triggers())
-        health = link.health()
-        assert health.state is LinkState.FAILED
-        assert "127.0.5.14:30004" in health.last_error
-        assert "input_int_register_20" not in health.last_error
-        await link.close()
+        link = URRtdeLink("ur", URRtdeOptions(host=robot.host, backoff_initial_s=0.05,
+                                              backoff_max_s=0.2))
+        try:
+            with caplog.at_level(logging.INFO, logger="vgripd.link.ur_rtde"):
+                await link.open(Triggers())
+                health = await link.wait_state({LinkState.DOWN, LinkState.FAILED}, 45)
+                assert health.state is LinkState.DOWN
+                assert "input_int_register_19 IN_USE" in health.last_error
+                assert "127.0.5.14:30004" in health.last_error
+                assert "input_int_register_20" not in health.last_error
+                robot.set_in_use()
+                await link.wait_state(LinkState.UP, 45)
+            levels = [r.levelname for r in caplog.records if r.name == "vgripd.link.ur_rtde"]
+            assert levels[0] == "ERROR"
+            assert "WARNING" not in levels  # logged once per outage
+        finally:
+            await link.close()
 
 
 async def test_second_client_gets_in_use() -> None:
     async with connected("127.0.5.15") as (robot, link, triggers):
         second = URRtdeLink("ur2", URRtdeOptions(host=robot.host))
-        with pytest.raises(LinkError, match="input_int_register_23.*IN_USE") as err:
-            await second.open(Triggers())
-        assert "input_double_register_22" in str(err.value)
+        await second.open(Triggers())  # DOWN and retried: the first may go away
+        health = await second.wait_state({LinkState.DOWN, LinkState.FAILED}, 45)
+        assert health.state is LinkState.DOWN
+        assert re.search("input_int_register_23.*IN_USE", health.last_error)
+        assert "input_double_register_22" in health.last_error
         await second.close()
         # The first link is unaffected.
         trigger, result = await run_job(robot, link, triggers, job_id=1)

@@ -41,9 +41,16 @@ Failures:
   as ``WorkerError`` with the remote type, message and traceback) or a request or answer that
   cannot be unpickled fails that request only; the worker stays.
 
-The worker ignores SIGINT and SIGTERM (systemd signals the whole control group on stop, a
-terminal the whole process group on Ctrl-C): the daemon stops it after the links, so queued
-recordings are written; it also exits when the daemon's end of the socket closes.
+The worker ends with its daemon, whatever way the daemon ends:
+
+- The daemon stops it after the links (``close``), so queued recordings are written; it also
+  exits when the daemon's end of the socket closes.
+- SIGINT is ignored (a terminal sends it to the whole process group on Ctrl-C; the daemon stops
+  the worker itself). SIGTERM (systemd signals the whole control group on stop) leaves the
+  daemon ``TERM_GRACE_S`` to stop the worker in order; after that the kernel ends it (an
+  ``alarm``, which needs no Python code to run), and at once when the daemon is already gone.
+- The daemon killed (SIGKILL, a crash): the kernel sends the worker SIGKILL
+  (``PR_SET_PDEATHSIG``, ``die_with_daemon``), even in the middle of a computation.
 """
 
 from __future__ import annotations
@@ -77,6 +84,7 @@ import numpy.typing as npt
 
 from vgripd.config import Config
 from vgripd.errors import CameraError, NotCalibratedError, VgripError
+from vgripd.service.lifetime import die_with_daemon, end_on_sigterm
 from vgripd.types import CaptureView, ImagePair, JobResult
 
 log = logging.getLogger("vgripd.worker")
@@ -91,6 +99,9 @@ START_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 15.0
 #: Closing the camera through the worker (the driver's own close waits up to 5 s).
 CAMERA_CLOSE_TIMEOUT_S = 7.0
+#: After SIGTERM (systemd stopping the whole unit) a child process leaves the daemon this long to
+#: stop it in order, then ends by itself (the unit's TimeoutStopSec is 15 s).
+TERM_GRACE_S = 5
 #: Back-off for a worker that dies before it is ready: doubling from the first to the last.
 RESTART_BACKOFF_S = (1.0, 60.0)
 #: The worker's niceness above the daemon's: when they compete for a core, the daemon's event
@@ -441,10 +452,12 @@ def run_below_daemon(nice: int) -> None:
     os.nice(nice)
 
 
-def worker_main(sock: socket.socket, config: Config, processor: str, log_level: str) -> None:
+def worker_main(sock: socket.socket, config: Config, processor: str, log_level: str,
+                daemon_pid: int) -> None:
     """Entry point of the worker process (``multiprocessing`` spawn target)."""
+    die_with_daemon(daemon_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    end_on_sigterm(daemon_pid, TERM_GRACE_S)
     run_below_daemon(WORKER_NICE)
     from vgripd.service.daemon import configure_logging
 
@@ -677,7 +690,8 @@ class WorkerClient:
             try:
                 proc = self._ctx.Process(
                     target=worker_main, name="vgripd-worker", daemon=True,
-                    args=(child, self.config, self.processor, self.config.daemon.log_level))
+                    args=(child, self.config, self.processor, self.config.daemon.log_level,
+                          os.getpid()))
                 proc.start()  # spawn: fork+exec, a few ms
             finally:
                 child.close()

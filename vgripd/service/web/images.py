@@ -19,6 +19,7 @@ import dataclasses
 import json
 import logging
 import multiprocessing
+import os
 import signal
 from collections import OrderedDict
 from concurrent.futures import ProcessPoolExecutor
@@ -47,15 +48,22 @@ _pipeline: Any = None  # in the helper process: the Pipeline, or None when not c
 WEB_IMAGES_NICE = 10
 
 
-def _init_helper(config: Config) -> None:
-    """Helper process start: ignore the signals meant for the daemon (it closes the helper),
-    build the pipeline once."""
+def _init_helper(config: Config, daemon_pid: int) -> None:
+    """Helper process start: end with the daemon, build the pipeline once.
+
+    The helper holds nothing worth saving (a cache of pictures), so it ends as soon as the
+    daemon does: SIGTERM (systemd signals the whole unit on stop) ends it at once (the default
+    action), the daemon's death by any cause through the kernel (``die_with_daemon``). SIGINT
+    (a terminal's Ctrl-C to the process group) is left to the daemon, which closes the helper.
+    """
     global _pipeline
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    # Pictures for a browser matter least: below the worker, far below the daemon's loop.
+    from vgripd.service.lifetime import die_with_daemon
     from vgripd.service.worker import run_below_daemon
 
+    die_with_daemon(daemon_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    # Pictures for a browser matter least: below the worker, far below the daemon's loop.
     run_below_daemon(WEB_IMAGES_NICE)
     try:
         from vgripd.vision.pipeline import Pipeline
@@ -164,7 +172,7 @@ class ImageRenderer:
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
                 1, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_init_helper, initargs=(self._config,))
+                initializer=_init_helper, initargs=(self._config, os.getpid()))
         return self._pool
 
     def cached(self, job_id: int) -> asyncio.Future[list[bytes]] | None:
