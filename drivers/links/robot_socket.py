@@ -45,6 +45,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from vgripd.errors import LinkError
+from vgripd.service.jobcore import Action, Handshake
 from vgripd.service.protocol import (
     LinkHealth,
     LinkState,
@@ -52,7 +53,6 @@ from vgripd.service.protocol import (
     Trigger,
     TriggerHandler,
     checked_warnings,
-    pick_position,
 )
 from vgripd.service.robot_socket_format import (
     REQUEST_SIZE,
@@ -60,7 +60,6 @@ from vgripd.service.robot_socket_format import (
     Answer,
     AnswerKind,
     FrameError,
-    SocketCommand,
     ValueEncoding,
     ValueFormat,
     decode_request,
@@ -261,8 +260,9 @@ class RobotSocketLink(RobotLink):
         self._listener: asyncio.Server | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._on_trigger: TriggerHandler | None = None
-        self._job: _Job | None = None
-        self._listed = False  # the last answer has a pick list: NEXT may follow
+        self._job: _Job | None = None  # the running request and the connection it came on
+        #: The request/answer rules (busy, the pick list NEXT may follow, the answer's kind).
+        self._handshake = Handshake(edge=False)
         self._warnings = 0
         self._refusals: Counter[str] = Counter()
         #: peer faults by kind (malformed, incomplete, not_reading, evicted, idle)
@@ -318,6 +318,7 @@ class RobotSocketLink(RobotLink):
         if listener is not None:
             await listener.wait_closed()
         self._job = None
+        self._handshake = Handshake(edge=False)
         await self._set_health(LinkState.STOPPED)
 
     def health(self) -> LinkHealth:
@@ -340,6 +341,7 @@ class RobotSocketLink(RobotLink):
 
     async def image_captured(self, seq: int, job_id: int) -> None:
         job = self._running(seq, "image_captured")
+        self._handshake.on_captured(seq, job_id)  # the plan's CAPTURED step is this frame
         job.captured = True
         job.conn.send(Answer(AnswerKind.CAPTURED, seq, int(Status.IDLE), job_id,
                              self._warnings).encode(self.encoding))
@@ -352,8 +354,12 @@ class RobotSocketLink(RobotLink):
         """
         job = self._running(seq, "publish")
         self._job = None
-        frame, sent = result_answer(seq, result, self._warnings, self.encoding, job.captured)
-        self._listed = pick_position(result).listed
+        # A frame is written whole: the plan's data and its ACK are this one frame, whose kind
+        # the ACK says (a refusal without a job is REFUSED, a NEXT's answer a RESULT).
+        ack = self._handshake.publish(seq, result)[-1]
+        kind = AnswerKind.REFUSED if ack.refused else AnswerKind.RESULT
+        frame, sent = result_answer(seq, result, self._warnings, self.encoding, job.captured,
+                                    kind=kind)
         if sent.status is not result.status:
             log.warning("%s: request %d answered %s instead of %s: %s", self.name, seq,
                         sent.status.name, result.status.name, sent.message)
@@ -386,10 +392,11 @@ class RobotSocketLink(RobotLink):
         request = decode_request(frame)
         seq = request.request_id
         refusal = request.refusal()
-        if refusal is None and self._job is not None:
-            refusal = Status.BUSY
-        if refusal is None and request.command == SocketCommand.NEXT and not self._listed:
-            refusal = Status.BAD_REQUEST  # no pick list to go on from
+        decision = None
+        if refusal is None:  # BUSY while a request runs, BAD_REQUEST for NEXT without a list
+            decision = self._handshake.on_request(request.command, seq, request.recipe)
+            if decision.action is Action.REJECT:
+                refusal = decision.code
         if refusal is not None:
             self._refusals[refusal.name] += 1
             self._lines.log(logging.INFO, conn.host, f"refused {refusal.name}",
@@ -398,9 +405,8 @@ class RobotSocketLink(RobotLink):
             conn.send(Answer(AnswerKind.REFUSED, seq, int(refusal),
                              warnings=self._warnings).encode(self.encoding))
             return
-        if request.command != SocketCommand.NEXT:
-            self._listed = False  # CLEAR, or a new LOCATE: the old list is not its job's
-        if request.command == SocketCommand.CLEAR:
+        assert decision is not None
+        if decision.action is Action.CLEAR:  # answered at once: its ACK is this frame
             conn.send(Answer(AnswerKind.RESULT, seq, int(Status.IDLE),
                              warnings=self._warnings).encode(self.encoding))
             return
