@@ -463,21 +463,19 @@ class Admission:
 class JobCore:
     """The daemon's job rules: admission of triggers and the last job's pick list.
 
-    ``accepting``: the daemon takes jobs (start-up or running; False at shutdown, when every
-    trigger is refused ABORTED). ``running``: the (link, seq) of the request a job runs for.
+    The daemon owns the running job (its task) and its run state; it tells the core whether
+    it takes jobs (``accepting``: start-up or running; at shutdown every trigger is refused
+    ABORTED) and whether a job runs (``busy``), and the core decides.
     """
 
     def __init__(self) -> None:
-        self.accepting = False
-        self.running: tuple[str, int] | None = None
         self.pick_list: PickCursor | None = None
 
-    def trigger(self, link: str, seq: int, command: int) -> Admission:
-        """A link's request reaches the daemon: refuse, answer from the list, or run a job.
-        A job drops the pick list at once (``job_started``), so a NEXT can never get a pose of
-        an earlier job."""
-        if not self.accepting or self.running is not None:
-            return Admission(Admit.REFUSE, Status.BUSY if self.accepting else Status.ABORTED)
+    def trigger(self, link: str, command: int, accepting: bool, busy: bool) -> Admission:
+        """A link's request reaches the daemon: refuse, answer from the list, or run a job
+        (which must call ``job_started``, so a NEXT can never get a pose of an earlier job)."""
+        if not accepting or busy:
+            return Admission(Admit.REFUSE, Status.BUSY if accepting else Status.ABORTED)
         if command == Command.NEXT:
             cursor = self.pick_list
             if cursor is None or cursor.link != link:
@@ -490,18 +488,12 @@ class JobCore:
             return Admission(Admit.NEXT, answer=next_answer(cursor.result, cursor.index))
         return Admission(Admit.JOB)
 
-    def job_started(self, link: str, seq: int) -> None:
-        """A job (or one view of a several-view job) runs for ``link``'s request ``seq``."""
-        self.pick_list = None  # a new job: the old list is nobody's any more
-        self.running = (link, seq)
-
-    def job_paused(self) -> None:
-        """A view before the last is taken: no job runs until the next view's request."""
-        self.running = None
+    def job_started(self) -> None:
+        """A job (or the first view of a several-view job) starts: the old list is nobody's."""
+        self.pick_list = None
 
     def job_finished(self, link: str, seq: int, result: JobResult, delivered: bool) -> None:
         """The job's answer went out (``delivered``) or not: a delivered result with a pickable
         instance becomes the pick list of ``link``."""
-        self.running = None
         if delivered and pickable_count(result):
             self.pick_list = PickCursor(link, seq, result)
