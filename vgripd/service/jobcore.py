@@ -36,6 +36,12 @@ triggered it when its result was delivered and has a pickable instance, dropped 
 walked by NEXT (``next_answer``), past the end ``NOT_FOUND`` with INDEX = COUNT + 1; a NEXT of a
 link that does not hold the list answered BAD_REQUEST with job id 0.
 
+Events without a decision of their own: a job that ends by a dead worker, a timeout or
+shutdown ends with a result (INTERNAL, CAMERA_ERROR, ABORTED) like any other, through
+``JobCore.job_finished`` and the link's ``Handshake.publish``; a link that goes down keeps its
+handshake and its image (a client link writes the answer at the reconnect); a recipe travels
+with the trigger and the daemon judges it (an unknown one is the job's BAD_REQUEST result).
+
 Pick list fields (COUNT, INDEX, PICK_ID, SCORE; ``pick_position``): COUNT counts the pickable
 instances of the *job* (a single-object job is a list of one: 1 with a pose, 0 without), INDEX
 the instance shown (1-based; 0 = none shown; COUNT + 1 = past the end, after NEXT).
@@ -357,12 +363,6 @@ class Handshake:
         return self.order([Step(Part.RESULT, seq, result=result, position=position),
                            Step(Part.STATE, value=HandshakeState.DONE),
                            Step(Part.ACK, seq, refused=refused)])
-
-    def prime(self, seq: int) -> None:
-        """At a first contact: the peer's request ``seq`` is already answered (its ACK_SEQ
-        equals it), so it is not a new request."""
-        self.last_req_seq = seq
-        self.acked = seq
 
     def check_running(self, seq: int, what: str) -> None:
         waiting = self.state is HandshakeState.VIEWS and what == "publish"
