@@ -29,10 +29,11 @@ Life of a job (``JobState``)::
   pickable instance and was delivered. A NEXT (``Command.NEXT``, the same code on every link)
   is answered from it through the same publish path: the following instance
   (``next_answer``), no acquisition, the job's id and age; past the end ``NOT_FOUND`` without
-  a pose and INDEX = COUNT + 1 (a single-object job is a list of one). Any new job drops the list at its trigger,
-  so a NEXT can never hand out a pose of an earlier job; a NEXT with no list of its link's is
-  answered ``BAD_REQUEST`` (job id 0), one while a job runs ``BUSY``. NEXT answers are counted
-  with the answers (``counters``) and apart (``next_answers``), and logged one line each.
+  a pose and INDEX = COUNT + 1 (a single-object job is a list of one). Any new job drops the
+  list at its trigger, so a NEXT can never hand out a pose of an earlier job; a NEXT with no
+  list of its link's is answered ``BAD_REQUEST`` (job id 0), one while a job runs ``BUSY``.
+  NEXT answers are counted with the answers (``counters``) and apart (``next_answers``), and
+  logged one line each.
 - RECALIBRATE (``EpipolarMonitor``): the median epipolar residual of every stereo job goes
   into a window of ``daemon.recalibrate_window`` jobs; while more than ``recalibrate_share``
   of them exceed ``vision.epipolar_warn_px`` the status carries the warning (logged once when
