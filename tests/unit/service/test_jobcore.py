@@ -52,8 +52,10 @@ from vgripd.service.protocol import (
     BlockWrite,
     Reg,
     RegisterBank,
+    URRegisterMap,
     ValueCodec,
 )
+from vgripd.service.robot_socket_format import remaining
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 FIELDS = tuple("xyzabc")
@@ -433,3 +435,45 @@ def test_order_puts_a_retraction_before_data_under_an_acknowledge() -> None:
         handshake.order([Step(Part.ACK, 9), Step(Part.STATE)])
     with pytest.raises(AssertionError):
         check_plans([(Step(Part.ACK, 1),), (Step(Part.RESULT),)])
+
+
+def test_a_single_objects_next_shows_a_list_of_one_on_every_link_kind() -> None:
+    """The position of the answer past the end, as each kind of link shows it: registers
+    COUNT/INDEX, the UR pick register (1000 x COUNT + INDEX), the socket's remaining word."""
+    end = next_answer(job_result(4, "one", 0, 0), 2)
+    position = pick_position(end)
+    bank = RegisterBank(CODEC)
+    bank.write(Reg.CMD, [Command.NEXT, 1, 0])  # refused: no list yet
+    bank.write(Reg.CMD, [Command.TRIGGER, 2, 0])
+    bank.publish(2, job_result(4, "one", 0, 0), now_ns=0)
+    bank.write(Reg.CMD, [Command.NEXT, 3, 0])
+    bank.publish(3, end, now_ns=0)
+    words = bank.read(0, MAP_SIZE, 0)
+    assert (words[Reg.ACK_SEQ], words[Reg.STATUS], words[Reg.COUNT], words[Reg.INDEX]) == (
+        3, Status.NOT_FOUND, 1, 2)
+    assert URRegisterMap().pick_word(position) == 1002.0
+    assert remaining(position) == 0
+
+
+def test_job_core_admission_and_list_walk() -> None:
+    core = JobCore()
+    assert core.trigger("a", Command.TRIGGER, accepting=False, busy=False).status is \
+        Status.ABORTED
+    assert core.trigger("a", Command.NEXT, accepting=True, busy=True).status is Status.BUSY
+    refused = core.trigger("a", Command.NEXT, accepting=True, busy=False)
+    assert (refused.kind, refused.status) == (Admit.REFUSE, Status.BAD_REQUEST)
+    assert core.trigger("a", Command.TRIGGER, accepting=True, busy=False).kind is Admit.JOB
+    core.job_started()
+    job = job_result(1, "pallet", 2, 1)
+    core.job_finished("a", 1, job, delivered=True)
+    other = core.trigger("b", Command.NEXT, accepting=True, busy=False)
+    assert (other.kind, other.status) == (Admit.REFUSE, Status.BAD_REQUEST)
+    assert "belongs to link a" in other.why
+    walk = [core.trigger("a", Command.NEXT, accepting=True, busy=False).answer
+            for _ in range(3)]
+    assert [(a.status, pick_position(a).index) for a in walk if a is not None] == [
+        (Status.OK, 2), (Status.NOT_FOUND, 3), (Status.NOT_FOUND, 3)]
+    core.job_started()  # a new job drops the list at once
+    assert core.trigger("a", Command.NEXT, accepting=True, busy=False).kind is Admit.REFUSE
+    core.job_finished("a", 2, job, delivered=False)  # not delivered: no list
+    assert core.pick_list is None
