@@ -95,7 +95,14 @@ import numpy as np
 from vgripd.config import Config, unknown_recipe
 from vgripd.errors import CameraError, ConfigError, LinkError, NotCalibratedError
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
-from vgripd.service.jobcore import Admit, JobCore, PickCursor
+from vgripd.service.jobcore import (
+    Admit,
+    JobCore,
+    PickCursor,
+    ViewsAt,
+    ViewStep,
+    view_admission,
+)
 from vgripd.service.protocol import (
     Command,
     RobotLink,
@@ -602,46 +609,32 @@ class Daemon:
         """A CAPTURE (or a TRIGGER in a cell of several views): start, continue or end the
         several-view job (the module docstring has the rules)."""
         views = self.views
-        if trigger.command != Command.CAPTURE:
-            why = (f"recipe {self.recipe_label(trigger.recipe)} takes "
-                   f"{self._views_of(trigger.recipe)} views per job: CAPTURE views 1..N "
-                   "(CMD = view * 256 + 4), not TRIGGER")
-            if views is not None and views.link == trigger.link:
-                self._end_views(trigger, why)
-            else:
-                self._spawn(self._refuse(trigger, Status.BAD_REQUEST, why))
+        at = None if views is None else ViewsAt(views.link, views.job_id, views.next_view,
+                                                  views.count)
+        decision = view_admission(trigger.command, trigger.view, trigger.link,
+                                  self.recipe_label(trigger.recipe),
+                                  trigger.recipe in self.config.recipe_numbers(),
+                                  self._views_of(trigger.recipe), at)
+        if decision.step is ViewStep.END:
+            self._end_views(trigger, decision.why)
             return
-        if views is not None and views.link != trigger.link:
-            self._spawn(self._refuse(trigger, Status.BUSY, f"link {views.link}'s views job "
-                                     f"{views.job_id} is at view {views.next_view - 1}"))
+        if decision.step is ViewStep.JOB:
+            self._start(trigger)  # answered BAD_REQUEST like any job's unknown recipe
             return
-        if views is None:
-            if trigger.recipe not in self.config.recipe_numbers():
-                self._start(trigger)  # answered BAD_REQUEST like any job's unknown recipe
-                return
-            count = self._views_of(trigger.recipe)
-            why = ("" if trigger.view == 1 and count > 1 else
-                   f"recipe {self.recipe_label(trigger.recipe)} takes one view per job: "
-                   "TRIGGER, not CAPTURE" if count == 1 else
-                   f"no views job running: CAPTURE view 1 first, not view {trigger.view}")
-            if why:
+        if decision.step is ViewStep.REFUSE:
+            if trigger.command == Command.CAPTURE and decision.status is Status.BAD_REQUEST:
                 log.warning("CAPTURE seq %d from %s refused: BAD_REQUEST (%s)", trigger.seq,
-                            trigger.link, why)
-                self._spawn(self._refuse(trigger, Status.BAD_REQUEST, why))
-                return
+                            trigger.link, decision.why)
+            self._spawn(self._refuse(trigger, decision.status, decision.why))
+            return
+        if decision.step is ViewStep.BEGIN:
             vision = self.config.for_recipe(trigger.recipe).vision
             self._job_seq += 1
             self.jobs.job_started()
-            self.views = ViewJob(self._job_seq, trigger.link, trigger.recipe, count,
-                                 trigger.t_mono_ns,
+            self.views = ViewJob(self._job_seq, trigger.link, trigger.recipe,
+                                 self._views_of(trigger.recipe), trigger.t_mono_ns,
                                  tuple(scene_pose(p) for p in vision.view_poses))
-            if trigger.recipe in self.config.recipe_numbers():
-                self.active_recipe = trigger.recipe
-        elif trigger.view != views.next_view:
-            what = "repeated" if trigger.view < views.next_view else "out of order"
-            self._end_views(trigger, f"view {trigger.view} {what}: view {views.next_view} "
-                            f"of {views.count} expected; start again at view 1")
-            return
+            self.active_recipe = trigger.recipe
         views = self.views
         assert views is not None
         if views.timer is not None:

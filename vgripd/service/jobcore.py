@@ -34,7 +34,8 @@ the answer and may go anywhere.
 while a job runs), and the pick list of the last job (``PickCursor``): kept for the link that
 triggered it when its result was delivered and has a pickable instance, dropped by any new job,
 walked by NEXT (``next_answer``), past the end ``NOT_FOUND`` with INDEX = COUNT + 1; a NEXT of a
-link that does not hold the list answered BAD_REQUEST with job id 0.
+link that does not hold the list answered BAD_REQUEST with job id 0. ``view_admission``: the
+rules of a job of several views (begin, next view, end, BUSY for others, refusals).
 
 Events without a decision of their own: a job that ends by a dead worker, a timeout or
 shutdown ends with a result (INTERNAL, CAMERA_ERROR, ABORTED) like any other, through
@@ -497,3 +498,69 @@ class JobCore:
         instance becomes the pick list of ``link``."""
         if delivered and pickable_count(result):
             self.pick_list = PickCursor(link, seq, result)
+
+
+# --- several views per job (``vision.views``) -----------------------------------------------
+
+
+@dataclass(frozen=True)
+class ViewsAt:
+    """A several-view job as the rules see it: its link, id, the view it waits for next and
+    how many it takes."""
+
+    link: str
+    job_id: int
+    next_view: int
+    count: int
+
+
+class ViewStep(enum.Enum):
+    REFUSE = "refuse"  # answer ``status`` (``why``) without a job
+    END = "end"  # end the views job BAD_REQUEST (``why``), answered to this request
+    JOB = "job"  # a job of one acquisition (an unknown recipe: its result says BAD_REQUEST)
+    BEGIN = "begin"  # view 1 of a new several-view job
+    VIEW = "view"  # the next view of the views job
+
+
+@dataclass(frozen=True)
+class ViewDecision:
+    step: ViewStep
+    status: Status = Status.IDLE
+    why: str = ""
+
+
+def view_admission(command: int, view: int, link: str, recipe: str, known: bool, count: int,
+                   views: ViewsAt | None) -> ViewDecision:
+    """What a CAPTURE (or a TRIGGER of a recipe of several views) does, once the daemon has
+    admitted it (``JobCore.trigger``: not busy). ``recipe``: the recipe's label for messages;
+    ``known``: it is configured; ``count``: its ``vision.views`` (1 when not configured).
+
+    A TRIGGER of a recipe of several views ends the link's own views job or is refused
+    BAD_REQUEST; a CAPTURE of another link while a views job waits is BUSY; view 1 of a recipe
+    of several views begins a job; views out of order or repeated end the job (BAD_REQUEST, so
+    no pose mixes two jobs); any other CAPTURE is refused BAD_REQUEST.
+    """
+    if command != Command.CAPTURE:
+        why = (f"recipe {recipe} takes {count} views per job: CAPTURE views 1..N "
+               "(CMD = view * 256 + 4), not TRIGGER")
+        if views is not None and views.link == link:
+            return ViewDecision(ViewStep.END, Status.BAD_REQUEST, why)
+        return ViewDecision(ViewStep.REFUSE, Status.BAD_REQUEST, why)
+    if views is not None and views.link != link:
+        return ViewDecision(ViewStep.REFUSE, Status.BUSY,
+                            f"link {views.link}'s views job {views.job_id} is at view "
+                            f"{views.next_view - 1}")
+    if views is None:
+        if not known:
+            return ViewDecision(ViewStep.JOB)
+        if view == 1 and count > 1:
+            return ViewDecision(ViewStep.BEGIN)
+        why = (f"recipe {recipe} takes one view per job: TRIGGER, not CAPTURE" if count == 1
+               else f"no views job running: CAPTURE view 1 first, not view {view}")
+        return ViewDecision(ViewStep.REFUSE, Status.BAD_REQUEST, why)
+    if view != views.next_view:
+        what = "repeated" if view < views.next_view else "out of order"
+        return ViewDecision(ViewStep.END, Status.BAD_REQUEST,
+                            f"view {view} {what}: view {views.next_view} of {views.count} "
+                            "expected; start again at view 1")
+    return ViewDecision(ViewStep.VIEW)

@@ -42,9 +42,12 @@ from vgripd.service.jobcore import (
     Part,
     PickPosition,
     Step,
+    ViewsAt,
+    ViewStep,
     check_plans,
     next_answer,
     pick_position,
+    view_admission,
 )
 from vgripd.service.protocol import (
     MAP_SIZE,
@@ -477,3 +480,29 @@ def test_job_core_admission_and_list_walk() -> None:
     assert core.trigger("a", Command.NEXT, accepting=True, busy=False).kind is Admit.REFUSE
     core.job_finished("a", 2, job, delivered=False)  # not delivered: no list
     assert core.pick_list is None
+
+
+def test_view_admission_rules() -> None:
+    """A job of several views: begun by view 1, continued in order, ended by anything else of
+    its link, BUSY for other links; a CAPTURE without a job, or of a recipe of one view, is
+    refused."""
+    cap, trig = Command.CAPTURE, Command.TRIGGER
+    waiting = ViewsAt("a", 7, next_view=2, count=3)
+    cases = [
+        ((cap, 1, "a", True, 3, None), ViewStep.BEGIN, Status.IDLE),
+        ((cap, 2, "a", True, 3, None), ViewStep.REFUSE, Status.BAD_REQUEST),
+        ((cap, 1, "a", True, 1, None), ViewStep.REFUSE, Status.BAD_REQUEST),
+        ((cap, 1, "a", False, 1, None), ViewStep.JOB, Status.IDLE),
+        ((trig, 0, "a", True, 3, None), ViewStep.REFUSE, Status.BAD_REQUEST),
+        ((cap, 2, "a", True, 3, waiting), ViewStep.VIEW, Status.IDLE),
+        ((cap, 1, "a", True, 3, waiting), ViewStep.END, Status.BAD_REQUEST),
+        ((cap, 3, "a", True, 3, waiting), ViewStep.END, Status.BAD_REQUEST),
+        ((trig, 0, "a", True, 3, waiting), ViewStep.END, Status.BAD_REQUEST),
+        ((cap, 2, "b", True, 3, waiting), ViewStep.REFUSE, Status.BUSY),
+        ((trig, 0, "b", True, 3, waiting), ViewStep.REFUSE, Status.BAD_REQUEST),
+    ]
+    for (command, view, link, known, count, views), step, status in cases:
+        decision = view_admission(command, view, link, "1 (r)", known, count, views)
+        assert (decision.step, decision.status) == (step, status), (command, view, link)
+    assert "view 1 repeated" in view_admission(cap, 1, "a", "1", True, 3, waiting).why
+    assert "view 3 out of order" in view_admission(cap, 3, "a", "1", True, 3, waiting).why
