@@ -1,10 +1,12 @@
 """The job core (``vgripd.service.jobcore``) fed random sequences of events, without I/O.
 
-A cell of three links, one of each kind, shares one ``JobCore`` as the daemon does:
+A cell of five links, each kind, shares one ``JobCore`` as the daemon does:
 
-- ``plc``: a register link (Modbus server / RTU / client, S7), through the ``RegisterBank`` the
-  drivers use; its journal of block writes is replayed one write at a time, as a PLC polling
-  between two S7 writes (or a Modbus client between two writes of the mirror) would see them;
+- ``plc``, ``s7``, ``mbclient``: register links (Modbus server / RTU; S7; Modbus client),
+  through the ``RegisterBank`` the drivers use; its journal of block writes is replayed one
+  write at a time as the peer gets them (the server's image changes, the S7 link's DB writes
+  from ``plan_db_writes``, the Modbus client's from ``plan_writes``), as a PLC polling between
+  two writes would see them;
 - ``ua``: an OPC UA link's handshake (a request per method call); its plans are applied to an
   answer area of RequestId and result data;
 - ``robot``: the robot socket's handshake (a request per frame); its answers are frames whose
@@ -32,6 +34,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers.links.modbus_client import plan_writes
+from drivers.links.s7 import plan_db_writes
 from vgripd.service.jobcore import (
     Action,
     Admit,
@@ -104,11 +108,14 @@ class Answer:
 
 
 class RegisterLink:
-    """A register link: the drivers' ``RegisterBank``; its writes replayed one by one."""
+    """A register link: the drivers' ``RegisterBank``; its writes replayed one by one as the
+    peer gets them (``wire``): a server's image changes (``server``: Modbus/TCP, RTU), the S7
+    link's DB writes (``plan_db_writes``) or the Modbus client link's writes (``plan_writes``)."""
 
     edge = True
 
-    def __init__(self) -> None:
+    def __init__(self, wire: str = "server") -> None:
+        self.wire = wire
         self.journal: list[BlockWrite] = []
         self.bank = RegisterBank(CODEC, self.journal)
         self.seen = [0] * MAP_SIZE  # the block as a poller sees it, write by write
@@ -135,14 +142,18 @@ class RegisterLink:
         self._replay()
 
     def _replay(self) -> None:
-        for w in self.journal:
+        writes = (self.journal if self.wire == "server" else
+                  plan_db_writes(self.seen, self.journal) if self.wire == "s7" else
+                  plan_writes(self.journal))
+        for w in writes:
             before = self.seen[Reg.ACK_SEQ]
+            rejected = self.seen[Reg.REJECT_SEQ]
             self.seen[w.address:w.address + len(w.words)] = w.words
             ack = self.seen[Reg.ACK_SEQ]
             data = [self.seen[a] for a in DATA]
             if ack and ack == before and data != self.acked_data:
                 self.faults.append(f"data changed while ACK_SEQ = {ack}: {w}")
-            if w.address <= Reg.REJECT_SEQ < w.address + len(w.words):
+            if self.seen[Reg.REJECT_SEQ] != rejected:
                 self.answers.append(Answer(self.seen[Reg.REJECT_SEQ], True,
                                            self.seen[Reg.REJECT_CODE]))
             if ack != before and ack:
@@ -220,8 +231,8 @@ class Cell:
     ``JobCore``'s admissions (refuse, answer a NEXT, run a job)."""
 
     links: dict[str, Link] = field(default_factory=lambda: {
-        "plc": RegisterLink(), "ua": MessageLink(frames=False),
-        "robot": MessageLink(frames=True)})
+        "plc": RegisterLink(), "s7": RegisterLink("s7"), "mbclient": RegisterLink("client"),
+        "ua": MessageLink(frames=False), "robot": MessageLink(frames=True)})
     core: JobCore = field(default_factory=JobCore)
     running: tuple[str, int, int, bool] | None = None  # link, seq, job id, captured
     jobs: int = 0
@@ -288,7 +299,7 @@ class Cell:
 
 COMMANDS = st.sampled_from([Command.TRIGGER, Command.TRIGGER, Command.NEXT, Command.NEXT,
                             Command.CLEAR, 99])
-LINKS = st.sampled_from(["plc", "ua", "robot"])
+LINKS = st.sampled_from(["plc", "s7", "mbclient", "ua", "robot"])
 RESULTS = st.tuples(st.sampled_from(["one", "none", "pallet", "pallet"]), st.integers(0, 4),
                     st.integers(0, 2))
 EVENTS = st.one_of(
