@@ -6,7 +6,8 @@ runs the job; ``Result.*`` variables and a ``ResultReadyEventType`` event carry 
 The address space is ``drivers/links/opcua_space.py``; docs/opcua.md has it in full, the job
 sequence a client follows, the security set-up and what of OPC 40100 is implemented.
 
-Semantics follow the register handshake: one job at a time per link; a start while this link's
+Semantics follow the register handshake (``vgripd.service.jobcore.Handshake``, whose plans the
+space's writes carry out): one job at a time per link; a start while this link's
 job runs is refused at once with ``BadInvalidState`` (the state machine is in SingleExecution)
 and counted as ``BUSY`` in ``refusals()``; a recipe that is not configured (the daemon tells the
 link its recipes, ``set_recipes``) or a wrong argument list is refused ``BadInvalidArgument`` /

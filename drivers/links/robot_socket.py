@@ -11,12 +11,14 @@ MotoPlus task); one supervisor task owns that connection and reconnects with dou
 logging one line per outage. Either way the robot sends the requests; TCP roles only decide who
 dials.
 
-Semantics follow the register handshake: one job at a time per link (a request while this
+Semantics follow the register handshake (``vgripd.service.jobcore.Handshake``, the same
+object the other links use): one job at a time per link (a request while this
 link's job runs is refused BUSY by the link itself, counted in ``refusals()``), unknown commands
 and out-of-range fields are refused BAD_REQUEST, CLEAR is answered RESULT with status IDLE.
 NEXT goes to the daemon, which answers it from the last job's pick list; the link refuses it
 BAD_REQUEST itself while it holds no list (after start, CLEAR, a LOCATE that found nothing
-pickable, a refusal), like the register handshake. The
+pickable, a refusal), like the register handshake; a NEXT the daemon answers without a job
+(BAD_REQUEST: another link's job took the list) is a RESULT, not a REFUSED. The
 answers of a job go to the connection that asked; a result whose connection has closed is not
 kept (``publish`` raises ``LinkError``: undelivered): the program's retry is a new request with
 a new image.
