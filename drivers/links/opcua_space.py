@@ -36,6 +36,9 @@ STATES = {"Ready": 1, "SingleExecution": 2, "Error": 3}
 ERROR_STATUSES = frozenset({Status.CAMERA_ERROR, Status.NOT_CALIBRATED, Status.INTERNAL})
 
 MethodHandler = Callable[..., Awaitable[Any]]
+#: ``Result.Timestamp`` before the first result: OPC UA's null DateTime (encoded as 0). A value
+#: of None made every Read that named the variable fail with BadInternalError.
+NO_TIME = datetime.datetime(1601, 1, 1, tzinfo=datetime.UTC)
 
 
 def node_id(idx: int, path: str) -> ua.NodeId:
@@ -122,7 +125,8 @@ RESULT_DATA: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
     ("FitRmsMm", ua.VariantType.Double, -1.0, "fit residual, mm (-1: unknown)"),
     ("ResidualNames", ua.VariantType.String, [], "names of Residuals"),
     ("Residuals", ua.VariantType.Double, [], "residual figures (px or mm by name)"),
-    ("Timestamp", ua.VariantType.DateTime, None, "when the result was produced (UTC)"),
+    ("Timestamp", ua.VariantType.DateTime, NO_TIME,
+     "when the result was produced (UTC); 1601-01-01 (OPC UA's null time) before the first"),
     ("Count", ua.VariantType.UInt16, 0,
      "pickable objects of the job (a single object: 1 with a pose, 0 without)"),
     ("Index", ua.VariantType.UInt16, 0,
