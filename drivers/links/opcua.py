@@ -503,8 +503,8 @@ class OpcUaLink(RobotLink):
         shown. The server holds it, so it is never undelivered while the link is open."""
         job = self._running(seq, "publish")
         space = self._space()
-        self._job = None
         plan = self._handshake.publish(seq, result)
+        self._job = None
         t_done = result.t_done_mono_ns or time.monotonic_ns()
         stamp = datetime.datetime.now(datetime.UTC) - datetime.timedelta(
             microseconds=max(0, time.monotonic_ns() - t_done) / 1000)

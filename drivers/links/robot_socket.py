@@ -355,10 +355,10 @@ class RobotSocketLink(RobotLink):
         is not kept, a robot that comes back asks again with a new request.
         """
         job = self._running(seq, "publish")
-        self._job = None
         # A frame is written whole: the plan's data and its ACK are this one frame, whose kind
         # the ACK says (a refusal without a job is REFUSED, a NEXT's answer a RESULT).
         ack = self._handshake.publish(seq, result)[-1]
+        self._job = None
         kind = AnswerKind.REFUSED if ack.refused else AnswerKind.RESULT
         frame, sent = result_answer(seq, result, self._warnings, self.encoding, job.captured,
                                     kind=kind)
