@@ -14,8 +14,9 @@ A cell of five links, each kind, shares one ``JobCore`` as the daemon does:
 
 Random events: a request of any link (TRIGGER, CLEAR, NEXT, an unknown command; on the
 register link also the same sequence again and 0, which are no requests), the running job's
-image taken, and the running job's end with a random result (one object, none, a pallet of n
-with some not pickable). The rules checked on what comes out:
+image taken, the running job's end with a random result (one object, none, a pallet of n
+with some not pickable, INTERNAL as when the worker died), and the daemon shutting down (every
+trigger ABORTED) and taking jobs again. The rules checked on what comes out:
 
 - each request is answered exactly once (acknowledged or refused), and only requests are;
 - while an acknowledge names a request, the data is that request's (never written under the
@@ -83,6 +84,8 @@ def job_result(job_id: int, kind: str, n: int, bad: int) -> JobResult:
     if kind == "one":
         return JobResult(job_id=job_id, status=Status.OK,
                          target=RobotTarget("kuka", FIELDS, pose(job_id, 1)))
+    if kind == "died":  # the worker died (or the job timed out): the job still ends once
+        return JobResult(job_id=job_id, status=Status.INTERNAL, message="worker exited")
     if kind == "none" or n + bad == 0:
         return JobResult(job_id=job_id, status=Status.NOT_FOUND, message="no marks")
     ok = tuple(PickInstance(Status.OK, target=RobotTarget("kuka", FIELDS, pose(job_id, i + 1)),
@@ -235,6 +238,7 @@ class Cell:
         "ua": MessageLink(frames=False), "robot": MessageLink(frames=True)})
     core: JobCore = field(default_factory=JobCore)
     running: tuple[str, int, int, bool] | None = None  # link, seq, job id, captured
+    accepting: bool = True  # False: shutting down, every trigger is refused ABORTED
     jobs: int = 0
     seqs: dict[str, int] = field(default_factory=dict)  # the last fresh sequence
     written: dict[str, int] = field(default_factory=dict)  # register link: REQ_SEQ now
@@ -261,7 +265,7 @@ class Cell:
             assert decision.action is Action.IGNORE, decision
         if decision.action is not Action.START:
             return
-        admission = self.core.trigger(name, decision.command, accepting=True,
+        admission = self.core.trigger(name, decision.command, accepting=self.accepting,
                                       busy=self.running is not None)
         if admission.kind is Admit.REFUSE:
             self._publish(name, seq, JobResult(job_id=0, status=admission.status))
@@ -286,7 +290,8 @@ class Cell:
             return
         name, seq, job_id, _ = self.running
         result = job_result(job_id, kind, n, bad)
-        self.counts[job_id] = 1 if kind == "one" else n if kind == "pallet" else 0
+        self.counts[job_id] = (1 if kind == "one" else
+                               n if kind == "pallet" and n + bad else 0)
         self.running = None
         self.last_finished = (name, job_id)
         self._publish(name, seq, result)
@@ -300,7 +305,8 @@ class Cell:
 COMMANDS = st.sampled_from([Command.TRIGGER, Command.TRIGGER, Command.NEXT, Command.NEXT,
                             Command.CLEAR, 99])
 LINKS = st.sampled_from(["plc", "s7", "mbclient", "ua", "robot"])
-RESULTS = st.tuples(st.sampled_from(["one", "none", "pallet", "pallet"]), st.integers(0, 4),
+RESULTS = st.tuples(st.sampled_from(["one", "none", "pallet", "pallet", "died"]),
+                    st.integers(0, 4),
                     st.integers(0, 2))
 EVENTS = st.one_of(
     st.tuples(st.just("request"), LINKS, COMMANDS,
@@ -310,6 +316,7 @@ EVENTS = st.one_of(
     # whole exchanges, so that long walks of a list happen often
     st.tuples(st.just("job"), LINKS, RESULTS),
     st.tuples(st.just("next"), LINKS),
+    st.tuples(st.just("accepting"), st.booleans()),  # shutdown (ABORTED) and back
 )
 
 
@@ -324,6 +331,8 @@ def step(cell: Cell, event: tuple) -> None:
         cell.request(event[1], Command.TRIGGER, "fresh")
         cell.capture()
         cell.finish(*event[2])
+    elif event[0] == "accepting":
+        cell.accepting = event[1]
     else:
         cell.request(event[1], Command.NEXT, "fresh")
 
