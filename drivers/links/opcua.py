@@ -6,7 +6,8 @@ runs the job; ``Result.*`` variables and a ``ResultReadyEventType`` event carry 
 The address space is ``drivers/links/opcua_space.py``; docs/opcua.md has it in full, the job
 sequence a client follows, the security set-up and what of OPC 40100 is implemented.
 
-Semantics follow the register handshake: one job at a time per link; a start while this link's
+Semantics follow the register handshake (``vgripd.service.jobcore.Handshake``, whose plans the
+space's writes carry out): one job at a time per link; a start while this link's
 job runs is refused at once with ``BadInvalidState`` (the state machine is in SingleExecution)
 and counted as ``BUSY`` in ``refusals()``; a recipe that is not configured (the daemon tells the
 link its recipes, ``set_recipes``) or a wrong argument list is refused ``BadInvalidArgument`` /
@@ -56,7 +57,7 @@ import socket
 import time
 import weakref
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -94,6 +95,7 @@ from vgripd.errors import LinkError
 from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.registry import LinkCapabilities
 from vgripd.service.gate import Gate
+from vgripd.service.jobcore import Action, Handshake, Part, Step
 from vgripd.service.protocol import (
     Command,
     LinkHealth,
@@ -102,7 +104,6 @@ from vgripd.service.protocol import (
     Trigger,
     TriggerHandler,
     checked_warnings,
-    pick_position,
 )
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.types import JobResult, Status
@@ -446,7 +447,8 @@ class OpcUaLink(RobotLink):
         self._job: _Job | None = None
         self._next_request = 0
         self._recipe = 0
-        self._listed = False  # the last result published has a pick list: Next may follow
+        #: The request/answer rules (busy, the pick list Next may follow, the write order).
+        self._handshake = Handshake(edge=False)
         #: The configured recipes (``set_recipes``); None: not told, every number is taken
         #: and the daemon judges it at the job.
         self._recipes: dict[int, str] | None = None
@@ -527,7 +529,7 @@ class OpcUaLink(RobotLink):
         for conn in self.gate.connections():
             self.gate.forget(conn)
         self._job = None
-        self._listed = False
+        self._handshake = Handshake(edge=False)
         self.space = None
         self.lines.flush(force=True)
         await self._set_health(LinkState.STOPPED)
@@ -574,24 +576,29 @@ class OpcUaLink(RobotLink):
 
     async def image_captured(self, seq: int, job_id: int) -> None:
         self._running(seq, "image_captured")
-        await self._space().captured(seq, job_id)
+        space = self._space()
+        self._render(self._handshake.on_captured(seq, job_id), (Part.CAPTURED,))
+        await space.captured(seq, job_id)
 
     async def publish(self, seq: int, result: JobResult) -> Status:
         """Write the result (data, RequestId, Sequence, state) and raise the event; the status
         shown. The server holds it, so it is never undelivered while the link is open."""
         job = self._running(seq, "publish")
         space = self._space()
+        plan = self._handshake.publish(seq, result)
         self._job = None
         t_done = result.t_done_mono_ns or time.monotonic_ns()
         stamp = datetime.datetime.now(datetime.UTC) - datetime.timedelta(
             microseconds=max(0, time.monotonic_ns() - t_done) / 1000)
         # a NEXT answer carries its job's recipe; the selected one may have changed since
         recipe = result.recipe if job.command == Command.NEXT else job.recipe
-        self._listed = pick_position(result).listed
         shown, sent = result_values(seq, recipe, result, stamp)
         if sent.status is not result.status:
             log.warning("%s: request %d answered %s instead of %s: %s", self.name, seq,
                         sent.status.name, result.status.name, sent.message)
+        # RESULT and ACK: the data, then RequestId and Sequence; the state machine and the
+        # event announce the answer after it (publish_result)
+        self._render(plan, (Part.RESULT, Part.ACK))
         await space.publish_result(shown)
         return sent.status
 
@@ -616,19 +623,31 @@ class OpcUaLink(RobotLink):
             return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadTooManyArguments,
                                 "StartSingleJob takes no arguments (SelectRecipe sets the "
                                 "recipe)")
-        if self._job is not None or self.space is None:
+        return await self._request(Command.TRIGGER, "StartSingleJob")
+
+    async def _request(self, command: Command, method: str) -> Any:
+        """Start a request (a job, or a NEXT) with a new RequestId, or refuse it as the
+        handshake says (BUSY while a request runs, BAD_REQUEST for a Next without a list); the
+        daemon is told after this call returns."""
+        space = self.space
+        request_id = 1 if self._next_request >= 0xFFFFFFFF else self._next_request + 1
+        decision = (self._handshake.on_request(command, request_id, self._recipe)
+                    if space is not None else None)
+        if decision is None or decision.code is Status.BUSY:
             running = self._job.request_id if self._job is not None else "-"
             return self._refuse(Status.BUSY, ua.StatusCodes.BadInvalidState,
-                                f"StartSingleJob while request {running} runs")
-        return await self._request(Command.TRIGGER)
-
-    async def _request(self, command: Command) -> Any:
-        """Start a request (a job, or a NEXT) with a new RequestId; the daemon is told after
-        this call returns."""
-        assert self.space is not None
-        self._next_request = 1 if self._next_request >= 0xFFFFFFFF else self._next_request + 1
-        job = self._job = _Job(self._next_request, self._recipe, command)
-        await self.space.retract(executing=command == Command.TRIGGER)
+                                f"{method} while request {running} runs")
+        if decision.action is not Action.START:
+            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadNoData,
+                                f"{method} without a pick list (no result yet, or the last one "
+                                "had no pickable object)")
+        assert space is not None
+        self._next_request = request_id
+        job = self._job = _Job(request_id, self._recipe, command)
+        # RETRACT (the data turns uncertain, then RequestId 0); CLEAR keeps the values (they
+        # are uncertain now); STATE: a job's SingleExecution, a Next takes no image
+        self._render(decision.steps, (Part.RETRACT, Part.CLEAR, Part.STATE))
+        await space.retract(executing=command == Command.TRIGGER)
         assert self._on_trigger is not None
         trigger = Trigger(link=self.name, seq=job.request_id, command=int(command),
                           t_mono_ns=time.monotonic_ns(), recipe=job.recipe)
@@ -641,15 +660,7 @@ class OpcUaLink(RobotLink):
         if args:
             return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadTooManyArguments,
                                 "Next takes no arguments")
-        if self._job is not None or self.space is None:
-            running = self._job.request_id if self._job is not None else "-"
-            return self._refuse(Status.BUSY, ua.StatusCodes.BadInvalidState,
-                                f"Next while request {running} runs")
-        if not self._listed:
-            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadNoData,
-                                "Next without a pick list (no result yet, or the last one "
-                                "had no pickable object)")
-        return await self._request(Command.NEXT)
+        return await self._request(Command.NEXT, "Next")
 
     async def _select_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         if not args:
@@ -675,7 +686,7 @@ class OpcUaLink(RobotLink):
         if args:
             return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadTooManyArguments,
                                 "Reset takes no arguments")
-        if self._job is not None or self.space is None:
+        if self._handshake.busy or self.space is None:
             return self._refuse(Status.BUSY, ua.StatusCodes.BadInvalidState,
                                 "Reset while a job runs")
         await self.space.set_state("Ready")
@@ -717,6 +728,18 @@ class OpcUaLink(RobotLink):
         if self.space is None:
             raise LinkError(f"link {self.name}: not open")
         return self.space
+
+    @staticmethod
+    def _render(plan: Sequence[Step], parts: tuple[Part, ...]) -> None:
+        """Check that the space's writes that follow carry out the handshake's ``plan``: the
+        ``parts`` they write, in this order (the others are not OPC UA variables). A change of
+        the rules in ``jobcore`` that these writes do not follow fails here rather than
+        reaching a client."""
+        carried = tuple(step.part for step in plan if step.part in parts)
+        if carried != tuple(p for p in parts if p in carried) or (
+                Part.ACK in parts and plan[-1].part is not Part.ACK):
+            raise LinkError(f"OPC UA writes {parts} do not carry out the handshake's "
+                            f"{tuple(step.part for step in plan)}")
 
     def _running(self, seq: int, what: str) -> _Job:
         job = self._job

@@ -36,6 +36,9 @@ STATES = {"Ready": 1, "SingleExecution": 2, "Error": 3}
 ERROR_STATUSES = frozenset({Status.CAMERA_ERROR, Status.NOT_CALIBRATED, Status.INTERNAL})
 
 MethodHandler = Callable[..., Awaitable[Any]]
+#: ``Result.Timestamp`` before the first result: OPC UA's null DateTime (encoded as 0). A value
+#: of None made every Read that named the variable fail with BadInternalError.
+NO_TIME = datetime.datetime(1601, 1, 1, tzinfo=datetime.UTC)
 
 
 def node_id(idx: int, path: str) -> ua.NodeId:

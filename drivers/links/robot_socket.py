@@ -11,12 +11,14 @@ MotoPlus task); one supervisor task owns that connection and reconnects with dou
 logging one line per outage. Either way the robot sends the requests; TCP roles only decide who
 dials.
 
-Semantics follow the register handshake: one job at a time per link (a request while this
+Semantics follow the register handshake (``vgripd.service.jobcore.Handshake``, the same
+object the other links use): one job at a time per link (a request while this
 link's job runs is refused BUSY by the link itself, counted in ``refusals()``), unknown commands
 and out-of-range fields are refused BAD_REQUEST, CLEAR is answered RESULT with status IDLE.
 NEXT goes to the daemon, which answers it from the last job's pick list; the link refuses it
 BAD_REQUEST itself while it holds no list (after start, CLEAR, a LOCATE that found nothing
-pickable, a refusal), like the register handshake. The
+pickable, a refusal), like the register handshake; a NEXT the daemon answers without a job
+(BAD_REQUEST: another link's job took the list) is a RESULT, not a REFUSED. The
 answers of a job go to the connection that asked; a result whose connection has closed is not
 kept (``publish`` raises ``LinkError``: undelivered): the program's retry is a new request with
 a new image.
@@ -50,6 +52,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.service.gate import Gate
+from vgripd.service.jobcore import Action, Handshake
 from vgripd.service.protocol import (
     LinkHealth,
     LinkState,
@@ -57,7 +60,6 @@ from vgripd.service.protocol import (
     Trigger,
     TriggerHandler,
     checked_warnings,
-    pick_position,
 )
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.robot_socket_format import (
@@ -66,7 +68,6 @@ from vgripd.service.robot_socket_format import (
     Answer,
     AnswerKind,
     FrameError,
-    SocketCommand,
     ValueEncoding,
     ValueFormat,
     decode_request,
@@ -246,8 +247,9 @@ class RobotSocketLink(RobotLink):
         self._listener: asyncio.Server | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._on_trigger: TriggerHandler | None = None
-        self._job: _Job | None = None
-        self._listed = False  # the last answer has a pick list: NEXT may follow
+        self._job: _Job | None = None  # the running request and the connection it came on
+        #: The request/answer rules (busy, the pick list NEXT may follow, the answer's kind).
+        self._handshake = Handshake(edge=False)
         self._warnings = 0
         self._refusals: Counter[str] = Counter()
         #: peer faults by kind (malformed, incomplete, not_reading, evicted, idle)
@@ -306,6 +308,7 @@ class RobotSocketLink(RobotLink):
         if listener is not None:
             await listener.wait_closed()
         self._job = None
+        self._handshake = Handshake(edge=False)
         await self._set_health(LinkState.STOPPED)
 
     def health(self) -> LinkHealth:
@@ -328,6 +331,7 @@ class RobotSocketLink(RobotLink):
 
     async def image_captured(self, seq: int, job_id: int) -> None:
         job = self._running(seq, "image_captured")
+        self._handshake.on_captured(seq, job_id)  # the plan's CAPTURED step is this frame
         job.captured = True
         job.conn.send(Answer(AnswerKind.CAPTURED, seq, int(Status.IDLE), job_id,
                              self._warnings).encode(self.encoding))
@@ -339,10 +343,14 @@ class RobotSocketLink(RobotLink):
         is not kept, a robot that comes back asks again with a new request.
         """
         job = self._running(seq, "publish")
+        # A frame is written whole: the plan's data and its ACK are this one frame, whose kind
+        # the ACK says (a refusal without a job is REFUSED, a NEXT's answer a RESULT).
+        ack = self._handshake.publish(seq, result)[-1]
         self._job = None
         self.gate.busy(job.conn, False)
-        frame, sent = result_answer(seq, result, self._warnings, self.encoding, job.captured)
-        self._listed = pick_position(result).listed
+        kind = AnswerKind.REFUSED if ack.refused else AnswerKind.RESULT
+        frame, sent = result_answer(seq, result, self._warnings, self.encoding, job.captured,
+                                    kind=kind)
         if sent.status is not result.status:
             log.warning("%s: request %d answered %s instead of %s: %s", self.name, seq,
                         sent.status.name, result.status.name, sent.message)
@@ -377,10 +385,11 @@ class RobotSocketLink(RobotLink):
         refusal = request.refusal()
         # valid: a request whose fields are in range (what a robot program sends)
         self.gate.activity(conn, valid=refusal is None)
-        if refusal is None and self._job is not None:
-            refusal = Status.BUSY
-        if refusal is None and request.command == SocketCommand.NEXT and not self._listed:
-            refusal = Status.BAD_REQUEST  # no pick list to go on from
+        decision = None
+        if refusal is None:  # BUSY while a request runs, BAD_REQUEST for NEXT without a list
+            decision = self._handshake.on_request(request.command, seq, request.recipe)
+            if decision.action is Action.REJECT:
+                refusal = decision.code
         if refusal is not None:
             self._refusals[refusal.name] += 1
             self._lines.log(logging.INFO, conn.host, f"refused {refusal.name}",
@@ -389,9 +398,8 @@ class RobotSocketLink(RobotLink):
             conn.send(Answer(AnswerKind.REFUSED, seq, int(refusal),
                              warnings=self._warnings).encode(self.encoding))
             return
-        if request.command != SocketCommand.NEXT:
-            self._listed = False  # CLEAR, or a new LOCATE: the old list is not its job's
-        if request.command == SocketCommand.CLEAR:
+        assert decision is not None
+        if decision.action is Action.CLEAR:  # answered at once: its ACK is this frame
             conn.send(Answer(AnswerKind.RESULT, seq, int(Status.IDLE),
                              warnings=self._warnings).encode(self.encoding))
             return

@@ -19,8 +19,8 @@ every register link uses) and copies its changes to the PLC, in the bank's order
 - ``image_captured`` / ``publish`` / the heartbeat change the mirror and wake the supervisor,
   which writes what changed: everything between two changes of ACK_SEQ in one write, and each
   change of ACK_SEQ in a write of its own at its place in the bank's order (last for a
-  publish, first for a new job's retraction), so the PLC never pairs an acknowledged sequence
-  with data of another request (``plan_db_writes``);
+  publish, first for the retraction of a new job or a CLEAR: ``jobcore.Handshake``), so the
+  PLC never pairs an acknowledged sequence with data of another request (``plan_db_writes``);
 - after every (re)connect the PLC's block is read and whatever differs from the mirror is
   written (data, then ACK_SEQ), so a result published while the PLC was away reaches it as
   soon as it is back;

@@ -24,14 +24,16 @@ Life of a job (``JobState``)::
   gave its peer (normally the job's), and an answer whose publish failed is counted apart
   (``undelivered``, by the job's status). Refusals a register link makes on its own handshake
   (``RobotLink.refusals``: BUSY, BAD_REQUEST) are added to the daemon's own in the status.
-- Pick lists (``JobResult.instances``, map version 3): the last job's result is kept with the
-  link that triggered it (``PickCursor``) when it has a pickable instance and was delivered. A
-  NEXT (``Command.NEXT``, the same code on every link) is answered from it through the same
-  publish path: the following instance (``next_answer``), no acquisition, the job's id and
-  age; past the end ``NOT_FOUND`` without a pose. Any new job drops the list at its trigger,
-  so a NEXT can never hand out a pose of an earlier job; a NEXT with no list of its link's is
-  answered ``BAD_REQUEST`` (job id 0), one while a job runs ``BUSY``. NEXT answers are counted
-  with the answers (``counters``) and apart (``next_answers``), and logged one line each.
+- Pick lists (``JobResult.instances``, map version 3; the rules are ``jobcore.JobCore``'s):
+  the last job's result is kept with the link that triggered it (``PickCursor``) when it has a
+  pickable instance and was delivered. A NEXT (``Command.NEXT``, the same code on every link)
+  is answered from it through the same publish path: the following instance
+  (``next_answer``), no acquisition, the job's id and age; past the end ``NOT_FOUND`` without
+  a pose and INDEX = COUNT + 1 (a single-object job is a list of one). Any new job drops the
+  list at its trigger, so a NEXT can never hand out a pose of an earlier job; a NEXT with no
+  list of its link's is answered ``BAD_REQUEST`` (job id 0), one while a job runs ``BUSY``.
+  NEXT answers are counted with the answers (``counters``) and apart (``next_answers``), and
+  logged one line each.
 - RECALIBRATE (``EpipolarMonitor``): the median epipolar residual of every stereo job goes
   into a window of ``daemon.recalibrate_window`` jobs; while more than ``recalibrate_share``
   of them exceed ``vision.epipolar_warn_px`` the status carries the warning (logged once when
@@ -94,14 +96,20 @@ from vgripd.config import Config, unknown_recipe
 from vgripd.errors import CameraError, ConfigError, LinkError, NotCalibratedError
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
 from vgripd.service.gate import WEB_SURFACE, Budget, Gate, file_limit, open_files, plan_budget
+from vgripd.service.jobcore import (
+    Admit,
+    JobCore,
+    PickCursor,
+    ViewsAt,
+    ViewStep,
+    view_admission,
+)
 from vgripd.service.protocol import (
     Command,
     RobotLink,
     Trigger,
     Warnings,
-    next_answer,
     pick_position,
-    pickable_count,
 )
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.recorder import Recorder
@@ -169,25 +177,6 @@ class JobRecord:
 
 
 JobListener = Callable[[ImagePair | None, JobRecord], None]
-
-
-@dataclasses.dataclass
-class PickCursor:
-    """The last job's pick list, as far as NEXT has walked it.
-
-    ``link``: the link that triggered the job (only it may walk the list); ``result``: the
-    job's result as published (the top level shows instance 1); ``index``: the 1-based index
-    last handed out (``count + 1`` once past the end).
-    """
-
-    link: str
-    seq: int
-    result: JobResult
-    index: int = 1
-
-    @property
-    def count(self) -> int:
-        return pickable_count(self.result)
 
 
 @dataclasses.dataclass
@@ -380,8 +369,8 @@ class Daemon:
         self.record_dropped = 0  # jobs the recorder refused because the disk was behind
         self.cycle_ms: deque[float] = deque(maxlen=config.daemon.stats_window)
         self.last_job: JobRecord | None = None
-        #: The last job's pick list (None: no job yet, a job running, or nothing pickable).
-        self.pick_list: PickCursor | None = None
+        #: Admission and the last job's pick list (the rules, without I/O).
+        self.jobs = JobCore()
         #: A several-view job between two of its views (None otherwise).
         self.views: ViewJob | None = None
         self.next_answers: Counter[str] = Counter()  # NEXT answers, by the status told
@@ -412,6 +401,11 @@ class Daemon:
         self._stop_requested = asyncio.Event()
         self._tasks: set[asyncio.Task[Any]] = set()
         self._t_start_ns = 0
+
+    @property
+    def pick_list(self) -> PickCursor | None:
+        """The last job's pick list (None: no job yet, a job running, or nothing pickable)."""
+        return self.jobs.pick_list
 
     @property
     def not_calibrated(self) -> str:
@@ -614,14 +608,17 @@ class Daemon:
             return
         # Links open during start-up may trigger before READY: those jobs run normally.
         accepting = self.run_state in (RunState.STARTING, RunState.RUNNING)
-        if not accepting or self._job is not None:
-            status = Status.BUSY if accepting else Status.ABORTED
-            log.warning("trigger seq %d from %s refused: %s", trigger.seq, trigger.link,
-                        status.name)
-            self._spawn(self._refuse(trigger, status))
+        admission = self.jobs.trigger(trigger.link, trigger.command, accepting,
+                                      busy=self._job is not None)
+        if admission.kind is Admit.REFUSE:
+            what = "NEXT" if admission.status is Status.BAD_REQUEST else "trigger"
+            log.warning("%s seq %d from %s refused: %s%s", what, trigger.seq, trigger.link,
+                        admission.status.name, f" ({admission.why})" if admission.why else "")
+            self._spawn(self._refuse(trigger, admission.status, admission.why))
             return
-        if trigger.command == Command.NEXT:
-            self._next(trigger)
+        if admission.kind is Admit.NEXT:  # answered from the list, no acquisition
+            assert admission.answer is not None
+            self._spawn(self._answer_next(trigger, admission.answer))
             return
         if trigger.command == Command.CAPTURE or self._views_of(trigger.recipe) > 1:
             self._capture(trigger)
@@ -639,46 +636,32 @@ class Daemon:
         """A CAPTURE (or a TRIGGER in a cell of several views): start, continue or end the
         several-view job (the module docstring has the rules)."""
         views = self.views
-        if trigger.command != Command.CAPTURE:
-            why = (f"recipe {self.recipe_label(trigger.recipe)} takes "
-                   f"{self._views_of(trigger.recipe)} views per job: CAPTURE views 1..N "
-                   "(CMD = view * 256 + 4), not TRIGGER")
-            if views is not None and views.link == trigger.link:
-                self._end_views(trigger, why)
-            else:
-                self._spawn(self._refuse(trigger, Status.BAD_REQUEST, why))
+        at = None if views is None else ViewsAt(views.link, views.job_id, views.next_view,
+                                                  views.count)
+        decision = view_admission(trigger.command, trigger.view, trigger.link,
+                                  self.recipe_label(trigger.recipe),
+                                  trigger.recipe in self.config.recipe_numbers(),
+                                  self._views_of(trigger.recipe), at)
+        if decision.step is ViewStep.END:
+            self._end_views(trigger, decision.why)
             return
-        if views is not None and views.link != trigger.link:
-            self._spawn(self._refuse(trigger, Status.BUSY, f"link {views.link}'s views job "
-                                     f"{views.job_id} is at view {views.next_view - 1}"))
+        if decision.step is ViewStep.JOB:
+            self._start(trigger)  # answered BAD_REQUEST like any job's unknown recipe
             return
-        if views is None:
-            if trigger.recipe not in self.config.recipe_numbers():
-                self._start(trigger)  # answered BAD_REQUEST like any job's unknown recipe
-                return
-            count = self._views_of(trigger.recipe)
-            why = ("" if trigger.view == 1 and count > 1 else
-                   f"recipe {self.recipe_label(trigger.recipe)} takes one view per job: "
-                   "TRIGGER, not CAPTURE" if count == 1 else
-                   f"no views job running: CAPTURE view 1 first, not view {trigger.view}")
-            if why:
+        if decision.step is ViewStep.REFUSE:
+            if trigger.command == Command.CAPTURE and decision.status is Status.BAD_REQUEST:
                 log.warning("CAPTURE seq %d from %s refused: BAD_REQUEST (%s)", trigger.seq,
-                            trigger.link, why)
-                self._spawn(self._refuse(trigger, Status.BAD_REQUEST, why))
-                return
+                            trigger.link, decision.why)
+            self._spawn(self._refuse(trigger, decision.status, decision.why))
+            return
+        if decision.step is ViewStep.BEGIN:
             vision = self.config.for_recipe(trigger.recipe).vision
             self._job_seq += 1
-            self.pick_list = None
-            self.views = ViewJob(self._job_seq, trigger.link, trigger.recipe, count,
-                                 trigger.t_mono_ns,
+            self.jobs.job_started()
+            self.views = ViewJob(self._job_seq, trigger.link, trigger.recipe,
+                                 self._views_of(trigger.recipe), trigger.t_mono_ns,
                                  tuple(scene_pose(p) for p in vision.view_poses))
-            if trigger.recipe in self.config.recipe_numbers():
-                self.active_recipe = trigger.recipe
-        elif trigger.view != views.next_view:
-            what = "repeated" if trigger.view < views.next_view else "out of order"
-            self._end_views(trigger, f"view {trigger.view} {what}: view {views.next_view} "
-                            f"of {views.count} expected; start again at view 1")
-            return
+            self.active_recipe = trigger.recipe
         views = self.views
         assert views is not None
         if views.timer is not None:
@@ -722,7 +705,7 @@ class Daemon:
 
     def _start(self, trigger: Trigger) -> None:
         """Run a one-acquisition job for ``trigger``."""
-        self.pick_list = None  # a new job: the old list is nobody's any more
+        self.jobs.job_started()  # a new job: the old list is nobody's any more
         self._job_seq += 1
         job_id = self._job_seq
         log.info("job %d: trigger seq %d command %d recipe %d from %s", job_id, trigger.seq,
@@ -732,22 +715,6 @@ class Daemon:
         self._job_started_ns = time.monotonic_ns()
         self._job = (job_id, trigger, asyncio.create_task(self._run_job(trigger, job_id)))
         self._set_state(JobState.TRIGGERED)
-
-    def _next(self, trigger: Trigger) -> None:
-        """Answer a NEXT from the pick list of the last job (no acquisition). The cursor moves
-        here, synchronously, so two NEXTs in a row get two different instances."""
-        cursor = self.pick_list
-        if cursor is None or cursor.link != trigger.link:
-            why = ("no pick list: no job since start, or the last one found nothing pickable"
-                   if cursor is None else
-                   f"the last job's pick list belongs to link {cursor.link}")
-            log.warning("NEXT seq %d from %s refused: BAD_REQUEST (%s)", trigger.seq,
-                        trigger.link, why)
-            self._spawn(self._refuse(trigger, Status.BAD_REQUEST, why))
-            return
-        cursor.index = min(cursor.index + 1, cursor.count + 1)
-        answer = next_answer(cursor.result, cursor.index)
-        self._spawn(self._answer_next(trigger, answer))
 
     async def _answer_next(self, trigger: Trigger, answer: JobResult) -> None:
         told = await self._publish(trigger.link, trigger.seq, answer)
@@ -1023,8 +990,7 @@ class Daemon:
                            cycle_ms=(done_ns - trigger.t_mono_ns) / 1e6, t_done_mono_ns=done_ns,
                            published=told, recipe=trigger.recipe)
         self.last_job = record
-        if told is not None and pickable_count(result):
-            self.pick_list = PickCursor(trigger.link, trigger.seq, result)
+        self.jobs.job_finished(trigger.link, trigger.seq, result, delivered=told is not None)
         self._count(result.status, told)
         self.cycle_ms.append(record.cycle_ms)
         told_note = ("" if told is result.status else

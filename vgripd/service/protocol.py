@@ -52,8 +52,11 @@ the result area was cleared; ``STATUS`` tells the outcome) or by ``REJECT_SEQ ==
 acknowledged under its own sequence).
 
 Ordering, so that a poller never pairs an acknowledged sequence with data of another request:
-a publish writes all data first and ``ACK_SEQ`` last; a new job retracts ``ACK_SEQ`` (0) first and
-only then clears the data. Servers apply each list of block writes without yielding to readers.
+a publish writes all data first and ``ACK_SEQ`` last; a new job and CLEAR retract ``ACK_SEQ``
+(0) first and only then clear the data (CLEAR then writes ``ACK_SEQ`` = seq last). The rules and
+the handshake itself live in ``vgripd.service.jobcore`` (``Handshake``: every link's plans of
+writes); ``RegisterBank`` renders its steps as block writes. Servers apply each list of block
+writes without yielding to readers; client links (S7, Modbus client) send them in order.
 
 Pick lists (map version 3): a job that finds several instances (``JobResult.instances``)
 publishes COUNT and the first pickable instance (INDEX 1) in the same places as a single
@@ -98,6 +101,21 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from vgripd.errors import LinkError
 from vgripd.registry import LinkCapabilities
+from vgripd.service.jobcore import MAX_VIEWS as MAX_VIEWS
+from vgripd.service.jobcore import UNKNOWN_SCORE as UNKNOWN_SCORE
+from vgripd.service.jobcore import Action as Action
+from vgripd.service.jobcore import Command as Command
+from vgripd.service.jobcore import Decision as Decision
+from vgripd.service.jobcore import Handshake as Handshake
+from vgripd.service.jobcore import HandshakeState as HandshakeState
+from vgripd.service.jobcore import NextAnswer as NextAnswer
+from vgripd.service.jobcore import Part, Step
+from vgripd.service.jobcore import PickPosition as PickPosition
+from vgripd.service.jobcore import capture_word as capture_word
+from vgripd.service.jobcore import next_answer as next_answer
+from vgripd.service.jobcore import pick_position as pick_position
+from vgripd.service.jobcore import pickable_count as pickable_count
+from vgripd.service.jobcore import split_command as split_command
 from vgripd.types import FloatArray, JobResult, Status
 
 
@@ -284,136 +302,6 @@ CHECK_U32 = 0x12345678
 CHECK_F32 = 123.456
 NO_AGE = 0xFFFFFFFF
 FIT_RMS_KEY = "fit_rms_mm"  # the JobResult.residuals entry shown in FIT_RMS
-
-
-UNKNOWN_SCORE = -1.0  # SCORE when no instance (or a single object without a score) is shown
-
-
-@dataclass(frozen=True)
-class NextAnswer(JobResult):
-    """The daemon's answer to a NEXT request: the job's result with the top-level fields
-    describing the instance at ``index`` (1-based, among ``instances``) instead of the first.
-
-    ``index`` = pickable count + 1 is the answer past the end of the list (``NOT_FOUND``, no
-    pose). ``job_id``, ``recipe``, ``t_capture_mono_ns`` and ``t_done_mono_ns`` are the job's
-    own: the images are as old as the original result, and RESULT_AGE_MS says so.
-    """
-
-    index: int = 1
-
-
-@dataclass(frozen=True)
-class PickPosition:
-    """Where a published result stands in its job's pick list (COUNT, INDEX, PICK_ID, SCORE).
-
-    ``count``: pickable instances (a single-object job counts 1 with a pose, 0 without);
-    ``index``: 1-based index of the instance shown, 0 when no pose is shown, ``count + 1``
-    past the end; ``pick_id`` and ``score`` of the instance shown (0 and ``UNKNOWN_SCORE``
-    when none is, or for a single-object job, which has no score).
-    """
-
-    count: int
-    index: int
-    pick_id: int = 0
-    score: float = UNKNOWN_SCORE
-
-    @property
-    def listed(self) -> bool:
-        """True when NEXT may follow: the result belongs to a job with a pickable instance."""
-        return self.count > 0
-
-
-def pickable_count(result: JobResult) -> int:
-    """Pickable instances of ``result``'s job (``JobResult.instances`` are in pick order, the
-    pickable ones first); a single-object job: 1 with a pose, 0 without."""
-    if result.instances:
-        return sum(i.status.pose_valid for i in result.instances)
-    return int(result.status.pose_valid and result.target is not None)
-
-
-def pick_position(result: JobResult) -> PickPosition:
-    """The pick-list fields of a result to publish (a job's own result or a ``NextAnswer``).
-
-    Refusals and failures that never had a list (BUSY, BAD_REQUEST, a failed single-object
-    job) are ``count`` 0: NEXT cannot follow them.
-    """
-    count = pickable_count(result)
-    if isinstance(result, NextAnswer):
-        index = result.index
-    else:
-        index = 1 if count and result.status.pose_valid else 0
-    if result.instances and 1 <= index <= count:
-        shown = result.instances[index - 1]
-        return PickPosition(count, index, shown.pick_id, shown.score)
-    return PickPosition(count, index)
-
-
-def next_answer(result: JobResult, index: int) -> NextAnswer:
-    """The answer showing instance ``index`` (1-based) of job ``result``'s pick list; past the
-    end (``index > count``) a ``NOT_FOUND`` answer without a pose at ``count + 1``.
-
-    ``result`` is the job's own published result (the top-level fields of instance 1). Raises
-    ``ValueError`` for an index below 1 or a result without a list (the daemon refuses NEXT
-    before it gets here).
-    """
-    count = pickable_count(result)
-    if count == 0 or index < 1:
-        raise ValueError(f"job {result.job_id}: no pick list instance {index} "
-                         f"({count} pickable)")
-    end = NextAnswer(job_id=result.job_id, status=Status.NOT_FOUND, index=count + 1,
-                     message=f"pick list of job {result.job_id} exhausted: all {count} "
-                             "pickable instances were handed out",
-                     t_capture_mono_ns=result.t_capture_mono_ns,
-                     t_done_mono_ns=result.t_done_mono_ns, instances=result.instances,
-                     recipe=result.recipe)
-    if index > count:
-        return end
-    if not result.instances:  # a single object: instance 1 is the job's own result
-        return NextAnswer(**{f.name: getattr(result, f.name)
-                             for f in dataclasses.fields(result) if f.name != "index"}, index=1)
-    inst = result.instances[index - 1]
-    return dataclasses.replace(end, status=inst.status, message=inst.message, target=inst.target,
-                               T_base_obj=inst.T_base_obj, offset=inst.offset,
-                               residuals=inst.residuals, features_used=inst.features_used,
-                               index=index)
-
-
-class Command(enum.IntEnum):
-    TRIGGER = 1
-    CLEAR = 2
-    NEXT = 3  # the next instance of the last job's pick list (map version 3)
-    CAPTURE = 4  # one view of a several-view job (``vision.views``); the view in the high byte
-
-
-#: Views one job may have (``vision.views``), and so the largest view index of a CAPTURE.
-MAX_VIEWS = 8
-
-
-def capture_word(view: int) -> int:
-    """The CMD word of a CAPTURE of view ``view`` (1-based): ``view * 256 + 4``.
-
-    The low byte is the command, the high byte the view: one register, so the view and the
-    request arrive in the same write and no spare register (nor a new map version) is needed.
-    """
-    if not 1 <= view <= MAX_VIEWS:
-        raise ValueError(f"view {view}: views are 1..{MAX_VIEWS}")
-    return view << 8 | Command.CAPTURE
-
-
-def split_command(word: int) -> tuple[int, int]:
-    """``(command, view)`` of a CMD word: a CAPTURE carries its view in the high byte; any
-    other command keeps the whole word (so a high byte there stays an unknown command)."""
-    if word & 0xFF == Command.CAPTURE:
-        return int(Command.CAPTURE), word >> 8
-    return word, 0
-
-
-class HandshakeState(enum.IntEnum):
-    IDLE = 0
-    TRIGGERED = 1  # request accepted, waiting for the image
-    BUSY = 2  # image captured, processing
-    DONE = 3  # result acknowledged
-    VIEWS = 4  # a view of a several-view job taken: the robot moves on to the next view
 
 
 WordOrder = Literal["ABCD", "CDAB"]
@@ -615,90 +503,6 @@ class RegisterImage:
                 BlockWrite(Reg.COUNT, self.empty_pick_words())]
 
 
-class Action(enum.Enum):
-    IGNORE = "ignore"  # not a new request
-    START = "start"  # run a job: hand a Trigger to the daemon
-    CLEAR = "clear"  # reset the result area and acknowledge
-    REJECT = "reject"  # refused: REJECT_SEQ / REJECT_CODE
-
-
-@dataclass(frozen=True)
-class Decision:
-    action: Action
-    seq: int = 0
-    command: int = 0
-    recipe: int = 0
-    code: Status = Status.IDLE
-    view: int = 0  # CAPTURE: the view (1-based)
-
-
-class Handshake:
-    """What a write of the command area means: idle -> triggered -> busy -> done -> ...
-
-    A request is a change of the request sequence to a non-zero value. 0 is the power-on value
-    and never a request: a restarted PLC may write 0 and then start again at 1.
-    """
-
-    def __init__(self) -> None:
-        self.state = HandshakeState.IDLE
-        self.running_seq = 0
-        self.last_req_seq = 0
-        #: The result shown belongs to a job with a pick list (``PickPosition.listed``): NEXT
-        #: may follow. Set by ``on_published``; a new TRIGGER and CLEAR reset it.
-        self.listed = False
-
-    @property
-    def busy(self) -> bool:
-        return self.state in (HandshakeState.TRIGGERED, HandshakeState.BUSY)
-
-    def on_request(self, command: int, seq: int, recipe: int = 0) -> Decision:
-        if seq == self.last_req_seq:
-            return Decision(Action.IGNORE, seq)
-        self.last_req_seq = seq
-        if seq == 0:
-            return Decision(Action.IGNORE, seq)
-        command, view = split_command(command)
-        if (command not in (Command.TRIGGER, Command.CLEAR, Command.NEXT, Command.CAPTURE)
-                or (command == Command.CAPTURE and not 1 <= view <= MAX_VIEWS)):
-            return Decision(Action.REJECT, seq, command, recipe, Status.BAD_REQUEST, view)
-        if self.busy:
-            return Decision(Action.REJECT, seq, command, recipe, Status.BUSY, view)
-        if command == Command.NEXT and not self.listed:  # nothing to go on from
-            return Decision(Action.REJECT, seq, command, recipe, Status.BAD_REQUEST)
-        if command == Command.CLEAR:
-            self.state = HandshakeState.IDLE
-            self.listed = False
-            return Decision(Action.CLEAR, seq, command, recipe)
-        if command in (Command.TRIGGER, Command.CAPTURE):
-            self.listed = False  # the old list is not this job's
-        self.state = HandshakeState.TRIGGERED
-        self.running_seq = seq
-        return Decision(Action.START, seq, command, recipe, view=view)
-
-    def on_captured(self, seq: int) -> None:
-        self.check_running(seq, "image_captured")
-        self.state = HandshakeState.BUSY
-
-    def on_view_captured(self, seq: int) -> None:
-        """A view (not the last) is taken: the request is over, the next may come. The job
-        may still end under this sequence (the next view timed out): ``check_running``
-        accepts a publish for it until a new request runs."""
-        self.check_running(seq, "view_captured")
-        self.state = HandshakeState.VIEWS
-
-    def on_published(self, seq: int, listed: bool = False) -> None:
-        """``listed``: the published result has a pick list (NEXT may follow)."""
-        self.check_running(seq, "publish")
-        self.state = HandshakeState.DONE
-        self.listed = listed
-
-    def check_running(self, seq: int, what: str) -> None:
-        waiting = self.state is HandshakeState.VIEWS and what == "publish"
-        if not (self.busy or waiting) or seq != self.running_seq:
-            running = self.running_seq if self.busy else "none"
-            raise LinkError(f"{what} for request {seq}, but the running request is {running}")
-
-
 class RegisterBank:
     """Register image + handshake: everything a register server link does except the I/O.
 
@@ -731,44 +535,18 @@ class RegisterBank:
             return Decision(Action.IGNORE)
         w = self.image.words
         decision = self.handshake.on_request(w[Reg.CMD], w[Reg.REQ_SEQ], w[Reg.RECIPE])
-        if decision.action is Action.START:
-            self.image.apply([
-                BlockWrite(Reg.ACK_SEQ, (0,)),  # retract first: cleared data is nobody's result
-                *self.image.clear_result(),
-                BlockWrite(Reg.STATE, (HandshakeState.TRIGGERED,)),
-            ])
-            self.image.set_result_time(None)
-        elif decision.action is Action.CLEAR:
-            self.image.apply([
-                *self.image.clear_result(),
-                BlockWrite(Reg.STATE, (HandshakeState.IDLE,)),
-                BlockWrite(Reg.ACK_SEQ, (decision.seq,)),
-            ])
-            self.image.set_result_time(None)
-        elif decision.action is Action.REJECT:
-            self.image.apply([
-                BlockWrite(Reg.REJECT_CODE, (int(decision.code),)),
-                BlockWrite(Reg.REJECT_SEQ, (decision.seq,)),
-            ])
+        self.apply(decision.steps)
+        if decision.action is Action.REJECT:
             self.refusals[decision.code.name] += 1
         return decision
 
     def view_captured(self, seq: int, job_id: int) -> None:
         """View request ``seq`` has its image: JOB_ID, STATE 4 VIEWS, then CAPTURED_SEQ."""
-        self.handshake.on_view_captured(seq)
-        self.image.apply([
-            BlockWrite(Reg.JOB_ID, self.image.codec.u32(job_id & 0xFFFFFFFF)),
-            BlockWrite(Reg.STATE, (HandshakeState.VIEWS,)),
-            BlockWrite(Reg.CAPTURED_SEQ, (seq,)),
-        ])
+        self.apply(self.handshake.on_view_captured(seq, job_id))
 
     def captured(self, seq: int, job_id: int) -> None:
-        self.handshake.on_captured(seq)
-        self.image.apply([
-            BlockWrite(Reg.JOB_ID, self.image.codec.u32(job_id & 0xFFFFFFFF)),
-            BlockWrite(Reg.STATE, (HandshakeState.BUSY,)),
-            BlockWrite(Reg.CAPTURED_SEQ, (seq,)),
-        ])
+        """Request ``seq`` has its image: JOB_ID, STATE 2 BUSY, then CAPTURED_SEQ."""
+        self.apply(self.handshake.on_captured(seq, job_id))
 
     def publish(self, seq: int, result: JobResult, now_ns: int) -> JobResult:
         """Publish ``result`` for request ``seq``: data, then ``STATE``, then ``ACK_SEQ``.
@@ -780,31 +558,55 @@ class RegisterBank:
         self.handshake.check_running(seq, "publish")
         position = pick_position(result)
         try:
-            words = self.image.result_words(result)
-            pick = self.image.pick_words(position)
+            self.image.result_words(result)
+            self.image.pick_words(position)
         except (RegisterOverflowError, RegisterCapacityError) as err:
             status = (Status.OUT_OF_LIMITS if isinstance(err, RegisterOverflowError)
                       else Status.INTERNAL)
             result = JobResult(job_id=result.job_id, status=status, message=str(err),
                                t_done_mono_ns=result.t_done_mono_ns)
-            words = self.image.result_words(result)
             # The list stays walkable past an instance the registers cannot show (its INDEX
             # still says which one it was); a bad COUNT/INDEX itself leaves no list.
+            position = dataclasses.replace(position, score=UNKNOWN_SCORE)
             try:
-                pick = self.image.pick_words(dataclasses.replace(position,
-                                                                 score=UNKNOWN_SCORE))
+                self.image.pick_words(position)
             except RegisterOverflowError:
-                position = PickPosition(0, 0)
-                pick = self.image.empty_pick_words()
-        self.handshake.on_published(seq, position.listed)
-        self.image.apply([
-            BlockWrite(Reg.STATUS, words),
-            BlockWrite(Reg.COUNT, pick),
-            BlockWrite(Reg.STATE, (HandshakeState.DONE,)),
-            BlockWrite(Reg.ACK_SEQ, (seq,)),
-        ])
-        self.image.set_result_time(result.t_done_mono_ns or now_ns)
+                position = PickPosition(0, 0, 0, 0.0)  # the words of an empty pick area
+        self.apply(self.handshake.publish(seq, result, position), now_ns)
         return result
+
+    def apply(self, steps: Sequence[Step], now_ns: int = 0) -> None:
+        """Write the handshake's ``steps`` into the image, in their order, in one call."""
+        image = self.image
+        writes: list[BlockWrite] = []
+        t_result: int | None = None
+        for step in steps:
+            if step.part is Part.RETRACT:
+                writes.append(BlockWrite(Reg.ACK_SEQ, (0,)))
+            elif step.part is Part.CLEAR:
+                writes += image.clear_result()
+            elif step.part is Part.JOB_ID:
+                writes.append(BlockWrite(Reg.JOB_ID, image.codec.u32(step.value & 0xFFFFFFFF)))
+            elif step.part is Part.RESULT:
+                assert step.result is not None
+                assert step.position is not None
+                writes += [BlockWrite(Reg.STATUS, image.result_words(step.result)),
+                           BlockWrite(Reg.COUNT, image.pick_words(step.position))]
+                t_result = step.result.t_done_mono_ns or now_ns
+            elif step.part is Part.STATE:
+                writes.append(BlockWrite(Reg.STATE, (step.value,)))
+            elif step.part is Part.CAPTURED:
+                writes.append(BlockWrite(Reg.CAPTURED_SEQ, (step.seq,)))
+            elif step.part is Part.REJECT:
+                writes += [BlockWrite(Reg.REJECT_CODE, (step.value,)),
+                           BlockWrite(Reg.REJECT_SEQ, (step.seq,))]
+            elif step.part is Part.ACK:
+                writes.append(BlockWrite(Reg.ACK_SEQ, (step.seq,)))
+        image.apply(writes)
+        if any(step.part is Part.CLEAR for step in steps):
+            image.set_result_time(None)
+        if t_result is not None:
+            image.set_result_time(t_result)
 
     def beat(self) -> int:
         self._heartbeat = (self._heartbeat + 1) & 0xFFFF

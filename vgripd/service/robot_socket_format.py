@@ -223,15 +223,17 @@ def decode_answer(frame: bytes) -> Answer:
 
 
 def result_answer(request_id: int, result: JobResult, warnings: int, encoding: ValueEncoding,
-                  captured: bool) -> tuple[bytes, JobResult]:
+                  captured: bool, kind: AnswerKind | None = None) -> tuple[bytes, JobResult]:
     """The final frame for ``result`` and the result actually sent.
 
     A pose value that does not fit the encoding turns the answer into ``OUT_OF_LIMITS`` without
     a pose, more values than the frame holds (a bug: the config check refuses such a vendor)
-    into ``INTERNAL``. A request that never got a job (no images, job id 0: the daemon's BUSY
-    or ABORTED refusal) is answered REFUSED, every other one RESULT.
+    into ``INTERNAL``. ``kind``: the link's handshake says (``jobcore.answer_refused``);
+    without it a request that never got a job (no images, job id 0: the daemon's BUSY or
+    ABORTED refusal) is answered REFUSED, every other one RESULT.
     """
-    kind = AnswerKind.RESULT if captured or result.job_id else AnswerKind.REFUSED
+    if kind is None:
+        kind = AnswerKind.RESULT if captured or result.job_id else AnswerKind.REFUSED
     values: tuple[float, ...] = ()
     if result.status.pose_valid and result.target is not None:
         values = result.target.values
