@@ -77,6 +77,7 @@ import numpy.typing as npt
 
 from vgripd.config import Config
 from vgripd.errors import CameraError, NotCalibratedError, VgripError
+from vgripd.service.logsetup import configure_logging
 from vgripd.types import CaptureView, ImagePair, JobResult
 
 log = logging.getLogger("vgripd.worker")
@@ -446,8 +447,6 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     run_below_daemon(WORKER_NICE)
-    from vgripd.service.daemon import configure_logging
-
     configure_logging(log_level)
     try:
         worker = _Worker(config, processor)
