@@ -40,17 +40,18 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from vgripd import registry
+from vgripd.configbase import (
+    COMBINATION,
+    MAX_RECIPE,
+    RECIPE_PROBLEMS,
+    DriverSection,
+    format_validation_error,
+)
 from vgripd.errors import ConfigError, DegenerateInputError
 from vgripd.geometry.transforms import check_transform
 from vgripd.geometry.vendors import VENDORS
 from vgripd.redaction import REDACTED
-
-#: pydantic error type of a refused combination of fields: its message names every field
-#: involved, so it is shown without a field path (``format_validation_error``).
-COMBINATION = "combination"
-#: pydantic error type of a recipe whose effective config is invalid: its message is one line
-#: per problem, each starting with the full field path (``recipes.2.vision.downscale: ...``).
-RECIPE_PROBLEMS = "recipe_problems"
 
 #: The sections a recipe may overlay (``[recipes.N.<section>]``): what differs from one object
 #: to the next. Everything else (camera, calibration, links, daemon, ...) belongs to the cell.
@@ -61,8 +62,6 @@ RECIPE_SECTIONS: tuple[str, ...] = ("object", "vision", "reference", "limits", "
 RECIPE_WHOLE_SECTIONS: tuple[str, ...] = ("object",)
 #: Longest recipe name (characters).
 MAX_RECIPE_NAME = 64
-#: Highest recipe number: the RECIPE register is one 16-bit word.
-MAX_RECIPE = 65535
 
 
 class Model(BaseModel):
@@ -88,16 +87,6 @@ def _allow_entry(entry: str) -> str:
 #: empty list is refused (it would lock every client out).
 AllowList = Annotated[list[Annotated[str, AfterValidator(_allow_entry)]], Field(min_length=1)] \
     | None
-
-
-class DriverSection(BaseModel):
-    """``type = "name"`` plus driver-specific options (validated by the driver's own model)."""
-
-    model_config = ConfigDict(extra="allow", frozen=True)
-    type: str
-
-    def options(self) -> dict[str, Any]:
-        return dict(self.model_extra or {})
 
 
 class OutputConfig(Model):
@@ -917,8 +906,6 @@ class Config(Model):
         if why:
             raise ValueError(f"vision.views = {self.vision.views} needs one robot-mounted "
                              f"camera: {why}")
-        from vgripd import registry  # registry imports this module; it reaches drivers/
-
         problems = registry.views_problems(self.links, self.vision.views)
         if problems:
             raise PydanticCustomError(COMBINATION, "{problems}",
@@ -930,8 +917,6 @@ class Config(Model):
         """Every link must be able to carry ``output.vendor`` (its class's capabilities)."""
         if not self.links:
             return self
-        from vgripd import registry  # registry imports this module; it reaches drivers/
-
         default = "vendor" not in self.output.model_fields_set
         problems = registry.link_problems(self.links, self.output.vendor, default)
         if problems:
@@ -1012,41 +997,6 @@ def _problem_lines(err: ValidationError) -> list[str]:
         else:
             lines.append(f"{'.'.join(str(p) for p in e['loc']) or '<root>'}: {e['msg']}")
     return lines
-
-
-def format_validation_error(
-    err: ValidationError, source: str, owner: dict[str, str] | None = None
-) -> str:
-    """One line per problem: ``source: field.path: message``.
-
-    ``owner`` maps leaf field paths to the file that set them (includes); a problem is blamed
-    on the file that set the field, or the one that set something below it.
-    """
-    lines = []
-    for e in err.errors():
-        path = ".".join(str(p) for p in e["loc"]) or "<root>"
-        if e["type"] == COMBINATION:
-            # The message names its fields; blame the file that set the links.
-            where = (owner or {}).get("links", source)
-            lines += [f"{where}: {line}" for line in e["msg"].splitlines()]
-            continue
-        if e["type"] == RECIPE_PROBLEMS:  # each line starts with its recipes.N... path
-            lines += [f"{_blame(line.split(':', 1)[0], source, owner)}: {line}"
-                      for line in e["msg"].splitlines()]
-            continue
-        if path.startswith("recipes.") and path.endswith(".[key]"):
-            path = path.removesuffix(".[key]")
-            e["msg"] = f"{e['msg']} (a recipe number is 1 .. {MAX_RECIPE}; 0 is the top level)"
-        lines.append(f"{_blame(path, source, owner)}: {path}: {e['msg']}")
-    return "\n".join(lines)
-
-
-def _blame(path: str, source: str, owner: dict[str, str] | None) -> str:
-    """The file that set ``path`` (or something below or above it); ``source`` if none."""
-    for key, file in (owner or {}).items():
-        if key == path or key.startswith(path + ".") or path.startswith(key + "."):
-            return file
-    return source
 
 
 def config_from_dict(

@@ -3,7 +3,8 @@
 A missing optional SDK breaks only the driver that needs it, with a clear ``DriverError``.
 ``vgripd`` reaches ``drivers/`` only through this table. ``link_problems`` is how the config
 model (``vgripd.config``) judges the link sections against ``output.vendor`` when a config is
-loaded, without importing ``drivers/`` itself.
+loaded, without importing ``drivers/`` itself; this module takes what it needs of the config from
+``vgripd.configbase``, below both, so the two do not import each other.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from vgripd.config import DriverSection, format_validation_error
+from vgripd.configbase import DriverSection, format_validation_error
 from vgripd.errors import ConfigError, DriverError
 from vgripd.geometry.vendors import CONVENTIONS, Convention
 

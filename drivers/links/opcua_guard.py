@@ -26,10 +26,10 @@ import contextvars
 import logging
 import os
 import time
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from asyncua import ua
 from asyncua.common.utils import ServiceError
@@ -37,8 +37,19 @@ from asyncua.crypto.security_policies import SECURITY_POLICY_TYPE_MAP
 from asyncua.server.uaprocessor import UaProcessor
 from asyncua.ua.ua_binary import struct_from_binary
 
-if TYPE_CHECKING:
-    from drivers.links.opcua import OpcUaLink
+
+class GuardedLink(Protocol):
+    """What the guard reads of the ``opcua`` link (kept here, not imported, so the two
+    modules form no import circle)."""
+
+    options: Any
+    faults: Counter[str]
+    throttle: LoginThrottle
+    channels: frozenset[tuple[str, int]]
+    can_encrypt: bool
+    session_certs: Any
+
+    def fault(self, client: str, kind: str, level: int, msg: str, *args: Any) -> None: ...
 
 #: What a channel that may not carry a session still serves: endpoint discovery.
 DISCOVERY = frozenset(ua.NodeId(ua.Int32(i)) for i in (
@@ -252,7 +263,7 @@ class SessionGuard(UaProcessor):
     """asyncua's processor for one connection, with the link's channel, login and logging
     rules in front of it (module docstring)."""
 
-    def __init__(self, link: OpcUaLink, host: str, client: str, *args: Any) -> None:
+    def __init__(self, link: GuardedLink, host: str, client: str, *args: Any) -> None:
         super().__init__(*args)
         self.link = link
         self.host = host

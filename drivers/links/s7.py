@@ -2,7 +2,7 @@
 
 The PLC serves nothing of vgripd's: vgripd connects to it as a client (python-snap7, the
 classic S7 protocol over ISO-on-TCP, port 102, the "PUT/GET" access of S7-1200/1500) and uses
-``DB<db>`` bytes ``start .. start + 81`` as the register block of
+``DB<db>`` bytes ``start .. start + 91`` as the register block of
 ``vgripd.service.protocol``: the same items, in the same order, with the same handshake as the
 Modbus links; map register ``n`` is the 16-bit word at byte ``start + 2 n``. S7 is big-endian
 throughout (16-bit and 32-bit items alike), which is the map's ``ABCD`` order, so there is no
@@ -13,7 +13,7 @@ The PLC program writes CMD, REQ_SEQ and RECIPE (bytes 0-5 of the block); vgripd 
 rest. The link keeps a mirror of the block in a ``RegisterBank`` (the handshake and image code
 every register link uses) and copies its changes to the PLC, in the bank's order:
 
-- every ``poll_ms`` it reads the whole block (one request: 82 bytes); a change of the command
+- every ``poll_ms`` it reads the whole block (one request: 92 bytes); a change of the command
   area goes through the bank's handshake: a new request sequence calls ``on_trigger``, a
   refusal (BUSY, BAD_REQUEST) writes REJECT_CODE, then REJECT_SEQ;
 - ``image_captured`` / ``publish`` / the heartbeat change the mirror and wake the supervisor,

@@ -13,6 +13,8 @@ import asyncio
 import contextlib
 import logging
 import os
+import re
+import shlex
 import socket
 import subprocess
 import sys
@@ -26,6 +28,7 @@ import pytest
 from drivers.links.opcua import OpcUaLink, OpcUaOptions
 from tests.conftest import REPO, need
 from vgripd.errors import ConfigError, LinkError
+from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.opcua_client import OpcUaClientProcess
 from vgripd.sim.opcua_raw import RawOpcUa, client_policy, status_of
@@ -44,7 +47,7 @@ def kuka_result(job_id: int, values: tuple[float, ...] = POSE,
                 status: Status = Status.OK) -> JobResult:
     if not status.pose_valid:
         return JobResult(job_id=job_id, status=status, message="no marks")
-    target = RobotTarget("kuka", ("x", "y", "z", "a", "b", "c"), values)
+    target = RobotTarget("kuka", CONVENTIONS["kuka"].fields, values)
     return JobResult(job_id=job_id, status=status, target=target, offset=OFFSET,
                      residuals={"fit_rms_mm": 0.042, "reprojection_px": 0.31})
 
@@ -137,7 +140,7 @@ async def test_jobs_results_exact_event_equal_and_state_ready(
         assert r["Sequence"] == n
         assert r["captured"] == n  # CapturedRequestId: the image of this request was taken
         assert r["Vendor"] == "kuka"
-        assert r["ValueNames"] == ["x", "y", "z", "a", "b", "c"]
+        assert r["ValueNames"] == ["X", "Y", "Z", "A", "B", "C"]  # the convention's case
         assert tuple(r["Values"]) == POSE  # Double: bit-exact
         assert np.array_equal(np.array(r["Pose"]).reshape(4, 4), OFFSET)
         assert r["FitRmsMm"] == 0.042
@@ -635,6 +638,23 @@ async def test_uals_and_uaread_browse_and_read_the_result(link: OpcUaLink,
     await run_tool(tool("uacall"), "-u", url(link), "-n", "ns=2;s=VisionSystem",
                    "-m", "2:StartSingleJob")
     await until(lambda: len(daemon.triggers) == 2, "the second job")
+
+
+async def test_the_tool_lines_of_the_docs_run_as_written(link: OpcUaLink, daemon: Daemon) -> None:
+    """docs/opcua.md's ``uals`` / ``uacall`` / ``uaread`` lines, with only the port changed:
+    each runs, the ``uacall`` starts a job and the ``uaread`` reads its values."""
+    text = (REPO / "docs" / "opcua.md").read_text()
+    block = re.search(r"```sh\n(uals.*?)```", text, re.S)
+    assert block is not None
+    argvs = [shlex.split(line.replace("opc.tcp://127.0.0.1:4840/vgripd", url(link)))
+             for line in block.group(1).splitlines() if line.strip()]
+    assert [a[0] for a in argvs] == ["uals", "uacall", "uaread"]
+    listing = await run_tool(tool("uals"), *argvs[0][1:])
+    assert "2:Values" in listing, listing
+    await run_tool(tool("uacall"), *argvs[1][1:])
+    await until(lambda: len(daemon.triggers) == 1 and not daemon.tasks, "the job of uacall")
+    values = await run_tool(tool("uaread"), *argvs[2][1:])
+    assert [float(v) for v in values.strip().strip("[]").split(",")] == list(POSE)
 
 
 async def test_client_trust_list_refuses_unknown_certificates_and_keeps_them(

@@ -8,7 +8,8 @@ import signal
 
 from vgripd.config import load_config
 from vgripd.errors import ConfigError
-from vgripd.service.daemon import Daemon, configure_logging
+from vgripd.service.daemon import Daemon
+from vgripd.service.logsetup import configure_logging
 
 DEFAULT_CONFIG = "/etc/vgripd/vgripd.toml"
 

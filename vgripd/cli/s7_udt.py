@@ -27,13 +27,21 @@ from typing import Any
 from vgripd.config import load_config
 from vgripd.errors import ConfigError
 from vgripd.registry import LINKS, load_class, validate_options
-from vgripd.service.protocol import MAP_SIZE, MAP_VERSION, MAX_VALUES, Reg, ValueFormat
+from vgripd.service.protocol import (
+    COMMAND_AREA,
+    MAP_SIZE,
+    MAP_VERSION,
+    MAX_VALUES,
+    Reg,
+    ValueFormat,
+)
 
 # What each map item holds, by the item's name in ``Reg``. "int": a number (16 or 32 bit, by
 # the item's size in the map), "bits": a bit pattern, "real": float32, "value": a pose value in
 # the link's value format. Meaning in a few words for the UDT's comments.
 ITEMS: dict[str, tuple[str, str]] = {
-    "CMD": ("int", "PLC writes: 1 TRIGGER (run a job), 2 CLEAR, 3 NEXT (pick list)"),
+    "CMD": ("int", "PLC writes: 1 TRIGGER (run a job), 2 CLEAR, 3 NEXT (pick list), "
+                   "view * 256 + 4 CAPTURE"),
     "REQ_SEQ": ("int", "PLC writes: a change to a non-zero value is a request"),
     "RECIPE": ("int", "PLC writes: job parameter (0 = default)"),
     "MAP_VERSION": ("int", f"{MAP_VERSION}"),
@@ -43,7 +51,7 @@ ITEMS: dict[str, tuple[str, str]] = {
     "VALUE_FORMAT": ("int", "1 = VALUES are Real, 2 = DInt scaled by VALUE_SCALE"),
     "VALUE_SCALE": ("int", "DInt mode: raw = value * scale; 0 in Real mode"),
     "HEARTBEAT": ("int", "+1 every heartbeat_ms while vgripd is connected (wraps)"),
-    "STATE": ("int", "0 IDLE, 1 TRIGGERED, 2 BUSY (image taken), 3 DONE"),
+    "STATE": ("int", "0 IDLE, 1 TRIGGERED, 2 BUSY (image taken), 3 DONE, 4 VIEWS"),
     "CAPTURED_SEQ": ("int", "request whose image is taken: the robot may move"),
     "REJECT_SEQ": ("int", "last refused request (written after REJECT_CODE)"),
     "REJECT_CODE": ("int", "why: 40 BUSY, 32 BAD_REQUEST"),
@@ -145,7 +153,9 @@ def db_source(db: int | None, start: int = 0, udt_name: str = UDT_NAME,
         f'DATA_BLOCK "{name}"\n'
         "{ S7_Optimized_Access := 'FALSE' }\n"
         "VERSION : 0.1\n"
-        f"//{number}; vgripd reads and writes bytes {start}..{start + 2 * MAP_SIZE - 1}.\n"
+        f"//{number}; vgripd reads bytes {start}..{start + 2 * MAP_SIZE - 1} and writes bytes "
+        f"{start + 2 * COMMAND_AREA.stop}..{start + 2 * MAP_SIZE - 1}, never CMD, REQ_SEQ, RECIPE "
+        "(the PLC's).\n"
         "NON_RETAIN\n"
         "   STRUCT\n"
         f"{pad}"

@@ -279,7 +279,7 @@ def check_samples(config: Config, frames_wanted: int = SAMPLE_FRAMES) -> list[Fi
         return []
     import cv2  # heavy; only for a replay folder
 
-    from vgripd.vision.diagnosis import diagnose
+    from vgripd.vision.pipeline import diagnose
 
     cls = load_class(CAMERAS, "camera", "replay")
     opts: Any = validate_options(cls, config.camera, "camera")

@@ -85,6 +85,7 @@ import numpy.typing as npt
 from vgripd.config import Config
 from vgripd.errors import CameraError, NotCalibratedError, VgripError
 from vgripd.service.lifetime import die_with_daemon, end_on_sigterm
+from vgripd.service.logsetup import configure_logging
 from vgripd.types import CaptureView, ImagePair, JobResult
 
 log = logging.getLogger("vgripd.worker")
@@ -459,8 +460,6 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     end_on_sigterm(daemon_pid, TERM_GRACE_S)
     run_below_daemon(WORKER_NICE)
-    from vgripd.service.daemon import configure_logging
-
     configure_logging(log_level)
     try:
         worker = _Worker(config, processor)

@@ -17,28 +17,28 @@ stereo transform given the wrong way round, a wrong hand-eye. A failed job there
   one line (:data:`Cause`).
 
 The rules follow the chain: the earliest stage that lost the marks is the likeliest culprit.
-:func:`diagnose` runs the whole pipeline on one pair and always returns a diagnosis (for
-``vgripd check`` and commissioning); ``Pipeline.process`` attaches one to failed jobs only.
+``vgripd.vision.pipeline.diagnose`` runs the whole pipeline on one pair and always returns a
+diagnosis (for ``vgripd check`` and commissioning); ``Pipeline.process`` attaches one to failed
+jobs only.
 """
 
 from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
-import numpy.typing as npt
 
 from vgripd.config import CircleFeature, Config
 from vgripd.errors import VgripError
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform, rotation_angle
-from vgripd.types import FloatArray, ImagePair, Status
+from vgripd.types import Status
 from vgripd.vision import features as ft
-
-if TYPE_CHECKING:
-    from vgripd.vision.pipeline import Found, Pipeline, _Job
+from vgripd.vision.found import Found
+from vgripd.vision.jobstate import PipelineView as Pipeline
+from vgripd.vision.jobstate import Trace, _Job
 
 #: Statuses whose jobs get a diagnosis: the images were usable but no valid pose came out.
 DIAGNOSED = frozenset({Status.NOT_FOUND, Status.PARTIAL, Status.AMBIGUOUS,
@@ -47,23 +47,6 @@ DIAGNOSED = frozenset({Status.NOT_FOUND, Status.PARTIAL, Status.AMBIGUOUS,
 #: What a candidate blob's ``reason`` can be: kept and used for the pose, or why it was not.
 CANDIDATE_REASONS = ("used", "model", "depth", "epipolar", "kept", *ft.REJECT_REASONS,
                      "polarity")
-
-
-@dataclass
-class Trace:
-    """What the pipeline's stages saw in one job (filled as it goes; cheap references only)."""
-
-    grays: tuple[ft.UInt8Image | None, ...] = ()
-    found: tuple[Found, ...] = ()  # left[, right]
-    pairs: npt.NDArray[np.intp] | None = None  # (k, 2) left/right circle indices
-    first_circle_row: int = 0  # row of the first circle pair among the triangulated rows
-    depth_mm: FloatArray | None = None  # (rows,) z in the left camera frame
-    in_front: npt.NDArray[np.bool_] | None = None  # (rows,) triangulated in front of both
-    hypotheses: int = 0
-    assignment: npt.NDArray[np.intp] | None = None  # (n_model,) row per feature, -1 missing
-    odd: tuple[str, ...] = ()  # multi-camera: the rigs the consistency check named
-    camera_marks: tuple[int, ...] = ()  # multi-camera: observations in the fit, per camera
-    T_base_flange: FloatArray | None = None  # multi-camera: the flange pose at capture
 
 
 class Cause(NamedTuple):
@@ -211,25 +194,6 @@ class Diagnosis:
 
 
 # --------------------------------------------------------------------------- public API
-
-
-def diagnose(config: Config, pair: ImagePair) -> Diagnosis:
-    """Run the configured pipeline on one pair and say what each stage saw and, when the job
-    fails, the likely causes with the config key to check (none for a successful job).
-
-    Raises what ``Pipeline(config)`` raises (``NotCalibratedError``, ``ConfigError``: those
-    name their key already). A job that ends before the finders (CAMERA_ERROR: black, flat or
-    wrongly sized images; NOT_CALIBRATED) gets a diagnosis with no image stages and its
-    message as the one cause (key ``camera`` or ``calibration``).
-    """
-    from vgripd.vision.pipeline import Pipeline  # the pipeline imports this module
-
-    result, _ = Pipeline(config).process_with_points(pair, 0, diagnose=True)
-    if result.diagnosis is not None:
-        return result.diagnosis
-    key = "camera" if result.status is Status.CAMERA_ERROR else "calibration"
-    causes = () if result.status.pose_valid else (Cause(key, result.message),)
-    return Diagnosis(status=result.status.name, images=(), causes=causes)
 
 
 # --------------------------------------------------------------------------- the rules
@@ -692,4 +656,4 @@ def _reference_in_view(pipeline: Pipeline) -> bool:
 
 
 __all__ = ["CANDIDATE_REASONS", "DIAGNOSED", "Candidate", "Cause", "Diagnosis", "ImageStage",
-           "Trace", "diagnose", "explain"]
+           "Trace", "explain"]

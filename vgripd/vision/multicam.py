@@ -1,6 +1,6 @@
 """The multi-camera path of the pipeline: marks from N images -> one object pose in the base frame.
 
-Given the marks found in every camera's image (``pipeline._Finder``), for a cell configured
+Given the marks found in every camera's image (``vgripd.vision.found``), for a cell configured
 with ``calibration.cameras`` (docs/multicamera.md):
 
 1. candidates: for every two cameras whose views overlap, each mark of one and each mark of the
@@ -25,7 +25,7 @@ Pure CPU, no state between jobs.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from itertools import combinations
 
 import numpy as np
@@ -34,7 +34,7 @@ import numpy.typing as npt
 from vgripd.config import Config
 from vgripd.errors import GeometryError
 from vgripd.geometry.camera_model import CameraModel
-from vgripd.geometry.multipose import GroupCheck, MultiViewPose, fit_pose, rig_consistency
+from vgripd.geometry.multipose import MultiViewPose, fit_pose, rig_consistency
 from vgripd.geometry.multiview import MultiView
 from vgripd.geometry.orientation import horn
 from vgripd.geometry.stereo import StereoRig
@@ -42,6 +42,7 @@ from vgripd.geometry.transforms import invert_transform
 from vgripd.types import FloatArray
 from vgripd.vision import features as ft
 from vgripd.vision import scene
+from vgripd.vision.multiestimate import MultiEstimate
 from vgripd.vision.rigcheck import self_inconsistent
 
 #: Pixels a mark's predicted centre must be inside the image to count as visible there.
@@ -61,24 +62,6 @@ MAX_OUTLIERS = 8
 #: marks several mm off, which can leave the correct pose over all tracks beyond
 #: ``vision.max_fit_rms_mm`` and let a small chance match of a few tracks win.
 FALLBACK_SHARE = 0.5
-
-
-@dataclass
-class MultiEstimate:
-    """What the multi-camera path measured: the pose, which features it used, the residuals
-    (``rig.<name>.*``, ``camera.<name>.*`` and the gate figures) and the groups the consistency
-    check found odd (names). ``pose`` is None when fewer than 3 features were identified."""
-
-    used: npt.NDArray[np.bool_]
-    camera_names: tuple[str, ...] = ()
-    pose: MultiViewPose | None = None
-    ambiguous: bool = False
-    residuals: dict[str, float] = field(default_factory=dict)
-    points_base: dict[str, FloatArray] = field(default_factory=dict)
-    checks: tuple[GroupCheck, ...] = ()
-    odd: tuple[str, ...] = ()
-    excluded: str = ""
-    lost: tuple[str, ...] = ()
 
 
 def visible(camera: CameraModel, T_camera_base: FloatArray, points_base: FloatArray,

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -29,10 +28,11 @@ from vgripd.geometry.vendors import target_from_transform
 from vgripd.types import FloatArray, PickInstance, RobotTarget, Status
 from vgripd.vision import scene
 from vgripd.vision.features import kabsch, score_scale
+from vgripd.vision.found import Found
+from vgripd.vision.gates import Measurement, gate
 from vgripd.vision.instances import InstanceMatch, find_instances, find_instances_mono
-
-if TYPE_CHECKING:
-    from vgripd.vision.pipeline import Found, Pipeline, PoseEstimate, StereoPoints, _Job
+from vgripd.vision.jobstate import PipelineView as Pipeline
+from vgripd.vision.jobstate import PoseEstimate, StereoPoints, _Job
 
 #: Gate failures that one pick point may pass and another not (where the grip is): the
 #: others (counts, ambiguity, residuals) belong to the instance and end the search at once.
@@ -121,8 +121,6 @@ def choose(pipe: Pipeline, T_base_obj: FloatArray, offset: FloatArray, estimate:
     first that passes is chosen. A failure no pick point can change (counts, ambiguity,
     residuals) ends the search; if none passes, the status is the highest-priority pick point's
     failure."""
-    from vgripd.vision.pipeline import Measurement, gate
-
     config = pipe.config
     limits = config.limits
     model_base = pipe.model @ T_base_obj[:3, :3].T + T_base_obj[:3, 3]
@@ -174,8 +172,6 @@ def _instance(pipe: Pipeline, match: InstanceMatch, paired: StereoPoints,
               T_base_camera: FloatArray, needed: int, points: tuple[PickPoint, ...]
               ) -> Located:
     """One grouped stereo instance fitted, gated and given its pick point."""
-    from vgripd.vision.pipeline import Measurement, _Job, gate
-
     config = pipe.config
     scratch = _Job()
     estimate = pipe._fit_stereo(match.assignment, paired.points, paired.gap, paired.px_l,
@@ -296,8 +292,6 @@ def locate_all_mono(pipe: Pipeline, found: Found, job: _Job, T_base_camera: Floa
                     needed: int) -> tuple[Status, str, RobotTarget | None]:
     """The pick list of a single-camera job on ArUco markers repeated per object
     (``instances.find_instances_mono``); as :func:`locate_all` otherwise."""
-    from vgripd.vision.pipeline import PoseEstimate
-
     config = pipe.config
     marks = found.markers
     feature = np.array([f for f, _ in marks], dtype=np.intp)

@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import time
 import traceback
-from collections.abc import Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -34,238 +32,25 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from vgripd.config import Config, LimitsConfig, VisionConfig
+from vgripd.config import Config
 from vgripd.errors import ConfigError, GeometryError, NotCalibratedError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.orientation import horn, horn_robust, pnp
 from vgripd.geometry.stereo import StereoRig
-from vgripd.geometry.transforms import invert_transform, rotation_angle
+from vgripd.geometry.transforms import invert_transform
 from vgripd.geometry.vendors import VENDORS, target_from_transform
-from vgripd.types import FloatArray, ImagePair, JobResult, PickInstance, Status
+from vgripd.types import FloatArray, ImagePair, JobResult, Status
 from vgripd.vision import diagnosis as dg
 from vgripd.vision import features as ft
-from vgripd.vision import scene
+from vgripd.vision import picklist, scene
+from vgripd.vision.found import Found, _Finder
+from vgripd.vision.gates import Measurement, gate, limit_point
+from vgripd.vision.jobstate import PoseEstimate, StereoPoints, _Job
 from vgripd.vision.multicam import MultiCamera
 from vgripd.vision.rigcheck import rig_verdict
 
 #: Minimum number of matched features for PnP (three points have up to four poses).
 MIN_PNP_FEATURES = 4
-
-
-# --------------------------------------------------------------------------- gates
-
-
-@dataclass(frozen=True)
-class Measurement:
-    """What the gates look at: counts, pose and residuals of one job (mm, rad, px)."""
-
-    found: int
-    needed: int
-    ambiguous: bool = False
-    T_base_obj: FloatArray | None = None
-    offset: FloatArray | None = None
-    model_base: FloatArray | None = None  # (n, 3) model points in the base frame at the pose
-    residuals: Mapping[str, float] = field(default_factory=dict)
-    # The point whose displacement ``limits.max_translation_mm`` limits, in the object frame
-    # (None: the object origin), and its name for messages (``limit_point``).
-    limit_point: FloatArray | None = None
-    limit_point_name: str = "object origin"
-
-
-def displacement_mm(T_base_obj: FloatArray, offset: FloatArray,
-                    point_obj: FloatArray | None = None) -> float:
-    """How far the object point ``point_obj`` (object frame, default its origin) moved between
-    the taught reference and ``T_base_obj``, in mm: ``|T_base_obj @ P - T_base_obj_ref @ P|``
-    with ``T_base_obj_ref = inv(offset) @ T_base_obj``.
-
-    Unlike ``|offset[:3, 3]|`` this holds no lever arm: a rotation of the offset about the
-    robot base moves a far-away object's origin by much less than the offset's translation.
-    """
-    p = np.zeros(3) if point_obj is None else np.asarray(point_obj, dtype=np.float64)
-    found = T_base_obj[:3, :3] @ p + T_base_obj[:3, 3]
-    T_ref = invert_transform(offset) @ T_base_obj
-    return float(np.linalg.norm(found - (T_ref[:3, :3] @ p + T_ref[:3, 3])))
-
-
-def limit_point(config: Config, model: FloatArray,
-                T_base_obj_ref: FloatArray) -> tuple[FloatArray | None, str]:
-    """The point P of ``limits.point``/``limits.point_mm`` in the object frame and its name
-    (docs/pipeline.md, "Limits"). Raises NotCalibratedError for ``point = "grip"`` without a
-    taught ``reference.grip``."""
-    limits = config.limits
-    if limits.point_mm is not None:
-        xyz = np.asarray(limits.point_mm, dtype=np.float64)
-        return xyz, f"limits.point_mm {(np.round(xyz, 1) + 0.0).tolist()}"  # no -0.0
-    point = limits.point
-    if point is None:
-        point = "centroid" if config.object.definition == "reference" else "origin"
-    if point == "centroid":
-        return model.mean(axis=0), "mark centroid"
-    if point == "grip":
-        if config.reference.grip is None:
-            raise NotCalibratedError(
-                'reference.grip: limits.point = "grip" needs the grip pose taught on the '
-                "reference object (vgripd teach --grip)")
-        grip = scene.matrix_from_pose(config.reference.grip)
-        T_obj_base = invert_transform(T_base_obj_ref)
-        return T_obj_base[:3, :3] @ grip[:3, 3] + T_obj_base[:3, 3], "grip point"
-    return None, "object origin"
-
-
-def gate(m: Measurement, vision: VisionConfig, limits: LimitsConfig) -> tuple[Status, str]:
-    """The status of a job from its measurement, checked in a fixed order (first failure wins).
-
-    Counts (NOT_FOUND under 3 matched, PARTIAL under ``needed``), ambiguity, residuals (fit RMS
-    mm and reprojection px), offset limits, workspace box, then the epipolar warning that still
-    publishes the pose (OK_RECALIBRATE).
-    """
-    if m.found < 3:
-        return Status.NOT_FOUND, f"{m.found} feature(s) matched, need at least 3"
-    if m.found < m.needed:
-        return Status.PARTIAL, f"{m.found} feature(s) matched, need {m.needed}"
-    if m.ambiguous:
-        return Status.AMBIGUOUS, "two poses explain the features equally well"
-    if m.offset is None or m.T_base_obj is None:
-        return Status.NOT_FOUND, "no pose"
-    r = m.residuals
-    # A NaN compares False against every limit below: refuse it here, never let it through.
-    if not (np.isfinite(m.offset).all() and np.isfinite(m.T_base_obj).all()
-            and all(np.isfinite(v) for v in r.values())):
-        bad = [k for k, v in r.items() if not np.isfinite(v)]
-        return Status.INTERNAL, f"non-finite pose or residuals {bad} (numerical failure)"
-    fit = r.get("fit_rms_mm", 0.0)
-    if fit > vision.max_fit_rms_mm:
-        return Status.RESIDUAL_TOO_HIGH, (
-            f"fit RMS {fit:.3f} mm > vision.max_fit_rms_mm {vision.max_fit_rms_mm}"
-        )
-    reproj = r.get("reprojection_px", 0.0)
-    if reproj > vision.max_reprojection_px:
-        return Status.RESIDUAL_TOO_HIGH, (
-            f"reprojection RMS {reproj:.3f} px > vision.max_reprojection_px "
-            f"{vision.max_reprojection_px}"
-        )
-    # Limits (docs/pipeline.md, "Limits"): the displacement of one point of the object and the
-    # angle of its rotation, both between the taught reference and the found pose.
-    moved = displacement_mm(m.T_base_obj, m.offset, m.limit_point)
-    if not moved <= limits.max_translation_mm:
-        return Status.OUT_OF_LIMITS, (
-            f"offset translation: {m.limit_point_name} moved {moved:.2f} mm > "
-            f"limits.max_translation_mm {limits.max_translation_mm:g}"
-        )
-    turn = float(np.degrees(rotation_angle(m.offset[:3, :3])))
-    if not turn <= limits.max_rotation_deg:
-        return Status.OUT_OF_LIMITS, (
-            f"offset rotation: object turned {turn:.2f} deg > limits.max_rotation_deg "
-            f"{limits.max_rotation_deg:g}"
-        )
-    if limits.workspace_min_mm is not None and limits.workspace_max_mm is not None:
-        pts = m.model_base if m.model_base is not None else m.T_base_obj[None, :3, 3]
-        lo, hi = np.asarray(limits.workspace_min_mm), np.asarray(limits.workspace_max_mm)
-        outside = np.flatnonzero(((pts < lo) | (pts > hi)).any(axis=1))
-        if outside.size:
-            p = pts[outside[0]]
-            return Status.OUT_OF_WORKSPACE, (
-                f"object point {int(outside[0])} at {np.round(p, 1).tolist()} mm (base) is "
-                "outside the limits.workspace box"
-            )
-    epi = r.get("epipolar_px", 0.0)
-    if epi > vision.epipolar_warn_px:
-        return Status.OK_RECALIBRATE, (
-            f"median epipolar residual {epi:.2f} px > vision.epipolar_warn_px "
-            f"{vision.epipolar_warn_px}: plan a recalibration"
-        )
-    return Status.OK, ""
-
-
-# --------------------------------------------------------------------------- finders
-
-
-@dataclass(frozen=True)
-class Found:
-    """Features of one image: identified ones by feature index, anonymous circle candidates."""
-
-    identified: dict[int, FloatArray]  # feature index -> (2,) px
-    circles: FloatArray  # (k, 2) px
-    # The circle finder's output per spec (``_Finder.specs``), rejected blobs included: what
-    # the diagnosis of a failed job reads.
-    blobs: tuple[ft.Blobs, ...] = ()
-    # Pick lists with ArUco markers (``_Finder.keep_all``): every detection as (feature index,
-    # marker), an id as often as it is seen.
-    markers: tuple[tuple[int, ft.Marker], ...] = ()
-
-
-class _Finder:
-    """The finders the object's features need, prepared once from the config."""
-
-    def __init__(self, config: Config, focal_px: float) -> None:
-        vision = config.vision
-        near, far = vision.working_distance_mm
-        self.specs: list[ft.CircleSpec] = []
-        self.aruco: dict[str, dict[int, int]] = {}  # dictionary -> marker id -> feature index
-        self.templates: list[tuple[int, ft.UInt8Image]] = []
-        circles: dict[str, list[float]] = {}
-        for i, f in enumerate(config.object.features):
-            if f.kind == "circle":
-                circles.setdefault(f.polarity, []).append(f.diameter_mm)
-            elif f.kind == "aruco":
-                ids = self.aruco.setdefault(f.dictionary, {})
-                if f.marker_id in ids:
-                    raise ConfigError(
-                        f"object.features[{i}]: marker id {f.marker_id} of {f.dictionary} is "
-                        "used twice"
-                    )
-                try:
-                    ft.aruco_dictionary(f.dictionary)
-                except ValueError as err:
-                    raise ConfigError(f"object.features[{i}].dictionary: {err}") from None
-                ids[f.marker_id] = i
-            else:
-                self.templates.append((i, _load_template(f.template, f"object.features[{i}]")))
-        for polarity, diameters in circles.items():
-            self.specs.append(
-                ft.CircleSpec(
-                    polarity="dark" if polarity == "dark" else "bright",
-                    min_diameter_px=max(3.0, focal_px * min(diameters) / far),
-                    max_diameter_px=focal_px * max(diameters) / near,
-                    min_contrast=vision.min_contrast,
-                    min_circularity=vision.min_circularity,
-                    downscale=vision.downscale,
-                    separate_neighbours=config.picking.max_objects > 1,
-                )
-            )
-        self.min_score = vision.template_min_score
-        self.keep_all = False  # set for pick lists: keep repeated marker ids (Found.markers)
-
-    def __call__(self, gray: ft.UInt8Image) -> Found:
-        identified: dict[int, FloatArray] = {}
-        markers: list[tuple[int, ft.Marker]] = []
-        for dictionary, ids in self.aruco.items():
-            if self.keep_all:
-                markers += [(ids[m.marker_id], m) for m in ft.find_aruco_all(gray, dictionary)
-                            if m.marker_id in ids]
-                continue
-            for marker_id, marker in ft.find_aruco(gray, dictionary).items():
-                if marker_id in ids:
-                    identified[ids[marker_id]] = marker.centre
-        for index, patch in self.templates:
-            hit = ft.find_template(gray, patch, self.min_score)
-            if hit is not None:
-                identified[index] = hit[0]
-        blobs = tuple(ft.find_circles(gray, spec) for spec in self.specs)
-        circles = np.vstack([b.xy for b in blobs]) if blobs else np.zeros((0, 2))
-        return Found(identified, circles, blobs, tuple(markers))
-
-
-def _load_template(path: str, where: str) -> ft.UInt8Image:
-    """The template image; a relative path is taken from the working directory (as every path
-    of the config is), so the message names the file actually tried."""
-    file = Path(path)
-    image = cv2.imread(str(file), cv2.IMREAD_GRAYSCALE) if file.is_file() else None
-    if image is None:
-        why = "not an image" if file.is_file() else "no such file"
-        tried = "" if file.is_absolute() else f", tried {file.absolute()}"
-        raise ConfigError(f"{where}.template: cannot read image file {path!r} ({why}{tried})")
-    return np.asarray(image, dtype=np.uint8)
 
 
 # --------------------------------------------------------------------------- pipeline
@@ -278,55 +63,6 @@ class _Reject(Exception):
         super().__init__(message)
         self.status = status
         self.message = message
-
-
-@dataclass
-class _Job:
-    """What a job has learnt so far; becomes the JobResult."""
-
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    residuals: dict[str, float] = field(default_factory=dict)
-    points_base: dict[str, FloatArray] = field(default_factory=dict)
-    used: tuple[str, ...] = ()
-    missing: tuple[str, ...] = ()
-    T_base_obj: FloatArray | None = None
-    offset: FloatArray | None = None
-    instances: tuple[PickInstance, ...] = ()  # the pick list (picking.max_objects > 1)
-    trace: dg.Trace = field(default_factory=dg.Trace)  # what each stage saw (diagnosis)
-    _t: float = field(default_factory=time.perf_counter)
-
-    def lap(self, stage: str) -> None:
-        now = time.perf_counter()
-        self.timings_ms[stage] = (now - self._t) * 1e3
-        self._t = now
-
-
-@dataclass(frozen=True)
-class PoseEstimate:
-    """Object pose in the left camera frame and the features behind it."""
-
-    T_cam_obj: FloatArray
-    used: npt.NDArray[np.bool_]  # (n_model,) features that entered the fit
-    ambiguous: bool
-    residuals: dict[str, float]
-    # (n_used, 3) mm, left camera frame, rows in feature order of ``used``: triangulated points
-    # (stereo) or the model at the fitted pose (mono, which measures no 3D point of its own).
-    points_cam: FloatArray
-
-
-@dataclass(frozen=True)
-class StereoPoints:
-    """The paired features of a stereo job, triangulated (rows: identified pairs first, then
-    circle pairs; a circle blob may sit in several rows, ``keys`` tell which)."""
-
-    px_l: FloatArray  # (k, 2) px
-    px_r: FloatArray  # (k, 2) px
-    points: FloatArray  # (k, 3) mm, left camera frame
-    gap: FloatArray  # (k,) mm between the two rays
-    valid: npt.NDArray[np.bool_]  # in front of both cameras and within the working distance
-    keys: list[tuple[int, ...]]  # per row: the image blobs it uses (exclusive)
-    fixed: dict[int, int]  # identified feature index -> row
-    circle_rows: list[int]
 
 
 class Pipeline:
@@ -481,13 +217,9 @@ class Pipeline:
         job.trace.found = (found_l, found_r) if found_r is not None else (found_l,)
 
         if self.many and found_r is not None:
-            from vgripd.vision import picklist  # it imports this module
-
             paired = self._stereo_points(found_l, found_r, job)
             return picklist.locate_all(self, paired, job, T_base_camera, vision.min_features)
         if self.many and self.find_left.keep_all:
-            from vgripd.vision import picklist  # it imports this module
-
             return picklist.locate_all_mono(self, found_l, job, T_base_camera,
                                             max(vision.min_features, MIN_PNP_FEATURES))
         if found_r is not None:
@@ -839,3 +571,21 @@ def _checked_gray(image: Any, camera: CameraModel | None, side: str,
     if hi - lo < 8:
         raise _Reject(Status.CAMERA_ERROR, f"{side} image is flat (grey {lo:.0f}..{hi:.0f})")
     return gray
+
+
+def diagnose(config: Config, pair: ImagePair) -> dg.Diagnosis:
+    """Run the configured pipeline on one pair (the commissioning API; ``vgripd.vision.diagnosis``
+    holds the rules) and say what each stage saw and, when the job
+    fails, the likely causes with the config key to check (none for a successful job).
+
+    Raises what ``Pipeline(config)`` raises (``NotCalibratedError``, ``ConfigError``: those
+    name their key already). A job that ends before the finders (CAMERA_ERROR: black, flat or
+    wrongly sized images; NOT_CALIBRATED) gets a diagnosis with no image stages and its
+    message as the one cause (key ``camera`` or ``calibration``).
+    """
+    result, _ = Pipeline(config).process_with_points(pair, 0, diagnose=True)
+    if result.diagnosis is not None:
+        return result.diagnosis
+    key = "camera" if result.status is Status.CAMERA_ERROR else "calibration"
+    causes = () if result.status.pose_valid else (dg.Cause(key, result.message),)
+    return dg.Diagnosis(status=result.status.name, images=(), causes=causes)

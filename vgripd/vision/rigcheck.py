@@ -9,16 +9,13 @@ measurements into a status read in one place.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vgripd.config import VisionConfig
 from vgripd.geometry.multipose import GroupCheck
 from vgripd.types import Status
-
-if TYPE_CHECKING:
-    from vgripd.vision.multicam import MultiEstimate
+from vgripd.vision.multiestimate import MultiEstimate
 
 #: A rig fitted alone leaving this many times the residuals of the best other rig is
 #: inconsistent in itself (:func:`self_inconsistent`) ...

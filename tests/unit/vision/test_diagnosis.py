@@ -27,8 +27,8 @@ from vgripd.service.recorder import dict_from_result
 from vgripd.types import ImagePair, Status
 from vgripd.vision import scene
 from vgripd.vision.annotate import annotate
-from vgripd.vision.diagnosis import Diagnosis, diagnose
-from vgripd.vision.pipeline import Pipeline
+from vgripd.vision.diagnosis import Diagnosis
+from vgripd.vision.pipeline import Pipeline, diagnose
 
 SAMPLES = REPO / "config" / "samples"
 EXAMPLE = REPO / "config" / "example.toml"

@@ -16,7 +16,8 @@ from vgripd.errors import ConfigError, NotCalibratedError
 from vgripd.geometry.transforms import invert_transform, make_transform, matrix_from_rotvec
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.types import Status
-from vgripd.vision.pipeline import Measurement, Pipeline, displacement_mm, gate, limit_point
+from vgripd.vision.gates import displacement_mm
+from vgripd.vision.pipeline import Measurement, Pipeline, gate, limit_point
 
 REF_T = (600.0, 100.0, 10.0)  # the demo cell's taught reference
 REF_ROT = (0.0, 0.0, 0.05)

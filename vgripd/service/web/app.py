@@ -43,16 +43,18 @@ import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from aiohttp import web
 
 from vgripd.errors import VgripError
 from vgripd.redaction import REDACTED, redact
 from vgripd.serialize import jsonable, toml_from_dict
+from vgripd.service.jobrecord import JobRecord
 from vgripd.service.recorder import PARTIAL_PREFIX, dict_from_result
 from vgripd.service.web.access import Access, ServerLogLimit
 from vgripd.service.web.bundle import write_bundle
+from vgripd.service.web.daemonview import DaemonView
 from vgripd.service.web.guard import GuardedSite, make_guard
 from vgripd.service.web.images import ImageRenderer
 from vgripd.service.web.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
@@ -60,9 +62,6 @@ from vgripd.service.web.metrics import Metrics
 from vgripd.service.web.registers import register_views
 from vgripd.service.web.trigger import WEB_LINK, WebTriggerLink
 from vgripd.types import ImagePair
-
-if TYPE_CHECKING:
-    from vgripd.service.daemon import Daemon, JobRecord
 
 log = logging.getLogger(__name__)
 
@@ -206,7 +205,7 @@ class WebServer:
     """The web view of one daemon, on its loop. ``start`` listens (``StatusEndpointError`` in
     one line), ``close`` stops; ``port`` is the bound port."""
 
-    def __init__(self, daemon: Daemon) -> None:
+    def __init__(self, daemon: DaemonView) -> None:
         self.daemon = daemon
         st = daemon.config.status
         self.host = st.host

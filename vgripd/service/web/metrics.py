@@ -10,17 +10,16 @@ scrape time by a collector, so no figure is counted twice.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
+from vgripd.service.jobrecord import JobRecord
 from vgripd.service.protocol import LinkState
+from vgripd.service.web.daemonview import DaemonView
 from vgripd.types import Status
-
-if TYPE_CHECKING:
-    from vgripd.service.daemon import Daemon, JobRecord
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 
@@ -34,7 +33,7 @@ EPIPOLAR_BUCKETS_PX = (0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
 class _DaemonCollector(Collector):
     """What the daemon already counts, read at scrape time."""
 
-    def __init__(self, daemon: Daemon) -> None:
+    def __init__(self, daemon: DaemonView) -> None:
         self._daemon = daemon
 
     def collect(self) -> Iterator[Any]:
@@ -100,7 +99,7 @@ class _DaemonCollector(Collector):
 class Metrics:
     """The daemon's metrics registry; ``observe`` each finished job, ``render`` to scrape."""
 
-    def __init__(self, daemon: Daemon) -> None:
+    def __init__(self, daemon: DaemonView) -> None:
         self.registry = CollectorRegistry()
         r = self.registry
         self.jobs = Counter("vgripd_jobs", "Finished jobs by status (what the job found; "
