@@ -4,6 +4,10 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+# Test processes (pytest-xdist). Most tests wait on peers, processes and sockets rather than
+# compute, so two per core keep a 2-core machine busy; whole files go to one process
+# (--dist loadfile): a file's fixed loopback addresses and module fixtures stay in it.
+TEST_JOBS ?= 4
 
 .PHONY: demo test lint bench clean
 
@@ -21,7 +25,7 @@ lint: $(STAMP)
 	$(PY) -m mypy
 
 test: lint
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
 bench: $(STAMP)
 	for f in bench/bench_*.py; do $(PY) $$f || exit 1; done
