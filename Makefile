@@ -4,6 +4,13 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+# Test processes (pytest-xdist). Most tests wait on peers, processes and sockets rather than
+# compute, so two per core keep a 2-core machine busy; whole files go to one process
+# (--dist loadfile): a file's fixed loopback addresses and module fixtures stay in it.
+TEST_JOBS ?= 4
+# One BLAS thread per process: with several test processes (and the daemons and workers they
+# start) a threaded BLAS oversubscribes the cores and spins; single-threaded it is faster.
+TEST_ENV := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1
 
 .PHONY: demo test lint bench clean
 
@@ -21,7 +28,7 @@ lint: $(STAMP)
 	$(PY) -m mypy
 
 test: lint
-	$(PY) -m pytest -q
+	$(TEST_ENV) $(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
 bench: $(STAMP)
 	for f in bench/bench_*.py; do $(PY) $$f || exit 1; done

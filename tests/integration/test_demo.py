@@ -14,7 +14,7 @@ from tests.conftest import REPO
 def test_demo_runs_cycles_with_a_busy_refusal_a_gated_fault_and_small_pose_errors() -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "vgripd", "demo", "--cycles", "4", "--port", "0",
-         "--vendor", "abb"],
+         "--web-port", "0", "--vendor", "abb"],  # no fixed port: tests run in parallel
         capture_output=True, text=True, cwd=REPO, timeout=300, check=False,
         env={**os.environ, "PYTHONPATH": str(REPO)})
     out = proc.stdout
