@@ -1,0 +1,576 @@
+"""Industrial cameras through a GenICam SDK: the layer the pylon and aravis drivers share.
+
+Everything that is GenICam and not SDK lives here: the options, choosing devices by serial
+number, user-defined name or IP address, applying the settings at open and reading them back,
+triggering every camera together, the skew check on the device timestamps, converting pixel
+formats (``drivers.cameras.pixels``), and the outage handling (reopen with back-off). An SDK
+module (``pylon.py``, ``aravis.py``) only implements ``Stack`` (discover, open) and ``Device``
+(features, stream, trigger, one frame).
+
+Options (``[camera]`` with ``type = "pylon"`` or ``"aravis"``)::
+
+    [[camera.cameras]]                # one per camera, in the order of calibration.cameras
+    name = "left"                     # label in messages (default left, right, cam2, ...)
+    serial = "40012345"               # exactly one of serial, user_name, ip
+    # user_name = "cell3-left"        # DeviceUserID, set with the vendor's tool
+    # ip = "192.168.10.11"            # GigE Vision only
+    features = { ImageFilename = "/data/left.png" }   # this camera's own features
+    [[camera.cameras]]
+    name = "right"
+    serial = "40012346"
+
+    [camera]                          # (the keys below sit before the [[camera.cameras]])
+    trigger = "software"              # software | hardware | free_run
+    trigger_line = "Line1"            # the input line of trigger = "hardware"
+    exposure_us = 8000                # ExposureTime (ExposureTimeAbs on older GigE cameras)
+    gain_db = 0                       # Gain
+    pixel_format = "Mono8"            # drivers/cameras/pixels.py FORMATS
+    roi = { x = 0, y = 0, width = 1280, height = 1024 }
+    packet_size = 1500                # GevSCPSPacketSize, bytes (GigE)
+    inter_packet_delay = 0            # GevSCPD, ticks (GigE)
+    features = { }                    # any other feature, on every camera, in this order
+    max_skew_ms = 2.0                 # refuse a set whose device timestamps differ more
+    frame_timeout_s = 2.0             # longest wait for one frame (capped by the job's time)
+    buffers = 4
+    reopen_backoff_s = 1.0            # first wait before reopening a camera that is gone
+    reopen_backoff_max_s = 30.0       # doubling up to this
+    grayscale = true                  # deliver 8-bit grey (else BGR for colour formats)
+
+Each setting is checked against what the device reports before it is written (the feature
+exists, is writable, the value is within the device's range and increment, an enumeration
+entry exists) and read back after; anything else is a ``SettingError`` naming the camera, the
+feature and the device's range: at ``vgripd check`` a config error, in the daemon a
+``CAMERA_ERROR`` of every job until the config is fixed.
+
+A grab drains what the stream holds (no stale frame is ever returned), fires the software
+trigger of every camera back to back (``trigger = "software"``), or waits for the next frame
+(``hardware``: the external trigger pulse; ``free_run``: the next streamed frame), then takes
+one whole frame per camera. A frame the SDK reports incomplete (lost packets that the resend
+did not recover) is refused, never returned half filled. A camera that stops answering is
+closed, the grab fails ``CAMERA_ERROR`` naming it, and every later grab tries to reopen it,
+first after ``reopen_backoff_s``, the wait doubling up to ``reopen_backoff_max_s``; the
+outage is logged once when it starts and once when the camera is back.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
+
+from pydantic import Field, StrictBool, field_validator, model_validator
+
+from drivers.cameras.base import CameraDriver, DriverOptions
+from drivers.cameras.pixels import FORMATS, PixelError, to_image
+from vgripd.config import MAX_CAMERAS, Config
+from vgripd.errors import CameraError
+from vgripd.types import ImagePair
+
+log = logging.getLogger("vgripd.camera")
+
+FeatureValue = StrictBool | int | float | str
+
+
+class SettingError(CameraError):
+    """A configured GenICam setting that the device refuses (names camera, feature, range)."""
+
+
+class Roi(DriverOptions):
+    x: int = Field(default=0, ge=0)
+    y: int = Field(default=0, ge=0)
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+
+
+class CameraEntry(DriverOptions):
+    name: str | None = Field(default=None, min_length=1)
+    serial: str | None = Field(default=None, min_length=1)
+    user_name: str | None = Field(default=None, min_length=1)
+    ip: str | None = Field(default=None, min_length=1)
+    features: dict[str, FeatureValue] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _one_key(self) -> CameraEntry:
+        keys = [k for k in ("serial", "user_name", "ip") if getattr(self, k) is not None]
+        if len(keys) != 1:
+            raise ValueError("give exactly one of serial, user_name or ip "
+                             f"(got {', '.join(keys) or 'none'})")
+        return self
+
+    def selector(self) -> str:
+        if self.serial is not None:
+            return f"serial {self.serial}"
+        if self.user_name is not None:
+            return f"user name {self.user_name}"
+        return f"IP {self.ip}"
+
+
+class GenICamStackOptions(DriverOptions):
+    cameras: tuple[CameraEntry, ...] = Field(min_length=1, max_length=MAX_CAMERAS)
+    trigger: Literal["software", "hardware", "free_run"] = "software"
+    trigger_line: str = Field(default="Line1", min_length=1)
+    exposure_us: float | None = Field(default=None, gt=0)
+    gain_db: float | None = Field(default=None, ge=0)
+    pixel_format: str | None = None
+    roi: Roi | None = None
+    packet_size: int | None = Field(default=None, gt=0)
+    inter_packet_delay: int | None = Field(default=None, ge=0)
+    features: dict[str, FeatureValue] = Field(default_factory=dict)
+    max_skew_ms: float | None = Field(default=None, gt=0)
+    frame_timeout_s: float = Field(default=2.0, gt=0)
+    buffers: int = Field(default=4, ge=2, le=64)
+    reopen_backoff_s: float = Field(default=1.0, gt=0)
+    reopen_backoff_max_s: float = Field(default=30.0, gt=0)
+    grayscale: bool = True
+
+    @field_validator("pixel_format")
+    @classmethod
+    def _known_format(cls, value: str | None) -> str | None:
+        if value is not None and value not in FORMATS:
+            raise ValueError(f"{value!r} is not a supported pixel format "
+                             f"(supported: {', '.join(FORMATS)})")
+        return value
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> GenICamStackOptions:
+        names = camera_names(self.cameras)
+        if len(set(names)) != len(names):
+            raise ValueError(f"cameras: names must differ (got {', '.join(names)})")
+        return self
+
+
+def camera_names(entries: Sequence[CameraEntry]) -> list[str]:
+    """Each camera's label: its ``name``, else left/right (two), cam0.. (otherwise)."""
+    default = ["left", "right"] if len(entries) == 2 else [
+        "camera" if len(entries) == 1 else f"cam{i}" for i in range(len(entries))]
+    return [e.name or default[i] for i, e in enumerate(entries)]
+
+
+# ---------------------------------------------------------------------------- SDK contract
+@dataclass(frozen=True)
+class DeviceInfo:
+    """One device a stack discovered. ``key`` is what the stack opens it by."""
+
+    stack: str
+    key: str
+    serial: str
+    model: str
+    vendor: str = ""
+    address: str = ""  # IP address (GigE Vision) or the transport's own id
+    user_name: str = ""
+
+    def matches(self, entry: CameraEntry) -> bool:
+        return ((entry.serial is not None and entry.serial == self.serial)
+                or (entry.user_name is not None and entry.user_name == self.user_name)
+                or (entry.ip is not None and entry.ip == self.address))
+
+    def label(self) -> str:
+        parts = [f"{self.vendor} {self.model}".strip(), f"serial {self.serial}"]
+        if self.address:
+            parts.append(self.address)
+        return ", ".join(parts)
+
+
+@dataclass(frozen=True)
+class FeatureInfo:
+    """What a device says about one feature: kind int | float | enum | bool | str | command."""
+
+    kind: str
+    readable: bool
+    writable: bool
+    minimum: float | None = None
+    maximum: float | None = None
+    increment: float | None = None
+    symbols: tuple[str, ...] = ()
+
+    def range_text(self) -> str:
+        if self.kind == "enum":
+            return f"one of {', '.join(self.symbols)}"
+        if self.minimum is not None and self.maximum is not None:
+            step = (f" in steps of {self.increment:g}"
+                    if self.increment not in (None, 0, 1) else "")
+            return f"{self.minimum:g} .. {self.maximum:g}{step}"
+        return f"a {self.kind}"
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame as the SDK delivered it; ``payload`` is a copy the SDK no longer owns."""
+
+    payload: bytes | Any
+    width: int
+    height: int
+    pixel_format: str
+    timestamp_ns: int | None  # device clock; None when the device reports none
+    complete: bool = True
+    problem: str = ""  # why it is incomplete, in the SDK's words
+
+
+class Device(ABC):
+    """One open camera of an SDK; only ever called from its driver's thread."""
+
+    def __init__(self, info: DeviceInfo) -> None:
+        self.info = info
+
+    @abstractmethod
+    def feature(self, name: str) -> FeatureInfo | None:
+        """What the device reports about ``name``; None when it has no such feature."""
+
+    @abstractmethod
+    def read(self, name: str) -> Any: ...
+
+    @abstractmethod
+    def write(self, name: str, value: Any) -> None: ...
+
+    @abstractmethod
+    def start(self, buffers: int) -> None:
+        """Start streaming (acquisition on)."""
+
+    @abstractmethod
+    def drain(self) -> int:
+        """Drop every frame the stream holds; how many."""
+
+    @abstractmethod
+    def trigger(self, timeout_s: float) -> None:
+        """Fire the software trigger."""
+
+    @abstractmethod
+    def fetch(self, timeout_s: float) -> Frame | None:
+        """The next frame, or None when none came within ``timeout_s``."""
+
+    @abstractmethod
+    def alive(self) -> bool:
+        """Whether the device still answers (False: unplugged, powered off, link lost)."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Stop streaming and release the device; never raises."""
+
+
+class Stack(ABC):
+    """An SDK: what it discovers and how it opens one device."""
+
+    name: ClassVar[str]
+
+    @abstractmethod
+    def discover(self) -> list[DeviceInfo]: ...
+
+    @abstractmethod
+    def open(self, info: DeviceInfo) -> Device:
+        """``CameraError`` saying why (held by another process, access denied, ...)."""
+
+
+# ---------------------------------------------------------------------------- settings
+def _matches(info: FeatureInfo, want: Any, got: Any) -> bool:
+    if info.kind == "float":
+        tol = max(abs(float(want)) * 0.01, info.increment or 0.0, 1e-9)
+        return abs(float(got) - float(want)) <= tol
+    if info.kind == "bool":
+        return bool(got) == bool(want)
+    return str(got) == str(want)
+
+
+def check_value(info: FeatureInfo, value: Any) -> str | None:
+    """Why ``value`` cannot be written to a feature described by ``info``; None if it can."""
+    if not info.writable:
+        return "is read-only" if info.readable else "is not writable now"
+    if info.kind == "command":
+        return "is a command, not a setting"
+    if info.kind == "enum":
+        if str(value) not in info.symbols:
+            return f"= {value!r} is not {info.range_text()}"
+        return None
+    if info.kind == "bool":
+        return None if isinstance(value, bool) else f"= {value!r}: the device takes true or false"
+    if info.kind == "str":
+        return None if isinstance(value, str) else f"= {value!r}: the device takes a string"
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return f"= {value!r}: the device takes a number ({info.range_text()})"
+    if info.kind == "int" and value != int(value):
+        return f"= {value!r}: the device takes an integer ({info.range_text()})"
+    lo, hi = info.minimum, info.maximum
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        return f"= {value:g} is out of the device's range {info.range_text()}"
+    inc = info.increment
+    if info.kind == "int" and inc and inc > 1 and lo is not None and (value - lo) % inc:
+        return f"= {value:g} is not on the device's steps: {info.range_text()}"
+    return None
+
+
+def settings(options: GenICamStackOptions, entry: CameraEntry,
+             device: Device) -> list[tuple[str, Any]]:
+    """The (feature, value) writes of one camera's config, in the order they are made:
+    pixel format, region of interest, GigE stream, exposure, gain, trigger, then the
+    ``features`` of the driver and of the camera."""
+    o = options
+    out: list[tuple[str, Any]] = []
+
+    def optional(name: str, value: Any) -> None:  # a helper feature a device may lack
+        info = device.feature(name)
+        if info is not None and info.writable:
+            out.append((name, value))
+
+    optional("AcquisitionMode", "Continuous")
+    if o.pixel_format is not None:
+        out.append(("PixelFormat", o.pixel_format))
+    if o.roi is not None:
+        optional("OffsetX", 0)  # first, so that the full width is allowed
+        optional("OffsetY", 0)
+        out += [("Width", o.roi.width), ("Height", o.roi.height),
+                ("OffsetX", o.roi.x), ("OffsetY", o.roi.y)]
+    if o.packet_size is not None:
+        out.append(("GevSCPSPacketSize", o.packet_size))
+    if o.inter_packet_delay is not None:
+        out.append(("GevSCPD", o.inter_packet_delay))
+    if o.exposure_us is not None:
+        optional("ExposureAuto", "Off")
+        exposure = "ExposureTime" if device.feature("ExposureTime") else "ExposureTimeAbs"
+        out.append((exposure, float(o.exposure_us)))
+    if o.gain_db is not None:
+        optional("GainAuto", "Off")
+        out.append(("Gain", float(o.gain_db)))
+    selector = device.feature("TriggerSelector")
+    if selector is not None and "FrameStart" in selector.symbols:
+        out.append(("TriggerSelector", "FrameStart"))
+    if o.trigger == "free_run":
+        out.append(("TriggerMode", "Off"))
+    else:
+        out += [("TriggerMode", "On"),
+                ("TriggerSource", "Software" if o.trigger == "software" else o.trigger_line)]
+    out += list(o.features.items()) + list(entry.features.items())
+    return out
+
+
+def apply_settings(label: str, device: Device, writes: list[tuple[str, Any]]) -> dict[str, Any]:
+    """Write and read back each setting; ``SettingError`` listing every one refused, each
+    naming the camera, the feature and the range the device reports. Returns what the
+    device reports after the writes (for the frame's ``meta``)."""
+    problems: list[str] = []
+    applied: dict[str, Any] = {}
+    where = f"camera {label} ({device.info.label()})"
+    for name, value in writes:
+        info = device.feature(name)
+        if info is None:
+            problems.append(f"{where}: feature {name} does not exist on this device")
+            continue
+        why = check_value(info, value)
+        if why is not None:
+            problems.append(f"{where}: {name} {why}")
+            continue
+        try:
+            device.write(name, int(value) if info.kind == "int" else value)
+            got = device.read(name) if info.readable else value
+        except Exception as err:  # SDK exceptions share no base class with ours
+            problems.append(f"{where}: {name} = {value!r} refused by the device: {err}")
+            continue
+        if not _matches(info, value, got):
+            problems.append(f"{where}: {name} set to {value!r}, the device reports {got!r} "
+                            f"(range {info.range_text()})")
+            continue
+        applied[name] = got
+    if problems:
+        raise SettingError("\n".join(problems))
+    return applied
+
+
+def select(entries: Sequence[CameraEntry], names: Sequence[str], found: Sequence[DeviceInfo],
+           stack: str) -> list[DeviceInfo]:
+    """The discovered device of each entry; ``CameraError`` naming the one not found."""
+    chosen = []
+    for entry, name in zip(entries, names, strict=True):
+        hits = [d for d in found if d.matches(entry)]
+        if not hits:
+            seen = "; ".join(d.label() for d in found) or "none"
+            raise CameraError(f"{stack}: camera {name}: no device with {entry.selector()} "
+                              f"(found: {seen})")
+        if len(hits) > 1:
+            raise CameraError(f"{stack}: camera {name}: {len(hits)} devices with "
+                              f"{entry.selector()}: {'; '.join(d.label() for d in hits)}")
+        if hits[0] in chosen:
+            raise CameraError(f"{stack}: camera {name}: {entry.selector()} is already "
+                              "used by another camera of this config")
+        chosen.append(hits[0])
+    return chosen
+
+
+# ---------------------------------------------------------------------------- the driver
+class GenICamStackCamera(CameraDriver):
+    """One or more cameras of one SDK, triggered together, grabbed as one acquisition."""
+
+    Options = GenICamStackOptions
+    options: GenICamStackOptions
+
+    def __init__(self, options: GenICamStackOptions, config: Config) -> None:
+        super().__init__(options, config)
+        self.stack = self.make_stack()  # CameraError when the SDK is not installed
+        self.names = camera_names(options.cameras)
+        self._devices: list[Device] = []
+        self.applied: list[dict[str, Any]] = []
+        self._formats: list[str] = []
+        #: Why the cameras are down (an outage), "" when they work.
+        self.outage = ""
+        self._outage_since = 0.0
+        self._backoff_s = options.reopen_backoff_s
+        self._next_try = 0.0
+
+    @classmethod
+    @abstractmethod
+    def make_stack(cls) -> Stack:
+        """The SDK; ``CameraError`` naming the extra to install when it is missing."""
+
+    def describe(self) -> str:
+        return f"{self.type_name} " + " + ".join(
+            f"{n} ({e.selector()})" for n, e in zip(self.names, self.options.cameras,
+                                                    strict=True))
+
+    # ---------------------------------------------------------------- open / close
+    def _open_blocking(self) -> None:
+        self._open_devices()
+
+    def _open_devices(self) -> None:
+        found = self.stack.discover()
+        infos = select(self.options.cameras, self.names, found, self.type_name)
+        try:
+            for name, entry, info in zip(self.names, self.options.cameras, infos, strict=True):
+                device = self.stack.open(info)
+                self._devices.append(device)
+                self.applied.append(
+                    apply_settings(name, device, settings(self.options, entry, device)))
+                self._formats.append(str(device.read("PixelFormat")))
+            for device in self._devices:
+                device.start(self.options.buffers)
+        except CameraError as err:
+            self._close_devices()
+            if isinstance(err, SettingError):
+                raise
+            raise CameraError(f"{self.type_name}: {err}") from None
+        except Exception as err:  # an SDK call outside the settings
+            self._close_devices()
+            raise CameraError(f"{self.type_name}: cannot open {self.describe()}: {err}") from None
+
+    def _close_devices(self) -> None:
+        for device in self._devices:
+            device.close()
+        self._devices, self.applied, self._formats = [], [], []
+
+    def _close_blocking(self) -> None:
+        self._close_devices()
+
+
+    async def check_settings(self) -> None:
+        """Open (which applies and reads back every setting) and close again: `vgripd check`."""
+        await self.open()
+        await self.close()
+
+    # ---------------------------------------------------------------- grab
+    def _grab_blocking(self, timeout_s: float) -> ImagePair:
+        if self.outage:
+            self._reopen()
+        # Leave the daemon time to tell a failed grab from a hung one (it takes a grab that
+        # used 90 % of the job's time for a hang and reopens the camera itself).
+        deadline = time.monotonic() + min(self.options.frame_timeout_s, 0.75 * timeout_s)
+        try:
+            return self._acquire(deadline)
+        except CameraError:
+            self._judge_outage()
+            raise
+
+    def _acquire(self, deadline: float) -> ImagePair:
+        o = self.options
+        for device in self._devices:
+            device.drain()  # no frame taken before this request is ever returned
+        if o.trigger == "software":
+            for device in self._devices:  # back to back: the pair is as close as SDK calls
+                try:
+                    device.trigger(max(0.0, deadline - time.monotonic()))
+                except CameraError:
+                    raise
+                except Exception as err:
+                    raise CameraError(f"{self._cam(device)}: software trigger failed: "
+                                      f"{err}") from None
+        images = []
+        stamps: list[int | None] = []
+        for device, fmt in zip(self._devices, self._formats, strict=True):
+            frame = device.fetch(max(0.0, deadline - time.monotonic()))
+            if frame is None:
+                raise CameraError(f"{self._cam(device)}: no frame within "
+                                  f"{self._budget(deadline):g} s"
+                                  + (f" (waiting for the trigger on {o.trigger_line})"
+                                     if o.trigger == "hardware" else ""))
+            if not frame.complete:
+                raise CameraError(f"{self._cam(device)}: incomplete frame refused "
+                                  f"({frame.problem})")
+            try:
+                images.append(to_image(frame.payload, frame.width, frame.height,
+                                       frame.pixel_format or fmt, o.grayscale))
+            except PixelError as err:
+                raise CameraError(f"{self._cam(device)}: frame refused: {err}") from None
+            stamps.append(frame.timestamp_ns)
+        t_mono_ns = time.monotonic_ns()
+        self._check_skew(stamps)
+        meta: dict[str, Any] = {
+            "cameras": list(self.names),
+            "serials": [d.info.serial for d in self._devices],
+            "device_timestamps_ns": stamps,
+        }
+        return ImagePair.of_views(images, t_mono_ns, source=f"{self.type_name}:"
+                                  + "+".join(d.info.serial for d in self._devices), meta=meta)
+
+    @staticmethod
+    def _budget(deadline: float) -> float:
+        return round(max(0.0, deadline - time.monotonic()), 3) or 0
+
+    def _cam(self, device: Device) -> str:
+        i = self._devices.index(device)
+        return f"{self.type_name}: camera {self.names[i]} ({device.info.label()})"
+
+    def _check_skew(self, stamps: list[int | None]) -> None:
+        limit = self.options.max_skew_ms
+        if limit is None or len(stamps) < 2:
+            return
+        missing = [n for n, s in zip(self.names, stamps, strict=True) if not s]
+        if missing:
+            raise CameraError(f"{self.type_name}: max_skew_ms needs device timestamps, camera "
+                              f"{', '.join(missing)} reports none")
+        known = [s for s in stamps if s]
+        first = self.names[stamps.index(min(known))]
+        last = self.names[stamps.index(max(known))]
+        skew_ms = (max(known) - min(known)) / 1e6
+        if skew_ms > limit:
+            raise CameraError(f"{self.type_name}: cameras {first} and {last} exposed "
+                              f"{skew_ms:.3f} ms apart (max_skew_ms = {limit:g})")
+
+    # ---------------------------------------------------------------- outages
+    def _judge_outage(self) -> None:
+        """After a failed grab: a camera that no longer answers starts an outage (all
+        cameras closed, reopened later with back-off); a live one only failed this grab."""
+        dead = [n for n, d in zip(self.names, self._devices, strict=True) if not d.alive()]
+        if not dead or self.outage:
+            return
+        self.outage = f"camera {', '.join(dead)} stopped answering"
+        self._outage_since = time.monotonic()
+        self._backoff_s = self.options.reopen_backoff_s
+        self._next_try = self._outage_since + self._backoff_s
+        log.error("%s: %s; closing it, reopening with back-off from %g s (logged once "
+                  "until it is back)", self.type_name, self.outage, self._backoff_s)
+        self._close_devices()
+
+    def _reopen(self) -> None:
+        now = time.monotonic()
+        if now < self._next_try:
+            raise CameraError(f"{self.type_name}: {self.outage} {now - self._outage_since:.1f} s "
+                              f"ago; next reopen in {self._next_try - now:.1f} s")
+        try:
+            self._open_devices()
+        except CameraError as err:
+            self._backoff_s = min(2 * self._backoff_s, self.options.reopen_backoff_max_s)
+            self._next_try = time.monotonic() + self._backoff_s
+            raise CameraError(f"{self.type_name}: {self.outage} "
+                              f"{now - self._outage_since:.1f} s ago; reopening failed "
+                              f"(next try in {self._backoff_s:g} s): {err}") from None
+        log.info("%s: camera back after %.1f s (%s)", self.type_name, now - self._outage_since,
+                 self.outage)
+        self.outage = ""
