@@ -439,7 +439,12 @@ class GenICamStackCamera(CameraDriver):
                 self._devices.append(device)
                 self.applied.append(
                     apply_settings(name, device, settings(self.options, entry, device)))
-                self._formats.append(str(device.read("PixelFormat")))
+                fmt = str(device.read("PixelFormat"))
+                if fmt not in FORMATS:
+                    raise SettingError(f"camera {name} ({info.label()}): PixelFormat {fmt} "
+                                       f"is not one vgripd converts (set pixel_format to one "
+                                       f"of {', '.join(FORMATS)})")
+                self._formats.append(fmt)
             for device in self._devices:
                 device.start(self.options.buffers)
         except CameraError as err:

@@ -60,6 +60,8 @@ def payload_size(fmt: str, width: int, height: int) -> int:
         return width * height
     if packing is None:
         return width * height * 2
+    if packing == "Packed":  # GigE Vision: two pixels in three bytes, 10 bits or 12
+        return (width * height + 1) // 2 * 3
     return (width * height * bits + 7) // 8
 
 
