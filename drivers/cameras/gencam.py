@@ -433,18 +433,25 @@ class GenICamStackCamera(CameraDriver):
     def _open_devices(self) -> None:
         found = self.stack.discover()
         infos = select(self.options.cameras, self.names, found, self.type_name)
+        refused: list[str] = []  # every camera's refused settings, reported together
         try:
             for name, entry, info in zip(self.names, self.options.cameras, infos, strict=True):
                 device = self.stack.open(info)
                 self._devices.append(device)
-                self.applied.append(
-                    apply_settings(name, device, settings(self.options, entry, device)))
+                try:
+                    self.applied.append(
+                        apply_settings(name, device, settings(self.options, entry, device)))
+                except SettingError as err:
+                    refused.append(str(err))
+                    continue
                 fmt = str(device.read("PixelFormat"))
                 if fmt not in FORMATS:
                     raise SettingError(f"camera {name} ({info.label()}): PixelFormat {fmt} "
                                        f"is not one vgripd converts (set pixel_format to one "
                                        f"of {', '.join(FORMATS)})")
                 self._formats.append(fmt)
+            if refused:
+                raise SettingError("\n".join(refused))
             for device in self._devices:
                 device.start(self.options.buffers)
         except CameraError as err:
