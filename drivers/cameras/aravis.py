@@ -180,6 +180,11 @@ class AravisStack(Stack):
             raise CameraError(f"cannot open {info.label()}"
                               + (" (held by another process)" if held else "")
                               + f": {text}") from None
+        device = camera.get_device()
+        # GigE Vision: one application controls a camera; Aravis then opens it read-only
+        if hasattr(device, "is_controller") and not device.is_controller():
+            raise CameraError(f"cannot open {info.label()} (held by another process): another "
+                              "application has its GigE Vision control channel")
         return AravisDevice(info, camera)
 
 

@@ -4,6 +4,7 @@ Emulation" cameras, serials 0815-0000 and 0815-0001, fed image files through Ima
 from __future__ import annotations
 
 import asyncio
+import importlib.util
 import os
 import subprocess
 import sys
@@ -14,19 +15,24 @@ import cv2
 import numpy as np
 import pytest
 
-pytest.importorskip("pypylon", reason="needs pypylon: pip install vgripd[pylon]")
 # pylon's waits end early when pytest-timeout's SIGALRM timer runs in this process (its signal
 # method then reports a timeout after a second): the thread method leaves signals alone.
 pytestmark = pytest.mark.timeout(120, method="thread")
 os.environ.setdefault("PYLON_CAMEMU", "2")  # read when pylon's transport layers load
 
 from drivers.cameras.pylon import PylonCamera, PylonStack  # noqa: E402
-from tests.conftest import REPO  # noqa: E402
+from tests.conftest import REPO, need  # noqa: E402
 from vgripd.config import Config  # noqa: E402
 from vgripd.errors import CameraError  # noqa: E402
 
 SAMPLES = REPO / "config" / "samples"
 LEFT, RIGHT = SAMPLES / "left_00.png", SAMPLES / "right_00.png"
+
+
+@pytest.fixture(autouse=True)
+def _pypylon() -> None:
+    need(importlib.util.find_spec("pypylon") is not None,
+         "needs pypylon: pip install vgripd[pylon]")
 
 
 def feed(path: Path) -> dict[str, Any]:

@@ -8,6 +8,7 @@ by a pymodbus client over TCP as a PLC would; every wait is on a register value.
 from __future__ import annotations
 
 import asyncio
+import importlib.util
 import os
 import re
 import shutil
@@ -16,14 +17,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 from pymodbus.client import AsyncModbusTcpClient
 
-from tests.conftest import REPO
+from tests.conftest import REPO, need
 from vgripd.service.protocol import MAP_SIZE, Command, Reg
 from vgripd.types import Status
-
-pytest.importorskip("pypylon", reason="needs pypylon: pip install vgripd[pylon]")
 
 WAIT_S = 90.0
 FRAMES = 3
@@ -90,6 +88,8 @@ async def _jobs(cfg: Path, env: dict[str, str], port: int) -> list[list[int]]:
 
 async def test_pylon_emulation_gives_the_replay_drivers_pose_to_the_last_digit(
         tmp_path: Path) -> None:
+    need(importlib.util.find_spec("pypylon") is not None,
+         "needs pypylon: pip install vgripd[pylon]")
     for side in ("left", "right"):  # one folder per emulated camera: it cycles through it
         (tmp_path / side).mkdir()
         for i in range(FRAMES):
