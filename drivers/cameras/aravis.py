@@ -51,7 +51,7 @@ class AravisDevice(Device):
         self._stream: Any = None
         self._lost = False
         self._kinds: dict[str, str] = {}
-        self._dev.connect("control-lost", self._on_control_lost)
+        self._handler = self._dev.connect("control-lost", self._on_control_lost)
 
     def _on_control_lost(self, *_: Any) -> None:  # Aravis' heartbeat thread
         self._lost = True
@@ -125,7 +125,13 @@ class AravisDevice(Device):
         return dropped
 
     def trigger(self, timeout_s: float) -> None:
-        self._cam.software_trigger()
+        try:
+            self._cam.software_trigger()
+        except Exception as err:  # GLib.Error
+            # Aravis retried the write for ~2.5 s: the control channel is gone; asking the
+            # device again (alive) would cost as much once more
+            self._lost = self._lost or "timeout" in str(err)
+            raise
 
     def fetch(self, timeout_s: float) -> Frame | None:
         buffer = self._stream.timeout_pop_buffer(max(1, int(timeout_s * 1e6)))
@@ -151,10 +157,17 @@ class AravisDevice(Device):
         return True
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):  # a camera that is gone cannot stop
-            self._cam.stop_acquisition()
-        self._stream = None
-        self._cam = None  # the last reference: GObject releases the device
+        if self._cam is None:
+            return
+        self._dev.disconnect(self._handler)
+        if not self._lost:  # each call to a camera that is gone waits out Aravis' retries
+            with contextlib.suppress(Exception):
+                self._cam.stop_acquisition()
+            if hasattr(self._dev, "leave_control"):  # GigE: another application may take it
+                with contextlib.suppress(Exception):
+                    self._dev.leave_control()
+        # the last references: GObject releases the stream and the device
+        self._stream = self._dev = self._cam = None
 
 
 class AravisStack(Stack):

@@ -55,6 +55,7 @@ outage is logged once when it starts and once when the camera is back.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
@@ -415,6 +416,9 @@ class GenICamStackCamera(CameraDriver):
         self._outage_since = 0.0
         self._backoff_s = options.reopen_backoff_s
         self._next_try = 0.0
+        #: Closes the devices of an outage in the background (an SDK may wait out its
+        #: retries for each call to a device that is gone); a reopen waits for it.
+        self._releasing: threading.Thread | None = None
 
     @classmethod
     @abstractmethod
@@ -568,10 +572,21 @@ class GenICamStackCamera(CameraDriver):
         self._next_try = self._outage_since + self._backoff_s
         log.error("%s: %s; closing it, reopening with back-off from %g s (logged once "
                   "until it is back)", self.type_name, self.outage, self._backoff_s)
-        self._close_devices()
+        devices, self._devices, self.applied, self._formats = self._devices, [], [], []
+
+        def release() -> None:
+            for device in devices:
+                device.close()
+
+        self._releasing = threading.Thread(target=release, daemon=True,
+                                           name=f"camera-{self.type_name}-release")
+        self._releasing.start()
 
     def _reopen(self) -> None:
         now = time.monotonic()
+        if self._releasing is not None and self._releasing.is_alive():
+            raise CameraError(f"{self.type_name}: {self.outage} {now - self._outage_since:.1f} s "
+                              "ago; its lost handle is still being released")
         if now < self._next_try:
             raise CameraError(f"{self.type_name}: {self.outage} {now - self._outage_since:.1f} s "
                               f"ago; next reopen in {self._next_try - now:.1f} s")
