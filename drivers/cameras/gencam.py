@@ -410,7 +410,7 @@ class GenICamStackCamera(CameraDriver):
         self.names = camera_names(options.cameras)
         self._devices: list[Device] = []
         self.applied: list[dict[str, Any]] = []
-        self._formats: list[str] = []
+        self.formats: list[str] = []
         #: Why the cameras are down (an outage), "" when they work.
         self.outage = ""
         self._outage_since = 0.0
@@ -453,7 +453,7 @@ class GenICamStackCamera(CameraDriver):
                     raise SettingError(f"camera {name} ({info.label()}): PixelFormat {fmt} "
                                        f"is not one vgripd converts (set pixel_format to one "
                                        f"of {', '.join(FORMATS)})")
-                self._formats.append(fmt)
+                self.formats.append(fmt)
             if refused:
                 raise SettingError("\n".join(refused))
             for device in self._devices:
@@ -470,7 +470,7 @@ class GenICamStackCamera(CameraDriver):
     def _close_devices(self) -> None:
         for device in self._devices:
             device.close()
-        self._devices, self.applied, self._formats = [], [], []
+        self._devices, self.applied, self.formats = [], [], []
 
     def _close_blocking(self) -> None:
         self._close_devices()
@@ -509,7 +509,7 @@ class GenICamStackCamera(CameraDriver):
                                       f"{err}") from None
         images = []
         stamps: list[int | None] = []
-        for device, fmt in zip(self._devices, self._formats, strict=True):
+        for device, fmt in zip(self._devices, self.formats, strict=True):
             frame = device.fetch(max(0.0, deadline - time.monotonic()))
             if frame is None:
                 raise CameraError(f"{self._cam(device)}: no frame within "
@@ -572,7 +572,7 @@ class GenICamStackCamera(CameraDriver):
         self._next_try = self._outage_since + self._backoff_s
         log.error("%s: %s; closing it, reopening with back-off from %g s (logged once "
                   "until it is back)", self.type_name, self.outage, self._backoff_s)
-        devices, self._devices, self.applied, self._formats = self._devices, [], [], []
+        devices, self._devices, self.applied, self.formats = self._devices, [], [], []
 
         def release() -> None:
             for device in devices:
