@@ -420,6 +420,11 @@ class GenICamStackCamera(CameraDriver):
         #: retries for each call to a device that is gone); a reopen waits for it.
         self._releasing: threading.Thread | None = None
 
+    @staticmethod
+    def names_of(options: GenICamStackOptions) -> list[str]:
+        """The cameras' labels (``camera_names``), for a caller that has only the class."""
+        return camera_names(options.cameras)
+
     @classmethod
     @abstractmethod
     def make_stack(cls) -> Stack:

@@ -94,11 +94,9 @@ def grab_options(args: argparse.Namespace) -> tuple[str, dict[str, Any], Config]
         config = load_config(args.config)
         cam = config.camera
         if cam.type in STACKS:
-            from drivers.cameras.gencam import camera_names
-
             cls = load_class(CAMERAS, "camera", cam.type)
             options = cls.Options.model_validate(cam.options())
-            names = camera_names(options.cameras)
+            names = cls.names_of(options)
             if args.name in names:
                 entry = options.cameras[names.index(args.name)]
                 data = options.model_dump(exclude_none=True)
