@@ -411,6 +411,8 @@ class GenICamStackCamera(CameraDriver):
         self._devices: list[Device] = []
         self.applied: list[dict[str, Any]] = []
         self.formats: list[str] = []
+        #: Each camera's image size (Width, Height) as the device reports it after the settings.
+        self.sizes: list[tuple[int, int]] = []
         #: Why the cameras are down (an outage), "" when they work.
         self.outage = ""
         self._outage_since = 0.0
@@ -459,6 +461,7 @@ class GenICamStackCamera(CameraDriver):
                                        f"is not one vgripd converts (set pixel_format to one "
                                        f"of {', '.join(FORMATS)})")
                 self.formats.append(fmt)
+                self.sizes.append((int(device.read("Width")), int(device.read("Height"))))
             if refused:
                 raise SettingError("\n".join(refused))
             for device in self._devices:
@@ -475,16 +478,19 @@ class GenICamStackCamera(CameraDriver):
     def _close_devices(self) -> None:
         for device in self._devices:
             device.close()
-        self._devices, self.applied, self.formats = [], [], []
+        self._devices, self.applied, self.formats, self.sizes = [], [], [], []
 
     def _close_blocking(self) -> None:
         self._close_devices()
 
 
-    async def check_settings(self) -> None:
-        """Open (which applies and reads back every setting) and close again: `vgripd check`."""
+    async def check_settings(self) -> list[tuple[int, int]]:
+        """Open (which applies and reads back every setting) and close again: `vgripd check`.
+        Returns each camera's image size (Width, Height) as configured."""
         await self.open()
+        sizes = list(self.sizes)
         await self.close()
+        return sizes
 
     # ---------------------------------------------------------------- grab
     def _grab_blocking(self, timeout_s: float) -> ImagePair:
@@ -577,7 +583,8 @@ class GenICamStackCamera(CameraDriver):
         self._next_try = self._outage_since + self._backoff_s
         log.error("%s: %s; closing it, reopening with back-off from %g s (logged once "
                   "until it is back)", self.type_name, self.outage, self._backoff_s)
-        devices, self._devices, self.applied, self.formats = self._devices, [], [], []
+        devices, self._devices = self._devices, []
+        self.applied, self.formats, self.sizes = [], [], []
 
         def release() -> None:
             for device in devices:

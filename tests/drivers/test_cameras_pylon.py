@@ -173,6 +173,12 @@ serial = "0815-0001"
     for side, serial in (("left", "0815-0000"), ("right", "0815-0001")):
         assert (f"camera {side} (Basler Emulation, serial {serial}): Gain = 90 is out of the "
                 "device's range 0 .. 48") in bad.stderr, bad.stderr
+    # the emulation's default 1024 x 1040 images against the demo cell's 1280 x 1024
+    unsized = _check(tmp_path, base.replace("roi = { width = 1280, height = 1024 }\n", ""))
+    assert unsized.returncode == 78, unsized.stderr
+    assert ("camera: camera left delivers 1024x1040 images (Width x Height after the settings) "
+            "but calibration.left is calibrated for 1280x1024: set camera.roi") in unsized.stderr
+    assert "camera right delivers 1024x1040 images" in unsized.stderr
 
 
 def test_the_registry_refuses_a_camera_without_a_selector() -> None:

@@ -43,16 +43,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def check_camera_settings(config: Config) -> None:
     """Open the configured cameras, apply and read back their settings, close them:
-    ``ConfigError`` naming the camera, the feature and the device's range. Only drivers
-    with ``check_settings`` (the GenICam SDK drivers) are judged."""
+    ``ConfigError`` naming the camera, the feature and the device's range, or a camera whose
+    image size is not the calibrated one. Only drivers with ``check_settings`` (the GenICam SDK
+    drivers) are judged."""
     cls = load_class(CAMERAS, "camera", config.camera.type)
     if not hasattr(cls, "check_settings"):
         return
     driver = cls(validate_options(cls, config.camera, "camera"), config)
     try:
-        asyncio.run(driver.check_settings())
+        sizes = asyncio.run(driver.check_settings())
     except CameraError as err:
         raise ConfigError(f"camera: {err}") from None
+    cal = config.calibration
+    if cal is None:
+        return
+    if cal.cameras:
+        calibrated = [(f"calibration.cameras.{i}.intrinsics", c.intrinsics)
+                      for i, c in enumerate(cal.cameras)]
+    else:
+        calibrated = [("calibration.left", cal.left)] + (
+            [("calibration.right", cal.right)] if cal.right is not None else [])
+    wrong = [f"camera: camera {name} delivers {w}x{h} images (Width x Height after the "
+             f"settings) but {key} is calibrated for {k.width}x{k.height}: set camera.roi"
+             for name, (w, h), (key, k) in zip(driver.names, sizes, calibrated, strict=False)
+             if (w, h) != (k.width, k.height)]
+    if wrong:
+        raise ConfigError("\n".join(wrong))
 
 
 def run(args: argparse.Namespace) -> int:
