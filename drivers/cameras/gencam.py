@@ -514,8 +514,8 @@ class GenICamStackCamera(CameraDriver):
                 try:
                     device.trigger(max(0.0, deadline - time.monotonic()))
                 except CameraError:
-                    raise
-                except Exception as err:
+                    raise  # already names the camera and why
+                except Exception as err:  # the SDK's own error types
                     raise CameraError(f"{self._cam(device)}: software trigger failed: "
                                       f"{err}") from None
         images = []
