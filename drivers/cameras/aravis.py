@@ -17,14 +17,8 @@ from __future__ import annotations
 import contextlib
 from typing import Any
 
-from drivers.cameras.gencam import (
-    Device,
-    DeviceInfo,
-    FeatureInfo,
-    Frame,
-    GenICamStackCamera,
-    Stack,
-)
+from drivers.cameras.gencam import GenICamStackCamera
+from drivers.cameras.gencam_sdk import Device, DeviceInfo, FeatureInfo, Frame, Stack
 from vgripd.errors import CameraError
 
 MISSING = ("aravis driver needs Aravis and PyGObject: apt-get install gir1.2-aravis-0.8; "

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from drivers.cameras.gencam import Device, DeviceInfo, FeatureInfo, Frame, GenICamStackCamera, Stack
+from drivers.cameras.gencam import GenICamStackCamera
+from drivers.cameras.gencam_sdk import Device, DeviceInfo, FeatureInfo, Frame, Stack
 from vgripd.errors import CameraError
 
 MISSING = "pylon driver needs the 'pypylon' package: pip install vgripd[pylon]"
