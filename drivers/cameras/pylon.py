@@ -38,8 +38,8 @@ class PylonDevice(Device):
         self._nodes = camera.GetNodeMap()
         tick = self.feature("GevTimestampTickFrequency")
         # GigE cameras count in ticks of this frequency; USB3 Vision and the emulation in ns
-        self._tick_hz = float(self.read("GevTimestampTickFrequency")) if tick and tick.readable \
-            else 1e9
+        self._tick_hz = int(self.read("GevTimestampTickFrequency")) if tick and tick.readable \
+            else 1_000_000_000
 
     def feature(self, name: str) -> FeatureInfo | None:
         g = self._genicam
@@ -100,7 +100,7 @@ class PylonDevice(Device):
                                      f"{result.GetErrorDescription()}")
             stamp = int(result.GetTimeStamp())
             return Frame(result.GetBuffer(), int(result.GetWidth()), int(result.GetHeight()),
-                         "", int(stamp * 1e9 / self._tick_hz) if stamp else None)
+                         "", stamp * 1_000_000_000 // self._tick_hz if stamp else None)
         finally:
             result.Release()
 
