@@ -211,3 +211,32 @@ def test_grab_runs_off_the_event_loop() -> None:
         return ticks
 
     assert asyncio.run(main()) > 1
+
+
+async def test_free_run_takes_a_frame_streamed_after_the_request() -> None:
+    cam = camera(trigger="free_run", features={"AcquisitionFrameRateEnable": True,
+                                               "AcquisitionFrameRate": 50.0})
+    await cam.open()
+    try:
+        applied = dict(cam.applied[0])
+        pair = await cam.grab(5.0)
+    finally:
+        await cam.close()
+    assert applied["TriggerMode"] == "Off"
+    np.testing.assert_array_equal(pair.left, cv2.imread(str(LEFT), cv2.IMREAD_GRAYSCALE))
+
+
+def test_vgripd_check_judges_the_pylon_entries_of_a_multi_camera(tmp_path: Path) -> None:
+    entry = """[[camera.cameras]]
+type = "pylon"
+roi = {{ width = 1280, height = 1024 }}
+gain_db = {gain}
+cameras = [{{ name = "{name}", serial = "{serial}" }}]
+"""
+    multi = ('[camera]\ntype = "multi"\n' + entry.format(gain=1, name="left", serial="0815-0000")
+             + entry.format(gain=60, name="right", serial="0815-0001"))
+    proc = _check(tmp_path, multi)
+    assert proc.returncode == 78, proc.stderr
+    assert ("camera.cameras.1: camera right (Basler Emulation, serial 0815-0001): Gain = 60 is "
+            "out of the device's range 0 .. 48") in proc.stderr
+    assert "camera.cameras.0" not in proc.stderr

@@ -45,17 +45,30 @@ def check_camera_settings(config: Config) -> None:
     """Open the configured cameras, apply and read back their settings, close them:
     ``ConfigError`` naming the camera, the feature and the device's range, or a camera whose
     image size is not the calibrated one. Only drivers with ``check_settings`` (the GenICam SDK
-    drivers) are judged."""
+    drivers) are judged, also as entries of a ``multi`` camera (``camera.cameras.<i>``)."""
     cls = load_class(CAMERAS, "camera", config.camera.type)
-    if not hasattr(cls, "check_settings"):
-        return
     driver = cls(validate_options(cls, config.camera, "camera"), config)
-    try:
-        sizes = asyncio.run(driver.check_settings())
-    except CameraError as err:
-        raise ConfigError(f"camera: {err}") from None
+    parts = [(f"camera.cameras.{i}", d) for i, d in enumerate(getattr(driver, "drivers", []))]
+    parts = parts or [("camera", driver)]
+    names: list[str] = []
+    sizes: list[tuple[int, int]] | None = []
+    problems = []
+    for where, part in parts:
+        if not hasattr(part, "check_settings"):
+            sizes = None  # how many images it delivers is unknown: no size check
+            continue
+        try:
+            got = asyncio.run(part.check_settings())
+        except CameraError as err:
+            problems.append(f"{where}: {err}")
+            continue
+        names += part.names
+        if sizes is not None:
+            sizes += got
+    if problems:
+        raise ConfigError("\n".join(problems))
     cal = config.calibration
-    if cal is None:
+    if cal is None or not sizes:
         return
     if cal.cameras:
         calibrated = [(f"calibration.cameras.{i}.intrinsics", c.intrinsics)
@@ -65,7 +78,7 @@ def check_camera_settings(config: Config) -> None:
             [("calibration.right", cal.right)] if cal.right is not None else [])
     wrong = [f"camera: camera {name} delivers {w}x{h} images (Width x Height after the "
              f"settings) but {key} is calibrated for {k.width}x{k.height}: set camera.roi"
-             for name, (w, h), (key, k) in zip(driver.names, sizes, calibrated, strict=False)
+             for name, (w, h), (key, k) in zip(names, sizes, calibrated, strict=False)
              if (w, h) != (k.width, k.height)]
     if wrong:
         raise ConfigError("\n".join(wrong))
