@@ -1,5 +1,5 @@
-"""The pylon driver against pylon's own camera emulation (``PYLON_CAMEMU``: two "Basler
-Emulation" cameras, serials 0815-0000 and 0815-0001, fed image files through ImageFilename)."""
+"""The pylon driver against pylon's own camera emulation (``PYLON_CAMEMU``: three "Basler
+Emulation" cameras, serials 0815-0000 to 0815-0002, fed image files through ImageFilename)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import pytest
 # pylon's waits end early when pytest-timeout's SIGALRM timer runs in this process (its signal
 # method then reports a timeout after a second): the thread method leaves signals alone.
 pytestmark = pytest.mark.timeout(120, method="thread")
-os.environ.setdefault("PYLON_CAMEMU", "2")  # read when pylon's transport layers load
+os.environ["PYLON_CAMEMU"] = "3"  # read when pylon's transport layers load
 
 from drivers.cameras.pylon import PylonCamera, PylonStack  # noqa: E402
 from tests.conftest import REPO, need  # noqa: E402
@@ -240,3 +240,18 @@ cameras = [{{ name = "{name}", serial = "{serial}" }}]
     assert ("camera.cameras.1: camera right (Basler Emulation, serial 0815-0001): Gain = 60 is "
             "out of the device's range 0 .. 48") in proc.stderr
     assert "camera.cameras.0" not in proc.stderr
+
+
+async def test_three_cameras_are_one_acquisition_in_config_order() -> None:
+    files = [SAMPLES / "right_01.png", LEFT, RIGHT]
+    cam = camera(cameras=[{"name": f"c{i}", "serial": f"0815-000{(i + 2) % 3}",
+                           "features": feed(path)} for i, path in enumerate(files)])
+    await cam.open()
+    try:
+        pair = await cam.grab(5.0)
+    finally:
+        await cam.close()
+    assert len(pair.views) == 3
+    assert pair.meta["serials"] == ["0815-0002", "0815-0000", "0815-0001"]
+    for image, path in zip(pair.views, files, strict=True):
+        np.testing.assert_array_equal(image, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
