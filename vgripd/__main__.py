@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "teach": ("vgripd.cli.teach", "measure the object at its reference place, store it"),
     "s7-udt": ("vgripd.cli.s7_udt", "print the S7 link's data block as SCL (UDT + DB) for TIA"),
     "robot-program": ("vgripd.cli.robot_program", "write a brand's robot socket program"),
+    "cameras": ("vgripd.cli.cameras", "list the cameras pylon/Aravis find; grab a frame"),
 }
 
 

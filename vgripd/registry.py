@@ -54,6 +54,8 @@ CAMERAS: dict[str, str] = {
     "synthetic": "drivers.cameras.synthetic:SyntheticCamera",
     "opencv": "drivers.cameras.opencv:OpenCVCamera",
     "genicam": "drivers.cameras.genicam:GenICamCamera",
+    "pylon": "drivers.cameras.pylon:PylonCamera",
+    "aravis": "drivers.cameras.aravis:AravisCamera",
     "multi": "drivers.cameras.multi:MultiCamera",
 }
 

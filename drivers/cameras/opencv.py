@@ -13,7 +13,7 @@ Options (``[camera]`` with ``type = "opencv"``)::
 
 A pair is taken by ``grab()``-ing both devices first and decoding afterwards, so the two
 exposures are as close in time as the devices allow (true synchronisation needs a hardware
-trigger: use the genicam driver).
+trigger: use the pylon or aravis driver, docs/cameras.md).
 """
 
 from __future__ import annotations

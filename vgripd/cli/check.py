@@ -4,8 +4,11 @@ Fields, links against output.vendor, driver options and calibration first (any p
 78). Then the commissioning checks (docs/daemon.md, "vgripd check"): the taught reference object
 projected through each camera (in front, inside the image, at a size the finder searches for,
 seen by both cameras), a replay folder with frames, at least one link, the listening ports
-free. An ERROR means the config cannot work here: exit 78, one line per problem naming the
-config key. WARNINGs are printed after the OK line; the exit code stays 0.
+free. A camera whose driver can judge its settings on the device (``pylon``, ``aravis``) is opened,
+configured, read back and closed (skipped with ``--running`` or ``--no-camera``): a feature the
+device lacks or refuses, or a value out of its range, is a config error naming the camera, the
+feature and the device's range. An ERROR means the config cannot work here: exit 78, one line per
+problem naming the config key. WARNINGs are printed after the OK line; the exit code stays 0.
 
 Every recipe (docs/recipes.md) is checked: its effective config is validated with the file, a
 recipe that is not calibrated or taught is an error naming it (``recipe 2 (plate-b): not
@@ -16,10 +19,12 @@ prefixed ``recipes.N.``). The replay samples are run through recipe 0 only: they
 from __future__ import annotations
 
 import argparse
+import asyncio
 
 from vgripd.cli.run import DEFAULT_CONFIG
-from vgripd.config import load_config
-from vgripd.errors import ConfigError
+from vgripd.config import Config, load_config
+from vgripd.errors import CameraError, ConfigError
+from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.commissioning import Options, check_scene, commission
 from vgripd.service.daemon import Daemon
 from vgripd.vision.commissioning import Finding
@@ -32,6 +37,51 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="vgripd already runs with this config: skip the port checks")
     parser.add_argument("--no-links-ok", action="store_true",
                         help="accept a config without [[links]] (for locate/replay only)")
+    parser.add_argument("--no-camera", action="store_true",
+                        help="do not open the cameras to check their settings on the devices")
+
+
+def check_camera_settings(config: Config) -> None:
+    """Open the configured cameras, apply and read back their settings, close them:
+    ``ConfigError`` naming the camera, the feature and the device's range, or a camera whose
+    image size is not the calibrated one. Only drivers with ``check_settings`` (the GenICam SDK
+    drivers) are judged, also as entries of a ``multi`` camera (``camera.cameras.<i>``)."""
+    cls = load_class(CAMERAS, "camera", config.camera.type)
+    driver = cls(validate_options(cls, config.camera, "camera"), config)
+    parts = [(f"camera.cameras.{i}", d) for i, d in enumerate(getattr(driver, "drivers", []))]
+    parts = parts or [("camera", driver)]
+    names: list[str] = []
+    sizes: list[tuple[int, int]] | None = []
+    problems = []
+    for where, part in parts:
+        if not hasattr(part, "check_settings"):
+            sizes = None  # how many images it delivers is unknown: no size check
+            continue
+        try:
+            got = asyncio.run(part.check_settings())
+        except CameraError as err:
+            problems.append(f"{where}: {err}")
+            continue
+        names += part.names
+        if sizes is not None:
+            sizes += got
+    if problems:
+        raise ConfigError("\n".join(problems))
+    cal = config.calibration
+    if cal is None or not sizes:
+        return
+    if cal.cameras:
+        calibrated = [(f"calibration.cameras.{i}.intrinsics", c.intrinsics)
+                      for i, c in enumerate(cal.cameras)]
+    else:
+        calibrated = [("calibration.left", cal.left)] + (
+            [("calibration.right", cal.right)] if cal.right is not None else [])
+    wrong = [f"camera: camera {name} delivers {w}x{h} images (Width x Height after the "
+             f"settings) but {key} is calibrated for {k.width}x{k.height}: set camera.roi"
+             for name, (w, h), (key, k) in zip(names, sizes, calibrated, strict=False)
+             if (w, h) != (k.width, k.height)]
+    if wrong:
+        raise ConfigError("\n".join(wrong))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,6 +90,11 @@ def run(args: argparse.Namespace) -> int:
         daemon = Daemon(config)
     except ConfigError as err:  # a template file, driver options: name the file judged
         raise ConfigError(f"{args.config}: {err}") from None
+    if not (args.running or args.no_camera):
+        try:
+            check_camera_settings(config)
+        except ConfigError as err:
+            raise ConfigError(f"{args.config}: {err}") from None
     if daemon.recipe_problems:
         raise ConfigError("\n".join(
             f"{args.config}: not calibrated: {problem}" if number == 0 else
