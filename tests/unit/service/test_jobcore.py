@@ -373,9 +373,12 @@ def test_random_event_sequences_keep_the_handshake_rules(events: list[tuple]) ->
             assert (a.status, a.job_id) == (told.status, told.job_id)
             assert a.count == cell.counts.get(a.job_id, 0)  # the job's, counted apart
             check_position(a, commands[a.seq])
-            if a.frame:  # a NEXT's answer is a RESULT unless BUSY (another link's job runs)
+            # docs/robot_socket.md: REFUSED is a refusal with no job (BUSY, BAD_REQUEST,
+            # ABORTED at shutdown); a NEXT the daemon answers BAD_REQUEST because another
+            # link's job took the list is a RESULT with job 0
+            if a.frame:
                 refused = a.job_id == 0 and (commands[a.seq] != Command.NEXT
-                                             or a.status == Status.BUSY)
+                                             or a.status in (Status.BUSY, Status.ABORTED))
                 assert a.frame == ("REFUSED" if refused else "RESULT"), a
     # never a stale or repeated pose
     poses = [a.pose for link in cell.links.values() for a in link.answers if a.pose]
