@@ -176,6 +176,10 @@ class Daemon:
     def links(self) -> dict[str, RobotLink]:
         return self._links.links
 
+    @links.setter
+    def links(self, links: dict[str, RobotLink]) -> None:  # tests stand a robot in
+        self._links.links = links
+
     @property
     def fd_budget(self) -> Budget | None:
         """How RLIMIT_NOFILE is split between the server surfaces and the reserve (at start)."""
