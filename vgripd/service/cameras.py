@@ -38,12 +38,11 @@ CAMERA_HUNG_GRACE_S = 1.0
 class CameraSupervisor:
     """The camera, whether it is open, and why not.
 
-    ``changed`` is called when the status line should show a change (open again, a fault);
-    ``accepting`` says whether the service still takes jobs (no recovery while stopping).
+    ``changed`` is called when the status line should show a change (open again, a fault).
     """
 
     def __init__(self, config: Config, camera: Any, background: Background, *,
-                 changed: Callable[[], None], accepting: Callable[[], bool]) -> None:
+                 changed: Callable[[], None]) -> None:
         self.config = config
         self.camera = camera
         self.is_open = False
@@ -56,7 +55,8 @@ class CameraSupervisor:
         self._recovery: asyncio.Task[None] | None = None
         self._background = background
         self._changed = changed
-        self._accepting = accepting
+        #: Whether the service takes jobs (no recovery while stopping; set by the daemon).
+        self.accepting = False
 
     async def open(self, fault_on_hang: bool = True) -> None:
         """Open the camera unless it is open; one open at a time. A camera that cannot open is
@@ -103,7 +103,7 @@ class CameraSupervisor:
 
     def _ran_out(self, waited_s: float) -> None:
         """A grab did not deliver in time: check in the background whether it hangs."""
-        if not self._accepting():
+        if not self.accepting:
             return
         if self._recovery is None or self._recovery.done():
             self._recovery = self._background.spawn(self._recover(waited_s),

@@ -155,11 +155,11 @@ class Daemon:
         self.notifier = Notifier(self._env)
         self.status_server: WebServer | None = None  # the web view, /api/status, /metrics
         self._cameras = CameraSupervisor(config, camera, self._background,
-                                         changed=self._changed, accepting=self._accepting)
+                                         changed=self._changed)
         self._runner = JobRunner(config, self._links, self._cameras, self._background,
                                  worker=self._worker, pipelines=pipelines,
                                  recipe_problems=self.recipe_problems,
-                                 changed=self._changed, accepting=self._accepting)
+                                 changed=self._changed)
         self._status = StatusBoard(config, self._runner, self._links, self._cameras,
                                    self._worker)
         self._resource_log = RateLimitedLog(log, interval_s=10.0)
@@ -418,6 +418,9 @@ class Daemon:
 
     def _set_run_state(self, state: RunState) -> None:
         self.run_state = state
+        # Links open during start-up may trigger before READY: those jobs run normally.
+        accepting = state in (RunState.STARTING, RunState.RUNNING)
+        self._runner.accepting = self._cameras.accepting = accepting
         self._notify_changed()
 
     def _changed(self) -> None:
@@ -425,11 +428,6 @@ class Daemon:
         the status line and the waiters see it."""
         self.notifier.status(self.status_line())
         self._notify_changed()
-
-    def _accepting(self) -> bool:
-        """Whether triggers start jobs: links open during start-up may trigger before READY,
-        and those jobs run normally."""
-        return self.run_state in (RunState.STARTING, RunState.RUNNING)
 
     # --- health and status ----------------------------------------------------------------
 

@@ -180,14 +180,13 @@ class JobRunner:
     Admission is ``JobCore``'s and ``view_admission``'s; the camera is ``cameras``'s, the
     answers go out through ``links``. Processing runs in ``worker`` when there is one, else
     on the job thread with ``pipelines`` (by recipe). ``changed`` is called on every state
-    change (the daemon's status line and waiters); ``accepting`` says whether the service
-    takes jobs (starting or running).
+    change (the daemon's status line and waiters), the one call back into the daemon.
     """
 
     def __init__(self, config: Config, links: LinkSupervisor, cameras: CameraSupervisor,
                  background: Background, *, worker: WorkerClient | None,
                  pipelines: dict[int, Processor], recipe_problems: dict[int, str],
-                 changed: Callable[[], None], accepting: Callable[[], bool]) -> None:
+                 changed: Callable[[], None]) -> None:
         self.config = config
         self.links = links
         self.cameras = cameras
@@ -196,7 +195,8 @@ class JobRunner:
         self.recipe_problems = recipe_problems
         self._background = background
         self._changed = changed
-        self._accepting = accepting
+        #: Whether triggers start jobs (the service is starting or running; set by the daemon).
+        self.accepting = False
         #: The recipe of the running or last job (None before the first).
         self.active_recipe: int | None = None
         self.state = JobState.IDLE
@@ -280,7 +280,7 @@ class JobRunner:
             log.error("trigger from unknown link %r ignored", trigger.link)
             return
         # Links open during start-up may trigger before READY: those jobs run normally.
-        admission = self.core.trigger(trigger.link, trigger.command, self._accepting(),
+        admission = self.core.trigger(trigger.link, trigger.command, self.accepting,
                                       busy=self.job is not None)
         if admission.kind is Admit.REFUSE:
             what = "NEXT" if admission.status is Status.BAD_REQUEST else "trigger"
