@@ -47,7 +47,9 @@ unless the ``asyncua`` logger is configured explicitly. The server keeps serving
 
 Size: over 700 lines: the link and the asyncua server classes it extends to gate connections
 (``_Protocol``, ``_BinaryServer``, ``_Server``, ``_Users``); the address space is already
-``opcua_space.py``. Those server classes are the next cut.
+``opcua_space.py`` and the guards ``opcua_guard.py``. The server classes call back into the
+link (admission, trust, forgetting a connection), so moving them out needs a small protocol
+type for the link first; that is the next cut.
 """
 
 from __future__ import annotations
