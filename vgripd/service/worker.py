@@ -51,6 +51,12 @@ The worker ends with its daemon, whatever way the daemon ends:
   ``alarm``, which needs no Python code to run), and at once when the daemon is already gone.
 - The daemon killed (SIGKILL, a crash): the kernel sends the worker SIGKILL
   (``PR_SET_PDEATHSIG``, ``die_with_daemon``), even in the middle of a computation.
+
+Size: over 700 lines: both ends of one private request protocol, the worker's request loop
+(``_Worker``, ``worker_main``) and the daemon's client (``WorkerClient``, ``WorkerCamera``,
+``WorkerRecorder``), which change together; the shared-memory image transport is
+``vgripd.service.imageshm``. The worker's side is the next cut, left until the warm-up before
+READY (issue 22) has changed the start-up code both halves share.
 """
 
 from __future__ import annotations
@@ -61,11 +67,9 @@ import dataclasses
 import importlib
 import itertools
 import logging
-import mmap
 import multiprocessing
 import os
 import pickle
-import re
 import secrets
 import signal
 import socket
@@ -73,17 +77,28 @@ import struct
 import time
 import traceback
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from multiprocessing import shared_memory
 from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import Any, Protocol
 
-import numpy as np
-import numpy.typing as npt
-
 from vgripd.config import Config
-from vgripd.errors import CameraError, NotCalibratedError, VgripError
+from vgripd.errors import CameraError, NotCalibratedError
+from vgripd.service.imageshm import SHM_DIR as SHM_DIR  # where tests look for segments
+from vgripd.service.imageshm import (
+    ImageLayout,
+    ImageSegment,
+    WorkerError,
+    _aligned,
+    _pair_fields,
+    _pair_of,
+    images_nbytes,
+    read_images,
+    segments_of,
+    sweep_stale_segments,
+    write_images,
+)
 from vgripd.service.lifetime import die_with_daemon, end_on_sigterm
 from vgripd.service.logsetup import configure_logging
 from vgripd.types import CaptureView, ImagePair, JobResult
@@ -108,173 +123,13 @@ RESTART_BACKOFF_S = (1.0, 60.0)
 #: The worker's niceness above the daemon's: when they compete for a core, the daemon's event
 #: loop (answering a PLC) wins at once; alone on the machine the worker still gets all of it.
 WORKER_NICE = 5
-#: Image offsets in the segment are aligned to this (bytes).
-ALIGN = 64
-SHM_DIR = Path("/dev/shm")
-
-#: Where each image of a pair lies in the segment: (offset, shape, dtype.str), None for no image.
-ImageLayout = tuple[tuple[int, tuple[int, ...], str] | None, ...]
-
-
-class WorkerError(VgripError):
-    """The worker process did not answer a request: it died, or the request raised there."""
 
 
 class Processor(Protocol):
     def process(self, pair: ImagePair, job_id: int) -> JobResult: ...
 
 
-# --- shared memory ---------------------------------------------------------------------------
-
-def _aligned(n: int) -> int:
-    return (n + ALIGN - 1) // ALIGN * ALIGN
-
-
-def images_nbytes(images: Sequence[npt.NDArray[Any] | None]) -> int:
-    """Bytes a segment needs for ``images`` (each starting on an ``ALIGN`` boundary)."""
-    return sum(_aligned(im.nbytes) for im in images if im is not None)
-
-
-def write_images(buf: memoryview, images: Sequence[npt.NDArray[Any] | None]) -> ImageLayout:
-    """Copy ``images`` into ``buf`` one after the other; the layout to read them back."""
-    layout: list[tuple[int, tuple[int, ...], str] | None] = []
-    offset = 0
-    for image in images:
-        if image is None:
-            layout.append(None)
-            continue
-        view: npt.NDArray[Any] = np.ndarray(image.shape, image.dtype, buffer=buf, offset=offset)
-        view[...] = image
-        del view  # a live view would keep the segment from being closed
-        layout.append((offset, tuple(image.shape), image.dtype.str))
-        offset += _aligned(image.nbytes)
-    return tuple(layout)
-
-
-def read_images(buf: memoryview, layout: ImageLayout) -> list[npt.NDArray[Any] | None]:
-    """Copies (not views) of the images described by ``layout``."""
-    images: list[npt.NDArray[Any] | None] = []
-    for entry in layout:
-        if entry is None:
-            images.append(None)
-            continue
-        offset, shape, dtype = entry
-        view: npt.NDArray[Any] = np.ndarray(shape, np.dtype(dtype), buffer=buf, offset=offset)
-        images.append(view.copy())
-        del view
-    return images
-
-
-class ImageSegment:
-    """A shared-memory segment created by the daemon; the worker attaches it by name.
-
-    The daemon reads images from it as read-only views (``view_images``), never copying pixels
-    on the event loop. Each call maps the segment afresh, and that mapping lives exactly as long
-    as some array (or a slice of one) refers to it: ``in_use`` says whether images handed out
-    are still alive, in which case the segment must not be written again (a new one is made).
-    """
-
-    def __init__(self, name: str, size: int) -> None:
-        self.name = name
-        self.size = size
-        self._shm: shared_memory.SharedMemory | None = shared_memory.SharedMemory(
-            name=name, create=True, size=size)
-        self._views: weakref.ref[mmap.mmap] | None = None
-
-    def in_use(self) -> bool:
-        """True while arrays from ``view_images`` are still referenced somewhere."""
-        return self._views is not None and self._views() is not None
-
-    def view_images(self, layout: ImageLayout) -> list[npt.NDArray[Any] | None]:
-        """Read-only views of the images described by ``layout`` (no copy)."""
-        fd = os.open(SHM_DIR / self.name, os.O_RDONLY)
-        try:
-            mapping = mmap.mmap(fd, self.size, prot=mmap.PROT_READ)
-        finally:
-            os.close(fd)
-        self._views = weakref.ref(mapping)
-        images: list[npt.NDArray[Any] | None] = []
-        for entry in layout:
-            if entry is None:
-                images.append(None)
-                continue
-            offset, shape, dtype = entry
-            count = int(np.prod(shape))
-            images.append(np.frombuffer(mapping, np.dtype(dtype), count, offset).reshape(shape))
-        return images
-
-    @property
-    def buf(self) -> memoryview:
-        if self._shm is None:
-            raise WorkerError(f"shared memory {self.name} is closed")
-        buf = self._shm.buf
-        assert buf is not None
-        return buf
-
-    def close(self) -> None:
-        """Unmap and unlink; safe to call more than once."""
-        shm, self._shm = self._shm, None
-        if shm is None:
-            return
-        try:
-            shm.close()
-        finally:
-            with contextlib.suppress(FileNotFoundError):
-                shm.unlink()
-
-    @staticmethod
-    def unlink_name(name: str) -> None:
-        """Unlink a segment known only by name (one a crash left behind)."""
-        seg = shared_memory.SharedMemory(name=name)
-        seg.close()
-        seg.unlink()
-
-
-_SEGMENT_NAME = re.compile(r"vgripd-(\d+)-[0-9a-f]+-\d+")
-
-
-def sweep_stale_segments() -> list[str]:
-    """Unlink the segments of vgripd daemons that no longer run (killed together with their
-    resource tracker, e.g. a whole process group at once); the names unlinked."""
-    swept = []
-    for name in segments_of("vgripd-"):
-        match = _SEGMENT_NAME.fullmatch(name)
-        if match is None:
-            continue
-        try:
-            os.kill(int(match.group(1)), 0)
-        except ProcessLookupError:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(SHM_DIR / name)
-                swept.append(name)
-        except PermissionError:
-            pass  # alive, another user's
-    return swept
-
-
-def segments_of(prefix: str) -> list[str]:
-    """Names of the shared-memory segments in /dev/shm starting with ``prefix``."""
-    try:
-        return sorted(p.name for p in SHM_DIR.iterdir() if p.name.startswith(prefix))
-    except OSError:
-        return []
-
-
 # --- wire format -------------------------------------------------------------------------------
-
-def _pair_fields(pair: ImagePair) -> dict[str, Any]:
-    """Everything of a pair but its pixels, picklable (mappingproxy is not)."""
-    return {"t_mono_ns": pair.t_mono_ns, "source": pair.source, "meta": dict(pair.meta),
-            "T_base_flange": pair.T_base_flange, "truth": dict(pair.truth)}
-
-
-def _pair_of(images: Sequence[npt.NDArray[Any] | None], fields: dict[str, Any]) -> ImagePair:
-    """The acquisition of ``images`` read back from shared memory (all present, camera order)."""
-    views = [image for image in images if image is not None]
-    if len(views) != len(images) or not views:
-        raise WorkerError(f"shared memory held {len(views)} of {len(images)} images")
-    return ImagePair.of_views(views, **fields)
-
 
 def _wire_result(result: JobResult) -> JobResult:
     """The result with its mappings as plain dicts (picklable), the pick list's too."""

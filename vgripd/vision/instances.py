@@ -2,7 +2,7 @@
 
 A pallet of identical plates gives the stereo chain one cloud of triangulated marks, six per
 plate, plus whatever the epipolar pairing made of neighbouring marks on the same image row.
-``features.match_model`` finds *one* object and calls a second pose that scores as well
+``correspondence.match_model`` finds *one* object and calls a second pose that scores as well
 "ambiguous": with identical plates that second pose is simply the next plate. This module
 finds them all (docs/picklists.md, "Finding the instances"):
 
@@ -11,7 +11,7 @@ finds them all (docs/picklists.md, "Finding the instances"):
    a seed; a seed already explained by a verified hypothesis is skipped, so a plate with all
    its marks costs one verification, not twenty. A plate with a mark missing is still seeded by
    the triangles of its visible marks.
-2. **Verify** each seed with ``features._verify``: assign the nearest free point to each model
+2. **Verify** each seed with ``correspondence._verify``: assign the nearest free point to each model
    point, refit, repeat until it settles, drop gross outliers. Score = the MSAC support of
    ``match_model`` (a mark in place counts 1).
 3. **Select**, best score first. A hypothesis that uses a point (or an image blob, through
@@ -42,7 +42,7 @@ from vgripd.errors import GeometryError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.orientation import pnp
 from vgripd.types import FloatArray
-from vgripd.vision.features import (
+from vgripd.vision.correspondence import (
     AMBIGUITY_MARGIN,
     MIN_SEED_ALTITUDE,
     _altitudes,
@@ -70,7 +70,7 @@ class InstanceMatch:
 
     ``assignment`` (n_model,): row into the measured points, -1 where the feature was not found.
     ``T_points_model``: rigid motion of the model onto the points (least squares over the
-    assigned ones). ``score``: MSAC support (``features.score_scale``), at most n_model.
+    assigned ones). ``score``: MSAC support (``correspondence.score_scale``), at most n_model.
     ``rival``: score of the best other pose for some of the same points (0: none).
     """
 
@@ -115,7 +115,7 @@ class _Pool:
 
     def verify(self, T: FloatArray, free: npt.NDArray[np.bool_] | None = None
                ) -> _Hypothesis | None:
-        """``features._verify`` of the motion ``T`` on the (``free``) points near the moved
+        """``correspondence._verify`` of the motion ``T`` on the (``free``) points near the moved
         model; None under three features.
 
         Only the points within reach of the object can take part (the refits move it by a few

@@ -27,7 +27,7 @@ from vgripd.geometry.transforms import invert_transform
 from vgripd.geometry.vendors import target_from_transform
 from vgripd.types import FloatArray, PickInstance, RobotTarget, Status
 from vgripd.vision import scene
-from vgripd.vision.features import kabsch, score_scale
+from vgripd.vision.correspondence import kabsch, score_scale
 from vgripd.vision.found import Found
 from vgripd.vision.gates import Measurement, gate
 from vgripd.vision.instances import InstanceMatch, find_instances, find_instances_mono

@@ -22,9 +22,15 @@ class DaemonView(Protocol):
     """What ``WebServer`` and ``Metrics`` use of ``vgripd.service.daemon.Daemon``."""
 
     config: Config
-    listeners: list[JobListener]
-    record_dropped: int
-    epipolar: EpipolarMonitor
+
+    @property
+    def listeners(self) -> list[JobListener]: ...
+
+    @property
+    def record_dropped(self) -> int: ...
+
+    @property
+    def epipolar(self) -> EpipolarMonitor: ...
 
     @property
     def links(self) -> Mapping[str, RobotLink]: ...
