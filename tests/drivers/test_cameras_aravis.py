@@ -9,10 +9,13 @@ camera another process controls, a camera that does not exist."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import fcntl
 import importlib.util
 import logging
 import os
 import subprocess
+import tempfile
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -60,6 +63,20 @@ class FakeCamera:
             self.proc = None
 
 
+@contextlib.contextmanager
+def gige_exclusive() -> Iterator[None]:
+    """Hold the machine's fake GigE cameras alone while a test's fakes live: they listen on
+    fixed loopback addresses (127.0.0.1/.2, the GVCP port) and discovery sees every one, so
+    tests in parallel processes (pytest-xdist) take turns. An exclusive lock on a file."""
+    path = os.path.join(tempfile.gettempdir(), "vgripd-fake-gige.lock")
+    with open(path, "a+b") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
 def wait_until(ok: Any, what: str) -> None:
     """Poll the condition ``ok()`` (a discovery, a grab) until true; fail after WAIT_S."""
     deadline = time.monotonic() + WAIT_S
@@ -71,11 +88,12 @@ def wait_until(ok: Any, what: str) -> None:
 @pytest.fixture
 def fake() -> Iterator[FakeCamera]:
     _aravis()
-    camera = FakeCamera("127.0.0.1", "GV01").start()
-    try:
-        yield camera
-    finally:
-        camera.kill()
+    with gige_exclusive():
+        camera = FakeCamera("127.0.0.1", "GV01").start()
+        try:
+            yield camera
+        finally:
+            camera.kill()
 
 
 def second_loopback() -> None:
@@ -93,15 +111,16 @@ def second_loopback() -> None:
 def two_fakes() -> Iterator[tuple[FakeCamera, FakeCamera]]:
     _aravis()
     second_loopback()
-    first = FakeCamera("127.0.0.1", "GV01").start()
-    try:
-        second = FakeCamera("127.0.0.2", "GV02").start()
+    with gige_exclusive():
+        first = FakeCamera("127.0.0.1", "GV01").start()
         try:
-            yield first, second
+            second = FakeCamera("127.0.0.2", "GV02").start()
+            try:
+                yield first, second
+            finally:
+                second.kill()
         finally:
-            second.kill()
-    finally:
-        first.kill()
+            first.kill()
 
 
 def camera(**options: Any) -> AravisCamera:

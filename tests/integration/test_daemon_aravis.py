@@ -13,7 +13,12 @@ from typing import Any
 import pytest
 
 from tests.conftest import REPO
-from tests.drivers.test_cameras_aravis import FakeCamera, _aravis, second_loopback
+from tests.drivers.test_cameras_aravis import (
+    FakeCamera,
+    _aravis,
+    gige_exclusive,
+    second_loopback,
+)
 from tests.integration.test_daemon import WAIT_S, Plc, running
 from vgripd.config import config_from_dict
 from vgripd.service.protocol import Reg
@@ -24,15 +29,16 @@ from vgripd.types import Status
 def fakes() -> Iterator[tuple[FakeCamera, FakeCamera]]:
     _aravis()
     second_loopback()
-    left = FakeCamera("127.0.0.1", "GV01").start()
-    try:
-        right = FakeCamera("127.0.0.2", "GV02").start()
+    with gige_exclusive():
+        left = FakeCamera("127.0.0.1", "GV01").start()
         try:
-            yield left, right
+            right = FakeCamera("127.0.0.2", "GV02").start()
+            try:
+                yield left, right
+            finally:
+                right.kill()
         finally:
-            right.kill()
-    finally:
-        left.kill()
+            left.kill()
 
 
 def cell() -> Any:
