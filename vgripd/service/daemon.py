@@ -113,6 +113,7 @@ from vgripd.service.protocol import (
 )
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.recorder import Recorder
+from vgripd.service.reload import Reloader
 from vgripd.service.sdnotify import Notifier, watchdog_interval_s
 from vgripd.service.web import WEB_LINK, WebServer, WebTriggerLink
 from vgripd.service.worker import DEFAULT_PROCESSOR, WorkerClient, WorkerError, WorkerRecorder
@@ -289,6 +290,7 @@ class Daemon:
         self.listeners: list[JobListener] = []
         self.notifier = Notifier(self._env)
         self.status_server: WebServer | None = None  # the web view, /api/status, /metrics
+        self.reloader: Reloader | None = None  # set by whoever knows the config file (run)
         self.recorder: Recorder | WorkerRecorder | None = None
         # What the daemon's answers told the peers, by status name: job results as published
         # and the daemon's own refusals. `snapshot()` adds the links' own refusals.

@@ -1,0 +1,227 @@
+"""Reload without a restart: the web view's tuning save and ``POST /api/reload``, and SIGHUP to a
+``vgripd run`` process (``systemctl reload``). A synthetic camera renders dark marks (its
+config is the one the daemon started with); the pipeline's polarity is edited in the config's
+include. The PLC (a real pymodbus client) stays connected through every reload.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import tomllib
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+
+from tests.conftest import REPO
+from tests.integration.test_daemon import Plc, Run, make_config
+from tests.integration.test_daemon_process import _free_port
+from vgripd.config import load_config
+from vgripd.serialize import toml_from_dict
+from vgripd.service.daemon import Daemon
+from vgripd.service.protocol import Reg
+from vgripd.service.reload import Reloader
+from vgripd.types import Status
+
+TOKEN = "a-test-token-of-32-characters-xx"
+WAIT_S = 60.0
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def write_cell(folder: Path, *, polarity: str = "dark", link_port: int = 0,
+               status: bool = True) -> Path:
+    """``vgripd.toml`` (camera, link, web view) including ``cell.toml`` ([vision], [object])."""
+    demo = make_config().model_dump(mode="json", exclude_none=True)
+    for feature in demo["object"]["features"]:
+        feature["polarity"] = polarity
+    (folder / "cell.toml").write_text(toml_from_dict(
+        {"vision": {"min_contrast": 25.0}, "object": demo["object"],
+         "reference": demo["reference"]}))
+    web = (f'[status]\nport = 0\ntoken = "{TOKEN}"\nallow_config_edit = true\n' if status
+           else "[status]\nenabled = false\n")
+    main = folder / "vgripd.toml"
+    main.write_text(f"""include = ["cell.toml"]
+
+[camera]
+type = "synthetic"
+seed = 11
+max_tilt_deg = 2.0
+
+[[links]]
+type = "modbus_server"
+host = "127.0.0.1"
+port = {link_port}
+
+{web}""")
+    return main
+
+
+@contextlib.asynccontextmanager
+async def running_file(path: Path) -> AsyncIterator[Run]:
+    daemon = Daemon(load_config(path))
+    daemon.reloader = Reloader(daemon, path)
+    run = Run(daemon)
+    await daemon.start()
+    try:
+        yield run
+    finally:
+        await daemon.reloader.close()
+        await daemon.stop()
+
+
+async def job(plc: Plc, run: Run, seq: int) -> int:
+    await plc.trigger(seq)
+    words = await plc.result(seq)
+    await run.job_done(seq)
+    return words[Reg.STATUS]
+
+
+async def post(session: aiohttp.ClientSession, url: str, body: Any = None,
+               headers: dict[str, str] | None = None) -> tuple[int, Any]:
+    async with session.post(url, json=body, headers=AUTH if headers is None else headers) as r:
+        return r.status, (await r.json() if r.content_type == "application/json"
+                          else await r.text())
+
+
+async def test_a_tuning_save_applies_between_jobs_without_dropping_the_plc(
+        tmp_path: Path) -> None:
+    main = write_cell(tmp_path)
+    cell = tmp_path / "cell.toml"
+    async with running_file(main) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as s:
+        assert run.daemon.status_server is not None
+        base = f"http://127.0.0.1:{run.daemon.status_server.port}"
+        link = next(iter(run.daemon.links.values()))
+        assert await job(plc, run, 1) == Status.OK
+
+        # Without the token (or with a wrong one) nothing is written.
+        code, _ = await post(s, f"{base}/api/tuning", {"polarity": "bright"}, headers={})
+        assert code == 403
+        code, _ = await post(s, f"{base}/api/reload", headers={"Authorization": "Bearer x"})
+        assert code == 403
+        assert not list(tmp_path.glob("cell.toml.*"))
+
+        # The wrong polarity, saved: applied at once, the next PLC job finds nothing.
+        code, out = await post(s, f"{base}/api/tuning", {"polarity": "bright"})
+        assert code == 200, out
+        assert out["applied"] and out["restart"] == []
+        assert "object.features.0.polarity: 'dark' -> 'bright'" in out["diff"]
+        assert (tmp_path / "cell.toml.1").read_text().count('"dark"') == 6  # the backup
+        assert tomllib.loads(cell.read_text())["object"]["features"][0]["polarity"] == "bright"
+        assert await job(plc, run, 2) == Status.NOT_FOUND
+
+        # Tuned back: the next PLC job is OK, on the same connection, without a restart.
+        code, out = await post(s, f"{base}/api/tuning", {"polarity": "dark",
+                                                        "vision": {"min_contrast": 20}})
+        assert code == 200, out
+        assert "vision.min_contrast: 25.0 -> 20.0" in out["diff"]
+        assert await job(plc, run, 3) == Status.OK
+        assert run.daemon.config.vision.min_contrast == 20.0
+        assert (tmp_path / "cell.toml.2").exists()
+
+        # A bad edit: refused by the judge, the file put back, the running config kept.
+        before = cell.read_text()
+        code, out = await post(s, f"{base}/api/tuning", {"vision": {"min_contrast": -5}})
+        assert code == 422, out
+        assert not out["applied"]
+        assert "vision.min_contrast" in out["message"]
+        assert cell.read_text() == before
+        assert run.daemon.config.vision.min_contrast == 20.0
+        assert await job(plc, run, 4) == Status.OK
+
+        # A key only a restart can change is named, the rest applies.
+        main.write_text(main.read_text().replace("max_tilt_deg = 2.0", "max_tilt_deg = 3.0"))
+        code, out = await post(s, f"{base}/api/reload")
+        assert code == 200, out
+        assert out["restart"] == ["camera.max_tilt_deg"]
+        assert "needs a restart" in out["message"]
+        assert run.daemon.config.camera.max_tilt_deg == 2.0
+
+        # The audit lists every change, newest first, with who and what.
+        async with s.get(f"{base}/api/audit") as r:
+            audit = await r.json()
+        entries = audit["entries"]
+        assert [e["applied"] for e in entries] == [True, False, True, True]
+        assert all(e["source"] == "web 127.0.0.1" and e["time"] for e in entries)
+        assert "object.features.0.polarity: 'dark' -> 'bright'" in entries[-1]["diff"]
+        assert link.health().reconnects == 0
+        assert run.daemon.counters == {"OK": 3, "NOT_FOUND": 1}
+
+
+async def _line(stream: asyncio.StreamReader, wanted: str, seen: list[str]) -> str:
+    async with asyncio.timeout(WAIT_S):
+        while True:
+            raw = await stream.readline()
+            if not raw:
+                raise AssertionError(f"{wanted!r} not logged: {seen[-20:]}")
+            line = raw.decode()
+            seen.append(line)
+            if wanted in line:
+                return line
+
+
+async def _process_job(client: Any, seq: int) -> int:
+    from pymodbus.client import AsyncModbusTcpClient
+
+    from vgripd.service.protocol import MAP_SIZE, Command
+
+    assert isinstance(client, AsyncModbusTcpClient)
+    await client.write_registers(Reg.CMD, [Command.TRIGGER, seq])
+    async with asyncio.timeout(WAIT_S):
+        while True:
+            rr = await client.read_holding_registers(0, count=MAP_SIZE)
+            if rr.registers[Reg.ACK_SEQ] == seq:
+                return int(rr.registers[Reg.STATUS])
+            await asyncio.sleep(0.005)  # the PLC's poll period
+
+
+@pytest.mark.timeout(240)
+async def test_sighup_reloads_the_file_and_a_bad_one_keeps_the_running_config(
+        tmp_path: Path) -> None:
+    from pymodbus.client import AsyncModbusTcpClient
+
+    port = _free_port()
+    main = write_cell(tmp_path, link_port=port, status=False)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "vgripd", "run", "-c", str(main), cwd=REPO, env=env,
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    assert proc.stderr is not None
+    seen: list[str] = []
+    client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+    try:
+        await _line(proc.stderr, "ready:", seen)
+        assert await client.connect()
+        assert await _process_job(client, 1) == Status.OK
+        write_cell(tmp_path, polarity="bright", link_port=port, status=False)
+        proc.send_signal(signal.SIGHUP)
+        line = await _line(proc.stderr, "config reload (SIGHUP)", seen)
+        while "judging" in line:
+            line = await _line(proc.stderr, "config reload (SIGHUP)", seen)
+        assert "applied" in line and "'dark' -> 'bright'" in line, line
+        assert await _process_job(client, 2) == Status.NOT_FOUND
+        # A broken file: refused, logged with the reason; the running config stays.
+        (tmp_path / "cell.toml").write_text("[vision]\nmin_contrast = 'high'\n")
+        proc.send_signal(signal.SIGHUP)
+        line = await _line(proc.stderr, "refused", seen)
+        assert "running config stays" in line
+        assert await _process_job(client, 3) == Status.NOT_FOUND  # still the reloaded one
+        write_cell(tmp_path, polarity="dark", link_port=port, status=False)
+        proc.send_signal(signal.SIGHUP)
+        await _line(proc.stderr, "applied", seen)
+        assert await _process_job(client, 4) == Status.OK
+        proc.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(WAIT_S):
+            await proc.wait()
+    finally:
+        client.close()
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+    assert proc.returncode == 0, "".join(seen[-30:])
