@@ -220,9 +220,9 @@ def scene_pose(pose: Any) -> np.ndarray:
 
 
 def _make_pipeline(config: Config) -> Processor:
-    from vgripd.vision.pipeline import Pipeline  # heavy (OpenCV); only the daemon needs it
+    from vgripd.vision.checked import CheckedPipeline  # heavy (OpenCV); only the daemon
 
-    pipeline: Processor = Pipeline(config)
+    pipeline: Processor = CheckedPipeline(config)
     return pipeline
 
 

@@ -91,7 +91,7 @@ from vgripd.types import CaptureView, ImagePair, JobResult
 log = logging.getLogger("vgripd.worker")
 
 #: The processor the worker builds from the config (``module:Class``, called with the Config).
-DEFAULT_PROCESSOR = "vgripd.vision.pipeline:Pipeline"
+DEFAULT_PROCESSOR = "vgripd.vision.checked:CheckedPipeline"
 #: Payload length (bytes) and request id; id 0 is the worker's "ready" message.
 HEADER = struct.Struct("!IQ")
 #: Spawn, imports, pipeline and recorder set-up; a worker not ready by then is killed.
