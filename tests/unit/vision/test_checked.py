@@ -9,7 +9,7 @@ from typing import Any
 from tests.unit.vision.test_diagnosis import grab, make_config
 from vgripd.config import Config, config_from_dict
 from vgripd.service.commissioning import check_scene
-from vgripd.types import Status
+from vgripd.types import ImagePair, Status
 from vgripd.vision.checked import CheckedPipeline
 from vgripd.vision.pipeline import Pipeline
 
@@ -59,3 +59,30 @@ async def test_a_good_job_and_the_image_causes_are_unchanged() -> None:
     assert d is not None
     assert d.top is not None
     assert d.top.key == "object.features[*].polarity"
+
+
+def test_cameras_swapped_across_rigs_are_named() -> None:
+    """north_left's and south_left's images exchanged (rigs north and south of the sample
+    two-rig cell, rendered): NOT_FOUND, and the cause names the two cameras."""
+    from tests.unit.vision.test_multicam import config as two_rigs
+    from tests.unit.vision.test_multicam import grab as grab_views
+
+    cfg = two_rigs()
+    pair = grab_views(cfg, 1)[0]
+    views = list(pair.views)
+    views[0], views[2] = views[2], views[0]
+    swapped = ImagePair.of_views(views, pair.t_mono_ns)
+    plain = Pipeline(cfg).process(swapped, 1)
+    assert plain.status is Status.NOT_FOUND
+    assert plain.diagnosis is not None
+    assert not any("swapped" in c.reason for c in plain.diagnosis.causes)
+
+    result = CheckedPipeline(cfg).process(swapped, 1)
+    assert result.status is Status.NOT_FOUND  # the job itself is not rescued
+    d = result.diagnosis
+    assert d is not None
+    assert d.top is not None
+    assert d.top.key == "calibration.cameras"
+    assert "north_left and south_left look swapped" in d.top.reason
+    # The cell as wired: OK, and nothing probed.
+    assert CheckedPipeline(cfg).process(pair, 2).status is Status.OK
