@@ -245,4 +245,6 @@ class Reloader:
         if d._worker is not None:
             for n in await d._worker.reconfigure(config):
                 d.recipe_problems[n] = "not calibrated after the reload"
+        if d.status_server is not None:  # the web view draws later jobs with it
+            d.status_server.images.reconfigure(config)
         d._set_state(d.state)  # status line and waiters see it

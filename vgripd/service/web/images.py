@@ -122,6 +122,20 @@ def _portable(pair: ImagePair | str, result: JobResult) -> tuple[Any, JobResult]
     return (pair.views, pair.T_base_flange), result
 
 
+def _with_candidates(pair: ImagePair, result: JobResult) -> JobResult:
+    """``result`` with every candidate's fate to draw: a failed job carries its diagnosis; for
+    a good one the finders run again here (in the helper) to say what they dropped and why,
+    as ``replay --annotate`` draws it. The job's own figures are kept."""
+    if result.diagnosis is not None or _pipeline is None or not result.status.pose_valid:
+        return result
+    try:
+        again = _pipeline.process_with_points(pair, result.job_id, diagnose=True)[0]
+    except Exception as err:  # the picture still shows the job without its candidates
+        log.info("web images: job %d: candidates not drawn: %r", result.job_id, err)
+        return result
+    return dataclasses.replace(result, diagnosis=again.diagnosis)
+
+
 def render(pair: ImagePair | str | tuple[Any, Any], result: JobResult,
            max_width: int = MAX_WIDTH_PX, quality: int = JPEG_QUALITY) -> list[bytes]:
     """JPEGs of the job drawn as ``replay --annotate`` draws it: left (and right for stereo),
@@ -140,7 +154,7 @@ def render(pair: ImagePair | str | tuple[Any, Any], result: JobResult,
         from vgripd.vision.annotate import annotate
 
         try:
-            images = annotate(_pipeline, pair, result)
+            images = annotate(_pipeline, pair, _with_candidates(pair, result))
         except Exception as err:  # a drawing problem must not hide the images
             log.warning("web images: job %d: annotation failed: %r", result.job_id, err)
             images = _status_only(pair, result)
@@ -219,6 +233,14 @@ class ImageRenderer:
             self._restart()
         else:
             log.warning("web images: rendering failed: %r", err)
+
+    def reconfigure(self, config: Config) -> None:
+        """Draw later jobs with ``config`` (a reload): a new helper builds its pipeline from it;
+        renders already queued finish on the old one."""
+        self._config = config
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=False)
 
     def _restart(self) -> None:
         pool, self._pool = self._pool, None

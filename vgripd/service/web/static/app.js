@@ -152,12 +152,30 @@ function drawTrend() {
   svg.replaceChildren(...parts);
 }
 
-// "recipe 2 plate-b (of 0 default, 1 plate-a, 2 plate-b)"; recipes not taught are marked.
+// The header names the active recipe among a few ("recipe 2 plate-b (of 0 default, 1 plate-a,
+// 2 plate-b)") and counts many ("recipe 2 plate-b (of 40 recipes; 1 NOT CALIBRATED)"), so any
+// number fits; the full list is under "Calibration and config" (and the header's tooltip).
+const HEADER_RECIPES = 4;
 function recipeText(r) {
   if (!r) return "";
-  const all = r.recipes.map((x) => `${x.number} ${x.name}${x.problem ? " (NOT CALIBRATED)" : ""}`);
   const active = r.active === null ? "recipe: none yet" : `recipe ${r.active} ${r.active_name}`;
-  return `${active} (of ${all.join(", ")})`;
+  if (r.recipes.length <= HEADER_RECIPES) {
+    const all = r.recipes.map((x) => `${x.number} ${x.name}${x.problem ? " (NOT CALIBRATED)" : ""}`);
+    return `${active} (of ${all.join(", ")})`;
+  }
+  const bad = r.recipes.filter((x) => x.problem).length;
+  return `${active} (of ${r.recipes.length} recipes${bad ? `; ${bad} NOT CALIBRATED` : ""})`;
+}
+
+function showRecipes(r) {
+  if (!r) return;
+  $("recipes-summary").textContent = `Recipes (${r.recipes.length})`;
+  $("recipes").replaceChildren(...r.recipes.map((x) => {
+    const li = document.createElement("li");
+    li.textContent = `${x.number} ${x.name}: ${x.object}` + (x.problem ? ` — NOT CALIBRATED: ${x.problem}` : "") +
+      (x.number === r.active ? " (active)" : "");
+    return li;
+  }));
 }
 
 function showStatus(s) {
@@ -165,6 +183,8 @@ function showStatus(s) {
   $("run-state").textContent = `pid ${s.pid}: ${s.run_state}, ${s.state}` +
     (s.calibrated ? "" : ", NOT CALIBRATED") + (s.healthy ? "" : `, UNHEALTHY: ${s.health_problem}`);
   $("recipe").textContent = recipeText(s.recipe);
+  $("recipe").title = (s.recipe?.recipes || []).map((x) => `${x.number} ${x.name}`).join(", ");
+  showRecipes(s.recipe);
   const rc = s.recalibrate;
   const warn = $("recalibrate");
   warn.hidden = !(rc && rc.warning);
@@ -194,7 +214,52 @@ function showStatus(s) {
   $("actions-on").hidden = !(web.trigger || web.support_bundle);
   $("btn-trigger").hidden = !web.trigger;
   $("btn-bundle").hidden = !web.support_bundle;
+  $("tuning-off").hidden = !!web.config_edit;
+  $("btn-save").hidden = $("btn-reload").hidden = !web.config_edit;
+  if (web.config_edit) { $("actions-off").hidden = true; $("actions-on").hidden = false; }
 }
+
+// --- tuning, reload and the audit (docs/web.md, "Reload, tuning and audit") ---------------
+const TUNED = ["min_contrast", "min_circularity", "min_features", "epipolar_tolerance_px", "model_tolerance_mm"];
+
+async function loadTuning() {
+  const t = await getJSON("/api/tuning");
+  for (const k of TUNED) $(`t-${k}`).value = t.vision[k];
+  [$("t-wd-near").value, $("t-wd-far").value] = t.vision.working_distance_mm;
+  $("t-polarity").value = t.polarity || "";
+}
+
+async function loadAudit() {
+  const a = await getJSON("/api/audit");
+  $("audit").tBodies[0].replaceChildren(...a.entries.map((e) => cells([
+    e.time, e.source, e.applied ? e.message : `REFUSED: ${e.message}`, e.diff.join("\n")])));
+}
+
+function tuningEdit() {
+  const vision = {};
+  for (const k of TUNED) vision[k] = Number($(`t-${k}`).value);
+  vision.working_distance_mm = [Number($("t-wd-near").value), Number($("t-wd-far").value)];
+  const body = { vision };
+  if ($("t-polarity").value) body.polarity = $("t-polarity").value;
+  return body;
+}
+
+async function commission(url, body) {
+  $("tuning-result").textContent = "judging the config (as vgripd check does)…";
+  const headers = { Authorization: `Bearer ${$("token").value}`, "Content-Type": "application/json" };
+  try {
+    const resp = await fetch(url, { method: "POST", headers, body: body ? JSON.stringify(body) : undefined });
+    const text = await resp.text();
+    let out;
+    try { out = JSON.parse(text); } catch { out = { applied: false, message: `${resp.status} ${text}` }; }
+    $("tuning-result").textContent = (out.applied ? "APPLIED: " : "REFUSED: ") + out.message;
+    $("tuning-result").className = out.applied ? "status ok" : "status bad";
+  } catch (err) { $("tuning-result").textContent = err.message; }
+  await Promise.all([loadTuning(), loadAudit()]).catch(() => {});
+}
+
+$("btn-save").addEventListener("click", () => commission("/api/tuning", tuningEdit()));
+$("btn-reload").addEventListener("click", () => commission("/api/reload"));
 
 async function loadRegisters() {
   const views = await getJSON("/api/registers");
@@ -276,6 +341,8 @@ async function main() {
     await loadJobs();
     $("config-text").textContent = JSON.stringify(await getJSON("/api/config"), null, 2);
     await loadRegisters();
+    await loadTuning();
+    await loadAudit();
   } catch (err) { console.error(err); }
   // The stream opens once the page has drawn what is there (a headless browser dumping the
   // page after a virtual-time budget sees it complete; the open event catches up anyway).
