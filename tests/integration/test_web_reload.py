@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
 import signal
 import subprocess
@@ -23,7 +24,8 @@ import pytest
 from tests.conftest import REPO
 from tests.integration.test_daemon import Plc, Run, make_config
 from tests.integration.test_daemon_process import _free_port
-from vgripd.config import load_config
+from tests.integration.test_web import _chromium, _until
+from vgripd.config import load_config, read_config_data
 from vgripd.serialize import toml_from_dict
 from vgripd.service.daemon import Daemon
 from vgripd.service.protocol import Reg
@@ -227,3 +229,71 @@ async def test_sighup_reloads_the_file_and_a_bad_one_keeps_the_running_config(
             proc.kill()
             await proc.wait()
     assert proc.returncode == 0, "".join(seen[-30:])
+
+
+def write_replay_cell(folder: Path, polarity: str) -> Path:
+    """config/example.toml (replay of config/samples, dark marks) split in two: ``vgripd.toml``
+    (camera, link, web view) including ``cell.toml`` (vision, object with ``polarity``,
+    reference)."""
+    data = read_config_data(REPO / "config" / "example.toml")
+    cell = {k: data.pop(k) for k in ("vision", "object", "reference")}
+    for feature in cell["object"]["features"]:
+        feature["polarity"] = polarity
+    data["camera"]["folder"] = str(REPO / "config" / "samples")
+    data["links"] = [{"type": "modbus_server", "host": "127.0.0.1", "port": 0}]
+    data["status"] = {"port": 0, "token": TOKEN, "allow_config_edit": True}
+    data["record"] = {"enabled": False}
+    data["include"] = ["cell.toml"]
+    (folder / "cell.toml").write_text(toml_from_dict(cell))
+    main = folder / "vgripd.toml"
+    main.write_text(toml_from_dict(data))
+    return main
+
+
+async def test_chromium_tunes_a_wrong_polarity_until_the_plc_job_is_ok(tmp_path: Path) -> None:
+    """The workflow end to end in headless Chromium: the cell's marks are dark, the config says
+    bright (NOT_FOUND); the operator picks "dark" on the page and saves with the token; the
+    next PLC job, on the same connection, is OK without a restart. A bad edit (a contrast no
+    mark reaches on the replay samples) is refused by the judge, and the old config is kept on
+    disk and running; both show in the page's audit."""
+    main = write_replay_cell(tmp_path, "bright")
+    cell = tmp_path / "cell.toml"
+    async with running_file(main) as run, Plc(run.port()) as plc:
+        assert run.daemon.status_server is not None
+        base = f"http://127.0.0.1:{run.daemon.status_server.port}"
+        assert await job(plc, run, 1) == Status.NOT_FOUND
+        async with _chromium(tmp_path, base + "/") as evaluate:
+            text = "(id) => document.getElementById(id)?.textContent ?? ''"
+            assert await _until(evaluate, "document.getElementById('btn-save')?.hidden === false")
+            assert await _until(evaluate, "document.getElementById('t-polarity')?.value "
+                                          "=== 'bright'")
+            await evaluate(f"""(() => {{
+                document.getElementById('token').value = {json.dumps(TOKEN)};
+                document.getElementById('t-polarity').value = 'dark';
+                document.getElementById('btn-save').click();
+                return true;
+            }})()""")
+            result = await _until(evaluate, f"(({text})('tuning-result').startsWith('APPLIED') "
+                                            f"|| ({text})('tuning-result').startsWith('REFUSED'))"
+                                            f" && ({text})('tuning-result')")
+            assert result.startswith("APPLIED"), result
+            assert await job(plc, run, 2) == Status.OK
+
+            before = cell.read_text()
+            await evaluate("""(() => {
+                document.getElementById('t-min_contrast').value = '250';
+                document.getElementById('btn-save').click();
+                return true;
+            })()""")
+            result = await _until(evaluate, f"({text})('tuning-result').startsWith('REFUSED') "
+                                            f"&& ({text})('tuning-result')")
+            assert "vision.min_contrast" in result
+            assert cell.read_text() == before
+            assert run.daemon.config.vision.min_contrast != 250
+            assert await job(plc, run, 3) == Status.OK
+            rows = await _until(evaluate, "document.querySelectorAll('#audit tbody tr').length"
+                                          " >= 2 && [...document.querySelectorAll('#audit tbody"
+                                          " tr')].map((r) => r.textContent)")
+            assert rows[0].count("REFUSED") == 1
+            assert "'bright' -> 'dark'" in rows[1]
+        assert next(iter(run.daemon.links.values())).health().reconnects == 0
