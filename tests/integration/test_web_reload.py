@@ -267,12 +267,23 @@ async def test_chromium_tunes_a_wrong_polarity_until_the_plc_job_is_ok(tmp_path:
             assert await _until(evaluate, "document.getElementById('btn-save')?.hidden === false")
             assert await _until(evaluate, "document.getElementById('t-polarity')?.value "
                                           "=== 'bright'")
+            # A trial first: the edited pipeline on job 1's images, nothing applied.
             await evaluate(f"""(() => {{
                 document.getElementById('token').value = {json.dumps(TOKEN)};
                 document.getElementById('t-polarity').value = 'dark';
-                document.getElementById('btn-save').click();
+                document.getElementById('btn-try').click();
                 return true;
             }})()""")
+            trial = await _until(evaluate, f"({text})('trial-result').startsWith('TRIAL ') && "
+                                           f"({text})('trial-result')")
+            assert trial.startswith("TRIAL 1 on job 1: OK"), trial
+            assert "used" in trial  # every candidate's fate counted
+            assert await _until(evaluate, """(() => {
+                const img = document.getElementById('trial-img-0');
+                return img && img.complete && img.naturalWidth > 0;
+            })()""")
+            assert run.daemon.config.object.features[0].polarity == "bright"  # not applied
+            await evaluate("document.getElementById('btn-save').click(), true")
             result = await _until(evaluate, f"(({text})('tuning-result').startsWith('APPLIED') "
                                             f"|| ({text})('tuning-result').startsWith('REFUSED'))"
                                             f" && ({text})('tuning-result')")

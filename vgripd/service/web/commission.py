@@ -6,6 +6,9 @@
     GET  /api/tuning                 the vision parameters the page edits, as they run
     POST /api/reload                 reload the config file       (status.allow_config_edit + token)
     POST /api/tuning                 save parameters to the include, then reload (same)
+    POST /api/tuning/try             run the edited pipeline on the last job's images (same):
+                                     status, likely causes, candidates by fate, picture URLs
+    GET  /api/tuning/trial/{n}/{k}.jpg  trial n's picture of camera k (0 left, 1 right)
 
 A save writes the include file that holds ``[object]`` (the config's own ``include = [...]``):
 its ``[vision]`` keys and the circle marks' ``polarity``. The file before is kept as a numbered
@@ -25,7 +28,7 @@ from typing import Any
 
 from aiohttp import web
 
-from vgripd.config import read_config_data
+from vgripd.config import Config, config_from_dict, read_config_data
 from vgripd.errors import ConfigError
 from vgripd.serialize import toml_from_dict
 from vgripd.service.reload import Outcome, Reloader
@@ -141,6 +144,18 @@ async def save_tuning(reloader: Reloader, vision: dict[str, Any], polarity: str 
     return outcome
 
 
+def edited_config(config: Config, vision: dict[str, Any], polarity: str | None) -> Config:
+    """The running config with the page's edits, validated as any config (``ConfigError``
+    naming the key)."""
+    data = config.model_dump(mode="json", exclude_none=True)
+    data["vision"].update(vision)
+    if polarity is not None:
+        for feature in data["object"]["features"]:
+            if feature.get("kind") == "circle":
+                feature["polarity"] = polarity
+    return config_from_dict(data, "the page's edit")
+
+
 def tuning_values(config: Any) -> dict[str, Any]:
     """What the page's form shows: the running vision keys and the marks' polarity."""
     v = config.vision
@@ -157,6 +172,8 @@ class CommissionRoutes:
     def __init__(self, server: Any) -> None:
         self.server = server
         self._saving = asyncio.Lock()  # one save (write, judge, maybe put back) at a time
+        self._trying = asyncio.Lock()  # one trial at a time (the image helper is one process)
+        self._trial: tuple[int, list[bytes]] = (0, [])
 
     @property
     def enabled(self) -> bool:
@@ -167,6 +184,8 @@ class CommissionRoutes:
         router.add_get("/api/tuning", self.tuning)
         router.add_post("/api/reload", self.reload)
         router.add_post("/api/tuning", self.save)
+        router.add_post("/api/tuning/try", self.trial)
+        router.add_get("/api/tuning/trial/{n:\\d+}/{k:\\d+}.jpg", self.trial_image)
 
     def _reloader(self) -> Reloader:
         reloader = self.server.daemon.reloader
@@ -204,3 +223,44 @@ class CommissionRoutes:
         async with self._saving:
             return self._answer(await save_tuning(reloader, vision, polarity,
                                                   f"web {request.remote}"))
+
+    async def trial(self, request: web.Request) -> web.Response:
+        """The edited pipeline on the last job's images (in the image helper process, never on
+        the loop); nothing is saved or applied."""
+        self.server._guard(request, self.enabled)
+        try:
+            body = await request.json()
+        except ValueError:
+            raise web.HTTPBadRequest(text="the body must be JSON") from None
+        vision, polarity = parse_edit(body)
+        last = self.server._last_pair
+        if last is None:
+            raise web.HTTPConflict(text="no job's images yet: trigger a job first")
+        job_id, pair = last
+        try:
+            config = edited_config(self.server.daemon.config, vision, polarity)
+        except ConfigError as err:
+            return web.json_response({"status": None, "message": f"refused: {err}"},
+                                     status=422)
+        async with self._trying:
+            try:
+                jpegs, outcome = await self.server.images.trial(pair, config)
+            except Exception as err:
+                raise web.HTTPInternalServerError(text=f"the trial failed: {err!r}") from None
+            n = self._trial[0] + 1
+            self._trial = (n, jpegs)
+        log.info("web view: tuning trial %d on job %d from %s: %s", n, job_id, request.remote,
+                 outcome["status"])
+        return web.json_response({"trial": n, "job_id": job_id, **outcome, "images": [
+            f"/api/tuning/trial/{n}/{k}.jpg" for k in range(len(jpegs))]})
+
+    async def trial_image(self, request: web.Request) -> web.Response:
+        texts = request.match_info["n"], request.match_info["k"]
+        if any(len(t) > 9 for t in texts):
+            raise web.HTTPNotFound(text="no such trial")
+        n, k = int(texts[0]), int(texts[1])
+        current, jpegs = self._trial
+        if n != current or k >= len(jpegs):
+            raise web.HTTPNotFound(text="only the last trial's pictures are kept")
+        return web.Response(body=jpegs[k], content_type="image/jpeg",
+                            headers={"Cache-Control": "no-store"})

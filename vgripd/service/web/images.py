@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from vgripd.config import Config
-from vgripd.types import ImagePair, JobResult
+from vgripd.types import ImagePair, JobResult, Status
 
 log = logging.getLogger(__name__)
 
@@ -144,7 +144,6 @@ def render(pair: ImagePair | str | tuple[Any, Any], result: JobResult,
     ``pair``: the images (an ``ImagePair`` or its ``views, T_base_flange``), or a recorded
     job's folder. Runs in the helper process (or anywhere in tests).
     """
-    import cv2
 
     if isinstance(pair, str):
         pair = _load_recorded(pair)
@@ -160,6 +159,14 @@ def render(pair: ImagePair | str | tuple[Any, Any], result: JobResult,
             images = _status_only(pair, result)
     else:
         images = _status_only(pair, result)
+    return _encode(images, max_width, quality)
+
+
+def _encode(images: list[np.ndarray], max_width: int = MAX_WIDTH_PX,
+            quality: int = JPEG_QUALITY) -> list[bytes]:
+    """Each BGR image downscaled to ``max_width`` and JPEG-encoded."""
+    import cv2
+
     out = []
     for img in images:
         h, w = img.shape[:2]
@@ -171,6 +178,29 @@ def render(pair: ImagePair | str | tuple[Any, Any], result: JobResult,
             raise RuntimeError("JPEG encoding failed")
         out.append(buf.tobytes())
     return out
+
+
+def render_trial(pair: tuple[Any, Any], config: Config) -> tuple[list[bytes], dict[str, Any]]:
+    """A tuning trial (docs/web.md, "Tuning"): the pipeline of ``config`` (the running one with
+    the page's edits) on a job's images, every candidate drawn with its fate; the JPEGs and
+    the outcome (status, message, likely causes with their keys, candidates by fate)."""
+    from collections import Counter
+
+    from vgripd.vision.annotate import annotate
+    from vgripd.vision.checked import CheckedPipeline
+
+    images_pair = ImagePair.of_views(pair[0], 0, T_base_flange=pair[1])
+    pipeline = CheckedPipeline(config)
+    result = pipeline.process_with_points(images_pair, 0, diagnose=True)[0]
+    d = result.diagnosis
+    outcome = {
+        "status": result.status.name, "message": result.message,
+        "causes": [] if d is None else [{"key": c.key, "reason": c.reason} for c in d.causes],
+        "candidates": [] if d is None else [
+            {"image": st.side, **Counter(c.reason for c in st.candidates)} for st in d.images],
+        "features_used": list(result.features_used),
+    }
+    return _encode(annotate(pipeline, images_pair, result)), outcome
 
 
 class ImageRenderer:
@@ -233,6 +263,18 @@ class ImageRenderer:
             self._restart()
         else:
             log.warning("web images: rendering failed: %r", err)
+
+    async def trial(self, pair: ImagePair, config: Config
+                    ) -> tuple[list[bytes], dict[str, Any]]:
+        """``render_trial`` in the helper process (not cached)."""
+        loop = asyncio.get_running_loop()
+        args = (_portable(pair, JobResult(job_id=0, status=Status.OK))[0], config)
+        try:
+            fut = self._executor().submit(render_trial, *args)
+        except BrokenProcessPool:
+            self._restart()
+            fut = self._executor().submit(render_trial, *args)
+        return await asyncio.wrap_future(fut, loop=loop)
 
     def reconfigure(self, config: Config) -> None:
         """Draw later jobs with ``config`` (a reload): a new helper builds its pipeline from it;

@@ -215,7 +215,7 @@ function showStatus(s) {
   $("btn-trigger").hidden = !web.trigger;
   $("btn-bundle").hidden = !web.support_bundle;
   $("tuning-off").hidden = !!web.config_edit;
-  $("btn-save").hidden = $("btn-reload").hidden = !web.config_edit;
+  $("btn-save").hidden = $("btn-reload").hidden = $("btn-try").hidden = !web.config_edit;
   if (web.config_edit) { $("actions-off").hidden = true; $("actions-on").hidden = false; }
 }
 
@@ -259,6 +259,35 @@ async function commission(url, body) {
 }
 
 $("btn-save").addEventListener("click", () => commission("/api/tuning", tuningEdit()));
+
+// A trial: the edited pipeline on the last job's images; every candidate drawn with its fate.
+$("btn-try").addEventListener("click", async () => {
+  $("trial-result").textContent = "running the pipeline with these values…";
+  const headers = { Authorization: `Bearer ${$("token").value}`, "Content-Type": "application/json" };
+  try {
+    const resp = await fetch("/api/tuning/try", { method: "POST", headers, body: JSON.stringify(tuningEdit()) });
+    const text = await resp.text();
+    let t;
+    try { t = JSON.parse(text); } catch { t = { status: null, message: `${resp.status} ${text}` }; }
+    if (!t.trial) { $("trial-result").textContent = `TRIAL REFUSED: ${t.message}`; return; }
+    const fates = t.candidates.map((c) => `${c.image}: ` + Object.entries(c).filter(([k]) => k !== "image")
+      .map(([k, v]) => `${v} ${k}`).join(", ")).join("; ");
+    $("trial-result").textContent = `TRIAL ${t.trial} on job ${t.job_id}: ${t.status} ${t.message}` +
+      (fates ? ` (candidates: ${fates})` : "");
+    $("trial-causes").replaceChildren(...t.causes.map((c) => {
+      const li = document.createElement("li");
+      li.textContent = `${c.key}: ${c.reason}`;
+      return li;
+    }));
+    $("trial-images").replaceChildren(...t.images.map((src, k) => {
+      const img = document.createElement("img");
+      img.src = src;
+      img.alt = `trial ${t.trial} camera ${k}`;
+      img.id = `trial-img-${k}`;
+      return img;
+    }));
+  } catch (err) { $("trial-result").textContent = err.message; }
+});
 $("btn-reload").addEventListener("click", () => commission("/api/reload"));
 
 async function loadRegisters() {
