@@ -146,6 +146,18 @@ async def test_a_tuning_save_applies_between_jobs_without_dropping_the_plc(
         assert "needs a restart" in out["message"]
         assert run.daemon.config.camera.max_tilt_deg == 2.0
 
+        # Calibration health: where each camera is and looks, and the taught reference.
+        async with s.get(f"{base}/api/calibration") as r:
+            health = await r.json()
+        cams = health["geometry"]["cameras"]
+        assert [c["name"] for c in cams] == ["left", "right"]
+        ref = health["geometry"]["reference"]["position_mm"]
+        for c in cams:  # both look at the object (a camera mounted the wrong way would not)
+            to_ref = [r - p for r, p in zip(ref, c["position_mm"], strict=True)]
+            assert sum(a * b for a, b in zip(to_ref, c["axis"], strict=True)) > 0
+        assert health["geometry"]["last"] is not None
+        assert health["recalibrate"]["threshold_px"] == 1.0
+
         # The audit lists every change, newest first, with who and what.
         async with s.get(f"{base}/api/audit") as r:
             audit = await r.json()
@@ -307,4 +319,13 @@ async def test_chromium_tunes_a_wrong_polarity_until_the_plc_job_is_ok(tmp_path:
                                           " tr')].map((r) => r.textContent)")
             assert rows[0].count("REFUSED") == 1
             assert "'bright' -> 'dark'" in rows[1]
+            # Calibration health: the files and the cell drawn from above and the side.
+            assert await _until(evaluate, "document.querySelectorAll('#cell-top .cell-camera')"
+                                          ".length === 2")
+            assert await evaluate("document.querySelectorAll('#cell-side .cell-reference')"
+                                  ".length === 1")
+            files = await evaluate("[...document.querySelectorAll('#cal-files tbody tr')]"
+                                   ".map((r) => r.textContent)")
+            assert any("vgripd.toml" in f and "calibration.hand_eye" in f for f in files)
+            assert any("cell.toml" in f and "reference" in f for f in files)
         assert next(iter(run.daemon.links.values())).health().reconnects == 0

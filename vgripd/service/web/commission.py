@@ -4,6 +4,7 @@
 
     GET  /api/audit                  every reload and save, newest first (time, who, diff)
     GET  /api/tuning                 the vision parameters the page edits, as they run
+    GET  /api/calibration            calibration health: files, [about], cell geometry (``health``)
     POST /api/reload                 reload the config file       (status.allow_config_edit + token)
     POST /api/tuning                 save parameters to the include, then reload (same)
     POST /api/tuning/try             run the edited pipeline on the last job's images (same):
@@ -22,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import time
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -32,6 +34,7 @@ from vgripd.config import Config, config_from_dict, read_config_data
 from vgripd.errors import ConfigError
 from vgripd.serialize import toml_from_dict
 from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.web.health import calibration_files, cell_geometry
 
 log = logging.getLogger(__name__)
 
@@ -182,6 +185,7 @@ class CommissionRoutes:
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/api/audit", self.audit)
         router.add_get("/api/tuning", self.tuning)
+        router.add_get("/api/calibration", self.calibration)
         router.add_post("/api/reload", self.reload)
         router.add_post("/api/tuning", self.save)
         router.add_post("/api/tuning/try", self.trial)
@@ -199,6 +203,20 @@ class CommissionRoutes:
         entries = [] if reloader is None else [o.as_dict() for o in reloader.audit]
         return web.json_response({"enabled": self.enabled, "reloading": bool(
             reloader is not None and reloader.running), "entries": entries})
+
+    async def calibration(self, request: web.Request) -> web.Response:
+        daemon = self.server.daemon
+        reloader = daemon.reloader
+        last = None
+        for record, _ in reversed(self.server.history):
+            if record.result.T_base_obj is not None:
+                last = record.result.T_base_obj
+                break
+        return web.json_response({
+            "files": calibration_files(None if reloader is None else reloader.path),
+            "geometry": cell_geometry(daemon.config, last),
+            "recalibrate": daemon.epipolar.snapshot(time.monotonic_ns()),
+        })
 
     async def tuning(self, request: web.Request) -> web.Response:
         return web.json_response(tuning_values(self.server.daemon.config))

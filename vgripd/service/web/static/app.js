@@ -219,6 +219,67 @@ function showStatus(s) {
   if (web.config_edit) { $("actions-off").hidden = true; $("actions-on").hidden = false; }
 }
 
+// --- calibration health: files and the cell drawn from above and from the side -------------
+const SVGNS = "http://www.w3.org/2000/svg";
+function svgNode(tag, attrs, text) {
+  const n = document.createElementNS(SVGNS, tag);
+  for (const [k, v] of Object.entries(attrs)) n.setAttribute(k, v);
+  if (text !== undefined) n.textContent = text;
+  return n;
+}
+
+// Draw the cell projected on axes (a, b) of the base frame: 0 = x, 1 = y, 2 = z.
+function drawCell(svg, g, a, b) {
+  const pts = [];
+  for (const c of g.cameras) pts.push(c.position_mm);
+  if (g.reference) pts.push(g.reference.position_mm);
+  if (g.last) pts.push(g.last.position_mm);
+  pts.push([0, 0, 0]);  // the robot base
+  const W = 400, H = 300, M = 30;
+  const xs = pts.map((p) => p[a]), ys = pts.map((p) => p[b]);
+  const span = Math.max(Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys), 100) * 1.3;
+  const cx = (Math.max(...xs) + Math.min(...xs)) / 2, cy = (Math.max(...ys) + Math.min(...ys)) / 2;
+  const k = Math.min(W - 2 * M, H - 2 * M) / span;
+  const X = (p) => W / 2 + (p[a] - cx) * k, Y = (p) => H / 2 - (p[b] - cy) * k;
+  const parts = [svgNode("circle", { cx: X([0, 0, 0]), cy: Y([0, 0, 0]), r: 4, fill: "#888" }),
+    svgNode("text", { x: X([0, 0, 0]) + 6, y: Y([0, 0, 0]) + 4, "font-size": 10 }, "base")];
+  const reach = span * 0.25;
+  for (const c of g.cameras) {
+    const p = c.position_mm, ax = c.axis;
+    const tip = [0, 1, 2].map((i) => p[i] + ax[i] * reach);
+    const half = (c.fov_deg[0] * Math.PI) / 360;
+    const dx = tip[a] - p[a], dy = tip[b] - p[b];
+    const rot = (ang) => [p[a] + dx * Math.cos(ang) - dy * Math.sin(ang), p[b] + dx * Math.sin(ang) + dy * Math.cos(ang)];
+    const [l, r] = [rot(half), rot(-half)];
+    const L = [0, 0, 0], R = [0, 0, 0];
+    L[a] = l[0]; L[b] = l[1]; R[a] = r[0]; R[b] = r[1];
+    parts.push(svgNode("polygon", { points: `${X(p)},${Y(p)} ${X(L)},${Y(L)} ${X(R)},${Y(R)}`,
+      fill: "rgba(31,111,208,0.12)", stroke: "none" }));
+    parts.push(svgNode("line", { x1: X(p), y1: Y(p), x2: X(tip), y2: Y(tip), stroke: "#1f6fd0" }));
+    parts.push(svgNode("circle", { cx: X(p), cy: Y(p), r: 4, fill: "#1f6fd0", class: "cell-camera" }));
+    parts.push(svgNode("text", { x: X(p) + 6, y: Y(p) - 6, "font-size": 10 }, `${c.name} (${c.rig})`));
+  }
+  if (g.reference) {
+    const p = g.reference.position_mm;
+    parts.push(svgNode("rect", { x: X(p) - 5, y: Y(p) - 5, width: 10, height: 10, fill: "#070", class: "cell-reference" }));
+  }
+  if (g.last) {
+    const p = g.last.position_mm;
+    parts.push(svgNode("path", { d: `M${X(p) - 6},${Y(p)}h12M${X(p)},${Y(p) - 6}v12`, stroke: "#d07a1f", "stroke-width": 2 }));
+  }
+  svg.replaceChildren(...parts);
+}
+
+async function loadCalibration() {
+  const c = await getJSON("/api/calibration");
+  $("cal-files").tBodies[0].replaceChildren(...c.files.map((f) => cells([
+    f.file, f.sets.join(", "), f.modified || f.error || "",
+    Object.entries(f.about).map(([k, v]) => `${k} ${typeof v === "number" ? fmt(v, 3) : JSON.stringify(v)}`).join("; ")])));
+  drawCell($("cell-top"), c.geometry, 0, 1);
+  drawCell($("cell-side"), c.geometry, 0, 2);
+  if (c.geometry.note) $("cell-note").textContent += ` (${c.geometry.note})`;
+}
+
 // --- tuning, reload and the audit (docs/web.md, "Reload, tuning and audit") ---------------
 const TUNED = ["min_contrast", "min_circularity", "min_features", "epipolar_tolerance_px", "model_tolerance_mm"];
 
@@ -360,6 +421,7 @@ function connectEvents() {
     showJob(job);
     showHistory();
     refresh();
+    loadCalibration().catch(() => {});  // the last pose in the drawings
   });
   events.addEventListener("links", () => { refresh(); loadRegisters().catch(() => {}); });
 }
@@ -372,6 +434,7 @@ async function main() {
     await loadRegisters();
     await loadTuning();
     await loadAudit();
+    await loadCalibration();
   } catch (err) { console.error(err); }
   // The stream opens once the page has drawn what is there (a headless browser dumping the
   // page after a virtual-time budget sees it complete; the open event catches up anyway).
