@@ -329,3 +329,47 @@ async def test_chromium_tunes_a_wrong_polarity_until_the_plc_job_is_ok(tmp_path:
             assert any("vgripd.toml" in f and "calibration.hand_eye" in f for f in files)
             assert any("cell.toml" in f and "reference" in f for f in files)
         assert next(iter(run.daemon.links.values())).health().reconnects == 0
+
+
+async def test_teaching_from_the_page_saves_the_mean_of_the_shots(tmp_path: Path) -> None:
+    """Two jobs measured as shots (as ``vgripd teach`` measures), their mean saved as the
+    reference into the include that holds it, and applied by the reload; a job already taken
+    is refused, and without the token nothing happens."""
+    import numpy as np
+
+    from vgripd.calib.teach import mean_transform
+    from vgripd.geometry.transforms import pose_error
+    from vgripd.vision.scene import T_base_obj_ref
+
+    main = write_cell(tmp_path)
+    async with running_file(main) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as s:
+        assert run.daemon.status_server is not None
+        base = f"http://127.0.0.1:{run.daemon.status_server.port}"
+        old_ref = T_base_obj_ref(run.daemon.config)
+        assert await job(plc, run, 1) == Status.OK
+        code, _ = await post(s, f"{base}/api/teach/shot", headers={})
+        assert code == 403
+        code, out = await post(s, f"{base}/api/teach/shot")
+        assert code == 200, out
+        assert out["shots"] == [1]
+        assert out["from_taught_mm"] is not None
+        code, _ = await post(s, f"{base}/api/teach/shot")
+        assert code == 409  # the same job twice is no second shot
+        assert await job(plc, run, 2) == Status.OK
+        code, out = await post(s, f"{base}/api/teach/shot")
+        assert code == 200, out
+        assert out["shots"] == [1, 2]
+        assert out["spread_mm"] > 0
+        code, out = await post(s, f"{base}/api/teach/save")
+        assert code == 200, out
+        assert out["applied"]
+        assert any(line.startswith("reference.T_base_obj.") for line in out["diff"])
+        assert (tmp_path / "cell.toml.1").exists()
+        poses = [rec.result.T_base_obj for _, rec in run.jobs[:2]]
+        assert all(p is not None for p in poses)
+        mean = mean_transform([np.asarray(p) for p in poses])
+        new_ref = T_base_obj_ref(run.daemon.config)
+        assert pose_error(new_ref, mean)[0] < 1e-3
+        assert pose_error(new_ref, old_ref)[0] > 0.01
+        async with s.get(f"{base}/api/teach") as r:
+            assert (await r.json())["shots"] == []

@@ -264,17 +264,22 @@ class ImageRenderer:
         else:
             log.warning("web images: rendering failed: %r", err)
 
+    async def call(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` in the helper process (a trial, a teaching shot; not cached)."""
+        loop = asyncio.get_running_loop()
+        try:
+            fut = self._executor().submit(fn, *args)
+        except BrokenProcessPool:
+            self._restart()
+            fut = self._executor().submit(fn, *args)
+        return await asyncio.wrap_future(fut, loop=loop)
+
     async def trial(self, pair: ImagePair, config: Config
                     ) -> tuple[list[bytes], dict[str, Any]]:
         """``render_trial`` in the helper process (not cached)."""
-        loop = asyncio.get_running_loop()
-        args = (_portable(pair, JobResult(job_id=0, status=Status.OK))[0], config)
-        try:
-            fut = self._executor().submit(render_trial, *args)
-        except BrokenProcessPool:
-            self._restart()
-            fut = self._executor().submit(render_trial, *args)
-        return await asyncio.wrap_future(fut, loop=loop)
+        out: tuple[list[bytes], dict[str, Any]] = await self.call(
+            render_trial, _portable(pair, JobResult(job_id=0, status=Status.OK))[0], config)
+        return out
 
     def reconfigure(self, config: Config) -> None:
         """Draw later jobs with ``config`` (a reload): a new helper builds its pipeline from it;

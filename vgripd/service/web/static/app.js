@@ -216,6 +216,7 @@ function showStatus(s) {
   $("btn-bundle").hidden = !web.support_bundle;
   $("tuning-off").hidden = !!web.config_edit;
   $("btn-save").hidden = $("btn-reload").hidden = $("btn-try").hidden = !web.config_edit;
+  $("btn-shot").hidden = $("btn-teach-save").hidden = $("btn-teach-clear").hidden = !web.config_edit;
   if (web.config_edit) { $("actions-off").hidden = true; $("actions-on").hidden = false; }
 }
 
@@ -320,6 +321,35 @@ async function commission(url, body) {
 }
 
 $("btn-save").addEventListener("click", () => commission("/api/tuning", tuningEdit()));
+
+// Teaching: the shots' mean against the reference taught now, and the save.
+function teachText(t) {
+  if (!t.shots.length) return `recipe ${t.recipe}: no shots yet`;
+  const xyz = t.mean.translation_mm.map((v) => fmt(v, 2)).join(", ");
+  const from = t.from_taught_mm === null ? "nothing taught yet" :
+    `${fmt(t.from_taught_mm, 2)} mm / ${fmt(t.from_taught_deg, 3)} deg from the taught reference`;
+  return `recipe ${t.recipe}: ${t.shots.length} shot(s) (jobs ${t.shots.join(", ")}): mean at [${xyz}] mm, ` +
+    `spread ${fmt(t.spread_mm, 3)} mm / ${fmt(t.spread_deg, 4)} deg; ${from}`;
+}
+
+async function teachAction(url) {
+  const headers = { Authorization: `Bearer ${$("token").value}` };
+  try {
+    const resp = await fetch(url, { method: "POST", headers });
+    const text = await resp.text();
+    let t;
+    try { t = JSON.parse(text); } catch { $("teach-result").textContent = `${resp.status} ${text}`; return; }
+    if ("applied" in t) {
+      $("teach-result").textContent = (t.applied ? "SAVED: " : "REFUSED: ") + t.message;
+    } else {
+      $("teach-result").textContent = (t.refused ? `REFUSED: ${t.refused}; ` : "") + teachText(t);
+    }
+  } catch (err) { $("teach-result").textContent = err.message; }
+  loadAudit().catch(() => {});
+}
+$("btn-shot").addEventListener("click", () => teachAction("/api/teach/shot"));
+$("btn-teach-save").addEventListener("click", () => teachAction("/api/teach/save"));
+$("btn-teach-clear").addEventListener("click", () => teachAction("/api/teach/clear"));
 
 // A trial: the edited pipeline on the last job's images; every candidate drawn with its fate.
 $("btn-try").addEventListener("click", async () => {
