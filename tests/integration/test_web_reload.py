@@ -373,3 +373,36 @@ async def test_teaching_from_the_page_saves_the_mean_of_the_shots(tmp_path: Path
         assert pose_error(new_ref, old_ref)[0] > 0.01
         async with s.get(f"{base}/api/teach") as r:
             assert (await r.json())["shots"] == []
+
+
+async def test_live_previews_show_figures_between_jobs_and_never_grab_during_one(
+        tmp_path: Path) -> None:
+    """The live picture of each camera (over-exposure, focus, marks seen) between jobs; while a
+    job runs (a slow synthetic render) a preview request gets the last picture, no grab."""
+    from tests.integration.test_daemon import running
+
+    config = make_config(camera={"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0,
+                                 "supersample": 16})
+    async with running(config) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as s:
+        assert run.daemon.status_server is not None
+        base = f"http://127.0.0.1:{run.daemon.status_server.port}"
+        previews = run.daemon.status_server.previews
+        for j in (0, 1):
+            async with s.get(f"{base}/api/cameras/{j}/preview.jpg") as r:
+                assert r.status == 200
+                assert r.content_type == "image/jpeg"
+                assert (await r.read())[:2] == b"\xff\xd8"
+                assert float(r.headers["X-Vgripd-Focus"]) > 0
+        async with s.get(f"{base}/api/cameras") as r:
+            cams = await r.json()
+        assert [f["marks"] for f in cams["figures"]] == [6, 6]  # the plate's six marks
+        assert all(0 <= f["saturated_share"] < 0.01 for f in cams["figures"])
+        grabs = previews.grabs
+        assert grabs >= 1
+        await plc.trigger(1)
+        await run.busy()
+        async with s.get(f"{base}/api/cameras/0/preview.jpg") as r:
+            assert r.status == 200  # the last picture again
+        assert run.daemon.state.value != "idle"  # still the same job: the check held
+        assert previews.grabs == grabs
+        assert (await plc.result(1))[Reg.STATUS] == Status.OK

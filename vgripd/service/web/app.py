@@ -26,6 +26,7 @@ Routes (docs/web.md)::
     GET  /login, POST /login         the token form; sets the session cookie (guarded reads)
     GET  /api/audit, GET|POST /api/tuning, POST /api/reload   commissioning (``commission``)
     GET  /api/teach, POST /api/teach/{shot,clear,save}        teaching (``teaching``)
+    GET  /api/cameras, GET /api/cameras/{j}/preview.jpg       live cameras (``preview``)
 
 Security model (``access.Access``, docs/web.md): read-only by default and bound to 127.0.0.1;
 the config refuses a non-loopback bind without ``status.token``, and such a bind needs the
@@ -62,6 +63,7 @@ from vgripd.service.web.guard import GuardedSite, make_guard
 from vgripd.service.web.images import ImageRenderer
 from vgripd.service.web.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from vgripd.service.web.metrics import Metrics
+from vgripd.service.web.preview import PreviewRoutes
 from vgripd.service.web.registers import register_views
 from vgripd.service.web.teaching import TeachRoutes
 from vgripd.service.web.trigger import WEB_LINK, WebTriggerLink
@@ -357,6 +359,8 @@ class WebServer:
         r.add_get("/api/support-bundle", self._bundle)
         CommissionRoutes(self).add(r)
         TeachRoutes(self).add(r)
+        self.previews = PreviewRoutes(self)
+        self.previews.add(r)
         r.add_static("/static/", STATIC)
         return app
 

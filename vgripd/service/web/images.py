@@ -203,6 +203,47 @@ def render_trial(pair: tuple[Any, Any], config: Config) -> tuple[list[bytes], di
     return _encode(annotate(pipeline, images_pair, result)), outcome
 
 
+#: A preview pixel at or above this grey level counts as over-exposed (drawn red).
+SATURATED_LEVEL = 250
+
+
+def render_preview(views: Any) -> tuple[list[bytes], list[dict[str, Any]]]:
+    """Live camera pictures (docs/web.md, "Live cameras"): each image with its over-exposed
+    pixels red, the marks the finder sees circled, and per image its figures: share of
+    over-exposed pixels, focus (variance of the Laplacian on the full image: higher is
+    sharper; compare it while turning the focus ring), marks found. Runs in the helper."""
+    import cv2
+
+    out_images, figures = [], []
+    finders: list[Any] = []
+    if _pipeline is not None:
+        finders = list(_pipeline.finders) or [_pipeline.find_left, _pipeline.find_right]
+    for j, image in enumerate(views):
+        gray = np.asarray(image)
+        if gray.ndim == 3:
+            gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
+        bgr = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+        over = gray >= SATURATED_LEVEL
+        bgr[over] = (0, 0, 255)
+        focus = float(cv2.Laplacian(gray, cv2.CV_64F).var())
+        marks = 0
+        if j < len(finders) and finders[j] is not None:
+            try:
+                found = finders[j](gray)
+            except Exception:  # noqa: BLE001 - a preview never fails for its drawing
+                found = None
+            if found is not None:
+                marks = len(found.circles) + len(found.identified)
+                scale = max(1, bgr.shape[1] // 1200)
+                for x, y in list(found.circles) + list(found.identified.values()):
+                    cv2.circle(bgr, (int(round(x)), int(round(y))), 14 * scale, (0, 200, 0),
+                               2 * scale)
+        figures.append({"saturated_share": float(over.mean()), "focus": focus,
+                        "marks": marks})
+        out_images.append(bgr)
+    return _encode(out_images), figures
+
+
 class ImageRenderer:
     """Renders and caches each job's JPEGs in a helper process (one, spawned on first use)."""
 

@@ -220,6 +220,32 @@ function showStatus(s) {
   if (web.config_edit) { $("actions-off").hidden = true; $("actions-on").hidden = false; }
 }
 
+// --- live cameras: off until ticked; the daemon bounds the grabs whatever the pages ask -----
+let liveTimer = null;
+async function liveTick() {
+  const n = (lastStatus?.last_job && jobs[0]?.views?.length) || (jobs[0]?.stereo === false ? 1 : 2);
+  const box = $("live-images");
+  while (box.children.length < n) {
+    const img = document.createElement("img");
+    img.id = `live-${box.children.length}`;
+    img.alt = `camera ${box.children.length} live`;
+    box.append(img);
+  }
+  const stamp = Date.now();
+  [...box.children].forEach((img, j) => { img.src = `/api/cameras/${j}/preview.jpg?t=${stamp}`; });
+  try {
+    const c = await getJSON("/api/cameras");
+    $("live-figures").textContent = c.figures.map((f, j) => `camera ${j}: focus ${fmt(f.focus, 0)}, ` +
+      `over-exposed ${fmt(100 * f.saturated_share, 2)} %, marks seen ${f.marks}`).join("; ") +
+      (c.age_s !== null ? ` (picture ${fmt(c.age_s, 1)} s old)` : "");
+  } catch (err) { $("live-figures").textContent = err.message; }
+}
+$("live-on").addEventListener("change", () => {
+  clearInterval(liveTimer);
+  liveTimer = $("live-on").checked ? setInterval(liveTick, 500) : null;
+  if (liveTimer) liveTick();
+});
+
 // --- calibration health: files and the cell drawn from above and from the side -------------
 const SVGNS = "http://www.w3.org/2000/svg";
 function svgNode(tag, attrs, text) {
