@@ -39,6 +39,7 @@ from typing import Any
 from vgripd.config import Config, config_from_dict, load_config
 from vgripd.errors import ConfigError
 from vgripd.redaction import redact
+from vgripd.service.worker import WorkerError
 
 log = logging.getLogger("vgripd.reload")
 
@@ -243,8 +244,12 @@ class Reloader:
         if pipelines is not None:
             d._pipelines = pipelines
         if d._worker is not None:
-            for n in await d._worker.reconfigure(config):
-                d.recipe_problems[n] = "not calibrated after the reload"
+            try:
+                for n in await d._worker.reconfigure(config):
+                    d.recipe_problems[n] = "not calibrated after the reload"
+            except WorkerError as err:  # it died: the next worker is built from ``config``
+                log.warning("config reload: the worker process did not rebuild its pipelines "
+                            "(%s); the worker started next is built from the new config", err)
         if d.status_server is not None:  # the web view draws later jobs with it
             d.status_server.images.reconfigure(config)
         d._set_state(d.state)  # status line and waiters see it
