@@ -406,3 +406,56 @@ async def test_live_previews_show_figures_between_jobs_and_never_grab_during_one
         assert run.daemon.state.value != "idle"  # still the same job: the check held
         assert previews.grabs == grabs
         assert (await plc.result(1))[Reg.STATUS] == Status.OK
+
+
+async def test_chromium_teaches_from_two_shots_and_watches_the_cameras_live(
+        tmp_path: Path) -> None:
+    """In headless Chromium: the live preview shows both cameras with their figures; two jobs
+    added as shots and saved as the reference (applied by the reload, listed in the audit)."""
+    from vgripd.vision.scene import T_base_obj_ref
+
+    main = write_cell(tmp_path)
+    async with running_file(main) as run, Plc(run.port()) as plc:
+        assert run.daemon.status_server is not None
+        base = f"http://127.0.0.1:{run.daemon.status_server.port}"
+        old_ref = T_base_obj_ref(run.daemon.config)
+        assert await job(plc, run, 1) == Status.OK
+        async with _chromium(tmp_path, base + "/") as evaluate:
+            text = "(id) => document.getElementById(id)?.textContent ?? ''"
+            assert await _until(evaluate, "document.getElementById('btn-shot')?.hidden === false")
+            await evaluate("(() => { const b = document.getElementById('live-on'); "
+                           "b.checked = true; b.dispatchEvent(new Event('change')); "
+                           "return true; })()")
+            figures = await _until(evaluate, f"({text})('live-figures').includes('camera 1') "
+                                             f"&& ({text})('live-figures')")
+            assert "marks seen 6" in figures, figures
+            assert await _until(evaluate, """(() => {
+                const img = document.getElementById('live-0');
+                return img && img.complete && img.naturalWidth > 0;
+            })()""")
+            await evaluate("(() => { const b = document.getElementById('live-on'); "
+                           "b.checked = false; b.dispatchEvent(new Event('change')); "
+                           "return true; })()")
+            await evaluate(f"""(() => {{
+                document.getElementById('token').value = {json.dumps(TOKEN)};
+                document.getElementById('btn-shot').click();
+                return true;
+            }})()""")
+            shot = await _until(evaluate, f"({text})('teach-result').includes('shot(s)') && "
+                                          f"({text})('teach-result')")
+            assert "1 shot(s) (jobs 1)" in shot, shot
+            assert await job(plc, run, 2) == Status.OK
+            await evaluate("document.getElementById('btn-shot').click(), true")
+            shot = await _until(evaluate, f"({text})('teach-result').includes('2 shot(s)') && "
+                                          f"({text})('teach-result')")
+            assert "from the taught reference" in shot
+            await evaluate("document.getElementById('btn-teach-save').click(), true")
+            saved = await _until(evaluate, f"({text})('teach-result').startsWith('SAVED') && "
+                                           f"({text})('teach-result')")
+            assert saved.startswith("SAVED: applied"), saved
+            rows = await _until(evaluate, "[...document.querySelectorAll('#audit tbody tr')]"
+                                          ".map((r) => r.textContent).join('|').includes("
+                                          "'reference.T_base_obj') && 'ok'")
+            assert rows == "ok"
+        assert T_base_obj_ref(run.daemon.config)[:3, 3].tolist() != old_ref[:3, 3].tolist()
+        assert await job(plc, run, 3) == Status.OK  # the next job against the new reference
