@@ -138,6 +138,14 @@ async def test_a_tuning_save_applies_between_jobs_without_dropping_the_plc(
         assert run.daemon.config.vision.min_contrast == 20.0
         assert await job(plc, run, 4) == Status.OK
 
+        # A trial on a fresh grab (between jobs): nothing applied.
+        code, out = await post(s, f"{base}/api/tuning/try", {"polarity": "bright", "grab": True})
+        assert code == 200, out
+        assert out["job_id"] is None
+        assert out["status"] == "NOT_FOUND"  # the marks are dark
+        assert out["causes"][0]["key"] == "object.features[*].polarity"
+        assert run.daemon.config.object.features[0].polarity == "dark"
+
         # A key only a restart can change is named, the rest applies.
         main.write_text(main.read_text().replace("max_tilt_deg = 2.0", "max_tilt_deg = 3.0"))
         code, out = await post(s, f"{base}/api/reload")

@@ -7,7 +7,8 @@
     GET  /api/calibration            calibration health: files, [about], cell geometry (``health``)
     POST /api/reload                 reload the config file       (status.allow_config_edit + token)
     POST /api/tuning                 save parameters to the include, then reload (same)
-    POST /api/tuning/try             run the edited pipeline on the last job's images (same):
+    POST /api/tuning/try             run the edited pipeline on the last job's images, or a
+                                     fresh grab between jobs ({"grab": true}) (same):
                                      status, likely causes, candidates by fate, picture URLs
     GET  /api/tuning/trial/{n}/{k}.jpg  trial n's picture of camera k (0 left, 1 right)
 
@@ -82,7 +83,7 @@ def edited(text: str, vision: dict[str, Any], polarity: str | None) -> str:
 def parse_edit(body: Any) -> tuple[dict[str, Any], str | None]:
     """The request's ``{"vision": {...}, "polarity": "dark"|"bright"}``, checked for shape (the
     values are judged by the reload, as any config)."""
-    if not isinstance(body, dict) or set(body) - {"vision", "polarity"}:
+    if not isinstance(body, dict) or set(body) - {"vision", "polarity", "grab"}:
         raise web.HTTPBadRequest(text='a JSON object {"vision": {...}, "polarity": ...}')
     vision = body.get("vision") or {}
     if not isinstance(vision, dict):
@@ -251,10 +252,18 @@ class CommissionRoutes:
         except ValueError:
             raise web.HTTPBadRequest(text="the body must be JSON") from None
         vision, polarity = parse_edit(body)
-        last = self.server._last_pair
-        if last is None:
-            raise web.HTTPConflict(text="no job's images yet: trigger a job first")
-        job_id, pair = last
+        job_id: int | None
+        if body.get("grab"):  # a fresh picture, taken as a live preview is: between jobs only
+            pair = await self.server.previews.grab_between_jobs()
+            if pair is None:
+                raise web.HTTPConflict(text="a job runs (or the camera cannot grab): a fresh "
+                                            "grab is taken only between jobs; try again")
+            job_id = None
+        else:
+            last = self.server._last_pair
+            if last is None:
+                raise web.HTTPConflict(text="no job's images yet: trigger a job first")
+            job_id, pair = last
         try:
             config = edited_config(self.server.daemon.config, vision, polarity)
         except ConfigError as err:
@@ -267,7 +276,8 @@ class CommissionRoutes:
                 raise web.HTTPInternalServerError(text=f"the trial failed: {err!r}") from None
             n = self._trial[0] + 1
             self._trial = (n, jpegs)
-        log.info("web view: tuning trial %d on job %d from %s: %s", n, job_id, request.remote,
+        log.info("web view: tuning trial %d on %s from %s: %s", n,
+                 "a fresh grab" if job_id is None else f"job {job_id}", request.remote,
                  outcome["status"])
         return web.json_response({"trial": n, "job_id": job_id, **outcome, "images": [
             f"/api/tuning/trial/{n}/{k}.jpg" for k in range(len(jpegs))]})

@@ -60,6 +60,20 @@ class PreviewRoutes:
                                   "age_s": None if not t else time.monotonic() - t,
                                   "max_fps": MAX_PREVIEW_FPS, "grabs": self.grabs})
 
+    async def grab_between_jobs(self) -> Any:
+        """A pair grabbed now if the daemon is idle (the tuning trial's fresh grab); None when
+        a job runs or the camera cannot grab."""
+        async with self._lock:
+            if not self._idle():
+                return None
+            try:
+                pair = await self.server.daemon.camera.grab(PREVIEW_GRAB_TIMEOUT_S)
+            except (VgripError, TimeoutError) as err:
+                log.info("web view: grab for a trial failed: %s", err)
+                return None
+            self.grabs += 1
+            return pair
+
     async def _refresh(self) -> None:
         """A new picture when the last is older than a frame period and nothing runs."""
         async with self._lock:

@@ -216,6 +216,7 @@ function showStatus(s) {
   $("btn-bundle").hidden = !web.support_bundle;
   $("tuning-off").hidden = !!web.config_edit;
   $("btn-save").hidden = $("btn-reload").hidden = $("btn-try").hidden = !web.config_edit;
+  $("btn-try-grab").hidden = !web.config_edit;
   $("btn-shot").hidden = $("btn-teach-save").hidden = $("btn-teach-clear").hidden = !web.config_edit;
   if (web.config_edit) { $("actions-off").hidden = true; $("actions-on").hidden = false; }
 }
@@ -378,18 +379,20 @@ $("btn-teach-save").addEventListener("click", () => teachAction("/api/teach/save
 $("btn-teach-clear").addEventListener("click", () => teachAction("/api/teach/clear"));
 
 // A trial: the edited pipeline on the last job's images; every candidate drawn with its fate.
-$("btn-try").addEventListener("click", async () => {
+async function tryTuning(grab) {
   $("trial-result").textContent = "running the pipeline with these values…";
   const headers = { Authorization: `Bearer ${$("token").value}`, "Content-Type": "application/json" };
   try {
-    const resp = await fetch("/api/tuning/try", { method: "POST", headers, body: JSON.stringify(tuningEdit()) });
+    const body = { ...tuningEdit(), ...(grab ? { grab: true } : {}) };
+    const resp = await fetch("/api/tuning/try", { method: "POST", headers, body: JSON.stringify(body) });
     const text = await resp.text();
     let t;
     try { t = JSON.parse(text); } catch { t = { status: null, message: `${resp.status} ${text}` }; }
     if (!t.trial) { $("trial-result").textContent = `TRIAL REFUSED: ${t.message}`; return; }
     const fates = t.candidates.map((c) => `${c.image}: ` + Object.entries(c).filter(([k]) => k !== "image")
       .map(([k, v]) => `${v} ${k}`).join(", ")).join("; ");
-    $("trial-result").textContent = `TRIAL ${t.trial} on job ${t.job_id}: ${t.status} ${t.message}` +
+    const on = t.job_id === null ? "a fresh grab" : `job ${t.job_id}`;
+    $("trial-result").textContent = `TRIAL ${t.trial} on ${on}: ${t.status} ${t.message}` +
       (fates ? ` (candidates: ${fates})` : "");
     $("trial-causes").replaceChildren(...t.causes.map((c) => {
       const li = document.createElement("li");
@@ -404,7 +407,9 @@ $("btn-try").addEventListener("click", async () => {
       return img;
     }));
   } catch (err) { $("trial-result").textContent = err.message; }
-});
+}
+$("btn-try").addEventListener("click", () => tryTuning(false));
+$("btn-try-grab").addEventListener("click", () => tryTuning(true));
 $("btn-reload").addEventListener("click", () => commission("/api/reload"));
 
 async function loadRegisters() {
