@@ -325,6 +325,10 @@ class StatusConfig(Model):
     allowed_hosts: list[str] = Field(default_factory=list, max_length=64)
     allow_trigger: bool = False
     allow_support_bundle: bool = False
+    # Commissioning from the page (docs/web.md, "Reload, tuning and audit"): reload the config
+    # file, try vision parameters on the last job's images and save them to the config's
+    # include (all with the token).
+    allow_config_edit: bool = False
     history: int = Field(default=100, ge=1, le=10000)
     bundle_jobs: int = Field(default=5, ge=0, le=100)
     # Connections (docs/web.md, "Connections"): at most `max_connections` at once (ones that
@@ -361,7 +365,8 @@ class StatusConfig(Model):
             raise ValueError(
                 f"status.host = {self.host!r} is not a loopback address: set status.token "
                 f"(at least 16 characters) or bind status.host = \"127.0.0.1\"")
-        wanted = [k for k in ("allow_trigger", "allow_support_bundle") if getattr(self, k)]
+        wanted = [k for k in ("allow_trigger", "allow_support_bundle", "allow_config_edit")
+                  if getattr(self, k)]
         if self.token is None and wanted:
             raise ValueError(f"status.{wanted[0]} = true needs status.token (actions are "
                              f"accepted only from requests that carry it)")

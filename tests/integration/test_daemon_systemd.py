@@ -53,6 +53,7 @@ def test_unit_key_settings() -> None:
     for key, value in expected.items():
         assert s.get(key) == [value], f"{key}: {s.get(key)}"
     assert s["ExecStart"][0].endswith("vgripd run -c /etc/vgripd/vgripd.toml")
+    assert s["ExecReload"] == ["/bin/kill -HUP $MAINPID"]  # SIGHUP: reload without a restart
     assert "char-ttyS rw" in s["DeviceAllow"]
     # The exit code systemd must not restart on is the one the CLI uses for config errors.
     from vgripd.__main__ import EXIT_CONFIG

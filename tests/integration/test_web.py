@@ -114,7 +114,8 @@ async def test_live_view_api_events_images_metrics_and_actions(
         async with http.get(f"{base}/status") as resp:
             assert (await resp.json())["last_job"]["id"] == status["last_job"]["id"]
         assert status["last_job"]["status"] == "OK"
-        assert status["web"] == {"trigger": True, "support_bundle": True, "history": 100}
+        assert status["web"] == {"trigger": True, "support_bundle": True,
+                                 "config_edit": False, "history": 100}
         async with http.get(f"{base}/api/jobs") as resp:
             assert [j["id"] for j in await resp.json()] == [1]
 

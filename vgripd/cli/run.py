@@ -1,4 +1,5 @@
-"""Run the vgripd service until SIGTERM/SIGINT (what systemd starts)."""
+"""Run the vgripd service until SIGTERM/SIGINT (what systemd starts); SIGHUP reloads the config
+file (``systemctl reload vgripd``, ``vgripd.service.reload``)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from vgripd.config import load_config
 from vgripd.errors import ConfigError
 from vgripd.service.daemon import Daemon
 from vgripd.service.logsetup import configure_logging
+from vgripd.service.reload import Reloader
 
 DEFAULT_CONFIG = "/etc/vgripd/vgripd.toml"
 
@@ -20,15 +22,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 async def serve(daemon: Daemon) -> None:
-    """Serve until a signal; SIGTERM and SIGINT both stop cleanly (job aborted, links closed)."""
+    """Serve until a signal; SIGTERM and SIGINT both stop cleanly (job aborted, links closed);
+    SIGHUP reloads the config between jobs when the daemon knows its file (``reloader``)."""
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, daemon.request_stop)
+    reloader = daemon.reloader
+    if reloader is not None:
+        loop.add_signal_handler(signal.SIGHUP, reloader.request)
     try:
         await daemon.serve()
     finally:
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             loop.remove_signal_handler(sig)
+        if reloader is not None:
+            await reloader.close()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,5 +46,6 @@ def run(args: argparse.Namespace) -> int:
         daemon = Daemon(config)
     except ConfigError as err:  # a template file, driver options: name the file judged
         raise ConfigError(f"{args.config}: {err}") from None
+    daemon.reloader = Reloader(daemon, args.config)
     asyncio.run(serve(daemon))
     return 0

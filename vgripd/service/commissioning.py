@@ -76,6 +76,10 @@ def check_web(config: Config) -> list[Finding]:
         found.append(Finding("WARNING", "status.allow_trigger", "the web view's test trigger "
                              "is on: whoever holds status.token can start jobs from a browser "
                              "(BUSY for the PLC meanwhile); turn it off for production"))
+    if st.allow_config_edit:
+        found.append(Finding("NOTE", "status.allow_config_edit", "the web view can reload the "
+                             "config and save vision tuning to its include (with status.token); "
+                             "every change is logged and listed on the page"))
     if st.public_read and st.host != "localhost" and not _loopback(st.host):
         found.append(Finding("WARNING", "status.public_read", f"status.public_read = true on "
                              f"{st.host}: anyone who reaches the port sees the cell's images, "

@@ -65,6 +65,7 @@ from vgripd.service.links import LINK_CALL_TIMEOUT_S, LinkSupervisor
 from vgripd.service.protocol import RobotLink, Warnings
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.recorder import Recorder
+from vgripd.service.reload import Reloader
 from vgripd.service.sdnotify import Notifier, watchdog_interval_s
 from vgripd.service.status import StatusBoard
 from vgripd.service.tasks import Background
@@ -96,9 +97,9 @@ class RunState(enum.Enum):
 
 
 def _make_pipeline(config: Config) -> Processor:
-    from vgripd.vision.pipeline import Pipeline  # heavy (OpenCV); only the daemon needs it
+    from vgripd.vision.checked import CheckedPipeline  # heavy (OpenCV); only the daemon
 
-    pipeline: Processor = Pipeline(config)
+    pipeline: Processor = CheckedPipeline(config)
     return pipeline
 
 
@@ -162,6 +163,7 @@ class Daemon:
                                  changed=self._changed)
         self._status = StatusBoard(config, self._runner, self._links, self._cameras,
                                    self._worker)
+        self.reloader: Reloader | None = None  # set by whoever knows the config file (run)
         self._resource_log = RateLimitedLog(log, interval_s=10.0)
         self._opening: list[asyncio.Task[Any]] = []  # start(): camera and links, concurrently
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -179,6 +181,11 @@ class Daemon:
     @links.setter
     def links(self, links: dict[str, RobotLink]) -> None:  # tests stand a robot in
         self._links.links = links
+
+    @property
+    def worker(self) -> WorkerClient | None:
+        """The worker process's client (None when the pipeline runs in this process)."""
+        return self._worker
 
     @property
     def fd_budget(self) -> Budget | None:
@@ -402,6 +409,39 @@ class Daemon:
             self._loop.set_exception_handler(None)  # the loop may outlive this daemon
         self._set_run_state(RunState.STOPPED)
         log.info("stopped")
+
+    # --- a reloaded config (vgripd.service.reload) --------------------------------------
+
+    def idle(self) -> bool:
+        """No job runs and no several-view job waits for its next view."""
+        return self._runner.job is None and self.views is None
+
+    async def build_pipelines(self, config: Config) -> dict[int, Processor] | None:
+        """In-process pipelines of ``config`` built on the job thread (None when the worker
+        process runs them)."""
+        from vgripd.vision.pipeline import Pipeline  # heavy (OpenCV)
+
+        if self._worker is not None or not any(isinstance(p, Pipeline)
+                                               for p in self._runner.pipelines.values()):
+            return None
+        loop = asyncio.get_running_loop()
+        return {n: await loop.run_in_executor(self._runner._executor, _make_pipeline,
+                                              config.for_recipe(n))
+                for n in config.recipe_numbers()}
+
+    def use_config(self, config: Config, pipelines: dict[int, Processor] | None) -> None:
+        """Every room reads ``config`` from now on (called between jobs); recipe problems are
+        forgotten (the worker reports its own again)."""
+        self.config = config
+        for room in (self._links, self._cameras, self._runner, self._status):
+            room.config = config
+        self.recipe_problems.clear()
+        if pipelines is not None:
+            self._runner.pipelines = pipelines
+
+    def show_state(self) -> None:
+        """The status line and the waiters see the state again (after a reload)."""
+        self._runner._set_state(self.state)
 
     # --- waiting on state (for callers and tests) --------------------------------------
 

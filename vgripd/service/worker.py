@@ -106,7 +106,7 @@ from vgripd.types import CaptureView, ImagePair, JobResult
 log = logging.getLogger("vgripd.worker")
 
 #: The processor the worker builds from the config (``module:Class``, called with the Config).
-DEFAULT_PROCESSOR = "vgripd.vision.pipeline:Pipeline"
+DEFAULT_PROCESSOR = "vgripd.vision.checked:CheckedPipeline"
 #: Payload length (bytes) and request id; id 0 is the worker's "ready" message.
 HEADER = struct.Struct("!IQ")
 #: Spawn, imports, pipeline and recorder set-up; a worker not ready by then is killed.
@@ -285,6 +285,13 @@ class _Worker:
             raise NotCalibratedError(f"the worker has no calibrated pipeline for recipe {recipe}")
         return _wire_result(processor.process(self._pair(ref), job_id))
 
+    def reconfigure(self, config: Config, processor: str) -> list[int]:
+        """Rebuild every recipe's processor from ``config`` (a reload, ``vgripd.service.reload``);
+        the camera and the recorder stay. Returns the recipes that are not calibrated."""
+        self.processors = {n: _load_processor(processor, config.for_recipe(n))
+                           for n in config.recipe_numbers()}
+        return [n for n, p in self.processors.items() if p is None]
+
     def record(self, ref: Any, result: JobResult) -> bool:
         if self.recorder is None:
             return False
@@ -328,6 +335,7 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
         "camera_open": worker.open_camera, "camera_grab": worker.grab,
         "camera_put": worker.put, "camera_close": worker.close_camera,
         "process": worker.process, "record": worker.record,
+        "reconfigure": worker.reconfigure,
     }
 
     def answer(req_id: int, ok: bool, value: Any) -> None:
@@ -756,6 +764,15 @@ class WorkerClient:
         pair = _pair_of(segment.view_images(layout), fields)
         self._hold(gen, token, pair)
         return pair
+
+    async def reconfigure(self, config: Config) -> list[int]:
+        """Rebuild the worker's processors from ``config`` (camera and recorder stay); a worker
+        started later is built from it too. Requests sent after this one use the new
+        processors (the worker answers in order). Returns the recipes not calibrated."""
+        self.config = config
+        recipes: list[int] = await self.call("reconfigure", config, self.processor,
+                                             what="reconfigure")
+        return recipes
 
     def record(self, pair: ImagePair, result: JobResult) -> bool:
         """Queue ``pair`` and ``result`` for the worker's recorder; never waits."""

@@ -24,6 +24,9 @@ Routes (docs/web.md)::
     POST /api/trigger[?recipe=N]     test trigger      (status.allow_trigger + token)
     GET  /api/support-bundle         zip download      (status.allow_support_bundle + token)
     GET  /login, POST /login         the token form; sets the session cookie (guarded reads)
+    GET  /api/audit, GET|POST /api/tuning, POST /api/reload   commissioning (``commission``)
+    GET  /api/teach, POST /api/teach/{shot,clear,save}        teaching (``teaching``)
+    GET  /api/cameras, GET /api/cameras/{j}/preview.jpg       live cameras (``preview``)
 
 Security model (``access.Access``, docs/web.md): read-only by default and bound to 127.0.0.1;
 the config refuses a non-loopback bind without ``status.token``, and such a bind needs the
@@ -54,12 +57,15 @@ from vgripd.service.jobrecord import JobRecord
 from vgripd.service.recorder import PARTIAL_PREFIX, dict_from_result
 from vgripd.service.web.access import Access, ServerLogLimit
 from vgripd.service.web.bundle import write_bundle
+from vgripd.service.web.commission import CommissionRoutes
 from vgripd.service.web.daemonview import DaemonView
 from vgripd.service.web.guard import GuardedSite, make_guard
 from vgripd.service.web.images import ImageRenderer
 from vgripd.service.web.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from vgripd.service.web.metrics import Metrics
+from vgripd.service.web.preview import PreviewRoutes
 from vgripd.service.web.registers import register_views
+from vgripd.service.web.teaching import TeachRoutes
 from vgripd.service.web.trigger import WEB_LINK, WebTriggerLink
 from vgripd.types import ImagePair
 
@@ -351,6 +357,10 @@ class WebServer:
         r.add_get("/metrics", self._metrics)
         r.add_route("*", "/api/trigger", self._trigger)
         r.add_get("/api/support-bundle", self._bundle)
+        CommissionRoutes(self).add(r)
+        TeachRoutes(self).add(r)
+        self.previews = PreviewRoutes(self)
+        self.previews.add(r)
         r.add_static("/static/", STATIC)
         return app
 
@@ -363,6 +373,7 @@ class WebServer:
             return web.json_response({"error": "only GET /api/status"}, status=404)
         status = self.daemon.snapshot()
         status["web"] = {"trigger": self._allow_trigger, "support_bundle": self._allow_bundle,
+                         "config_edit": self.daemon.config.status.allow_config_edit,
                          "history": self.history.maxlen}
         return web.Response(text=json.dumps(redact(jsonable(status)), indent=1),
                             content_type="application/json")

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from vgripd.config import Config
-from vgripd.types import ImagePair, JobResult
+from vgripd.types import ImagePair, JobResult, Status
 
 log = logging.getLogger(__name__)
 
@@ -122,6 +122,20 @@ def _portable(pair: ImagePair | str, result: JobResult) -> tuple[Any, JobResult]
     return (pair.views, pair.T_base_flange), result
 
 
+def _with_candidates(pair: ImagePair, result: JobResult) -> JobResult:
+    """``result`` with every candidate's fate to draw: a failed job carries its diagnosis; for
+    a good one the finders run again here (in the helper) to say what they dropped and why,
+    as ``replay --annotate`` draws it. The job's own figures are kept."""
+    if result.diagnosis is not None or _pipeline is None or not result.status.pose_valid:
+        return result
+    try:
+        again = _pipeline.process_with_points(pair, result.job_id, diagnose=True)[0]
+    except Exception as err:  # the picture still shows the job without its candidates
+        log.info("web images: job %d: candidates not drawn: %r", result.job_id, err)
+        return result
+    return dataclasses.replace(result, diagnosis=again.diagnosis)
+
+
 def render(pair: ImagePair | str | tuple[Any, Any], result: JobResult,
            max_width: int = MAX_WIDTH_PX, quality: int = JPEG_QUALITY) -> list[bytes]:
     """JPEGs of the job drawn as ``replay --annotate`` draws it: left (and right for stereo),
@@ -130,7 +144,6 @@ def render(pair: ImagePair | str | tuple[Any, Any], result: JobResult,
     ``pair``: the images (an ``ImagePair`` or its ``views, T_base_flange``), or a recorded
     job's folder. Runs in the helper process (or anywhere in tests).
     """
-    import cv2
 
     if isinstance(pair, str):
         pair = _load_recorded(pair)
@@ -140,12 +153,20 @@ def render(pair: ImagePair | str | tuple[Any, Any], result: JobResult,
         from vgripd.vision.annotate import annotate
 
         try:
-            images = annotate(_pipeline, pair, result)
+            images = annotate(_pipeline, pair, _with_candidates(pair, result))
         except Exception as err:  # a drawing problem must not hide the images
             log.warning("web images: job %d: annotation failed: %r", result.job_id, err)
             images = _status_only(pair, result)
     else:
         images = _status_only(pair, result)
+    return _encode(images, max_width, quality)
+
+
+def _encode(images: list[np.ndarray], max_width: int = MAX_WIDTH_PX,
+            quality: int = JPEG_QUALITY) -> list[bytes]:
+    """Each BGR image downscaled to ``max_width`` and JPEG-encoded."""
+    import cv2
+
     out = []
     for img in images:
         h, w = img.shape[:2]
@@ -157,6 +178,70 @@ def render(pair: ImagePair | str | tuple[Any, Any], result: JobResult,
             raise RuntimeError("JPEG encoding failed")
         out.append(buf.tobytes())
     return out
+
+
+def render_trial(pair: tuple[Any, Any], config: Config) -> tuple[list[bytes], dict[str, Any]]:
+    """A tuning trial (docs/web.md, "Tuning"): the pipeline of ``config`` (the running one with
+    the page's edits) on a job's images, every candidate drawn with its fate; the JPEGs and
+    the outcome (status, message, likely causes with their keys, candidates by fate)."""
+    from collections import Counter
+
+    from vgripd.vision.annotate import annotate
+    from vgripd.vision.checked import CheckedPipeline
+
+    images_pair = ImagePair.of_views(pair[0], 0, T_base_flange=pair[1])
+    pipeline = CheckedPipeline(config)
+    result = pipeline.process_with_points(images_pair, 0, diagnose=True)[0]
+    d = result.diagnosis
+    outcome = {
+        "status": result.status.name, "message": result.message,
+        "causes": [] if d is None else [{"key": c.key, "reason": c.reason} for c in d.causes],
+        "candidates": [] if d is None else [
+            {"image": st.side, **Counter(c.reason for c in st.candidates)} for st in d.images],
+        "features_used": list(result.features_used),
+    }
+    return _encode(annotate(pipeline, images_pair, result)), outcome
+
+
+#: A preview pixel at or above this grey level counts as over-exposed (drawn red).
+SATURATED_LEVEL = 250
+
+
+def render_preview(views: Any) -> tuple[list[bytes], list[dict[str, Any]]]:
+    """Live camera pictures (docs/web.md, "Live cameras"): each image with its over-exposed
+    pixels red, the marks the finder sees circled, and per image its figures: share of
+    over-exposed pixels, focus (variance of the Laplacian on the full image: higher is
+    sharper; compare it while turning the focus ring), marks found. Runs in the helper."""
+    import cv2
+
+    out_images, figures = [], []
+    finders: list[Any] = []
+    if _pipeline is not None:
+        finders = list(_pipeline.finders) or [_pipeline.find_left, _pipeline.find_right]
+    for j, image in enumerate(views):
+        gray = np.asarray(image)
+        if gray.ndim == 3:
+            gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
+        bgr = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+        over = gray >= SATURATED_LEVEL
+        bgr[over] = (0, 0, 255)
+        focus = float(cv2.Laplacian(gray, cv2.CV_64F).var())
+        marks = 0
+        if j < len(finders) and finders[j] is not None:
+            try:
+                found = finders[j](gray)
+            except Exception:  # noqa: BLE001 - a preview never fails for its drawing
+                found = None
+            if found is not None:
+                marks = len(found.circles) + len(found.identified)
+                scale = max(1, bgr.shape[1] // 1200)
+                for x, y in list(found.circles) + list(found.identified.values()):
+                    cv2.circle(bgr, (int(round(x)), int(round(y))), 14 * scale, (0, 200, 0),
+                               2 * scale)
+        figures.append({"saturated_share": float(over.mean()), "focus": focus,
+                        "marks": marks})
+        out_images.append(bgr)
+    return _encode(out_images), figures
 
 
 class ImageRenderer:
@@ -219,6 +304,31 @@ class ImageRenderer:
             self._restart()
         else:
             log.warning("web images: rendering failed: %r", err)
+
+    async def call(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` in the helper process (a trial, a teaching shot; not cached)."""
+        loop = asyncio.get_running_loop()
+        try:
+            fut = self._executor().submit(fn, *args)
+        except BrokenProcessPool:
+            self._restart()
+            fut = self._executor().submit(fn, *args)
+        return await asyncio.wrap_future(fut, loop=loop)
+
+    async def trial(self, pair: ImagePair, config: Config
+                    ) -> tuple[list[bytes], dict[str, Any]]:
+        """``render_trial`` in the helper process (not cached)."""
+        out: tuple[list[bytes], dict[str, Any]] = await self.call(
+            render_trial, _portable(pair, JobResult(job_id=0, status=Status.OK))[0], config)
+        return out
+
+    def reconfigure(self, config: Config) -> None:
+        """Draw later jobs with ``config`` (a reload): a new helper builds its pipeline from it;
+        renders already queued finish on the old one."""
+        self._config = config
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=False)
 
     def _restart(self) -> None:
         pool, self._pool = self._pool, None

@@ -152,12 +152,30 @@ function drawTrend() {
   svg.replaceChildren(...parts);
 }
 
-// "recipe 2 plate-b (of 0 default, 1 plate-a, 2 plate-b)"; recipes not taught are marked.
+// The header names the active recipe among a few ("recipe 2 plate-b (of 0 default, 1 plate-a,
+// 2 plate-b)") and counts many ("recipe 2 plate-b (of 40 recipes; 1 NOT CALIBRATED)"), so any
+// number fits; the full list is under "Calibration and config" (and the header's tooltip).
+const HEADER_RECIPES = 4;
 function recipeText(r) {
   if (!r) return "";
-  const all = r.recipes.map((x) => `${x.number} ${x.name}${x.problem ? " (NOT CALIBRATED)" : ""}`);
   const active = r.active === null ? "recipe: none yet" : `recipe ${r.active} ${r.active_name}`;
-  return `${active} (of ${all.join(", ")})`;
+  if (r.recipes.length <= HEADER_RECIPES) {
+    const all = r.recipes.map((x) => `${x.number} ${x.name}${x.problem ? " (NOT CALIBRATED)" : ""}`);
+    return `${active} (of ${all.join(", ")})`;
+  }
+  const bad = r.recipes.filter((x) => x.problem).length;
+  return `${active} (of ${r.recipes.length} recipes${bad ? `; ${bad} NOT CALIBRATED` : ""})`;
+}
+
+function showRecipes(r) {
+  if (!r) return;
+  $("recipes-summary").textContent = `Recipes (${r.recipes.length})`;
+  $("recipes").replaceChildren(...r.recipes.map((x) => {
+    const li = document.createElement("li");
+    li.textContent = `${x.number} ${x.name}: ${x.object}` + (x.problem ? ` — NOT CALIBRATED: ${x.problem}` : "") +
+      (x.number === r.active ? " (active)" : "");
+    return li;
+  }));
 }
 
 function showStatus(s) {
@@ -165,6 +183,8 @@ function showStatus(s) {
   $("run-state").textContent = `pid ${s.pid}: ${s.run_state}, ${s.state}` +
     (s.calibrated ? "" : ", NOT CALIBRATED") + (s.healthy ? "" : `, UNHEALTHY: ${s.health_problem}`);
   $("recipe").textContent = recipeText(s.recipe);
+  $("recipe").title = (s.recipe?.recipes || []).map((x) => `${x.number} ${x.name}`).join(", ");
+  showRecipes(s.recipe);
   const rc = s.recalibrate;
   const warn = $("recalibrate");
   warn.hidden = !(rc && rc.warning);
@@ -194,7 +214,203 @@ function showStatus(s) {
   $("actions-on").hidden = !(web.trigger || web.support_bundle);
   $("btn-trigger").hidden = !web.trigger;
   $("btn-bundle").hidden = !web.support_bundle;
+  $("tuning-off").hidden = !!web.config_edit;
+  $("btn-save").hidden = $("btn-reload").hidden = $("btn-try").hidden = !web.config_edit;
+  $("btn-try-grab").hidden = !web.config_edit;
+  $("btn-shot").hidden = $("btn-teach-save").hidden = $("btn-teach-clear").hidden = !web.config_edit;
+  if (web.config_edit) { $("actions-off").hidden = true; $("actions-on").hidden = false; }
 }
+
+// --- live cameras: off until ticked; the daemon bounds the grabs whatever the pages ask -----
+let liveTimer = null;
+async function liveTick() {
+  const n = (lastStatus?.last_job && jobs[0]?.views?.length) || (jobs[0]?.stereo === false ? 1 : 2);
+  const box = $("live-images");
+  while (box.children.length < n) {
+    const img = document.createElement("img");
+    img.id = `live-${box.children.length}`;
+    img.alt = `camera ${box.children.length} live`;
+    box.append(img);
+  }
+  const stamp = Date.now();
+  [...box.children].forEach((img, j) => { img.src = `/api/cameras/${j}/preview.jpg?t=${stamp}`; });
+  try {
+    const c = await getJSON("/api/cameras");
+    $("live-figures").textContent = c.figures.map((f, j) => `camera ${j}: focus ${fmt(f.focus, 0)}, ` +
+      `over-exposed ${fmt(100 * f.saturated_share, 2)} %, marks seen ${f.marks}`).join("; ") +
+      (c.age_s !== null ? ` (picture ${fmt(c.age_s, 1)} s old)` : "");
+  } catch (err) { $("live-figures").textContent = err.message; }
+}
+$("live-on").addEventListener("change", () => {
+  clearInterval(liveTimer);
+  liveTimer = $("live-on").checked ? setInterval(liveTick, 500) : null;
+  if (liveTimer) liveTick();
+});
+
+// --- calibration health: files and the cell drawn from above and from the side -------------
+const SVGNS = "http://www.w3.org/2000/svg";
+function svgNode(tag, attrs, text) {
+  const n = document.createElementNS(SVGNS, tag);
+  for (const [k, v] of Object.entries(attrs)) n.setAttribute(k, v);
+  if (text !== undefined) n.textContent = text;
+  return n;
+}
+
+// Draw the cell projected on axes (a, b) of the base frame: 0 = x, 1 = y, 2 = z.
+function drawCell(svg, g, a, b) {
+  const pts = [];
+  for (const c of g.cameras) pts.push(c.position_mm);
+  if (g.reference) pts.push(g.reference.position_mm);
+  if (g.last) pts.push(g.last.position_mm);
+  pts.push([0, 0, 0]);  // the robot base
+  const W = 400, H = 300, M = 30;
+  const xs = pts.map((p) => p[a]), ys = pts.map((p) => p[b]);
+  const span = Math.max(Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys), 100) * 1.3;
+  const cx = (Math.max(...xs) + Math.min(...xs)) / 2, cy = (Math.max(...ys) + Math.min(...ys)) / 2;
+  const k = Math.min(W - 2 * M, H - 2 * M) / span;
+  const X = (p) => W / 2 + (p[a] - cx) * k, Y = (p) => H / 2 - (p[b] - cy) * k;
+  const parts = [svgNode("circle", { cx: X([0, 0, 0]), cy: Y([0, 0, 0]), r: 4, fill: "#888" }),
+    svgNode("text", { x: X([0, 0, 0]) + 6, y: Y([0, 0, 0]) + 4, "font-size": 10 }, "base")];
+  const reach = span * 0.25;
+  for (const c of g.cameras) {
+    const p = c.position_mm, ax = c.axis;
+    const tip = [0, 1, 2].map((i) => p[i] + ax[i] * reach);
+    const half = (c.fov_deg[0] * Math.PI) / 360;
+    const dx = tip[a] - p[a], dy = tip[b] - p[b];
+    const rot = (ang) => [p[a] + dx * Math.cos(ang) - dy * Math.sin(ang), p[b] + dx * Math.sin(ang) + dy * Math.cos(ang)];
+    const [l, r] = [rot(half), rot(-half)];
+    const L = [0, 0, 0], R = [0, 0, 0];
+    L[a] = l[0]; L[b] = l[1]; R[a] = r[0]; R[b] = r[1];
+    parts.push(svgNode("polygon", { points: `${X(p)},${Y(p)} ${X(L)},${Y(L)} ${X(R)},${Y(R)}`,
+      fill: "rgba(31,111,208,0.12)", stroke: "none" }));
+    parts.push(svgNode("line", { x1: X(p), y1: Y(p), x2: X(tip), y2: Y(tip), stroke: "#1f6fd0" }));
+    parts.push(svgNode("circle", { cx: X(p), cy: Y(p), r: 4, fill: "#1f6fd0", class: "cell-camera" }));
+    parts.push(svgNode("text", { x: X(p) + 6, y: Y(p) - 6, "font-size": 10 }, `${c.name} (${c.rig})`));
+  }
+  if (g.reference) {
+    const p = g.reference.position_mm;
+    parts.push(svgNode("rect", { x: X(p) - 5, y: Y(p) - 5, width: 10, height: 10, fill: "#070", class: "cell-reference" }));
+  }
+  if (g.last) {
+    const p = g.last.position_mm;
+    parts.push(svgNode("path", { d: `M${X(p) - 6},${Y(p)}h12M${X(p)},${Y(p) - 6}v12`, stroke: "#d07a1f", "stroke-width": 2 }));
+  }
+  svg.replaceChildren(...parts);
+}
+
+async function loadCalibration() {
+  const c = await getJSON("/api/calibration");
+  $("cal-files").tBodies[0].replaceChildren(...c.files.map((f) => cells([
+    f.file, f.sets.join(", "), f.modified || f.error || "",
+    Object.entries(f.about).map(([k, v]) => `${k} ${typeof v === "number" ? fmt(v, 3) : JSON.stringify(v)}`).join("; ")])));
+  drawCell($("cell-top"), c.geometry, 0, 1);
+  drawCell($("cell-side"), c.geometry, 0, 2);
+  if (c.geometry.note) $("cell-note").textContent += ` (${c.geometry.note})`;
+}
+
+// --- tuning, reload and the audit (docs/web.md, "Reload, tuning and audit") ---------------
+const TUNED = ["min_contrast", "min_circularity", "min_features", "epipolar_tolerance_px", "model_tolerance_mm"];
+
+async function loadTuning() {
+  const t = await getJSON("/api/tuning");
+  for (const k of TUNED) $(`t-${k}`).value = t.vision[k];
+  [$("t-wd-near").value, $("t-wd-far").value] = t.vision.working_distance_mm;
+  $("t-polarity").value = t.polarity || "";
+}
+
+async function loadAudit() {
+  const a = await getJSON("/api/audit");
+  $("audit").tBodies[0].replaceChildren(...a.entries.map((e) => cells([
+    e.time, e.source, e.applied ? e.message : `REFUSED: ${e.message}`, e.diff.join("\n")])));
+}
+
+function tuningEdit() {
+  const vision = {};
+  for (const k of TUNED) vision[k] = Number($(`t-${k}`).value);
+  vision.working_distance_mm = [Number($("t-wd-near").value), Number($("t-wd-far").value)];
+  const body = { vision };
+  if ($("t-polarity").value) body.polarity = $("t-polarity").value;
+  return body;
+}
+
+async function commission(url, body) {
+  $("tuning-result").textContent = "judging the config (as vgripd check does)…";
+  const headers = { Authorization: `Bearer ${$("token").value}`, "Content-Type": "application/json" };
+  try {
+    const resp = await fetch(url, { method: "POST", headers, body: body ? JSON.stringify(body) : undefined });
+    const text = await resp.text();
+    let out;
+    try { out = JSON.parse(text); } catch { out = { applied: false, message: `${resp.status} ${text}` }; }
+    $("tuning-result").textContent = (out.applied ? "APPLIED: " : "REFUSED: ") + out.message;
+    $("tuning-result").className = out.applied ? "status ok" : "status bad";
+  } catch (err) { $("tuning-result").textContent = err.message; }
+  await Promise.all([loadTuning(), loadAudit()]).catch(() => {});
+}
+
+$("btn-save").addEventListener("click", () => commission("/api/tuning", tuningEdit()));
+
+// Teaching: the shots' mean against the reference taught now, and the save.
+function teachText(t) {
+  if (!t.shots.length) return `recipe ${t.recipe}: no shots yet`;
+  const xyz = t.mean.translation_mm.map((v) => fmt(v, 2)).join(", ");
+  const from = t.from_taught_mm === null ? "nothing taught yet" :
+    `${fmt(t.from_taught_mm, 2)} mm / ${fmt(t.from_taught_deg, 3)} deg from the taught reference`;
+  return `recipe ${t.recipe}: ${t.shots.length} shot(s) (jobs ${t.shots.join(", ")}): mean at [${xyz}] mm, ` +
+    `spread ${fmt(t.spread_mm, 3)} mm / ${fmt(t.spread_deg, 4)} deg; ${from}`;
+}
+
+async function teachAction(url) {
+  const headers = { Authorization: `Bearer ${$("token").value}` };
+  try {
+    const resp = await fetch(url, { method: "POST", headers });
+    const text = await resp.text();
+    let t;
+    try { t = JSON.parse(text); } catch { $("teach-result").textContent = `${resp.status} ${text}`; return; }
+    if ("applied" in t) {
+      $("teach-result").textContent = (t.applied ? "SAVED: " : "REFUSED: ") + t.message;
+    } else {
+      $("teach-result").textContent = (t.refused ? `REFUSED: ${t.refused}; ` : "") + teachText(t);
+    }
+  } catch (err) { $("teach-result").textContent = err.message; }
+  loadAudit().catch(() => {});
+}
+$("btn-shot").addEventListener("click", () => teachAction("/api/teach/shot"));
+$("btn-teach-save").addEventListener("click", () => teachAction("/api/teach/save"));
+$("btn-teach-clear").addEventListener("click", () => teachAction("/api/teach/clear"));
+
+// A trial: the edited pipeline on the last job's images; every candidate drawn with its fate.
+async function tryTuning(grab) {
+  $("trial-result").textContent = "running the pipeline with these values…";
+  const headers = { Authorization: `Bearer ${$("token").value}`, "Content-Type": "application/json" };
+  try {
+    const body = { ...tuningEdit(), ...(grab ? { grab: true } : {}) };
+    const resp = await fetch("/api/tuning/try", { method: "POST", headers, body: JSON.stringify(body) });
+    const text = await resp.text();
+    let t;
+    try { t = JSON.parse(text); } catch { t = { status: null, message: `${resp.status} ${text}` }; }
+    if (!t.trial) { $("trial-result").textContent = `TRIAL REFUSED: ${t.message}`; return; }
+    const fates = t.candidates.map((c) => `${c.image}: ` + Object.entries(c).filter(([k]) => k !== "image")
+      .map(([k, v]) => `${v} ${k}`).join(", ")).join("; ");
+    const on = t.job_id === null ? "a fresh grab" : `job ${t.job_id}`;
+    $("trial-result").textContent = `TRIAL ${t.trial} on ${on}: ${t.status} ${t.message}` +
+      (fates ? ` (candidates: ${fates})` : "");
+    $("trial-causes").replaceChildren(...t.causes.map((c) => {
+      const li = document.createElement("li");
+      li.textContent = `${c.key}: ${c.reason}`;
+      return li;
+    }));
+    $("trial-images").replaceChildren(...t.images.map((src, k) => {
+      const img = document.createElement("img");
+      img.src = src;
+      img.alt = `trial ${t.trial} camera ${k}`;
+      img.id = `trial-img-${k}`;
+      return img;
+    }));
+  } catch (err) { $("trial-result").textContent = err.message; }
+}
+$("btn-try").addEventListener("click", () => tryTuning(false));
+$("btn-try-grab").addEventListener("click", () => tryTuning(true));
+$("btn-reload").addEventListener("click", () => commission("/api/reload"));
 
 async function loadRegisters() {
   const views = await getJSON("/api/registers");
@@ -266,6 +482,7 @@ function connectEvents() {
     showJob(job);
     showHistory();
     refresh();
+    loadCalibration().catch(() => {});  // the last pose in the drawings
   });
   events.addEventListener("links", () => { refresh(); loadRegisters().catch(() => {}); });
 }
@@ -276,6 +493,9 @@ async function main() {
     await loadJobs();
     $("config-text").textContent = JSON.stringify(await getJSON("/api/config"), null, 2);
     await loadRegisters();
+    await loadTuning();
+    await loadAudit();
+    await loadCalibration();
   } catch (err) { console.error(err); }
   // The stream opens once the page has drawn what is there (a headless browser dumping the
   // page after a virtual-time budget sees it complete; the open event catches up anyway).

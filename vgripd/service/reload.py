@@ -1,0 +1,245 @@
+"""Reload the config without a restart (``systemctl reload vgripd``: SIGHUP; the web view's
+reload and tuning save), and the audit of every change (docs/web.md, "Reload and audit").
+
+A reload:
+
+1. judges the config file in full, as ``vgripd check --running`` does (fields, drivers, every
+   recipe calibrated and taught, the scene, the replay samples), in a child process so that the
+   daemon's event loop keeps answering the PLC while the pipelines are built and run;
+2. refused: the running config stays, the reason goes to the log and to the page
+   (``Outcome.message``), and the audit lists it;
+3. accepted: the change is applied *between jobs* (it waits until no job runs and no several-view
+   job waits for a view): the daemon's config, its recipes on every link, the RECALIBRATE
+   threshold and the pipelines (rebuilt in the worker process, which keeps its camera; in the
+   daemon when ``daemon.worker = false``). PLC and robot connections are not touched.
+
+What only a restart can change: the camera (``camera``), the links (``links``: ports,
+addresses, drivers), the web view (``status``), the recorder (``record``) and the service
+(``daemon``). A reload keeps those sections as they run and names each changed key as needing a
+restart (``Outcome.restart``); the rest is applied.
+
+Every reload, applied or refused, is one audit entry: wall time, who asked (``SIGHUP`` or the web
+client's address), the outcome and a diff of the effective config (secrets redacted), logged as
+one line each and listed on the page (``GET /api/audit``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import os
+import sys
+import time
+from collections import deque
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from vgripd.config import Config, config_from_dict, load_config
+from vgripd.errors import ConfigError
+from vgripd.redaction import redact
+from vgripd.service.worker import WorkerError
+
+log = logging.getLogger("vgripd.reload")
+
+#: Sections a reload cannot apply: their objects (camera driver, link servers and clients, the
+#: web server, the recorder, the job machinery) are built once at start.
+RESTART_SECTIONS = ("camera", "links", "status", "record", "daemon")
+#: ``vgripd check`` in the child process gets this long (it builds and runs every pipeline).
+CHECK_TIMEOUT_S = 300.0
+#: A reload waits this long for the running job (or several-view job) to end.
+IDLE_TIMEOUT_S = 3600.0
+#: Audit entries kept for the page (the log keeps them all).
+AUDIT_KEEP = 200
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """One reload: ``applied`` or refused (``message`` says why), the effective-config ``diff``
+    (``key: old -> new``), and the changed keys that need a restart."""
+
+    applied: bool
+    message: str
+    diff: tuple[str, ...] = ()
+    restart: tuple[str, ...] = ()
+    source: str = ""
+    t_wall: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"applied": self.applied, "message": self.message, "diff": list(self.diff),
+                "restart": list(self.restart), "source": self.source,
+                "time": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(self.t_wall))}
+
+
+def _flat(data: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    if isinstance(data, Mapping):
+        for key, value in data.items():
+            yield from _flat(value, f"{prefix}{key}.")
+    elif isinstance(data, list | tuple) and data and all(isinstance(v, Mapping) for v in data):
+        for i, value in enumerate(data):
+            yield from _flat(value, f"{prefix}{i}.")
+    else:
+        yield prefix.rstrip("."), data
+
+
+def _dump(config: Config) -> dict[str, Any]:
+    data: dict[str, Any] = config.model_dump(mode="json", exclude_none=True)
+    return data
+
+
+def config_diff(old: Config, new: Config) -> list[str]:
+    """The effective configs' differences, one ``key: old -> new`` line per leaf (secrets
+    redacted; ``(unset)`` for a key one side does not have)."""
+    a, b = dict(_flat(redact(_dump(old)))), dict(_flat(redact(_dump(new))))
+    lines = []
+    for key in sorted(a.keys() | b.keys()):
+        if a.get(key, ...) != b.get(key, ...):
+            before = "(unset)" if key not in a else repr(a[key])
+            after = "(unset)" if key not in b else repr(b[key])
+            lines.append(f"{key}: {before} -> {after}")
+    return lines
+
+
+def restart_keys(old: Config, new: Config) -> list[str]:
+    """The changed keys a reload cannot apply (``RESTART_SECTIONS``)."""
+    a, b = _dump(old), _dump(new)
+    keys: list[str] = []
+    for section in RESTART_SECTIONS:
+        if a.get(section) != b.get(section):
+            fa = dict(_flat(a.get(section, {}), f"{section}."))
+            fb = dict(_flat(b.get(section, {}), f"{section}."))
+            keys += sorted(k for k in fa.keys() | fb.keys() if fa.get(k, ...) != fb.get(k, ...))
+    return keys
+
+
+def applicable(old: Config, new: Config) -> Config:
+    """``new`` with the sections only a restart can change kept as they run (``old``)."""
+    a, b = _dump(old), _dump(new)
+    kept = {s: a[s] for s in RESTART_SECTIONS if a.get(s) != b.get(s) and s in a}
+    if not kept and all(s in b or s not in a for s in RESTART_SECTIONS):
+        return new
+    merged = {**b, **kept}
+    for s in RESTART_SECTIONS:
+        if s not in a:
+            merged.pop(s, None)
+    return config_from_dict(merged, "<reloaded config, restart sections as running>")
+
+
+async def check_file(path: str | Path, timeout_s: float = CHECK_TIMEOUT_S) -> str:
+    """Judge ``path`` as ``vgripd check --running`` does, in a child process: "" when it
+    passes, else its error lines."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "vgripd", "check", "--running", "-c", str(path),
+        stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.STDOUT, env=dict(os.environ))
+    try:
+        async with asyncio.timeout(timeout_s):
+            out, _ = await proc.communicate()
+    except BaseException:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+        raise
+    if proc.returncode == 0:
+        return ""
+    text = out.decode(errors="replace").strip()
+    lines = [line for line in text.splitlines()
+             if line.strip() and not line.lower().startswith(("warning:", "note:"))]
+    return "\n".join(lines[-20:]) or f"vgripd check exited with {proc.returncode}"
+
+
+class Reloader:
+    """Reloads ``path`` into ``daemon`` (a ``vgripd.service.daemon.Daemon``, typed loosely so
+    that this module does not import the daemon), one reload at a time, and keeps the audit."""
+
+    def __init__(self, daemon: Any, path: str | Path) -> None:
+        self.daemon = daemon
+        self.path = Path(path)
+        self.audit: deque[Outcome] = deque(maxlen=AUDIT_KEEP)
+        self.last: Outcome | None = None
+        self._lock = asyncio.Lock()
+        self._tasks: set[asyncio.Task[Outcome]] = set()
+
+    @property
+    def running(self) -> bool:
+        return self._lock.locked()
+
+    def request(self, source: str = "SIGHUP") -> None:
+        """Reload in the background (a signal handler calls this)."""
+        task = asyncio.ensure_future(self.reload(source))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def close(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+
+    async def reload(self, source: str = "SIGHUP", note: str = "") -> Outcome:
+        """Judge and apply the config file; the running config stays when it is refused."""
+        async with self._lock:
+            log.info("config reload (%s): judging %s", source, self.path)
+            try:
+                problem = await check_file(self.path)
+                if problem:
+                    raise ConfigError(problem)
+                new = load_config(self.path)
+                old = self.daemon.config
+                restart = restart_keys(old, new)
+                target = applicable(old, new)
+            except ConfigError as err:
+                return self._audit(Outcome(False, f"refused, the running config stays: {err}",
+                                           source=source, t_wall=time.time()), note)
+            diff = config_diff(old, target)
+            if not diff and not restart:
+                return self._audit(Outcome(True, "no change", source=source,
+                                           t_wall=time.time()), note)
+            try:
+                await self._apply(target)
+            except Exception as err:  # the worker could not build them: it is replaced
+                log.exception("config reload: applying failed")
+                return self._audit(Outcome(False, f"applying failed: {err}", tuple(diff),
+                                           tuple(restart), source, time.time()), note)
+            message = "applied" if diff else "nothing applied"
+            if restart:
+                message += f"; needs a restart (systemctl restart vgripd): {', '.join(restart)}"
+            return self._audit(Outcome(True, message, tuple(diff), tuple(restart), source,
+                                       time.time()), note)
+
+    def _audit(self, outcome: Outcome, note: str = "") -> Outcome:
+        self.audit.appendleft(outcome)
+        self.last = outcome
+        what = f" ({note})" if note else ""
+        changes = "; ".join(outcome.diff) or "no change"
+        if outcome.applied:
+            log.info("config reload (%s)%s: %s: %s", outcome.source, what, outcome.message,
+                     changes)
+        else:
+            log.error("config reload (%s)%s: %s", outcome.source, what, outcome.message)
+        return outcome
+
+    async def _apply(self, config: Config) -> None:
+        """Swap ``config`` in between jobs: no job running, no several-view job waiting."""
+        d = self.daemon
+        pipelines = await d.build_pipelines(config)  # in-process ones, on the job thread
+        await d.wait_for(d.idle, IDLE_TIMEOUT_S)
+        # From here to the worker's request nothing awaits: no job starts in between, and a
+        # job started later sends its requests after the reconfigure, which the worker answers
+        # first (one request at a time, in order).
+        d.use_config(config, pipelines)
+        recipes = {n: config.recipe_name(n) for n in config.recipe_numbers()}
+        for link in d.links.values():
+            link.set_recipes(recipes)
+        d.epipolar.threshold_px = config.vision.epipolar_warn_px
+        worker = d.worker
+        if worker is not None:
+            try:
+                for n in await worker.reconfigure(config):
+                    d.recipe_problems[n] = "not calibrated after the reload"
+            except WorkerError as err:  # it died: the next worker is built from ``config``
+                log.warning("config reload: the worker process did not rebuild its pipelines "
+                            "(%s); the worker started next is built from the new config", err)
+        if d.status_server is not None:  # the web view draws later jobs with it
+            d.status_server.images.reconfigure(config)
+        d.show_state()

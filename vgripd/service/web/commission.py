@@ -1,0 +1,294 @@
+"""Commissioning routes of the web view (docs/web.md, "Reload, tuning and audit").
+
+::
+
+    GET  /api/audit                  every reload and save, newest first (time, who, diff)
+    GET  /api/tuning                 the vision parameters the page edits, as they run
+    GET  /api/calibration            calibration health: files, [about], cell geometry (``health``)
+    POST /api/reload                 reload the config file       (status.allow_config_edit + token)
+    POST /api/tuning                 save parameters to the include, then reload (same)
+    POST /api/tuning/try             run the edited pipeline on the last job's images, or a
+                                     fresh grab between jobs ({"grab": true}) (same):
+                                     status, likely causes, candidates by fate, picture URLs
+    GET  /api/tuning/trial/{n}/{k}.jpg  trial n's picture of camera k (0 left, 1 right)
+
+A save writes the include file that holds ``[object]`` (the config's own ``include = [...]``):
+its ``[vision]`` keys and the circle marks' ``polarity``. The file before is kept as a numbered
+backup (``cell.toml.1``, ``.2`` ...), the reload judges the result as ``vgripd check`` does, and
+a refused result puts the file back as it was: the running config and the file on disk stay.
+Both routes answer the reload's outcome (``vgripd.service.reload.Outcome``); 422 when refused.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from vgripd.config import Config, config_from_dict, read_config_data
+from vgripd.errors import ConfigError
+from vgripd.serialize import toml_from_dict
+from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.web.health import calibration_files, cell_geometry
+
+log = logging.getLogger(__name__)
+
+#: The ``[vision]`` keys the page edits, with their types.
+TUNABLE: dict[str, type] = {
+    "working_distance_mm": list, "min_contrast": float, "min_circularity": float,
+    "template_min_score": float, "epipolar_tolerance_px": float, "model_tolerance_mm": float,
+    "min_features": int, "max_fit_rms_mm": float, "max_reprojection_px": float,
+    "downscale": int,
+}
+POLARITIES = ("dark", "bright")
+#: Numbered backups kept per include file (the oldest beyond are removed).
+MAX_BACKUPS = 50
+
+
+class TuningError(ConfigError):
+    """A save that cannot be written (no include holds ``[object]``, a key set elsewhere)."""
+
+
+def tuning_target(config_path: Path) -> Path:
+    """The include file a save writes: the one that sets ``object.features``."""
+    owner: dict[str, str] = {}
+    read_config_data(config_path, owner)
+    where = owner.get("object.features")
+    if where is None or Path(where) == config_path:
+        raise TuningError(
+            f"{config_path}: object.features is set in the main config file (or not at all): "
+            f"the page saves only to an included file; move [vision] and [object] into a file "
+            f"of their own and list it in include = [...]")
+    return Path(where)
+
+
+def edited(text: str, vision: dict[str, Any], polarity: str | None) -> str:
+    """The include file's new text: ``vision`` keys set, every circle mark's polarity."""
+    data = tomllib.loads(text)
+    if vision:
+        data.setdefault("vision", {}).update(vision)
+    if polarity is not None:
+        for feature in data.get("object", {}).get("features", []):
+            if feature.get("kind") == "circle":
+                feature["polarity"] = polarity
+    return toml_from_dict(data)
+
+
+def parse_edit(body: Any) -> tuple[dict[str, Any], str | None]:
+    """The request's ``{"vision": {...}, "polarity": "dark"|"bright"}``, checked for shape (the
+    values are judged by the reload, as any config)."""
+    if not isinstance(body, dict) or set(body) - {"vision", "polarity", "grab"}:
+        raise web.HTTPBadRequest(text='a JSON object {"vision": {...}, "polarity": ...}')
+    vision = body.get("vision") or {}
+    if not isinstance(vision, dict):
+        raise web.HTTPBadRequest(text="vision: an object of [vision] keys")
+    for key, value in vision.items():
+        kind = TUNABLE.get(key)
+        if kind is None:
+            raise web.HTTPBadRequest(text=f"vision.{key}: not editable from the page "
+                                          f"(editable: {', '.join(TUNABLE)})")
+        ok = (isinstance(value, list) and len(value) == 2 and all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+            if kind is list else isinstance(value, int | float) and not isinstance(value, bool))
+        if not ok:
+            raise web.HTTPBadRequest(text=f"vision.{key}: {value!r} is not a "
+                                          f"{'[near, far] pair' if kind is list else 'number'}")
+    polarity = body.get("polarity")
+    if polarity is not None and polarity not in POLARITIES:
+        raise web.HTTPBadRequest(text=f"polarity: {polarity!r}, not one of {POLARITIES}")
+    return vision, polarity
+
+
+def next_backup(path: Path) -> Path:
+    numbers = [int(p.suffix[1:]) for p in path.parent.glob(path.name + ".*")
+               if p.suffix[1:].isdigit()]
+    return path.with_name(f"{path.name}.{max(numbers, default=0) + 1}")
+
+
+def _write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _prune(path: Path) -> None:
+    backups = sorted((p for p in path.parent.glob(path.name + ".*") if p.suffix[1:].isdigit()),
+                     key=lambda p: int(p.suffix[1:]))
+    for old in backups[:-MAX_BACKUPS]:
+        old.unlink(missing_ok=True)
+
+
+async def save_tuning(reloader: Reloader, vision: dict[str, Any], polarity: str | None,
+                      source: str) -> Outcome:
+    """Write the edit to the include (numbered backup first), reload; put the file back when
+    the reload refuses it."""
+    try:
+        target = tuning_target(reloader.path)
+        before = target.read_text(encoding="utf-8")
+        after = edited(before, vision, polarity)
+    except (ConfigError, OSError, tomllib.TOMLDecodeError) as err:
+        outcome = Outcome(False, f"refused, nothing written: {err}", source=source)
+        return reloader._audit(outcome, "tuning save")
+    backup = next_backup(target)
+    backup.write_text(before, encoding="utf-8")
+    _write(target, after)
+    log.info("web view: tuning saved to %s (backup %s) from %s", target, backup.name, source)
+    outcome = await reloader.reload(source, note=f"tuning save to {target.name}, backup "
+                                                 f"{backup.name}")
+    if not outcome.applied:
+        _write(target, before)
+        log.warning("web view: tuning refused, %s put back as it was", target)
+    _prune(target)
+    return outcome
+
+
+def edited_config(config: Config, vision: dict[str, Any], polarity: str | None) -> Config:
+    """The running config with the page's edits, validated as any config (``ConfigError``
+    naming the key)."""
+    data = config.model_dump(mode="json", exclude_none=True)
+    data["vision"].update(vision)
+    if polarity is not None:
+        for feature in data["object"]["features"]:
+            if feature.get("kind") == "circle":
+                feature["polarity"] = polarity
+    return config_from_dict(data, "the page's edit")
+
+
+def tuning_values(config: Any) -> dict[str, Any]:
+    """What the page's form shows: the running vision keys and the marks' polarity."""
+    v = config.vision
+    polarities = sorted({f.polarity for f in config.object.features if f.kind == "circle"})
+    return {"vision": {k: (list(getattr(v, k)) if TUNABLE[k] is list else getattr(v, k))
+                       for k in TUNABLE},
+            "polarity": polarities[0] if len(polarities) == 1 else None,
+            "polarities": polarities}
+
+
+class CommissionRoutes:
+    """The routes above for one ``WebServer`` (``guard``: its 404/403 check of an action)."""
+
+    def __init__(self, server: Any) -> None:
+        self.server = server
+        self._saving = asyncio.Lock()  # one save (write, judge, maybe put back) at a time
+        self._trying = asyncio.Lock()  # one trial at a time (the image helper is one process)
+        self._trial: tuple[int, list[bytes]] = (0, [])
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.server.daemon.config.status.allow_config_edit)
+
+    def add(self, router: web.UrlDispatcher) -> None:
+        router.add_get("/api/audit", self.audit)
+        router.add_get("/api/tuning", self.tuning)
+        router.add_get("/api/calibration", self.calibration)
+        router.add_post("/api/reload", self.reload)
+        router.add_post("/api/tuning", self.save)
+        router.add_post("/api/tuning/try", self.trial)
+        router.add_get("/api/tuning/trial/{n:\\d+}/{k:\\d+}.jpg", self.trial_image)
+
+    def _reloader(self) -> Reloader:
+        reloader = self.server.daemon.reloader
+        if reloader is None:
+            raise web.HTTPNotFound(text="this daemon was not started from a config file")
+        assert isinstance(reloader, Reloader)
+        return reloader
+
+    async def audit(self, request: web.Request) -> web.Response:
+        reloader = self.server.daemon.reloader
+        entries = [] if reloader is None else [o.as_dict() for o in reloader.audit]
+        return web.json_response({"enabled": self.enabled, "reloading": bool(
+            reloader is not None and reloader.running), "entries": entries})
+
+    async def calibration(self, request: web.Request) -> web.Response:
+        daemon = self.server.daemon
+        reloader = daemon.reloader
+        last = None
+        for record, _ in reversed(self.server.history):
+            if record.result.T_base_obj is not None:
+                last = record.result.T_base_obj
+                break
+        return web.json_response({
+            "files": calibration_files(None if reloader is None else reloader.path),
+            "geometry": cell_geometry(daemon.config, last),
+            "recalibrate": daemon.epipolar.snapshot(time.monotonic_ns()),
+        })
+
+    async def tuning(self, request: web.Request) -> web.Response:
+        return web.json_response(tuning_values(self.server.daemon.config))
+
+    @staticmethod
+    def _answer(outcome: Outcome) -> web.Response:
+        return web.json_response(outcome.as_dict(), status=200 if outcome.applied else 422)
+
+    async def reload(self, request: web.Request) -> web.Response:
+        self.server._guard(request, self.enabled)
+        reloader = self._reloader()
+        return self._answer(await reloader.reload(f"web {request.remote}"))
+
+    async def save(self, request: web.Request) -> web.Response:
+        self.server._guard(request, self.enabled)
+        reloader = self._reloader()
+        try:
+            body = await request.json()
+        except ValueError:
+            raise web.HTTPBadRequest(text="the body must be JSON") from None
+        vision, polarity = parse_edit(body)
+        async with self._saving:
+            return self._answer(await save_tuning(reloader, vision, polarity,
+                                                  f"web {request.remote}"))
+
+    async def trial(self, request: web.Request) -> web.Response:
+        """The edited pipeline on the last job's images (in the image helper process, never on
+        the loop); nothing is saved or applied."""
+        self.server._guard(request, self.enabled)
+        try:
+            body = await request.json()
+        except ValueError:
+            raise web.HTTPBadRequest(text="the body must be JSON") from None
+        vision, polarity = parse_edit(body)
+        job_id: int | None
+        if body.get("grab"):  # a fresh picture, taken as a live preview is: between jobs only
+            pair = await self.server.previews.grab_between_jobs()
+            if pair is None:
+                raise web.HTTPConflict(text="a job runs (or the camera cannot grab): a fresh "
+                                            "grab is taken only between jobs; try again")
+            job_id = None
+        else:
+            last = self.server._last_pair
+            if last is None:
+                raise web.HTTPConflict(text="no job's images yet: trigger a job first")
+            job_id, pair = last
+        try:
+            config = edited_config(self.server.daemon.config, vision, polarity)
+        except ConfigError as err:
+            return web.json_response({"status": None, "message": f"refused: {err}"},
+                                     status=422)
+        async with self._trying:
+            try:
+                jpegs, outcome = await self.server.images.trial(pair, config)
+            except Exception as err:
+                raise web.HTTPInternalServerError(text=f"the trial failed: {err!r}") from None
+            n = self._trial[0] + 1
+            self._trial = (n, jpegs)
+        log.info("web view: tuning trial %d on %s from %s: %s", n,
+                 "a fresh grab" if job_id is None else f"job {job_id}", request.remote,
+                 outcome["status"])
+        return web.json_response({"trial": n, "job_id": job_id, **outcome, "images": [
+            f"/api/tuning/trial/{n}/{k}.jpg" for k in range(len(jpegs))]})
+
+    async def trial_image(self, request: web.Request) -> web.Response:
+        texts = request.match_info["n"], request.match_info["k"]
+        if any(len(t) > 9 for t in texts):
+            raise web.HTTPNotFound(text="no such trial")
+        n, k = int(texts[0]), int(texts[1])
+        current, jpegs = self._trial
+        if n != current or k >= len(jpegs):
+            raise web.HTTPNotFound(text="only the last trial's pictures are kept")
+        return web.Response(body=jpegs[k], content_type="image/jpeg",
+                            headers={"Cache-Control": "no-store"})

@@ -1,0 +1,200 @@
+"""Teaching the reference from the web view (docs/web.md, "Teaching"), the page's ``vgripd
+teach``:
+
+::
+
+    GET  /api/teach                  the shots so far, their mean against the taught reference
+    POST /api/teach/shot             measure the last job's images as one shot (token)
+    POST /api/teach/clear            drop the shots (token)
+    POST /api/teach/save             write the mean as the reference, then reload (token)
+
+Each shot is the last job's images measured as ``vgripd teach`` measures them
+(``teach.measure``: offset limits lifted, every feature needed), in the image helper process,
+never on the loop. Trigger a job (the PLC, or the page's test trigger) with the object where the
+robot grips it, add the shot, repeat; the page shows the mean pose, the shots' spread, and how
+far it lies from the reference taught now. Shots are kept per recipe (the job's); a shot of a
+job already measured is refused.
+
+Saving writes the ``[reference]`` section (for recipe N ``[recipes.N.reference]``) into the
+include file that holds it now (numbered backup first, as the tuning save), keeping its ``grip``;
+the reload judges it as ``vgripd check`` does; refused, the file is put back.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from aiohttp import web
+
+from vgripd.calib import teach
+from vgripd.config import Config, read_config_data
+from vgripd.errors import CalibrationError, ConfigError, VgripError
+from vgripd.geometry.transforms import pose_error
+from vgripd.serialize import toml_from_dict
+from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.web.commission import TuningError, _prune, _write, next_backup
+from vgripd.types import ImagePair
+
+log = logging.getLogger(__name__)
+
+#: Shots kept per recipe.
+MAX_SHOTS = 50
+
+
+def measure_shot(pair: tuple[Any, Any], config: Config) -> teach.Shot:
+    """One shot of ``pair`` (runs in the image helper); ``CalibrationError`` why not."""
+    images = ImagePair.of_views(pair[0], 0, T_base_flange=pair[1])
+    return teach.measure(config, [images]).shots[0]
+
+
+def reference_target(config_path: Path, recipe: int) -> Path:
+    """The include file that sets the reference of ``recipe`` now."""
+    prefix = "reference." if recipe == 0 else f"recipes.{recipe}.reference."
+    owner: dict[str, str] = {}
+    read_config_data(config_path, owner)
+    files = {src for key, src in owner.items() if key.startswith(prefix)}
+    if len(files) != 1 or Path(next(iter(files))) == config_path:
+        where = "the main config file" if files else "no file"
+        raise TuningError(
+            f"{config_path}: {prefix.rstrip('.')} is set in {where}: the page saves the "
+            f"reference only to the one included file that holds it (vgripd teach writes "
+            f"such a file)")
+    return Path(next(iter(files)))
+
+
+def with_reference(text: str, recipe: int, section: dict[str, Any]) -> str:
+    data = tomllib.loads(text)
+    holder = data if recipe == 0 else data.setdefault("recipes", {}).setdefault(str(recipe), {})
+    old = holder.get("reference", {})
+    kept = {k: v for k, v in old.items() if k not in ("T_base_obj", "points_mm")}
+    holder["reference"] = {**kept, **section["reference"]}
+    return toml_from_dict(data)
+
+
+class TeachRoutes:
+    """The routes above for one ``WebServer``."""
+
+    def __init__(self, server: Any) -> None:
+        self.server = server
+        self.shots: dict[int, list[tuple[int, teach.Shot]]] = {}
+        self._lock = asyncio.Lock()
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.server.daemon.config.status.allow_config_edit)
+
+    def add(self, router: web.UrlDispatcher) -> None:
+        router.add_get("/api/teach", self.show)
+        router.add_post("/api/teach/shot", self.shot)
+        router.add_post("/api/teach/clear", self.clear)
+        router.add_post("/api/teach/save", self.save)
+
+    def _summary(self, recipe: int) -> dict[str, Any]:
+        shots = self.shots.get(recipe, [])
+        out: dict[str, Any] = {"recipe": recipe, "shots": [j for j, _ in shots],
+                               "mean": None, "spread_mm": None, "spread_deg": None,
+                               "from_taught_mm": None, "from_taught_deg": None}
+        if not shots:
+            return out
+        taught = teach.average([s for _, s in shots])
+        T = taught.T_base_obj
+        out.update(mean={"translation_mm": T[:3, 3].tolist()},
+                   spread_mm=taught.spread_mm, spread_deg=taught.spread_deg)
+        try:
+            config = self.server.daemon.config.for_recipe(recipe)
+            from vgripd.vision.scene import T_base_obj_ref
+
+            mm, deg = pose_error(T_base_obj_ref(config), T)
+            out.update(from_taught_mm=mm, from_taught_deg=deg,
+                       taught={"translation_mm": T_base_obj_ref(config)[:3, 3].tolist()})
+        except VgripError:
+            out["taught"] = None  # nothing taught yet
+        return out
+
+    def _recipe(self, request: web.Request) -> int:
+        text = request.query.get("recipe")
+        if text is None:
+            last = self.server._last_pair
+            if last is None:
+                return 0
+            found = self.server._find(last[0])
+            return 0 if found is None else int(found[0].recipe)
+        if not text.isascii() or not text.isdigit() or len(text) > 5:
+            raise web.HTTPBadRequest(text=f"recipe={text!r}: a recipe number")
+        return int(text)
+
+    async def show(self, request: web.Request) -> web.Response:
+        return web.json_response(self._summary(self._recipe(request)))
+
+    async def shot(self, request: web.Request) -> web.Response:
+        self.server._guard(request, self.enabled)
+        last = self.server._last_pair
+        if last is None:
+            raise web.HTTPConflict(text="no job's images yet: trigger a job first")
+        job_id, pair = last
+        found = self.server._find(job_id)
+        recipe = 0 if found is None else int(found[0].recipe)
+        async with self._lock:
+            taken = self.shots.setdefault(recipe, [])
+            if any(j == job_id for j, _ in taken):
+                raise web.HTTPConflict(text=f"job {job_id} is already a shot: trigger a new job")
+            config = self.server.daemon.config.for_recipe(recipe)
+            try:
+                shot = await self.server.images.call(
+                    measure_shot, (pair.views, pair.T_base_flange), config)
+            except CalibrationError as err:
+                return web.json_response({**self._summary(recipe),
+                                          "refused": f"job {job_id}: {err}"}, status=422)
+            taken.append((job_id, shot))
+            del taken[:-MAX_SHOTS]
+        log.info("web view: teaching shot of job %d (recipe %d) from %s", job_id, recipe,
+                 request.remote)
+        return web.json_response(self._summary(recipe))
+
+    async def clear(self, request: web.Request) -> web.Response:
+        self.server._guard(request, self.enabled)
+        recipe = self._recipe(request)
+        self.shots.pop(recipe, None)
+        return web.json_response(self._summary(recipe))
+
+    async def save(self, request: web.Request) -> web.Response:
+        self.server._guard(request, self.enabled)
+        reloader = self.server.daemon.reloader
+        if not isinstance(reloader, Reloader):
+            raise web.HTTPNotFound(text="this daemon was not started from a config file")
+        recipe = self._recipe(request)
+        shots = self.shots.get(recipe, [])
+        if not shots:
+            raise web.HTTPConflict(text=f"no shots for recipe {recipe}: add one first")
+        source = f"web {request.remote}"
+        async with self._lock:
+            config = self.server.daemon.config.for_recipe(recipe)
+            taught = teach.average([s for _, s in shots])
+            section = teach.reference_sections(config, taught)
+            try:
+                target = reference_target(reloader.path, recipe)
+                before = target.read_text(encoding="utf-8")
+                after = with_reference(before, recipe, section)
+            except (ConfigError, OSError, tomllib.TOMLDecodeError) as err:
+                outcome = reloader._audit(Outcome(False, f"refused, nothing written: {err}",
+                                                  source=source), "teach save")
+                return web.json_response(outcome.as_dict(), status=422)
+            backup = next_backup(target)
+            backup.write_text(before, encoding="utf-8")
+            _write(target, after)
+            outcome = await reloader.reload(source, note=f"teach recipe {recipe} from "
+                                            f"{len(shots)} shot(s) to {target.name}, backup "
+                                            f"{backup.name}")
+            if not outcome.applied:
+                _write(target, before)
+            else:
+                self.shots.pop(recipe, None)
+            _prune(target)
+        return web.json_response({**outcome.as_dict(), "spread_mm": taught.spread_mm,
+                                  "T_base_obj": np.asarray(taught.T_base_obj).tolist()},
+                                 status=200 if outcome.applied else 422)
