@@ -183,8 +183,7 @@ class Daemon:
         self._links.links = links
 
     @property
-    def worker(self) -> WorkerClient | None:
-        """The worker process's client (None when the pipeline runs in this process)."""
+    def worker(self) -> WorkerClient | None:  # None: the pipeline runs in this process
         return self._worker
 
     @property
@@ -412,26 +411,9 @@ class Daemon:
 
     # --- a reloaded config (vgripd.service.reload) --------------------------------------
 
-    def idle(self) -> bool:
-        """No job runs and no several-view job waits for its next view."""
-        return self._runner.job is None and self.views is None
-
-    async def build_pipelines(self, config: Config) -> dict[int, Processor] | None:
-        """In-process pipelines of ``config`` built on the job thread (None when the worker
-        process runs them)."""
-        from vgripd.vision.pipeline import Pipeline  # heavy (OpenCV)
-
-        if self._worker is not None or not any(isinstance(p, Pipeline)
-                                               for p in self._runner.pipelines.values()):
-            return None
-        loop = asyncio.get_running_loop()
-        return {n: await loop.run_in_executor(self._runner._executor, _make_pipeline,
-                                              config.for_recipe(n))
-                for n in config.recipe_numbers()}
-
     def use_config(self, config: Config, pipelines: dict[int, Processor] | None) -> None:
-        """Every room reads ``config`` from now on (called between jobs); recipe problems are
-        forgotten (the worker reports its own again)."""
+        """Every room reads ``config`` from now on (between jobs; the worker reports its
+        recipe problems again)."""
         self.config = config
         for room in (self._links, self._cameras, self._runner, self._status):
             room.config = config
@@ -439,8 +421,7 @@ class Daemon:
         if pipelines is not None:
             self._runner.pipelines = pipelines
 
-    def show_state(self) -> None:
-        """The status line and the waiters see the state again (after a reload)."""
+    def show_state(self) -> None:  # the status line and the waiters see it (a reload)
         self._runner._set_state(self.state)
 
     # --- waiting on state (for callers and tests) --------------------------------------

@@ -222,8 +222,9 @@ class Reloader:
     async def _apply(self, config: Config) -> None:
         """Swap ``config`` in between jobs: no job running, no several-view job waiting."""
         d = self.daemon
-        pipelines = await d.build_pipelines(config)  # in-process ones, on the job thread
-        await d.wait_for(d.idle, IDLE_TIMEOUT_S)
+        runner = d._runner  # the job room: its pipelines, its job thread, its jobs
+        pipelines = await _in_process_pipelines(runner, config)
+        await d.wait_for(lambda: runner.job is None and runner.views is None, IDLE_TIMEOUT_S)
         # From here to the worker's request nothing awaits: no job starts in between, and a
         # job started later sends its requests after the reconfigure, which the worker answers
         # first (one request at a time, in order).
@@ -243,3 +244,17 @@ class Reloader:
         if d.status_server is not None:  # the web view draws later jobs with it
             d.status_server.images.reconfigure(config)
         d.show_state()
+
+
+async def _in_process_pipelines(runner: Any, config: Config) -> dict[int, Any] | None:
+    """The pipelines of ``config`` built on the job thread when the daemon runs them in its
+    own process; None when the worker process does (it rebuilds its own)."""
+    from vgripd.vision.checked import CheckedPipeline  # heavy (OpenCV)
+    from vgripd.vision.pipeline import Pipeline
+
+    if not any(isinstance(p, Pipeline) for p in runner.pipelines.values()):
+        return None
+    loop = asyncio.get_running_loop()
+    return {n: await loop.run_in_executor(runner._executor, CheckedPipeline,
+                                          config.for_recipe(n))
+            for n in config.recipe_numbers()}

@@ -770,9 +770,7 @@ class WorkerClient:
         started later is built from it too. Requests sent after this one use the new
         processors (the worker answers in order). Returns the recipes not calibrated."""
         self.config = config
-        recipes: list[int] = await self.call("reconfigure", config, self.processor,
-                                             what="reconfigure")
-        return recipes
+        return list(await self.call("reconfigure", config, self.processor, what="reconfigure"))
 
     def record(self, pair: ImagePair, result: JobResult) -> bool:
         """Queue ``pair`` and ``result`` for the worker's recorder; never waits."""
