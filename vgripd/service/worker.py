@@ -107,7 +107,8 @@ TERM_GRACE_S = 5
 RESTART_BACKOFF_S = (1.0, 60.0)
 #: The worker's niceness above the daemon's: when they compete for a core, the daemon's event
 #: loop (answering a PLC) wins at once; alone on the machine the worker still gets all of it.
-WORKER_NICE = 5
+#: The unit starts the daemon at nice -10 (systemd/vgripd.service), which puts the worker at 5.
+WORKER_NICE = 15
 #: Image offsets in the segment are aligned to this (bytes).
 ALIGN = 64
 SHM_DIR = Path("/dev/shm")
@@ -340,6 +341,7 @@ class _Worker:
         # One processor per recipe (config.recipes), so a recipe switch costs nothing.
         self.processors = {n: _load_processor(processor, config.for_recipe(n))
                            for n in config.recipe_numbers()}
+        self.warmed = self._warm_up()
         self.recorder: Recorder | None = None
         rec = config.record
         if rec.enabled:
@@ -349,6 +351,22 @@ class _Worker:
         self.segment: shared_memory.SharedMemory | None = None
         self.held: tuple[int, ImagePair] | None = None
         self._tokens = itertools.count(1)
+
+    def _warm_up(self) -> dict[int, float]:
+        """Run each recipe's processor once (``warm_up()``, e.g. ``Pipeline.warm_up``) before
+        the worker reports ready, so the first real job costs what the tenth does; the results
+        are dropped. Recipe number -> milliseconds it took."""
+        warmed: dict[int, float] = {}
+        for number, processor in self.processors.items():
+            warm = getattr(processor, "warm_up", None)
+            if warm is None:
+                continue
+            t0 = time.perf_counter()
+            warm()
+            warmed[number] = round((time.perf_counter() - t0) * 1e3, 1)
+        if warmed:
+            log.info("worker: pipelines warmed up before ready (recipe: ms) %s", warmed)
+        return warmed
 
     # segments: one attached at a time, the one the daemon names in the request
     def _buf(self, name: str) -> memoryview:
@@ -485,7 +503,7 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
         sock.sendall(_frame(req_id, payload))
 
     try:
-        answer(0, True, os.getpid())  # ready
+        answer(0, True, {"pid": os.getpid(), "warmed": worker.warmed})  # ready
         while True:
             head = _recv_exact(sock, HEADER.size)
             if head is None:
@@ -531,7 +549,7 @@ class _Generation:
     pid: int
     reader: asyncio.StreamReader
     writer: asyncio.StreamWriter
-    ready: asyncio.Future[None]
+    ready: asyncio.Future[Any]  # the worker's ready answer: pid and warmed recipes
     pending: dict[int, asyncio.Future[Any]] = dataclasses.field(default_factory=dict)
     reader_task: asyncio.Task[None] | None = None
     killed_because: str = ""
@@ -933,8 +951,11 @@ class WorkerClient:
 
     def snapshot(self) -> dict[str, Any]:
         gen = self._gen
+        ready = gen is not None and gen.is_ready()
         return {"pid": None if gen is None else gen.pid,
-                "ready": gen is not None and gen.is_ready(),
+                "ready": ready,
+                # Recipe -> ms of its pipeline's warm-up, done before the worker was ready.
+                "warmed": gen.ready.result()["warmed"] if gen is not None and ready else None,
                 "restarts": self.restarts, "last_exit": self.last_exit or None,
                 "shm": None if self._segment is None else self._segment.name}
 

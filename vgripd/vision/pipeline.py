@@ -143,6 +143,48 @@ class Pipeline:
         self.find_left.keep_all = self.many and self.rig is None
         self.find_right = _Finder(config, self.right.fx) if self.right is not None else None
 
+    def warm_up(self) -> JobResult:
+        """One job on a made-up acquisition, run before the first real one (the worker does
+        this for each recipe before it reports ready), so that the first real job does not pay
+        for first calls: OpenCV's buffers and thread pool, the finders, the stereo rig's tables,
+        matching, the pose fit. Mid-grey images of each camera's calibrated size; a fixed stereo
+        rig whose object is all circle marks sees them drawn where the taught reference puts
+        them (the whole chain runs); any other cell gets a dark and a bright disc per size the
+        finders look for. Its result is for the log only, never published. Never raises."""
+        models = self.multi.cameras if self.multi is not None else (
+            (self.left,) if self.right is None else (self.left, self.right))
+        views = [np.full((m.height or 1024, m.width or 1280), 128, np.uint8) for m in models]
+        try:
+            self._draw_reference(views)
+        except Exception:  # noqa: BLE001 - a cell it cannot draw gets the plain discs
+            for image in views:
+                h, w = image.shape
+                for k, spec in enumerate(self.find_left.specs):
+                    r = max(2, int(0.25 * (spec.min_diameter_px + spec.max_diameter_px)))
+                    y = min(h - r - 1, (k + 1) * (4 * r + 4))
+                    cv2.circle(image, (w // 3, y), r, 40, -1)
+                    cv2.circle(image, (2 * w // 3, y), r, 220, -1)
+        return self.process(ImagePair.of_views(views, t_mono_ns=time.monotonic_ns(),
+                                               source="warm-up"), 0)
+
+    def _draw_reference(self, views: list[npt.NDArray[np.uint8]]) -> None:
+        """The circle marks at the taught reference pose, drawn into a stereo pair (ValueError
+        for any other cell)."""
+        if (self.rig is None or self.multi is not None or self.fixed_T_base_camera is None
+                or not self.is_circle.all() or len(views) != 2):
+            raise ValueError("not a fixed stereo rig of circle marks")
+        T_left_obj = invert_transform(self.fixed_T_base_camera) @ self.T_base_obj_ref
+        polarity = [getattr(f, "polarity", "dark") for f in self.config.object.features]
+        for image, T in zip(views, (T_left_obj, self.rig.T_right_left @ T_left_obj),
+                            strict=True):
+            model = self.left if image is views[0] else self.right
+            assert model is not None
+            points = self.model @ T[:3, :3].T + T[:3, 3]
+            for (u, v), z, d, pol in zip(model.project(points), points[:, 2], self.diameters,
+                                         polarity, strict=True):
+                r = max(2, round(0.5 * model.fx * d / z))
+                cv2.circle(image, (round(u), round(v)), r, 40 if pol == "dark" else 220, -1)
+
     def T_base_camera(self, pair: ImagePair) -> FloatArray:
         """Pose of the left camera in the base frame when ``pair`` was taken (mm)."""
         if self.fixed_T_base_camera is not None:

@@ -353,3 +353,21 @@ def test_vision_and_limits_config_validation():
         make_config(vision={"epipolar_warn_px": 5.0, "epipolar_tolerance_px": 2.0})
     with pytest.raises(ConfigError, match="vision.min_features"):
         make_config(vision={"min_features": 2})
+
+
+def test_warm_up_runs_the_whole_chain_and_builds_the_lazy_tables() -> None:
+    """``Pipeline.warm_up`` (run by the worker before it reports ready): on the demo cell it
+    draws the marks at the taught reference and locates them, so the stereo rig's per-count
+    table that the first job would otherwise build is there before any job."""
+    pipeline = Pipeline(Config())
+    assert pipeline.rig is not None
+    assert not pipeline.rig._pair_cache
+    result = pipeline.warm_up()
+    assert result.status == Status.OK, result.message
+    assert len(pipeline.model) in pipeline.rig._pair_cache
+
+
+def test_warm_up_of_a_cell_it_cannot_draw_still_ends_with_a_status() -> None:
+    config = config_from_dict({"camera": {"type": "synthetic"}, "picking": {"max_objects": 4}})
+    result = Pipeline(config).warm_up()  # discs only; no pose, but never an exception
+    assert result.status != Status.INTERNAL, result.message
