@@ -95,6 +95,7 @@ from vgripd.config import Config, unknown_recipe
 from vgripd.errors import CameraError, ConfigError, LinkError, NotCalibratedError
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
 from vgripd.service.gate import WEB_SURFACE, Budget, Gate, file_limit, open_files, plan_budget
+from vgripd.service.heap import freeze_start_up_heap
 from vgripd.service.jobcore import (
     Admit,
     JobCore,
@@ -285,6 +286,7 @@ class Daemon:
         self.active_recipe: int | None = None
 
         self.run_state = RunState.CREATED
+        self.freeze_heap_at_ready = False  # `vgripd run` sets it (a process of its own)
         self.state = JobState.IDLE
         self.listeners: list[JobListener] = []
         self.notifier = Notifier(self._env)
@@ -382,6 +384,8 @@ class Daemon:
             await self._shutdown()
             raise
         self._set_run_state(RunState.RUNNING)
+        if self.freeze_heap_at_ready:  # vgripd/service/heap.py: no 100 ms pass on a poll
+            log.debug("%d start-up objects frozen", freeze_start_up_heap())
         self.notifier.ready(self.status_line())
         log.info("ready: %s", self.status_line())
 
