@@ -362,7 +362,11 @@ class _Worker:
             if warm is None:
                 continue
             t0 = time.perf_counter()
-            warm()
+            try:
+                warm()
+            except Exception:  # a warm-up is an optimisation: it never keeps the worker down
+                log.exception("worker: warming up recipe %d failed (its jobs still run)", number)
+                continue
             warmed[number] = round((time.perf_counter() - t0) * 1e3, 1)
         if warmed:
             log.info("worker: pipelines warmed up before ready (recipe: ms) %s", warmed)
