@@ -469,9 +469,11 @@ class _Worker:
 def run_below_daemon(nice: int) -> None:
     """Make this helper process (image work) yield to the daemon's event loop: a real-time
     policy inherited from the daemon (systemd ``CPUSchedulingPolicy=``) is for its event loop
-    only, so drop to normal scheduling, then lower the priority by ``nice``."""
-    if os.sched_getscheduler(0) not in (os.SCHED_OTHER, os.SCHED_BATCH, os.SCHED_IDLE):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    only, so drop to ``SCHED_BATCH`` (normal time sharing for a CPU-bound task, which never
+    preempts a running task when it wakes; ``SCHED_IDLE`` is kept), then lower the priority by
+    ``nice``."""
+    if os.sched_getscheduler(0) != os.SCHED_IDLE:
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
     os.nice(nice)
 
 
