@@ -559,7 +559,7 @@ async def main(seconds: float, write: bool, realtime: bool) -> None:
         f"{worst / max(b):.2f}); after / peer beside the daemon p99 "
         f"{p99 / pct(peer['rtt_ms'], 99):.2f}. As shipped (normal scheduling): **{verdict}** "
         f"(p99 <= {TARGET_P99_MS:g} ms and max <= {TARGET_MAX_MS:g} ms). With the daemon under "
-        f"SCHED_FIFO (its worker drops to normal scheduling, nice +5): {fifo_text}.",
+        f"SCHED_FIFO (its worker drops to time sharing, SCHED_BATCH, nice +15): {fifo_text}.",
         "",
         f"Job cycle, after: {cycle_text(after)}.  ",
         f"Job cycle, before: {cycle_text(before)}.  ",
