@@ -37,6 +37,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import math
 import os
 import platform
 import signal
@@ -272,6 +273,135 @@ async def bench_peer_beside_daemon(folder: Path, seconds: float) -> dict[str, An
         await server.shutdown()
 
 
+# --- as the shipped unit runs it, against another checkout, interleaved ---------------------
+
+SHIPPED_SECTION = "## Modbus poll latency as the shipped unit runs it (issue 22)"
+
+
+def unit_nice(tree: Path) -> int:
+    """The ``Nice=`` of ``tree``'s systemd unit (0 when it sets none)."""
+    unit = (tree / "systemd" / "vgripd.service").read_text()
+    found = [int(line.split("=", 1)[1]) for line in unit.splitlines()
+             if line.startswith("Nice=")]
+    return found[-1] if found else 0
+
+
+def unit_weight_nice(tree: Path) -> int:
+    """The unit's ``CPUWeight=`` (default 100) as the niceness of a scheduler group of the same
+    weight relative to the others (each nice step is a factor 1.25): 400 -> -6."""
+    unit = (tree / "systemd" / "vgripd.service").read_text()
+    found = [int(line.split("=", 1)[1]) for line in unit.splitlines()
+             if line.startswith("CPUWeight=")]
+    return -round(math.log((found[-1] if found else 100) / 100) / math.log(1.25))
+
+
+def shipped_command(tree: Path, config: Path) -> list[str]:
+    """``vgripd run`` from the checkout ``tree`` as its unit would start it: at the absolute
+    niceness of its ``Nice=`` (absolute, so this bench's own ``nice`` does not shift it), in a
+    session of its own whose autogroup (the kernel's per-session scheduler group, which is
+    what keeps other sessions' work apart here as the unit's cgroup does under systemd) gets
+    the weight of its ``CPUWeight=``."""
+    code = (f"import os, sys; os.setsid(); "
+            f"open('/proc/self/autogroup', 'w').write('{unit_weight_nice(tree)}'); "
+            f"os.setpriority(os.PRIO_PROCESS, 0, {unit_nice(tree)}); "
+            f"sys.path.insert(0, {str(tree)!r}); "
+            "from vgripd.__main__ import main; sys.exit(main(sys.argv[1:]))")
+    return [sys.executable, "-c", code, "run", "-c", str(config)]
+
+
+async def shipped_daemon(folder: Path, tree: Path, seconds: float) -> dict[str, Any]:
+    daemon = DaemonProcess(folder, worker=True)
+    daemon.command = shipped_command(tree, daemon.config)
+    async with daemon:
+        got = await run_client(daemon.port, "cycle", seconds)
+        got["worker"] = (await daemon.status()).get("worker")
+    return got
+
+
+async def shipped_peer(folder: Path, tree: Path, seconds: float) -> dict[str, Any]:
+    """The plain pymodbus server polled beside ``tree``'s daemon as shipped running jobs."""
+    server, port = await static_server()
+    try:
+        daemon = DaemonProcess(folder, worker=True)
+        daemon.command = shipped_command(tree, daemon.config)
+        async with daemon:
+            driver = asyncio.create_task(run_client(daemon.port, "cycle", seconds + 4))
+            await asyncio.sleep(2)  # jobs are running
+            got = await run_client(port, "poll", seconds)
+            jobs = await driver
+        got["load_jobs"] = len(jobs["cycle_ms"])
+        return got
+    finally:
+        await server.shutdown()
+
+
+def merged(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    return {"rtt_ms": [x for r in runs for x in r["rtt_ms"]],
+            "cycle_ms": [x for r in runs for x in r["cycle_ms"]],
+            "load_jobs": sum(r.get("load_jobs", 0) for r in runs)}
+
+
+async def main_shipped(seconds: float, rounds: int, base: Path, write: bool) -> None:
+    """This tree and ``base`` each as its own unit runs it, and the plain pymodbus server
+    beside this tree's daemon, interleaved round by round so all see the same load."""
+    before_load = load_average()
+    runs: dict[str, list[dict[str, Any]]] = {"this": [], "base": [], "peer": []}
+    rounds_text = []
+    with tempfile.TemporaryDirectory(prefix="bench_poll-") as tmp:
+        for i in range(rounds):
+            for name, job in (("this", lambda f: shipped_daemon(f, REPO, seconds)),
+                              ("base", lambda f: shipped_daemon(f, base, seconds)),
+                              ("peer", lambda f: shipped_peer(f, REPO, seconds))):
+                got = await job(Path(tmp) / f"{name}{i}")
+                runs[name].append(got)
+                rtt = got["rtt_ms"]
+                rounds_text.append(f"{name} round {i + 1}: p99 {pct(rtt, 99):.2f} max "
+                                   f"{max(rtt):.2f} ms")
+                print(rounds_text[-1], flush=True)
+    after_load = load_average()
+    this, old, peer = merged(runs["this"]), merged(runs["base"]), merged(runs["peer"])
+    p99, worst = pct(this["rtt_ms"], 99), max(this["rtt_ms"])
+    met = p99 <= TARGET_P99_MS and worst <= TARGET_MAX_MS
+    lines = [
+        SHIPPED_SECTION,
+        "",
+        f"`.venv/bin/python bench/bench_poll.py --shipped BASE --rounds {rounds} --seconds "
+        f"{seconds:g} --write-results`, {time.strftime('%Y-%m-%d %H:%M')}, "
+        f"{platform.machine()}, {os.cpu_count()} cores shared with other helpers' work (load "
+        f"average {before_load} before, {after_load} after). Each daemon is `vgripd run` at the "
+        f"niceness its own unit sets, in a session of its own whose scheduler autogroup has the "
+        f"weight of the unit's CPUWeight= (this tree: Nice={unit_nice(REPO)}, CPUWeight as "
+        f"autogroup nice {unit_weight_nice(REPO)}, worker 15 below under SCHED_BATCH, start-up heap frozen; base: "
+        f"Nice={unit_nice(base)}, autogroup nice {unit_weight_nice(base)}, worker as that tree "
+        "sets it; "
+        "the other helpers' work runs in their own sessions), worker process, "
+        "synthetic stereo camera 1280x1024, Modbus/TCP server, recording on; jobs back to "
+        f"back from a PLC stand-in polling all {MAP_SIZE} registers at 100 Hz (SCHED_FIFO "
+        "when allowed). The three rows ran interleaved, "
+        f"{rounds} rounds of {seconds:g} s each, so they share the machine's load.",
+        "",
+        "| server | polls | median ms | p99 ms | max ms |",
+        "|---|---:|---:|---:|---:|",
+        row("vgripd, this tree as its unit runs it", this),
+        row("vgripd, base tree as its unit runs it", old),
+        row(f"pymodbus static, beside this tree's daemon running {peer['load_jobs']} jobs",
+            peer),
+        "",
+        "Per round: " + "; ".join(rounds_text) + ".",
+        "",
+        f"As shipped: p99 {p99:.2f} / max {worst:.2f} ms: **{'MET' if met else 'MISSED'}** "
+        f"(p99 <= {TARGET_P99_MS:g} ms and max <= {TARGET_MAX_MS:g} ms); base p99 "
+        f"{pct(old['rtt_ms'], 99):.2f} / max {max(old['rtt_ms']):.2f} ms. PLC trigger-to-result "
+        f"p50: this {statistics.median(this['cycle_ms']):.1f} ms, base "
+        f"{statistics.median(old['cycle_ms']):.1f} ms.",
+        "",
+    ]
+    text = "\n".join(lines)
+    print(text)
+    if write:
+        write_section(SHIPPED_SECTION, text)
+
+
 # --- the peer as this bench ran it before: the job in the server's own process ---------------
 
 async def static_server() -> tuple[Any, int]:
@@ -429,7 +559,7 @@ async def main(seconds: float, write: bool, realtime: bool) -> None:
         f"{worst / max(b):.2f}); after / peer beside the daemon p99 "
         f"{p99 / pct(peer['rtt_ms'], 99):.2f}. As shipped (normal scheduling): **{verdict}** "
         f"(p99 <= {TARGET_P99_MS:g} ms and max <= {TARGET_MAX_MS:g} ms). With the daemon under "
-        f"SCHED_FIFO (its worker drops to normal scheduling, nice +5): {fifo_text}.",
+        f"SCHED_FIFO (its worker drops to time sharing, SCHED_BATCH, nice +15): {fifo_text}.",
         "",
         f"Job cycle, after: {cycle_text(after)}.  ",
         f"Job cycle, before: {cycle_text(before)}.  ",
@@ -453,5 +583,14 @@ if __name__ == "__main__":
     parser.add_argument("--no-realtime-client", dest="realtime", action="store_false",
                         help="run the PLC stand-in at normal priority (default: SCHED_FIFO when "
                              "allowed)")
+    parser.add_argument("--shipped", type=Path, metavar="BASE",
+                        help="instead: this tree and the checkout BASE each as its systemd "
+                             "unit runs it, and the peer, interleaved")
+    parser.add_argument("--rounds", type=int, default=3, help="with --shipped")
     args = parser.parse_args()
-    asyncio.run(main(args.seconds, args.write_results, args.realtime))
+    if args.shipped is not None:
+        os.environ["BENCH_CLIENT_REALTIME"] = "1" if args.realtime else "0"
+        asyncio.run(main_shipped(args.seconds, args.rounds, args.shipped.resolve(),
+                                 args.write_results))
+    else:
+        asyncio.run(main(args.seconds, args.write_results, args.realtime))

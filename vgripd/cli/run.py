@@ -47,5 +47,7 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as err:  # a template file, driver options: name the file judged
         raise ConfigError(f"{args.config}: {err}") from None
     daemon.reloader = Reloader(daemon, args.config)
+    # The process is the daemon's alone: its start-up heap leaves the collector's walks.
+    daemon.freeze_heap_at_ready = True
     asyncio.run(serve(daemon))
     return 0

@@ -58,6 +58,7 @@ from vgripd.service.cameras import (
     watchdog,
 )
 from vgripd.service.gate import Budget
+from vgripd.service.heap import freeze_start_up_heap
 from vgripd.service.jobcore import JobCore, PickCursor
 from vgripd.service.jobrecord import EpipolarMonitor, JobListener, JobRecord
 from vgripd.service.jobs import JobRunner, JobState, Processor, ViewJob, recipe_label, scene_pose
@@ -153,6 +154,7 @@ class Daemon:
             pipelines = {}  # built above only to judge the config; the worker runs them
 
         self.run_state = RunState.CREATED
+        self.freeze_heap_at_ready = False  # `vgripd run` sets it (a process of its own)
         self.notifier = Notifier(self._env)
         self.status_server: WebServer | None = None  # the web view, /api/status, /metrics
         self._cameras = CameraSupervisor(config, camera, self._background,
@@ -328,6 +330,8 @@ class Daemon:
             await self._shutdown()
             raise
         self._set_run_state(RunState.RUNNING)
+        if self.freeze_heap_at_ready:  # vgripd/service/heap.py: no 100 ms pass on a poll
+            log.debug("%d start-up objects frozen", freeze_start_up_heap())
         self.notifier.ready(self.status_line())
         log.info("ready: %s", self.status_line())
 

@@ -122,7 +122,8 @@ TERM_GRACE_S = 5
 RESTART_BACKOFF_S = (1.0, 60.0)
 #: The worker's niceness above the daemon's: when they compete for a core, the daemon's event
 #: loop (answering a PLC) wins at once; alone on the machine the worker still gets all of it.
-WORKER_NICE = 5
+#: The unit starts the daemon at nice -10 (systemd/vgripd.service), which puts the worker at 5.
+WORKER_NICE = 15
 
 
 class Processor(Protocol):
@@ -195,6 +196,7 @@ class _Worker:
         # One processor per recipe (config.recipes), so a recipe switch costs nothing.
         self.processors = {n: _load_processor(processor, config.for_recipe(n))
                            for n in config.recipe_numbers()}
+        self.warmed = self._warm_up()
         self.recorder: Recorder | None = None
         rec = config.record
         if rec.enabled:
@@ -204,6 +206,28 @@ class _Worker:
         self.segment: shared_memory.SharedMemory | None = None
         self.held: tuple[int, ImagePair] | None = None
         self._tokens = itertools.count(1)
+
+    def _warm_up(self) -> dict[int, float]:
+        """Run each recipe's pipeline once (``vgripd.vision.warmup.warm_up``) before
+        the worker reports ready, so the first real job costs what the tenth does; the results
+        are dropped. Recipe number -> milliseconds it took."""
+        from vgripd.vision.pipeline import Pipeline
+        from vgripd.vision.warmup import warm_up
+
+        warmed: dict[int, float] = {}
+        for number, processor in self.processors.items():
+            if not isinstance(processor, Pipeline):  # another processor: nothing to warm
+                continue
+            t0 = time.perf_counter()
+            try:
+                warm_up(processor)
+            except Exception:  # a warm-up is an optimisation: it never keeps the worker down
+                log.exception("worker: warming up recipe %d failed (its jobs still run)", number)
+                continue
+            warmed[number] = round((time.perf_counter() - t0) * 1e3, 1)
+        if warmed:
+            log.info("worker: pipelines warmed up before ready (recipe: ms) %s", warmed)
+        return warmed
 
     # segments: one attached at a time, the one the daemon names in the request
     def _buf(self, name: str) -> memoryview:
@@ -309,9 +333,11 @@ class _Worker:
 def run_below_daemon(nice: int) -> None:
     """Make this helper process (image work) yield to the daemon's event loop: a real-time
     policy inherited from the daemon (systemd ``CPUSchedulingPolicy=``) is for its event loop
-    only, so drop to normal scheduling, then lower the priority by ``nice``."""
-    if os.sched_getscheduler(0) not in (os.SCHED_OTHER, os.SCHED_BATCH, os.SCHED_IDLE):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    only, so drop to ``SCHED_BATCH`` (normal time sharing for a CPU-bound task, which never
+    preempts a running task when it wakes; ``SCHED_IDLE`` is kept), then lower the priority by
+    ``nice``."""
+    if os.sched_getscheduler(0) != os.SCHED_IDLE:
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
     os.nice(nice)
 
 
@@ -348,7 +374,7 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
         sock.sendall(_frame(req_id, payload))
 
     try:
-        answer(0, True, os.getpid())  # ready
+        answer(0, True, {"pid": os.getpid(), "warmed": worker.warmed})  # ready
         while True:
             head = _recv_exact(sock, HEADER.size)
             if head is None:
@@ -394,7 +420,7 @@ class _Generation:
     pid: int
     reader: asyncio.StreamReader
     writer: asyncio.StreamWriter
-    ready: asyncio.Future[None]
+    ready: asyncio.Future[Any]  # the worker's ready answer: pid and warmed recipes
     pending: dict[int, asyncio.Future[Any]] = dataclasses.field(default_factory=dict)
     reader_task: asyncio.Task[None] | None = None
     killed_because: str = ""
@@ -409,12 +435,10 @@ class _Generation:
 
 class WorkerClient:
     """The daemon's handle on its worker process (one at a time, restarted when it dies).
-
     ``config`` is sent to the worker, which builds the camera driver, the processor
     (``processor``: ``module:Class`` called with the config) and, when ``record.enabled``, the
     recorder from it. Uses no thread in the daemon: the socket is read by a loop task and the
-    worker's exit is seen on its sentinel file descriptor.
-    """
+    worker's exit is seen on its sentinel file descriptor."""
 
     def __init__(self, config: Config, processor: str = DEFAULT_PROCESSOR,
                  describe_camera: str = "") -> None:
@@ -437,8 +461,8 @@ class WorkerClient:
         self._ids = itertools.count(1)
         self._segment_ids = itertools.count(1)
         self._segment: ImageSegment | None = None
-        # The pair whose images the current worker holds: generation, token and (weak
-        # references to) the daemon's arrays, so that a pair handed back is named by its token.
+        # The pair the current worker holds: generation, token, weak references to the daemon's
+        # arrays (a pair handed back is named by its token).
         self._held: tuple[_Generation, int, tuple[weakref.ref[Any], ...]] | None = None
 
     # --- life cycle --------------------------------------------------------------------
@@ -803,8 +827,10 @@ class WorkerClient:
 
     def snapshot(self) -> dict[str, Any]:
         gen = self._gen
-        return {"pid": None if gen is None else gen.pid,
-                "ready": gen is not None and gen.is_ready(),
+        ready = gen is not None and gen.is_ready()
+        return {"pid": None if gen is None else gen.pid, "ready": ready,
+                # recipe -> ms of its pipeline's warm-up, done before the worker was ready
+                "warmed": gen.ready.result()["warmed"] if gen is not None and ready else None,
                 "restarts": self.restarts, "last_exit": self.last_exit or None,
                 "shm": None if self._segment is None else self._segment.name}
 

@@ -366,3 +366,15 @@ def test_circle_centres_of_marks_closer_than_their_windows(gap_px):
     assert alone is not None
     again = ft._refine_centre(img, *blobs.xy[k], 2 * r, "dark", np.zeros((0, 2)))
     assert again == alone
+
+
+@pytest.mark.parametrize("s", [2, 3, 4, 8])
+def test_shrink_is_the_block_mean_of_inter_area(s: int) -> None:
+    rng = np.random.default_rng(s)
+    for h, w in ((2048, 2448), (1001, 777)):  # the second does not divide: INTER_AREA itself
+        gray = rng.integers(0, 256, (h, w), dtype=np.uint8)
+        got = ft.shrink(gray, s)
+        want = cv2.resize(gray, (w // s, h // s), interpolation=cv2.INTER_AREA)
+        assert got.shape == want.shape
+        assert got.dtype == np.uint8
+        assert np.abs(got.astype(int) - want).max() <= 1

@@ -20,6 +20,7 @@ from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.types import ImagePair, Status
 from vgripd.vision import features as ft
 from vgripd.vision.pipeline import Measurement, Pipeline, gate
+from vgripd.vision.warmup import warm_up
 
 # docs/pipeline.md: 1-sigma predictions 0.04 mm (depth of the object origin) and 0.025 deg,
 # bounds are 5x those.
@@ -353,3 +354,21 @@ def test_vision_and_limits_config_validation():
         make_config(vision={"epipolar_warn_px": 5.0, "epipolar_tolerance_px": 2.0})
     with pytest.raises(ConfigError, match="vision.min_features"):
         make_config(vision={"min_features": 2})
+
+
+def test_warm_up_runs_the_whole_chain_and_builds_the_lazy_tables() -> None:
+    """``vgripd.vision.warmup.warm_up`` (run by the worker before it reports ready): on the demo cell it
+    draws the marks at the taught reference and locates them, so the stereo rig's per-count
+    table that the first job would otherwise build is there before any job."""
+    pipeline = Pipeline(Config())
+    assert pipeline.rig is not None
+    assert not pipeline.rig._pair_cache
+    result = warm_up(pipeline)
+    assert result.status == Status.OK, result.message
+    assert len(pipeline.model) in pipeline.rig._pair_cache
+
+
+def test_warm_up_of_a_cell_it_cannot_draw_still_ends_with_a_status() -> None:
+    config = config_from_dict({"camera": {"type": "synthetic"}, "picking": {"max_objects": 4}})
+    result = warm_up(Pipeline(config))  # discs only; no pose, but never an exception
+    assert result.status != Status.INTERNAL, result.message

@@ -45,7 +45,7 @@ _pipeline: Any = None  # in the helper process: the Pipeline, or None when not c
 
 
 #: The image helper's niceness (the worker's is ``vgripd.service.worker.WORKER_NICE``).
-WEB_IMAGES_NICE = 10
+WEB_IMAGES_NICE = 19
 
 
 def _init_helper(config: Config, daemon_pid: int) -> None:
