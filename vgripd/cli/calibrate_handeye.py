@@ -51,6 +51,7 @@ from vgripd.calib.output import add_output_arguments, emit
 from vgripd.config import IntrinsicsConfig, read_config_data
 from vgripd.errors import CalibrationError, ConfigError, DegenerateInputError
 from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.fingerprint import camera_about, camera_parts, intrinsics_table
 from vgripd.geometry.vendors import VENDORS
 from vgripd.imagefiles import natural_key
 
@@ -205,6 +206,9 @@ def run(args: argparse.Namespace) -> int:
         result.warnings.insert(0, "FORCED (--force): this result is most likely WRONG, do not "
                                   "use it for the robot: " + " ".join(why))
     warnings = [f"{r['image']}: left out: {r['reason']}" for r in rejected] + result.warnings
+    symmetric = _board_warning(board)
+    if symmetric:
+        warnings.insert(0, symmetric)
     summary = _summary(result, warnings, args.output, samples_file, rejected)
     mounting = "robot" if mode == "eye-in-hand" else "fixed"
     about = {
@@ -215,7 +219,8 @@ def run(args: argparse.Namespace) -> int:
         "noise": summary["noise"], "fit_check": summary["fit_check"],
         result.board_name: pose_table(result.T_anchor_board),
         "stability": summary["stability"] or {}, "per_sample": summary["per_sample"],
-        "rejected": rejected, "warnings": warnings}
+        "rejected": rejected, "warnings": warnings,
+        **_camera_about(args.intrinsics, camera)}
     write_result(args.output, {"calibration": {"hand_eye": {
         "mounting": mounting, result.transform_name: pose_table(result.T)}}}, _plain(about),
         header=f"hand-eye calibration ({mode}): include this file from a config.\n"
@@ -227,6 +232,28 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"report: {args.report}")
     emit(args, summary, lines)
     return 0
+
+
+def _board_warning(spec: str | None) -> str | None:
+    """The symmetric-board warning for the board spec (None: not symmetric, or unknown)."""
+    if not spec:
+        return None
+    try:
+        return Board.parse(spec).symmetry_warning()
+    except CalibrationError:
+        return None
+
+
+def _camera_about(intrinsics: str | None, camera: CameraModel | None) -> dict[str, Any]:
+    """The fingerprint of the camera model the hand-eye is computed with: the camera sections
+    of ``--intrinsics`` (a rig file covers left, right and stereo), else the samples file's
+    camera (left only)."""
+    if intrinsics:
+        calibration = read_config_data(intrinsics).get("calibration", {})
+        return camera_about(calibration, camera_parts(calibration) or ("left",))
+    if camera is None:
+        return {}
+    return camera_about({"left": intrinsics_table(camera)}, ("left",))
 
 
 def _parse_exclude(text: str, n: int) -> set[int]:

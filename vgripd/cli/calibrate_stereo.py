@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
                            names=[(dl.image, dr.image) for dl, dr in pairs], fix_k3=args.fix_k3,
                            fix_tangential=args.fix_tangential, baseline_hint_mm=args.baseline_mm)
     rejected = not_paired + result.rejected
-    warnings = list(result.warnings)
+    warnings = [w for w in [board.symmetry_warning()] if w] + list(result.warnings)
     used = set(result.names)
     for side, k in (("left", 0), ("right", 1)):
         dets = [pair[k] for pair in pairs if (pair[0].image, pair[1].image) in used]
