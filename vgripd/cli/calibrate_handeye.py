@@ -48,6 +48,7 @@ from vgripd.calib.handeye import (
     save_samples,
 )
 from vgripd.calib.output import add_output_arguments, emit
+from vgripd.cli.calibrate_handeye_plan import add_plan_arguments, run_plan
 from vgripd.config import IntrinsicsConfig, read_config_data
 from vgripd.errors import CalibrationError, ConfigError, DegenerateInputError
 from vgripd.geometry.camera_model import CameraModel
@@ -59,6 +60,8 @@ EXIT_USAGE = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("action", nargs="?", choices=("plan",), default=None,
+                        help="plan: the flange poses of a walked calibration (see below)")
     parser.add_argument("--mode", choices=MODES, default=None,
                         help="eye-in-hand: camera on the flange, board fixed; eye-to-hand: "
                              "camera fixed, board on the flange (with --samples: from the file)")
@@ -92,6 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the result even when its residuals are far beyond what "
                              "noise explains (it is refused otherwise: exit 1, nothing written)")
     add_output_arguments(parser, "handeye.toml")
+    add_plan_arguments(parser)
 
 
 def read_intrinsics(path: str) -> CameraModel:
@@ -151,6 +155,8 @@ def _command(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.action == "plan":
+        return run_plan(args)
     camera = read_intrinsics(args.intrinsics) if args.intrinsics else None
     rejected: list[dict[str, str]] = []
     if args.samples:
