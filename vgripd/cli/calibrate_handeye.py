@@ -47,6 +47,7 @@ from vgripd.calib.handeye import (
     robot_noise_text,
     save_samples,
 )
+from vgripd.calib.handeye.walk import walk_info
 from vgripd.calib.output import add_output_arguments, emit
 from vgripd.cli.calibrate_handeye_plan import add_plan_arguments, run_plan
 from vgripd.config import IntrinsicsConfig, read_config_data
@@ -159,12 +160,19 @@ def run(args: argparse.Namespace) -> int:
         return run_plan(args)
     camera = read_intrinsics(args.intrinsics) if args.intrinsics else None
     rejected: list[dict[str, str]] = []
+    walk: dict[str, Any] | None = None
     if args.samples:
         mode, board, saved_camera, samples = load_samples(args.samples)
         if args.mode is not None and args.mode != mode:
             raise CalibrationError(f"--mode {args.mode} but {args.samples} holds {mode} samples")
         camera = saved_camera if camera is None else camera
         samples_file = args.save_samples
+        walk = walk_info(args.samples)
+        if walk is not None:  # a walked calibration: the targets skipped, the plan's figure
+            rejected += [{"image": str(r.get("image") or f"target {r['target']}"),
+                          "reason": f"target {r['target']}: {r['status'].replace('_', ' ')}"
+                                    + (f": {r['reason']}" if r.get("reason") else "")}
+                         for r in walk.get("records", []) if r.get("status") != "seen"]
     else:
         missing = [f"--{n.replace('_', '-')}" for n in
                    ("mode", "poses", "pose_format", "images", "board", "intrinsics")
@@ -227,6 +235,10 @@ def run(args: argparse.Namespace) -> int:
         "stability": summary["stability"] or {}, "per_sample": summary["per_sample"],
         "rejected": rejected, "warnings": warnings,
         **_camera_about(args.intrinsics, camera)}
+    if walk is not None:
+        about["plan"] = {"file": str(walk.get("plan", "")), "targets": walk.get("targets", 0),
+                         "condition": walk.get("condition", {})}
+        summary["plan"] = about["plan"]
     write_result(args.output, {"calibration": {"hand_eye": {
         "mounting": mounting, result.transform_name: pose_table(result.T)}}}, _plain(about),
         header=f"hand-eye calibration ({mode}): include this file from a config.\n"
