@@ -50,6 +50,7 @@ from vgripd.calib.handeye import (
 from vgripd.calib.handeye.walk import walk_info
 from vgripd.calib.output import add_output_arguments, emit
 from vgripd.cli.calibrate_handeye_plan import add_plan_arguments, run_plan
+from vgripd.cli.calibrate_handeye_walk import add_walk_arguments, run_walk
 from vgripd.config import IntrinsicsConfig, read_config_data
 from vgripd.errors import CalibrationError, ConfigError, DegenerateInputError
 from vgripd.geometry.camera_model import CameraModel
@@ -61,8 +62,9 @@ EXIT_USAGE = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("action", nargs="?", choices=("plan",), default=None,
-                        help="plan: the flange poses of a walked calibration (see below)")
+    parser.add_argument("action", nargs="?", choices=("plan", "walk"), default=None,
+                        help="plan: the flange poses of a walked calibration; walk: serve "
+                             "them to the robot program and record the images (see below)")
     parser.add_argument("--mode", choices=MODES, default=None,
                         help="eye-in-hand: camera on the flange, board fixed; eye-to-hand: "
                              "camera fixed, board on the flange (with --samples: from the file)")
@@ -97,6 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "noise explains (it is refused otherwise: exit 1, nothing written)")
     add_output_arguments(parser, "handeye.toml")
     add_plan_arguments(parser)
+    add_walk_arguments(parser)
 
 
 def read_intrinsics(path: str) -> CameraModel:
@@ -158,6 +161,8 @@ def _command(args: argparse.Namespace) -> str:
 def run(args: argparse.Namespace) -> int:
     if args.action == "plan":
         return run_plan(args)
+    if args.action == "walk":
+        return run_walk(args)
     camera = read_intrinsics(args.intrinsics) if args.intrinsics else None
     rejected: list[dict[str, str]] = []
     walk: dict[str, Any] | None = None
