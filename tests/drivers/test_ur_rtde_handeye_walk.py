@@ -14,9 +14,11 @@ from __future__ import annotations
 import asyncio
 import json
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 
@@ -130,3 +132,46 @@ async def test_walk_over_ur_rtde_resumes_skips_and_calibrates(
     assert mm < 0.05, (mm, deg)
     assert deg < 0.01, (mm, deg)
     assert any("unreachable" in r["reason"] for r in summary["rejected"])
+
+
+def test_walk_command_serves_the_plan_with_the_configs_camera_and_link(tmp_path: Path) -> None:
+    """``vgripd calibrate handeye walk`` wired to the config's camera (a replay camera showing
+    the board as seen from the start pose, the same image at every target) and its ur_rtde
+    link: the robot program gets every target and the end of the walk; each target recorded
+    with the board seen and the flange pose the link read."""
+    host = "127.0.5.62"
+    assert make_plan(tmp_path, "eye-to-hand", count=12) == 0  # a fixed camera: no flange pose
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    images = tmp_path / "images"
+    images.mkdir()
+    _, T0 = truth("eye-to-hand")
+    cv2.imwrite(str(images / "board.png"), image_at("eye-to-hand", T0, 0))
+    cell = tmp_path / "cell.toml"
+    text = cell.read_text(encoding="utf-8").replace(
+        'type = "synthetic"', f'type = "replay"\nfolder = "{images}"\nglob = "*.png"\n'
+                              'loop = true', 1)
+    assert 'type = "replay"' in text
+    cell.write_text(text + f'\n[[links]]\ntype = "ur_rtde"\nhost = "{host}"\n',
+                    encoding="utf-8")
+    arm = SimulatedArm(plan.poses[0], reach_mm=1e4)
+    rc: list[int] = []
+    with URController(host) as robot:
+        robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[0]))
+        command = threading.Thread(target=lambda: rc.append(main([
+            "calibrate", "handeye", "walk", "-c", str(cell), "--plan",
+            str(tmp_path / "plan.toml")])))
+        command.start()
+        try:
+            result = robot_program(robot, arm, None)
+        finally:
+            command.join(120)
+    assert not command.is_alive()
+    assert rc == [0]
+    assert result["status"] == Status.NOT_FOUND
+    walk = Walk(tmp_path / "plan.walk.json", plan, BOARD, CAMERA)
+    assert sorted(walk.records) == list(range(12))
+    assert {r.status for r in walk.records.values()} == {SEEN}
+    reached = [r.T_base_flange for _, r in sorted(walk.records.items())]
+    for T, T_plan in zip(reached, plan.poses, strict=True):  # read by the link, as reported
+        assert pose_error(T, T_plan)[0] < 1e-6
+    assert arm.moves == 12
