@@ -117,3 +117,51 @@ def main() -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def stereo_views(camera: CameraModel, board: Board, distance: float, T_right_left: np.ndarray,
+                 rng: np.random.Generator, n: int = 14):
+    """Board views seen by both cameras of a rig (the right one: the same model)."""
+    obj = board.object_points()
+    centre = obj.mean(axis=0)
+    objs, left, right = [], [], []
+    while len(objs) < n:
+        axis = rng.normal(size=2)
+        tilt = np.array([*axis / np.linalg.norm(axis), 0.0]) * math.radians(rng.uniform(5, 35))
+        R = matrix_from_rotvec(tilt) @ matrix_from_rotvec([0, 0, rng.uniform(-0.5, 0.5)])
+        shift = np.array([rng.uniform(-0.3, 0.3) * camera.width / camera.fx,
+                          rng.uniform(-0.3, 0.3) * camera.height / camera.fy, 1.0])
+        t = shift * distance * rng.uniform(0.85, 1.15) - R @ centre
+        pl = obj @ R.T + t
+        pr = pl @ T_right_left[:3, :3].T + T_right_left[:3, 3]
+        a = camera.project(pl) + rng.normal(0, 0.1, (len(obj), 2))
+        b = camera.project(pr) + rng.normal(0, 0.1, (len(obj), 2))
+        if any(p.min() < 5 or p[:, 0].max() > camera.width - 5
+               or p[:, 1].max() > camera.height - 5 for p in (a, b)):
+            continue
+        objs.append(obj)
+        left.append(a)
+        right.append(b)
+    return objs, left, right
+
+
+def rig_z(trials: int, profile: str = "far") -> list[np.ndarray]:
+    """Per trial: the rig rotation and translation errors in units of the reported sigma."""
+    from vgripd.calib.rig import calibrate_rig
+    from vgripd.geometry.transforms import make_transform, rotvec_from_matrix
+
+    p = PROFILES[profile]
+    camera = p["camera"]
+    board = Board.parse(str(p["board"]))
+    T = make_transform(matrix_from_rotvec([0.01, -0.12, 0.02]), [-300.0, 4.0, 20.0])
+    out = []
+    for trial in range(trials):
+        rng = np.random.default_rng(100 + trial)
+        objs, left, right = stereo_views(camera, board, float(p["distance"]), T, rng)
+        r = calibrate_rig(objs, left, right, (camera.width, camera.height))
+        R_est = matrix_from_rotvec(r.rotvec_rad)
+        drot = rotvec_from_matrix(R_est @ T[:3, :3].T)  # small: error rotation vector
+        dt = np.asarray(r.translation_mm) - T[:3, 3]
+        out.append(np.concatenate([drot / np.asarray(r.rotvec_std),
+                                   dt / np.asarray(r.translation_std)]))
+    return out
