@@ -47,8 +47,9 @@ MIN_SPACING_PX = 8.0  # corner spacing the chessboard detector still finds relia
 MARGIN_FRACTION = 0.04  # of the image size, kept free around the board
 MAX_VIEW_ANGLE_DEG = 60.0  # board normal against the line of sight
 #: Refusal limits of the condition figure (bench/bench_handeye_plan.py: planned sets reach
-#: condition 1.3-2 and 15-25 deg effective at a 30 deg box; hand-made sets of small random
-#: rotations 2-6 and 3-6 deg).
+#: condition 1.02 and 33 deg effective in a 250 mm / 30 deg box; hand-made sets of random
+#: rotations up to 10 deg condition 1.3-2.5 and 2.5-5.5 deg effective; rotations about one axis
+#: only: condition infinite).
 MIN_EFFECTIVE_DEG = 6.0
 MAX_CONDITION = 8.0
 
