@@ -19,7 +19,7 @@ from typing import Any
 
 from vgripd.calib.boards import Board
 from vgripd.calib.files import dumps
-from vgripd.calib.handeye.plan import MAX_CONDITION, plan_data, plan_hand_eye
+from vgripd.calib.handeye.plan import MAX_CONDITION, draw_plan, plan_data, plan_hand_eye
 from vgripd.calib.output import emit
 from vgripd.config import load_config
 from vgripd.errors import CalibrationError, ConversionError
@@ -47,6 +47,8 @@ def add_plan_arguments(parser: argparse.ArgumentParser) -> None:
                    help="eye-to-hand: the board's centre in the flange frame, mm (default 0)")
     g.add_argument("--dry-run", action="store_true",
                    help="print the plan in the robot's convention, write nothing")
+    g.add_argument("--draw", metavar="PNG",
+                   help="draw each pose's board outline in the image (also with --dry-run)")
 
 
 def _numbers(text: str, count: int, flag: str) -> list[float]:
@@ -111,6 +113,10 @@ def run_plan(args: argparse.Namespace) -> int:
     summary: dict[str, Any] = {"mode": args.mode, "pose_format": pose_format,
                                "poses": data["poses"], "condition": data["plan"]["condition"],
                                "refused": problems, "warnings": warnings, "output": output}
+    if args.draw:
+        draw_plan(args.draw, plan, camera, f"{args.mode}")
+        lines.append(f"drawn: {args.draw}")
+        summary["drawing"] = args.draw
     if problems:
         emit(args, summary, lines)
         raise CalibrationError("calibrate handeye plan: refused: " + "; ".join(problems))

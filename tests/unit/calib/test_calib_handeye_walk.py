@@ -175,6 +175,26 @@ def test_resume_refuses_the_record_of_another_plan(tmp_path: Path) -> None:
         walk(tmp_path / "walk.json", tmp_path / "plan.toml", arm, "eye-in-hand")
 
 
+def test_plan_dry_run_prints_the_robots_convention_and_draws(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _, T0 = truth("eye-in-hand")
+    around = " ".join(f"{v:.3f}" for v in vendor_from_transform("kuka", T0))
+    assert main(["calibrate", "handeye", "plan", "--mode", "eye-in-hand", "-c",
+                 str(write_cell(tmp_path, "eye-in-hand")), "--board", BOARD.spec, "--around",
+                 around, "--pose-format", "kuka", "--box", "250 30", "--distance",
+                 str(DISTANCE), "--dry-run", "--draw", str(tmp_path / "plan.png")]) == 0
+    out = capsys.readouterr().out
+    assert "15 poses in kuka (X Y Z A B C)" in out
+    first = out.splitlines()[1].split("#")[0].split()
+    assert [float(v) for v in first[1:]] == pytest.approx([float(v) for v in around.split()],
+                                                          abs=2e-3)
+    assert "dry run: nothing written" in out
+    assert not (tmp_path / "handeye-plan.toml").exists()
+    drawing = cv2.imread(str(tmp_path / "plan.png"))
+    assert drawing is not None
+    assert drawing.shape[1] == 1000  # the 1280 px wide image scaled to 1000
+
+
 def test_plan_refuses_small_rotations_with_the_reason(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert make_plan(tmp_path, "eye-in-hand", box="250 3") == 1

@@ -104,6 +104,7 @@ class PlannedView:
     board_px: tuple[float, float, float, float]  # bounding box x0, y0, x1, y1
     spacing_px: float  # smallest corner spacing
     view_angle_deg: float
+    outline_px: tuple[tuple[float, float], ...] = ()  # the grid's 4 outer corners, in order
 
 
 @dataclass
@@ -136,7 +137,36 @@ def _view(camera: CameraModel, B: FloatArray, obj: FloatArray, cols: int) -> Pla
                   float(np.linalg.norm(np.diff(grid, axis=0), axis=2).min()))
     if spacing < MIN_SPACING_PX:
         return None
-    return PlannedView((float(x0), float(y0), float(x1), float(y1)), spacing, angle)
+    outline = tuple((float(p[0]), float(p[1])) for p in
+                    (grid[0, 0], grid[0, -1], grid[-1, -1], grid[-1, 0]))
+    return PlannedView((float(x0), float(y0), float(x1), float(y1)), spacing, angle, outline)
+
+
+def draw_plan(path: str, plan: HandEyePlan, camera: CameraModel, title: str = "") -> None:
+    """A PNG of what the camera should see: each pose's board outline in the image (numbered,
+    the start pose thick), with the condition figure. For the dry run: a pose whose board
+    would leave the image was already dropped; the drawing shows the spread of the views."""
+    import cv2
+
+    scale = min(1.0, 1000.0 / camera.width)
+    w, h = int(camera.width * scale), int(camera.height * scale)
+    img = np.full((h + 40, w, 3), 255, np.uint8)
+    cv2.rectangle(img, (0, 0), (w - 1, h - 1), (0, 0, 0), 1)
+    colours = [(200, 80, 0), (0, 140, 0), (0, 0, 200), (160, 0, 160), (0, 140, 160)]
+    for k, v in enumerate(plan.views):
+        pts = (np.array(v.outline_px) * scale).round().astype(np.int32)
+        colour = colours[k % len(colours)]
+        cv2.polylines(img, [pts.reshape(-1, 1, 2)], True, colour, 3 if k == 0 else 1,
+                      cv2.LINE_AA)
+        cv2.putText(img, str(k), tuple(int(x) for x in pts[0]), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    colour, 1, cv2.LINE_AA)
+    c = plan.condition
+    text = (f"{title}  {len(plan.poses)} poses, condition {c.condition:.3g}, effective "
+            f"{c.effective_deg:.1f} deg").strip()
+    cv2.putText(img, text, (8, h + 26), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1,
+                cv2.LINE_AA)
+    if not cv2.imwrite(path, img):
+        raise CalibrationError(f"{path}: cannot write the drawing")
 
 
 def plan_hand_eye(mode: str, T_start: FloatArray, camera: CameraModel, object_points: FloatArray,
