@@ -861,6 +861,14 @@ class Config(Model):
     recipes: dict[RecipeNumber, RecipeConfig] = Field(default_factory=dict)
     # Effective config of each recipe, built and validated with this one.
     _recipe_configs: dict[int, Config] = PrivateAttr(default_factory=dict)
+    # What load_config found questionable in the files but accepted (check_calibration_files).
+    _load_warnings: list[str] = PrivateAttr(default_factory=list)
+
+    @property
+    def load_warnings(self) -> list[str]:
+        """Warnings about the files this config was loaded from (an included hand-eye or
+        taught reference without a camera-model fingerprint)."""
+        return list(self._load_warnings)
 
     @model_validator(mode="before")
     @classmethod
@@ -1045,13 +1053,16 @@ def _merge(into: dict[str, Any], owner: dict[str, str], data: dict[str, Any],
 
 
 def read_config_data(
-    path: str | Path, owner: dict[str, str] | None = None
+    path: str | Path, owner: dict[str, str] | None = None,
+    included: list[tuple[str, dict[str, Any], dict[str, Any]]] | None = None,
 ) -> dict[str, Any]:
     """The config file as a dict, with its ``include = [...]`` files merged in.
 
     Included files (calibration results, the taught reference) are resolved relative to the
     including file, may not include further files, and may not set what another file sets.
-    Their ``[about]`` tables (how a calibration was made) are dropped.
+    Their ``[about]`` tables (how a calibration was made) are dropped from the result; with
+    ``included`` given, each included file is appended to it as (path, its tables, its
+    ``[about]``), for the consistency check of :func:`check_calibration_files`.
     """
     p = Path(path)
     data = _read_toml(p, "config")
@@ -1064,7 +1075,9 @@ def read_config_data(
     for name in includes:
         inc = Path(name) if Path(name).is_absolute() else p.parent / name
         part = _read_toml(inc, f"included file (from {p}: include)")
-        part.pop("about", None)
+        about = part.pop("about", None)
+        if included is not None:
+            included.append((str(inc), part, about if isinstance(about, dict) else {}))
         if "include" in part:
             raise ConfigError(f"{inc}: include: included files may not include others")
         _merge(merged, owner, part, str(inc))
@@ -1075,5 +1088,87 @@ def load_config(path: str | Path) -> Config:
     """Read and validate a TOML config file (with its includes); every failure is a
     ``ConfigError``."""
     owner: dict[str, str] = {}
-    data = read_config_data(path, owner)
-    return config_from_dict(data, str(path), owner)
+    included: list[tuple[str, dict[str, Any], dict[str, Any]]] = []
+    data = read_config_data(path, owner, included)
+    config = config_from_dict(data, str(path), owner)
+    config._load_warnings = check_calibration_files(data, owner, included)
+    return config
+
+
+def _holder(owner: dict[str, str], prefixes: tuple[str, ...], default: str) -> str:
+    """The file that set the first key under one of ``prefixes``."""
+    for key, source in owner.items():
+        if key.startswith(prefixes):
+            return source
+    return default
+
+
+def check_calibration_files(
+    data: dict[str, Any], owner: dict[str, str],
+    included: list[tuple[str, dict[str, Any], dict[str, Any]]],
+) -> list[str]:
+    """Whether the included hand-eye and taught-reference files were made with this config's
+    camera model (and the reference with its hand-eye): the fingerprints their ``[about]``
+    recorded (``vgripd.geometry.fingerprint``) against the config's own sections.
+
+    A mismatch is a ConfigError naming both files; a file without a fingerprint (made before
+    they were recorded) is a warning, returned, so that existing configs still load.
+    """
+    from vgripd.geometry.fingerprint import camera_fingerprint, hand_eye_fingerprint
+
+    calibration = data.get("calibration")
+    if not isinstance(calibration, dict):
+        return []
+    camera_parts = ("calibration.left", "calibration.right", "calibration.stereo",
+                    "calibration.cameras")
+    camera_file = _holder(owner, camera_parts, "the config")
+    hand_eye_file = _holder(owner, ("calibration.hand_eye", "calibration.cameras"),
+                            "the config")
+    warnings: list[str] = []
+    problems: list[str] = []
+    order = "(the order is: cameras/rig -> hand-eye -> teach)"
+    for path, part, about in included:
+        cal_value, recipes_value = part.get("calibration"), part.get("recipes")
+        cal: dict[str, Any] = cal_value if isinstance(cal_value, dict) else {}
+        recipes: dict[str, Any] = recipes_value if isinstance(recipes_value, dict) else {}
+        holds_camera = any(k in cal for k in ("left", "right", "stereo", "cameras"))
+        taught = "reference" in part or any(isinstance(r, dict) and "reference" in r
+                                            for r in recipes.values())
+        holds_hand_eye = "hand_eye" in cal and not holds_camera
+        if not (holds_hand_eye or taught):
+            continue
+        what = "taught reference" if taught else "hand-eye"
+        recorded = about.get("camera_model")
+        if recorded is None:
+            warnings.append(f"{path}: the {what} records no camera model fingerprint ([about] "
+                            f"camera_model; made before vgripd recorded one): cannot check that "
+                            f"it was made with the camera model of {camera_file} {order}")
+        else:
+            parts = about.get("camera_model_parts") or ["left"]
+            try:
+                now = camera_fingerprint(calibration, parts)
+            except (KeyError, TypeError, ValueError) as err:
+                problems.append(f"{path}: [about] camera_model_parts {parts!r}: {err}")
+                continue
+            if now != recorded:
+                redo = ("teach it again" if taught else "calibrate the hand-eye again (then "
+                        "teach again)")
+                problems.append(
+                    f"{path}: the {what} was made with camera model {recorded}, but the camera "
+                    f"model of this config ({camera_file}) is {now}: they do not belong "
+                    f"together; {redo} with {camera_file} {order}")
+                continue
+        if taught:
+            recorded_he = about.get("hand_eye")
+            if recorded_he is None:
+                if recorded is not None:
+                    warnings.append(f"{path}: the taught reference records no hand-eye "
+                                    f"fingerprint ([about] hand_eye)")
+            elif recorded_he != hand_eye_fingerprint(calibration):
+                problems.append(
+                    f"{path}: the taught reference was measured with hand-eye {recorded_he}, "
+                    f"but the hand-eye of this config ({hand_eye_file}) is "
+                    f"{hand_eye_fingerprint(calibration)}: teach it again {order}")
+    if problems:
+        raise ConfigError("\n".join(problems))
+    return warnings

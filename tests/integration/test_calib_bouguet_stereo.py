@@ -65,14 +65,18 @@ def values(left: dict, right: dict, left_std: dict, right_std: dict, om, T, om_s
     return {k: (np.asarray(v, float), np.asarray(s, float)) for k, (v, s) in out.items()}
 
 
+# Like for like: the toolbox's +- are the model's own sigmas; our *_std also hold the bias of
+# the terms the model choice left out (intrinsics.with_model_bias), std_model does not.
 def from_result(r: RigResult) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    return values(r.left, r.right, r.left_std, r.right_std, r.rotvec_rad, r.translation_mm,
-                  r.rotvec_std, r.translation_std)
+    m = r.std_model
+    return values(r.left, r.right, m["left"], m["right"], r.rotvec_rad, r.translation_mm,
+                  m["rotvec_rad"], m["translation_mm"])
 
 
 def from_summary(s: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    return values(s["left"], s["right"], s["left_std"], s["right_std"], s["rotvec_rad"],
-                  s["translation_mm"], s["rotvec_std"], s["translation_std"])
+    m = s["std_model"]
+    return values(s["left"], s["right"], m["left"], m["right"], s["rotvec_rad"],
+                  s["translation_mm"], m["rotvec_rad"], m["translation_mm"])
 
 
 def stored_corners(datasets: Path) -> tuple[list, list, list]:

@@ -74,6 +74,26 @@ class Board:
     marker_mm: float | None = None
     dictionary: str | None = None
 
+    @property
+    def symmetric(self) -> bool:
+        """Whether the board looks the same turned by 180 degrees (a chessboard with
+        ``cols + rows`` even, e.g. 9x7 inner corners, or a symmetric circle grid): corner 0 is
+        then only consistent while the board is not rolled by more than about 90 degrees."""
+        return (self.kind == "chessboard" and (self.cols + self.rows) % 2 == 0) or (
+            self.kind == "circles")
+
+    def symmetry_warning(self) -> str | None:
+        """The warning for a board whose corner order is ambiguous (None when it is not)."""
+        if not self.symmetric:
+            return None
+        fix = ("one even and one odd number of inner corners, e.g. "
+               f"{self.cols}x{self.rows + 1}" if self.kind == "chessboard" else
+               "an asymmetric circle grid (acircles)")
+        return (f"board {self.spec}: symmetric (it looks the same turned by 180 deg), so "
+                f"corner 0 is only consistent while the board is not rolled by more than about "
+                f"90 deg between views: a flipped corner order spoils a stereo or hand-eye "
+                f"calibration; prefer {fix} or ChArUco (docs/calibration-intrinsics.md)")
+
     @classmethod
     def parse(cls, spec: str) -> Board:
         """Board from ``KIND:COLSxROWS:PITCH_MM[:MARKER_MM[:DICT]]``; CalibrationError names

@@ -2,8 +2,9 @@
 
 A result file holds the config sections it fills (``[calibration.left]``,
 ``[calibration.stereo.T_right_left]``, ``[calibration.hand_eye]``, ``[reference]``) plus an
-``[about]`` table (how it was made: command, date, RMS, standard deviations) that the config
-loader drops. Floats are written with ``repr``, so a value round-trips exactly.
+``[about]`` table (how it was made: command, date, RMS, standard deviations; the camera model's
+fingerprint, ``vgripd.geometry.fingerprint``) that the config loader checks and drops. Floats are
+written with ``repr``, so a value round-trips exactly.
 """
 
 from __future__ import annotations
@@ -51,6 +52,17 @@ def write_result(path: str | Path, sections: Table, about: Table, header: str = 
         raise CalibrationError("result sections must not contain 'about'")
     stamp = _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat()
     body = dict(sections)
+    about = dict(about)
+    calibration = sections.get("calibration")
+    if isinstance(calibration, Mapping) and "camera_model" not in about:
+        from vgripd.geometry.fingerprint import camera_about, camera_parts
+
+        plain = jsonable(calibration)
+        try:  # a calibration of the cameras records the model it defines
+            if camera_parts(plain):
+                about.update(camera_about(plain))
+        except (KeyError, TypeError, ValueError):
+            pass  # incomplete sections: no fingerprint (dumps names a non-finite value)
     body["about"] = {**about, "written": stamp}
     text = dumps(body, header)
     tmp = p.with_name(p.name + ".tmp")

@@ -128,11 +128,18 @@ class ModelChoice:
     reason: str
     candidates: list[dict[str, Any]]
     notes: list[str] = field(default_factory=list)
+    #: chosen - richest model's estimate per parameter (``with_model_bias``); None when the
+    #: richest model was chosen. The reported std already includes it.
+    model_bias: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready: the chosen model's name, how, why, the candidates and the notes."""
-        return {"model": self.model.name, "chosen_by": self.chosen_by, "reason": self.reason,
-                "notes": self.notes, "candidates": self.candidates}
+        out: dict[str, Any] = {"model": self.model.name, "chosen_by": self.chosen_by,
+                               "reason": self.reason, "notes": self.notes,
+                               "candidates": self.candidates}
+        if self.model_bias is not None:
+            out["model_bias"] = self.model_bias
+        return out
 
     def table(self, cameras: Sequence[tuple[str, str]] = (("", "dist"),)) -> list[str]:
         """Human lines: one per candidate, the chosen one marked with ``*``; k2 and k3 of each
@@ -222,6 +229,9 @@ class IntrinsicsResult:
     model: ModelChoice
     rejected: list[dict[str, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    #: The chosen model's own standard deviations (what OpenCV and Bouguet's toolbox report);
+    #: ``std`` adds the model's possible bias (``with_model_bias``) and covers the error.
+    std_model: dict[str, Any] | None = None
 
     @property
     def camera_matrix(self) -> NDArray[np.float64]:
@@ -287,7 +297,42 @@ def calibrate_intrinsics(board: Board, detections: Sequence[Detection],
                      "dist_std": _dist_std(f["std"], mdl)}
     choice = choose_model(scores, reference, rows)
     choice.notes = k3_note(choice)
-    return _result(board, used, (w, h), fits[choice.model], rejected, choice)
+    return _result(board, used, (w, h), fits[choice.model], rejected, choice,
+                   fits[richest] if choice.model != richest else None)
+
+
+def with_model_bias(std: dict[str, Any], camera: dict[str, Any], rich: dict[str, Any],
+                    model: DistortionModel) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The standard deviations widened by what leaving terms out may have done to the
+    estimates (bench/bench_calib_coverage.py: on a 2.2 m profile whose p1, p2 = 0.0002 were
+    dropped the principal point was 3-5 sigma off; with a dropped k3, k2 up to 21 sigma).
+
+    Per estimated parameter: ``sqrt(std^2 + (chosen - richest)^2)``, the richest model (every
+    term free) fitted to the same views. A term held at 0 keeps std 0 (it is not estimated);
+    what it may be, given the data, is in the returned bias as ``held`` (name -> [richest
+    value, its std]). Returns (widened std, the shifts ``chosen - richest``)."""
+    K, dist, s = rich["K"], rich["dist"], rich["std"]
+    rich_values = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
+    out = dict(std)
+    bias: dict[str, Any] = {}
+    for k, v in rich_values.items():
+        shift = float(camera[k] - v)
+        bias[k] = shift
+        out[k] = float(math.hypot(std[k], shift))
+    widened, shifts = [], []
+    held: dict[str, list[float]] = {}
+    for i, (chosen, free) in enumerate(zip(camera["dist"], model.mask, strict=True)):
+        shift = float(chosen - dist[i])
+        shifts.append(shift)
+        if free:
+            widened.append(float(math.hypot(std["dist"][i], shift)))
+        else:
+            widened.append(0.0)
+            held[DIST_NAMES[i]] = [float(dist[i]), float(s[4 + i])]
+    out["dist"] = widened
+    bias["dist"] = shifts
+    bias["held"] = held
+    return out, bias
 
 
 def _dist_std(std: NDArray[np.float64], model: DistortionModel) -> list[float]:
@@ -319,7 +364,8 @@ def _fit(obj: NDArray[np.float64], used: Sequence[Detection], size: tuple[int, i
 
 
 def _result(board: Board, used: list[Detection], size: tuple[int, int], fit: dict[str, Any],
-            rejected: list[dict[str, str]], choice: ModelChoice) -> IntrinsicsResult:
+            rejected: list[dict[str, str]], choice: ModelChoice,
+            rich: dict[str, Any] | None = None) -> IntrinsicsResult:
     K, dist, s = fit["K"], fit["dist"], fit["std"]
     w, h = size
     camera = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "skew": 0.0,
@@ -328,6 +374,9 @@ def _result(board: Board, used: list[Detection], size: tuple[int, int], fit: dic
     std_dist = _dist_std(s, choice.model)
     std = {"fx": float(s[0]), "fy": float(s[1]), "cx": float(s[2]), "cy": float(s[3]),
            "skew": 0.0, "dist": std_dist}
+    std_model = std
+    if rich is not None:
+        std, choice.model_bias = with_model_bias(std, camera, rich, choice.model)
     obj = board.object_points()
     residuals, poses, rvecs, tvecs = [], [], [], []
     for det, rvec, tvec in zip(used, fit["rvecs"], fit["tvecs"], strict=True):
@@ -346,7 +395,7 @@ def _result(board: Board, used: list[Detection], size: tuple[int, int], fit: dic
     all_res = np.concatenate(residuals)
     rms = float(np.sqrt(np.mean(np.sum(all_res**2, axis=1))))
     result = IntrinsicsResult(camera, std, rms, list(used), per_image, residuals, rvecs, tvecs,
-                              poses, choice, rejected)
+                              poses, choice, rejected, std_model=std_model)
     result.warnings = _warnings(result)
     return result
 

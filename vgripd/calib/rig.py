@@ -64,6 +64,7 @@ from vgripd.calib.intrinsics import (
     candidate_models,
     choose_model,
     k3_note,
+    with_model_bias,
 )
 from vgripd.errors import CalibrationError, GeometryError
 from vgripd.geometry.camera_model import CameraModel
@@ -124,6 +125,10 @@ class RigResult:
     model: ModelChoice
     rejected: list[dict[str, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    #: The chosen model's own sigmas (``left``, ``right``, ``rotvec_rad``, ``translation_mm``;
+    #: what OpenCV and Bouguet's toolbox report); the ``*_std`` fields add the model's possible
+    #: bias when the choice left terms out (``intrinsics.with_model_bias``).
+    std_model: dict[str, Any] = field(default_factory=dict)
 
     @property
     def T_right_left(self) -> FloatArray:
@@ -242,7 +247,8 @@ def calibrate_rig(object_points: Sequence[ArrayLike], px_left: Sequence[ArrayLik
     choice = choose_model(scores, reference, rows)
     choice.notes = (k3_note(choice, "left camera: ", "dist")
                     + k3_note(choice, "right camera: ", "right_dist"))
-    return _result(views, sizes, fits[choice.model], choice, rejected, baseline_hint_mm)
+    return _result(views, sizes, fits[choice.model], choice, rejected, baseline_hint_mm,
+                   fits[richest] if choice.model != richest else None)
 
 
 def _dist_std(s: FloatArray, model: DistortionModel) -> list[float]:
@@ -524,7 +530,7 @@ def _covariance(J: FloatArray, ssr: float) -> FloatArray:
 
 def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: dict[str, Any],
             choice: ModelChoice, rejected: list[dict[str, str]],
-            baseline_hint_mm: float | None) -> RigResult:
+            baseline_hint_mm: float | None, rich: dict[str, Any] | None = None) -> RigResult:
     model = choice.model
     n_int = 4 + len(model.free)
     res_l, res_r = fit["res_l"], fit["res_r"]
@@ -540,6 +546,27 @@ def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: 
         s = std[k * n_int:(k + 1) * n_int]
         stds.append({"fx": float(s[0]), "fy": float(s[1]), "cx": float(s[2]), "cy": float(s[3]),
                      "skew": 0.0, "dist": _dist_std(s, model)})
+    rotvec_std = std[2 * n_int:2 * n_int + 3]
+    translation_std = std[2 * n_int + 3:2 * n_int + 6]
+    std_model = {"left": stds[0], "right": stds[1], "rotvec_rad": rotvec_std,
+                 "translation_mm": translation_std}
+    if rich is not None:
+        # widened by what leaving terms out may have done (intrinsics.with_model_bias): each
+        # sigma with the shift between the chosen and the richest model in quadrature
+        bias: dict[str, Any] = {}
+        for k, (K, dist) in enumerate(rich["cams"]):
+            rich_fit = {"K": K, "dist": dist, "std": np.zeros(9)}
+            stds[k], bias[("left", "right")[k]] = with_model_bias(stds[k], cams[k], rich_fit,
+                                                                  model)
+            side = bias[("left", "right")[k]]  # held terms: the richest value, no sigma here
+            side["held"] = {n: v[:1] for n, v in side.get("held", {}).items()}
+        d_om = np.asarray(fit["om"], dtype=float) - np.asarray(rich["om"], dtype=float)
+        d_t = np.asarray(fit["T"], dtype=float) - np.asarray(rich["T"], dtype=float)
+        rotvec_std = np.hypot(rotvec_std, d_om)
+        translation_std = np.hypot(translation_std, d_t)
+        bias["rotvec_rad"] = d_om.tolist()
+        bias["translation_mm"] = d_t.tolist()
+        choice.model_bias = bias
     poses = []
     for rv, tv in fit["poses"]:
         poses.append(make_transform(matrix_from_rotvec(rv), tv))
@@ -549,13 +576,13 @@ def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: 
     result = RigResult(
         left=cams[0], right=cams[1], left_std=stds[0], right_std=stds[1],
         rotvec_rad=fit["om"], translation_mm=fit["T"],
-        rotvec_std=std[2 * n_int:2 * n_int + 3], translation_std=std[2 * n_int + 3:2 * n_int + 6],
+        rotvec_std=rotvec_std, translation_std=translation_std,
         rms_px=float(np.sqrt(2 * np.mean(all_res**2))), names=list(views.names),
         per_pair=per_pair, residuals_left_px=res_l, residuals_right_px=res_r,
         px_left=list(views.left), px_right=list(views.right), T_left_board=poses,
         epipolar_residuals_px=[], epipolar_px={}, covariance=cov,
         parameter_names=_parameter_names(len(views.obj), model), model=choice,
-        rejected=rejected)
+        rejected=rejected, std_model=std_model)
     try:
         rig = result.rig
         result.epipolar_residuals_px = [rig.epipolar_residuals_px(a, b)

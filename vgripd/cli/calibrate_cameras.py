@@ -223,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
     intrinsics: list[dict[str, Any]] = []
     rejected: list[dict[str, str]] = []
     intrinsics_source: dict[str, str] = {}
-    warnings: list[str] = []
+    warnings: list[str] = [w for w in [board.symmetry_warning()] if w]
     obj = board.object_points()
     for c, name in enumerate(names):
         paths = cameras[name]

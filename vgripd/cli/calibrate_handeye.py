@@ -47,10 +47,14 @@ from vgripd.calib.handeye import (
     robot_noise_text,
     save_samples,
 )
+from vgripd.calib.handeye.walk import walk_info
 from vgripd.calib.output import add_output_arguments, emit
+from vgripd.cli.calibrate_handeye_plan import add_plan_arguments, run_plan
+from vgripd.cli.calibrate_handeye_walk import add_walk_arguments, run_walk
 from vgripd.config import IntrinsicsConfig, read_config_data
 from vgripd.errors import CalibrationError, ConfigError, DegenerateInputError
 from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.fingerprint import camera_about, camera_parts, intrinsics_table
 from vgripd.geometry.vendors import VENDORS
 from vgripd.imagefiles import natural_key
 
@@ -58,6 +62,9 @@ EXIT_USAGE = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("action", nargs="?", choices=("plan", "walk"), default=None,
+                        help="plan: the flange poses of a walked calibration; walk: serve "
+                             "them to the robot program and record the images (see below)")
     parser.add_argument("--mode", choices=MODES, default=None,
                         help="eye-in-hand: camera on the flange, board fixed; eye-to-hand: "
                              "camera fixed, board on the flange (with --samples: from the file)")
@@ -91,6 +98,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the result even when its residuals are far beyond what "
                              "noise explains (it is refused otherwise: exit 1, nothing written)")
     add_output_arguments(parser, "handeye.toml")
+    add_plan_arguments(parser)
+    add_walk_arguments(parser)
 
 
 def read_intrinsics(path: str) -> CameraModel:
@@ -150,14 +159,25 @@ def _command(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.action == "plan":
+        return run_plan(args)
+    if args.action == "walk":
+        return run_walk(args)
     camera = read_intrinsics(args.intrinsics) if args.intrinsics else None
     rejected: list[dict[str, str]] = []
+    walk: dict[str, Any] | None = None
     if args.samples:
         mode, board, saved_camera, samples = load_samples(args.samples)
         if args.mode is not None and args.mode != mode:
             raise CalibrationError(f"--mode {args.mode} but {args.samples} holds {mode} samples")
         camera = saved_camera if camera is None else camera
         samples_file = args.save_samples
+        walk = walk_info(args.samples)
+        if walk is not None:  # a walked calibration: the targets skipped, the plan's figure
+            rejected += [{"image": str(r.get("image") or f"target {r['target']}"),
+                          "reason": f"target {r['target']}: {r['status'].replace('_', ' ')}"
+                                    + (f": {r['reason']}" if r.get("reason") else "")}
+                         for r in walk.get("records", []) if r.get("status") != "seen"]
     else:
         missing = [f"--{n.replace('_', '-')}" for n in
                    ("mode", "poses", "pose_format", "images", "board", "intrinsics")
@@ -205,6 +225,9 @@ def run(args: argparse.Namespace) -> int:
         result.warnings.insert(0, "FORCED (--force): this result is most likely WRONG, do not "
                                   "use it for the robot: " + " ".join(why))
     warnings = [f"{r['image']}: left out: {r['reason']}" for r in rejected] + result.warnings
+    symmetric = _board_warning(board)
+    if symmetric:
+        warnings.insert(0, symmetric)
     summary = _summary(result, warnings, args.output, samples_file, rejected)
     mounting = "robot" if mode == "eye-in-hand" else "fixed"
     about = {
@@ -215,7 +238,12 @@ def run(args: argparse.Namespace) -> int:
         "noise": summary["noise"], "fit_check": summary["fit_check"],
         result.board_name: pose_table(result.T_anchor_board),
         "stability": summary["stability"] or {}, "per_sample": summary["per_sample"],
-        "rejected": rejected, "warnings": warnings}
+        "rejected": rejected, "warnings": warnings,
+        **_camera_about(args.intrinsics, camera)}
+    if walk is not None:
+        about["plan"] = {"file": str(walk.get("plan", "")), "targets": walk.get("targets", 0),
+                         "condition": walk.get("condition", {})}
+        summary["plan"] = about["plan"]
     write_result(args.output, {"calibration": {"hand_eye": {
         "mounting": mounting, result.transform_name: pose_table(result.T)}}}, _plain(about),
         header=f"hand-eye calibration ({mode}): include this file from a config.\n"
@@ -227,6 +255,28 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"report: {args.report}")
     emit(args, summary, lines)
     return 0
+
+
+def _board_warning(spec: str | None) -> str | None:
+    """The symmetric-board warning for the board spec (None: not symmetric, or unknown)."""
+    if not spec:
+        return None
+    try:
+        return Board.parse(spec).symmetry_warning()
+    except CalibrationError:
+        return None
+
+
+def _camera_about(intrinsics: str | None, camera: CameraModel | None) -> dict[str, Any]:
+    """The fingerprint of the camera model the hand-eye is computed with: the camera sections
+    of ``--intrinsics`` (a rig file covers left, right and stereo), else the samples file's
+    camera (left only)."""
+    if intrinsics:
+        calibration = read_config_data(intrinsics).get("calibration", {})
+        return camera_about(calibration, camera_parts(calibration) or ("left",))
+    if camera is None:
+        return {}
+    return camera_about({"left": intrinsics_table(camera)}, ("left",))
 
 
 def _parse_exclude(text: str, n: int) -> set[int]:

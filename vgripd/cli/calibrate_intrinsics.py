@@ -107,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
                                   fix_tangential=args.fix_tangential)
     rejected = not_found + result.rejected
     summary: dict[str, Any] = {
-        "camera": result.camera, "std": result.std, "rms_px": result.rms_px,
+        "camera": result.camera, "std": result.std, "std_model": result.std_model,
+        "rms_px": result.rms_px,
         "model": result.model.summary(), "per_image": result.per_image, "rejected": rejected,
         "warnings": result.warnings, "output": str(args.output)}
     about = {
@@ -115,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
         "model": f"pinhole fx fy cx cy, skew 0, dist {result.model.model.name} (others 0)",
         "model_choice": result.model.summary(),
         "subpix_window": "auto" if args.subpix_window is None else args.subpix_window,
-        "rms_px": result.rms_px, "std": result.std, "images_used": len(result.detections),
+        "rms_px": result.rms_px, "std": result.std, "std_model": result.std_model,
+        "images_used": len(result.detections),
         "per_image": result.per_image, "rejected": rejected, "warnings": result.warnings}
     write_result(args.output, {"calibration": {args.camera: result.camera}}, about,
                  header=f"{args.camera} camera intrinsics: include this file from a config.\n"

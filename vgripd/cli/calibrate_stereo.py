@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
                            names=[(dl.image, dr.image) for dl, dr in pairs], fix_k3=args.fix_k3,
                            fix_tangential=args.fix_tangential, baseline_hint_mm=args.baseline_mm)
     rejected = not_paired + result.rejected
-    warnings = list(result.warnings)
+    warnings = [w for w in [board.symmetry_warning()] if w] + list(result.warnings)
     used = set(result.names)
     for side, k in (("left", 0), ("right", 1)):
         dets = [pair[k] for pair in pairs if (pair[0].image, pair[1].image) in used]
@@ -179,7 +179,7 @@ def _summary(r: RigResult, rejected: list[dict[str, str]], warnings: list[str],
     return {"left": r.left, "right": r.right, "left_std": r.left_std, "right_std": r.right_std,
             "rotvec_rad": r.rotvec_rad, "translation_mm": r.translation_mm,
             "rotvec_std": r.rotvec_std, "translation_std": r.translation_std,
-            "rms_px": r.rms_px, "model": r.model.summary(),
+            "std_model": r.std_model, "rms_px": r.rms_px, "model": r.model.summary(),
             "per_pair": [{k: p[k] for k in ("left", "right", "rms_px")} for p in r.per_pair],
             "epipolar_px": r.epipolar_px, "rejected": rejected, "warnings": warnings,
             "output": str(args.output)}

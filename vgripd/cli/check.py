@@ -107,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
                      for f in check_scene(config.for_recipe(number))]
     errors = [f for f in findings if f.level == "ERROR"]
     others = [f"{f.level.lower()}: {args.config}: {f}" for f in findings if f.level != "ERROR"]
+    others += [f"warning: {args.config}: {w}" for w in config.load_warnings]
     if errors:
         if others:
             print("\n".join(others))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import logging
 import signal
 
 from vgripd.config import load_config
@@ -42,6 +43,8 @@ async def serve(daemon: Daemon) -> None:
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     configure_logging(config.daemon.log_level)
+    for warning in config.load_warnings:  # e.g. a hand-eye file without a camera fingerprint
+        logging.getLogger("vgripd.config").warning("%s: %s", args.config, warning)
     try:
         daemon = Daemon(config)
     except ConfigError as err:  # a template file, driver options: name the file judged

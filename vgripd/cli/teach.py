@@ -38,6 +38,7 @@ from vgripd.calib.files import pose_table, write_result
 from vgripd.calib.output import emit
 from vgripd.config import load_config
 from vgripd.errors import ConfigError, ConversionError
+from vgripd.geometry.fingerprint import camera_about, hand_eye_fingerprint
 from vgripd.geometry.vendors import VENDORS, transform_from_vendor
 
 
@@ -176,6 +177,10 @@ def run(args: argparse.Namespace) -> int:
         "fit_rms_mm_max": max(s.residuals.get("fit_rms_mm", 0.0) for s in taught.shots),
         "T_base_obj": np.round(taught.T_base_obj, 9),
     }
+    if config.calibration is not None:  # what it was measured with (vgripd.geometry.fingerprint)
+        calibration = config.calibration.model_dump(mode="json")
+        about.update(camera_about(calibration))
+        about["hand_eye"] = hand_eye_fingerprint(calibration)
     write_result(output, sections, about,
                  header=f"vgripd teach: the taught reference of object {config.object.name!r}.\n"
                         "Include it from the config; re-teach after moving the reference.")

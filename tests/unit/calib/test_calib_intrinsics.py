@@ -207,7 +207,7 @@ def test_json_summary_keys(rendered, tmp_path):
                          "-o", str(tmp_path / "c.toml"), "--json", "--free-k3")
     assert rc == 0
     summary = json.loads(out)
-    assert set(summary) == {"camera", "std", "rms_px", "model", "per_image", "rejected", "warnings",
+    assert set(summary) == {"camera", "std", "std_model", "rms_px", "model", "per_image", "rejected", "warnings",
                             "output"}
     assert summary["model"]["chosen_by"] == "BIC"  # k3 given, p1 p2 chosen
     assert [c["model"] for c in summary["model"]["candidates"]] == ["k1 k2 k3", "k1 k2 p1 p2 k3"]

@@ -1,0 +1,167 @@
+"""Do the reported standard deviations of an intrinsic calibration cover its error?
+
+Run from the repository root with the project's interpreter::
+
+    .venv/bin/python bench/bench_calib_coverage.py [--trials 40]
+
+Per trial: 14 views of a 9x7-corner chessboard at random tilts (up to 35 deg) and rolls, the
+corners projected through a known camera with 0.1 px Gaussian noise (projected, not rendered:
+what is measured is the model choice, not the detector), calibrated by ``calibrate_intrinsics``
+with the automatic model choice and with p1 p2 k3 all free. For each parameter (fx, fy, cx,
+cy, k1, k2, p1, p2, k3) the error against the truth in units of the reported sigma; printed:
+the share of estimated parameters within 2 sigma (95 % expected), per parameter the largest
+|z|, and how often each model was chosen. A held term (sigma 0, not estimated) is not counted.
+
+Profiles (from the issue): ``far`` a 2448x2048 camera (f 3000 px) seeing a 60 mm board at
+2.2 m with p1 = p2 = 0.0002; ``wide`` a 1280x1024 camera (f 800 px) with k3 = -0.01 and a 30 mm
+board at 500 mm.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from vgripd.calib.boards import Board, Detection  # noqa: E402
+from vgripd.calib.intrinsics import calibrate_intrinsics  # noqa: E402
+from vgripd.errors import CalibrationError  # noqa: E402
+from vgripd.geometry.camera_model import CameraModel  # noqa: E402
+from vgripd.geometry.transforms import matrix_from_rotvec  # noqa: E402
+
+PROFILES = {
+    "far": dict(camera=CameraModel(3000.0, 3000.0, 1230.0, 1018.0, 0.0,
+                                   (-0.08, 0.12, 0.0002, 0.0002, 0.0), 2448, 2048),
+                board="chessboard:9x7:60", distance=2200.0),
+    "wide": dict(camera=CameraModel(800.0, 800.0, 645.0, 508.0, 0.0,
+                                    (-0.25, 0.08, 0.0, 0.0, -0.01), 1280, 1024),
+                 board="chessboard:9x7:30", distance=500.0),
+}
+NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+
+def views(camera: CameraModel, board: Board, distance: float, rng: np.random.Generator,
+          n: int = 14) -> list[Detection]:
+    obj = board.object_points()
+    centre = obj.mean(axis=0)
+    out: list[Detection] = []
+    while len(out) < n:
+        axis = rng.normal(size=2)
+        tilt = np.array([*axis / np.linalg.norm(axis), 0.0]) * math.radians(rng.uniform(5, 35))
+        R = matrix_from_rotvec(tilt) @ matrix_from_rotvec([0, 0, rng.uniform(-0.5, 0.5)])
+        # the board anywhere in the image (distortion shows at the edges)
+        shift = np.array([rng.uniform(-0.35, 0.35) * camera.width / camera.fx,
+                          rng.uniform(-0.35, 0.35) * camera.height / camera.fy, 1.0])
+        t = shift * distance * rng.uniform(0.85, 1.15) - R @ centre
+        pts = obj @ R.T + t
+        px = camera.project(pts) + rng.normal(0, 0.1, (len(obj), 2))
+        if (px.min() < 5 or px[:, 0].max() > camera.width - 5
+                or px[:, 1].max() > camera.height - 5):
+            continue
+        out.append(Detection(f"v{len(out)}", (camera.width, camera.height),
+                             np.arange(len(obj), dtype=np.int64), px))
+    return out
+
+
+def z_scores(result: object, camera: CameraModel) -> dict[str, float]:
+    cam, std = result.camera, result.std  # type: ignore[attr-defined]
+    truth = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
+             **dict(zip(("k1", "k2", "p1", "p2", "k3"), camera.dist, strict=True))}
+    est = {k: cam[k] for k in ("fx", "fy", "cx", "cy")}
+    est.update(zip(("k1", "k2", "p1", "p2", "k3"), cam["dist"], strict=True))
+    sig = {k: std[k] for k in ("fx", "fy", "cx", "cy")}
+    sig.update(zip(("k1", "k2", "p1", "p2", "k3"), std["dist"], strict=True))
+    out = {}
+    for k in NAMES:
+        if sig[k] == 0:  # held at 0, not estimated: not a reported uncertainty
+            continue
+        out[k] = (est[k] - truth[k]) / sig[k]
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--trials", type=int, default=40)
+    args = ap.parse_args()
+    for name, p in PROFILES.items():
+        board = Board.parse(p["board"])
+        for label, opts in (("auto", {}), ("all free", {"fix_k3": False,
+                                                        "fix_tangential": False})):
+            zs: list[dict[str, float]] = []
+            models: Counter[str] = Counter()
+            for trial in range(args.trials):
+                rng = np.random.default_rng(trial)
+                dets = views(p["camera"], board, p["distance"], rng)
+                try:
+                    r = calibrate_intrinsics(board, dets, (p["camera"].width,
+                                                           p["camera"].height), **opts)
+                except CalibrationError as err:
+                    print(f"  {name} trial {trial}: {err}")
+                    continue
+                models[r.model.model.name] += 1
+                zs.append(z_scores(r, p["camera"]))
+            flat = [abs(v) for z in zs for v in z.values()]
+            within = sum(v <= 2 for v in flat) / len(flat)
+            worst = {k: max((abs(z[k]) for z in zs if k in z), default=0.0) for k in NAMES}
+            worst_text = " ".join(f"{k} {v:.1f}" for k, v in worst.items())
+            print(f"{name:5s} {label:8s} within 2 sigma {100 * within:5.1f} % | largest |z|: "
+                  f"{worst_text} | models {dict(models)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+
+
+def stereo_views(camera: CameraModel, board: Board, distance: float, T_right_left: np.ndarray,
+                 rng: np.random.Generator, n: int = 14):
+    """Board views seen by both cameras of a rig (the right one: the same model)."""
+    obj = board.object_points()
+    centre = obj.mean(axis=0)
+    objs, left, right = [], [], []
+    while len(objs) < n:
+        axis = rng.normal(size=2)
+        tilt = np.array([*axis / np.linalg.norm(axis), 0.0]) * math.radians(rng.uniform(5, 35))
+        R = matrix_from_rotvec(tilt) @ matrix_from_rotvec([0, 0, rng.uniform(-0.5, 0.5)])
+        shift = np.array([rng.uniform(-0.3, 0.3) * camera.width / camera.fx,
+                          rng.uniform(-0.3, 0.3) * camera.height / camera.fy, 1.0])
+        t = shift * distance * rng.uniform(0.85, 1.15) - R @ centre
+        pl = obj @ R.T + t
+        pr = pl @ T_right_left[:3, :3].T + T_right_left[:3, 3]
+        a = camera.project(pl) + rng.normal(0, 0.1, (len(obj), 2))
+        b = camera.project(pr) + rng.normal(0, 0.1, (len(obj), 2))
+        if any(p.min() < 5 or p[:, 0].max() > camera.width - 5
+               or p[:, 1].max() > camera.height - 5 for p in (a, b)):
+            continue
+        objs.append(obj)
+        left.append(a)
+        right.append(b)
+    return objs, left, right
+
+
+def rig_z(trials: int, profile: str = "far") -> list[np.ndarray]:
+    """Per trial: the rig rotation and translation errors in units of the reported sigma."""
+    from vgripd.calib.rig import calibrate_rig
+    from vgripd.geometry.transforms import make_transform, rotvec_from_matrix
+
+    p = PROFILES[profile]
+    camera = p["camera"]
+    board = Board.parse(str(p["board"]))
+    T = make_transform(matrix_from_rotvec([0.01, -0.12, 0.02]), [-300.0, 4.0, 20.0])
+    out = []
+    for trial in range(trials):
+        rng = np.random.default_rng(100 + trial)
+        objs, left, right = stereo_views(camera, board, float(p["distance"]), T, rng)
+        r = calibrate_rig(objs, left, right, (camera.width, camera.height))
+        R_est = matrix_from_rotvec(r.rotvec_rad)
+        drot = rotvec_from_matrix(R_est @ T[:3, :3].T)  # small: error rotation vector
+        dt = np.asarray(r.translation_mm) - T[:3, 3]
+        out.append(np.concatenate([drot / np.asarray(r.rotvec_std),
+                                   dt / np.asarray(r.translation_std)]))
+    return out

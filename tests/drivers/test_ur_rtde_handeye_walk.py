@@ -1,0 +1,177 @@
+"""A walked hand-eye calibration over UR RTDE: the real ur_rtde client (the link's child process)
+against the mock UR controller (its own process), whose simulated robot program walks the plan
+as robots/urscript would: NEXT for the first target, move (a simulated arm: reach limit, settle
+cycles, noise on the pose it reports as ``actual_TCP_pose``), TRIGGER for the image, NEXT for a
+target it cannot reach, until the answer is NOT_FOUND (walk complete). vgripd's side is
+``WalkServer``: it only answers, the link reads the flange pose with each request, and the image
+is rendered from the pose the arm really reached. The link is then dropped halfway (the robot
+stops), and a new link and server resume the walk. Solved through the command: within
+0.05 mm / 0.01 deg of the truth, the unreachable target listed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
+from vgripd.__main__ import main
+from vgripd.calib.handeye.plan import load_plan
+from vgripd.calib.handeye.walk import SEEN, UNREACHABLE, Walk
+from vgripd.geometry.transforms import pose_error
+from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
+from vgripd.service.handeye_walk import WalkServer
+from vgripd.service.jobcore import Command
+from vgripd.sim.arm import ArmState, SimulatedArm
+from vgripd.sim.ur_controller import URController
+from vgripd.types import Status
+
+# the rendered scene of the walk test (bare module names, as pytest imports them there)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit" / "calib"))
+import test_calib_boards  # noqa: E402
+from test_calib_handeye_walk import (  # noqa: E402
+    BOARD,
+    CAMERA,
+    image_at,
+    make_plan,
+    truth,
+)
+
+pytestmark = pytest.mark.timeout(240)
+HOST = "127.0.5.61"
+MODE = "eye-in-hand"
+ZERO = (0.0,) * 6  # the walk's targets are absolute: pose_trans(target, zero) = target
+
+
+def robot_program(robot: URController, arm: SimulatedArm, stop_after: int | None
+                  ) -> dict[str, Any]:
+    """The robot side (blocking calls on the mock's pipe; run in a thread)."""
+    seq = robot.start_program(int(Command.NEXT), taught_pose=ZERO, timeout_s=30.0)
+    result = robot.program_result(seq, timeout_s=60.0)
+    visited = 0
+    while result["status"] == Status.OK:
+        if stop_after is not None and visited == stop_after:
+            return {"stopped": True, **result}
+        T = transform_from_vendor("ur", result["target"])
+        if arm.reachable(T):
+            arm.move(T)
+            while arm.step() is not ArmState.SETTLED:
+                pass
+            robot.set_tcp_pose(vendor_from_transform("ur", arm.reported_pose()))
+            seq = robot.start_program(int(Command.TRIGGER), taught_pose=ZERO, timeout_s=30.0)
+        else:
+            seq = robot.start_program(int(Command.NEXT), taught_pose=ZERO, timeout_s=30.0)
+        result = robot.program_result(seq, timeout_s=60.0)
+        visited += 1
+    return result
+
+
+async def serve_walk(robot: URController, arm: SimulatedArm, walk_file: Path, plan_file: Path,
+                     stop_after: int | None) -> dict[str, Any]:
+    walk = Walk(walk_file, load_plan(str(plan_file)), BOARD, CAMERA)
+
+    async def grab() -> np.ndarray:
+        return await asyncio.to_thread(image_at, MODE, arm.T_true.copy(), arm.moves)
+
+    link = URRtdeLink("ur", URRtdeOptions(host=HOST))
+    server = WalkServer(walk, link, grab, "ur")
+    await link.open(server.on_trigger)
+    task = asyncio.get_running_loop().create_task(server.serve())
+    try:
+        result = await asyncio.to_thread(robot_program, robot, arm, stop_after)
+        if not result.get("stopped"):
+            await asyncio.wait_for(task, 30)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        await link.close()
+    return result
+
+
+@pytest.fixture(autouse=True)
+def sharp_texture(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(test_calib_boards, "PPM", 4.0)
+
+
+async def test_walk_over_ur_rtde_resumes_skips_and_calibrates(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert make_plan(tmp_path, MODE) == 0
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    reach = sorted(np.linalg.norm(T[:3, 3]) for T in plan.poses)
+    arm = SimulatedArm(plan.poses[0], reach_mm=(reach[-1] + reach[-2]) / 2, settle_cycles=4,
+                       noise_deg=0.001, noise_mm=0.005, rng=np.random.default_rng(7))
+    walk_file = tmp_path / "walk.json"
+    with URController(HOST) as robot:
+        robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[0]))
+        first = await serve_walk(robot, arm, walk_file, tmp_path / "plan.toml", stop_after=5)
+        assert first["stopped"]
+        done = Walk(walk_file, plan, BOARD, CAMERA)
+        assert len(done.records) == 5  # five targets visited, the record saved
+        last = await serve_walk(robot, arm, walk_file, tmp_path / "plan.toml", stop_after=None)
+    assert last["status"] == Status.NOT_FOUND  # the walk complete
+    assert last["offset"] is None
+    final = Walk(walk_file, plan, BOARD, CAMERA)
+    statuses = [r.status for _, r in sorted(final.records.items())]
+    assert statuses.count(UNREACHABLE) == 1
+    assert statuses.count(SEEN) == len(plan.poses) - 1
+    assert arm.moves == len(plan.poses) - 1  # no target visited twice across the resume
+    capsys.readouterr()
+    out = tmp_path / "handeye.toml"
+    assert main(["calibrate", "handeye", "--samples", str(walk_file), "--intrinsics",
+                 str(tmp_path / "cell.toml"), "-o", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    mm, deg = pose_error(np.asarray(summary["matrix_mm"]), truth(MODE)[0])
+    assert mm < 0.05, (mm, deg)
+    assert deg < 0.01, (mm, deg)
+    assert any("unreachable" in r["reason"] for r in summary["rejected"])
+
+
+def test_walk_command_serves_the_plan_with_the_configs_camera_and_link(tmp_path: Path) -> None:
+    """``vgripd calibrate handeye walk`` wired to the config's camera (a replay camera showing
+    the board as seen from the start pose, the same image at every target) and its ur_rtde
+    link: the robot program gets every target and the end of the walk; each target recorded
+    with the board seen and the flange pose the link read."""
+    host = "127.0.5.62"
+    assert make_plan(tmp_path, "eye-to-hand", count=12) == 0  # a fixed camera: no flange pose
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    images = tmp_path / "images"
+    images.mkdir()
+    _, T0 = truth("eye-to-hand")
+    cv2.imwrite(str(images / "board.png"), image_at("eye-to-hand", T0, 0))
+    cell = tmp_path / "cell.toml"
+    text = cell.read_text(encoding="utf-8").replace(
+        'type = "synthetic"', f'type = "replay"\nfolder = "{images}"\nglob = "*.png"\n'
+                              'loop = true', 1)
+    assert 'type = "replay"' in text
+    cell.write_text(text + f'\n[[links]]\ntype = "ur_rtde"\nhost = "{host}"\n',
+                    encoding="utf-8")
+    arm = SimulatedArm(plan.poses[0], reach_mm=1e4)
+    rc: list[int] = []
+    with URController(host) as robot:
+        robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[0]))
+        command = threading.Thread(target=lambda: rc.append(main([
+            "calibrate", "handeye", "walk", "-c", str(cell), "--plan",
+            str(tmp_path / "plan.toml")])))
+        command.start()
+        try:
+            result = robot_program(robot, arm, None)
+        finally:
+            command.join(120)
+    assert not command.is_alive()
+    assert rc == [0]
+    assert result["status"] == Status.NOT_FOUND
+    walk = Walk(tmp_path / "plan.walk.json", plan, BOARD, CAMERA)
+    assert sorted(walk.records) == list(range(12))
+    assert {r.status for r in walk.records.values()} == {SEEN}
+    reached = [r.T_base_flange for _, r in sorted(walk.records.items())]
+    for T, T_plan in zip(reached, plan.poses, strict=True):  # read by the link, as reported
+        assert pose_error(T, T_plan)[0] < 1e-6
+    assert arm.moves == 12

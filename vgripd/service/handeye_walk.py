@@ -1,0 +1,109 @@
+"""Serving a walked hand-eye calibration to the robot program over the cell's own link.
+
+The robot program walks; vgripd answers. The exchange uses the link's ordinary requests and
+answers (docs/calibration-handeye.md, "Walked calibration"), so every link that carries a pose
+can carry it:
+
+- ``NEXT`` (3) with no target pending: "give me the next target" (the start of a walk, and of
+  a resumed one);
+- ``TRIGGER`` (1) with a target pending: "I am there and settled: take the image". The flange
+  pose recorded is the one the link read from the robot with the request (RTDE's
+  ``actual_TCP_pose``); the image is taken, ``image_captured`` answered, the corners recorded;
+- ``NEXT`` (3) with a target pending: "I cannot reach it": recorded as unreachable, skipped.
+
+Each answer is ``OK`` with the next target (the flange pose in ``vendor``'s convention, base
+frame, absolute: the robot program moves there as given, with its own speed limit), or
+``NOT_FOUND`` (10) without a pose when every target has a record: the walk is complete. A
+``TRIGGER`` with no target pending is ``BAD_REQUEST`` (32); an image that cannot be taken is
+``CAMERA_ERROR`` (30) and the target stays pending (the robot asks again). The record is the
+:class:`~vgripd.calib.handeye.walk.Walk` file, saved after every target, so a walk whose link
+was lost or whose robot stopped resumes with a new ``NEXT``.
+
+No motion is commanded here: only answers to the robot's requests.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Awaitable, Callable
+
+import numpy as np
+
+from vgripd.calib.handeye.walk import Walk
+from vgripd.errors import VgripError
+from vgripd.geometry.vendors import convention, vendor_from_transform
+from vgripd.service.jobcore import Command
+from vgripd.service.protocol import RobotLink, Trigger
+from vgripd.types import JobResult, RobotTarget, Status
+
+log = logging.getLogger("vgripd.calib.walk")
+
+Grab = Callable[[], Awaitable[np.ndarray]]
+
+
+class WalkServer:
+    """Answers one robot program's walk requests over ``link`` (see the module docstring).
+
+    ``grab`` takes one image (8-bit, grey or BGR). ``serve`` returns when the walk is complete
+    (the ``NOT_FOUND`` answer given); cancel it to stop (the record stays).
+    """
+
+    def __init__(self, walk: Walk, link: RobotLink, grab: Grab, vendor: str) -> None:
+        self.walk = walk
+        self.link = link
+        self.grab = grab
+        self.vendor = vendor
+        self.fields = tuple(convention(vendor).fields)
+        self.pending: int | None = None
+        self.job_id = 0
+        self._queue: asyncio.Queue[Trigger] = asyncio.Queue()
+
+    def on_trigger(self, trigger: Trigger) -> None:
+        self._queue.put_nowait(trigger)
+
+    async def serve(self) -> None:
+        while True:
+            trigger = await self._queue.get()
+            if await self._answer(trigger):
+                return
+
+    async def _answer(self, trigger: Trigger) -> bool:
+        self.job_id = self.job_id % 65535 + 1
+        job, seq = self.job_id, trigger.seq
+        if trigger.command == Command.TRIGGER:
+            if self.pending is None:
+                await self.link.publish(seq, JobResult(job, Status.BAD_REQUEST,
+                                                       "no target pending: ask NEXT first"))
+                return False
+            if trigger.T_base_flange is None:
+                await self.link.publish(seq, JobResult(
+                    job, Status.BAD_REQUEST, "the link gave no flange pose with the request"))
+                return False
+            try:
+                image = await self.grab()
+            except (VgripError, OSError) as err:
+                log.warning("walk target %d: no image: %s", self.pending, err)
+                await self.link.publish(seq, JobResult(job, Status.CAMERA_ERROR, str(err)))
+                return False
+            await self.link.image_captured(seq, job)
+            record = await asyncio.to_thread(self.walk.capture, self.pending,
+                                             trigger.T_base_flange, image)
+            log.info("walk target %d: %s", record.index, record.status)
+        elif trigger.command == Command.NEXT and self.pending is not None:
+            self.walk.unreachable(self.pending, "the robot program reported it unreachable")
+            log.info("walk target %d: unreachable, skipped", self.pending)
+        elif trigger.command != Command.NEXT:
+            await self.link.publish(seq, JobResult(job, Status.BAD_REQUEST,
+                                                   f"command {trigger.command} in a walk"))
+            return False
+        self.pending = self.walk.next_index()
+        if self.pending is None:
+            await self.link.publish(seq, JobResult(job, Status.NOT_FOUND, "walk complete"))
+            return True
+        values = tuple(float(v) for v in vendor_from_transform(self.vendor,
+                                                               self.walk.target(self.pending)))
+        await self.link.publish(seq, JobResult(job, Status.OK, f"target {self.pending}",
+                                               target=RobotTarget(self.vendor, self.fields,
+                                                                  values)))
+        return False
