@@ -1,0 +1,80 @@
+"""Exposure and gain from the web view (``POST /api/cameras/{j}/settings``) against the real
+daemon: the synthetic camera in the worker process takes them live (the next picture is darker),
+the include keeps them for the next start (numbered backup, audit entry); out of the camera's
+range, without the token, or during a job, nothing changes."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import aiohttp
+import numpy as np
+
+from tests.integration.test_daemon import Plc
+from tests.integration.test_web_reload import AUTH, job, post, running_file, write_cell
+from vgripd.config import load_config
+from vgripd.service.protocol import Reg
+from vgripd.types import Status
+
+
+def slow_cell(folder: Path) -> Path:
+    """``write_cell``'s cell with a slower render (a job lasts long enough to be seen)."""
+    main = write_cell(folder)
+    main.write_text(main.read_text().replace("max_tilt_deg = 2.0",
+                                             "max_tilt_deg = 2.0\nsupersample = 16"))
+    return main
+
+
+async def test_exposure_and_gain_are_applied_live_and_kept_in_the_include(
+        tmp_path: Path) -> None:
+    main = slow_cell(tmp_path)
+    cell = tmp_path / "cell.toml"
+    async with running_file(main) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as s:
+        assert run.daemon.status_server is not None
+        base = f"http://127.0.0.1:{run.daemon.status_server.port}"
+        url = f"{base}/api/cameras/0/settings"
+        assert await job(plc, run, 1) == Status.OK
+        before = float(np.mean((await run.daemon.camera.grab(10.0)).views[0]))
+
+        # Without the token (or with a wrong one): refused, nothing written.
+        code, _ = await post(s, url, {"exposure_us": 5000}, headers={})
+        assert code == 403
+        code, _ = await post(s, url, {"exposure_us": 5000},
+                             headers={"Authorization": "Bearer x"})
+        assert code == 403
+
+        # Out of the camera's range: 400 naming the feature and the range; nothing changes.
+        code, text = await post(s, url, {"exposure_us": 5})
+        assert code == 400
+        assert "exposure_us" in text and "20 .. 1e+06" in text, text
+        code, text = await post(s, url, {"gain_db": 40})
+        assert code == 400
+        assert "gain_db" in text and "0 .. 24" in text, text
+        assert not (tmp_path / "cell.toml.1").exists()
+
+        # Half the exposure: read back, the next picture is darker, the include keeps it.
+        code, out = await post(s, url, {"exposure_us": 5000})
+        assert code == 200, out
+        assert out["read_back"]["camera"]["ExposureTime"] == 5000.0
+        assert out["saved"]["applied"], out
+        assert out["saved"]["diff"] == ["camera.exposure_us: '(unset)' -> 5000.0"]
+        after = float(np.mean((await run.daemon.camera.grab(10.0)).views[0]))
+        assert after < 0.6 * before, (before, after)
+        assert tomllib.loads(cell.read_text())["camera"]["exposure_us"] == 5000.0
+        assert "camera" not in tomllib.loads((tmp_path / "cell.toml.1").read_text())
+        assert load_config(main).camera.exposure_us == 5000.0  # the next start
+        assert run.daemon.reloader is not None
+        assert run.daemon.reloader.audit[0].diff == ("camera.exposure_us: '(unset)' -> 5000.0",)
+        async with s.get(f"{base}/api/cameras/settings") as r:
+            assert (await r.json())["exposure_us"] == 5000.0
+
+        # During a job: 409 saying why; the camera and the file stay.
+        await plc.trigger(2)
+        await run.busy()
+        code, text = await post(s, url, {"exposure_us": 8000})
+        assert code == 409
+        assert "between jobs" in text
+        assert (await plc.result(2))[Reg.STATUS] == Status.OK
+        assert tomllib.loads(cell.read_text())["camera"]["exposure_us"] == 5000.0
+        assert not (tmp_path / "cell.toml.2").exists()
