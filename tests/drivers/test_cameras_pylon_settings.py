@@ -40,8 +40,10 @@ async def test_exposure_and_gain_are_set_live_on_both_cameras_and_read_back() ->
         with pytest.raises(SettingError) as err:
             await cam.set_settings(1e12, None)
         text = str(err.value)
-        assert "camera left" in text and "camera right" in text
-        assert "ExposureTime" in text and "out of the device's range" in text, text
+        assert "camera left" in text
+        assert "camera right" in text
+        assert "ExposureTime" in text, text
+        assert "out of the device's range" in text, text
         assert cam.applied[0]["ExposureTime"] == pytest.approx(6000.0, rel=0.01)
         assert (await cam.grab(5.0)).left is not None  # still grabbing
     finally:

@@ -5,6 +5,7 @@ range, without the token, or during a job, nothing changes."""
 
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 
@@ -12,7 +13,8 @@ import aiohttp
 import numpy as np
 
 from tests.integration.test_daemon import Plc
-from tests.integration.test_web_reload import AUTH, job, post, running_file, write_cell
+from tests.integration.test_web import _chromium, _until
+from tests.integration.test_web_reload import TOKEN, job, post, running_file, write_cell
 from vgripd.config import load_config
 from vgripd.service.protocol import Reg
 from vgripd.types import Status
@@ -47,10 +49,12 @@ async def test_exposure_and_gain_are_applied_live_and_kept_in_the_include(
         # Out of the camera's range: 400 naming the feature and the range; nothing changes.
         code, text = await post(s, url, {"exposure_us": 5})
         assert code == 400
-        assert "exposure_us" in text and "20 .. 1e+06" in text, text
+        assert "exposure_us" in text, text
+        assert "20 .. 1e+06" in text, text
         code, text = await post(s, url, {"gain_db": 40})
         assert code == 400
-        assert "gain_db" in text and "0 .. 24" in text, text
+        assert "gain_db" in text, text
+        assert "0 .. 24" in text, text
         assert not (tmp_path / "cell.toml.1").exists()
 
         # Half the exposure: read back, the next picture is darker, the include keeps it.
@@ -78,3 +82,40 @@ async def test_exposure_and_gain_are_applied_live_and_kept_in_the_include(
         assert (await plc.result(2))[Reg.STATUS] == Status.OK
         assert tomllib.loads(cell.read_text())["camera"]["exposure_us"] == 5000.0
         assert not (tmp_path / "cell.toml.2").exists()
+
+
+async def test_chromium_sets_the_exposure_from_the_live_camera_page(tmp_path: Path) -> None:
+    """In headless Chromium: an out-of-range exposure is refused with the range shown; a good
+    one is applied (read back shown), written to the include and listed in the audit."""
+    main = write_cell(tmp_path)
+    async with running_file(main) as run:
+        assert run.daemon.status_server is not None
+        base = f"http://127.0.0.1:{run.daemon.status_server.port}"
+        async with _chromium(tmp_path, base + "/") as evaluate:
+            text = "(id) => document.getElementById(id)?.textContent ?? ''"
+            assert await _until(evaluate, "document.getElementById('btn-cam-set')?.hidden "
+                                          "=== false")
+
+            async def apply(exposure: str) -> str:
+                await evaluate(f"""(() => {{
+                    document.getElementById('token').value = {json.dumps(TOKEN)};
+                    document.getElementById('cam-result').textContent = '';
+                    document.getElementById('cam-exposure_us').value = {json.dumps(exposure)};
+                    document.getElementById('btn-cam-set').click();
+                    return true;
+                }})()""")
+                result: str = await _until(evaluate, f"({text})('cam-result')")
+                return result
+
+            refused = await apply("3")
+            assert refused.startswith("REFUSED (400)"), refused
+            assert "20 .. 1e+06" in refused, refused
+            applied = await apply("12000")
+            assert applied.startswith("APPLIED"), applied
+            assert "12000" in applied, applied
+            assert "saved to cell.toml" in applied, applied
+            assert await _until(evaluate, "[...document.querySelectorAll('#audit tbody tr')]"
+                                          ".some((r) => r.textContent.includes("
+                                          "'camera.exposure_us'))")
+        assert tomllib.loads((tmp_path / "cell.toml").read_text())["camera"]["exposure_us"] \
+            == 12000.0
