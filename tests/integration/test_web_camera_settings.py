@@ -5,19 +5,24 @@ range, without the token, or during a job, nothing changes."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import tomllib
 from pathlib import Path
 
 import aiohttp
 import numpy as np
+import pytest
 
+from tests.conftest import REPO, need
 from tests.integration.test_daemon import Plc
 from tests.integration.test_web import _chromium, _until
 from tests.integration.test_web_reload import TOKEN, job, post, running_file, write_cell
 from vgripd.config import load_config
 from vgripd.service.protocol import Reg
 from vgripd.types import Status
+
+SAMPLES = REPO / "config" / "samples"
 
 
 def slow_cell(folder: Path) -> Path:
@@ -119,3 +124,52 @@ async def test_chromium_sets_the_exposure_from_the_live_camera_page(tmp_path: Pa
                                           "'camera.exposure_us'))")
         assert tomllib.loads((tmp_path / "cell.toml").read_text())["camera"]["exposure_us"] \
             == 12000.0
+
+
+def pylon_cell(folder: Path) -> Path:
+    """``write_cell`` with two cameras of pylon's emulation (``PYLON_CAMEMU``) fed the demo
+    cell's sample images, ``exposure_us`` set in the main file; no calibration (jobs would be
+    NOT_CALIBRATED; none is run)."""
+    main = write_cell(folder)
+    feed = ('{{ TestImageSelector = "Off", ImageFileMode = "On", ImageFilename = "{}" }}')
+    camera = "\n".join([
+        '[camera]', 'type = "pylon"', "exposure_us = 4000.0",
+        "roi = { width = 1280, height = 1024 }",
+        *(f'[[camera.cameras]]\nserial = "0815-000{k}"\nfeatures = '
+          + feed.format(SAMPLES / f"{side}_00.png") for k, side in enumerate(("left", "right"))),
+        ""])
+    text = main.read_text()
+    start, end = text.index("[camera]"), text.index("[[links]]")
+    main.write_text(text[:start] + camera + "\n" + text[end:])
+    return main
+
+
+@pytest.mark.timeout(120, method="thread")  # pylon's waits and SIGALRM: test_cameras_pylon.py
+async def test_pylon_emulation_takes_exposure_from_the_page_with_its_range_checked(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    need(importlib.util.find_spec("pypylon") is not None,
+         "needs pypylon: pip install vgripd[pylon]")
+    monkeypatch.setenv("PYLON_CAMEMU", "3")  # the worker process inherits it
+    main = pylon_cell(tmp_path)
+    async with running_file(main) as run, aiohttp.ClientSession() as s:
+        assert run.daemon.status_server is not None
+        url = f"http://127.0.0.1:{run.daemon.status_server.port}/api/cameras/1/settings"
+        code, out = await post(s, url, {"exposure_us": 6000, "gain_db": 2.0})
+        assert code == 200, out
+        for name in ("left", "right"):
+            assert out["read_back"][name]["ExposureTime"] == pytest.approx(6000, rel=0.01)
+            assert out["read_back"][name]["Gain"] == pytest.approx(2.0, abs=0.1)
+        # The main file sets exposure_us: applied live, not written, the answer says where.
+        assert not out["saved"]["applied"]
+        assert "camera.exposure_us is set in" in out["saved"]["message"]
+        assert "vgripd.toml" in out["saved"]["message"]
+        assert "camera" not in tomllib.loads((tmp_path / "cell.toml").read_text())
+        assert not (tmp_path / "cell.toml.1").exists()
+
+        code, text = await post(s, url, {"exposure_us": 1e12})
+        assert code == 400
+        assert "camera left (Basler Emulation" in text, text
+        assert "ExposureTime" in text, text
+        assert "out of the device's range" in text, text
+        async with s.get(url.replace("/1/settings", "/settings")) as r:
+            assert (await r.json())["exposure_us"] == 6000.0  # the refused value changed nothing
