@@ -75,41 +75,43 @@ def settings_target(config_path: Path) -> Path:
     return target
 
 
-def save_settings(reloader: Reloader, values: dict[str, float], source: str) -> Outcome:
+def write_settings(config_path: Path, values: dict[str, float]
+                   ) -> tuple[bool, str, tuple[str, ...]]:
     """Write ``values`` as ``[camera]`` keys of the include (numbered backup first); the file is
-    put back when the config no longer loads. One audit entry either way."""
-    note = "camera settings"
+    put back when the config no longer loads. Returns (saved, message, diff); file work only
+    (the caller runs it off the event loop)."""
     try:
-        target = settings_target(reloader.path)
+        target = settings_target(config_path)
         before = target.read_text(encoding="utf-8")
         data = tomllib.loads(before)
     except (ConfigError, OSError, tomllib.TOMLDecodeError) as err:
-        return reloader._audit(Outcome(False, f"applied live, not saved: {err}",
-                                       source=source, t_wall=time.time()), note)
+        return False, f"applied live, not saved: {err}", ()
     camera = data.setdefault("camera", {})
     diff = tuple(f"camera.{k}: {camera.get(k, '(unset)')!r} -> {v!r}" for k, v in values.items()
                  if camera.get(k) != v)
     camera.update(values)
     if not diff:
-        return reloader._audit(Outcome(True, "applied live; the file has these values already",
-                                       source=source, t_wall=time.time()), note)
+        return True, "applied live; the file has these values already", ()
     backup = next_backup(target)
     backup.write_text(before, encoding="utf-8")
     _write(target, toml_from_dict(data))
     try:
-        load_config(reloader.path)
+        load_config(config_path)
     except ConfigError as err:
         _write(target, before)
         backup.unlink(missing_ok=True)
-        return reloader._audit(Outcome(False, f"applied live, not saved (the config would not "
-                                              f"load: {err})", diff, (), source, time.time()),
-                               note)
+        return False, f"applied live, not saved (the config would not load: {err})", diff
     _prune(target)
-    log.info("web view: camera settings saved to %s (backup %s) from %s", target, backup.name,
-             source)
-    return reloader._audit(Outcome(True, f"applied live; saved to {target.name} (backup "
-                                         f"{backup.name}) for the next start", diff, (), source,
-                                   time.time()), note)
+    log.info("web view: camera settings saved to %s (backup %s)", target, backup.name)
+    return True, (f"applied live; saved to {target.name} (backup {backup.name}) for the next "
+                  "start"), diff
+
+
+async def save_settings(reloader: Reloader, values: dict[str, float], source: str) -> Outcome:
+    """``write_settings`` off the loop, then one audit entry (written or not)."""
+    saved, message, diff = await asyncio.to_thread(write_settings, reloader.path, values)
+    return reloader._audit(Outcome(saved, message, diff, (), source, time.time()),
+                           "camera settings")
 
 
 class CameraSettingsRoutes:
@@ -169,6 +171,6 @@ class CameraSettingsRoutes:
         log.info("web view: camera settings %s applied from %s, read back %s", values,
                  request.remote, read_back)
         async with self._saving:
-            outcome = save_settings(reloader, values, f"web {request.remote}")
+            outcome = await save_settings(reloader, values, f"web {request.remote}")
         return web.json_response({"applied": values, "read_back": read_back,
                                   "saved": outcome.as_dict()})
