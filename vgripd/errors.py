@@ -41,6 +41,10 @@ class CameraError(DriverError):
     """Acquisition failed: timeout, missing file, corrupt image, device gone."""
 
 
+class CameraSettingError(CameraError):
+    """A camera setting the device (or driver) refuses: names the camera, feature and range."""
+
+
 class LinkError(DriverError):
     """A robot/PLC link failed to start or lost its peer (message says address, port, register)."""
 

@@ -34,7 +34,7 @@ from typing import Any, ClassVar, TypeVar
 from pydantic import BaseModel, ConfigDict
 
 from vgripd.config import Config
-from vgripd.errors import CameraError
+from vgripd.errors import CameraError, CameraSettingError
 from vgripd.types import CaptureView, ImagePair
 
 R = TypeVar("R")
@@ -154,6 +154,14 @@ class CameraDriver(ABC):
                 f"{self.type_name}: no image from {self.describe()} within {timeout_s:g} s"
             ) from None
 
+    async def set_settings(self, exposure_us: float | None, gain_db: float | None
+                           ) -> dict[str, Any]:
+        """Change exposure (us) and gain (dB) of the open camera between jobs (None: leave
+        it), with the checks ``open`` makes; returns what the device reads back per camera.
+        ``CameraSettingError`` names the camera, the feature and the device's range. Optional:
+        a driver without the hook refuses."""
+        return await self._run(self._settings_blocking, exposure_us, gain_db)
+
     def stuck_s(self) -> float:
         """How long the executor's current call has been running (s); 0 when it is idle.
 
@@ -195,6 +203,12 @@ class CameraDriver(ABC):
         """Runs on the executor in ``grab()``: a driver that uses the recipe hint overrides
         this; every other driver grabs what is in view."""
         return self._grab_blocking(timeout_s)
+
+    def _settings_blocking(self, exposure_us: float | None, gain_db: float | None
+                           ) -> dict[str, Any]:
+        """Runs on the executor in ``set_settings``; a driver with live settings overrides."""
+        raise CameraSettingError(f"{self.type_name}: this camera type has no exposure or gain "
+                                 "to set")
 
     def _close_blocking(self) -> None:  # noqa: B027 - optional hook
         """Runs on the executor in ``close()``; releases handles."""

@@ -70,6 +70,7 @@ from drivers.cameras.gencam_sdk import (
     SettingError,
     Stack,
     apply_settings,
+    check_value,
 )
 from drivers.cameras.pixels import FORMATS, PixelError, to_image
 from vgripd.config import MAX_CAMERAS, Config
@@ -178,13 +179,7 @@ def settings(options: GenICamStackOptions, entry: CameraEntry,
         out.append(("GevSCPSPacketSize", o.packet_size))
     if o.inter_packet_delay is not None:
         out.append(("GevSCPD", o.inter_packet_delay))
-    if o.exposure_us is not None:
-        optional("ExposureAuto", "Off")
-        exposure = "ExposureTime" if device.feature("ExposureTime") else "ExposureTimeAbs"
-        out.append((exposure, float(o.exposure_us)))
-    if o.gain_db is not None:
-        optional("GainAuto", "Off")
-        out.append(("Gain", float(o.gain_db)))
+    out += exposure_gain(device, o.exposure_us, o.gain_db)
     selector = device.feature("TriggerSelector")
     if selector is not None and "FrameStart" in selector.symbols:
         out.append(("TriggerSelector", "FrameStart"))
@@ -194,6 +189,21 @@ def settings(options: GenICamStackOptions, entry: CameraEntry,
         out += [("TriggerMode", "On"),
                 ("TriggerSource", "Software" if o.trigger == "software" else o.trigger_line)]
     out += list(o.features.items()) + list(entry.features.items())
+    return out
+
+
+def exposure_gain(device: Device, exposure_us: float | None,
+                  gain_db: float | None) -> list[tuple[str, Any]]:
+    """The writes of exposure (us) and gain (dB), automatic modes off first (None: none)."""
+    out: list[tuple[str, Any]] = []
+    for value, auto, names in ((exposure_us, "ExposureAuto", ("ExposureTime", "ExposureTimeAbs")),
+                               (gain_db, "GainAuto", ("Gain",))):
+        if value is None:
+            continue
+        info = device.feature(auto)
+        if info is not None and info.writable:
+            out.append((auto, "Off"))
+        out.append((next((n for n in names if device.feature(n)), names[-1]), float(value)))
     return out
 
 
@@ -309,6 +319,34 @@ class GenICamStackCamera(CameraDriver):
     def _close_blocking(self) -> None:
         self._close_devices()
 
+
+    def _settings_blocking(self, exposure_us: float | None, gain_db: float | None
+                           ) -> dict[str, Any]:
+        """Exposure and gain of every camera, checked on all of them before any is written
+        (a refused value changes nothing), then written and read back as at open. The options
+        keep the new values, so a reopen after an outage applies them again."""
+        if not self._devices:
+            raise CameraError(f"{self.type_name}: {self.outage or 'the cameras are not open'}")
+        plans = [(name, device, exposure_gain(device, exposure_us, gain_db))
+                 for name, device in zip(self.names, self._devices, strict=True)]
+        refused = []
+        for name, device, writes in plans:
+            for feature, value in writes:
+                info = device.feature(feature)
+                why = (f"feature {feature} does not exist on this device" if info is None
+                       else check_value(info, value))
+                if why is not None:
+                    refused.append(f"camera {name} ({device.info.label()}): "
+                                   + (why if info is None else f"{feature} {why}"))
+        if refused:
+            raise SettingError("\n".join(refused))
+        applied = {name: apply_settings(name, device, writes) for name, device, writes in plans}
+        for i, name in enumerate(self.names):
+            self.applied[i].update(applied[name])
+        update = {k: v for k, v in (("exposure_us", exposure_us), ("gain_db", gain_db))
+                  if v is not None}
+        self.options = self.options.model_copy(update=update)
+        return applied
 
     async def check_settings(self) -> list[tuple[int, int]]:
         """Open (which applies and reads back every setting) and close again: `vgripd check`.

@@ -13,10 +13,10 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from vgripd.errors import CameraError
+from vgripd.errors import CameraSettingError
 
 
-class SettingError(CameraError):
+class SettingError(CameraSettingError):
     """A configured GenICam setting that the device refuses (names camera, feature, range)."""
 
 

@@ -32,6 +32,9 @@ Options (``[camera]`` with ``type = "synthetic"``)::
                            # "m3" on every instance, "2/m3" on instance 2 only (from 0)
     extra_blobs = 0        # faults: spurious mark-like blobs
     black = false          # faults: black images (lens cap, flash failed)
+    exposure_us = 10000    # brightness scales with exposure / 10000 us (20 .. 1e6; unset: 1)
+    gain_db = 0            # and with 10^(gain_db / 20), the noise too (0 .. 24 dB); both can
+                           # be changed live (``set_settings``, the web view's camera form)
     recipe = 0             # render the object (and reference) of this recipe ([recipes.N]);
                            # 0 = the top-level [object]. Which plate lies in the cell.
                            # "job": the object of each job's recipe (the grab's hint), so
@@ -71,7 +74,7 @@ from pydantic import Field, model_validator
 
 from drivers.cameras.base import CameraDriver, DriverOptions
 from vgripd.config import CircleFeature, Config, Model, PoseConfig
-from vgripd.errors import CameraError, ConfigError, VgripError
+from vgripd.errors import CameraError, CameraSettingError, ConfigError, VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
 from vgripd.types import CaptureView, FloatArray, ImagePair
@@ -79,6 +82,11 @@ from vgripd.vision import scene
 
 #: Vertices of the projected rim; the polygon is within 1e-3 px of the curve for 30 px marks.
 RIM_VERTICES = 256
+#: The exposure (us) at which the rendered grey levels are the configured ones, and the live
+#: settings' ranges (what a device would report).
+REFERENCE_EXPOSURE_US = 10000.0
+EXPOSURE_US = (20.0, 1_000_000.0)
+GAIN_DB = (0.0, 24.0)
 
 
 class PalletOptions(Model):
@@ -119,7 +127,29 @@ class SyntheticOptions(DriverOptions):
     drop_features: tuple[str, ...] = ()
     extra_blobs: int = Field(default=0, ge=0, le=100)
     black: bool = False
+    exposure_us: float | None = Field(default=None, ge=EXPOSURE_US[0], le=EXPOSURE_US[1])
+    gain_db: float | None = Field(default=None, ge=GAIN_DB[0], le=GAIN_DB[1])
     recipe: Annotated[int, Field(ge=0, le=65535)] | Literal["job"] = 0
+
+
+def checked_settings(exposure_us: float | None, gain_db: float | None) -> dict[str, float]:
+    """The live settings as the options take them; ``CameraSettingError`` naming the range."""
+    out: dict[str, float] = {}
+    for key, value, (lo, hi), unit in (("exposure_us", exposure_us, EXPOSURE_US, "us"),
+                                       ("gain_db", gain_db, GAIN_DB, "dB")):
+        if value is None:
+            continue
+        if not lo <= value <= hi:
+            raise CameraSettingError(f"synthetic: camera {key} = {value:g} {unit} is out of "
+                                     f"the device's range {lo:g} .. {hi:g}")
+        out[key] = float(value)
+    return out
+
+
+def brightness(options: SyntheticOptions) -> tuple[float, float]:
+    """The factors of the image's grey levels and of its noise (exposure and gain)."""
+    gain = 10 ** ((options.gain_db or 0.0) / 20)
+    return (options.exposure_us or REFERENCE_EXPOSURE_US) / REFERENCE_EXPOSURE_US * gain, gain
 
 
 @dataclass
@@ -328,6 +358,11 @@ class SyntheticCamera(CameraDriver):
 
     def describe(self) -> str:
         return "synthetic renderer"
+
+    def _settings_blocking(self, exposure_us: float | None, gain_db: float | None
+                           ) -> dict[str, Any]:
+        self.options = self.options.model_copy(update=checked_settings(exposure_us, gain_db))
+        return {"camera": {"ExposureTime": self.options.exposure_us, "Gain": self.options.gain_db}}
 
     def next_pose(self) -> FloatArray:
         """T_base_obj for the next frame: the fixed pose, or a random one around the reference."""
@@ -565,8 +600,11 @@ class SyntheticCamera(CameraDriver):
             albedo *= 1.0 + o.gradient * ramp
         if o.blur_px > 0:
             albedo = cv2.GaussianBlur(albedo, (0, 0), o.blur_px)
+        scale, noise = brightness(o)
+        if scale != 1:
+            albedo *= scale
         if o.noise_std > 0:
-            albedo += rng.normal(0.0, o.noise_std, albedo.shape)
+            albedo += rng.normal(0.0, o.noise_std * noise, albedo.shape)
         return np.clip(np.rint(albedo), 0, 255).astype(np.uint8), first, blobs
 
     def _spurious_blobs(self, albedo: FloatArray, centres: FloatArray,

@@ -84,7 +84,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from vgripd.config import Config
-from vgripd.errors import CameraError, NotCalibratedError
+from vgripd.errors import CameraError, CameraSettingError, NotCalibratedError
 from vgripd.service.imageshm import SHM_DIR as SHM_DIR  # where tests look for segments
 from vgripd.service.imageshm import (
     ImageLayout,
@@ -298,6 +298,14 @@ class _Worker:
             return None, need
         return write_images(buf, images), need
 
+    def camera_settings(self, exposure_us: float | None, gain_db: float | None
+                        ) -> dict[str, Any]:
+        """The driver's ``set_settings`` (opening the camera first if needed)."""
+        self.open_camera()
+        settings: dict[str, Any] = self.loop.run_until_complete(
+            self.camera.set_settings(exposure_us, gain_db))
+        return settings
+
     def close_camera(self) -> None:
         if self.camera_open:
             self.camera_open = False
@@ -360,6 +368,7 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
     handlers: dict[str, Callable[..., Any]] = {
         "camera_open": worker.open_camera, "camera_grab": worker.grab,
         "camera_put": worker.put, "camera_close": worker.close_camera,
+        "camera_settings": worker.camera_settings,
         "process": worker.process, "record": worker.record,
         "reconfigure": worker.reconfigure,
     }
@@ -396,7 +405,8 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
             try:
                 value = handlers[op](*args)
             except CameraError as err:
-                answer(req_id, False, ("camera", str(err), ""))
+                kind = "setting" if isinstance(err, CameraSettingError) else "camera"
+                answer(req_id, False, (kind, str(err), ""))
             except Exception as err:
                 answer(req_id, False, ("error", f"{type(err).__name__}: {err}",
                                        traceback.format_exc()))
@@ -857,6 +867,16 @@ class WorkerCamera:
                    recipe: int = 0) -> ImagePair:
         return await self._client.grab(timeout_s, view, recipe)
 
+    async def set_settings(self, exposure_us: float | None, gain_db: float | None
+                           ) -> dict[str, Any]:
+        """The driver's ``set_settings`` in the worker (between jobs: the caller's part)."""
+        try:
+            settings: dict[str, Any] = await self._client.call(
+                "camera_settings", exposure_us, gain_db, what="camera settings")
+        except WorkerError as err:
+            raise CameraError(f"{self.type_name}: {err}") from None
+        return settings
+
     async def close(self) -> None:
         await self._client.close_camera()
 
@@ -888,6 +908,8 @@ def _remote_error(value: Any) -> BaseException:
     kind, message, tb = value
     if kind == "camera":
         return CameraError(message)
+    if kind == "setting":
+        return CameraSettingError(message)
     if tb:
         log.error("worker: %s\n%s", message, tb.rstrip())
     if kind == "start":

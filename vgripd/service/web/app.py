@@ -27,6 +27,7 @@ Routes (docs/web.md)::
     GET  /api/audit, GET|POST /api/tuning, POST /api/reload   commissioning (``commission``)
     GET  /api/teach, POST /api/teach/{shot,clear,save}        teaching (``teaching``)
     GET  /api/cameras, GET /api/cameras/{j}/preview.jpg       live cameras (``preview``)
+    GET  /api/cameras/settings, POST /api/cameras/{j}/settings exposure, gain (``camsettings``)
 
 Security model (``access.Access``, docs/web.md): read-only by default and bound to 127.0.0.1;
 the config refuses a non-loopback bind without ``status.token``, and such a bind needs the
@@ -57,6 +58,7 @@ from vgripd.service.jobrecord import JobRecord
 from vgripd.service.recorder import PARTIAL_PREFIX, dict_from_result
 from vgripd.service.web.access import Access, ServerLogLimit
 from vgripd.service.web.bundle import write_bundle
+from vgripd.service.web.camsettings import CameraSettingsRoutes
 from vgripd.service.web.commission import CommissionRoutes
 from vgripd.service.web.daemonview import DaemonView
 from vgripd.service.web.guard import GuardedSite, make_guard
@@ -361,6 +363,8 @@ class WebServer:
         TeachRoutes(self).add(r)
         self.previews = PreviewRoutes(self)
         self.previews.add(r)
+        self.camera_settings = CameraSettingsRoutes(self)
+        self.camera_settings.add(r)
         r.add_static("/static/", STATIC)
         return app
 

@@ -18,8 +18,10 @@ the preview never starts while a job runs, but the camera is one.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
+from collections.abc import AsyncIterator
 from typing import Any
 
 from aiohttp import web
@@ -59,6 +61,13 @@ class PreviewRoutes:
         return web.json_response({"count": len(jpegs), "figures": figures,
                                   "age_s": None if not t else time.monotonic() - t,
                                   "max_fps": MAX_PREVIEW_FPS, "grabs": self.grabs})
+
+    @contextlib.asynccontextmanager
+    async def between_jobs(self) -> AsyncIterator[bool]:
+        """Hold the camera for the page (no preview grab meanwhile); yields whether the
+        daemon is idle (no job, no several-view job between views)."""
+        async with self._lock:
+            yield self._idle()
 
     async def grab_between_jobs(self) -> Any:
         """A pair grabbed now if the daemon is idle (the tuning trial's fresh grab); None when

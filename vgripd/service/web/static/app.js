@@ -247,6 +247,31 @@ $("live-on").addEventListener("change", () => {
   if (liveTimer) liveTick();
 });
 
+// Exposure and gain: applied live between jobs, then kept in the config's include (token).
+async function loadCamSettings() {
+  const c = await getJSON("/api/cameras/settings");
+  for (const k of ["exposure_us", "gain_db"]) if (c[k] !== null) $(`cam-${k}`).value = c[k];
+  $("btn-cam-set").hidden = !c.enabled;
+}
+$("btn-cam-set").addEventListener("click", async () => {
+  const body = {};
+  for (const k of ["exposure_us", "gain_db"]) if ($(`cam-${k}`).value !== "") body[k] = Number($(`cam-${k}`).value);
+  const headers = { Authorization: `Bearer ${$("token").value}`, "Content-Type": "application/json" };
+  try {
+    const resp = await fetch(`/api/cameras/${$("cam-j").value}/settings`,
+      { method: "POST", headers, body: JSON.stringify(body) });
+    const text = await resp.text();
+    const ok = resp.ok;
+    const out = ok ? JSON.parse(text) : null;
+    $("cam-result").textContent = ok ? `APPLIED: read back ${JSON.stringify(out.read_back)}; ${out.saved.message}`
+      : `REFUSED (${resp.status}): ${text}`;
+    $("cam-result").className = ok ? "status ok" : "status bad";
+  } catch (err) { $("cam-result").textContent = err.message; }
+  loadCamSettings().catch(() => {});
+  loadAudit().catch(() => {});
+});
+loadCamSettings().catch(() => {});
+
 // --- calibration health: files and the cell drawn from above and from the side -------------
 const SVGNS = "http://www.w3.org/2000/svg";
 function svgNode(tag, attrs, text) {

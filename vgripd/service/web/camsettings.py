@@ -1,0 +1,176 @@
+"""Exposure and gain from the web view's live camera page (docs/web.md, "Live cameras").
+
+::
+
+    GET  /api/cameras/settings       exposure_us and gain_db as they run
+    POST /api/cameras/{j}/settings   {"exposure_us": 8000, "gain_db": 3}   (status.allow_config_edit
+                                     + token): applied live, then written to the config
+
+The values are the ``[camera]`` section's ``exposure_us`` and ``gain_db`` (shared by every camera
+of the acquisition; ``j`` names the camera the page shows and must exist). They go to the camera
+driver's ``set_settings`` (in the worker process when the driver runs there), which checks them
+as at open against what the device reports and reads them back. Only between jobs: during a job
+(or a several-view job between views) the answer is 409; a value out of the device's range is
+400 naming the camera, the feature and the range, and changes nothing.
+
+Applied, the values are written to the include file that holds ``[object]`` (the tuning save's
+file: numbered backup, one audit entry with the diff), as ``[camera]`` keys beside the main
+file's ``[camera]`` table, so the next start keeps them. The reload does not apply a ``camera``
+key (it needs a restart), so this route applies them live itself and the file only keeps them:
+a later reload of that file names ``camera.exposure_us`` / ``camera.gain_db`` as needing a
+restart although the camera already runs with them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from vgripd.config import load_config, read_config_data
+from vgripd.errors import CameraError, CameraSettingError, ConfigError
+from vgripd.serialize import toml_from_dict
+from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.web.commission import _prune, _write, next_backup, tuning_target
+
+log = logging.getLogger(__name__)
+
+KEYS = ("exposure_us", "gain_db")
+
+
+def parse_settings(body: Any) -> dict[str, float]:
+    """``{"exposure_us": number, "gain_db": number}`` (one or both), checked for shape only:
+    the device judges the values."""
+    if not isinstance(body, dict) or not body or set(body) - set(KEYS):
+        raise web.HTTPBadRequest(text='a JSON object {"exposure_us": ..., "gain_db": ...} '
+                                      "(one or both)")
+    out = {}
+    for key, value in body.items():
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, int | float) or value != value:
+            raise web.HTTPBadRequest(text=f"camera.{key}: {value!r} is not a number")
+        out[key] = float(value)
+    if not out:
+        raise web.HTTPBadRequest(text="give exposure_us or gain_db")
+    return out
+
+
+def settings_target(config_path: Path) -> Path:
+    """The include a camera setting is written to: the tuning save's file, when no other file
+    already sets the key (``TuningError``/``ConfigError`` naming it otherwise)."""
+    target = tuning_target(config_path)
+    owner: dict[str, str] = {}
+    read_config_data(config_path, owner)
+    for key in KEYS:
+        where = owner.get(f"camera.{key}")
+        if where is not None and Path(where) != target:
+            raise ConfigError(f"camera.{key} is set in {where}: the page writes it only to "
+                              f"{target.name}; move it there")
+    return target
+
+
+def write_settings(config_path: Path, values: dict[str, float]
+                   ) -> tuple[bool, str, tuple[str, ...]]:
+    """Write ``values`` as ``[camera]`` keys of the include (numbered backup first); the file is
+    put back when the config no longer loads. Returns (saved, message, diff); file work only
+    (the caller runs it off the event loop)."""
+    try:
+        target = settings_target(config_path)
+        before = target.read_text(encoding="utf-8")
+        data = tomllib.loads(before)
+    except (ConfigError, OSError, tomllib.TOMLDecodeError) as err:
+        return False, f"applied live, not saved: {err}", ()
+    camera = data.setdefault("camera", {})
+    diff = tuple(f"camera.{k}: {camera.get(k, '(unset)')!r} -> {v!r}" for k, v in values.items()
+                 if camera.get(k) != v)
+    camera.update(values)
+    if not diff:
+        return True, "applied live; the file has these values already", ()
+    backup = next_backup(target)
+    backup.write_text(before, encoding="utf-8")
+    _write(target, toml_from_dict(data))
+    try:
+        load_config(config_path)
+    except ConfigError as err:
+        _write(target, before)
+        backup.unlink(missing_ok=True)
+        return False, f"applied live, not saved (the config would not load: {err})", diff
+    _prune(target)
+    log.info("web view: camera settings saved to %s (backup %s)", target, backup.name)
+    return True, (f"applied live; saved to {target.name} (backup {backup.name}) for the next "
+                  "start"), diff
+
+
+async def save_settings(reloader: Reloader, values: dict[str, float], source: str) -> Outcome:
+    """``write_settings`` off the loop, then one audit entry (written or not)."""
+    saved, message, diff = await asyncio.to_thread(write_settings, reloader.path, values)
+    return reloader._audit(Outcome(saved, message, diff, (), source, time.time()),
+                           "camera settings")
+
+
+class CameraSettingsRoutes:
+    """The routes above for one ``WebServer``."""
+
+    def __init__(self, server: Any) -> None:
+        self.server = server
+        self._saving = asyncio.Lock()
+        #: What the cameras read back after the last change (None: as configured at start).
+        self.live: dict[str, Any] | None = None
+        self._values: dict[str, float] = {}
+
+    def add(self, router: web.UrlDispatcher) -> None:
+        router.add_get("/api/cameras/settings", self.current)
+        router.add_post("/api/cameras/{j:\\d+}/settings", self.change)
+
+    async def current(self, request: web.Request) -> web.Response:
+        section = self.server.daemon.config.camera
+        values = {k: self._values.get(k, getattr(section, k, None)) for k in KEYS}
+        return web.json_response({**values, "read_back": self.live,
+                                  "enabled": bool(self.server.daemon.config.status
+                                                  .allow_config_edit)})
+
+    async def change(self, request: web.Request) -> web.Response:
+        daemon = self.server.daemon
+        self.server._guard(request, bool(daemon.config.status.allow_config_edit))
+        reloader = daemon.reloader
+        if reloader is None:
+            raise web.HTTPNotFound(text="this daemon was not started from a config file")
+        try:
+            body = await request.json()
+        except ValueError:
+            raise web.HTTPBadRequest(text="the body must be JSON") from None
+        values = parse_settings(body)
+        text = request.match_info["j"]
+        cameras = (daemon.config.calibration.cameras if daemon.config.calibration is not None
+                   else None)
+        if len(text) > 2 or int(text) >= (2 if cameras is None else len(cameras)):
+            raise web.HTTPNotFound(text="no such camera")
+        camera = daemon.camera
+        if not hasattr(camera, "set_settings"):
+            raise web.HTTPBadRequest(text=f"camera {daemon.config.camera.type}: no exposure or "
+                                          "gain to set")
+        async with self.server.previews.between_jobs() as idle:
+            if not idle:
+                raise web.HTTPConflict(text="a job runs: exposure and gain are changed only "
+                                            "between jobs; try again")
+            try:
+                read_back = await camera.set_settings(values.get("exposure_us"),
+                                                      values.get("gain_db"))
+            except CameraSettingError as err:
+                raise web.HTTPBadRequest(text=str(err)) from None
+            except CameraError as err:
+                raise web.HTTPServiceUnavailable(text=f"the camera cannot take it now: {err}"
+                                                 ) from None
+        self.live, self._values = read_back, {**self._values, **values}
+        log.info("web view: camera settings %s applied from %s, read back %s", values,
+                 request.remote, read_back)
+        async with self._saving:
+            outcome = await save_settings(reloader, values, f"web {request.remote}")
+        return web.json_response({"applied": values, "read_back": read_back,
+                                  "saved": outcome.as_dict()})
