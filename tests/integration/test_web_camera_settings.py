@@ -77,6 +77,10 @@ async def test_exposure_and_gain_are_applied_live_and_kept_in_the_include(
         assert run.daemon.reloader.audit[0].diff == ("camera.exposure_us: '(unset)' -> 5000.0",)
         async with s.get(f"{base}/api/cameras/settings") as r:
             assert (await r.json())["exposure_us"] == 5000.0
+        # A reload of the saved file: the camera already runs with it, no restart named.
+        outcome = await run.daemon.reloader.reload("test")
+        assert outcome.applied, outcome
+        assert "camera.exposure_us" not in outcome.restart, outcome
 
         # During a job: 409 saying why; the camera and the file stay.
         await plc.trigger(2)

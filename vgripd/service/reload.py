@@ -160,6 +160,10 @@ class Reloader:
         self.last: Outcome | None = None
         self._lock = asyncio.Lock()
         self._tasks: set[asyncio.Task[Outcome]] = set()
+        #: Keys of restart-only sections the running daemon already took live (the page's
+        #: exposure and gain: ``camera.exposure_us``): a reloaded file with the same value
+        #: does not name them as needing a restart.
+        self.live: dict[str, Any] = {}
 
     @property
     def running(self) -> bool:
@@ -186,7 +190,9 @@ class Reloader:
                     raise ConfigError(problem)
                 new = load_config(self.path)
                 old = self.daemon.config
-                restart = restart_keys(old, new)
+                flat_new = dict(_flat(_dump(new)))
+                restart = [k for k in restart_keys(old, new)
+                           if k not in self.live or flat_new.get(k, ...) != self.live[k]]
                 target = applicable(old, new)
             except ConfigError as err:
                 return self._audit(Outcome(False, f"refused, the running config stays: {err}",

@@ -168,6 +168,7 @@ class CameraSettingsRoutes:
                 raise web.HTTPServiceUnavailable(text=f"the camera cannot take it now: {err}"
                                                  ) from None
         self.live, self._values = read_back, {**self._values, **values}
+        reloader.live.update({f"camera.{key}": value for key, value in values.items()})
         log.info("web view: camera settings %s applied from %s, read back %s", values,
                  request.remote, read_back)
         async with self._saving:
