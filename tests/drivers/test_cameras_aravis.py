@@ -285,7 +285,10 @@ async def test_a_camera_killed_and_restarted_is_reopened_with_backoff_logged_onc
                         failures.append(str(err))
                         await asyncio.sleep(0.05)  # the next job's trigger
         after = await grab_again()
-        assert all("camera camera stopped answering" in f for f in failures), failures
+        # until it is back each grab says so; a frame that lost packets right after the
+        # replug (a loaded machine) is refused as incomplete, never returned half
+        assert all("camera camera stopped answering" in f or "incomplete frame refused" in f
+                   for f in failures), failures
     finally:
         await cam.close()
     assert after.meta["device_timestamps_ns"][0] > before.meta["device_timestamps_ns"][0]
