@@ -13,12 +13,15 @@ docs/opcua.md tells a cell's client to.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import dataclasses
 import os
 import signal
 import socket
 import subprocess
 import sys
 import threading
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import numpy as np
@@ -122,7 +125,24 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-async def test_vgripd_run_completes_jobs_with_an_encrypted_opcua_link(tmp_path: Path) -> None:
+@dataclasses.dataclass
+class EncryptedDaemon:
+    """A ``vgripd run`` process with an encrypted OPC UA link (``encrypted_opcua_daemon``)."""
+
+    port: int
+    url: str
+    cert: Path  # the server certificate it generated at its start
+    client_args: list[str]  # OpcUaClientProcess arguments of the right user (password in $PW)
+    returncode: int | None = None  # after the stop
+    stderr: str = ""
+
+
+@contextlib.asynccontextmanager
+async def encrypted_opcua_daemon(tmp_path: Path) -> AsyncIterator[EncryptedDaemon]:
+    """``vgripd run`` (synthetic camera; opcua link with Basic256Sha256 SignAndEncrypt only,
+    user "cell", password "cell-pw-1" from the environment), entered once it is up (its
+    certificate exists and the port answers); ended with SIGTERM, its exit code and stderr kept
+    on the yielded object. Killed when the body fails."""
     port = free_port()
     cfg = tmp_path / "vgripd.toml"
     cfg.write_text(f"""
@@ -144,9 +164,11 @@ enabled = false
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "vgripd", "run", "-c", str(cfg), cwd=REPO, env=env,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    cert = tmp_path / "pki" / "vgripd-server-cert.der"
+    daemon = EncryptedDaemon(port, f"opc.tcp://127.0.0.1:{port}/vgripd", cert, [
+        "--security", "Basic256Sha256_SignAndEncrypt", "--server-cert", str(cert),
+        "--client-cert-dir", str(tmp_path / "client"), "--user", "cell", "--password-env", "PW"])
     try:
-        cert = tmp_path / "pki" / "vgripd-server-cert.der"
-        url = f"opc.tcp://127.0.0.1:{port}/vgripd"
         async with asyncio.timeout(60):
             while True:  # the daemon is up when its certificate exists and the port answers
                 if cert.exists():
@@ -157,23 +179,26 @@ enabled = false
                     except OSError:
                         pass
                 await asyncio.sleep(0.1)
-        args = ["--security", "Basic256Sha256_SignAndEncrypt", "--server-cert", str(cert),
-                "--client-cert-dir", str(tmp_path / "client"), "--user", "cell",
-                "--password-env", "PW"]
-        async with OpcUaClientProcess(url, *args, env={"PW": "cell-pw-1"}) as client:
-            assert client.connected["event"] == "connected", client.connected
-            for n in (1, 2):
-                r = await client.send("job")
-                assert (r["Status"], r["request_id"], r["JobId"]) == (1, n, n), r
-                assert len(r["Values"]) == 6
-                assert all(abs(v) < 1000 for v in r["Values"])
+        yield daemon
         proc.send_signal(signal.SIGTERM)
         async with asyncio.timeout(60):
             _, err = await proc.communicate()
+        daemon.returncode, daemon.stderr = proc.returncode, err.decode()
     finally:
         if proc.returncode is None:
             proc.kill()
             await proc.wait()
-    stderr = err.decode()
-    assert proc.returncode == 0, stderr
-    assert "Traceback" not in stderr
+
+
+async def test_vgripd_run_completes_jobs_with_an_encrypted_opcua_link(tmp_path: Path) -> None:
+    async with (encrypted_opcua_daemon(tmp_path) as daemon,
+                OpcUaClientProcess(daemon.url, *daemon.client_args,
+                                   env={"PW": "cell-pw-1"}) as client):
+        assert client.connected["event"] == "connected", client.connected
+        for n in (1, 2):
+            r = await client.send("job")
+            assert (r["Status"], r["request_id"], r["JobId"]) == (1, n, n), r
+            assert len(r["Values"]) == 6
+            assert all(abs(v) < 1000 for v in r["Values"])
+    assert daemon.returncode == 0, daemon.stderr
+    assert "Traceback" not in daemon.stderr

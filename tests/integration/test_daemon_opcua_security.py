@@ -9,16 +9,11 @@ per kind of refusal and no ERROR or traceback.
 from __future__ import annotations
 
 import asyncio
-import os
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO
-from tests.integration.test_daemon_opcua import free_port
+from tests.integration.test_daemon_opcua import encrypted_opcua_daemon
 from vgripd.sim.opcua_client import OpcUaClientProcess
 
 asyncua = pytest.importorskip("asyncua")
@@ -38,45 +33,11 @@ async def refused(coro: object) -> str:
 
 
 async def test_raw_attacks_on_a_running_daemon_are_refused(tmp_path: Path) -> None:
-    port = free_port()
-    cfg = tmp_path / "vgripd.toml"
-    cfg.write_text(f"""
-[camera]
-type = "synthetic"
-seed = 3
-
-[[links]]
-type = "opcua"
-host = "127.0.0.1"
-port = {port}
-certificate_dir = "{tmp_path / 'pki'}"
-users = [{{ name = "cell", password_env = "VGRIPD_OPCUA_PASSWORD" }}]
-
-[status]
-enabled = false
-""")
-    env = {**os.environ, "PYTHONPATH": str(REPO), "VGRIPD_OPCUA_PASSWORD": "cell-pw-1"}
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "vgripd", "run", "-c", str(cfg), cwd=REPO, env=env,
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     job = "ns=2;s=VisionSystem.StartSingleJob"
-    try:
-        cert = tmp_path / "pki" / "vgripd-server-cert.der"
-        url = f"opc.tcp://127.0.0.1:{port}/vgripd"
-        async with asyncio.timeout(60):
-            while True:  # the daemon is up when its certificate exists and the port answers
-                if cert.exists():
-                    try:
-                        _, w = await asyncio.open_connection("127.0.0.1", port)
-                        w.close()
-                        break
-                    except OSError:
-                        pass
-                await asyncio.sleep(0.1)
-        args = ["--security", "Basic256Sha256_SignAndEncrypt", "--server-cert", str(cert),
-                "--client-cert-dir", str(tmp_path / "client"), "--user", "cell",
-                "--password-env", "PW"]
-        async with OpcUaClientProcess(url, *args, env={"PW": "cell-pw-1"}) as client:
+    async with encrypted_opcua_daemon(tmp_path) as daemon:
+        port, cert = daemon.port, daemon.cert
+        async with OpcUaClientProcess(daemon.url, *daemon.client_args,
+                                      env={"PW": "cell-pw-1"}) as client:
             assert client.connected["event"] == "connected", client.connected
             assert (await client.send("job"))["request_id"] == 1
 
@@ -104,15 +65,8 @@ enabled = false
             assert await refused(raw.activate("cell", "cell-pw-1")) == "BadRequestNotAllowed"
             assert await refused(raw.call("ns=2;s=VisionSystem", job)) == \
                 "BadSessionNotActivated"
-        proc.send_signal(signal.SIGTERM)
-        async with asyncio.timeout(60):
-            _, err = await proc.communicate()
-    finally:
-        if proc.returncode is None:
-            proc.kill()
-            await proc.wait()
-    stderr = err.decode()
-    assert proc.returncode == 0, stderr
+    stderr = daemon.stderr
+    assert daemon.returncode == 0, stderr
     assert "Traceback" not in stderr
     assert not [line for line in stderr.splitlines() if " ERROR " in line], stderr
     assert stderr.count("CreateSession on a channel with SecurityPolicy None") == 1, stderr
