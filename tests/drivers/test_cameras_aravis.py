@@ -85,8 +85,9 @@ def wait_until(ok: Any, what: str) -> None:
         time.sleep(0.05)
 
 
-@pytest.fixture
-def fake() -> Iterator[FakeCamera]:
+@contextlib.contextmanager
+def one_fake() -> Iterator[FakeCamera]:
+    """The fake camera GV01 on 127.0.0.1, the machine's only one while it lives."""
     _aravis()
     with gige_exclusive():
         camera = FakeCamera("127.0.0.1", "GV01").start()
@@ -94,6 +95,12 @@ def fake() -> Iterator[FakeCamera]:
             yield camera
         finally:
             camera.kill()
+
+
+@pytest.fixture
+def fake() -> Iterator[FakeCamera]:
+    with one_fake() as camera:
+        yield camera
 
 
 def second_loopback() -> None:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import REPO, need
-from tests.drivers.test_cameras_aravis import FakeCamera, _aravis, gige_exclusive
+from tests.drivers.test_cameras_aravis import FakeCamera, one_fake
 from vgripd.cli.cameras import parse_sets, parse_value
 from vgripd.errors import ConfigError
 
@@ -39,13 +39,8 @@ def pylon() -> None:
 
 @pytest.fixture
 def fake() -> Iterator[FakeCamera]:
-    _aravis()
-    with gige_exclusive():
-        camera = FakeCamera("127.0.0.1", "GV01").start()
-        try:
-            yield camera
-        finally:
-            camera.kill()
+    with one_fake() as camera:
+        yield camera
 
 
 def test_set_values_take_the_devices_types() -> None:
