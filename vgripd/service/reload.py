@@ -188,7 +188,8 @@ class Reloader:
                 problem = await check_file(self.path)
                 if problem:
                     raise ConfigError(problem)
-                new = load_config(self.path)
+                # judged again here (the child only said yes): off the loop, the PLC is polling
+                new = await asyncio.to_thread(load_config, self.path)
                 old = self.daemon.config
                 flat_new = dict(_flat(_dump(new)))
                 restart = [k for k in restart_keys(old, new)
