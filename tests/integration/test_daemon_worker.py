@@ -24,7 +24,13 @@ import pytest
 from tests.integration.test_daemon import Plc, Run, make_config
 from vgripd.service.daemon import Daemon, JobState
 from vgripd.service.protocol import Reg
-from vgripd.service.worker import SHM_DIR, WORKER_NICE, segments_of
+from vgripd.service.worker import (
+    SHM_DIR,
+    WORKER_NICE,
+    WORKER_NICE_FLOOR,
+    helper_niceness,
+    segments_of,
+)
 from vgripd.types import ImagePair, JobResult, Status
 from vgripd.vision.pipeline import Pipeline
 
@@ -73,8 +79,8 @@ async def test_a_job_through_the_worker_equals_the_in_process_pipeline() -> None
     async with running(config) as run, Plc(run.port()) as plc:
         worker = _worker_pid(run)
         # The worker yields a contended core to the event loop.
-        assert os.getpriority(os.PRIO_PROCESS, worker) == min(
-            19, os.getpriority(os.PRIO_PROCESS, 0) + WORKER_NICE)
+        assert os.getpriority(os.PRIO_PROCESS, worker) == helper_niceness(
+            os.getpriority(os.PRIO_PROCESS, 0), WORKER_NICE, WORKER_NICE_FLOOR)
         shm = run.daemon.snapshot()["worker"]["shm"]
         assert segments_of(f"vgripd-{os.getpid()}-") == [shm]
         for seq in (1, 2):

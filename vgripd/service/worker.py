@@ -120,10 +120,13 @@ CAMERA_CLOSE_TIMEOUT_S = 7.0
 TERM_GRACE_S = 5
 #: Back-off for a worker that dies before it is ready: doubling from the first to the last.
 RESTART_BACKOFF_S = (1.0, 60.0)
-#: The worker's niceness above the daemon's: when they compete for a core, the daemon's event
-#: loop (answering a PLC) wins at once; alone on the machine the worker still gets all of it.
-#: The unit starts the daemon at nice -10 (systemd/vgripd.service), which puts the worker at 5.
-WORKER_NICE = 15
+#: The worker's niceness: at least WORKER_NICE levels below the daemon's, and at least
+#: WORKER_NICE_FLOOR, so when they compete for a core the daemon's event loop (answering a PLC)
+#: wins at once; alone on the machine the worker still gets all of it. Under the unit (daemon
+#: at nice -10, systemd/vgripd.service) and by hand (nice 0) the worker runs at nice 5: not 15
+#: levels below ordinary programs, where it would get 1/36 of their share of a busy core.
+WORKER_NICE = 5
+WORKER_NICE_FLOOR = 5
 
 
 class Processor(Protocol):
@@ -338,15 +341,22 @@ class _Worker:
         self.loop.close()
 
 
-def run_below_daemon(nice: int) -> None:
+def helper_niceness(daemon_nice: int, below: int, floor: int) -> int:
+    """The niceness of a helper process of a daemon running at ``daemon_nice``: ``below``
+    levels under it, at least ``floor``, at most 19."""
+    return min(19, max(daemon_nice + below, floor))
+
+
+def run_below_daemon(below: int, floor: int) -> None:
     """Make this helper process (image work) yield to the daemon's event loop: a real-time
     policy inherited from the daemon (systemd ``CPUSchedulingPolicy=``) is for its event loop
     only, so drop to ``SCHED_BATCH`` (normal time sharing for a CPU-bound task, which never
-    preempts a running task when it wakes; ``SCHED_IDLE`` is kept), then lower the priority by
-    ``nice``."""
+    preempts a running task when it wakes; ``SCHED_IDLE`` is kept), then lower the priority to
+    ``helper_niceness`` of the daemon's (which this process inherited)."""
     if os.sched_getscheduler(0) != os.SCHED_IDLE:
         os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
-    os.nice(nice)
+    inherited = os.getpriority(os.PRIO_PROCESS, 0)
+    os.nice(helper_niceness(inherited, below, floor) - inherited)
 
 
 def worker_main(sock: socket.socket, config: Config, processor: str, log_level: str,
@@ -355,7 +365,7 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
     die_with_daemon(daemon_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     end_on_sigterm(daemon_pid, TERM_GRACE_S)
-    run_below_daemon(WORKER_NICE)
+    run_below_daemon(WORKER_NICE, WORKER_NICE_FLOOR)
     configure_logging(log_level)
     try:
         worker = _Worker(config, processor)

@@ -27,9 +27,11 @@ from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.worker import (
     SHM_DIR,
     WORKER_NICE,
+    WORKER_NICE_FLOOR,
     WorkerClient,
     WorkerError,
     describe_exit,
+    helper_niceness,
     images_nbytes,
     read_images,
     segments_of,
@@ -260,8 +262,8 @@ async def test_the_worker_drops_a_real_time_policy_meant_for_the_event_loop() ->
     try:
         assert client.pid is not None
         assert os.sched_getscheduler(client.pid) == os.SCHED_BATCH  # time sharing, CPU-bound
-        assert os.getpriority(os.PRIO_PROCESS, client.pid) == min(
-            19, os.getpriority(os.PRIO_PROCESS, 0) + WORKER_NICE)
+        assert os.getpriority(os.PRIO_PROCESS, client.pid) == helper_niceness(
+            os.getpriority(os.PRIO_PROCESS, 0), WORKER_NICE, WORKER_NICE_FLOOR)
     finally:
         await client.close()
 

@@ -44,8 +44,11 @@ MAX_PENDING = 2
 _pipeline: Any = None  # in the helper process: the Pipeline, or None when not calibrated
 
 
-#: The image helper's niceness (the worker's is ``vgripd.service.worker.WORKER_NICE``).
-WEB_IMAGES_NICE = 19
+#: The image helper's niceness: at least this many levels below the daemon and at least
+#: WEB_IMAGES_NICE_FLOOR, below the worker (``vgripd.service.worker.WORKER_NICE``): nice 9
+#: under the unit (daemon at -10), 10 by hand.
+WEB_IMAGES_NICE = 10
+WEB_IMAGES_NICE_FLOOR = 9
 
 
 def _init_helper(config: Config, daemon_pid: int) -> None:
@@ -64,7 +67,7 @@ def _init_helper(config: Config, daemon_pid: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     # Pictures for a browser matter least: below the worker, far below the daemon's loop.
-    run_below_daemon(WEB_IMAGES_NICE)
+    run_below_daemon(WEB_IMAGES_NICE, WEB_IMAGES_NICE_FLOOR)
     try:
         from vgripd.vision.pipeline import Pipeline
 
