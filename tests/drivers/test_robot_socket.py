@@ -24,9 +24,12 @@ from hypothesis import strategies as st
 
 from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
 from vgripd.errors import LinkError
+from vgripd.geometry.transforms import pose_error
+from vgripd.geometry.vendors import transform_from_vendor
 from vgripd.service.protocol import LinkState, Trigger, next_answer
 from vgripd.service.robot_socket_format import (
     ANSWER_SIZE,
+    CAPTURE_AT_SIZE,
     Answer,
     AnswerKind,
     FrameError,
@@ -67,7 +70,8 @@ def test_request_bytes_and_refusals() -> None:
     assert Request(SocketCommand.LOCATE, 1).refusal() is None
     assert Request(SocketCommand.CLEAR, 1).refusal() is None
     assert Request(SocketCommand.NEXT, 1).refusal() is None  # the link judges its list
-    for bad in (Request(4, 1), Request(9, 1), Request(1, 0),
+    assert Request(SocketCommand.CAPTURE_AT, 1).refusal() is None
+    for bad in (Request(5, 1), Request(9, 1), Request(1, 0),
                 Request(1, 2**31), Request(1, 1, 65536), Request(1, 1, 0, 5)):
         assert bad.refusal() is Status.BAD_REQUEST, bad
     for garbage in (b"XG\x01\x01" + bytes(12), b"VG\x02\x01" + bytes(12), bytes(15)):
@@ -101,6 +105,23 @@ def test_result_answer_refuses_what_does_not_fit() -> None:
     frame, sent = result_answer(9, refusal, 0, ValueEncoding(), captured=False)
     assert decode_answer(frame).kind is AnswerKind.REFUSED
     assert sent is refusal
+
+
+def test_capture_at_bytes_carry_the_pose_in_the_links_encoding() -> None:
+    pose = (412.5, -133.25, 287.0625, 0.1234, -2.9, 179.5)
+    frame = Request(SocketCommand.CAPTURE_AT, 7, 0, 0, pose).encode(ValueEncoding("int32", 1000))
+    assert len(frame) == CAPTURE_AT_SIZE == 44
+    assert frame[:16] == b"VG\x01\x04" + bytes([0, 0, 0, 7]) + bytes(8)
+    assert struct.unpack(">7i", frame[16:]) == (412500, -133250, 287062, 123, -2900, 179500, 0)
+    decoded = decode_request(frame, ValueEncoding("int32", 1000))
+    assert (decoded.command, decoded.request_id) == (4, 7)
+    assert decoded.values == pytest.approx((*pose, 0.0), abs=0.0005)
+    quat = (1.5, -2.25, 3.0, 0.70710678, 0.0, 0.70710678, 0.0)
+    f32 = Request(SocketCommand.CAPTURE_AT, 2, 0, 0, quat).encode(ValueEncoding("float32"))
+    assert decode_request(f32, ValueEncoding("float32")).values == pytest.approx(quat, rel=1e-7)
+    for wrong in (frame[:16], frame + bytes(4), frame[:40]):  # its command says 44 bytes
+        with pytest.raises(FrameError, match="command 4 is 44 bytes"):
+            decode_request(wrong)
 
 
 def test_options_refuse_what_a_program_cannot_state() -> None:
@@ -602,4 +623,94 @@ async def test_a_new_locate_ends_the_old_list_even_before_its_result() -> None:
         assert (await peer.answer()).status == Status.NOT_FOUND
         await peer.request(3, SocketCommand.NEXT)
         assert (await peer.answer()).status == Status.BAD_REQUEST  # never job 1's second
+        await peer.close()
+
+
+# --- CAPTURE_AT: a locate with the flange pose the robot reached ---------------------------
+
+
+async def capture_at(peer: Peer, seq: int, values: tuple[float, ...],
+                     encoding: ValueEncoding) -> None:
+    await peer.send(Request(SocketCommand.CAPTURE_AT, seq, 0, 0, values).encode(encoding))
+
+
+async def test_capture_at_is_a_trigger_with_the_flange_pose() -> None:
+    async with serving(scale=1000) as (link, triggers):
+        link.set_vendor("kuka")
+        peer = await Peer.dial(link.port)
+        await capture_at(peer, 12, POSE, link.encoding)
+        await until(lambda: triggers)
+        trigger = triggers[0]
+        assert (trigger.seq, trigger.command) == (12, 1)  # a TRIGGER for the daemon and walks
+        assert trigger.T_base_flange is not None
+        want = transform_from_vendor("kuka", POSE)
+        mm, deg = pose_error(trigger.T_base_flange, want)
+        assert mm < 1e-3
+        assert deg < 1e-3
+        await link.image_captured(12, 4)
+        assert (await peer.answer()).kind is AnswerKind.CAPTURED
+        assert await link.publish(12, ok(4)) is Status.OK
+        assert (await peer.answer()).status == Status.OK
+        await peer.request(13)  # a plain 16-byte LOCATE right after: no flange pose
+        await until(lambda: len(triggers) == 2)
+        assert triggers[1].T_base_flange is None
+        await peer.close()
+
+
+@pytest.mark.parametrize(("vendor", "fmt", "values", "named"), [
+    ("abb", "float32", (1.0, 2.0, 3.0, 0.9, 0.0, 0.0, 0.0), "not unit length"),
+    ("abb", "float32", (float("nan"), 2.0, 3.0, 1.0, 0.0, 0.0, 0.0), "x"),
+    ("abb", "float32", (1.0, 2.0, 3.0, float("inf"), 0.0, 0.0, 0.0), "q1"),
+    ("kuka", "int32", (1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 5.0), "word 10 (value 6)"),
+])
+async def test_capture_at_with_a_pose_that_is_not_a_transform_is_refused(
+        vendor: str, fmt: str, values: tuple[float, ...], named: str,
+        caplog: pytest.LogCaptureFixture) -> None:
+    async with serving(value_format=fmt) as (link, triggers):
+        link.set_vendor(vendor)
+        peer = await Peer.dial(link.port)
+        raw = b"".join(struct.pack(">f" if fmt == "float32" else ">i",
+                                   v if fmt == "float32" else round(v * 10000))
+                       for v in values)
+        await peer.send(Request(SocketCommand.CAPTURE_AT, 3).encode()[:16] + raw)
+        refused = await peer.answer()
+        assert (refused.kind, refused.request_id, refused.status) == (
+            AnswerKind.REFUSED, 3, Status.BAD_REQUEST)
+        assert not triggers
+        assert lines(caplog, "flange pose refused") == 1
+        assert lines(caplog, named) == 1
+        await peer.request(4)  # the connection serves on
+        await until(lambda: triggers)
+        await peer.close()
+        no_tracebacks(caplog)
+
+
+async def test_capture_at_of_the_wrong_length_ends_the_connection(
+        caplog: pytest.LogCaptureFixture) -> None:
+    async with serving(frame_timeout_s=0.2) as (link, triggers):
+        link.set_vendor("kuka")
+        full = Request(SocketCommand.CAPTURE_AT, 1, 0, 0, POSE).encode(link.encoding)
+        long = await Peer.dial(link.port)
+        # 4 bytes too many: the program's next request no longer starts a frame
+        await long.send(full + bytes(4) + Request(SocketCommand.LOCATE, 2).encode())
+        await long.closed_by_link()
+        short = await Peer.dial(link.port)
+        await short.send(full[:16])  # the 16-byte request alone: the pose never comes
+        await short.closed_by_link()
+        assert link.faults["malformed"] == 1
+        assert link.faults["incomplete"] == 1
+        assert lines(caplog, "(16 of 44 bytes)") == 1
+        assert len(triggers) == 1  # the long one's request itself was whole
+        no_tracebacks(caplog)
+
+
+async def test_a_walk_lets_next_through_without_a_pick_list() -> None:
+    async with serving() as (link, triggers):
+        peer = await Peer.dial(link.port)
+        await peer.request(1, SocketCommand.NEXT)
+        assert (await peer.answer()).status == Status.BAD_REQUEST  # no list: the link refuses
+        link.set_walking(True)
+        await peer.request(2, SocketCommand.NEXT)  # the walk's first: give me a target
+        await until(lambda: triggers)
+        assert (triggers[0].seq, triggers[0].command) == (2, 3)
         await peer.close()

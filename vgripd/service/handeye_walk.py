@@ -58,6 +58,8 @@ class WalkServer:
         self.pending: int | None = None
         self.job_id = 0
         self._queue: asyncio.Queue[Trigger] = asyncio.Queue()
+        link.set_vendor(vendor)  # robot_socket: CAPTURE_AT's pose is in this convention
+        link.set_walking(True)  # a link refusing NEXT without a pick list lets it through
 
     def on_trigger(self, trigger: Trigger) -> None:
         self._queue.put_nowait(trigger)

@@ -56,6 +56,7 @@ class LinkSupervisor:
         recipes = {number: config.recipe_name(number) for number in config.recipe_numbers()}
         for link in self.links.values():
             link.set_recipes(recipes)
+            link.set_vendor(config.output.vendor)
         #: How RLIMIT_NOFILE is split between the server surfaces and the reserve (at start).
         self.fd_budget: Budget | None = None
 

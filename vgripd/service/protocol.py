@@ -180,6 +180,8 @@ class RobotLink(ABC):
     def __init__(self, name: str, options: Any) -> None:
         self.name = name
         self.options = options
+        #: ``output.vendor``: the convention of poses the peer sends (``set_vendor``)
+        self.vendor: str | None = None
 
     @abstractmethod
     async def open(self, on_trigger: TriggerHandler) -> None:
@@ -227,6 +229,16 @@ class RobotLink(ABC):
         trigger (OPC UA ``SelectRecipe``) refuses any other number at once, where the peer
         can see why; a link that carries the number with each trigger leaves it to the
         daemon, whose job answers ``BAD_REQUEST``. Default: ignored."""
+
+    def set_vendor(self, vendor: str) -> None:
+        """The ``output.vendor`` convention, told before ``open``: the one a link whose peer
+        sends poses (robot_socket CAPTURE_AT) reads them in."""
+        self.vendor = vendor
+
+    def set_walking(self, walking: bool) -> None:  # noqa: B027 - optional
+        """A walked hand-eye calibration is served (``vgripd.service.handeye_walk``): a link
+        that refuses NEXT without a pick list itself lets every NEXT through while ``walking``.
+        Default: ignored."""
 
     async def set_warnings(self, bits: int) -> None:
         """Show the daemon's current ``Warnings`` bits to the peer (live, not tied to a job).

@@ -1,21 +1,26 @@
 """The robot socket message format (``robot_socket`` link, docs/robot_socket.md), with no I/O.
 
 A robot program and vgripd exchange fixed-length binary frames over one TCP connection: the
-robot sends 16-byte requests, vgripd answers with 64-byte frames. Every field is a 32-bit
+robot sends 16-byte requests (44 bytes for CAPTURE_AT, which carries a pose), vgripd answers
+with 64-byte frames. Every field is a 32-bit
 big-endian word, so a robot language that reads integers more easily than bytes (KRL through
 EthernetKRL, Karel, URScript's ``socket_read_binary_integer``, MotoPlus C) reads a request or an
 answer as 4 or 16 integers. Pose values are int32 fixed-point (``raw = round(value * scale)``,
 scale a power of ten) or, for languages that unpack IEEE floats directly (RAPID's
 ``UnpackRawBytes \\Float4``), float32.
 
-Request, robot -> vgripd (16 bytes)::
+Request, robot -> vgripd (16 bytes; CAPTURE_AT 44 bytes)::
 
     word  bytes  field
        0   0-3   header: "V" "G" version command (0x56 0x47 0x01 cc); command 1 LOCATE,
-                 2 CLEAR, 3 NEXT (the next object of the last LOCATE's pick list)
+                 2 CLEAR, 3 NEXT (the next object of the last LOCATE's pick list),
+                 4 CAPTURE_AT (LOCATE with the flange pose the robot reached)
        1   4-7   request id, 1 .. 2**31-1, echoed in every answer to this request
        2   8-11  recipe, 0 .. 65535 (0 = default), handed to the job like the RECIPE register
        3  12-15  reserved, 0
+     4-10 16-43  CAPTURE_AT only: the flange pose in the base frame (no tool), 7 values in the
+                 output vendor's convention and units and in the link's value encoding, as
+                 answer words 6-12 (6-value conventions send 0 as the 7th)
 
 Answer, vgripd -> robot (64 bytes)::
 
@@ -37,8 +42,14 @@ CAPTURED once the images are taken (the robot may move on). REFUSED means no job
 job is running), BAD_REQUEST (unknown command, id 0, recipe > 65535, reserved word not 0, NEXT
 without a pick list), or the daemon's own refusal. NEXT is answered RESULT without CAPTURED (no
 image is taken): the following pickable object of the last LOCATE, with that job's id, or
-NOT_FOUND without a pose once the list is used up. A frame that is not a request at all (wrong
-magic or version) ends the connection: the stream cannot be trusted after it.
+NOT_FOUND without a pose once the list is used up. CAPTURE_AT is a LOCATE whose job gets the
+flange pose (``Trigger.T_base_flange``: a robot-mounted camera's pose; in a walked hand-eye
+calibration the pose recorded with the image); a pose that is not a transform (a value not
+finite, a quaternion whose norm is off 1, a 7th value not 0 for a 6-value convention) is
+REFUSED BAD_REQUEST. A frame that is not a request at all (wrong magic or version) ends the
+connection: the stream cannot be trusted after it. The length of a request follows from its
+command byte, so a CAPTURE_AT sent short stalls (the link's ``frame_timeout_s`` closes the
+connection) and one sent long leaves bytes that are not a request (closed too).
 """
 
 from __future__ import annotations
@@ -56,6 +67,7 @@ from vgripd.types import JobResult, Status
 VERSION = 1
 MAGIC = 0x5647  # "VG"
 REQUEST_SIZE = 16
+CAPTURE_AT_SIZE = REQUEST_SIZE + 4 * 7  # the request and 7 pose value words
 ANSWER_SIZE = 64
 N_VALUES = 7
 MAX_REQUEST_ID = 2**31 - 1
@@ -73,6 +85,7 @@ class SocketCommand(enum.IntEnum):
     LOCATE = 1
     CLEAR = 2
     NEXT = 3  # the next object of the last LOCATE's pick list (``Command.NEXT``)
+    CAPTURE_AT = 4  # LOCATE with the flange pose reached (``Command.TRIGGER`` + the pose)
 
 
 class AnswerKind(enum.IntEnum):
@@ -94,20 +107,35 @@ class ValueOverflowError(ValueError):
     """A value that the answer's value format cannot represent."""
 
 
+def request_size(header: bytes) -> int:
+    """The length of the request whose first bytes (at least 4) are ``header``: 44 for
+    CAPTURE_AT, 16 for every other command (an unknown one is refused as a 16-byte request)."""
+    return CAPTURE_AT_SIZE if header[3] == SocketCommand.CAPTURE_AT else REQUEST_SIZE
+
+
 @dataclass(frozen=True)
 class Request:
     command: int
     request_id: int
     recipe: int = 0
     reserved: int = 0
+    #: CAPTURE_AT: the 7 pose values (decoded with the link's encoding)
+    values: tuple[float, ...] = ()
 
-    def encode(self) -> bytes:
-        return struct.pack(">4I", header_word(self.command), self.request_id, self.recipe,
+    def encode(self, encoding: ValueEncoding | None = None) -> bytes:
+        """The frame; CAPTURE_AT with its 7 values in ``encoding`` (default int32 x 10000)."""
+        head = struct.pack(">4I", header_word(self.command), self.request_id, self.recipe,
                            self.reserved)
+        if self.command != SocketCommand.CAPTURE_AT:
+            return head
+        enc = encoding or ValueEncoding()
+        values = tuple(self.values) + (0.0,) * (N_VALUES - len(self.values))
+        return head + b"".join(enc.encode(v, f"value {i}") for i, v in enumerate(values))
 
     def refusal(self) -> Status | None:
         """``BAD_REQUEST`` when the request is well framed but cannot be served; else None."""
-        if self.command not in (SocketCommand.LOCATE, SocketCommand.CLEAR, SocketCommand.NEXT):
+        if self.command not in (SocketCommand.LOCATE, SocketCommand.CLEAR, SocketCommand.NEXT,
+                                SocketCommand.CAPTURE_AT):
             return Status.BAD_REQUEST
         if not 1 <= self.request_id <= MAX_REQUEST_ID:
             return Status.BAD_REQUEST
@@ -116,13 +144,32 @@ class Request:
         return None
 
 
-def decode_request(frame: bytes) -> Request:
-    """A request frame; ``FrameError`` when it is not one (size, magic, version)."""
-    if len(frame) != REQUEST_SIZE:
-        raise FrameError(f"a request is {REQUEST_SIZE} bytes, got {len(frame)}")
-    header, request_id, recipe, reserved = struct.unpack(">4I", frame)
+def decode_request(frame: bytes, encoding: ValueEncoding | None = None) -> Request:
+    """A request frame (CAPTURE_AT's values decoded with ``encoding``, default int32 x 10000);
+    ``FrameError`` when it is not one (magic, version, a size its command does not have)."""
+    if len(frame) < 4:
+        raise FrameError(f"a request is at least {REQUEST_SIZE} bytes, got {len(frame)}")
+    size = request_size(frame)
+    if len(frame) != size:
+        raise FrameError(f"a request with command {frame[3]} is {size} bytes, got {len(frame)}")
+    header, request_id, recipe, reserved = struct.unpack_from(">4I", frame)
     check_header(header, "request")
-    return Request(header & 0xFF, request_id, recipe, reserved)
+    values: tuple[float, ...] = ()
+    if size == CAPTURE_AT_SIZE:
+        enc = encoding or ValueEncoding()
+        values = tuple(enc.decode(frame[16 + 4 * i:20 + 4 * i]) for i in range(N_VALUES))
+    return Request(header & 0xFF, request_id, recipe, reserved, values)
+
+
+def flange_values(request: Request, n_fields: int) -> tuple[float, ...]:
+    """The pose values of a CAPTURE_AT for a convention of ``n_fields`` values;
+    ``ValueError`` naming the word when a 6-value convention's 7th value is not 0."""
+    extra = request.values[n_fields:]
+    for i, v in enumerate(extra, start=n_fields):
+        if v != 0:
+            raise ValueError(f"word {4 + i} (value {i}) is {v:g}: the convention has "
+                             f"{n_fields} values, the rest must be 0")
+    return request.values[:n_fields]
 
 
 def check_header(header: int, what: str) -> None:
