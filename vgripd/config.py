@@ -303,6 +303,15 @@ class RecordConfig(Model):
     max_mb: float = Field(default=500.0, gt=0)
 
 
+class CalibrationWalkConfig(Model):
+    """How the robot programs move in a walked hand-eye calibration (docs/calibration-handeye.md,
+    "Walked calibration"): ``vgripd robot-program`` writes these into each brand's walk routine
+    (vgripd commands no motion). The defaults are the UR RTDE routine's (robots/urscript)."""
+
+    speed_mm_s: float = Field(default=50.0, gt=0, le=250.0)  # linear, flange; <= 250: T1 speed
+    settle_s: float = Field(default=1.0, ge=0, le=60.0)  # standstill before the image
+
+
 class StatusConfig(Model):
     """The operator web view, its JSON API (``GET /api/status`` behind ``vgripd status``) and
     ``/metrics`` (port 0: any free). See docs/web.md.
@@ -849,6 +858,7 @@ class Config(Model):
     daemon: DaemonConfig = DaemonConfig()
     record: RecordConfig = RecordConfig()
     status: StatusConfig = StatusConfig()
+    calibration_walk: CalibrationWalkConfig = CalibrationWalkConfig()
     links: tuple[DriverSection, ...] = ()
     # Free-form notes on where a file came from (result files of `vgripd calibrate` carry one).
     about: dict[str, Any] = Field(default_factory=dict)

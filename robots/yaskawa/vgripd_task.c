@@ -9,6 +9,11 @@
  * D052..D057 the offset @@FIELDS@@ (@@CONVENTION@@) in position-variable units (0.001 mm,
  * 0.0001 deg; so VG_SCALE must be at least 10000), base frame, D058 pick-list objects after
  * this one. Frames: docs/robot_socket.md.
+ *
+ * Walked hand-eye calibration (VGWALK.JBI; docs/calibration-handeye.md): I054 = 2 asks for
+ * the next target, I054 = 3 sends CAPTURE_AT with the flange pose the task reads (tool 0 at
+ * the flange, base frame); either way a target without joint values (mpConvCartPosToAxes)
+ * is skipped (NEXT again) and the next one is left in D052..D057.
  */
 #include "motoPlus.h"
 
@@ -23,6 +28,10 @@
 #define VG_CAPTURED @@CAPTURED@@
 #define VG_RESULT @@RESULT@@
 #define VG_REFUSED @@REFUSED@@
+#define VG_CAPTURE_AT @@CAPTURE_AT@@ /* a locate with the flange pose reached (VGWALK) */
+#define VG_AT_BYTES @@AT_BYTES@@ /* its length: 16 + 7 pose words */
+#define VG_WALK_SPEED_MM_S @@WALK_SPEED_V@@ /* VGWALK.JBI's MOVL V= ([calibration_walk]) */
+#define VG_WALK_SETTLE_S @@WALK_SETTLE_T@@ /* VGWALK.JBI's TIMER T= before CAPTURE_AT */
 #define VG_VAR 50 /* I050.., D050.. */
 #define VG_TICK_MS 4 /* one mpTaskDelay tick: the controller's interpolation period */
 
@@ -58,12 +67,54 @@ static void vgDrop(void)
     }
 }
 
-/* One request (VG_LOCATE or VG_NEXT): the status of its final answer, or -1 when none came
- * in time. */
-static LONG vgRequest(LONG vgCmd, LONG vgRecipe)
+/* The robot's joint angles now; 0 when read. */
+static int vgAngles(LONG *vgAngle)
 {
-    LONG vgReq[4];
-    int vgGot, vgN, vgI, vgWaited = 0;
+    MP_CTRL_GRP_SEND_DATA vgGrp;
+    MP_PULSE_POS_RSP_DATA vgPulse;
+    memset(&vgGrp, 0, sizeof(vgGrp));
+    vgGrp.sCtrlGrp = 0;
+    if (mpGetPulsePos(&vgGrp, &vgPulse) != 0) {
+        return -1;
+    }
+    return mpConvPulseToAngle(0, vgPulse.lPos, vgAngle);
+}
+
+/* The flange pose now (tool 0, base frame) in position-variable units; 0 when read. */
+static int vgFlange(MP_COORD *vgCoord)
+{
+    LONG vgAngle[MP_GRP_AXES_NUM];
+    UINT vgFig;
+    if (vgAngles(vgAngle) != 0) {
+        return -1;
+    }
+    return mpConvAxesToCartPos(0, vgAngle, 0, &vgFig, vgCoord);
+}
+
+/* 1 when the target in D052..D057 has joint values within the limits (tool 0), else 0. */
+static int vgReachable(void)
+{
+    MP_COORD vgCoord;
+    LONG vgNow[MP_GRP_AXES_NUM], vgAngle[MP_GRP_AXES_NUM];
+    UINT vgFig;
+    if (vgAngles(vgNow) != 0 || mpConvAxesToCartPos(0, vgNow, 0, &vgFig, &vgCoord) != 0) {
+        return 0;
+    }
+    vgCoord.x = vgGet(MP_RESTYPE_VAR_D, VG_VAR + 2);
+    vgCoord.y = vgGet(MP_RESTYPE_VAR_D, VG_VAR + 3);
+    vgCoord.z = vgGet(MP_RESTYPE_VAR_D, VG_VAR + 4);
+    vgCoord.rx = vgGet(MP_RESTYPE_VAR_D, VG_VAR + 5);
+    vgCoord.ry = vgGet(MP_RESTYPE_VAR_D, VG_VAR + 6);
+    vgCoord.rz = vgGet(MP_RESTYPE_VAR_D, VG_VAR + 7);
+    return mpConvCartPosToAxes(0, &vgCoord, 0, vgFig, vgNow, MP_KINEMA_FIG, vgAngle) == 0;
+}
+
+/* One request (VG_LOCATE, VG_NEXT, or VG_CAPTURE_AT with the 7 pose words vgAt): the status
+ * of its final answer, or -1 when none came in time. */
+static LONG vgRequest(LONG vgCmd, LONG vgRecipe, const LONG *vgAt)
+{
+    LONG vgReq[11];
+    int vgGot, vgN, vgI, vgLen = 16, vgWaited = 0;
     while (vgClient < 0) {
         if (vgWaited >= VG_TIMEOUT_MS) {
             return -1;
@@ -75,7 +126,13 @@ static LONG vgRequest(LONG vgCmd, LONG vgRecipe)
     vgReq[1] = mpHtonl(vgId);
     vgReq[2] = mpHtonl(vgRecipe);
     vgReq[3] = 0;
-    if (mpSend(vgClient, (char *)vgReq, 16, 0) != 16) {
+    if (vgCmd == VG_CAPTURE_AT) {
+        for (vgI = 0; vgI < 7; vgI++) {
+            vgReq[4 + vgI] = mpHtonl(vgAt[vgI]);
+        }
+        vgLen = VG_AT_BYTES;
+    }
+    if (mpSend(vgClient, (char *)vgReq, vgLen, 0) != vgLen) {
         return -1;
     }
     for (;;) {
@@ -114,13 +171,13 @@ static LONG vgRequest(LONG vgCmd, LONG vgRecipe)
 
 /* One request with retries: asks again after BUSY (40), gives up (-1) after VG_ATTEMPTS
  * requests in a row without an answer. */
-static LONG vgAsk(LONG vgCmd, LONG vgRecipe)
+static LONG vgAsk(LONG vgCmd, LONG vgRecipe, const LONG *vgAt)
 {
     LONG vgStatus;
     int vgUnanswered = 0, vgBusy = 0;
     for (;;) {
         vgId = vgId >= 2147483646 ? 1 : vgId + 1;
-        vgStatus = vgRequest(vgCmd, vgRecipe);
+        vgStatus = vgRequest(vgCmd, vgRecipe, vgAt);
         if (vgStatus == -2) {
             return -1;
         }
@@ -138,17 +195,49 @@ static LONG vgAsk(LONG vgCmd, LONG vgRecipe)
     }
 }
 
-/* Serves the INFORM jobs: I050 = 1 starts a locate (I054 = 1: a next), I051 = 1 says it is
- * done. */
+/* The walk's step (I054 = 2: next target, 3: CAPTURE_AT here): the status, a reachable next
+ * target in D052..D057 for 1 or 2 (unreachable ones are skipped with NEXT). */
+static LONG vgWalkStep(LONG vgMode)
+{
+    MP_COORD vgCoord;
+    LONG vgAt[7];
+    LONG vgStatus;
+    if (vgMode == 3) {
+        if (vgFlange(&vgCoord) != 0) {
+            return -1;
+        }
+        vgAt[0] = vgCoord.x * (VG_SCALE / 1000); /* 0.001 mm -> mm x scale */
+        vgAt[1] = vgCoord.y * (VG_SCALE / 1000);
+        vgAt[2] = vgCoord.z * (VG_SCALE / 1000);
+        vgAt[3] = vgCoord.rx * (VG_SCALE / 10000); /* 0.0001 deg -> deg x scale */
+        vgAt[4] = vgCoord.ry * (VG_SCALE / 10000);
+        vgAt[5] = vgCoord.rz * (VG_SCALE / 10000);
+        vgAt[6] = 0;
+        vgStatus = vgAsk(VG_CAPTURE_AT, 0, vgAt);
+    } else {
+        vgStatus = vgAsk(VG_NEXT, 0, 0);
+    }
+    while ((vgStatus == 1 || vgStatus == 2) && !vgReachable()) {
+        vgStatus = vgAsk(VG_NEXT, 0, 0); /* not reachable: skipped */
+    }
+    return vgStatus;
+}
+
+/* Serves the INFORM jobs: I050 = 1 starts a locate (I054 = 1: a next; 2, 3: the walk's
+ * steps), I051 = 1 says it is done. */
 static void vg_job_task(void)
 {
+    LONG vgMode;
     for (;;) {
         if (vgGet(MP_RESTYPE_VAR_I, VG_VAR) == 1 && vgGet(MP_RESTYPE_VAR_I, VG_VAR + 1) == 0) {
-            if (vgGet(MP_RESTYPE_VAR_I, VG_VAR + 4) == 1) {
-                vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3, vgAsk(VG_NEXT, 0));
+            vgMode = vgGet(MP_RESTYPE_VAR_I, VG_VAR + 4);
+            if (vgMode == 1) {
+                vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3, vgAsk(VG_NEXT, 0, 0));
+            } else if (vgMode == 2 || vgMode == 3) {
+                vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3, vgWalkStep(vgMode));
             } else {
                 vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3,
-                      vgAsk(VG_LOCATE, vgGet(MP_RESTYPE_VAR_I, VG_VAR + 2)));
+                      vgAsk(VG_LOCATE, vgGet(MP_RESTYPE_VAR_I, VG_VAR + 2), 0));
             }
             vgPut(MP_RESTYPE_VAR_I, VG_VAR + 1, 1);
         }

@@ -24,6 +24,15 @@ that ``vgripd robot-program`` wrote, and then does what the program does, step b
 object of the last locate's pick list (command 3 NEXT, docs/robot_socket.md), with the
 program's own NEXT word, recipe word 0 and the same retries, timeouts and BUSY handling as its
 locate (every program sends both through one request routine).
+
+``walk(arm)`` is the program's walk routine (docs/calibration-handeye.md, "Walked
+calibration") moving a :class:`~vgripd.sim.arm.SimulatedArm`: NEXT for a target; NOT_FOUND
+ends the walk, any other status but 1/2 stops it; a target the arm cannot reach is answered
+NEXT again (skipped), a reachable one is moved to at the program's speed, the program waits
+its settle time and sends CAPTURE_AT (command 4, 44 bytes) with the pose the arm reports, in
+the brand's convention and its encoding (int32 x scale from the controller's own resolution
+for MotoPlus, float32 for RAPID), then reads CAPTURED and the RESULT with the next target.
+The walk's requests are retried as every other request of the program.
 """
 
 from __future__ import annotations
@@ -35,10 +44,20 @@ import struct
 import time
 from dataclasses import dataclass, field
 
-from vgripd.service.robot_socket_format import ANSWER_SIZE, BRANDS, RobotBrand
+from typing import Any
+
+import numpy as np
+
+from vgripd.geometry.vendors import convention, transform_from_vendor, vendor_from_transform
+from vgripd.service.robot_socket_format import ANSWER_SIZE, BRANDS, N_VALUES, RobotBrand
+from vgripd.sim.arm import ArmState
 
 NO_ANSWER = -1
 BUSY = 40
+NOT_FOUND = 10
+#: Pose resolution of the controller's own position data where the program sends it as read
+#: (MotoPlus: 0.001 mm, 0.0001 deg); other controllers read REAL/num values.
+CONTROLLER_RESOLUTION = {"yaskawa": (1e-3, 1e-4)}
 MAX_ID = 2147483646  # the programs wrap their request id to 1 after this
 PER_FRAME_TIMEOUT = {"abb", "staubli", "ur", "yaskawa"}  # others: one timer per request
 RETURNS_ON_GIVING_UP = {"staubli", "yaskawa"}  # others stop the robot program
@@ -64,7 +83,10 @@ class ProgramSettings:
     busy_wait_s: float
     busy_tries: int
     attempts: int
-    words: dict[str, int]  # LOCATE, NEXT, CAPTURED, RESULT, REFUSED
+    words: dict[str, int]  # LOCATE, NEXT, CAPTURED, RESULT, REFUSED, CAPTURE_AT
+    walk_speed_mm_s: float = 0.0  # the walk routine's linear speed
+    walk_settle_s: float = 0.0  # its standstill before CAPTURE_AT
+    at_bytes: int = 44  # the length of its CAPTURE_AT request
 
     @classmethod
     def parse(cls, brand: str | RobotBrand, texts: dict[str, str]) -> ProgramSettings:
@@ -90,10 +112,13 @@ class ProgramSettings:
                            else 2.0 if b.name == "ur" else DEFAULT_CONNECT_TIMEOUT_S)
         try:
             words = {k: int(values[f"VG_{k}"]) for k in ("LOCATE", "NEXT", "CAPTURED",
-                                                        "RESULT", "REFUSED")}
+                                                        "RESULT", "REFUSED", "CAPTURE_AT")}
+            speed = (values["VG_WALK_SPEED_M_S"] * 1000 if "VG_WALK_SPEED_M_S" in values
+                     else values["VG_WALK_SPEED_MM_S"])
             return cls(b, values["VG_SCALE"], seconds("VG_TIMEOUT"),
                        seconds("VG_CONNECT_TIMEOUT", connect_default), seconds("VG_BUSY_WAIT"),
-                       int(values["VG_BUSY_TRIES"]), int(values["VG_ATTEMPTS"]), words)
+                       int(values["VG_BUSY_TRIES"]), int(values["VG_ATTEMPTS"]), words,
+                       speed, seconds("VG_WALK_SETTLE"), int(values["VG_AT_BYTES"]))
         except KeyError as err:
             raise ValueError(f"{b.name} program states no {err.args[0]}") from None
 
@@ -115,6 +140,18 @@ class Outcome:
     captured: bool = False
     request_ids: list[int] = field(default_factory=list)
     remaining: int = 0  # answer word 15: pickable objects after this one
+
+
+@dataclass
+class WalkOutcome:
+    """What the walk routine ends with: the last status (10 NOT_FOUND: complete), the targets
+    it moved to and skipped (as received), and the flange poses it sent (as sent, decoded)."""
+
+    status: int
+    reached: list[tuple[float, ...]] = field(default_factory=list)
+    skipped: list[tuple[float, ...]] = field(default_factory=list)
+    sent_poses: list[tuple[float, ...]] = field(default_factory=list)
+    moves: list[tuple[tuple[float, ...], float]] = field(default_factory=list)  # (target, mm/s)
 
 
 class ProgramTwin:
@@ -154,13 +191,51 @@ class ProgramTwin:
         (its NEXT word, recipe 0), asked and retried as its locate is."""
         return await self._ask(self.s.words["NEXT"], 0)
 
-    async def _ask(self, command_word: int, recipe: int) -> Outcome:
+    async def walk(self, arm: Any, stop_after: int | None = None) -> WalkOutcome:
+        """The walk routine with ``arm`` (``SimulatedArm``); ``stop_after``: the operator stops
+        the program after that many targets were handled (moved to or skipped)."""
+        conv = convention(self.s.brand.convention)
+        outcome = await self.next()
+        walked = WalkOutcome(outcome.status)
+        while outcome.status in (1, 2):
+            if stop_after is not None and len(walked.reached) + len(walked.skipped) >= stop_after:
+                return walked
+            target = outcome.values[:len(conv.fields)]
+            T = transform_from_vendor(conv.name, target)
+            if not arm.reachable(T):  # the language's reach check: skip, ask for the next
+                walked.skipped.append(target)
+                outcome = await self.next()
+                walked.status = outcome.status
+                continue
+            arm.move(T)
+            walked.moves.append((target, self.s.walk_speed_mm_s))
+            walked.reached.append(target)
+            while arm.step() is not ArmState.SETTLED:  # the motion instruction returns
+                pass
+            await asyncio.sleep(self.s.walk_settle_s)
+            pose = self.flange_values(arm.reported_pose())
+            walked.sent_poses.append(pose)
+            outcome = await self._ask(self.s.words["CAPTURE_AT"], 0, pose)
+            walked.status = outcome.status
+        return walked
+
+    def flange_values(self, T: Any) -> tuple[float, ...]:
+        """The 7 values the program sends for flange pose ``T`` (as its controller reads
+        them: rounded to its resolution where it has one; 0 as the 7th of 6)."""
+        values = list(vendor_from_transform(self.s.brand.convention, np.asarray(T)))
+        res = CONTROLLER_RESOLUTION.get(self.s.brand.name)
+        if res is not None:
+            values = [round(v / res[i >= 3]) * res[i >= 3] for i, v in enumerate(values)]
+        return tuple(values) + (0.0,) * (N_VALUES - len(values))
+
+    async def _ask(self, command_word: int, recipe: int,
+                   pose: tuple[float, ...] = ()) -> Outcome:
         unanswered = busy = 0
         ids: list[int] = []
         while True:
             self.vg_id = 1 if self.vg_id >= MAX_ID else self.vg_id + 1
             ids.append(self.vg_id)
-            outcome = await self._request(command_word, recipe)
+            outcome = await self._request(command_word, recipe, pose)
             outcome.request_ids = ids
             if self.s.brand.connection == "per_request" or outcome.status == NO_ANSWER:
                 await self._drop()
@@ -179,12 +254,19 @@ class ProgramTwin:
 
     # -- one request ---------------------------------------------------------------------
 
-    async def _request(self, command_word: int, recipe: int) -> Outcome:
+    async def _request(self, command_word: int, recipe: int,
+                       pose: tuple[float, ...] = ()) -> Outcome:
         if not await self._connect():
             return Outcome(NO_ANSWER)
         assert self._writer is not None
         assert self._reader is not None
         frame = struct.pack(">4I", command_word, self.vg_id, recipe, 0)
+        if command_word == self.s.words["CAPTURE_AT"]:
+            if self.s.scale:
+                frame += struct.pack(">7i", *(round(v * self.s.scale) for v in pose))
+            else:
+                frame += struct.pack(">7f", *pose)
+            assert len(frame) == self.s.at_bytes
         self.sent.append(frame)
         try:
             self._writer.write(frame)
