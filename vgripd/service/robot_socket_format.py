@@ -343,8 +343,8 @@ BRANDS: dict[str, RobotBrand] = {b.name: b for b in (
                ("vgripd.pjx", "vgripd.dtx", "vgLocate.pgx", "vgNext.pgx", "vgAsk.pgx",
                 "vgRequest.pgx", "vgWalk.pgx")),
     RobotBrand("yaskawa", "Yaskawa MotoPlus task with an INFORM job", "yaskawa", "int32",
-               "client", "robot_server", ("vgripd_task.c", "VGLOCATE.JBI", "VGNEXT.JBI", "VGWALK.JBI"),
-               10000),
+               "client", "robot_server",
+               ("vgripd_task.c", "VGLOCATE.JBI", "VGNEXT.JBI", "VGWALK.JBI"), 10000),
     RobotBrand("ur", "Universal Robots URScript socket_open", "ur", "int32", "server",
                "per_request", ("vgripd_socket.script",)),
 )}

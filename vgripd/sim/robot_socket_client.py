@@ -43,7 +43,6 @@ import re
 import struct
 import time
 from dataclasses import dataclass, field
-
 from typing import Any
 
 import numpy as np

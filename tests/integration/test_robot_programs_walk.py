@@ -1,0 +1,236 @@
+"""The walk routine of every generated robot-socket program (``vgripd robot-program``): its
+Python twin (settings, speed, settle time, command words and frame sizes parsed from the text
+the CLI wrote) walks a hand-eye plan against vgripd serving the walk over the real
+``robot_socket`` link, moving a simulated arm (reach limit, settle cycles, noise on the pose it
+reports). The twin asks NEXT, skips the target beyond the arm's reach with NEXT, moves to the
+others and sends CAPTURE_AT with the pose the arm reports, in the brand's convention and
+encoding; the image is rendered from the pose the arm really reached
+(tests/unit/calib/test_calib_handeye_walk.py's scene).
+
+Checked for each brand: the walk completes (NOT_FOUND), one target recorded unreachable, every
+other seen, each recorded flange pose the arm's within the encoding's resolution, the bytes on
+the wire the documented frames (44-byte CAPTURE_AT). Solved for one brand per mounting (KUKA
+eye-in-hand, ABB eye-to-hand) within 0.05 mm / 0.01 deg of the truth; a walk stopped halfway
+resumes (Staubli). vgripd's side is ``serving_walk``: today the ``WalkServer`` as
+``vgripd calibrate handeye walk`` runs it, in-process.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import struct
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
+from tests.integration.test_robot_programs import cell, program
+from vgripd.__main__ import main
+from vgripd.calib.handeye.plan import LoadedPlan, load_plan
+from vgripd.calib.handeye.walk import SEEN, UNREACHABLE, Walk
+from vgripd.geometry.transforms import pose_error
+from vgripd.geometry.vendors import convention
+from vgripd.service.handeye_walk import WalkServer
+from vgripd.service.robot_socket_format import (
+    BRANDS,
+    CAPTURE_AT_SIZE,
+    REQUEST_SIZE,
+    SocketCommand,
+    header_word,
+)
+from vgripd.sim.arm import SimulatedArm
+from vgripd.sim.robot_socket_client import ProgramSettings, ProgramTwin, WalkOutcome
+from vgripd.types import Status
+
+# the rendered scene of the walk test (bare module names, as pytest imports them there)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit" / "calib"))
+import test_calib_boards  # noqa: E402
+from test_calib_handeye_walk import (  # noqa: E402
+    BOARD,
+    CAMERA,
+    image_at,
+    make_plan,
+    truth,
+)
+
+pytestmark = pytest.mark.timeout(240)
+COUNT = 12  # plan poses: one beyond the arm's reach, eleven seen
+SPEED_MM_S = 40.0
+#: the mounting each brand walks (one brand per mounting is also solved)
+MODES = {"kuka": "eye-in-hand", "abb": "eye-to-hand", "fanuc": "eye-in-hand",
+         "staubli": "eye-to-hand", "yaskawa": "eye-in-hand", "ur": "eye-to-hand"}
+SOLVED = {"kuka", "abb"}
+
+
+@pytest.fixture(autouse=True)
+def sharp_texture(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(test_calib_boards, "PPM", 4.0)
+
+
+class ReportingArm(SimulatedArm):
+    """The simulated arm, keeping every pose it reported (what the controller read)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.reported: list[np.ndarray] = []
+
+    def reported_pose(self) -> np.ndarray:
+        T = super().reported_pose()
+        self.reported.append(T)
+        return T
+
+
+def settings_for(brand: str) -> ProgramSettings:
+    """The brand's program as the CLI writes it for a walk at SPEED_MM_S without settling."""
+    data = cell(brand, 50100)
+    data["calibration_walk"] = {"speed_mm_s": SPEED_MM_S, "settle_s": 0.0}
+    return ProgramSettings.parse(brand, program(brand, data))
+
+
+def link_options(brand: str, port: int) -> RobotSocketOptions:
+    b = BRANDS[brand]
+    return RobotSocketOptions(mode=b.mode, host="127.0.0.1", port=port,
+                              value_format=b.value_format,
+                              scale=1000000 if brand == "ur" else 10000)
+
+
+@contextlib.asynccontextmanager
+async def serving_walk(brand: str, port: int, walk: Walk, arm: SimulatedArm, mode: str
+                       ) -> AsyncIterator[asyncio.Task[None]]:
+    """vgripd serving ``walk`` on a robot_socket link (``port``: where it listens, or for a
+    robot-server brand where it dials): today the WalkServer of ``vgripd calibrate handeye
+    walk``, in-process. The images come from the pose the arm really reached."""
+
+    async def grab() -> np.ndarray:
+        return await asyncio.to_thread(image_at, mode, arm.T_true.copy(), arm.moves)
+
+    link = RobotSocketLink("walk0", link_options(brand, port))
+    server = WalkServer(walk, link, grab, BRANDS[brand].convention)
+    await link.open(server.on_trigger)
+    task = asyncio.get_running_loop().create_task(server.serve())
+    try:
+        yield task
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        await link.close()
+
+
+async def walk_with(brand: str, settings: ProgramSettings, walk: Walk, arm: SimulatedArm,
+                    mode: str, stop_after: int | None = None
+                    ) -> tuple[WalkOutcome, list[bytes]]:
+    """The twin walks against vgripd (started in the order the brand's TCP roles need)."""
+    robot_server = BRANDS[brand].connection == "robot_server"
+    async with contextlib.AsyncExitStack() as stack:
+        if robot_server:  # the program listens, vgripd dials in
+            twin = await stack.enter_async_context(ProgramTwin(settings, "127.0.0.1", 0))
+            task = await stack.enter_async_context(
+                serving_walk(brand, twin.port, walk, arm, mode))
+        else:
+            with contextlib.closing(__import__("socket").socket()) as s:
+                s.bind(("127.0.0.1", 0))
+                port = s.getsockname()[1]
+            task = await stack.enter_async_context(serving_walk(brand, port, walk, arm, mode))
+            twin = await stack.enter_async_context(ProgramTwin(settings, "127.0.0.1", port))
+        outcome = await twin.walk(arm, stop_after)
+        if stop_after is None:
+            await asyncio.wait_for(task, 30)  # the server is done once it answered NOT_FOUND
+        return outcome, twin.sent
+
+
+def new_arm(plan: LoadedPlan, seed: int) -> ReportingArm:
+    """An arm that reaches every target but the farthest."""
+    reach = sorted(np.linalg.norm(T[:3, 3]) for T in plan.poses)
+    return ReportingArm(plan.poses[0], reach_mm=(reach[-1] + reach[-2]) / 2, settle_cycles=3,
+                        noise_deg=0.001, noise_mm=0.005, rng=np.random.default_rng(seed))
+
+
+def check_wire(sent: list[bytes], settings: ProgramSettings, captures: int) -> None:
+    """The twin's frames: NEXT twice (the first target, the skip), then CAPTURE_AT at each
+    target reached, 44 bytes with the values in the program's encoding."""
+    commands = [struct.unpack(">I", f[:4])[0] for f in sent]
+    assert commands.count(header_word(SocketCommand.NEXT)) == 2
+    assert commands.count(header_word(SocketCommand.CAPTURE_AT)) == captures
+    assert settings.words["CAPTURE_AT"] == header_word(SocketCommand.CAPTURE_AT)
+    assert settings.at_bytes == CAPTURE_AT_SIZE
+    for frame, word in zip(sent, commands, strict=True):
+        at = word == header_word(SocketCommand.CAPTURE_AT)
+        assert len(frame) == (CAPTURE_AT_SIZE if at else REQUEST_SIZE)
+        assert frame[12:16] == bytes(4)  # reserved word 0
+
+
+@pytest.mark.parametrize("brand", sorted(BRANDS))
+async def test_each_program_walks_the_plan_skipping_the_unreachable_target(
+        brand: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    mode = MODES[brand]
+    settings = settings_for(brand)
+    assert settings.walk_speed_mm_s == SPEED_MM_S  # from [calibration_walk]
+    assert settings.walk_settle_s == 0.0
+    assert make_plan(tmp_path, mode, count=COUNT) == 0
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    arm = new_arm(plan, seed=len(brand))
+    walk_file = tmp_path / "walk.json"
+    walk = Walk(walk_file, plan, BOARD, CAMERA)
+    outcome, sent = await walk_with(brand, settings, walk, arm, mode)
+
+    assert outcome.status == Status.NOT_FOUND  # the walk is complete
+    assert len(outcome.skipped) == 1
+    assert len(outcome.reached) == COUNT - 1 == arm.moves
+    assert {speed for _, speed in outcome.moves} == {SPEED_MM_S}
+    check_wire(sent, settings, COUNT - 1)
+    final = Walk(walk_file, plan, BOARD, CAMERA)
+    statuses = [r.status for _, r in sorted(final.records.items())]
+    assert statuses.count(UNREACHABLE) == 1
+    assert statuses.count(SEEN) == COUNT - 1
+    far = int(np.argmax([np.linalg.norm(T[:3, 3]) for T in plan.poses]))
+    assert final.records[far].status == UNREACHABLE
+    # each recorded flange pose is the one the arm reported, to the encoding's resolution
+    seen = [r for _, r in sorted(final.records.items()) if r.status == SEEN]
+    assert len(arm.reported) == len(seen)
+    for record, T in zip(seen, arm.reported, strict=True):
+        mm, deg = pose_error(record.T_base_flange, T)
+        assert mm < 2e-3, (brand, mm)
+        assert deg < 2e-4, (brand, deg)
+    # the targets the program moved to are the plan's, as its convention carries them
+    n = len(convention(BRANDS[brand].convention).fields)
+    assert all(len(target) == n for target in outcome.reached)
+
+    if brand in SOLVED:
+        capsys.readouterr()
+        out = tmp_path / "handeye.toml"
+        assert main(["calibrate", "handeye", "--samples", str(walk_file), "--intrinsics",
+                     str(tmp_path / "cell.toml"), "-o", str(out), "--json"]) == 0
+        summary = json.loads(capsys.readouterr().out)
+        mm, deg = pose_error(np.asarray(summary["matrix_mm"]), truth(mode)[0])
+        print(f"{brand} {mode}: {mm:.4f} mm {deg:.5f} deg", file=sys.stderr)
+        assert mm < 0.05, (brand, mode, mm, deg)
+        assert deg < 0.01, (brand, mode, mm, deg)
+        assert any("unreachable" in r["reason"] for r in summary["rejected"])
+
+
+async def test_a_walk_stopped_halfway_resumes_where_it_stopped(tmp_path: Path) -> None:
+    brand, mode = "staubli", "eye-to-hand"
+    settings = settings_for(brand)
+    assert make_plan(tmp_path, mode, count=COUNT) == 0
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    arm = new_arm(plan, seed=3)
+    walk_file = tmp_path / "walk.json"
+    first, _ = await walk_with(brand, settings, Walk(walk_file, plan, BOARD, CAMERA), arm,
+                               mode, stop_after=5)
+    assert first.status in (1, 2)  # stopped by the operator, the walk not complete
+    assert len(Walk(walk_file, plan, BOARD, CAMERA).records) == 5
+    resumed, sent = await walk_with(brand, settings, Walk(walk_file, plan, BOARD, CAMERA), arm,
+                                    mode)
+    assert resumed.status == Status.NOT_FOUND
+    final = Walk(walk_file, plan, BOARD, CAMERA)
+    assert sorted(final.records) == list(range(COUNT))
+    assert arm.moves == COUNT - 1  # no target visited twice across the resume
+    statuses = [r.status for r in final.records.values()]
+    assert statuses.count(UNREACHABLE) == 1
+    assert statuses.count(SEEN) == COUNT - 1
