@@ -30,13 +30,16 @@ import numpy as np
 import pytest
 
 from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
-from tests.integration.test_robot_programs import cell, program
+from tests.integration.test_daemon import running
+from tests.integration.test_robot_programs import cell, free_port, program
 from vgripd.__main__ import main
 from vgripd.calib.handeye.plan import LoadedPlan, load_plan
 from vgripd.calib.handeye.walk import SEEN, UNREACHABLE, Walk
+from vgripd.config import config_from_dict
 from vgripd.geometry.transforms import pose_error
-from vgripd.geometry.vendors import convention
+from vgripd.geometry.vendors import convention, transform_from_vendor
 from vgripd.service.handeye_walk import WalkServer
+from vgripd.service.protocol import LinkState
 from vgripd.service.robot_socket_format import (
     BRANDS,
     CAPTURE_AT_SIZE,
@@ -133,9 +136,7 @@ async def walk_with(brand: str, settings: ProgramSettings, walk: Walk, arm: Simu
             task = await stack.enter_async_context(
                 serving_walk(brand, twin.port, walk, arm, mode))
         else:
-            with contextlib.closing(__import__("socket").socket()) as s:
-                s.bind(("127.0.0.1", 0))
-                port = s.getsockname()[1]
+            port = free_port()
             task = await stack.enter_async_context(serving_walk(brand, port, walk, arm, mode))
             twin = await stack.enter_async_context(ProgramTwin(settings, "127.0.0.1", port))
         outcome = await twin.walk(arm, stop_after)
@@ -234,3 +235,27 @@ async def test_a_walk_stopped_halfway_resumes_where_it_stopped(tmp_path: Path) -
     statuses = [r.status for r in final.records.values()]
     assert statuses.count(UNREACHABLE) == 1
     assert statuses.count(SEEN) == COUNT - 1
+
+
+@pytest.mark.parametrize("brand", ["kuka", "abb"])
+async def test_capture_at_outside_a_walk_is_a_locate_with_the_flange_pose(brand: str) -> None:
+    """The daemon (no walk) runs a job for CAPTURE_AT like for LOCATE, its image carrying the
+    flange pose the program sent (for a robot-mounted camera), in the brand's convention."""
+    port = free_port()
+    data = cell(brand, port)
+    T = transform_from_vendor("kuka", (512.25, -80.5, 640.125, 12.5, -3.25, 178.0))
+    async with running(config_from_dict(data)) as run:
+        link = next(iter(run.daemon.links.values()))
+        await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, 30.0)
+        async with ProgramTwin(settings_for(brand), "127.0.0.1", port) as twin:
+            outcome = await twin.capture_at(T)
+        pair, record = await run.job_done(1)
+    assert outcome.status == Status.OK, outcome
+    assert outcome.captured
+    assert record.job_id == outcome.job_id
+    assert len(twin.sent[0]) == CAPTURE_AT_SIZE
+    assert pair is not None
+    assert pair.T_base_flange is not None
+    mm, deg = pose_error(np.asarray(pair.T_base_flange), T)
+    assert mm < 1e-3
+    assert deg < 1e-3

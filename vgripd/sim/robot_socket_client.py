@@ -190,6 +190,11 @@ class ProgramTwin:
         (its NEXT word, recipe 0), asked and retried as its locate is."""
         return await self._ask(self.s.words["NEXT"], 0)
 
+    async def capture_at(self, T: Any) -> Outcome:
+        """The walk routine's CAPTURE_AT alone, for flange pose ``T`` (mm): what vgripd does
+        with it outside a walk (a locate whose job gets the flange pose)."""
+        return await self._ask(self.s.words["CAPTURE_AT"], 0, self.flange_values(T))
+
     async def walk(self, arm: Any, stop_after: int | None = None) -> WalkOutcome:
         """The walk routine with ``arm`` (``SimulatedArm``); ``stop_after``: the operator stops
         the program after that many targets were handled (moved to or skipped)."""
