@@ -124,6 +124,19 @@ def test_capture_at_bytes_carry_the_pose_in_the_links_encoding() -> None:
             decode_request(wrong)
 
 
+@given(st.lists(st.floats(-2e5, 2e5, allow_nan=False), min_size=7, max_size=7),
+       st.integers(1, 2**31 - 1),
+       st.sampled_from([("int32", 10000), ("int32", 1000), ("float32", 0)]))
+def test_capture_at_round_trips(values: list[float], seq: int, fmt: tuple[str, int]) -> None:
+    encoding = ValueEncoding(fmt[0], fmt[1] or 10000)  # type: ignore[arg-type]
+    frame = Request(SocketCommand.CAPTURE_AT, seq, 0, 0, tuple(values)).encode(encoding)
+    decoded = decode_request(frame, encoding)
+    assert (decoded.command, decoded.request_id, decoded.refusal()) == (4, seq, None)
+    tol = 0.5 / fmt[1] if fmt[1] else 0.0
+    for got, want in zip(decoded.values, values, strict=True):
+        assert got == pytest.approx(want, abs=tol + 1e-12, rel=1e-7 if not fmt[1] else 0)
+
+
 def test_options_refuse_what_a_program_cannot_state() -> None:
     with pytest.raises(ValueError, match="power of ten"):
         RobotSocketOptions(scale=2500)

@@ -106,6 +106,10 @@ def test_cli_writes_each_brand_filled_in(tmp_path: Path, capsys: pytest.CaptureF
                                   1000000 if brand == "ur" else 10000)
         assert settings.words["LOCATE"] == 0x56470101
         assert settings.words["NEXT"] == 0x56470103
+        assert settings.words["CAPTURE_AT"] == 0x56470104  # the walk routine's request
+        assert settings.at_bytes == 44
+        assert settings.walk_speed_mm_s == 50.0  # [calibration_walk] defaults
+        assert settings.walk_settle_s == 1.0
         assert settings.attempts == 3
     assert "docs/robots/ur.md" in capsys.readouterr().out
 
