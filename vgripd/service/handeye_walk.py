@@ -46,7 +46,9 @@ class WalkServer:
     """Answers one robot program's walk requests over ``link`` (see the module docstring).
 
     ``grab`` takes one image (8-bit, grey or BGR). ``serve`` returns when the walk is complete
-    (the ``NOT_FOUND`` answer given); cancel it to stop (the record stays).
+    (the ``NOT_FOUND`` answer given); cancel it to stop (the record stays): ``waiting()``
+    then lists the requests left without an answer. ``on_answer`` (optional) is called after
+    every request handled (the running daemon's status and event stream).
     """
 
     def __init__(self, walk: Walk, link: RobotLink, grab: Grab, vendor: str) -> None:
@@ -58,6 +60,8 @@ class WalkServer:
         self.pending: int | None = None
         self.job_id = 0
         self._queue: asyncio.Queue[Trigger] = asyncio.Queue()
+        self.current: Trigger | None = None  # the request being answered
+        self.on_answer: Callable[[], None] | None = None
 
     def on_trigger(self, trigger: Trigger) -> None:
         self._queue.put_nowait(trigger)
@@ -65,8 +69,21 @@ class WalkServer:
     async def serve(self) -> None:
         while True:
             trigger = await self._queue.get()
-            if await self._answer(trigger):
+            self.current = trigger
+            done = await self._answer(trigger)
+            self.current = None
+            if self.on_answer is not None:
+                self.on_answer()
+            if done:
                 return
+
+    def waiting(self) -> list[Trigger]:
+        """The requests not answered (after ``serve`` was cancelled), taken from the queue."""
+        out = [] if self.current is None else [self.current]
+        self.current = None
+        while not self._queue.empty():
+            out.append(self._queue.get_nowait())
+        return out
 
     async def _answer(self, trigger: Trigger) -> bool:
         self.job_id = self.job_id % 65535 + 1
