@@ -243,7 +243,8 @@ async def test_chromium_plans_dry_runs_saves_and_watches_the_walk(tmp_path: Path
                 await evaluate("document.getElementById('btn-dry').click(), true")
                 dry = await _until(evaluate, f"({text})('plan-result').startsWith('PLAN') && "
                                              f"({text})('plan-result')")
-                assert "16 poses" in dry and "dry run" in dry, dry
+                assert "16 poses" in dry, dry
+                assert "dry run" in dry, dry
                 rows = await evaluate("[...document.querySelectorAll('#plan-poses tbody tr')]"
                                       ".map((r) => r.children[1].textContent)")
                 assert len(rows) == 16

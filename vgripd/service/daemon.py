@@ -9,6 +9,8 @@
 - ``jobs.JobRunner``: trigger admission (``jobcore.JobCore``), several-view capture,
   processing, publishing and refusing, the counters (its module docstring has the job rules);
 - ``status.StatusBoard``: the status line and snapshot read from the others;
+- ``walkmode.WalkMode``: a walked hand-eye calibration: its link's requests go to the walk,
+  the others' are answered BUSY meanwhile (every trigger passes it first);
 - ``web.WebServer``: the web view, /api/status, /metrics.
 
 A trigger goes link -> ``JobRunner.on_trigger`` -> camera -> worker -> link; the runner
@@ -164,7 +166,6 @@ class Daemon:
                                  worker=self._worker, pipelines=pipelines,
                                  recipe_problems=self.recipe_problems,
                                  changed=self._changed)
-        #: The walked hand-eye calibration (its link's requests, BUSY for the others meanwhile).
         self.walks = WalkMode(self._runner, self._links, self._cameras, self._background,
                               self._changed)
         self._status = StatusBoard(config, self._runner, self._links, self._cameras,
@@ -398,8 +399,7 @@ class Daemon:
         for task in opening:
             task.cancel()
         await asyncio.gather(*opening, return_exceptions=True)
-        walked = self.walks.walking
-        await self.walks.stop("stopped by the daemon's stop")  # its record stays: resumable
+        walked = await self.walks.shutdown()  # its record stays: resumable
         if (await self._runner.abort() or walked) and self.links:
             await asyncio.sleep(ABORT_LINGER_S)
         await self._background.cancel()
@@ -504,7 +504,5 @@ class Daemon:
 
     def snapshot(self) -> dict[str, Any]:
         """The status as JSON data (served by ``GET /status``)."""
-        data = self._status.snapshot(self.run_state.value, self._t_start_ns,
-                                     self.health_problem())
-        data["walk"] = self.walks.snapshot()
-        return data
+        return {**self._status.snapshot(self.run_state.value, self._t_start_ns,
+                                        self.health_problem()), "walk": self.walks.snapshot()}

@@ -202,6 +202,12 @@ class WalkMode:
         await self._abort_waiting(server, f"walk {why}")
         return self.snapshot()
 
+    async def shutdown(self) -> bool:
+        """The daemon stops: stop a running walk (True when there was one)."""
+        walking = self.walking
+        await self.stop("stopped by the daemon's stop")
+        return walking
+
     async def _abort_waiting(self, server: WalkServer, why: str) -> None:
         for trigger in server.waiting():
             result = JobResult(0, Status.ABORTED, f"refused: ABORTED: {why}",
