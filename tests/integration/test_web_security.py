@@ -33,7 +33,8 @@ from vgripd.types import Status
 CAMERA_URL = "rtsp://admin:pw-of-the-camera@cam.local/stream"
 READ_ROUTES = ["/", "/status", "/api/status", "/api/jobs", "/api/jobs/1",
                "/api/jobs/1/image/left.jpg", "/api/config", "/api/registers", "/metrics",
-               "/static/app.js", "/static/style.css", "/static/index.html"]
+               "/static/app.js", "/static/style.css", "/static/index.html",
+               "/api/handeye", "/handeye/plan", "/handeye/walk", "/static/handeye.js"]
 
 
 def _port(run: Run) -> int:
