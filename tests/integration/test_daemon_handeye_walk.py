@@ -29,6 +29,7 @@ from tests.integration.test_daemon import Plc
 from tests.integration.test_web import _chromium, _until
 from tests.integration.test_web_reload import TOKEN, post, running_file
 from tests.unit.vision.test_pipeline import render_aruco_scene
+from vgripd.__main__ import main
 from vgripd.calib.files import pose_table
 from vgripd.calib.handeye.plan import load_plan
 from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
@@ -288,3 +289,36 @@ async def test_chromium_plans_dry_runs_saves_and_watches_the_walk(tmp_path: Path
                 assert done.count("seen") == len(reachable) - 1
                 counts = await evaluate(f"({text})('walk-counts')")
                 assert f"seen {len(reachable) - 1}, not seen 1, unreachable 1" in counts
+
+
+async def test_the_walk_command_asks_the_running_daemon(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``vgripd calibrate handeye walk --running URL``: the daemon walks (its link, its camera),
+    the command prints every target as it is recorded and returns with the walk complete."""
+    host = "127.0.5.65"
+    main_config, arm, reachable = write_walk_cell(tmp_path, host)
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    monkeypatch.setenv("VGRIPD_TOKEN", TOKEN)
+    capsys.readouterr()
+    with URController(host) as robot:
+        robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[0]))
+        async with running_file(main_config) as run:
+            assert run.daemon.status_server is not None
+            url = f"http://127.0.0.1:{run.daemon.status_server.port}"
+            command = asyncio.ensure_future(asyncio.to_thread(main, [
+                "calibrate", "handeye", "walk", "--running", url, "--plan", "plan.toml",
+                "--link", "0"]))
+            try:
+                await run.daemon.wait_for(lambda: run.daemon.walks.walking, WAIT_S)
+                result = await asyncio.to_thread(robot_program, robot, arm, None)
+                assert await command == 0
+            finally:
+                await asyncio.gather(command, return_exceptions=True)
+    assert result["status"] == Status.NOT_FOUND
+    out = capsys.readouterr().out
+    assert f"{len(plan.poses)} targets, from target 0" in out
+    lines = [ln for ln in out.splitlines() if ln.startswith("  target ")]
+    assert len(lines) == len(plan.poses)  # each target once
+    assert sum(": seen, " in ln for ln in lines) == len(reachable) - 1
+    assert "walk complete: seen" in out
