@@ -102,7 +102,8 @@ def accepted_text(config_path: Path, solved_file: str) -> tuple[Path, str, str]:
 def plan_command(form: dict[str, Any], config_path: Path, drawing: Path,
                  output: Path | None) -> list[str]:
     """The ``vgripd calibrate handeye plan`` command line of a form (``TuningError`` for a
-    field that is no short text or number)."""
+    field that is no short text or number); each value joined to its flag (``--box=250 30``),
+    so that a value like ``--draw=/x`` stays a value."""
     words = [sys.executable, "-m", "vgripd", "calibrate", "handeye", "plan", "-c",
              str(config_path), "--json", "--draw", str(drawing)]
     for field, flag in PLAN_FIELDS.items():
@@ -112,10 +113,9 @@ def plan_command(form: dict[str, Any], config_path: Path, drawing: Path,
         if isinstance(value, list):
             value = " ".join(str(v) for v in value)
         if not isinstance(value, str | int | float) or isinstance(value, bool) or len(
-                str(value)) > MAX_FIELD or str(value).startswith("-") and field not in (
-                "around", "board_offset"):
+                str(value)) > MAX_FIELD:
             raise TuningError(f"plan: {field} = {value!r}: a number or short text")
-        words += [flag, str(value)]
+        words.append(f"{flag}={value}")  # one word: a value is never read as an option
     words += ["-o", str(output)] if output is not None else ["--dry-run"]
     return words
 
