@@ -291,18 +291,28 @@ async def test_chromium_plans_dry_runs_saves_and_watches_the_walk(tmp_path: Path
                 assert f"seen {len(reachable) - 1}, not seen 1, unreachable 1" in counts
 
 
-async def test_the_walk_command_asks_the_running_daemon(
+async def test_a_walk_stopped_by_the_daemons_stop_resumes_through_the_command(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         capsys: pytest.CaptureFixture[str]) -> None:
-    """``vgripd calibrate handeye walk --running URL``: the daemon walks (its link, its camera),
-    the command prints every target as it is recorded and returns with the walk complete."""
+    """The daemon stops in the middle of a walk: the record stays. After the restart,
+    ``vgripd calibrate handeye walk --running URL`` asks the daemon to walk again: it resumes
+    at the first target without a record, the command prints every target as it is recorded
+    and returns with the walk complete."""
     host = "127.0.5.65"
     main_config, arm, reachable = write_walk_cell(tmp_path, host)
     plan = load_plan(str(tmp_path / "plan.toml"))
     monkeypatch.setenv("VGRIPD_TOKEN", TOKEN)
-    capsys.readouterr()
     with URController(host) as robot:
         robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[0]))
+        async with running_file(main_config) as run:
+            run.daemon.walks.start(main_config, "plan.toml", 0)
+            first = await asyncio.to_thread(robot_program, robot, arm, 2)
+            assert first["stopped"]
+            walks = run.daemon.walks
+        assert walks.state.value == "stopped"
+        assert "daemon" in walks.message
+        assert len(Walk(tmp_path / "plan.walk.json", plan, BOARD, CAMERA).records) == 2
+        capsys.readouterr()
         async with running_file(main_config) as run:
             assert run.daemon.status_server is not None
             url = f"http://127.0.0.1:{run.daemon.status_server.port}"
@@ -317,8 +327,8 @@ async def test_the_walk_command_asks_the_running_daemon(
                 await asyncio.gather(command, return_exceptions=True)
     assert result["status"] == Status.NOT_FOUND
     out = capsys.readouterr().out
-    assert f"{len(plan.poses)} targets, from target 0" in out
+    assert f"{len(plan.poses)} targets, from target 2" in out
     lines = [ln for ln in out.splitlines() if ln.startswith("  target ")]
-    assert len(lines) == len(plan.poses)  # each target once
-    assert sum(": seen, " in ln for ln in lines) == len(reachable) - 1
+    assert [int(ln.split()[1].rstrip(":")) for ln in lines] == list(range(2, len(plan.poses)))
     assert "walk complete: seen" in out
+    assert arm.moves == len(reachable)  # no target visited twice across the restart
