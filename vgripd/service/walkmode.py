@@ -7,7 +7,8 @@ file inside the config's folder and the index of the link the robot program uses
 - that link's requests go to a :class:`~vgripd.service.handeye_walk.WalkServer` (NEXT, TRIGGER,
   NEXT for "unreachable"; ``NOT_FOUND`` ends the walk), whose images are taken through the
   daemon's own camera supervisor, the path every job's image takes (in the worker process when
-  there is one): the camera is never opened a second time;
+  there is one): the camera is never opened a second time; the board's corners are found in
+  a helper process of its own (``_detect``), not on the loop's interpreter;
 - every other link's request (and the web view's test trigger) is answered ``BUSY`` (40) with
   job id 0, as a trigger during a job is: nothing queued, nothing answered late;
 - a walk starts only while no job runs and no several-view job waits for a view.
@@ -30,17 +31,20 @@ import contextlib
 import enum
 import json
 import logging
+import multiprocessing
 import os
+import signal
 import sys
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from vgripd.calib.boards import Board
+from vgripd.calib.boards import Board, Detection, detect
 from vgripd.calib.handeye.plan import load_plan
 from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
 from vgripd.errors import CalibrationError, CameraError, ConfigError, VgripError
@@ -59,6 +63,17 @@ log = logging.getLogger("vgripd.calib.walk")
 
 #: The solver in its child process gets this long.
 SOLVE_TIMEOUT_S = 600.0
+
+
+def _init_finder(daemon_pid: int) -> None:
+    """The board finder's process: ends with the daemon, runs below the worker."""
+    from vgripd.service.lifetime import die_with_daemon
+    from vgripd.service.worker import WORKER_NICE, WORKER_NICE_FLOOR, run_below_daemon
+
+    die_with_daemon(daemon_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    run_below_daemon(WORKER_NICE, WORKER_NICE_FLOOR)
 
 
 class WalkRefused(VgripError):
@@ -102,6 +117,7 @@ class WalkMode:
         self.listeners: list[Callable[[dict[str, Any]], None]] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_thread = 0
+        self._finder: ProcessPoolExecutor | None = None
 
     def bind(self) -> None:
         """Bind to the running loop (links may call ``on_trigger`` from their threads)."""
@@ -157,6 +173,7 @@ class WalkMode:
                         camera)
         except (CalibrationError, ConfigError, OSError) as err:
             raise WalkRefused(str(err)) from None
+        walk.detect = self._detect
         self.walk, self.link, self.link_index = walk, names[link_index], link_index
         self.server = WalkServer(walk, self.links.links[self.link], self._grab,
                                  config.output.vendor)
@@ -180,8 +197,10 @@ class WalkMode:
             log.exception("walk: stopped by an error")
             self._ended(WalkState.FAILED, f"{type(err).__name__}: {err}")
             await self._abort_waiting(server, f"walk failed: {err}")
+            await self._close_finder()
             return
         self._ended(WalkState.COMPLETE, "every target has a record")
+        await self._close_finder()
 
     def _ended(self, state: WalkState, message: str) -> None:
         if self.state is WalkState.WALKING:
@@ -200,6 +219,7 @@ class WalkMode:
         with contextlib.suppress(asyncio.CancelledError):
             await task
         await self._abort_waiting(server, f"walk {why}")
+        await self._close_finder()
         return self.snapshot()
 
     async def shutdown(self) -> bool:
@@ -227,6 +247,19 @@ class WalkMode:
         except TimeoutError:
             raise CameraError(f"no image within daemon.job_timeout_s = {timeout_s:g} s") from None
         return np.array(pair.left, copy=True)  # the worker's shared memory is reused
+
+    def _detect(self, board: Board, image: np.ndarray, name: str) -> Detection:
+        """The board finder in a helper process, so that the CPU work of finding corners does
+        not hold the event loop's interpreter (called on the walk's record thread)."""
+        if self._finder is None:
+            self._finder = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context(
+                "spawn"), initializer=_init_finder, initargs=(os.getpid(),))
+        return self._finder.submit(detect, board, image, name).result()
+
+    async def _close_finder(self) -> None:
+        finder, self._finder = self._finder, None
+        if finder is not None:  # waits for a search still running (off the loop)
+            await asyncio.to_thread(finder.shutdown, True, cancel_futures=True)
 
     def _answered(self) -> None:
         self._announce()
