@@ -33,6 +33,7 @@ from vgripd.__main__ import main
 from vgripd.calib.files import pose_table
 from vgripd.calib.handeye.plan import load_plan
 from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
+from vgripd.cli.status import format_status
 from vgripd.config import load_config
 from vgripd.geometry.fingerprint import camera_about, intrinsics_table
 from vgripd.geometry.transforms import make_transform, matrix_from_rotvec, pose_error
@@ -159,6 +160,7 @@ async def test_walk_in_the_running_daemon_busy_resumed_solved_and_accepted(
             assert walk["seen"] + walk["not_seen"] + walk["unreachable"] == 2
             assert walk["index"] == 2
             assert run.daemon.counters["BUSY"] == 1
+            assert "hand-eye walk walking on ur_rtde" in format_status(status)  # vgripd status
 
             # Stopped: the record stays; too few samples to solve: refused, nothing written.
             code, out = await post(s, f"{base}/walk/stop")
