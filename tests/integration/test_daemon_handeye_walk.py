@@ -266,21 +266,19 @@ async def test_chromium_plans_dry_runs_saves_and_watches_the_walk(tmp_path: Path
                                               f"web.toml')")
                 assert load_plan(str(tmp_path / "web.toml")).poses
 
-                # The walk page: started with the token, each target shown as it is recorded.
-                await evaluate(f"location.href = {json.dumps(base + '/handeye/walk')}, true")
+            # The walk page (a browser of its own: no navigation racing the evaluations):
+            # started with the token, each target shown as it is recorded.
+            (tmp_path / "walkpage").mkdir()
+            async with _chromium(tmp_path / "walkpage", base + "/handeye/walk") as evaluate:
                 assert await _until(evaluate, "document.getElementById('link')?.options.length "
                                               "=== 2")
                 await evaluate(fill({"token": TOKEN, "plan": "plan.toml", "link": "0"}))
                 await evaluate("document.getElementById('btn-start').click(), true")
                 assert await _until(evaluate, f"({text})('walk-state').startsWith("
                                               f"'WALK WALKING')")
-                robot_side = asyncio.ensure_future(asyncio.to_thread(robot_program, robot, arm,
-                                                                     None))
-                try:
-                    result = await robot_side
-                finally:
-                    await asyncio.gather(robot_side, return_exceptions=True)
+                result = await asyncio.to_thread(robot_program, robot, arm, None)
                 assert result["status"] == Status.NOT_FOUND
+                # shown from the page's event stream (the page fetched nothing since the start)
                 done = await _until(evaluate, f"({text})('walk-state').startsWith("
                                               f"'WALK COMPLETE') && [...document."
                                               f"querySelectorAll('#walk-targets tbody tr')]"
