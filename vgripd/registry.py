@@ -32,11 +32,14 @@ class LinkCapabilities:
     ``conventions``: the vendor conventions (``vgripd.geometry.vendors``) the peer understands;
     ``None``: any convention of at most ``max_values`` values (the link carries plain numbers).
     ``units``: what the peer receives, in words (for messages and docs).
+    ``flange_pose``: how a request brings the robot's flange pose with it (a walked hand-eye
+    calibration needs it); empty when it cannot.
     """
 
     max_values: int
     conventions: frozenset[str] | None = None
     units: str = "the convention's own fields and units"
+    flange_pose: str = ""
 
     def refusal(self, conv: Convention) -> str | None:
         """Why a pose in ``conv`` cannot be carried; None when it can."""

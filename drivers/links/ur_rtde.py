@@ -260,7 +260,8 @@ class URRtdeLink(RobotLink):
     Options = URRtdeOptions
     capabilities = LinkCapabilities(
         6, frozenset({"ur"}), "x, y, z in m and rotation vector rx, ry, rz in rad: the robot "
-        "program's p[x, y, z, rx, ry, rz]")
+        "program's p[x, y, z, rx, ry, rz]",
+        flange_pose="RTDE's actual_TCP_pose, read with the request")
     options: URRtdeOptions
 
     def __init__(self, name: str, options: URRtdeOptions) -> None:

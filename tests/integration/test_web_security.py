@@ -33,7 +33,8 @@ from vgripd.types import Status
 CAMERA_URL = "rtsp://admin:pw-of-the-camera@cam.local/stream"
 READ_ROUTES = ["/", "/status", "/api/status", "/api/jobs", "/api/jobs/1",
                "/api/jobs/1/image/left.jpg", "/api/config", "/api/registers", "/metrics",
-               "/static/app.js", "/static/style.css", "/static/index.html"]
+               "/static/app.js", "/static/style.css", "/static/index.html",
+               "/api/handeye", "/handeye/plan", "/handeye/walk", "/static/handeye.js"]
 
 
 def _port(run: Run) -> int:
@@ -141,6 +142,11 @@ async def test_public_read_opens_the_reads_but_not_the_actions(tmp_path: Path) -
             b"POST /api/trigger HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 0\r\n"
             b"Connection: close\r\n\r\n"))
         assert status == 403
+        for action in ("/api/handeye/walk/start", "/api/handeye/plan", "/api/handeye/accept"):
+            status, _, _ = await _raw(port, (
+                f"POST {action} HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {TOKEN}"
+                f"\r\nContent-Length: 0\r\nConnection: close\r\n\r\n").encode())
+            assert status == 404, action  # status.allow_config_edit is off
 
 
 async def test_vgripd_status_sends_the_token(tmp_path: Path, capsys: pytest.CaptureFixture[str],

@@ -6,6 +6,13 @@ The robot program walks: NEXT asks for a target, TRIGGER for the image once sett
 again when it cannot reach the target; the answer NOT_FOUND ends the walk. The record
 (``--walk``, default beside the plan) is saved after every target: run the command again to
 resume. Then solve it: ``vgripd calibrate handeye --samples WALK --intrinsics CONFIG``.
+
+``--running [URL]`` asks the running daemon instead (its web view, default from ``-c``'s
+``[status]``; the token from ``$VGRIPD_TOKEN`` or the config): the daemon walks the plan (a file
+in its config's folder) over its link ``--link`` with its own camera, answering every other
+link BUSY meanwhile; the command prints each target as it is recorded and ends with the walk.
+Ctrl-C stops the walk (the record stays: run again to resume). Solve and accept on the page
+(``/handeye/walk``) or with the command above.
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ from vgripd.config import load_config
 from vgripd.errors import CalibrationError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
-from vgripd.service.handeye_walk import WalkServer
+from vgripd.service.handeye_walk import WalkServer, walk_refusal
 
 
 def add_walk_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,6 +41,8 @@ def add_walk_arguments(parser: argparse.ArgumentParser) -> None:
                    help="the walk record (default <plan stem>.walk.json); resumed when present")
     g.add_argument("--link", type=int, default=0, metavar="N",
                    help="which [[links]] entry the robot program uses (default 0)")
+    g.add_argument("--running", nargs="?", const="", metavar="URL",
+                   help="ask the running daemon to walk (its web view, default from -c)")
 
 
 async def _walk(server: WalkServer, camera: object, link: object) -> None:
@@ -49,6 +58,10 @@ async def _walk(server: WalkServer, camera: object, link: object) -> None:
 
 
 def run_walk(args: argparse.Namespace) -> int:
+    if args.running is not None:
+        from vgripd.cli.calibrate_handeye_running import run_running
+
+        return run_running(args)
     if args.config is None or args.plan is None:
         raise CalibrationError("calibrate handeye walk: give -c CONFIG and --plan PLAN")
     config = load_config(args.config)
@@ -74,6 +87,9 @@ def run_walk(args: argparse.Namespace) -> int:
         pair = await camera.grab(config.daemon.job_timeout_s)
         return np.asarray(pair.left)
 
+    refusal = walk_refusal(link, f"links.{args.link}")
+    if refusal is not None:
+        raise CalibrationError(f"{args.config}: {refusal}")
     server = WalkServer(walk, link, grab, config.output.vendor)
     start = walk.next_index()
     print(f"walk {walk_path}: {len(plan.poses)} targets, "

@@ -109,6 +109,12 @@ def format_status(s: dict[str, Any]) -> str:
             f"{rc['threshold_px']} px (share {rc['share']:.2f}, warning above "
             f"{rc['share_limit']:.2f} once {rc['min_jobs']} jobs are in){since}"
             + ("; the stereo rig may have moved: recalibrate" if rc["warning"] else ""))
+    walk = s.get("walk")
+    if walk and walk["state"] != "idle":
+        lines.append(f"hand-eye walk {walk['state']} on {walk['link']} ({walk.get('plan')}): "
+                     f"{len(walk.get('records', []))} of {walk.get('targets')} targets, seen "
+                     f"{walk.get('seen')}, not seen {walk.get('not_seen')}, unreachable "
+                     f"{walk.get('unreachable')}")
     if s["record"]:
         lines.append(f"recording to {s['record']['folder']} "
                      f"({s['record']['bytes'] / 1e6:.1f} MB)")

@@ -9,6 +9,8 @@
 - ``jobs.JobRunner``: trigger admission (``jobcore.JobCore``), several-view capture,
   processing, publishing and refusing, the counters (its module docstring has the job rules);
 - ``status.StatusBoard``: the status line and snapshot read from the others;
+- ``walkmode.WalkMode``: a walked hand-eye calibration: its link's requests go to the walk,
+  the others' are answered BUSY meanwhile (every trigger passes it first);
 - ``web.WebServer``: the web view, /api/status, /metrics.
 
 A trigger goes link -> ``JobRunner.on_trigger`` -> camera -> worker -> link; the runner
@@ -70,6 +72,7 @@ from vgripd.service.reload import Reloader
 from vgripd.service.sdnotify import Notifier, watchdog_interval_s
 from vgripd.service.status import StatusBoard
 from vgripd.service.tasks import Background
+from vgripd.service.walkmode import WalkMode
 from vgripd.service.web import WebServer
 from vgripd.service.worker import DEFAULT_PROCESSOR, WorkerClient, WorkerRecorder
 
@@ -163,6 +166,8 @@ class Daemon:
                                  worker=self._worker, pipelines=pipelines,
                                  recipe_problems=self.recipe_problems,
                                  changed=self._changed)
+        self.walks = WalkMode(self._runner, self._links, self._cameras, self._background,
+                              self._changed)
         self._status = StatusBoard(config, self._runner, self._links, self._cameras,
                                    self._worker)
         self.reloader: Reloader | None = None  # set by whoever knows the config file (run)
@@ -301,6 +306,7 @@ class Daemon:
         self._t_start_ns = time.monotonic_ns()
         self._set_run_state(RunState.STARTING)
         self._runner.start()
+        self.walks.bind()
         try:
             for number, problem in self.recipe_problems.items():
                 log.error("recipe %s not calibrated, its jobs will answer NOT_CALIBRATED: %s",
@@ -338,7 +344,7 @@ class Daemon:
     def _begin_opening(self) -> None:
         """Open the camera and every link at once (tasks; ``_opened`` waits for them), so a
         silent controller or a slow camera delays nothing else: a PLC link serves at once."""
-        self._opening = list(self._links.begin_opening(self._runner.on_trigger))
+        self._opening = list(self._links.begin_opening(self.walks.on_trigger))
         self._opening.append(asyncio.create_task(self._cameras.open(),
                                                  name="vgripd-open-camera"))
 
@@ -393,7 +399,8 @@ class Daemon:
         for task in opening:
             task.cancel()
         await asyncio.gather(*opening, return_exceptions=True)
-        if await self._runner.abort() and self.links:
+        walked = await self.walks.shutdown()  # its record stays: resumable
+        if (await self._runner.abort() or walked) and self.links:
             await asyncio.sleep(ABORT_LINGER_S)
         await self._background.cancel()
         if self.status_server is not None:
@@ -497,5 +504,5 @@ class Daemon:
 
     def snapshot(self) -> dict[str, Any]:
         """The status as JSON data (served by ``GET /status``)."""
-        return self._status.snapshot(self.run_state.value, self._t_start_ns,
-                                     self.health_problem())
+        return {**self._status.snapshot(self.run_state.value, self._t_start_ns,
+                                        self.health_problem()), "walk": self.walks.snapshot()}

@@ -42,11 +42,23 @@ log = logging.getLogger("vgripd.calib.walk")
 Grab = Callable[[], Awaitable[np.ndarray]]
 
 
+def walk_refusal(link: RobotLink, where: str) -> str | None:
+    """Why ``link`` cannot carry a walk (its requests bring no flange pose); None when it can."""
+    caps = getattr(link, "capabilities", None)
+    if caps is not None and caps.flange_pose:
+        return None
+    return (f"{where} ({type(link).__name__}) cannot carry a walked calibration: its requests "
+            "bring no flange pose with them; walk over a ur_rtde link (actual_TCP_pose) or a "
+            "robot_socket link (CAPTURE_AT)")
+
+
 class WalkServer:
     """Answers one robot program's walk requests over ``link`` (see the module docstring).
 
     ``grab`` takes one image (8-bit, grey or BGR). ``serve`` returns when the walk is complete
-    (the ``NOT_FOUND`` answer given); cancel it to stop (the record stays).
+    (the ``NOT_FOUND`` answer given); cancel it to stop (the record stays): ``waiting()``
+    then lists the requests left without an answer. ``on_answer`` (optional) is called after
+    every request handled (the running daemon's status and event stream).
     """
 
     def __init__(self, walk: Walk, link: RobotLink, grab: Grab, vendor: str) -> None:
@@ -60,6 +72,8 @@ class WalkServer:
         self._queue: asyncio.Queue[Trigger] = asyncio.Queue()
         link.set_vendor(vendor)  # robot_socket: CAPTURE_AT's pose is in this convention
         link.set_walking(True)  # a link refusing NEXT without a pick list lets it through
+        self.current: Trigger | None = None  # the request being answered
+        self.on_answer: Callable[[], None] | None = None
 
     def on_trigger(self, trigger: Trigger) -> None:
         self._queue.put_nowait(trigger)
@@ -67,8 +81,21 @@ class WalkServer:
     async def serve(self) -> None:
         while True:
             trigger = await self._queue.get()
-            if await self._answer(trigger):
+            self.current = trigger
+            done = await self._answer(trigger)
+            self.current = None
+            if self.on_answer is not None:
+                self.on_answer()
+            if done:
                 return
+
+    def waiting(self) -> list[Trigger]:
+        """The requests not answered (after ``serve`` was cancelled), taken from the queue."""
+        out = [] if self.current is None else [self.current]
+        self.current = None
+        while not self._queue.empty():
+            out.append(self._queue.get_nowait())
+        return out
 
     async def _answer(self, trigger: Trigger) -> bool:
         self.job_id = self.job_id % 65535 + 1

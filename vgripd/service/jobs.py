@@ -547,6 +547,10 @@ class JobRunner:
 
     # --- answers ------------------------------------------------------------------------
 
+    def refuse(self, trigger: Trigger, status: Status, why: str = "") -> None:
+        """Answer ``trigger`` with ``status`` and no job, in the background (a walk's BUSY)."""
+        self._background.spawn(self._refuse(trigger, status, why))
+
     async def _refuse(self, trigger: Trigger, status: Status, why: str = "") -> None:
         """Answer a trigger that gets no job (BUSY, ABORTED, a NEXT's BAD_REQUEST) and count
         what the peer got."""
@@ -568,3 +572,5 @@ class JobRunner:
         self.counters[told.name] += 1
         if refusal:
             self.refusals[told.name] += 1
+
+    count = _count  # for the walk's answers (``walkmode``)

@@ -76,7 +76,8 @@ UNKNOWN_RMS = -1.0
 
 #: Any 6- or 7-value convention: the robot program reads plain numbers in its own convention.
 SOCKET_CAPABILITIES = LinkCapabilities(
-    N_VALUES, None, "answer words 6-12, the convention's fields in its own units")
+    N_VALUES, None, "answer words 6-12, the convention's fields in its own units",
+    flange_pose="request CAPTURE_AT (4), words 4-10")
 
 ValueFormat = Literal["int32", "float32"]
 

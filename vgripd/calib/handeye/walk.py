@@ -19,14 +19,14 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from vgripd.calib.boards import Board, detect
+from vgripd.calib.boards import Board, Detection, detect
 from vgripd.calib.handeye.io import SAMPLES_FORMAT
 from vgripd.calib.handeye.plan import LoadedPlan
 from vgripd.calib.handeye.samples import FloatArray, Sample
@@ -65,6 +65,8 @@ class Walk:
         self.camera = camera
         self.digest = plan_digest(plan.poses)
         self.records: dict[int, WalkRecord] = {}
+        #: The board finder (``boards.detect``); the running daemon runs it in a helper process.
+        self.detect: Callable[[Board, np.ndarray, str], Detection] = detect
         if self.path.exists():
             self._load()
 
@@ -92,7 +94,7 @@ class Walk:
             raise CalibrationError(str(err)) from None
         name = name or f"walk-{index:02d}"
         try:
-            d = detect(self.board, image, name)
+            d = self.detect(self.board, image, name)
         except CalibrationError as err:
             record = WalkRecord(index, NOT_SEEN, T, name, reason=str(err))
         else:

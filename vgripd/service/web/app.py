@@ -17,7 +17,7 @@ Routes (docs/web.md)::
     GET  /api/jobs/{id}              one job
     GET  /api/jobs/{id}/image/{left|right}.jpg   annotated, downscaled JPEG
     GET  /api/jobs/{id}/image/view{j}.jpg        camera j of a multi-camera cell (from 0)
-    GET  /api/events                 server-sent events: ``job``, ``links``
+    GET  /api/events                 server-sent events: ``job``, ``links``, ``walk``
     GET  /api/config                 the loaded config, secrets redacted
     GET  /api/registers              each register link's map as its peer reads it, decoded
     GET  /metrics                    Prometheus text format
@@ -28,6 +28,7 @@ Routes (docs/web.md)::
     GET  /api/teach, POST /api/teach/{shot,clear,save}        teaching (``teaching``)
     GET  /api/cameras, GET /api/cameras/{j}/preview.jpg       live cameras (``preview``)
     GET  /api/cameras/settings, POST /api/cameras/{j}/settings exposure, gain (``camsettings``)
+    GET  /handeye/{plan,walk}, /api/handeye, POST /api/handeye/...  walked hand-eye (``walking``)
 
 Security model (``access.Access``, docs/web.md): read-only by default and bound to 127.0.0.1;
 the config refuses a non-loopback bind without ``status.token``, and such a bind needs the
@@ -69,6 +70,7 @@ from vgripd.service.web.preview import PreviewRoutes
 from vgripd.service.web.registers import register_views
 from vgripd.service.web.teaching import TeachRoutes
 from vgripd.service.web.trigger import WEB_LINK, WebTriggerLink
+from vgripd.service.web.walking import WalkRoutes
 from vgripd.types import ImagePair
 
 log = logging.getLogger(__name__)
@@ -365,6 +367,7 @@ class WebServer:
         self.previews.add(r)
         self.camera_settings = CameraSettingsRoutes(self)
         self.camera_settings.add(r)
+        WalkRoutes(self).add(r)
         r.add_static("/static/", STATIC)
         return app
 

@@ -7,8 +7,8 @@
                                      finder sees circled)
 
 A preview grabs through the same camera as the jobs (in the worker process), so it is taken
-only while the daemon is idle (no job, no several-view job between views), at most
-``MAX_PREVIEW_FPS`` grabs a second whatever the number of pages watching (they share the last
+only while the daemon is idle (no job, no several-view job between views, no hand-eye walk), at
+most ``MAX_PREVIEW_FPS`` grabs a second whatever the number of pages watching (they share the last
 picture), one at a time, and drawn in the image helper process. During a job a page gets the
 last picture again (its ``X-Vgripd-Preview-Age-S`` header says how old). A trigger that arrives
 while a preview grab runs waits for that grab (one grab, a few tens of ms with a real camera):
@@ -53,6 +53,7 @@ class PreviewRoutes:
         d = self.server.daemon
         state = getattr(d, "state", None)
         return (getattr(state, "value", "") == "idle" and getattr(d, "views", None) is None
+                and not getattr(getattr(d, "walks", None), "walking", False)  # its camera
                 and getattr(d, "run_state", None) is not None
                 and d.run_state.value == "running")
 

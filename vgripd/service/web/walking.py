@@ -1,0 +1,303 @@
+"""The walked hand-eye calibration from the web view (docs/web.md, "Walked hand-eye
+calibration"): plan, dry run, walk, watch, solve, accept.
+
+::
+
+    GET  /handeye/plan, /handeye/walk   the two pages (static, vanilla JS)
+    GET  /api/handeye                   the walk (as /api/status "walk") and the last plan
+    GET  /api/handeye/plan.png          the last plan's drawing (board outlines in the image)
+    POST /api/handeye/plan              compute a plan: dry run, or saved with "save" (token)
+    POST /api/handeye/walk/start        walk a plan over a link, {"plan", "link"} (token)
+    POST /api/handeye/walk/stop         stop it; the record stays, start again resumes (token)
+    POST /api/handeye/solve             solve the record in a child process (token)
+    POST /api/handeye/accept            write the solved hand-eye into the config, reload (token)
+
+Every action needs the token and ``status.allow_config_edit`` (as teaching and tuning), and a
+daemon started from a config file (``vgripd run``). The plan is computed by ``vgripd calibrate
+handeye plan`` in a child process (the loop keeps serving the PLC); its refusals come back with
+the command's reason. A plan file is a ``.toml`` inside the config's folder.
+
+Accepting writes ``[calibration.hand_eye]`` (and the solved file's ``[about]``: residuals,
+leave-one-out spread, plan condition, camera-model fingerprint) into the one included file that
+holds the hand-eye now (numbered backup first, as the tuning save); the reload judges the
+config as ``vgripd check`` does (a taught reference made with the old hand-eye is refused by
+its fingerprint: teach again); refused, the file is put back.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import sys
+import tempfile
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from vgripd.config import read_config_data
+from vgripd.errors import CalibrationError, ConfigError, VgripError
+from vgripd.serialize import jsonable, toml_from_dict
+from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.web.commission import TuningError, _prune, _write, next_backup
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).parent / "static"
+#: The planner in its child process gets this long.
+PLAN_TIMEOUT_S = 120.0
+#: Form fields of a plan request and the command's flags.
+PLAN_FIELDS = {"mode": "--mode", "board": "--board", "around": "--around", "box": "--box",
+               "distance": "--distance", "count": "--count", "board_offset": "--board-offset",
+               "pose_format": "--pose-format"}
+MAX_FIELD = 200
+
+
+def plan_inside(config_path: Path, plan: str | Path) -> Path:
+    """``plan`` (relative to the config's folder) as a path inside that folder;
+    ``CalibrationError`` for one outside it (the page names files, it does not browse)."""
+    folder = config_path.resolve().parent
+    path = (folder / plan).resolve()
+    if not path.is_relative_to(folder) or path.suffix != ".toml":
+        raise CalibrationError(f"plan {str(plan)!r}: a .toml file inside {folder}")
+    return path
+
+
+def hand_eye_target(config_path: Path) -> Path:
+    """The included file that sets ``calibration.hand_eye`` now (``TuningError`` unless one)."""
+    owner: dict[str, str] = {}
+    read_config_data(config_path, owner)
+    files = {src for key, src in owner.items() if key.startswith("calibration.hand_eye.")}
+    if len(files) != 1 or Path(next(iter(files))) == config_path:
+        where = "the main config file" if files else "no file"
+        raise TuningError(
+            f"{config_path}: calibration.hand_eye is set in {where}: the page accepts the "
+            f"hand-eye only into the one included file that holds it (vgripd calibrate "
+            f"handeye -o writes such a file; include it)")
+    return Path(next(iter(files)))
+
+
+def with_hand_eye(text: str, solved: str) -> str:
+    """``text`` (the include holding the hand-eye) with the solved ``[calibration.hand_eye]``;
+    a file of the hand-eye alone takes the solved file's ``[about]`` too (its fingerprint)."""
+    data, new = tomllib.loads(text), tomllib.loads(solved)
+    calibration = data.setdefault("calibration", {})
+    calibration["hand_eye"] = new["calibration"]["hand_eye"]
+    if set(calibration) == {"hand_eye"} and set(data) <= {"calibration", "about"}:
+        return solved
+    return toml_from_dict(data)
+
+
+def accepted_text(config_path: Path, solved_file: str) -> tuple[Path, str, str]:
+    """The include to write, its text now and with the solved hand-eye."""
+    solved = Path(solved_file).read_text(encoding="utf-8")
+    target = hand_eye_target(config_path)
+    before = target.read_text(encoding="utf-8")
+    return target, before, with_hand_eye(before, solved)
+
+
+def plan_command(form: dict[str, Any], config_path: Path, drawing: Path,
+                 output: Path | None) -> list[str]:
+    """The ``vgripd calibrate handeye plan`` command line of a form (``TuningError`` for a
+    field that is no short text or number); each value joined to its flag (``--box=250 30``),
+    so that a value like ``--draw=/x`` stays a value."""
+    words = [sys.executable, "-m", "vgripd", "calibrate", "handeye", "plan", "-c",
+             str(config_path), "--json", "--draw", str(drawing)]
+    for field, flag in PLAN_FIELDS.items():
+        value = form.get(field)
+        if value is None or value == "":
+            continue
+        if isinstance(value, list):
+            value = " ".join(str(v) for v in value)
+        if not isinstance(value, str | int | float) or isinstance(value, bool) or len(
+                str(value)) > MAX_FIELD:
+            raise TuningError(f"plan: {field} = {value!r}: a number or short text")
+        words.append(f"{flag}={value}")  # one word: a value is never read as an option
+    words += ["-o", str(output)] if output is not None else ["--dry-run"]
+    return words
+
+
+async def run_command(words: list[str], timeout_s: float) -> tuple[int, str, str]:
+    """Run a vgripd command in a child process: exit code, stdout, stderr."""
+    proc = await asyncio.create_subprocess_exec(
+        *words, stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE, env=dict(os.environ))
+    try:
+        async with asyncio.timeout(timeout_s):
+            out, err = await proc.communicate()
+    except BaseException:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+        raise
+    return int(proc.returncode or 0), out.decode(errors="replace"), err.decode(errors="replace")
+
+
+def _reason(stderr: str, rc: int) -> str:
+    lines = [ln.removeprefix("error: ") for ln in stderr.strip().splitlines() if ln.strip()]
+    return "\n".join(lines[-20:]) or f"the command exited with {rc}"
+
+
+class WalkRoutes:
+    """The routes above for one ``WebServer``."""
+
+    def __init__(self, server: Any) -> None:
+        self.server = server
+        self.last_plan: dict[str, Any] | None = None
+        self.drawing: bytes | None = None
+        self._lock = asyncio.Lock()
+        walks = getattr(server.daemon, "walks", None)
+        if walks is not None:
+            walks.listeners.append(lambda data: server.events.publish("walk", data))
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.server.daemon.config.status.allow_config_edit)
+
+    def add(self, router: web.UrlDispatcher) -> None:
+        router.add_get("/handeye/plan", self._page("handeye-plan.html"))
+        router.add_get("/handeye/walk", self._page("handeye-walk.html"))
+        router.add_get("/api/handeye", self.show)
+        router.add_get("/api/handeye/plan.png", self.plan_png)
+        router.add_post("/api/handeye/plan", self.plan)
+        router.add_post("/api/handeye/walk/start", self.start)
+        router.add_post("/api/handeye/walk/stop", self.stop)
+        router.add_post("/api/handeye/solve", self.solve)
+        router.add_post("/api/handeye/accept", self.accept)
+
+    @staticmethod
+    def _page(name: str) -> Any:
+        async def page(request: web.Request) -> web.StreamResponse:
+            return web.FileResponse(STATIC / name, headers={"Cache-Control": "no-cache"})
+        return page
+
+    def _walks(self) -> Any:
+        walks = getattr(self.server.daemon, "walks", None)
+        if walks is None:
+            raise web.HTTPNotFound(text="this daemon serves no walk")
+        return walks
+
+    def _config_path(self) -> Path:
+        reloader = self.server.daemon.reloader
+        if not isinstance(reloader, Reloader):
+            raise web.HTTPNotFound(text="this daemon was not started from a config file")
+        return reloader.path
+
+    async def _body(self, request: web.Request) -> dict[str, Any]:
+        try:
+            body = await request.json()
+        except ValueError:
+            raise web.HTTPBadRequest(text="a JSON object") from None
+        if not isinstance(body, dict):
+            raise web.HTTPBadRequest(text="a JSON object")
+        return body
+
+    async def show(self, request: web.Request) -> web.Response:
+        walks = self._walks()
+        links = [{"index": i, "type": s.type} for i, s in
+                 enumerate(self.server.daemon.config.links)]
+        return web.json_response(jsonable({"walk": walks.snapshot(), "plan": self.last_plan,
+                                           "links": links,
+                                           "vendor": self.server.daemon.config.output.vendor}))
+
+    async def plan_png(self, request: web.Request) -> web.Response:
+        if self.drawing is None:
+            raise web.HTTPNotFound(text="no plan drawn yet")
+        return web.Response(body=self.drawing, content_type="image/png",
+                            headers={"Cache-Control": "no-cache"})
+
+    async def plan(self, request: web.Request) -> web.Response:
+        self.server._guard(request, self.enabled)
+        config_path = self._config_path()
+        form = await self._body(request)
+        save = form.get("save") or None
+        async with self._lock:
+            try:
+                output = None if save is None else plan_inside(config_path, str(save))
+                if output is not None and output.exists() and b"[plan]" not in \
+                        output.read_bytes()[:4096]:
+                    raise TuningError(f"{output}: exists and is no plan: choose another name")
+                with tempfile.TemporaryDirectory(prefix="vgripd-plan-") as tmp:
+                    drawing = Path(tmp) / "plan.png"
+                    words = plan_command(form, config_path, drawing, output)
+                    rc, out, err = await run_command(words, PLAN_TIMEOUT_S)
+                    self.drawing = drawing.read_bytes() if drawing.exists() else None
+            except VgripError as err_:
+                return web.json_response({"refused": str(err_)}, status=422)
+        try:
+            summary = json.loads(out) if out.strip() else {}
+        except ValueError:
+            summary = {}
+        summary["drawing"] = self.drawing is not None
+        if rc != 0:
+            summary["refused"] = _reason(err, rc)
+            log.info("web view: hand-eye plan refused (%s): %s", request.remote,
+                     summary["refused"])
+            return web.json_response(summary, status=422)
+        summary["saved"] = None if output is None else output.name
+        self.last_plan = summary
+        log.info("web view: hand-eye plan (%s) from %s%s", summary.get("mode"), request.remote,
+                 f", saved to {output}" if output else ", dry run")
+        return web.json_response(summary)
+
+    async def start(self, request: web.Request) -> web.Response:
+        self.server._guard(request, self.enabled)
+        config_path = self._config_path()
+        body = await self._body(request)
+        plan, link = body.get("plan"), body.get("link", 0)
+        if not isinstance(plan, str) or not isinstance(link, int) or isinstance(link, bool):
+            raise web.HTTPBadRequest(text='{"plan": "name.toml", "link": 0}')
+        try:
+            data = self._walks().start(config_path, plan, link)
+        except VgripError as err:
+            return web.json_response({"refused": str(err)}, status=409)
+        log.info("web view: walk of %s started on link %d from %s", plan, link, request.remote)
+        return web.json_response(jsonable(data))
+
+    async def stop(self, request: web.Request) -> web.Response:
+        self.server._guard(request, self.enabled)
+        log.info("web view: walk stopped from %s", request.remote)
+        return web.json_response(jsonable(await self._walks().stop(
+            f"stopped from the web view ({request.remote})")))
+
+    async def solve(self, request: web.Request) -> web.Response:
+        self.server._guard(request, self.enabled)
+        config_path = self._config_path()
+        try:
+            data = await self._walks().solve(config_path)
+        except VgripError as err:
+            return web.json_response({"refused": str(err)}, status=409)
+        ok = bool(data["solution"] and data["solution"]["ok"])
+        return web.json_response(jsonable(data), status=200 if ok else 422)
+
+    async def accept(self, request: web.Request) -> web.Response:
+        self.server._guard(request, self.enabled)
+        config_path = self._config_path()
+        reloader = self.server.daemon.reloader
+        walks = self._walks()
+        solution = walks.solution
+        if not solution or not solution.get("ok"):
+            raise web.HTTPConflict(text="nothing solved to accept: solve the walk first")
+        source = f"web {request.remote}"
+        async with self._lock:
+            try:
+                target, before, after = await asyncio.to_thread(accepted_text, config_path,
+                                                                solution["file"])
+            except (ConfigError, OSError, KeyError, tomllib.TOMLDecodeError) as err:
+                outcome = reloader._audit(Outcome(False, f"refused, nothing written: {err}",
+                                                  source=source), "hand-eye accept")
+                return web.json_response(outcome.as_dict(), status=422)
+            backup = next_backup(target)
+            backup.write_text(before, encoding="utf-8")
+            _write(target, after)
+            outcome = await reloader.reload(source, note=f"hand-eye from the walk "
+                                            f"{Path(solution['walk']).name} into {target.name}, "
+                                            f"backup {backup.name}")
+            if not outcome.applied:
+                _write(target, before)
+            _prune(target)
+        return web.json_response({**outcome.as_dict(), "file": target.name},
+                                 status=200 if outcome.applied else 422)
