@@ -215,3 +215,21 @@ def test_condition_names_parallel_axes_and_small_rotations() -> None:
              for _ in range(15)]
     problems = plan_condition(small).problems()
     assert any("too small" in p for p in problems)
+
+
+def test_walk_over_a_link_without_flange_pose_is_refused_naming_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A Modbus server's requests carry no flange pose: the walk is refused before it starts
+    (before, the robot's first TRIGGER got BAD_REQUEST in the middle of the walk)."""
+    assert make_plan(tmp_path, "eye-in-hand") == 0
+    cell = tmp_path / "cell.toml"
+    cell.write_text(cell.read_text(encoding="utf-8")
+                    + '\n[[links]]\ntype = "modbus_server"\nhost = "127.0.0.1"\nport = 0\n',
+                    encoding="utf-8")
+    code = main(["calibrate", "handeye", "walk", "-c", str(cell),
+                 "--plan", str(tmp_path / "plan.toml")])
+    err = capsys.readouterr().err
+    assert code != 0
+    assert "links.0" in err
+    assert "no flange pose" in err
+    assert not (tmp_path / "plan.walk.json").exists()
