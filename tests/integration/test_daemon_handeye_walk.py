@@ -63,6 +63,10 @@ WAIT_S = 120.0
 #: Where the ArUco plate lies in the camera frame in replay frame 0 (the reload's check runs
 #: the first frames through the pipeline and needs the object found on one).
 T_CAM_OBJ = make_transform(matrix_from_rotvec([np.pi, 0.0, 0.0]), [0.0, 0.0, 600.0])
+#: An ArUco plate: the object of a cell whose walk tests need no job to find it.
+PLATE = {"name": "plate", "features": [
+    {"name": f"a{i}", "kind": "aruco", "marker_id": i, "size_mm": 30.0, "xyz_mm": list(p)}
+    for i, p in enumerate([(-60, -40, 0), (55, -45, 0), (65, 40, 0), (-50, 50, 0)])]}
 
 
 @pytest.fixture(autouse=True)
@@ -90,16 +94,13 @@ def write_walk_cell(folder: Path, host: str) -> tuple[Path, SimulatedArm, list[i
         "about": camera_about({"left": left})}), encoding="utf-8")
     frames = folder / "frames"
     frames.mkdir()
-    features = [{"name": f"a{i}", "kind": "aruco", "marker_id": i, "size_mm": 30.0,
-                 "xyz_mm": list(p)}
-                for i, p in enumerate([(-60, -40, 0), (55, -45, 0), (65, 40, 0), (-50, 50, 0)])]
     main = folder / "vgripd.toml"
     main.write_text(toml_from_dict({
         "include": ["handeye.toml"],
         "camera": {"type": "replay", "folder": str(frames), "glob": "*.png"},
         "output": {"vendor": "ur"},
         "calibration": {"left": left},
-        "object": {"name": "plate", "features": features},
+        "object": PLATE,
         "limits": {"max_translation_mm": 500.0, "max_rotation_deg": 45.0},
         "reference": {"T_base_obj": pose_table(X @ T_CAM_OBJ)},
         "links": [{"type": "ur_rtde", "host": host},

@@ -11,8 +11,10 @@ Checked for each brand: the walk completes (NOT_FOUND), one target recorded unre
 other seen, each recorded flange pose the arm's within the encoding's resolution, the bytes on
 the wire the documented frames (44-byte CAPTURE_AT). Solved for one brand per mounting (KUKA
 eye-in-hand, ABB eye-to-hand) within 0.05 mm / 0.01 deg of the truth; a walk stopped halfway
-resumes (Staubli). vgripd's side is ``serving_walk``: today the ``WalkServer`` as
-``vgripd calibrate handeye walk`` runs it, in-process.
+resumes (Staubli). vgripd's side: for every brand the running daemon (``daemon_walking``: the
+walk started over its web API with the token, its replay camera showing the board as seen from
+each target the arm reaches), and the ``WalkServer`` as ``vgripd calibrate handeye walk`` runs
+it, in-process (``serving_walk``), for the resumed walk.
 """
 
 from __future__ import annotations
@@ -22,22 +24,28 @@ import contextlib
 import json
 import struct
 import sys
+import tomllib
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
+import aiohttp
+import cv2
 import numpy as np
 import pytest
 
 from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
 from tests.integration.test_daemon import running
+from tests.integration.test_daemon_handeye_walk import PLATE
 from tests.integration.test_robot_programs import cell, free_port, program
+from tests.integration.test_web_reload import TOKEN, post, running_file
 from vgripd.__main__ import main
 from vgripd.calib.handeye.plan import LoadedPlan, load_plan
 from vgripd.calib.handeye.walk import SEEN, UNREACHABLE, Walk
 from vgripd.config import config_from_dict
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import convention, transform_from_vendor
+from vgripd.serialize import toml_from_dict
 from vgripd.service.handeye_walk import WalkServer
 from vgripd.service.protocol import LinkState
 from vgripd.service.robot_socket_format import (
@@ -125,23 +133,53 @@ async def serving_walk(brand: str, port: int, walk: Walk, arm: SimulatedArm, mod
         await link.close()
 
 
+@contextlib.asynccontextmanager
+async def daemon_walking(brand: str, port: int, walk: Walk, arm: SimulatedArm, mode: str
+                         ) -> AsyncIterator[asyncio.Future[None]]:
+    """The running daemon (``vgripd run``'s Daemon, config file beside the plan) serving the
+    walk on its robot_socket link, started over the web API with the token. Its replay camera
+    holds the board as seen from each target the arm can reach, in the order the program visits
+    them. Yields a future done once the walk is complete."""
+    folder = walk.path.parent
+    frames = folder / "frames"
+    frames.mkdir()
+    reachable = [k for k, T in enumerate(walk.plan.poses) if arm.reachable(T)]
+    for n, k in enumerate(reachable):
+        cv2.imwrite(str(frames / f"{n:02d}.png"), image_at(mode, walk.plan.poses[k], seed=k))
+    data = cell(brand, port)
+    data["camera"] = {"type": "replay", "folder": str(frames), "glob": "*.png"}
+    data["object"] = PLATE
+    data["calibration"] = tomllib.loads((folder / "cell.toml").read_text())["calibration"]
+    data["status"] = {"port": 0, "token": TOKEN, "allow_config_edit": True}
+    path = folder / "vgripd.toml"
+    path.write_text(toml_from_dict(data), encoding="utf-8")
+    async with running_file(path) as run, aiohttp.ClientSession() as session:
+        assert run.daemon.status_server is not None
+        url = f"http://127.0.0.1:{run.daemon.status_server.port}/api/handeye/walk/start"
+        code, out = await post(session, url, {"plan": Path(walk.plan.path).name, "link": 0})
+        assert code == 200, out
+        walks = run.daemon.walks
+        yield asyncio.ensure_future(
+            run.daemon.wait_for(lambda: walks.state.value == "complete", 60.0))
+
+
 async def walk_with(brand: str, settings: ProgramSettings, walk: Walk, arm: SimulatedArm,
-                    mode: str, stop_after: int | None = None
+                    mode: str, stop_after: int | None = None, serve: Any = serving_walk
                     ) -> tuple[WalkOutcome, list[bytes]]:
-    """The twin walks against vgripd (started in the order the brand's TCP roles need)."""
+    """The twin walks against vgripd served by ``serve`` (``serving_walk`` or
+    ``daemon_walking``), started in the order the brand's TCP roles need."""
     robot_server = BRANDS[brand].connection == "robot_server"
     async with contextlib.AsyncExitStack() as stack:
         if robot_server:  # the program listens, vgripd dials in
             twin = await stack.enter_async_context(ProgramTwin(settings, "127.0.0.1", 0))
-            task = await stack.enter_async_context(
-                serving_walk(brand, twin.port, walk, arm, mode))
+            task = await stack.enter_async_context(serve(brand, twin.port, walk, arm, mode))
         else:
             port = free_port()
-            task = await stack.enter_async_context(serving_walk(brand, port, walk, arm, mode))
+            task = await stack.enter_async_context(serve(brand, port, walk, arm, mode))
             twin = await stack.enter_async_context(ProgramTwin(settings, "127.0.0.1", port))
         outcome = await twin.walk(arm, stop_after)
         if stop_after is None:
-            await asyncio.wait_for(task, 30)  # the server is done once it answered NOT_FOUND
+            await asyncio.wait_for(task, 60)  # the server is done once it answered NOT_FOUND
         return outcome, twin.sent
 
 
@@ -176,9 +214,9 @@ async def test_each_program_walks_the_plan_skipping_the_unreachable_target(
     assert make_plan(tmp_path, mode, count=COUNT) == 0
     plan = load_plan(str(tmp_path / "plan.toml"))
     arm = new_arm(plan, seed=len(brand))
-    walk_file = tmp_path / "walk.json"
+    walk_file = tmp_path / "plan.walk.json"  # where the daemon keeps the plan's record
     walk = Walk(walk_file, plan, BOARD, CAMERA)
-    outcome, sent = await walk_with(brand, settings, walk, arm, mode)
+    outcome, sent = await walk_with(brand, settings, walk, arm, mode, serve=daemon_walking)
 
     assert outcome.status == Status.NOT_FOUND  # the walk is complete
     assert len(outcome.skipped) == 1
