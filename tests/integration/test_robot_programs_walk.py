@@ -297,3 +297,44 @@ async def test_capture_at_outside_a_walk_is_a_locate_with_the_flange_pose(brand:
     mm, deg = pose_error(np.asarray(pair.T_base_flange), T)
     assert mm < 1e-3
     assert deg < 1e-3
+
+
+async def test_a_stop_while_the_image_is_taken_answers_that_request_once_and_whole(
+        tmp_path: Path) -> None:
+    """The walk is stopped (the daemon's stop, the page's stop) while the camera takes the
+    image of a CAPTURE_AT: the answer goes out whole (the target recorded, the next one sent)
+    and the request is not left for an ABORTED answer as well. Before, the stop cut the grab
+    (or the answer being written) short and the request was answered ABORTED after it."""
+    brand, mode = "kuka", "eye-in-hand"
+    assert make_plan(tmp_path, mode, count=COUNT) == 0
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    walk = Walk(tmp_path / "walk.json", plan, BOARD, CAMERA)
+    taking, release = asyncio.Event(), asyncio.Event()
+
+    async def grab() -> np.ndarray:
+        taking.set()
+        await release.wait()  # the camera is exposing
+        return await asyncio.to_thread(image_at, mode, plan.poses[0], 0)
+
+    port = free_port()
+    link = RobotSocketLink("walk0", link_options(brand, port))
+    server = WalkServer(walk, link, grab, BRANDS[brand].convention)
+    await link.open(server.on_trigger)
+    task = asyncio.get_running_loop().create_task(server.serve())
+    try:
+        async with ProgramTwin(settings_for(brand), "127.0.0.1", port) as twin:
+            first = await twin.next()
+            assert first.status == Status.OK
+            at = asyncio.ensure_future(twin.capture_at(plan.poses[0]))
+            await asyncio.wait_for(taking.wait(), 30)
+            task.cancel()  # stop while the image is taken
+            release.set()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+            answer = await asyncio.wait_for(at, 30)
+    finally:
+        await link.close()
+    assert answer.status == Status.OK  # the next target, not ABORTED
+    assert answer.captured
+    assert server.waiting() == []  # nothing left to answer ABORTED
+    assert Walk(tmp_path / "walk.json", plan, BOARD, CAMERA).records[0].status == SEEN

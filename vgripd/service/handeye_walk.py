@@ -25,6 +25,7 @@ No motion is commanded here: only answers to the robot's requests.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import Awaitable, Callable
 
@@ -82,7 +83,16 @@ class WalkServer:
         while True:
             trigger = await self._queue.get()
             self.current = trigger
-            done = await self._answer(trigger)
+            answer = asyncio.ensure_future(self._answer(trigger))
+            try:
+                done = await asyncio.shield(answer)
+            except asyncio.CancelledError:
+                # Stopped while answering: the answer goes out whole (a grab is bounded by
+                # the camera's timeout), so the request is not also answered ABORTED.
+                with contextlib.suppress(Exception):
+                    await answer
+                    self.current = None  # answered; one that failed is left to waiting()
+                raise
             self.current = None
             if self.on_answer is not None:
                 self.on_answer()
