@@ -31,6 +31,7 @@ from __future__ import annotations
 import ipaddress
 import math
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -1113,6 +1114,22 @@ def _holder(owner: dict[str, str], prefixes: tuple[str, ...], default: str) -> s
     return default
 
 
+#: The keys of a taught reference that are its measurement (what ``vgripd teach`` measures).
+MEASURED_REFERENCE_KEYS = ("T_base_obj", "points_mm")
+
+
+def measured_references(part: dict[str, Any]) -> Iterator[dict[str, Any]]:
+    """The reference tables (``[reference]``, ``[recipes.N.reference]``) of one file's tables
+    that hold a measurement; one set aside (``grip`` alone) is not taught."""
+    tables = [part.get("reference")]
+    recipes = part.get("recipes")
+    if isinstance(recipes, dict):
+        tables += [r.get("reference") for r in recipes.values() if isinstance(r, dict)]
+    for table in tables:
+        if isinstance(table, dict) and any(k in table for k in MEASURED_REFERENCE_KEYS):
+            yield table
+
+
 def check_calibration_files(
     data: dict[str, Any], owner: dict[str, str],
     included: list[tuple[str, dict[str, Any], dict[str, Any]]],
@@ -1138,12 +1155,10 @@ def check_calibration_files(
     problems: list[str] = []
     order = "(the order is: cameras/rig -> hand-eye -> teach)"
     for path, part, about in included:
-        cal_value, recipes_value = part.get("calibration"), part.get("recipes")
+        cal_value = part.get("calibration")
         cal: dict[str, Any] = cal_value if isinstance(cal_value, dict) else {}
-        recipes: dict[str, Any] = recipes_value if isinstance(recipes_value, dict) else {}
         holds_camera = any(k in cal for k in ("left", "right", "stereo", "cameras"))
-        taught = "reference" in part or any(isinstance(r, dict) and "reference" in r
-                                            for r in recipes.values())
+        taught = any(True for _ in measured_references(part))
         holds_hand_eye = "hand_eye" in cal and not holds_camera
         if not (holds_hand_eye or taught):
             continue

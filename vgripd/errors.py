@@ -33,6 +33,10 @@ class NotCalibratedError(VgripError):
     """A calibration the job needs is missing or invalid."""
 
 
+class NotTaughtError(NotCalibratedError):
+    """The object's reference pose has not been taught (yet, or again after a new hand-eye)."""
+
+
 class DriverError(VgripError):
     """A device driver failed; the caller keeps running."""
 

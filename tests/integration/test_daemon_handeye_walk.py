@@ -35,7 +35,7 @@ from vgripd.calib.handeye.plan import load_plan
 from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
 from vgripd.cli.status import format_status
 from vgripd.config import load_config
-from vgripd.geometry.fingerprint import camera_about, intrinsics_table
+from vgripd.geometry.fingerprint import camera_about, hand_eye_fingerprint, intrinsics_table
 from vgripd.geometry.transforms import make_transform, matrix_from_rotvec, pose_error
 from vgripd.geometry.vendors import vendor_from_transform
 from vgripd.serialize import toml_from_dict
@@ -94,15 +94,20 @@ def write_walk_cell(folder: Path, host: str) -> tuple[Path, SimulatedArm, list[i
         "about": camera_about({"left": left})}), encoding="utf-8")
     frames = folder / "frames"
     frames.mkdir()
+    # the reference taught with the rough hand-eye, in its own include (as vgripd teach writes)
+    (folder / "reference.toml").write_text(toml_from_dict({
+        "reference": {"T_base_obj": pose_table(X @ T_CAM_OBJ)},
+        "about": {**camera_about({"left": left}), "hand_eye": hand_eye_fingerprint(
+            {"hand_eye": {"mounting": "fixed", "T_base_camera": pose_table(X @ ROUGH)}})}}),
+        encoding="utf-8")
     main = folder / "vgripd.toml"
     main.write_text(toml_from_dict({
-        "include": ["handeye.toml"],
-        "camera": {"type": "replay", "folder": str(frames), "glob": "*.png"},
+        "include": ["handeye.toml", "reference.toml"],
+        "camera": {"type": "replay", "folder": str(frames), "glob": "*.png", "loop": True},
         "output": {"vendor": "ur"},
         "calibration": {"left": left},
         "object": PLATE,
         "limits": {"max_translation_mm": 500.0, "max_rotation_deg": 45.0},
-        "reference": {"T_base_obj": pose_table(X @ T_CAM_OBJ)},
         "links": [{"type": "ur_rtde", "host": host},
                   {"type": "modbus_server", "host": "127.0.0.1", "port": 0}],
         "status": {"port": 0, "token": TOKEN, "allow_config_edit": True},
@@ -200,9 +205,23 @@ async def test_walk_in_the_running_daemon_busy_resumed_solved_and_accepted(
             assert about["plan"]["condition"]["condition"] > 0
             assert about["camera_model"] == camera_about(
                 {"left": intrinsics_table(CAMERA)})["camera_model"]
+            # The taught reference was measured with the rough hand-eye: accepting is refused,
+            # naming it, until told to set it aside; then jobs end NOT_CALIBRATED until taught.
             code, out = await post(s, f"{base}/accept")
+            assert code == 409, out
+            assert out["stale_references"] == ["reference.toml"]
+            assert "set the taught references aside" in out["refused"]
+            assert "T_base_obj" in (tmp_path / "reference.toml").read_text()
+            code, out = await post(s, f"{base}/accept", {"set_aside_references": True})
             assert code == 200, out
             assert out["applied"], out
+            assert out["set_aside"] == ["reference.toml"]
+            aside = tomllib.loads((tmp_path / "reference.toml").read_text())
+            assert "T_base_obj" not in aside.get("reference", {})
+            assert "hand_eye" not in aside["about"]
+            assert (tmp_path / "reference.toml.1").exists()  # its backup
+            await plc.trigger(2)
+            assert (await plc.result(2))[Reg.STATUS] == Status.NOT_CALIBRATED
             assert any(d.startswith("calibration.hand_eye.T_base_camera") for d in out["diff"])
             assert (tmp_path / "handeye.toml.1").exists()  # the backup
             he = run.daemon.config.calibration.hand_eye

@@ -39,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="accept a config without [[links]] (for locate/replay only)")
     parser.add_argument("--no-camera", action="store_true",
                         help="do not open the cameras to check their settings on the devices")
+    parser.add_argument("--untaught-ok", action="store_true",
+                        help="a recipe whose reference is not taught (yet, or again after a new "
+                             "hand-eye) is a warning, not an error: its jobs end NOT_CALIBRATED")
 
 
 def check_camera_settings(config: Config) -> None:
@@ -95,11 +98,17 @@ def run(args: argparse.Namespace) -> int:
             check_camera_settings(config)
         except ConfigError as err:
             raise ConfigError(f"{args.config}: {err}") from None
-    if daemon.recipe_problems:
+    problems = {number: problem for number, problem in daemon.recipe_problems.items()
+                if not (args.untaught_ok and number in daemon.untaught)}
+    if problems:
         raise ConfigError("\n".join(
             f"{args.config}: not calibrated: {problem}" if number == 0 else
             f"{args.config}: recipe {daemon.recipe_label(number)}: not calibrated: {problem}"
-            for number, problem in sorted(daemon.recipe_problems.items())))
+            for number, problem in sorted(problems.items())))
+    untaught = [f"warning: {args.config}: "
+                + ("" if number == 0 else f"recipe {daemon.recipe_label(number)}: ")
+                + f"not taught, its jobs end NOT_CALIBRATED: {daemon.recipe_problems[number]}"
+                for number in sorted(daemon.untaught) if number not in problems]
     findings = commission(config, Options(running=args.running, no_links_ok=args.no_links_ok))
     for number in config.recipe_numbers()[1:]:
         findings += [Finding(f.level, f"recipes.{number}.{f.key}",
@@ -107,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
                      for f in check_scene(config.for_recipe(number))]
     errors = [f for f in findings if f.level == "ERROR"]
     others = [f"{f.level.lower()}: {args.config}: {f}" for f in findings if f.level != "ERROR"]
-    others += [f"warning: {args.config}: {w}" for w in config.load_warnings]
+    others += [f"warning: {args.config}: {w}" for w in config.load_warnings] + untaught
     if errors:
         if others:
             print("\n".join(others))

@@ -50,7 +50,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from vgripd.config import Config
-from vgripd.errors import ConfigError, NotCalibratedError
+from vgripd.errors import ConfigError, NotCalibratedError, NotTaughtError
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.cameras import (
     CAMERA_CLOSE_TIMEOUT_S,
@@ -137,6 +137,8 @@ class Daemon:
         #: Why a recipe cannot run (not calibrated or taught), by number; its jobs answer
         #: NOT_CALIBRATED with it.
         self.recipe_problems: dict[int, str] = {}
+        #: The recipes among them whose only lack is the taught reference.
+        self.untaught: set[int] = set()
         pipelines: dict[int, Processor] = {}
         for number in config.recipe_numbers():
             if pipeline is None or isinstance(pipeline, str):
@@ -144,6 +146,8 @@ class Daemon:
                     pipelines[number] = _make_pipeline(config.for_recipe(number))
                 except NotCalibratedError as err:
                     self.recipe_problems[number] = str(err)
+                    if isinstance(err, NotTaughtError):
+                        self.untaught.add(number)
                 except ConfigError as err:  # a template file, an ArUco id: name the recipe
                     if not number:
                         raise

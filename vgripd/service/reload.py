@@ -126,11 +126,13 @@ def applicable(old: Config, new: Config) -> Config:
     return config_from_dict(merged, "<reloaded config, restart sections as running>")
 
 
-async def check_file(path: str | Path, timeout_s: float = CHECK_TIMEOUT_S) -> str:
-    """Judge ``path`` as ``vgripd check --running`` does, in a child process: "" when it
-    passes, else its error lines."""
+async def check_file(path: str | Path, timeout_s: float = CHECK_TIMEOUT_S,
+                     untaught_ok: bool = False) -> str:
+    """Judge ``path`` as ``vgripd check --running`` does (``--untaught-ok`` with
+    ``untaught_ok``), in a child process: "" when it passes, else its error lines."""
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "vgripd", "check", "--running", "-c", str(path),
+        *(["--untaught-ok"] if untaught_ok else []),
         stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.STDOUT, env=dict(os.environ))
     try:
@@ -180,12 +182,15 @@ class Reloader:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
 
-    async def reload(self, source: str = "SIGHUP", note: str = "") -> Outcome:
-        """Judge and apply the config file; the running config stays when it is refused."""
+    async def reload(self, source: str = "SIGHUP", note: str = "",
+                     untaught_ok: bool = False) -> Outcome:
+        """Judge and apply the config file; the running config stays when it is refused.
+        ``untaught_ok``: a recipe left untaught is no refusal (a new hand-eye whose taught
+        references were set aside: its jobs end NOT_CALIBRATED until taught again)."""
         async with self._lock:
             log.info("config reload (%s): judging %s", source, self.path)
             try:
-                problem = await check_file(self.path)
+                problem = await check_file(self.path, untaught_ok=untaught_ok)
                 if problem:
                     raise ConfigError(problem)
                 # judged again here (the child only said yes): off the loop, the PLC is polling

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from vgripd.config import CameraEntryConfig, Config, IntrinsicsConfig, PoseConfig
-from vgripd.errors import NotCalibratedError, VgripError
+from vgripd.errors import NotCalibratedError, NotTaughtError, VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
@@ -127,7 +127,7 @@ def T_base_obj_ref(cfg: Config) -> FloatArray:
     if cfg.object.definition == "reference":
         return np.eye(4)
     if cfg.reference.T_base_obj is None:
-        raise NotCalibratedError(
+        raise NotTaughtError(
             f"reference.T_base_obj: object {cfg.object.name!r} has no taught reference pose yet"
         )
     return matrix_from_pose(cfg.reference.T_base_obj)

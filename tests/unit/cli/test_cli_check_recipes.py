@@ -82,6 +82,21 @@ def test_an_include_without_the_taught_reference_names_the_recipe(
     assert f"{path}: recipe 65535 (plate-c): not calibrated: " in text
 
 
+def test_untaught_ok_makes_a_missing_reference_a_warning_and_nothing_else(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """What the reload after a hand-eye accept that set the references aside runs: the
+    untaught recipe is a warning (its jobs end NOT_CALIBRATED); any other problem stays one."""
+    path = cell(tmp_path, {"plate-c.toml": PLATE_C})
+    rc, text = run_cli(["check", "--untaught-ok", "-c", str(path)], capsys)
+    assert rc == 0, text
+    assert (f"warning: {path}: recipe 65535 (plate-c): not taught, its jobs end NOT_CALIBRATED"
+            in text)
+    broken = cell(tmp_path, {"plate-c.toml": PLATE_C, "tagged.toml": TEMPLATE_RECIPE})
+    rc, text = run_cli(["check", "--untaught-ok", "-c", str(broken)], capsys)
+    assert rc == EXIT_CONFIG
+    assert "missing.png" in text
+
+
 @pytest.mark.parametrize("command", ["check", "run"])
 def test_a_missing_template_file_names_recipe_field_and_file(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str) -> None:

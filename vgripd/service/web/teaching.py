@@ -16,8 +16,10 @@ far it lies from the reference taught now. Shots are kept per recipe (the job's)
 job already measured is refused.
 
 Saving writes the ``[reference]`` section (for recipe N ``[recipes.N.reference]``) into the
-include file that holds it now (numbered backup first, as the tuning save), keeping its ``grip``;
-the reload judges it as ``vgripd check`` does; refused, the file is put back.
+include file that holds it now (numbered backup first, as the tuning save), keeping its ``grip``,
+with the fingerprints of the camera model and hand-eye it was measured with in its ``[about]``
+(as ``vgripd teach`` writes them); the reload judges it as ``vgripd check`` does; refused, the
+file is put back.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from aiohttp import web
 from vgripd.calib import teach
 from vgripd.config import Config, read_config_data
 from vgripd.errors import CalibrationError, ConfigError, VgripError
+from vgripd.geometry.fingerprint import camera_about, hand_eye_fingerprint
 from vgripd.geometry.transforms import pose_error
 from vgripd.serialize import toml_from_dict
 from vgripd.service.reload import Outcome, Reloader
@@ -53,11 +56,15 @@ def measure_shot(pair: tuple[Any, Any], config: Config) -> teach.Shot:
 
 
 def reference_target(config_path: Path, recipe: int) -> Path:
-    """The include file that sets the reference of ``recipe`` now."""
+    """The include file that sets the reference of ``recipe`` now (or holds its table empty,
+    set aside when a new hand-eye was accepted)."""
     prefix = "reference." if recipe == 0 else f"recipes.{recipe}.reference."
     owner: dict[str, str] = {}
-    read_config_data(config_path, owner)
+    included: list[tuple[str, dict[str, Any], dict[str, Any]]] = []
+    read_config_data(config_path, owner, included)
     files = {src for key, src in owner.items() if key.startswith(prefix)}
+    if not files:
+        files = {path for path, part, _ in included if _holds_table(part, prefix)}
     if len(files) != 1 or Path(next(iter(files))) == config_path:
         where = "the main config file" if files else "no file"
         raise TuningError(
@@ -67,8 +74,24 @@ def reference_target(config_path: Path, recipe: int) -> Path:
     return Path(next(iter(files)))
 
 
-def with_reference(text: str, recipe: int, section: dict[str, Any]) -> str:
+def _holds_table(part: dict[str, Any], prefix: str) -> bool:
+    table: Any = part
+    for key in prefix.rstrip(".").split("."):
+        table = table.get(key) if isinstance(table, dict) else None
+    return isinstance(table, dict)
+
+
+def with_reference(text: str, recipe: int, section: dict[str, Any],
+                   calibration: dict[str, Any] | None = None) -> str:
+    """``text`` with the reference of ``recipe`` taught anew; its ``[about]`` records the
+    camera model and hand-eye of ``calibration`` (what it was measured with), as
+    ``vgripd teach`` does, so the file loads with the calibration it belongs to."""
     data = tomllib.loads(text)
+    if calibration is not None:
+        about = data.setdefault("about", {})
+        about.pop("set_aside", None)
+        about.update(camera_about(calibration))
+        about["hand_eye"] = hand_eye_fingerprint(calibration)
     holder = data if recipe == 0 else data.setdefault("recipes", {}).setdefault(str(recipe), {})
     old = holder.get("reference", {})
     kept = {k: v for k, v in old.items() if k not in ("T_base_obj", "points_mm")}
@@ -179,7 +202,9 @@ class TeachRoutes:
             try:
                 target = reference_target(reloader.path, recipe)
                 before = target.read_text(encoding="utf-8")
-                after = with_reference(before, recipe, section)
+                calibration = (None if config.calibration is None
+                               else config.calibration.model_dump(mode="json"))
+                after = with_reference(before, recipe, section, calibration)
             except (ConfigError, OSError, tomllib.TOMLDecodeError) as err:
                 outcome = reloader._audit(Outcome(False, f"refused, nothing written: {err}",
                                                   source=source), "teach save")

@@ -20,8 +20,10 @@ the command's reason. A plan file is a ``.toml`` inside the config's folder.
 Accepting writes ``[calibration.hand_eye]`` (and the solved file's ``[about]``: residuals,
 leave-one-out spread, plan condition, camera-model fingerprint) into the one included file that
 holds the hand-eye now (numbered backup first, as the tuning save); the reload judges the
-config as ``vgripd check`` does (a taught reference made with the old hand-eye is refused by
-its fingerprint: teach again); refused, the file is put back.
+config as ``vgripd check`` does; refused, the file is put back. A taught reference not measured
+with the new hand-eye would be wrong with it: the accept is refused, naming its file, unless
+told to set such references aside (``{"set_aside_references": true}``,
+``vgripd.service.web.stale``); then jobs end NOT_CALIBRATED until the reference is taught again.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from vgripd.errors import CalibrationError, ConfigError, VgripError
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.reload import Outcome, Reloader
 from vgripd.service.web.commission import TuningError, _prune, _write, next_backup
+from vgripd.service.web.stale import set_aside, stale_references
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +100,32 @@ def accepted_text(config_path: Path, solved_file: str) -> tuple[Path, str, str]:
     target = hand_eye_target(config_path)
     before = target.read_text(encoding="utf-8")
     return target, before, with_hand_eye(before, solved)
+
+
+def accepted_calibration(config_path: Path, include_text: str) -> dict[str, Any]:
+    """The config's ``[calibration]`` with the solved hand-eye (as the include will hold it)."""
+    data = read_config_data(config_path)
+    calibration: dict[str, Any] = dict(data.get("calibration", {}))
+    calibration["hand_eye"] = tomllib.loads(include_text)["calibration"]["hand_eye"]
+    return calibration
+
+
+def stale_refusal(config_path: Path, stale: list[Path], in_main: bool,
+                  aside: bool) -> str | None:
+    """Why the accept must not go on with these taught references; None when it may."""
+    if in_main:
+        return (f"{config_path} holds a taught reference itself: the new hand-eye makes it "
+                "wrong, and the page never writes the main config file; move it into an "
+                "include (vgripd teach -o writes one) or remove it, then accept; nothing "
+                "written")
+    if stale and not aside:
+        names = ", ".join(p.name for p in stale)
+        return (f"the taught reference in {names} was not measured with the new hand-eye: "
+                "accepting it makes that reference wrong (the order is: cameras/rig -> "
+                "hand-eye -> teach). Accept with 'set the taught references aside' (their "
+                "files are backed up, jobs end NOT_CALIBRATED (31) until you teach again), or "
+                "keep the hand-eye you have; nothing written")
+    return None
 
 
 def plan_command(form: dict[str, Any], config_path: Path, drawing: Path,
@@ -281,23 +310,39 @@ class WalkRoutes:
         solution = walks.solution
         if not solution or not solution.get("ok"):
             raise web.HTTPConflict(text="nothing solved to accept: solve the walk first")
+        body = await self._body(request) if request.body_exists else {}
+        aside = body.get("set_aside_references") is True
         source = f"web {request.remote}"
         async with self._lock:
             try:
                 target, before, after = await asyncio.to_thread(accepted_text, config_path,
                                                                 solution["file"])
+                stale, in_main = await asyncio.to_thread(
+                    stale_references, config_path, accepted_calibration(config_path, after))
             except (ConfigError, OSError, KeyError, tomllib.TOMLDecodeError) as err:
                 outcome = reloader._audit(Outcome(False, f"refused, nothing written: {err}",
                                                   source=source), "hand-eye accept")
                 return web.json_response(outcome.as_dict(), status=422)
-            backup = next_backup(target)
-            backup.write_text(before, encoding="utf-8")
-            _write(target, after)
+            refusal = stale_refusal(config_path, stale, in_main, aside)
+            if refusal is not None:
+                return web.json_response({"refused": refusal, "stale_references":
+                                          [p.name for p in stale]}, status=409)
+            writes = {target: (before, after)}
+            for path in stale:  # set aside, as told
+                text = path.read_text(encoding="utf-8")
+                writes[path] = (text, set_aside(text))
+            for path, (old, new) in writes.items():
+                next_backup(path).write_text(old, encoding="utf-8")
+                _write(path, new)
+            aside_note = (f"; taught references set aside in {', '.join(p.name for p in stale)}"
+                          if stale else "")
             outcome = await reloader.reload(source, note=f"hand-eye from the walk "
-                                            f"{Path(solution['walk']).name} into {target.name}, "
-                                            f"backup {backup.name}")
-            if not outcome.applied:
-                _write(target, before)
-            _prune(target)
-        return web.json_response({**outcome.as_dict(), "file": target.name},
+                                            f"{Path(solution['walk']).name} into {target.name}"
+                                            f"{aside_note}", untaught_ok=bool(stale))
+            for path, (old, _) in writes.items():
+                if not outcome.applied:
+                    _write(path, old)
+                _prune(path)
+        return web.json_response({**outcome.as_dict(), "file": target.name,
+                                  "set_aside": [p.name for p in stale]},
                                  status=200 if outcome.applied else 422)

@@ -170,7 +170,8 @@ if (document.body.dataset.page === "plan") {
     { plan: $("plan").value, link: Number($("link").value || 0) }, "started"));
   $("btn-stop").addEventListener("click", () => walkAction("/api/handeye/walk/stop", {}, "stopped"));
   $("btn-solve").addEventListener("click", () => walkAction("/api/handeye/solve", {}, "solved"));
-  $("btn-accept").addEventListener("click", () => walkAction("/api/handeye/accept", {}, "accepted"));
+  $("btn-accept").addEventListener("click", () => walkAction("/api/handeye/accept",
+    { set_aside_references: $("set-aside").checked }, "accepted"));
   refreshWalk();
   const events = new EventSource("/api/events");
   events.addEventListener("walk", (e) => showWalk(JSON.parse(e.data)));
