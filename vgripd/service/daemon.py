@@ -107,6 +107,29 @@ def _make_pipeline(config: Config) -> Processor:
     return pipeline
 
 
+def _recipe_pipelines(config: Config, pipeline: Processor | str | None,
+                      problems: dict[int, str], untaught: set[int]) -> dict[int, Processor]:
+    """Each recipe's processor (``pipeline`` when it is one), judging each recipe's config
+    once: a recipe that cannot run goes to ``problems`` (and to ``untaught`` when only its
+    reference is missing); a bad recipe section is a ``ConfigError`` naming it."""
+    pipelines: dict[int, Processor] = {}
+    for number in config.recipe_numbers():
+        if pipeline is not None and not isinstance(pipeline, str):
+            pipelines[number] = pipeline
+            continue
+        try:
+            pipelines[number] = _make_pipeline(config.for_recipe(number))
+        except NotCalibratedError as err:
+            problems[number] = str(err)
+            if isinstance(err, NotTaughtError):
+                untaught.add(number)
+        except ConfigError as err:  # a template file, an ArUco id: name the recipe
+            if not number:
+                raise
+            raise ConfigError(f"recipes.{number}.{err}") from None
+    return pipelines
+
+
 class Daemon:
     """One vgripd service instance. Construction validates drivers and does no I/O.
 
@@ -139,21 +162,7 @@ class Daemon:
         self.recipe_problems: dict[int, str] = {}
         #: The recipes among them whose only lack is the taught reference.
         self.untaught: set[int] = set()
-        pipelines: dict[int, Processor] = {}
-        for number in config.recipe_numbers():
-            if pipeline is None or isinstance(pipeline, str):
-                try:  # judges each recipe's config here, once
-                    pipelines[number] = _make_pipeline(config.for_recipe(number))
-                except NotCalibratedError as err:
-                    self.recipe_problems[number] = str(err)
-                    if isinstance(err, NotTaughtError):
-                        self.untaught.add(number)
-                except ConfigError as err:  # a template file, an ArUco id: name the recipe
-                    if not number:
-                        raise
-                    raise ConfigError(f"recipes.{number}.{err}") from None
-            else:
-                pipelines[number] = pipeline
+        pipelines = _recipe_pipelines(config, pipeline, self.recipe_problems, self.untaught)
         self._worker: WorkerClient | None = None
         if isinstance(pipeline, str) or (pipeline is None and config.daemon.worker):
             self._worker = WorkerClient(config, pipeline or DEFAULT_PROCESSOR, camera.describe())

@@ -28,8 +28,6 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
-import os
-import sys
 import time
 from collections import deque
 from collections.abc import Iterator, Mapping
@@ -39,6 +37,7 @@ from typing import Any
 from vgripd.config import Config, config_from_dict, load_config
 from vgripd.errors import ConfigError
 from vgripd.redaction import redact
+from vgripd.service.commands import run_vgripd
 from vgripd.service.worker import WorkerError
 
 log = logging.getLogger("vgripd.reload")
@@ -130,25 +129,14 @@ async def check_file(path: str | Path, timeout_s: float = CHECK_TIMEOUT_S,
                      untaught_ok: bool = False) -> str:
     """Judge ``path`` as ``vgripd check --running`` does (``--untaught-ok`` with
     ``untaught_ok``), in a child process: "" when it passes, else its error lines."""
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "vgripd", "check", "--running", "-c", str(path),
-        *(["--untaught-ok"] if untaught_ok else []),
-        stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.STDOUT, env=dict(os.environ))
-    try:
-        async with asyncio.timeout(timeout_s):
-            out, _ = await proc.communicate()
-    except BaseException:
-        if proc.returncode is None:
-            proc.kill()
-            await proc.wait()
-        raise
-    if proc.returncode == 0:
+    rc, out, err = await run_vgripd(
+        ["check", "--running", "-c", str(path), *(["--untaught-ok"] if untaught_ok else [])],
+        timeout_s)
+    if rc == 0:
         return ""
-    text = out.decode(errors="replace").strip()
-    lines = [line for line in text.splitlines()
+    lines = [line for line in (out + "\n" + err).splitlines()
              if line.strip() and not line.lower().startswith(("warning:", "note:"))]
-    return "\n".join(lines[-20:]) or f"vgripd check exited with {proc.returncode}"
+    return "\n".join(lines[-20:]) or f"vgripd check exited with {rc}"
 
 
 class Reloader:

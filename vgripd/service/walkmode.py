@@ -34,7 +34,6 @@ import logging
 import multiprocessing
 import os
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -50,6 +49,7 @@ from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
 from vgripd.errors import CalibrationError, CameraError, ConfigError, VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.service.cameras import CameraSupervisor
+from vgripd.service.commands import run_vgripd
 from vgripd.service.handeye_walk import WalkServer, walk_refusal
 from vgripd.service.jobcore import Command
 from vgripd.service.jobs import JobRunner
@@ -286,22 +286,12 @@ class WalkMode:
         self.solving = True
         self._announce()
         try:
-            proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "vgripd", "calibrate", "handeye", "--samples",
-                str(walk.path), "--intrinsics", str(config_path), "-o", str(out), "--json",
-                stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE,
-                stderr=asyncio.subprocess.PIPE, env=dict(os.environ))
-            try:
-                async with asyncio.timeout(SOLVE_TIMEOUT_S):
-                    stdout, stderr = await proc.communicate()
-            except BaseException:
-                if proc.returncode is None:
-                    proc.kill()
-                    await proc.wait()
-                raise
+            rc, stdout, stderr = await run_vgripd(
+                ["calibrate", "handeye", "--samples", str(walk.path), "--intrinsics",
+                 str(config_path), "-o", str(out), "--json"], SOLVE_TIMEOUT_S)
         finally:
             self.solving = False
-        if proc.returncode == 0:
+        if rc == 0:
             try:
                 summary = json.loads(stdout)
             except ValueError:
@@ -311,8 +301,8 @@ class WalkMode:
             log.info("walk %s: solved, written %s", walk.path, out)
         else:
             lines = [ln.removeprefix("error: ").removeprefix("vgripd: ")
-                     for ln in stderr.decode(errors="replace").strip().splitlines() if ln]
-            reason = "\n".join(lines[-20:]) or f"the solver exited with {proc.returncode}"
+                     for ln in stderr.strip().splitlines() if ln]
+            reason = "\n".join(lines[-20:]) or f"the solver exited with {rc}"
             self.solution = {"ok": False, "file": None, "walk": str(walk.path),
                              "reason": reason}
             log.warning("walk %s: solve refused: %s", walk.path, reason)

@@ -4,7 +4,6 @@ command a form becomes (no option smuggled in through a field)."""
 
 from __future__ import annotations
 
-import sys
 import tomllib
 from pathlib import Path
 
@@ -65,7 +64,7 @@ def test_a_form_becomes_the_plan_command_and_no_option(tmp_path: Path) -> None:
     form = {"mode": "eye-in-hand", "board": "chessboard:9x6:25", "around": "-0.1 0.2 0.3 0 0 0",
             "box": [250, 30], "count": 15, "distance": 420, "board_offset": "", "save": "x"}
     words = plan_command(form, tmp_path / "c.toml", tmp_path / "d.png", None)
-    assert words[:3] == [sys.executable, "-m", "vgripd"]
+    assert words[:3] == ["calibrate", "handeye", "plan"]
     assert "--box=250 30" in words
     assert "--around=-0.1 0.2 0.3 0 0 0" in words
     assert "--board=--draw=/etc/x" in plan_command({**form, "board": "--draw=/etc/x"},

@@ -31,8 +31,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import os
-import sys
 import tempfile
 import tomllib
 from pathlib import Path
@@ -43,6 +41,7 @@ from aiohttp import web
 from vgripd.config import read_config_data
 from vgripd.errors import CalibrationError, ConfigError, VgripError
 from vgripd.serialize import jsonable, toml_from_dict
+from vgripd.service.commands import run_vgripd
 from vgripd.service.reload import Outcome, Reloader
 from vgripd.service.web.commission import TuningError, _prune, _write, next_backup
 from vgripd.service.web.stale import set_aside, stale_references
@@ -130,11 +129,11 @@ def stale_refusal(config_path: Path, stale: list[Path], in_main: bool,
 
 def plan_command(form: dict[str, Any], config_path: Path, drawing: Path,
                  output: Path | None) -> list[str]:
-    """The ``vgripd calibrate handeye plan`` command line of a form (``TuningError`` for a
+    """The ``vgripd calibrate handeye plan`` arguments of a form (``TuningError`` for a
     field that is no short text or number); each value joined to its flag (``--box=250 30``),
     so that a value like ``--draw=/x`` stays a value."""
-    words = [sys.executable, "-m", "vgripd", "calibrate", "handeye", "plan", "-c",
-             str(config_path), "--json", "--draw", str(drawing)]
+    words = ["calibrate", "handeye", "plan", "-c", str(config_path), "--json", "--draw",
+             str(drawing)]
     for field, flag in PLAN_FIELDS.items():
         value = form.get(field)
         if value is None or value == "":
@@ -147,22 +146,6 @@ def plan_command(form: dict[str, Any], config_path: Path, drawing: Path,
         words.append(f"{flag}={value}")  # one word: a value is never read as an option
     words += ["-o", str(output)] if output is not None else ["--dry-run"]
     return words
-
-
-async def run_command(words: list[str], timeout_s: float) -> tuple[int, str, str]:
-    """Run a vgripd command in a child process: exit code, stdout, stderr."""
-    proc = await asyncio.create_subprocess_exec(
-        *words, stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE, env=dict(os.environ))
-    try:
-        async with asyncio.timeout(timeout_s):
-            out, err = await proc.communicate()
-    except BaseException:
-        if proc.returncode is None:
-            proc.kill()
-            await proc.wait()
-        raise
-    return int(proc.returncode or 0), out.decode(errors="replace"), err.decode(errors="replace")
 
 
 def _reason(stderr: str, rc: int) -> str:
@@ -252,7 +235,7 @@ class WalkRoutes:
                 with tempfile.TemporaryDirectory(prefix="vgripd-plan-") as tmp:
                     drawing = Path(tmp) / "plan.png"
                     words = plan_command(form, config_path, drawing, output)
-                    rc, out, err = await run_command(words, PLAN_TIMEOUT_S)
+                    rc, out, err = await run_vgripd(words, PLAN_TIMEOUT_S)
                     self.drawing = drawing.read_bytes() if drawing.exists() else None
             except VgripError as err_:
                 return web.json_response({"refused": str(err_)}, status=422)
