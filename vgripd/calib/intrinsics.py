@@ -303,29 +303,39 @@ def calibrate_intrinsics(board: Board, detections: Sequence[Detection],
 
 def with_model_bias(std: dict[str, Any], camera: dict[str, Any], rich: dict[str, Any],
                     model: DistortionModel) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The standard deviations widened by what leaving terms out may have done to the
-    estimates (bench/bench_calib_coverage.py: on a 2.2 m profile whose p1, p2 = 0.0002 were
-    dropped the principal point was 3-5 sigma off; with a dropped k3, k2 up to 21 sigma).
+    """The standard deviations of a model that left terms out, made to cover its error.
 
-    Per estimated parameter: ``sqrt(std^2 + (chosen - richest)^2)``, the richest model (every
-    term free) fitted to the same views. A term held at 0 keeps std 0 (it is not estimated);
+    The error of the chosen estimate splits into ``(chosen - richest) + (richest - truth)``,
+    the richest model (every term the options allow free) fitted to the same views: the first
+    part is known (the shift), the second has the richest model's sigma, not the chosen
+    model's own (which holds only if the left-out terms are truly 0: the data did not rule
+    them out, only found them not worth their price in the BIC). Hence per estimated
+    parameter ``sqrt(max(std, std_richest)^2 + (chosen - richest)^2)``; at 2 sigma that covers
+    the error in at least 95.4 % of sets for any shift (least at shift 0). The chosen model's
+    point estimate is kept (it is the better one where the left-out term is small).
+    bench/bench_calib_coverage.py: on a 2.2 m profile whose p1, p2 = 0.0002 were dropped the
+    principal point was 3-5 sigma off with the chosen model's own sigma; with a dropped k3,
+    k2 up to 21 sigma.
+
+    ``rich`` holds the richest fit's ``K`` (3x3), ``dist`` (5,) and ``std`` (fx fy cx cy k1
+    k2 p1 p2 k3 sigmas, 0 where held). A term held at 0 keeps std 0 (it is not estimated);
     what it may be, given the data, is in the returned bias as ``held`` (name -> [richest
     value, its std]). Returns (widened std, the shifts ``chosen - richest``)."""
     K, dist, s = rich["K"], rich["dist"], rich["std"]
     rich_values = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
     out = dict(std)
     bias: dict[str, Any] = {}
-    for k, v in rich_values.items():
+    for i, (k, v) in enumerate(rich_values.items()):
         shift = float(camera[k] - v)
         bias[k] = shift
-        out[k] = float(math.hypot(std[k], shift))
+        out[k] = float(math.hypot(max(std[k], float(s[i])), shift))
     widened, shifts = [], []
     held: dict[str, list[float]] = {}
     for i, (chosen, free) in enumerate(zip(camera["dist"], model.mask, strict=True)):
         shift = float(chosen - dist[i])
         shifts.append(shift)
         if free:
-            widened.append(float(math.hypot(std["dist"][i], shift)))
+            widened.append(float(math.hypot(max(std["dist"][i], float(s[4 + i])), shift)))
         else:
             widened.append(0.0)
             held[DIST_NAMES[i]] = [float(dist[i]), float(s[4 + i])]

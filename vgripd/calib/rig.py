@@ -247,8 +247,10 @@ def calibrate_rig(object_points: Sequence[ArrayLike], px_left: Sequence[ArrayLik
     choice = choose_model(scores, reference, rows)
     choice.notes = (k3_note(choice, "left camera: ", "dist")
                     + k3_note(choice, "right camera: ", "right_dist"))
-    return _result(views, sizes, fits[choice.model], choice, rejected, baseline_hint_mm,
-                   fits[richest] if choice.model != richest else None)
+    rich = None
+    if choice.model != richest:
+        rich = dict(fits[richest], model=richest)
+    return _result(views, sizes, fits[choice.model], choice, rejected, baseline_hint_mm, rich)
 
 
 def _dist_std(s: FloatArray, model: DistortionModel) -> list[float]:
@@ -552,18 +554,26 @@ def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: 
                  "translation_mm": translation_std}
     if rich is not None:
         # widened by what leaving terms out may have done (intrinsics.with_model_bias): each
-        # sigma with the shift between the chosen and the richest model in quadrature
+        # sigma is the larger of the chosen and the richest model's, with the shift between
+        # the two models' estimates in quadrature
+        rich_model: DistortionModel = rich["model"]
+        rich_ssr = float(sum(np.sum(r**2) for r in rich["res_l"] + rich["res_r"]))
+        rich_std = np.sqrt(np.diag(_covariance(_jacobian(views, rich, rich_model), rich_ssr)))
+        n_rich = 4 + len(rich_model.free)
         bias: dict[str, Any] = {}
         for k, (K, dist) in enumerate(rich["cams"]):
-            rich_fit = {"K": K, "dist": dist, "std": np.zeros(9)}
+            s_k = rich_std[k * n_rich:(k + 1) * n_rich]
+            rich_fit = {"K": K, "dist": dist,
+                        "std": np.concatenate([s_k[:4], _dist_std(s_k, rich_model)])}
             stds[k], bias[("left", "right")[k]] = with_model_bias(stds[k], cams[k], rich_fit,
                                                                   model)
             side = bias[("left", "right")[k]]  # held terms: the richest value, no sigma here
             side["held"] = {n: v[:1] for n, v in side.get("held", {}).items()}
         d_om = np.asarray(fit["om"], dtype=float) - np.asarray(rich["om"], dtype=float)
         d_t = np.asarray(fit["T"], dtype=float) - np.asarray(rich["T"], dtype=float)
-        rotvec_std = np.hypot(rotvec_std, d_om)
-        translation_std = np.hypot(translation_std, d_t)
+        rotvec_std = np.hypot(np.maximum(rotvec_std, rich_std[2 * n_rich:2 * n_rich + 3]), d_om)
+        translation_std = np.hypot(
+            np.maximum(translation_std, rich_std[2 * n_rich + 3:2 * n_rich + 6]), d_t)
         bias["rotvec_rad"] = d_om.tolist()
         bias["translation_mm"] = d_t.tolist()
         choice.model_bias = bias
