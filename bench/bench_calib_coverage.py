@@ -165,3 +165,45 @@ def rig_z(trials: int, profile: str = "far") -> list[np.ndarray]:
         out.append(np.concatenate([drot / np.asarray(r.rotvec_std),
                                    dt / np.asarray(r.translation_std)]))
     return out
+
+
+def cameras_z(trials: int, profile: str = "far") -> list[dict[str, np.ndarray]]:
+    """``calibrate cameras``' path on the profile as two cameras (the rig of :func:`rig_z`):
+    each camera's intrinsics from its own views (automatic model choice), then the joint fit.
+    Per trial the second camera's position error (x y z, in the reference camera) in units of
+    its reported sigma (``new``) and of the fit's own sigma (``old``, ``std_model``: the
+    intrinsics taken as exact), and the rotation error angle over ``rotation_std_deg``."""
+    from vgripd.calib.multicam import Observation, calibrate_cameras
+    from vgripd.geometry.transforms import invert_transform, make_transform, rotation_angle
+
+    p = PROFILES[profile]
+    camera = p["camera"]
+    board = Board.parse(str(p["board"]))
+    T = make_transform(matrix_from_rotvec([0.01, -0.12, 0.02]), [-300.0, 4.0, 20.0])
+    T_left_right = invert_transform(T)
+    size = (camera.width, camera.height)
+    out = []
+    for trial in range(trials):
+        rng = np.random.default_rng(100 + trial)
+        objs, left, right = stereo_views(camera, board, float(p["distance"]), T, rng)
+        ids = np.arange(len(objs[0]), dtype=np.int64)
+        intr, priors, obs = [], [], []
+        for c, pxs in enumerate((left, right)):
+            dets = [Detection(f"c{c}_{i}", size, ids, px) for i, px in enumerate(pxs)]
+            r = calibrate_intrinsics(board, dets, size)
+            intr.append(r.camera)
+            priors.append(r.richest)
+            obs += [Observation(c, str(i), o, px, f"c{c}_{i}")
+                    for i, (o, px) in enumerate(zip(objs, pxs, strict=True))]
+        m = calibrate_cameras(["a", "b"], intr, obs, intrinsics_prior=priors)
+        est = m.T_ref_camera[1]
+        dpos = est[:3, 3] - T_left_right[:3, 3]
+        angle = rotation_angle(est[:3, :3] @ T_left_right[:3, :3].T)
+        row = m.cameras[1]
+        own = row["std_model"]
+        out.append({
+            "new": np.concatenate([dpos / np.asarray(row["position_std_mm"]),
+                                   [angle / np.radians(row["rotation_std_deg"])]]),
+            "old": np.concatenate([dpos / np.asarray(own["position_std_mm"]),
+                                   [angle / np.radians(own["rotation_std_deg"])]])})
+    return out

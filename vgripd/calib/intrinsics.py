@@ -232,6 +232,11 @@ class IntrinsicsResult:
     #: The chosen model's own standard deviations (what OpenCV and Bouguet's toolbox report);
     #: ``std`` adds the model's possible bias (``with_model_bias``) and covers the error.
     std_model: dict[str, Any] | None = None
+    #: The richest candidate model's estimate and covariance, for propagating the intrinsics'
+    #: uncertainty (``calibrate cameras``): ``model`` (its name), ``values`` (9: fx fy cx cy
+    #: k1 k2 p1 p2 k3) and ``covariance`` (9x9, same order; rows of held terms 0), from the
+    #: Jacobian at the residual RMS (``richest_covariance``).
+    richest: dict[str, Any] | None = None
 
     @property
     def camera_matrix(self) -> NDArray[np.float64]:
@@ -297,8 +302,49 @@ def calibrate_intrinsics(board: Board, detections: Sequence[Detection],
                      "dist_std": _dist_std(f["std"], mdl)}
     choice = choose_model(scores, reference, rows)
     choice.notes = k3_note(choice)
-    return _result(board, used, (w, h), fits[choice.model], rejected, choice,
-                   fits[richest] if choice.model != richest else None)
+    result = _result(board, used, (w, h), fits[choice.model], rejected, choice,
+                     fits[richest] if choice.model != richest else None)
+    rich = fits[richest]
+    result.richest = {
+        "model": richest.name,
+        "values": [float(v) for v in (rich["K"][0, 0], rich["K"][1, 1], rich["K"][0, 2],
+                                      rich["K"][1, 2], *rich["dist"])],
+        "covariance": richest_covariance(obj, used, rich, richest)}
+    return result
+
+
+def richest_covariance(obj: NDArray[np.float64], used: Sequence[Detection], fit: dict[str, Any],
+                       model: DistortionModel) -> NDArray[np.float64]:
+    """9x9 covariance of (fx fy cx cy k1 k2 p1 p2 k3) of ``fit`` (a ``_fit`` of ``model``),
+    the board poses marginalised: ``s^2 (J^T J)^-1`` with ``s^2 = SSR / (m - p)``, J from
+    ``cv2.projectPoints``. calibrateCameraExtended gives only the diagonal's roots; the
+    correlations (fx with fy, cx with p1) matter when the intrinsics' uncertainty is carried
+    into another fit. Held terms: rows and columns 0."""
+    keep = np.array([True] * 4 + list(model.mask))
+    n_k = int(keep.sum())
+    n = len(used)
+    A_kk = np.zeros((n_k, n_k))
+    A_kv = np.zeros((n_k, 6 * n))
+    V = np.zeros((n, 6, 6))
+    for i, det in enumerate(used):
+        _, jac = cv2.projectPoints(obj[det.ids], np.asarray(fit["rvecs"][i], np.float64),
+                                   np.asarray(fit["tvecs"][i], np.float64), fit["K"],
+                                   fit["dist"])
+        J_v, J_k = jac[:, :6], jac[:, 6:15][:, keep]
+        A_kk += J_k.T @ J_k
+        A_kv[:, 6 * i:6 * i + 6] = J_k.T @ J_v
+        V[i] = J_v.T @ J_v
+    W = A_kv.reshape(n_k, n, 6)
+    S = A_kk - np.einsum("knj,njl,mnl->km", W, np.linalg.inv(V), W)
+    m = 2 * sum(len(d.ids) for d in used)
+    p = n_k + 6 * n
+    cov = np.zeros((9, 9))
+    try:
+        cov[np.ix_(keep, keep)] = fit["ssr"] / (m - p) * np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        raise CalibrationError("the views do not determine the intrinsics (singular normal "
+                               "matrix); add views at varied tilts") from None
+    return cov
 
 
 def with_model_bias(std: dict[str, Any], camera: dict[str, Any], rich: dict[str, Any],
