@@ -240,7 +240,7 @@ def calibrate_rig(object_points: Sequence[ArrayLike], px_left: Sequence[ArrayLik
         ssr = float(sum(np.sum(r**2) for r in f["res_l"] + f["res_r"]))
         scores[mdl] = bic(ssr, m, 2 * (4 + len(mdl.free)) + 6 + 6 * len(views.obj))
         cams = [[float(v) for v in d] for _, d in f["cams"]]
-        std_l, std_r = _stds(views, f, mdl)
+        std_l, std_r, f["std_all"] = _stds(views, f, mdl)
         rows[mdl] = {"rms_px": float(np.sqrt(2 * ssr / m)), "dist": cams[0],
                      "dist_std": _dist_std(std_l, mdl), "right_dist": cams[1],
                      "right_dist_std": _dist_std(std_r, mdl)}
@@ -260,12 +260,13 @@ def _dist_std(s: FloatArray, model: DistortionModel) -> list[float]:
 
 
 def _stds(views: _Views, fit: dict[str, Any], model: DistortionModel,
-          ) -> tuple[FloatArray, FloatArray]:
-    """One-sigma std of each camera's free intrinsics (fx fy cx cy + free dist terms)."""
+          ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """One-sigma std of each camera's free intrinsics (fx fy cx cy + free dist terms), and
+    of every parameter (``parameter_names`` order)."""
     n_int = 4 + len(model.free)
     ssr = float(sum(np.sum(r**2) for r in fit["res_l"] + fit["res_r"]))
     std = np.sqrt(np.diag(_covariance(_jacobian(views, fit, model), ssr)))
-    return std[:n_int], std[n_int:2 * n_int]
+    return std[:n_int], std[n_int:2 * n_int], std
 
 
 def _view_arrays(obj: ArrayLike, pl: ArrayLike, pr: ArrayLike,
@@ -557,8 +558,7 @@ def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: 
         # sigma is the larger of the chosen and the richest model's, with the shift between
         # the two models' estimates in quadrature
         rich_model: DistortionModel = rich["model"]
-        rich_ssr = float(sum(np.sum(r**2) for r in rich["res_l"] + rich["res_r"]))
-        rich_std = np.sqrt(np.diag(_covariance(_jacobian(views, rich, rich_model), rich_ssr)))
+        rich_std = rich["std_all"]
         n_rich = 4 + len(rich_model.free)
         bias: dict[str, Any] = {}
         for k, (K, dist) in enumerate(rich["cams"]):
