@@ -82,8 +82,8 @@ class Camera:
         Hinv = np.linalg.inv(Hn)
         q = rays @ Hinv[:, :2].T + Hinv[:, 2]
         in_front = q[:, 2] > 0
-        X = q[:, 0] / q[:, 2]
-        Y = q[:, 1] / q[:, 2]
+        bx = q[:, 0] / q[:, 2]  # board mm
+        by = q[:, 1] / q[:, 2]
         footprint = float(t[2]) / self.K[0, 0]  # mm per px at the board's distance
 
         def wave(u: np.ndarray) -> np.ndarray:
@@ -92,13 +92,13 @@ class Camera:
             edge = np.abs(s - np.round(s)) * pitch_mm / footprint  # px to the nearest edge
             return sign * np.clip(edge, 0.0, 0.5) * 2.0
 
-        a, b = wave(X), wave(Y)
+        a, b = wave(bx), wave(by)
         dark = (1.0 + a * b) / 2.0  # 1 on black squares, 0 on white, ramps at the edges
         grey = WHITE - (WHITE - BLACK) * dark
-        inside = (X > -pitch_mm) & (X < cols * pitch_mm) & (Y > -pitch_mm) & (
-            Y < rows * pitch_mm)
-        paper = (X > -2 * pitch_mm) & (X < (cols + 1) * pitch_mm) & (
-            Y > -2 * pitch_mm) & (Y < (rows + 1) * pitch_mm)
+        inside = (bx > -pitch_mm) & (bx < cols * pitch_mm) & (by > -pitch_mm) & (
+            by < rows * pitch_mm)
+        paper = (bx > -2 * pitch_mm) & (bx < (cols + 1) * pitch_mm) & (
+            by > -2 * pitch_mm) & (by < (rows + 1) * pitch_mm)
         shaded = np.where(inside, grey, np.where(paper, WHITE, BACKGROUND))
         img = np.full((h, w), BACKGROUND, np.float32)
         img[v0:v1, u0:u1] = np.where(in_front, shaded, BACKGROUND).reshape(v1 - v0, u1 - u0)
