@@ -226,6 +226,7 @@ def run(args: argparse.Namespace) -> int:
     priors: list[dict[str, Any] | None] = []
     rejected: list[dict[str, str]] = []
     intrinsics_source: dict[str, str] = {}
+    covariance_source: dict[str, str] = {}  # where the intrinsics' covariance came from
     warnings: list[str] = [w for w in [board.symmetry_warning()] if w]
     obj = board.object_points()
     for c, name in enumerate(names):
@@ -241,13 +242,14 @@ def run(args: argparse.Namespace) -> int:
                                            f"{cam['height']}")
             intrinsics_source[name] = "given"
             prior = known_prior[name]
-            if prior is None:
-                warnings.append(f"--intrinsics {name}: the file carries no [about.richest] "
-                                "covariance (not a `calibrate intrinsics` result): its pose "
-                                "sigmas take its intrinsics as exact")
+            covariance_source[name] = (
+                "the given file's [about.richest]" if prior is not None else
+                "none (the given file has no [about.richest]): the pose sigma takes the "
+                "intrinsics as exact")
         else:
             cam, why, prior = _own_intrinsics(board, name, found, args)
             intrinsics_source[name] = why
+            covariance_source[name] = "its own calibration here (richest model)"
         intrinsics.append(cam)
         priors.append(prior)
         key_of = {p: k for k, p in paths.items()}
@@ -280,6 +282,8 @@ def run(args: argparse.Namespace) -> int:
             base_words = (f"hand-eye of camera {key} (mounting {kind}"
                           + (": poses on the flange)" if kind == "robot" else ")"))
     rig_rows = _rig_residuals(result, rigs)
+    for row in result.cameras:
+        row["intrinsics_covariance"] = covariance_source[row["name"]]
     summary = _summary(result, T_base, mounting, base_words, rig_rows, intrinsics_source,
                        rejected, warnings, args)
     sections: dict[str, Any] = {}
