@@ -55,6 +55,10 @@ FEW_IMAGES = 10  # below this, warn: too few views to pin down distortion and th
 CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")
 BIC_MARGIN = 2.0  # another model must beat the reference model's BIC by more than this
+# A candidate whose BIC is within this of the chosen model's is not ruled out by the data
+# (Kass and Raftery: above 10 the evidence is "very strong"); the reported sigmas cover the
+# shift to its estimates too (``widen``).
+PLAUSIBLE_BIC = 10.0
 
 
 @dataclass(frozen=True)
@@ -302,8 +306,11 @@ def calibrate_intrinsics(board: Board, detections: Sequence[Detection],
                      "dist_std": _dist_std(f["std"], mdl)}
     choice = choose_model(scores, reference, rows)
     choice.notes = k3_note(choice)
+    others = [fits[mdl] | {"model": mdl} for mdl in models
+              if mdl not in (choice.model, richest)
+              and scores[mdl] - scores[choice.model] < PLAUSIBLE_BIC]
     result = _result(board, used, (w, h), fits[choice.model], rejected, choice,
-                     fits[richest] if choice.model != richest else None)
+                     fits[richest] if choice.model != richest else None, others)
     rich = fits[richest]
     result.richest = {
         "model": richest.name,
@@ -391,6 +398,21 @@ def with_model_bias(std: dict[str, Any], camera: dict[str, Any], rich: dict[str,
     return out, bias
 
 
+def widen(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    """Per parameter the larger of two std dicts (fx fy cx cy skew, dist list).
+
+    Used for the candidates the data did not rule out (BIC within ``PLAUSIBLE_BIC`` of the
+    chosen one): the model choice keeps a term because its estimate came out large enough,
+    or drops it because it came out small, so the chosen model's estimate is conditioned on
+    that and may sit off by its shift to a plausible neighbour (measured: p1 p2 kept in the
+    sets where the choice kept them were outside 2 sigma in half of them). The reported
+    sigma is each parameter's largest ``with_model_bias`` over the richest model and those
+    candidates."""
+    out = {k: max(a[k], b[k]) for k in ("fx", "fy", "cx", "cy", "skew")}
+    out["dist"] = [max(x, y) for x, y in zip(a["dist"], b["dist"], strict=True)]
+    return out
+
+
 def _dist_std(std: NDArray[np.float64], model: DistortionModel) -> list[float]:
     """One-sigma std of dist from calibrateCameraExtended's intrinsic std (0 where held)."""
     return [float(v) if free else 0.0 for v, free in zip(std[4:9], model.mask, strict=True)]
@@ -421,7 +443,8 @@ def _fit(obj: NDArray[np.float64], used: Sequence[Detection], size: tuple[int, i
 
 def _result(board: Board, used: list[Detection], size: tuple[int, int], fit: dict[str, Any],
             rejected: list[dict[str, str]], choice: ModelChoice,
-            rich: dict[str, Any] | None = None) -> IntrinsicsResult:
+            rich: dict[str, Any] | None = None,
+            others: Sequence[dict[str, Any]] = ()) -> IntrinsicsResult:
     K, dist, s = fit["K"], fit["dist"], fit["std"]
     w, h = size
     camera = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "skew": 0.0,
@@ -433,6 +456,8 @@ def _result(board: Board, used: list[Detection], size: tuple[int, int], fit: dic
     std_model = std
     if rich is not None:
         std, choice.model_bias = with_model_bias(std, camera, rich, choice.model)
+    for other in others:
+        std = widen(std, with_model_bias(std_model, camera, other, choice.model)[0])
     obj = board.object_points()
     residuals, poses, rvecs, tvecs = [], [], [], []
     for det, rvec, tvec in zip(used, fit["rvecs"], fit["tvecs"], strict=True):

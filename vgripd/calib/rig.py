@@ -58,12 +58,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from vgripd.calib.intrinsics import (
+    PLAUSIBLE_BIC,
     DistortionModel,
     ModelChoice,
     bic,
     candidate_models,
     choose_model,
     k3_note,
+    widen,
     with_model_bias,
 )
 from vgripd.errors import CalibrationError, GeometryError
@@ -250,7 +252,39 @@ def calibrate_rig(object_points: Sequence[ArrayLike], px_left: Sequence[ArrayLik
     rich = None
     if choice.model != richest:
         rich = dict(fits[richest], model=richest)
-    return _result(views, sizes, fits[choice.model], choice, rejected, baseline_hint_mm, rich)
+    others = [dict(fits[mdl], model=mdl) for mdl in models
+              if mdl not in (choice.model, richest)
+              and scores[mdl] - scores[choice.model] < PLAUSIBLE_BIC]
+    return _result(views, sizes, fits[choice.model], choice, rejected, baseline_hint_mm, rich,
+                   others)
+
+
+def _with_model_bias(own: tuple[list[dict[str, Any]], FloatArray, FloatArray],
+                     cams: list[dict[str, Any]], fit: dict[str, Any], alt: dict[str, Any],
+                     model: DistortionModel,
+                     ) -> tuple[list[dict[str, Any]], FloatArray, FloatArray, dict[str, Any]]:
+    """The chosen fit's sigmas (``own``: per camera std dicts, rotvec and translation std)
+    widened by another candidate's (``alt``, a ``_fit`` with ``model`` and ``std_all``):
+    per parameter ``sqrt(max(own, alt's)^2 + (chosen - alt)^2)``. Returns the widened
+    (stds, rotvec_std, translation_std) and the shifts."""
+    alt_model: DistortionModel = alt["model"]
+    alt_std = alt["std_all"]
+    n_alt = 4 + len(alt_model.free)
+    bias: dict[str, Any] = {}
+    stds = []
+    for k, (K, dist) in enumerate(alt["cams"]):
+        s_k = alt_std[k * n_alt:(k + 1) * n_alt]
+        alt_fit = {"K": K, "dist": dist,
+                   "std": np.concatenate([s_k[:4], _dist_std(s_k, alt_model)])}
+        std_k, bias[("left", "right")[k]] = with_model_bias(own[0][k], cams[k], alt_fit, model)
+        stds.append(std_k)
+    d_om = np.asarray(fit["om"], dtype=float) - np.asarray(alt["om"], dtype=float)
+    d_t = np.asarray(fit["T"], dtype=float) - np.asarray(alt["T"], dtype=float)
+    rotvec_std = np.hypot(np.maximum(own[1], alt_std[2 * n_alt:2 * n_alt + 3]), d_om)
+    translation_std = np.hypot(np.maximum(own[2], alt_std[2 * n_alt + 3:2 * n_alt + 6]), d_t)
+    bias["rotvec_rad"] = d_om.tolist()
+    bias["translation_mm"] = d_t.tolist()
+    return stds, rotvec_std, translation_std, bias
 
 
 def _dist_std(s: FloatArray, model: DistortionModel) -> list[float]:
@@ -533,7 +567,8 @@ def _covariance(J: FloatArray, ssr: float) -> FloatArray:
 
 def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: dict[str, Any],
             choice: ModelChoice, rejected: list[dict[str, str]],
-            baseline_hint_mm: float | None, rich: dict[str, Any] | None = None) -> RigResult:
+            baseline_hint_mm: float | None, rich: dict[str, Any] | None = None,
+            others: Sequence[dict[str, Any]] = ()) -> RigResult:
     model = choice.model
     n_int = 4 + len(model.free)
     res_l, res_r = fit["res_l"], fit["res_r"]
@@ -553,30 +588,20 @@ def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: 
     translation_std = std[2 * n_int + 3:2 * n_int + 6]
     std_model = {"left": stds[0], "right": stds[1], "rotvec_rad": rotvec_std,
                  "translation_mm": translation_std}
+    own = ([dict(x) for x in stds], rotvec_std, translation_std)
     if rich is not None:
         # widened by what leaving terms out may have done (intrinsics.with_model_bias): each
         # sigma is the larger of the chosen and the richest model's, with the shift between
         # the two models' estimates in quadrature
-        rich_model: DistortionModel = rich["model"]
-        rich_std = rich["std_all"]
-        n_rich = 4 + len(rich_model.free)
-        bias: dict[str, Any] = {}
-        for k, (K, dist) in enumerate(rich["cams"]):
-            s_k = rich_std[k * n_rich:(k + 1) * n_rich]
-            rich_fit = {"K": K, "dist": dist,
-                        "std": np.concatenate([s_k[:4], _dist_std(s_k, rich_model)])}
-            stds[k], bias[("left", "right")[k]] = with_model_bias(stds[k], cams[k], rich_fit,
-                                                                  model)
-            side = bias[("left", "right")[k]]  # held terms: the richest value, no sigma here
-            side["held"] = {n: v[:1] for n, v in side.get("held", {}).items()}
-        d_om = np.asarray(fit["om"], dtype=float) - np.asarray(rich["om"], dtype=float)
-        d_t = np.asarray(fit["T"], dtype=float) - np.asarray(rich["T"], dtype=float)
-        rotvec_std = np.hypot(np.maximum(rotvec_std, rich_std[2 * n_rich:2 * n_rich + 3]), d_om)
-        translation_std = np.hypot(
-            np.maximum(translation_std, rich_std[2 * n_rich + 3:2 * n_rich + 6]), d_t)
-        bias["rotvec_rad"] = d_om.tolist()
-        bias["translation_mm"] = d_t.tolist()
+        stds, rotvec_std, translation_std, bias = _with_model_bias(own, cams, fit, rich, model)
+        for side in ("left", "right"):  # held terms: the richest value, no sigma here
+            bias[side]["held"] = {n: v[:1] for n, v in bias[side].get("held", {}).items()}
         choice.model_bias = bias
+    for other in others:  # the candidates the data did not rule out (intrinsics.widen)
+        o_stds, o_rot, o_t, _ = _with_model_bias(own, cams, fit, other, model)
+        stds = [widen(a, b) for a, b in zip(stds, o_stds, strict=True)]
+        rotvec_std = np.maximum(rotvec_std, o_rot)
+        translation_std = np.maximum(translation_std, o_t)
     poses = []
     for rv, tv in fit["poses"]:
         poses.append(make_transform(matrix_from_rotvec(rv), tv))
