@@ -17,8 +17,13 @@ its (then too small) standard deviations; freeing it when the lens has none make
 trade off (correlation ~0.98) and the distortion extrapolates badly beyond the views. Every
 candidate's RMS, BIC and k2/k3 are kept in ``IntrinsicsResult.model`` for the report. When the
 views cannot show k3 (a narrow lens, boards that never reach the corners), no criterion can
-find it: k3 = 0 is chosen and k2's sigma holds only for k3 = 0; the candidates table shows k2
-with k3 free next to it.
+find it: k3 = 0 is chosen; the candidates table shows k2 with k3 free next to it.
+
+Reported sigmas (``std``): the chosen model's point estimate, with a sigma that covers its
+error whatever the left-out terms are (``with_model_bias``: the richest model's sigma with
+the shift to its estimate in quadrature) and whichever candidate the data did not rule out
+(``widen``: BIC within ``PLAUSIBLE_BIC`` = 10 of the chosen one). ``std_model`` keeps the
+chosen model's own sigma (valid only if the left-out terms are exactly 0).
 
 Fit: ``cv2.calibrateCameraExtended`` (Zhang's planar initialisation, then Levenberg-Marquardt
 on the reprojection error of all points), which also gives one-sigma standard deviations of the
