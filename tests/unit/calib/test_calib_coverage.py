@@ -72,7 +72,7 @@ def test_rig_intrinsic_sigmas_cover_over_sets() -> None:
     """The stereo path on the far profile (p1 = p2 = 0.0002 dropped in most sets): both
     cameras' intrinsics in units of the reported sigma in three seeded sets where the rule
     before (the chosen model's own sigma with the shift) left the worst 2.65-2.76 sigma off
-    (cx, cy); with the richest model's sigma the worst is 2.2."""
+    (cx, cy); with the sigmas reported now the worst is at most 2.2."""
     from bench.bench_calib_coverage import stereo_views
     from vgripd.calib.rig import calibrate_rig
     from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
