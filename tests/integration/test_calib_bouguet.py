@@ -177,8 +177,9 @@ def test_stereo_example_single_cameras_agree_with_the_mat_files(datasets, tmp_pa
 
 
 def test_stereo_example_right_camera_chooses_k3_from_the_data(datasets, tmp_path):
-    """Without --fix-k3 the right camera's views resolve k3 (about -0.07, 3.6 sigma from 0):
-    BIC prefers k1 k2 p1 p2 k3 by more than the 2-unit margin. k2 moves with it (k2 and k3
+    """Without --fix-k3 the right camera's views resolve k3 (about -0.07, 3.6 of the model's
+    own sigmas from 0): BIC prefers k1 k2 p1 p2 k3 by more than the 2-unit margin, though
+    not by 10 ("very strong"), so the reported sigma also covers k3 = 0. k2 moves with it (k2 and k3
     trade off), far beyond k2's sigma under k3 = 0, and the choice says so in its table; fc and
     cc stay within his +-."""
     published = stereo_published(datasets, "right")
@@ -189,9 +190,12 @@ def test_stereo_example_right_camera_chooses_k3_from_the_data(datasets, tmp_path
     rows = {c["model"]: c for c in choice["candidates"]}
     assert rows["k1 k2 p1 p2"]["delta_bic"] > 2.0
     assert rows["k1 k2 p1 p2"]["rms_px"] > summary["rms_px"]
-    dist, std = summary["camera"]["dist"], summary["std"]["dist"]
+    dist, std = summary["camera"]["dist"], summary["std_model"]["dist"]
     assert dist[4] < 0
-    assert abs(dist[4]) > 3 * std[4]
+    assert abs(dist[4]) > 3 * std[4]  # by the chosen model's own sigma
+    # k3 = 0 (k1 k2 p1 p2) is not ruled out (BIC within 10): the reported sigma covers it
+    assert rows["k1 k2 p1 p2"]["delta_bic"] < 10
+    assert summary["std"]["dist"][4] >= abs(dist[4])
     fixed = rows["k1 k2 p1 p2"]
     assert abs(dist[1] - fixed["dist"][1]) > 3 * fixed["dist_std"][1]
     mine = ours(summary)

@@ -17,8 +17,13 @@ its (then too small) standard deviations; freeing it when the lens has none make
 trade off (correlation ~0.98) and the distortion extrapolates badly beyond the views. Every
 candidate's RMS, BIC and k2/k3 are kept in ``IntrinsicsResult.model`` for the report. When the
 views cannot show k3 (a narrow lens, boards that never reach the corners), no criterion can
-find it: k3 = 0 is chosen and k2's sigma holds only for k3 = 0; the candidates table shows k2
-with k3 free next to it.
+find it: k3 = 0 is chosen; the candidates table shows k2 with k3 free next to it.
+
+Reported sigmas (``std``): the chosen model's point estimate, with a sigma that covers its
+error whatever the left-out terms are (``with_model_bias``: the richest model's sigma with
+the shift to its estimate in quadrature) and whichever candidate the data did not rule out
+(``widen``: BIC within ``PLAUSIBLE_BIC`` = 10 of the chosen one). ``std_model`` keeps the
+chosen model's own sigma (valid only if the left-out terms are exactly 0).
 
 Fit: ``cv2.calibrateCameraExtended`` (Zhang's planar initialisation, then Levenberg-Marquardt
 on the reprojection error of all points), which also gives one-sigma standard deviations of the
@@ -55,6 +60,10 @@ FEW_IMAGES = 10  # below this, warn: too few views to pin down distortion and th
 CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")
 BIC_MARGIN = 2.0  # another model must beat the reference model's BIC by more than this
+# A candidate whose BIC is within this of the chosen model's is not ruled out by the data
+# (Kass and Raftery: above 10 the evidence is "very strong"); the reported sigmas cover the
+# shift to its estimates too (``widen``).
+PLAUSIBLE_BIC = 10.0
 
 
 @dataclass(frozen=True)
@@ -232,6 +241,11 @@ class IntrinsicsResult:
     #: The chosen model's own standard deviations (what OpenCV and Bouguet's toolbox report);
     #: ``std`` adds the model's possible bias (``with_model_bias``) and covers the error.
     std_model: dict[str, Any] | None = None
+    #: The richest candidate model's estimate and covariance, for propagating the intrinsics'
+    #: uncertainty (``calibrate cameras``): ``model`` (its name), ``values`` (9: fx fy cx cy
+    #: k1 k2 p1 p2 k3) and ``covariance`` (9x9, same order; rows of held terms 0), from the
+    #: Jacobian at the residual RMS (``richest_covariance``).
+    richest: dict[str, Any] | None = None
 
     @property
     def camera_matrix(self) -> NDArray[np.float64]:
@@ -297,35 +311,89 @@ def calibrate_intrinsics(board: Board, detections: Sequence[Detection],
                      "dist_std": _dist_std(f["std"], mdl)}
     choice = choose_model(scores, reference, rows)
     choice.notes = k3_note(choice)
-    return _result(board, used, (w, h), fits[choice.model], rejected, choice,
-                   fits[richest] if choice.model != richest else None)
+    others = [fits[mdl] | {"model": mdl} for mdl in models
+              if mdl not in (choice.model, richest)
+              and scores[mdl] - scores[choice.model] < PLAUSIBLE_BIC]
+    result = _result(board, used, (w, h), fits[choice.model], rejected, choice,
+                     fits[richest] if choice.model != richest else None, others)
+    rich = fits[richest]
+    result.richest = {
+        "model": richest.name,
+        "values": [float(v) for v in (rich["K"][0, 0], rich["K"][1, 1], rich["K"][0, 2],
+                                      rich["K"][1, 2], *rich["dist"])],
+        "covariance": richest_covariance(obj, used, rich, richest)}
+    return result
+
+
+def richest_covariance(obj: NDArray[np.float64], used: Sequence[Detection], fit: dict[str, Any],
+                       model: DistortionModel) -> NDArray[np.float64]:
+    """9x9 covariance of (fx fy cx cy k1 k2 p1 p2 k3) of ``fit`` (a ``_fit`` of ``model``),
+    the board poses marginalised: ``s^2 (J^T J)^-1`` with ``s^2 = SSR / (m - p)``, J from
+    ``cv2.projectPoints``. calibrateCameraExtended gives only the diagonal's roots; the
+    correlations (fx with fy, cx with p1) matter when the intrinsics' uncertainty is carried
+    into another fit. Held terms: rows and columns 0."""
+    keep = np.array([True] * 4 + list(model.mask))
+    n_k = int(keep.sum())
+    n = len(used)
+    A_kk = np.zeros((n_k, n_k))
+    A_kv = np.zeros((n_k, 6 * n))
+    V = np.zeros((n, 6, 6))
+    for i, det in enumerate(used):
+        _, jac = cv2.projectPoints(obj[det.ids], np.asarray(fit["rvecs"][i], np.float64),
+                                   np.asarray(fit["tvecs"][i], np.float64), fit["K"],
+                                   fit["dist"])
+        J_v, J_k = jac[:, :6], jac[:, 6:15][:, keep]
+        A_kk += J_k.T @ J_k
+        A_kv[:, 6 * i:6 * i + 6] = J_k.T @ J_v
+        V[i] = J_v.T @ J_v
+    W = A_kv.reshape(n_k, n, 6)
+    S = A_kk - np.einsum("knj,njl,mnl->km", W, np.linalg.inv(V), W)
+    m = 2 * sum(len(d.ids) for d in used)
+    p = n_k + 6 * n
+    cov = np.zeros((9, 9))
+    try:
+        cov[np.ix_(keep, keep)] = fit["ssr"] / (m - p) * np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        raise CalibrationError("the views do not determine the intrinsics (singular normal "
+                               "matrix); add views at varied tilts") from None
+    return cov
 
 
 def with_model_bias(std: dict[str, Any], camera: dict[str, Any], rich: dict[str, Any],
                     model: DistortionModel) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The standard deviations widened by what leaving terms out may have done to the
-    estimates (bench/bench_calib_coverage.py: on a 2.2 m profile whose p1, p2 = 0.0002 were
-    dropped the principal point was 3-5 sigma off; with a dropped k3, k2 up to 21 sigma).
+    """The standard deviations of a model that left terms out, made to cover its error.
 
-    Per estimated parameter: ``sqrt(std^2 + (chosen - richest)^2)``, the richest model (every
-    term free) fitted to the same views. A term held at 0 keeps std 0 (it is not estimated);
+    The error of the chosen estimate splits into ``(chosen - richest) + (richest - truth)``,
+    the richest model (every term the options allow free) fitted to the same views: the first
+    part is known (the shift), the second has the richest model's sigma, not the chosen
+    model's own (which holds only if the left-out terms are truly 0: the data did not rule
+    them out, only found them not worth their price in the BIC). Hence per estimated
+    parameter ``sqrt(max(std, std_richest)^2 + (chosen - richest)^2)``; at 2 sigma that covers
+    the error in at least 95.4 % of sets for any shift (least at shift 0). The chosen model's
+    point estimate is kept (it is the better one where the left-out term is small).
+    bench/bench_calib_coverage.py: on a 2.2 m profile whose p1, p2 = 0.0002 were dropped the
+    principal point was 3-5 sigma off with the chosen model's own sigma; with a dropped k3,
+    k2 up to 21 sigma.
+
+    ``rich`` holds the richest fit's ``K`` (3x3), ``dist`` (5,) and ``std`` (fx fy cx cy k1
+    k2 p1 p2 k3 sigmas, 0 where held). A term held at 0 keeps std 0 (it is not estimated);
     what it may be, given the data, is in the returned bias as ``held`` (name -> [richest
     value, its std]). Returns (widened std, the shifts ``chosen - richest``)."""
     K, dist, s = rich["K"], rich["dist"], rich["std"]
     rich_values = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
     out = dict(std)
     bias: dict[str, Any] = {}
-    for k, v in rich_values.items():
+    for i, (k, v) in enumerate(rich_values.items()):
         shift = float(camera[k] - v)
         bias[k] = shift
-        out[k] = float(math.hypot(std[k], shift))
+        out[k] = float(math.hypot(max(std[k], float(s[i])), shift))
     widened, shifts = [], []
     held: dict[str, list[float]] = {}
     for i, (chosen, free) in enumerate(zip(camera["dist"], model.mask, strict=True)):
         shift = float(chosen - dist[i])
         shifts.append(shift)
         if free:
-            widened.append(float(math.hypot(std["dist"][i], shift)))
+            widened.append(float(math.hypot(max(std["dist"][i], float(s[4 + i])), shift)))
         else:
             widened.append(0.0)
             held[DIST_NAMES[i]] = [float(dist[i]), float(s[4 + i])]
@@ -333,6 +401,21 @@ def with_model_bias(std: dict[str, Any], camera: dict[str, Any], rich: dict[str,
     bias["dist"] = shifts
     bias["held"] = held
     return out, bias
+
+
+def widen(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    """Per parameter the larger of two std dicts (fx fy cx cy skew, dist list).
+
+    Used for the candidates the data did not rule out (BIC within ``PLAUSIBLE_BIC`` of the
+    chosen one): the model choice keeps a term because its estimate came out large enough,
+    or drops it because it came out small, so the chosen model's estimate is conditioned on
+    that and may sit off by its shift to a plausible neighbour (measured: p1 p2 kept in the
+    sets where the choice kept them were outside 2 sigma in half of them). The reported
+    sigma is each parameter's largest ``with_model_bias`` over the richest model and those
+    candidates."""
+    out = {k: max(a[k], b[k]) for k in ("fx", "fy", "cx", "cy", "skew")}
+    out["dist"] = [max(x, y) for x, y in zip(a["dist"], b["dist"], strict=True)]
+    return out
 
 
 def _dist_std(std: NDArray[np.float64], model: DistortionModel) -> list[float]:
@@ -365,7 +448,8 @@ def _fit(obj: NDArray[np.float64], used: Sequence[Detection], size: tuple[int, i
 
 def _result(board: Board, used: list[Detection], size: tuple[int, int], fit: dict[str, Any],
             rejected: list[dict[str, str]], choice: ModelChoice,
-            rich: dict[str, Any] | None = None) -> IntrinsicsResult:
+            rich: dict[str, Any] | None = None,
+            others: Sequence[dict[str, Any]] = ()) -> IntrinsicsResult:
     K, dist, s = fit["K"], fit["dist"], fit["std"]
     w, h = size
     camera = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "skew": 0.0,
@@ -377,6 +461,8 @@ def _result(board: Board, used: list[Detection], size: tuple[int, int], fit: dic
     std_model = std
     if rich is not None:
         std, choice.model_bias = with_model_bias(std, camera, rich, choice.model)
+    for other in others:
+        std = widen(std, with_model_bias(std_model, camera, other, choice.model)[0])
     obj = board.object_points()
     residuals, poses, rvecs, tvecs = [], [], [], []
     for det, rvec, tvec in zip(used, fit["rvecs"], fit["tvecs"], strict=True):

@@ -343,7 +343,9 @@ class _Problem:
 def calibrate_cameras(names: Sequence[str], intrinsics: Sequence[dict[str, Any]],
                       observations: Sequence[Observation], *, reference: str | None = None,
                       free: Sequence[Sequence[str]] | None = None, outlier_factor: float = 3.0,
-                      outlier_floor_px: float = 0.5) -> MultiResult:
+                      outlier_floor_px: float = 0.5,
+                      intrinsics_prior: Sequence[dict[str, Any] | None] | None = None,
+                      ) -> MultiResult:
     """Calibrate N cameras' poses (and optionally intrinsics) from board observations.
 
     Parameters
@@ -356,6 +358,13 @@ def calibrate_cameras(names: Sequence[str], intrinsics: Sequence[dict[str, Any]]
     free : per camera the intrinsics refined in the joint fit (names from
         ``INTRINSIC_KEYS``); default none.
     outlier_factor, outlier_floor_px : the observation outlier rule (module docstring).
+    intrinsics_prior : per camera None or what is known of its intrinsics' error:
+        ``values`` (9, ``INTRINSIC_KEYS`` order; the best estimate, e.g. the richest model's
+        of ``calibrate_intrinsics``) and ``covariance`` (9x9). The intrinsics the joint fit
+        holds (not in ``free``) are not exact: their error ``start - values`` (known, the
+        model choice's shift) plus one of that covariance moves the camera poses, and the
+        pose sigmas include it (:func:`_camera_std`); without, they hold only for exact
+        intrinsics (then as ``std_model``).
 
     Raises CalibrationError naming the camera, image or pair at fault.
     """
@@ -426,18 +435,29 @@ def calibrate_cameras(names: Sequence[str], intrinsics: Sequence[dict[str, Any]]
         x = None  # the layout may change (a set or a camera gone): start again from PnP
     result = _result(names, ref, cams, problem, x, intr0, per_obs, obs, pnp, edges, tree,
                      rejected)
-    for row, std in zip(result.cameras, _camera_std(problem, x, intr0, skews, fun),
+    priors = list(intrinsics_prior) if intrinsics_prior is not None else [None] * n_cams
+    if len(priors) != n_cams:
+        raise CalibrationError(f"{len(priors)} intrinsics priors for {n_cams} cameras")
+    for row, std in zip(result.cameras, _camera_std(problem, x, intr0, skews, fun, priors),
                         strict=True):
         row.update(std)
     return result
 
 
 def _camera_std(problem: _Problem, x: FloatArray, intr0: FloatArray, skews: FloatArray,
-                fun: FloatArray) -> list[dict[str, Any]]:
-    """One-sigma uncertainty of every camera's pose in the reference camera, from the
-    fit's covariance ``s^2 (J^T J)^-1`` (``s^2 = SSR / (m - p)``): ``position_std_mm`` (x, y,
-    z of the camera centre in the reference frame) and ``rotation_std_deg`` (the root of the
-    rotation vector's variances). The reference camera: zeros."""
+                fun: FloatArray, priors: Sequence[dict[str, Any] | None] = (),
+                ) -> list[dict[str, Any]]:
+    """One-sigma uncertainty of every camera's pose in the reference camera:
+    ``position_std_mm`` (x, y, z of the camera centre in the reference frame) and
+    ``rotation_std_deg`` (the root of the rotation vector's variances).
+
+    From the fit's covariance ``s^2 (J^T J)^-1`` (``s^2 = SSR / (m - p)``), which treats the
+    held intrinsics as exact (kept as ``std_model``), plus what the held intrinsics' error
+    does to the poses (``priors``, see ``calibrate_cameras``): with ``G = d(pose)/d(k)``
+    (the fit's response to the held intrinsics k, ``-(J_x^T J_x)^-1 J_x^T J_k``), the pose
+    covariance gains ``G C Gᵀ`` (C the intrinsics' covariance) and the known shift ``G
+    (start - values)`` adds in quadrature, as ``intrinsics.with_model_bias`` does for a
+    single camera. The reference camera: zeros."""
     m, p = len(fun), problem.n_params
     zero = {"position_std_mm": [0.0, 0.0, 0.0], "rotation_std_deg": 0.0}
     if m <= p:
@@ -450,10 +470,11 @@ def _camera_std(problem: _Problem, x: FloatArray, intr0: FloatArray, skews: Floa
         raise CalibrationError("the views do not determine the camera poses (singular normal "
                                "matrix)") from None
     s2 = float(fun @ fun) / (m - p)
+    G, C, shift = _intrinsics_response(problem, x, intr0, skews, normal, inv, priors)
     out = []
     for c in range(problem.n_cams):
         if c not in problem.cam_col:
-            out.append(dict(zero))
+            out.append({**zero, "std_model": dict(zero)})
             continue
         col = problem.cam_col[c]
         idx = np.searchsorted(normal.c, np.arange(col, col + 6))
@@ -467,9 +488,68 @@ def _camera_std(problem: _Problem, x: FloatArray, intr0: FloatArray, skews: Floa
         # d(centre)/d(rotvec, t) by central differences (6 evaluations of a 3x3 product)
         D = np.column_stack([(centre(v + h) - centre(v - h)) / 2e-7
                              for h in np.eye(6) * 1e-7])
-        out.append({"position_std_mm": [float(q) for q in np.sqrt(np.diag(D @ cov @ D.T))],
-                    "rotation_std_deg": float(np.degrees(np.sqrt(np.trace(cov[:3, :3]))))})
+        own = {"position_std_mm": [float(q) for q in np.sqrt(np.diag(D @ cov @ D.T))],
+               "rotation_std_deg": float(np.degrees(np.sqrt(np.trace(cov[:3, :3]))))}
+        if G is None:
+            out.append({**own, "std_model": own})
+            continue
+        Gc = G[idx]
+        wide = cov + Gc @ C @ Gc.T
+        d = Gc @ shift  # the pose's shift from the held intrinsics' known error
+        pos = np.sqrt(np.diag(D @ wide @ D.T) + (D @ d) ** 2)
+        rot = np.sqrt(np.trace(wide[:3, :3]) + float(d[:3] @ d[:3]))
+        out.append({"position_std_mm": [float(q) for q in pos],
+                    "rotation_std_deg": float(np.degrees(rot)), "std_model": own})
     return out
+
+
+def _intrinsics_response(problem: _Problem, x: FloatArray, intr0: FloatArray,
+                         skews: FloatArray, normal: _Normal, inv: FloatArray,
+                         priors: Sequence[dict[str, Any] | None],
+                         ) -> tuple[FloatArray | None, FloatArray, FloatArray]:
+    """``(G, C, shift)``: ``G`` (len(normal.c), q) how the fit's non-board parameters move
+    per unit of the q held intrinsics that have a prior, ``C`` (q, q) their covariance
+    (cameras independent), ``shift`` (q,) start - prior values. G is None without priors."""
+    extra = [[k for k in INTRINSIC_KEYS if k not in free] if prior is not None else []
+             for free, prior in zip(
+                 [[INTRINSIC_KEYS[i] for i in f] for f in problem.free_idx],
+                 list(priors) or [None] * problem.n_cams, strict=True)]
+    if not any(extra):
+        return None, np.zeros((0, 0)), np.zeros(0)
+    free2 = [tuple(INTRINSIC_KEYS[i] for i in f) + tuple(e)
+             for f, e in zip(problem.free_idx, extra, strict=True)]
+    p2 = _Problem(problem.obs, problem.n_cams, problem.set_keys, free2, problem.ref)
+    x2 = np.zeros(p2.n_params)
+    x2[:p2.intr_col[0]] = x[:problem.board_col0 + 6 * len(problem.set_keys)]
+    x_cols: list[int] = list(range(p2.intr_col[0]))
+    k_cols: list[int] = []
+    blocks, shifts = [], []
+    for c, (f, e) in enumerate(zip(problem.free_idx, extra, strict=True)):
+        c0 = p2.intr_col[c]
+        x2[c0:c0 + len(f)] = x[problem.intr_col[c]:problem.intr_col[c] + len(f)]
+        x_cols += range(c0, c0 + len(f))
+        if not e:
+            continue
+        ei = [INTRINSIC_KEYS.index(k) for k in e]
+        x2[c0 + len(f):c0 + len(f) + len(e)] = intr0[c, ei]
+        k_cols += range(c0 + len(f), c0 + len(f) + len(e))
+        prior = priors[c]
+        assert prior is not None
+        cov = np.asarray(prior["covariance"], np.float64)
+        blocks.append(cov[np.ix_(ei, ei)])
+        shifts.append(intr0[c, ei] - np.asarray(prior["values"], np.float64)[ei])
+    J2 = p2.jacobian(x2, intr0, skews)
+    B = (J2[:, x_cols].T @ J2[:, k_cols]).toarray()  # (p, q) = J_x^T J_k
+    q = B.shape[1]
+    V_inv = np.linalg.inv(normal.V)
+    VB = np.einsum("nij,njq->niq", V_inv, B[normal.b].reshape(normal.n, 6, q)).reshape(-1, q)
+    G = -inv @ (B[normal.c] - normal.W @ VB)
+    C = np.zeros((q, q))
+    i = 0
+    for blk in blocks:
+        C[i:i + len(blk), i:i + len(blk)] = blk
+        i += len(blk)
+    return G, C, np.concatenate(shifts)
 
 
 def levenberg_marquardt(fun: Callable[[FloatArray], FloatArray],

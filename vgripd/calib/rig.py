@@ -58,12 +58,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from vgripd.calib.intrinsics import (
+    PLAUSIBLE_BIC,
     DistortionModel,
     ModelChoice,
     bic,
     candidate_models,
     choose_model,
     k3_note,
+    widen,
     with_model_bias,
 )
 from vgripd.errors import CalibrationError, GeometryError
@@ -240,15 +242,49 @@ def calibrate_rig(object_points: Sequence[ArrayLike], px_left: Sequence[ArrayLik
         ssr = float(sum(np.sum(r**2) for r in f["res_l"] + f["res_r"]))
         scores[mdl] = bic(ssr, m, 2 * (4 + len(mdl.free)) + 6 + 6 * len(views.obj))
         cams = [[float(v) for v in d] for _, d in f["cams"]]
-        std_l, std_r = _stds(views, f, mdl)
+        std_l, std_r, f["std_all"] = _stds(views, f, mdl)
         rows[mdl] = {"rms_px": float(np.sqrt(2 * ssr / m)), "dist": cams[0],
                      "dist_std": _dist_std(std_l, mdl), "right_dist": cams[1],
                      "right_dist_std": _dist_std(std_r, mdl)}
     choice = choose_model(scores, reference, rows)
     choice.notes = (k3_note(choice, "left camera: ", "dist")
                     + k3_note(choice, "right camera: ", "right_dist"))
-    return _result(views, sizes, fits[choice.model], choice, rejected, baseline_hint_mm,
-                   fits[richest] if choice.model != richest else None)
+    rich = None
+    if choice.model != richest:
+        rich = dict(fits[richest], model=richest)
+    others = [dict(fits[mdl], model=mdl) for mdl in models
+              if mdl not in (choice.model, richest)
+              and scores[mdl] - scores[choice.model] < PLAUSIBLE_BIC]
+    return _result(views, sizes, fits[choice.model], choice, rejected, baseline_hint_mm, rich,
+                   others)
+
+
+def _with_model_bias(own: tuple[list[dict[str, Any]], FloatArray, FloatArray],
+                     cams: list[dict[str, Any]], fit: dict[str, Any], alt: dict[str, Any],
+                     model: DistortionModel,
+                     ) -> tuple[list[dict[str, Any]], FloatArray, FloatArray, dict[str, Any]]:
+    """The chosen fit's sigmas (``own``: per camera std dicts, rotvec and translation std)
+    widened by another candidate's (``alt``, a ``_fit`` with ``model`` and ``std_all``):
+    per parameter ``sqrt(max(own, alt's)^2 + (chosen - alt)^2)``. Returns the widened
+    (stds, rotvec_std, translation_std) and the shifts."""
+    alt_model: DistortionModel = alt["model"]
+    alt_std = alt["std_all"]
+    n_alt = 4 + len(alt_model.free)
+    bias: dict[str, Any] = {}
+    stds = []
+    for k, (K, dist) in enumerate(alt["cams"]):
+        s_k = alt_std[k * n_alt:(k + 1) * n_alt]
+        alt_fit = {"K": K, "dist": dist,
+                   "std": np.concatenate([s_k[:4], _dist_std(s_k, alt_model)])}
+        std_k, bias[("left", "right")[k]] = with_model_bias(own[0][k], cams[k], alt_fit, model)
+        stds.append(std_k)
+    d_om = np.asarray(fit["om"], dtype=float) - np.asarray(alt["om"], dtype=float)
+    d_t = np.asarray(fit["T"], dtype=float) - np.asarray(alt["T"], dtype=float)
+    rotvec_std = np.hypot(np.maximum(own[1], alt_std[2 * n_alt:2 * n_alt + 3]), d_om)
+    translation_std = np.hypot(np.maximum(own[2], alt_std[2 * n_alt + 3:2 * n_alt + 6]), d_t)
+    bias["rotvec_rad"] = d_om.tolist()
+    bias["translation_mm"] = d_t.tolist()
+    return stds, rotvec_std, translation_std, bias
 
 
 def _dist_std(s: FloatArray, model: DistortionModel) -> list[float]:
@@ -258,12 +294,13 @@ def _dist_std(s: FloatArray, model: DistortionModel) -> list[float]:
 
 
 def _stds(views: _Views, fit: dict[str, Any], model: DistortionModel,
-          ) -> tuple[FloatArray, FloatArray]:
-    """One-sigma std of each camera's free intrinsics (fx fy cx cy + free dist terms)."""
+          ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """One-sigma std of each camera's free intrinsics (fx fy cx cy + free dist terms), and
+    of every parameter (``parameter_names`` order)."""
     n_int = 4 + len(model.free)
     ssr = float(sum(np.sum(r**2) for r in fit["res_l"] + fit["res_r"]))
     std = np.sqrt(np.diag(_covariance(_jacobian(views, fit, model), ssr)))
-    return std[:n_int], std[n_int:2 * n_int]
+    return std[:n_int], std[n_int:2 * n_int], std
 
 
 def _view_arrays(obj: ArrayLike, pl: ArrayLike, pr: ArrayLike,
@@ -530,7 +567,8 @@ def _covariance(J: FloatArray, ssr: float) -> FloatArray:
 
 def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: dict[str, Any],
             choice: ModelChoice, rejected: list[dict[str, str]],
-            baseline_hint_mm: float | None, rich: dict[str, Any] | None = None) -> RigResult:
+            baseline_hint_mm: float | None, rich: dict[str, Any] | None = None,
+            others: Sequence[dict[str, Any]] = ()) -> RigResult:
     model = choice.model
     n_int = 4 + len(model.free)
     res_l, res_r = fit["res_l"], fit["res_r"]
@@ -550,23 +588,20 @@ def _result(views: _Views, sizes: tuple[tuple[int, ...], tuple[int, ...]], fit: 
     translation_std = std[2 * n_int + 3:2 * n_int + 6]
     std_model = {"left": stds[0], "right": stds[1], "rotvec_rad": rotvec_std,
                  "translation_mm": translation_std}
+    own = ([dict(x) for x in stds], rotvec_std, translation_std)
     if rich is not None:
         # widened by what leaving terms out may have done (intrinsics.with_model_bias): each
-        # sigma with the shift between the chosen and the richest model in quadrature
-        bias: dict[str, Any] = {}
-        for k, (K, dist) in enumerate(rich["cams"]):
-            rich_fit = {"K": K, "dist": dist, "std": np.zeros(9)}
-            stds[k], bias[("left", "right")[k]] = with_model_bias(stds[k], cams[k], rich_fit,
-                                                                  model)
-            side = bias[("left", "right")[k]]  # held terms: the richest value, no sigma here
-            side["held"] = {n: v[:1] for n, v in side.get("held", {}).items()}
-        d_om = np.asarray(fit["om"], dtype=float) - np.asarray(rich["om"], dtype=float)
-        d_t = np.asarray(fit["T"], dtype=float) - np.asarray(rich["T"], dtype=float)
-        rotvec_std = np.hypot(rotvec_std, d_om)
-        translation_std = np.hypot(translation_std, d_t)
-        bias["rotvec_rad"] = d_om.tolist()
-        bias["translation_mm"] = d_t.tolist()
+        # sigma is the larger of the chosen and the richest model's, with the shift between
+        # the two models' estimates in quadrature
+        stds, rotvec_std, translation_std, bias = _with_model_bias(own, cams, fit, rich, model)
+        for side in ("left", "right"):  # held terms: the richest value, no sigma here
+            bias[side]["held"] = {n: v[:1] for n, v in bias[side].get("held", {}).items()}
         choice.model_bias = bias
+    for other in others:  # the candidates the data did not rule out (intrinsics.widen)
+        o_stds, o_rot, o_t, _ = _with_model_bias(own, cams, fit, other, model)
+        stds = [widen(a, b) for a, b in zip(stds, o_stds, strict=True)]
+        rotvec_std = np.maximum(rotvec_std, o_rot)
+        translation_std = np.maximum(translation_std, o_t)
     poses = []
     for rv, tv in fit["poses"]:
         poses.append(make_transform(matrix_from_rotvec(rv), tv))

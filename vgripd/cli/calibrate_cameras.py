@@ -209,11 +209,13 @@ def run(args: argparse.Namespace) -> int:
     if not 2 <= len(names) <= MAX_CAMERAS:
         raise CalibrationError(f"{len(names)} --camera given: need 2 to {MAX_CAMERAS}")
     known: dict[str, dict[str, Any]] = {}
+    known_prior: dict[str, dict[str, Any] | None] = {}
     for text in args.intrinsics:
         name, spec = _split(text, "--intrinsics", "NAME=FILE")
         if name not in cameras:
             raise CalibrationError(f"--intrinsics {name}: no --camera {name}")
         known[name] = read_intrinsics(spec)
+        known_prior[name] = read_intrinsics_prior(spec)
     rigs = _rigs(args.rig, names)
     if args.reference is not None and args.reference not in cameras:
         raise CalibrationError(f"--reference {args.reference}: no --camera of that name")
@@ -221,8 +223,10 @@ def run(args: argparse.Namespace) -> int:
 
     observations: list[Observation] = []
     intrinsics: list[dict[str, Any]] = []
+    priors: list[dict[str, Any] | None] = []
     rejected: list[dict[str, str]] = []
     intrinsics_source: dict[str, str] = {}
+    covariance_source: dict[str, str] = {}  # where the intrinsics' covariance came from
     warnings: list[str] = [w for w in [board.symmetry_warning()] if w]
     obj = board.object_points()
     for c, name in enumerate(names):
@@ -237,10 +241,17 @@ def run(args: argparse.Namespace) -> int:
                                            f"the intrinsics of {name} are for {cam['width']}x"
                                            f"{cam['height']}")
             intrinsics_source[name] = "given"
+            prior = known_prior[name]
+            covariance_source[name] = (
+                "the given file's [about.richest]" if prior is not None else
+                "none (the given file has no [about.richest]): the pose sigma takes the "
+                "intrinsics as exact")
         else:
-            cam, why = _own_intrinsics(board, name, found, args)
+            cam, why, prior = _own_intrinsics(board, name, found, args)
             intrinsics_source[name] = why
+            covariance_source[name] = "its own calibration here (richest model)"
         intrinsics.append(cam)
+        priors.append(prior)
         key_of = {p: k for k, p in paths.items()}
         for d in found:
             if len(d.ids) < MIN_POINTS:  # a ChArUco board seen in part
@@ -254,7 +265,7 @@ def run(args: argparse.Namespace) -> int:
                                                              strict=True) if v != 0.0])
                 for cam in intrinsics]
     result = calibrate_cameras(names, intrinsics, observations, reference=args.reference,
-                               free=free)
+                               free=free, intrinsics_prior=priors)
     rejected += result.rejected
     warnings += result.warnings
     T_base = None
@@ -271,6 +282,8 @@ def run(args: argparse.Namespace) -> int:
             base_words = (f"hand-eye of camera {key} (mounting {kind}"
                           + (": poses on the flange)" if kind == "robot" else ")"))
     rig_rows = _rig_residuals(result, rigs)
+    for row in result.cameras:
+        row["intrinsics_covariance"] = covariance_source[row["name"]]
     summary = _summary(result, T_base, mounting, base_words, rig_rows, intrinsics_source,
                        rejected, warnings, args)
     sections: dict[str, Any] = {}
@@ -311,8 +324,27 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _own_intrinsics(board: Board, name: str, found: list[Detection],
-                    args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+def read_intrinsics_prior(spec: str) -> dict[str, Any] | None:
+    """``[about.richest]`` of a ``calibrate intrinsics`` result (the richest model's values
+    and 9x9 covariance), or None when the file has none (a config, a stereo result)."""
+    path = spec.rpartition(":")[0] if spec.endswith((":left", ":right")) else spec
+    try:
+        rich = read_config_data(path).get("about", {}).get("richest")
+    except ConfigError as err:
+        raise CalibrationError(f"--intrinsics: {err}") from None
+    if not isinstance(rich, dict):
+        return None
+    values = np.asarray(rich.get("values", []), dtype=np.float64)
+    cov = np.asarray(rich.get("covariance", []), dtype=np.float64)
+    if values.shape != (9,) or cov.shape != (9, 9) or not (
+            np.all(np.isfinite(values)) and np.all(np.isfinite(cov))):
+        raise CalibrationError(f"{path}: about.richest: need 9 finite values and a finite 9x9 "
+                               f"covariance, have {values.shape} and {cov.shape}")
+    return {"values": values, "covariance": cov}
+
+
+def _own_intrinsics(board: Board, name: str, found: list[Detection], args: argparse.Namespace,
+                    ) -> tuple[dict[str, Any], str, dict[str, Any] | None]:
     if not found:
         raise CalibrationError(f"camera {name}: the board {board.spec} was not found in any "
                                "of its images, and no --intrinsics given")
@@ -323,7 +355,7 @@ def _own_intrinsics(board: Board, name: str, found: list[Detection],
         raise CalibrationError(f"camera {name}: its own intrinsics calibration failed ({err});"
                                f" give --intrinsics {name}=FILE") from None
     return dict(r.camera), (f"calibrated from its {len(r.per_image)} images, RMS "
-                            f"{r.rms_px:.3f} px, model {r.model.model.name}")
+                            f"{r.rms_px:.3f} px, model {r.model.model.name}"), r.richest
 
 
 def _rigs(texts: list[str], names: list[str]) -> dict[str, list[str]]:

@@ -117,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
         "model_choice": result.model.summary(),
         "subpix_window": "auto" if args.subpix_window is None else args.subpix_window,
         "rms_px": result.rms_px, "std": result.std, "std_model": result.std_model,
+        "richest": _richest_table(result),
         "images_used": len(result.detections),
         "per_image": result.per_image, "rejected": rejected, "warnings": result.warnings}
     write_result(args.output, {"calibration": {args.camera: result.camera}}, about,
@@ -136,6 +137,14 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"report: {args.report}")
     emit(args, summary, lines)
     return 0
+
+
+def _richest_table(result: IntrinsicsResult) -> dict[str, Any]:
+    """The richest model's estimate and 9x9 covariance (fx fy cx cy k1 k2 p1 p2 k3), which
+    ``calibrate cameras --intrinsics`` carries into its pose sigmas."""
+    rich = result.richest or {}
+    return {"model": rich.get("model", ""), "values": list(rich.get("values", [])),
+            "covariance": [[float(v) for v in row] for row in rich.get("covariance", [])]}
 
 
 def _parameter_lines(result: IntrinsicsResult) -> list[str]:
