@@ -385,8 +385,11 @@ class RobotSocketLink(RobotLink):
 
     def set_walking(self, walking: bool) -> None:
         """A walked hand-eye calibration is served: every NEXT goes on (the walk answers it,
-        the first one asks for a target), also without a pick list."""
+        the first one asks for a target), also without a pick list. After the walk there is
+        no pick list: NEXT is refused again until a LOCATE makes one."""
         self._walking = walking
+        if not walking:
+            self._handshake.listed = False
 
     async def set_warnings(self, bits: int) -> None:
         """The bits go into every later answer (word 4); nothing is sent unasked."""

@@ -726,4 +726,10 @@ async def test_a_walk_lets_next_through_without_a_pick_list() -> None:
         await peer.request(2, SocketCommand.NEXT)  # the walk's first: give me a target
         await until(lambda: triggers)
         assert (triggers[0].seq, triggers[0].command) == (2, 3)
+        await link.publish(2, JobResult(1, Status.NOT_FOUND, "walk complete"))
+        assert (await peer.answer()).status == Status.NOT_FOUND
+        link.set_walking(False)  # the walk is over: no pick list, the link refuses NEXT again
+        await peer.request(3, SocketCommand.NEXT)
+        assert (await peer.answer()).status == Status.BAD_REQUEST
+        assert len(triggers) == 1
         await peer.close()
