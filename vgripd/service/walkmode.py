@@ -14,8 +14,8 @@ file inside the config's folder and the index of the link the robot program uses
 - a walk starts only while no job runs and no several-view job waits for a view.
 
 It ends complete (``NOT_FOUND`` answered), or stopped (the web view's stop, or the daemon
-stopping): a request of the walk link still waiting or in progress is answered ``ABORTED``
-(41). The record (``<plan stem>.walk.json`` beside the plan) is saved after every target, so
+stopping): the request being answered gets its answer whole; one still waiting is answered
+``ABORTED`` (41). The record (``<plan stem>.walk.json`` beside the plan) is saved after every target, so
 starting the same plan again resumes it.
 
 Solving runs ``vgripd calibrate handeye --samples WALK --intrinsics CONFIG`` in a child process
@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from vgripd.calib.boards import Board, Detection, detect
-from vgripd.calib.handeye.plan import load_plan
+from vgripd.calib.handeye.plan import load_plan, plan_inside
 from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
 from vgripd.errors import CalibrationError, CameraError, ConfigError, VgripError
 from vgripd.geometry.camera_model import CameraModel
@@ -56,7 +56,6 @@ from vgripd.service.jobs import JobRunner
 from vgripd.service.links import LinkSupervisor, link_names
 from vgripd.service.protocol import Trigger
 from vgripd.service.tasks import Background
-from vgripd.service.web.walking import plan_inside
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger("vgripd.calib.walk")

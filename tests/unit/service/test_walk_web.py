@@ -9,9 +9,10 @@ from pathlib import Path
 
 import pytest
 
+from vgripd.calib.handeye.plan import plan_inside
 from vgripd.errors import CalibrationError
 from vgripd.service.web.commission import TuningError
-from vgripd.service.web.walking import hand_eye_target, plan_command, plan_inside, with_hand_eye
+from vgripd.service.web.walking import hand_eye_target, plan_command, with_hand_eye
 
 HAND_EYE = """[calibration.hand_eye]
 mounting = "fixed"

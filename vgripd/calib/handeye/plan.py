@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -329,3 +330,13 @@ def load_plan(path: str) -> LoadedPlan:
                          int(c.get("pairs", 0)), tuple(c.get("singular_values", (0, 0, 0))))
     return LoadedPlan(path, str(head["mode"]), str(head.get("board", "")),
                       str(head.get("pose_format", "matrix")), poses, cond, head)
+
+
+def plan_inside(config_path: Path, plan: str | Path) -> Path:
+    """``plan`` (relative to the config's folder) as a path inside that folder;
+    ``CalibrationError`` for one outside it (the page names files, it does not browse)."""
+    folder = config_path.resolve().parent
+    path = (folder / plan).resolve()
+    if not path.is_relative_to(folder) or path.suffix != ".toml":
+        raise CalibrationError(f"plan {str(plan)!r}: a .toml file inside {folder}")
+    return path

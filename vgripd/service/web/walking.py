@@ -38,8 +38,9 @@ from typing import Any
 
 from aiohttp import web
 
+from vgripd.calib.handeye.plan import plan_inside
 from vgripd.config import read_config_data
-from vgripd.errors import CalibrationError, ConfigError, VgripError
+from vgripd.errors import ConfigError, VgripError
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.commands import run_vgripd
 from vgripd.service.reload import Outcome, Reloader
@@ -56,16 +57,6 @@ PLAN_FIELDS = {"mode": "--mode", "board": "--board", "around": "--around", "box"
                "distance": "--distance", "count": "--count", "board_offset": "--board-offset",
                "pose_format": "--pose-format"}
 MAX_FIELD = 200
-
-
-def plan_inside(config_path: Path, plan: str | Path) -> Path:
-    """``plan`` (relative to the config's folder) as a path inside that folder;
-    ``CalibrationError`` for one outside it (the page names files, it does not browse)."""
-    folder = config_path.resolve().parent
-    path = (folder / plan).resolve()
-    if not path.is_relative_to(folder) or path.suffix != ".toml":
-        raise CalibrationError(f"plan {str(plan)!r}: a .toml file inside {folder}")
-    return path
 
 
 def hand_eye_target(config_path: Path) -> Path:
