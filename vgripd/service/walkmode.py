@@ -15,8 +15,8 @@ file inside the config's folder and the index of the link the robot program uses
 
 It ends complete (``NOT_FOUND`` answered), or stopped (the web view's stop, or the daemon
 stopping): the request being answered gets its answer whole; one still waiting is answered
-``ABORTED`` (41). The record (``<plan stem>.walk.json`` beside the plan) is saved after every target, so
-starting the same plan again resumes it.
+``ABORTED`` (41). The record (``<plan stem>.walk.json`` beside the plan) is saved after every
+target, so starting the same plan again resumes it.
 
 Solving runs ``vgripd calibrate handeye --samples WALK --intrinsics CONFIG`` in a child process
 (the solver with its plausibility checks; the loop keeps serving the PLC) and writes the

@@ -302,9 +302,9 @@ class WalkRoutes:
                 return web.json_response({"refused": refusal, "stale_references":
                                           [p.name for p in stale]}, status=409)
             writes = {target: (before, after)}
-            for path in stale:  # set aside, as told
-                text = path.read_text(encoding="utf-8")
-                writes[path] = (text, set_aside(text))
+            for path in stale:  # set aside, as told (in the hand-eye's own text if it is one)
+                old = path.read_text(encoding="utf-8")
+                writes[path] = (old, set_aside(writes.get(path, (old, old))[1]))
             for path, (old, new) in writes.items():
                 next_backup(path).write_text(old, encoding="utf-8")
                 _write(path, new)
