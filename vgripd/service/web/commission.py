@@ -55,6 +55,30 @@ class TuningError(ConfigError):
     """A save that cannot be written (no include holds ``[object]``, a key set elsewhere)."""
 
 
+def holding_include(config_path: Path, prefix: str, hint: str) -> Path:
+    """The one included file that sets keys under ``prefix`` (``"reference."``), or, when no
+    file sets one, holds its table empty (a reference set aside); ``TuningError`` naming where
+    it is set otherwise, with ``hint`` (what writes such a file)."""
+    owner: dict[str, str] = {}
+    included: list[tuple[str, dict[str, Any], dict[str, Any]]] = []
+    read_config_data(config_path, owner, included)
+    files = {src for key, src in owner.items() if key.startswith(prefix)}
+    if not files:
+        files = {path for path, part, _ in included if _holds_table(part, prefix)}
+    if len(files) != 1 or Path(next(iter(files))) == config_path:
+        where = "the main config file" if files else "no file"
+        raise TuningError(f"{config_path}: {prefix.rstrip('.')} is set in {where}: the page "
+                          f"writes it only into the one included file that holds it ({hint})")
+    return Path(next(iter(files)))
+
+
+def _holds_table(part: dict[str, Any], prefix: str) -> bool:
+    table: Any = part
+    for key in prefix.rstrip(".").split("."):
+        table = table.get(key) if isinstance(table, dict) else None
+    return isinstance(table, dict)
+
+
 def tuning_target(config_path: Path) -> Path:
     """The include file a save writes: the one that sets ``object.features``."""
     owner: dict[str, str] = {}

@@ -34,13 +34,18 @@ import numpy as np
 from aiohttp import web
 
 from vgripd.calib import teach
-from vgripd.config import Config, read_config_data
+from vgripd.config import Config
 from vgripd.errors import CalibrationError, ConfigError, VgripError
 from vgripd.geometry.fingerprint import camera_about, hand_eye_fingerprint
 from vgripd.geometry.transforms import pose_error
 from vgripd.serialize import toml_from_dict
 from vgripd.service.reload import Outcome, Reloader
-from vgripd.service.web.commission import TuningError, _prune, _write, next_backup
+from vgripd.service.web.commission import (
+    _prune,
+    _write,
+    holding_include,
+    next_backup,
+)
 from vgripd.types import ImagePair
 
 log = logging.getLogger(__name__)
@@ -59,26 +64,7 @@ def reference_target(config_path: Path, recipe: int) -> Path:
     """The include file that sets the reference of ``recipe`` now (or holds its table empty,
     set aside when a new hand-eye was accepted)."""
     prefix = "reference." if recipe == 0 else f"recipes.{recipe}.reference."
-    owner: dict[str, str] = {}
-    included: list[tuple[str, dict[str, Any], dict[str, Any]]] = []
-    read_config_data(config_path, owner, included)
-    files = {src for key, src in owner.items() if key.startswith(prefix)}
-    if not files:
-        files = {path for path, part, _ in included if _holds_table(part, prefix)}
-    if len(files) != 1 or Path(next(iter(files))) == config_path:
-        where = "the main config file" if files else "no file"
-        raise TuningError(
-            f"{config_path}: {prefix.rstrip('.')} is set in {where}: the page saves the "
-            f"reference only to the one included file that holds it (vgripd teach writes "
-            f"such a file)")
-    return Path(next(iter(files)))
-
-
-def _holds_table(part: dict[str, Any], prefix: str) -> bool:
-    table: Any = part
-    for key in prefix.rstrip(".").split("."):
-        table = table.get(key) if isinstance(table, dict) else None
-    return isinstance(table, dict)
+    return holding_include(config_path, prefix, "vgripd teach writes such a file")
 
 
 def with_reference(text: str, recipe: int, section: dict[str, Any],

@@ -44,7 +44,13 @@ from vgripd.errors import ConfigError, VgripError
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.commands import run_vgripd
 from vgripd.service.reload import Outcome, Reloader
-from vgripd.service.web.commission import TuningError, _prune, _write, next_backup
+from vgripd.service.web.commission import (
+    TuningError,
+    _prune,
+    _write,
+    holding_include,
+    next_backup,
+)
 from vgripd.service.web.stale import set_aside, stale_references
 
 log = logging.getLogger(__name__)
@@ -61,16 +67,8 @@ MAX_FIELD = 200
 
 def hand_eye_target(config_path: Path) -> Path:
     """The included file that sets ``calibration.hand_eye`` now (``TuningError`` unless one)."""
-    owner: dict[str, str] = {}
-    read_config_data(config_path, owner)
-    files = {src for key, src in owner.items() if key.startswith("calibration.hand_eye.")}
-    if len(files) != 1 or Path(next(iter(files))) == config_path:
-        where = "the main config file" if files else "no file"
-        raise TuningError(
-            f"{config_path}: calibration.hand_eye is set in {where}: the page accepts the "
-            f"hand-eye only into the one included file that holds it (vgripd calibrate "
-            f"handeye -o writes such a file; include it)")
-    return Path(next(iter(files)))
+    return holding_include(config_path, "calibration.hand_eye.",
+                           "vgripd calibrate handeye -o writes such a file; include it")
 
 
 def with_hand_eye(text: str, solved: str) -> str:
