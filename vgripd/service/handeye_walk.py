@@ -4,12 +4,15 @@ The robot program walks; vgripd answers. The exchange uses the link's ordinary r
 answers (docs/calibration-handeye.md, "Walked calibration"), so every link that carries a pose
 can carry it:
 
-- ``NEXT`` (3) with no target pending: "give me the next target" (the start of a walk, and of
-  a resumed one);
+- ``NEXT`` (3), recipe 0: "give me the target": the one pending (again: a program restarted,
+  or an answer lost, asks again and nothing is skipped), else the next one (the start of a
+  walk, and of a resumed one);
 - ``TRIGGER`` (1) with a target pending: "I am there and settled: take the image". The flange
   pose recorded is the one the link read from the robot with the request (RTDE's
-  ``actual_TCP_pose``); the image is taken, ``image_captured`` answered, the corners recorded;
-- ``NEXT`` (3) with a target pending: "I cannot reach it": recorded as unreachable, skipped.
+  ``actual_TCP_pose``; robot socket: CAPTURE_AT's); the image is taken, ``image_captured``
+  answered, the corners recorded;
+- ``NEXT`` (3), recipe 1 (``SKIP``) with a target pending: "I cannot reach it": recorded as
+  unreachable, skipped.
 
 Each answer is ``OK`` with the next target (the flange pose in ``vendor``'s convention, base
 frame, absolute: the robot program moves there as given, with its own speed limit), or
@@ -17,7 +20,9 @@ frame, absolute: the robot program moves there as given, with its own speed limi
 ``TRIGGER`` with no target pending is ``BAD_REQUEST`` (32); an image that cannot be taken is
 ``CAMERA_ERROR`` (30) and the target stays pending (the robot asks again). The record is the
 :class:`~vgripd.calib.handeye.walk.Walk` file, saved after every target, so a walk whose link
-was lost or whose robot stopped resumes with a new ``NEXT``.
+was lost or whose robot stopped resumes with a new ``NEXT``. An answer the link cannot
+deliver (the peer gone, the link hanging past ``ANSWER_TIMEOUT_S``) is logged and the walk
+goes on: the robot asks again.
 
 No motion is commanded here: only answers to the robot's requests.
 """
@@ -39,6 +44,11 @@ from vgripd.service.protocol import RobotLink, Trigger
 from vgripd.types import JobResult, RobotTarget, Status
 
 log = logging.getLogger("vgripd.calib.walk")
+
+#: The recipe word of a NEXT that skips the pending target ("I cannot reach it").
+SKIP = 1
+#: A link's answer that takes longer is given up (logged): the robot asks again.
+ANSWER_TIMEOUT_S = 2.0
 
 Grab = Callable[[], Awaitable[np.ndarray]]
 
@@ -112,37 +122,60 @@ class WalkServer:
         job, seq = self.job_id, trigger.seq
         if trigger.command == Command.TRIGGER:
             if self.pending is None:
-                await self.link.publish(seq, JobResult(job, Status.BAD_REQUEST,
-                                                       "no target pending: ask NEXT first"))
+                await self._say(seq, JobResult(job, Status.BAD_REQUEST,
+                                               "no target pending: ask NEXT first"))
                 return False
             if trigger.T_base_flange is None:
-                await self.link.publish(seq, JobResult(
+                await self._say(seq, JobResult(
                     job, Status.BAD_REQUEST, "the link gave no flange pose with the request"))
                 return False
             try:
                 image = await self.grab()
             except (VgripError, OSError) as err:
                 log.warning("walk target %d: no image: %s", self.pending, err)
-                await self.link.publish(seq, JobResult(job, Status.CAMERA_ERROR, str(err)))
+                await self._say(seq, JobResult(job, Status.CAMERA_ERROR, str(err)))
                 return False
-            await self.link.image_captured(seq, job)
+            await self._captured(seq, job)
             record = await asyncio.to_thread(self.walk.capture, self.pending,
                                              trigger.T_base_flange, image)
             log.info("walk target %d: %s", record.index, record.status)
+            self.pending = None
         elif trigger.command == Command.NEXT and self.pending is not None:
-            self.walk.unreachable(self.pending, "the robot program reported it unreachable")
-            log.info("walk target %d: unreachable, skipped", self.pending)
+            if trigger.recipe == SKIP:
+                self.walk.unreachable(self.pending, "the robot program reported it unreachable")
+                log.info("walk target %d: unreachable, skipped", self.pending)
+                self.pending = None
+            else:
+                log.info("walk target %d: asked for again (the program restarted, or lost the "
+                         "answer)", self.pending)
         elif trigger.command != Command.NEXT:
-            await self.link.publish(seq, JobResult(job, Status.BAD_REQUEST,
-                                                   f"command {trigger.command} in a walk"))
+            await self._say(seq, JobResult(job, Status.BAD_REQUEST,
+                                           f"command {trigger.command} in a walk"))
             return False
-        self.pending = self.walk.next_index()
         if self.pending is None:
-            await self.link.publish(seq, JobResult(job, Status.NOT_FOUND, "walk complete"))
+            self.pending = self.walk.next_index()
+        if self.pending is None:
+            await self._say(seq, JobResult(job, Status.NOT_FOUND, "walk complete"))
             return True
         values = tuple(float(v) for v in vendor_from_transform(self.vendor,
                                                                self.walk.target(self.pending)))
-        await self.link.publish(seq, JobResult(job, Status.OK, f"target {self.pending}",
-                                               target=RobotTarget(self.vendor, self.fields,
-                                                                  values)))
+        await self._say(seq, JobResult(job, Status.OK, f"target {self.pending}",
+                                       target=RobotTarget(self.vendor, self.fields, values)))
         return False
+
+    async def _say(self, seq: int, result: JobResult) -> None:
+        """Answer request ``seq``; one the link cannot deliver is logged (the robot asks
+        again), it does not end the walk."""
+        try:
+            async with asyncio.timeout(ANSWER_TIMEOUT_S):
+                await self.link.publish(seq, result)
+        except Exception as err:
+            log.warning("walk: the answer to request %d (%s) was not delivered: %r", seq,
+                        result.status.name, err)
+
+    async def _captured(self, seq: int, job: int) -> None:
+        try:
+            async with asyncio.timeout(ANSWER_TIMEOUT_S):
+                await self.link.image_captured(seq, job)
+        except Exception as err:
+            log.warning("walk: request %d: 'image taken' not delivered: %r", seq, err)
