@@ -83,7 +83,7 @@ MODULE VgripdSocket
         vgAt{7} := vgHere.rot.q4;
         vgStatus := vgAsk(VG_CAPTURE_AT, 0);
       ELSE
-        vgStatus := vgAsk(VG_NEXT, 0); ! not reachable: skipped
+        vgStatus := vgAsk(VG_NEXT, 1); ! not reachable: skipped (recipe 1)
       ENDIF
     ENDWHILE
     IF vgStatus <> 10 THEN

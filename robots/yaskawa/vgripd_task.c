@@ -13,7 +13,7 @@
  * Walked hand-eye calibration (VGWALK.JBI; docs/calibration-handeye.md): I054 = 2 asks for
  * the next target, I054 = 3 sends CAPTURE_AT with the flange pose the task reads (tool 0 at
  * the flange, base frame); either way a target without joint values (mpConvCartPosToAxes)
- * is skipped (NEXT again) and the next one is left in D052..D057.
+ * is skipped (NEXT with recipe 1) and the next one is left in D052..D057.
  */
 #include "motoPlus.h"
 
@@ -196,7 +196,7 @@ static LONG vgAsk(LONG vgCmd, LONG vgRecipe, const LONG *vgAt)
 }
 
 /* The walk's step (I054 = 2: next target, 3: CAPTURE_AT here): the status, a reachable next
- * target in D052..D057 for 1 or 2 (unreachable ones are skipped with NEXT). */
+ * target in D052..D057 for 1 or 2 (unreachable ones are skipped with NEXT, recipe 1). */
 static LONG vgWalkStep(LONG vgMode)
 {
     MP_COORD vgCoord;
@@ -218,7 +218,7 @@ static LONG vgWalkStep(LONG vgMode)
         vgStatus = vgAsk(VG_NEXT, 0, 0);
     }
     while ((vgStatus == 1 || vgStatus == 2) && !vgReachable()) {
-        vgStatus = vgAsk(VG_NEXT, 0, 0); /* not reachable: skipped */
+        vgStatus = vgAsk(VG_NEXT, 1, 0); /* not reachable: skipped (recipe 1) */
     }
     return vgStatus;
 }

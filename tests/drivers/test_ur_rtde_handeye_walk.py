@@ -1,8 +1,8 @@
 """A walked hand-eye calibration over UR RTDE: the real ur_rtde client (the link's child process)
 against the mock UR controller (its own process), whose simulated robot program walks the plan
 as robots/urscript would: NEXT for the first target, move (a simulated arm: reach limit, settle
-cycles, noise on the pose it reports as ``actual_TCP_pose``), TRIGGER for the image, NEXT for a
-target it cannot reach, until the answer is NOT_FOUND (walk complete). vgripd's side is
+cycles, noise on the pose it reports as ``actual_TCP_pose``), TRIGGER for the image, NEXT with
+recipe 1 (register 15) for a target it cannot reach, until the answer is NOT_FOUND (walk complete). vgripd's side is
 ``WalkServer``: it only answers, the link reads the flange pose with each request, and the image
 is rendered from the pose the arm really reached. The link is then dropped halfway (the robot
 stops), and a new link and server resume the walk. Solved through the command: within
@@ -30,6 +30,7 @@ from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
 from vgripd.service.handeye_walk import WalkServer
 from vgripd.service.jobcore import Command
+from vgripd.service.protocol import Trigger
 from vgripd.sim.arm import ArmState, SimulatedArm
 from vgripd.sim.ur_controller import URController
 from vgripd.types import Status
@@ -49,6 +50,7 @@ pytestmark = pytest.mark.timeout(240)
 HOST = "127.0.5.61"
 MODE = "eye-in-hand"
 ZERO = (0.0,) * 6  # the walk's targets are absolute: pose_trans(target, zero) = target
+SKIP_RECIPE = 1  # vgripd_handeye_walk's recipe for "the target given cannot be reached"
 
 
 def robot_program(robot: URController, arm: SimulatedArm, stop_after: int | None
@@ -67,15 +69,18 @@ def robot_program(robot: URController, arm: SimulatedArm, stop_after: int | None
                 pass
             robot.set_tcp_pose(vendor_from_transform("ur", arm.reported_pose()))
             seq = robot.start_program(int(Command.TRIGGER), taught_pose=ZERO, timeout_s=30.0)
-        else:
-            seq = robot.start_program(int(Command.NEXT), taught_pose=ZERO, timeout_s=30.0)
+        else:  # the script's skip: next with VGRIPD_RECIPE = 1 (register 15)
+            seq = robot.start_program(int(Command.NEXT), taught_pose=ZERO, timeout_s=30.0,
+                                      recipe=SKIP_RECIPE)
         result = robot.program_result(seq, timeout_s=60.0)
         visited += 1
     return result
 
 
 async def serve_walk(robot: URController, arm: SimulatedArm, walk_file: Path, plan_file: Path,
-                     stop_after: int | None) -> dict[str, Any]:
+                     stop_after: int | None, nexts: list[int]) -> dict[str, Any]:
+    """One run of the robot program against a new link and server; ``nexts`` gets the recipe
+    of every NEXT request as the link delivered it."""
     walk = Walk(walk_file, load_plan(str(plan_file)), BOARD, CAMERA)
 
     async def grab() -> np.ndarray:
@@ -83,7 +88,13 @@ async def serve_walk(robot: URController, arm: SimulatedArm, walk_file: Path, pl
 
     link = URRtdeLink("ur", URRtdeOptions(host=HOST))
     server = WalkServer(walk, link, grab, "ur")
-    await link.open(server.on_trigger)
+
+    def on_trigger(trigger: Trigger) -> None:
+        if trigger.command == Command.NEXT:
+            nexts.append(trigger.recipe)
+        server.on_trigger(trigger)
+
+    await link.open(on_trigger)
     task = asyncio.get_running_loop().create_task(server.serve())
     try:
         result = await asyncio.to_thread(robot_program, robot, arm, stop_after)
@@ -111,11 +122,14 @@ async def test_walk_over_ur_rtde_resumes_skips_and_calibrates(
     walk_file = tmp_path / "walk.json"
     with URController(HOST) as robot:
         robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[0]))
-        first = await serve_walk(robot, arm, walk_file, tmp_path / "plan.toml", stop_after=5)
+        nexts: list[int] = []
+        first = await serve_walk(robot, arm, walk_file, tmp_path / "plan.toml", stop_after=5,
+                                 nexts=nexts)
         assert first["stopped"]
         done = Walk(walk_file, plan, BOARD, CAMERA)
         assert len(done.records) == 5  # five targets visited, the record saved
-        last = await serve_walk(robot, arm, walk_file, tmp_path / "plan.toml", stop_after=None)
+        last = await serve_walk(robot, arm, walk_file, tmp_path / "plan.toml", stop_after=None,
+                                nexts=nexts)
     assert last["status"] == Status.NOT_FOUND  # the walk complete
     assert last["offset"] is None
     final = Walk(walk_file, plan, BOARD, CAMERA)
@@ -123,6 +137,8 @@ async def test_walk_over_ur_rtde_resumes_skips_and_calibrates(
     assert statuses.count(UNREACHABLE) == 1
     assert statuses.count(SEEN) == len(plan.poses) - 1
     assert arm.moves == len(plan.poses) - 1  # no target visited twice across the resume
+    # each run's first NEXT asks (recipe 0), the one skip says so with register 15 = 1
+    assert sorted(nexts) == [0, 0, SKIP_RECIPE]
     capsys.readouterr()
     out = tmp_path / "handeye.toml"
     assert main(["calibrate", "handeye", "--samples", str(walk_file), "--intrinsics",
@@ -175,3 +191,22 @@ def test_walk_command_serves_the_plan_with_the_configs_camera_and_link(tmp_path:
     for T, T_plan in zip(reached, plan.poses, strict=True):  # read by the link, as reported
         assert pose_error(T, T_plan)[0] < 1e-6
     assert arm.moves == 12
+
+
+def test_the_scripts_walk_skips_with_recipe_1_and_asks_with_recipe_0() -> None:
+    """robots/urscript's ``vgripd_handeye_walk`` does what ``robot_program`` does: its first
+    next goes with VGRIPD_RECIPE (register 15) 0, its skip with 1, and the jobs' recipe is
+    given back at the end. Before, both went with the jobs' recipe (0 by default)."""
+    text = (Path(__file__).resolve().parents[2] / "robots" / "urscript" / "vgripd.script"
+            ).read_text()
+    start = text.index("def vgripd_handeye_walk(")
+    body = text[start:text.index("\nend\n", start)]
+    lines = [line.split("#")[0].strip() for line in body.splitlines()]
+    lines = [line for line in lines if line]
+    asks = [k for k, line in enumerate(lines) if "vgripd_locate(3," in line]
+    assert len(asks) == 2  # the first target, the skip
+    assert lines[asks[0] - 1] == "VGRIPD_RECIPE = 0"
+    assert lines[asks[1] - 1] == f"VGRIPD_RECIPE = {SKIP_RECIPE}"
+    assert lines[asks[1] + 1] == "VGRIPD_RECIPE = 0"
+    assert "local recipe = VGRIPD_RECIPE" in lines[:asks[0]]
+    assert lines[-2:] == ["VGRIPD_RECIPE = recipe", "return status"]

@@ -56,7 +56,12 @@ from vgripd.service.robot_socket_format import (
     header_word,
 )
 from vgripd.sim.arm import SimulatedArm
-from vgripd.sim.robot_socket_client import ProgramSettings, ProgramTwin, WalkOutcome
+from vgripd.sim.robot_socket_client import (
+    WALK_SKIP,
+    ProgramSettings,
+    ProgramTwin,
+    WalkOutcome,
+)
 from vgripd.types import Status
 
 # the rendered scene of the walk test (bare module names, as pytest imports them there)
@@ -191,10 +196,13 @@ def new_arm(plan: LoadedPlan, seed: int) -> ReportingArm:
 
 
 def check_wire(sent: list[bytes], settings: ProgramSettings, captures: int) -> None:
-    """The twin's frames: NEXT twice (the first target, the skip), then CAPTURE_AT at each
-    target reached, 44 bytes with the values in the program's encoding."""
+    """The twin's frames: NEXT twice (the first target with recipe 0, the skip with recipe
+    1), then CAPTURE_AT at each target reached, 44 bytes with the values in the program's
+    encoding."""
     commands = [struct.unpack(">I", f[:4])[0] for f in sent]
-    assert commands.count(header_word(SocketCommand.NEXT)) == 2
+    nexts = [struct.unpack(">I", f[8:12])[0] for f, word in zip(sent, commands, strict=True)
+             if word == header_word(SocketCommand.NEXT)]
+    assert nexts == [0, WALK_SKIP] == [0, 1]  # the recipe word: ask, then skip
     assert commands.count(header_word(SocketCommand.CAPTURE_AT)) == captures
     assert settings.words["CAPTURE_AT"] == header_word(SocketCommand.CAPTURE_AT)
     assert settings.at_bytes == CAPTURE_AT_SIZE
@@ -273,6 +281,60 @@ async def test_a_walk_stopped_halfway_resumes_where_it_stopped(tmp_path: Path) -
     statuses = [r.status for r in final.records.values()]
     assert statuses.count(UNREACHABLE) == 1
     assert statuses.count(SEEN) == COUNT - 1
+
+
+#: The skip in each generated program's walk routine: NEXT with recipe 1 (its start: 0).
+SKIP_CALL = {"kuka": "vgAsk(VG_NEXT, 1)", "abb": "vgAsk(VG_NEXT, 1)",
+             "fanuc": "vg_cmd = VG_NEXT -- not reachable: skipped (recipe 1), ask for the "
+                      "next target\n        vg_recipe = 1",
+             "staubli": "call vgAsk(VG_NEXT, 1, x_vgStatus)",
+             "yaskawa": "vgAsk(VG_NEXT, 1, 0)", "ur": "vg_ask(VG_NEXT, 1)"}
+
+
+@pytest.mark.parametrize("brand", sorted(BRANDS))
+def test_each_program_skips_with_next_recipe_1(brand: str) -> None:
+    """What the twin sends is what the program text does: its one skip is NEXT with recipe 1
+    (before, NEXT with recipe 0, which a restarted program also sends for its first target)."""
+    text = "\n".join(program(brand, cell(brand, 50100)).values())
+    assert text.count(SKIP_CALL[brand]) == 1
+
+
+async def test_a_program_restarted_with_a_target_pending_gets_it_again(tmp_path: Path) -> None:
+    """The robot program is stopped after vgripd answered a target and before it moved there,
+    and started again while vgripd's walk keeps running (the same WalkServer, the target
+    pending): its first NEXT (recipe 0) gets that target again, and the walk ends with the far
+    target the only unreachable one. Before, that NEXT was taken as "unreachable": a good
+    target skipped."""
+    brand, mode = "kuka", "eye-in-hand"
+    settings = settings_for(brand)
+    assert make_plan(tmp_path, mode, count=COUNT) == 0
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    arm = new_arm(plan, seed=5)
+    far = int(np.argmax([np.linalg.norm(T[:3, 3]) for T in plan.poses]))
+    stop_after = 5 if far != 5 else 6  # the target pending at the stop is a reachable one
+    walk_file = tmp_path / "walk.json"
+    port = free_port()
+    async with serving_walk(brand, port, Walk(walk_file, plan, BOARD, CAMERA), arm,
+                            mode) as task:
+        async with ProgramTwin(settings, "127.0.0.1", port) as twin:
+            first = await twin.walk(arm, stop_after=stop_after)  # the program stopped
+        assert first.status in (1, 2)
+        assert first.pending  # a target answered, not moved to
+        assert len(Walk(walk_file, plan, BOARD, CAMERA).records) == stop_after
+        async with ProgramTwin(settings, "127.0.0.1", port) as twin:  # started again
+            again = await twin.walk(arm)
+            sent = twin.sent
+        await asyncio.wait_for(task, 60)
+    assert again.status == Status.NOT_FOUND
+    assert again.reached[0] == first.pending  # the same target again, not skipped
+    first_next = sent[0]
+    assert struct.unpack(">I", first_next[:4])[0] == header_word(SocketCommand.NEXT)
+    assert struct.unpack(">I", first_next[8:12])[0] == 0
+    final = Walk(walk_file, plan, BOARD, CAMERA)
+    assert sorted(final.records) == list(range(COUNT))
+    unreachable = [k for k, r in final.records.items() if r.status == UNREACHABLE]
+    assert unreachable == [far]
+    assert arm.moves == COUNT - 1
 
 
 @pytest.mark.parametrize("brand", ["kuka", "abb"])

@@ -28,10 +28,12 @@ locate (every program sends both through one request routine).
 ``walk(arm)`` is the program's walk routine (docs/calibration-handeye.md, "Walked
 calibration") moving a :class:`~vgripd.sim.arm.SimulatedArm`: NEXT for a target; NOT_FOUND
 ends the walk, any other status but 1/2 stops it; a target the arm cannot reach is answered
-NEXT again (skipped), a reachable one is moved to at the program's speed, the program waits
-its settle time and sends CAPTURE_AT (command 4, 44 bytes) with the pose the arm reports, in
-the brand's convention and its encoding (int32 x scale from the controller's own resolution
-for MotoPlus, float32 for RAPID), then reads CAPTURED and the RESULT with the next target.
+NEXT with recipe 1 (skipped; the first NEXT has recipe 0: vgripd answers a target still
+pending again, so a restarted program skips nothing), a reachable one is moved to at the
+program's speed, the program waits its settle time and sends CAPTURE_AT (command 4, 44
+bytes) with the pose the arm reports, in the brand's convention and its encoding (int32 x
+scale from the controller's own resolution for MotoPlus, float32 for RAPID), then reads
+CAPTURED and the RESULT with the next target.
 The walk's requests are retried as every other request of the program.
 """
 
@@ -54,6 +56,7 @@ from vgripd.sim.arm import ArmState
 NO_ANSWER = -1
 BUSY = 40
 NOT_FOUND = 10
+WALK_SKIP = 1  # the walk routines' NEXT recipe for "the target given cannot be reached"
 #: Pose resolution of the controller's own position data where the program sends it as read
 #: (MotoPlus: 0.001 mm, 0.0001 deg); other controllers read REAL/num values.
 CONTROLLER_RESOLUTION = {"yaskawa": (1e-3, 1e-4)}
@@ -151,6 +154,7 @@ class WalkOutcome:
     skipped: list[tuple[float, ...]] = field(default_factory=list)
     sent_poses: list[tuple[float, ...]] = field(default_factory=list)
     moves: list[tuple[tuple[float, ...], float]] = field(default_factory=list)  # (target, mm/s)
+    pending: tuple[float, ...] = ()  # stopped (``stop_after``): the target received, not moved to
 
 
 class ProgramTwin:
@@ -197,18 +201,20 @@ class ProgramTwin:
 
     async def walk(self, arm: Any, stop_after: int | None = None) -> WalkOutcome:
         """The walk routine with ``arm`` (``SimulatedArm``); ``stop_after``: the operator stops
-        the program after that many targets were handled (moved to or skipped)."""
+        the program after that many targets were handled (moved to or skipped), the next one
+        received and not yet moved to (vgripd holds it pending)."""
         conv = convention(self.s.brand.convention)
-        outcome = await self.next()
+        outcome = await self.next()  # recipe 0: a target (the pending one, after a restart)
         walked = WalkOutcome(outcome.status)
         while outcome.status in (1, 2):
-            if stop_after is not None and len(walked.reached) + len(walked.skipped) >= stop_after:
-                return walked
             target = outcome.values[:len(conv.fields)]
+            if stop_after is not None and len(walked.reached) + len(walked.skipped) >= stop_after:
+                walked.pending = target
+                return walked
             T = transform_from_vendor(conv.name, target)
             if not arm.reachable(T):  # the language's reach check: skip, ask for the next
                 walked.skipped.append(target)
-                outcome = await self.next()
+                outcome = await self._ask(self.s.words["NEXT"], WALK_SKIP)
                 walked.status = outcome.status
                 continue
             arm.move(T)
