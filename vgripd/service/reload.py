@@ -37,7 +37,7 @@ from typing import Any
 from vgripd.config import Config, config_from_dict, load_config
 from vgripd.errors import ConfigError
 from vgripd.redaction import redact
-from vgripd.service.commands import CommandTimeout, run_vgripd
+from vgripd.service.commands import run_vgripd
 from vgripd.service.worker import WorkerError
 
 log = logging.getLogger("vgripd.reload")
@@ -188,7 +188,7 @@ class Reloader:
                 restart = [k for k in restart_keys(old, new)
                            if k not in self.live or flat_new.get(k, ...) != self.live[k]]
                 target = applicable(old, new)
-            except (ConfigError, CommandTimeout) as err:
+            except ConfigError as err:
                 return self._audit(Outcome(False, f"refused, the running config stays: {err}",
                                            source=source, t_wall=time.time()), note)
             diff = config_diff(old, target)
