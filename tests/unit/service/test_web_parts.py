@@ -5,6 +5,7 @@ rendering (in this process)."""
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -324,3 +325,29 @@ def test_check_warns_about_the_test_trigger_and_public_reads(
     out = capsys.readouterr().out
     assert "status.public_read" in out
     assert "status.allow_trigger" not in out
+
+
+def test_closing_the_image_helper_waits_for_helpers_a_reload_let_go() -> None:
+    """A reload lets the image helper go without waiting (renders it holds finish); the
+    daemon's stop then waits for it too: right after close() no helper's manager thread is
+    left, even when the reload came while the helper was still starting (a spawn takes
+    seconds on a busy machine)."""
+    from vgripd.service.web.images import ImageRenderer
+
+    before = set(threading.enumerate())
+    config = config_from_dict({})
+    renderer = ImageRenderer(config)
+
+    async def main() -> None:
+        pair = ImagePair(np.zeros((64, 80), np.uint8), np.zeros((64, 80), np.uint8),
+                         time.monotonic_ns())
+        renderer.submit(1, pair, JobResult(job_id=1, status=Status.OK))
+        renderer.reconfigure(config)  # the first helper is still spawning
+        renderer.submit(2, pair, JobResult(job_id=2, status=Status.OK))
+        renderer.reconfigure(config)
+        renderer.close()  # as the web server's close does, on the loop
+        left = [t.name for t in threading.enumerate()
+                if t not in before and t.is_alive() and not t.daemon]
+        assert left == []
+
+    asyncio.run(main())

@@ -21,6 +21,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import threading
 from collections import OrderedDict
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -253,6 +254,10 @@ class ImageRenderer:
     def __init__(self, config: Config) -> None:
         self._config = config
         self._pool: ProcessPoolExecutor | None = None
+        # helpers let go by a reload or a crash, each ended by a thread of its own (a spawn
+        # still starting takes seconds on a busy machine, a render tens of milliseconds);
+        # close() joins them, so no helper or its manager thread outlives the daemon's stop
+        self._retiring: list[threading.Thread] = []
         self._cache: OrderedDict[int, asyncio.Future[list[bytes]]] = OrderedDict()
         self._pending = 0
 
@@ -329,20 +334,28 @@ class ImageRenderer:
         """Draw later jobs with ``config`` (a reload): a new helper builds its pipeline from it;
         renders already queued finish on the old one."""
         self._config = config
-        pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.shutdown(wait=False, cancel_futures=False)
+        self._retire(cancel_futures=False)
 
     def _restart(self) -> None:
+        self._retire(cancel_futures=True)
+
+    def _retire(self, cancel_futures: bool) -> None:
+        """Let the current helper go without waiting (it finishes what it holds)."""
         pool, self._pool = self._pool, None
+        self._retiring = [t for t in self._retiring if t.is_alive()]
         if pool is not None:
-            pool.shutdown(wait=False, cancel_futures=True)
+            ender = threading.Thread(target=pool.shutdown, name="web-images-retire",
+                                     kwargs={"wait": True, "cancel_futures": cancel_futures})
+            ender.start()
+            self._retiring.append(ender)
 
     def close(self) -> None:
-        """Stop the helper (a render in progress is waited for: tens of milliseconds)."""
-        pool, self._pool = self._pool, None
+        """Stop the helpers, the current one and any a reload let go (a render in progress is
+        waited for: tens of milliseconds; a helper still starting: its start-up)."""
+        self._retire(cancel_futures=True)
         for fut in self._cache.values():
             fut.cancel()
         self._cache.clear()
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        retiring, self._retiring = self._retiring, []
+        for ender in retiring:
+            ender.join()
