@@ -12,7 +12,10 @@ TEST_JOBS ?= 4
 # start) a threaded BLAS oversubscribes the cores and spins; single-threaded it is faster.
 TEST_ENV := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1
 
-.PHONY: demo test lint bench clean
+# make explore: the property tests with fresh random examples, ROUNDS runs (tests/conftest.py)
+ROUNDS ?= 10
+
+.PHONY: demo test lint bench explore clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +32,12 @@ lint: $(STAMP)
 
 test: lint
 	$(TEST_ENV) $(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
+
+explore: $(STAMP)
+	for i in $$(seq $(ROUNDS)); do \
+	    VGRIPD_HYPOTHESIS=explore $(TEST_ENV) $(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile \
+	        $$(grep -rl "^from hypothesis" tests --include='test_*.py') || exit 1; \
+	done
 
 bench: $(STAMP)
 	for f in bench/bench_*.py; do $(PY) $$f || exit 1; done

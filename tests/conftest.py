@@ -8,6 +8,16 @@ as ``mbpoll`` or ``socat``) go through :func:`need` / :func:`need_tool` / the ``
 fixture: on a developer's machine they skip with one line saying what to install or where to put
 the data; with ``VGRIPD_REQUIRE_ALL=1`` (set by ``.ci/run``) the same line is a failure, so CI
 always runs them.
+
+Property tests (hypothesis) run under one of two profiles, chosen by ``VGRIPD_HYPOTHESIS``:
+
+- ``repeatable`` (the default: ``make test``, CI): every run draws the same examples (a seed
+  from each test's own source), so the README's test command passes or fails the same way on
+  every machine and every run; no deadline and no "too slow" health check, which would turn a
+  busy machine into a failure. A case found once is kept as an ``@example(...)`` on its test.
+- ``explore`` (``make explore``: the property tests' files, ``ROUNDS`` times, 10 by default):
+  fresh random examples on every run, failures stored in ``.hypothesis/`` and replayed first the
+  next time: for finding new cases, each to be pinned as an ``@example`` when found.
 """
 
 from __future__ import annotations
@@ -20,9 +30,16 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 REPO = Path(__file__).resolve().parents[1]
 REQUIRE_ALL = os.environ.get("VGRIPD_REQUIRE_ALL", "") not in ("", "0")
+
+settings.register_profile("repeatable", derandomize=True, database=None, deadline=None,
+                          suppress_health_check=[HealthCheck.too_slow], print_blob=True)
+settings.register_profile("explore", derandomize=False, deadline=None,
+                          suppress_health_check=[HealthCheck.too_slow], print_blob=True)
+settings.load_profile(os.environ.get("VGRIPD_HYPOTHESIS", "repeatable"))
 
 
 def datasets_dir() -> Path | None:
