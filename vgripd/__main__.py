@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "s7-udt": ("vgripd.cli.s7_udt", "print the S7 link's data block as SCL (UDT + DB) for TIA"),
     "robot-program": ("vgripd.cli.robot_program", "write a brand's robot socket program"),
     "cameras": ("vgripd.cli.cameras", "list the cameras pylon/Aravis find; grab a frame"),
+    "capture": ("vgripd.cli.capture", "take calibration image sets with the config's cameras"),
 }
 
 
