@@ -60,6 +60,7 @@ CAMERAS: dict[str, str] = {
     "pylon": "drivers.cameras.pylon:PylonCamera",
     "aravis": "drivers.cameras.aravis:AravisCamera",
     "multi": "drivers.cameras.multi:MultiCamera",
+    "board": "drivers.cameras.board:BoardCamera",
 }
 
 LINKS: dict[str, str] = {
