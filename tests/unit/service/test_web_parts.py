@@ -67,6 +67,24 @@ def test_redact_hides_every_secret_key_at_any_depth() -> None:
                    "a": {"api_key": "<redacted>", "secret_file": None}}
 
 
+def test_redact_keeps_a_diagnosis_key_and_hides_secrets_by_their_names() -> None:
+    """A field named ``key`` names a config key (a diagnosis' cause), never a secret; secrets
+    are found by their own names and inside URLs."""
+    diagnosis = {"causes": [{"key": "vision.working_distance_mm", "reason": "2 size rejected"}]}
+    data = {"last_job": {"diagnosis": diagnosis},
+            "about": {"camera": "rtsp://user:pass@cam/s", "api_key": "k1", "apikey": "k2",
+                      "private_key": "k3", "access-key": "k4", "passphrase": "p",
+                      "client_secret": "s", "key": "vision.min_contrast"}}
+    out = redact(data)
+    assert out["last_job"]["diagnosis"] == diagnosis
+    about = out["about"]
+    assert about["key"] == "vision.min_contrast"
+    assert about["camera"] == "rtsp://<redacted>@cam/s"
+    for name in ("api_key", "apikey", "private_key", "access-key", "passphrase",
+                 "client_secret"):
+        assert about[name] == "<redacted>", name
+
+
 def test_register_map_is_decoded_with_names_in_either_word_order() -> None:
     for order in ("ABCD", "CDAB"):
         bank = RegisterBank(ValueCodec(order, "float32"))
