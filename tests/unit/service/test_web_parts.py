@@ -225,7 +225,7 @@ def test_the_grafana_dashboard_and_docs_use_only_exported_metrics() -> None:
     daemon.recorder = SimpleNamespace(total_bytes=10)
     daemon.record_dropped = 0
     daemon.undelivered = Counter({"OK": 1})
-    metrics = Metrics(daemon)
+    metrics = Metrics(daemon, SimpleNamespace(failures=0, lockouts=0, refused_locked=0))
     result = JobResult(job_id=1, status=Status.OK, timings_ms={"process": 1.0})
     metrics.observe(SimpleNamespace(result=result, cycle_ms=1.0, published=None))
     exported = {s.name for fam in text_string_to_metric_families(metrics.render().decode())

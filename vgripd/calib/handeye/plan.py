@@ -332,11 +332,25 @@ def load_plan(path: str) -> LoadedPlan:
                       str(head.get("pose_format", "matrix")), poses, cond, head)
 
 
+#: The longest plan name the page takes (characters; a file name holds at most 255 bytes).
+MAX_PLAN_NAME = 200
+
+
 def plan_inside(config_path: Path, plan: str | Path) -> Path:
     """``plan`` (relative to the config's folder) as a path inside that folder;
-    ``CalibrationError`` for one outside it (the page names files, it does not browse)."""
+    ``CalibrationError`` for one outside it (the page names files, it does not browse), and
+    for a name no file can have (a control character, longer than ``MAX_PLAN_NAME``)."""
+    text = str(plan)
+    if len(text) > MAX_PLAN_NAME:
+        raise CalibrationError(f"plan {text[:40]!r}...: {len(text)} characters, at most "
+                               f"{MAX_PLAN_NAME}")
+    if any(ord(c) < 32 or ord(c) == 127 for c in text):
+        raise CalibrationError(f"plan {text!r}: a control character (such as NUL) in the name")
     folder = config_path.resolve().parent
-    path = (folder / plan).resolve()
+    try:
+        path = (folder / plan).resolve()
+    except (OSError, ValueError) as err:
+        raise CalibrationError(f"plan {text!r}: {err}") from None
     if not path.is_relative_to(folder) or path.suffix != ".toml":
         raise CalibrationError(f"plan {str(plan)!r}: a .toml file inside {folder}")
     return path

@@ -44,6 +44,7 @@ from vgripd.errors import ConfigError, VgripError
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.commands import run_vgripd
 from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.web.bodies import json_body
 from vgripd.service.web.commission import (
     TuningError,
     _prune,
@@ -131,7 +132,10 @@ def plan_command(form: dict[str, Any], config_path: Path, drawing: Path,
             value = " ".join(str(v) for v in value)
         if not isinstance(value, str | int | float) or isinstance(value, bool) or len(
                 str(value)) > MAX_FIELD:
-            raise TuningError(f"plan: {field} = {value!r}: a number or short text")
+            raise TuningError(f"plan: {field} = {str(value)[:40]!r}: a number or short text "
+                              f"(at most {MAX_FIELD} characters)")
+        if any(ord(c) < 32 or ord(c) == 127 for c in str(value)):
+            raise TuningError(f"plan: {field} = {value!r}: a control character (such as NUL)")
         words.append(f"{flag}={value}")  # one word: a value is never read as an option
     words += ["-o", str(output)] if output is not None else ["--dry-run"]
     return words
@@ -188,10 +192,7 @@ class WalkRoutes:
         return reloader.path
 
     async def _body(self, request: web.Request) -> dict[str, Any]:
-        try:
-            body = await request.json()
-        except ValueError:
-            raise web.HTTPBadRequest(text="a JSON object") from None
+        body = await json_body(request)
         if not isinstance(body, dict):
             raise web.HTTPBadRequest(text="a JSON object")
         return body
