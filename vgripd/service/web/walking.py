@@ -38,7 +38,8 @@ from typing import Any
 
 from aiohttp import web
 
-from vgripd.calib.handeye.plan import plan_inside
+from vgripd.calib.boards import Board
+from vgripd.calib.handeye.plan import board_size_problem, plan_inside
 from vgripd.config import read_config_data
 from vgripd.errors import ConfigError, VgripError
 from vgripd.serialize import jsonable, toml_from_dict
@@ -141,6 +142,22 @@ def plan_command(form: dict[str, Any], config_path: Path, drawing: Path,
     return words
 
 
+def planned_board_problem(form: dict[str, Any], config: Any) -> str | None:
+    """Why the form's board cannot be planned at its distance with the running camera model
+    (``board_size_problem``), judged before the planner is spawned; None when it may be, or
+    when the form cannot say (the planner then names what is wrong)."""
+    if config.calibration is None or not isinstance(form.get("board"), str):
+        return None
+    try:
+        board = Board.parse(form["board"])
+        distance = float(form.get("distance"))  # type: ignore[arg-type]
+    except (VgripError, TypeError, ValueError):
+        return None
+    left = config.calibration.left
+    return board_size_problem(board.cols, board.rows, board.pitch_mm, distance, left.width,
+                              left.height, left.fx, left.fy)
+
+
 def _reason(stderr: str, rc: int) -> str:
     lines = [ln.removeprefix("error: ") for ln in stderr.strip().splitlines() if ln.strip()]
     return "\n".join(lines[-20:]) or f"the command exited with {rc}"
@@ -222,6 +239,9 @@ class WalkRoutes:
                 if output is not None and output.exists() and b"[plan]" not in \
                         output.read_bytes()[:4096]:
                     raise TuningError(f"{output}: exists and is no plan: choose another name")
+                board_problem = planned_board_problem(form, self.server.daemon.config)
+                if board_problem:
+                    raise TuningError(f"plan: {board_problem}; the planner was not started")
                 with tempfile.TemporaryDirectory(prefix="vgripd-plan-") as tmp:
                     drawing = Path(tmp) / "plan.png"
                     words = plan_command(form, config_path, drawing, output)
