@@ -1,6 +1,7 @@
 """The web view against a guessing client and malformed bodies, over loopback: wrong tokens
 (Bearer header and ``/login``) are slowed and then locked out per client address, counted in
-``/metrics``; a body or a name the daemon cannot use is a 4xx that says why, never a 500.
+``/metrics``; a body or a name the daemon cannot use is a 4xx that says why, never a 500; the
+calibration health shows anonymous readers no secret of ``[about]`` and no absolute path.
 Every flood is bounded (a few hundred requests) and stays on 127.0.0.0/8.
 """
 
@@ -137,3 +138,28 @@ async def test_bodies_and_names_the_daemon_cannot_use_are_4xx_with_the_reason(
                 text = await resp.text()
                 assert "UTF-8" in text or "utf-8" in text, text
         assert not json.dumps(run.daemon.snapshot(), default=str).count(TOKEN)
+
+
+async def test_calibration_health_redacts_about_and_keeps_paths_from_anonymous_readers(
+        tmp_path: Path) -> None:
+    main = write_cell(tmp_path)
+    cell = tmp_path / "cell.toml"
+    cell.write_text('[about]\ncamera = "rtsp://user:pass-of-cam@cam.local/s"\n'
+                    'api_key = "k-123456"\nnote = "taught"\n\n' + cell.read_text())
+    async with running_file(main) as run, aiohttp.ClientSession() as http:
+        assert run.daemon.status_server is not None
+        base = f"http://127.0.0.1:{run.daemon.status_server.port}"
+        async with http.get(f"{base}/api/calibration") as resp:
+            assert resp.status == 200
+            text = await resp.text()
+        files = json.loads(text)["files"]
+        assert "pass-of-cam" not in text
+        assert "k-123456" not in text
+        assert str(tmp_path) not in text
+        entry = next(f for f in files if f["file"] == "cell.toml")
+        assert entry["about"] == {"camera": "rtsp://<redacted>@cam.local/s",
+                                  "api_key": "<redacted>", "note": "taught"}
+        async with http.get(f"{base}/api/calibration", headers=AUTH) as resp:
+            held = await resp.json()
+        assert str(cell) in [f["file"] for f in held["files"]]
+        assert "k-123456" not in json.dumps(held)

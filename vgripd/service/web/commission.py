@@ -239,7 +239,8 @@ class CommissionRoutes:
                 last = record.result.T_base_obj
                 break
         return web.json_response({
-            "files": calibration_files(None if reloader is None else reloader.path),
+            "files": calibration_files(None if reloader is None else reloader.path,
+                                       full_paths=self.server.access.holds_token(request)),
             "geometry": cell_geometry(daemon.config, last),
             "recalibrate": daemon.epipolar.snapshot(time.monotonic_ns()),
         })
