@@ -349,6 +349,12 @@ class StatusConfig(Model):
     header_timeout_s: float = Field(default=10.0, ge=0.5, le=600.0)
     body_timeout_s: float = Field(default=10.0, ge=0.5, le=600.0)
     allow: AllowList = None
+    # Wrong tokens (docs/web.md, "Wrong tokens"), per client address as the OPC UA link's
+    # logins: each answered no sooner than 1 / `login_rate_per_s` after the previous one,
+    # `login_failures` in a row lock the address's tokens out for `login_lockout_s`.
+    login_failures: int = Field(default=10, ge=1, le=1000)
+    login_rate_per_s: float = Field(default=10.0, gt=0.0, le=1000.0)
+    login_lockout_s: float = Field(default=60.0, ge=0.0, le=86400.0)
 
     @field_validator("token")
     @classmethod

@@ -4,9 +4,11 @@ the daemon saw: the web page and ``/api/config``, the status and job JSON, each 
 
 Two kinds of secret are hidden:
 
-- the value of a key that names one (``token``, ``password``/``passwd``, ``secret``,
-  ``credential``, ``api_key``/``apikey``, ``private_key``, a key ``key`` or ending in ``_key``),
-  at any depth, whatever its type;
+- the value of a key that names one (``token``, ``password``/``passwd``, ``passphrase``,
+  ``secret``, ``credential``, ``api_key``/``apikey``, ``private_key``, ``access_key``), at any
+  depth, whatever its type. A key named plain ``key`` is no secret: it names a config key (a
+  job diagnosis' ``causes[].key``, ``vision.working_distance_mm``), and hiding it would hide
+  the diagnosis;
 - credentials inside a string, wherever the string is: the user information of a URL
   (``rtsp://admin:pw@cam/stream`` -> ``rtsp://<redacted>@cam/stream``) and a query parameter
   that names a secret (``?token=...``, ``&password=...``).
@@ -23,7 +25,8 @@ from typing import Any
 REDACTED = "<redacted>"
 
 _SECRET_KEY = re.compile(
-    r"token|passw(or)?d|secret|credential|api_?key|private_?key|(^|[_\-.])key$", re.IGNORECASE)
+    r"token|passw(or)?d|passphrase|secret|credential|(api|private|access)[_\-.]?key",
+    re.IGNORECASE)
 # scheme://user[:password]@ : from "//" to the last "@" before the path (a password may hold "@").
 _URL_USERINFO = re.compile(r"(?P<scheme>\b[a-z][a-z0-9+.\-]*://)(?P<userinfo>[^/?#\s]+)@",
                            re.IGNORECASE)

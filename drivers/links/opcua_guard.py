@@ -12,8 +12,9 @@ refused client certificates are kept (docs/opcua.md, "Security").
   (asyncua would keep both, and a watchdog task for each). RegisterServer(2) is refused (vgripd
   is no discovery server). A refused session request is answered without asyncua's ERROR
   lines: one rate-limited WARNING of ours.
-- ``LoginThrottle`` (no I/O, the clock passed in) slows failed logins per client address and
-  locks an address out after ``login_failures`` failures in a row.
+- ``LoginThrottle`` (``vgripd.service.throttle``, shared with the web view) slows failed
+  logins per client address and locks an address out after ``login_failures`` failures in a
+  row.
 - ``RejectedStore`` keeps refused client certificates, one file per thumbprint, the oldest
   removed beyond ``rejected_max_files`` files or ``REJECTED_MAX_BYTES``.
 """
@@ -26,8 +27,7 @@ import contextvars
 import logging
 import os
 import time
-from collections import Counter, OrderedDict
-from dataclasses import dataclass
+from collections import Counter
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -36,6 +36,8 @@ from asyncua.common.utils import ServiceError
 from asyncua.crypto.security_policies import SECURITY_POLICY_TYPE_MAP
 from asyncua.server.uaprocessor import UaProcessor
 from asyncua.ua.ua_binary import struct_from_binary
+
+from vgripd.service.throttle import LoginThrottle
 
 
 class GuardedLink(Protocol):
@@ -80,8 +82,6 @@ LOGIN_FAILURES = frozenset({
 })
 #: Bytes the rejected-certificate store may hold (besides its file count).
 REJECTED_MAX_BYTES = 4 * 1024 * 1024
-#: Client addresses the throttle remembers (the oldest idle one is forgotten first).
-MAX_TRACKED = 4096
 
 _QUIET: contextvars.ContextVar[bool] = contextvars.ContextVar("vgripd_opcua_quiet",
                                                               default=False)
@@ -128,74 +128,6 @@ def status_name(code: int) -> str:
 
 
 # -- failed logins ----------------------------------------------------------------------------
-
-
-@dataclass
-class _Client:
-    failures: int = 0  # failed logins in a row (forgotten after lockout_s without one)
-    last_failure: float = 0.0
-    next_answer: float = 0.0  # the earliest time the next failure may be answered
-    locked_until: float = 0.0
-
-
-class LoginThrottle:
-    """Failed logins per client address: each failure is answered no sooner than
-    ``1 / rate_per_s`` after the address's previous one (so no client learns more than
-    ``rate_per_s`` answers a second, however many connections it opens); ``max_failures``
-    failures in a row (none older than ``lockout_s`` apart, a successful login resets the
-    count) lock the address out for ``lockout_s``: its logins are then refused unchecked.
-    Times are ``time.monotonic()`` seconds, passed in."""
-
-    def __init__(self, max_failures: int, rate_per_s: float, lockout_s: float,
-                 max_tracked: int = MAX_TRACKED) -> None:
-        self.max_failures = max_failures
-        self.interval_s = 1.0 / rate_per_s
-        self.lockout_s = lockout_s
-        self.max_tracked = max_tracked
-        self._clients: OrderedDict[str, _Client] = OrderedDict()
-
-    def locked(self, host: str, now: float) -> float:
-        """Seconds of lockout left for ``host`` (0: it may try)."""
-        client = self._clients.get(host)
-        return max(0.0, client.locked_until - now) if client is not None else 0.0
-
-    def failed(self, host: str, now: float) -> tuple[float, bool]:
-        """Count a failed login of ``host``: (seconds to hold the answer back, whether this
-        failure started a lockout)."""
-        client = self._clients.pop(host, None) or _Client()
-        self._clients[host] = client  # most recently active last
-        if now - client.last_failure > self.lockout_s:
-            client.failures = 0
-        client.failures += 1
-        client.last_failure = now
-        slot = max(now, client.next_answer)
-        client.next_answer = slot + self.interval_s
-        locked = client.failures >= self.max_failures and client.locked_until <= now
-        if locked:
-            client.locked_until = slot + self.lockout_s
-            client.failures = 0
-        self._forget(now)
-        return slot - now, locked
-
-    def succeeded(self, host: str) -> None:
-        client = self._clients.get(host)
-        if client is not None and not client.locked_until:
-            del self._clients[host]
-        elif client is not None:
-            client.failures = 0
-
-    def _forget(self, now: float) -> None:
-        """Drop addresses that are neither locked nor failed recently; then the oldest."""
-        if len(self._clients) <= self.max_tracked:
-            return
-        for host, client in list(self._clients.items()):
-            if client.locked_until <= now and now - client.last_failure > self.lockout_s:
-                del self._clients[host]
-        while len(self._clients) > self.max_tracked:
-            self._clients.popitem(last=False)
-
-    def __len__(self) -> int:
-        return len(self._clients)
 
 
 # -- refused certificates ---------------------------------------------------------------------

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from drivers.links.opcua_guard import LoginThrottle, RejectedStore
+from drivers.links.opcua_guard import RejectedStore
+from vgripd.service.throttle import LoginThrottle
 
 
 def test_failures_are_spaced_then_the_address_is_locked_out() -> None:

@@ -19,7 +19,13 @@ from typing import Any
 
 from vgripd.calib.boards import Board
 from vgripd.calib.files import dumps
-from vgripd.calib.handeye.plan import MAX_CONDITION, draw_plan, plan_data, plan_hand_eye
+from vgripd.calib.handeye.plan import (
+    MAX_CONDITION,
+    board_size_problem,
+    draw_plan,
+    plan_data,
+    plan_hand_eye,
+)
 from vgripd.calib.output import emit
 from vgripd.config import load_config
 from vgripd.errors import CalibrationError, ConversionError
@@ -83,6 +89,10 @@ def run_plan(args: argparse.Namespace) -> int:
         raise CalibrationError(f"--around: {err}") from None
     travel, tilt = _numbers(args.box, 2, "--box")
     board = Board.parse(args.board)
+    problem = board_size_problem(board.cols, board.rows, board.pitch_mm, args.distance,
+                                 camera.width, camera.height, camera.fx, camera.fy)
+    if problem:
+        raise CalibrationError(problem)
     he = config.calibration.hand_eye
     X_guess = None
     if args.mode == "eye-in-hand" and he.mounting == "robot" and he.T_flange_camera:

@@ -27,7 +27,7 @@ import numpy as np
 from vgripd.config import load_config
 from vgripd.service.recorder import dict_from_result
 from vgripd.types import ImagePair, JobResult
-from vgripd.vision.pipeline import Pipeline
+from vgripd.vision.checked import CheckedPipeline
 
 
 class ImageFileError(Exception):
@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     except ImageFileError as err:
         print(f"vgripd locate: {err}", file=sys.stderr)
         return 2
-    pipeline = Pipeline(config)
+    pipeline = CheckedPipeline(config)  # the daemon's: the check's findings first
     pair = ImagePair.of_views(images, time.monotonic_ns(), source=args.left)
     result = dataclasses.replace(pipeline.process(pair, job_id=1), recipe=args.recipe)
     if args.json:

@@ -53,7 +53,7 @@ from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.recorder import dict_from_result
 from vgripd.types import ImagePair, JobResult
 from vgripd.vision.annotate import annotate
-from vgripd.vision.pipeline import Pipeline
+from vgripd.vision.checked import CheckedPipeline
 
 GRAB_TIMEOUT_S = 30.0
 LAYOUT_KEYS = ("glob", "left_glob", "right_glob")
@@ -185,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"replay: skipped {len(frames.skipped)} non-image file(s) in {folder}: "
               + ", ".join(p.name for p in frames.skipped), file=sys.stderr)
     recipe = recorded_recipe(folder) if args.recipe is None else args.recipe
-    pipeline = Pipeline(config.for_recipe(recipe))
+    pipeline = CheckedPipeline(config.for_recipe(recipe))  # as the daemon diagnoses
     cls = load_class(CAMERAS, "camera", "replay")
     camera = cls(validate_options(cls, section, "camera"), config)
     out = Path(args.annotate) if args.annotate else None

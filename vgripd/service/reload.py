@@ -37,7 +37,7 @@ from typing import Any
 from vgripd.config import Config, config_from_dict, load_config
 from vgripd.errors import ConfigError
 from vgripd.redaction import redact
-from vgripd.service.commands import run_vgripd
+from vgripd.service.commands import CommandTimeout, run_vgripd
 from vgripd.service.worker import WorkerError
 
 log = logging.getLogger("vgripd.reload")
@@ -145,7 +145,7 @@ class Reloader:
 
     def __init__(self, daemon: Any, path: str | Path) -> None:
         self.daemon = daemon
-        self.path = Path(path)
+        self.path = Path(path).absolute()  # the check child runs in "/"
         self.audit: deque[Outcome] = deque(maxlen=AUDIT_KEEP)
         self.last: Outcome | None = None
         self._lock = asyncio.Lock()
@@ -188,7 +188,7 @@ class Reloader:
                 restart = [k for k in restart_keys(old, new)
                            if k not in self.live or flat_new.get(k, ...) != self.live[k]]
                 target = applicable(old, new)
-            except ConfigError as err:
+            except (ConfigError, CommandTimeout) as err:
                 return self._audit(Outcome(False, f"refused, the running config stays: {err}",
                                            source=source, t_wall=time.time()), note)
             diff = config_diff(old, target)

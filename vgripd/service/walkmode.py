@@ -49,7 +49,7 @@ from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
 from vgripd.errors import CalibrationError, CameraError, ConfigError, VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.service.cameras import CameraSupervisor
-from vgripd.service.commands import run_vgripd
+from vgripd.service.commands import CommandTimeout, run_vgripd
 from vgripd.service.handeye_walk import WalkServer, walk_refusal
 from vgripd.service.jobcore import Command
 from vgripd.service.jobs import JobRunner
@@ -288,6 +288,8 @@ class WalkMode:
             rc, stdout, stderr = await run_vgripd(
                 ["calibrate", "handeye", "--samples", str(walk.path), "--intrinsics",
                  str(config_path), "-o", str(out), "--json"], SOLVE_TIMEOUT_S)
+        except CommandTimeout as err:
+            rc, stdout, stderr = 1, "", str(err)
         finally:
             self.solving = False
         if rc == 0:

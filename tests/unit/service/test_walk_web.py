@@ -78,3 +78,25 @@ def test_a_form_becomes_the_plan_command_and_no_option(tmp_path: Path) -> None:
                          ("board", "x" * 500)):
         with pytest.raises(TuningError, match=field):
             plan_command({**form, field: value}, tmp_path / "c.toml", tmp_path / "d.png", None)
+
+
+def test_a_board_the_planner_cannot_use_is_refused_before_it_is_spawned() -> None:
+    """A board of 500x500 squares ran the planner for minutes and ended in an internal error:
+    its size in the image is judged first, from the running camera model."""
+    from types import SimpleNamespace
+
+    from vgripd.calib.handeye.plan import board_size_problem
+    from vgripd.service.web.walking import planned_board_problem
+
+    left = SimpleNamespace(width=1280, height=1024, fx=1200.0, fy=1200.0)
+    config = SimpleNamespace(calibration=SimpleNamespace(left=left))
+    form = {"board": "chessboard:500x500:20", "distance": 600}
+    assert "250000 corners" in (planned_board_problem(form, config) or "")
+    form = {"board": "chessboard:9x6:2", "distance": "600"}  # 4 px between corners
+    assert "at least 8 px" in (planned_board_problem(form, config) or "")
+    form = {"board": "chessboard:40x30:30", "distance": 600}  # 2340 px wide
+    assert "does not fit" in (planned_board_problem(form, config) or "")
+    assert planned_board_problem({"board": "chessboard:9x6:30", "distance": 600}, config) is None
+    assert board_size_problem(9, 6, 30.0, 600.0, 1280, 1024, 1200.0, 1200.0) is None
+    # what only the planner can judge is left to it
+    assert planned_board_problem({"board": "chessboard:9x6:30", "distance": "far"}, config) is None

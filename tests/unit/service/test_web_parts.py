@@ -68,6 +68,24 @@ def test_redact_hides_every_secret_key_at_any_depth() -> None:
                    "a": {"api_key": "<redacted>", "secret_file": None}}
 
 
+def test_redact_keeps_a_diagnosis_key_and_hides_secrets_by_their_names() -> None:
+    """A field named ``key`` names a config key (a diagnosis' cause), never a secret; secrets
+    are found by their own names and inside URLs."""
+    diagnosis = {"causes": [{"key": "vision.working_distance_mm", "reason": "2 size rejected"}]}
+    data = {"last_job": {"diagnosis": diagnosis},
+            "about": {"camera": "rtsp://user:pass@cam/s", "api_key": "k1", "apikey": "k2",
+                      "private_key": "k3", "access-key": "k4", "passphrase": "p",
+                      "client_secret": "s", "key": "vision.min_contrast"}}
+    out = redact(data)
+    assert out["last_job"]["diagnosis"] == diagnosis
+    about = out["about"]
+    assert about["key"] == "vision.min_contrast"
+    assert about["camera"] == "rtsp://<redacted>@cam/s"
+    for name in ("api_key", "apikey", "private_key", "access-key", "passphrase",
+                 "client_secret"):
+        assert about[name] == "<redacted>", name
+
+
 def test_register_map_is_decoded_with_names_in_either_word_order() -> None:
     for order in ("ABCD", "CDAB"):
         bank = RegisterBank(ValueCodec(order, "float32"))
@@ -208,7 +226,7 @@ def test_the_grafana_dashboard_and_docs_use_only_exported_metrics() -> None:
     daemon.recorder = SimpleNamespace(total_bytes=10)
     daemon.record_dropped = 0
     daemon.undelivered = Counter({"OK": 1})
-    metrics = Metrics(daemon)
+    metrics = Metrics(daemon, SimpleNamespace(failures=0, lockouts=0, refused_locked=0))
     result = JobResult(job_id=1, status=Status.OK, timings_ms={"process": 1.0})
     metrics.observe(SimpleNamespace(result=result, cycle_ms=1.0, published=None))
     exported = {s.name for fam in text_string_to_metric_families(metrics.render().decode())

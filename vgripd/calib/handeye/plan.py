@@ -332,11 +332,55 @@ def load_plan(path: str) -> LoadedPlan:
                       str(head.get("pose_format", "matrix")), poses, cond, head)
 
 
+#: The most corners a planned board may have (a plan projects every corner of every candidate).
+MAX_BOARD_CORNERS = 10_000
+
+
+def board_size_problem(cols: int, rows: int, pitch_mm: float, distance_mm: float, width: int,
+                       height: int, fx: float, fy: float) -> str | None:
+    """Why a board of ``cols`` x ``rows`` at ``pitch_mm`` cannot be planned at ``distance_mm``
+    from a camera of ``width`` x ``height`` px and focal lengths ``fx``, ``fy`` px, facing it
+    squarely (the start pose; tilting only shrinks the spacing); None when it may. Cheap: run
+    before the planner, which would project every corner of hundreds of candidates."""
+    if cols * rows > MAX_BOARD_CORNERS:
+        return (f"board {cols}x{rows}: {cols * rows} corners, a plan takes at most "
+                f"{MAX_BOARD_CORNERS}")
+    if not (math.isfinite(distance_mm) and distance_mm > 0):
+        return None  # the planner names it
+    spacing_px = min(fx, fy) * pitch_mm / distance_mm
+    if spacing_px < MIN_SPACING_PX:
+        return (f"board pitch {pitch_mm:g} mm at --distance {distance_mm:g} mm is "
+                f"{spacing_px:.1f} px in the image: the detector needs at least "
+                f"{MIN_SPACING_PX:g} px (a closer distance or a coarser board)")
+    w_px = fx * (cols - 1) * pitch_mm / distance_mm
+    h_px = fy * (rows - 1) * pitch_mm / distance_mm
+    free = 1.0 - 2 * MARGIN_FRACTION
+    if w_px > free * width or h_px > free * height:
+        return (f"board {cols}x{rows} at pitch {pitch_mm:g} mm is {w_px:.0f} x {h_px:.0f} px at "
+                f"--distance {distance_mm:g} mm: it does not fit the {width} x {height} px image "
+                "(a farther distance or a smaller board)")
+    return None
+
+
+#: The longest plan name the page takes (characters; a file name holds at most 255 bytes).
+MAX_PLAN_NAME = 200
+
+
 def plan_inside(config_path: Path, plan: str | Path) -> Path:
     """``plan`` (relative to the config's folder) as a path inside that folder;
-    ``CalibrationError`` for one outside it (the page names files, it does not browse)."""
+    ``CalibrationError`` for one outside it (the page names files, it does not browse), and
+    for a name no file can have (a control character, longer than ``MAX_PLAN_NAME``)."""
+    text = str(plan)
+    if len(text) > MAX_PLAN_NAME:
+        raise CalibrationError(f"plan {text[:40]!r}...: {len(text)} characters, at most "
+                               f"{MAX_PLAN_NAME}")
+    if any(ord(c) < 32 or ord(c) == 127 for c in text):
+        raise CalibrationError(f"plan {text!r}: a control character (such as NUL) in the name")
     folder = config_path.resolve().parent
-    path = (folder / plan).resolve()
+    try:
+        path = (folder / plan).resolve()
+    except (OSError, ValueError) as err:
+        raise CalibrationError(f"plan {text!r}: {err}") from None
     if not path.is_relative_to(folder) or path.suffix != ".toml":
         raise CalibrationError(f"plan {str(plan)!r}: a .toml file inside {folder}")
     return path

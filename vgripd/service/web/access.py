@@ -9,6 +9,11 @@ and one response hook, apart from the routes themselves:
   ``status.public_read``: ``Authorization: Bearer <token>``, or the session cookie that
   ``POST /login`` sets for a browser (HttpOnly, SameSite=Strict). Actions take the header only,
   so the cookie alone can never start one (no cross-site request can set that header);
+- a presented token (the ``Bearer`` header on any route, the ``/login`` form) is judged once
+  per request, and wrong ones are throttled per client address (``LoginThrottle``, as the OPC
+  UA link's logins): each failure answered no sooner than ``1 / login_rate_per_s`` after the
+  address's previous one, ``login_failures`` in a row lock the address out for
+  ``login_lockout_s``: its tokens are then refused unchecked (429, the right one too);
 - an exception a handler did not turn into an answer is a 500 with one rate-limited log line,
   never a traceback per request;
 - every answer carries the security headers (``SECURITY_HEADERS``).
@@ -25,14 +30,17 @@ import hmac
 import ipaddress
 import logging
 import socket
+import time
 import traceback
 from collections.abc import Awaitable, Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
 
 from vgripd.redaction import REDACTED
 from vgripd.service.ratelog import RateLimitedLog
+from vgripd.service.throttle import LoginThrottle
+from vgripd.service.web.bodies import login_form
 
 if TYPE_CHECKING:
     from vgripd.config import StatusConfig
@@ -68,6 +76,10 @@ LOGIN_PAGE = """<!doctype html>
 """
 LOGIN_ASK = "This view needs the token ([status] token in the daemon's config)."
 LOGIN_WRONG = "Wrong token."
+#: Where the middleware keeps its judgement of a request's Bearer token.
+# (aiohttp before 3.12 has no RequestKey: a plain string key there)
+_JUDGED: Any = (web.RequestKey("vgripd_bearer_ok", bool) if hasattr(web, "RequestKey")
+                else "vgripd_bearer_ok")
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
@@ -127,6 +139,14 @@ class Access:
         self._session = (None if self._token is None else hmac.new(
             self._token.encode(), b"vgripd web session", hashlib.sha256).hexdigest())
         self.ratelog = RateLimitedLog(log, interval_s=60.0)
+        self.throttle = LoginThrottle(st.login_failures, st.login_rate_per_s,
+                                      st.login_lockout_s)
+        self.lockout_s = st.login_lockout_s
+        #: Wrong tokens counted (``vgripd_web_login_failures_total``), lockouts begun, and
+        #: tokens refused unchecked while their address was locked out (``/metrics``).
+        self.failures = 0
+        self.lockouts = 0
+        self.refused_locked = 0
 
     # --- checks ---------------------------------------------------------------------------
 
@@ -141,11 +161,46 @@ class Access:
             return True
         return self._wildcard and local is not None and _same_ip(name, local)
 
-    def bearer_ok(self, request: web.Request) -> bool:
-        """The request carries ``Authorization: Bearer <token>`` (constant-time compare)."""
-        given = _parse_bearer(request)
+    def _matches(self, given: str) -> bool:
         return self._token is not None and hmac.compare_digest(given.encode(),
                                                                self._token.encode())
+
+    def bearer_ok(self, request: web.Request) -> bool:
+        """The request carries ``Authorization: Bearer <token>`` (constant-time compare; the
+        middleware's judgement, which counted a wrong one)."""
+        judged = request.get(_JUDGED)
+        return bool(judged) if judged is not None else self._matches(_parse_bearer(request))
+
+    async def judge(self, request: web.Request, given: str, where: str) -> bool:
+        """Whether ``given`` is the token, throttled per client address: a wrong one is
+        counted and answered no sooner than the throttle says; while the address is locked
+        out, 429 without a look at ``given``."""
+        host = request.remote or "?"
+        now = time.monotonic()
+        left = self.throttle.locked(host, now)
+        if left > 0:
+            self.refused_locked += 1
+            raise web.HTTPTooManyRequests(
+                headers={"Retry-After": str(max(1, round(left)))},
+                text=f"too many wrong tokens from {host}: tokens from this address are refused "
+                     f"for {left:.0f} s more (status.login_lockout_s)")
+        if self._matches(given):
+            self.throttle.succeeded(host)
+            return True
+        self.failures += 1
+        delay, locked = self.throttle.failed(host, now)
+        if locked:
+            self.lockouts += 1
+            self.ratelog.warning(host, "lockout", "web view: %s: %d wrong tokens in a row (the "
+                                 "last at %s): its tokens are refused for %g s "
+                                 "(status.login_lockout_s)", host, self.throttle.max_failures,
+                                 where, self.lockout_s)
+        else:
+            self.ratelog.warning(host, "login", "web view: wrong token at %s from %s", where,
+                                 host)
+        if delay > 0:
+            await asyncio.sleep(delay)
+        return False
 
     def holds_token(self, request: web.Request) -> bool:
         """The request carries the token: the header, or the session cookie of ``/login``."""
@@ -172,6 +227,9 @@ class Access:
                                  request.headers.get("Host", "")[:100], client)
             raise web.HTTPMisdirectedRequest(
                 text="this Host is not served here (status.allowed_hosts)")
+        given = _parse_bearer(request)
+        if given:  # judged once, here: a wrong one counts whatever the route
+            request[_JUDGED] = await self.judge(request, given, request.path[:100])
         if (self.guards_reads and request.path not in OPEN_PATHS
                 and not self.holds_token(request)):
             return self._unauthorized(request)
@@ -206,13 +264,9 @@ class Access:
 
     async def login(self, request: web.Request) -> web.Response:
         """``POST /login`` (form field ``token``): the session cookie and back to the page."""
-        form = await request.post()
-        given = form.get("token")
-        if (self._session is None or self._token is None or not isinstance(given, str)
-                or not hmac.compare_digest(given.encode(), self._token.encode())):
-            client = request.remote or "?"
-            self.ratelog.warning(client, "login", "web view: wrong token at /login from %s",
-                                 client)
+        given = (await login_form(request)).get("token", "")
+        if self._session is None or not given or not await self.judge(request, given,
+                                                                        "/login"):
             return web.Response(status=403, text=LOGIN_PAGE.format(message=LOGIN_WRONG),
                                 content_type="text/html")
         resp = web.Response(status=303, headers={"Location": "/"})

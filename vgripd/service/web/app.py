@@ -230,7 +230,7 @@ class WebServer:
         self._allow_bundle = st.allow_support_bundle
         self.history: deque[tuple[JobRecord, dict[str, Any]]] = deque(maxlen=st.history)
         self.events = EventHub()
-        self.metrics = Metrics(daemon)
+        self.metrics = Metrics(daemon, self.access)
         self.images = ImageRenderer(daemon.config)
         self.logs = LogRing()
         self._runner: web.AppRunner | None = None

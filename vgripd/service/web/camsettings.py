@@ -36,6 +36,7 @@ from vgripd.config import load_config, read_config_data
 from vgripd.errors import CameraError, CameraSettingError, ConfigError
 from vgripd.serialize import toml_from_dict
 from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.web.bodies import json_body
 from vgripd.service.web.commission import _prune, _write, next_backup, tuning_target
 
 log = logging.getLogger(__name__)
@@ -141,10 +142,7 @@ class CameraSettingsRoutes:
         reloader = daemon.reloader
         if reloader is None:
             raise web.HTTPNotFound(text="this daemon was not started from a config file")
-        try:
-            body = await request.json()
-        except ValueError:
-            raise web.HTTPBadRequest(text="the body must be JSON") from None
+        body = await json_body(request)
         values = parse_settings(body)
         text = request.match_info["j"]
         cameras = (daemon.config.calibration.cameras if daemon.config.calibration is not None

@@ -35,6 +35,7 @@ from vgripd.config import Config, config_from_dict, read_config_data
 from vgripd.errors import ConfigError
 from vgripd.serialize import toml_from_dict
 from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.web.bodies import json_body
 from vgripd.service.web.health import calibration_files, cell_geometry
 
 log = logging.getLogger(__name__)
@@ -238,7 +239,8 @@ class CommissionRoutes:
                 last = record.result.T_base_obj
                 break
         return web.json_response({
-            "files": calibration_files(None if reloader is None else reloader.path),
+            "files": calibration_files(None if reloader is None else reloader.path,
+                                       full_paths=self.server.access.holds_token(request)),
             "geometry": cell_geometry(daemon.config, last),
             "recalibrate": daemon.epipolar.snapshot(time.monotonic_ns()),
         })
@@ -258,10 +260,7 @@ class CommissionRoutes:
     async def save(self, request: web.Request) -> web.Response:
         self.server._guard(request, self.enabled)
         reloader = self._reloader()
-        try:
-            body = await request.json()
-        except ValueError:
-            raise web.HTTPBadRequest(text="the body must be JSON") from None
+        body = await json_body(request)
         vision, polarity = parse_edit(body)
         async with self._saving:
             return self._answer(await save_tuning(reloader, vision, polarity,
@@ -271,10 +270,7 @@ class CommissionRoutes:
         """The edited pipeline on the last job's images (in the image helper process, never on
         the loop); nothing is saved or applied."""
         self.server._guard(request, self.enabled)
-        try:
-            body = await request.json()
-        except ValueError:
-            raise web.HTTPBadRequest(text="the body must be JSON") from None
+        body = await json_body(request)
         vision, polarity = parse_edit(body)
         job_id: int | None
         if body.get("grab"):  # a fresh picture, taken as a live preview is: between jobs only

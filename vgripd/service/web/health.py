@@ -20,15 +20,29 @@ import numpy as np
 
 from vgripd.config import Config, read_config_data
 from vgripd.errors import VgripError
+from vgripd.redaction import redact
 from vgripd.serialize import jsonable
 
 #: Keys under ``calibration`` whose file is listed (a part each).
 PARTS = ("left", "right", "stereo", "hand_eye", "cameras", "rigs")
 
 
-def calibration_files(config_path: Path | None) -> list[dict[str, Any]]:
-    """Per file that sets part of ``calibration`` or ``reference``: its path, what it sets,
-    its modification time and its ``[about]`` (how it was made)."""
+def shown_path(source: str, folder: Path, full: bool) -> str:
+    """``source`` as a reader may see it: in full for a token holder; else relative to the
+    config's ``folder`` (inside it) or its name alone, never the machine's absolute path."""
+    if full:
+        return source
+    path = Path(source)
+    try:
+        return str(path.relative_to(folder))
+    except ValueError:
+        return path.name
+
+
+def calibration_files(config_path: Path | None, full_paths: bool = True) -> list[dict[str, Any]]:
+    """Per file that sets part of ``calibration`` or ``reference``: its path (relative to the
+    config's folder unless ``full_paths``), what it sets, its modification time and its
+    ``[about]`` (how it was made; secrets redacted, as everything the view shows)."""
     if config_path is None:
         return []
     owner: dict[str, str] = {}
@@ -44,16 +58,18 @@ def calibration_files(config_path: Path | None) -> list[dict[str, Any]]:
         elif head[0] == "reference":
             files.setdefault(source, set()).add("reference")
     out = []
+    folder = config_path.absolute().parent
     for source, parts in sorted(files.items()):
         path = Path(source)
-        entry: dict[str, Any] = {"file": source, "sets": sorted(parts), "about": {}}
+        shown = shown_path(source, folder, full_paths)
+        entry: dict[str, Any] = {"file": shown, "sets": sorted(parts), "about": {}}
         try:
             entry["modified"] = time.strftime("%Y-%m-%dT%H:%M:%S%z",
                                               time.localtime(os.stat(path).st_mtime))
-            entry["about"] = jsonable(tomllib.loads(path.read_text(encoding="utf-8"))
-                                      .get("about", {}))
+            entry["about"] = redact(jsonable(tomllib.loads(path.read_text(encoding="utf-8"))
+                                             .get("about", {})))
         except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-            entry["error"] = str(err)
+            entry["error"] = redact(str(err).replace(source, shown))
         out.append(entry)
     return out
 

@@ -96,10 +96,29 @@ class _DaemonCollector(Collector):
                                       "because the disk was behind", value=d.record_dropped)
 
 
+class _AccessCollector(Collector):
+    """The web view's wrong tokens (``access.Access``), read at scrape time."""
+
+    def __init__(self, access: Any) -> None:
+        self._access = access
+
+    def collect(self) -> Iterator[Any]:
+        a = self._access
+        yield CounterMetricFamily("vgripd_web_login_failures", "Wrong tokens presented to the "
+                                  "web view (Bearer header or /login), all addresses",
+                                  value=a.failures)
+        yield CounterMetricFamily("vgripd_web_lockouts", "Client addresses locked out of the "
+                                  "web view's token after status.login_failures wrong ones",
+                                  value=a.lockouts)
+        yield CounterMetricFamily("vgripd_web_login_refused_locked", "Tokens refused "
+                                  "unchecked (429) while their address was locked out",
+                                  value=a.refused_locked)
+
+
 class Metrics:
     """The daemon's metrics registry; ``observe`` each finished job, ``render`` to scrape."""
 
-    def __init__(self, daemon: DaemonView) -> None:
+    def __init__(self, daemon: DaemonView, access: Any = None) -> None:
         self.registry = CollectorRegistry()
         r = self.registry
         self.jobs = Counter("vgripd_jobs", "Finished jobs by status (what the job found; "
@@ -120,6 +139,8 @@ class Metrics:
         self.undelivered_jobs = Counter("vgripd_jobs_undelivered", "Finished jobs whose "
                                         "result could not be published", registry=r)
         r.register(_DaemonCollector(daemon))
+        if access is not None:
+            r.register(_AccessCollector(access))
 
     def observe(self, record: JobRecord) -> None:
         result = record.result

@@ -38,12 +38,14 @@ from typing import Any
 
 from aiohttp import web
 
-from vgripd.calib.handeye.plan import plan_inside
+from vgripd.calib.boards import Board
+from vgripd.calib.handeye.plan import board_size_problem, plan_inside
 from vgripd.config import read_config_data
 from vgripd.errors import ConfigError, VgripError
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.commands import run_vgripd
 from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.web.bodies import json_body
 from vgripd.service.web.commission import (
     TuningError,
     _prune,
@@ -131,10 +133,29 @@ def plan_command(form: dict[str, Any], config_path: Path, drawing: Path,
             value = " ".join(str(v) for v in value)
         if not isinstance(value, str | int | float) or isinstance(value, bool) or len(
                 str(value)) > MAX_FIELD:
-            raise TuningError(f"plan: {field} = {value!r}: a number or short text")
+            raise TuningError(f"plan: {field} = {str(value)[:40]!r}: a number or short text "
+                              f"(at most {MAX_FIELD} characters)")
+        if any(ord(c) < 32 or ord(c) == 127 for c in str(value)):
+            raise TuningError(f"plan: {field} = {value!r}: a control character (such as NUL)")
         words.append(f"{flag}={value}")  # one word: a value is never read as an option
     words += ["-o", str(output)] if output is not None else ["--dry-run"]
     return words
+
+
+def planned_board_problem(form: dict[str, Any], config: Any) -> str | None:
+    """Why the form's board cannot be planned at its distance with the running camera model
+    (``board_size_problem``), judged before the planner is spawned; None when it may be, or
+    when the form cannot say (the planner then names what is wrong)."""
+    if config.calibration is None or not isinstance(form.get("board"), str):
+        return None
+    try:
+        board = Board.parse(form["board"])
+        distance = float(form.get("distance"))  # type: ignore[arg-type]
+    except (VgripError, TypeError, ValueError):
+        return None
+    left = config.calibration.left
+    return board_size_problem(board.cols, board.rows, board.pitch_mm, distance, left.width,
+                              left.height, left.fx, left.fy)
 
 
 def _reason(stderr: str, rc: int) -> str:
@@ -188,10 +209,7 @@ class WalkRoutes:
         return reloader.path
 
     async def _body(self, request: web.Request) -> dict[str, Any]:
-        try:
-            body = await request.json()
-        except ValueError:
-            raise web.HTTPBadRequest(text="a JSON object") from None
+        body = await json_body(request)
         if not isinstance(body, dict):
             raise web.HTTPBadRequest(text="a JSON object")
         return body
@@ -221,6 +239,9 @@ class WalkRoutes:
                 if output is not None and output.exists() and b"[plan]" not in \
                         output.read_bytes()[:4096]:
                     raise TuningError(f"{output}: exists and is no plan: choose another name")
+                board_problem = planned_board_problem(form, self.server.daemon.config)
+                if board_problem:
+                    raise TuningError(f"plan: {board_problem}; the planner was not started")
                 with tempfile.TemporaryDirectory(prefix="vgripd-plan-") as tmp:
                     drawing = Path(tmp) / "plan.png"
                     words = plan_command(form, config_path, drawing, output)
