@@ -20,7 +20,10 @@ NEXT goes to the daemon, which answers it from the last job's pick list; the lin
 BAD_REQUEST itself while it holds no list (after start, CLEAR, a LOCATE that found nothing
 pickable, a refusal), like the register handshake; a NEXT the daemon answers without a job
 (BAD_REQUEST: another link's job took the list) is a RESULT, not a REFUSED. While a walked
-hand-eye calibration is served (``set_walking``) every NEXT goes on: the walk answers it.
+hand-eye calibration is served (``set_walking``) every NEXT goes on: the walk answers it; the
+walk belongs to the connection whose NEXT it served first (``WalkOwner``: others are refused
+BUSY), and a request that is no walk request (a LOCATE, a NEXT recipe other than 0 and 1, a
+CAPTURE_AT with a recipe) is refused BAD_REQUEST by the link.
 CAPTURE_AT is a TRIGGER whose ``Trigger.T_base_flange`` is the pose sent, read in
 ``output.vendor``'s convention (``set_vendor``); a pose that is not a transform is refused
 BAD_REQUEST, the log line naming the word. The
@@ -43,6 +46,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ipaddress
 import logging
 import os
 import socket
@@ -58,6 +62,7 @@ from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import ConversionError, convention, transform_from_vendor
 from vgripd.service.gate import Gate
+from vgripd.service.handeye_walk import walk_request_refusal
 from vgripd.service.jobcore import Action, Command, Handshake
 from vgripd.service.protocol import (
     LinkHealth,
@@ -129,6 +134,31 @@ class RobotSocketOptions(BaseModel):
             raise ValueError('allow is for mode = "server" (in client mode vgripd dials the '
                              "robot's host)")
         return self
+
+
+class WalkOwner:
+    """The robot connection a walk belongs to (docs/robot_socket.md, "Walks"): the one
+    whose NEXT it served first. While that connection is open, every other connection's
+    request is refused BUSY. Once it has closed, the next connection from the same address
+    takes the walk over (a program that opens one connection per request, or one started
+    again); other addresses stay BUSY until the walk ends. No I/O: a connection is any
+    object, compared by identity."""
+
+    def __init__(self) -> None:
+        self.conn: object | None = None
+        self.host: str | None = None
+        self.peer = ""  # address:port of the connection that holds it, for messages
+
+    def admits(self, conn: object, host: str) -> bool:
+        return (self.host is None or conn is self.conn
+                or (self.conn is None and host == self.host))
+
+    def take(self, conn: object, host: str, peer: str) -> None:
+        self.conn, self.host, self.peer = conn, host, peer
+
+    def closed(self, conn: object) -> None:
+        if conn is self.conn:
+            self.conn = None
 
 
 @dataclass
@@ -271,6 +301,7 @@ class RobotSocketLink(RobotLink):
         self._handshake = Handshake(edge=False)
         self._warnings = 0
         self._walking = False
+        self._owner = WalkOwner()
         self._refusals: Counter[str] = Counter()
         #: peer faults by kind (malformed, incomplete, not_reading, evicted, idle)
         self.faults: Counter[str] = Counter()
@@ -331,6 +362,21 @@ class RobotSocketLink(RobotLink):
         self._handshake = Handshake(edge=False)
         await self._set_health(LinkState.STOPPED)
 
+    @staticmethod
+    def exposure(options: RobotSocketOptions) -> list[tuple[str, str, str]]:
+        """``vgripd check``'s warning about a server open to any address: a walk belongs to
+        the first connection that asks NEXT, so without ``allow`` any host that reaches the
+        port can take it (and send jobs). ``(level, field, message)``."""
+        if options.mode != "server" or options.allow is not None:
+            return []
+        with contextlib.suppress(ValueError):
+            if ipaddress.ip_address(options.host).is_loopback:
+                return []  # only this machine reaches it
+        return [("WARNING", "allow", f"no allow list: any host that reaches "
+                 f"{options.host}:{options.port} may send requests, and during a hand-eye walk "
+                 "the first connection to ask NEXT gets the walk; set allow = [\"<the robot's "
+                 "address>\"]")]
+
     def health(self) -> LinkHealth:
         h = self._health
         return LinkHealth(h.state, peer=self._where, last_error=h.last_error,
@@ -388,6 +434,7 @@ class RobotSocketLink(RobotLink):
         the first one asks for a target), also without a pick list. After the walk there is
         no pick list: NEXT is refused again until a LOCATE makes one."""
         self._walking = walking
+        self._owner = WalkOwner()  # a new walk belongs to the first to ask NEXT
         if not walking:
             self._handshake.listed = False
 
@@ -423,6 +470,8 @@ class RobotSocketLink(RobotLink):
         self.gate.activity(conn, valid=refusal is None)
         decision = None
         command = Command.TRIGGER if flange is not None else request.command
+        if refusal is None and self._walking:
+            refusal = self._walk_refusal(conn, command, request, flange is not None)
         if refusal is None:  # BUSY while a request runs, BAD_REQUEST for NEXT without a list
             if self._walking and command == Command.NEXT:
                 self._handshake.listed = True  # a walk answers every NEXT
@@ -447,8 +496,37 @@ class RobotSocketLink(RobotLink):
         assert self._on_trigger is not None
         trigger = Trigger(link=self.name, seq=seq, command=command,
                           t_mono_ns=time.monotonic_ns(), T_base_flange=flange,
-                          recipe=request.recipe)
+                          recipe=request.recipe, peer=conn.client)
         asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
+
+    def _walk_refusal(self, conn: RobotConnection, command: int, request: Request,
+                      flange_pose: bool) -> Status | None:
+        """During a walk: BUSY for a connection that is not the walk's (``WalkOwner``),
+        BAD_REQUEST for a request that is no walk request; None when the walk takes it (a
+        NEXT binds the walk to its connection, if nobody holds it)."""
+        owner = self._owner
+        if not owner.admits(conn, conn.host):
+            self._lines.log(logging.WARNING, conn.host, "walk of another",
+                            "%s: %s: request %d (command %d) refused BUSY: the walk belongs "
+                            "to the robot connection %s", self.name, conn.client,
+                            request.request_id, request.command, owner.peer)
+            return Status.BUSY
+        problem = walk_request_refusal(command, request.recipe, flange_pose)
+        if problem is not None:
+            self._lines.log(logging.WARNING, conn.host, "no walk request",
+                            "%s: %s: request %d (command %d) refused BAD_REQUEST: %s",
+                            self.name, conn.client, request.request_id, request.command,
+                            problem)
+            return Status.BAD_REQUEST
+        if owner.conn is not conn and (owner.host is not None or command == Command.NEXT):
+            if owner.host is None:
+                log.info("%s: the walk belongs to the robot connection %s (its first NEXT)",
+                         self.name, conn.client)
+            else:
+                log.info("%s: the walk goes on with %s (%s closed)", self.name, conn.client,
+                         owner.peer)
+            owner.take(conn, conn.host, conn.client)
+        return None
 
     def _flange(self, request: Request) -> tuple[Any, str]:
         """CAPTURE_AT's pose as ``T_base_flange`` (mm), or None and why not (naming the word)."""
@@ -488,6 +566,7 @@ class RobotSocketLink(RobotLink):
 
     def _forget(self, conn: RobotConnection) -> None:
         held = self.gate.forget(conn)
+        self._owner.closed(conn)
         if self._job is not None and self._job.conn is conn:
             self._lines.log(logging.WARNING, conn.host, "lost",
                             "%s: %s gone while request %d runs (%s); its answer cannot be "

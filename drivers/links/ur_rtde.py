@@ -511,7 +511,7 @@ class URRtdeLink(RobotLink):
             T_base_flange = None
         command, view = split_command(command)
         trigger = Trigger(self.name, seq, command, t_mono_ns, T_base_flange, recipe=recipe,
-                          view=view)
+                          view=view, peer=self._peer)
         assert self._on_trigger is not None
         try:
             self._on_trigger(trigger)

@@ -13,7 +13,9 @@
  * Walked hand-eye calibration (VGWALK.JBI; docs/calibration-handeye.md): I054 = 2 asks for
  * the next target, I054 = 3 sends CAPTURE_AT with the flange pose the task reads (tool 0 at
  * the flange, base frame); either way a target without joint values (mpConvCartPosToAxes)
- * is skipped (NEXT with recipe 1) and the next one is left in D052..D057.
+ * is skipped (NEXT with recipe 1) and the next one is left in D052..D057. Tool file 0 must be
+ * all 0 (the flange), as the tool VGWALK moves with: a pose read more than VG_AT_TOL_UM /
+ * VG_AT_TOL_DEG4 off the target the job moved to is not sent, the step answers -2.
  */
 #include "motoPlus.h"
 
@@ -32,6 +34,8 @@
 #define VG_AT_BYTES @@AT_BYTES@@ /* its length: 16 + 7 pose words */
 #define VG_WALK_SPEED_MM_S @@WALK_SPEED_V@@ /* VGWALK.JBI's MOVL V= ([calibration_walk]) */
 #define VG_WALK_SETTLE_S @@WALK_SETTLE_T@@ /* VGWALK.JBI's TIMER T= before CAPTURE_AT */
+#define VG_AT_TOL_UM 1000 /* the flange pose read at a target: within 1 mm ... */
+#define VG_AT_TOL_DEG4 1000 /* ... and 0.1 deg per angle of it, else the walk pauses (-2) */
 #define VG_VAR 50 /* I050.., D050.. */
 #define VG_TICK_MS 4 /* one mpTaskDelay tick: the controller's interpolation period */
 
@@ -107,6 +111,31 @@ static int vgReachable(void)
     vgCoord.ry = vgGet(MP_RESTYPE_VAR_D, VG_VAR + 6);
     vgCoord.rz = vgGet(MP_RESTYPE_VAR_D, VG_VAR + 7);
     return mpConvCartPosToAxes(0, &vgCoord, 0, vgFig, vgNow, MP_KINEMA_FIG, vgAngle) == 0;
+}
+
+/* 1 when the flange pose read (tool file 0) is the target in D052..D057 that VGWALK moved to
+ * (with the tool selected on the pendant): both tools are the flange only then. */
+static int vgAtTarget(const MP_COORD *vgCoord)
+{
+    LONG vgRead[6], vgD;
+    int vgI;
+    vgRead[0] = vgCoord->x;
+    vgRead[1] = vgCoord->y;
+    vgRead[2] = vgCoord->z;
+    vgRead[3] = vgCoord->rx;
+    vgRead[4] = vgCoord->ry;
+    vgRead[5] = vgCoord->rz;
+    for (vgI = 0; vgI < 6; vgI++) {
+        vgD = vgRead[vgI] - vgGet(MP_RESTYPE_VAR_D, VG_VAR + 2 + vgI);
+        if (vgI >= 3) { /* 0.0001 deg, wrapped to -180 .. 180 deg */
+            vgD = (vgD % 3600000 + 5400000) % 3600000 - 1800000;
+        }
+        if (vgD > (vgI < 3 ? VG_AT_TOL_UM : VG_AT_TOL_DEG4)
+                || -vgD > (vgI < 3 ? VG_AT_TOL_UM : VG_AT_TOL_DEG4)) {
+            return 0;
+        }
+    }
+    return 1;
 }
 
 /* One request (VG_LOCATE, VG_NEXT, or VG_CAPTURE_AT with the 7 pose words vgAt): the status
@@ -205,6 +234,9 @@ static LONG vgWalkStep(LONG vgMode)
     if (vgMode == 3) {
         if (vgFlange(&vgCoord) != 0) {
             return -1;
+        }
+        if (!vgAtTarget(&vgCoord)) {
+            return -2; /* tool file 0 or the selected tool is not the flange */
         }
         vgAt[0] = vgCoord.x * (VG_SCALE / 1000); /* 0.001 mm -> mm x scale */
         vgAt[1] = vgCoord.y * (VG_SCALE / 1000);

@@ -16,6 +16,7 @@ import logging
 import socket
 import struct
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -733,3 +734,35 @@ async def test_a_walk_lets_next_through_without_a_pick_list() -> None:
         assert (await peer.answer()).status == Status.BAD_REQUEST
         assert len(triggers) == 1
         await peer.close()
+
+
+def test_check_warns_about_a_server_link_without_allow(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``vgripd check`` warns about a robot socket server open to any address (a hand-eye walk
+    belongs to the first connection that asks NEXT); not with ``allow``, on a loopback
+    address, or in client mode."""
+    from vgripd.__main__ import main
+    from vgripd.config import config_from_dict
+    from vgripd.service.commissioning import check_link_exposure
+
+    def found(**link: Any) -> list[str]:
+        config = config_from_dict({
+            "camera": {"type": "synthetic"}, "status": {"enabled": False},
+            "links": [{"type": "robot_socket", "port": 50100, **link}]})
+        return [f"{f.level} {f.key}: {f.message}" for f in check_link_exposure(config)]
+
+    open_to_all = found(host="0.0.0.0")
+    assert len(open_to_all) == 1
+    assert open_to_all[0].startswith("WARNING links[0].allow: no allow list: any host that "
+                                     "reaches 0.0.0.0:50100")
+    assert "hand-eye walk" in open_to_all[0]
+    assert found(host="0.0.0.0", allow=["10.0.0.21"]) == []
+    assert found(host="127.0.0.1") == []
+    assert found(mode="client", host="10.0.0.21") == []
+    config = tmp_path / "cell.toml"
+    config.write_text('[camera]\ntype = "synthetic"\n[status]\nenabled = false\n'
+                      '[[links]]\ntype = "robot_socket"\nhost = "0.0.0.0"\nport = 50100\n')
+    assert main(["check", "-c", str(config), "--running", "--no-camera"]) == 0
+    out = capsys.readouterr().out
+    assert "warning: " in out
+    assert "links[0].allow: no allow list" in out

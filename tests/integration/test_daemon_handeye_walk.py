@@ -15,8 +15,10 @@ from __future__ import annotations
 import asyncio
 import json
 import sys
+import threading
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import aiohttp
@@ -33,6 +35,7 @@ from vgripd.__main__ import main
 from vgripd.calib.files import pose_table
 from vgripd.calib.handeye.plan import load_plan
 from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
+from vgripd.cli import calibrate_handeye_running
 from vgripd.cli.status import format_status
 from vgripd.config import load_config
 from vgripd.geometry.fingerprint import camera_about, hand_eye_fingerprint, intrinsics_table
@@ -352,3 +355,52 @@ async def test_a_walk_stopped_by_the_daemons_stop_resumes_through_the_command(
     assert [int(ln.split()[1].rstrip(":")) for ln in lines] == list(range(2, len(plan.poses)))
     assert "walk complete: seen" in out
     assert arm.moves == len(reachable)  # no target visited twice across the restart
+
+
+async def test_ctrl_c_of_the_command_prints_every_target_and_says_who_stopped(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``vgripd calibrate handeye walk --running`` stopped with Ctrl-C while it waits between
+    two polls: the targets recorded since its last poll are printed too (from the stop's
+    answer), and the walk's message says the command's Ctrl-C stopped it. Before, those
+    targets were never printed and the message said "stopped from the web view"."""
+    host = "127.0.5.66"
+    main_config, arm, _ = write_walk_cell(tmp_path, host)
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    monkeypatch.setenv("VGRIPD_TOKEN", TOKEN)
+    polled, walked = threading.Event(), threading.Event()
+
+    def sleep(_s: float) -> None:  # the command's wait between polls, ended by Ctrl-C
+        polled.set()
+        assert walked.wait(WAIT_S)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(calibrate_handeye_running, "time", SimpleNamespace(sleep=sleep))
+    with URController(host) as robot:
+        robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[0]))
+        async with running_file(main_config) as run, aiohttp.ClientSession() as s:
+            assert run.daemon.status_server is not None
+            url = f"http://127.0.0.1:{run.daemon.status_server.port}"
+            code, text = await post(s, f"{url}/api/handeye/walk/stop?by=nobody", {})
+            assert code == 400
+            assert "by='nobody'" in text
+            command = asyncio.ensure_future(asyncio.to_thread(main, [
+                "calibrate", "handeye", "walk", "--running", url, "--plan", "plan.toml"]))
+            try:
+                assert await asyncio.to_thread(polled.wait, WAIT_S)  # polled: no target yet
+                first = await asyncio.to_thread(robot_program, robot, arm, 3)
+                assert first["stopped"]
+                walked.set()
+                assert await command == 1  # stopped, not complete
+            finally:
+                walked.set()
+                await asyncio.gather(command, return_exceptions=True)
+            walks = run.daemon.walks
+            assert walks.state.value == "stopped"
+            assert "Ctrl-C of vgripd calibrate handeye walk --running" in walks.message
+    out = capsys.readouterr().out
+    lines = [ln for ln in out.splitlines() if ln.startswith("  target ")]
+    assert [int(ln.split()[1].rstrip(":")) for ln in lines] == [0, 1, 2]
+    assert "walk stopped: " in out
+    assert "Ctrl-C" in out
+    assert "web view" not in out

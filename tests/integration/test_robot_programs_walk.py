@@ -35,6 +35,7 @@ import numpy as np
 import pytest
 
 from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
+from tests.drivers.test_robot_socket import Peer
 from tests.integration.test_daemon import running
 from tests.integration.test_daemon_handeye_walk import PLATE
 from tests.integration.test_robot_programs import cell, free_port, program
@@ -52,11 +53,13 @@ from vgripd.service.robot_socket_format import (
     BRANDS,
     CAPTURE_AT_SIZE,
     REQUEST_SIZE,
+    AnswerKind,
     SocketCommand,
     header_word,
 )
 from vgripd.sim.arm import SimulatedArm
 from vgripd.sim.robot_socket_client import (
+    AT_ELSEWHERE,
     WALK_SKIP,
     ProgramSettings,
     ProgramTwin,
@@ -400,3 +403,76 @@ async def test_a_stop_while_the_image_is_taken_answers_that_request_once_and_who
     assert answer.captured
     assert server.waiting() == []  # nothing left to answer ABORTED
     assert Walk(tmp_path / "walk.json", plan, BOARD, CAMERA).records[0].status == SEEN
+
+
+class ToolArm(ReportingArm):
+    """An arm whose pose is read with a tool that is not the flange (30 mm along z): a Yaskawa
+    tool file 0 that is not all 0."""
+
+    def reported_pose(self) -> np.ndarray:
+        T = super().reported_pose().copy()
+        T[:3, 3] += T[:3, 2] * 30.0
+        return T
+
+
+async def test_the_yaskawa_walk_pauses_when_tool_file_0_is_not_the_flange(
+        tmp_path: Path) -> None:
+    """The MotoPlus task reads the flange pose with tool file 0 (docs/robot_socket.md,
+    "Walks"): a pose read 30 mm off the target the job moved to is not sent (no CAPTURE_AT,
+    nothing recorded) and the walk stops with -2. The generated task has the check, with the
+    tolerance its twin reads."""
+    brand, mode = "yaskawa", "eye-in-hand"
+    text = "\n".join(program(brand, cell(brand, 50100)).values())
+    assert "if (!vgAtTarget(&vgCoord)) {\n            return -2;" in text
+    settings = settings_for(brand)
+    assert settings.at_tolerance == (1.0, 0.1)
+    assert settings_for("kuka").at_tolerance is None
+    assert make_plan(tmp_path, mode, count=COUNT) == 0
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    reach = sorted(np.linalg.norm(T[:3, 3]) for T in plan.poses)
+    arm = ToolArm(plan.poses[0], reach_mm=reach[-1] + 1.0, settle_cycles=1)
+    walk = Walk(tmp_path / "walk.json", plan, BOARD, CAMERA)
+    outcome, sent = await walk_with(brand, settings, walk, arm, mode, stop_after=COUNT)
+    assert outcome.status == AT_ELSEWHERE == -2
+    assert len(outcome.reached) == 1
+    assert [struct.unpack(">I", f[:4])[0] for f in sent] == [header_word(SocketCommand.NEXT)]
+    assert Walk(tmp_path / "walk.json", plan, BOARD, CAMERA).records == {}
+
+
+async def test_the_daemons_walk_answers_job_0_and_next_after_it_is_refused(
+        tmp_path: Path) -> None:
+    """The running daemon's walk over a robot socket: its answers carry job id 0 (no job
+    runs), a program that asked the first NEXT and went away leaves the walk to the next
+    program on its address, a NEXT after the walk is REFUSED BAD_REQUEST as before the walk,
+    and the first job after it is job 1. Before, the walk's answers counted their own job ids
+    (1, 2, ...) and the next job was job 1 again."""
+    brand, mode = "kuka", "eye-in-hand"
+    settings = settings_for(brand)
+    assert make_plan(tmp_path, mode, count=COUNT) == 0
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    arm = new_arm(plan, seed=11)
+    walk = Walk(tmp_path / "plan.walk.json", plan, BOARD, CAMERA)
+    port = free_port()
+    async with daemon_walking(brand, port, walk, arm, mode) as done:
+        first = await Peer.dial(port)
+        await first.request(1, SocketCommand.NEXT)
+        target = await first.answer()
+        assert (target.kind, target.status, target.job_id) == (AnswerKind.RESULT, Status.OK, 0)
+        await first.close()
+        async with ProgramTwin(settings, "127.0.0.1", port) as twin:
+            outcome = await twin.walk(arm)
+        assert outcome.status == Status.NOT_FOUND
+        assert len(outcome.reached) == COUNT - 1
+        await done
+        robot = await Peer.dial(port)
+        await robot.request(1, SocketCommand.NEXT)
+        after = await robot.answer()
+        assert (after.kind, after.status, after.job_id) == (
+            AnswerKind.REFUSED, Status.BAD_REQUEST, 0)
+        await robot.request(2, SocketCommand.LOCATE)  # the replay frames are used up: no image
+        answers = [await robot.answer()]
+        while answers[-1].kind is AnswerKind.CAPTURED:
+            answers.append(await robot.answer())
+        assert answers[-1].kind is AnswerKind.RESULT
+        assert {a.job_id for a in answers} == {1}  # the first job, after the walk's answers
+        await robot.close()

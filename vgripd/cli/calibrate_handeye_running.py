@@ -1,7 +1,8 @@
 """``vgripd calibrate handeye walk --running [URL]``: the running daemon walks the plan; this
 command starts it over the web API (``POST /api/handeye/walk/start``, with the token) and prints
 each target as the daemon records it (``GET /api/handeye``), until the walk ends. Ctrl-C stops
-the walk (``POST /api/handeye/walk/stop``; the record stays, run again to resume)."""
+the walk (``POST /api/handeye/walk/stop?by=command``; the record stays, run again to resume)
+and prints the targets recorded since the last poll from the stop's answer."""
 
 from __future__ import annotations
 
@@ -54,6 +55,16 @@ def _where(args: argparse.Namespace) -> tuple[str, str | None]:
     return base.rstrip("/"), token
 
 
+def _print_new(walk: dict[str, Any], shown: set[int]) -> None:
+    """Print the targets of ``walk`` (the daemon's snapshot) not in ``shown``, and add them."""
+    for r in walk.get("records", []):
+        if r["target"] not in shown:
+            shown.add(r["target"])
+            extra = (f", {r['corners']} corners" if r["status"] == "seen"
+                     else f": {r['reason']}" if r["reason"] else "")
+            print(f"  target {r['target']}: {r['status']}{extra}", flush=True)
+
+
 def run_running(args: argparse.Namespace) -> int:
     if args.plan is None:
         raise CalibrationError("calibrate handeye walk --running: give --plan PLAN (a file in "
@@ -71,17 +82,13 @@ def run_running(args: argparse.Namespace) -> int:
         while True:
             _, data = _call(base, "/api/handeye", token)
             walk = data["walk"]
-            for r in walk.get("records", []):
-                if r["target"] not in shown:
-                    shown.add(r["target"])
-                    extra = (f", {r['corners']} corners" if r["status"] == "seen"
-                             else f": {r['reason']}" if r["reason"] else "")
-                    print(f"  target {r['target']}: {r['status']}{extra}", flush=True)
+            _print_new(walk, shown)
             if walk["state"] != "walking":
                 break
             time.sleep(POLL_S)
     except KeyboardInterrupt:
-        _, walk = _call(base, "/api/handeye/walk/stop", token, {})
+        _, walk = _call(base, "/api/handeye/walk/stop?by=command", token, {})
+        _print_new(walk, shown)  # those recorded since the last poll
     print(f"walk {walk['state']}: seen {walk.get('seen')}, not seen {walk.get('not_seen')}, "
           f"unreachable {walk.get('unreachable')}"
           + (f" ({walk['message']})" if walk.get("message") else ""))

@@ -17,12 +17,15 @@ can carry it:
 Each answer is ``OK`` with the next target (the flange pose in ``vendor``'s convention, base
 frame, absolute: the robot program moves there as given, with its own speed limit), or
 ``NOT_FOUND`` (10) without a pose when every target has a record: the walk is complete. A
-``TRIGGER`` with no target pending is ``BAD_REQUEST`` (32); an image that cannot be taken is
-``CAMERA_ERROR`` (30) and the target stays pending (the robot asks again). The record is the
-:class:`~vgripd.calib.handeye.walk.Walk` file, saved after every target, so a walk whose link
-was lost or whose robot stopped resumes with a new ``NEXT``. An answer the link cannot
-deliver (the peer gone, the link hanging past ``ANSWER_TIMEOUT_S``) is logged and the walk
-goes on: the robot asks again.
+``TRIGGER`` with no target pending, and a request that is no walk request
+(``walk_request_refusal``), is ``BAD_REQUEST`` (32); an image that cannot be taken is
+``CAMERA_ERROR`` (30); either way nothing is recorded and the target stays pending (the robot
+asks again). Every answer carries job id 0: a walk runs no job, and the daemon's job counter
+does not move (a robot socket sends the answers that leave the walk unchanged as REFUSED).
+The record is the :class:`~vgripd.calib.handeye.walk.Walk` file, saved after every target,
+so a walk whose link was lost or whose robot stopped resumes with a new ``NEXT``. An answer
+the link cannot deliver (the peer gone, the link hanging past ``ANSWER_TIMEOUT_S``) is
+logged and the walk goes on: the robot asks again.
 
 No motion is commanded here: only answers to the robot's requests.
 """
@@ -53,6 +56,31 @@ ANSWER_TIMEOUT_S = 2.0
 Grab = Callable[[], Awaitable[np.ndarray]]
 
 
+def walk_request_refusal(command: int, recipe: int, flange_pose: bool) -> str | None:
+    """Why a request of the walk link is no walk request (answered ``BAD_REQUEST``, the walk
+    unchanged: nothing recorded, the pending target still pending); None when it is one.
+
+    NEXT with recipe 0 (ask) or 1 (skip); TRIGGER (robot socket: CAPTURE_AT) with the flange
+    pose and recipe 0 (the walk runs no job, so no recipe applies); CLEAR, which the links
+    answer themselves and which changes nothing in the walk."""
+    if command == Command.NEXT:
+        if recipe in (0, SKIP):
+            return None
+        return (f"NEXT with recipe {recipe} in a walk: recipe 0 asks for the target, "
+                f"{SKIP} skips it")
+    if command == Command.TRIGGER:
+        if not flange_pose:
+            return ("an image request without the flange pose in a walk (robot socket: send "
+                    "CAPTURE_AT, not LOCATE); the pending target stays pending")
+        if recipe != 0:
+            return (f"recipe {recipe} with the image request of a walk: it runs no job, "
+                    "the recipe word must be 0")
+        return None
+    if command == Command.CLEAR:
+        return None
+    return f"command {command} in a walk"
+
+
 def walk_refusal(link: RobotLink, where: str) -> str | None:
     """Why ``link`` cannot carry a walk (its requests bring no flange pose); None when it can."""
     caps = getattr(link, "capabilities", None)
@@ -79,7 +107,8 @@ class WalkServer:
         self.vendor = vendor
         self.fields = tuple(convention(vendor).fields)
         self.pending: int | None = None
-        self.job_id = 0
+        #: NOT_FOUND answered: the walk is over, later requests are no longer the walk's
+        self.complete = False
         self._queue: asyncio.Queue[Trigger] = asyncio.Queue()
         link.set_vendor(vendor)  # robot_socket: CAPTURE_AT's pose is in this convention
         link.set_walking(True)  # a link refusing NEXT without a pick list lets it through
@@ -118,48 +147,49 @@ class WalkServer:
         return out
 
     async def _answer(self, trigger: Trigger) -> bool:
-        self.job_id = self.job_id % 65535 + 1
-        job, seq = self.job_id, trigger.seq
+        seq = trigger.seq
+        refusal = walk_request_refusal(trigger.command, trigger.recipe,
+                                       trigger.T_base_flange is not None)
+        if refusal is not None:
+            await self._say(seq, JobResult(0, Status.BAD_REQUEST, refusal))
+            return False
         if trigger.command == Command.TRIGGER:
             if self.pending is None:
-                await self._say(seq, JobResult(job, Status.BAD_REQUEST,
+                await self._say(seq, JobResult(0, Status.BAD_REQUEST,
                                                "no target pending: ask NEXT first"))
-                return False
-            if trigger.T_base_flange is None:
-                await self._say(seq, JobResult(
-                    job, Status.BAD_REQUEST, "the link gave no flange pose with the request"))
                 return False
             try:
                 image = await self.grab()
             except (VgripError, OSError) as err:
                 log.warning("walk target %d: no image: %s", self.pending, err)
-                await self._say(seq, JobResult(job, Status.CAMERA_ERROR, str(err)))
+                await self._say(seq, JobResult(0, Status.CAMERA_ERROR, str(err)))
                 return False
-            await self._captured(seq, job)
+            await self._captured(seq)
             record = await asyncio.to_thread(self.walk.capture, self.pending,
-                                             trigger.T_base_flange, image)
-            log.info("walk target %d: %s", record.index, record.status)
+                                             trigger.T_base_flange, image, "", trigger.peer)
+            log.info("walk target %d: %s (%s)", record.index, record.status,
+                     trigger.peer or trigger.link)
             self.pending = None
-        elif trigger.command == Command.NEXT and self.pending is not None:
+        elif self.pending is not None:  # NEXT
             if trigger.recipe == SKIP:
-                self.walk.unreachable(self.pending, "the robot program reported it unreachable")
-                log.info("walk target %d: unreachable, skipped", self.pending)
+                self.walk.unreachable(self.pending, "the robot program reported it unreachable",
+                                      trigger.peer)
+                log.info("walk target %d: unreachable, skipped (%s)", self.pending,
+                         trigger.peer or trigger.link)
                 self.pending = None
             else:
                 log.info("walk target %d: asked for again (the program restarted, or lost the "
                          "answer)", self.pending)
-        elif trigger.command != Command.NEXT:
-            await self._say(seq, JobResult(job, Status.BAD_REQUEST,
-                                           f"command {trigger.command} in a walk"))
-            return False
         if self.pending is None:
             self.pending = self.walk.next_index()
         if self.pending is None:
-            await self._say(seq, JobResult(job, Status.NOT_FOUND, "walk complete"))
+            self.complete = True
+            self.link.set_walking(False)  # what comes after the last answer is no walk's
+            await self._say(seq, JobResult(0, Status.NOT_FOUND, "walk complete"))
             return True
         values = tuple(float(v) for v in vendor_from_transform(self.vendor,
                                                                self.walk.target(self.pending)))
-        await self._say(seq, JobResult(job, Status.OK, f"target {self.pending}",
+        await self._say(seq, JobResult(0, Status.OK, f"target {self.pending}",
                                        target=RobotTarget(self.vendor, self.fields, values)))
         return False
 
@@ -173,9 +203,9 @@ class WalkServer:
             log.warning("walk: the answer to request %d (%s) was not delivered: %r", seq,
                         result.status.name, err)
 
-    async def _captured(self, seq: int, job: int) -> None:
+    async def _captured(self, seq: int) -> None:
         try:
             async with asyncio.timeout(ANSWER_TIMEOUT_S):
-                await self.link.image_captured(seq, job)
+                await self.link.image_captured(seq, 0)
         except Exception as err:
             log.warning("walk: request %d: 'image taken' not delivered: %r", seq, err)

@@ -149,6 +149,8 @@ class Trigger:
 
     ``T_base_flange`` is the robot's flange/TCP pose at trigger time (mm) when the link can read
     it (RTDE), for robot-mounted cameras. ``recipe`` is the peer's job parameter (0 = default).
+    ``peer`` names where the request came from when the link can tell (robot socket: the
+    connection's address:port; RTDE: the controller's), "" otherwise.
     """
 
     link: str
@@ -159,6 +161,7 @@ class Trigger:
     recipe: int = 0
     #: ``Command.CAPTURE``: the 1-based view of a several-view job (0 = not a view).
     view: int = 0
+    peer: str = ""
 
 
 TriggerHandler = Callable[[Trigger], None]

@@ -135,7 +135,7 @@ class WalkMode:
             self._loop.call_soon_threadsafe(self.on_trigger, trigger)
             return
         server = self.server
-        if not self.walking or server is None:
+        if not self.walking or server is None or server.complete:
             self.runner.on_trigger(trigger)
         elif trigger.link == self.link:
             server.on_trigger(trigger)

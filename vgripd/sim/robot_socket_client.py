@@ -57,6 +57,7 @@ NO_ANSWER = -1
 BUSY = 40
 NOT_FOUND = 10
 WALK_SKIP = 1  # the walk routines' NEXT recipe for "the target given cannot be reached"
+AT_ELSEWHERE = -2  # MotoPlus: the flange pose read is not the target (tool file 0 not the flange)
 #: Pose resolution of the controller's own position data where the program sends it as read
 #: (MotoPlus: 0.001 mm, 0.0001 deg); other controllers read REAL/num values.
 CONTROLLER_RESOLUTION = {"yaskawa": (1e-3, 1e-4)}
@@ -89,6 +90,8 @@ class ProgramSettings:
     walk_speed_mm_s: float = 0.0  # the walk routine's linear speed
     walk_settle_s: float = 0.0  # its standstill before CAPTURE_AT
     at_bytes: int = 44  # the length of its CAPTURE_AT request
+    #: (mm, deg): the walk checks the flange pose read against the target (MotoPlus), or None
+    at_tolerance: tuple[float, float] | None = None
 
     @classmethod
     def parse(cls, brand: str | RobotBrand, texts: dict[str, str]) -> ProgramSettings:
@@ -120,7 +123,9 @@ class ProgramSettings:
             return cls(b, values["VG_SCALE"], seconds("VG_TIMEOUT"),
                        seconds("VG_CONNECT_TIMEOUT", connect_default), seconds("VG_BUSY_WAIT"),
                        int(values["VG_BUSY_TRIES"]), int(values["VG_ATTEMPTS"]), words,
-                       speed, seconds("VG_WALK_SETTLE"), int(values["VG_AT_BYTES"]))
+                       speed, seconds("VG_WALK_SETTLE"), int(values["VG_AT_BYTES"]),
+                       (values["VG_AT_TOL_UM"] / 1000, values["VG_AT_TOL_DEG4"] / 10000)
+                       if "VG_AT_TOL_UM" in values else None)
         except KeyError as err:
             raise ValueError(f"{b.name} program states no {err.args[0]}") from None
 
@@ -224,10 +229,26 @@ class ProgramTwin:
                 pass
             await asyncio.sleep(self.s.walk_settle_s)
             pose = self.flange_values(arm.reported_pose())
+            if not self._at_target(pose, target):
+                walked.status = AT_ELSEWHERE  # the MotoPlus task sends nothing: VGWALK pauses
+                return walked
             walked.sent_poses.append(pose)
             outcome = await self._ask(self.s.words["CAPTURE_AT"], 0, pose)
             walked.status = outcome.status
         return walked
+
+    def _at_target(self, pose: tuple[float, ...], target: tuple[float, ...]) -> bool:
+        """The MotoPlus task's check (``vgAtTarget``): the pose read (tool file 0) within its
+        tolerance of the target moved to (the selected tool), angles wrapped; True for the
+        programs without the check."""
+        if self.s.at_tolerance is None:
+            return True
+        mm, deg = self.s.at_tolerance
+        for i, (a, b) in enumerate(zip(pose, target, strict=False)):
+            d = a - b if i < 3 else (a - b + 180.0) % 360.0 - 180.0
+            if abs(d) > (mm if i < 3 else deg):
+                return False
+        return True
 
     def flange_values(self, T: Any) -> tuple[float, ...]:
         """The 7 values the program sends for flange pose ``T`` (as its controller reads

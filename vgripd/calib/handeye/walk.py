@@ -11,7 +11,8 @@ and one where the board was not found, are recorded with the reason and skipped.
 
 The file is a samples file (``vgripd-handeye-samples/1``: ``vgripd calibrate handeye --samples
 FILE`` solves it) with a ``walk`` table: the plan (path, digest of its poses, condition figure)
-and one record per target visited.
+and one record per target visited. Every record and sample names its ``peer``: the robot
+connection (or controller) whose request it records.
 """
 
 from __future__ import annotations
@@ -52,6 +53,8 @@ class WalkRecord:
     px: FloatArray | None = None
     ids: np.ndarray | None = None
     reason: str = ""
+    #: who asked: the robot connection (robot socket: address:port) or controller (RTDE)
+    peer: str = ""
 
 
 class Walk:
@@ -84,9 +87,11 @@ class Walk:
                                    f"{len(self.plan.poses)})")
         return self.plan.poses[index]
 
-    def capture(self, index: int, T_reached: Any, image: np.ndarray, name: str = "") -> WalkRecord:
+    def capture(self, index: int, T_reached: Any, image: np.ndarray, name: str = "",
+                peer: str = "") -> WalkRecord:
         """The image taken at target ``index`` with the flange pose the robot reached there:
-        the board's corners recorded (or ``not_seen`` with the reason)."""
+        the board's corners recorded (or ``not_seen`` with the reason); ``peer``: who sent
+        the pose."""
         self.target(index)
         try:
             T = check_transform(T_reached, f"target {index}: reached flange pose")
@@ -96,16 +101,17 @@ class Walk:
         try:
             d = self.detect(self.board, image, name)
         except CalibrationError as err:
-            record = WalkRecord(index, NOT_SEEN, T, name, reason=str(err))
+            record = WalkRecord(index, NOT_SEEN, T, name, reason=str(err), peer=peer)
         else:
-            record = WalkRecord(index, SEEN, T, name, d.px, d.ids)
+            record = WalkRecord(index, SEEN, T, name, d.px, d.ids, peer=peer)
         self.records[index] = record
         self.save()
         return record
 
-    def unreachable(self, index: int, reason: str = "the robot cannot reach it") -> WalkRecord:
+    def unreachable(self, index: int, reason: str = "the robot cannot reach it",
+                    peer: str = "") -> WalkRecord:
         self.target(index)
-        record = WalkRecord(index, UNREACHABLE, reason=reason)
+        record = WalkRecord(index, UNREACHABLE, reason=reason, peer=peer)
         self.records[index] = record
         self.save()
         return record
@@ -130,7 +136,7 @@ class Walk:
                 assert r.T_base_flange is not None
                 entries.append({"image": r.image, "T_base_flange": r.T_base_flange.tolist(),
                                 "obj_mm": points[r.ids].tolist(), "px": r.px.tolist(),
-                                "target": r.index})
+                                "target": r.index, "peer": r.peer})
         c = self.plan.condition
         data = {
             "format": SAMPLES_FORMAT, "mode": self.plan.mode, "board": self.board.spec,
@@ -143,7 +149,7 @@ class Walk:
                      "targets": len(self.plan.poses),
                      "condition": {"condition": c.condition, "effective_deg": c.effective_deg},
                      "records": [{"target": r.index, "status": r.status, "reason": r.reason,
-                                  "image": r.image,
+                                  "image": r.image, "peer": r.peer,
                                   "T_base_flange": None if r.T_base_flange is None
                                   else r.T_base_flange.tolist()}
                                  for _, r in sorted(self.records.items())]},
@@ -180,11 +186,13 @@ class Walk:
                 ids = np.array([int(np.argmin(np.linalg.norm(points - p, axis=1))) for p in obj],
                                dtype=np.int64) if len(obj) != n else np.arange(n, dtype=np.int64)
                 self.records[k] = WalkRecord(k, SEEN, T, str(rec.get("image", "")),
-                                             np.asarray(e["px"], dtype=float), ids)
+                                             np.asarray(e["px"], dtype=float), ids,
+                                             peer=str(rec.get("peer", "")))
             else:
                 self.records[k] = WalkRecord(k, str(rec["status"]), T,
                                              str(rec.get("image", "")),
-                                             reason=str(rec.get("reason", "")))
+                                             reason=str(rec.get("reason", "")),
+                                             peer=str(rec.get("peer", "")))
 
 
 def walk_info(path: str | Path) -> dict[str, Any] | None:

@@ -8,7 +8,8 @@ calibration"): plan, dry run, walk, watch, solve, accept.
     GET  /api/handeye/plan.png          the last plan's drawing (board outlines in the image)
     POST /api/handeye/plan              compute a plan: dry run, or saved with "save" (token)
     POST /api/handeye/walk/start        walk a plan over a link, {"plan", "link"} (token)
-    POST /api/handeye/walk/stop         stop it; the record stays, start again resumes (token)
+    POST /api/handeye/walk/stop         stop it; the record stays, start again resumes (token;
+                                        ?by=command: the command's Ctrl-C, as the message says)
     POST /api/handeye/solve             solve the record in a child process (token)
     POST /api/handeye/accept            write the solved hand-eye into the config, reload (token)
 
@@ -60,6 +61,9 @@ log = logging.getLogger(__name__)
 STATIC = Path(__file__).parent / "static"
 #: The planner in its child process gets this long.
 PLAN_TIMEOUT_S = 120.0
+#: Who stopped a walk (``POST /api/handeye/walk/stop?by=...``), as the walk's message says it.
+STOPPED_BY = {"web": "stopped from the web view",
+              "command": "stopped by Ctrl-C of vgripd calibrate handeye walk --running"}
 #: Form fields of a plan request and the command's flags.
 PLAN_FIELDS = {"mode": "--mode", "board": "--board", "around": "--around", "box": "--box",
                "distance": "--distance", "count": "--count", "board_offset": "--board-offset",
@@ -281,9 +285,12 @@ class WalkRoutes:
 
     async def stop(self, request: web.Request) -> web.Response:
         self.server._guard(request, self.enabled)
-        log.info("web view: walk stopped from %s", request.remote)
-        return web.json_response(jsonable(await self._walks().stop(
-            f"stopped from the web view ({request.remote})")))
+        by = request.query.get("by", "web")
+        if by not in STOPPED_BY:
+            raise web.HTTPBadRequest(text=f"by={by[:40]!r}: one of {', '.join(STOPPED_BY)}")
+        why = f"{STOPPED_BY[by]} ({request.remote})"
+        log.info("web view: walk %s", why)
+        return web.json_response(jsonable(await self._walks().stop(why)))
 
     async def solve(self, request: web.Request) -> web.Response:
         self.server._guard(request, self.enabled)
