@@ -15,6 +15,7 @@ import importlib.util
 import logging
 import os
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -23,7 +24,7 @@ from typing import Any
 import pytest
 
 from drivers.cameras.aravis import AravisCamera, AravisStack
-from tests.conftest import need, need_tool
+from tests.conftest import REPO, need, need_tool
 from vgripd.config import Config
 from vgripd.errors import CameraError
 
@@ -302,3 +303,50 @@ async def test_a_camera_killed_and_restarted_is_reopened_with_backoff_logged_onc
     messages = [r.getMessage() for r in caplog.records if r.name == "vgripd.camera"]
     assert sum("stopped answering; closing it" in m for m in messages) == 1, messages
     assert sum("camera back after" in m for m in messages) == 1, messages
+
+
+def hold_and_wait() -> None:
+    """A process that opens GV01, grabs once, says so and waits to be killed (run with -c)."""
+    cam = camera()
+    loop = asyncio.new_event_loop()
+    loop.run_until_complete(cam.open())
+    loop.run_until_complete(cam.grab(5.0))
+    print("holding", flush=True)
+    time.sleep(WAIT_S * 3)
+
+
+def killed_holder() -> None:
+    """Start ``hold_and_wait`` in another process and SIGKILL it once it holds the camera: its
+    GigE control channel and its acquisition are left behind on the device."""
+    holder = subprocess.Popen([sys.executable, "-c", "from tests.drivers.test_cameras_aravis "
+                               "import hold_and_wait; hold_and_wait()"], cwd=REPO,
+                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    try:
+        assert holder.stdout is not None
+        assert holder.stdout.readline() == b"holding\n"
+    finally:
+        holder.kill()
+        holder.wait(timeout=WAIT_S)
+
+
+async def test_a_camera_whose_holder_was_killed_gives_frames_to_the_next_process(
+        fake: FakeCamera) -> None:
+    """The dead holder's acquisition still streams to its dead port: opening right after the
+    kill waits out its control channel (the device's heartbeat timeout), stops that stale
+    acquisition and streams to this process; the first grab gets a new frame."""
+    killed_holder()
+    cam = camera(frame_timeout_s=2.0)
+    refused: list[str] = []
+    async with asyncio.timeout(WAIT_S):
+        while True:  # a loaded machine may need more than one try at the control channel
+            try:
+                await cam.open()
+                break
+            except CameraError as err:
+                refused.append(str(err))
+    assert all("held by another process" in r for r in refused), refused
+    try:
+        pair = await cam.grab(5.0)
+    finally:
+        await cam.close()
+    assert pair.left.shape == (512, 512)
