@@ -107,6 +107,8 @@ log = logging.getLogger("vgripd.worker")
 
 #: The processor the worker builds from the config (``module:Class``, called with the Config).
 DEFAULT_PROCESSOR = "vgripd.vision.checked:CheckedPipeline"
+#: Requests after which the worker may hold the camera (until a ``camera_close``).
+_CAMERA_OPS = frozenset({"camera_open", "camera_grab", "camera_settings"})
 #: Payload length (bytes) and request id; id 0 is the worker's "ready" message.
 HEADER = struct.Struct("!IQ")
 #: Spawn, imports, pipeline and recorder set-up; a worker not ready by then is killed.
@@ -445,6 +447,8 @@ class _Generation:
     reader_task: asyncio.Task[None] | None = None
     killed_because: str = ""
     exited: bool = False
+    #: The worker may hold the camera: asked to open, grab or set it, not closed since.
+    holds_camera: bool = False
 
     def is_ready(self) -> bool:
         return self.ready.done() and self.ready.exception() is None
@@ -471,6 +475,9 @@ class WorkerClient:
         self.record_bytes = 0  # the worker's Recorder.total_bytes, with every answer
         self.restarts = 0
         self.last_exit = ""
+        #: Called with the reason when a worker that held the camera died and is replaced
+        #: (the camera supervisor opens the camera again in the new one).
+        self.camera_lost: Callable[[str], None] | None = None
         self._ctx = multiprocessing.get_context("spawn")
         self._gen: _Generation | None = None
         self._starting: asyncio.Task[None] | None = None
@@ -711,6 +718,8 @@ class WorkerClient:
             log.info("%s; not replaced, vgripd is stopping", reason)
             return
         self.restarts += 1
+        if gen.holds_camera and self.camera_lost is not None:
+            self.camera_lost(reason)
         if was_ready:
             self._backoff_s = 0.0
         else:
@@ -747,14 +756,19 @@ class WorkerClient:
     async def _call(self, gen: _Generation, op: str, args: tuple[Any, ...], what: str) -> Any:
         """Send one request and wait for its answer. Cancelled while the worker is on it, the
         worker is killed (there is no other way to interrupt it) and replaced."""
+        if op in _CAMERA_OPS:
+            gen.holds_camera = True
         fut = self._send(gen, op, args)
         try:
-            return await asyncio.shield(fut)
+            value = await asyncio.shield(fut)
         except asyncio.CancelledError:
             if not fut.done():
                 fut.cancel()
                 self._kill(gen, f"{what} abandoned")
             raise
+        if op == "camera_close":
+            gen.holds_camera = False
+        return value
 
     async def call(self, op: str, *args: Any, what: str = "") -> Any:
         return await self._call(await self._ready_generation(), op, args, what or op)
@@ -789,6 +803,7 @@ class WorkerClient:
         A worker that died while idle is only noticed when the next request fails; a grab
         touches nothing on the robot's side, so it is tried once more on the new worker
         instead of failing the job of a PLC that triggered just after the death."""
+        deadline = time.monotonic() + timeout_s
         gen = await self._ready_generation()
         segment = self._writable_segment()
         args = (timeout_s, None if segment is None else segment.name, view, recipe)
@@ -800,6 +815,8 @@ class WorkerClient:
             log.warning("grab: the worker process had died (%s); grabbing on a new one",
                         self.last_exit)
             gen = await self._ready_generation()
+            # the time left of the job's, after the new worker has started
+            args = (max(0.0, deadline - time.monotonic()), *args[1:])
             token, fields, layout, need = await self._call(gen, "camera_grab", args, "grab")
         if layout is None:  # no segment yet, or too small: a bigger one, then fetch again
             segment = self._new_segment(need)
