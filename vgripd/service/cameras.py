@@ -115,12 +115,15 @@ class CameraSupervisor:
 
     # --- whether a job can get a frame ---------------------------------------------------
 
-    def down_problem(self) -> str:
-        """``down`` with how long it has lasted ("" when not down)."""
-        if not self.down:
+    def down_problem(self, longer_than_s: float = 0.0) -> str:
+        """``down`` with how long it has lasted ("" when not down, or down for no longer than
+        ``longer_than_s``: then named as the limit ``daemon.camera_down_restart_s``)."""
+        down_s = self.down_for_s()
+        if not self.down or (longer_than_s and down_s <= longer_than_s):
             return ""
-        return (f"camera {self.name()}: no frame for {time.monotonic() - self.down_since:.1f} s: "
-                f"{self.down}")
+        return (f"camera {self.name()}: no frame for {down_s:.1f} s: {self.down}"
+                + (f" (longer than daemon.camera_down_restart_s = {longer_than_s:g} s)"
+                   if longer_than_s else ""))
 
     def down_for_s(self) -> float:
         return time.monotonic() - self.down_since if self.down else 0.0

@@ -486,13 +486,10 @@ class Daemon:
 
     def watchdog_problem(self) -> str:
         """Why the watchdog stops pinging, so that systemd restarts the service ("" while it
-        pings): the camera is faulty, a job is wedged, or the camera has been down for longer
+        pings): as ``health_problem``, but a camera down only once it has been down longer
         than ``daemon.camera_down_restart_s`` (recovering on its own failed)."""
-        limit_s = self.config.daemon.camera_down_restart_s
-        down = self._cameras.down_problem() if self._cameras.down_for_s() > limit_s else ""
-        if down:
-            down += f" (longer than daemon.camera_down_restart_s = {limit_s:g} s)"
-        return self.camera_fault or down or self._wedged_job()
+        return (self.camera_fault or self._wedged_job()
+                or self._cameras.down_problem(self.config.daemon.camera_down_restart_s))
 
     def _wedged_job(self) -> str:
         job = self._runner.job

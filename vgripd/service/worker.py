@@ -475,8 +475,7 @@ class WorkerClient:
         self.record_bytes = 0  # the worker's Recorder.total_bytes, with every answer
         self.restarts = 0
         self.last_exit = ""
-        #: Called with the reason when a worker that held the camera died and is replaced
-        #: (the camera supervisor opens the camera again in the new one).
+        #: Called with the reason when a worker that held the camera died and is replaced.
         self.camera_lost: Callable[[str], None] | None = None
         self._ctx = multiprocessing.get_context("spawn")
         self._gen: _Generation | None = None
@@ -501,7 +500,7 @@ class WorkerClient:
         if swept:
             log.warning("removed shared memory left by vgripd daemons that no longer run: %s",
                         ", ".join(swept))
-        size = self._initial_segment_bytes()
+        size = _initial_segment_bytes(self.config)
         if size:
             self._new_segment(size)
         self._spawn_soon(0.0)
@@ -509,16 +508,6 @@ class WorkerClient:
     async def wait_ready(self) -> None:
         """Wait until a worker is ready (WorkerError when it cannot start)."""
         await self._ready_generation()
-
-    def _initial_segment_bytes(self) -> int:
-        cal = self.config.calibration
-        if cal is None:
-            return 0
-        cams = [cal.left] + ([cal.right] if cal.right is not None else [])
-        if cal.cameras is not None:
-            cams = [cam.intrinsics for cam in cal.cameras]
-        # 8-bit grey images of the calibrated size; colour or larger images grow it (once).
-        return sum(_aligned(c.width * c.height) for c in cams)
 
     def _new_segment(self, size: int) -> ImageSegment:
         old, self._segment = self._segment, None
@@ -756,19 +745,15 @@ class WorkerClient:
     async def _call(self, gen: _Generation, op: str, args: tuple[Any, ...], what: str) -> Any:
         """Send one request and wait for its answer. Cancelled while the worker is on it, the
         worker is killed (there is no other way to interrupt it) and replaced."""
-        if op in _CAMERA_OPS:
-            gen.holds_camera = True
+        gen.holds_camera = op in _CAMERA_OPS or (gen.holds_camera and op != "camera_close")
         fut = self._send(gen, op, args)
         try:
-            value = await asyncio.shield(fut)
+            return await asyncio.shield(fut)
         except asyncio.CancelledError:
             if not fut.done():
                 fut.cancel()
                 self._kill(gen, f"{what} abandoned")
             raise
-        if op == "camera_close":
-            gen.holds_camera = False
-        return value
 
     async def call(self, op: str, *args: Any, what: str = "") -> Any:
         return await self._call(await self._ready_generation(), op, args, what or op)
@@ -930,6 +915,18 @@ class WorkerRecorder:
 
 
 # --- helpers ------------------------------------------------------------------------------
+
+def _initial_segment_bytes(config: Config) -> int:
+    """The first shared memory's size: 8-bit grey images of the calibrated size (colour or
+    larger images grow it, once)."""
+    cal = config.calibration
+    if cal is None:
+        return 0
+    cams = [cal.left] + ([cal.right] if cal.right is not None else [])
+    if cal.cameras is not None:
+        cams = [cam.intrinsics for cam in cal.cameras]
+    return sum(_aligned(c.width * c.height) for c in cams)
+
 
 def _remote_error(value: Any) -> BaseException:
     kind, message, tb = value
