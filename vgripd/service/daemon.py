@@ -20,9 +20,11 @@ Lifecycle (start, READY, stop, shutdown order) stays here.
 - Grabbing, processing and recording run in a worker process (``vgripd.service.worker``:
   images through shared memory, the rest pickled), so the event loop's interpreter only
   handles links and state and answers a poll in about a millisecond while a job runs. A worker
-  that dies fails the job in flight with ``INTERNAL`` naming why ("worker process exited with
-  signal 9 (SIGKILL)") and is replaced. ``daemon.worker = false`` (or a ``Processor`` object
-  passed in) keeps the old in-process path: driver thread, single-thread job executor.
+  that dies is replaced: a job in its processing ends ``INTERNAL`` naming why ("worker process
+  exited with signal 9 (SIGKILL)"), one in its grab is grabbed again on the new worker, and
+  the camera it held is opened again in the new one at once (``CameraSupervisor.lost``).
+  ``daemon.worker = false`` (or a ``Processor`` object passed in) keeps the old in-process
+  path: driver thread, single-thread job executor.
 - Start-up opens the camera and every link at once (a silent controller delays no other link
   and not the status endpoint); a link that cannot start is shown FAILED while the others
   serve. READY=1 follows the first outcome of each.

@@ -32,8 +32,10 @@ Failures:
 
 - The worker dies (killed, segfault, out of memory): the request in flight fails with
   ``WorkerError("worker process exited with signal 9 (SIGKILL)")``, a new worker is started at
-  once, the next request waits for it. A worker that dies before it is ready is restarted with
-  doubling back-off (1 s .. 60 s); requests meanwhile fail at once naming the reason.
+  once, the next request waits for it. A grab is tried once more on the new worker, and when
+  the dead one held the camera ``camera_lost`` tells the daemon, which opens it again there.
+  A worker that dies before it is ready is restarted with doubling back-off (1 s .. 60 s);
+  requests meanwhile fail at once naming the reason.
 - The daemon abandons a request (job timeout, shutdown): the worker cannot be interrupted, so
   it is killed (SIGKILL) and restarted. This is what bounds a stuck computation or a hung
   camera driver now.
