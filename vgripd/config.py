@@ -265,6 +265,9 @@ class DaemonConfig(Model):
     """The service: one job at a time, each bounded by ``job_timeout_s`` (see docs/daemon.md)."""
 
     job_timeout_s: float = Field(default=10.0, gt=0)
+    # The camera down (no job can get a frame) for longer than this: the systemd watchdog stops
+    # pinging, so systemd restarts the service (docs/daemon.md, "systemd integration").
+    camera_down_restart_s: float = Field(default=60.0, gt=0)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     # Camera driver, pipeline and recorder in a worker process (docs/daemon.md, "Worker
     # process"); false runs them in the daemon's own interpreter (threads), as before.

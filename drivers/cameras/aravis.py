@@ -192,6 +192,11 @@ class AravisStack(Stack):
         if hasattr(device, "is_controller") and not device.is_controller():
             raise CameraError(f"cannot open {info.label()} (held by another process): another "
                               "application has its GigE Vision control channel")
+        # A process that died holding the camera (the worker SIGKILLed) leaves its acquisition
+        # running, streaming to its dead port; a device may keep that stream even after this
+        # process took control. Stopping acquisition first makes the stream start afresh to us.
+        with contextlib.suppress(Exception):  # GLib.Error: a device without AcquisitionStop
+            camera.stop_acquisition()
         return AravisDevice(info, camera)
 
 

@@ -31,6 +31,7 @@ Options (``[camera]`` with ``type = "pylon"`` or ``"aravis"``)::
     features = { }                    # any other feature, on every camera, in this order
     max_skew_ms = 2.0                 # refuse a set whose device timestamps differ more
     frame_timeout_s = 2.0             # longest wait for one frame (capped by the job's time)
+    no_frame_limit = 2                # grabs in a row without a frame: closed and reopened
     buffers = 4
     reopen_backoff_s = 1.0            # first wait before reopening a camera that is gone
     reopen_backoff_max_s = 30.0       # doubling up to this
@@ -50,6 +51,12 @@ did not recover) is refused, never returned half filled. A camera that stops ans
 closed, the grab fails ``CAMERA_ERROR`` naming it, and every later grab tries to reopen it,
 first after ``reopen_backoff_s``, the wait doubling up to ``reopen_backoff_max_s``; the
 outage is logged once when it starts and once when the camera is back.
+
+A camera that answers but gives no frame to ``no_frame_limit`` grabs in a row (software trigger
+or free run; with a hardware trigger a missing frame is a missing pulse) is an outage too,
+whatever its feature reads say: its stream is stale (a process that died holding the camera
+left it streaming elsewhere). All cameras are closed and the next grab reopens them at once,
+then with back-off as above.
 """
 
 from __future__ import annotations
@@ -70,6 +77,7 @@ from drivers.cameras.gencam_sdk import (
     SettingError,
     Stack,
     apply_settings,
+    camera_label,
     check_value,
 )
 from drivers.cameras.pixels import FORMATS, PixelError, to_image
@@ -125,6 +133,7 @@ class GenICamStackOptions(DriverOptions):
     features: dict[str, FeatureValue] = Field(default_factory=dict)
     max_skew_ms: float | None = Field(default=None, gt=0)
     frame_timeout_s: float = Field(default=2.0, gt=0)
+    no_frame_limit: int = Field(default=2, ge=1)
     buffers: int = Field(default=4, ge=2, le=64)
     reopen_backoff_s: float = Field(default=1.0, gt=0)
     reopen_backoff_max_s: float = Field(default=30.0, gt=0)
@@ -221,19 +230,23 @@ def select(entries: Sequence[CameraEntry], names: Sequence[str], found: Sequence
         hits = [d for d in found if _chosen_by(d, entry)]
         if not hits:
             seen = "; ".join(d.label() for d in found) or "none"
-            raise CameraError(f"{stack}: camera {name}: no device with {entry.selector()} "
+            raise CameraError(f"{stack}: {camera_label(name)}: no device with {entry.selector()} "
                               f"(found: {seen})")
         if len(hits) > 1:
-            raise CameraError(f"{stack}: camera {name}: {len(hits)} devices with "
+            raise CameraError(f"{stack}: {camera_label(name)}: {len(hits)} devices with "
                               f"{entry.selector()}: {'; '.join(d.label() for d in hits)}")
         if hits[0] in chosen:
-            raise CameraError(f"{stack}: camera {name}: {entry.selector()} is already "
+            raise CameraError(f"{stack}: {camera_label(name)}: {entry.selector()} is already "
                               "used by another camera of this config")
         chosen.append(hits[0])
     return chosen
 
 
 # ---------------------------------------------------------------------------- the driver
+class _NoFrame(CameraError):
+    """A camera gave no frame within the grab's time."""
+
+
 class GenICamStackCamera(CameraDriver):
     """One or more cameras of one SDK, triggered together, grabbed as one acquisition."""
 
@@ -254,6 +267,8 @@ class GenICamStackCamera(CameraDriver):
         self._outage_since = 0.0
         self._backoff_s = options.reopen_backoff_s
         self._next_try = 0.0
+        #: Grabs in a row in which a camera gave no frame (``no_frame_limit``).
+        self._misses = 0
         #: Closes the devices of an outage in the background (an SDK may wait out its
         #: retries for each call to a device that is gone); a reopen waits for it.
         self._releasing: threading.Thread | None = None
@@ -278,6 +293,7 @@ class GenICamStackCamera(CameraDriver):
         self._open_devices()
 
     def _open_devices(self) -> None:
+        self._misses = 0
         found = self.stack.discover()
         infos = select(self.options.cameras, self.names, found, self.type_name)
         refused: list[str] = []  # every camera's refused settings, reported together
@@ -293,7 +309,7 @@ class GenICamStackCamera(CameraDriver):
                     continue
                 fmt = str(device.read("PixelFormat"))
                 if fmt not in FORMATS:
-                    raise SettingError(f"camera {name} ({info.label()}): PixelFormat {fmt} "
+                    raise SettingError(f"{camera_label(name)} ({info.label()}): PixelFormat {fmt} "
                                        f"is not one vgripd converts (set pixel_format to one "
                                        f"of {', '.join(FORMATS)})")
                 self.formats.append(fmt)
@@ -336,7 +352,7 @@ class GenICamStackCamera(CameraDriver):
                 why = (f"feature {feature} does not exist on this device" if info is None
                        else check_value(info, value))
                 if why is not None:
-                    refused.append(f"camera {name} ({device.info.label()}): "
+                    refused.append(f"{camera_label(name)} ({device.info.label()}): "
                                    + (why if info is None else f"{feature} {why}"))
         if refused:
             raise SettingError("\n".join(refused))
@@ -364,13 +380,20 @@ class GenICamStackCamera(CameraDriver):
         # used 90 % of the job's time for a hang and reopens the camera itself).
         deadline = time.monotonic() + min(self.options.frame_timeout_s, 0.75 * timeout_s)
         try:
-            return self._acquire(deadline)
+            pair = self._acquire(deadline)
+        except _NoFrame:
+            self._misses += 1
+            self._judge_outage()
+            raise
         except CameraError:
             self._judge_outage()
             raise
+        self._misses = 0
+        return pair
 
     def _acquire(self, deadline: float) -> ImagePair:
         o = self.options
+        t0 = time.monotonic()
         for device in self._devices:
             device.drain()  # no frame taken before this request is ever returned
         if o.trigger == "software":
@@ -387,8 +410,8 @@ class GenICamStackCamera(CameraDriver):
         for device, fmt in zip(self._devices, self.formats, strict=True):
             frame = device.fetch(max(0.0, deadline - time.monotonic()))
             if frame is None:
-                raise CameraError(f"{self._cam(device)}: no frame within "
-                                  f"{self._budget(deadline):g} s"
+                raise _NoFrame(f"{self._cam(device)}: no frame within "
+                               f"{time.monotonic() - t0:.1f} s"
                                   + (f" (waiting for the trigger on {o.trigger_line})"
                                      if o.trigger == "hardware" else ""))
             if not frame.complete:
@@ -410,13 +433,9 @@ class GenICamStackCamera(CameraDriver):
         return ImagePair.of_views(images, t_mono_ns, source=f"{self.type_name}:"
                                   + "+".join(d.info.serial for d in self._devices), meta=meta)
 
-    @staticmethod
-    def _budget(deadline: float) -> float:
-        return round(max(0.0, deadline - time.monotonic()), 3) or 0
-
     def _cam(self, device: Device) -> str:
         i = self._devices.index(device)
-        return f"{self.type_name}: camera {self.names[i]} ({device.info.label()})"
+        return f"{self.type_name}: {camera_label(self.names[i])} ({device.info.label()})"
 
     def _check_skew(self, stamps: list[int | None]) -> None:
         limit = self.options.max_skew_ms
@@ -437,18 +456,35 @@ class GenICamStackCamera(CameraDriver):
     # ---------------------------------------------------------------- outages
     def _judge_outage(self) -> None:
         """After a failed grab: a camera that no longer answers starts an outage (all
-        cameras closed, reopened later with back-off); a live one only failed this grab."""
-        dead = [n for n, d in zip(self.names, self._devices, strict=True) if not d.alive()]
-        if not dead or self.outage:
+        cameras closed, reopened later with back-off), and so does one that gave no frame to
+        ``no_frame_limit`` grabs in a row (reopened at the next grab); otherwise only this
+        grab failed."""
+        if self.outage:
             return
-        self.outage = f"camera {', '.join(dead)} stopped answering"
-        self._outage_since = time.monotonic()
-        self._backoff_s = self.options.reopen_backoff_s
-        self._next_try = self._outage_since + self._backoff_s
-        log.error("%s: %s; closing it, reopening with back-off from %g s (logged once "
-                  "until it is back)", self.type_name, self.outage, self._backoff_s)
+        o = self.options
+        dead = [n for n, d in zip(self.names, self._devices, strict=True) if not d.alive()]
+        self._outage_since = now = time.monotonic()
+        self._backoff_s = o.reopen_backoff_s
+        if dead:
+            self.outage = f"{camera_label(', '.join(dead))} stopped answering"
+            self._next_try = now + self._backoff_s
+            log.error("%s: %s; closing it, reopening with back-off from %g s (logged once "
+                      "until it is back)", self.type_name, self.outage, self._backoff_s)
+        elif self._misses >= o.no_frame_limit and o.trigger != "hardware":
+            self.outage = (f"{camera_label(', '.join(self.names))} gave no frame to "
+                           f"{self._misses} grabs in a row")
+            self._next_try = now  # it answers: reopen at the next grab
+            log.error("%s: %s although it answers; closing it, reopening at the next grab "
+                      "(logged once until it is back)", self.type_name, self.outage)
+        else:
+            return
+        self._misses = 0
         devices, self._devices = self._devices, []
         self.applied, self.formats, self.sizes = [], [], []
+        if not dead:  # they answer: closing takes no retries, done before the next grab
+            for device in devices:
+                device.close()
+            return
 
         def release() -> None:
             for device in devices:

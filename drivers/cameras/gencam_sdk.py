@@ -165,13 +165,18 @@ def check_value(info: FeatureInfo, value: Any) -> str | None:
     return None
 
 
+def camera_label(name: str) -> str:
+    """``camera left`` in messages; the single unnamed camera is just ``camera``."""
+    return "camera" if name == "camera" else f"camera {name}"
+
+
 def apply_settings(label: str, device: Device, writes: list[tuple[str, Any]]) -> dict[str, Any]:
     """Write and read back each setting; ``SettingError`` listing every one refused, each
     naming the camera, the feature and the range the device reports. Returns what the
     device reports after the writes (for the frame's ``meta``)."""
     problems: list[str] = []
     applied: dict[str, Any] = {}
-    where = f"camera {label} ({device.info.label()})"
+    where = f"{camera_label(label)} ({device.info.label()})"
     for name, value in writes:
         info = device.feature(name)
         if info is None:

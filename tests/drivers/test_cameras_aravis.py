@@ -15,6 +15,7 @@ import importlib.util
 import logging
 import os
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -23,7 +24,7 @@ from typing import Any
 import pytest
 
 from drivers.cameras.aravis import AravisCamera, AravisStack
-from tests.conftest import need, need_tool
+from tests.conftest import REPO, need, need_tool
 from vgripd.config import Config
 from vgripd.errors import CameraError
 
@@ -181,7 +182,7 @@ async def test_refused_settings_name_camera_feature_and_range(fake: FakeCamera) 
 
 async def test_a_device_that_does_not_exist(fake: FakeCamera) -> None:
     cam = camera(cameras=[{"ip": "127.0.0.9"}])
-    with pytest.raises(CameraError, match=r"aravis: camera camera: no device with IP 127.0.0.9 "
+    with pytest.raises(CameraError, match=r"aravis: camera: no device with IP 127.0.0.9 "
                                           r"\(found: .*serial GV01"):
         await cam.open()
 
@@ -272,12 +273,12 @@ async def test_a_camera_killed_and_restarted_is_reopened_with_backoff_logged_onc
     try:
         before = await cam.grab(5.0)
         fake.kill()  # unplugged
-        with pytest.raises(CameraError, match=r"camera camera \(.*GV01.*\): (software "
+        with pytest.raises(CameraError, match=r"aravis: camera \(.*GV01.*\): (software "
                                               r"trigger failed|no frame within)"):
             await cam.grab(5.0)
-        assert cam.outage == "camera camera stopped answering"
+        assert cam.outage == "camera stopped answering"
         for _ in range(3):  # still gone: each grab says so at once, reopening with back-off
-            with pytest.raises(CameraError, match="camera camera stopped answering"):
+            with pytest.raises(CameraError, match="camera stopped answering"):
                 await cam.grab(5.0)
         fake.start()  # plugged in again
 
@@ -294,11 +295,91 @@ async def test_a_camera_killed_and_restarted_is_reopened_with_backoff_logged_onc
         after = await grab_again()
         # until it is back each grab says so; a frame that lost packets right after the
         # replug (a loaded machine) is refused as incomplete, never returned half
-        assert all("camera camera stopped answering" in f or "incomplete frame refused" in f
+        assert all("camera stopped answering" in f or "incomplete frame refused" in f
                    for f in failures), failures
     finally:
         await cam.close()
     assert after.meta["device_timestamps_ns"][0] > before.meta["device_timestamps_ns"][0]
     messages = [r.getMessage() for r in caplog.records if r.name == "vgripd.camera"]
     assert sum("stopped answering; closing it" in m for m in messages) == 1, messages
+    assert sum("camera back after" in m for m in messages) == 1, messages
+
+
+def hold_and_wait() -> None:
+    """A process that opens GV01, grabs once, says so and waits to be killed (run with -c)."""
+    cam = camera()
+    loop = asyncio.new_event_loop()
+    loop.run_until_complete(cam.open())
+    loop.run_until_complete(cam.grab(5.0))
+    print("holding", flush=True)
+    time.sleep(WAIT_S * 3)
+
+
+def killed_holder() -> None:
+    """Start ``hold_and_wait`` in another process and SIGKILL it once it holds the camera: its
+    GigE control channel and its acquisition are left behind on the device."""
+    holder = subprocess.Popen([sys.executable, "-c", "from tests.drivers.test_cameras_aravis "
+                               "import hold_and_wait; hold_and_wait()"], cwd=REPO,
+                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    try:
+        assert holder.stdout is not None
+        assert holder.stdout.readline() == b"holding\n"
+    finally:
+        holder.kill()
+        holder.wait(timeout=WAIT_S)
+
+
+async def test_a_camera_whose_holder_was_killed_gives_frames_to_the_next_process(
+        fake: FakeCamera) -> None:
+    """The dead holder's acquisition still streams to its dead port: opening right after the
+    kill waits out its control channel (the device's heartbeat timeout), stops that stale
+    acquisition and streams to this process; the first grab gets a new frame."""
+    killed_holder()
+    cam = camera(frame_timeout_s=2.0)
+    refused: list[str] = []
+    async with asyncio.timeout(WAIT_S):
+        while True:  # a loaded machine may need more than one try at the control channel
+            try:
+                await cam.open()
+                break
+            except CameraError as err:
+                refused.append(str(err))
+    assert all("held by another process" in r for r in refused), refused
+    try:
+        pair = await cam.grab(5.0)
+    finally:
+        await cam.close()
+    assert pair.left.shape == (512, 512)
+
+
+async def test_a_camera_that_answers_but_gives_no_frames_is_reopened_logged_once(
+        fake: FakeCamera, caplog: pytest.LogCaptureFixture) -> None:
+    """The stream sent elsewhere behind the driver's back (as a dead holder's stream is): the
+    feature reads still answer, yet no frame comes. After ``no_frame_limit`` grabs without one
+    the camera is closed, and the next grab reopens it and gets a frame. Each failure says
+    how long it waited."""
+    caplog.set_level(logging.INFO, logger="vgripd.camera")
+    cam = camera(frame_timeout_s=0.5, no_frame_limit=2)
+    await cam.open()
+    try:
+        await cam.grab(5.0)
+        device = cam._devices[0]
+        raw = device._cam  # type: ignore[attr-defined]
+        raw.stop_acquisition()
+        # stream channel 0's host port (GigE Vision bootstrap register): the discard port
+        device._dev.write_register(0x0D00, 9)  # type: ignore[attr-defined]
+        raw.start_acquisition()
+        for _ in range(2):
+            with pytest.raises(CameraError, match=r"aravis: camera \(Aravis Fake, serial GV01, "
+                                                  r"127\.0\.0\.1\): no frame within 0\.5 s$"):
+                await cam.grab(5.0)
+        assert cam.outage == "camera gave no frame to 2 grabs in a row"
+        pair = await cam.grab(5.0)
+        assert cam.outage == ""
+    finally:
+        await cam.close()
+    assert pair.left.shape == (512, 512)
+    messages = [r.getMessage() for r in caplog.records if r.name == "vgripd.camera"]
+    assert sum("gave no frame to 2 grabs in a row although it answers" in m
+               for m in messages) == 1, messages
     assert sum("camera back after" in m for m in messages) == 1, messages

@@ -89,7 +89,7 @@ async def test_a_stereo_pair_is_both_cameras_each_with_its_file_and_settings_rea
 
 async def test_a_camera_that_does_not_exist_is_named_with_what_was_found() -> None:
     cam = camera(cameras=[{"serial": "40099999"}])
-    with pytest.raises(CameraError, match=r"pylon: camera camera: no device with serial "
+    with pytest.raises(CameraError, match=r"pylon: camera: no device with serial "
                                           r"40099999 \(found: .*serial 0815-0000"):
         await cam.open()
 
@@ -118,7 +118,7 @@ async def test_a_grab_with_a_hardware_trigger_that_never_comes_times_out_naming_
     cam = camera(trigger="hardware", trigger_line="Line1", frame_timeout_s=0.3)
     await cam.open()
     try:
-        with pytest.raises(CameraError, match=r"camera camera \(.*0815-0000\): no frame within "
+        with pytest.raises(CameraError, match=r"pylon: camera \(.*0815-0000\): no frame within "
                                               r".* s \(waiting for the trigger on Line1\)"):
             await cam.grab(5.0)
         assert cam.outage == ""  # the camera answers: a missing pulse is not an outage

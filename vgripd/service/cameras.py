@@ -7,6 +7,13 @@ then runs), grabbing with a deadline, recovery after a hung grab, and the system
 - A grab that runs out of time and still hangs in the driver is abandoned and the camera opened
   again; if that fails or hangs too, ``fault`` says why and the watchdog stops pinging
   (``Daemon.health_problem``), so systemd restarts the service.
+- The worker process died while it held the camera (``lost``): the camera is opened again in
+  the new worker at once, in the background, with back-off until it opens, so the next job
+  finds it open (a GigE camera first waits out the dead process's control channel).
+- ``down`` says why no job can get a frame: the camera was lost with its worker and is not
+  open again yet, or ``DOWN_AFTER_FAILURES`` grabs in a row failed. Cleared when the camera is
+  open again or a grab delivers. The daemon's health reports it at once; the watchdog stops
+  only when it lasts longer than ``daemon.camera_down_restart_s``.
 """
 
 from __future__ import annotations
@@ -33,6 +40,12 @@ CAMERA_OPEN_TIMEOUT_S = 30.0
 CAMERA_CLOSE_TIMEOUT_S = 10.0
 # A grab that ran out of time and is still running this much later is hung, not just late.
 CAMERA_HUNG_GRACE_S = 1.0
+# Grabs in a row that failed before the camera counts as down (one failure may be one lost
+# frame; the GenICam drivers reopen a camera after as many grabs without a frame).
+DOWN_AFTER_FAILURES = 2
+# Opening the camera again after its worker died: first retry after the first, doubling up to
+# the second (seconds).
+REOPEN_BACKOFF_S = (0.5, 8.0)
 
 
 class CameraSupervisor:
@@ -53,6 +66,11 @@ class CameraSupervisor:
         self.open_timeout_s = CAMERA_OPEN_TIMEOUT_S
         self._lock = asyncio.Lock()  # one open/close of the camera at a time
         self._recovery: asyncio.Task[None] | None = None
+        self._reopening: asyncio.Task[None] | None = None
+        #: Why no job can get a frame now ("" while grabs can deliver); since when (monotonic).
+        self.down = ""
+        self.down_since = 0.0
+        self._failures = 0  # grabs in a row that failed
         self._background = background
         self._changed = changed
         #: Whether the service takes jobs (no recovery while stopping; set by the daemon).
@@ -94,6 +112,65 @@ class CameraSupervisor:
 
     def name(self) -> str:
         return str(getattr(self.camera, "type_name", "") or self.config.camera.type)
+
+    # --- whether a job can get a frame ---------------------------------------------------
+
+    def down_problem(self, longer_than_s: float = 0.0) -> str:
+        """``down`` with how long it has lasted ("" when not down, or down for no longer than
+        ``longer_than_s``: then named as the limit ``daemon.camera_down_restart_s``)."""
+        down_s = self.down_for_s()
+        if not self.down or (longer_than_s and down_s <= longer_than_s):
+            return ""
+        return (f"camera {self.name()}: no frame for {down_s:.1f} s: {self.down}"
+                + (f" (longer than daemon.camera_down_restart_s = {longer_than_s:g} s)"
+                   if longer_than_s else ""))
+
+    def down_for_s(self) -> float:
+        return time.monotonic() - self.down_since if self.down else 0.0
+
+    def _set_down(self, why: str) -> None:
+        if not self.down:
+            self.down_since = time.monotonic()
+            log.error("camera %s: no job can get a frame: %s", self.name(), why)
+        self.down = why
+        self._changed()
+
+    def _up(self, how: str) -> None:
+        self._failures = 0
+        if self.down:
+            log.info("camera %s: %s, %.1f s after it went down (%s)", self.name(), how,
+                     time.monotonic() - self.down_since, self.down)
+            self.down = ""
+            self._changed()
+
+    def _grab_failed(self, err: BaseException) -> None:
+        self._failures += 1
+        if self._failures >= DOWN_AFTER_FAILURES and self.accepting:
+            self._set_down(f"{self._failures} grabs in a row failed, the last: "
+                           f"{str(err) or type(err).__name__}")
+
+    def lost(self, reason: str) -> None:
+        """The worker process that held the camera died (``reason``): open it again in the
+        new one now, in the background, with back-off until it opens."""
+        if not self.accepting:
+            return
+        self.is_open = False
+        self._set_down(f"{reason}; opening the camera again in a new worker process")
+        if self._reopening is None or self._reopening.done():
+            self._reopening = self._background.spawn(self._reopen_lost(),
+                                                     name="vgripd-camera-reopen")
+
+    async def _reopen_lost(self) -> None:
+        delay_s, (first_s, max_s) = 0.0, REOPEN_BACKOFF_S
+        while self.accepting and not self.fault:
+            await asyncio.sleep(delay_s)
+            await self.open()
+            if self.is_open:
+                self._up("open again in the new worker process")
+                return
+            if self.down:  # the reason now: why the open failed
+                self.down = f"opening it again failed: {self.error}"
+            delay_s = min(max_s, max(first_s, 2 * delay_s))
 
     def _set_fault(self, why: str) -> None:
         self.fault = why
@@ -151,7 +228,9 @@ class CameraSupervisor:
         if not self.is_open:
             await self.open()
             if not self.is_open:
-                raise CameraError(f"camera {self.config.camera.type} is not open")
+                err = CameraError(f"camera {self.config.camera.type} is not open")
+                self._grab_failed(CameraError(self.error or str(err)))
+                raise err
         remaining_s = max(0.0, (deadline_ns - time.monotonic_ns()) / 1e9)
         t0 = time.monotonic()
         try:
@@ -161,11 +240,16 @@ class CameraSupervisor:
             if trigger.recipe:
                 hints["recipe"] = trigger.recipe
             pair: ImagePair = await self.camera.grab(remaining_s, **hints)
-        except (CameraError, asyncio.CancelledError):
+        except (CameraError, asyncio.CancelledError) as err:
+            self._grab_failed(err)
             waited_s = time.monotonic() - t0
             if remaining_s > 0 and waited_s >= 0.9 * remaining_s:  # out of time: hung?
                 self._ran_out(waited_s)
             raise
+        except Exception as err:  # the worker process died during the grab, twice
+            self._grab_failed(err)
+            raise
+        self._up("a grab delivered again")
         flange = trigger.T_base_flange if view is None else view.T_base_flange
         if pair.T_base_flange is None and flange is not None:
             pair = dataclasses.replace(pair, T_base_flange=flange)

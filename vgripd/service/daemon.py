@@ -20,9 +20,11 @@ Lifecycle (start, READY, stop, shutdown order) stays here.
 - Grabbing, processing and recording run in a worker process (``vgripd.service.worker``:
   images through shared memory, the rest pickled), so the event loop's interpreter only
   handles links and state and answers a poll in about a millisecond while a job runs. A worker
-  that dies fails the job in flight with ``INTERNAL`` naming why ("worker process exited with
-  signal 9 (SIGKILL)") and is replaced. ``daemon.worker = false`` (or a ``Processor`` object
-  passed in) keeps the old in-process path: driver thread, single-thread job executor.
+  that dies is replaced: a job in its processing ends ``INTERNAL`` naming why ("worker process
+  exited with signal 9 (SIGKILL)"), one in its grab is grabbed again on the new worker, and
+  the camera it held is opened again in the new one at once (``CameraSupervisor.lost``).
+  ``daemon.worker = false`` (or a ``Processor`` object passed in) keeps the old in-process
+  path: driver thread, single-thread job executor.
 - Start-up opens the camera and every link at once (a silent controller delays no other link
   and not the status endpoint); a link that cannot start is shown FAILED while the others
   serve. READY=1 follows the first outcome of each.
@@ -175,6 +177,8 @@ class Daemon:
         self.status_server: WebServer | None = None  # the web view, /api/status, /metrics
         self._cameras = CameraSupervisor(config, camera, self._background,
                                          changed=self._changed)
+        if self._worker is not None:  # a worker that dies holding the camera: reopen it
+            self._worker.camera_lost = self._cameras.lost
         self._runner = JobRunner(config, self._links, self._cameras, self._background,
                                  worker=self._worker, pipelines=pipelines,
                                  recipe_problems=self.recipe_problems,
@@ -336,7 +340,7 @@ class Daemon:
                 log.info("recording jobs to %s (max %.0f MB)", rec.folder, rec.max_mb)
             interval_s = watchdog_interval_s(self._env)
             if interval_s is not None:  # pinged during a long start-up too
-                self._background.spawn(watchdog(interval_s / 2, self.health_problem,
+                self._background.spawn(watchdog(interval_s / 2, self.watchdog_problem,
                                                 self.notifier))
             self._links.plan_files()
             self._begin_opening()  # camera and links at once; the status endpoint meanwhile
@@ -477,10 +481,19 @@ class Daemon:
     # --- health and status ----------------------------------------------------------------
 
     def health_problem(self) -> str:
-        """Why the service needs a restart ("" when healthy): the camera is faulty
-        (``camera_fault``), or a job has outlived its timeout by ``WATCHDOG_GRACE_S`` (wedged)."""
-        if self.camera_fault:
-            return self.camera_fault
+        """Why the service is not healthy ("" when it is): the camera is faulty
+        (``camera_fault``), no job can get a frame (the camera is down), or a job has outlived
+        its timeout by ``WATCHDOG_GRACE_S`` (wedged)."""
+        return self.camera_fault or self._cameras.down_problem() or self._wedged_job()
+
+    def watchdog_problem(self) -> str:
+        """Why the watchdog stops pinging, so that systemd restarts the service ("" while it
+        pings): as ``health_problem``, but a camera down only once it has been down longer
+        than ``daemon.camera_down_restart_s`` (recovering on its own failed)."""
+        return (self.camera_fault or self._wedged_job()
+                or self._cameras.down_problem(self.config.daemon.camera_down_restart_s))
+
+    def _wedged_job(self) -> str:
         job = self._runner.job
         if job is None:
             return ""
@@ -492,7 +505,7 @@ class Daemon:
                 f"{WATCHDOG_GRACE_S:g} s = {limit_s:g} s): the job machinery is wedged")
 
     def healthy(self) -> bool:
-        """False when the service needs a restart (``health_problem`` says why)."""
+        """False when the service is not healthy (``health_problem`` says why)."""
         return not self.health_problem()
 
     def cycle_percentiles_ms(self) -> dict[str, float]:

@@ -71,6 +71,8 @@ class StatusBoard:
             line += "; RECALIBRATE"
         if self.cameras.fault:
             line += "; CAMERA FAULT"
+        elif self.cameras.down:
+            line += "; CAMERA DOWN"
         return line
 
     def recipe_snapshot(self) -> dict[str, Any]:
@@ -119,7 +121,8 @@ class StatusBoard:
             "state": r.state.value,
             "uptime_s": (now - t_start_ns) / 1e9 if t_start_ns else 0.0,
             "camera": {"type": self.config.camera.type, "open": cam.is_open,
-                       "error": cam.error or None, "fault": cam.fault or None},
+                       "error": cam.error or None, "fault": cam.fault or None,
+                       "down": cam.down or None, "down_s": round(cam.down_for_s(), 1)},
             "healthy": not health_problem,
             "health_problem": health_problem or None,
             "worker": None if self.worker is None else self.worker.snapshot(),

@@ -32,8 +32,10 @@ Failures:
 
 - The worker dies (killed, segfault, out of memory): the request in flight fails with
   ``WorkerError("worker process exited with signal 9 (SIGKILL)")``, a new worker is started at
-  once, the next request waits for it. A worker that dies before it is ready is restarted with
-  doubling back-off (1 s .. 60 s); requests meanwhile fail at once naming the reason.
+  once, the next request waits for it. A grab is tried once more on the new worker, and when
+  the dead one held the camera ``camera_lost`` tells the daemon, which opens it again there.
+  A worker that dies before it is ready is restarted with doubling back-off (1 s .. 60 s);
+  requests meanwhile fail at once naming the reason.
 - The daemon abandons a request (job timeout, shutdown): the worker cannot be interrupted, so
   it is killed (SIGKILL) and restarted. This is what bounds a stuck computation or a hung
   camera driver now.
@@ -107,6 +109,8 @@ log = logging.getLogger("vgripd.worker")
 
 #: The processor the worker builds from the config (``module:Class``, called with the Config).
 DEFAULT_PROCESSOR = "vgripd.vision.checked:CheckedPipeline"
+#: Requests after which the worker may hold the camera (until a ``camera_close``).
+_CAMERA_OPS = frozenset({"camera_open", "camera_grab", "camera_settings"})
 #: Payload length (bytes) and request id; id 0 is the worker's "ready" message.
 HEADER = struct.Struct("!IQ")
 #: Spawn, imports, pipeline and recorder set-up; a worker not ready by then is killed.
@@ -445,6 +449,8 @@ class _Generation:
     reader_task: asyncio.Task[None] | None = None
     killed_because: str = ""
     exited: bool = False
+    #: The worker may hold the camera: asked to open, grab or set it, not closed since.
+    holds_camera: bool = False
 
     def is_ready(self) -> bool:
         return self.ready.done() and self.ready.exception() is None
@@ -471,6 +477,8 @@ class WorkerClient:
         self.record_bytes = 0  # the worker's Recorder.total_bytes, with every answer
         self.restarts = 0
         self.last_exit = ""
+        #: Called with the reason when a worker that held the camera died and is replaced.
+        self.camera_lost: Callable[[str], None] | None = None
         self._ctx = multiprocessing.get_context("spawn")
         self._gen: _Generation | None = None
         self._starting: asyncio.Task[None] | None = None
@@ -494,7 +502,7 @@ class WorkerClient:
         if swept:
             log.warning("removed shared memory left by vgripd daemons that no longer run: %s",
                         ", ".join(swept))
-        size = self._initial_segment_bytes()
+        size = _initial_segment_bytes(self.config)
         if size:
             self._new_segment(size)
         self._spawn_soon(0.0)
@@ -502,16 +510,6 @@ class WorkerClient:
     async def wait_ready(self) -> None:
         """Wait until a worker is ready (WorkerError when it cannot start)."""
         await self._ready_generation()
-
-    def _initial_segment_bytes(self) -> int:
-        cal = self.config.calibration
-        if cal is None:
-            return 0
-        cams = [cal.left] + ([cal.right] if cal.right is not None else [])
-        if cal.cameras is not None:
-            cams = [cam.intrinsics for cam in cal.cameras]
-        # 8-bit grey images of the calibrated size; colour or larger images grow it (once).
-        return sum(_aligned(c.width * c.height) for c in cams)
 
     def _new_segment(self, size: int) -> ImageSegment:
         old, self._segment = self._segment, None
@@ -711,6 +709,8 @@ class WorkerClient:
             log.info("%s; not replaced, vgripd is stopping", reason)
             return
         self.restarts += 1
+        if gen.holds_camera and self.camera_lost is not None:
+            self.camera_lost(reason)
         if was_ready:
             self._backoff_s = 0.0
         else:
@@ -747,6 +747,7 @@ class WorkerClient:
     async def _call(self, gen: _Generation, op: str, args: tuple[Any, ...], what: str) -> Any:
         """Send one request and wait for its answer. Cancelled while the worker is on it, the
         worker is killed (there is no other way to interrupt it) and replaced."""
+        gen.holds_camera = op in _CAMERA_OPS or (gen.holds_camera and op != "camera_close")
         fut = self._send(gen, op, args)
         try:
             return await asyncio.shield(fut)
@@ -789,6 +790,7 @@ class WorkerClient:
         A worker that died while idle is only noticed when the next request fails; a grab
         touches nothing on the robot's side, so it is tried once more on the new worker
         instead of failing the job of a PLC that triggered just after the death."""
+        deadline = time.monotonic() + timeout_s
         gen = await self._ready_generation()
         segment = self._writable_segment()
         args = (timeout_s, None if segment is None else segment.name, view, recipe)
@@ -800,6 +802,8 @@ class WorkerClient:
             log.warning("grab: the worker process had died (%s); grabbing on a new one",
                         self.last_exit)
             gen = await self._ready_generation()
+            # the time left of the job's, after the new worker has started
+            args = (max(0.0, deadline - time.monotonic()), *args[1:])
             token, fields, layout, need = await self._call(gen, "camera_grab", args, "grab")
         if layout is None:  # no segment yet, or too small: a bigger one, then fetch again
             segment = self._new_segment(need)
@@ -913,6 +917,18 @@ class WorkerRecorder:
 
 
 # --- helpers ------------------------------------------------------------------------------
+
+def _initial_segment_bytes(config: Config) -> int:
+    """The first shared memory's size: 8-bit grey images of the calibrated size (colour or
+    larger images grow it, once)."""
+    cal = config.calibration
+    if cal is None:
+        return 0
+    cams = [cal.left] + ([cal.right] if cal.right is not None else [])
+    if cal.cameras is not None:
+        cams = [cam.intrinsics for cam in cal.cameras]
+    return sum(_aligned(c.width * c.height) for c in cams)
+
 
 def _remote_error(value: Any) -> BaseException:
     kind, message, tb = value
