@@ -28,7 +28,7 @@ Refused or failed before the commit: the candidates are removed and every includ
 bytes it held, byte for byte. Killed at any moment: each include holds its judged old or its
 judged new bytes; a journal left by a kill inside the commit is finished by ``recover`` when
 ``vgripd run`` starts (the new bytes, judged and running before the kill), and a leftover
-candidate is removed by the next write.
+candidate is removed then (or by the next write).
 
 Use::
 
@@ -258,6 +258,12 @@ def recover(config_path: str | Path) -> list[str]:
                 done.append(target)
                 log.warning("config: finished the interrupted write of %s", target)
         journal.unlink(missing_ok=True)
+    for name in list(snapshot.files)[1:]:  # candidates of writes killed before their commit
+        cand = candidate_path(Path(name))
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(cand)
+            log.warning("config: removed %s, left by an interrupted write (never judged "
+                        "and applied)", cand)
     return done
 
 
