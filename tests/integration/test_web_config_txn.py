@@ -187,15 +187,13 @@ async def _stop(proc: asyncio.subprocess.Process, how: signal.Signals) -> int:
         return await proc.wait()
 
 
-#: The saves tried, in turn: (the edit, whether the check accepts it).
-EDITS: list[tuple[dict[str, Any], bool]] = [
-    ({"vision": {"downscale": 99}}, False),
-    ({"vision": {"min_contrast": 20}}, True),
-    ({"vision": {"min_contrast": -5}}, False),
-    ({"vision": {"min_contrast": 30}}, True),
-    ({"polarity": "bright"}, True),
-    ({"polarity": "dark"}, True),
-]
+#: Edits the check refuses, killed early in their judge or later.
+REFUSED: list[dict[str, Any]] = [{"vision": {"downscale": 99}}, {"vision": {"min_contrast": -5}}]
+#: Kill points, as fractions of an accepted save's own duration: a refused edit early (the
+#: child starting, reading, judging), an accepted one late (judged, applied, committed, and
+#: just after its answer).
+REFUSED_AT = [0.05, 0.3, 0.6]
+ACCEPTED_AT = [0.7, 0.85, 0.93, 0.97, 1.0, 1.05]
 
 
 def _expected(old: bytes, edit: dict[str, Any]) -> dict[str, Any]:
@@ -213,15 +211,19 @@ async def test_killed_at_many_points_of_many_saves_the_daemon_starts_on_a_judged
     """``vgripd run`` with the web view; a save posted, the daemon killed (SIGKILL or SIGTERM)
     at a different point of each save: while it is judged, once it is judged, after its answer.
     After each kill the include holds its old bytes or (an accepted edit) exactly the new
-    judged data, never a refused edit; the daemon starts again on it every time, and ``vgripd
-    check`` accepts the last file."""
+    judged data, never a refused edit, and the new data once the save answered; the daemon
+    starts again on it every time, and ``vgripd check`` accepts the last file."""
     main, port = _process_cell(tmp_path)
     cell = tmp_path / "cell.toml"
     base = f"http://127.0.0.1:{port}"
     seen: list[str] = []
-    # Kill points as fractions of the last save's own duration (1.2: after its answer).
-    points = [0.05, 0.3, 0.6, 0.9, 0.98, 1.2]
-    kills = [(how, f) for f in points for how in (signal.SIGKILL, signal.SIGTERM)]
+    kills: list[tuple[signal.Signals, float, dict[str, Any], bool]] = []
+    for i in range(len(ACCEPTED_AT)):  # interleaved: refused, accepted, refused, ...
+        how = (signal.SIGKILL, signal.SIGTERM)[i % 2]
+        kills.append((how, REFUSED_AT[i % len(REFUSED_AT)], REFUSED[i % len(REFUSED)], False))
+        # each accepted edit a value of its own: it always changes the file
+        kills.append(((signal.SIGTERM, signal.SIGKILL)[i % 2], ACCEPTED_AT[i],
+                      {"vision": {"min_contrast": 40.0 + i}}, True))
     duration = None
     async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=WAIT_S)) as s:
         proc = await _start(main, seen)
@@ -231,8 +233,7 @@ async def test_killed_at_many_points_of_many_saves_the_daemon_starts_on_a_judged
             code, out = await post(s, f"{base}/api/tuning", {"vision": {"min_contrast": 24}})
             duration = asyncio.get_running_loop().time() - t0
             assert code == 200, out
-            for i, (how, fraction) in enumerate(kills):
-                edit, good = EDITS[i % len(EDITS)]
+            for i, (how, fraction, edit, good) in enumerate(kills):
                 old = cell.read_bytes()
                 task = asyncio.create_task(post(s, f"{base}/api/tuning", edit))
                 # not a wait for a state: the kill lands where it lands, each time elsewhere
@@ -245,9 +246,12 @@ async def test_killed_at_many_points_of_many_saves_the_daemon_starts_on_a_judged
                 now = cell.read_bytes()
                 state = (f"kill {i} ({how.name} at {fraction} of {duration:.1f} s, edit {edit}, "
                          f"answer {answer}, rc {rc})")
+                print(state, "-> new" if now != old else "-> old")  # the points, for the log
                 if now != old:
                     assert good, f"{state}: a refused edit reached the include"
                     assert tomllib.loads(now.decode()) == _expected(old, edit), state
+                elif isinstance(answer, tuple) and answer[0] == 200:
+                    raise AssertionError(f"{state}: answered saved, but the include is old")
                 if how == signal.SIGTERM:
                     assert rc == 0, f"{state}: {''.join(seen[-20:])}"
                 proc = await _start(main, seen)  # it starts again, on the file as it is

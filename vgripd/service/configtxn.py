@@ -403,8 +403,9 @@ class ConfigWriter:
                 except OSError as err:
                     log.exception("config write: the commit failed")
                     return self._audit(dataclasses.replace(
-                        outcome, applied=False, message=f"{outcome.message}, but not saved "
-                        f"({err}): the next start runs the file as it was"), note)
+                        outcome, applied=False, message=f"{outcome.message}, but saving "
+                        f"failed ({err}): the next start finishes it when its journal was "
+                        "written, else runs the files as they were"), note)
                 message = f"{outcome.message}; saved to {', '.join(written)}"
                 return self._audit(dataclasses.replace(outcome, message=message,
                                                        written=tuple(written)), note)

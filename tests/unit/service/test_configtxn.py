@@ -5,6 +5,7 @@ refuses before anything is written."""
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import json
 import os
@@ -125,3 +126,22 @@ async def test_the_writer_refuses_the_main_file_and_a_linked_include(tmp_path: P
     outcome = await writer.write(lambda snap: {cell: snap.data(cell)}, "test")
     assert outcome.applied
     assert outcome.message.startswith("no change")
+
+
+async def test_a_plan_file_is_replaced_atomically_and_a_config_file_is_refused(
+        tmp_path: Path) -> None:
+    main = write_cell(tmp_path)
+    writer = ConfigWriter(main)
+    plan = tmp_path / "plan.toml"
+    await writer.write_file(plan, b"[plan]\nposes = 1\n")
+    assert plan.read_bytes() == b"[plan]\nposes = 1\n"
+    await asyncio.to_thread(plan.chmod, 0o640)
+    candidate_path(plan).symlink_to(tmp_path / "outside.txt")  # planted: removed, not followed
+    await writer.write_file(plan, b"[plan]\nposes = 2\n")
+    assert plan.read_bytes() == b"[plan]\nposes = 2\n"
+    assert plan.stat().st_mode & 0o777 == 0o640
+    assert not (tmp_path / "outside.txt").exists()
+    assert not candidate_path(plan).is_symlink()
+    assert not candidate_path(plan).exists()
+    with pytest.raises(ConfigError, match="a file of the config"):
+        await writer.write_file(tmp_path / "cell.toml", b"[plan]\n")
