@@ -91,6 +91,9 @@ def settings_edit(values: dict[str, float]) -> Edit:
 async def save_settings(reloader: Reloader, values: dict[str, float], source: str) -> Outcome:
     """The values saved (judged, applied: the camera runs with them already), or why not."""
     outcome = await reloader.write(settings_edit(values), source, "camera settings")
+    if outcome.written:
+        return dataclasses.replace(outcome, message=f"applied live; saved to "
+                                   f"{', '.join(outcome.written)} for the next start")
     if outcome.applied:
         return dataclasses.replace(outcome, message=f"applied live; {outcome.message}")
     return dataclasses.replace(outcome, message=f"applied live, not saved: {outcome.message}")
