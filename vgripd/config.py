@@ -31,7 +31,7 @@ from __future__ import annotations
 import ipaddress
 import math
 import tomllib
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -55,6 +55,7 @@ from vgripd.configbase import (
     DriverSection,
     format_validation_error,
 )
+from vgripd.configsnapshot import include_path
 from vgripd.errors import ConfigError, DegenerateInputError
 from vgripd.geometry.transforms import check_transform
 from vgripd.geometry.vendors import VENDORS
@@ -1047,11 +1048,19 @@ def config_from_dict(
         raise ConfigError(format_validation_error(err, source, owner)) from None
 
 
-def _read_toml(p: Path, what: str) -> dict[str, Any]:
+def _read_toml(p: Path, what: str, files: Mapping[str, bytes] | None = None) -> dict[str, Any]:
     try:
-        text = p.read_text(encoding="utf-8")
+        if files is None:
+            text = p.read_text(encoding="utf-8")
+        elif str(p) in files:
+            text = files[str(p)].decode("utf-8")
+        else:
+            raise ConfigError(f"{p}: {what}: not in the snapshot judged (read before it "
+                              f"was named)")
     except OSError as err:
         raise ConfigError(f"{p}: cannot read {what}: {err.strerror}") from None
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{p}: {what}: not UTF-8 text: {err}") from None
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
@@ -1075,6 +1084,7 @@ def _merge(into: dict[str, Any], owner: dict[str, str], data: dict[str, Any],
 def read_config_data(
     path: str | Path, owner: dict[str, str] | None = None,
     included: list[tuple[str, dict[str, Any], dict[str, Any]]] | None = None,
+    files: Mapping[str, bytes] | None = None,
 ) -> dict[str, Any]:
     """The config file as a dict, with its ``include = [...]`` files merged in.
 
@@ -1082,10 +1092,11 @@ def read_config_data(
     including file, may not include further files, and may not set what another file sets.
     Their ``[about]`` tables (how a calibration was made) are dropped from the result; with
     ``included`` given, each included file is appended to it as (path, its tables, its
-    ``[about]``), for the consistency check of :func:`check_calibration_files`.
+    ``[about]``), for the consistency check of :func:`check_calibration_files`. With ``files``
+    (``vgripd.configsnapshot.Snapshot.files``) the bytes come from there, not from disk.
     """
     p = Path(path)
-    data = _read_toml(p, "config")
+    data = _read_toml(p, "config", files)
     includes = data.pop("include", [])
     if not isinstance(includes, list) or not all(isinstance(i, str) for i in includes):
         raise ConfigError(f"{p}: include: must be a list of file names")
@@ -1093,8 +1104,8 @@ def read_config_data(
     owner = {} if owner is None else owner
     _merge(merged, owner, data, str(p))
     for name in includes:
-        inc = Path(name) if Path(name).is_absolute() else p.parent / name
-        part = _read_toml(inc, f"included file (from {p}: include)")
+        inc = include_path(p, name)
+        part = _read_toml(inc, f"included file (from {p}: include)", files)
         about = part.pop("about", None)
         if included is not None:
             included.append((str(inc), part, about if isinstance(about, dict) else {}))
@@ -1104,12 +1115,12 @@ def read_config_data(
     return merged
 
 
-def load_config(path: str | Path) -> Config:
+def load_config(path: str | Path, files: Mapping[str, bytes] | None = None) -> Config:
     """Read and validate a TOML config file (with its includes); every failure is a
-    ``ConfigError``."""
+    ``ConfigError``. ``files``: the bytes to read instead of the disk (a judged snapshot)."""
     owner: dict[str, str] = {}
     included: list[tuple[str, dict[str, Any], dict[str, Any]]] = []
-    data = read_config_data(path, owner, included)
+    data = read_config_data(path, owner, included, files)
     config = config_from_dict(data, str(path), owner)
     config._load_warnings = check_calibration_files(data, owner, included)
     return config

@@ -67,14 +67,14 @@ async def test_exposure_and_gain_are_applied_live_and_kept_in_the_include(
         assert code == 200, out
         assert out["read_back"]["camera"]["ExposureTime"] == 5000.0
         assert out["saved"]["applied"], out
-        assert out["saved"]["diff"] == ["camera.exposure_us: '(unset)' -> 5000.0"]
+        assert out["saved"]["diff"] == ["camera.exposure_us: (unset) -> 5000.0"]
         after = float(np.mean((await run.daemon.camera.grab(10.0)).views[0]))
         assert after < 0.6 * before, (before, after)
         assert tomllib.loads(cell.read_text())["camera"]["exposure_us"] == 5000.0
         assert "camera" not in tomllib.loads((tmp_path / "cell.toml.1").read_text())
         assert load_config(main).camera.exposure_us == 5000.0  # the next start
         assert run.daemon.reloader is not None
-        assert run.daemon.reloader.audit[0].diff == ("camera.exposure_us: '(unset)' -> 5000.0",)
+        assert run.daemon.reloader.audit[0].diff == ("camera.exposure_us: (unset) -> 5000.0",)
         async with s.get(f"{base}/api/cameras/settings") as r:
             assert (await r.json())["exposure_us"] == 5000.0
         # A reload of the saved file: the camera already runs with it, no restart named.

@@ -18,7 +18,8 @@ from tests.conftest import REPO
 LAYERS = [
     {"types", "errors"},
     {"geometry"},
-    {"serialize", "imagefiles", "redaction", "configbase", "config", "registry"},
+    {"serialize", "imagefiles", "redaction", "configbase", "configsnapshot", "config",
+     "registry"},
     {"vision"},
     {"calib"},
     {"service"},

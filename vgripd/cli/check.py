@@ -9,6 +9,8 @@ configured, read back and closed (skipped with ``--running`` or ``--no-camera``)
 device lacks or refuses, or a value out of its range, is a config error naming the camera, the
 feature and the device's range. An ERROR means the config cannot work here: exit 78, one line per
 problem naming the config key. WARNINGs are printed after the OK line; the exit code stays 0.
+With ``--snapshot FILE`` (the daemon's judge of a save or reload, ``vgripd.service.configtxn``)
+the config's bytes are read from that one file, not from disk, and their digest is printed.
 
 Every recipe (docs/recipes.md) is checked: its effective config is validated with the file, a
 recipe that is not calibrated or taught is an error naming it (``recipe 2 (plate-b): not
@@ -23,6 +25,7 @@ import asyncio
 
 from vgripd.cli.run import DEFAULT_CONFIG
 from vgripd.config import Config, load_config
+from vgripd.configsnapshot import Snapshot
 from vgripd.errors import CameraError, ConfigError
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.commissioning import Options, check_scene, commission
@@ -39,6 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="accept a config without [[links]] (for locate/replay only)")
     parser.add_argument("--no-camera", action="store_true",
                         help="do not open the cameras to check their settings on the devices")
+    parser.add_argument("--snapshot", metavar="FILE",
+                        help="judge the config's bytes from this snapshot file (written by the "
+                             "daemon for a save or reload) instead of the files on disk; "
+                             "prints the snapshot's digest")
     parser.add_argument("--untaught-ok", action="store_true",
                         help="a recipe whose reference is not taught (yet, or again after a new "
                              "hand-eye) is a warning, not an error: its jobs end NOT_CALIBRATED")
@@ -88,7 +95,15 @@ def check_camera_settings(config: Config) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
+    if args.snapshot is None:
+        config = load_config(args.config)
+    else:
+        snapshot = Snapshot.load(args.snapshot)
+        if str(snapshot.main) != str(args.config):
+            raise ConfigError(f"{args.snapshot}: a snapshot of {snapshot.main}, not of "
+                              f"{args.config}")
+        config = load_config(snapshot.main, snapshot.files)
+        print(f"snapshot {snapshot.digest()}")
     try:  # drivers validated and every recipe's pipeline built, no I/O
         daemon = Daemon(config)
     except ConfigError as err:  # a template file, driver options: name the file judged

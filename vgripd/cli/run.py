@@ -10,6 +10,7 @@ import signal
 
 from vgripd.config import load_config
 from vgripd.errors import ConfigError
+from vgripd.service.configtxn import recover
 from vgripd.service.daemon import Daemon
 from vgripd.service.logsetup import configure_logging
 from vgripd.service.reload import Reloader
@@ -41,6 +42,7 @@ async def serve(daemon: Daemon) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    recover(args.config)  # a config write a kill interrupted in its commit: finished first
     config = load_config(args.config)
     configure_logging(config.daemon.log_level)
     for warning in config.load_warnings:  # e.g. a hand-eye file without a camera fingerprint

@@ -7,8 +7,10 @@ Every child is started the same way:
 - ``python -I``: isolated, so neither the working directory nor ``PYTHON*`` variables come
   first on ``sys.path`` (a ``tomllib.py`` lying there is not imported); the folder that holds
   the daemon's own ``vgripd`` package is appended, so the child runs the same code;
-- in the fixed working directory ``/`` (callers pass absolute paths) and its own session (its
-  process group is killed as one);
+- in the daemon's own working directory, so that a relative path in the config (a replay
+  folder, an include given relative to it) means in the child what it means in the daemon
+  (``-I`` keeps that folder off ``sys.path``), and in its own session (its process group is
+  killed as one);
 - first thing in the child (``child_main``): ``PR_SET_PDEATHSIG`` (the kernel kills it when
   the daemon dies, even by SIGKILL), ``SCHED_BATCH`` and a niceness ``CHILD_NICE_BELOW`` levels
   below the daemon's (at least ``CHILD_NICE_FLOOR``: below the worker and the image helper),
@@ -99,7 +101,7 @@ async def run_vgripd(args: list[str], timeout_s: float) -> tuple[int, str, str]:
     proc = await asyncio.create_subprocess_exec(
         *command_line(args, timeout_s), stdin=asyncio.subprocess.DEVNULL,
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, env=dict(os.environ),
-        cwd="/", start_new_session=True)
+        start_new_session=True)
     timed_out = False
     try:
         try:

@@ -1,11 +1,14 @@
-"""Reload the config without a restart (``systemctl reload vgripd``: SIGHUP; the web view's
-reload and tuning save), and the audit of every change (docs/web.md, "Reload and audit").
+"""Apply a judged config without a restart (``systemctl reload vgripd``: SIGHUP; the web view's
+reload and every save). The transaction around it (one lock, candidate files, the judge, the
+commit) and the audit are ``vgripd.service.configtxn``'s (docs/web.md, "Reload, tuning and
+audit"; "Writing the config: one transaction").
 
 A reload:
 
-1. judges the config file in full, as ``vgripd check --running`` does (fields, drivers, every
-   recipe calibrated and taught, the scene, the replay samples), in a child process so that the
-   daemon's event loop keeps answering the PLC while the pipelines are built and run;
+1. judges a byte snapshot of the config files in full, as ``vgripd check --running`` does
+   (fields, drivers, every recipe calibrated and taught, the scene, the replay samples), in a
+   child process so that the daemon's event loop keeps answering the PLC while the pipelines
+   are built and run;
 2. refused: the running config stays, the reason goes to the log and to the page
    (``Outcome.message``), and the audit lists it;
 3. accepted: the change is applied *between jobs* (it waits until no job runs and no several-view
@@ -18,26 +21,24 @@ addresses, drivers), the web view (``status``), the recorder (``record``) and th
 (``daemon``). A reload keeps those sections as they run and names each changed key as needing a
 restart (``Outcome.restart``); the rest is applied.
 
-Every reload, applied or refused, is one audit entry: wall time, who asked (``SIGHUP`` or the web
-client's address), the outcome and a diff of the effective config (secrets redacted), logged as
-one line each and listed on the page (``GET /api/audit``).
+Every reload and save, applied or refused, is one audit entry: wall time, who asked (``SIGHUP``
+or the web client's address), the outcome and a diff of the effective config (secrets
+redacted), logged as one line each and listed on the page (``GET /api/audit``).
 """
 
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import logging
 import time
-from collections import deque
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from vgripd.config import Config, config_from_dict, load_config
+from vgripd.config import Config, config_from_dict
 from vgripd.errors import ConfigError
 from vgripd.redaction import redact
-from vgripd.service.commands import CommandTimeout, run_vgripd
+from vgripd.service.configtxn import ConfigWriter, Outcome
 from vgripd.service.worker import WorkerError
 
 log = logging.getLogger("vgripd.reload")
@@ -45,30 +46,8 @@ log = logging.getLogger("vgripd.reload")
 #: Sections a reload cannot apply: their objects (camera driver, link servers and clients, the
 #: web server, the recorder, the job machinery) are built once at start.
 RESTART_SECTIONS = ("camera", "links", "status", "record", "daemon")
-#: ``vgripd check`` in the child process gets this long (it builds and runs every pipeline).
-CHECK_TIMEOUT_S = 300.0
 #: A reload waits this long for the running job (or several-view job) to end.
 IDLE_TIMEOUT_S = 3600.0
-#: Audit entries kept for the page (the log keeps them all).
-AUDIT_KEEP = 200
-
-
-@dataclasses.dataclass(frozen=True)
-class Outcome:
-    """One reload: ``applied`` or refused (``message`` says why), the effective-config ``diff``
-    (``key: old -> new``), and the changed keys that need a restart."""
-
-    applied: bool
-    message: str
-    diff: tuple[str, ...] = ()
-    restart: tuple[str, ...] = ()
-    source: str = ""
-    t_wall: float = 0.0
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"applied": self.applied, "message": self.message, "diff": list(self.diff),
-                "restart": list(self.restart), "source": self.source,
-                "time": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(self.t_wall))}
 
 
 def _flat(data: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
@@ -112,6 +91,20 @@ def restart_keys(old: Config, new: Config) -> list[str]:
     return keys
 
 
+def _with_keys(config: Config, keys: Mapping[str, Any]) -> Config:
+    """``config`` with the flat ``keys`` (``camera.exposure_us``) set."""
+    if not keys:
+        return config
+    data = _dump(config)
+    for key, value in keys.items():
+        *tables, leaf = key.split(".")
+        table = data
+        for name in tables:
+            table = table.setdefault(name, {})
+        table[leaf] = value
+    return config_from_dict(data, "<running config with the values taken live>")
+
+
 def applicable(old: Config, new: Config) -> Config:
     """``new`` with the sections only a restart can change kept as they run (``old``)."""
     a, b = _dump(old), _dump(new)
@@ -125,99 +118,44 @@ def applicable(old: Config, new: Config) -> Config:
     return config_from_dict(merged, "<reloaded config, restart sections as running>")
 
 
-async def check_file(path: str | Path, timeout_s: float = CHECK_TIMEOUT_S,
-                     untaught_ok: bool = False) -> str:
-    """Judge ``path`` as ``vgripd check --running`` does (``--untaught-ok`` with
-    ``untaught_ok``), in a child process: "" when it passes, else its error lines."""
-    rc, out, err = await run_vgripd(
-        ["check", "--running", "-c", str(path), *(["--untaught-ok"] if untaught_ok else [])],
-        timeout_s)
-    if rc == 0:
-        return ""
-    lines = [line for line in (out + "\n" + err).splitlines()
-             if line.strip() and not line.lower().startswith(("warning:", "note:"))]
-    return "\n".join(lines[-20:]) or f"vgripd check exited with {rc}"
-
-
-class Reloader:
-    """Reloads ``path`` into ``daemon`` (a ``vgripd.service.daemon.Daemon``, typed loosely so
-    that this module does not import the daemon), one reload at a time, and keeps the audit."""
+class Reloader(ConfigWriter):
+    """Writes and reloads ``path`` into ``daemon`` (a ``vgripd.service.daemon.Daemon``, typed
+    loosely so that this module does not import the daemon): the transaction and the audit are
+    ``ConfigWriter``'s, applying a judged config is this class's."""
 
     def __init__(self, daemon: Any, path: str | Path) -> None:
+        super().__init__(path)
         self.daemon = daemon
-        self.path = Path(path).absolute()  # the check child runs in "/"
-        self.audit: deque[Outcome] = deque(maxlen=AUDIT_KEEP)
-        self.last: Outcome | None = None
-        self._lock = asyncio.Lock()
-        self._tasks: set[asyncio.Task[Outcome]] = set()
         #: Keys of restart-only sections the running daemon already took live (the page's
-        #: exposure and gain: ``camera.exposure_us``): a reloaded file with the same value
-        #: does not name them as needing a restart.
+        #: exposure and gain: ``camera.exposure_us``): a file with the same value does not name
+        #: them as needing a restart, and the running config takes them.
         self.live: dict[str, Any] = {}
 
-    @property
-    def running(self) -> bool:
-        return self._lock.locked()
-
-    def request(self, source: str = "SIGHUP") -> None:
-        """Reload in the background (a signal handler calls this)."""
-        task = asyncio.ensure_future(self.reload(source))
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-
-    async def close(self) -> None:
-        for task in list(self._tasks):
-            task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
-
-    async def reload(self, source: str = "SIGHUP", note: str = "",
-                     untaught_ok: bool = False) -> Outcome:
-        """Judge and apply the config file; the running config stays when it is refused.
-        ``untaught_ok``: a recipe left untaught is no refusal (a new hand-eye whose taught
-        references were set aside: its jobs end NOT_CALIBRATED until taught again)."""
-        async with self._lock:
-            log.info("config reload (%s): judging %s", source, self.path)
-            try:
-                problem = await check_file(self.path, untaught_ok=untaught_ok)
-                if problem:
-                    raise ConfigError(problem)
-                # judged again here (the child only said yes): off the loop, the PLC is polling
-                new = await asyncio.to_thread(load_config, self.path)
-                old = self.daemon.config
-                flat_new = dict(_flat(_dump(new)))
-                restart = [k for k in restart_keys(old, new)
-                           if k not in self.live or flat_new.get(k, ...) != self.live[k]]
-                target = applicable(old, new)
-            except (ConfigError, CommandTimeout) as err:
-                return self._audit(Outcome(False, f"refused, the running config stays: {err}",
-                                           source=source, t_wall=time.time()), note)
-            diff = config_diff(old, target)
-            if not diff and not restart:
-                return self._audit(Outcome(True, "no change", source=source,
-                                           t_wall=time.time()), note)
-            try:
-                await self._apply(target)
-            except Exception as err:  # the worker could not build them: it is replaced
-                log.exception("config reload: applying failed")
-                return self._audit(Outcome(False, f"applying failed: {err}", tuple(diff),
-                                           tuple(restart), source, time.time()), note)
-            message = "applied" if diff else "nothing applied"
-            if restart:
-                message += f"; needs a restart (systemctl restart vgripd): {', '.join(restart)}"
-            return self._audit(Outcome(True, message, tuple(diff), tuple(restart), source,
-                                       time.time()), note)
-
-    def _audit(self, outcome: Outcome, note: str = "") -> Outcome:
-        self.audit.appendleft(outcome)
-        self.last = outcome
-        what = f" ({note})" if note else ""
-        changes = "; ".join(outcome.diff) or "no change"
-        if outcome.applied:
-            log.info("config reload (%s)%s: %s: %s", outcome.source, what, outcome.message,
-                     changes)
-        else:
-            log.error("config reload (%s)%s: %s", outcome.source, what, outcome.message)
-        return outcome
+    async def apply(self, config: Config, source: str) -> Outcome:
+        """The judged ``config`` applied between jobs: what a reload can apply, the keys only a
+        restart can change named (``Outcome.restart``)."""
+        old = self.daemon.config
+        flat_new = dict(_flat(_dump(config)))
+        taken = {k: v for k, v in self.live.items() if flat_new.get(k, ...) == v}
+        restart = [k for k in restart_keys(old, config) if k not in taken]
+        try:
+            target = _with_keys(applicable(old, config), taken)
+        except ConfigError as err:
+            return Outcome(False, f"refused, the running config stays: {err}", source=source,
+                           t_wall=time.time())
+        diff = config_diff(old, target)
+        if not diff and not restart:
+            return Outcome(True, "no change", source=source, t_wall=time.time())
+        try:
+            await self._apply(target)
+        except Exception as err:  # the worker could not build them: it is replaced
+            log.exception("config reload: applying failed")
+            return Outcome(False, f"applying failed: {err}", tuple(diff), tuple(restart),
+                           source, time.time())
+        message = "applied" if diff else "nothing applied"
+        if restart:
+            message += f"; needs a restart (systemctl restart vgripd): {', '.join(restart)}"
+        return Outcome(True, message, tuple(diff), tuple(restart), source, time.time())
 
     async def _apply(self, config: Config) -> None:
         """Swap ``config`` in between jobs: no job running, no several-view job waiting."""

@@ -14,30 +14,33 @@ as at open against what the device reports and reads them back. Only between job
 400 naming the camera, the feature and the range, and changes nothing.
 
 Applied, the values are written to the include file that holds ``[object]`` (the tuning save's
-file: numbered backup, one audit entry with the diff), as ``[camera]`` keys beside the main
-file's ``[camera]`` table, so the next start keeps them. The reload does not apply a ``camera``
-key (it needs a restart), so this route applies them live itself and the file only keeps them:
-a later reload of that file names ``camera.exposure_us`` / ``camera.gain_db`` as needing a
-restart although the camera already runs with them.
+file), as ``[camera]`` keys beside the main file's ``[camera]`` table, so the next start keeps
+them: one transaction of the config writer (``vgripd.service.configtxn``: judged, numbered
+backup, one audit entry with the diff), in turn with every other save and reload. A reload
+does not apply a ``camera`` key (it needs a restart), so this route applies them live itself
+and tells the reloader (``Reloader.live``): the running config takes the values the file now
+holds, and no reload names them as needing a restart.
 """
 
 from __future__ import annotations
 
-import asyncio
+import dataclasses
 import logging
-import time
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from aiohttp import web
 
-from vgripd.config import load_config, read_config_data
+from vgripd.config import read_config_data
+from vgripd.configsnapshot import Snapshot
 from vgripd.errors import CameraError, CameraSettingError, ConfigError
 from vgripd.serialize import toml_from_dict
-from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.configtxn import Edit, Outcome
+from vgripd.service.reload import Reloader
 from vgripd.service.web.bodies import json_body
-from vgripd.service.web.commission import _prune, _write, next_backup, tuning_target
+from vgripd.service.web.commission import tuning_target
 
 log = logging.getLogger(__name__)
 
@@ -62,12 +65,12 @@ def parse_settings(body: Any) -> dict[str, float]:
     return out
 
 
-def settings_target(config_path: Path) -> Path:
+def settings_target(config_path: Path, files: Mapping[str, bytes] | None = None) -> Path:
     """The include a camera setting is written to: the tuning save's file, when no other file
     already sets the key (``TuningError``/``ConfigError`` naming it otherwise)."""
-    target = tuning_target(config_path)
+    target = tuning_target(config_path, files)
     owner: dict[str, str] = {}
-    read_config_data(config_path, owner)
+    read_config_data(config_path, owner, files=files)
     for key in KEYS:
         where = owner.get(f"camera.{key}")
         if where is not None and Path(where) != target:
@@ -76,43 +79,25 @@ def settings_target(config_path: Path) -> Path:
     return target
 
 
-def write_settings(config_path: Path, values: dict[str, float]
-                   ) -> tuple[bool, str, tuple[str, ...]]:
-    """Write ``values`` as ``[camera]`` keys of the include (numbered backup first); the file is
-    put back when the config no longer loads. Returns (saved, message, diff); file work only
-    (the caller runs it off the event loop)."""
-    try:
-        target = settings_target(config_path)
-        before = target.read_text(encoding="utf-8")
-        data = tomllib.loads(before)
-    except (ConfigError, OSError, tomllib.TOMLDecodeError) as err:
-        return False, f"applied live, not saved: {err}", ()
-    camera = data.setdefault("camera", {})
-    diff = tuple(f"camera.{k}: {camera.get(k, '(unset)')!r} -> {v!r}" for k, v in values.items()
-                 if camera.get(k) != v)
-    camera.update(values)
-    if not diff:
-        return True, "applied live; the file has these values already", ()
-    backup = next_backup(target)
-    backup.write_text(before, encoding="utf-8")
-    _write(target, toml_from_dict(data))
-    try:
-        load_config(config_path)
-    except ConfigError as err:
-        _write(target, before)
-        backup.unlink(missing_ok=True)
-        return False, f"applied live, not saved (the config would not load: {err})", diff
-    _prune(target)
-    log.info("web view: camera settings saved to %s (backup %s)", target, backup.name)
-    return True, (f"applied live; saved to {target.name} (backup {backup.name}) for the next "
-                  "start"), diff
+def settings_edit(values: dict[str, float]) -> Edit:
+    """``values`` as ``[camera]`` keys of the include, an edit of the config writer."""
+    def edit(snapshot: Snapshot) -> dict[Path, bytes]:
+        target = settings_target(snapshot.main, snapshot.files)
+        data = tomllib.loads(snapshot.text(target))
+        data.setdefault("camera", {}).update(values)
+        return {target: snapshot.encoded(target, toml_from_dict(data))}
+    return edit
 
 
 async def save_settings(reloader: Reloader, values: dict[str, float], source: str) -> Outcome:
-    """``write_settings`` off the loop, then one audit entry (written or not)."""
-    saved, message, diff = await asyncio.to_thread(write_settings, reloader.path, values)
-    return reloader._audit(Outcome(saved, message, diff, (), source, time.time()),
-                           "camera settings")
+    """The values saved (judged, applied: the camera runs with them already), or why not."""
+    outcome = await reloader.write(settings_edit(values), source, "camera settings")
+    if outcome.written:
+        return dataclasses.replace(outcome, message=f"applied live; saved to "
+                                   f"{', '.join(outcome.written)} for the next start")
+    if outcome.applied:
+        return dataclasses.replace(outcome, message=f"applied live; {outcome.message}")
+    return dataclasses.replace(outcome, message=f"applied live, not saved: {outcome.message}")
 
 
 class CameraSettingsRoutes:
@@ -120,7 +105,6 @@ class CameraSettingsRoutes:
 
     def __init__(self, server: Any) -> None:
         self.server = server
-        self._saving = asyncio.Lock()
         #: What the cameras read back after the last change (None: as configured at start).
         self.live: dict[str, Any] | None = None
         self._values: dict[str, float] = {}
@@ -169,7 +153,6 @@ class CameraSettingsRoutes:
         reloader.live.update({f"camera.{key}": value for key, value in values.items()})
         log.info("web view: camera settings %s applied from %s, read back %s", values,
                  request.remote, read_back)
-        async with self._saving:
-            outcome = await save_settings(reloader, values, f"web {request.remote}")
+        outcome = await save_settings(reloader, values, f"web {request.remote}")
         return web.json_response({"applied": values, "read_back": read_back,
                                   "saved": outcome.as_dict()})

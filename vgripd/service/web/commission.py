@@ -12,29 +12,32 @@
                                      status, likely causes, candidates by fate, picture URLs
     GET  /api/tuning/trial/{n}/{k}.jpg  trial n's picture of camera k (0 left, 1 right)
 
-A save writes the include file that holds ``[object]`` (the config's own ``include = [...]``):
-its ``[vision]`` keys and the circle marks' ``polarity``. The file before is kept as a numbered
-backup (``cell.toml.1``, ``.2`` ...), the reload judges the result as ``vgripd check`` does, and
-a refused result puts the file back as it was: the running config and the file on disk stay.
-Both routes answer the reload's outcome (``vgripd.service.reload.Outcome``); 422 when refused.
+A save edits the include file that holds ``[object]`` (the config's own ``include = [...]``):
+its ``[vision]`` keys and the circle marks' ``polarity``, as one transaction of the daemon's
+config writer (``vgripd.service.configtxn``): judged as ``vgripd check`` judges it before the
+include is replaced (the old file kept as a numbered backup, ``cell.toml.1``, ``.2`` ...); a
+refused edit never reaches the include. Both routes answer the outcome
+(``vgripd.service.configtxn.Outcome``); 422 when refused.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import time
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from aiohttp import web
 
 from vgripd.config import Config, config_from_dict, read_config_data
+from vgripd.configsnapshot import Snapshot
 from vgripd.errors import ConfigError
 from vgripd.serialize import toml_from_dict
-from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.configtxn import Edit, Outcome
+from vgripd.service.reload import Reloader
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.health import calibration_files, cell_geometry
 
@@ -48,29 +51,28 @@ TUNABLE: dict[str, type] = {
     "downscale": int,
 }
 POLARITIES = ("dark", "bright")
-#: Numbered backups kept per include file (the oldest beyond are removed).
-MAX_BACKUPS = 50
 
 
 class TuningError(ConfigError):
     """A save that cannot be written (no include holds ``[object]``, a key set elsewhere)."""
 
 
-def holding_include(config_path: Path, prefix: str, hint: str) -> Path:
+def holding_include(config_path: Path, prefix: str, hint: str,
+                    files: Mapping[str, bytes] | None = None) -> Path:
     """The one included file that sets keys under ``prefix`` (``"reference."``), or, when no
     file sets one, holds its table empty (a reference set aside); ``TuningError`` naming where
-    it is set otherwise, with ``hint`` (what writes such a file)."""
+    it is set otherwise, with ``hint`` (what writes such a file). ``files``: the snapshot."""
     owner: dict[str, str] = {}
     included: list[tuple[str, dict[str, Any], dict[str, Any]]] = []
-    read_config_data(config_path, owner, included)
-    files = {src for key, src in owner.items() if key.startswith(prefix)}
-    if not files:
-        files = {path for path, part, _ in included if _holds_table(part, prefix)}
-    if len(files) != 1 or Path(next(iter(files))) == config_path:
-        where = "the main config file" if files else "no file"
+    read_config_data(config_path, owner, included, files)
+    files_ = {src for key, src in owner.items() if key.startswith(prefix)}
+    if not files_:
+        files_ = {path for path, part, _ in included if _holds_table(part, prefix)}
+    if len(files_) != 1 or Path(next(iter(files_))) == config_path:
+        where = "the main config file" if files_ else "no file"
         raise TuningError(f"{config_path}: {prefix.rstrip('.')} is set in {where}: the page "
                           f"writes it only into the one included file that holds it ({hint})")
-    return Path(next(iter(files)))
+    return Path(next(iter(files_)))
 
 
 def _holds_table(part: dict[str, Any], prefix: str) -> bool:
@@ -80,10 +82,11 @@ def _holds_table(part: dict[str, Any], prefix: str) -> bool:
     return isinstance(table, dict)
 
 
-def tuning_target(config_path: Path) -> Path:
-    """The include file a save writes: the one that sets ``object.features``."""
+def tuning_target(config_path: Path, files: Mapping[str, bytes] | None = None) -> Path:
+    """The include file a save writes: the one that sets ``object.features`` (``files``: the
+    snapshot)."""
     owner: dict[str, str] = {}
-    read_config_data(config_path, owner)
+    read_config_data(config_path, owner, files=files)
     where = owner.get("object.features")
     if where is None or Path(where) == config_path:
         raise TuningError(
@@ -130,47 +133,19 @@ def parse_edit(body: Any) -> tuple[dict[str, Any], str | None]:
     return vision, polarity
 
 
-def next_backup(path: Path) -> Path:
-    numbers = [int(p.suffix[1:]) for p in path.parent.glob(path.name + ".*")
-               if p.suffix[1:].isdigit()]
-    return path.with_name(f"{path.name}.{max(numbers, default=0) + 1}")
-
-
-def _write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-
-
-def _prune(path: Path) -> None:
-    backups = sorted((p for p in path.parent.glob(path.name + ".*") if p.suffix[1:].isdigit()),
-                     key=lambda p: int(p.suffix[1:]))
-    for old in backups[:-MAX_BACKUPS]:
-        old.unlink(missing_ok=True)
+def tuning_edit(vision: dict[str, Any], polarity: str | None) -> Edit:
+    """The tuning save as an edit of the config writer (``vgripd.service.configtxn``)."""
+    def edit(snapshot: Snapshot) -> dict[Path, bytes]:
+        target = tuning_target(snapshot.main, snapshot.files)
+        return {target: snapshot.encoded(target, edited(snapshot.text(target), vision,
+                                                        polarity))}
+    return edit
 
 
 async def save_tuning(reloader: Reloader, vision: dict[str, Any], polarity: str | None,
                       source: str) -> Outcome:
-    """Write the edit to the include (numbered backup first), reload; put the file back when
-    the reload refuses it."""
-    try:
-        target = tuning_target(reloader.path)
-        before = target.read_text(encoding="utf-8")
-        after = edited(before, vision, polarity)
-    except (ConfigError, OSError, tomllib.TOMLDecodeError) as err:
-        outcome = Outcome(False, f"refused, nothing written: {err}", source=source)
-        return reloader._audit(outcome, "tuning save")
-    backup = next_backup(target)
-    backup.write_text(before, encoding="utf-8")
-    _write(target, after)
-    log.info("web view: tuning saved to %s (backup %s) from %s", target, backup.name, source)
-    outcome = await reloader.reload(source, note=f"tuning save to {target.name}, backup "
-                                                 f"{backup.name}")
-    if not outcome.applied:
-        _write(target, before)
-        log.warning("web view: tuning refused, %s put back as it was", target)
-    _prune(target)
-    return outcome
+    """The edit judged and applied, or refused with the include untouched."""
+    return await reloader.write(tuning_edit(vision, polarity), source, "tuning save")
 
 
 def edited_config(config: Config, vision: dict[str, Any], polarity: str | None) -> Config:
@@ -200,7 +175,6 @@ class CommissionRoutes:
 
     def __init__(self, server: Any) -> None:
         self.server = server
-        self._saving = asyncio.Lock()  # one save (write, judge, maybe put back) at a time
         self._trying = asyncio.Lock()  # one trial at a time (the image helper is one process)
         self._trial: tuple[int, list[bytes]] = (0, [])
 
@@ -262,9 +236,8 @@ class CommissionRoutes:
         reloader = self._reloader()
         body = await json_body(request)
         vision, polarity = parse_edit(body)
-        async with self._saving:
-            return self._answer(await save_tuning(reloader, vision, polarity,
-                                                  f"web {request.remote}"))
+        return self._answer(await save_tuning(reloader, vision, polarity,
+                                              f"web {request.remote}"))
 
     async def trial(self, request: web.Request) -> web.Response:
         """The edited pipeline on the last job's images (in the image helper process, never on

@@ -16,6 +16,7 @@ naming it.
 from __future__ import annotations
 
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -27,16 +28,20 @@ from vgripd.serialize import toml_from_dict
 FINGERPRINTS = ("camera_model", "camera_model_parts", "hand_eye")
 
 
-def stale_references(config_path: Path, calibration: dict[str, Any]) -> tuple[list[Path], bool]:
+def stale_references(config_path: Path, calibration: dict[str, Any],
+                     files: Mapping[str, bytes] | None = None) -> tuple[list[Path], bool]:
     """(the included files whose taught references were not measured with the hand-eye of
-    ``calibration``, whether the main config file holds such a reference itself)."""
+    ``calibration``, whether the main config file holds such a reference itself); ``files``:
+    the config's bytes (a snapshot) instead of the disk."""
     included: list[tuple[str, dict[str, Any], dict[str, Any]]] = []
-    main = tomllib.loads(config_path.read_text(encoding="utf-8"))
-    read_config_data(config_path, {}, included)
+    raw = (config_path.read_bytes() if files is None or str(config_path) not in files
+           else files[str(config_path)])
+    main = tomllib.loads(raw.decode("utf-8"))
+    read_config_data(config_path, {}, included, files)
     now = hand_eye_fingerprint(calibration)
-    files = [Path(path) for path, part, about in included
+    stale = [Path(path) for path, part, about in included
              if any(True for _ in measured_references(part)) and about.get("hand_eye") != now]
-    return files, any(True for _ in measured_references(main))
+    return stale, any(True for _ in measured_references(main))
 
 
 def set_aside(text: str) -> str:

@@ -16,10 +16,10 @@ far it lies from the reference taught now. Shots are kept per recipe (the job's)
 job already measured is refused.
 
 Saving writes the ``[reference]`` section (for recipe N ``[recipes.N.reference]``) into the
-include file that holds it now (numbered backup first, as the tuning save), keeping its ``grip``,
-with the fingerprints of the camera model and hand-eye it was measured with in its ``[about]``
-(as ``vgripd teach`` writes them); the reload judges it as ``vgripd check`` does; refused, the
-file is put back.
+include file that holds it now, keeping its ``grip``, with the fingerprints of the camera model
+and hand-eye it was measured with in its ``[about]`` (as ``vgripd teach`` writes them): one
+transaction of the config writer (``vgripd.service.configtxn``, as the tuning save), judged as
+``vgripd check`` judges it; refused, the include is not touched.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -35,17 +36,14 @@ from aiohttp import web
 
 from vgripd.calib import teach
 from vgripd.config import Config
-from vgripd.errors import CalibrationError, ConfigError, VgripError
+from vgripd.configsnapshot import Snapshot
+from vgripd.errors import CalibrationError, VgripError
 from vgripd.geometry.fingerprint import camera_about, hand_eye_fingerprint
 from vgripd.geometry.transforms import pose_error
 from vgripd.serialize import toml_from_dict
-from vgripd.service.reload import Outcome, Reloader
-from vgripd.service.web.commission import (
-    _prune,
-    _write,
-    holding_include,
-    next_backup,
-)
+from vgripd.service.configtxn import Edit
+from vgripd.service.reload import Reloader
+from vgripd.service.web.commission import holding_include
 from vgripd.types import ImagePair
 
 log = logging.getLogger(__name__)
@@ -60,11 +58,22 @@ def measure_shot(pair: tuple[Any, Any], config: Config) -> teach.Shot:
     return teach.measure(config, [images]).shots[0]
 
 
-def reference_target(config_path: Path, recipe: int) -> Path:
+def reference_target(config_path: Path, recipe: int,
+                     files: Mapping[str, bytes] | None = None) -> Path:
     """The include file that sets the reference of ``recipe`` now (or holds its table empty,
-    set aside when a new hand-eye was accepted)."""
+    set aside when a new hand-eye was accepted); ``files``: the snapshot."""
     prefix = "reference." if recipe == 0 else f"recipes.{recipe}.reference."
-    return holding_include(config_path, prefix, "vgripd teach writes such a file")
+    return holding_include(config_path, prefix, "vgripd teach writes such a file", files)
+
+
+def teach_edit(recipe: int, section: dict[str, Any],
+               calibration: dict[str, Any] | None) -> Edit:
+    """The taught reference as an edit of the config writer."""
+    def edit(snapshot: Snapshot) -> dict[Path, bytes]:
+        target = reference_target(snapshot.main, recipe, snapshot.files)
+        text = with_reference(snapshot.text(target), recipe, section, calibration)
+        return {target: snapshot.encoded(target, text)}
+    return edit
 
 
 def with_reference(text: str, recipe: int, section: dict[str, Any],
@@ -185,27 +194,12 @@ class TeachRoutes:
             config = self.server.daemon.config.for_recipe(recipe)
             taught = teach.average([s for _, s in shots])
             section = teach.reference_sections(config, taught)
-            try:
-                target = reference_target(reloader.path, recipe)
-                before = target.read_text(encoding="utf-8")
-                calibration = (None if config.calibration is None
-                               else config.calibration.model_dump(mode="json"))
-                after = with_reference(before, recipe, section, calibration)
-            except (ConfigError, OSError, tomllib.TOMLDecodeError) as err:
-                outcome = reloader._audit(Outcome(False, f"refused, nothing written: {err}",
-                                                  source=source), "teach save")
-                return web.json_response(outcome.as_dict(), status=422)
-            backup = next_backup(target)
-            backup.write_text(before, encoding="utf-8")
-            _write(target, after)
-            outcome = await reloader.reload(source, note=f"teach recipe {recipe} from "
-                                            f"{len(shots)} shot(s) to {target.name}, backup "
-                                            f"{backup.name}")
-            if not outcome.applied:
-                _write(target, before)
-            else:
+            calibration = (None if config.calibration is None
+                           else config.calibration.model_dump(mode="json"))
+            outcome = await reloader.write(teach_edit(recipe, section, calibration), source,
+                                           f"teach recipe {recipe} from {len(shots)} shot(s)")
+            if outcome.applied:
                 self.shots.pop(recipe, None)
-            _prune(target)
         return web.json_response({**outcome.as_dict(), "spread_mm": taught.spread_mm,
                                   "T_base_obj": np.asarray(taught.T_base_obj).tolist()},
                                  status=200 if outcome.applied else 422)

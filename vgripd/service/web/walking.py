@@ -20,11 +20,13 @@ the command's reason. A plan file is a ``.toml`` inside the config's folder.
 
 Accepting writes ``[calibration.hand_eye]`` (and the solved file's ``[about]``: residuals,
 leave-one-out spread, plan condition, camera-model fingerprint) into the one included file that
-holds the hand-eye now (numbered backup first, as the tuning save); the reload judges the
-config as ``vgripd check`` does; refused, the file is put back. A taught reference not measured
-with the new hand-eye would be wrong with it: the accept is refused, naming its file, unless
-told to set such references aside (``{"set_aside_references": true}``,
-``vgripd.service.web.stale``); then jobs end NOT_CALIBRATED until the reference is taught again.
+holds the hand-eye now: one transaction of the config writer (``vgripd.service.configtxn``, as
+the tuning save), judged as ``vgripd check`` judges it; refused, no include is touched. A saved
+plan is written by the same writer (``write_file``), in turn with the config writes. A taught
+reference not measured with the new hand-eye would be wrong with it: the accept is refused,
+naming its file, unless told to set such references aside (``{"set_aside_references":
+true}``, ``vgripd.service.web.stale``); then jobs end NOT_CALIBRATED until the reference is
+taught again.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import json
 import logging
 import tempfile
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -42,18 +45,14 @@ from aiohttp import web
 from vgripd.calib.boards import Board
 from vgripd.calib.handeye.plan import board_size_problem, plan_inside
 from vgripd.config import read_config_data
-from vgripd.errors import ConfigError, VgripError
+from vgripd.configsnapshot import Snapshot
+from vgripd.errors import VgripError
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.commands import run_vgripd
-from vgripd.service.reload import Outcome, Reloader
+from vgripd.service.configtxn import Edit, EditRefused
+from vgripd.service.reload import Reloader
 from vgripd.service.web.bodies import json_body
-from vgripd.service.web.commission import (
-    TuningError,
-    _prune,
-    _write,
-    holding_include,
-    next_backup,
-)
+from vgripd.service.web.commission import TuningError, holding_include
 from vgripd.service.web.stale import set_aside, stale_references
 
 log = logging.getLogger(__name__)
@@ -71,10 +70,10 @@ PLAN_FIELDS = {"mode": "--mode", "board": "--board", "around": "--around", "box"
 MAX_FIELD = 200
 
 
-def hand_eye_target(config_path: Path) -> Path:
+def hand_eye_target(config_path: Path, files: Mapping[str, bytes] | None = None) -> Path:
     """The included file that sets ``calibration.hand_eye`` now (``TuningError`` unless one)."""
     return holding_include(config_path, "calibration.hand_eye.",
-                           "vgripd calibrate handeye -o writes such a file; include it")
+                           "vgripd calibrate handeye -o writes such a file; include it", files)
 
 
 def with_hand_eye(text: str, solved: str) -> str:
@@ -88,20 +87,36 @@ def with_hand_eye(text: str, solved: str) -> str:
     return toml_from_dict(data)
 
 
-def accepted_text(config_path: Path, solved_file: str) -> tuple[Path, str, str]:
-    """The include to write, its text now and with the solved hand-eye."""
-    solved = Path(solved_file).read_text(encoding="utf-8")
-    target = hand_eye_target(config_path)
-    before = target.read_text(encoding="utf-8")
-    return target, before, with_hand_eye(before, solved)
-
-
-def accepted_calibration(config_path: Path, include_text: str) -> dict[str, Any]:
+def accepted_calibration(config_path: Path, include_text: str,
+                         files: Mapping[str, bytes] | None = None) -> dict[str, Any]:
     """The config's ``[calibration]`` with the solved hand-eye (as the include will hold it)."""
-    data = read_config_data(config_path)
+    data = read_config_data(config_path, files=files)
     calibration: dict[str, Any] = dict(data.get("calibration", {}))
     calibration["hand_eye"] = tomllib.loads(include_text)["calibration"]["hand_eye"]
     return calibration
+
+
+def accept_edit(solved_file: str, aside: bool, found: dict[str, Any]) -> Edit:
+    """The solved hand-eye written into its include, and the taught references it makes wrong
+    set aside when told (``aside``), as an edit of the config writer; ``found`` gets the
+    ``target``, the ``stale`` reference files and a ``refusal`` (the edit is refused then)."""
+    def edit(snapshot: Snapshot) -> dict[Path, bytes]:
+        main = snapshot.main
+        solved = Path(solved_file).read_text(encoding="utf-8")
+        target = hand_eye_target(main, snapshot.files)
+        after = with_hand_eye(snapshot.text(target), solved)
+        stale, in_main = stale_references(
+            main, accepted_calibration(main, after, snapshot.files), snapshot.files)
+        found.update(target=target, stale=stale)
+        refusal = stale_refusal(main, stale, in_main, aside)
+        if refusal is not None:
+            found["refusal"] = refusal
+            raise EditRefused(refusal)
+        texts = {target: after}
+        for path in stale:  # set aside, as told (in the hand-eye's own text if it is one)
+            texts[path] = set_aside(texts.get(path, snapshot.text(path)))
+        return {path: snapshot.encoded(path, text) for path, text in texts.items()}
+    return edit
 
 
 def stale_refusal(config_path: Path, stale: list[Path], in_main: bool,
@@ -206,11 +221,14 @@ class WalkRoutes:
             raise web.HTTPNotFound(text="this daemon serves no walk")
         return walks
 
-    def _config_path(self) -> Path:
+    def _reloader(self) -> Reloader:
         reloader = self.server.daemon.reloader
         if not isinstance(reloader, Reloader):
             raise web.HTTPNotFound(text="this daemon was not started from a config file")
-        return reloader.path
+        return reloader
+
+    def _config_path(self) -> Path:
+        return self._reloader().path
 
     async def _body(self, request: web.Request) -> dict[str, Any]:
         body = await json_body(request)
@@ -237,6 +255,7 @@ class WalkRoutes:
         config_path = self._config_path()
         form = await self._body(request)
         save = form.get("save") or None
+        reloader = self._reloader()
         async with self._lock:
             try:
                 output = None if save is None else plan_inside(config_path, str(save))
@@ -248,10 +267,14 @@ class WalkRoutes:
                     raise TuningError(f"plan: {board_problem}; the planner was not started")
                 with tempfile.TemporaryDirectory(prefix="vgripd-plan-") as tmp:
                     drawing = Path(tmp) / "plan.png"
-                    words = plan_command(form, config_path, drawing, output)
+                    planned = None if output is None else Path(tmp) / "plan.toml"
+                    words = plan_command(form, config_path, drawing, planned)
                     rc, out, err = await run_vgripd(words, PLAN_TIMEOUT_S)
                     self.drawing = drawing.read_bytes() if drawing.exists() else None
-            except VgripError as err_:
+                    if rc == 0 and output is not None and planned is not None:
+                        # in turn with the config writes, atomically, never through a link
+                        await reloader.write_file(output, planned.read_bytes())
+            except (VgripError, OSError) as err_:
                 return web.json_response({"refused": str(err_)}, status=422)
         try:
             summary = json.loads(out) if out.strip() else {}
@@ -304,8 +327,7 @@ class WalkRoutes:
 
     async def accept(self, request: web.Request) -> web.Response:
         self.server._guard(request, self.enabled)
-        config_path = self._config_path()
-        reloader = self.server.daemon.reloader
+        reloader = self._reloader()
         walks = self._walks()
         solution = walks.solution
         if not solution or not solution.get("ok"):
@@ -313,36 +335,18 @@ class WalkRoutes:
         body = await self._body(request) if request.body_exists else {}
         aside = body.get("set_aside_references") is True
         source = f"web {request.remote}"
+        found: dict[str, Any] = {}
         async with self._lock:
-            try:
-                target, before, after = await asyncio.to_thread(accepted_text, config_path,
-                                                                solution["file"])
-                stale, in_main = await asyncio.to_thread(
-                    stale_references, config_path, accepted_calibration(config_path, after))
-            except (ConfigError, OSError, KeyError, tomllib.TOMLDecodeError) as err:
-                outcome = reloader._audit(Outcome(False, f"refused, nothing written: {err}",
-                                                  source=source), "hand-eye accept")
-                return web.json_response(outcome.as_dict(), status=422)
-            refusal = stale_refusal(config_path, stale, in_main, aside)
-            if refusal is not None:
-                return web.json_response({"refused": refusal, "stale_references":
-                                          [p.name for p in stale]}, status=409)
-            writes = {target: (before, after)}
-            for path in stale:  # set aside, as told (in the hand-eye's own text if it is one)
-                old = path.read_text(encoding="utf-8")
-                writes[path] = (old, set_aside(writes.get(path, (old, old))[1]))
-            for path, (old, new) in writes.items():
-                next_backup(path).write_text(old, encoding="utf-8")
-                _write(path, new)
-            aside_note = (f"; taught references set aside in {', '.join(p.name for p in stale)}"
-                          if stale else "")
-            outcome = await reloader.reload(source, note=f"hand-eye from the walk "
-                                            f"{Path(solution['walk']).name} into {target.name}"
-                                            f"{aside_note}", untaught_ok=bool(stale))
-            for path, (old, _) in writes.items():
-                if not outcome.applied:
-                    _write(path, old)
-                _prune(path)
-        return web.json_response({**outcome.as_dict(), "file": target.name,
+            outcome = await reloader.write(
+                accept_edit(solution["file"], aside, found), source,
+                f"hand-eye from the walk {Path(solution['walk']).name}"
+                + (" (taught references set aside)" if aside else ""),
+                untaught_ok=aside)
+        stale: list[Path] = found.get("stale", [])
+        if "refusal" in found:
+            return web.json_response({"refused": found["refusal"], "stale_references":
+                                      [p.name for p in stale]}, status=409)
+        target = found.get("target")
+        return web.json_response({**outcome.as_dict(), "file": target and target.name,
                                   "set_aside": [p.name for p in stale]},
                                  status=200 if outcome.applied else 422)
