@@ -210,3 +210,75 @@ def test_the_scripts_walk_skips_with_recipe_1_and_asks_with_recipe_0() -> None:
     assert lines[asks[1] + 1] == "VGRIPD_RECIPE = 0"
     assert "local recipe = VGRIPD_RECIPE" in lines[:asks[0]]
     assert lines[-2:] == ["VGRIPD_RECIPE = recipe", "return status"]
+
+
+async def test_an_image_request_asked_again_after_its_timeout_gets_the_same_answer(
+        tmp_path: Path) -> None:
+    """The first image request's answer is held until the robot program, its timeout run out,
+    has asked again with a new sequence (the robot standing at target 0): the repeat gets the
+    same answer (target 1) and records nothing, and target 1 is then recorded with its own
+    pose. Before, the repeat was recorded as target 1 with target 0's pose and image, and
+    answered target 2: target 1 never visited."""
+    assert make_plan(tmp_path, MODE) == 0
+    plan = load_plan(str(tmp_path / "plan.toml"))
+    walk = Walk(tmp_path / "walk.json", plan, BOARD, CAMERA)
+    triggers: list[Trigger] = []
+    grabs: list[int] = []
+    asked_again = asyncio.Event()
+
+    async def grab() -> np.ndarray:
+        index = server.pending
+        assert index is not None
+        grabs.append(index)
+        if len(grabs) == 1:  # held until the program asked again
+            await asyncio.wait_for(asked_again.wait(), 60)
+        return await asyncio.to_thread(image_at, MODE, plan.poses[index], index)
+
+    link = URRtdeLink("ur", URRtdeOptions(host="127.0.5.67"))
+    server = WalkServer(walk, link, grab, "ur")
+
+    def on_trigger(trigger: Trigger) -> None:
+        triggers.append(trigger)
+        if sum(t.command == Command.TRIGGER for t in triggers) == 2:
+            asked_again.set()
+        server.on_trigger(trigger)
+
+    def at_target(robot: URController, index: int, timeout_s: float) -> dict[str, Any]:
+        robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[index]))
+        seq = robot.start_program(int(Command.TRIGGER), taught_pose=ZERO, timeout_s=timeout_s,
+                                  attempts=10)
+        return robot.program_result(seq, timeout_s=90.0)
+
+    def is_target(result: dict[str, Any], index: int) -> bool:
+        if result["status"] != Status.OK:
+            return False
+        mm, deg = pose_error(transform_from_vendor("ur", result["target"]), plan.poses[index])
+        return bool(mm < 1e-3 and deg < 1e-3)
+
+    with URController("127.0.5.67") as robot:
+        robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[0]))
+        await link.open(on_trigger)
+        task = asyncio.get_running_loop().create_task(server.serve())
+        try:
+            seq = await asyncio.to_thread(robot.start_program, int(Command.NEXT),
+                                          taught_pose=ZERO, timeout_s=30.0)
+            first = await asyncio.to_thread(robot.program_result, seq, 60.0)
+            assert is_target(first, 0)
+            again = await asyncio.to_thread(at_target, robot, 0, 2.0)  # its timeout: 2 s
+            assert again["unanswered"] >= 1  # it asked again
+            assert is_target(again, 1), again  # target 1 again, not target 2
+            assert sorted(walk.records) == [0]
+            assert server.pending == 1
+            assert grabs == [0]
+            on = await asyncio.to_thread(at_target, robot, 1, 30.0)
+            assert is_target(on, 2), on
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+            await link.close()
+    assert grabs == [0, 1]
+    final = Walk(tmp_path / "walk.json", plan, BOARD, CAMERA)
+    assert sorted(final.records) == [0, 1]
+    for index in (0, 1):
+        mm, _ = pose_error(final.records[index].T_base_flange, plan.poses[index])
+        assert mm < 1e-3

@@ -20,12 +20,24 @@ frame, absolute: the robot program moves there as given, with its own speed limi
 ``TRIGGER`` with no target pending, and a request that is no walk request
 (``walk_request_refusal``), is ``BAD_REQUEST`` (32); an image that cannot be taken is
 ``CAMERA_ERROR`` (30); either way nothing is recorded and the target stays pending (the robot
-asks again). Every answer carries job id 0: a walk runs no job, and the daemon's job counter
-does not move (a robot socket sends the answers that leave the walk unchanged as REFUSED).
-The record is the :class:`~vgripd.calib.handeye.walk.Walk` file, saved after every target,
-so a walk whose link was lost or whose robot stopped resumes with a new ``NEXT``. An answer
-the link cannot deliver (the peer gone, the link hanging past ``ANSWER_TIMEOUT_S``) is
-logged and the walk goes on: the robot asks again.
+asks again).
+
+A request the program sends again because its answer came too late or got lost (its timeout,
+then the same request with a new id) gets the same answer again, recording nothing:
+
+- an image request whose flange pose is within ``REPEAT_MM`` / ``REPEAT_DEG`` of a pose
+  already recorded: the robot has not moved, so it repeats the request of that target (when
+  the pending target is within twice that of the recorded one, the two cannot be told apart
+  and the request is a new capture);
+- a skip of a pending target the program was never told (its answer not delivered, or the
+  request sent before that answer went out): it repeats the skip before it.
+
+Every answer carries job id 0: a walk runs no job, and the daemon's job counter does not move
+(a robot socket sends the answers that leave the walk unchanged as REFUSED). The record is
+the :class:`~vgripd.calib.handeye.walk.Walk` file, saved after every target, so a walk whose
+link was lost or whose robot stopped resumes with a new ``NEXT``. An answer the link cannot
+deliver (the peer gone, the link hanging past ``ANSWER_TIMEOUT_S``) is logged and the walk
+goes on: the robot asks again.
 
 No motion is commanded here: only answers to the robot's requests.
 """
@@ -35,12 +47,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import Awaitable, Callable
+from typing import Any
 
 import numpy as np
 
 from vgripd.calib.handeye.walk import Walk
 from vgripd.errors import VgripError
+from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import convention, vendor_from_transform
 from vgripd.service.jobcore import Command
 from vgripd.service.protocol import RobotLink, Trigger
@@ -52,6 +67,9 @@ log = logging.getLogger("vgripd.calib.walk")
 SKIP = 1
 #: A link's answer that takes longer is given up (logged): the robot asks again.
 ANSWER_TIMEOUT_S = 2.0
+#: An image request whose flange pose is this close to one already recorded (mm, deg) repeats
+#: that target's request: a robot standing still reads its pose within micrometres.
+REPEAT_MM, REPEAT_DEG = 0.5, 0.1
 
 Grab = Callable[[], Awaitable[np.ndarray]]
 
@@ -114,6 +132,10 @@ class WalkServer:
         link.set_walking(True)  # a link refusing NEXT without a pick list lets it through
         self.current: Trigger | None = None  # the request being answered
         self.on_answer: Callable[[], None] | None = None
+        #: the target the program was last told (an answer with it delivered), None: not yet
+        self._told: int | None = None
+        self._told_ns = 0  # when that answer went out (monotonic)
+        self._last: int | None = None  # the target the latest image request recorded
 
     def on_trigger(self, trigger: Trigger) -> None:
         self._queue.put_nowait(trigger)
@@ -146,14 +168,54 @@ class WalkServer:
             out.append(self._queue.get_nowait())
         return out
 
+    def repeats_last(self, trigger: Trigger) -> bool:
+        """After the walk (``complete``): ``trigger`` repeats the image request that completed
+        it (its answer, NOT_FOUND, came too late or got lost); ``answer_again`` answers it."""
+        return (self.complete and self._last is not None
+                and trigger.command == Command.TRIGGER and trigger.recipe == 0
+                and trigger.T_base_flange is not None
+                and self.repeats(trigger.T_base_flange) == self._last)
+
+    async def answer_again(self, trigger: Trigger) -> None:
+        """The last answer of the walk again: image taken, NOT_FOUND (job id 0)."""
+        log.info("walk target %d: its image request again after the walk (%s): answered "
+                 "NOT_FOUND again", self._last, trigger.peer or trigger.link)
+        await self._captured(trigger.seq)
+        await self._say(trigger.seq, JobResult(0, Status.NOT_FOUND, "walk complete"))
+
+    def repeats(self, T_base_flange: Any) -> int | None:
+        """The recorded target whose image request one with ``T_base_flange`` repeats (the
+        robot has not moved since), or None: a new capture."""
+        for index, record in sorted(self.walk.records.items()):
+            if record.T_base_flange is None:
+                continue
+            mm, deg = pose_error(T_base_flange, record.T_base_flange)
+            if mm > REPEAT_MM or deg > REPEAT_DEG:
+                continue
+            if self.pending is not None:  # moved from there to the pending target: apart?
+                mm, deg = pose_error(self.walk.target(self.pending), self.walk.target(index))
+                if mm <= 2 * REPEAT_MM and deg <= 2 * REPEAT_DEG:
+                    continue
+            return index
+        return None
+
     async def _answer(self, trigger: Trigger) -> bool:
         seq = trigger.seq
+        if trigger.t_mono_ns < self._told_ns:
+            self._told = None  # sent before that answer went out: the program gave it up
         refusal = walk_request_refusal(trigger.command, trigger.recipe,
                                        trigger.T_base_flange is not None)
         if refusal is not None:
             await self._say(seq, JobResult(0, Status.BAD_REQUEST, refusal))
             return False
-        if trigger.command == Command.TRIGGER:
+        repeat = (None if trigger.command != Command.TRIGGER
+                  else self.repeats(trigger.T_base_flange))
+        if repeat is not None:
+            log.info("walk target %d: its image request again (%s; the answer came too late "
+                     "or got lost): answered again, nothing recorded", repeat,
+                     trigger.peer or trigger.link)
+            await self._captured(seq)
+        elif trigger.command == Command.TRIGGER:
             if self.pending is None:
                 await self._say(seq, JobResult(0, Status.BAD_REQUEST,
                                                "no target pending: ask NEXT first"))
@@ -169,9 +231,13 @@ class WalkServer:
                                              trigger.T_base_flange, image, "", trigger.peer)
             log.info("walk target %d: %s (%s)", record.index, record.status,
                      trigger.peer or trigger.link)
-            self.pending = None
+            self.pending, self._last = None, record.index
         elif self.pending is not None:  # NEXT
-            if trigger.recipe == SKIP:
+            if trigger.recipe == SKIP and self._told != self.pending:
+                log.info("walk target %d: a skip before the program was told this target (the "
+                         "answer to its skip came too late or got lost): answered again, not "
+                         "skipped", self.pending)
+            elif trigger.recipe == SKIP:
                 self.walk.unreachable(self.pending, "the robot program reported it unreachable",
                                       trigger.peer)
                 log.info("walk target %d: unreachable, skipped (%s)", self.pending,
@@ -189,19 +255,23 @@ class WalkServer:
             return True
         values = tuple(float(v) for v in vendor_from_transform(self.vendor,
                                                                self.walk.target(self.pending)))
-        await self._say(seq, JobResult(0, Status.OK, f"target {self.pending}",
-                                       target=RobotTarget(self.vendor, self.fields, values)))
+        told = await self._say(seq, JobResult(0, Status.OK, f"target {self.pending}",
+                                              target=RobotTarget(self.vendor, self.fields,
+                                                                 values)))
+        self._told, self._told_ns = (self.pending if told else None), time.monotonic_ns()
         return False
 
-    async def _say(self, seq: int, result: JobResult) -> None:
-        """Answer request ``seq``; one the link cannot deliver is logged (the robot asks
-        again), it does not end the walk."""
+    async def _say(self, seq: int, result: JobResult) -> bool:
+        """Answer request ``seq``; False when the link cannot deliver it (logged: the robot
+        asks again), which does not end the walk."""
         try:
             async with asyncio.timeout(ANSWER_TIMEOUT_S):
                 await self.link.publish(seq, result)
         except Exception as err:
             log.warning("walk: the answer to request %d (%s) was not delivered: %r", seq,
                         result.status.name, err)
+            return False
+        return True
 
     async def _captured(self, seq: int) -> None:
         try:

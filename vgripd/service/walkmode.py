@@ -16,7 +16,9 @@ file inside the config's folder and the index of the link the robot program uses
 It ends complete (``NOT_FOUND`` answered), or stopped (the web view's stop, or the daemon
 stopping): the request being answered gets its answer whole; one still waiting is answered
 ``ABORTED`` (41). The record (``<plan stem>.walk.json`` beside the plan) is saved after every
-target, so starting the same plan again resumes it.
+target, so starting the same plan again resumes it. After a complete walk, the image request
+that completed it sent again (its ``NOT_FOUND`` came too late for the program) before any other
+request of the walk link is answered ``NOT_FOUND`` again, not run as a job.
 
 Solving runs ``vgripd calibrate handeye --samples WALK --intrinsics CONFIG`` in a child process
 (the solver with its plausibility checks; the loop keeps serving the PLC) and writes the
@@ -117,6 +119,9 @@ class WalkMode:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_thread = 0
         self._finder: ProcessPoolExecutor | None = None
+        #: the walk is complete and no other request of its link came since: the request
+        #: that completed it, sent again, gets its answer again (``WalkServer.repeats_last``)
+        self._after_walk = False
 
     def bind(self) -> None:
         """Bind to the running loop (links may call ``on_trigger`` from their threads)."""
@@ -135,6 +140,11 @@ class WalkMode:
             self._loop.call_soon_threadsafe(self.on_trigger, trigger)
             return
         server = self.server
+        if server is not None and server.complete and trigger.link == self.link:
+            if self._after_walk and server.repeats_last(trigger):
+                self._background.spawn(server.answer_again(trigger))
+                return
+            self._after_walk = False  # the program goes on: its requests are jobs again
         if not self.walking or server is None or server.complete:
             self.runner.on_trigger(trigger)
         elif trigger.link == self.link:
@@ -180,6 +190,7 @@ class WalkMode:
         self.server = WalkServer(walk, self.links.links[self.link], self._grab,
                                  config.output.vendor)
         self.server.on_answer = self._answered
+        self._after_walk = True
         self.state, self.message = WalkState.WALKING, ""
         self.solution = None
         start = walk.next_index()
