@@ -18,7 +18,7 @@ from tests.conftest import REPO
 LAYERS = [
     {"types", "errors"},
     {"geometry"},
-    {"serialize", "imagefiles", "redaction", "configbase", "config", "registry"},
+    {"serialize", "imagefiles", "redaction", "resources", "configbase", "config", "registry"},
     {"vision"},
     {"calib"},
     {"service"},
