@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "convert": ("vgripd.cli.convert", "convert a pose between robot vendor conventions"),
     "run": ("vgripd.cli.run", "run the service until SIGTERM (what systemd starts)"),
     "check": ("vgripd.cli.check", "validate a config file without starting"),
+    "init": ("vgripd.cli.init", "write a cell's config: main file plus writable includes"),
     "status": ("vgripd.cli.status", "show a running daemon's status"),
     "demo": ("vgripd.cli.demo", "run daemon, synthetic camera and a mock PLC on this computer"),
     "locate": ("vgripd.cli.locate", "locate the object in one image pair and print the pose"),

@@ -21,7 +21,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 
-from vgripd.cli.run import DEFAULT_CONFIG
+from vgripd.cli.paths import DEFAULT_CONFIG
 from vgripd.config import Config, load_config
 from vgripd.errors import CameraError, ConfigError
 from vgripd.registry import CAMERAS, load_class, validate_options

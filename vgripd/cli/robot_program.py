@@ -23,7 +23,7 @@ import sys
 from importlib.resources.abc import Traversable
 from pathlib import Path
 
-from vgripd.cli.run import DEFAULT_CONFIG
+from vgripd.cli.paths import DEFAULT_CONFIG
 from vgripd.config import Config, DriverSection, load_config
 from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.registry import LINKS, load_class, validate_options
