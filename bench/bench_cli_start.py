@@ -10,7 +10,7 @@ Commands: ``vgripd --help``; ``vgripd convert`` of one pose (numpy and the vendo
 ``vgripd robot-program`` and ``vgripd check`` of config/examples/robot-socket-kuka.toml (the
 config model and the drivers; check also the daemon's pipeline: commands that need them).
 
-Run: ``.venv/bin/python bench/bench_cli_start.py [--runs 15] [--write-results]``
+Run: ``.venv/bin/python bench/bench_cli_start.py [--runs 15] [--before DIR] [--write-results]``
 """
 
 from __future__ import annotations
@@ -48,15 +48,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=15)
     parser.add_argument("--write-results", action="store_true")
+    parser.add_argument("--before", type=Path, default=None, metavar="DIR",
+                        help="also time the commands of another source tree (e.g. `git archive "
+                             "REV | tar -x -C DIR`), interleaved with these")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         cwd = Path(tmp)
-        cmds = commands(cwd)
-        # the checkout on the path for `-m vgripd` also when it is not installed (editable)
-        env = {**os.environ, "PYTHONPATH": str(REPO)}
+        # the source on the path for `-m vgripd` (ahead of an editable install of this one)
+        trees = {"": REPO, **({"before: ": args.before} if args.before else {})}
+        cmds = {f"{label}{name}": (argv, {**os.environ, "PYTHONPATH": str(tree)})
+                for label, tree in trees.items() for name, argv in commands(cwd).items()
+                if not (label and name.startswith("python"))}
         times: dict[str, list[float]] = {name: [] for name in cmds}
         for _ in range(args.runs):
-            for name, argv in cmds.items():
+            for name, (argv, env) in cmds.items():
                 t0 = time.perf_counter()
                 subprocess.run(argv, cwd=cwd, env=env, stdout=subprocess.DEVNULL, check=True,
                                stderr=subprocess.DEVNULL)
@@ -67,15 +72,15 @@ def main() -> None:
              f"{load[2]:.1f}; Python {sys.version.split()[0]}"]
     for name, ts in times.items():
         med = statistics.median(ts)
-        lines.append(f"{name:<30} median {med * 1000:7.0f} ms  min {min(ts) * 1000:6.0f} ms  "
+        lines.append(f"{name:<38} median {med * 1000:7.0f} ms  min {min(ts) * 1000:6.0f} ms  "
                      f"max {max(ts) * 1000:6.0f} ms  median - peer {(med - peer) * 1000:6.0f} ms")
     text = "\n".join(lines)
     print(text)
     if args.write_results:
         write_section("## Command start time", f"""## Command start time
 
-`.venv/bin/python bench/bench_cli_start.py --runs {args.runs} --write-results`, 2-core VM shared
-with other jobs. Each command is a fresh process started from a temporary folder, timed from
+`.venv/bin/python bench/bench_cli_start.py --runs {args.runs} --write-results{' --before DIR' if args.before else ''}`, 2-core VM
+shared with other jobs{'; "before:" rows are the same commands from a tree of the code before this change, interleaved with the rest' if args.before else ''}. Each command is a fresh process started from a temporary folder, timed from
 exec to exit; the peer is the interpreter's own start (`python -c pass`). Each command imports
 only its own module (`vgripd/__main__.py` builds the parser of the chosen command alone), so
 `--help` loads no command at all and `convert` loads numpy and the vendor conventions, not the
