@@ -79,14 +79,14 @@ def main() -> None:
     if args.write_results:
         write_section("## Command start time", f"""## Command start time
 
-`.venv/bin/python bench/bench_cli_start.py --runs {args.runs} --write-results{' --before DIR' if args.before else ''}`, 2-core VM
-shared with other jobs{'; "before:" rows are the same commands from a tree of the code before this change, interleaved with the rest' if args.before else ''}. Each command is a fresh process started from a temporary folder, timed from
-exec to exit; the peer is the interpreter's own start (`python -c pass`). Each command imports
-only its own module (`vgripd/__main__.py` builds the parser of the chosen command alone), so
-`--help` loads no command at all and `convert` loads numpy and the vendor conventions, not the
-daemon, aiohttp, OpenCV or pydantic (tests/unit/cli/test_main_imports.py checks the modules).
-Before this, every command built every command's parser and so imported all of them: 1.4-2.4 s
-on this machine (`convert` of one pose 2.3 s; 3.3-5.4 s measured under this run's kind of load).
+`.venv/bin/python bench/bench_cli_start.py --runs {args.runs}{' --before DIR' if args.before else ''} --write-results`, 2-core VM
+shared with other jobs (load average {load[0]:.1f}). Each command is a fresh process started
+from a temporary folder, timed from exec to exit; the peer is the interpreter's own start
+(`python -c pass`). "before:" rows (with `--before`) are the same commands from another source
+tree, interleaved with the rest. Each command imports only its own module (`vgripd/__main__.py`
+builds the parser of the chosen command alone), so `--help` loads no command at all and
+`convert` loads numpy and the vendor conventions, not the daemon, aiohttp, OpenCV or pydantic
+(tests/unit/cli/test_main_imports.py checks the modules).
 
 ```
 {text}
