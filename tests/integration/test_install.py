@@ -99,7 +99,10 @@ def test_robot_program_from_the_wheel(brand: str, installed: Path, tmp_path: Pat
     proc = _run([installed / "vgripd", "robot-program", "--brand", brand, "-c", example,
                  "-o", tmp_path / brand, "--host", "192.168.1.20"], cwd=tmp_path)
     assert sorted(p.name for p in (tmp_path / brand).iterdir()) == sorted(BRANDS[brand].files)
-    assert f"docs/robots/{brand}.md" in proc.stdout
+    # the set-up page it names is installed too
+    installed_page = proc.stdout.rsplit("(installed with vgripd: ", 1)[1].split(")")[0]
+    assert Path(installed_page).is_file()
+    assert Path(installed_page).is_relative_to(installed.parent)
 
 
 @pytest.mark.parametrize("name", EXAMPLES)

@@ -27,7 +27,7 @@ from vgripd.cli.paths import DEFAULT_CONFIG
 from vgripd.config import Config, DriverSection, load_config
 from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.registry import LINKS, load_class, validate_options
-from vgripd.resources import ROBOTS, shared
+from vgripd.resources import DOCS, ROBOTS, shared
 from vgripd.service.robot_socket_format import (
     BRANDS,
     CAPTURE_AT_SIZE,
@@ -85,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
     for name, text in texts.items():
         (args.output / name).write_text(text, encoding="utf-8")
         print(f"wrote {args.output / name}")
-    print(f"set-up steps: docs/robots/{args.brand}.md")
+    print(f"set-up steps: docs/robots/{args.brand}.md "
+          f"(installed with vgripd: {shared(DOCS, 'robots', f'{args.brand}.md')})")
     return EXIT_OK
 
 
