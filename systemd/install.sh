@@ -45,6 +45,9 @@ while (($#)); do
     esac
 done
 
+for dir in "$prefix" "$etc" "$state" "$unit_dir"; do
+    [[ $dir == /?* ]] || { echo "install.sh: paths must be absolute, not '$dir'" >&2; exit 2; }
+done
 venv="$prefix/venv"
 vgripd="$venv/bin/vgripd"
 
@@ -58,7 +61,7 @@ share="$("$venv/bin/python" -c 'from vgripd.resources import shared; print(share
 
 echo "== docs $prefix/docs"
 rm -rf "$prefix/docs"
-cp -r "$share/docs" "$prefix/docs"
+cp -rL "$share/docs" "$prefix/docs"   # -L: real files also from an editable install
 
 echo "== unit $unit_dir/vgripd.service"
 install -d "$unit_dir"
