@@ -1,9 +1,11 @@
 # The two commands of the README: `make demo` (main job) and `make test` (whole suite).
-# Both create the virtual environment on first use.
+# Both create the virtual environment on first use; `make demo` without the test toolchain.
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+RUNTIME_STAMP := $(VENV)/.runtime
+RUNTIME := $(VENV)/bin/python
 # Test processes (pytest-xdist). Most tests wait on peers, processes and sockets rather than
 # compute, so two per core keep a 2-core machine busy; whole files go to one process
 # (--dist loadfile): a file's fixed loopback addresses and module fixtures stay in it.
@@ -15,15 +17,24 @@ TEST_ENV := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1
 # make explore: the property tests with fresh random examples, ROUNDS runs (tests/conftest.py)
 ROUNDS ?= 10
 
-.PHONY: demo test lint bench explore clean
+.PHONY: demo test lint bench explore install clean
 
-$(STAMP): pyproject.toml
+# Two stamps: `make demo` installs the runtime only (the package and its dependencies);
+# `make test` and `make lint` add the test extra (pytest, ruff, mypy and the third-party peers
+# the tests talk to, pypylon among them).
+$(RUNTIME):
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
-	touch $(STAMP)
 
-demo: $(STAMP)
+$(RUNTIME_STAMP): pyproject.toml | $(RUNTIME)
+	$(PY) -m pip install -q -e .
+	touch $(RUNTIME_STAMP)
+
+$(STAMP): pyproject.toml | $(RUNTIME)
+	$(PY) -m pip install -q -e '.[test]'
+	touch $(RUNTIME_STAMP) $(STAMP)
+
+demo: $(RUNTIME_STAMP)
 	$(VENV)/bin/vgripd demo
 
 lint: $(STAMP)
@@ -41,6 +52,10 @@ explore: $(STAMP)
 
 bench: $(STAMP)
 	for f in bench/bench_*.py; do $(PY) $$f || exit 1; done
+
+# The systemd service (systemd/README.md): venv in /opt/vgripd, unit, first config; as root.
+install:
+	systemd/install.sh $(INSTALL_ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "convert": ("vgripd.cli.convert", "convert a pose between robot vendor conventions"),
     "run": ("vgripd.cli.run", "run the service until SIGTERM (what systemd starts)"),
     "check": ("vgripd.cli.check", "validate a config file without starting"),
+    "init": ("vgripd.cli.init", "write a cell's config: main file plus writable includes"),
     "status": ("vgripd.cli.status", "show a running daemon's status"),
     "demo": ("vgripd.cli.demo", "run daemon, synthetic camera and a mock PLC on this computer"),
     "locate": ("vgripd.cli.locate", "locate the object in one image pair and print the pose"),
@@ -39,10 +40,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None, *, every: bool = True) -> argparse.ArgumentParser:
+    """The parser of every command (``every``), or of ``command`` alone: a command's module is
+    imported only when its arguments are wanted, so that ``vgripd --help`` and a quick command
+    such as ``convert`` do not pay for the daemon, aiohttp and OpenCV."""
     parser = argparse.ArgumentParser(prog="vgripd", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():
+        if not every and name != command:
+            sub.add_parser(name, help=help_text)
+            continue
         module = importlib.import_module(module_name)
         p = sub.add_parser(name, help=help_text, description=module.__doc__)
         module.add_arguments(p)
@@ -50,8 +57,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def command_of(argv: Sequence[str]) -> str | None:
+    """The command named in ``argv`` (its first word that is not an option), if any."""
+    return next((word for word in argv if not word.startswith("-")), None)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    words = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(command_of(words), every=False).parse_args(words)
     try:
         rc: int = args._module.run(args)
     except ConfigError as err:

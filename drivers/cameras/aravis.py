@@ -21,8 +21,9 @@ from drivers.cameras.gencam import GenICamStackCamera
 from drivers.cameras.gencam_sdk import Device, DeviceInfo, FeatureInfo, Frame, Stack
 from vgripd.errors import CameraError
 
-MISSING = ("aravis driver needs Aravis and PyGObject: apt-get install gir1.2-aravis-0.8; "
-           "pip install vgripd[aravis]")
+MISSING = ("aravis driver needs Aravis and PyGObject: apt-get install gir1.2-aravis-0.8 "
+           "libgirepository1.0-dev libcairo2-dev pkg-config gcc (Aravis, and what PyGObject "
+           "builds with); pip install 'vgripd[aravis]' (docs/cameras.md, \"Aravis\")")
 
 
 def _sdk() -> Any:

@@ -42,6 +42,13 @@ def test_demo_runs_cycles_with_a_busy_refusal_a_gated_fault_and_small_pose_error
     m = re.search(r"pose error vs synthetic truth: max ([\d.]+) mm", out)
     assert m is not None
     assert float(m.group(1)) < 0.5
+    # The URL says it lives only as long as the demo; the cycle time says what it is made of.
+    assert "(up only while the demo runs; `vgripd demo --linger 120`" in out
+    m = re.search(r"of which the synthetic camera rendering the pair: p50 ([\d.]+) ms, "
+                  r"locating \(features, pose, gates\): p50 ([\d.]+) ms", out)
+    assert m is not None, out
+    assert float(m.group(1)) > 0
+    assert float(m.group(2)) > 0
 
 
 def test_demo_prints_the_web_view_url_and_serves_it_while_lingering() -> None:
@@ -58,7 +65,8 @@ def test_demo_prints_the_web_view_url_and_serves_it_while_lingering() -> None:
         url = None
         for line in proc.stdout:  # ends at the process's exit at the latest
             seen.append(line)
-            m = re.search(r"web view on (http://127\.0\.0\.1:\d+/)$", line.strip())
+            m = re.search(r"web view on (http://127\.0\.0\.1:\d+/) \(up until 10 s after",
+                          line.strip())
             if m:
                 url = m.group(1)
             if "stays up 10 s" in line:

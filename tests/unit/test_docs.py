@@ -203,3 +203,16 @@ def test_opcua_uacall_line_names_the_method_by_browse_name() -> None:
     method = re.search(r'-m "([^"]+)"', call)
     assert method is not None, call
     assert method.group(1) == "2:StartSingleJob", call
+
+
+def test_mbpoll_lines_use_the_port_the_example_serves() -> None:
+    """The docs' mbpoll lines run as written against `vgripd run -c config/example.toml`."""
+    import tomllib
+
+    example = tomllib.loads((REPO / "config" / "example.toml").read_text())
+    (port,) = [link["port"] for link in example["links"] if link["type"] == "modbus_server"]
+    lines = [(path.name, line) for path in sorted((REPO / "docs").glob("*.md"))
+             for line in path.read_text().splitlines() if "mbpoll -m tcp" in line]
+    assert lines
+    wrong = [f"{name}: {line}" for name, line in lines if f"-p {port} " not in line]
+    assert not wrong, "\n".join(wrong)

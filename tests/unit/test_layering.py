@@ -18,8 +18,8 @@ from tests.conftest import REPO
 LAYERS = [
     {"types", "errors"},
     {"geometry"},
-    {"serialize", "imagefiles", "redaction", "configbase", "configsnapshot", "config",
-     "registry"},
+    {"serialize", "imagefiles", "redaction", "resources", "configbase", "configsnapshot",
+     "config", "registry"},
     {"vision"},
     {"calib"},
     {"service"},

@@ -155,7 +155,9 @@ class ModelChoice:
         (label, key) in ``cameras`` (the candidates' ``key``/``key_std`` entries)."""
         width = max(len(c["model"]) for c in self.candidates)
         head = "".join(f"  {label + name:>20s}" for label, _ in cameras for name in ("k2", "k3"))
-        lines = [f"  {'model':{width}s}  RMS px    dBIC{head}"]
+        lines = ["  candidates; k2 and k3 +- each model's own 1 sigma (valid only if the terms "
+                 "it leaves out are 0):",
+                 f"  {'model':{width}s}  RMS px    dBIC{head}"]
         for c in self.candidates:
             mark = "*" if c["model"] == self.model.name else " "
             cells = ""

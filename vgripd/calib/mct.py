@@ -361,7 +361,7 @@ def from_result_file(path: str | Path, camera: str | None = None) -> MctCamera |
     if not isinstance(calib, dict) or not isinstance(calib.get("left", calib.get("right")), dict):
         raise CalibrationError(f"{path}: no [calibration.left] or [calibration.right] section")
 
-    def cam(side: str, std_key: str) -> MctCamera:
+    def cam(side: str) -> MctCamera:
         table = calib.get(side)
         if not isinstance(table, dict):
             raise CalibrationError(f"{path}: no [calibration.{side}] section")
@@ -369,26 +369,40 @@ def from_result_file(path: str | Path, camera: str | None = None) -> MctCamera |
             model = IntrinsicsConfig(**table)
         except (ValidationError, TypeError) as err:
             raise CalibrationError(f"{path}: calibration.{side}: {err}") from None
-        std = about.get(std_key)
+        std = _camera_std(about, side)
         return MctCamera(model.model_dump(mode="json"),
                          std if _std_complete(std) else None)
 
     stereo = calib.get("stereo")
     if camera is not None:
-        return cam(camera, "std" if "std" in about else f"{camera}_std")
+        return cam(camera)
     if not (isinstance(stereo, dict) and "right" in calib):
         only = "left" if "left" in calib else "right"
-        return cam(only, "std")
+        return cam(only)
     try:
         pose = PoseConfig(**stereo.get("T_right_left", {}))
     except (ValidationError, TypeError) as err:
         raise CalibrationError(f"{path}: calibration.stereo.T_right_left: {err}") from None
     T = matrix_from_pose(pose)
-    rv_std, t_std = about.get("rotvec_std"), about.get("translation_std")
-    return MctStereo(cam("left", "left_std"), cam("right", "right_std"),
+    nested = about.get("std") if isinstance(about.get("std"), Mapping) else {}
+    rv_std = about.get("rotvec_std", nested.get("rotvec_rad"))
+    t_std = about.get("translation_std", nested.get("translation_mm"))
+    return MctStereo(cam("left"), cam("right"),
                      _vec3(rotvec_from_matrix(T[:3, :3])), _vec3(T[:3, 3]),
                      None if rv_std is None else _vec3(rv_std),
                      None if t_std is None else _vec3(t_std))
+
+
+def _camera_std(about: Mapping[str, Any], side: str) -> Any:
+    """One camera's standard deviations in any layout our files use: ``[about.std.<side>]``
+    (``calibrate stereo``), ``<side>_std`` (``import-mct`` of a rig) or ``[about.std]`` itself
+    (one camera: ``calibrate intrinsics``, ``import-mct`` of a camera)."""
+    std = about.get("std")
+    if isinstance(std, Mapping) and isinstance(std.get(side), Mapping):
+        return std[side]
+    if f"{side}_std" in about:
+        return about[f"{side}_std"]
+    return std
 
 
 def _std_complete(std: Any) -> bool:

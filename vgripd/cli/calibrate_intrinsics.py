@@ -164,7 +164,7 @@ def _human(result: IntrinsicsResult, rejected: list[dict[str, str]],
               for p in result.per_image]
     lines.append("")
     lines.append(f"{args.camera} camera, {result.camera['width']}x{result.camera['height']}, "
-                 "+- = 1 sigma:")
+                 "+- = 1 sigma, covering the distortion terms the model leaves out:")
     lines += ["  " + line for line in _parameter_lines(result)]
     lines += model_lines(result.model)
     if rejected:

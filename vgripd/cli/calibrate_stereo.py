@@ -209,7 +209,8 @@ def _human(r: RigResult, rejected: list[dict[str, str]], args: argparse.Namespac
     lines += [f"{p['left']:{wl}s}  {p['right']:{wr}s}  {p['rms_px']:6.3f}" for p in r.per_pair]
     lines.append("")
     lines.append(f"stereo rig, X_R = R(rotvec) X_L + T, baseline "
-                 f"{float(np.linalg.norm(r.translation_mm)):.2f} mm, +- = 1 sigma:")
+                 f"{float(np.linalg.norm(r.translation_mm)):.2f} mm, +- = 1 sigma, covering the "
+                 f"distortion terms the model leaves out:")
     lines += ["  " + line for line in _parameter_lines(r)]
     choice = r.model
     lines.append(f"distortion model, both cameras: {choice.model.name} (chosen by "

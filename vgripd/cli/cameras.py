@@ -90,10 +90,14 @@ def list_devices(stacks: tuple[str, ...]) -> list[str]:
 def grab_options(args: argparse.Namespace) -> tuple[str, dict[str, Any], Config]:
     """The driver type and options for NAME, and the config they are judged with."""
     sets = parse_sets(args.set)
+    note = ""  # why the config did not name the camera, for the error below
     if args.config:
         config = load_config(args.config)
         cam = config.camera
-        if cam.type in STACKS:
+        if cam.type not in STACKS:
+            note = (f"; {args.config}: camera.type = {cam.type!r}, not a pylon or aravis "
+                    f"camera, so NAME was looked for among the discovered devices only")
+        else:
             cls = load_class(CAMERAS, "camera", cam.type)
             options = cls.Options.model_validate(cam.options())
             names = cls.names_of(options)
@@ -104,6 +108,7 @@ def grab_options(args: argparse.Namespace) -> tuple[str, dict[str, Any], Config]
                 data["features"] = {**data.get("features", {}), **sets}
                 data["trigger"] = "software"
                 return cam.type, data, config
+            note = f"; {args.config} names the cameras {', '.join(names)}"
     else:
         config = Config()
     stacks = (args.stack,) if args.stack else STACKS
@@ -120,7 +125,7 @@ def grab_options(args: argparse.Namespace) -> tuple[str, dict[str, Any], Config]
                                                  "name": args.name}],
                                     "trigger": "software"}, config
         seen += [f"{stack_name}: {d.label()}" for d in found]
-    raise CameraError(f"no camera {args.name!r} (found: {'; '.join(seen) or 'none'})")
+    raise CameraError(f"no camera {args.name!r} (found: {'; '.join(seen) or 'none'}{note})")
 
 
 async def grab(type_name: str, data: dict[str, Any], config: Config, count: int,

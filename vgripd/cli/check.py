@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 
-from vgripd.cli.run import DEFAULT_CONFIG
+from vgripd.cli.paths import DEFAULT_CONFIG
 from vgripd.config import Config, load_config
 from vgripd.configsnapshot import Snapshot
 from vgripd.errors import CameraError, ConfigError

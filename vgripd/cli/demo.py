@@ -80,6 +80,15 @@ def _port(wanted: int) -> int:
     return wanted
 
 
+def web_view(port: int, linger: float) -> str:
+    """The web view's address as the demo announces it, with how long it stays up."""
+    url = f"web view on http://127.0.0.1:{port}/"
+    if linger > 0:
+        return f"{url} (up until {linger:g} s after the cycles)"
+    return (f"{url} (up only while the demo runs; `vgripd demo --linger 120` keeps it up "
+            f"after the cycles)")
+
+
 def demo_config(port: int, seed: int, vendor: str, pose: dict[str, Any] | None = None,
                 web_port: int = 0) -> Any:
     """The demo cell; ``pose`` fixes the object pose (else random around the reference)."""
@@ -160,6 +169,8 @@ class Demo:
         self.jobs: dict[int, tuple[ImagePair | None, JobRecord]] = {}
         self.errors: list[tuple[float, float]] = []
         self.answers: list[CycleResult] = []
+        self.acquire_ms: list[float] = []  # the synthetic camera rendering the pair
+        self.locate_ms: list[float] = []  # the pipeline: features, pose, gates
         self.daemon: Daemon | None = None
 
     def attach(self, daemon: Daemon) -> None:
@@ -183,6 +194,10 @@ class Demo:
         assert self.daemon is not None
         await self.daemon.wait_for(lambda: answer.job_id in self.jobs, 5.0)
         pair, rec = self.jobs[answer.job_id]
+        timings = rec.result.timings_ms
+        if "acquire" in timings and "total" in timings:
+            self.acquire_ms.append(timings["acquire"])
+            self.locate_ms.append(timings["total"])
         cols = "".join(f"{v:>10.3f}" for v in answer.values) if answer.values else (
             f"{'(no pose: ' + rec.result.message + ')':<{10 * len(self.conv.fields)}}")
         err = ""
@@ -202,6 +217,12 @@ class Demo:
             p50, p95 = np.percentile(cycles, (50, 95))
             lines.append(f"cycle time (PLC trigger -> answer seen): p50 {p50:.1f} ms, "
                          f"p95 {p95:.1f} ms, max {cycles.max():.1f} ms over {cycles.size} jobs")
+        if self.acquire_ms:
+            lines.append(
+                f"  of which the synthetic camera rendering the pair: p50 "
+                f"{np.percentile(self.acquire_ms, 50):.1f} ms, locating (features, pose, gates):"
+                f" p50 {np.percentile(self.locate_ms, 50):.1f} ms; a real camera delivers its "
+                f"images without the rendering (README, \"Accuracy and performance\": locate)")
         if self.errors:
             e = np.array(self.errors)
             lines.append(f"pose error vs synthetic truth: max {e[:, 0].max():.3f} mm, "
@@ -234,8 +255,8 @@ async def run_demo(args: argparse.Namespace) -> int:
         nonlocal web_port
         assert daemon.status_server is not None
         web_port = daemon.status_server.port  # the real one; the fault daemon reuses it
-        print(f"vgripd demo: daemon serving Modbus/TCP on {plc.where}, web view on "
-              f"http://127.0.0.1:{web_port}/", flush=True)
+        print(f"vgripd demo: daemon serving Modbus/TCP on {plc.where}, "
+              f"{web_view(web_port, args.linger)}", flush=True)
         print(f"synthetic stereo camera, object {config.object.name!r}, offset against "
               f"the taught reference as {args.vendor.upper()} ({demo.conv.summary})\n")
         print(demo.header())
@@ -349,8 +370,8 @@ async def run_pallet(args: argparse.Namespace) -> int:
 
     async def pallets(daemon: Daemon, plc: MockPlc) -> None:
         assert daemon.status_server is not None
-        print(f"vgripd demo: daemon serving Modbus/TCP on {plc.where}, web view on "
-              f"http://127.0.0.1:{daemon.status_server.port}/", flush=True)
+        print(f"vgripd demo: daemon serving Modbus/TCP on {plc.where}, "
+              f"{web_view(daemon.status_server.port, args.linger)}", flush=True)
         print(f"synthetic stereo camera, a pallet of {config.picking.max_objects} plates "
               f"{config.object.name!r} (touching, one with a mark covered), nearest first to "
               f"{list(config.picking.point_mm or ())} mm; grip pose as "

@@ -20,12 +20,14 @@ import argparse
 import math
 import re
 import sys
+from importlib.resources.abc import Traversable
 from pathlib import Path
 
-from vgripd.cli.run import DEFAULT_CONFIG
+from vgripd.cli.paths import DEFAULT_CONFIG
 from vgripd.config import Config, DriverSection, load_config
 from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.registry import LINKS, load_class, validate_options
+from vgripd.resources import DOCS, ROBOTS, shared
 from vgripd.service.robot_socket_format import (
     BRANDS,
     CAPTURE_AT_SIZE,
@@ -37,7 +39,7 @@ from vgripd.service.robot_socket_format import (
 
 EXIT_OK = 0
 EXIT_USAGE = 2
-TEMPLATES = Path(__file__).resolve().parents[2] / "robots"
+TEMPLATES = shared(ROBOTS)  # the robots/ folder, installed with the package
 LINK_TYPE = "robot_socket"
 ATTEMPTS = 3  # unanswered requests before the program stops
 BUSY_WAIT_S = 0.25  # pause before asking again after BUSY
@@ -67,7 +69,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="address of the vgripd computer as the robot reaches it (needed "
                              "when the link listens on all addresses)")
     parser.add_argument("--templates", type=Path, default=TEMPLATES,
-                        help=f"the robots/ folder of the vgripd source (default {TEMPLATES})")
+                        help="a folder of templates laid out as robots/ of the vgripd source "
+                             "(default: the templates installed with vgripd)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,12 +85,13 @@ def run(args: argparse.Namespace) -> int:
     for name, text in texts.items():
         (args.output / name).write_text(text, encoding="utf-8")
         print(f"wrote {args.output / name}")
-    print(f"set-up steps: docs/robots/{args.brand}.md")
+    print(f"set-up steps: docs/robots/{args.brand}.md "
+          f"(installed with vgripd: {shared(DOCS, 'robots', f'{args.brand}.md')})")
     return EXIT_OK
 
 
 def render(brand: RobotBrand, config: Config, link: int | None = None, host: str | None = None,
-           templates: Path = TEMPLATES, source: str = "the config") -> dict[str, str]:
+           templates: Traversable = TEMPLATES, source: str = "the config") -> dict[str, str]:
     """The brand's program files (name -> text) for ``config``; ``ProgramRefused`` saying why
     not. ``source`` names the config in the programs' header."""
     values = program_values(brand, config, link, host, source)
@@ -98,8 +102,9 @@ def render(brand: RobotBrand, config: Config, link: int | None = None, host: str
         try:
             template = path.read_text(encoding="utf-8")
         except OSError as err:
-            raise ProgramRefused(f"cannot read template {path}: {err.strerror} (pass "
-                                 f"--templates, the robots/ folder of the vgripd source)") from None
+            raise ProgramRefused(f"cannot read template {path}: {err.strerror} (the package "
+                                 f"is installed without its share/robots/ folder, or "
+                                 f"--templates names the wrong folder)") from None
         texts[name] = fill(template, values, str(path))
     return texts
 

@@ -8,14 +8,13 @@ import asyncio
 import logging
 import signal
 
+from vgripd.cli.paths import DEFAULT_CONFIG
 from vgripd.config import load_config
 from vgripd.errors import ConfigError
 from vgripd.service.configtxn import recover
 from vgripd.service.daemon import Daemon
 from vgripd.service.logsetup import configure_logging
 from vgripd.service.reload import Reloader
-
-DEFAULT_CONFIG = "/etc/vgripd/vgripd.toml"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

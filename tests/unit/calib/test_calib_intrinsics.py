@@ -310,6 +310,9 @@ def test_cli_reports_the_model_choice(rendered, tmp_path):
     assert re.search(r"^distortion model: k1 k2 p1 p2 \(chosen by BIC: ", out, re.MULTILINE)
     assert re.search(r"^\* k1 k2 p1 p2 +\d\.\d{4} +0\.0 ", out, re.MULTILINE)
     assert "note: k3 left out by the choice" in out
+    # k2 is printed with two sigmas: each says which it is
+    assert "+- = 1 sigma, covering the distortion terms the model leaves out:" in out
+    assert "k2 and k3 +- each model's own 1 sigma (valid only if the terms it leaves out" in out
     about = tomllib.loads((tmp_path / "a.toml").read_text())["about"]
     assert about["model"] == "pinhole fx fy cx cy, skew 0, dist k1 k2 p1 p2 (others 0)"
     assert about["model_choice"]["model"] == "k1 k2 p1 p2"

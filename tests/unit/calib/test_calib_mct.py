@@ -31,6 +31,7 @@ from vgripd.errors import CalibrationError, DegenerateInputError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform, make_transform, matrix_from_rotvec
+from vgripd.serialize import toml_from_dict
 
 SQUARE_MM = 30.0
 
@@ -349,3 +350,33 @@ def test_metre_baseline_warns(tmp_path, capsys):
                                           "T = [ -0.099801980000000")
     _, summary = import_file(tmp_path, metres, capsys, name="Calib_Results_stereo.m")
     assert any("baseline" in w for w in summary["warnings"])
+
+
+def test_export_reads_the_sigmas_calibrate_stereo_writes(tmp_path, capsys):
+    """`calibrate stereo` records its sigmas as [about.std] with left, right, rotvec_rad and
+    translation_mm: export-mct writes every *_error from them, without a warning."""
+    cam = {"fx": 1800.0, "fy": 1801.0, "cx": 640.0, "cy": 512.0, "skew": 0.0,
+           "dist": [-0.08, 0.11, 0.0, 0.0, 0.0], "width": 1280, "height": 1024}
+    sig = {"fx": 0.3, "fy": 0.31, "cx": 0.5, "cy": 0.45, "skew": 0.0,
+           "dist": [0.001, 0.004, 0.0001, 0.0001, 0.0]}
+    rig = tmp_path / "rig.toml"
+    rig.write_text(toml_from_dict({
+        "about": {"std": {"left": sig, "right": sig, "rotvec_rad": [0.001, 0.002, 0.0003],
+                          "translation_mm": [0.1, 0.2, 0.3]}},
+        "calibration": {"left": cam, "right": cam, "stereo": {"T_right_left": {
+            "translation_mm": [-150.0, 0.0, 0.0], "rotvec_rad": [0.0, 0.1, 0.0]}}}}))
+    rc, _, err = run_cli(["calibrate", "export-mct", str(rig), "-o", str(tmp_path / "s.m")],
+                         capsys)
+    assert rc == 0
+    assert "no standard deviations" not in err
+    back = read_mct(tmp_path / "s.m")
+    assert back.translation_std == pytest.approx([0.1, 0.2, 0.3])
+    assert back.rotvec_std == pytest.approx([0.001, 0.002, 0.0003])
+    assert back.left.std["fx"] == pytest.approx(0.3)
+    assert back.right.std["dist"][1] == pytest.approx(0.004)
+    # one camera of it
+    rc, _, err = run_cli(["calibrate", "export-mct", str(rig), "--camera", "right", "-o",
+                          str(tmp_path / "r.m")], capsys)
+    assert rc == 0
+    assert "no standard deviations" not in err
+    assert read_mct(tmp_path / "r.m").std["cy"] == pytest.approx(0.45)

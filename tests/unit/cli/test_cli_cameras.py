@@ -114,3 +114,39 @@ def test_grab_from_the_fake_gige_camera_by_ip(fake: FakeCamera, tmp_path: Path) 
     assert proc.returncode == 0, proc.stderr
     assert "512x512 from aravis camera 127.0.0.1 BayerGR8" in proc.stdout
     assert cv2.imread(str(out), cv2.IMREAD_UNCHANGED).shape == (512, 512)
+
+
+def test_grab_of_a_name_the_replay_config_does_not_have_says_its_camera_type(
+        pylon: None, tmp_path: Path) -> None:
+    proc = vgripd("cameras", "grab", "left", "--stack", "pylon", "-c", "config/example.toml",
+                  "-o", str(tmp_path / "x.png"))
+    assert proc.returncode == 1
+    assert "no camera 'left' (found: pylon: " in proc.stderr
+    assert "config/example.toml: camera.type = 'replay', not a pylon or aravis camera" in proc.stderr
+
+
+def test_grab_of_a_name_the_config_does_not_have_lists_the_configs_names(
+        pylon: None, tmp_path: Path) -> None:
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text('[camera]\ntype = "pylon"\n[[camera.cameras]]\nname = "top"\n'
+                   'serial = "0815-0001"\n')
+    proc = vgripd("cameras", "grab", "side", "--stack", "pylon", "-c", str(cfg),
+                  "-o", str(tmp_path / "x.png"))
+    assert proc.returncode == 1
+    assert f"{cfg} names the cameras top" in proc.stderr
+
+
+def test_the_missing_aravis_message_names_the_whole_install() -> None:
+    """What docs/cameras.md installs for the aravis driver, the driver's error names too."""
+    import re
+
+    from drivers.cameras.aravis import MISSING
+
+    docs = (REPO / "docs" / "cameras.md").read_text()
+    block = docs[docs.index("apt-get install", docs.index("## Industrial cameras")):]
+    packages = re.findall(r"[\w.+-]+", block.split("#", 1)[0].split("install", 1)[1])
+    packages = [p for p in packages if p != "aravis-tools"]  # optional on a cell (the docs)
+    assert "gir1.2-aravis-0.8" in packages
+    missing = [p for p in packages if p not in MISSING]
+    assert not missing, missing
+    assert "vgripd[aravis]" in MISSING

@@ -25,6 +25,8 @@ _ENUMS: dict[Reg, Any] = {Reg.CMD: Command, Reg.STATE: HandshakeState, Reg.STATU
 
 
 def _meaning(reg: Reg, value: int) -> str:
+    if reg is Reg.REJECT_CODE and value == 0:
+        return "none"  # no trigger refused: 0 is not the IDLE of the STATUS register
     kind = _ENUMS.get(reg)
     if kind is not None:
         try:
@@ -62,8 +64,9 @@ def decode(bank: RegisterBank, words: list[int]) -> list[dict[str, Any]]:
             value = codec.decode_u32(w)
         else:
             w = words[a:a + 1]
-            value = w[0]
-        rows.append({"address": a, "name": reg.name, "words": w, "value": value,
+            value = int(w[0])  # the bank may hold an enum member (STATE): the PLC reads a word
+        rows.append({"address": a, "name": reg.name, "words": [int(x) for x in w],
+                     "value": value,
                      "meaning": _meaning(reg, int(value) if isinstance(value, int) else 0)})
     return rows
 

@@ -159,6 +159,7 @@ const HEADER_RECIPES = 4;
 function recipeText(r) {
   if (!r) return "";
   const active = r.active === null ? "recipe: none yet" : `recipe ${r.active} ${r.active_name}`;
+  if (r.recipes.length <= 1) return active;  // one recipe: nothing to choose among
   if (r.recipes.length <= HEADER_RECIPES) {
     const all = r.recipes.map((x) => `${x.number} ${x.name}${x.problem ? " (NOT CALIBRATED)" : ""}`);
     return `${active} (of ${all.join(", ")})`;
@@ -281,6 +282,31 @@ function svgNode(tag, attrs, text) {
   return n;
 }
 
+// Camera labels beside their dots without covering each other: cameras of one rig are often a
+// few pixels apart in a view. Each label takes the first free slot above or below its dot
+// (estimated box: 6 px per character, 12 px high); a label moved off its dot gets a leader.
+function placeLabels(labels, W, H) {
+  const boxes = [], out = [];
+  const overlaps = (b) => boxes.some((o) => b.x < o.x + o.w && o.x < b.x + b.w && b.y < o.y + o.h && o.y < b.y + b.h);
+  for (const l of [...labels].sort((p, q) => p.y - q.y)) {
+    const w = 6 * l.text.length, h = 12;
+    let box = null;
+    for (let k = 0; k < 2 * labels.length + 2; k++) {
+      const dy = (k % 2 ? 1 : -1) * (6 + 13 * Math.floor(k / 2));  // -6, +6, -19, +19, ...
+      const x = Math.min(Math.max(l.x + 6, 0), W - w);
+      const b = { x, y: l.y + dy - (dy < 0 ? h : 0), w, h };
+      if (!overlaps(b) && b.y >= 0 && b.y + h <= H) { box = b; break; }
+    }
+    box = box || { x: Math.min(l.x + 6, W - w), y: Math.max(l.y - 6 - h, 0), w, h };
+    boxes.push(box);
+    if (Math.abs(box.y + h / 2 - l.y) > h) {
+      out.push(svgNode("line", { x1: l.x, y1: l.y, x2: box.x, y2: box.y + h / 2, stroke: "#bbb" }));
+    }
+    out.push(svgNode("text", { x: box.x, y: box.y + h - 2, "font-size": 10, class: "cell-label" }, l.text));
+  }
+  return out;
+}
+
 // Draw the cell projected on axes (a, b) of the base frame: 0 = x, 1 = y, 2 = z.
 function drawCell(svg, g, a, b) {
   const pts = [];
@@ -297,6 +323,7 @@ function drawCell(svg, g, a, b) {
   const parts = [svgNode("circle", { cx: X([0, 0, 0]), cy: Y([0, 0, 0]), r: 4, fill: "#888" }),
     svgNode("text", { x: X([0, 0, 0]) + 6, y: Y([0, 0, 0]) + 4, "font-size": 10 }, "base")];
   const reach = span * 0.25;
+  const labels = [];
   for (const c of g.cameras) {
     const p = c.position_mm, ax = c.axis;
     const tip = [0, 1, 2].map((i) => p[i] + ax[i] * reach);
@@ -310,8 +337,9 @@ function drawCell(svg, g, a, b) {
       fill: "rgba(31,111,208,0.12)", stroke: "none" }));
     parts.push(svgNode("line", { x1: X(p), y1: Y(p), x2: X(tip), y2: Y(tip), stroke: "#1f6fd0" }));
     parts.push(svgNode("circle", { cx: X(p), cy: Y(p), r: 4, fill: "#1f6fd0", class: "cell-camera" }));
-    parts.push(svgNode("text", { x: X(p) + 6, y: Y(p) - 6, "font-size": 10 }, `${c.name} (${c.rig})`));
+    labels.push({ x: X(p), y: Y(p), text: `${c.name} (${c.rig})` });
   }
+  parts.push(...placeLabels(labels, W, H));
   if (g.reference) {
     const p = g.reference.position_mm;
     parts.push(svgNode("rect", { x: X(p) - 5, y: Y(p) - 5, width: 10, height: 10, fill: "#070", class: "cell-reference" }));
