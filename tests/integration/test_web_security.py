@@ -142,11 +142,13 @@ async def test_public_read_opens_the_reads_but_not_the_actions(tmp_path: Path) -
             b"POST /api/trigger HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 0\r\n"
             b"Connection: close\r\n\r\n"))
         assert status == 403
-        for action in ("/api/handeye/walk/start", "/api/handeye/plan", "/api/handeye/accept"):
-            status, _, _ = await _raw(port, (
+        for action in ("/api/handeye/walk/start", "/api/handeye/plan", "/api/handeye/accept",
+                       "/api/tuning", "/api/teach/save"):
+            status, _, body = await _raw(port, (
                 f"POST {action} HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {TOKEN}"
                 f"\r\nContent-Length: 0\r\nConnection: close\r\n\r\n").encode())
             assert status == 404, action  # status.allow_config_edit is off
+            assert b"needs status.allow_config_edit = true" in body, (action, body[-200:])
 
 
 async def test_vgripd_status_sends_the_token(tmp_path: Path, capsys: pytest.CaptureFixture[str],

@@ -33,7 +33,8 @@ Routes (docs/web.md)::
 Security model (``access.Access``, docs/web.md): read-only by default and bound to 127.0.0.1;
 the config refuses a non-loopback bind without ``status.token``, and such a bind needs the
 token on every route unless ``status.public_read``. A foreign ``Host:`` gets 421; every answer
-carries the security headers. An action answers 404 while disabled and 403 without the token
+carries the security headers. An action answers 404 while disabled (naming its ``status``
+switch) and 403 without the token
 (``Authorization: Bearer <token>`` only, compared in constant time: the cookie is not enough).
 """
 
@@ -489,16 +490,18 @@ class WebServer:
 
     # --- guarded actions ------------------------------------------------------------------
 
-    def _guard(self, request: web.Request, enabled: bool) -> None:
-        """404 while the action is disabled, 403 unless the request carries the token."""
+    def check_action(self, request: web.Request, enabled: bool, key: str) -> None:
+        """404 while the action is disabled (naming ``status.<key>``, the switch that enables
+        it), 403 unless the request carries the token."""
         if not enabled:
-            raise web.HTTPNotFound(text="this action is disabled in the config")
+            raise web.HTTPNotFound(text=f"this action is disabled in the config: it needs "
+                                        f"status.{key} = true (with status.token)")
         if not self.access.bearer_ok(request):  # the header only: never the login cookie
             raise web.HTTPForbidden(text="this action needs the token: "
                                          "Authorization: Bearer <status.token>")
 
     async def _trigger(self, request: web.Request) -> web.Response:
-        self._guard(request, self._allow_trigger)
+        self.check_action(request, self._allow_trigger, "allow_trigger")
         if request.method != "POST":
             raise web.HTTPMethodNotAllowed(request.method, ["POST"])
         link = self.daemon.links.get(WEB_LINK)
@@ -516,7 +519,7 @@ class WebServer:
         return web.json_response(jsonable(dict_from_result(result)))
 
     async def _bundle(self, request: web.Request) -> web.StreamResponse:
-        self._guard(request, self._allow_bundle)
+        self.check_action(request, self._allow_bundle, "allow_support_bundle")
         log.info("web view: support bundle for %s", request.remote)
         loop = asyncio.get_running_loop()
         status = self.daemon.snapshot()

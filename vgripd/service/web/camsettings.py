@@ -122,7 +122,8 @@ class CameraSettingsRoutes:
 
     async def change(self, request: web.Request) -> web.Response:
         daemon = self.server.daemon
-        self.server._guard(request, bool(daemon.config.status.allow_config_edit))
+        self.server.check_action(request, bool(daemon.config.status.allow_config_edit),
+                                  "allow_config_edit")
         reloader = daemon.reloader
         if reloader is None:
             raise web.HTTPNotFound(text="this daemon was not started from a config file")

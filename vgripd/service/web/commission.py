@@ -227,12 +227,12 @@ class CommissionRoutes:
         return web.json_response(outcome.as_dict(), status=200 if outcome.applied else 422)
 
     async def reload(self, request: web.Request) -> web.Response:
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         reloader = self._reloader()
         return self._answer(await reloader.reload(f"web {request.remote}"))
 
     async def save(self, request: web.Request) -> web.Response:
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         reloader = self._reloader()
         body = await json_body(request)
         vision, polarity = parse_edit(body)
@@ -242,7 +242,7 @@ class CommissionRoutes:
     async def trial(self, request: web.Request) -> web.Response:
         """The edited pipeline on the last job's images (in the image helper process, never on
         the loop); nothing is saved or applied."""
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         body = await json_body(request)
         vision, polarity = parse_edit(body)
         job_id: int | None

@@ -150,7 +150,7 @@ class TeachRoutes:
         return web.json_response(self._summary(self._recipe(request)))
 
     async def shot(self, request: web.Request) -> web.Response:
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         last = self.server._last_pair
         if last is None:
             raise web.HTTPConflict(text="no job's images yet: trigger a job first")
@@ -175,13 +175,13 @@ class TeachRoutes:
         return web.json_response(self._summary(recipe))
 
     async def clear(self, request: web.Request) -> web.Response:
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         recipe = self._recipe(request)
         self.shots.pop(recipe, None)
         return web.json_response(self._summary(recipe))
 
     async def save(self, request: web.Request) -> web.Response:
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         reloader = self.server.daemon.reloader
         if not isinstance(reloader, Reloader):
             raise web.HTTPNotFound(text="this daemon was not started from a config file")

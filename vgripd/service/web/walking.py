@@ -251,7 +251,7 @@ class WalkRoutes:
                             headers={"Cache-Control": "no-cache"})
 
     async def plan(self, request: web.Request) -> web.Response:
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         config_path = self._config_path()
         form = await self._body(request)
         save = form.get("save") or None
@@ -293,7 +293,7 @@ class WalkRoutes:
         return web.json_response(summary)
 
     async def start(self, request: web.Request) -> web.Response:
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         config_path = self._config_path()
         body = await self._body(request)
         plan, link = body.get("plan"), body.get("link", 0)
@@ -307,7 +307,7 @@ class WalkRoutes:
         return web.json_response(jsonable(data))
 
     async def stop(self, request: web.Request) -> web.Response:
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         by = request.query.get("by", "web")
         if by not in STOPPED_BY:
             raise web.HTTPBadRequest(text=f"by={by[:40]!r}: one of {', '.join(STOPPED_BY)}")
@@ -316,7 +316,7 @@ class WalkRoutes:
         return web.json_response(jsonable(await self._walks().stop(why)))
 
     async def solve(self, request: web.Request) -> web.Response:
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         config_path = self._config_path()
         try:
             data = await self._walks().solve(config_path)
@@ -326,7 +326,7 @@ class WalkRoutes:
         return web.json_response(jsonable(data), status=200 if ok else 422)
 
     async def accept(self, request: web.Request) -> web.Response:
-        self.server._guard(request, self.enabled)
+        self.server.check_action(request, self.enabled, "allow_config_edit")
         reloader = self._reloader()
         walks = self._walks()
         solution = walks.solution
