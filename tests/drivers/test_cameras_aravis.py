@@ -115,8 +115,10 @@ def second_loopback() -> None:
     subprocess.run(["ip", "addr", "add", "127.0.0.2/32", "dev", "lo"], check=True)
 
 
-@pytest.fixture
-def two_fakes() -> Iterator[tuple[FakeCamera, FakeCamera]]:
+@contextlib.contextmanager
+def two_fake_cameras() -> Iterator[tuple[FakeCamera, FakeCamera]]:
+    """The fake cameras GV01 on 127.0.0.1 and GV02 on 127.0.0.2, the machine's only ones while
+    they live (a stereo pair for the daemon's tests)."""
     _aravis()
     second_loopback()
     with gige_exclusive():
@@ -129,6 +131,12 @@ def two_fakes() -> Iterator[tuple[FakeCamera, FakeCamera]]:
                 second.kill()
         finally:
             first.kill()
+
+
+@pytest.fixture
+def two_fakes() -> Iterator[tuple[FakeCamera, FakeCamera]]:
+    with two_fake_cameras() as cameras:
+        yield cameras
 
 
 def camera(**options: Any) -> AravisCamera:

@@ -13,12 +13,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import REPO
-from tests.drivers.test_cameras_aravis import (
-    FakeCamera,
-    _aravis,
-    gige_exclusive,
-    second_loopback,
-)
+from tests.drivers.test_cameras_aravis import FakeCamera, two_fake_cameras
 from tests.integration.test_daemon import WAIT_S, Plc, running
 from vgripd.config import config_from_dict
 from vgripd.service.protocol import Reg
@@ -27,18 +22,8 @@ from vgripd.types import Status
 
 @pytest.fixture
 def fakes() -> Iterator[tuple[FakeCamera, FakeCamera]]:
-    _aravis()
-    second_loopback()
-    with gige_exclusive():
-        left = FakeCamera("127.0.0.1", "GV01").start()
-        try:
-            right = FakeCamera("127.0.0.2", "GV02").start()
-            try:
-                yield left, right
-            finally:
-                right.kill()
-        finally:
-            left.kill()
+    with two_fake_cameras() as cameras:
+        yield cameras
 
 
 def cell() -> Any:

@@ -11,20 +11,19 @@ is on a register value or a daemon state, with a deadline that holds on a busy m
 
 from __future__ import annotations
 
-import contextlib
 import importlib.util
 import os
 import re
 import signal
 import tomllib
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
 
 from tests.conftest import REPO, need
-from tests.drivers.test_cameras_aravis import FakeCamera, _aravis, gige_exclusive, second_loopback
-from tests.integration.test_daemon import Plc, Run
+from tests.drivers.test_cameras_aravis import two_fake_cameras
+from tests.integration.test_daemon import Plc, Run, running
 from vgripd.config import config_from_dict
 from vgripd.service.daemon import Daemon, JobState
 from vgripd.service.protocol import Reg
@@ -52,31 +51,10 @@ def cell(camera: dict[str, Any]) -> Any:
     return config_from_dict(data)
 
 
-@contextlib.asynccontextmanager
-async def running(config: Any) -> AsyncIterator[Run]:
-    daemon = Daemon(config)
-    run = Run(daemon)
-    await daemon.start()
-    try:
-        yield run
-    finally:
-        await daemon.stop()
-
-
 @pytest.fixture
 def fakes() -> Iterator[None]:
-    _aravis()
-    second_loopback()
-    with gige_exclusive():
-        left = FakeCamera("127.0.0.1", "GV01").start()
-        try:
-            right = FakeCamera("127.0.0.2", "GV02").start()
-            try:
-                yield
-            finally:
-                right.kill()
-        finally:
-            left.kill()
+    with two_fake_cameras():
+        yield
 
 
 def aravis_cell() -> Any:

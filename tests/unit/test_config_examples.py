@@ -110,25 +110,10 @@ def test_pylon_example_on_pylons_camera_emulation() -> None:
 
 @pytest.fixture
 def fake_gige() -> Iterator[None]:
-    from tests.drivers.test_cameras_aravis import (
-        FakeCamera,
-        _aravis,
-        gige_exclusive,
-        second_loopback,
-    )
+    from tests.drivers.test_cameras_aravis import two_fake_cameras
 
-    _aravis()
-    second_loopback()
-    with gige_exclusive():
-        left = FakeCamera("127.0.0.1", "GV01").start()
-        try:
-            right = FakeCamera("127.0.0.2", "GV02").start()
-            try:
-                yield
-            finally:
-                right.kill()
-        finally:
-            left.kill()
+    with two_fake_cameras():
+        yield
 
 
 def test_aravis_example_on_aravis_fake_cameras(fake_gige: None) -> None:
