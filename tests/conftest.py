@@ -22,8 +22,10 @@ Property tests (hypothesis) run under one of two profiles, chosen by ``VGRIPD_HY
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -64,6 +66,40 @@ def need_tool(name: str, package: str | None = None) -> str:
     need(path is not None, f"needs {name}: apt-get install {package or name}")
     assert path is not None
     return path
+
+
+_SLOT_FOLDER = Path(tempfile.gettempdir()) / "vgripd-test-slots"
+_slot: tuple[int, int] | None = None  # (second octet, the lock file's descriptor held open)
+
+
+def loopback_slot() -> int:
+    """This test process's own second octet of 127.0.0.0/8 (1 .. 254), held by an ``flock``
+    on a file in the temporary folder while the process lives: two test runs on one machine (a
+    suite beside a suite, each with its xdist workers) never share an address. Needed where a
+    peer has a fixed port: the RTDE controller's 30004, which ur_rtde always dials."""
+    global _slot
+    if _slot is None:
+        _SLOT_FOLDER.mkdir(exist_ok=True)
+        for n in range(1, 255):
+            fd = os.open(_SLOT_FOLDER / f"{n}.lock", os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                os.close(fd)
+                continue
+            _slot = (n, fd)
+            break
+        else:
+            raise RuntimeError(f"all 254 loopback slots in {_SLOT_FOLDER} are held")
+    return _slot[0]
+
+
+def lo(address: str) -> str:
+    """``127.0.A.B`` moved into this process's own slot: ``127.<slot>.A.B`` (loopback_slot)."""
+    parts = address.split(".")
+    if len(parts) != 4 or parts[:2] != ["127", "0"]:
+        raise ValueError(f"lo({address!r}): expected 127.0.A.B")
+    return f"127.{loopback_slot()}.{parts[2]}.{parts[3]}"
 
 
 @pytest.fixture(autouse=True)

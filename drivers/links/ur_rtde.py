@@ -76,6 +76,9 @@ log = logging.getLogger("vgripd.link.ur_rtde")
 
 # The child's output lines logged per link and window; more are counted and reported once.
 OUTPUT_LINES = 20
+#: How long the link's helper process may take to start (an interpreter and ur_rtde loaded)
+#: before the RTDE setup's own time (``connect_timeout_s``) begins.
+CHILD_START_S = 60.0
 OUTPUT_WINDOW_S = 60.0
 OUTPUT_LINE_CHARS = 400
 
@@ -440,11 +443,20 @@ class URRtdeLink(RobotLink):
         """Run one child until it fails; return (fatal, reason)."""
         if not ever_up and self._health.state is LinkState.STOPPED:
             await self._set_health(LinkState.CONNECTING)
+        # The child's own start (an interpreter and ur_rtde loaded) is not the controller's
+        # time: a busy cell PC takes seconds for it. connect_timeout_s runs from "started".
         try:
-            first = await asyncio.wait_for(child.next_message(), self.options.connect_timeout_s)
+            first = await asyncio.wait_for(child.next_message(), CHILD_START_S)
         except TimeoutError:
-            return False, (f"{self._peer} did not complete the RTDE setup within "
-                           f"{self.options.connect_timeout_s} s (controller silent?)")
+            return False, (f"link {self.name}: its helper process did not start within "
+                           f"{CHILD_START_S:g} s (the computer is overloaded?)")
+        if first[0] == "started":
+            try:
+                first = await asyncio.wait_for(child.next_message(),
+                                               self.options.connect_timeout_s)
+            except TimeoutError:
+                return False, (f"{self._peer} did not complete the RTDE setup within "
+                               f"{self.options.connect_timeout_s} s (controller silent?)")
         if first[0] == "error":
             return bool(first[1]), str(first[2])
         if first[0] == "exit":

@@ -10,6 +10,7 @@ its sockets.
 Pipe messages, parent -> child: ``(req, "captured", (seq, job_id))``,
 ``(req, "publish", (seq, status, job_id, translation | None, rotation | None, pick))``,
 ``(req, "warnings", (bits,))``, ``(0, "close", ())``. Child -> parent:
+``("started",)`` (the process runs, ur_rtde is loaded: the setup begins),
 ``("up", peer, baseline_seq, note)``, ``("trigger", seq, command, tcp_pose)``,
 ``("done", req)``, ``("error", fatal, message)`` (the child exits right after).
 
@@ -299,6 +300,10 @@ def main(conn: Connection, output: Connection | None, host: str, upper: bool,
     peer = f"{host}:{RTDE_PORT}"
     code = 0
     try:
+        import rtde_io  # noqa: F401 - loaded before "started": the parent's setup clock
+        import rtde_receive  # noqa: F401 - then times the controller, not this start
+
+        conn.send(("started",))
         rcv, io = _connect(host, regs, frequency_hz, probe_timeout_s)
         pending = None
         if last_seq is None:

@@ -19,6 +19,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
+from tests.conftest import lo
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
     Command,
@@ -81,9 +82,9 @@ async def run_job(robot: URController, link: URRtdeLink, triggers: Triggers, job
 
 
 async def test_trigger_pose_result_roundtrip() -> None:
-    async with connected("127.0.5.1") as (robot, lnk, triggers):
+    async with connected(lo("127.0.5.1")) as (robot, lnk, triggers):
         assert lnk.health().state is LinkState.UP
-        assert lnk.health().peer == "127.0.5.1:30004"
+        assert lnk.health().peer == lo("127.0.5.1") + ":30004"
         log_start = len(robot.input_log())
 
         trigger, result = await run_job(robot, lnk, triggers, job_id=17, command=1)
@@ -122,7 +123,7 @@ async def test_trigger_pose_result_roundtrip() -> None:
 
 
 async def test_failed_job_answers_status_without_pose() -> None:
-    async with connected("127.0.5.2") as (robot, lnk, triggers):
+    async with connected(lo("127.0.5.2")) as (robot, lnk, triggers):
         seq = robot.start_program(1)
         await triggers.next()
         await lnk.publish(seq, JobResult(5, Status.NOT_FOUND, message="no features"))
@@ -137,7 +138,7 @@ async def test_failed_job_answers_status_without_pose() -> None:
 async def test_valid_status_without_ur_target_answers_internal(caplog: pytest.LogCaptureFixture) -> None:
     """Defensive only: a config whose output.vendor is not "ur" is refused when it is loaded
     (URRtdeLink.capabilities), so no job of a running daemon gets here."""
-    async with connected("127.0.5.3") as (robot, lnk, triggers):
+    async with connected(lo("127.0.5.3")) as (robot, lnk, triggers):
         seq = robot.start_program(1)
         await triggers.next()
         kuka = RobotTarget("kuka", ("X", "Y", "Z", "A", "B", "C"), (1.0, 2.0, 3.0, 0.0, 0.0, 0.0))
@@ -150,7 +151,7 @@ async def test_valid_status_without_ur_target_answers_internal(caplog: pytest.Lo
 
 
 async def test_publish_returns_the_status_the_robot_got() -> None:
-    async with connected("127.0.5.41") as (robot, lnk, triggers):
+    async with connected(lo("127.0.5.41")) as (robot, lnk, triggers):
         seq = robot.start_program(1, taught_pose=TAUGHT)
         await triggers.next()
         assert await lnk.publish(seq, ur_result(4)) is Status.OK
@@ -167,7 +168,7 @@ def test_capabilities_carry_only_the_ur_convention() -> None:
 
 
 async def test_upper_range_registers() -> None:
-    async with connected("127.0.5.4", use_upper_range_registers=True) as (robot, lnk, triggers):
+    async with connected(lo("127.0.5.4"), use_upper_range_registers=True) as (robot, lnk, triggers):
         log_start = len(robot.input_log())
         trigger, result = await run_job(robot, lnk, triggers, job_id=2, upper=True)
         assert result["offset"] == OFFSET
@@ -181,7 +182,7 @@ async def test_upper_range_registers() -> None:
 async def test_pending_request_at_first_connect_is_served() -> None:
     """A request the robot made before vgripd (re)started and nobody answered (its sequence
     differs from the acknowledge register the controller kept) runs at the first connect."""
-    with URController("127.0.5.5") as robot:
+    with URController(lo("127.0.5.5")) as robot:
         robot.set_outputs(output_int_register_12=41, output_int_register_13=1)
         robot.set_inputs(input_int_register_18=40)  # the last answer an earlier vgripd gave
         lnk = URRtdeLink("ur", URRtdeOptions(host=robot.host))
@@ -203,7 +204,7 @@ async def test_pending_request_at_first_connect_is_served() -> None:
 async def test_answered_request_is_not_run_again_after_a_restart() -> None:
     """vgripd restarts after answering request 5: the robot's sequence equals the acknowledge,
     so the new link instance does not run it again."""
-    with URController("127.0.5.6") as robot:
+    with URController(lo("127.0.5.6")) as robot:
         async with contextlib.AsyncExitStack() as stack:
             first = URRtdeLink("ur", URRtdeOptions(host=robot.host))
             triggers = Triggers()
@@ -242,7 +243,7 @@ async def test_unknown_command_is_bad_request_without_a_job(command: int) -> Non
 
 async def test_busy_answer_is_asked_again_after_a_pause() -> None:
     """The robot program's BUSY handling: it waits and asks again with a new sequence."""
-    async with connected("127.0.5.24") as (robot, lnk, triggers):
+    async with connected(lo("127.0.5.24")) as (robot, lnk, triggers):
         first = robot.start_program(1, taught_pose=TAUGHT, busy_wait_s=0.05)
         await triggers.next()
         await lnk.publish(first, JobResult(0, Status.BUSY, message="refused: BUSY"))
@@ -257,7 +258,7 @@ async def test_busy_answer_is_asked_again_after_a_pause() -> None:
 
 
 async def test_unanswered_request_is_asked_again_then_given_up() -> None:
-    async with connected("127.0.5.25") as (robot, lnk, triggers):
+    async with connected(lo("127.0.5.25")) as (robot, lnk, triggers):
         first = robot.start_program(1, timeout_s=0.3)
         assert (await triggers.next()).seq == first  # never answered
         second = await triggers.next()
@@ -276,7 +277,7 @@ async def test_unanswered_request_is_asked_again_then_given_up() -> None:
 async def test_worker_output_goes_through_the_log(caplog: pytest.LogCaptureFixture) -> None:
     """ur_rtde prints its own errors on the child's stderr; they arrive as log records."""
     caplog.set_level(logging.INFO, "vgripd.link.ur_rtde")
-    async with connected("127.0.5.26", **FAST) as (robot, lnk, triggers):
+    async with connected(lo("127.0.5.26"), **FAST) as (robot, lnk, triggers):
         robot.drop()  # ur_rtde's receive thread prints "... End of file"
         await lnk.wait_state(LinkState.DOWN, timeout_s=10)
         await lnk.wait_state(LinkState.UP, timeout_s=15)
@@ -311,12 +312,12 @@ class LogEvent(logging.Handler):
 
 async def test_drop_mid_job_reconnects_and_answers(caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.DEBUG, "vgripd.link.ur_rtde")
-    async with connected("127.0.5.11", **FAST) as (robot, link, triggers):
+    async with connected(lo("127.0.5.11"), **FAST) as (robot, link, triggers):
         seq = robot.start_program(1)
         await triggers.next()
         robot.drop(refuse=True)  # the controller goes away mid-job
         down = await link.wait_state(LinkState.DOWN, timeout_s=10)
-        assert "127.0.5.11:30004" in down.last_error
+        assert lo("127.0.5.11") + ":30004" in down.last_error
         with pytest.raises(LinkError, match="written at the reconnect"):
             await link.publish(seq, ur_result(3))
         retried = LogEvent("still down")
@@ -343,7 +344,7 @@ async def test_drop_mid_job_reconnects_and_answers(caplog: pytest.LogCaptureFixt
 
 
 async def test_trigger_while_down_is_served_at_reconnect() -> None:
-    async with connected("127.0.5.12", **FAST) as (robot, link, triggers):
+    async with connected(lo("127.0.5.12"), **FAST) as (robot, link, triggers):
         robot.drop(refuse=True)
         await link.wait_state(LinkState.DOWN, timeout_s=10)
         seq = robot.start_program(1)
@@ -363,7 +364,7 @@ async def test_silent_controller_does_not_block_the_loop() -> None:
             await asyncio.sleep(0.01)
             ticks += 1
 
-    with URController("127.0.5.13") as robot:
+    with URController(lo("127.0.5.13")) as robot:
         robot.set_silent(True)
         beat = asyncio.create_task(heartbeat())
         link = URRtdeLink("ur", URRtdeOptions(host=robot.host, connect_timeout_s=1.0, **FAST))
@@ -389,7 +390,7 @@ async def test_register_in_use_is_an_outage_naming_it_until_released(
         caplog: pytest.LogCaptureFixture) -> None:
     """A register another client owns can be freed on the robot while vgripd runs: DOWN naming
     it, one ERROR line, retried, UP once it is free (issue 20: never FAILED for good)."""
-    with URController("127.0.5.14") as robot:
+    with URController(lo("127.0.5.14")) as robot:
         robot.set_in_use("input_int_register_19")
         link = URRtdeLink("ur", URRtdeOptions(host=robot.host, backoff_initial_s=0.05,
                                               backoff_max_s=0.2))
@@ -399,7 +400,7 @@ async def test_register_in_use_is_an_outage_naming_it_until_released(
                 health = await link.wait_state({LinkState.DOWN, LinkState.FAILED}, 45)
                 assert health.state is LinkState.DOWN
                 assert "input_int_register_19 IN_USE" in health.last_error
-                assert "127.0.5.14:30004" in health.last_error
+                assert lo("127.0.5.14") + ":30004" in health.last_error
                 assert "input_int_register_20" not in health.last_error
                 robot.set_in_use()
                 await link.wait_state(LinkState.UP, 45)
@@ -411,7 +412,7 @@ async def test_register_in_use_is_an_outage_naming_it_until_released(
 
 
 async def test_second_client_gets_in_use() -> None:
-    async with connected("127.0.5.15") as (robot, link, triggers):
+    async with connected(lo("127.0.5.15")) as (robot, link, triggers):
         second = URRtdeLink("ur2", URRtdeOptions(host=robot.host))
         await second.open(Triggers())  # DOWN and retried: the first may go away
         health = await second.wait_state({LinkState.DOWN, LinkState.FAILED}, 45)
@@ -425,14 +426,14 @@ async def test_second_client_gets_in_use() -> None:
 
 
 async def test_refused_then_controller_starts(caplog: pytest.LogCaptureFixture) -> None:
-    link = URRtdeLink("ur", URRtdeOptions(host="127.0.5.16", **FAST))
+    link = URRtdeLink("ur", URRtdeOptions(host=lo("127.0.5.16"), **FAST))
     triggers = Triggers()
     try:
         await link.open(triggers)
         health = link.health()
         assert health.state is LinkState.DOWN
-        assert "127.0.5.16:30004 refused the connection" in health.last_error
-        with URController("127.0.5.16") as robot:
+        assert lo("127.0.5.16") + ":30004 refused the connection" in health.last_error
+        with URController(lo("127.0.5.16")) as robot:
             await link.wait_state(LinkState.UP, timeout_s=15)
             trigger, result = await run_job(robot, link, triggers, job_id=1)
             assert result["offset"] == OFFSET
@@ -442,7 +443,7 @@ async def test_refused_then_controller_starts(caplog: pytest.LogCaptureFixture) 
 
 
 async def test_stream_pause_is_noticed_and_recovered() -> None:
-    async with connected("127.0.5.17", stale_after_s=0.5, **FAST) as (robot, link, triggers):
+    async with connected(lo("127.0.5.17"), stale_after_s=0.5, **FAST) as (robot, link, triggers):
         robot.pause_stream(True)
         down = await link.wait_state(LinkState.DOWN, timeout_s=10)
         assert "no new data package for 0.5 s" in down.last_error
@@ -462,7 +463,7 @@ async def test_warnings_register_live_and_rewritten_at_reconnect() -> None:
     def ack_index(log: list[tuple[str, object]], seq: int) -> int:
         return log.index(("input_int_register_18", seq))
 
-    async with connected("127.0.5.18", **FAST) as (robot, link, triggers):
+    async with connected(lo("127.0.5.18"), **FAST) as (robot, link, triggers):
         trigger, _ = await run_job(robot, link, triggers, job_id=1)
         log = robot.input_log()
         assert log.index((name, 0.0)) < ack_index(log, trigger.seq)  # the connect's write
@@ -493,7 +494,7 @@ async def test_warnings_register_live_and_rewritten_at_reconnect() -> None:
 async def test_recipe_register_reaches_the_trigger(host: str, upper: bool) -> None:
     """The script's VGRIPD_RECIPE (output_int_register 15, or 39 in the upper range) is the
     trigger's recipe; a program that never sets it asks for recipe 0."""
-    async with connected(host, use_upper_range_registers=upper) as (robot, lnk, triggers):
+    async with connected(lo(host), use_upper_range_registers=upper) as (robot, lnk, triggers):
         for job_id, recipe in ((1, 2), (2, 0), (3, 65535)):
             seq = robot.start_program(1, upper=upper, taught_pose=TAUGHT, recipe=recipe)
             trigger = await triggers.next()
@@ -515,7 +516,7 @@ def ur_pallet(job_id: int, n: int) -> JobResult:
 async def test_next_walks_the_pick_list_through_the_registers() -> None:
     """The robot program's locate (1) then next (3) until NOT_FOUND: each answer carries its
     pose and the pick register (1000 * count + index), written before the ack."""
-    async with connected("127.0.5.42") as (robot, lnk, triggers):
+    async with connected(lo("127.0.5.42")) as (robot, lnk, triggers):
         job = ur_pallet(21, 3)
         seq = robot.start_program(1)
         await triggers.next()
@@ -542,7 +543,7 @@ async def test_next_walks_the_pick_list_through_the_registers() -> None:
 
 
 async def test_refusal_clears_the_pick_register() -> None:
-    async with connected("127.0.5.43") as (robot, lnk, triggers):
+    async with connected(lo("127.0.5.43")) as (robot, lnk, triggers):
         seq = robot.start_program(1)
         await triggers.next()
         await lnk.publish(seq, ur_pallet(4, 2))

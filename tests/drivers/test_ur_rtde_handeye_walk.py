@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
+from tests.conftest import lo
 from vgripd.__main__ import main
 from vgripd.calib.handeye.plan import load_plan
 from vgripd.calib.handeye.walk import SEEN, UNREACHABLE, Walk
@@ -47,7 +48,7 @@ from test_calib_handeye_walk import (  # noqa: E402
 )
 
 pytestmark = pytest.mark.timeout(240)
-HOST = "127.0.5.61"
+HOST = lo("127.0.5.61")
 MODE = "eye-in-hand"
 ZERO = (0.0,) * 6  # the walk's targets are absolute: pose_trans(target, zero) = target
 SKIP_RECIPE = 1  # vgripd_handeye_walk's recipe for "the target given cannot be reached"
@@ -155,7 +156,7 @@ def test_walk_command_serves_the_plan_with_the_configs_camera_and_link(tmp_path:
     the board as seen from the start pose, the same image at every target) and its ur_rtde
     link: the robot program gets every target and the end of the walk; each target recorded
     with the board seen and the flange pose the link read."""
-    host = "127.0.5.62"
+    host = lo("127.0.5.62")
     assert make_plan(tmp_path, "eye-to-hand", count=12) == 0  # a fixed camera: no flange pose
     plan = load_plan(str(tmp_path / "plan.toml"))
     images = tmp_path / "images"
@@ -234,7 +235,7 @@ async def test_an_image_request_asked_again_after_its_timeout_gets_the_same_answ
             await asyncio.wait_for(asked_again.wait(), 60)
         return await asyncio.to_thread(image_at, MODE, plan.poses[index], index)
 
-    link = URRtdeLink("ur", URRtdeOptions(host="127.0.5.67"))
+    link = URRtdeLink("ur", URRtdeOptions(host=lo("127.0.5.67")))
     server = WalkServer(walk, link, grab, "ur")
 
     def on_trigger(trigger: Trigger) -> None:
@@ -255,7 +256,7 @@ async def test_an_image_request_asked_again_after_its_timeout_gets_the_same_answ
         mm, deg = pose_error(transform_from_vendor("ur", result["target"]), plan.poses[index])
         return bool(mm < 1e-3 and deg < 1e-3)
 
-    with URController("127.0.5.67") as robot:
+    with URController(lo("127.0.5.67")) as robot:
         robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[0]))
         await link.open(on_trigger)
         task = asyncio.get_running_loop().create_task(server.serve())

@@ -14,12 +14,13 @@ from pathlib import Path
 import pytest
 from pymodbus.client import AsyncModbusTcpClient
 
+from tests.conftest import lo
 from vgripd.config import config_from_dict
 from vgripd.service.daemon import Daemon, RunState
 from vgripd.service.protocol import CHECK_U16, MAP_SIZE, LinkState, Reg
 
 pytestmark = pytest.mark.timeout(120)
-SILENT_HOST = "127.0.8.1"
+SILENT_HOST = lo("127.0.8.1")
 CONNECT_TIMEOUT_S = 3.0
 
 

@@ -14,6 +14,7 @@ import logging
 
 import pytest
 
+from tests.conftest import lo
 from tests.integration.test_daemon import running
 from tests.integration.test_daemon_links import TAUGHT, link_state, make_config
 from vgripd.service.protocol import LinkState
@@ -26,7 +27,7 @@ pytestmark = pytest.mark.timeout(120)
 async def test_request_pending_before_the_daemon_started_is_served(
         caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.INFO, "vgripd.link.ur_rtde")
-    with URController("127.0.8.11") as robot:
+    with URController(lo("127.0.8.11")) as robot:
         # The robot program triggered request 8 while vgripd was down; 7 was the last answer.
         robot.set_inputs(input_int_register_18=7)
         seq = robot.start_program(1, taught_pose=TAUGHT, timeout_s=60.0)

@@ -18,6 +18,7 @@ import random
 import pytest
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
+from tests.conftest import lo
 from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.ur_controller import URController
 from vgripd.types import JobResult, RobotTarget, Status
@@ -38,7 +39,7 @@ async def test_fuzzed_robot_registers(caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.INFO)
     rng = random.Random(SEED)
     triggers: asyncio.Queue[Trigger] = asyncio.Queue()
-    with URController("127.0.8.40") as robot:
+    with URController(lo("127.0.8.40")) as robot:
         link = URRtdeLink("ur", URRtdeOptions(host=robot.host))
         await link.open(triggers.put_nowait)
         last = 0  # the sequence the link has seen (0 at the first connect)

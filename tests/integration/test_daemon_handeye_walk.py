@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.conftest import lo
 from tests.drivers.test_ur_rtde_handeye_walk import robot_program
 from tests.integration.test_daemon import Plc
 from tests.integration.test_web import _chromium, _until
@@ -129,7 +130,7 @@ async def get(session: aiohttp.ClientSession, url: str) -> Any:
 
 async def test_walk_in_the_running_daemon_busy_resumed_solved_and_accepted(
         tmp_path: Path) -> None:
-    host = "127.0.5.63"
+    host = lo("127.0.5.63")
     main, arm, reachable = write_walk_cell(tmp_path, host)
     plan = load_plan(str(tmp_path / "plan.toml"))
     n = len(plan.poses)
@@ -236,7 +237,7 @@ async def test_walk_in_the_running_daemon_busy_resumed_solved_and_accepted(
 
 
 async def test_chromium_plans_dry_runs_saves_and_watches_the_walk(tmp_path: Path) -> None:
-    host = "127.0.5.64"
+    host = lo("127.0.5.64")
     main, arm, reachable = write_walk_cell(tmp_path, host)
     plan = load_plan(str(tmp_path / "plan.toml"))
     _, T0 = truth(MODE)
@@ -321,7 +322,7 @@ async def test_a_walk_stopped_by_the_daemons_stop_resumes_through_the_command(
     ``vgripd calibrate handeye walk --running URL`` asks the daemon to walk again: it resumes
     at the first target without a record, the command prints every target as it is recorded
     and returns with the walk complete."""
-    host = "127.0.5.65"
+    host = lo("127.0.5.65")
     main_config, arm, reachable = write_walk_cell(tmp_path, host)
     plan = load_plan(str(tmp_path / "plan.toml"))
     monkeypatch.setenv("VGRIPD_TOKEN", TOKEN)
@@ -364,7 +365,7 @@ async def test_ctrl_c_of_the_command_prints_every_target_and_says_who_stopped(
     two polls: the targets recorded since its last poll are printed too (from the stop's
     answer), and the walk's message says the command's Ctrl-C stopped it. Before, those
     targets were never printed and the message said "stopped from the web view"."""
-    host = "127.0.5.66"
+    host = lo("127.0.5.66")
     main_config, arm, _ = write_walk_cell(tmp_path, host)
     plan = load_plan(str(tmp_path / "plan.toml"))
     monkeypatch.setenv("VGRIPD_TOKEN", TOKEN)

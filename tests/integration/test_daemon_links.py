@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from tests.conftest import lo
 from tests.integration.test_daemon import Plc, running, values
 from vgripd.config import Config, config_from_dict
 from vgripd.service.protocol import LinkState, Reg
@@ -43,7 +44,7 @@ def link_state(snapshot: dict[str, Any], name: str) -> dict[str, Any]:
 
 
 async def test_ur_robot_triggers_a_job_and_reads_the_computed_offset() -> None:
-    with URController("127.0.7.1") as robot:
+    with URController(lo("127.0.7.1")) as robot:
         config = make_config([{"type": "ur_rtde", "host": robot.host}], vendor="ur")
         async with running(config) as run:
             await run.daemon.wait_for(
@@ -67,7 +68,7 @@ async def test_ur_robot_triggers_a_job_and_reads_the_computed_offset() -> None:
 
 
 async def test_a_silent_ur_controller_does_not_stop_the_plc_link() -> None:
-    with URController("127.0.7.2") as robot:
+    with URController(lo("127.0.7.2")) as robot:
         robot.set_silent(True)
         config = make_config([
             {"type": "modbus_server", "host": "127.0.0.1", "port": 0},
@@ -85,6 +86,6 @@ async def test_a_silent_ur_controller_does_not_stop_the_plc_link() -> None:
     assert len(values(words)) == 6
     ur = link_state(snapshot, ur_name)
     assert ur["state"] == "down"
-    assert "127.0.7.2" in ur["last_error"] or "127.0.7.2" in ur["peer"]
+    assert lo("127.0.7.2") in ur["last_error"] or lo("127.0.7.2") in ur["peer"]
     assert "RTDE setup" in ur["last_error"]
     assert link_state(snapshot, plc_name)["state"] == "up"

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from tests.conftest import lo
 from tests.integration.test_daemon import Run, make_config
 from tests.integration.test_robot_programs import cell, free_port
 from vgripd.cli.robot_program import render
@@ -223,7 +224,7 @@ async def test_next_with_no_job_since_start_is_refused() -> None:
 
 
 async def test_ur_program_walks_the_pallet_with_next() -> None:
-    with URController("127.0.7.31") as robot:
+    with URController(lo("127.0.7.31")) as robot:
         config = pallet_config("ur", [{"type": "ur_rtde", "host": robot.host}])
         async with running(config) as run:
             link = run.daemon.links["ur_rtde"]

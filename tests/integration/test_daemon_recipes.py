@@ -19,7 +19,7 @@ import aiohttp
 import numpy as np
 import pytest
 
-from tests.conftest import REPO, need_tool
+from tests.conftest import REPO, lo, need_tool
 from tests.integration.test_daemon import WAIT_S, Run, running
 from vgripd.__main__ import main
 from vgripd.cli.status import format_status
@@ -295,7 +295,7 @@ async def test_ur_robot_program_selects_the_recipe() -> None:
     from vgripd.sim.ur_controller import URController
 
     data = tomllib.loads(SAMPLE.read_text())
-    with URController("127.0.7.20") as robot:
+    with URController(lo("127.0.7.20")) as robot:
         data.update(links=[{"type": "ur_rtde", "host": robot.host}], output={"vendor": "ur"},
                     status={"port": 0}, daemon={"worker": False})
         async with running(config_from_dict(data)) as run:

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from tests.conftest import REPO
+from tests.conftest import REPO, lo
 from tests.integration.test_daemon import WAIT_S, running
 from tests.integration.test_daemon_recipes import mbpoll
 from vgripd.__main__ import main
@@ -239,7 +239,7 @@ async def test_a_ur_robot_reports_its_own_pose_for_each_view() -> None:
     """The real ur_rtde client (in the link's child process) against the mock UR controller:
     no taught view poses, the flange pose of each view is the robot's TCP pose read with its
     request; the synthetic camera renders each view from it."""
-    with URController("127.0.7.9") as robot:
+    with URController(lo("127.0.7.9")) as robot:
         data = views_config(3, taught=False).model_dump(mode="json", exclude_none=True)
         data["links"] = [{"type": "ur_rtde", "host": robot.host}]
         data["output"] = {"vendor": "ur"}

@@ -376,7 +376,7 @@ async def test_chromium_page_updates_live_links_images_and_refuses_actions_witho
             })()""")
             assert [(r[0], r[1], r[3]) for r in rows] == [("2", "OK", "0"), ("1", "OK", "0")]
             recipe = await evaluate(f"({text})('recipe')")
-            assert recipe == "recipe 0 default (of 0 default)"  # the active one, of all
+            assert recipe == "recipe 0 default"  # the active one (one recipe: no list)
             for job_id, _, hrefs, _ in rows:
                 assert [h.split("?")[0] for h in hrefs] == [
                     f"{base}/api/jobs/{job_id}/image/{side}.jpg" for side in ("left", "right")]

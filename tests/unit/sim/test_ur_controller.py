@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from tests.conftest import lo
 from vgripd.service.protocol import URRegisterMap
 from vgripd.sim.ur_controller import MockControllerError, URController, pose_trans
 
 pytestmark = pytest.mark.timeout(30)
-HOST = "127.0.5.30"
+HOST = lo("127.0.5.30")
 
 
 @pytest.fixture(scope="module")
