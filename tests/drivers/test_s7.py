@@ -607,6 +607,9 @@ poll_ms = 5
 
 [status]
 enabled = false
+
+[daemon]
+job_timeout_s = 60.0             # the first job waits for the worker's start: busy machines
 """)
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "vgripd", "run", "-c", str(cfg), cwd=REPO,

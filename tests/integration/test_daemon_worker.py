@@ -110,7 +110,10 @@ async def test_the_in_process_path_is_kept_behind_daemon_worker_false() -> None:
 
 
 async def test_a_worker_killed_mid_job_ends_it_internal_and_the_next_job_is_ok() -> None:
-    async with running(make_config(), SLOW) as run, Plc(run.port()) as plc:
+    # the next job waits for a new worker: a 60 s budget, so that a busy machine (a worker start
+    # of 10 s and more) is not what this test is about
+    async with running(make_config(daemon={"job_timeout_s": 60.0}), SLOW) as run, \
+            Plc(run.port()) as plc:
         first = _worker_pid(run)
         await plc.trigger(1)
         await run.daemon.wait_for(lambda: run.daemon.state is JobState.PROCESSING, WAIT_S)

@@ -339,6 +339,7 @@ async def test_vgripd_run_with_a_robot_socket_link_serves_the_kuka_program(
     port, status_port = free_port(), free_port()
     data = cell("kuka", port, worker=True)
     data["status"] = {"port": status_port}
+    data["daemon"]["job_timeout_s"] = 60.0  # the first job waits for the worker's start
     cfg = tmp_path / "cell.toml"
     cfg.write_text(toml(data))
     env = {**os.environ, "PYTHONPATH": str(REPO)}

@@ -192,7 +192,7 @@ class Demo:
         if answer.rejected:
             return head + f"refused: {note or 'by the handshake'}"
         assert self.daemon is not None
-        await self.daemon.wait_for(lambda: answer.job_id in self.jobs, 5.0)
+        await self.daemon.wait_for(lambda: answer.job_id in self.jobs, 30.0)
         pair, rec = self.jobs[answer.job_id]
         timings = rec.result.timings_ms
         if "acquire" in timings and "total" in timings:
@@ -238,7 +238,10 @@ async def _with_daemon(demo: Demo, config: Any,
     await daemon.start()
     try:
         link_port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
-        async with MockPlc("127.0.0.1", link_port) as plc:
+        # the daemon answers every request within its job timeout: the PLC waits that long
+        # (and a little), so a slow machine's job is not given up on by the PLC first
+        async with MockPlc("127.0.0.1", link_port,
+                           timeout_s=config.daemon.job_timeout_s + 5.0) as plc:
             await plc.check_byte_order()
             await script(daemon, plc)
     finally:
@@ -342,7 +345,7 @@ class PalletDemo(Demo):
         if answer.rejected:
             return head + "refused: no pick list (after CLEAR)"
         assert self.daemon is not None
-        await self.daemon.wait_for(lambda: answer.job_id in self.jobs, 5.0)
+        await self.daemon.wait_for(lambda: answer.job_id in self.jobs, 30.0)
         pair, rec = self.jobs[answer.job_id]
         plate = f"{answer.index}/{answer.count}"
         if not answer.values:
