@@ -60,6 +60,19 @@ def need(ok: bool, what: str) -> None:
     pytest.skip(what)
 
 
+def need_camera_sdk(config: Path) -> None:
+    """Skip (fail under VGRIPD_REQUIRE_ALL=1) when ``config``'s camera driver needs an SDK that
+    is not installed: judging its options imports the driver (aravis: PyGObject)."""
+    import importlib.util
+    import tomllib
+
+    kind = tomllib.loads(config.read_text()).get("camera", {}).get("type")
+    if kind == "aravis":
+        need(importlib.util.find_spec("gi") is not None,
+             "needs PyGObject for the aravis driver: apt-get install gir1.2-aravis-0.8 "
+             "libgirepository1.0-dev libcairo2-dev pkg-config gcc; pip install -e '.[aravis]'")
+
+
 def need_tool(name: str, package: str | None = None) -> str:
     """The path of system tool ``name``; skips with the apt-get line that installs it."""
     path = shutil.which(name)

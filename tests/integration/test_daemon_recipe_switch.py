@@ -34,7 +34,9 @@ def switching_config(worker: bool) -> Any:
     data["camera"].update(recipe="job", seed=7, max_tilt_deg=2.0)
     data["links"][0]["port"] = 0
     data["status"] = {"port": 0}
-    data["daemon"] = {"worker": worker}
+    # 60 s: after a worker kill the next job waits for the new worker's start, which a busy
+    # machine can take longer than the default 10 s for (not what these tests are about)
+    data["daemon"] = {"worker": worker, "job_timeout_s": 60.0}
     data["recipes"]["2"]["output"] = {"vendor": "abb"}  # recipe 1 and 0: kuka (the default)
     return config_from_dict(data, str(SAMPLE))
 

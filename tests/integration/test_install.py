@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, need_tool
+from tests.conftest import REPO, need_camera_sdk, need_tool
 from vgripd.service.robot_socket_format import BRANDS
 
 EXAMPLES = sorted(p.name for p in (REPO / "config" / "examples").glob("*.toml"))
@@ -108,6 +108,7 @@ def test_robot_program_from_the_wheel(brand: str, installed: Path, tmp_path: Pat
 @pytest.mark.parametrize("name", EXAMPLES)
 def test_check_every_example_from_the_wheel(name: str, installed: Path, tmp_path: Path) -> None:
     example = _share(installed) / "examples" / name
+    need_camera_sdk(example)
     proc = _run([installed / "vgripd", "check", "--no-camera", "-c", example], cwd=tmp_path)
     assert proc.stdout.startswith(f"OK {example}"), proc.stdout
 

@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 import tomllib
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -92,6 +93,23 @@ async def post(session: aiohttp.ClientSession, url: str, body: Any = None,
                           else await r.text())
 
 
+async def between_jobs(call: Any, busy: int) -> tuple[int, Any]:
+    """``await call()`` -> (status, body) until it is not ``busy`` (409/503: "a job runs, or
+    the camera cannot grab: try again"; a grab between jobs slower than the preview's 2 s on a
+    busy machine), within WAIT_S."""
+    deadline = time.monotonic() + WAIT_S
+    while True:
+        code, out = await call()
+        if code != busy or time.monotonic() > deadline:
+            return code, out
+        await asyncio.sleep(0.2)
+
+
+async def preview(session: aiohttp.ClientSession, url: str) -> tuple[int, Any]:
+    async with session.get(url) as r:
+        return r.status, (dict(r.headers), r.content_type, await r.read())
+
+
 async def test_a_tuning_save_applies_between_jobs_without_dropping_the_plc(
         tmp_path: Path) -> None:
     main = write_cell(tmp_path)
@@ -139,7 +157,8 @@ async def test_a_tuning_save_applies_between_jobs_without_dropping_the_plc(
         assert await job(plc, run, 4) == Status.OK
 
         # A trial on a fresh grab (between jobs): nothing applied.
-        code, out = await post(s, f"{base}/api/tuning/try", {"polarity": "bright", "grab": True})
+        code, out = await between_jobs(lambda: post(
+            s, f"{base}/api/tuning/try", {"polarity": "bright", "grab": True}), 409)
         assert code == 200, out
         assert out["job_id"] is None
         assert out["status"] == "NOT_FOUND"  # the marks are dark
@@ -396,11 +415,12 @@ async def test_live_previews_show_figures_between_jobs_and_never_grab_during_one
         base = f"http://127.0.0.1:{run.daemon.status_server.port}"
         previews = run.daemon.status_server.previews
         for j in (0, 1):
-            async with s.get(f"{base}/api/cameras/{j}/preview.jpg") as r:
-                assert r.status == 200
-                assert r.content_type == "image/jpeg"
-                assert (await r.read())[:2] == b"\xff\xd8"
-                assert float(r.headers["X-Vgripd-Focus"]) > 0
+            code, (headers, content_type, body) = await between_jobs(
+                lambda j=j: preview(s, f"{base}/api/cameras/{j}/preview.jpg"), 503)
+            assert code == 200
+            assert content_type == "image/jpeg"
+            assert body[:2] == b"\xff\xd8"
+            assert float(headers["X-Vgripd-Focus"]) > 0
         async with s.get(f"{base}/api/cameras") as r:
             cams = await r.json()
         assert [f["marks"] for f in cams["figures"]] == [6, 6]  # the plate's six marks

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, need
+from tests.conftest import REPO, need, need_camera_sdk
 from vgripd.__main__ import main
 from vgripd.service.robot_socket_format import BRANDS
 
@@ -39,6 +39,7 @@ def _check(path: Path, *extra: str) -> tuple[int, str]:
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
 def test_every_example_passes_check(path: Path) -> None:
     # The devices of the camera examples are judged below, on their emulations.
+    need_camera_sdk(path)
     rc, text = _check(path, "--no-camera")
     assert rc == 0, text
     assert text.startswith(f"OK {path}"), text

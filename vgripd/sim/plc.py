@@ -87,7 +87,7 @@ class MockPlc:
         scale: int = 10000,
         unit_id: int = 1,
         poll_s: float = 0.01,
-        timeout_s: float = 5.0,
+        timeout_s: float = 15.0,
     ) -> None:
         self.client = AsyncModbusTcpClient(host, port=port, timeout=timeout_s, retries=0)
         self.where = f"{host}:{port}"

@@ -10,12 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO
+from tests.conftest import REPO, need_camera_sdk
 from vgripd.__main__ import EXIT_USAGE, main
 from vgripd.config import load_config
 from vgripd.service.web.commission import holding_include, tuning_target
 
-EXAMPLES = sorted(p.stem for p in (REPO / "config" / "examples").glob("*.toml"))
+EXAMPLES_DIR = REPO / "config" / "examples"
+EXAMPLES = sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))
 
 
 def _run(*argv: str) -> tuple[int, str]:
@@ -34,6 +35,8 @@ def _init(tmp_path: Path, *extra: str) -> tuple[Path, Path]:
 
 @pytest.mark.parametrize("example", [None, *EXAMPLES])
 def test_init_writes_a_config_check_accepts(example: str | None, tmp_path: Path) -> None:
+    if example:
+        need_camera_sdk(EXAMPLES_DIR / f"{example}.toml")
     config, state = _init(tmp_path, *(["--example", example] if example else []))
     rc, text = _run("check", "--no-camera", "-c", str(config))
     assert rc == 0, text
