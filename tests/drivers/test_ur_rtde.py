@@ -227,7 +227,7 @@ async def test_answered_request_is_not_run_again_after_a_restart() -> None:
 
 @pytest.mark.parametrize("command", [7, 0, -1])
 async def test_unknown_command_is_bad_request_without_a_job(command: int) -> None:
-    async with connected(f"127.0.5.{22 + command}") as (robot, lnk, triggers):
+    async with connected(lo(f"127.0.5.{22 + command}")) as (robot, lnk, triggers):
         seq = robot.start_program(command, taught_pose=TAUGHT)
         result = await asyncio.to_thread(robot.program_result, seq)  # the link answers meanwhile
         assert result["error"] is None

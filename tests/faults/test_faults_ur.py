@@ -45,7 +45,7 @@ async def test_request_pending_before_the_daemon_started_is_served(
 
 @pytest.mark.parametrize("command", [7, 0, -1])
 async def test_unknown_command_is_a_counted_bad_request(command: int) -> None:
-    with URController(f"127.0.8.{20 + command}") as robot:
+    with URController(lo(f"127.0.8.{20 + command}")) as robot:
         config = make_config([{"type": "ur_rtde", "host": robot.host}], vendor="ur")
         async with running(config) as run:
             ur = next(iter(run.daemon.links))
