@@ -32,6 +32,7 @@ Options (``[camera]`` with ``type = "pylon"`` or ``"aravis"``)::
     max_skew_ms = 2.0                 # refuse a set whose device timestamps differ more
     frame_timeout_s = 2.0             # longest wait for one frame (capped by the job's time)
     no_frame_limit = 2                # grabs in a row without a frame: closed and reopened
+    incomplete_retries = 1            # a set with an incomplete frame taken again (not hardware)
     buffers = 4
     reopen_backoff_s = 1.0            # first wait before reopening a camera that is gone
     reopen_backoff_max_s = 30.0       # doubling up to this
@@ -47,7 +48,10 @@ A grab drains what the stream holds (no stale frame is ever returned), fires the
 trigger of every camera back to back (``trigger = "software"``), or waits for the next frame
 (``hardware``: the external trigger pulse; ``free_run``: the next streamed frame), then takes
 one whole frame per camera. A frame the SDK reports incomplete (lost packets that the resend
-did not recover) is refused, never returned half filled. A camera that stops answering is
+did not recover) is refused, never returned half filled. With a software trigger or free run
+the whole set is taken again, up to ``incomplete_retries`` times while the grab's time lasts
+(one exposure and transfer more instead of a failed job); with a hardware trigger the pulse
+cannot be repeated and the grab fails at once. A camera that stops answering is
 closed, the grab fails ``CAMERA_ERROR`` naming it, and every later grab tries to reopen it,
 first after ``reopen_backoff_s``, the wait doubling up to ``reopen_backoff_max_s``; the
 outage is logged once when it starts and once when the camera is back.
@@ -134,6 +138,7 @@ class GenICamStackOptions(DriverOptions):
     max_skew_ms: float | None = Field(default=None, gt=0)
     frame_timeout_s: float = Field(default=2.0, gt=0)
     no_frame_limit: int = Field(default=2, ge=1)
+    incomplete_retries: int = Field(default=1, ge=0, le=5)
     buffers: int = Field(default=4, ge=2, le=64)
     reopen_backoff_s: float = Field(default=1.0, gt=0)
     reopen_backoff_max_s: float = Field(default=30.0, gt=0)
@@ -247,6 +252,10 @@ class _NoFrame(CameraError):
     """A camera gave no frame within the grab's time."""
 
 
+class _Incomplete(CameraError):
+    """A camera gave a frame the SDK reports incomplete."""
+
+
 class GenICamStackCamera(CameraDriver):
     """One or more cameras of one SDK, triggered together, grabbed as one acquisition."""
 
@@ -269,6 +278,8 @@ class GenICamStackCamera(CameraDriver):
         self._next_try = 0.0
         #: Grabs in a row in which a camera gave no frame (``no_frame_limit``).
         self._misses = 0
+        #: Sets taken again because a frame was incomplete (``incomplete_retries``).
+        self.incomplete_retried = 0
         #: Closes the devices of an outage in the background (an SDK may wait out its
         #: retries for each call to a device that is gone); a reopen waits for it.
         self._releasing: threading.Thread | None = None
@@ -380,7 +391,7 @@ class GenICamStackCamera(CameraDriver):
         # used 90 % of the job's time for a hang and reopens the camera itself).
         deadline = time.monotonic() + min(self.options.frame_timeout_s, 0.75 * timeout_s)
         try:
-            pair = self._acquire(deadline)
+            pair = self._acquire_whole(deadline)
         except _NoFrame:
             self._misses += 1
             self._judge_outage()
@@ -390,6 +401,20 @@ class GenICamStackCamera(CameraDriver):
             raise
         self._misses = 0
         return pair
+
+    def _acquire_whole(self, deadline: float) -> ImagePair:
+        """A set of whole frames: a set with an incomplete frame is taken again (software
+        trigger and free run) while retries and the grab's time last."""
+        retries = 0 if self.options.trigger == "hardware" else self.options.incomplete_retries
+        for attempt in range(retries + 1):
+            try:
+                return self._acquire(deadline)
+            except _Incomplete as err:
+                if attempt == retries or time.monotonic() >= deadline:
+                    raise
+                self.incomplete_retried += 1
+                log.warning("%s; taking the set again (%d of %d)", err, attempt + 1, retries)
+        raise AssertionError("unreachable")
 
     def _acquire(self, deadline: float) -> ImagePair:
         o = self.options
@@ -415,7 +440,7 @@ class GenICamStackCamera(CameraDriver):
                                   + (f" (waiting for the trigger on {o.trigger_line})"
                                      if o.trigger == "hardware" else ""))
             if not frame.complete:
-                raise CameraError(f"{self._cam(device)}: incomplete frame refused "
+                raise _Incomplete(f"{self._cam(device)}: incomplete frame refused "
                                   f"({frame.problem})")
             try:
                 images.append(to_image(frame.payload, frame.width, frame.height,

@@ -251,7 +251,7 @@ async def test_packet_loss_frames_are_refused_never_returned_half(
     _, second = two_fakes
     second.kill()
     lossy = FakeCamera("127.0.0.2", "GV02", loss_per_mille=3).start()
-    cam = camera(cameras=[{"serial": "GV02"}], frame_timeout_s=1.0)
+    cam = camera(cameras=[{"serial": "GV02"}], frame_timeout_s=1.0, incomplete_retries=0)
     await cam.open()
     delivered, refused = 0, []
     try:
@@ -271,6 +271,33 @@ async def test_packet_loss_frames_are_refused_never_returned_half(
     for why in refused:
         assert "incomplete frame refused" in why or "no frame within" in why, why
     assert cam.outage == ""  # the camera answered throughout: lost frames are no outage
+
+
+async def test_a_set_with_an_incomplete_frame_is_taken_again_while_retries_last(
+        two_fakes: tuple[FakeCamera, FakeCamera]) -> None:
+    """The same lossy camera (about 4 frames in 10 lose a packet) with ``incomplete_retries =
+    5``: the driver takes the set again instead of failing the grab, so (nearly) every grab
+    delivers a whole frame and the retries are counted."""
+    _, second = two_fakes
+    second.kill()
+    lossy = FakeCamera("127.0.0.2", "GV02", loss_per_mille=3).start()
+    cam = camera(cameras=[{"serial": "GV02"}], frame_timeout_s=1.0, incomplete_retries=5)
+    await cam.open()
+    delivered, refused = 0, []
+    try:
+        for _ in range(30):
+            try:
+                pair = await cam.grab(10.0)
+            except CameraError as err:
+                refused.append(str(err))
+                continue
+            assert pair.left.shape == (512, 512)
+            delivered += 1
+    finally:
+        await cam.close()
+        lossy.kill()
+    assert cam.incomplete_retried > 0, "no set was taken again in 30 grabs"
+    assert delivered >= 25, refused
 
 
 async def test_a_camera_killed_and_restarted_is_reopened_with_backoff_logged_once(

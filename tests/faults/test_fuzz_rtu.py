@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from drivers.links.modbus_rtu import ModbusRtuLink, with_crc
+from drivers.links.modbus_rtu import ModbusRtuLink, crc_ok, with_crc
 from tests.faults.rtu_line import BAUD, PtyLine, RawMaster, read_request, read_words
 from vgripd.service.protocol import MAP_SIZE, LinkState, Reg, Trigger
 
@@ -83,6 +83,19 @@ def line(tmp_path: Path) -> Iterator[PtyLine]:
         pty.unplug()
 
 
+def read_after(master: RawMaster, count: int) -> bytes | None:
+    """Read the map after a fuzzed frame. The test gives a fuzzed frame 10 ms for its answer
+    (a real master would wait its whole response timeout); on a busy machine an exception
+    answer to it may come later, after the read is sent: a whole frame that is not the read's
+    answer is that late answer and is passed over (at most three)."""
+    answer = master.request(read_request(UNIT, 0, count))
+    for _ in range(3):
+        if answer is None or not crc_ok(answer) or answer[1:3] == bytes((3, 2 * count)):
+            break
+        answer = master.answer()
+    return answer
+
+
 async def test_fuzzed_line_never_costs_the_map(line: PtyLine,
                                                 caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.DEBUG)
@@ -101,7 +114,7 @@ async def test_fuzzed_line_never_costs_the_map(line: PtyLine,
             await asyncio.to_thread(master.send, data)
             await asyncio.to_thread(master.answer, 0.01)  # an exception answer, if any
             await asyncio.sleep(0.005)  # silence: more than 3.5 characters (1.75 ms)
-            answer = await asyncio.to_thread(master.request, read_request(UNIT, 0, MAP_SIZE))
+            answer = await asyncio.to_thread(read_after, master, MAP_SIZE)
             words = read_words(answer, MAP_SIZE)
             words[Reg.HEARTBEAT] = reference[Reg.HEARTBEAT]
             assert words == reference, where
