@@ -49,12 +49,20 @@ LIMITS = {"max_translation_mm": 300.0, "max_rotation_deg": 10.0}
 PICKING = {"max_objects": 6, "order": "score"}
 
 
+#: The pallet scene renders five plates per image: on a machine running two suites a job takes
+#: several times the daemon's default 10 s; the tests give it this, and the PLC a little more.
+JOB_TIMEOUT_S = 40.0
+PLC_TIMEOUT_S = JOB_TIMEOUT_S + 5.0
+
+
 def pallet_config(vendor: str = "kuka", links: list[dict[str, Any]] | None = None) -> Config:
+    daemon = {"job_timeout_s": JOB_TIMEOUT_S}
     if links is None:
-        return make_config(PALLET, picking=PICKING, limits=LIMITS, output={"vendor": vendor})
+        return make_config(PALLET, picking=PICKING, limits=LIMITS, output={"vendor": vendor},
+                           daemon=daemon)
     return config_from_dict({"camera": PALLET, "picking": PICKING, "limits": LIMITS,
                              "output": {"vendor": vendor}, "links": links,
-                             "status": {"port": 0}})
+                             "status": {"port": 0}, "daemon": daemon})
 
 
 def T_ref(config: Config) -> np.ndarray:
@@ -140,7 +148,8 @@ async def running(config: Config) -> AsyncIterator[Run]:
 
 async def test_mock_plc_walks_the_pallet_with_next() -> None:
     config = pallet_config()
-    async with running(config) as run, MockPlc("127.0.0.1", run.port(), poll_s=0.005) as plc:
+    async with running(config) as run, MockPlc("127.0.0.1", run.port(), poll_s=0.005,
+                                               timeout_s=PLC_TIMEOUT_S) as plc:
         await plc.check_byte_order()  # MAP_VERSION 3
         first = await plc.cycle()
         assert (first.status, first.count, first.index) == (Status.OK, PLATES, 1)
@@ -178,10 +187,11 @@ async def test_mock_plc_walks_the_pallet_with_next() -> None:
 
 
 async def test_next_after_another_links_job_is_bad_request_never_a_stale_pose() -> None:
-    config = make_config(PALLET, links=2, picking=PICKING, limits=LIMITS)
+    config = make_config(PALLET, links=2, picking=PICKING, limits=LIMITS,
+                         daemon={"job_timeout_s": JOB_TIMEOUT_S})
     async with running(config) as run, \
-            MockPlc("127.0.0.1", run.port(0), poll_s=0.005) as a, \
-            MockPlc("127.0.0.1", run.port(1), poll_s=0.005) as b:
+            MockPlc("127.0.0.1", run.port(0), poll_s=0.005, timeout_s=PLC_TIMEOUT_S) as a, \
+            MockPlc("127.0.0.1", run.port(1), poll_s=0.005, timeout_s=PLC_TIMEOUT_S) as b:
         listed = await a.cycle()
         assert listed.count == PLATES
         other = await b.cycle()  # the other PLC's job: the scene may have changed
@@ -197,10 +207,11 @@ async def test_next_after_another_links_job_is_bad_request_never_a_stale_pose() 
 
 
 async def test_next_while_another_links_job_runs_is_busy() -> None:
-    config = make_config(PALLET, links=2, picking=PICKING, limits=LIMITS)
+    config = make_config(PALLET, links=2, picking=PICKING, limits=LIMITS,
+                         daemon={"job_timeout_s": JOB_TIMEOUT_S})
     async with running(config) as run, \
-            MockPlc("127.0.0.1", run.port(0), poll_s=0.005) as a, \
-            MockPlc("127.0.0.1", run.port(1), poll_s=0.005) as b:
+            MockPlc("127.0.0.1", run.port(0), poll_s=0.005, timeout_s=PLC_TIMEOUT_S) as a, \
+            MockPlc("127.0.0.1", run.port(1), poll_s=0.005, timeout_s=PLC_TIMEOUT_S) as b:
         assert (await a.cycle()).count == PLATES
         seq_b = await b.trigger()
         await run.busy()
@@ -213,7 +224,8 @@ async def test_next_while_another_links_job_runs_is_busy() -> None:
 
 
 async def test_next_with_no_job_since_start_is_refused() -> None:
-    async with running(pallet_config()) as run, MockPlc("127.0.0.1", run.port()) as plc:
+    async with running(pallet_config()) as run, \
+            MockPlc("127.0.0.1", run.port(), timeout_s=PLC_TIMEOUT_S) as plc:
         refused = await plc.next()
         assert (refused.rejected, refused.status) == (True, Status.BAD_REQUEST)
         assert run.daemon.snapshot()["refusals"] == {"BAD_REQUEST": 1}
@@ -258,6 +270,7 @@ async def test_each_robot_program_walks_the_pallet_with_next(brand: str) -> None
     port = free_port()
     data = cell(brand, port)
     data.update(camera=PALLET, picking=PICKING, limits=LIMITS)
+    data.setdefault("daemon", {})["job_timeout_s"] = JOB_TIMEOUT_S
     config = config_from_dict(data)
     settings = ProgramSettings.parse(brand, render(BRANDS[brand], config, source="pallet.toml"))
     async with ProgramTwin(settings, "127.0.0.1", port) as twin, running(config) as run:
@@ -296,6 +309,7 @@ async def test_a_programs_next_waits_out_busy_and_never_gets_a_stale_pose(brand:
     port = free_port()
     data = cell(brand, port)
     data.update(camera=PALLET, picking=PICKING, limits=LIMITS)
+    data.setdefault("daemon", {})["job_timeout_s"] = JOB_TIMEOUT_S
     data["links"].append({"type": "modbus_server", "host": "127.0.0.1", "port": 0})
     config = config_from_dict(data)
     settings = ProgramSettings.parse(brand, render(BRANDS[brand], config, source="pallet.toml"))
@@ -305,7 +319,7 @@ async def test_a_programs_next_waits_out_busy_and_never_gets_a_stale_pose(brand:
     await daemon.start()
     try:
         async with ProgramTwin(settings, "127.0.0.1", port) as twin, \
-                MockPlc("127.0.0.1", run.port(1), poll_s=0.005) as plc:
+                MockPlc("127.0.0.1", run.port(1), poll_s=0.005, timeout_s=PLC_TIMEOUT_S) as plc:
             await run.daemon.wait_for(lambda: all(
                 link.health().state is LinkState.UP for link in daemon.links.values()), WAIT_S)
             no_list = await twin.next()  # nothing located yet: refused at once, no retry

@@ -206,7 +206,12 @@ def check_wire(sent: list[bytes], settings: ProgramSettings, captures: int) -> N
     nexts = [struct.unpack(">I", f[8:12])[0] for f, word in zip(sent, commands, strict=True)
              if word == header_word(SocketCommand.NEXT)]
     assert nexts == [0, WALK_SKIP] == [0, 1]  # the recipe word: ask, then skip
-    assert commands.count(header_word(SocketCommand.CAPTURE_AT)) == captures
+    # one CAPTURE_AT per target reached; a program asks again (the same frame) after BUSY or
+    # an answer later than its timeout, which a busy machine gives: repeats follow each other
+    poses = [f[16:] for f, word in zip(sent, commands, strict=True)
+             if word == header_word(SocketCommand.CAPTURE_AT)]
+    distinct = [p for i, p in enumerate(poses) if i == 0 or p != poses[i - 1]]
+    assert len(distinct) == captures, (len(poses), captures)
     assert settings.words["CAPTURE_AT"] == header_word(SocketCommand.CAPTURE_AT)
     assert settings.at_bytes == CAPTURE_AT_SIZE
     for frame, word in zip(sent, commands, strict=True):
