@@ -19,7 +19,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import least_squares
 
 from vgripd.errors import ConvergenceError, DegenerateInputError
 from vgripd.geometry.multiview import (
@@ -260,6 +259,8 @@ def fit_pose(mv: MultiView, model_points: object, pixels: object,
         assert J is not None
         return J
 
+    from scipy.optimize import least_squares  # on first use: a daemon that never solves
+    # here starts without it (scipy.optimize is the largest import of a start)
     sol = least_squares(fun, np.zeros(6), jac=jac, method="lm", x_scale="jac",
                         ftol=TOLERANCE, xtol=TOLERANCE, gtol=TOLERANCE,
                         max_nfev=MAX_EVALUATIONS)

@@ -15,7 +15,6 @@ import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from vgripd.calib.handeye.samples import FloatArray, Sample, anchor_poses, board_poses
 from vgripd.errors import CalibrationError
@@ -97,6 +96,8 @@ def minimise(residual: Residual, jacobian: Jacobian, start: Sequence[FloatArray]
     r0 = fun(x0)
     if float(r0 @ r0) == 0.0:
         return T0, True
+    from scipy.optimize import least_squares  # on first use: a daemon that never solves
+    # here starts without it (scipy.optimize is the largest import of a start)
     sol = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", ftol=TOLERANCE,
                         xtol=TOLERANCE, gtol=TOLERANCE, max_nfev=MAX_EVALUATIONS)
     return state(sol.x), bool(sol.status > 0)
