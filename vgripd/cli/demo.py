@@ -432,8 +432,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.verbose:
         logging.getLogger("vgripd").setLevel(logging.ERROR)
     if args.link is not None:
-        from vgripd.cli.demo_links import run_link_demo
-        main = run_link_demo(args)
+        from vgripd.cli.demo_links import DemoCell, run_link_demo
+        main = run_link_demo(args, DemoCell(Demo, demo_config, _port, web_view))
     else:
         main = run_pallet(args) if args.scene == "pallet" else run_demo(args)
     try:

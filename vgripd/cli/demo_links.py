@@ -90,6 +90,17 @@ def _answer(seq: int, status: int, job_id: int, values: Any, cycle_ms: float,
                        cycle_ms=cycle_ms, warnings=Warnings(0))
 
 
+@dataclass(frozen=True)
+class DemoCell:
+    """What the Modbus demo (``vgripd.cli.demo``) lends the link demo: its line printer
+    (``Demo``), its cell's config, its port choice and its web view line."""
+
+    demo: Callable[[str], Any]
+    config: Callable[..., Any]
+    port: Callable[[int], int]
+    web_view: Callable[[int, float], str]
+
+
 @dataclass
 class LinkPeer:
     """One link kind in the demo: the link section, what it says, the peer's cycle."""
@@ -271,11 +282,10 @@ def _published_diff(values: tuple[float, ...], published: tuple[float, ...]) -> 
     return max((abs(a - b) for a, b in zip(values, published, strict=False)), default=0.0)
 
 
-async def run_link_demo(args: Any) -> int:
+async def run_link_demo(args: Any, cell: DemoCell) -> int:
     """The demo cell's cycles on ``args.link`` with its simulator as the peer."""
     import numpy as np
 
-    from vgripd.cli.demo import Demo, _port, demo_config, web_view
     from vgripd.geometry.vendors import convention
     from vgripd.service.daemon import Daemon
     from vgripd.service.protocol import LinkState
@@ -294,12 +304,12 @@ async def run_link_demo(args: Any) -> int:
         print(f"vgripd demo: --link robot_socket needs --vendor to be a brand of vgripd "
               f"robot-program ({', '.join(robot_socket_brands())}), not {args.vendor!r}")
         return 2
-    demo = Demo(vendor)
+    demo = cell.demo(vendor)
     diffs: list[float] = []
     try:
         async with peers(kind, vendor, args.peer_host, 20.0) as p:
             spec = await p.before()
-            base = demo_config(0, args.seed, vendor, web_port=_port(args.web_port))
+            base = cell.config(0, args.seed, vendor, web_port=cell.port(args.web_port))
             data = base.model_dump(mode="json", exclude_unset=True)
             data["links"] = [spec.link]
             from vgripd.config import config_from_dict
@@ -315,7 +325,7 @@ async def run_link_demo(args: Any) -> int:
                 assert daemon.status_server is not None
                 assert spec.cycle is not None
                 print(f"vgripd demo: daemon on the {kind} link: {spec.what}; "
-                      f"{web_view(daemon.status_server.port, args.linger)}", flush=True)
+                      f"{cell.web_view(daemon.status_server.port, args.linger)}", flush=True)
                 print(f"peer: {spec.peer}")
                 print(f"synthetic stereo camera, object {config.object.name!r}, offset against "
                       f"the taught reference as {vendor.upper()} "
