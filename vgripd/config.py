@@ -1115,14 +1115,23 @@ def read_config_data(
     return merged
 
 
-def load_config(path: str | Path, files: Mapping[str, bytes] | None = None) -> Config:
+#: The calibrations in the order they build on each other (cameras -> hand-eye -> teach).
+REDO_STEPS = ("hand_eye", "reference")
+
+
+def load_config(path: str | Path, files: Mapping[str, bytes] | None = None,
+                redo: str | None = None) -> Config:
     """Read and validate a TOML config file (with its includes); every failure is a
-    ``ConfigError``. ``files``: the bytes to read instead of the disk (a judged snapshot)."""
+    ``ConfigError``. ``files``: the bytes to read instead of the disk (a judged snapshot).
+    ``redo``: the step a command measures again (``hand_eye``: the walked hand-eye's plan and
+    walk; ``reference``: teaching). The included files of that step and of the steps after it
+    may then belong to another camera model or hand-eye (a warning, not an error): they are
+    what the command replaces, and the hand-eye's plan needs only a rough one."""
     owner: dict[str, str] = {}
     included: list[tuple[str, dict[str, Any], dict[str, Any]]] = []
     data = read_config_data(path, owner, included, files)
     config = config_from_dict(data, str(path), owner)
-    config._load_warnings = check_calibration_files(data, owner, included)
+    config._load_warnings = check_calibration_files(data, owner, included, redo)
     return config
 
 
@@ -1152,16 +1161,21 @@ def measured_references(part: dict[str, Any]) -> Iterator[dict[str, Any]]:
 
 def check_calibration_files(
     data: dict[str, Any], owner: dict[str, str],
-    included: list[tuple[str, dict[str, Any], dict[str, Any]]],
+    included: list[tuple[str, dict[str, Any], dict[str, Any]]], redo: str | None = None,
 ) -> list[str]:
     """Whether the included hand-eye and taught-reference files were made with this config's
     camera model (and the reference with its hand-eye): the fingerprints their ``[about]``
     recorded (``vgripd.geometry.fingerprint``) against the config's own sections.
 
     A mismatch is a ConfigError naming both files; a file without a fingerprint (made before
-    they were recorded) is a warning, returned, so that existing configs still load.
+    they were recorded) is a warning, returned, so that existing configs still load. A
+    mismatch of a file that ``redo`` measures again (``load_config``) is a warning too.
     """
     from vgripd.geometry.fingerprint import camera_fingerprint, hand_eye_fingerprint
+
+    if redo is not None and redo not in REDO_STEPS:
+        raise ValueError(f"redo {redo!r}: one of {REDO_STEPS}")
+    redone = set(REDO_STEPS[REDO_STEPS.index(redo):]) if redo else set()
 
     calibration = data.get("calibration")
     if not isinstance(calibration, dict):
@@ -1183,6 +1197,7 @@ def check_calibration_files(
         if not (holds_hand_eye or taught):
             continue
         what = "taught reference" if taught else "hand-eye"
+        found = warnings if ("reference" if taught else "hand_eye") in redone else problems
         recorded = about.get("camera_model")
         if recorded is None:
             warnings.append(f"{path}: the {what} records no camera model fingerprint ([about] "
@@ -1196,12 +1211,12 @@ def check_calibration_files(
                 problems.append(f"{path}: [about] camera_model_parts {parts!r}: {err}")
                 continue
             if now != recorded:
-                redo = ("teach it again" if taught else "calibrate the hand-eye again (then "
-                        "teach again)")
-                problems.append(
+                again = ("teach it again" if taught else "calibrate the hand-eye again (then "
+                         "teach again)")
+                found.append(
                     f"{path}: the {what} was made with camera model {recorded}, but the camera "
                     f"model of this config ({camera_file}) is {now}: they do not belong "
-                    f"together; {redo} with {camera_file} {order}")
+                    f"together; {again} with {camera_file} {order}")
                 continue
         if taught:
             recorded_he = about.get("hand_eye")
@@ -1210,7 +1225,7 @@ def check_calibration_files(
                     warnings.append(f"{path}: the taught reference records no hand-eye "
                                     f"fingerprint ([about] hand_eye)")
             elif recorded_he != hand_eye_fingerprint(calibration):
-                problems.append(
+                found.append(
                     f"{path}: the taught reference was measured with hand-eye {recorded_he}, "
                     f"but the hand-eye of this config ({hand_eye_file}) is "
                     f"{hand_eye_fingerprint(calibration)}: teach it again {order}")

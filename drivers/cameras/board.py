@@ -18,18 +18,37 @@ Options (``[camera]`` with ``type = "board"``)::
     noise_std = 1.0              # Gaussian sensor noise (grey levels)
     blur_px = 0.7                # Gaussian blur sigma (px)
     seed = 1                     # same seed, same places
+    robot_state = "robot.json"   # optional: the robot twin's state file (vgripd.sim.robot_twin
+                                 # --state), relative to the working directory
+    board_offset_mm = [2.0, -3.0, 12.0]  # the board's centre in the flange frame (robot-held)
+    board_turn_deg = 1.5         # and its turn about the flange's z axis
+    plate_pose = { translation_mm = [...], rotvec_rad = [...] }  # where the plate lies
+                                 # (T_base_obj; default the demo cell's reference)
 
+With ``robot_state`` the cell goes on after the cameras' calibration: while that file does not
+exist (the robot twin has not run) the operator holds the board as above; while it says the
+board is on the flange (``"board": true``, the twin's hand-eye walk) the board is drawn where
+the twin's arm really is (``T_base_flange``, mm; not the pose it reports, which carries the
+controller's error), mounted at ``board_offset_mm``/``board_turn_deg`` with its face away from
+the flange, seen through the truth cameras placed in the base by the truth's hand-eye; once it
+says ``"board": false`` (the walk is over and the board taken off) the config's ``[object]``
+lies on the table at ``plate_pose``, drawn by the synthetic renderer through the same truth
+cameras (its circle marks; the truth never comes from the config's own calibration, so a
+calibration made from these images is judged against the cell, not against itself).
 The operator works like a careful person: place ``i`` aims at cell ``i mod 9`` of a 3x3 grid
 over the left image and tilts the board in turn flat, left, right, top, bottom side nearer (each
 up to ``max_tilt_deg``), with a random roll, and only holds places where every camera sees the
 whole board. The images: each pixel's ray (through the camera's distortion) meets the board
 plane and takes the printed board's grey there (a texture at 4 px per mm, sampled bilinearly),
 then blur and noise. ``ImagePair.truth``: ``board`` (the spec), ``T_cam_board`` (left camera,
-4x4, mm), ``T_right_left`` (4x4 or None), ``still`` (False while moving), ``place``.
+4x4, mm), ``T_right_left`` (4x4 or None), ``still`` (False while moving), ``place``; with the
+board on the flange also ``T_base_flange`` and ``T_base_camera``; with the plate, the synthetic
+camera's truth (``T_base_obj`` ...).
 """
 
 from __future__ import annotations
 
+import json
 import time
 import tomllib
 from pathlib import Path
@@ -41,7 +60,7 @@ from pydantic import Field
 
 from drivers.cameras.base import CameraDriver, DriverOptions
 from vgripd.calib.boards import Board
-from vgripd.config import Config, config_from_dict
+from vgripd.config import Config, PoseConfig, config_from_dict
 from vgripd.errors import CameraError, VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
@@ -68,6 +87,10 @@ class BoardOptions(DriverOptions):
     noise_std: float = Field(1.0, ge=0.0, le=50.0)
     blur_px: float = Field(0.7, ge=0.0, le=10.0)
     seed: int = 1
+    robot_state: str | None = None
+    board_offset_mm: tuple[float, float, float] = (2.0, -3.0, 12.0)
+    board_turn_deg: float = Field(1.5, ge=-180.0, le=180.0)
+    plate_pose: PoseConfig | None = None
 
 
 def _even_stripes(x: FloatArray, pitch: float, n: int) -> FloatArray:
@@ -157,8 +180,13 @@ class BoardCamera(CameraDriver):
             truth = self._truth_config()
             left, right = scene.camera_models(truth)
             self._T_right_left = scene.T_right_left(truth)
+            self._T_base_camera = (scene.T_base_camera(truth)
+                                   if truth.calibration is not None
+                                   and truth.calibration.hand_eye.mounting == "fixed" else None)
         except VgripError as err:
             raise CameraError(f"board: cannot set up the cameras: {err}") from None
+        self._truth = truth
+        self._plate: Any = None
         self._models: list[CameraModel] = [left] + ([right] if right is not None else [])
         self._T_cam_left = [np.eye(4)] + ([self._T_right_left]
                                           if self._T_right_left is not None else [])
@@ -261,7 +289,76 @@ class BoardCamera(CameraDriver):
                 self.options.noise_std)
         return np.clip(np.round(out), 0, 255).astype(np.uint8)
 
+    # ---------------------------------------------------------------- the robot twin
+    def _robot(self) -> dict[str, Any] | None:
+        """The robot twin's state, or None while it has not run (no file)."""
+        if self.options.robot_state is None:
+            return None
+        path = Path(self.options.robot_state)
+        try:
+            state = json.loads(path.read_text(encoding="utf-8"))
+            return {"board": bool(state["board"]),
+                    "T_base_flange": np.array(state["T_base_flange"], float).reshape(4, 4)}
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise CameraError(f"board: camera.robot_state {path}: {err}") from None
+
+    def T_flange_board(self) -> FloatArray:
+        """Where the board sits on the flange: face away from it (turned pi about x), its
+        centre at ``board_offset_mm``, turned ``board_turn_deg`` about the flange's z."""
+        centre = self.board.object_points().mean(axis=0)
+        turn = matrix_from_rotvec(np.array([0.0, 0.0, np.radians(self.options.board_turn_deg)]))
+        flip = matrix_from_rotvec(np.array([np.pi, 0.0, 0.0]))
+        return (make_transform(turn, np.asarray(self.options.board_offset_mm, float))
+                @ make_transform(flip, np.zeros(3)) @ make_transform(np.eye(3), -centre))
+
+    def _grab_held(self, T_base_flange: FloatArray) -> ImagePair:
+        if self._T_base_camera is None:
+            raise CameraError("board: camera.robot_state needs cameras fixed in the cell (the "
+                              "truth's calibration.hand_eye.mounting = \"fixed\")")
+        T = np.linalg.inv(self._T_base_camera) @ T_base_flange @ self.T_flange_board()
+        self._frame += 1
+        images = [self._render(c, T_cam @ T) for c, T_cam in enumerate(self._T_cam_left)]
+        truth: dict[str, Any] = {"board": self.board.spec, "T_cam_board": T,
+                                 "T_right_left": self._T_right_left, "still": True,
+                                 "place": -1, "T_base_flange": T_base_flange,
+                                 "T_base_camera": self._T_base_camera}
+        return ImagePair(left=images[0], right=images[1] if len(images) > 1 else None,
+                         t_mono_ns=time.monotonic_ns(), source=f"board:{self._frame - 1}",
+                         meta={"frame": self._frame - 1}, truth=truth)
+
+    def _grab_plate(self, timeout_s: float) -> ImagePair:
+        """The config's object on the table, drawn through the truth cameras."""
+        if self._plate is None:
+            from drivers.cameras.synthetic import SyntheticCamera, SyntheticOptions
+
+            pose = self.options.plate_pose or Config().reference.T_base_obj
+            assert pose is not None
+            calibration = self._truth.model_dump(mode="json", exclude_none=True)["calibration"]
+            try:
+                world = config_from_dict({
+                    "camera": {"type": "synthetic"}, "calibration": calibration,
+                    "object": self.config.object.model_dump(mode="json", exclude_none=True),
+                    "reference": {"T_base_obj": pose.model_dump(mode="json",
+                                                                exclude_none=True)}})
+                options = SyntheticOptions(pose=pose, seed=self.options.seed,
+                                           noise_std=self.options.noise_std,
+                                           blur_px=self.options.blur_px)
+                plate = SyntheticCamera(options, world)
+                plate._open_blocking()
+            except VgripError as err:
+                raise CameraError(f"board: the plate on the table: {err}") from None
+            self._plate = plate
+        pair: ImagePair = self._plate._grab_blocking(timeout_s)
+        return pair
+
     def _grab_blocking(self, timeout_s: float) -> ImagePair:
+        robot = self._robot()
+        if robot is not None:
+            if robot["board"]:
+                return self._grab_held(robot["T_base_flange"])
+            return self._grab_plate(timeout_s)
         T, still, place = self._pose_at(self._frame)
         self._frame += 1
         images = [self._render(c, T_cam @ T) for c, T_cam in enumerate(self._T_cam_left)]

@@ -139,3 +139,64 @@ def test_capture_and_calibrate_on_the_learning_cell_find_the_truth(tmp_path: Pat
     t = np.array(data["calibration"]["stereo"]["T_right_left"]["translation_mm"])
     want_t = np.array(expected["stereo"]["T_right_left"]["translation_mm"])
     assert np.all(np.abs(t - want_t) < 4 * np.array(std["translation_mm"]) + 0.05)
+
+
+def test_the_robot_twins_board_and_then_the_plate_are_drawn_where_the_cell_has_them(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``robot_state``: no file, the operator's board; the board on the flange, drawn at
+    the arm's pose through the truth cameras placed by the truth's hand-eye (the oracle:
+    OpenCV's projection of the corners at the flange pose, the mounting and the demo cell's
+    T_base_camera composed here); board taken off, the config's object at ``plate_pose``."""
+    from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
+    from vgripd.sim.robot_twin import write_state
+    from vgripd.vision.scene import matrix_from_pose
+
+    monkeypatch.chdir(tmp_path)
+    spec = "chessboard:9x6:30"
+    options = BoardOptions(board=spec, robot_state="robot.json", hold_frames=2,
+                           board_offset_mm=(2.0, -3.0, 12.0), board_turn_deg=1.5,
+                           plate_pose={"translation_mm": [605.0, 95.0, 10.0],
+                                       "rotvec_rad": [0.0, 0.0, 0.1]})
+    demo = Config()
+    assert demo.calibration is not None
+    T_base_camera = matrix_from_pose(demo.calibration.hand_eye.T_base_camera)
+    board = Board.parse(spec)
+    centre = board.object_points().mean(axis=0)
+    # the flange 650 mm in front of the camera, the board's face to it, the flange tilted
+    T_base_flange = (T_base_camera @ make_transform(matrix_from_rotvec([0.2, -0.1, 0.3]),
+                                                    np.array([10.0, -20.0, 650.0]))
+                     @ make_transform(matrix_from_rotvec([np.pi, 0.0, 0.0]), np.zeros(3)))
+    mount = (make_transform(matrix_from_rotvec([0.0, 0.0, np.radians(1.5)]),
+                            np.array([2.0, -3.0, 12.0]))
+             @ make_transform(matrix_from_rotvec([np.pi, 0.0, 0.0]), np.zeros(3))
+             @ make_transform(np.eye(3), -centre))
+    camera = BoardCamera(options, Config())
+
+    async def scenes() -> list:
+        await camera.open()
+        try:
+            out = [await camera.grab(30.0)]  # no state file yet: the operator
+            write_state(tmp_path / "robot.json", T_base_flange, True)
+            out.append(await camera.grab(30.0))
+            write_state(tmp_path / "robot.json", T_base_flange, False)
+            out.append(await camera.grab(30.0))
+            (tmp_path / "robot.json").write_text("{not json")
+            with pytest.raises(CameraError, match=r"camera.robot_state robot.json"):
+                await camera.grab(30.0)
+            return out
+        finally:
+            await camera.close()
+
+    operator, held, plate = asyncio.run(scenes())
+    assert operator.truth["place"] == 0
+    Tc = np.linalg.inv(T_base_camera) @ T_base_flange @ mount
+    left = demo.calibration.left
+    K = np.array([[left.fx, 0, left.cx], [0, left.fy, left.cy], [0, 0, 1]])
+    expected = cv2.projectPoints(board.object_points(), cv2.Rodrigues(Tc[:3, :3])[0],
+                                 Tc[:3, 3], K, np.array(left.dist))[0].reshape(-1, 2)
+    found = detect(board, held.left, "left")
+    assert np.max(np.linalg.norm(found.px - expected, axis=1)) < 0.25
+    assert np.allclose(held.truth["T_base_flange"], T_base_flange)
+    assert "T_cam_board" not in plate.truth
+    assert np.allclose(plate.truth["T_base_obj"][:3, 3], [605.0, 95.0, 10.0])
+    assert list(plate.truth["feature_names"]) == [f.name for f in demo.object.features]

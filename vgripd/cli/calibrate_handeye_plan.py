@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import math
 import shlex
+import sys
 from typing import Any
 
 from vgripd.calib.boards import Board
@@ -74,7 +75,9 @@ def run_plan(args: argparse.Namespace) -> int:
                               ("--distance", args.distance)) if v is None]
     if missing:
         raise CalibrationError(f"calibrate handeye plan: missing {', '.join(missing)}")
-    config = load_config(args.config)
+    config = load_config(args.config, redo="hand_eye")
+    for warning in config.load_warnings:  # what this command measures again
+        print(f"warning: {warning}", file=sys.stderr)
     if config.calibration is None:
         raise CalibrationError(f"{args.config}: no [calibration]: calibrate the camera first "
                                "(the order is: cameras/rig -> hand-eye -> teach)")

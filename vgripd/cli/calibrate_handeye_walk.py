@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -64,7 +65,9 @@ def run_walk(args: argparse.Namespace) -> int:
         return run_running(args)
     if args.config is None or args.plan is None:
         raise CalibrationError("calibrate handeye walk: give -c CONFIG and --plan PLAN")
-    config = load_config(args.config)
+    config = load_config(args.config, redo="hand_eye")
+    for warning in config.load_warnings:  # what this command measures again
+        print(f"warning: {warning}", file=sys.stderr)
     if config.calibration is None:
         raise CalibrationError(f"{args.config}: no [calibration]: calibrate the camera first")
     if not 0 <= args.link < len(config.links):

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from vgripd.cli.demo_links import LINK_KINDS
 from vgripd.config import config_from_dict
 from vgripd.errors import LinkError
 from vgripd.geometry.transforms import pose_error
@@ -67,6 +68,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--linger", type=float, default=0.0, metavar="SECONDS",
                         help="keep the daemon and its web view up this long after the cycles, "
                              "to look at the jobs in a browser (default 0; Ctrl-C ends it)")
+    parser.add_argument("--link", choices=LINK_KINDS, default=None,
+                        help="run the cycles on another link with its simulator as the peer "
+                             "(robot_socket: the program of --vendor's brand; ur_rtde: the "
+                             "mock UR controller; s7: snap7's server; opcua: asyncua's "
+                             "client); default: Modbus/TCP with the scripted PLC")
+    parser.add_argument("--peer-host", default=None, metavar="ADDRESS",
+                        help="loopback address of the --link peer (default 127.0.0.1; "
+                             "ur_rtde: a free one)")
     parser.add_argument("--verbose", action="store_true", help="show the daemon's log")
 
 
@@ -422,8 +431,13 @@ def run(args: argparse.Namespace) -> int:
     configure_logging("INFO" if args.verbose else "WARNING")
     if not args.verbose:
         logging.getLogger("vgripd").setLevel(logging.ERROR)
+    if args.link is not None:
+        from vgripd.cli.demo_links import DemoCell, run_link_demo
+        main = run_link_demo(args, DemoCell(Demo, demo_config, _port, web_view))
+    else:
+        main = run_pallet(args) if args.scene == "pallet" else run_demo(args)
     try:
-        return asyncio.run(run_pallet(args) if args.scene == "pallet" else run_demo(args))
+        return asyncio.run(main)
     except KeyboardInterrupt:
         print("\nvgripd demo: interrupted")
         return 130

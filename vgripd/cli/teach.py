@@ -106,7 +106,9 @@ def _summary_lines(summary: dict[str, Any]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     config_path = Path(args.config)
-    cell = load_config(config_path)
+    cell = load_config(config_path, redo="reference")
+    for warning in cell.load_warnings:  # what this command measures again
+        print(f"warning: {warning}", file=sys.stderr)
     try:
         config = cell.for_recipe(args.recipe)
     except ConfigError as err:

@@ -85,3 +85,23 @@ def test_an_unknown_example_names_the_known_ones(tmp_path: Path) -> None:
     assert "--example nope" in text
     assert "robot-socket-kuka" in text
     assert not (tmp_path / "c.toml").exists()
+
+
+def test_a_recalibrated_rig_refuses_the_old_hand_eye_except_to_the_commands_that_redo_it(
+        tmp_path: Path) -> None:
+    """The walked hand-eye's plan and walk take the old hand-eye as a rough start and teaching
+    takes the old reference (a warning each); every other load refuses them, and teaching
+    still refuses a hand-eye of another rig."""
+    from vgripd.errors import ConfigError
+
+    main_file = tmp_path / "vgripd.toml"
+    assert main(["init", "-c", str(main_file), "--state-dir", str(tmp_path / "state")]) == 0
+    rig = tmp_path / "state" / "rig.toml"
+    rig.write_text(rig.read_text().replace("fx = 1805.2", "fx = 1806.0"))
+    with pytest.raises(ConfigError, match="hand-eye was made with camera model"):
+        load_config(main_file)
+    with pytest.raises(ConfigError, match="hand-eye was made with camera model"):
+        load_config(main_file, redo="reference")
+    config = load_config(main_file, redo="hand_eye")
+    assert [w.split(":")[0] for w in config.load_warnings] == [
+        str(tmp_path / "state" / "handeye.toml"), str(tmp_path / "state" / "reference.toml")]
