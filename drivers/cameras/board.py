@@ -18,6 +18,10 @@ Options (``[camera]`` with ``type = "board"``)::
     noise_std = 1.0              # Gaussian sensor noise (grey levels)
     blur_px = 0.7                # Gaussian blur sigma (px)
     seed = 1                     # same seed, same places
+    plate = false                # true: the demo plate (six dark 10 mm marks) lies on the
+                                 # table at the demo cell's taught place, where the truth
+                                 # cameras' hand-eye puts it; the operator holds the board
+                                 # only where it covers no mark, so a job finds the plate
 
 The operator works like a careful person: place ``i`` aims at cell ``i mod 9`` of a 3x3 grid
 over the left image and tilts the board in turn flat, left, right, top, bottom side nearer (each
@@ -25,7 +29,14 @@ up to ``max_tilt_deg``), with a random roll, and only holds places where every c
 whole board. The images: each pixel's ray (through the camera's distortion) meets the board
 plane and takes the printed board's grey there (a texture at 4 px per mm, sampled bilinearly),
 then blur and noise. ``ImagePair.truth``: ``board`` (the spec), ``T_cam_board`` (left camera,
-4x4, mm), ``T_right_left`` (4x4 or None), ``still`` (False while moving), ``place``.
+4x4, mm), ``T_right_left`` (4x4 or None), ``still`` (False while moving), ``place``; with
+``plate`` also ``T_base_obj`` (the plate in the base frame) and ``T_base_camera`` (the left
+truth camera's hand-eye).
+
+The plate is rendered once at open by the synthetic camera's renderer (the same area-exact
+discs) through the truth cameras, at the demo reference pose, and the board is drawn over it.
+A learning cell with the plate is the whole road of a setup without hardware: calibrate with
+the board, define the object from the plate's marks, teach, pick.
 """
 
 from __future__ import annotations
@@ -68,6 +79,7 @@ class BoardOptions(DriverOptions):
     noise_std: float = Field(1.0, ge=0.0, le=50.0)
     blur_px: float = Field(0.7, ge=0.0, le=10.0)
     seed: int = 1
+    plate: bool = False
 
 
 def _even_stripes(x: FloatArray, pitch: float, n: int) -> FloatArray:
@@ -132,6 +144,8 @@ class BoardCamera(CameraDriver):
                               "draws chessboards only")
         self._frame = 0
         self._places: list[FloatArray] = []
+        self._plate: list[np.ndarray] | None = None
+        self._plate_px: list[FloatArray] = []
 
     def describe(self) -> str:
         return f"the learning cell's {self.board.spec} board"
@@ -172,6 +186,31 @@ class BoardCamera(CameraDriver):
         self._rng = np.random.default_rng(self.options.seed)
         self._frame = 0
         self._places = []
+        self._plate: list[np.ndarray] | None = None
+        self._plate_px: list[FloatArray] = []
+        if self.options.plate:
+            try:
+                self._open_plate(truth)
+            except VgripError as err:
+                raise CameraError(f"board: cannot render the plate: {err}") from None
+
+    def _open_plate(self, truth: Config) -> None:
+        """The demo plate rendered once through every truth camera (no noise or blur here:
+        the frame's own are added over board and plate alike)."""
+        from drivers.cameras.synthetic import SyntheticCamera, SyntheticOptions
+
+        ref = truth.reference.T_base_obj
+        assert ref is not None  # the demo reference
+        options = SyntheticOptions(pose=ref, noise_std=0.0, blur_px=0.0)
+        renderer = SyntheticCamera(options, truth)
+        renderer._open_blocking()
+        pair = renderer._grab_blocking(1.0)
+        self._plate = [np.asarray(v, np.uint8) for v in pair.views]
+        self._plate_px = [np.asarray(pair.truth["pixels_left"], np.float64)] + (
+            [np.asarray(pair.truth["pixels_right"], np.float64)]
+            if pair.truth.get("pixels_right") is not None else [])
+        self._T_base_obj = np.asarray(pair.truth["T_base_obj"], np.float64)
+        self._T_base_camera = scene.T_base_camera(truth)
 
     # ---------------------------------------------------------------- the operator
     def _sees_whole(self, T_left_board: FloatArray) -> bool:
@@ -190,7 +229,25 @@ class BoardCamera(CameraDriver):
             if np.any(px[:, 0] < margin) or np.any(px[:, 0] > model.width - margin) or \
                     np.any(px[:, 1] < margin) or np.any(px[:, 1] > model.height - margin):
                 return False
-        return True
+        return not self._covers_plate(T_left_board)
+
+    def _covers_plate(self, T_left_board: FloatArray) -> bool:
+        """Whether the board (with its paper margin and a mark's width more) would hide a mark
+        of the plate in some camera."""
+        if not self._plate_px:
+            return False
+        p, m = self.board.pitch_mm, MARGIN_MM + 15.0
+        outline = np.array([[-p - m, -p - m, 0], [self.board.cols * p + m, -p - m, 0],
+                            [self.board.cols * p + m, self.board.rows * p + m, 0],
+                            [-p - m, self.board.rows * p + m, 0]], float)
+        for model, T, marks in zip(self._models, self._T_cam_left, self._plate_px,
+                                   strict=False):
+            cam = (T @ T_left_board @ np.c_[outline, np.ones(4)].T)[:3].T
+            poly = model.project(cam).astype(np.float32).reshape(-1, 1, 2)
+            if any(cv2.pointPolygonTest(poly, (float(u), float(v)), False) >= 0
+                   for u, v in marks if np.isfinite(u)):
+                return True
+        return False
 
     def _place(self, index: int) -> FloatArray:
         """Place ``index``: its board pose in the left camera (4x4, mm)."""
@@ -254,6 +311,10 @@ class BoardCamera(CameraDriver):
         out: Any = cv2.remap(self._texture, mx, my, cv2.INTER_LINEAR,
                              borderMode=cv2.BORDER_CONSTANT, borderValue=110)
         out = out.astype(np.float32)
+        if self._plate is not None:  # the board over the plate: the table where it is not
+            inside = cv2.remap(np.ones(self._texture.shape, np.float32), mx, my,
+                               cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            out = inside * out + (1.0 - inside) * self._plate[camera].astype(np.float32)
         if self.options.blur_px > 0:
             out = cv2.GaussianBlur(out, (0, 0), self.options.blur_px)
         if self.options.noise_std > 0:
@@ -268,6 +329,9 @@ class BoardCamera(CameraDriver):
         truth: dict[str, Any] = {"board": self.board.spec, "T_cam_board": T.copy(),
                                  "T_right_left": self._T_right_left, "still": still,
                                  "place": place}
+        if self._plate is not None:
+            truth.update(T_base_obj=self._T_base_obj.copy(),
+                         T_base_camera=self._T_base_camera.copy())
         return ImagePair(left=images[0], right=images[1] if len(images) > 1 else None,
                          t_mono_ns=time.monotonic_ns(), source=f"board:{self._frame - 1}",
                          meta={"frame": self._frame - 1}, truth=truth)
