@@ -186,8 +186,8 @@ class BoardCamera(CameraDriver):
         self._rng = np.random.default_rng(self.options.seed)
         self._frame = 0
         self._places = []
-        self._plate: list[np.ndarray] | None = None
-        self._plate_px: list[FloatArray] = []
+        self._plate = None
+        self._plate_px = []
         if self.options.plate:
             try:
                 self._open_plate(truth)
