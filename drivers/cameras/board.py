@@ -31,7 +31,7 @@ plane and takes the printed board's grey there (a texture at 4 px per mm, sample
 then blur and noise. ``ImagePair.truth``: ``board`` (the spec), ``T_cam_board`` (left camera,
 4x4, mm), ``T_right_left`` (4x4 or None), ``still`` (False while moving), ``place``; with
 ``plate`` also ``T_base_obj`` (the plate in the base frame) and ``T_base_camera`` (the left
-truth camera's hand-eye).
+truth camera's hand-eye) and ``board_shown``.
 
 The plate is rendered once at open by the synthetic camera's renderer (the same area-exact
 discs) through the truth cameras, at the demo reference pose, and the board is drawn over it.
@@ -296,8 +296,13 @@ class BoardCamera(CameraDriver):
         return make_transform(R, a[:3, 3] * (1 - s) + b[:3, 3] * s), False, place
 
     # ---------------------------------------------------------------- rendering
-    def _render(self, camera: int, T_cam_board: FloatArray) -> np.ndarray:
+    def _render(self, camera: int, T_cam_board: FloatArray | None) -> np.ndarray:
+        """Camera ``camera``'s image of the board at ``T_cam_board`` (None: no board in
+        view, the plate alone)."""
         model = self._models[camera]
+        if T_cam_board is None:
+            assert self._plate is not None
+            return self._finish(self._plate[camera].astype(np.float32))
         # normalised (x, y, 1) -> board plane: the inverse of Hn = [r1 r2 t], then texture px
         Hn = np.column_stack([T_cam_board[:3, 0], T_cam_board[:3, 1], T_cam_board[:3, 3]])
         M = self._A @ np.linalg.inv(Hn)
@@ -315,6 +320,10 @@ class BoardCamera(CameraDriver):
             inside = cv2.remap(np.ones(self._texture.shape, np.float32), mx, my,
                                cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
             out = inside * out + (1.0 - inside) * self._plate[camera].astype(np.float32)
+        return self._finish(out)
+
+    def _finish(self, out: Any) -> np.ndarray:
+        """Blur and sensor noise over the rendered grey levels (float32), as 8 bits."""
         if self.options.blur_px > 0:
             out = cv2.GaussianBlur(out, (0, 0), self.options.blur_px)
         if self.options.noise_std > 0:
@@ -325,13 +334,17 @@ class BoardCamera(CameraDriver):
     def _grab_blocking(self, timeout_s: float) -> ImagePair:
         T, still, place = self._pose_at(self._frame)
         self._frame += 1
-        images = [self._render(c, T_cam @ T) for c, T_cam in enumerate(self._T_cam_left)]
+        # With the plate, the operator carries the board between places around the plate, not
+        # over it: a move that would hide a mark shows the table without the board.
+        shown = not (self._plate is not None and not still and self._covers_plate(T))
+        images = [self._render(c, T_cam @ T if shown else None)
+                  for c, T_cam in enumerate(self._T_cam_left)]
         truth: dict[str, Any] = {"board": self.board.spec, "T_cam_board": T.copy(),
                                  "T_right_left": self._T_right_left, "still": still,
                                  "place": place}
         if self._plate is not None:
             truth.update(T_base_obj=self._T_base_obj.copy(),
-                         T_base_camera=self._T_base_camera.copy())
+                         T_base_camera=self._T_base_camera.copy(), board_shown=shown)
         return ImagePair(left=images[0], right=images[1] if len(images) > 1 else None,
                          t_mono_ns=time.monotonic_ns(), source=f"board:{self._frame - 1}",
                          meta={"frame": self._frame - 1}, truth=truth)

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from vgripd.cli import demo_setup
 from vgripd.config import config_from_dict
 from vgripd.errors import LinkError
 from vgripd.geometry.transforms import pose_error
@@ -68,6 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep the daemon and its web view up this long after the cycles, "
                              "to look at the jobs in a browser (default 0; Ctrl-C ends it)")
     parser.add_argument("--verbose", action="store_true", help="show the daemon's log")
+    demo_setup.add_arguments(parser)
 
 
 def _port(wanted: int) -> int:
@@ -414,6 +416,8 @@ async def run_pallet(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.setup:
+        return demo_setup.run(args)
     if args.cycles is None:
         args.cycles = 2 if args.scene == "pallet" else 10
     if args.cycles < 1:
