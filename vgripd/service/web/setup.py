@@ -14,7 +14,7 @@ link, test pick, one page (``/setup``) over these routes::
     POST /api/setup/calib/run            vgripd calibrate stereo on the kept sets, in a child
     GET  /api/setup/calib                the calibration: running (seconds), or its result
     POST /api/setup/calib/drop           {"sets": [n, ...]}: sets put aside (outliers)
-    POST /api/setup/calib/accept         the result into the config (with the hand-eye)
+    POST /api/setup/calib/accept         the result kept to go live with the hand-eye
     POST /api/setup/handeye              {"translation_mm", "rotvec_rad"}: a fixed camera's pose
     POST /api/setup/object/find          the marks both cameras see, in the base frame
     POST /api/setup/object/save          {"name", "marks": [ids]}: the object from them, judged
@@ -354,24 +354,19 @@ class SetupRoutes:
         return web.json_response({"dropped": moved})
 
     async def accept(self, request: web.Request) -> web.Response:
-        reloader = self._guard(request)
+        self._guard(request)
         result = await self._folder() / "rig-result.toml"
         if not self._calib.get("ok") or not result.exists():
             raise web.HTTPConflict(text="no calibration result to accept: run it first")
-        text = await asyncio.to_thread(result.read_text, encoding="utf-8")
-        if self.daemon.config.calibration is None:
-            # No hand-eye yet: the rig goes live with it (the next step), in one write.
-            progress = await self._progress()
-            progress["pending_calibration"] = str(result)
-            progress["done"]["calibration"] = time.time()
-            await self._save_progress(progress)
-            return web.json_response({"applied": False, "pending": True, "message": (
-                "accepted: it goes live with the cameras' pose (next step, hand-eye)")})
-        outcome = await reloader.write(calibration_edit(text, None), f"web {request.remote}",
-                                       "setup: calibration", untaught_ok=True)
-        if outcome.applied:
-            await self._mark("calibration")
-        return self._answer(outcome)
+        # The hand-eye belongs to one camera model (its [about] fingerprint): a new rig goes
+        # live together with the cameras' pose, confirmed or measured again (next step).
+        progress = await self._progress()
+        progress["pending_calibration"] = str(result)
+        progress["done"]["calibration"] = time.time()
+        await self._save_progress(progress)
+        return web.json_response({"applied": False, "pending": True, "message": (
+            "accepted: it goes live with the cameras' pose (next step, hand-eye), which "
+            "belongs to the camera model")})
 
     async def hand_eye(self, request: web.Request) -> web.Response:
         reloader = self._guard(request)

@@ -90,6 +90,11 @@ function fill() {
   $("he-current").textContent = s.hand_eye ? `now: ${JSON.stringify(s.hand_eye)}` :
     (s.pending_calibration ? "the accepted calibration waits for this pose" : "no hand-eye yet");
   $("btn-he-learning").hidden = !s.learning_hand_eye;
+  const pose = s.hand_eye && s.hand_eye.T_base_camera;
+  if (pose && !$("he-t").value) {  // a new rig goes live with the pose confirmed again
+    $("he-t").value = pose.translation_mm.join(" ");
+    $("he-r").value = (pose.rotvec_rad || [0, 0, 0]).join(" ");
+  }
   $("link-table").tBodies[0].replaceChildren(...Object.entries(s.links || {}).map(
     ([name, h]) => row([name, h.state, h.peer || "", String((h.peers || []).length ?? "")])));
   $("link-registers").replaceChildren(...(s.registers || []).map((reg) => {
@@ -328,7 +333,7 @@ events.addEventListener("job", (e) => { if (step === "pick") showJob(JSON.parse(
 // --- the check that ends each step ------------------------------------------------------------
 async function check() {
   $("check-step").textContent = step;
-  $("check-summary").textContent = "vgripd check runs…";
+  $("check-summary").textContent = "checking (vgripd check runs in a child process)…";
   const r = await call("GET", `/api/setup/check?step=${step}`);
   if (!r.ok) { $("check-summary").textContent = `${r.status}: ${r.data.message}`; return r; }
   $("check-summary").textContent = (r.data.ok ? "vgripd check: OK" : "vgripd check: ERRORS") +
