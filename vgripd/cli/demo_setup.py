@@ -20,6 +20,7 @@ import asyncio
 import contextlib
 import logging
 import secrets
+import socket
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -106,12 +107,21 @@ async def serve_setup(main: Path, token: str, announce: Any = print) -> None:
         teller.cancel()
 
 
+def _bindable(port: int) -> int:
+    """``port`` when 127.0.0.1 has it free, else 0 (any free one)."""
+    with socket.socket() as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return 0
+    return port
+
+
 def run(args: argparse.Namespace) -> int:
-    from vgripd.cli.demo import _port
     from vgripd.service.logsetup import configure_logging
 
     folder = args.state_dir or Path(tempfile.mkdtemp(prefix="vgripd-setup-"))
-    main, token = write_cell(folder.absolute(), _port(args.port), _port(args.web_port),
+    main, token = write_cell(folder.absolute(), _bindable(args.port), _bindable(args.web_port),
                              args.seed)
     configure_logging("INFO" if args.verbose else "WARNING")
     if not args.verbose:
