@@ -55,8 +55,8 @@ def main() -> int:
         "pose, the plate's six marks, three teaching shots, the register map, a test pick), then "
         "one job triggered by a pymodbus PLC client over Modbus/TCP. Page actions are clicks and "
         "form submits; the capture's seconds are mostly grabs (the board rendered, its corners "
-        "found in both 1280x1024 images, two JPEGs), one per ~0.3 s pause of the page's "
-        "auto-capture loop; the board camera holds each place for three grabs.", "",
+        "found in both 1280x1024 images, two JPEGs) one after the other; the board camera holds "
+        "each place for two grabs (the first is refused: the board just moved there).", "",
         "```",
         f"load average {load}; {os.cpu_count()} CPUs; Python {platform.python_version()}",
         *lines,

@@ -70,7 +70,10 @@ def write_cell(folder: Path, modbus_port: int, web_port: int, seed: int = 1) -> 
     main.write_text("# the learning cell (vgripd demo --setup): camera and link; the cell lives "
                     "in the includes\n" + toml_from_dict({
                         "include": [str(folder / name) for name in INCLUDES],
-                        "camera": {"type": "board", "board": BOARD, "plate": True, "seed": seed},
+                        # each place held for two grabs: the first is refused as the board
+                        # just moved there, the second is still and kept
+                        "camera": {"type": "board", "board": BOARD, "plate": True, "seed": seed,
+                                   "hold_frames": 2, "move_frames": 0},
                         "links": [{"type": "modbus_server", "host": "127.0.0.1",
                                    "port": modbus_port}],
                         "daemon": {"log_level": "WARNING"}}), encoding="utf-8")

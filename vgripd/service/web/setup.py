@@ -12,7 +12,7 @@ link, test pick, one page (``/setup``) over these routes::
                                          vgripd capture judges it, kept when worth it
     GET  /api/setup/live/{n}/{k}.jpg     camera k of the last grab n, corners or marks drawn
     POST /api/setup/calib/run            vgripd calibrate stereo on the kept sets, in a child
-    GET  /api/setup/calib                the calibration: running (seconds), or its result
+    GET  /api/setup/calib[?wait=1]       the calibration: running (seconds), or its result
     POST /api/setup/calib/drop           {"sets": [n, ...]}: sets put aside (outliers)
     POST /api/setup/calib/accept         the result kept to go live with the hand-eye
     POST /api/setup/handeye              {"translation_mm", "rotvec_rad"}: a fixed camera's pose
@@ -72,6 +72,7 @@ STATIC = Path(__file__).parent / "static"
 CHECK_TIMEOUT_S = 120.0
 CALIBRATE_TIMEOUT_S = 900.0
 PROGRAM_TIMEOUT_S = 60.0
+CALIB_POLL_S = 5.0
 #: Sets the calibration needs at least (the command refuses fewer than 3 pairs).
 MIN_SETS = 3
 
@@ -295,6 +296,10 @@ class SetupRoutes:
     # --- calibration --------------------------------------------------------------------------
 
     async def calibration(self, request: web.Request) -> web.Response:
+        """The calibration's state; ``?wait=1`` answers when it ends, or after
+        ``CALIB_POLL_S`` (the page asks again at once: no timer of its own to slow down)."""
+        if request.query.get("wait") and self._calib.get("running") and self._tasks:
+            await asyncio.wait(set(self._tasks), timeout=CALIB_POLL_S)
         calib = dict(self._calib)
         if calib.get("running"):
             calib["elapsed_s"] = round(time.monotonic() - calib["t0"], 1)

@@ -4,9 +4,7 @@
 const $ = (id) => document.getElementById(id);
 let state = null;
 let step = "cameras";
-let autoTimer = null;
 let previewTimer = null;
-let calibTimer = null;
 window.setupActions = 0;  // page actions (clicks and form submits) counted for the bench
 
 $("token").value = sessionStorage.getItem("vgripd-token") || "";
@@ -158,23 +156,29 @@ function coverage(c) {
 
 async function grab(keep, auto) {
   const r = await call("POST", "/api/setup/calib/grab", { board: $("calib-board").value, keep, auto });
-  if (!r.ok) { $("calib-why").textContent = `${r.status}: ${r.data.message}`; return; }
+  if (!r.ok) { $("calib-why").textContent = `${r.status}: ${r.data.message}`; return false; }
   const g = r.data;
   $("calib-why").textContent = g.kept ? g.kept : `grab ${g.grab}: ${g.why}`;
   $("calib-images").replaceChildren(...g.images.map((src, k) => img(src, `corners ${k}`)));
   coverage(g.capture);
+  return true;
 }
 act("btn-calib-grab", () => grab(false, false));
 act("btn-calib-keep", () => grab(true, false));
-$("calib-auto").addEventListener("change", () => {
+// Auto-capture: one grab after the other while ticked (each is paced by the camera and the
+// corner search); a pause only after a refusal. No timer between grabs: a browser slows the
+// timers of a page it does not show, not its requests.
+let autoRunning = false;
+$("calib-auto").addEventListener("change", async () => {
   window.setupActions += 1;
-  if (autoTimer) { clearTimeout(autoTimer); autoTimer = null; }
-  const loop = async () => {
-    if (!$("calib-auto").checked) return;
-    await grab(false, true).catch(() => {});
-    autoTimer = setTimeout(loop, 300);
-  };
-  loop();
+  if (autoRunning) return;
+  autoRunning = true;
+  try {
+    while ($("calib-auto").checked) {
+      const ok = await grab(false, true).catch(() => false);
+      if (!ok) await new Promise((r) => setTimeout(r, 1000));
+    }
+  } finally { autoRunning = false; }
 });
 
 function calibResult(c) {
@@ -211,15 +215,17 @@ function calibResult(c) {
 }
 
 async function pollCalibration() {
-  const r = await call("GET", "/api/setup/calib");
-  const c = r.data;
-  if (c.running) {
-    $("calib-progress").textContent = `calibrating ${c.sets} sets in a child process: ${fmt(c.elapsed_s, 0)} s`;
-    calibTimer = setTimeout(pollCalibration, 500);
+  for (;;) {  // the server answers when it ends or every few seconds (?wait=1)
+    const r = await call("GET", "/api/setup/calib?wait=1");
+    const c = r.data;
+    if (c.running) {
+      $("calib-progress").textContent = `calibrating ${c.sets} sets in a child process: ${fmt(c.elapsed_s, 0)} s`;
+      continue;
+    }
+    $("calib-progress").textContent = c.ok ? `calibrated in ${c.seconds} s` : (c.ok === false ? "calibration failed" : "");
+    calibResult(c);
     return;
   }
-  $("calib-progress").textContent = c.ok ? `calibrated in ${c.seconds} s` : (c.ok === false ? "calibration failed" : "");
-  calibResult(c);
 }
 act("btn-calib-run", async () => {
   $("calib-auto").checked = false;
