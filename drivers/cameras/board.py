@@ -18,6 +18,10 @@ Options (``[camera]`` with ``type = "board"``)::
     noise_std = 1.0              # Gaussian sensor noise (grey levels)
     blur_px = 0.7                # Gaussian blur sigma (px)
     seed = 1                     # same seed, same places
+    plate = false                # true: the demo plate (six dark 10 mm marks) lies on the
+                                 # table at the demo cell's taught place, where the truth
+                                 # cameras' hand-eye puts it; the operator holds the board
+                                 # only where it covers no mark, so a job finds the plate
     robot_state = "robot.json"   # optional: the robot twin's state file (vgripd.sim.robot_twin
                                  # --state), relative to the working directory
     board_offset_mm = [2.0, -3.0, 12.0]  # the board's centre in the flange frame (robot-held)
@@ -42,8 +46,14 @@ whole board. The images: each pixel's ray (through the camera's distortion) meet
 plane and takes the printed board's grey there (a texture at 4 px per mm, sampled bilinearly),
 then blur and noise. ``ImagePair.truth``: ``board`` (the spec), ``T_cam_board`` (left camera,
 4x4, mm), ``T_right_left`` (4x4 or None), ``still`` (False while moving), ``place``; with the
-board on the flange also ``T_base_flange`` and ``T_base_camera``; with the plate, the synthetic
-camera's truth (``T_base_obj`` ...).
+board on the flange also ``T_base_flange`` and ``T_base_camera``; after the walk, the synthetic
+camera's truth (``T_base_obj`` ...); with ``plate`` also ``T_base_obj`` (the plate in the base
+frame), ``T_base_camera`` (the left truth camera's hand-eye) and ``board_shown``.
+
+With ``plate`` the plate is rendered once at open by the synthetic camera's renderer (the same
+area-exact discs) through the truth cameras, at the demo reference pose, and the operator's
+board is drawn over it: the setup page's road without hardware (calibrate with the board,
+define the object from the plate's marks, teach, pick; docs/setup.md).
 """
 
 from __future__ import annotations
@@ -91,6 +101,7 @@ class BoardOptions(DriverOptions):
     board_offset_mm: tuple[float, float, float] = (2.0, -3.0, 12.0)
     board_turn_deg: float = Field(1.5, ge=-180.0, le=180.0)
     plate_pose: PoseConfig | None = None
+    plate: bool = False
 
 
 def _even_stripes(x: FloatArray, pitch: float, n: int) -> FloatArray:
@@ -155,6 +166,8 @@ class BoardCamera(CameraDriver):
                               "draws chessboards only")
         self._frame = 0
         self._places: list[FloatArray] = []
+        self._plate: list[np.ndarray] | None = None
+        self._plate_px: list[FloatArray] = []
 
     def describe(self) -> str:
         return f"the learning cell's {self.board.spec} board"
@@ -186,7 +199,7 @@ class BoardCamera(CameraDriver):
         except VgripError as err:
             raise CameraError(f"board: cannot set up the cameras: {err}") from None
         self._truth = truth
-        self._plate: Any = None
+        self._plate_cam: Any = None  # the object on the table after the robot twin's walk
         self._models: list[CameraModel] = [left] + ([right] if right is not None else [])
         self._T_cam_left = [np.eye(4)] + ([self._T_right_left]
                                           if self._T_right_left is not None else [])
@@ -200,6 +213,31 @@ class BoardCamera(CameraDriver):
         self._rng = np.random.default_rng(self.options.seed)
         self._frame = 0
         self._places = []
+        self._plate = None
+        self._plate_px = []
+        if self.options.plate:
+            try:
+                self._open_plate(truth)
+            except VgripError as err:
+                raise CameraError(f"board: cannot render the plate: {err}") from None
+
+    def _open_plate(self, truth: Config) -> None:
+        """The demo plate rendered once through every truth camera (no noise or blur here:
+        the frame's own are added over board and plate alike)."""
+        from drivers.cameras.synthetic import SyntheticCamera, SyntheticOptions
+
+        ref = truth.reference.T_base_obj
+        assert ref is not None  # the demo reference
+        options = SyntheticOptions(pose=ref, noise_std=0.0, blur_px=0.0)
+        renderer = SyntheticCamera(options, truth)
+        renderer._open_blocking()
+        pair = renderer._grab_blocking(1.0)
+        self._plate = [np.asarray(v, np.uint8) for v in pair.views]
+        self._plate_px = [np.asarray(pair.truth["pixels_left"], np.float64)] + (
+            [np.asarray(pair.truth["pixels_right"], np.float64)]
+            if pair.truth.get("pixels_right") is not None else [])
+        self._T_base_obj = np.asarray(pair.truth["T_base_obj"], np.float64)
+        self._T_base_camera = scene.T_base_camera(truth)
 
     # ---------------------------------------------------------------- the operator
     def _sees_whole(self, T_left_board: FloatArray) -> bool:
@@ -218,7 +256,25 @@ class BoardCamera(CameraDriver):
             if np.any(px[:, 0] < margin) or np.any(px[:, 0] > model.width - margin) or \
                     np.any(px[:, 1] < margin) or np.any(px[:, 1] > model.height - margin):
                 return False
-        return True
+        return not self._covers_plate(T_left_board)
+
+    def _covers_plate(self, T_left_board: FloatArray) -> bool:
+        """Whether the board (with its paper margin and a mark's width more) would hide a mark
+        of the plate in some camera."""
+        if not self._plate_px:
+            return False
+        p, m = self.board.pitch_mm, MARGIN_MM + 15.0
+        outline = np.array([[-p - m, -p - m, 0], [self.board.cols * p + m, -p - m, 0],
+                            [self.board.cols * p + m, self.board.rows * p + m, 0],
+                            [-p - m, self.board.rows * p + m, 0]], float)
+        for model, T, marks in zip(self._models, self._T_cam_left, self._plate_px,
+                                   strict=False):
+            cam = (T @ T_left_board @ np.c_[outline, np.ones(4)].T)[:3].T
+            poly = model.project(cam).astype(np.float32).reshape(-1, 1, 2)
+            if any(cv2.pointPolygonTest(poly, (float(u), float(v)), False) >= 0
+                   for u, v in marks if np.isfinite(u)):
+                return True
+        return False
 
     def _place(self, index: int) -> FloatArray:
         """Place ``index``: its board pose in the left camera (4x4, mm)."""
@@ -267,8 +323,13 @@ class BoardCamera(CameraDriver):
         return make_transform(R, a[:3, 3] * (1 - s) + b[:3, 3] * s), False, place
 
     # ---------------------------------------------------------------- rendering
-    def _render(self, camera: int, T_cam_board: FloatArray) -> np.ndarray:
+    def _render(self, camera: int, T_cam_board: FloatArray | None) -> np.ndarray:
+        """Camera ``camera``'s image of the board at ``T_cam_board`` (None: no board in
+        view, the plate alone)."""
         model = self._models[camera]
+        if T_cam_board is None:
+            assert self._plate is not None
+            return self._finish(self._plate[camera].astype(np.float32))
         # normalised (x, y, 1) -> board plane: the inverse of Hn = [r1 r2 t], then texture px
         Hn = np.column_stack([T_cam_board[:3, 0], T_cam_board[:3, 1], T_cam_board[:3, 3]])
         M = self._A @ np.linalg.inv(Hn)
@@ -282,6 +343,14 @@ class BoardCamera(CameraDriver):
         out: Any = cv2.remap(self._texture, mx, my, cv2.INTER_LINEAR,
                              borderMode=cv2.BORDER_CONSTANT, borderValue=110)
         out = out.astype(np.float32)
+        if self._plate is not None:  # the board over the plate: the table where it is not
+            inside = cv2.remap(np.ones(self._texture.shape, np.float32), mx, my,
+                               cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            out = inside * out + (1.0 - inside) * self._plate[camera].astype(np.float32)
+        return self._finish(out)
+
+    def _finish(self, out: Any) -> np.ndarray:
+        """Blur and sensor noise over the rendered grey levels (float32), as 8 bits."""
         if self.options.blur_px > 0:
             out = cv2.GaussianBlur(out, (0, 0), self.options.blur_px)
         if self.options.noise_std > 0:
@@ -330,7 +399,7 @@ class BoardCamera(CameraDriver):
 
     def _grab_plate(self, timeout_s: float) -> ImagePair:
         """The config's object on the table, drawn through the truth cameras."""
-        if self._plate is None:
+        if self._plate_cam is None:
             from drivers.cameras.synthetic import SyntheticCamera, SyntheticOptions
 
             pose = self.options.plate_pose or Config().reference.T_base_obj
@@ -349,8 +418,8 @@ class BoardCamera(CameraDriver):
                 plate._open_blocking()
             except VgripError as err:
                 raise CameraError(f"board: the plate on the table: {err}") from None
-            self._plate = plate
-        pair: ImagePair = self._plate._grab_blocking(timeout_s)
+            self._plate_cam = plate
+        pair: ImagePair = self._plate_cam._grab_blocking(timeout_s)
         return pair
 
     def _grab_blocking(self, timeout_s: float) -> ImagePair:
@@ -361,10 +430,17 @@ class BoardCamera(CameraDriver):
             return self._grab_plate(timeout_s)
         T, still, place = self._pose_at(self._frame)
         self._frame += 1
-        images = [self._render(c, T_cam @ T) for c, T_cam in enumerate(self._T_cam_left)]
+        # With the plate, the operator carries the board between places around the plate, not
+        # over it: a move that would hide a mark shows the table without the board.
+        shown = not (self._plate is not None and not still and self._covers_plate(T))
+        images = [self._render(c, T_cam @ T if shown else None)
+                  for c, T_cam in enumerate(self._T_cam_left)]
         truth: dict[str, Any] = {"board": self.board.spec, "T_cam_board": T.copy(),
                                  "T_right_left": self._T_right_left, "still": still,
                                  "place": place}
+        if self._plate is not None:
+            truth.update(T_base_obj=self._T_base_obj.copy(),
+                         T_base_camera=self._T_base_camera.copy(), board_shown=shown)
         return ImagePair(left=images[0], right=images[1] if len(images) > 1 else None,
                          t_mono_ns=time.monotonic_ns(), source=f"board:{self._frame - 1}",
                          meta={"frame": self._frame - 1}, truth=truth)

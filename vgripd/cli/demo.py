@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from vgripd.cli import demo_setup
 from vgripd.cli.demo_links import LINK_KINDS
 from vgripd.config import config_from_dict
 from vgripd.errors import LinkError
@@ -77,6 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="loopback address of the --link peer (default 127.0.0.1; "
                              "ur_rtde: a free one)")
     parser.add_argument("--verbose", action="store_true", help="show the daemon's log")
+    demo_setup.add_arguments(parser)
 
 
 def _port(wanted: int) -> int:
@@ -423,6 +425,8 @@ async def run_pallet(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.setup:
+        return demo_setup.run(args)
     if args.cycles is None:
         args.cycles = 2 if args.scene == "pallet" else 10
     if args.cycles < 1:

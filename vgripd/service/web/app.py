@@ -29,6 +29,7 @@ Routes (docs/web.md)::
     GET  /api/cameras, GET /api/cameras/{j}/preview.jpg       live cameras (``preview``)
     GET  /api/cameras/settings, POST /api/cameras/{j}/settings exposure, gain (``camsettings``)
     GET  /handeye/{plan,walk}, /api/handeye, POST /api/handeye/...  walked hand-eye (``walking``)
+    GET  /setup, /api/setup..., POST /api/setup/...            the guided setup (``setup``)
 
 Security model (``access.Access``, docs/web.md): read-only by default and bound to 127.0.0.1;
 the config refuses a non-loopback bind without ``status.token``, and such a bind needs the
@@ -69,6 +70,7 @@ from vgripd.service.web.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from vgripd.service.web.metrics import Metrics
 from vgripd.service.web.preview import PreviewRoutes
 from vgripd.service.web.registers import register_views
+from vgripd.service.web.setup import SetupRoutes
 from vgripd.service.web.teaching import TeachRoutes
 from vgripd.service.web.trigger import WEB_LINK, WebTriggerLink
 from vgripd.service.web.walking import WalkRoutes
@@ -290,6 +292,7 @@ class WebServer:
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self.setup.close()
         self.events.close()
         if self._runner is not None:
             await self.guard.stop()
@@ -369,6 +372,8 @@ class WebServer:
         self.camera_settings = CameraSettingsRoutes(self)
         self.camera_settings.add(r)
         WalkRoutes(self).add(r)
+        self.setup = SetupRoutes(self)
+        self.setup.add(r)
         r.add_static("/static/", STATIC)
         return app
 

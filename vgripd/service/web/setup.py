@@ -1,0 +1,511 @@
+"""The guided setup in the browser (docs/setup.md): cameras, calibration, hand-eye, object,
+link, test pick, one page (``/setup``) over these routes::
+
+    GET  /setup                          the page (static/setup.html, vanilla JS)
+    GET  /api/setup                      the steps, what is done (kept in the state folder:
+                                         resumable), the cell as it runs, the capture so far
+    GET  /api/setup/check                vgripd check of the running files, each finding under
+                                         its step (token: it runs a child process)
+    POST /api/setup/done                 {"step", "done"}: mark a step done or open again
+    POST /api/setup/calib/grab           {"board", "keep", "auto"}: grab (between jobs), the
+                                         board's corners in every camera, the set judged as
+                                         vgripd capture judges it, kept when worth it
+    GET  /api/setup/live/{n}/{k}.jpg     camera k of the last grab n, corners or marks drawn
+    POST /api/setup/calib/run            vgripd calibrate stereo on the kept sets, in a child
+    GET  /api/setup/calib[?wait=1]       the calibration: running (seconds), or its result
+    POST /api/setup/calib/drop           {"sets": [n, ...]}: sets put aside (outliers)
+    POST /api/setup/calib/accept         the result kept to go live with the hand-eye
+    POST /api/setup/handeye              {"translation_mm", "rotvec_rad"}: a fixed camera's pose
+    POST /api/setup/object/find          the marks both cameras see, in the base frame
+    POST /api/setup/object/save          {"name", "marks": [ids]}: the object from them, judged
+    GET  /api/setup/robot-program.zip    ?brand=B: vgripd robot-program for the link (child)
+
+Every POST (and the check) needs ``status.allow_config_edit`` and the token, as tuning,
+teaching and the walk pages do; every config write is one transaction of the daemon's config
+writer (``vgripd.service.configtxn``): judged as ``vgripd check`` judges it, then applied and
+saved, or refused with the includes untouched. Image work (corners, marks, a capture folder read
+back) runs in the image helper process, the calibration and the check in child processes
+(``vgripd.service.commands``): the loop keeps answering the PLC.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import logging
+import shutil
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from vgripd.calib.capturesets import Capture, camera_names
+from vgripd.config import DEMO_CALIBRATION
+from vgripd.errors import VgripError
+from vgripd.serialize import jsonable
+from vgripd.service.commands import run_vgripd
+from vgripd.service.configtxn import Outcome
+from vgripd.service.web import setupimages
+from vgripd.service.web.bodies import json_body
+from vgripd.service.web.registers import register_views
+from vgripd.service.web.setupsteps import (
+    DEFAULT_BOARD,
+    STEP_IDS,
+    STEPS,
+    calibration_edit,
+    dump_progress,
+    hand_eye_values,
+    load_progress,
+    object_edit,
+    parse_check,
+    state_dir,
+)
+from vgripd.vision.survey import judge_layout
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).parent / "static"
+CHECK_TIMEOUT_S = 120.0
+CALIBRATE_TIMEOUT_S = 900.0
+PROGRAM_TIMEOUT_S = 60.0
+CALIB_POLL_S = 5.0
+#: Sets the calibration needs at least (the command refuses fewer than 3 pairs).
+MIN_SETS = 3
+
+
+class SetupRoutes:
+    """The routes above for one ``WebServer``."""
+
+    def __init__(self, server: Any) -> None:
+        self.server = server
+        self.capture: Capture | None = None
+        self._grab_n = 0
+        self._live: list[bytes] = []
+        self._marks: list[dict[str, Any]] = []
+        self._calib: dict[str, Any] = {"running": False}
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._lock = asyncio.Lock()  # one grab or capture change at a time
+
+    def add(self, router: web.UrlDispatcher) -> None:
+        router.add_get("/setup", self.page)
+        router.add_get("/api/setup", self.show)
+        router.add_get("/api/setup/check", self.check)
+        router.add_post("/api/setup/done", self.done)
+        router.add_post("/api/setup/calib/grab", self.grab)
+        router.add_get("/api/setup/live/{n:\\d+}/{k:\\d+}.jpg", self.live)
+        router.add_post("/api/setup/calib/run", self.calibrate)
+        router.add_get("/api/setup/calib", self.calibration)
+        router.add_post("/api/setup/calib/drop", self.drop)
+        router.add_post("/api/setup/calib/accept", self.accept)
+        router.add_post("/api/setup/handeye", self.hand_eye)
+        router.add_post("/api/setup/object/find", self.find_object)
+        router.add_post("/api/setup/object/save", self.save_object)
+        router.add_get("/api/setup/robot-program.zip", self.robot_program)
+
+    # --- shared ---------------------------------------------------------------------------
+
+    @property
+    def daemon(self) -> Any:
+        return self.server.daemon
+
+    def _guard(self, request: web.Request) -> Any:
+        """The action check (404 disabled, 403 without the token); the daemon's reloader."""
+        self.server.check_action(request, bool(self.daemon.config.status.allow_config_edit),
+                                 "allow_config_edit")
+        reloader = self.daemon.reloader
+        if reloader is None:
+            raise web.HTTPNotFound(text="this daemon was not started from a config file")
+        return reloader
+
+    async def _folder(self) -> Path:
+        """The setup's own folder beside the writable includes (``<state>/setup``)."""
+        reloader = self.daemon.reloader
+        if reloader is None:
+            raise web.HTTPNotFound(text="this daemon was not started from a config file")
+        state = await asyncio.to_thread(state_dir, reloader.path)
+        if state is None:
+            raise web.HTTPConflict(text=f"{reloader.path} includes no writable files: the setup "
+                                        "writes into the includes vgripd init lays out")
+        folder = state / "setup"
+        await asyncio.to_thread(folder.mkdir, parents=True, exist_ok=True)
+        return folder
+
+    async def _progress(self) -> dict[str, Any]:
+        return await asyncio.to_thread(load_progress, await self._folder() / "progress.json")
+
+    async def _save_progress(self, data: dict[str, Any]) -> None:
+        path = await self._folder() / "progress.json"
+        await self.daemon.reloader.write_file(path, dump_progress(data))
+
+    async def _mark(self, *steps: str, done: bool = True) -> None:
+        data = await self._progress()
+        for step in steps:
+            if done:
+                data["done"][step] = time.time()
+            else:
+                data["done"].pop(step, None)
+        await self._save_progress(data)
+
+    @staticmethod
+    def _answer(outcome: Outcome, **extra: Any) -> web.Response:
+        return web.json_response({**outcome.as_dict(), **extra},
+                                 status=200 if outcome.applied else 422)
+
+    def _names(self, n_views: int) -> list[str]:
+        return camera_names(self.daemon.config, n_views)
+
+    # --- reads ----------------------------------------------------------------------------
+
+    async def page(self, request: web.Request) -> web.StreamResponse:
+        return web.FileResponse(STATIC / "setup.html", headers={"Cache-Control": "no-cache"})
+
+    async def show(self, request: web.Request) -> web.Response:
+        config = self.daemon.config
+        progress = await self._progress()
+        cal = config.calibration
+        cam = config.camera
+        options = cam.model_dump(mode="json", exclude_none=True)
+        capture = None
+        if self.capture is not None:
+            capture = self._capture_view(self.capture)
+        return web.json_response(jsonable({
+            "steps": [{"id": s, "title": t, "done": s in progress["done"]} for s, t in STEPS],
+            "edit": bool(config.status.allow_config_edit),
+            "trigger": bool(config.status.allow_trigger),
+            "camera": {"type": cam.type, "describe": getattr(self.daemon.camera, "describe",
+                                                             lambda: cam.type)(),
+                       "options": {k: v for k, v in options.items() if k != "type"}},
+            "calibrated": cal is not None,
+            "hand_eye": None if cal is None else cal.hand_eye.model_dump(mode="json",
+                                                                         exclude_none=True),
+            "learning_hand_eye": self._learning_hand_eye(),
+            "pending_calibration": progress.get("pending_calibration") is not None,
+            "board": progress.get("board") or options.get("board") or DEFAULT_BOARD,
+            "object": {"name": config.object.name, "definition": config.object.definition,
+                       "features": [f.name for f in config.object.features]},
+            "vendor": config.output.vendor,
+            "links": self.daemon.snapshot().get("links"),
+            "registers": register_views(self.daemon.links),
+            "capture": capture,
+        }))
+
+    def _learning_hand_eye(self) -> dict[str, Any] | None:
+        """Where the learning cell's cameras are (the board camera renders through the demo
+        cell's hand-eye): offered as the hand-eye step's values there, never elsewhere."""
+        if self.daemon.config.camera.type != "board":
+            return None
+        return DEMO_CALIBRATION.hand_eye.model_dump(mode="json", exclude_none=True)
+
+    async def check(self, request: web.Request) -> web.Response:
+        self._guard(request)
+        path = str(self.daemon.reloader.path)
+        rc, out, err = await run_vgripd(["check", "--running", "--untaught-ok", "-c", path],
+                                        CHECK_TIMEOUT_S)
+        ok, findings = parse_check(rc, out, err, path)
+        step = request.query.get("step")
+        chosen = [f for f in findings if step is None or f.step == step]
+        return web.json_response({"ok": ok, "summary": next(
+            (line for line in out.splitlines() if line.startswith("OK ")), ""),
+            "findings": [f.as_dict() for f in chosen], "all": len(findings)})
+
+    async def done(self, request: web.Request) -> web.Response:
+        self._guard(request)
+        body = await json_body(request)
+        step = body.get("step") if isinstance(body, dict) else None
+        if step not in STEP_IDS:
+            raise web.HTTPBadRequest(text=f"step: one of {', '.join(STEP_IDS)}")
+        await self._mark(step, done=bool(body.get("done", True)))
+        return web.json_response({"step": step, "done": bool(body.get("done", True))})
+
+    async def live(self, request: web.Request) -> web.Response:
+        n, k = request.match_info["n"], request.match_info["k"]
+        if len(n) > 9 or len(k) > 2 or int(n) != self._grab_n or int(k) >= len(self._live):
+            raise web.HTTPNotFound(text="only the last grab's pictures are kept")
+        return web.Response(body=self._live[int(k)], content_type="image/jpeg",
+                            headers={"Cache-Control": "no-store"})
+
+    # --- calibration capture ----------------------------------------------------------------
+
+    def _capture_view(self, state: Capture) -> dict[str, Any]:
+        return {"board": state.board.spec, "sets": len(state.kept), "folder": str(state.out),
+                "cameras": [{"name": n, "summary": c.summary(), "missing": c.missing(),
+                             "grid": c.grid, "cells": sorted(c.cells),
+                             "tilts": sorted(c.tilts)}
+                            for n, c in zip(state.names, state.coverage, strict=True)],
+                "manifest": [{"set": e["set"], "added": e.get("added", "")}
+                             for e in state.manifest]}
+
+    async def _account(self, spec: str, views: list[Any]) -> Capture:
+        """The capture account of the setup folder for ``spec`` (read back once)."""
+        names = self._names(len(views))
+        if self.capture is not None and self.capture.board.spec == spec and (
+                self.capture.names == names):
+            return self.capture
+        folder = await self._folder() / "calib"
+        if self.capture is not None and self.capture.board.spec != spec:
+            await asyncio.to_thread(shutil.rmtree, folder, True)  # a new board starts over
+        sizes = [(int(v.shape[1]), int(v.shape[0])) for v in views]
+        self.capture = await self.server.images.call(setupimages.resume_capture, spec,
+                                                     str(folder), names, sizes)
+        return self.capture
+
+    async def grab(self, request: web.Request) -> web.Response:
+        self._guard(request)
+        body = await json_body(request)
+        if not isinstance(body, dict):
+            raise web.HTTPBadRequest(text='a JSON object {"board": ..., "keep": ..., "auto": ...}')
+        spec = str(body.get("board") or DEFAULT_BOARD)[:80]
+        try:
+            from vgripd.calib.boards import Board
+
+            spec = Board.parse(spec).spec
+        except VgripError as err:
+            raise web.HTTPBadRequest(text=f"board: {err}") from None
+        async with self._lock:
+            pair = await self.server.previews.grab_between_jobs()
+            if pair is None:
+                raise web.HTTPConflict(text="a job runs (or the camera cannot grab): try again")
+            views = list(pair.views)
+            state = await self._account(spec, views)
+            jpegs, dets = await self.server.images.call(setupimages.board_corners, views,
+                                                        spec, state.names)
+            ok, why = state.judge(dets)
+            if body.get("keep") and not ok and all(d is not None for d in dets):
+                ok, why = True, "taken on request"
+            kept = None
+            if ok and (body.get("keep") or body.get("auto")):
+                kept = await asyncio.to_thread(state.keep, tuple(views), dets, why,
+                                               pair.t_mono_ns, pair.T_base_flange)
+                await asyncio.to_thread(state.write_manifest)
+            self._grab_n += 1
+            self._live = jpegs
+            progress = await self._progress()
+            if progress.get("board") != spec:
+                progress["board"] = spec
+                await self._save_progress(progress)
+        return web.json_response({
+            "grab": self._grab_n, "seen": [d is not None for d in dets], "worth": ok,
+            "why": why, "kept": kept,
+            "images": [f"/api/setup/live/{self._grab_n}/{k}.jpg" for k in range(len(jpegs))],
+            "capture": self._capture_view(state)})
+
+    # --- calibration --------------------------------------------------------------------------
+
+    async def calibration(self, request: web.Request) -> web.Response:
+        """The calibration's state; ``?wait=1`` answers when it ends, or after
+        ``CALIB_POLL_S`` (the page asks again at once: no timer of its own to slow down)."""
+        if request.query.get("wait") and self._calib.get("running") and self._tasks:
+            await asyncio.wait(set(self._tasks), timeout=CALIB_POLL_S)
+        calib = dict(self._calib)
+        if calib.get("running"):
+            calib["elapsed_s"] = round(time.monotonic() - calib["t0"], 1)
+        calib.pop("t0", None)
+        return web.json_response(jsonable(calib))
+
+    async def calibrate(self, request: web.Request) -> web.Response:
+        self._guard(request)
+        if self._calib.get("running"):
+            raise web.HTTPConflict(text="a calibration runs")
+        state = self.capture
+        if state is None or len(state.kept) < MIN_SETS:
+            raise web.HTTPConflict(text=f"capture at least {MIN_SETS} sets first (kept: "
+                                        f"{0 if state is None else len(state.kept)})")
+        if state.names != ["left", "right"]:
+            raise web.HTTPConflict(text="the page calibrates a stereo pair; for "
+                                        f"{len(state.names)} camera(s) run the command: "
+                                        "vgripd capture prints it")
+        out = await self._folder() / "rig-result.toml"
+        args = ["calibrate", "stereo", "--left", str(state.out / "left_*.png"),
+                "--right", str(state.out / "right_*.png"), "--board", state.board.spec,
+                "-o", str(out)]
+        self._calib = {"running": True, "t0": time.monotonic(), "sets": len(state.kept),
+                       "command": "vgripd " + " ".join(args)}
+        task = asyncio.ensure_future(self._run_calibration(args, out))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return web.json_response({"running": True, "command": self._calib["command"]})
+
+    async def _run_calibration(self, args: list[str], out: Path) -> None:
+        t0 = self._calib["t0"]
+        try:
+            await asyncio.to_thread(out.unlink, True)
+            rc, stdout, stderr = await run_vgripd(args, CALIBRATE_TIMEOUT_S)
+            result = None
+            if rc == 0:
+                result = await asyncio.to_thread(_read_result, out)
+            self._calib = {"running": False, "ok": rc == 0, "seconds": round(
+                time.monotonic() - t0, 1), "command": self._calib.get("command"),
+                "output": (stdout + stderr)[-4000:], "result": result}
+        except VgripError as err:
+            self._calib = {"running": False, "ok": False, "output": str(err), "result": None}
+
+    async def drop(self, request: web.Request) -> web.Response:
+        self._guard(request)
+        body = await json_body(request)
+        sets = body.get("sets") if isinstance(body, dict) else None
+        if not (isinstance(sets, list) and all(isinstance(s, int) for s in sets)):
+            raise web.HTTPBadRequest(text='{"sets": [set numbers]}')
+        async with self._lock:
+            state = self.capture
+            if state is None:
+                raise web.HTTPConflict(text="no capture")
+            moved = await asyncio.to_thread(_put_aside, state.out, set(sets))
+            self.capture = None  # read back without them at the next grab
+            self._calib = {"running": False}
+        return web.json_response({"dropped": moved})
+
+    async def accept(self, request: web.Request) -> web.Response:
+        self._guard(request)
+        result = await self._folder() / "rig-result.toml"
+        if not self._calib.get("ok") or not result.exists():
+            raise web.HTTPConflict(text="no calibration result to accept: run it first")
+        # The hand-eye belongs to one camera model (its [about] fingerprint): a new rig goes
+        # live together with the cameras' pose, confirmed or measured again (next step).
+        progress = await self._progress()
+        progress["pending_calibration"] = str(result)
+        progress["done"]["calibration"] = time.time()
+        await self._save_progress(progress)
+        return web.json_response({"applied": False, "pending": True, "message": (
+            "accepted: it goes live with the cameras' pose (next step, hand-eye), which "
+            "belongs to the camera model")})
+
+    async def hand_eye(self, request: web.Request) -> web.Response:
+        reloader = self._guard(request)
+        body = await json_body(request)
+        try:
+            hand_eye = hand_eye_values(body)
+        except ValueError as err:
+            raise web.HTTPBadRequest(text=str(err)) from None
+        progress = await self._progress()
+        pending = progress.get("pending_calibration")
+        text = None
+        if pending:
+            text = await asyncio.to_thread(Path(pending).read_text, encoding="utf-8")
+        elif self.daemon.config.calibration is None:
+            raise web.HTTPConflict(text="calibrate the cameras first (step Calibration)")
+        outcome = await reloader.write(calibration_edit(text, hand_eye),
+                                       f"web {request.remote}", "setup: hand-eye",
+                                       untaught_ok=True)
+        if outcome.applied:
+            progress = await self._progress()
+            progress.pop("pending_calibration", None)
+            progress["done"]["handeye"] = time.time()
+            await self._save_progress(progress)
+        return self._answer(outcome)
+
+    # --- the object ---------------------------------------------------------------------------
+
+    async def find_object(self, request: web.Request) -> web.Response:
+        self._guard(request)
+        if self.daemon.config.calibration is None:
+            raise web.HTTPConflict(text="the marks are measured with the calibration and the "
+                                        "hand-eye: those steps first")
+        async with self._lock:
+            pair = await self.server.previews.grab_between_jobs()
+            if pair is None:
+                raise web.HTTPConflict(text="a job runs (or the camera cannot grab): try again")
+            try:
+                jpegs, marks = await self.server.images.call(
+                    setupimages.find_marks, list(pair.views), self.daemon.config)
+            except (ValueError, VgripError) as err:
+                raise web.HTTPConflict(text=str(err)) from None
+            self._grab_n += 1
+            self._live, self._marks = jpegs, marks
+        return web.json_response({"marks": marks, "images": [
+            f"/api/setup/live/{self._grab_n}/{k}.jpg" for k in range(len(jpegs))]})
+
+    async def save_object(self, request: web.Request) -> web.Response:
+        reloader = self._guard(request)
+        body = await json_body(request)
+        if not isinstance(body, dict) or not isinstance(body.get("marks"), list):
+            raise web.HTTPBadRequest(text='{"name": "...", "marks": [ids]}')
+        name = str(body.get("name") or "object").strip()[:64] or "object"
+        by_id = {m["id"]: m for m in self._marks}
+        unknown = [i for i in body["marks"] if i not in by_id]
+        if unknown:
+            raise web.HTTPBadRequest(text=f"marks {unknown}: not among the marks found last "
+                                          f"({', '.join(map(str, by_id)) or 'none'})")
+        chosen = [{**by_id[i], "name": f"m{i}"} for i in body["marks"]]
+        findings = judge_layout([m["name"] for m in chosen],
+                                [m["xyz_mm"] for m in chosen],  # type: ignore[arg-type]
+                                [m["diameter_mm"] for m in chosen])
+        judged = [f.as_dict() for f in findings]
+        if any(f.level == "ERROR" for f in findings):
+            return web.json_response({"applied": False, "layout": judged, "message": (
+                "refused, nothing written: " + "; ".join(
+                    f.message for f in findings if f.level == "ERROR"))}, status=422)
+        outcome = await reloader.write(object_edit(name, chosen), f"web {request.remote}",
+                                       "setup: object")
+        if outcome.applied:
+            await self._mark("object")
+        return self._answer(outcome, layout=judged)
+
+    # --- the link -------------------------------------------------------------------------------
+
+    async def robot_program(self, request: web.Request) -> web.Response:
+        self._guard(request)
+        brand = request.query.get("brand", "")
+        if not brand.isascii() or not brand.isalpha() or len(brand) > 20:
+            raise web.HTTPBadRequest(text="brand: a robot brand (vgripd robot-program --help)")
+        path = str(self.daemon.reloader.path)
+        with tempfile.TemporaryDirectory(prefix="vgripd-program-") as tmp:
+            rc, out, err = await run_vgripd(["robot-program", "--brand", brand, "-c", path,
+                                             "-o", tmp], PROGRAM_TIMEOUT_S)
+            if rc != 0:
+                raise web.HTTPUnprocessableEntity(text=(err or out).strip()[-2000:])
+            data = await asyncio.to_thread(_zip_folder, Path(tmp))
+        return web.Response(body=data, content_type="application/zip", headers={
+            "Content-Disposition": f'attachment; filename="vgripd-{brand}.zip"'})
+
+    async def close(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+
+
+def _read_result(path: Path) -> dict[str, Any]:
+    """What the page shows of a stereo calibration result: the figures of its ``[about]``
+    (RMS, standard deviations, per pair, rejected, warnings) and the fitted values."""
+    import tomllib
+
+    data = tomllib.loads(path.read_text(encoding="utf-8"))
+    about = data.get("about", {})
+    cal = data.get("calibration", {})
+    return {"rms_px": about.get("rms_px"), "pairs_used": about.get("pairs_used"),
+            "std": about.get("std"), "per_pair": about.get("per_pair"),
+            "rejected": about.get("rejected"), "warnings": about.get("warnings"),
+            "model_choice": about.get("model_choice"), "epipolar_px": about.get("epipolar_px"),
+            "left": cal.get("left"), "right": cal.get("right"),
+            "T_right_left": cal.get("stereo", {}).get("T_right_left")}
+
+
+def _put_aside(folder: Path, sets: set[int]) -> list[int]:
+    """Sets ``sets`` of a capture folder moved to ``dropped/`` and out of its manifest."""
+    manifest_path = folder / "capture.json"
+    data = json.loads(manifest_path.read_text())
+    aside = folder / "dropped"
+    aside.mkdir(exist_ok=True)
+    kept, moved = [], []
+    for entry in data["sets"]:
+        if entry["set"] in sets:
+            for name in entry["files"]:
+                (folder / name).replace(aside / name)
+            moved.append(entry["set"])
+        else:
+            kept.append(entry)
+    data["sets"] = kept
+    manifest_path.write_text(json.dumps(data, indent=1) + "\n")
+    return moved
+
+
+def _zip_folder(folder: Path) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for path in sorted(folder.rglob("*")):
+            if path.is_file():
+                z.write(path, path.relative_to(folder))
+    return buf.getvalue()

@@ -1,0 +1,88 @@
+"""The setup page's image work, run in the web view's image helper process (``images.
+ImageRenderer.call``), never on the daemon's loop: the board's corners found and drawn in every
+camera, the marks surveyed in a stereo pair and drawn numbered, and a capture folder's account
+read back (which detects the board in every image kept so far).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vgripd.calib.boards import Board, Detection
+from vgripd.calib.capturesets import Capture, detect_or_none
+from vgripd.calib.coverage import Coverage
+from vgripd.config import Config
+from vgripd.service.web.images import _encode
+from vgripd.vision import scene
+from vgripd.vision.survey import survey
+
+
+def _bgr(image: Any) -> np.ndarray:
+    import cv2
+
+    gray = np.asarray(image)
+    return cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR) if gray.ndim == 2 else gray.copy()
+
+
+def board_corners(views: list[Any], spec: str, names: list[str]
+                  ) -> tuple[list[bytes], list[Detection | None]]:
+    """Each view with the board's corners drawn (green, the first corner red), and the
+    detections (None where the board is not seen whole)."""
+    import cv2
+
+    board = Board.parse(spec)
+    dets = [detect_or_none(board, v, n) for v, n in zip(views, names, strict=True)]
+    pictures = []
+    for view, det in zip(views, dets, strict=True):
+        bgr = _bgr(view)
+        scale = max(1, bgr.shape[1] // 800)
+        if det is not None:
+            for k, (x, y) in enumerate(det.px):
+                cv2.circle(bgr, (int(round(x)), int(round(y))), 5 * scale,
+                           (0, 0, 255) if k == 0 else (0, 200, 0), 2 * scale)
+        else:
+            cv2.putText(bgr, "board not seen whole", (20 * scale, 40 * scale),
+                        cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 255), 2 * scale)
+        pictures.append(bgr)
+    return _encode(pictures), dets
+
+
+def find_marks(views: list[Any], config: Config) -> tuple[list[bytes], list[dict[str, Any]]]:
+    """The marks seen in both images of a stereo pair (``vgripd.vision.survey``), numbered
+    on each image; the config gives the calibration, the hand-eye and the finder's limits."""
+    import cv2
+
+    rig = scene.stereo_rig(config)
+    if rig is None or len(views) < 2:
+        raise ValueError("the object step needs a calibrated stereo pair")
+    v = config.vision
+    marks = survey(views[0], views[1], rig, scene.T_base_camera(config),
+                   min_contrast=v.min_contrast, min_circularity=max(0.75, v.min_circularity),
+                   tolerance_px=v.epipolar_tolerance_px)
+    pictures = []
+    for side, view in enumerate(views[:2]):
+        bgr = _bgr(view)
+        scale = max(1, bgr.shape[1] // 800)
+        for m in marks:
+            x, y = m.px_left if side == 0 else m.px_right
+            centre = (int(round(x)), int(round(y)))
+            cv2.circle(bgr, centre, 18 * scale, (0, 160, 255), 2 * scale)
+            cv2.putText(bgr, str(m.id), (centre[0] + 20 * scale, centre[1] - 12 * scale),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.9 * scale, (0, 160, 255), 2 * scale)
+        pictures.append(bgr)
+    return _encode(pictures), [m.as_dict() for m in marks]
+
+
+def resume_capture(spec: str, folder: str, names: list[str], sizes: list[tuple[int, int]]
+                   ) -> Capture:
+    """The capture account of ``folder`` (its sets read back and detected again), ready for
+    more sets; the sets there count for the coverage."""
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    state = Capture(Board.parse(spec), out, 0, 1.0, 20.0, list(names),
+                    [Coverage(size) for size in sizes])
+    state.resumed = state.resume()
+    return state

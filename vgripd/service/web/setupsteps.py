@@ -1,0 +1,217 @@
+"""The guided setup's server-side steps, apart from the routes (``setup.py``): the steps and
+their order, what the page keeps between visits (resumable), ``vgripd check``'s findings sorted
+to the step they belong to, and the config edits each step makes through the one config
+transaction (``vgripd.service.configtxn``).
+
+Where a step writes: the include that sets the keys now (as the tuning save and teaching find
+theirs), else the include of the layout ``vgripd init`` writes (``rig.toml`` for the cameras'
+calibration, ``handeye.toml``, ``cell.toml`` for the object, ``reference.toml``). The main file
+is never written.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from vgripd.config import read_config_data
+from vgripd.configsnapshot import Snapshot
+from vgripd.geometry.fingerprint import camera_about
+from vgripd.serialize import toml_from_dict
+from vgripd.service.configtxn import Edit, EditRefused
+
+#: (id, title) of each step, in the order of a commissioning.
+STEPS = (("cameras", "Cameras"), ("calibration", "Calibration"), ("handeye", "Hand-eye"),
+         ("object", "Object"), ("link", "Link"), ("pick", "Test pick"))
+STEP_IDS = tuple(s for s, _ in STEPS)
+#: What a check finding talks about, tried in this order: the first step whose pattern matches
+#: the finding's text gets it (the test pick gets the rest: it needs everything).
+STEP_PATTERNS = (
+    ("handeye", re.compile(r"hand_eye|hand-eye|T_base_camera|T_flange_camera")),
+    ("calibration", re.compile(r"calibration|camera model|not calibrated|epipolar")),
+    ("object", re.compile(r"\bobject\b|object\.|reference|vision\.|not taught|feature")),
+    ("link", re.compile(r"links|status\.|\bport\b|link")),
+    ("cameras", re.compile(r"\bcamera\b|camera\.")),
+)
+#: Where a step writes when no include sets its keys yet (``vgripd init``'s layout).
+DEFAULT_INCLUDES = {"calibration.left.": "rig.toml", "calibration.hand_eye.": "handeye.toml",
+                    "object.": "cell.toml", "reference.": "reference.toml"}
+#: The board of the learning cell, and the one offered otherwise.
+DEFAULT_BOARD = "chessboard:9x6:30"
+
+
+@dataclass(frozen=True)
+class CheckFinding:
+    """One line of ``vgripd check``: level, the step it belongs to, the text."""
+
+    level: str
+    step: str
+    message: str
+
+    def as_dict(self) -> dict[str, str]:
+        return {"level": self.level, "step": self.step, "message": self.message}
+
+
+def step_of(message: str) -> str:
+    for step, pattern in STEP_PATTERNS:
+        if pattern.search(message):
+            return step
+    return "pick"
+
+
+def parse_check(rc: int, out: str, err: str, config_path: str) -> tuple[bool, list[CheckFinding]]:
+    """``vgripd check``'s outcome (passed, findings) from its exit code and output: an error
+    line per problem on stderr (exit 78), ``warning:``/``note:`` lines after the OK line."""
+    findings = []
+    prefix = f"{config_path}: "
+    for line in out.splitlines():
+        level, _, text = line.partition(": ")
+        if level in ("warning", "note", "error") and text:
+            text = text.removeprefix(prefix)
+            findings.append(CheckFinding(level.upper(), step_of(text), text))
+    if rc != 0:
+        body = err.strip().removeprefix("vgripd: config error: ").removeprefix("vgripd: ")
+        for line in body.splitlines():
+            text = line.strip().removeprefix(prefix)
+            if text:
+                findings.append(CheckFinding("ERROR", step_of(text), text))
+        if not body:
+            findings.append(CheckFinding("ERROR", "pick", f"vgripd check exited with {rc}"))
+    return rc == 0, findings
+
+
+# --- resumable progress ---------------------------------------------------------------------
+
+def load_progress(path: Path) -> dict[str, Any]:
+    """The page's progress file (steps done, the board, an accepted calibration); empty when
+    there is none or it cannot be read (the page starts over, nothing else depends on it)."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {"done": {}}
+    if not isinstance(data, dict) or not isinstance(data.get("done"), dict):
+        return {"done": {}}
+    return data
+
+
+def dump_progress(data: Mapping[str, Any]) -> bytes:
+    return (json.dumps(data, indent=1, sort_keys=True) + "\n").encode()
+
+
+# --- where a step writes --------------------------------------------------------------------
+
+def include_for(snapshot: Snapshot, prefix: str) -> Path:
+    """The include a step writes the keys under ``prefix`` to: the one file setting them now,
+    else the layout's file of that name among the includes; ``EditRefused`` naming why not."""
+    owner: dict[str, str] = {}
+    included: list[tuple[str, dict[str, Any], dict[str, Any]]] = []
+    read_config_data(snapshot.main, owner, included, snapshot.files)
+    holders = {src for key, src in owner.items() if key.startswith(prefix)}
+    main = str(snapshot.main)
+    if holders and main in holders:
+        raise EditRefused(f"{main}: {prefix.rstrip('.')} is set in the main config file: the "
+                          "setup writes only the includes (vgripd init lays a config out so)")
+    if len(holders) == 1:
+        return Path(next(iter(holders)))
+    if len(holders) > 1:
+        raise EditRefused(f"{prefix.rstrip('.')} is set in several files "
+                          f"({', '.join(sorted(holders))})")
+    name = DEFAULT_INCLUDES[prefix]
+    for path, _, _ in included:
+        if Path(path).name == name:
+            return Path(path)
+    raise EditRefused(f"{main}: no include holds {prefix.rstrip('.')} and none is named {name} "
+                      "(vgripd init lays out rig.toml, handeye.toml, cell.toml, reference.toml)")
+
+
+def state_dir(config_path: Path, files: Mapping[str, bytes] | None = None) -> Path | None:
+    """The folder of the config's writable includes (the first one's), None without any."""
+    included: list[tuple[str, dict[str, Any], dict[str, Any]]] = []
+    read_config_data(config_path, None, included, files)
+    return Path(included[0][0]).parent if included else None
+
+
+# --- the edits ------------------------------------------------------------------------------
+
+def rig_sections(rig_text: str) -> dict[str, Any]:
+    """``[calibration]`` of a ``vgripd calibrate stereo`` result (left, right, stereo)."""
+    calibration = dict(tomllib.loads(rig_text).get("calibration", {}))
+    calibration.pop("hand_eye", None)
+    if "left" not in calibration:
+        raise EditRefused("the calibration result has no [calibration.left]")
+    return calibration
+
+
+def calibration_edit(rig_text: str | None, hand_eye: dict[str, Any] | None) -> Edit:
+    """The cameras' calibration (a result file's text) and/or the hand-eye, into their
+    includes as one write. The hand-eye's ``[about]`` records the camera model it belongs to,
+    as ``vgripd calibrate handeye`` writes it."""
+    def edit(snapshot: Snapshot) -> dict[Path, bytes]:
+        texts: dict[Path, dict[str, Any]] = {}
+
+        def data(path: Path) -> dict[str, Any]:
+            if path not in texts:
+                texts[path] = tomllib.loads(snapshot.text(path))
+            return texts[path]
+
+        current = read_config_data(snapshot.main, files=snapshot.files).get("calibration", {})
+        calibration = {k: v for k, v in current.items() if k != "hand_eye"}
+        if rig_text is not None:
+            calibration = rig_sections(rig_text)
+            target = include_for(snapshot, "calibration.left.")
+            part = data(target)
+            kept = part.get("calibration", {}).get("hand_eye")
+            part["calibration"] = {**calibration, **({"hand_eye": kept} if kept else {})}
+        if hand_eye is not None:
+            target = include_for(snapshot, "calibration.hand_eye.")
+            part = data(target)
+            part.setdefault("calibration", {})["hand_eye"] = hand_eye
+            if calibration.get("left"):
+                about = part.setdefault("about", {})
+                about.update(camera_about(calibration))
+        return {p: snapshot.encoded(p, toml_from_dict(d)) for p, d in texts.items()}
+    return edit
+
+
+def object_edit(name: str, marks: list[dict[str, Any]], polarity: str = "dark") -> Edit:
+    """The chosen marks as an ``object.definition = "reference"`` object (their measured
+    base-frame points as ``xyz_mm``) in the object's include, and the reference reset for it
+    (no ``T_base_obj``; ``points_mm`` come with teaching; a taught ``grip`` stays)."""
+    features = [{"name": m["name"], "kind": "circle", "polarity": polarity,
+                 "diameter_mm": round(float(m["diameter_mm"]), 1),
+                 "xyz_mm": [round(float(v), 3) for v in m["xyz_mm"]]} for m in marks]
+
+    def edit(snapshot: Snapshot) -> dict[Path, bytes]:
+        cell = include_for(snapshot, "object.")
+        ref = include_for(snapshot, "reference.")
+        cell_data = tomllib.loads(snapshot.text(cell))
+        cell_data["object"] = {"name": name, "definition": "reference", "features": features}
+        out = {cell: cell_data}
+        ref_data = cell_data if ref == cell else tomllib.loads(snapshot.text(ref))
+        grip = ref_data.get("reference", {}).get("grip")
+        ref_data["reference"] = {"grip": grip} if grip else {}
+        out[ref] = ref_data
+        return {p: snapshot.encoded(p, toml_from_dict(d)) for p, d in out.items()}
+    return edit
+
+
+def hand_eye_values(body: Any) -> dict[str, Any]:
+    """A fixed camera's ``T_base_camera`` from the page's form: ``{"translation_mm": [3],
+    "rotvec_rad": [3]}``; ``ValueError`` naming the field."""
+    if not isinstance(body, dict):
+        raise ValueError('a JSON object {"translation_mm": [x, y, z], "rotvec_rad": [rx, ry, rz]}')
+    pose = {}
+    for key in ("translation_mm", "rotvec_rad"):
+        value = body.get(key)
+        if not (isinstance(value, list) and len(value) == 3 and all(
+                isinstance(v, int | float) and not isinstance(v, bool) and v == v
+                for v in value)):
+            raise ValueError(f"calibration.hand_eye.T_base_camera.{key}: three numbers, "
+                             f"got {value!r}")
+        pose[key] = [float(v) for v in value]
+    return {"mounting": "fixed", "T_base_camera": pose}

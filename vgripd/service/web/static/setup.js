@@ -1,0 +1,363 @@
+// The guided setup (docs/setup.md): one section per step, the server keeps what is done.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+let state = null;
+let step = "cameras";
+let previewTimer = null;
+window.setupActions = 0;  // page actions (clicks and form submits) counted for the bench
+
+$("token").value = sessionStorage.getItem("vgripd-token") || "";
+$("token").addEventListener("change", () => sessionStorage.setItem("vgripd-token", $("token").value));
+
+function headers(json) {
+  const h = { Authorization: `Bearer ${$("token").value}` };
+  if (json) h["Content-Type"] = "application/json";
+  return h;
+}
+
+// A request's answer as {ok, status, data}: JSON when it is, else the text as data.message.
+async function call(method, url, body) {
+  const resp = await fetch(url, { method, headers: headers(body !== undefined),
+                                  body: body === undefined ? undefined : JSON.stringify(body) });
+  const text = await resp.text();
+  let data;
+  try { data = JSON.parse(text); } catch { data = { message: text }; }
+  return { ok: resp.ok, status: resp.status, data };
+}
+
+function fmt(v, d) { return typeof v === "number" ? v.toFixed(d) : String(v); }
+function li(text, cls) { const e = document.createElement("li"); e.textContent = text; if (cls) e.className = cls; return e; }
+function img(src, alt) { const e = document.createElement("img"); e.src = src; e.alt = alt; return e; }
+function row(cells) {
+  const tr = document.createElement("tr");
+  for (const c of cells) {
+    const td = document.createElement("td");
+    if (c instanceof Node) td.append(c); else td.textContent = c;
+    tr.append(td);
+  }
+  return tr;
+}
+function act(id, fn) {
+  $(id).addEventListener("click", (e) => { e.preventDefault(); window.setupActions += 1; fn(); });
+}
+function outcome(el, r) {
+  const d = r.data;
+  const applied = d.applied === true;
+  el.textContent = (applied ? "APPLIED: " : (d.pending ? "ACCEPTED: " : `REFUSED (${r.status}): `)) +
+    (d.message || "");
+  el.className = applied || d.pending ? "status ok" : "status bad";
+}
+
+// --- steps ------------------------------------------------------------------------------------
+async function load() {
+  const r = await call("GET", "/api/setup");
+  if (!r.ok) { $("setup-note").textContent = `${r.status} ${r.data.message}`; return; }
+  state = r.data;
+  $("steps").replaceChildren(...state.steps.map((s, i) => {
+    const b = document.createElement("button");
+    b.id = `nav-${s.id}`;
+    b.textContent = `${i + 1}. ${s.title}${s.done ? " \u2713" : ""}`;
+    b.className = s.id === step ? "current" : "";
+    b.addEventListener("click", () => { window.setupActions += 1; show(s.id); });
+    return b;
+  }));
+  $("setup-note").textContent = state.edit ? "" :
+    "Saving needs status.allow_config_edit (and the token): the page only shows.";
+  fill();
+}
+
+function show(id, keepCheck) {
+  step = id;
+  for (const s of document.querySelectorAll(".step")) s.hidden = s.id !== `step-${id}`;
+  if (!keepCheck) {
+    $("check-step").textContent = id;
+    $("check-findings").replaceChildren();
+    $("check-summary").textContent = "";
+  }
+  if (previewTimer) { clearInterval(previewTimer); previewTimer = null; }
+  if (id === "cameras") previewTimer = setInterval(previews, 1000);
+  load().catch(() => {});
+}
+
+function fill() {
+  const s = state;
+  $("cam-describe").textContent = `camera type ${s.camera.type}: ${s.camera.describe}`;
+  if (!$("calib-board").value) $("calib-board").value = s.board;
+  if (s.capture) coverage(s.capture);
+  $("he-current").textContent = s.hand_eye ? `now: ${JSON.stringify(s.hand_eye)}` :
+    (s.pending_calibration ? "the accepted calibration waits for this pose" : "no hand-eye yet");
+  $("btn-he-learning").hidden = !s.learning_hand_eye;
+  const pose = s.hand_eye && s.hand_eye.T_base_camera;
+  if (pose && !$("he-t").value) {  // a new rig goes live with the pose confirmed again
+    $("he-t").value = pose.translation_mm.join(" ");
+    $("he-r").value = (pose.rotvec_rad || [0, 0, 0]).join(" ");
+  }
+  $("link-table").tBodies[0].replaceChildren(...Object.entries(s.links || {}).map(
+    ([name, h]) => row([name, h.state, h.peer || "", String((h.peers || []).length ?? "")])));
+  $("link-registers").replaceChildren(...(s.registers || []).map((reg) => {
+    const t = document.createElement("table");
+    const cap = document.createElement("caption");
+    cap.textContent = `${reg.link}: register map (${reg.word_order || ""} ${reg.value_format || ""})`;
+    t.append(cap, ...reg.rows.slice(0, 40).map((r) => row([String(r.address), r.name, String(r.value ?? ""), r.meaning || ""])));
+    return t;
+  }));
+}
+
+async function previews() {
+  const imgs = [];
+  for (let j = 0; j < 2; j++) {
+    const e = img(`/api/cameras/${j}/preview.jpg?t=${Date.now()}`, `camera ${j}`);
+    e.addEventListener("error", () => e.remove());  // a camera with one image
+    imgs.push(e);
+  }
+  $("cam-previews").replaceChildren(...imgs);
+}
+
+// --- 1 cameras --------------------------------------------------------------------------------
+$("cam-form").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  window.setupActions += 1;
+  const body = {};
+  if ($("cam-exposure").value) body.exposure_us = Number($("cam-exposure").value);
+  if ($("cam-gain").value) body.gain_db = Number($("cam-gain").value);
+  const r = await call("POST", "/api/cameras/0/settings", body);
+  $("cam-result").textContent = r.ok ? `applied: ${JSON.stringify(r.data.read_back)}; ${r.data.saved.message}` :
+    `REFUSED (${r.status}): ${r.data.message}`;
+});
+
+// --- 2 calibration ----------------------------------------------------------------------------
+function coverage(c) {
+  const blocks = c.cameras.map((cam) => {
+    const div = document.createElement("div");
+    div.className = "coverage";
+    const t = document.createElement("table");
+    const cells = new Set(cam.cells.map(([x, y]) => `${x},${y}`));
+    for (let y = 0; y < cam.grid; y++) {
+      const tr = document.createElement("tr");
+      for (let x = 0; x < cam.grid; x++) {
+        const td = document.createElement("td");
+        td.className = cells.has(`${x},${y}`) ? "covered" : "missing";
+        td.textContent = cells.has(`${x},${y}`) ? "\u25a0" : "\u00b7";
+        tr.append(td);
+      }
+      t.append(tr);
+    }
+    const p = document.createElement("p");
+    p.textContent = `${cam.name}: ${cam.summary}` + (cam.missing.length ? `; still missing: ${cam.missing.join("; ")}` : "; complete");
+    div.append(t, p);
+    return div;
+  });
+  const head = document.createElement("p");
+  head.id = "calib-sets";
+  head.textContent = `${c.sets} set(s) kept in ${c.folder}`;
+  $("calib-coverage").replaceChildren(head, ...blocks);
+}
+
+async function grab(keep, auto) {
+  const r = await call("POST", "/api/setup/calib/grab", { board: $("calib-board").value, keep, auto });
+  if (!r.ok) { $("calib-why").textContent = `${r.status}: ${r.data.message}`; return false; }
+  const g = r.data;
+  $("calib-why").textContent = g.kept ? g.kept : `grab ${g.grab}: ${g.why}`;
+  $("calib-images").replaceChildren(...g.images.map((src, k) => img(src, `corners ${k}`)));
+  coverage(g.capture);
+  return true;
+}
+act("btn-calib-grab", () => grab(false, false));
+act("btn-calib-keep", () => grab(true, false));
+// Auto-capture: one grab after the other while ticked (each is paced by the camera and the
+// corner search); a pause only after a refusal. No timer between grabs: a browser slows the
+// timers of a page it does not show, not its requests.
+let autoRunning = false;
+$("calib-auto").addEventListener("change", async () => {
+  window.setupActions += 1;
+  if (autoRunning) return;
+  autoRunning = true;
+  try {
+    while ($("calib-auto").checked) {
+      const ok = await grab(false, true).catch(() => false);
+      if (!ok) await new Promise((r) => setTimeout(r, 1000));
+    }
+  } finally { autoRunning = false; }
+});
+
+function calibResult(c) {
+  const res = c.result;
+  if (!res) {
+    $("calib-result").textContent = c.ok === false ? `FAILED: ${c.output}` : "";
+    return;
+  }
+  const std = res.std || {};
+  const lines = [
+    `RMS ${fmt(res.rms_px, 4)} px over ${res.pairs_used} pairs; epipolar ${JSON.stringify(res.epipolar_px)}`,
+    `left fx ${fmt(res.left.fx, 2)} +- ${fmt((std.left || {}).fx, 2)}, cx ${fmt(res.left.cx, 2)}, cy ${fmt(res.left.cy, 2)}`,
+    `baseline ${JSON.stringify(res.T_right_left.translation_mm)} mm +- ${JSON.stringify(std.translation_mm)}`,
+    `model: ${res.model_choice}`,
+  ];
+  const p = document.createElement("pre");
+  p.id = "calib-figures";
+  p.textContent = lines.concat((res.warnings || []).map((w) => `warning: ${w}`)).join("\n");
+  const t = document.createElement("table");
+  t.id = "calib-pairs";
+  const pairs = res.per_pair || [];
+  const worst = Math.max(...pairs.map((q) => q.rms_px || 0));
+  for (const q of pairs) {
+    const box = document.createElement("input");
+    box.type = "checkbox";
+    const m = /_(\d+)\.png/.exec(q.left || q.name || "");
+    box.dataset.set = m ? String(Number(m[1])) : "";
+    if ((q.rms_px || 0) === worst && pairs.length > 3) box.title = "the worst pair";
+    t.append(row([box, q.left || q.name || "", fmt(q.rms_px, 4)]));
+  }
+  $("calib-result").replaceChildren(p, t);
+  $("btn-calib-drop").hidden = false;
+  $("btn-calib-accept").hidden = false;
+}
+
+async function pollCalibration() {
+  for (;;) {  // the server answers when it ends or every few seconds (?wait=1)
+    const r = await call("GET", "/api/setup/calib?wait=1");
+    const c = r.data;
+    if (c.running) {
+      $("calib-progress").textContent = `calibrating ${c.sets} sets in a child process: ${fmt(c.elapsed_s, 0)} s`;
+      continue;
+    }
+    $("calib-progress").textContent = c.ok ? `calibrated in ${c.seconds} s` : (c.ok === false ? "calibration failed" : "");
+    calibResult(c);
+    return;
+  }
+}
+act("btn-calib-run", async () => {
+  $("calib-auto").checked = false;
+  const r = await call("POST", "/api/setup/calib/run");
+  if (!r.ok) { $("calib-progress").textContent = `${r.status}: ${r.data.message}`; return; }
+  pollCalibration();
+});
+act("btn-calib-drop", async () => {
+  const sets = [...document.querySelectorAll("#calib-pairs input:checked")].map((b) => Number(b.dataset.set));
+  const r = await call("POST", "/api/setup/calib/drop", { sets });
+  $("calib-accepted").textContent = r.ok ? `put aside: ${r.data.dropped.join(", ")}; calibrate again` : r.data.message;
+});
+act("btn-calib-accept", async () => {
+  const r = await call("POST", "/api/setup/calib/accept");
+  outcome($("calib-accepted"), r);
+  load().catch(() => {});
+});
+
+// --- 3 hand-eye -------------------------------------------------------------------------------
+const numbers = (text) => text.split(/[\s,]+/).filter((x) => x).map(Number);
+act("btn-he-learning", () => {
+  const p = state.learning_hand_eye.T_base_camera;
+  $("he-t").value = p.translation_mm.join(" ");
+  $("he-r").value = p.rotvec_rad.join(" ");
+});
+$("he-form").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  window.setupActions += 1;
+  $("he-result").textContent = "judging (as vgripd check does)…";
+  const r = await call("POST", "/api/setup/handeye", { translation_mm: numbers($("he-t").value), rotvec_rad: numbers($("he-r").value) });
+  outcome($("he-result"), r);
+  load().catch(() => {});
+});
+
+// --- 4 object ---------------------------------------------------------------------------------
+act("btn-obj-find", async () => {
+  const r = await call("POST", "/api/setup/object/find");
+  if (!r.ok) { $("obj-result").textContent = `${r.status}: ${r.data.message}`; return; }
+  $("obj-images").replaceChildren(...r.data.images.map((src, k) => img(src, `marks ${k}`)));
+  $("obj-marks").tBodies[0].replaceChildren(...r.data.marks.map((m) => {
+    const box = document.createElement("input");
+    box.type = "checkbox";
+    box.checked = true;
+    box.dataset.id = String(m.id);
+    return row([box, String(m.id), m.xyz_mm.map((v) => fmt(v, 1)).join(", "), fmt(m.diameter_mm, 1)]);
+  }));
+  $("obj-result").textContent = `${r.data.marks.length} mark(s) seen by both cameras: untick those not on the object`;
+});
+act("btn-obj-save", async () => {
+  const marks = [...document.querySelectorAll("#obj-marks input:checked")].map((b) => Number(b.dataset.id));
+  $("obj-result").textContent = "judging (as vgripd check does)…";
+  const r = await call("POST", "/api/setup/object/save", { name: $("obj-name").value, marks });
+  outcome($("obj-result"), r);
+  const notes = (r.data.layout || []).map((f) => `${f.level}: ${f.message}`).join("; ");
+  if (notes) $("obj-result").textContent += ` (${notes})`;
+  load().catch(() => {});
+});
+async function trigger(el) {
+  el.textContent = "job running…";
+  const r = await call("POST", "/api/trigger");
+  el.textContent = r.ok ? `test job: ${r.data.status} ${r.data.message || ""}` : `${r.status}: ${r.data.message}`;
+  return r;
+}
+act("btn-teach-trigger", () => trigger($("teach-result")));
+async function teach(url) {
+  const r = await call("POST", url);
+  const t = r.data;
+  if ("applied" in t) outcome($("teach-result"), r);
+  else if (t.shots) $("teach-result").textContent = `${t.refused ? `REFUSED: ${t.refused}; ` : ""}${t.shots.length} shot(s)` +
+    (t.spread_mm === null ? "" : `, spread ${fmt(t.spread_mm, 3)} mm / ${fmt(t.spread_deg, 4)} deg`);
+  else $("teach-result").textContent = `${r.status}: ${t.message}`;
+}
+act("btn-teach-shot", () => teach("/api/teach/shot"));
+act("btn-teach-save", () => teach("/api/teach/save"));
+
+// --- 5 link -----------------------------------------------------------------------------------
+for (const b of ["abb", "fanuc", "kuka", "staubli", "ur", "yaskawa"]) {
+  const o = document.createElement("option");
+  o.value = b; o.textContent = b;
+  $("link-brand").append(o);
+}
+act("btn-link-program", async () => {
+  const resp = await fetch(`/api/setup/robot-program.zip?brand=${$("link-brand").value}`, { headers: headers(false) });
+  if (!resp.ok) { $("link-result").textContent = `${resp.status}: ${await resp.text()}`; return; }
+  const a = $("link-download");
+  a.href = URL.createObjectURL(await resp.blob());
+  a.download = `vgripd-${$("link-brand").value}.zip`;
+  a.hidden = false;
+  $("link-result").textContent = "program ready: save the zip; docs/robots/ says how to load it";
+});
+
+// --- 6 test pick ------------------------------------------------------------------------------
+function showJob(job) {
+  $("pick-status").textContent = `job ${job.id} (${job.link}): ${job.status} ${job.message || ""}`;
+  const t = job.target;
+  const rows = t ? t.fields.map((f, i) => row([`${f} (${t.vendor})`, fmt(t.values[i], 3)])) : [];
+  for (const [k, v] of Object.entries(job.residuals || {})) rows.push(row([k, fmt(v, 4)]));
+  $("pick-values").tBodies[0].replaceChildren(...rows);
+  if (job.images) $("pick-images").replaceChildren(img(`/api/jobs/${job.id}/image/left.jpg`, "left"));
+}
+act("btn-pick-trigger", async () => {
+  const r = await trigger($("pick-status"));
+  if (r.ok) {
+    const jobs = await call("GET", "/api/jobs");
+    if (jobs.ok && jobs.data.length) showJob(jobs.data[0]);
+  }
+});
+const events = new EventSource("/api/events");
+events.addEventListener("job", (e) => { if (step === "pick") showJob(JSON.parse(e.data)); });
+
+// --- the check that ends each step ------------------------------------------------------------
+async function check() {
+  $("check-step").textContent = step;
+  $("check-summary").textContent = "checking (vgripd check runs in a child process)…";
+  const r = await call("GET", `/api/setup/check?step=${step}`);
+  if (!r.ok) { $("check-summary").textContent = `${r.status}: ${r.data.message}`; return r; }
+  $("check-summary").textContent = (r.data.ok ? "vgripd check: OK" : "vgripd check: ERRORS") +
+    ` (${r.data.findings.length} finding(s) for this step, ${r.data.all} in all) ${r.data.summary}`;
+  $("check-findings").replaceChildren(...r.data.findings.map((f) => li(`${f.level}: ${f.message}`, f.level.toLowerCase())));
+  return r;
+}
+act("btn-check", check);
+act("btn-done", async () => {
+  await check();
+  await call("POST", "/api/setup/done", { step, done: true });
+  const ids = state.steps.map((s) => s.id);
+  const next = ids[Math.min(ids.indexOf(step) + 1, ids.length - 1)];
+  await load();
+  if (next !== step) show(next, true);
+});
+
+load().then(() => {
+  const open = state.steps.find((s) => !s.done);
+  show(open ? open.id : "pick");
+}).catch((err) => { $("setup-note").textContent = err.message; });

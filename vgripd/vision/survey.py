@@ -1,0 +1,158 @@
+"""Marks found in a stereo pair without an object model, for defining a new object: every
+circular mark in both images, paired along the epipolar lines, triangulated and put in the robot
+base frame; and the judgement of a chosen layout (enough marks, far enough apart, no symmetry a
+pose could flip on).
+
+The setup page shows the marks numbered; the integrator ticks those that belong to the object,
+whose measured base-frame points become an ``object.definition = "reference"`` model (the object
+frame is the base frame at teach time, so no CAD is needed).
+
+Pure functions of images and calibration: no I/O. The daemon runs ``survey`` in its image
+helper process.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from vgripd.geometry.stereo import StereoRig
+from vgripd.types import FloatArray
+from vgripd.vision import features as ft
+
+#: Diameters searched for (px at full resolution) when nothing is known about the marks yet.
+SURVEY_DIAMETER_PX = (6.0, 160.0)
+#: At least this many marks make an object (a pose needs 3; one more lets a lost mark be
+#: survived and the fit be judged).
+MIN_MARKS = 3
+RECOMMENDED_MARKS = 4
+#: Marks closer than this many of their diameters (centre to centre) merge in the image.
+MIN_GAP_DIAMETERS = 2.0
+#: Two layouts whose pairwise distances differ by less than this (mm) cannot be told apart.
+SYMMETRY_TOL_MM = 1.0
+#: Permutations tried exhaustively up to this many marks (8! = 40320); beyond, per-mark
+#: distance profiles are compared.
+EXHAUSTIVE_MAX = 7
+
+
+@dataclass(frozen=True)
+class Mark:
+    """One mark seen by both cameras: pixels, base-frame point (mm), diameter (mm)."""
+
+    id: int
+    px_left: tuple[float, float]
+    px_right: tuple[float, float]
+    xyz_base_mm: tuple[float, float, float]
+    diameter_mm: float
+    epipolar_px: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"id": self.id, "px_left": list(self.px_left), "px_right": list(self.px_right),
+                "xyz_mm": [round(v, 3) for v in self.xyz_base_mm],
+                "diameter_mm": round(self.diameter_mm, 2),
+                "epipolar_px": round(self.epipolar_px, 3)}
+
+
+def survey(left: Any, right: Any, rig: StereoRig, T_base_camera: FloatArray,
+           min_contrast: float = 20.0, min_circularity: float = 0.75,
+           tolerance_px: float = 2.0, polarity: str = "dark") -> list[Mark]:
+    """The marks of ``polarity`` seen in both images, paired one to one along the epipolar
+    lines (mutually nearest within ``tolerance_px``), triangulated and in the base frame,
+    ordered left to right, top to bottom in the left image."""
+    spec = ft.CircleSpec(polarity="bright" if polarity == "bright" else "dark",
+                         min_diameter_px=SURVEY_DIAMETER_PX[0],
+                         max_diameter_px=SURVEY_DIAMETER_PX[1], min_contrast=min_contrast,
+                         min_circularity=min_circularity)
+    bl = ft.find_circles(ft.gray_from_image(left), spec)
+    br = ft.find_circles(ft.gray_from_image(right), spec)
+    if len(bl) == 0 or len(br) == 0:
+        return []
+    lines = rig.epipolar_lines_right(bl.xy)
+    ideal_r = rig.ideal_pixels(rig.right, br.xy)
+    dist = np.abs(lines @ np.c_[ideal_r, np.ones(len(ideal_r))].T)  # (nL, nR)
+    pairs = [(i, j) for i in range(len(bl)) for j in range(len(br))
+             if dist[i, j] <= tolerance_px and int(np.argmin(dist[i])) == j
+             and int(np.argmin(dist[:, j])) == i]
+    if not pairs:
+        return []
+    il = np.array([p[0] for p in pairs])
+    ir = np.array([p[1] for p in pairs])
+    tri = rig.triangulate(bl.xy[il], br.xy[ir])
+    pts_cam = np.asarray(tri.points_mm, np.float64)
+    pts_base = pts_cam @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
+    fx = float(rig.left.fx)
+    order = np.lexsort((bl.xy[il, 0], np.round(bl.xy[il, 1] / 40.0)))
+    marks = []
+    for k, n in enumerate(order):
+        i, j = il[n], ir[n]
+        depth = float(pts_cam[n, 2])
+        marks.append(Mark(k + 1, (float(bl.xy[i, 0]), float(bl.xy[i, 1])),
+                          (float(br.xy[j, 0]), float(br.xy[j, 1])),
+                          (float(pts_base[n, 0]), float(pts_base[n, 1]), float(pts_base[n, 2])),
+                          float(bl.diameter_px[i]) * depth / fx, float(dist[i, j])))
+    return marks
+
+
+@dataclass(frozen=True)
+class LayoutFinding:
+    """``level`` ERROR (the object cannot work), WARNING (it may, poorly), or NOTE."""
+
+    level: str
+    message: str
+
+    def as_dict(self) -> dict[str, str]:
+        return {"level": self.level, "message": self.message}
+
+
+def _symmetric(points: FloatArray, tol_mm: float) -> tuple[int, ...] | None:
+    """A relabelling of the points other than the identity that keeps every pairwise distance
+    within ``tol_mm`` (the layout looks the same turned or mirrored), or None."""
+    n = len(points)
+    d = np.linalg.norm(points[:, None] - points[None], axis=2)
+    if n <= EXHAUSTIVE_MAX:
+        for perm in itertools.permutations(range(n)):
+            if perm == tuple(range(n)):
+                continue
+            if np.max(np.abs(d - d[np.ix_(perm, perm)])) <= tol_mm:
+                return perm
+        return None
+    profiles = np.sort(d, axis=1)
+    for a, b in itertools.combinations(range(n), 2):
+        if np.max(np.abs(profiles[a] - profiles[b])) <= tol_mm:
+            swap = list(range(n))
+            swap[a], swap[b] = b, a
+            return tuple(swap)
+    return None
+
+
+def judge_layout(names: list[str], points: FloatArray, diameters_mm: list[float],
+                 tol_mm: float = SYMMETRY_TOL_MM) -> list[LayoutFinding]:
+    """What is wrong with an object of these marks (``points`` (n, 3) mm): too few, too close
+    to each other, or a layout the pose could flip on (pairwise distances that a relabelling
+    keeps). Empty: nothing to say."""
+    out: list[LayoutFinding] = []
+    n = len(names)
+    if n < MIN_MARKS:
+        return [LayoutFinding("ERROR", f"{n} mark(s) chosen: a pose needs at least "
+                                       f"{MIN_MARKS} (better {RECOMMENDED_MARKS} or more)")]
+    if n < RECOMMENDED_MARKS:
+        out.append(LayoutFinding("WARNING", f"only {n} marks: a job fails whenever one is "
+                                            f"hidden; {RECOMMENDED_MARKS} or more are better"))
+    pts = np.asarray(points, np.float64)
+    for a, b in itertools.combinations(range(n), 2):
+        gap = float(np.linalg.norm(pts[a] - pts[b]))
+        limit = MIN_GAP_DIAMETERS * max(diameters_mm[a], diameters_mm[b])
+        if gap < limit:
+            out.append(LayoutFinding("ERROR", f"{names[a]} and {names[b]} are {gap:.1f} mm "
+                                              f"apart (centres): under {MIN_GAP_DIAMETERS:g} "
+                                              f"diameters ({limit:.1f} mm) they blur into one"))
+    perm = _symmetric(pts, tol_mm)
+    if perm is not None:
+        moved = [f"{names[i]}->{names[p]}" for i, p in enumerate(perm) if p != i]
+        out.append(LayoutFinding("ERROR", f"symmetric layout: relabelling {', '.join(moved)} "
+                                          f"keeps every distance within {tol_mm:g} mm, so the "
+                                          "pose could come out turned; add or move a mark"))
+    return out
