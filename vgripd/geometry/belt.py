@@ -79,7 +79,7 @@ class Belt:
         """How far the belt moves from count ``c0`` to ``c1`` (mm, negative backwards)."""
         return count_delta(c0, c1, self.bits) / self.counts_per_mm
 
-    def along_mm(self, p_base: Sequence[float]) -> float:
+    def along_mm(self, p_base: Sequence[float] | FloatArray) -> float:
         """Where point ``p_base`` lies along the belt: its distance from ``origin_mm`` (mm)."""
         return float((np.asarray(p_base, dtype=np.float64)[:3] - self.origin_mm) @ self.d)
 
