@@ -72,3 +72,24 @@ def test_one_count_is_not_a_belt(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert main(["calibrate", "conveyor", "--points", str(one), "-o",
                  str(tmp_path / "c.toml")]) != 0
     assert "move the belt between the images" in capsys.readouterr().err
+
+
+def test_observed_images_locate_the_object(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """Two sample pairs as two belt positions: the fitted line runs between the rendered
+    truths (config/samples/truth.json, written by the sample renderer), 1 mm per 10 counts."""
+    from tests.conftest import REPO
+
+    monkeypatch.chdir(REPO)
+    frames = json.loads((REPO / "config/samples/truth.json").read_text())["frames"][:2]
+    p = [np.array(f["T_base_obj"])[:3, 3] for f in frames]
+    counts = [1000, 1000 + round(10 * float(np.linalg.norm(p[1] - p[0])))]
+    observe = [f"--observe={c}=config/samples/{f['left']},config/samples/{f['right']}"
+               for c, f in zip(counts, frames, strict=True)]
+    assert main(["calibrate", "conveyor", "-c", "config/example.toml", *observe,
+                 "-o", str(tmp_path / "c.toml"), "--json"]) == 0
+    about = json.loads(capsys.readouterr().out)["about"]
+    assert about["observations"] == 2
+    got = tomllib.loads((tmp_path / "c.toml").read_text())["conveyor"]
+    assert got["counts_per_mm"] == pytest.approx(10.0, rel=0.01)
+    assert got["origin_mm"] == pytest.approx(list((p[0] + p[1]) / 2), abs=0.5)
