@@ -17,6 +17,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "stereo": ("vgripd.cli.calibrate_stereo", "both cameras and the left->right transform"),
     "cameras": ("vgripd.cli.calibrate_cameras", "2-8 cameras' poses from shared board views"),
     "handeye": ("vgripd.cli.calibrate_handeye", "camera to flange (or base) from robot poses"),
+    "conveyor": ("vgripd.cli.calibrate_conveyor", "the belt's direction and encoder scale"),
     "import-mct": ("vgripd.cli.calibrate_mct", "read a Matlab Calibration Toolbox result"),
     "export-mct": ("vgripd.cli.calibrate_mct", "write a result as an MCT Calib_Results*.m"),
 }

@@ -320,9 +320,50 @@ def check_samples(config: Config, frames_wanted: int = SAMPLE_FRAMES) -> list[Fi
                                     f"pose ({status} on {name}): {reason}")]
 
 
+def check_conveyor(config: Config) -> list[Finding]:
+    """The belt's motion blur: at ``conveyor.speed_mm_s`` the belt travels speed x exposure
+    during one image; projected through the calibrated camera at the pick window's middle this
+    is the smear in pixels, an ERROR above ``conveyor.max_blur_px`` (the features smear and
+    the pose is taken at the exposure's middle, not its start). Needs ``camera.exposure_us``
+    and a fixed camera; a robot-mounted one is a WARNING (it cannot watch a belt in motion)."""
+    belt = config.conveyor
+    if belt is None or config.calibration is None:
+        return []
+    from vgripd.geometry.belt import blur_px
+    from vgripd.vision import scene
+
+    if config.calibration.hand_eye.mounting != "fixed":
+        return [Finding("WARNING", "calibration.hand_eye.mounting",
+                        "conveyor: a robot-mounted camera moves with the robot; the belt's "
+                        "images need a fixed camera (mounting = \"fixed\")")]
+    exposure_us = config.camera.options().get("exposure_us")
+    if not isinstance(exposure_us, int | float):
+        return [Finding("WARNING", "camera.exposure_us",
+                        "conveyor: set the exposure time so that the motion blur at "
+                        f"{belt.speed_mm_s:g} mm/s can be judged")]
+    try:
+        left, _ = scene.camera_models(config)
+        T_base_cam = scene.T_base_camera(config)
+    except VgripError:
+        return []  # not calibrated: vgripd check says so on its own
+    travel = belt.speed_mm_s * exposure_us * 1e-6
+    middle = sum(belt.window_mm) / 2
+    point = [o + middle * d for o, d in zip(belt.origin_mm, belt.direction, strict=True)]
+    px = blur_px(left.K, T_base_cam, point, belt.direction, travel)
+    if px > belt.max_blur_px:
+        limit_us = exposure_us * belt.max_blur_px / px
+        return [Finding("ERROR", "camera.exposure_us",
+                        f"conveyor: at {belt.speed_mm_s:g} mm/s the belt moves {travel:.3g} mm "
+                        f"in {exposure_us:g} us, {px:.2f} px in the image (conveyor.max_blur_px "
+                        f"{belt.max_blur_px:g}): expose at most {limit_us:.0f} us, or lower "
+                        "the speed")]
+    return []
+
+
 def commission(config: Config, options: Options = Options()) -> list[Finding]:
     """Every commissioning check, ERRORs first."""
-    findings = (check_scene(config) + check_replay(config) + check_links(config, options)
+    findings = (check_scene(config) + check_conveyor(config) + check_replay(config)
+                + check_links(config, options)
                 + check_ports(config, options) + check_link_exposure(config) + check_web(config))
     if not any(f.level == "ERROR" for f in findings):  # the scene must hold before images
         findings += check_samples(config)

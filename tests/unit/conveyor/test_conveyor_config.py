@@ -1,0 +1,79 @@
+"""The ``[conveyor]`` section: what the config load refuses (with the field named) and what
+``vgripd check`` judges (the belt's motion blur through the calibrated camera)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from vgripd.config import config_from_dict
+from vgripd.errors import ConfigError
+from vgripd.service.commissioning import check_conveyor
+
+BELT: dict[str, Any] = {"counts_per_mm": 30.0, "direction": [1.0, 0.0, 0.0],
+                        "origin_mm": [0.0, 0.0, 0.0], "window_mm": [300.0, 800.0],
+                        "trigger_distance_mm": 150.0, "speed_mm_s": 500.0}
+
+#: A camera 1000 mm above the belt, looking straight down, f = 2000 px: 1 mm is 2 px.
+CAMERA: dict[str, Any] = {
+    "calibration": {
+        "left": {"fx": 2000.0, "fy": 2000.0, "cx": 640.0, "cy": 512.0, "width": 1280,
+                 "height": 1024},
+        "hand_eye": {"mounting": "fixed",
+                     "T_base_camera": {"translation_mm": [550.0, 0.0, 1000.0],
+                                       "rotvec_rad": [3.141592653589793, 0.0, 0.0]}}},
+}
+
+
+def config(**belt: Any) -> Any:
+    return config_from_dict({"conveyor": {**BELT, **belt}})
+
+
+def test_a_good_belt_loads() -> None:
+    cfg = config()
+    assert cfg.conveyor is not None
+    assert cfg.conveyor.latch == "link"
+    assert cfg.conveyor.window_points() == [(300.0, 0.0, 0.0), (800.0, 0.0, 0.0)]
+
+
+@pytest.mark.parametrize(("change", "words"), [
+    ({"direction": [1.0, 1.0, 0.0]}, "conveyor.direction .* not a unit vector"),
+    ({"direction": [0.8, 0.0, 0.6]}, "leaves the belt plane .* by 36.87 deg"),
+    ({"counts_per_mm": 30000.0}, "counts_per_mm 30000 is implausible"),
+    ({"counts_per_mm": 0.001}, "counts_per_mm 0.001 is implausible"),
+    ({"window_mm": [800.0, 300.0]}, "upstream limit must be below"),
+    ({"trigger_distance_mm": 600.0}, "parts would pass between two images"),
+    ({"latch": "guess"}, "conveyor.latch"),
+])
+def test_a_bad_belt_is_refused_naming_the_field(change: dict[str, Any], words: str) -> None:
+    with pytest.raises(ConfigError, match=words):
+        config(**change)
+
+
+def test_a_window_outside_the_workspace_is_refused() -> None:
+    data = {"conveyor": BELT, "limits": {"workspace_min_mm": [-100, -400, -50],
+                                         "workspace_max_mm": [700, 400, 300]}}
+    with pytest.raises(ConfigError, match=r"downstream end \[800.0, 0.0, 0.0\] mm lies outside"):
+        config_from_dict(data)
+    data["limits"]["workspace_max_mm"] = [900, 400, 300]
+    assert config_from_dict(data).conveyor is not None
+
+
+@pytest.mark.parametrize(("exposure_us", "level"), [(2000.0, "ERROR"), (400.0, None)])
+def test_motion_blur_above_the_limit_is_an_error(exposure_us: float, level: str | None) -> None:
+    """500 mm/s for 2 ms is 1 mm = 2 px (> max_blur_px 1): an error naming the exposure and
+    the longest exposure that keeps 1 px; 0.4 ms is 0.4 px: fine."""
+    cfg = config_from_dict({**CAMERA, "conveyor": BELT,
+                            "camera": {"type": "synthetic", "exposure_us": exposure_us}})
+    findings = check_conveyor(cfg)
+    assert [f.level for f in findings] == ([level] if level else [])
+    if level:
+        assert findings[0].key == "camera.exposure_us"
+        assert "2.00 px" in findings[0].message
+        assert "at most 1000 us" in findings[0].message
+
+
+def test_blur_without_an_exposure_is_a_warning() -> None:
+    cfg = config_from_dict({**CAMERA, "conveyor": BELT, "camera": {"type": "synthetic"}})
+    assert [(f.level, f.key) for f in check_conveyor(cfg)] == [("WARNING", "camera.exposure_us")]
