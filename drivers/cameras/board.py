@@ -439,6 +439,7 @@ class BoardCamera(CameraDriver):
                                  "T_right_left": self._T_right_left, "still": still,
                                  "place": place}
         if self._plate is not None:
+            assert self._T_base_camera is not None  # set with the plate (_open_plate)
             truth.update(T_base_obj=self._T_base_obj.copy(),
                          T_base_camera=self._T_base_camera.copy(), board_shown=shown)
         return ImagePair(left=images[0], right=images[1] if len(images) > 1 else None,
