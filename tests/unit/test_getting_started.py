@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import REPO
+from tests.conftest import REPO, lo
 from vgripd.config import Config
 from vgripd.geometry.transforms import pose_error
 from vgripd.vision.scene import matrix_from_pose
@@ -36,6 +36,25 @@ def blocks(text: str) -> list[str]:
     return out
 
 
+def on_own_address(script: str, address: str) -> str:
+    """The guide's commands with one change: the cell's robot socket and web view on this test
+    process's own loopback address instead of 127.0.0.1 (two suites on one machine would meet
+    on port 50100 and 8730): the main file gets it right after ``vgripd init``, the robot
+    twin is told with ``--host``."""
+    init = re.search(r"^vgripd init .*-c (\S+).*$", script, re.M)
+    assert init is not None, "the guide has no vgripd init line"
+    main = init.group(1)
+    move = (f"sed -i 's/host = \"127.0.0.1\"/host = \"{address}\"/' {main}\n"
+            f"printf '\\n[status]\\nhost = \"{address}\"\\n' >> {main}")
+    script = script[:init.end()] + "\n" + move + script[init.end():]
+    twins = script.count("python -m vgripd.sim.robot_twin ")
+    assert twins >= 2
+    return script.replace("python -m vgripd.sim.robot_twin walk ",
+                          f"python -m vgripd.sim.robot_twin walk --host {address} ").replace(
+        "python -m vgripd.sim.robot_twin locate ",
+        f"python -m vgripd.sim.robot_twin locate --host {address} ")
+
+
 def test_only_the_install_block_is_left_out() -> None:
     text = (REPO / "docs" / "getting-started.md").read_text(encoding="utf-8")
     assert text.count(NOT_RUN) == 1
@@ -44,7 +63,7 @@ def test_only_the_install_block_is_left_out() -> None:
 
 def test_the_guide_runs_to_a_first_ok_pick_on_the_learning_cell(tmp_path: Path) -> None:
     text = (REPO / "docs" / "getting-started.md").read_text(encoding="utf-8")
-    script = "set -e\n" + "\n".join(blocks(text))
+    script = on_own_address("set -e\n" + "\n".join(blocks(text)), lo("127.0.0.1"))
     bin_dir = str(Path(sys.executable).parent)
     env = {**os.environ, "PATH": bin_dir + os.pathsep + os.environ.get("PATH", ""),
            "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
