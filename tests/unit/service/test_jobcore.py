@@ -10,7 +10,12 @@ A cell of five links, each kind, shares one ``JobCore`` as the daemon does:
 - ``ua``: an OPC UA link's handshake (a request per method call); its plans are applied to an
   answer area of RequestId and result data;
 - ``robot``: the robot socket's handshake (a request per frame); its answers are frames whose
-  kind (RESULT or REFUSED) the plan's ACK says.
+  kind (RESULT or REFUSED) the plan's ACK says;
+- ``vision``: an OPC UA link's OPC 40100 state machine (``VisionMachine``): StartSingleJob and
+  the plain Next go through its states first (refused in any state but Ready), CLEAR and
+  unknown commands stand for the older namespace's calls on the same link; random
+  SelectModeAutomatic, PrepareRecipe, UnprepareRecipe, Halt, Reset, Stop and Abort calls move
+  it (a job aborted meanwhile still ends once, ABORTED without a pose).
 
 Random events: a request of any link (TRIGGER, CLEAR, NEXT, an unknown command; on the
 register link also the same sequence again and 0, which are no requests), the running job's
@@ -64,6 +69,7 @@ from vgripd.service.protocol import (
     ValueCodec,
 )
 from vgripd.service.robot_socket_format import remaining
+from vgripd.service.visionsm import Auto, VisionMachine
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 FIELDS = tuple("xyzabc")
@@ -225,6 +231,58 @@ class MessageLink:
                                            d.count, d.index, frame))
 
 
+class VisionLink(MessageLink):
+    """An OPC UA link's OPC 40100 side: requests through ``VisionMachine``'s states."""
+
+    def __init__(self) -> None:
+        super().__init__(frames=False)
+        self.machine = VisionMachine()
+        self.handshake = self.machine.handshake
+        self.aborted: set[int] = set()  # requests whose result came ABORTED by a client's call
+        self.expect_abort: set[int] = set()  # requests whose SingleExecution a call ended
+
+    def request(self, command: int, seq: int) -> Decision:
+        m = self.machine
+        before = m.auto
+        verdict = (m.start_single_job(seq, None) if command == Command.TRIGGER else
+                   m.next_object(seq) if command == Command.NEXT else m.request(command, seq, 0))
+        assert verdict.decision is not None
+        if command in (Command.TRIGGER, Command.NEXT) and before is not Auto.READY:
+            assert verdict.decision.action is Action.REJECT, (before, verdict)  # Ready only
+        self._apply(verdict.decision.steps)
+        self._check()
+        return verdict.decision
+
+    def publish(self, seq: int, result: JobResult) -> None:
+        plan, shown, _ = self.machine.publish(seq, result)
+        if shown.status is Status.ABORTED and result.status is not Status.ABORTED:
+            assert shown.target is None and not shown.instances
+            self.aborted.add(seq)
+        assert (seq in self.aborted) == (seq in self.expect_abort and result.job_id != 0 and
+                                         result.status is not Status.ABORTED), seq
+        self._apply(plan)
+        self._check()
+
+    def call(self, method: str) -> None:
+        m = self.machine
+        before, running = m.auto, m.handshake.running_seq if m.busy else 0
+        if method == "ready":  # the PLC's start-up: SelectModeAutomatic, PrepareRecipe
+            m.select_mode_automatic()
+            method = "prepare"
+        {"select": m.select_mode_automatic, "prepare": lambda: m.prepare_recipe(1),
+         "unprepare": lambda: m.unprepare_recipe(1), "halt": m.halt, "reset": m.reset,
+         "stop": m.stop, "abort": m.abort}[method]()
+        if running and before is Auto.SINGLE_EXECUTION and m.auto is not before:
+            self.expect_abort.add(running)
+        self._check()
+
+    def _check(self) -> None:
+        m = self.machine
+        if m.auto is Auto.SINGLE_EXECUTION:
+            assert m.busy, "SingleExecution without a running request"
+        assert (m.auto is None) == (m.top.label != "Operational")
+
+
 Link = RegisterLink | MessageLink
 
 
@@ -235,7 +293,8 @@ class Cell:
 
     links: dict[str, Link] = field(default_factory=lambda: {
         "plc": RegisterLink(), "s7": RegisterLink("s7"), "mbclient": RegisterLink("client"),
-        "ua": MessageLink(frames=False), "robot": MessageLink(frames=True)})
+        "ua": MessageLink(frames=False), "robot": MessageLink(frames=True),
+        "vision": VisionLink()})
     core: JobCore = field(default_factory=JobCore)
     running: tuple[str, int, int, bool] | None = None  # link, seq, job id, captured
     accepting: bool = True  # False: shutting down, every trigger is refused ABORTED
@@ -304,7 +363,9 @@ class Cell:
 
 COMMANDS = st.sampled_from([Command.TRIGGER, Command.TRIGGER, Command.NEXT, Command.NEXT,
                             Command.CLEAR, 99])
-LINKS = st.sampled_from(["plc", "s7", "mbclient", "ua", "robot"])
+LINKS = st.sampled_from(["plc", "s7", "mbclient", "ua", "robot", "vision"])
+VISION_CALLS = st.sampled_from(["ready", "ready", "ready", "select", "prepare", "unprepare",
+                                "halt", "reset", "stop", "abort"])
 RESULTS = st.tuples(st.sampled_from(["one", "none", "pallet", "pallet", "died"]),
                     st.integers(0, 4),
                     st.integers(0, 2))
@@ -317,6 +378,10 @@ EVENTS = st.one_of(
     st.tuples(st.just("job"), LINKS, RESULTS),
     st.tuples(st.just("next"), LINKS),
     st.tuples(st.just("accepting"), st.booleans()),  # shutdown (ABORTED) and back
+    st.tuples(st.just("vision"), VISION_CALLS),  # an OPC 40100 state machine method
+    # the PLC sequence of OPC 40100 on the vision link, a call perhaps in the middle of the job
+    st.tuples(st.just("vjob"), RESULTS, st.sampled_from(["-", "-", "stop", "abort", "halt"]),
+              st.integers(0, 3)),
 )
 
 
@@ -333,6 +398,21 @@ def step(cell: Cell, event: tuple) -> None:
         cell.finish(*event[2])
     elif event[0] == "accepting":
         cell.accepting = event[1]
+    elif event[0] == "vision":
+        link = cell.links["vision"]
+        assert isinstance(link, VisionLink)
+        link.call(event[1])
+    elif event[0] == "vjob":
+        link = cell.links["vision"]
+        assert isinstance(link, VisionLink)
+        link.call("ready")
+        cell.request("vision", Command.TRIGGER, "fresh")
+        cell.capture()
+        if event[2] != "-":
+            link.call(event[2])
+        cell.finish(*event[1])
+        for _ in range(event[3]):  # the pick list walked by the plain Next
+            cell.request("vision", Command.NEXT, "fresh")
     else:
         cell.request(event[1], Command.NEXT, "fresh")
 
@@ -370,6 +450,10 @@ def test_random_event_sequences_keep_the_handshake_rules(events: list[tuple]) ->
                 assert (a.status, a.job_id, a.count, a.index) == (Status.IDLE, 0, 0, 0)
                 continue
             assert told is not None
+            if isinstance(link, VisionLink) and a.seq in link.aborted:  # a client aborted it
+                assert (a.status, a.job_id, a.pose, a.count, a.index) == (
+                    Status.ABORTED, told.job_id, (), 0, 0)
+                continue
             assert (a.status, a.job_id) == (told.status, told.job_id)
             assert a.count == cell.counts.get(a.job_id, 0)  # the job's, counted apart
             check_position(a, commands[a.seq])
