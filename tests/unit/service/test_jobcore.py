@@ -256,7 +256,8 @@ class VisionLink(MessageLink):
     def publish(self, seq: int, result: JobResult) -> None:
         plan, shown, _ = self.machine.publish(seq, result)
         if shown.status is Status.ABORTED and result.status is not Status.ABORTED:
-            assert shown.target is None and not shown.instances
+            assert shown.target is None
+            assert not shown.instances
             self.aborted.add(seq)
         assert (seq in self.aborted) == (seq in self.expect_abort and result.job_id != 0 and
                                          result.status is not Status.ABORTED), seq
