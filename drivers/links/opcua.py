@@ -442,6 +442,58 @@ def _version() -> str:
         return "unknown"
 
 
+def read_passwords(options: OpcUaOptions) -> dict[str, bytes]:
+    """Each user's password from its file or environment variable; ``LinkError`` naming
+    the field when it is missing or empty."""
+    passwords: dict[str, bytes] = {}
+    for i, user in enumerate(options.users):
+        where = f"users[{i}] ({user.name!r})"
+        if user.password_env is not None:
+            value = os.environ.get(user.password_env)
+            if not value:
+                raise LinkError(f"{where}.password_env: environment variable "
+                                f"{user.password_env} is not set or empty")
+            passwords[user.name] = value.encode()
+            continue
+        assert user.password_file is not None
+        try:
+            text = user.password_file.read_text().splitlines()
+        except OSError as err:
+            raise LinkError(f"{where}.password_file: cannot read {user.password_file}: "
+                            f"{err.strerror or err}") from None
+        if not text or not text[0]:
+            raise LinkError(f"{where}.password_file: {user.password_file} is empty")
+        passwords[user.name] = text[0].encode()
+    return passwords
+
+
+def untrusted(trust: TrustStore | None, rejected: RejectedStore, der: bytes) -> str:
+    """Why the client certificate ``der`` is refused ("" when it is trusted, or when no
+    trust list is configured). A refused certificate is kept in
+    ``certificate_dir/rejected`` (``RejectedStore``: bounded, one file per thumbprint) for
+    the integrator to move into the trust list."""
+    if trust is None:
+        return ""
+    from cryptography import x509
+
+    try:
+        cert = x509.load_der_x509_certificate(der)
+    except ValueError as err:
+        return f"client certificate unreadable ({err})"
+    now = datetime.datetime.now(datetime.UTC)
+    names = cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)
+    name = str(names[0].value) if names else "?"
+    if not cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
+        why = "expired or not yet valid"
+    elif trust.is_trusted(cert):
+        return ""
+    else:
+        why = "not in trusted_clients_dir"
+    path = rejected.keep(der, cert.fingerprint(hashes.SHA256()).hex()[:16])
+    kept = f"; kept as {path}" if path is not None else ""
+    return f"client certificate CN={name} refused: {why}{kept}"
+
+
 @dataclass
 class _Job:
     request_id: int
@@ -510,7 +562,7 @@ class OpcUaLink(RobotLink):
         mute_asyncua_refusals()
         o = self.options
         try:
-            passwords = self._passwords()
+            passwords = read_passwords(o)
             server = await self._make_server(passwords)
         except LinkError as err:
             self.space = self.vision = None
@@ -747,30 +799,7 @@ class OpcUaLink(RobotLink):
         return ua.StatusCode(ua.UInt32(code))
 
     def _untrusted(self, der: bytes) -> str:
-        """Why the client certificate ``der`` is refused ("" when it is trusted, or when no
-        trust list is configured). A refused certificate is kept in
-        ``certificate_dir/rejected`` (``RejectedStore``: bounded, one file per thumbprint) for
-        the integrator to move into the trust list."""
-        if self._trust is None:
-            return ""
-        from cryptography import x509
-
-        try:
-            cert = x509.load_der_x509_certificate(der)
-        except ValueError as err:
-            return f"client certificate unreadable ({err})"
-        now = datetime.datetime.now(datetime.UTC)
-        names = cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)
-        name = str(names[0].value) if names else "?"
-        if not cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
-            why = "expired or not yet valid"
-        elif self._trust.is_trusted(cert):
-            return ""
-        else:
-            why = "not in trusted_clients_dir"
-        path = self.rejected.keep(der, cert.fingerprint(hashes.SHA256()).hex()[:16])
-        kept = f"; kept as {path}" if path is not None else ""
-        return f"client certificate CN={name} refused: {why}{kept}"
+        return untrusted(self._trust, self.rejected, der)
 
     def _space(self) -> Space:
         if self.space is None:
@@ -842,30 +871,6 @@ class OpcUaLink(RobotLink):
             self.lines.flush()
 
     # -- set-up ------------------------------------------------------------------------------
-
-    def _passwords(self) -> dict[str, bytes]:
-        """Each user's password from its file or environment variable; ``LinkError`` naming
-        the field when it is missing or empty."""
-        passwords: dict[str, bytes] = {}
-        for i, user in enumerate(self.options.users):
-            where = f"users[{i}] ({user.name!r})"
-            if user.password_env is not None:
-                value = os.environ.get(user.password_env)
-                if not value:
-                    raise LinkError(f"{where}.password_env: environment variable "
-                                    f"{user.password_env} is not set or empty")
-                passwords[user.name] = value.encode()
-                continue
-            assert user.password_file is not None
-            try:
-                text = user.password_file.read_text().splitlines()
-            except OSError as err:
-                raise LinkError(f"{where}.password_file: cannot read {user.password_file}: "
-                                f"{err.strerror or err}") from None
-            if not text or not text[0]:
-                raise LinkError(f"{where}.password_file: {user.password_file} is empty")
-            passwords[user.name] = text[0].encode()
-        return passwords
 
     async def _make_server(self, passwords: dict[str, bytes]) -> _Server:
         o = self.options

@@ -141,6 +141,37 @@ class JobInfo:
     simulated: bool = False
 
 
+#: Subtypes of BinaryIdBaseDataType whose Definition in the NodeSet is empty (the fields are the
+#: base type's): NodeSet data type id by name
+BINARY_IDS = {"RecipeIdExternalDataType": 3002, "RecipeIdInternalDataType": 3013,
+              "ConfigurationIdDataType": 3008}
+
+
+async def register_binary_ids(get_node: Callable[[ua.NodeId], Node], mv_index: int) -> None:
+    """Give each of ``BINARY_IDS`` a class and binary encoding of its own, after asyncua's
+    ``load_data_type_definitions`` (server or client).
+
+    asyncua (2.1) builds these three from the abstract base's definition and registers all of
+    them as the base's class, so it encodes a RecipeIdExternalDataType with the encoding id of
+    BinaryIdBaseDataType, which another stack cannot decode, and cannot decode the right id
+    another stack sends. Each class here is a subclass of the base (same fields), registered
+    under its own Default Binary encoding node.
+    """
+    import dataclasses
+
+    base = ua.BinaryIdBaseDataType  # type: ignore[attr-defined]
+    for name, number in BINARY_IDS.items():
+        type_id = ua.NodeId(ua.Int32(number), ua.Int16(mv_index))
+        encoding = None
+        for node in await get_node(type_id).get_referenced_nodes(ua.ObjectIds.HasEncoding):
+            if (await node.read_browse_name()).Name == "Default Binary":
+                encoding = node.nodeid
+        if encoding is None:
+            raise ValueError(f"{name}: no Default Binary encoding in the NodeSet")
+        cls: type = dataclasses.dataclass(type(name, (base,), {"__module__": __name__}))
+        ua.register_extension_object(name, encoding, cls, type_id)
+
+
 def _code(name: str) -> int:
     return int(getattr(ua.StatusCodes, name))
 
@@ -153,7 +184,337 @@ def _i32(value: int) -> ua.Variant:
     return ua.Variant(value, ua.VariantType.Int32)
 
 
-class VisionSpace:
+class VisionMethods:
+    """The answers to the VisionSystem's methods (``VisionSpace`` adds the nodes they act on)."""
+
+    machine: VisionMachine
+    recipes: dict[int, str]
+    results: deque[Any]
+    configuration_id: str
+    configuration_hash: bytes
+    configuration_time: datetime.datetime
+    idx: int
+    _request: Request
+    _refuse: Refuse
+
+    async def show_state(self) -> None:
+        raise NotImplementedError
+
+    async def _event(self, name: str, message: str, **fields: ua.Variant) -> None:
+        raise NotImplementedError
+
+    async def _write_safety(self, triggered: bool, text: str) -> None:
+        raise NotImplementedError
+
+    def _recipe_id(self, number: int) -> Any:
+        return mv.RecipeIdInternalDataType(
+            Id=str(number), Description=ua.LocalizedText(self.recipes.get(number, "")))
+
+    def _configuration(self) -> Any:
+        cid = mv.ConfigurationIdDataType(Id=self.configuration_id,
+                                         Hash=self.configuration_hash or None,
+                                         HashAlgorithm="SHA-256" if self.configuration_hash
+                                         else None)
+        return mv.ConfigurationDataType(InternalId=cid, LastModified=self.configuration_time)
+
+    def recipe_number(self, ident: Any, field: str) -> int | str | None:
+        """The configured recipe an id names (its ``Id``: the number or the name); None for
+        an empty id; a message (str) when it names none."""
+        text = str(getattr(ident, "Id", "") or "").strip() if ident is not None else ""
+        if not text:
+            return None
+        for number, name in self.recipes.items():
+            if text in (str(number), name):
+                return number
+        known = ", ".join(f"{n} {name}" for n, name in sorted(self.recipes.items()))
+        return f"{field}: recipe {text!r} is not configured (configured: {known})"
+
+    def _args(self, method: str, args: Sequence[ua.Variant],
+              kinds: Sequence[type | tuple[type, ...]]) -> list[Any] | ua.StatusCode:
+        """The values of ``args`` when they are as many as ``kinds`` and of those types (a
+        null structure passes as None); the refusal otherwise."""
+        if len(args) < len(kinds):
+            return self._refuse(Status.BAD_REQUEST, "BadArgumentsMissing",
+                                f"{method} takes {len(kinds)} arguments, {len(args)} given")
+        if len(args) > len(kinds):
+            return self._refuse(Status.BAD_REQUEST, "BadTooManyArguments",
+                                f"{method} takes {len(kinds)} arguments, {len(args)} given")
+        values = [a.Value for a in args]
+        for i, (value, kind) in enumerate(zip(values, kinds, strict=True)):
+            if value is not None and not isinstance(value, kind):
+                return self._refuse(Status.BAD_REQUEST, "BadInvalidArgument",
+                                    f"{method}: argument {i + 1} is a {type(value).__name__}")
+        return values
+
+    def _verdict(self, verdict: Verdict, method: str) -> list[ua.Variant] | ua.StatusCode:
+        if verdict.refused:
+            return self._refuse(Status.BAD_REQUEST, verdict.refused, f"{method}: {verdict.why}")
+        return [_i32(0)]
+
+    async def _moved(self, verdict: Verdict, method: str) -> list[ua.Variant] | ua.StatusCode:
+        answer = self._verdict(verdict, method)
+        if verdict.ok:
+            await self.show_state()
+        return answer
+
+    async def _select_mode_automatic(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("SelectModeAutomatic", args, [])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        return await self._moved(self.machine.select_mode_automatic(), "SelectModeAutomatic")
+
+    async def _halt(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("Halt", args, [int, str])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        return await self._moved(self.machine.halt(), "Halt")
+
+    async def _reset(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("Reset", args, [int, str])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        return await self._moved(self.machine.reset(), "Reset")
+
+    async def _confirm_all(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        """No condition of vgripd waits for a confirmation: nothing to confirm."""
+        checked = self._args("ConfirmAll", args, [ua.LocalizedText])
+        return checked if isinstance(checked, ua.StatusCode) else []
+
+    async def _start_single_job(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("StartSingleJob", args, [
+            mv.MeasIdDataType, mv.PartIdDataType, mv.RecipeIdExternalDataType,
+            mv.ProductIdDataType, list])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        meas, part, recipe, product, _parameters = checked
+        number = self.recipe_number(recipe, "StartSingleJob RecipeId")
+        if isinstance(number, str):
+            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT, number)
+        info = JobInfo(meas, part, recipe, product, simulated=self.machine.simulation)
+        return await self._job(Command.TRIGGER, lambda seq: self.machine.start_single_job(
+            seq, number), info, "StartSingleJob")
+
+    async def _job(self, command: int, verdict_for: Callable[[int], Verdict], info: JobInfo,
+                   method: str) -> Any:
+        info.started = datetime.datetime.now(datetime.UTC)
+        info.t_start_ns = time.monotonic_ns()
+        verdict, seq = await self._request(command, verdict_for, info)
+        if verdict.refused:
+            status = (verdict.decision.code if verdict.decision is not None
+                      else Status.BAD_REQUEST)
+            return self._refuse(status, verdict.refused, f"{method}: {verdict.why}")
+        if command == Command.TRIGGER:
+            await self._event("JobStarted", f"job {seq} started",
+                              JobId=_ext(mv.JobIdDataType(Id=str(seq))))
+        return [_ext(mv.JobIdDataType(Id=str(seq))), _i32(0)]
+
+    async def _start_continuous(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("StartContinuous", args, [
+            mv.MeasIdDataType, mv.PartIdDataType, mv.RecipeIdExternalDataType,
+            mv.ProductIdDataType, list])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        return self._verdict(self.machine.start_continuous(), "StartContinuous")
+
+    async def _stop(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("Stop", args, [int, str])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        return await self._moved(self.machine.stop(), "Stop")
+
+    async def _abort(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("Abort", args, [int, str])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        return await self._moved(self.machine.abort(), "Abort")
+
+    async def _simulation_mode(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("SimulationMode", args, [bool, int, str])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        return self._verdict(self.machine.set_simulation(bool(checked[0])), "SimulationMode")
+
+    async def _prepare_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("PrepareRecipe", args, [mv.RecipeIdExternalDataType,
+                                                     mv.RecipeIdInternalDataType])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        number = self.recipe_number(checked[0], "PrepareRecipe ExternalId")
+        if number is None:
+            number = self.recipe_number(checked[1], "PrepareRecipe InternalIdIn")
+        if number is None:
+            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT,
+                                "PrepareRecipe: give ExternalId.Id (a recipe number or name)")
+        if isinstance(number, str):
+            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT, number)
+        verdict = self.machine.prepare_recipe(number)
+        if verdict.refused:
+            return self._verdict(verdict, "PrepareRecipe")
+        await self.show_state()
+        await self._event("RecipePrepared", f"recipe {number} prepared")
+        return [_ext(self._recipe_id(number)), ua.Variant(True, ua.VariantType.Boolean),
+                _i32(0)]
+
+    async def _unprepare_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("UnprepareRecipe", args, [mv.RecipeIdExternalDataType,
+                                                       mv.RecipeIdInternalDataType])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        number = self.recipe_number(checked[0], "UnprepareRecipe ExternalId")
+        if number is None:
+            number = self.recipe_number(checked[1], "UnprepareRecipe InternalIdIn")
+        if not isinstance(number, int):
+            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT,
+                                number or "UnprepareRecipe: give ExternalId or InternalIdIn")
+        verdict = self.machine.unprepare_recipe(number)
+        if verdict.refused:
+            return self._verdict(verdict, "UnprepareRecipe")
+        await self.show_state()
+        return [_ext(self._recipe_id(number)), _i32(0)]
+
+    async def _recipe_list(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("GetRecipeListFiltered", args, [
+            mv.RecipeIdExternalDataType, mv.ProductIdDataType, int, int, int, (int, float)])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        external, _product, prepared, max_results, start, _timeout = checked
+        numbers = sorted(self.recipes)
+        wanted = self.recipe_number(external, "GetRecipeListFiltered ExternalId")
+        if wanted is not None:
+            numbers = [n for n in numbers if n == wanted]
+        if prepared in (0, 1):  # TriStateBoolean: 0 false, 1 true, 2 don't care
+            numbers = [n for n in numbers if (n == self.machine.recipe) == bool(prepared)]
+        page, complete = _page(numbers, start or 0, max_results or 0)
+        return [ua.Variant(complete, ua.VariantType.Boolean),
+                ua.Variant(len(numbers), ua.VariantType.Int32),
+                ua.Variant(0, ua.VariantType.UInt32),
+                ua.Variant([self._recipe_id(n) for n in page], ua.VariantType.ExtensionObject),
+                _i32(0)]
+
+    def set_configuration(self, name: str, digest: bytes) -> None:
+        self.configuration_id = name
+        self.configuration_hash = digest
+        self.configuration_time = datetime.datetime.now(datetime.UTC)
+
+    async def _activate_configuration(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("ActivateConfiguration", args, [mv.ConfigurationIdDataType])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        if not self._is_ours(checked[0]):
+            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT,
+                                "ActivateConfiguration: only the loaded configuration "
+                                f"{self.configuration_id!r} exists (change the config through "
+                                "vgripd, not OPC UA)")
+        return [_i32(0)]
+
+    def _is_ours(self, ident: Any) -> bool:
+        return ident is not None and getattr(ident, "Id", None) == self.configuration_id
+
+    async def _configuration_by_id(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("GetConfigurationById", args, [mv.ConfigurationIdDataType,
+                                                            (int, float)])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        if not self._is_ours(checked[0]):
+            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT,
+                                f"GetConfigurationById: no configuration {checked[0]!r}")
+        return [ua.Variant(0, ua.VariantType.UInt32), _ext(self._configuration()), _i32(0)]
+
+    async def _configuration_list(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("GetConfigurationList", args, [int, int, (int, float)])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        page, complete = _page([self._configuration()], checked[1] or 0, checked[0] or 0)
+        return [ua.Variant(complete, ua.VariantType.Boolean), ua.Variant(1, ua.VariantType.Int32),
+                ua.Variant(0, ua.VariantType.UInt32),
+                ua.Variant(page, ua.VariantType.ExtensionObject), _i32(0)]
+
+    def _find(self, ident: Any) -> Any:
+        wanted = getattr(ident, "Id", None)
+        return next((r for r in reversed(self.results) if r.ResultId.Id == wanted), None)
+
+    async def _result_by_id(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("GetResultById", args, [mv.ResultIdDataType, (int, float)])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        found = self._find(checked[0])
+        if found is None:
+            return self._refuse(Status.BAD_REQUEST, "BadNoMatch",
+                                f"GetResultById: no result {checked[0]!r} among the last "
+                                f"{RECENT_RESULTS}")
+        return [ua.Variant(0, ua.VariantType.UInt32), _ext(found), _i32(0)]
+
+    async def _result_components_by_id(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("GetResultComponentsById", args, [mv.ResultIdDataType,
+                                                               (int, float)])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        r = self._find(checked[0])
+        if r is None:
+            return self._refuse(Status.BAD_REQUEST, "BadNoMatch",
+                                f"GetResultComponentsById: no result {checked[0]!r}")
+        b = ua.VariantType.Boolean
+        return [ua.Variant(False, b), ua.Variant(0, ua.VariantType.UInt32),
+                ua.Variant(r.IsPartial, b), ua.Variant(r.IsSimulated, b),
+                _i32(r.ResultState), _ext(r.MeasId), _ext(r.PartId), _ext(r.ExternalRecipeId),
+                _ext(r.InternalRecipeId), _ext(r.ProductId), _ext(r.ExternalConfigurationId),
+                _ext(r.InternalConfigurationId), _ext(r.JobId),
+                ua.Variant(r.CreationTime, ua.VariantType.DateTime), _ext(r.ProcessingTimes),
+                ua.Variant(r.ResultContent, ua.VariantType.Variant), _i32(0)]
+
+    async def _result_list(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        structures = (mv.MeasIdDataType, mv.PartIdDataType, mv.RecipeIdExternalDataType,
+                      mv.RecipeIdInternalDataType, mv.ConfigurationIdDataType,
+                      mv.ConfigurationIdDataType, mv.ProductIdDataType, mv.JobIdDataType)
+        checked = self._args("GetResultListFiltered", args,
+                             [int, *structures, int, int, (int, float)])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        state, *ids = checked[:9]
+        max_results, start = checked[9], checked[10]
+        fields = ("MeasId", "PartId", "ExternalRecipeId", "InternalRecipeId",
+                  "ExternalConfigurationId", "InternalConfigurationId", "ProductId", "JobId")
+        found = [r for r in self.results if not state or r.ResultState == state]
+        for name, ident in zip(fields, ids, strict=True):
+            wanted = getattr(ident, "Id", "") if ident is not None else ""
+            if wanted:
+                found = [r for r in found if getattr(getattr(r, name), "Id", None) == wanted]
+        page, complete = _page(found, start or 0, max_results or 0)
+        return [ua.Variant(complete, ua.VariantType.Boolean),
+                ua.Variant(len(found), ua.VariantType.Int32),
+                ua.Variant(0, ua.VariantType.UInt32),
+                ua.Variant(page, ua.VariantType.ExtensionObject), _i32(0)]
+
+    async def _report_safety_state(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        """Shown, never acted on: OPC 40100's safety state is information, not a safety
+        function."""
+        checked = self._args("ReportSafetyState", args, [bool, str])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        await self._write_safety(bool(checked[0]), checked[1] or "")
+        return [_i32(0)]
+
+    async def _plain_start(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("Plc.StartJob", args, [str])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        ident = mv.RecipeIdExternalDataType(Id=checked[0] or "")
+        number = self.recipe_number(ident, "Plc.StartJob RecipeId")
+        if isinstance(number, str):
+            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT, number)
+        answer = await self._job(Command.TRIGGER, lambda seq: self.machine.start_single_job(
+            seq, number), JobInfo(simulated=self.machine.simulation), "Plc.StartJob")
+        return _plain_answer(answer)
+
+    async def _plain_next(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("Plc.Next", args, [])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        answer = await self._job(Command.NEXT, self.machine.next_object, JobInfo(), "Plc.Next")
+        return _plain_answer(answer)
+
+
+class VisionSpace(VisionMethods):
     """The VisionSystem instance and the answers to its methods (one per open link)."""
 
     def __init__(self, server: Server, machine: VisionMachine, request: Request,
@@ -178,13 +539,12 @@ class VisionSpace:
         self._events: dict[str, EventGenerator] = {}
         self._config_node: ua.NodeId | None = None
 
-    # -- building ----------------------------------------------------------------------------
-
     async def build(self) -> None:
         s = self.server
         await s.import_xml(str(NODESET))
         await s.load_data_type_definitions()
         self.mv = await s.get_namespace_index(MV_URI)
+        await register_binary_ids(s.get_node, self.mv)
         self.idx = idx = await s.register_namespace(INSTANCE_URI)
         vs = await s.nodes.objects.add_object(
             self._nid(""), ua.QualifiedName("VisionSystem", idx),
@@ -275,8 +635,6 @@ class VisionSpace:
         now: Any = datetime.datetime.now(datetime.UTC)
         await self.server.write_attribute_value(nid, ua.DataValue(
             variant, SourceTimestamp=now, ServerTimestamp=now))
-
-    # -- what the link tells -------------------------------------------------------------
 
     def set_recipes(self, recipes: Mapping[int, str]) -> None:
         self.recipes = dict(recipes) or {0: "default"}
@@ -392,340 +750,15 @@ class VisionSpace:
         ev.Time = datetime.datetime.now(datetime.UTC)
         await gen.trigger()
 
-    # -- ids ---------------------------------------------------------------------------------
-
-    def _recipe_id(self, number: int) -> Any:
-        return mv.RecipeIdInternalDataType(
-            Id=str(number), Description=ua.LocalizedText(self.recipes.get(number, "")))
-
-    def _configuration(self) -> Any:
-        cid = mv.ConfigurationIdDataType(Id=self.configuration_id,
-                                         Hash=self.configuration_hash or None,
-                                         HashAlgorithm="SHA-256" if self.configuration_hash
-                                         else None)
-        return mv.ConfigurationDataType(InternalId=cid, LastModified=self.configuration_time)
-
-    def recipe_number(self, ident: Any, field: str) -> int | str | None:
-        """The configured recipe an id names (its ``Id``: the number or the name); None for
-        an empty id; a message (str) when it names none."""
-        text = str(getattr(ident, "Id", "") or "").strip() if ident is not None else ""
-        if not text:
-            return None
-        for number, name in self.recipes.items():
-            if text in (str(number), name):
-                return number
-        known = ", ".join(f"{n} {name}" for n, name in sorted(self.recipes.items()))
-        return f"{field}: recipe {text!r} is not configured (configured: {known})"
-
-    # -- argument checks ---------------------------------------------------------------------
-
-    def _args(self, method: str, args: Sequence[ua.Variant],
-              kinds: Sequence[type | tuple[type, ...]]) -> list[Any] | ua.StatusCode:
-        """The values of ``args`` when they are as many as ``kinds`` and of those types (a
-        null structure passes as None); the refusal otherwise."""
-        if len(args) < len(kinds):
-            return self._refuse(Status.BAD_REQUEST, "BadArgumentsMissing",
-                                f"{method} takes {len(kinds)} arguments, {len(args)} given")
-        if len(args) > len(kinds):
-            return self._refuse(Status.BAD_REQUEST, "BadTooManyArguments",
-                                f"{method} takes {len(kinds)} arguments, {len(args)} given")
-        values = [a.Value for a in args]
-        for i, (value, kind) in enumerate(zip(values, kinds, strict=True)):
-            if value is not None and not isinstance(value, kind):
-                return self._refuse(Status.BAD_REQUEST, "BadInvalidArgument",
-                                    f"{method}: argument {i + 1} is a {type(value).__name__}")
-        return values
-
-    def _verdict(self, verdict: Verdict, method: str) -> list[ua.Variant] | ua.StatusCode:
-        if verdict.refused:
-            return self._refuse(Status.BAD_REQUEST, verdict.refused, f"{method}: {verdict.why}")
-        return [_i32(0)]
-
-    async def _moved(self, verdict: Verdict, method: str) -> list[ua.Variant] | ua.StatusCode:
-        answer = self._verdict(verdict, method)
-        if verdict.ok:
-            await self.show_state()
-        return answer
-
-    # -- VisionStateMachine ------------------------------------------------------------------
-
-    async def _select_mode_automatic(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("SelectModeAutomatic", args, [])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        return await self._moved(self.machine.select_mode_automatic(), "SelectModeAutomatic")
-
-    async def _halt(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("Halt", args, [int, str])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        return await self._moved(self.machine.halt(), "Halt")
-
-    async def _reset(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("Reset", args, [int, str])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        return await self._moved(self.machine.reset(), "Reset")
-
-    async def _confirm_all(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        """No condition of vgripd waits for a confirmation: nothing to confirm."""
-        checked = self._args("ConfirmAll", args, [ua.LocalizedText])
-        return checked if isinstance(checked, ua.StatusCode) else []
-
-    # -- automatic mode ----------------------------------------------------------------------
-
-    async def _start_single_job(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("StartSingleJob", args, [
-            mv.MeasIdDataType, mv.PartIdDataType, mv.RecipeIdExternalDataType,
-            mv.ProductIdDataType, list])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        meas, part, recipe, product, _parameters = checked
-        number = self.recipe_number(recipe, "StartSingleJob RecipeId")
-        if isinstance(number, str):
-            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT, number)
-        info = JobInfo(meas, part, recipe, product, simulated=self.machine.simulation)
-        return await self._job(Command.TRIGGER, lambda seq: self.machine.start_single_job(
-            seq, number), info, "StartSingleJob")
-
-    async def _job(self, command: int, verdict_for: Callable[[int], Verdict], info: JobInfo,
-                   method: str) -> Any:
-        info.started = datetime.datetime.now(datetime.UTC)
-        info.t_start_ns = time.monotonic_ns()
-        verdict, seq = await self._request(command, verdict_for, info)
-        if verdict.refused:
-            status = (verdict.decision.code if verdict.decision is not None
-                      else Status.BAD_REQUEST)
-            return self._refuse(status, verdict.refused, f"{method}: {verdict.why}")
-        if command == Command.TRIGGER:
-            await self._event("JobStarted", f"job {seq} started",
-                              JobId=_ext(mv.JobIdDataType(Id=str(seq))))
-        return [_ext(mv.JobIdDataType(Id=str(seq))), _i32(0)]
-
     def begin(self, seq: int, info: JobInfo) -> None:
         """Request ``seq`` started (of either namespace): its metadata waits for its result."""
         self.pending[seq] = info
-
-    async def _start_continuous(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("StartContinuous", args, [
-            mv.MeasIdDataType, mv.PartIdDataType, mv.RecipeIdExternalDataType,
-            mv.ProductIdDataType, list])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        return self._verdict(self.machine.start_continuous(), "StartContinuous")
-
-    async def _stop(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("Stop", args, [int, str])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        return await self._moved(self.machine.stop(), "Stop")
-
-    async def _abort(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("Abort", args, [int, str])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        return await self._moved(self.machine.abort(), "Abort")
-
-    async def _simulation_mode(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("SimulationMode", args, [bool, int, str])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        return self._verdict(self.machine.set_simulation(bool(checked[0])), "SimulationMode")
-
-    # -- recipes -----------------------------------------------------------------------------
-
-    async def _prepare_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("PrepareRecipe", args, [mv.RecipeIdExternalDataType,
-                                                     mv.RecipeIdInternalDataType])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        number = self.recipe_number(checked[0], "PrepareRecipe ExternalId")
-        if number is None:
-            number = self.recipe_number(checked[1], "PrepareRecipe InternalIdIn")
-        if number is None:
-            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT,
-                                "PrepareRecipe: give ExternalId.Id (a recipe number or name)")
-        if isinstance(number, str):
-            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT, number)
-        verdict = self.machine.prepare_recipe(number)
-        if verdict.refused:
-            return self._verdict(verdict, "PrepareRecipe")
-        await self.show_state()
-        await self._event("RecipePrepared", f"recipe {number} prepared")
-        return [_ext(self._recipe_id(number)), ua.Variant(True, ua.VariantType.Boolean),
-                _i32(0)]
-
-    async def _unprepare_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("UnprepareRecipe", args, [mv.RecipeIdExternalDataType,
-                                                       mv.RecipeIdInternalDataType])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        number = self.recipe_number(checked[0], "UnprepareRecipe ExternalId")
-        if number is None:
-            number = self.recipe_number(checked[1], "UnprepareRecipe InternalIdIn")
-        if not isinstance(number, int):
-            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT,
-                                number or "UnprepareRecipe: give ExternalId or InternalIdIn")
-        verdict = self.machine.unprepare_recipe(number)
-        if verdict.refused:
-            return self._verdict(verdict, "UnprepareRecipe")
-        await self.show_state()
-        return [_ext(self._recipe_id(number)), _i32(0)]
-
-    async def _recipe_list(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("GetRecipeListFiltered", args, [
-            mv.RecipeIdExternalDataType, mv.ProductIdDataType, int, int, int, (int, float)])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        external, _product, prepared, max_results, start, _timeout = checked
-        numbers = sorted(self.recipes)
-        wanted = self.recipe_number(external, "GetRecipeListFiltered ExternalId")
-        if wanted is not None:
-            numbers = [n for n in numbers if n == wanted]
-        if prepared in (0, 1):  # TriStateBoolean: 0 false, 1 true, 2 don't care
-            numbers = [n for n in numbers if (n == self.machine.recipe) == bool(prepared)]
-        page, complete = _page(numbers, start or 0, max_results or 0)
-        return [ua.Variant(complete, ua.VariantType.Boolean),
-                ua.Variant(len(numbers), ua.VariantType.Int32),
-                ua.Variant(0, ua.VariantType.UInt32),
-                ua.Variant([self._recipe_id(n) for n in page], ua.VariantType.ExtensionObject),
-                _i32(0)]
-
-    # -- configuration -------------------------------------------------------------------------
-
-    def set_configuration(self, name: str, digest: bytes) -> None:
-        self.configuration_id = name
-        self.configuration_hash = digest
-        self.configuration_time = datetime.datetime.now(datetime.UTC)
-
-    async def _activate_configuration(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("ActivateConfiguration", args, [mv.ConfigurationIdDataType])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        if not self._is_ours(checked[0]):
-            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT,
-                                "ActivateConfiguration: only the loaded configuration "
-                                f"{self.configuration_id!r} exists (change the config through "
-                                "vgripd, not OPC UA)")
-        return [_i32(0)]
-
-    def _is_ours(self, ident: Any) -> bool:
-        return ident is not None and getattr(ident, "Id", None) == self.configuration_id
-
-    async def _configuration_by_id(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("GetConfigurationById", args, [mv.ConfigurationIdDataType,
-                                                            (int, float)])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        if not self._is_ours(checked[0]):
-            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT,
-                                f"GetConfigurationById: no configuration {checked[0]!r}")
-        return [ua.Variant(0, ua.VariantType.UInt32), _ext(self._configuration()), _i32(0)]
-
-    async def _configuration_list(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("GetConfigurationList", args, [int, int, (int, float)])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        page, complete = _page([self._configuration()], checked[1] or 0, checked[0] or 0)
-        return [ua.Variant(complete, ua.VariantType.Boolean), ua.Variant(1, ua.VariantType.Int32),
-                ua.Variant(0, ua.VariantType.UInt32),
-                ua.Variant(page, ua.VariantType.ExtensionObject), _i32(0)]
-
-    # -- results ---------------------------------------------------------------------------
-
-    def _find(self, ident: Any) -> Any:
-        wanted = getattr(ident, "Id", None)
-        return next((r for r in reversed(self.results) if r.ResultId.Id == wanted), None)
-
-    async def _result_by_id(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("GetResultById", args, [mv.ResultIdDataType, (int, float)])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        found = self._find(checked[0])
-        if found is None:
-            return self._refuse(Status.BAD_REQUEST, "BadNoMatch",
-                                f"GetResultById: no result {checked[0]!r} among the last "
-                                f"{RECENT_RESULTS}")
-        return [ua.Variant(0, ua.VariantType.UInt32), _ext(found), _i32(0)]
-
-    async def _result_components_by_id(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("GetResultComponentsById", args, [mv.ResultIdDataType,
-                                                               (int, float)])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        r = self._find(checked[0])
-        if r is None:
-            return self._refuse(Status.BAD_REQUEST, "BadNoMatch",
-                                f"GetResultComponentsById: no result {checked[0]!r}")
-        b = ua.VariantType.Boolean
-        return [ua.Variant(False, b), ua.Variant(0, ua.VariantType.UInt32),
-                ua.Variant(r.IsPartial, b), ua.Variant(r.IsSimulated, b),
-                _i32(r.ResultState), _ext(r.MeasId), _ext(r.PartId), _ext(r.ExternalRecipeId),
-                _ext(r.InternalRecipeId), _ext(r.ProductId), _ext(r.ExternalConfigurationId),
-                _ext(r.InternalConfigurationId), _ext(r.JobId),
-                ua.Variant(r.CreationTime, ua.VariantType.DateTime), _ext(r.ProcessingTimes),
-                ua.Variant(r.ResultContent, ua.VariantType.Variant), _i32(0)]
-
-    async def _result_list(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        structures = (mv.MeasIdDataType, mv.PartIdDataType, mv.RecipeIdExternalDataType,
-                      mv.RecipeIdInternalDataType, mv.ConfigurationIdDataType,
-                      mv.ConfigurationIdDataType, mv.ProductIdDataType, mv.JobIdDataType)
-        checked = self._args("GetResultListFiltered", args,
-                             [int, *structures, int, int, (int, float)])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        state, *ids = checked[:9]
-        max_results, start = checked[9], checked[10]
-        fields = ("MeasId", "PartId", "ExternalRecipeId", "InternalRecipeId",
-                  "ExternalConfigurationId", "InternalConfigurationId", "ProductId", "JobId")
-        found = [r for r in self.results if not state or r.ResultState == state]
-        for name, ident in zip(fields, ids, strict=True):
-            wanted = getattr(ident, "Id", "") if ident is not None else ""
-            if wanted:
-                found = [r for r in found if getattr(getattr(r, name), "Id", None) == wanted]
-        page, complete = _page(found, start or 0, max_results or 0)
-        return [ua.Variant(complete, ua.VariantType.Boolean),
-                ua.Variant(len(found), ua.VariantType.Int32),
-                ua.Variant(0, ua.VariantType.UInt32),
-                ua.Variant(page, ua.VariantType.ExtensionObject), _i32(0)]
-
-    # -- safety (information only) ---------------------------------------------------------
-
-    async def _report_safety_state(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        """Shown, never acted on: OPC 40100's safety state is information, not a safety
-        function."""
-        checked = self._args("ReportSafetyState", args, [bool, str])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        await self._write_safety(bool(checked[0]), checked[1] or "")
-        return [_i32(0)]
 
     async def _write_safety(self, triggered: bool, text: str) -> None:
         await self._set(self._nid("SafetyStateManagement.VisionSafetyTriggered"),
                         ua.Variant(triggered, ua.VariantType.Boolean))
         await self._set(self._nid("SafetyStateManagement.VisionSafetyInformation"),
                         ua.Variant(text, ua.VariantType.String))
-
-    # -- the plain methods -------------------------------------------------------------------
-
-    async def _plain_start(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("Plc.StartJob", args, [str])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        ident = mv.RecipeIdExternalDataType(Id=checked[0] or "")
-        number = self.recipe_number(ident, "Plc.StartJob RecipeId")
-        if isinstance(number, str):
-            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT, number)
-        answer = await self._job(Command.TRIGGER, lambda seq: self.machine.start_single_job(
-            seq, number), JobInfo(simulated=self.machine.simulation), "Plc.StartJob")
-        return _plain_answer(answer)
-
-    async def _plain_next(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("Plc.Next", args, [])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        answer = await self._job(Command.NEXT, self.machine.next_object, JobInfo(), "Plc.Next")
-        return _plain_answer(answer)
 
 
 _FIELD_TYPES = {"IsPartial": ua.VariantType.Boolean, "IsSimulated": ua.VariantType.Boolean,

@@ -20,9 +20,8 @@ from asyncua import Client, ua
 from asyncua.common.subscription import Subscription
 
 from drivers.links.opcua import OpcUaLink
-from drivers.links.opcua_vision import INSTANCE_URI, MV_URI, NODESET
-from tests.drivers.test_opcua import POSE, Daemon, kuka_result, open_link, options, url
-from vgripd.types import JobResult, Status
+from drivers.links.opcua_vision import INSTANCE_URI, MV_URI, NODESET, register_binary_ids
+from tests.drivers.test_opcua import POSE, Daemon, open_link, options, url
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -110,6 +109,7 @@ async def vision(link: OpcUaLink) -> AsyncIterator[Vision]:
     async with client:
         await client.load_data_type_definitions()
         mv = await client.get_namespace_index(MV_URI)
+        await register_binary_ids(client.get_node, mv)  # asyncua's own flaw, as the server
         idx = await client.get_namespace_index(INSTANCE_URI)
         yield Vision(client, mv, idx)
 
