@@ -169,7 +169,23 @@ async def register_binary_ids(get_node: Callable[[ua.NodeId], Node], mv_index: i
         if encoding is None:
             raise ValueError(f"{name}: no Default Binary encoding in the NodeSet")
         cls: type = dataclasses.dataclass(type(name, (base,), {"__module__": __name__}))
-        ua.register_extension_object(name, encoding, cls, type_id)
+        # asyncua's lookup tables only: ``ua.<name>`` stays asyncua's (binding it again logs
+        # a name collision); vgripd builds these ids with ``binary_id``
+        ua.extension_objects_by_typeid[encoding] = cls
+        ua.typeid_by_extension_objects[cls] = encoding
+        ua.extension_objects_by_datatype[type_id] = cls
+        ua.datatype_by_extension_object[cls] = type_id
+        BINARY_ID_CLASSES[name] = cls
+
+
+#: the classes ``register_binary_ids`` made, by name
+BINARY_ID_CLASSES: dict[str, type] = {}
+
+
+def binary_id(name: str, **fields: Any) -> Any:
+    """A RecipeIdExternal/RecipeIdInternal/ConfigurationId value that encodes with its own
+    type's encoding id (``register_binary_ids``)."""
+    return BINARY_ID_CLASSES[name](**fields)
 
 
 def _code(name: str) -> int:
@@ -207,14 +223,13 @@ class VisionMethods:
         raise NotImplementedError
 
     def _recipe_id(self, number: int) -> Any:
-        return mv.RecipeIdInternalDataType(
-            Id=str(number), Description=ua.LocalizedText(self.recipes.get(number, "")))
+        return binary_id("RecipeIdInternalDataType", Id=str(number),
+                         Description=ua.LocalizedText(self.recipes.get(number, "")))
 
     def _configuration(self) -> Any:
-        cid = mv.ConfigurationIdDataType(Id=self.configuration_id,
-                                         Hash=self.configuration_hash or None,
-                                         HashAlgorithm="SHA-256" if self.configuration_hash
-                                         else None)
+        cid = binary_id("ConfigurationIdDataType", Id=self.configuration_id,
+                        Hash=self.configuration_hash or None,
+                        HashAlgorithm="SHA-256" if self.configuration_hash else None)
         return mv.ConfigurationDataType(InternalId=cid, LastModified=self.configuration_time)
 
     def recipe_number(self, ident: Any, field: str) -> int | str | None:
@@ -282,7 +297,7 @@ class VisionMethods:
 
     async def _start_single_job(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         checked = self._args("StartSingleJob", args, [
-            mv.MeasIdDataType, mv.PartIdDataType, mv.RecipeIdExternalDataType,
+            mv.MeasIdDataType, mv.PartIdDataType, mv.BinaryIdBaseDataType,
             mv.ProductIdDataType, list])
         if isinstance(checked, ua.StatusCode):
             return checked
@@ -310,7 +325,7 @@ class VisionMethods:
 
     async def _start_continuous(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         checked = self._args("StartContinuous", args, [
-            mv.MeasIdDataType, mv.PartIdDataType, mv.RecipeIdExternalDataType,
+            mv.MeasIdDataType, mv.PartIdDataType, mv.BinaryIdBaseDataType,
             mv.ProductIdDataType, list])
         if isinstance(checked, ua.StatusCode):
             return checked
@@ -335,8 +350,8 @@ class VisionMethods:
         return self._verdict(self.machine.set_simulation(bool(checked[0])), "SimulationMode")
 
     async def _prepare_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("PrepareRecipe", args, [mv.RecipeIdExternalDataType,
-                                                     mv.RecipeIdInternalDataType])
+        checked = self._args("PrepareRecipe", args, [mv.BinaryIdBaseDataType,
+                                                     mv.BinaryIdBaseDataType])
         if isinstance(checked, ua.StatusCode):
             return checked
         number = self.recipe_number(checked[0], "PrepareRecipe ExternalId")
@@ -356,8 +371,8 @@ class VisionMethods:
                 _i32(0)]
 
     async def _unprepare_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("UnprepareRecipe", args, [mv.RecipeIdExternalDataType,
-                                                       mv.RecipeIdInternalDataType])
+        checked = self._args("UnprepareRecipe", args, [mv.BinaryIdBaseDataType,
+                                                       mv.BinaryIdBaseDataType])
         if isinstance(checked, ua.StatusCode):
             return checked
         number = self.recipe_number(checked[0], "UnprepareRecipe ExternalId")
@@ -374,7 +389,7 @@ class VisionMethods:
 
     async def _recipe_list(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         checked = self._args("GetRecipeListFiltered", args, [
-            mv.RecipeIdExternalDataType, mv.ProductIdDataType, int, int, int, (int, float)])
+            mv.BinaryIdBaseDataType, mv.ProductIdDataType, int, int, int, (int, float)])
         if isinstance(checked, ua.StatusCode):
             return checked
         external, _product, prepared, max_results, start, _timeout = checked
@@ -397,7 +412,7 @@ class VisionMethods:
         self.configuration_time = datetime.datetime.now(datetime.UTC)
 
     async def _activate_configuration(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("ActivateConfiguration", args, [mv.ConfigurationIdDataType])
+        checked = self._args("ActivateConfiguration", args, [mv.BinaryIdBaseDataType])
         if isinstance(checked, ua.StatusCode):
             return checked
         if not self._is_ours(checked[0]):
@@ -411,7 +426,7 @@ class VisionMethods:
         return ident is not None and getattr(ident, "Id", None) == self.configuration_id
 
     async def _configuration_by_id(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("GetConfigurationById", args, [mv.ConfigurationIdDataType,
+        checked = self._args("GetConfigurationById", args, [mv.BinaryIdBaseDataType,
                                                             (int, float)])
         if isinstance(checked, ua.StatusCode):
             return checked
@@ -463,9 +478,9 @@ class VisionMethods:
                 ua.Variant(r.ResultContent, ua.VariantType.Variant), _i32(0)]
 
     async def _result_list(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        structures = (mv.MeasIdDataType, mv.PartIdDataType, mv.RecipeIdExternalDataType,
-                      mv.RecipeIdInternalDataType, mv.ConfigurationIdDataType,
-                      mv.ConfigurationIdDataType, mv.ProductIdDataType, mv.JobIdDataType)
+        structures = (mv.MeasIdDataType, mv.PartIdDataType, mv.BinaryIdBaseDataType,
+                      mv.BinaryIdBaseDataType, mv.BinaryIdBaseDataType,
+                      mv.BinaryIdBaseDataType, mv.ProductIdDataType, mv.JobIdDataType)
         checked = self._args("GetResultListFiltered", args,
                              [int, *structures, int, int, (int, float)])
         if isinstance(checked, ua.StatusCode):

@@ -77,6 +77,10 @@ async function main() {
             { dataType: DataType.ExtensionObject, value: await ext(3013, { id: "" }) },
         ]);
         out.prepare = prep.statusCode.name;
+        if (prep.outputArguments && prep.outputArguments.length) {
+            const internal = prep.outputArguments[0].value;
+            out.prepared = { id: internal.id, type: internal.schema ? internal.schema.name : "?" };
+        }
         out.states.push(await state());
 
         const subscription = ClientSubscription.create(session, {

@@ -70,6 +70,8 @@ async def test_node_opcua_runs_the_plc_sequence(link: tuple[OpcUaLink, Daemon]) 
                               "initialized": "BadInvalidState",
                               "stopInReady": "BadInvalidState"}
     assert (out["select"], out["prepare"]) == ("Good", "Good")
+    # decoded as the NodeSet's own type (not the abstract BinaryIdBaseDataType)
+    assert out["prepared"] == {"id": "0", "type": "RecipeIdInternalDataType"}
     assert len(out["jobs"]) == 3
     for n, job in enumerate(out["jobs"], start=1):
         trigger = daemon.triggers[n - 1]
