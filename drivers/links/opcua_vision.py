@@ -44,6 +44,7 @@ from typing import Any
 from asyncua import Node, Server, ua
 from asyncua.server.event_generator import EventGenerator
 
+from drivers.links.opcua_nodeset import prune
 from drivers.links.opcua_space import ResultValues
 from vgripd.service.jobcore import Command
 from vgripd.service.visionsm import (
@@ -566,8 +567,7 @@ class VisionSpace(VisionMethods):
             objecttype=self._mv_id(VISION_SYSTEM_TYPE))
         await vs.set_event_notifier([ua.EventNotifier.SubscribeToEvents])
         self.vision_system = vs
-        for path in NOT_IMPLEMENTED:
-            await s.delete_nodes([s.get_node(self._nid(path))], recursive=True)
+        await prune(s, [s.get_node(self._nid(path)) for path in NOT_IMPLEMENTED])
         auto = "VisionStateMachine.AutomaticModeStateMachine"
         handlers: dict[str, Callable[..., Awaitable[Any]]] = {
             "VisionStateMachine.SelectModeAutomatic": self._select_mode_automatic,

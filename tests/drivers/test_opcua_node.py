@@ -42,7 +42,7 @@ def node_modules() -> Path:
 @pytest.fixture
 async def link() -> AsyncIterator[tuple[OpcUaLink, Daemon]]:
     daemon = Daemon()
-    lk = await open_link(daemon, options())
+    lk = await open_link(daemon, options(old_only=False))  # the default models
     yield lk, daemon
     await lk.close()
     for task in list(daemon.tasks):

@@ -20,7 +20,14 @@ from asyncua import Client, ua
 from asyncua.common.subscription import Subscription
 
 from drivers.links.opcua import OpcUaLink
-from drivers.links.opcua_vision import INSTANCE_URI, MV_URI, NODESET, register_binary_ids
+from drivers.links.opcua_nodeset import references_to_missing
+from drivers.links.opcua_vision import (
+    INSTANCE_URI,
+    MV_URI,
+    NODESET,
+    NOT_IMPLEMENTED,
+    register_binary_ids,
+)
 from tests.drivers.test_opcua import POSE, Daemon, open_link, options, url
 
 pytestmark = pytest.mark.timeout(120)
@@ -97,7 +104,7 @@ async def daemon() -> AsyncIterator[Daemon]:
 
 @pytest.fixture
 async def link(daemon: Daemon) -> AsyncIterator[OpcUaLink]:
-    lk = await open_link(daemon, options())
+    lk = await open_link(daemon, options(old_only=False))  # the default models
     lk.set_recipes({0: "default", 2: "pallet"})
     yield lk
     await lk.close()
@@ -151,7 +158,7 @@ def test_the_nodeset_is_the_official_file_with_its_licence() -> None:
 
 
 async def test_the_type_hierarchy_is_browsed_from_the_official_nodeset(
-        vision: Vision) -> None:
+        vision: Vision, link: OpcUaLink) -> None:
     v = vision
     base = v.client.get_node(ua.ObjectIds.BaseObjectType)
     vst = await base.get_child([f"{v.mv}:VisionSystemType"])
@@ -170,6 +177,12 @@ async def test_the_type_hierarchy_is_browsed_from_the_official_nodeset(
         assert await (await v.node(path)).read_node_class() == ua.NodeClass.Method
     with pytest.raises(ua.UaError):
         await v.node("RecipeManagement/AddRecipe")
+    # the nodes removed from the instance are gone without a trace: no reference to them
+    server = link.server
+    assert server is not None
+    assert references_to_missing(server) == []
+    aspace = server.iserver.aspace
+    assert not [p for p in NOT_IMPLEMENTED if ua.NodeId(f"VisionSystem.{p}", v.idx) in aspace]
     # the event type's fields come from the NodeSet
     rr = v.client.get_node(ua.NodeId(1024, v.mv))
     fields = {(await c.read_browse_name()).Name for c in await rr.get_properties()}
