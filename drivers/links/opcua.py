@@ -590,6 +590,8 @@ class OpcUaLink(RobotLink):
         if task is not None:
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)
+        if self.vision is not None:
+            await self.vision.close()
         server, self.server = self.server, None
         if server is not None:
             try:
@@ -677,6 +679,7 @@ class OpcUaLink(RobotLink):
             await self.space.publish_result(shown)
         if self.vision is not None:
             await self.vision.publish(seq, shown, t_done, moves)
+            self.vision.continue_later()  # ContinuousExecution: the next job, after this return
         return sent.status
 
     def refusals(self) -> Mapping[str, int]:

@@ -32,6 +32,7 @@ structures and the plain variables; the rules are ``VisionMachine``'s.
 
 from __future__ import annotations
 
+import asyncio
 import datetime
 import hashlib
 import time
@@ -94,7 +95,8 @@ PLAIN_STATE: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
      "the state: Preoperational, Halted, Error, or Operational.<automatic-mode state>"),
     ("StateNumber", ua.VariantType.UInt32, 1, "VisionStateMachine StateNumber (1..4)"),
     ("AutoStateNumber", ua.VariantType.UInt32, 0,
-     "automatic-mode StateNumber (5 Initialized, 6 Ready, 7 SingleExecution; 0 not Operational)"),
+     "automatic-mode StateNumber (5 Initialized, 6 Ready, 7 SingleExecution, "
+     "8 ContinuousExecution; 0 not Operational)"),
     ("PreparedRecipe", ua.VariantType.String, "", "InternalId of the prepared recipe"),
     ("JobId", ua.VariantType.String, "", "JobId of the request running or last started"),
 )
@@ -140,6 +142,8 @@ class JobInfo:
     t_start_ns: int = 0
     t_captured_ns: int = 0
     simulated: bool = False
+    #: OPC 40100's JobId: the request's own sequence, or the first one of a continuous chain
+    job_id: str = ""
 
 
 #: Subtypes of BinaryIdBaseDataType whose Definition in the NodeSet is empty (the fields are the
@@ -211,6 +215,8 @@ class VisionMethods:
     configuration_hash: bytes
     configuration_time: datetime.datetime
     idx: int
+    chain: JobInfo | None
+    _chain_task: asyncio.Task[None] | None
     _request: Request
     _refuse: Refuse
 
@@ -297,18 +303,49 @@ class VisionMethods:
         return checked if isinstance(checked, ua.StatusCode) else []
 
     async def _start_single_job(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("StartSingleJob", args, [
+        return await self._start("StartSingleJob", args)
+
+    async def _start(self, method: str, args: Sequence[ua.Variant]) -> Any:
+        """StartSingleJob or StartContinuous: the same arguments and answers."""
+        checked = self._args(method, args, [
             mv.MeasIdDataType, mv.PartIdDataType, mv.BinaryIdBaseDataType,
             mv.ProductIdDataType, list])
         if isinstance(checked, ua.StatusCode):
             return checked
         meas, part, recipe, product, _parameters = checked
-        number = self.recipe_number(recipe, "StartSingleJob RecipeId")
+        number = self.recipe_number(recipe, f"{method} RecipeId")
         if isinstance(number, str):
             return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT, number)
         info = JobInfo(meas, part, recipe, product, simulated=self.machine.simulation)
+        if method == "StartContinuous":
+            self.chain = info  # each next job of the chain carries its ids (continue_chain)
+            return await self._job(Command.TRIGGER, lambda seq: self.machine.start_continuous(
+                seq, number), info, method)
         return await self._job(Command.TRIGGER, lambda seq: self.machine.start_single_job(
-            seq, number), info, "StartSingleJob")
+            seq, number), info, method)
+
+    def continue_later(self) -> None:
+        """After a result is published: in ContinuousExecution, start the chain's next job in
+        a task of its own, so that the daemon is done with this job when it asks for one."""
+        if self.machine.wants_next:
+            self._chain_task = asyncio.create_task(self.continue_chain())
+
+    async def close(self) -> None:
+        task, self._chain_task = self._chain_task, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    async def continue_chain(self) -> None:
+        """ContinuousExecution after a published result: the chain's next job (nothing when
+        the chain ended, or a request of the older namespace runs: its result comes back
+        here)."""
+        if self.chain is None or not self.machine.wants_next:
+            return
+        info = JobInfo(self.chain.meas_id, self.chain.part_id, self.chain.recipe_external,
+                       self.chain.product_id, simulated=self.machine.simulation,
+                       job_id=self.chain.job_id)
+        await self._job(Command.TRIGGER, self.machine.continue_job, info, "StartContinuous")
 
     async def _job(self, command: int, verdict_for: Callable[[int], Verdict], info: JobInfo,
                    method: str) -> Any:
@@ -320,17 +357,12 @@ class VisionMethods:
                       else Status.BAD_REQUEST)
             return self._refuse(status, verdict.refused, f"{method}: {verdict.why}")
         if command == Command.TRIGGER:
-            await self._event("JobStarted", f"job {seq} started",
-                              JobId=_ext(mv.JobIdDataType(Id=str(seq))))
-        return [_ext(mv.JobIdDataType(Id=str(seq))), _i32(0)]
+            await self._event("JobStarted", f"job {info.job_id} started (request {seq})",
+                              JobId=_ext(mv.JobIdDataType(Id=info.job_id)))
+        return [_ext(mv.JobIdDataType(Id=info.job_id)), _i32(0)]
 
     async def _start_continuous(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
-        checked = self._args("StartContinuous", args, [
-            mv.MeasIdDataType, mv.PartIdDataType, mv.BinaryIdBaseDataType,
-            mv.ProductIdDataType, list])
-        if isinstance(checked, ua.StatusCode):
-            return checked
-        return self._verdict(self.machine.start_continuous(), "StartContinuous")
+        return await self._start("StartContinuous", args)
 
     async def _stop(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         checked = self._args("Stop", args, [int, str])
@@ -547,6 +579,9 @@ class VisionSpace(VisionMethods):
         self.configuration_time = datetime.datetime.now(datetime.UTC)
         self.results: deque[Any] = deque(maxlen=RECENT_RESULTS)
         self.pending: dict[int, JobInfo] = {}
+        #: the ids StartContinuous was called with, for each job of its chain
+        self.chain: JobInfo | None = None
+        self._chain_task: asyncio.Task[None] | None = None
         self.sequence = 0
         self.vision_system: Node | None = None
         self._state_nodes: dict[str, ua.NodeId] = {}
@@ -678,27 +713,29 @@ class VisionSpace(VisionMethods):
         cleared (the data keeps its values until the result; see ``Space.retract``)."""
         await self.write([(name, self._values[name]) for name, *_ in PLAIN_RESULT],
                          status=UNCERTAIN)
-        await self.write([("ResultId", ""), ("JobId", str(seq))])
+        info = self.pending.get(seq)
+        await self.write([("ResultId", ""), ("JobId", info.job_id if info else str(seq))])
         await self.show_state()
 
     async def captured(self, seq: int, job_id: int) -> None:
         info = self.pending.get(seq)
         if info is not None:
             info.t_captured_ns = time.monotonic_ns()
-        await self._event("AcquisitionDone", f"image of job {seq} taken (daemon job {job_id})",
-                          JobId=_ext(mv.JobIdDataType(Id=str(seq))))
+        job = info.job_id if info is not None else str(seq)
+        await self._event("AcquisitionDone", f"image of request {seq} taken (daemon job "
+                          f"{job_id})", JobId=_ext(mv.JobIdDataType(Id=job)))
 
     async def publish(self, seq: int, shown: ResultValues, t_done_ns: int,
                       moves: tuple[str, ...]) -> None:
         """A result: the plain data, then ResultId and Sequence, the state, the stored
         ResultDataType and the ResultReady event."""
-        info = self.pending.pop(seq, JobInfo())
+        info = self.pending.pop(seq, JobInfo(job_id=str(seq)))
         self.sequence = 1 if self.sequence >= 0xFFFFFFFF else self.sequence + 1
         result_id = str(self.sequence)
         state = result_state(shown.status)
         r = shown
         await self.write([
-            ("ResultJobId", str(seq)), ("ResultState", state), ("Status", int(r.status)),
+            ("ResultJobId", info.job_id), ("ResultState", state), ("Status", int(r.status)),
             ("StatusName", r.status.name), ("Vendor", r.vendor), ("ValueNames", r.value_names),
             ("Values", r.values), ("Pose", r.pose), ("Count", int(r.pick.count)),
             ("Index", int(r.pick.index)), ("PickId", int(r.pick.pick_id)),
@@ -750,7 +787,7 @@ class VisionSpace(VisionMethods):
             MeasId=info.meas_id, PartId=info.part_id, ExternalRecipeId=info.recipe_external,
             InternalRecipeId=self._recipe_id(r.recipe), ProductId=info.product_id,
             InternalConfigurationId=self._configuration().InternalId,
-            JobId=mv.JobIdDataType(Id=str(seq)), CreationTime=end, ProcessingTimes=times,
+            JobId=mv.JobIdDataType(Id=info.job_id), CreationTime=end, ProcessingTimes=times,
             ResultContent=[_ext(ua.KeyValuePair(Key=ua.QualifiedName(k, self.idx), Value=v))
                            for k, v in content])
 
@@ -767,6 +804,7 @@ class VisionSpace(VisionMethods):
 
     def begin(self, seq: int, info: JobInfo) -> None:
         """Request ``seq`` started (of either namespace): its metadata waits for its result."""
+        info.job_id = info.job_id or str(seq)
         self.pending[seq] = info
 
     async def _write_safety(self, triggered: bool, text: str) -> None:

@@ -266,3 +266,103 @@ async def test_halt_during_a_job_ends_it_aborted_without_a_pose(
     assert await v.call("VisionStateMachine/Reset", 0, "") == [0]
     assert await v.state() == ("Preoperational", "")
     await sub.delete()
+
+
+class Permits(Daemon):
+    """The stand-in daemon answering one job per permit the test gives (``go``)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.permits = asyncio.Semaphore(0)
+        self.asked = asyncio.Condition()
+
+    def on_trigger(self, trigger: Any) -> None:
+        super().on_trigger(trigger)
+        task = asyncio.create_task(self._told())
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+
+    async def _told(self) -> None:
+        async with self.asked:
+            self.asked.notify_all()
+
+    async def answer(self, trigger: Any) -> None:
+        assert self.link is not None
+        result = self.result_for(trigger)
+        await self.link.image_captured(trigger.seq, result.job_id)
+        await self.permits.acquire()
+        await self.link.publish(trigger.seq, result)
+
+    async def started(self, n: int) -> None:
+        """Until the daemon was asked for its ``n``-th job."""
+        async with asyncio.timeout(WAIT_S), self.asked:
+            await self.asked.wait_for(lambda: len(self.triggers) >= n)
+
+
+@pytest.fixture
+async def permits() -> AsyncIterator[Permits]:
+    d = Permits()
+    yield d
+    for task in list(d.tasks):
+        task.cancel()
+
+
+async def test_start_continuous_runs_jobs_until_stop_and_abort_ends_at_once(
+        permits: Permits) -> None:
+    d = permits
+    link = await open_link(d, options(old_only=False))
+    try:
+        client = Client(url(link), timeout=WAIT_S)
+        async with client:
+            await client.load_data_type_definitions()
+            mv = await client.get_namespace_index(MV_URI)
+            await register_binary_ids(client.get_node, mv)
+            v = Vision(client, mv, await client.get_namespace_index(INSTANCE_URI))
+            assert await v.refused(f"{AUTO}/StartContinuous", *job_args("m", "p")) == \
+                "BadInvalidState"  # not in Ready
+            await v.call("VisionStateMachine/SelectModeAutomatic")
+            await v.call("RecipeManagement/PrepareRecipe", ext("RecipeIdExternalDataType", "0"),
+                         ext("RecipeIdInternalDataType", ""))
+            events, sub = await subscribe(v)
+            job_id, error = await v.call(f"{AUTO}/StartContinuous", *job_args("m", "p"))
+            assert error == 0
+            assert await v.state() == ("Operational", "ContinuousExecution")
+            assert await v.plain("AutoStateNumber") == 8
+            results = []
+            for n in (1, 2):  # each result, then the next job of the chain
+                d.permits.release()
+                results.append(await events.next(RESULT_READY))
+                await d.started(n + 1)
+            # only the chain runs: a single job and a Next are refused meanwhile
+            assert await v.refused(f"{AUTO}/StartSingleJob", *job_args("m", "p")) == \
+                "BadInvalidState"
+            assert await v.refused("Plc/Next") == "BadInvalidState"
+            assert await v.call(f"{AUTO}/Stop", 0, "") == [0]  # ends after the running job
+            assert await v.state() == ("Operational", "ContinuousExecution")
+            d.permits.release()
+            results.append(await events.next(RESULT_READY))
+            assert await v.state() == ("Operational", "Ready")
+            # no job after the stopped one: the next request is this single job
+            single, _ = await v.call(f"{AUTO}/StartSingleJob", *job_args("m", "p"))
+            assert [t.seq for t in d.triggers] == [1, 2, 3, 4]
+            assert single.Id == "4"
+            d.permits.release()
+            await events.next(RESULT_READY)
+            # Abort ends the chain at once: the running job's result is ABORTED, no pose
+            chain2, _ = await v.call(f"{AUTO}/StartContinuous", *job_args("m2", "p2"))
+            await d.started(5)
+            assert await v.call(f"{AUTO}/Abort", 0, "") == [0]
+            assert await v.state() == ("Operational", "Ready")
+            d.permits.release()
+            aborted = await events.next(RESULT_READY)
+            await sub.delete()
+    finally:
+        await link.close()
+    assert [r.JobId.Id for r in results] == [job_id.Id] * 3  # one job, one result per run
+    assert len({r.ResultId.Id for r in results}) == 3
+    for r, seq in zip(results, (1, 2, 3), strict=True):
+        assert (r.ResultState, r.MeasId.Id, r.PartId.Id) == (1, "m", "p")
+        assert (content(r)["DaemonJobId"], tuple(content(r)["Values"])) == (100 + seq, POSE)
+    assert (aborted.JobId.Id, aborted.ResultState, aborted.PartId.Id) == (chain2.Id, 3, "p2")
+    assert content(aborted)["Values"] in (None, [])
+    assert len(d.triggers) == 5

@@ -17,6 +17,13 @@ among the other link kinds. Halt, Reset, Stop or Abort while a job runs cannot t
 back from the daemon: its result still comes, once, but as ``ABORTED`` without a pose
 (``VisionMachine.publish``), and the state machine has already left SingleExecution.
 
+ContinuousExecution (StartContinuous) is a chain of such requests: one at a time, each with a
+sequence of its own, the next one started by the link (``continue_job``) once the previous
+result is published. Stop ends the chain after the running job (its result is a normal one),
+Abort at once (the running job's result ABORTED, as Halt and Reset do); a result the daemon
+gives without a job (another link's job runs: BUSY; shutdown: ABORTED) ends it too, so a
+chain never spins on refusals, and a system fault moves to Error as in SingleExecution.
+
 The numbers of the states are OPC 40100's ``StateNumber`` values (NodeSet 1.0.0).
 """
 
@@ -72,6 +79,9 @@ RESULT_COMPLETED, RESULT_ABORTED, RESULT_FAILED = 1, 3, 4
 #: Statuses whose result is "Failed": the job did not produce an answer about the part.
 FAILED_STATUSES = SYSTEM_FAULTS | {Status.BUSY, Status.BAD_REQUEST}
 
+#: the automatic mode's states in which a job of the state machine runs
+EXECUTING = (Auto.SINGLE_EXECUTION, Auto.CONTINUOUS_EXECUTION)
+
 BAD_STATE = "BadInvalidState"
 BAD_ARGUMENT = "BadInvalidArgument"
 BAD_NO_DATA = "BadNoData"
@@ -121,6 +131,8 @@ class VisionMachine:
         self.simulation = False
         #: the running request was aborted (Halt, Reset, Stop, Abort): its result is ABORTED
         self.aborted = False
+        #: Stop was called in ContinuousExecution: the chain ends with the running job
+        self.stopping = False
 
     # -- what clients see ------------------------------------------------------------------
 
@@ -137,8 +149,10 @@ class VisionMachine:
         """Move to ``top``/``auto`` by the transition ``name``. Leaving SingleExecution other
         than by the result aborts the running job (a request of the older namespace, started
         outside Ready, is not the state machine's and runs on)."""
-        if self.busy and self.auto is Auto.SINGLE_EXECUTION and auto is not self.auto:
+        if self.busy and self.auto in EXECUTING and auto is not self.auto:
             self.aborted = True
+        if auto is not Auto.CONTINUOUS_EXECUTION:
+            self.stopping = False
         self.top, self.auto = top, auto
         return (name,)
 
@@ -207,14 +221,40 @@ class VisionMachine:
     def start_single_job(self, seq: int, recipe: int | None) -> Verdict:
         """StartSingleJob as request ``seq`` (``recipe``: the one the call names, already
         judged to exist; None: the prepared one). Only in Ready."""
+        return self._start("StartSingleJob", seq, recipe, Auto.SINGLE_EXECUTION)
+
+    def start_continuous(self, seq: int, recipe: int | None) -> Verdict:
+        """StartContinuous: request ``seq`` is the first job of a chain (``continue_job``
+        starts each next one). Only in Ready."""
+        return self._start("StartContinuous", seq, recipe, Auto.CONTINUOUS_EXECUTION)
+
+    def _start(self, method: str, seq: int, recipe: int | None, to: Auto) -> Verdict:
         if self.auto is not Auto.READY:
             status = Status.BUSY if self.busy else Status.BAD_REQUEST
-            return _refuse(BAD_STATE, f"StartSingleJob in {self.state_path} (Ready needed: "
+            return _refuse(BAD_STATE, f"{method} in {self.state_path} (Ready needed: "
                            "SelectModeAutomatic, then PrepareRecipe)", seq, Command.TRIGGER,
                            status)
         if recipe is not None and recipe != self.recipe:
-            return _refuse(BAD_ARGUMENT, f"StartSingleJob: recipe {recipe} is not the prepared "
+            return _refuse(BAD_ARGUMENT, f"{method}: recipe {recipe} is not the prepared "
                            f"one ({self.recipe})", seq, Command.TRIGGER)
+        assert self.recipe is not None
+        verdict = self.request(Command.TRIGGER, seq, self.recipe)
+        if verdict.ok and to is Auto.CONTINUOUS_EXECUTION:
+            self.auto, self.stopping = to, False
+            return Verdict(transitions=("ReadyToContinuousExecution",),
+                           decision=verdict.decision)
+        return verdict
+
+    @property
+    def wants_next(self) -> bool:
+        """ContinuousExecution goes on and no request runs: the link starts the next job."""
+        return self.auto is Auto.CONTINUOUS_EXECUTION and not self.busy and not self.stopping
+
+    def continue_job(self, seq: int) -> Verdict:
+        """The next job of ContinuousExecution as request ``seq``."""
+        if not self.wants_next:
+            return _refuse(BAD_STATE, f"next continuous job in {self.state_path}", seq,
+                           Command.TRIGGER, Status.BUSY if self.busy else Status.BAD_REQUEST)
         assert self.recipe is not None
         return self.request(Command.TRIGGER, seq, self.recipe)
 
@@ -248,17 +288,16 @@ class VisionMachine:
         return self._end_execution("Abort")
 
     def _end_execution(self, how: str) -> Verdict:
-        if self.auto is not Auto.SINGLE_EXECUTION:
+        if self.auto not in EXECUTING:
             return _refuse(BAD_STATE, f"{how} in {self.state_path} (no job runs)")
+        if self.auto is Auto.CONTINUOUS_EXECUTION and how == "Stop" and self.busy:
+            self.stopping = True  # the running job ends normally, then Ready (publish)
+            return Verdict()
+        assert self.auto is not None
+        name = f"{self.auto.label}ToReady{how}"
         self.aborted = self.busy
-        self.auto = Auto.READY
-        return Verdict(transitions=(f"SingleExecutionToReady{how}",))
-
-    def start_continuous(self) -> Verdict:
-        if self.auto is not Auto.READY:
-            return _refuse(BAD_STATE, f"StartContinuous in {self.state_path}")
-        return _refuse(NOT_SUPPORTED, "StartContinuous: vgripd runs one job per request "
-                       "(StartSingleJob)")
+        self.auto, self.stopping = Auto.READY, False
+        return Verdict(transitions=(name,))
 
     def set_simulation(self, active: bool) -> Verdict:
         if self.top is not Top.OPERATIONAL:
@@ -290,4 +329,9 @@ class VisionMachine:
         elif self.auto is Auto.SINGLE_EXECUTION:
             self.auto = Auto.READY
             moves = ("SingleExecutionToReadyAuto",)
+        elif self.auto is Auto.CONTINUOUS_EXECUTION and (self.stopping or not result.job_id):
+            # Stop was called, or the daemon gave no job (BUSY, ABORTED): the chain ends
+            moves = ("ContinuousExecutionToReadyStop" if self.stopping
+                     else "ContinuousExecutionToReadyAuto",)
+            self.auto, self.stopping = Auto.READY, False
         return plan, result, moves

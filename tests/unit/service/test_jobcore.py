@@ -15,7 +15,9 @@ A cell of five links, each kind, shares one ``JobCore`` as the daemon does:
   the plain Next go through its states first (refused in any state but Ready), CLEAR and
   unknown commands stand for the older namespace's calls on the same link; random
   SelectModeAutomatic, PrepareRecipe, UnprepareRecipe, Halt, Reset, Stop and Abort calls move
-  it (a job aborted meanwhile still ends once, ABORTED without a pose).
+  it (a job aborted meanwhile still ends once, ABORTED without a pose); StartContinuous starts
+  a chain of jobs, each next one requested as the link does once the previous one is finished,
+  until Stop (after the running job), Abort, Halt or Reset (at once) or a refusal ends it.
 
 Random events: a request of any link (TRIGGER, CLEAR, NEXT, an unknown command; on the
 register link also the same sequence again and 0, which are no requests), the running job's
@@ -69,7 +71,7 @@ from vgripd.service.protocol import (
     ValueCodec,
 )
 from vgripd.service.robot_socket_format import remaining
-from vgripd.service.visionsm import Auto, VisionMachine
+from vgripd.service.visionsm import EXECUTING, Auto, VisionMachine
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 FIELDS = tuple("xyzabc")
@@ -239,15 +241,23 @@ class VisionLink(MessageLink):
         self.machine = VisionMachine()
         self.handshake = self.machine.handshake
         self.aborted: set[int] = set()  # requests whose result came ABORTED by a client's call
-        self.expect_abort: set[int] = set()  # requests whose SingleExecution a call ended
+        self.expect_abort: set[int] = set()  # requests whose execution state a call ended
+        #: what a TRIGGER is: StartSingleJob, StartContinuous, or the chain's next job
+        self.mode = "single"
 
     def request(self, command: int, seq: int) -> Decision:
         m = self.machine
         before = m.auto
-        verdict = (m.start_single_job(seq, None) if command == Command.TRIGGER else
+        start = {"single": lambda: m.start_single_job(seq, None),
+                 "continuous": lambda: m.start_continuous(seq, None),
+                 "chain": lambda: m.continue_job(seq)}[self.mode]
+        verdict = (start() if command == Command.TRIGGER else
                    m.next_object(seq) if command == Command.NEXT else m.request(command, seq, 0))
         assert verdict.decision is not None
-        if command in (Command.TRIGGER, Command.NEXT) and before is not Auto.READY:
+        if command == Command.TRIGGER and self.mode == "chain":
+            assert before is Auto.CONTINUOUS_EXECUTION
+            assert verdict.decision.action is Action.START, verdict
+        elif command in (Command.TRIGGER, Command.NEXT) and before is not Auto.READY:
             assert verdict.decision.action is Action.REJECT, (before, verdict)  # Ready only
         self._apply(verdict.decision.steps)
         self._check()
@@ -273,7 +283,7 @@ class VisionLink(MessageLink):
         {"select": m.select_mode_automatic, "prepare": lambda: m.prepare_recipe(1),
          "unprepare": lambda: m.unprepare_recipe(1), "halt": m.halt, "reset": m.reset,
          "stop": m.stop, "abort": m.abort}[method]()
-        if running and before is Auto.SINGLE_EXECUTION and m.auto is not before:
+        if running and before in EXECUTING and m.auto is not before:
             self.expect_abort.add(running)
         self._check()
 
@@ -329,6 +339,7 @@ class Cell:
                                       busy=self.running is not None)
         if admission.kind is Admit.REFUSE:
             self._publish(name, seq, JobResult(job_id=0, status=admission.status))
+            self.continue_chain()
         elif admission.kind is Admit.NEXT:
             assert admission.answer is not None
             self._publish(name, seq, admission.answer)
@@ -356,6 +367,20 @@ class Cell:
         self.last_finished = (name, job_id)
         self._publish(name, seq, result)
         self.core.job_finished(name, seq, result, delivered=True)
+        self.continue_chain()
+
+    def continue_chain(self) -> None:
+        """The vision link in ContinuousExecution requests the chain's next job once the
+        daemon finished the last one (``OpcUaLink.publish``)."""
+        link = self.links["vision"]
+        assert isinstance(link, VisionLink)
+        if not link.machine.wants_next:
+            return
+        mode, link.mode = link.mode, "chain"
+        self.request("vision", Command.TRIGGER, "fresh")
+        link.mode = mode
+        # the chain runs on or has ended: never ContinuousExecution with no job running
+        assert link.machine.auto is not Auto.CONTINUOUS_EXECUTION or link.machine.busy
 
     def _publish(self, name: str, seq: int, result: JobResult) -> None:
         self.told[(name, seq)] = result
@@ -383,6 +408,9 @@ EVENTS = st.one_of(
     # the PLC sequence of OPC 40100 on the vision link, a call perhaps in the middle of the job
     st.tuples(st.just("vjob"), RESULTS, st.sampled_from(["-", "-", "stop", "abort", "halt"]),
               st.integers(0, 3)),
+    # StartContinuous: jobs one after another, a call ending the chain during the last one
+    st.tuples(st.just("vcont"), st.lists(RESULTS, min_size=1, max_size=4),
+              st.sampled_from(["stop", "stop", "abort", "halt", "reset"]), st.booleans()),
 )
 
 
@@ -414,6 +442,22 @@ def step(cell: Cell, event: tuple) -> None:
         cell.finish(*event[1])
         for _ in range(event[3]):  # the pick list walked by the plain Next
             cell.request("vision", Command.NEXT, "fresh")
+    elif event[0] == "vcont":
+        link = cell.links["vision"]
+        assert isinstance(link, VisionLink)
+        link.call("ready")
+        link.mode = "continuous"
+        cell.request("vision", Command.TRIGGER, "fresh")
+        link.mode = "single"
+        results, end, captured_first = event[1:]
+        for result in results[:-1]:
+            cell.capture()
+            cell.finish(*result)  # the chain's next job starts (if the chain still runs)
+        if captured_first:
+            cell.capture()
+        link.call(end)
+        cell.capture()
+        cell.finish(*results[-1])
     else:
         cell.request(event[1], Command.NEXT, "fresh")
 
@@ -422,6 +466,7 @@ def run(events: list[tuple]) -> Cell:
     cell = Cell()
     for event in events:
         step(cell, event)
+    cell.links["vision"].call("stop")  # type: ignore[union-attr]  # a chain ends with its job
     cell.capture()
     cell.finish("one", 0, 0)  # the job still running ends, so every request is answered
     return cell
