@@ -393,15 +393,38 @@ class VisionMethods:
         if number is None:
             return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT,
                                 "PrepareRecipe: give ExternalId.Id (a recipe number or name)")
+        refused = await self._prepare(number, "PrepareRecipe")
+        if refused is not None or isinstance(number, str):
+            return refused
+        return [_ext(self._recipe_id(number)), ua.Variant(True, ua.VariantType.Boolean),
+                _i32(0)]
+
+    async def _prepare(self, number: int | str, method: str) -> ua.StatusCode | None:
+        """Prepare the recipe ``number`` (a message: no such recipe); the refusal or None."""
         if isinstance(number, str):
             return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT, number)
         verdict = self.machine.prepare_recipe(number)
         if verdict.refused:
-            return self._verdict(verdict, "PrepareRecipe")
+            answer = self._verdict(verdict, method)
+            assert isinstance(answer, ua.StatusCode)
+            return answer
         await self.show_state()
         await self._event("RecipePrepared", f"recipe {number} prepared")
-        return [_ext(self._recipe_id(number)), ua.Variant(True, ua.VariantType.Boolean),
-                _i32(0)]
+        return None
+
+    async def _plain_prepare(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        checked = self._args("Plc.PrepareRecipe", args, [str])
+        if isinstance(checked, ua.StatusCode):
+            return checked
+        ident = mv.RecipeIdExternalDataType(Id=checked[0] or "")
+        number = self.recipe_number(ident, "Plc.PrepareRecipe RecipeId")
+        if number is None:
+            return self._refuse(Status.BAD_REQUEST, BAD_ARGUMENT,
+                                "Plc.PrepareRecipe: give a recipe number or name")
+        refused = await self._prepare(number, "Plc.PrepareRecipe")
+        if refused is not None:
+            return refused
+        return [ua.Variant(str(number), ua.VariantType.String), _i32(0)]
 
     async def _unprepare_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         checked = self._args("UnprepareRecipe", args, [mv.BinaryIdBaseDataType,
@@ -645,6 +668,12 @@ class VisionSpace(VisionMethods):
                              [_arg("RecipeId", string, "recipe number or name (\"\": prepared)")],
                              [_arg("JobId", string, "the job's id (Plc.ResultJobId shows it)"),
                               _arg("Error", ua.VariantType.Int32, "0: started")])
+        await plc.add_method(self._nid("Plc.PrepareRecipe"),
+                             ua.QualifiedName("PrepareRecipe", idx), self._plain_prepare,
+                             [_arg("RecipeId", string, "recipe number or name")],
+                             [_arg("RecipeId", string, "the prepared recipe's number (its "
+                                   "InternalId, Plc.PreparedRecipe shows it)"),
+                              _arg("Error", ua.VariantType.Int32, "0: prepared")])
         await plc.add_method(self._nid("Plc.Next"), ua.QualifiedName("Next", idx),
                              self._plain_next, [],
                              [_arg("JobId", string, "the request's id"),

@@ -366,3 +366,29 @@ async def test_start_continuous_runs_jobs_until_stop_and_abort_ends_at_once(
     assert (aborted.JobId.Id, aborted.ResultState, aborted.PartId.Id) == (chain2.Id, 3, "p2")
     assert content(aborted)["Values"] in (None, [])
     assert len(d.triggers) == 5
+
+
+async def test_a_plc_without_structures_prepares_a_recipe_by_its_plain_name(
+        vision: Vision, daemon: Daemon) -> None:
+    v = vision
+    prepare = f"Plc/{v.idx}:PrepareRecipe"  # the standard's is RecipeManagement/PrepareRecipe
+    await v.call("VisionStateMachine/SelectModeAutomatic")
+    assert await v.refused(prepare, "nope") == "BadInvalidArgument"
+    assert await v.refused(prepare, "") == "BadInvalidArgument"
+    assert await v.refused(prepare, 2) == "BadInvalidArgument"  # a String, not a number
+    assert await v.state() == ("Operational", "Initialized")
+    assert await v.call(prepare, "pallet") == ["2", 0]
+    assert await v.state() == ("Operational", "Ready")
+    assert await v.plain("PreparedRecipe") == "2"
+    events, sub = await subscribe(v)
+    job, error = await v.call("Plc/StartJob", "")  # the prepared recipe
+    assert error == 0
+    got = await events.next(RESULT_READY)
+    await sub.delete()
+    assert got.JobId.Id == job
+    assert (got.InternalRecipeId.Id, daemon.triggers[-1].recipe) == ("2", 2)
+    assert await v.call(prepare, "0") == ["0", 0]  # by number too
+    assert await v.plain("PreparedRecipe") == "0"
+    await v.call("VisionStateMachine/Halt", 0, "")
+    assert await v.refused(prepare, "pallet") == "BadInvalidState"
+    assert await v.plain("PreparedRecipe") == "0"
