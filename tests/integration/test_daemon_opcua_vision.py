@@ -8,10 +8,13 @@ is turned back into a plate's pose and compared with the renderer's truth of tha
 (``ImagePair.truth``), within 0.5 mm / 0.5 deg; the walk hands out every plate once.
 A Halt while a job runs ends it ABORTED (ResultState 3) without a pose, in the event, the
 stored result and the plain variables, though the daemon's pipeline located the plates.
+StartContinuous runs jobs one after another until Stop (the running one finishes): each a
+ResultReady of the same JobId with a pose close to its own image's truth.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 from collections.abc import AsyncIterator, Sequence
 from typing import Any
@@ -42,7 +45,7 @@ from tests.integration.test_daemon_picklinks import (
 )
 from vgripd.config import Config, config_from_dict
 from vgripd.geometry.transforms import pose_error
-from vgripd.service.daemon import Daemon
+from vgripd.service.daemon import Daemon, JobState
 from vgripd.service.protocol import LinkState
 from vgripd.types import Status
 
@@ -183,3 +186,39 @@ async def test_halt_during_a_job_ends_it_aborted_without_a_pose() -> None:
     assert (plain["StatusName"], plain["ResultState"], plain["Count"]) == ("ABORTED", 3, 0)
     assert plain["Values"] in (None, [])
     assert plain["Pose"] in (None, [])
+
+
+async def test_start_continuous_locates_part_after_part_until_stop() -> None:
+    cfg = config()
+    async with cell() as (run, _gated, v):
+        events, sub = await subscribe(v)
+        await ready(v)
+        job_id, error = await v.call(f"{AUTO}/StartContinuous", *job_args("meas", "part"))
+        assert error == 0
+        got = [await events.next(RESULT_READY) for _ in range(3)]
+        assert await v.call(f"{AUTO}/Stop", 0, "") == [0]
+        async with asyncio.timeout(WAIT_S):  # the running job ends, then Ready
+            while True:
+                if await v.state() == ("Operational", "Ready"):
+                    break
+                await asyncio.sleep(0.01)  # polled: a PLC reads the state
+        await run.daemon.wait_for(lambda: run.daemon.state is JobState.IDLE, WAIT_S)
+        n = len(run.jobs)
+        assert n in (3, 4)  # Stop between two jobs, or during the fourth
+        while len(got) < n:
+            got.append(await events.next(RESULT_READY))
+        # the chain has ended: the daemon's next job is this single one
+        single, error = await v.call(f"{AUTO}/StartSingleJob", *job_args("m", "p"))
+        assert error == 0
+        assert (await events.next(RESULT_READY)).JobId.Id == single.Id
+        _, after = await run.job_done(n + 1)
+        await sub.delete()
+        records = [(await run.job_done(i))[1] for i in range(1, n + 1)]
+        truths = [await truths_of(run, i) for i in range(1, n + 1)]
+    assert after.seq == int(single.Id)
+    assert {r.JobId.Id for r in got} == {job_id.Id}  # one job, a result per part
+    assert len({r.ResultId.Id for r in got}) == n
+    for result, rec, truth in zip(got, records, truths, strict=True):
+        c = content(result)
+        assert (result.ResultState, c["StatusName"], c["DaemonJobId"]) == (1, "OK", rec.job_id)
+        plate_near(cfg, truth, c["Values"])  # each job's own image
