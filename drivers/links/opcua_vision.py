@@ -24,7 +24,9 @@ What each method maps to (docs/opcua.md, "OPC 40100" has the table):
   ``GetResultListFiltered``;
 - ``Plc``: plain variables for clients that cannot take events or structures (an S7-1500's
   OPC UA client blocks): the state, the last result's fields and the pick list, and the methods
-  ``StartJob`` and ``Next`` with plain arguments.
+  ``PrepareRecipe``, ``StartJob`` and ``Next`` with plain arguments;
+- ``StartContinuous``: a chain of jobs, each a request of the link's handshake, the next one
+  started after each published result (``continue_later``) until Stop, Abort, Halt or Reset.
 
 Size: over 600 lines: the standard's methods each with their argument checks, the result
 structures and the plain variables; the rules are ``VisionMachine``'s.
