@@ -96,12 +96,13 @@ from drivers.links.opcua_guard import (
     mute_asyncua_refusals,
 )
 from drivers.links.opcua_space import Space, ensure_certificate, result_values
+from drivers.links.opcua_vision import JobInfo, VisionSpace
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.registry import LinkCapabilities
 from vgripd.service.gate import Gate
-from vgripd.service.jobcore import Action, Handshake, Part, Step
+from vgripd.service.jobcore import Part, Step
 from vgripd.service.protocol import (
     Command,
     LinkHealth,
@@ -112,6 +113,7 @@ from vgripd.service.protocol import (
     checked_warnings,
 )
 from vgripd.service.ratelog import RateLimitedLog
+from vgripd.service.visionsm import Verdict, VisionMachine
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
@@ -126,6 +128,9 @@ SECURITY_MODES = {
     "Basic256Sha256_SignAndEncrypt": ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
 }
 SecurityMode = Literal["None", "Basic256Sha256_Sign", "Basic256Sha256_SignAndEncrypt"]
+#: "MachineVision": OPC 40100 on the official NodeSet; "vgripd": the older own namespace
+#: (``namespace_uri``), deprecated, served for one more version
+Model = Literal["MachineVision", "vgripd"]
 WILDCARD_HOSTS = ("", "0.0.0.0", "::")
 HELLO = b"HEL"  # every OPC UA TCP connection starts with a Hello message
 CLOSE_TIMEOUT_S = 5.0
@@ -157,6 +162,10 @@ class OpcUaUser(BaseModel):
         return self
 
 
+def _both_models() -> list[Model]:
+    return ["MachineVision", "vgripd"]
+
+
 def _encrypted_only() -> list[SecurityMode]:
     return ["Basic256Sha256_SignAndEncrypt"]
 
@@ -176,6 +185,7 @@ class OpcUaOptions(BaseModel):
     allow_anonymous: bool = False
     users: list[OpcUaUser] = Field(default_factory=list, validate_default=True)
     namespace_uri: str = Field("urn:vgripd:machine-vision", min_length=1)
+    models: list[Model] = Field(default_factory=_both_models, min_length=1)
     max_connections: int = Field(8, ge=1, le=256)
     activation_timeout_s: float = Field(10.0, ge=0.1, le=600.0)
     max_session_timeout_s: float = Field(60.0, ge=1.0, le=3600.0)
@@ -186,11 +196,11 @@ class OpcUaOptions(BaseModel):
     login_lockout_s: float = Field(60.0, ge=0.0, le=86400.0)
     rejected_max_files: int = Field(64, ge=0, le=10000)
 
-    @field_validator("security")
+    @field_validator("security", "models")
     @classmethod
     def _unique(cls, value: list[str]) -> list[str]:
         if len(set(value)) != len(value):
-            raise ValueError("each security mode may be listed once")
+            raise ValueError("each may be listed once")
         return value
 
     @field_validator("path")
@@ -432,6 +442,58 @@ def _version() -> str:
         return "unknown"
 
 
+def read_passwords(options: OpcUaOptions) -> dict[str, bytes]:
+    """Each user's password from its file or environment variable; ``LinkError`` naming
+    the field when it is missing or empty."""
+    passwords: dict[str, bytes] = {}
+    for i, user in enumerate(options.users):
+        where = f"users[{i}] ({user.name!r})"
+        if user.password_env is not None:
+            value = os.environ.get(user.password_env)
+            if not value:
+                raise LinkError(f"{where}.password_env: environment variable "
+                                f"{user.password_env} is not set or empty")
+            passwords[user.name] = value.encode()
+            continue
+        assert user.password_file is not None
+        try:
+            text = user.password_file.read_text().splitlines()
+        except OSError as err:
+            raise LinkError(f"{where}.password_file: cannot read {user.password_file}: "
+                            f"{err.strerror or err}") from None
+        if not text or not text[0]:
+            raise LinkError(f"{where}.password_file: {user.password_file} is empty")
+        passwords[user.name] = text[0].encode()
+    return passwords
+
+
+def untrusted(trust: TrustStore | None, rejected: RejectedStore, der: bytes) -> str:
+    """Why the client certificate ``der`` is refused ("" when it is trusted, or when no
+    trust list is configured). A refused certificate is kept in
+    ``certificate_dir/rejected`` (``RejectedStore``: bounded, one file per thumbprint) for
+    the integrator to move into the trust list."""
+    if trust is None:
+        return ""
+    from cryptography import x509
+
+    try:
+        cert = x509.load_der_x509_certificate(der)
+    except ValueError as err:
+        return f"client certificate unreadable ({err})"
+    now = datetime.datetime.now(datetime.UTC)
+    names = cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)
+    name = str(names[0].value) if names else "?"
+    if not cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
+        why = "expired or not yet valid"
+    elif trust.is_trusted(cert):
+        return ""
+    else:
+        why = "not in trusted_clients_dir"
+    path = rejected.keep(der, cert.fingerprint(hashes.SHA256()).hex()[:16])
+    kept = f"; kept as {path}" if path is not None else ""
+    return f"client certificate CN={name} refused: {why}{kept}"
+
+
 @dataclass
 class _Job:
     request_id: int
@@ -448,13 +510,16 @@ class OpcUaLink(RobotLink):
     def __init__(self, name: str, options: OpcUaOptions) -> None:
         super().__init__(name, options)
         self.server: _Server | None = None
-        self.space: Space | None = None
+        self.space: Space | None = None  # the older namespace ("vgripd" in models)
+        self.vision: VisionSpace | None = None  # OPC 40100 ("MachineVision" in models)
         self._on_trigger: TriggerHandler | None = None
         self._job: _Job | None = None
         self._next_request = 0
         self._recipe = 0
-        #: The request/answer rules (busy, the pick list Next may follow, the write order).
-        self._handshake = Handshake(edge=False)
+        #: OPC 40100's state machines over the request/answer rules (its ``handshake``: busy,
+        #: the pick list Next may follow, the write order), shared by both namespaces.
+        self.machine = VisionMachine()
+        self._config_id: tuple[str, bytes] = ("vgripd", b"")
         #: The configured recipes (``set_recipes``); None: not told, every number is taken
         #: and the daemon judges it at the job.
         self._recipes: dict[int, str] | None = None
@@ -497,16 +562,16 @@ class OpcUaLink(RobotLink):
         mute_asyncua_refusals()
         o = self.options
         try:
-            passwords = self._passwords()
+            passwords = read_passwords(o)
             server = await self._make_server(passwords)
         except LinkError as err:
-            self.space = None
+            self.space = self.vision = None
             await self._set_health(LinkState.FAILED, str(err))
             raise LinkError(f"link {self.name}: {err}") from None
         try:
             await server.start()
         except OSError as err:
-            self.space = None
+            self.space = self.vision = None
             reason = os.strerror(err.errno) if err.errno else str(err)
             error = (f"cannot listen on {o.host}:{o.port}: {reason} (check host and port of "
                      f"this [[links]] entry)")
@@ -525,6 +590,8 @@ class OpcUaLink(RobotLink):
         if task is not None:
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)
+        if self.vision is not None:
+            await self.vision.close()
         server, self.server = self.server, None
         if server is not None:
             try:
@@ -535,8 +602,8 @@ class OpcUaLink(RobotLink):
         for conn in self.gate.connections():
             self.gate.forget(conn)
         self._job = None
-        self._handshake = Handshake(edge=False)
-        self.space = None
+        self.machine = VisionMachine()
+        self.space = self.vision = None
         self.lines.flush(force=True)
         await self._set_health(LinkState.STOPPED)
 
@@ -582,16 +649,19 @@ class OpcUaLink(RobotLink):
 
     async def image_captured(self, seq: int, job_id: int) -> None:
         self._running(seq, "image_captured")
-        space = self._space()
-        self._render(self._handshake.on_captured(seq, job_id), (Part.CAPTURED,))
-        await space.captured(seq, job_id)
+        self._open()
+        self._render(self.machine.captured(seq, job_id), (Part.CAPTURED,))
+        if self.space is not None:
+            await self.space.captured(seq, job_id)
+        if self.vision is not None:
+            await self.vision.captured(seq, job_id)
 
     async def publish(self, seq: int, result: JobResult) -> Status:
         """Write the result (data, RequestId, Sequence, state) and raise the event; the status
         shown. The server holds it, so it is never undelivered while the link is open."""
         job = self._running(seq, "publish")
-        space = self._space()
-        plan = self._handshake.publish(seq, result)
+        self._open()
+        plan, result, moves = self.machine.publish(seq, result)
         self._job = None
         t_done = result.t_done_mono_ns or time.monotonic_ns()
         stamp = datetime.datetime.now(datetime.UTC) - datetime.timedelta(
@@ -605,7 +675,11 @@ class OpcUaLink(RobotLink):
         # RESULT and ACK: the data, then RequestId and Sequence; the state machine and the
         # event announce the answer after it (publish_result)
         self._render(plan, (Part.RESULT, Part.ACK))
-        await space.publish_result(shown)
+        if self.space is not None:
+            await self.space.publish_result(shown)
+        if self.vision is not None:
+            await self.vision.publish(seq, shown, t_done, moves)
+            self.vision.continue_later()  # ContinuousExecution: the next job, after this return
         return sent.status
 
     def refusals(self) -> Mapping[str, int]:
@@ -613,6 +687,13 @@ class OpcUaLink(RobotLink):
 
     def set_recipes(self, recipes: Mapping[int, str]) -> None:
         self._recipes = dict(recipes)
+        if self.vision is not None:
+            self.vision.set_recipes(recipes)
+
+    def set_configuration(self, name: str, digest: bytes) -> None:
+        self._config_id = (name, digest)
+        if self.vision is not None:
+            self.vision.set_configuration(name, digest)
 
     async def set_warnings(self, bits: int) -> None:
         self._warnings = checked_warnings(bits)
@@ -632,33 +713,49 @@ class OpcUaLink(RobotLink):
         return await self._request(Command.TRIGGER, "StartSingleJob")
 
     async def _request(self, command: Command, method: str) -> Any:
-        """Start a request (a job, or a NEXT) with a new RequestId, or refuse it as the
-        handshake says (BUSY while a request runs, BAD_REQUEST for a Next without a list); the
-        daemon is told after this call returns."""
-        space = self.space
-        request_id = 1 if self._next_request >= 0xFFFFFFFF else self._next_request + 1
-        decision = (self._handshake.on_request(command, request_id, self._recipe)
-                    if space is not None else None)
-        if decision is None or decision.code is Status.BUSY:
+        """A request of the older namespace (a job, or a NEXT) with a new RequestId, or
+        refused as the handshake says (BUSY while a request runs, BAD_REQUEST for a Next
+        without a list); its own rules, whatever the OPC 40100 state."""
+        verdict, request_id = await self._begin(
+            command, lambda seq: self.machine.request(command, seq, self._recipe), JobInfo())
+        if verdict.decision is None or verdict.decision.code is Status.BUSY:
             running = self._job.request_id if self._job is not None else "-"
             return self._refuse(Status.BUSY, ua.StatusCodes.BadInvalidState,
                                 f"{method} while request {running} runs")
-        if decision.action is not Action.START:
+        if not verdict.ok:
             return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadNoData,
                                 f"{method} without a pick list (no result yet, or the last one "
                                 "had no pickable object)")
-        assert space is not None
+        return [ua.Variant(request_id, ua.VariantType.UInt32)]
+
+    async def _begin(self, command: int, verdict_for: Any, info: JobInfo) -> tuple[Verdict, int]:
+        """Start a request with a new id if ``verdict_for(id)`` (the state machine's answer)
+        lets it; the daemon is told after this call returns."""
+        request_id = 1 if self._next_request >= 0xFFFFFFFF else self._next_request + 1
+        if self.space is None and self.vision is None:
+            return Verdict("BadInvalidState", "not open"), request_id
+        verdict: Verdict = verdict_for(request_id)
+        decision = verdict.decision
+        if not verdict.ok or decision is None:
+            return verdict, request_id
         self._next_request = request_id
-        job = self._job = _Job(request_id, self._recipe, command)
+        job = self._job = _Job(request_id, decision.recipe, Command(command))
         # RETRACT (the data turns uncertain, then RequestId 0); CLEAR keeps the values (they
         # are uncertain now); STATE: a job's SingleExecution, a Next takes no image
         self._render(decision.steps, (Part.RETRACT, Part.CLEAR, Part.STATE))
-        await space.retract(executing=command == Command.TRIGGER)
+        if self.space is not None:
+            await self.space.retract(executing=command == Command.TRIGGER)
+        if self.vision is not None:
+            self.vision.begin(request_id, info)
+            await self.vision.retract(request_id)
         assert self._on_trigger is not None
         trigger = Trigger(link=self.name, seq=job.request_id, command=int(command),
                           t_mono_ns=time.monotonic_ns(), recipe=job.recipe)
         asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
-        return [ua.Variant(job.request_id, ua.VariantType.UInt32)]
+        return verdict, request_id
+
+    def _refuse_named(self, status: Status, code: str, why: str) -> ua.StatusCode:
+        return self._refuse(status, int(getattr(ua.StatusCodes, code)), why)
 
     async def _next(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         """The next object of the last job's pick list: a request like StartSingleJob's (a new
@@ -692,7 +789,7 @@ class OpcUaLink(RobotLink):
         if args:
             return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadTooManyArguments,
                                 "Reset takes no arguments")
-        if self._handshake.busy or self.space is None:
+        if self.machine.busy or self.space is None:
             return self._refuse(Status.BUSY, ua.StatusCodes.BadInvalidState,
                                 "Reset while a job runs")
         await self.space.set_state("Ready")
@@ -705,35 +802,16 @@ class OpcUaLink(RobotLink):
         return ua.StatusCode(ua.UInt32(code))
 
     def _untrusted(self, der: bytes) -> str:
-        """Why the client certificate ``der`` is refused ("" when it is trusted, or when no
-        trust list is configured). A refused certificate is kept in
-        ``certificate_dir/rejected`` (``RejectedStore``: bounded, one file per thumbprint) for
-        the integrator to move into the trust list."""
-        if self._trust is None:
-            return ""
-        from cryptography import x509
-
-        try:
-            cert = x509.load_der_x509_certificate(der)
-        except ValueError as err:
-            return f"client certificate unreadable ({err})"
-        now = datetime.datetime.now(datetime.UTC)
-        names = cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)
-        name = str(names[0].value) if names else "?"
-        if not cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
-            why = "expired or not yet valid"
-        elif self._trust.is_trusted(cert):
-            return ""
-        else:
-            why = "not in trusted_clients_dir"
-        path = self.rejected.keep(der, cert.fingerprint(hashes.SHA256()).hex()[:16])
-        kept = f"; kept as {path}" if path is not None else ""
-        return f"client certificate CN={name} refused: {why}{kept}"
+        return untrusted(self._trust, self.rejected, der)
 
     def _space(self) -> Space:
         if self.space is None:
             raise LinkError(f"link {self.name}: not open")
         return self.space
+
+    def _open(self) -> None:
+        if self.space is None and self.vision is None:
+            raise LinkError(f"link {self.name}: not open")
 
     @staticmethod
     def _render(plan: Sequence[Step], parts: tuple[Part, ...]) -> None:
@@ -797,30 +875,6 @@ class OpcUaLink(RobotLink):
 
     # -- set-up ------------------------------------------------------------------------------
 
-    def _passwords(self) -> dict[str, bytes]:
-        """Each user's password from its file or environment variable; ``LinkError`` naming
-        the field when it is missing or empty."""
-        passwords: dict[str, bytes] = {}
-        for i, user in enumerate(self.options.users):
-            where = f"users[{i}] ({user.name!r})"
-            if user.password_env is not None:
-                value = os.environ.get(user.password_env)
-                if not value:
-                    raise LinkError(f"{where}.password_env: environment variable "
-                                    f"{user.password_env} is not set or empty")
-                passwords[user.name] = value.encode()
-                continue
-            assert user.password_file is not None
-            try:
-                text = user.password_file.read_text().splitlines()
-            except OSError as err:
-                raise LinkError(f"{where}.password_file: cannot read {user.password_file}: "
-                                f"{err.strerror or err}") from None
-            if not text or not text[0]:
-                raise LinkError(f"{where}.password_file: {user.password_file} is empty")
-            passwords[user.name] = text[0].encode()
-        return passwords
-
     async def _make_server(self, passwords: dict[str, bytes]) -> _Server:
         o = self.options
         server = _Server(self, _Users(passwords, o.allow_anonymous))
@@ -879,10 +933,18 @@ class OpcUaLink(RobotLink):
         iserver.max_session_timeout_ms = o.max_session_timeout_s * 1000
         iserver.min_session_timeout_ms = min(iserver.min_session_timeout_ms,
                                              o.max_session_timeout_s * 1000)
-        idx = await server.register_namespace(o.namespace_uri)
-        space = Space(server, idx)
-        await space.build(self._start_single_job, self._select_recipe, self._reset, self._next)
-        self.space = space
+        if "vgripd" in o.models:  # registered first: the index (2) its clients hard-code
+            idx = await server.register_namespace(o.namespace_uri)
+            space = Space(server, idx)
+            await space.build(self._start_single_job, self._select_recipe, self._reset,
+                              self._next)
+            self.space = space
+        if "MachineVision" in o.models:
+            vision = VisionSpace(server, self.machine, self._begin, self._refuse_named)
+            vision.set_recipes(self._recipes or {0: "default"})
+            vision.set_configuration(*self._config_id)
+            await vision.build()
+            self.vision = vision
         return server
 
     async def _set_health(self, state: LinkState, error: str = "") -> None:

@@ -5,6 +5,9 @@ The daemon is stood in for by ``Daemon`` below (it answers triggers with fixed r
 each check is about the link: the values a client reads are compared with the numbers the
 stand-in published, never with what the link thinks it wrote. The real daemon with the
 synthetic camera is tests/integration/test_daemon_opcua.py.
+
+These tests are about the older namespace and the link's transport and security: ``options``
+serves only it (``models = ["vgripd"]``), without the OPC 40100 NodeSet they do not need.
 """
 
 from __future__ import annotations
@@ -80,10 +83,14 @@ class Daemon:
         await self.link.publish(trigger.seq, result)
 
 
-def options(**extra: Any) -> OpcUaOptions:
+def options(*, old_only: bool = True, **extra: Any) -> OpcUaOptions:
+    """An open test server; ``old_only``: the older namespace alone (False: the default
+    models, OPC 40100 on the NodeSet beside it)."""
     base: dict[str, Any] = {"host": "127.0.0.1", "port": 0, "security": ["None"],
                             "allow_anonymous": True, "activation_timeout_s": 0.5,
                             "log_interval_s": 60}
+    if old_only:
+        base["models"] = ["vgripd"]
     return OpcUaOptions.model_validate({**base, **extra})
 
 

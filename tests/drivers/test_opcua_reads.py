@@ -1,6 +1,7 @@
 """OpcUaLink: what a client reads before the first result, through asyncua's own client over
 TCP on 127.0.0.1 (issue 20: a Read naming ``Result.Timestamp`` before the first result failed
-whole with BadInternalError and an AttributeError logged at ERROR)."""
+whole with BadInternalError and an AttributeError logged at ERROR). The older namespace alone
+(``models = ["vgripd"]``): these are its variables."""
 
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ pytestmark = pytest.mark.timeout(60)
 async def test_every_result_variable_reads_before_the_first_result(
         caplog: pytest.LogCaptureFixture) -> None:
     link = OpcUaLink("cell", OpcUaOptions.model_validate({
-        "host": "127.0.0.1", "port": 0, "security": ["None"], "allow_anonymous": True}))
+        "host": "127.0.0.1", "port": 0, "security": ["None"], "allow_anonymous": True,
+        "models": ["vgripd"]}))
     await link.open(lambda trigger: None)
     names = [name for name, *_ in RESULT_DATA + RESULT_LAST]
     try:

@@ -113,7 +113,7 @@ async def test_opcua_next_after_one_object_is_a_list_of_one() -> None:
     config = config_from_dict({
         "camera": {"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0},
         "links": [{"type": "opcua", "host": "127.0.0.1", "port": 0, "security": ["None"],
-                   "allow_anonymous": True}],
+                   "allow_anonymous": True, "models": ["vgripd"]}],  # its older namespace
         "status": {"port": 0}})
     async with running(config) as run:
         await run.daemon.wait_for(lambda: all(link.health().state is LinkState.UP

@@ -8,6 +8,9 @@ docs/opcua.md tells a cell's client to.
 - ``vgripd run`` as a process (what systemd starts) with an encrypted, password-protected
   endpoint and a certificate generated at its first start: jobs complete, SIGTERM ends it
   cleanly, no traceback.
+
+The in-process daemons serve the older namespace alone (``models = ["vgripd"]``: its client is
+what these tests are about); ``vgripd run`` keeps the default models, the NodeSet included.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from vgripd.types import ImagePair, JobResult, Status
 pytestmark = pytest.mark.timeout(180)
 
 OPEN_LINK = {"type": "opcua", "host": "127.0.0.1", "port": 0, "security": ["None"],
-             "allow_anonymous": True}
+             "allow_anonymous": True, "models": ["vgripd"]}
 
 
 async def test_jobs_through_the_opcua_link_carry_the_computed_pose() -> None:

@@ -4,7 +4,8 @@ no polling), two clients at once, SelectRecipe with a recipe that does not exist
 coming back after the daemon restarted.
 
 The clients are asyncua's ``Client`` over real TCP, in the test's process (the daemon's job
-work runs on its job thread, so the loop is free to serve them).
+work runs on its job thread, so the loop is free to serve them). The link serves the older
+namespace alone (``models = ["vgripd"]``): these clients are written against it.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def opcua_config(port: int = 0) -> Any:
     data = tomllib.loads(SAMPLE.read_text())
     data["camera"].update(recipe="job", seed=4, max_tilt_deg=2.0)
     data["links"] = [{"type": "opcua", "host": "127.0.0.1", "port": port,
-                      "security": ["None"], "allow_anonymous": True}]
+                      "security": ["None"], "allow_anonymous": True, "models": ["vgripd"]}]
     data["status"] = {"port": 0}
     data["daemon"] = {"worker": False}
     return config_from_dict(data, str(SAMPLE))
@@ -203,6 +204,7 @@ host = "127.0.0.1"
 port = {port}
 security = ["None"]
 allow_anonymous = true
+models = ["vgripd"]
 
 [status]
 enabled = false

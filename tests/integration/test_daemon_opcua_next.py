@@ -4,7 +4,8 @@ asyncua's ``uaread`` reading the pick-list variables.
 
 Accuracy: each pose the client read (KUKA values decoded here with scipy, not with vgripd's
 conventions) is turned back into the plate's pose and compared with the renderer's truth
-(``check_against_truth``): every plate exactly once, within 0.5 mm / 0.5 deg.
+(``check_against_truth``): every plate exactly once, within 0.5 mm / 0.5 deg. The link serves the older namespace alone (``models = ["vgripd"]``: its Next is
+tested here; OPC 40100's plain Next is tests/integration/test_daemon_opcua_vision.py).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from vgripd.types import Status
 pytestmark = pytest.mark.timeout(180)
 
 OPEN_LINK = {"type": "opcua", "host": "127.0.0.1", "port": 0, "security": ["None"],
-             "allow_anonymous": True}
+             "allow_anonymous": True, "models": ["vgripd"]}
 MODBUS = {"type": "modbus_server", "host": "127.0.0.1", "port": 0}
 
 

@@ -3,7 +3,8 @@ the cell network would (issue 20): a raw client (``vgripd.sim.opcua_raw``, async
 layer, which does not refuse on its own what the server must refuse) opens a SecurityPolicy
 None channel and asks for a session, a job and the result; then guesses passwords on an
 encrypted channel. A real client's jobs before it complete; the daemon's log holds one line
-per kind of refusal and no ERROR or traceback.
+per kind of refusal and no ERROR or traceback. The daemon keeps the default models (OPC 40100's
+NodeSet served too): the probes hold against the server as it ships.
 """
 
 from __future__ import annotations

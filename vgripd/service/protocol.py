@@ -93,6 +93,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import enum
+import hashlib
 import math
 import struct
 from abc import ABC, abstractmethod
@@ -167,6 +168,13 @@ class Trigger:
 TriggerHandler = Callable[[Trigger], None]
 
 
+def config_identity(config: Any) -> tuple[str, bytes]:
+    """``(id, SHA-256)`` of a loaded config: the digest of its canonical JSON (the values
+    as judged, not the file's bytes), the id ``config-`` and its first 12 hex digits."""
+    digest = hashlib.sha256(config.model_dump_json().encode()).digest()
+    return f"config-{digest.hex()[:12]}", digest
+
+
 class RobotLink(ABC):
     """Base of every link driver. ``__init__`` does no I/O.
 
@@ -232,6 +240,11 @@ class RobotLink(ABC):
         trigger (OPC UA ``SelectRecipe``) refuses any other number at once, where the peer
         can see why; a link that carries the number with each trigger leaves it to the
         daemon, whose job answers ``BAD_REQUEST``. Default: ignored."""
+
+    def set_configuration(self, name: str, digest: bytes) -> None:  # noqa: B027 - optional
+        """The loaded config's id and SHA-256 (``config_identity``), told before ``open`` and
+        after a reload: a link that shows its peer which configuration runs (OPC 40100's
+        ActiveConfiguration) overrides this. Default: ignored."""
 
     def set_vendor(self, vendor: str) -> None:
         """The ``output.vendor`` convention, told before ``open``: the one a link whose peer

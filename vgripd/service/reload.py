@@ -39,6 +39,7 @@ from vgripd.config import Config, config_from_dict
 from vgripd.errors import ConfigError
 from vgripd.redaction import redact
 from vgripd.service.configtxn import ConfigWriter, Outcome
+from vgripd.service.protocol import config_identity
 from vgripd.service.worker import WorkerError
 
 log = logging.getLogger("vgripd.reload")
@@ -168,8 +169,10 @@ class Reloader(ConfigWriter):
         # first (one request at a time, in order).
         d.use_config(config, pipelines)
         recipes = {n: config.recipe_name(n) for n in config.recipe_numbers()}
+        identity = config_identity(config)
         for link in d.links.values():
             link.set_recipes(recipes)
+            link.set_configuration(*identity)
         d.epipolar.threshold_px = config.vision.epipolar_warn_px
         worker = d.worker
         if worker is not None:

@@ -10,7 +10,14 @@ A cell of five links, each kind, shares one ``JobCore`` as the daemon does:
 - ``ua``: an OPC UA link's handshake (a request per method call); its plans are applied to an
   answer area of RequestId and result data;
 - ``robot``: the robot socket's handshake (a request per frame); its answers are frames whose
-  kind (RESULT or REFUSED) the plan's ACK says.
+  kind (RESULT or REFUSED) the plan's ACK says;
+- ``vision``: an OPC UA link's OPC 40100 state machine (``VisionMachine``): StartSingleJob and
+  the plain Next go through its states first (refused in any state but Ready), CLEAR and
+  unknown commands stand for the older namespace's calls on the same link; random
+  SelectModeAutomatic, PrepareRecipe, UnprepareRecipe, Halt, Reset, Stop and Abort calls move
+  it (a job aborted meanwhile still ends once, ABORTED without a pose); StartContinuous starts
+  a chain of jobs, each next one requested as the link does once the previous one is finished,
+  until Stop (after the running job), Abort, Halt or Reset (at once) or a refusal ends it.
 
 Random events: a request of any link (TRIGGER, CLEAR, NEXT, an unknown command; on the
 register link also the same sequence again and 0, which are no requests), the running job's
@@ -64,6 +71,7 @@ from vgripd.service.protocol import (
     ValueCodec,
 )
 from vgripd.service.robot_socket_format import remaining
+from vgripd.service.visionsm import EXECUTING, Auto, VisionMachine
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 FIELDS = tuple("xyzabc")
@@ -225,6 +233,67 @@ class MessageLink:
                                            d.count, d.index, frame))
 
 
+class VisionLink(MessageLink):
+    """An OPC UA link's OPC 40100 side: requests through ``VisionMachine``'s states."""
+
+    def __init__(self) -> None:
+        super().__init__(frames=False)
+        self.machine = VisionMachine()
+        self.handshake = self.machine.handshake
+        self.aborted: set[int] = set()  # requests whose result came ABORTED by a client's call
+        self.expect_abort: set[int] = set()  # requests whose execution state a call ended
+        #: what a TRIGGER is: StartSingleJob, StartContinuous, or the chain's next job
+        self.mode = "single"
+
+    def request(self, command: int, seq: int) -> Decision:
+        m = self.machine
+        before = m.auto
+        start = {"single": lambda: m.start_single_job(seq, None),
+                 "continuous": lambda: m.start_continuous(seq, None),
+                 "chain": lambda: m.continue_job(seq)}[self.mode]
+        verdict = (start() if command == Command.TRIGGER else
+                   m.next_object(seq) if command == Command.NEXT else m.request(command, seq, 0))
+        assert verdict.decision is not None
+        if command == Command.TRIGGER and self.mode == "chain":
+            assert before is Auto.CONTINUOUS_EXECUTION
+            assert verdict.decision.action is Action.START, verdict
+        elif command in (Command.TRIGGER, Command.NEXT) and before is not Auto.READY:
+            assert verdict.decision.action is Action.REJECT, (before, verdict)  # Ready only
+        self._apply(verdict.decision.steps)
+        self._check()
+        return verdict.decision
+
+    def publish(self, seq: int, result: JobResult) -> None:
+        plan, shown, _ = self.machine.publish(seq, result)
+        if shown.status is Status.ABORTED and result.status is not Status.ABORTED:
+            assert shown.target is None
+            assert not shown.instances
+            self.aborted.add(seq)
+        assert (seq in self.aborted) == (seq in self.expect_abort and result.job_id != 0 and
+                                         result.status is not Status.ABORTED), seq
+        self._apply(plan)
+        self._check()
+
+    def call(self, method: str) -> None:
+        m = self.machine
+        before, running = m.auto, m.handshake.running_seq if m.busy else 0
+        if method == "ready":  # the PLC's start-up: SelectModeAutomatic, PrepareRecipe
+            m.select_mode_automatic()
+            method = "prepare"
+        {"select": m.select_mode_automatic, "prepare": lambda: m.prepare_recipe(1),
+         "unprepare": lambda: m.unprepare_recipe(1), "halt": m.halt, "reset": m.reset,
+         "stop": m.stop, "abort": m.abort}[method]()
+        if running and before in EXECUTING and m.auto is not before:
+            self.expect_abort.add(running)
+        self._check()
+
+    def _check(self) -> None:
+        m = self.machine
+        if m.auto is Auto.SINGLE_EXECUTION:
+            assert m.busy, "SingleExecution without a running request"
+        assert (m.auto is None) == (m.top.label != "Operational")
+
+
 Link = RegisterLink | MessageLink
 
 
@@ -235,7 +304,8 @@ class Cell:
 
     links: dict[str, Link] = field(default_factory=lambda: {
         "plc": RegisterLink(), "s7": RegisterLink("s7"), "mbclient": RegisterLink("client"),
-        "ua": MessageLink(frames=False), "robot": MessageLink(frames=True)})
+        "ua": MessageLink(frames=False), "robot": MessageLink(frames=True),
+        "vision": VisionLink()})
     core: JobCore = field(default_factory=JobCore)
     running: tuple[str, int, int, bool] | None = None  # link, seq, job id, captured
     accepting: bool = True  # False: shutting down, every trigger is refused ABORTED
@@ -269,6 +339,7 @@ class Cell:
                                       busy=self.running is not None)
         if admission.kind is Admit.REFUSE:
             self._publish(name, seq, JobResult(job_id=0, status=admission.status))
+            self.continue_chain()
         elif admission.kind is Admit.NEXT:
             assert admission.answer is not None
             self._publish(name, seq, admission.answer)
@@ -296,6 +367,20 @@ class Cell:
         self.last_finished = (name, job_id)
         self._publish(name, seq, result)
         self.core.job_finished(name, seq, result, delivered=True)
+        self.continue_chain()
+
+    def continue_chain(self) -> None:
+        """The vision link in ContinuousExecution requests the chain's next job once the
+        daemon finished the last one (``OpcUaLink.publish``)."""
+        link = self.links["vision"]
+        assert isinstance(link, VisionLink)
+        if not link.machine.wants_next:
+            return
+        mode, link.mode = link.mode, "chain"
+        self.request("vision", Command.TRIGGER, "fresh")
+        link.mode = mode
+        # the chain runs on or has ended: never ContinuousExecution with no job running
+        assert link.machine.auto is not Auto.CONTINUOUS_EXECUTION or link.machine.busy
 
     def _publish(self, name: str, seq: int, result: JobResult) -> None:
         self.told[(name, seq)] = result
@@ -304,7 +389,9 @@ class Cell:
 
 COMMANDS = st.sampled_from([Command.TRIGGER, Command.TRIGGER, Command.NEXT, Command.NEXT,
                             Command.CLEAR, 99])
-LINKS = st.sampled_from(["plc", "s7", "mbclient", "ua", "robot"])
+LINKS = st.sampled_from(["plc", "s7", "mbclient", "ua", "robot", "vision"])
+VISION_CALLS = st.sampled_from(["ready", "ready", "ready", "select", "prepare", "unprepare",
+                                "halt", "reset", "stop", "abort"])
 RESULTS = st.tuples(st.sampled_from(["one", "none", "pallet", "pallet", "died"]),
                     st.integers(0, 4),
                     st.integers(0, 2))
@@ -317,6 +404,13 @@ EVENTS = st.one_of(
     st.tuples(st.just("job"), LINKS, RESULTS),
     st.tuples(st.just("next"), LINKS),
     st.tuples(st.just("accepting"), st.booleans()),  # shutdown (ABORTED) and back
+    st.tuples(st.just("vision"), VISION_CALLS),  # an OPC 40100 state machine method
+    # the PLC sequence of OPC 40100 on the vision link, a call perhaps in the middle of the job
+    st.tuples(st.just("vjob"), RESULTS, st.sampled_from(["-", "-", "stop", "abort", "halt"]),
+              st.integers(0, 3)),
+    # StartContinuous: jobs one after another, a call ending the chain during the last one
+    st.tuples(st.just("vcont"), st.lists(RESULTS, min_size=1, max_size=4),
+              st.sampled_from(["stop", "stop", "abort", "halt", "reset"]), st.booleans()),
 )
 
 
@@ -333,6 +427,37 @@ def step(cell: Cell, event: tuple) -> None:
         cell.finish(*event[2])
     elif event[0] == "accepting":
         cell.accepting = event[1]
+    elif event[0] == "vision":
+        link = cell.links["vision"]
+        assert isinstance(link, VisionLink)
+        link.call(event[1])
+    elif event[0] == "vjob":
+        link = cell.links["vision"]
+        assert isinstance(link, VisionLink)
+        link.call("ready")
+        cell.request("vision", Command.TRIGGER, "fresh")
+        cell.capture()
+        if event[2] != "-":
+            link.call(event[2])
+        cell.finish(*event[1])
+        for _ in range(event[3]):  # the pick list walked by the plain Next
+            cell.request("vision", Command.NEXT, "fresh")
+    elif event[0] == "vcont":
+        link = cell.links["vision"]
+        assert isinstance(link, VisionLink)
+        link.call("ready")
+        link.mode = "continuous"
+        cell.request("vision", Command.TRIGGER, "fresh")
+        link.mode = "single"
+        results, end, captured_first = event[1:]
+        for result in results[:-1]:
+            cell.capture()
+            cell.finish(*result)  # the chain's next job starts (if the chain still runs)
+        if captured_first:
+            cell.capture()
+        link.call(end)
+        cell.capture()
+        cell.finish(*results[-1])
     else:
         cell.request(event[1], Command.NEXT, "fresh")
 
@@ -341,6 +466,7 @@ def run(events: list[tuple]) -> Cell:
     cell = Cell()
     for event in events:
         step(cell, event)
+    cell.links["vision"].call("stop")  # type: ignore[union-attr]  # a chain ends with its job
     cell.capture()
     cell.finish("one", 0, 0)  # the job still running ends, so every request is answered
     return cell
@@ -370,6 +496,10 @@ def test_random_event_sequences_keep_the_handshake_rules(events: list[tuple]) ->
                 assert (a.status, a.job_id, a.count, a.index) == (Status.IDLE, 0, 0, 0)
                 continue
             assert told is not None
+            if isinstance(link, VisionLink) and a.seq in link.aborted:  # a client aborted it
+                assert (a.status, a.job_id, a.pose, a.count, a.index) == (
+                    Status.ABORTED, told.job_id, (), 0, 0)
+                continue
             assert (a.status, a.job_id) == (told.status, told.job_id)
             assert a.count == cell.counts.get(a.job_id, 0)  # the job's, counted apart
             check_position(a, commands[a.seq])
