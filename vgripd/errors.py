@@ -53,9 +53,5 @@ class LinkError(DriverError):
     """A robot/PLC link failed to start or lost its peer (message says address, port, register)."""
 
 
-class PoseRejected(VgripError):
-    """A pose failed a safety gate and must not be published as valid."""
-
-
 class CalibrationError(VgripError):
     """A calibration could not be computed or read (message names the image, sample or file)."""

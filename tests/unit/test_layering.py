@@ -79,7 +79,7 @@ def test_every_room_has_a_level() -> None:
 def test_drivers_do_not_use_the_service_or_cli(path: Path) -> None:
     """Drivers build on the core (vocabulary, geometry, config, vision, the link contract and
     its helpers); they never reach into the daemon, the simulators or the CLI."""
-    forbidden_service = {"vgripd.service.daemon", "vgripd.service.statusapi"}
+    forbidden_service = {"vgripd.service.daemon"}
     bad = [f"line {line}: {name}" for line, name in _imports(path)
            if name.startswith("vgripd.") and (
                _room(name) in {"cli", "sim", "__main__"} or name in forbidden_service)]

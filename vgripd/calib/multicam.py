@@ -125,12 +125,6 @@ class MultiResult:
     warnings: list[str] = field(default_factory=list)
 
 
-def pose_from_vector(v: Sequence[float]) -> FloatArray:
-    """4x4 from (rx, ry, rz, tx, ty, tz): rotation vector (rad) then translation (mm)."""
-    a = np.asarray(v, dtype=np.float64)
-    return make_transform(matrices_from_rotvecs(a[:3]), a[3:6])
-
-
 def vector_from_pose(T: FloatArray) -> FloatArray:
     return np.r_[rotvec_from_matrix(T[:3, :3]), T[:3, 3]]
 

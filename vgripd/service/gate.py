@@ -280,11 +280,6 @@ class Gate:
                        conn.client, what)
             conn.shut(what)
 
-    def close_all(self, reason: str) -> None:
-        for conn in self.slots.connections():
-            self.slots.forget(conn)
-            conn.shut(reason)
-
     # the sweep task -----------------------------------------------------------------------
 
     def start(self) -> None:
