@@ -244,6 +244,20 @@ async def test_a_set_exposed_too_far_apart_is_refused_naming_cameras_and_skew(
         await cam.close()
 
 
+async def grab_many(cam: AravisCamera, count: int, timeout_s: float) -> tuple[int, list[str]]:
+    """``count`` grabs: how many delivered a whole 512x512 frame, and why the others failed."""
+    delivered, refused = 0, []
+    for _ in range(count):
+        try:
+            pair = await cam.grab(timeout_s)
+        except CameraError as err:
+            refused.append(str(err))
+            continue
+        assert pair.left.shape == (512, 512)
+        delivered += 1
+    return delivered, refused
+
+
 async def test_packet_loss_frames_are_refused_never_returned_half(
         two_fakes: tuple[FakeCamera, FakeCamera]) -> None:
     """The fake drops 3 of every 1000 stream packets and answers no resend: a frame that lost
@@ -253,16 +267,8 @@ async def test_packet_loss_frames_are_refused_never_returned_half(
     lossy = FakeCamera("127.0.0.2", "GV02", loss_per_mille=3).start()
     cam = camera(cameras=[{"serial": "GV02"}], frame_timeout_s=1.0, incomplete_retries=0)
     await cam.open()
-    delivered, refused = 0, []
     try:
-        for _ in range(30):
-            try:
-                pair = await cam.grab(5.0)
-            except CameraError as err:
-                refused.append(str(err))
-                continue
-            assert pair.left.shape == (512, 512)
-            delivered += 1
+        delivered, refused = await grab_many(cam, 30, 5.0)
     finally:
         await cam.close()
         lossy.kill()
@@ -283,16 +289,8 @@ async def test_a_set_with_an_incomplete_frame_is_taken_again_while_retries_last(
     lossy = FakeCamera("127.0.0.2", "GV02", loss_per_mille=3).start()
     cam = camera(cameras=[{"serial": "GV02"}], frame_timeout_s=1.0, incomplete_retries=5)
     await cam.open()
-    delivered, refused = 0, []
     try:
-        for _ in range(30):
-            try:
-                pair = await cam.grab(10.0)
-            except CameraError as err:
-                refused.append(str(err))
-                continue
-            assert pair.left.shape == (512, 512)
-            delivered += 1
+        delivered, refused = await grab_many(cam, 30, 10.0)
     finally:
         await cam.close()
         lossy.kill()

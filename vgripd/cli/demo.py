@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-import socket
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -81,14 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     demo_setup.add_arguments(parser)
 
 
-def _port(wanted: int) -> int:
-    """``wanted`` if it can be bound on 127.0.0.1, else 0 (any free port)."""
-    with socket.socket() as probe:
-        try:
-            probe.bind(("127.0.0.1", wanted))
-        except OSError:
-            return 0
-    return wanted
+_port = demo_setup.bindable
 
 
 def web_view(port: int, linger: float) -> str:

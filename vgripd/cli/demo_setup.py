@@ -110,7 +110,7 @@ async def serve_setup(main: Path, token: str, announce: Any = print) -> None:
         teller.cancel()
 
 
-def _bindable(port: int) -> int:
+def bindable(port: int) -> int:
     """``port`` when 127.0.0.1 has it free, else 0 (any free one)."""
     with socket.socket() as probe:
         try:
@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     from vgripd.service.logsetup import configure_logging
 
     folder = args.state_dir or Path(tempfile.mkdtemp(prefix="vgripd-setup-"))
-    main, token = write_cell(folder.absolute(), _bindable(args.port), _bindable(args.web_port),
+    main, token = write_cell(folder.absolute(), bindable(args.port), bindable(args.web_port),
                              args.seed)
     configure_logging("INFO" if args.verbose else "WARNING")
     if not args.verbose:
