@@ -54,9 +54,11 @@ class LinkSupervisor:
         if config.status.enabled and config.status.allow_trigger:  # the web view's test trigger
             self.links[WEB_LINK] = WebTriggerLink()
         recipes = {number: config.recipe_name(number) for number in config.recipe_numbers()}
+        belt = any(config.for_recipe(n).conveyor is not None for n in config.recipe_numbers())
         for link in self.links.values():
             link.set_recipes(recipes)
             link.set_vendor(config.output.vendor)
+            link.set_conveyor(belt)
         #: How RLIMIT_NOFILE is split between the server surfaces and the reserve (at start).
         self.fd_budget: Budget | None = None
 
