@@ -144,6 +144,25 @@ class RobotTarget:
 
 
 @dataclass(frozen=True)
+class BeltPose:
+    """Where a result stands on a conveyor (docs/conveyor.md): the encoder ``count`` its pose
+    belongs to, where that count came from (``source``: the LATCH_SOURCE value, 1 link,
+    2 frame id, 3 timestamp), the one-sigma position error along the belt it leaves
+    (``error_mm``), and the pose in belt terms at that count: ``along_mm`` from the belt's
+    origin in its direction, ``across_mm`` in the belt plane to the left, ``theta_deg`` the
+    rotation about the belt's normal. ``queued``: parts waiting in the queue after this answer.
+    """
+
+    count: int
+    source: int
+    error_mm: float
+    along_mm: float = 0.0
+    across_mm: float = 0.0
+    theta_deg: float = 0.0
+    queued: int = 0
+
+
+@dataclass(frozen=True)
 class PickInstance:
     """One object instance of a pick list (several identical objects in one job's images).
 
@@ -202,6 +221,8 @@ class JobResult:
     instances: tuple[PickInstance, ...] = ()
     # The recipe the job ran (``Trigger.recipe``; 0 = the top-level config), set by the daemon.
     recipe: int = 0
+    # A conveyor recipe's answer: the count the pose belongs to and the pose in belt terms.
+    belt: BeltPose | None = None
 
     def __post_init__(self) -> None:
         if self.target is not None and not self.status.pose_valid:

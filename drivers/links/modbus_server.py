@@ -69,14 +69,12 @@ from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.service.gate import Gate
 from vgripd.service.protocol import (
-    MAP_SIZE,
     REGISTER_CAPABILITIES,
     Action,
     LinkHealth,
     LinkState,
     RegisterAccessError,
     RegisterBank,
-    RegisterImage,
     RegisterOptions,
     RobotLink,
     Trigger,
@@ -146,7 +144,8 @@ class RegisterServerLink(RobotLink):
     def __init__(self, name: str, options: Any) -> None:
         super().__init__(name, options)
         self.bank = RegisterBank(
-            ValueCodec(options.word_order, options.value_format, options.scale)
+            ValueCodec(options.word_order, options.value_format, options.scale),
+            version=options.map_version,
         )
         self.ratelog = RateLimitedLog(log, getattr(options, "log_interval_s", self.LOG_INTERVAL_S))
         #: peer faults by kind (malformed, exception 01/02/03, unit, evicted, idle, not_reading)
@@ -237,13 +236,18 @@ class RegisterServerLink(RobotLink):
     async def set_warnings(self, bits: int) -> None:
         self.bank.set_warnings(bits)
 
-    def dispatch(self, seq: int, command: int, recipe: int, view: int = 0) -> None:
+    def set_conveyor(self, on: bool) -> None:
+        self.bank.handshake.queue = on
+
+    def dispatch(self, seq: int, command: int, recipe: int, view: int = 0,
+                 count: int | None = None, frame: int | None = None) -> None:
         """Hand a new job to the daemon, outside the Modbus request that triggered it (an error
         in the handler must not become a Modbus exception response)."""
         assert self._loop is not None
         assert self._on_trigger is not None
         trigger = Trigger(link=self.name, seq=seq, command=command,
-                          t_mono_ns=time.monotonic_ns(), recipe=recipe, view=view)
+                          t_mono_ns=time.monotonic_ns(), recipe=recipe, view=view,
+                          latch_count=count, latch_frame=frame)
         self._loop.call_soon(self._on_trigger, trigger)
 
     # --- requests -----------------------------------------------------------------------
@@ -280,7 +284,8 @@ class RegisterServerLink(RobotLink):
         except RegisterAccessError as err:
             raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
         if decision.action is Action.START:
-            self.dispatch(decision.seq, decision.command, decision.recipe, decision.view)
+            self.dispatch(decision.seq, decision.command, decision.recipe, decision.view,
+                          decision.count, decision.frame)
         elif decision.action is Action.REJECT:
             self.ratelog.info(client, "handshake", "%s: %s: request %d refused: %s", self.name,
                               client, decision.seq, decision.code.name)
@@ -289,7 +294,7 @@ class RegisterServerLink(RobotLink):
         if not 1 <= count <= MAX_READ:
             raise Refused(ExcCodes.ILLEGAL_VALUE, f"read of {count} registers (1..{MAX_READ})")
         try:
-            RegisterImage.check_read(address, count)
+            self.bank.image.check_read(address, count)
         except RegisterAccessError as err:
             raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
         return self.bank.read(address, count, time.monotonic_ns())
@@ -318,7 +323,7 @@ class RegisterServerLink(RobotLink):
     def _mask_write(self, pdu: bytes, client: str) -> bytes:
         _need_length(pdu, 7)
         address, and_mask, or_mask = struct.unpack_from(">HHH", pdu, 1)
-        if address >= MAP_SIZE:
+        if address >= self.bank.image.size:
             raise Refused(ExcCodes.ILLEGAL_ADDRESS, f"mask write at {address} outside the map")
         current = self.bank.image.words[address]
         self.write_registers(address, [(current & and_mask) | (or_mask & ~and_mask & 0xFFFF)],
@@ -334,7 +339,7 @@ class RegisterServerLink(RobotLink):
                           f"read {read_count} / write {write_count} registers in {byte_count} "
                           f"bytes (1..{MAX_READ} / 1..{MAX_RW_WRITE})")
         try:  # all or nothing: the read range is checked before anything is written
-            RegisterImage.check_read(read_address, read_count)
+            self.bank.image.check_read(read_address, read_count)
         except RegisterAccessError as err:
             raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
         self.write_registers(write_address, struct.unpack_from(f">{write_count}H", pdu, 10),

@@ -19,7 +19,7 @@ from tests.conftest import need_tool
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
     MAP_SIZE,
-    MAP_VERSION,
+    MAP_VERSIONS,
     BlockWrite,
     Command,
     LinkHealth,
@@ -135,7 +135,7 @@ async def test_header_words_and_heartbeat_reach_the_robot(robot: MockRobotModbus
     await link.open(Daemon(link).on_trigger)
     try:
         header = robot.read(BASE + Reg.MAP_VERSION, 9)
-        assert header[:2] == [MAP_VERSION, 0x1234]
+        assert header[:2] == [MAP_VERSIONS[0], 0x1234]
         assert struct.unpack(">I", words_to_bytes(tuple(header[2:4]), "ABCD"))[0] == 0x12345678
         assert struct.unpack(">f", words_to_bytes(tuple(header[4:6]), "ABCD"))[0] == pytest.approx(123.456, abs=1e-4)
         beats = {robot.read(BASE + Reg.HEARTBEAT)[0]}

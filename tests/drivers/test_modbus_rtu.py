@@ -29,7 +29,7 @@ from vgripd.errors import LinkError
 from vgripd.service.protocol import (
     CHECK_F32,
     MAP_SIZE,
-    MAP_VERSION,
+    MAP_VERSIONS,
     Command,
     HandshakeState,
     LinkState,
@@ -101,7 +101,7 @@ async def test_rtu_cycle(rtu: tuple[ModbusRtuLink, asyncio.Queue[Trigger], Async
 async def test_rtu_warnings_word(rtu: tuple[ModbusRtuLink, asyncio.Queue[Trigger], AsyncModbusSerialClient]) -> None:
     link, _, client = rtu
     r = await client.read_holding_registers(0, count=MAP_SIZE, device_id=7)
-    assert (r.registers[Reg.MAP_VERSION], r.registers[Reg.WARNINGS]) == (MAP_VERSION, 0) == (3, 0)
+    assert (r.registers[Reg.MAP_VERSION], r.registers[Reg.WARNINGS]) == (MAP_VERSIONS[0], 0)
     await link.set_warnings(Warnings.RECALIBRATE)
     r = await client.read_holding_registers(Reg.WARNINGS, count=1, device_id=7)
     assert r.registers == [1]

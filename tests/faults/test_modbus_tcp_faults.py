@@ -25,7 +25,7 @@ from tests.faults.modbus_raw import (
     recv_frame,
     silent,
 )
-from vgripd.service.protocol import CHECK_U16, MAP_SIZE, MAP_VERSION, LinkState, Reg
+from vgripd.service.protocol import CHECK_U16, MAP_SIZE, MAP_VERSIONS, LinkState, Reg
 from vgripd.sim.plc import MockPlc
 from vgripd.types import JobResult, RobotTarget, Status
 
@@ -70,7 +70,7 @@ async def test_read_of_0_or_126_registers_is_exception_03(served: Served) -> Non
             tid, unit, pdu = await recv_frame(reader)
             assert (tid, unit, pdu) == (struct.unpack(">H", frame[:2])[0], 1, answer), frame.hex()
         writer.write(read_request(11, Reg.MAP_VERSION, 2))  # the connection still serves
-        assert await recv_frame(reader) == (11, 1, bytes([3, 4, 0, MAP_VERSION, 0x12, 0x34]))
+        assert await recv_frame(reader) == (11, 1, bytes([3, 4, 0, MAP_VERSIONS[0], 0x12, 0x34]))
     finally:
         await close_quietly(writer)
 

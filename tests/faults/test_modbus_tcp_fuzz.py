@@ -24,7 +24,7 @@ from tests.faults.modbus_raw import Served, mbap
 from vgripd.service.protocol import (
     CHECK_U16,
     MAP_SIZE,
-    MAP_VERSION,
+    MAP_VERSIONS,
     HandshakeState,
     LinkState,
     Reg,
@@ -187,7 +187,7 @@ async def test_fuzzed_frames_leave_no_traceback_intact_registers_and_a_small_log
             await plc.check_byte_order()
             words = await plc.read()
             assert words[Reg.MAP_VERSION:Reg.HEARTBEAT] == before[Reg.MAP_VERSION:Reg.HEARTBEAT]
-            assert (words[Reg.MAP_VERSION], words[Reg.CHECK_U16]) == (MAP_VERSION, CHECK_U16)
+            assert (words[Reg.MAP_VERSION], words[Reg.CHECK_U16]) == (MAP_VERSIONS[0], CHECK_U16)
             assert words[Reg.WARNINGS] == 0
             assert words[Reg.STATE] in {int(state) for state in HandshakeState}
             if words[Reg.ACK_SEQ] and words[Reg.STATUS] == Status.OK:

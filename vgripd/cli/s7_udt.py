@@ -30,11 +30,14 @@ from vgripd.registry import LINKS, load_class, validate_options
 from vgripd.service.protocol import (
     COMMAND_AREA,
     MAP_SIZE,
-    MAP_VERSION,
+    MAP_VERSIONS,
     MAX_VALUES,
     Reg,
     ValueFormat,
 )
+
+#: The S7 link serves map version 3 (the conveyor's version 4 is not wired there yet).
+S7_MAP_VERSION = MAP_VERSIONS[0]
 
 # What each map item holds, by the item's name in ``Reg``. "int": a number (16 or 32 bit, by
 # the item's size in the map), "bits": a bit pattern, "real": float32, "value": a pose value in
@@ -44,7 +47,7 @@ ITEMS: dict[str, tuple[str, str]] = {
                    "view * 256 + 4 CAPTURE"),
     "REQ_SEQ": ("int", "PLC writes: a change to a non-zero value is a request"),
     "RECIPE": ("int", "PLC writes: job parameter (0 = default)"),
-    "MAP_VERSION": ("int", f"{MAP_VERSION}"),
+    "MAP_VERSION": ("int", f"{S7_MAP_VERSION}"),
     "CHECK_U16": ("bits", "16#1234"),
     "CHECK_U32": ("bits", "16#12345678"),
     "CHECK_F32": ("real", "123.456"),
@@ -96,7 +99,7 @@ class Member:
 
 def members(value_format: ValueFormat = "float32") -> list[Member]:
     """The block's items with their byte offsets (from ``Reg``) and S7 types."""
-    regs = sorted(Reg, key=int)
+    regs = sorted((r for r in Reg if r < MAP_SIZE), key=int)  # S7 serves map version 3
     ends = [int(r) for r in regs[1:]] + [MAP_SIZE]
     if set(ITEMS) != {r.name for r in regs}:
         raise AssertionError(f"ITEMS and Reg differ: {set(ITEMS) ^ {r.name for r in regs}}")
@@ -129,7 +132,7 @@ def udt_source(value_format: ValueFormat = "float32", name: str = UDT_NAME) -> s
     return (
         f'TYPE "{name}"\n'
         "VERSION : 0.1\n"
-        f"//vgripd register map {MAP_VERSION} as an S7 block: {2 * MAP_SIZE} bytes, big-endian, "
+        f"//vgripd register map {S7_MAP_VERSION} as an S7 block: {2 * MAP_SIZE} bytes, big-endian, "
         "for a DB with optimized block access OFF.\n"
         f"//VALUES, FIT_RMS and SCORE: {VALUE_TYPES[value_format]} "
         f"(value_format = \"{value_format}\")."

@@ -21,17 +21,20 @@ still in reach (the first to leave), once.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from vgripd.config import ConveyorConfig
 from vgripd.geometry.belt import Belt
 from vgripd.geometry.transforms import rotation_angle
-from vgripd.types import FloatArray
+from vgripd.geometry.vendors import target_from_transform, transform_from_vendor
+from vgripd.types import BeltPose, FloatArray, JobResult, PickInstance, Status
 
 
 class LatchSource(enum.IntEnum):
@@ -205,3 +208,148 @@ class PartQueue:
 
     def __len__(self) -> int:
         return len(self.parts)
+
+
+# --- one conveyor recipe in the daemon ------------------------------------------------------
+
+LATCH_KINDS = {"link": LatchSource.LINK, "frame_id": LatchSource.FRAME_ID,
+               "timestamp": LatchSource.TIMESTAMP}
+
+
+def belt_pose(belt: Belt, T_base: FloatArray, count: int, source: LatchSource, error_mm: float,
+              queued: int) -> BeltPose:
+    """``T_base`` (at ``count``) in belt terms: along, across (mm) and the rotation about the
+    belt's normal (deg) of its x axis projected into the belt plane."""
+    T = belt.in_belt(T_base)
+    theta = math.degrees(math.atan2(T[1, 0], T[0, 0]))
+    return BeltPose(count, int(source), error_mm, float(T[0, 3]), float(T[1, 3]), theta,
+                    queued)
+
+
+@dataclass
+class BeltLine:
+    """One conveyor recipe as the daemon runs it (docs/conveyor.md): each job's latch, its
+    parts into the ``PartQueue``, NEXT served from the queue in belt order and PREDICT (a
+    served part's pose at a later count). Poses are the pick targets (``output.vendor``):
+    the queue carries each part's target transform, moved along the belt."""
+
+    belt: Belt
+    queue: PartQueue
+    vendor: str
+    latch_kind: LatchSource = LatchSource.LINK
+    speed_mm_s: float = 0.0
+    timestamp_error_ms: float = 0.0
+    frames: FrameLatches | None = None
+    #: The part last served to each link (PREDICT predicts it).
+    served: dict[str, QueuedPart] = field(default_factory=dict)
+    #: The newest count any job or request reported (a NEXT without a count expires with it).
+    last_count: int | None = None
+    #: ms from each image's exposure to its parts' entry in the queue (the last 1000).
+    latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
+
+    def latch(self, count: int | None, frame: int | None, t_request_ns: int,
+              t_exposure_ns: int, frame_seen: int | None) -> Latch | str:
+        """The latch of a job, or why there is none (the job's BAD_REQUEST message).
+
+        ``count``/``frame``: what the link carried with the request; ``t_request_ns``: when
+        the request came; ``t_exposure_ns``: the image's time (one clock); ``frame_seen``:
+        the camera's frame id of the image (None when the camera reports none)."""
+        if count is None:
+            return ("conveyor: the link carries no encoder count with the request (register "
+                    "links: map_version = 4 and LATCH_COUNT; robot socket: the count field)")
+        if self.latch_kind is LatchSource.LINK:
+            return latch_from_link(self.belt, count)
+        if self.latch_kind is LatchSource.TIMESTAMP:
+            return latch_from_timestamp(self.belt, count, t_request_ns, t_exposure_ns,
+                                        self.speed_mm_s, self.timestamp_error_ms)
+        if self.frames is None:
+            self.frames = FrameLatches(self.belt)
+        if frame is not None:
+            self.frames.report(frame, count)
+        if frame_seen is None:
+            return "conveyor latch frame_id: the camera reports no frame id for its image"
+        return self.frames.match(frame_seen) or self.frames.missing(frame_seen)
+
+    def add(self, latch: Latch, result: JobResult) -> JobResult:
+        """A job's parts into the queue; its answer with the latch and the first part in
+        belt terms (``BeltPose.queued``: the queue's length after it)."""
+        self.last_count = latch.count
+        poses: list[FloatArray] = []
+        pick_ids: list[int] = []
+        scores: list[float] = []
+        shown = [i for i in result.instances if i.status.pose_valid and i.target is not None]
+        if shown:
+            for inst in shown:
+                assert inst.target is not None
+                poses.append(transform_from_vendor(inst.target.vendor, inst.target.values))
+                pick_ids.append(inst.pick_id)
+                scores.append(inst.score)
+        elif result.status.pose_valid and result.target is not None:
+            poses.append(transform_from_vendor(result.target.vendor, result.target.values))
+        self.queue.add(latch, poses, result.job_id, pick_ids, scores)
+        first = belt_pose(self.belt, poses[0], latch.count, latch.source, latch.error_mm,
+                          len(self.queue)) if poses else \
+            BeltPose(latch.count, int(latch.source), latch.error_mm, queued=len(self.queue))
+        return dataclasses.replace(result, belt=first)
+
+    def _answer(self, part: QueuedPart, count: int, now_ns: int, message: str) -> JobResult:
+        T = part.at(self.belt, count)
+        target = target_from_transform(self.vendor, T)
+        inst = PickInstance(Status.OK, message, target, T, pick_id=part.pick_id,
+                            score=max(part.score, 0.0))
+        return JobResult(job_id=part.job_id, status=Status.OK, message=message, target=target,
+                         T_base_obj=T, instances=(inst,), t_done_mono_ns=now_ns,
+                         belt=belt_pose(self.belt, T, count, part.source, part.error_mm,
+                                        len(self.queue)))
+
+    def _empty(self, status: Status, why: str, count: int | None, now_ns: int) -> JobResult:
+        belt = BeltPose(count or 0, 0, 0.0, queued=len(self.queue))
+        return JobResult(job_id=0, status=status, message=why, t_done_mono_ns=now_ns, belt=belt)
+
+    def _seen(self, count: int | None) -> int | None:
+        if count is not None:
+            self.last_count = count
+        return self.last_count
+
+    def next(self, link: str, count: int | None, now_ns: int) -> JobResult:
+        """NEXT: the most downstream part still in the window at ``count`` (the request's;
+        else the newest known), its pose at its own latched count (a tracking controller
+        adds the travel since); ``NOT_FOUND`` when the queue has none."""
+        at = self._seen(count)
+        if at is None:
+            return self._empty(Status.NOT_FOUND, "conveyor: no image latched yet", None,
+                               now_ns)
+        part = self.queue.next(at)
+        if part is None:
+            return self._empty(Status.NOT_FOUND, "conveyor: the part queue is empty", at, now_ns)
+        self.served[link] = part
+        return self._answer(part, part.count, now_ns, f"part {part.uid} of job {part.job_id}")
+
+    def predict(self, link: str, count: int | None, now_ns: int) -> JobResult:
+        """PREDICT: where the part last served to ``link`` will be at ``count``;
+        ``OUT_OF_WORKSPACE`` without a pose when it is past the window's downstream end
+        there, ``BAD_REQUEST`` without a served part or a count."""
+        part = self.served.get(link)
+        if part is None or count is None:
+            why = ("conveyor PREDICT: no encoder count N with the request" if part is not None
+                   else "conveyor PREDICT: no part served to this link yet (NEXT first)")
+            return self._empty(Status.BAD_REQUEST, why, count, now_ns)
+        self._seen(count)
+        along = self.queue.along(part, count)
+        if along > self.queue.window_mm[1]:
+            return self._empty(Status.OUT_OF_WORKSPACE,
+                               f"conveyor PREDICT: part {part.uid} is {along:.1f} mm along the "
+                               f"belt at count {count}, past the pick window's end "
+                               f"{self.queue.window_mm[1]:g} mm", count, now_ns)
+        return self._answer(part, count, now_ns,
+                            f"part {part.uid} of job {part.job_id} predicted to count {count}")
+
+
+def line_of(conveyor: ConveyorConfig, vendor: str) -> BeltLine:
+    """The ``BeltLine`` of a recipe's ``[conveyor]`` section, its poses in ``vendor``'s
+    convention."""
+    c = conveyor
+    belt = Belt(c.direction, c.counts_per_mm, c.origin_mm, c.normal, c.encoder_bits)
+    queue = PartQueue(belt, c.window_mm, c.sigma_mm, c.match_sigmas, c.match_deg)
+    return BeltLine(belt, queue, vendor, LATCH_KINDS[c.latch], c.speed_mm_s,
+                    c.timestamp_error_ms)

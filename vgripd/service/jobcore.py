@@ -55,6 +55,7 @@ import enum
 from dataclasses import dataclass
 
 from vgripd.errors import LinkError
+from vgripd.service.beltqueue import BeltLine, Latch
 from vgripd.types import JobResult, Status
 
 
@@ -63,6 +64,7 @@ class Command(enum.IntEnum):
     CLEAR = 2
     NEXT = 3  # the next instance of the last job's pick list (map version 3)
     CAPTURE = 4  # one view of a several-view job (``vision.views``); the view in the high byte
+    PREDICT = 5  # a conveyor part's pose at a later encoder count (map version 4)
 
 
 #: Views one job may have (``vision.views``), and so the largest view index of a CAPTURE.
@@ -248,6 +250,9 @@ class Decision:
     recipe: int = 0
     code: Status = Status.IDLE
     view: int = 0  # CAPTURE: the view (1-based)
+    #: Map version 4: LATCH_COUNT and LATCH_FRAME as the request found them (None: not read).
+    count: int | None = None
+    frame: int | None = None
     #: The writes that carry the decision out, in order (``Handshake.order``).
     steps: tuple[Step, ...] = ()
 
@@ -259,7 +264,7 @@ def answer_refused(command: int, result: JobResult, captured: bool) -> bool:
     took is answered RESULT BAD_REQUEST with job 0) unless it was BUSY or ABORTED."""
     if captured or result.job_id:
         return False
-    if command == Command.NEXT:
+    if command in (Command.NEXT, Command.PREDICT):
         return result.status in (Status.BUSY, Status.ABORTED)
     return True
 
@@ -286,6 +291,9 @@ class Handshake:
         #: The result shown belongs to a job with a pick list (``PickPosition.listed``): NEXT
         #: may follow. Set by ``on_published``; a new TRIGGER and CLEAR reset it.
         self.listed = False
+        #: A conveyor's part queue answers NEXT and PREDICT (the daemon judges them): they
+        #: need no list here. Without it PREDICT is refused like a NEXT without a list.
+        self.queue = False
 
     @property
     def busy(self) -> bool:
@@ -302,12 +310,15 @@ class Handshake:
             if seq == 0:
                 return Decision(Action.IGNORE, seq)
         command, view = split_command(command)
-        if (command not in (Command.TRIGGER, Command.CLEAR, Command.NEXT, Command.CAPTURE)
+        if (command not in (Command.TRIGGER, Command.CLEAR, Command.NEXT, Command.CAPTURE,
+                            Command.PREDICT)
                 or (command == Command.CAPTURE and not 1 <= view <= MAX_VIEWS)):
             return self._reject(seq, command, recipe, Status.BAD_REQUEST, view)
         if self.busy:
             return self._reject(seq, command, recipe, Status.BUSY, view)
-        if command == Command.NEXT and not self.listed:  # nothing to go on from
+        if command == Command.PREDICT and not self.queue:
+            return self._reject(seq, command, recipe, Status.BAD_REQUEST, 0)
+        if command == Command.NEXT and not (self.listed or self.queue):  # nothing to go on
             return self._reject(seq, command, recipe, Status.BAD_REQUEST, 0)
         if command == Command.CLEAR:
             self.state = HandshakeState.IDLE
@@ -469,12 +480,25 @@ class JobCore:
     ABORTED) and whether a job runs (``busy``), and the core decides.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, lines: dict[int, BeltLine] | None = None) -> None:
         self.pick_list: PickCursor | None = None
+        #: Conveyor recipes (docs/conveyor.md) by number: their NEXT and PREDICT are answered
+        #: from the recipe's part queue, also while a job runs.
+        self.lines: dict[int, BeltLine] = lines or {}
 
-    def trigger(self, link: str, command: int, accepting: bool, busy: bool) -> Admission:
-        """A link's request reaches the daemon: refuse, answer from the list, or run a job
-        (which must call ``job_started``, so a NEXT can never get a pose of an earlier job)."""
+    def trigger(self, link: str, command: int, accepting: bool, busy: bool, recipe: int = 0,
+                count: int | None = None, now_ns: int = 0) -> Admission:
+        """A link's request reaches the daemon: refuse, answer from the list (or a conveyor
+        recipe's queue: ``count`` is the request's encoder count), or run a job (which must
+        call ``job_started``, so a NEXT can never get a pose of an earlier job)."""
+        line = self.lines.get(recipe)
+        if accepting and command in (Command.NEXT, Command.PREDICT) and line is not None:
+            answer = (line.next(link, count, now_ns) if command == Command.NEXT
+                      else line.predict(link, count, now_ns))
+            return Admission(Admit.NEXT, answer=dataclasses.replace(answer, recipe=recipe))
+        if command == Command.PREDICT and accepting and not busy:
+            return Admission(Admit.REFUSE, Status.BAD_REQUEST,
+                             f"PREDICT: recipe {recipe} has no conveyor")
         if not accepting or busy:
             return Admission(Admit.REFUSE, Status.BUSY if accepting else Status.ABORTED)
         if command == Command.NEXT:
@@ -495,9 +519,24 @@ class JobCore:
 
     def job_finished(self, link: str, seq: int, result: JobResult, delivered: bool) -> None:
         """The job's answer went out (``delivered``) or not: a delivered result with a pickable
-        instance becomes the pick list of ``link``."""
-        if delivered and pickable_count(result):
+        instance becomes the pick list of ``link`` (not on a conveyor: its queue serves)."""
+        if delivered and pickable_count(result) and result.recipe not in self.lines:
             self.pick_list = PickCursor(link, seq, result)
+
+    def belt_result(self, recipe: int, latch: Latch | str | None,
+                    result: JobResult) -> JobResult:
+        """A conveyor recipe's job result before it is published: with its ``latch`` its
+        parts go into the queue and the answer carries the count; without one (``latch`` the
+        reason) the job ends ``BAD_REQUEST`` and nothing is queued, so no pose without its
+        count reaches a peer. Other recipes' results pass unchanged."""
+        line = self.lines.get(recipe)
+        if line is None or latch is None:
+            return result
+        if isinstance(latch, str):
+            return JobResult(job_id=result.job_id, status=Status.BAD_REQUEST, message=latch,
+                             t_capture_mono_ns=result.t_capture_mono_ns,
+                             t_done_mono_ns=result.t_done_mono_ns, recipe=result.recipe)
+        return line.add(latch, result)
 
 
 # --- several views per job (``vision.views``) -----------------------------------------------

@@ -73,8 +73,10 @@ import numpy as np
 
 from vgripd.config import Config, unknown_recipe
 from vgripd.errors import CameraError, NotCalibratedError
+from vgripd.service.beltqueue import BeltLine, line_of
 from vgripd.service.cameras import CameraSupervisor
 from vgripd.service.jobcore import (
+    Admission,
     Admit,
     JobCore,
     PickCursor,
@@ -162,6 +164,34 @@ def scene_pose(pose: Any) -> np.ndarray:
     return matrix_from_pose(pose)
 
 
+def belt_lines(config: Config) -> dict[int, BeltLine]:
+    """The conveyor recipes' lines (docs/conveyor.md), by recipe number."""
+    return {n: line_of(c.conveyor, c.output.vendor) for n in config.recipe_numbers()
+            if (c := config.for_recipe(n)).conveyor is not None}
+
+
+def admit(core: JobCore, trigger: Trigger, accepting: bool, busy: bool) -> Admission:
+    """``JobCore.trigger`` for ``trigger`` (a conveyor's NEXT and PREDICT with its count)."""
+    return core.trigger(trigger.link, trigger.command, accepting, busy, trigger.recipe,
+                        trigger.latch_count, time.monotonic_ns())
+
+
+def belt_job(core: JobCore, trigger: Trigger, pair: ImagePair | None,
+             result: JobResult) -> JobResult:
+    """A conveyor job's latch (the request's count, the image's time and frame id) and its
+    parts into the recipe's queue (``JobCore.belt_result``); other jobs' results unchanged.
+    The line keeps the ms from the exposure to the queue entry (``BeltLine.latency_ms``)."""
+    line = core.lines.get(trigger.recipe)
+    if line is None or pair is None:
+        return result
+    frame = pair.meta.get("frame")
+    latch = line.latch(trigger.latch_count, trigger.latch_frame, trigger.t_mono_ns,
+                       pair.t_mono_ns, frame if isinstance(frame, int) else None)
+    out = core.belt_result(trigger.recipe, latch, result)
+    line.latency_ms.append((time.monotonic_ns() - pair.t_mono_ns) / 1e6)
+    return out
+
+
 def recipe_label(config: Config, number: int) -> str:
     """``2 (plate-b)`` for logs and messages."""
     return f"{number} ({config.recipe_name(number)})"
@@ -210,8 +240,7 @@ class JobRunner:
         self.record_dropped = 0  # jobs the recorder refused because the disk was behind
         self.cycle_ms: deque[float] = deque(maxlen=config.daemon.stats_window)
         self.last_job: JobRecord | None = None
-        #: Admission and the last job's pick list (the rules, without I/O).
-        self.core = JobCore()
+        self.core = JobCore(belt_lines(config))  # admission, pick list, conveyor queues
         #: A several-view job between two of its views (None otherwise).
         self.views: ViewJob | None = None
         self.next_answers: Counter[str] = Counter()  # NEXT answers, by the status told
@@ -280,8 +309,7 @@ class JobRunner:
             log.error("trigger from unknown link %r ignored", trigger.link)
             return
         # Links open during start-up may trigger before READY: those jobs run normally.
-        admission = self.core.trigger(trigger.link, trigger.command, self.accepting,
-                                      busy=self.job is not None)
+        admission = admit(self.core, trigger, self.accepting, busy=self.job is not None)
         if admission.kind is Admit.REFUSE:
             what = "NEXT" if admission.status is Status.BAD_REQUEST else "trigger"
             log.warning("%s seq %d from %s refused: %s%s", what, trigger.seq, trigger.link,
@@ -508,6 +536,7 @@ class JobRunner:
             self.views = None
         result = dataclasses.replace(result, recipe=trigger.recipe,
                                      t_done_mono_ns=result.t_done_mono_ns or time.monotonic_ns())
+        result = belt_job(self.core, trigger, pair, result)  # a conveyor's parts: queued
         epipolar_px = result.residuals.get("epipolar_px")
         if epipolar_px is not None and self.epipolar.add(epipolar_px, result.t_done_mono_ns):
             if self.epipolar.warning:

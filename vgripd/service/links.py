@@ -55,10 +55,12 @@ class LinkSupervisor:
             self.links[WEB_LINK] = WebTriggerLink()
         recipes = {number: config.recipe_name(number) for number in config.recipe_numbers()}
         identity = config_identity(config)
+        belt = any(config.for_recipe(n).conveyor is not None for n in config.recipe_numbers())
         for link in self.links.values():
             link.set_recipes(recipes)
             link.set_configuration(*identity)
             link.set_vendor(config.output.vendor)
+            link.set_conveyor(belt)
         #: How RLIMIT_NOFILE is split between the server surfaces and the reserve (at start).
         self.fd_budget: Budget | None = None
 

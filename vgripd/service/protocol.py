@@ -5,8 +5,9 @@ through it. A link turns its peer's trigger into a ``Trigger`` and hands it to t
 handler; the daemon answers through ``image_captured`` and ``publish``.
 
 Register map (Modbus holding registers, 16-bit words, zero-based addresses; ``docs/registers.md``
-has the integrator's version). Only the command area (0-2) is writable; everything else is written
-by vgripd. 32-bit items (u32, int32, float32) take two words in the configured word order:
+has the integrator's version). Only the command area (0-2) and, in map version 4, the latch area
+(46-49) are writable; everything else is written by vgripd. 32-bit items (u32, int32, float32)
+take two words in the configured word order:
 ``ABCD`` = high word first (default), ``CDAB`` = low word first. Bytes inside a word are always
 big-endian (Modbus).
 
@@ -19,7 +20,8 @@ addr  name           R/W   type    meaning
    1  REQ_SEQ        RW    u16     request sequence: a request is a write that changes it to a
                                    non-zero value (edge on the sequence, not on the level)
    2  RECIPE         RW    u16     job parameter handed to the daemon with the trigger
-   3  MAP_VERSION    R     u16     3 (2: 0-40 without the pick list; 1: also without WARNINGS)
+   3  MAP_VERSION    R     u16     the link's ``map_version``: 4 (46-61, conveyor), 3 (0-45);
+                                   2: 0-40 without the pick list; 1: also without WARNINGS
    4  CHECK_U16      R     u16     0x1234
    5  CHECK_U32      R     u32     0x12345678 in the configured word order
    7  CHECK_F32      R     f32     123.456 in the configured word order
@@ -44,6 +46,15 @@ addr  name           R/W   type    meaning
                                    (no pose), COUNT + 1 = past the end of the list (after NEXT)
   43  PICK_ID        R     u16     pick point id of the instance shown (0 = the object's grip)
   44  SCORE          R     32      detection score 0..1 of the instance shown; -1 = none/unknown
+  46  LATCH_COUNT    RW    u32     encoder count the PLC latched for this request (PREDICT: N)
+  48  LATCH_FRAME    RW    u32     ``latch = "frame_id"``: the camera frame that count belongs to
+  50  RESULT_COUNT   R     u32     encoder count the pose shown belongs to
+  52  LATCH_SOURCE   R     u16     0 none (still part), 1 link, 2 frame id, 3 timestamp
+  53  LATCH_ERR_MM   R     32      one-sigma position error along the belt the latch leaves (mm)
+  55  ALONG          R     32      the pose in belt terms at RESULT_COUNT: along the belt (mm),
+  57  ACROSS         R     32      across it in its plane (mm),
+  59  THETA          R     32      and its rotation about the belt's normal (deg)
+  61  QUEUED         R     u16     parts waiting in the recipe's queue after this answer
 ====  =============  ====  ======  =================================================================
 
 Handshake: a request is answered exactly once, either by ``ACK_SEQ == seq`` (the job ran or
@@ -83,7 +94,14 @@ through ``RobotLink.set_warnings`` whenever a warning rises or clears, and neith
 CLEAR touches it. The daemon sets it before it publishes the job that changed it, so a peer that
 sees ``ACK_SEQ == seq`` reads a WARNINGS that already counts that job.
 
-Size: a little over 700 lines, of which this docstring (the register map as docs/registers.md
+Conveyor (map version 4, ``map_version = 4`` in the link's options; docs/conveyor.md): the
+PLC writes LATCH_COUNT (and LATCH_FRAME) before or with the write that changes REQ_SEQ; the
+request takes the values in place at that moment. ``Command.PREDICT`` (5) asks where the part
+last served to this link will be at count N = LATCH_COUNT. 50-61 are part of the result (belt
+fields, cleared with it, written before ACK_SEQ; all 0 for a part that stands still). A
+version 3 link serves 0-45 as before and refuses addresses beyond.
+
+Size: a little over 750 lines, of which this docstring (the register map as docs/registers.md
 and the README follow it) is about 90: the link contract and the register map it is written
 against are one job.
 """
@@ -163,6 +181,11 @@ class Trigger:
     #: ``Command.CAPTURE``: the 1-based view of a several-view job (0 = not a view).
     view: int = 0
     peer: str = ""
+    #: A conveyor recipe (docs/conveyor.md): the encoder count the peer latched with the
+    #: request (PREDICT: the count N to predict for), and the camera frame it belongs to
+    #: (``latch = "frame_id"``); None when the link carries none.
+    latch_count: int | None = None
+    latch_frame: int | None = None
 
 
 TriggerHandler = Callable[[Trigger], None]
@@ -251,6 +274,11 @@ class RobotLink(ABC):
         sends poses (robot_socket CAPTURE_AT) reads them in."""
         self.vendor = vendor
 
+    def set_conveyor(self, on: bool) -> None:  # noqa: B027 - optional
+        """A recipe has a conveyor: the part queue answers NEXT and PREDICT, so a link that
+        refuses NEXT without a pick list itself lets them through (``Handshake.queue``).
+        Default: ignored."""
+
     def set_walking(self, walking: bool) -> None:  # noqa: B027 - optional
         """A walked hand-eye calibration is served (``vgripd.service.handeye_walk``): a link
         that refuses NEXT without a pick list itself lets every NEXT through while ``walking``.
@@ -310,6 +338,15 @@ class Reg(enum.IntEnum):
     INDEX = 42
     PICK_ID = 43
     SCORE = 44
+    LATCH_COUNT = 46
+    LATCH_FRAME = 48
+    RESULT_COUNT = 50
+    LATCH_SOURCE = 52
+    LATCH_ERR_MM = 53
+    ALONG = 55
+    ACROSS = 57
+    THETA = 59
+    QUEUED = 61
 
 
 class Warnings(enum.IntFlag):
@@ -320,9 +357,28 @@ class Warnings(enum.IntFlag):
 
 
 # 1 -> 2: WARNINGS (register 40) added; 2 -> 3: the pick list (41-45) and Command.NEXT.
-# Neither moved or changed a register of the version before.
-MAP_VERSION = 3
-MAP_SIZE = 46
+# 3 -> 4: the conveyor's latch (46-49, writable) and belt result (50-61), Command.PREDICT.
+# None moved or changed a register of the version before.
+MAP_VERSION = 4
+MAP_VERSIONS = (3, 4)
+MAP_SIZE = 46  # map version 3 (the default ``map_version``)
+MAP_SIZE_V4 = 62
+#: The latch area (map version 4): written by the PLC with its request.
+LATCH_AREA = range(Reg.LATCH_COUNT, Reg.RESULT_COUNT)
+#: The belt result (map version 4), written with STATUS .. FIT_RMS and the pick list.
+BELT_AREA = range(Reg.RESULT_COUNT, MAP_SIZE_V4)
+
+
+def map_size(version: int) -> int:
+    """Words of register map ``version`` (3 or 4)."""
+    return MAP_SIZE_V4 if version >= 4 else MAP_SIZE
+
+
+def register_name(address: int) -> str:
+    """``"46 (LATCH_COUNT)"``: an address and the register it belongs to, for messages."""
+    name = next((r.name for r in reversed(Reg) if r.value <= address), "?")
+    return f"{address} ({name})"
+
 #: The result area after WARNINGS (COUNT .. SCORE), written with STATUS .. FIT_RMS.
 PICK_AREA = range(Reg.COUNT, MAP_SIZE)
 MAX_VALUES = 7  # ABB/quaternion conventions: XYZ + 4; the others use 6
@@ -345,6 +401,8 @@ class RegisterOptions(BaseModel):
 
     ``word_order``: ``ABCD`` high word first (Siemens, most PLCs), ``CDAB`` low word first.
     ``value_format``: ``int32`` for PLCs without floats; raw = round(value * ``scale``).
+    ``map_version``: 3 (0-45, the default: a block sized for it keeps working) or 4 (0-61:
+    the conveyor's latch and belt result).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -353,6 +411,7 @@ class RegisterOptions(BaseModel):
     value_format: ValueFormat = "float32"
     scale: int = Field(10000, ge=1, le=1_000_000)
     heartbeat_ms: int = Field(500, ge=100, le=1000)
+    map_version: Literal[3, 4] = 3
 
 
 class RegisterAccessError(LinkError):
@@ -442,15 +501,18 @@ class RegisterImage:
     check the ordering rules with it).
     """
 
-    def __init__(self, codec: ValueCodec, journal: list[BlockWrite] | None = None) -> None:
+    def __init__(self, codec: ValueCodec, journal: list[BlockWrite] | None = None,
+                 version: int = 3) -> None:
         self.codec = codec
-        self.words = [0] * MAP_SIZE
+        self.version = version
+        self.size = map_size(version)
+        self.words = [0] * self.size
         self.journal = journal
         self._t_result_ns: int | None = None
         fmt = 1 if codec.value_format == "float32" else 2
         scale = 0 if codec.value_format == "float32" else codec.scale
         self.apply([
-            BlockWrite(Reg.MAP_VERSION, (MAP_VERSION, CHECK_U16, *codec.u32(CHECK_U32),
+            BlockWrite(Reg.MAP_VERSION, (version, CHECK_U16, *codec.u32(CHECK_U32),
                                          *codec.f32(CHECK_F32), fmt, *codec.u32(scale))),
             BlockWrite(Reg.RESULT_AGE_MS, codec.u32(NO_AGE)),
         ])
@@ -458,18 +520,18 @@ class RegisterImage:
     def apply(self, writes: Sequence[BlockWrite]) -> None:
         for write in writes:
             end = write.address + len(write.words)
-            if not (0 <= write.address < end <= MAP_SIZE):
+            if not (0 <= write.address < end <= self.size):
                 raise RegisterAccessError(f"block write {write.address}..{end - 1} outside the map")
             self.words[write.address:end] = write.words
             if self.journal is not None:
                 self.journal.append(write)
 
-    @staticmethod
-    def check_read(address: int, count: int) -> None:
+    def check_read(self, address: int, count: int) -> None:
         """``RegisterAccessError`` unless ``address .. address+count-1`` lies in the map."""
-        if count < 1 or address < 0 or address + count > MAP_SIZE:
+        if count < 1 or address < 0 or address + count > self.size:
             raise RegisterAccessError(
-                f"read of {count} registers at {address} outside 0..{MAP_SIZE - 1}"
+                f"read of {count} registers at {address} outside 0..{self.size - 1} (map "
+                f"version {self.version})"
             )
 
     def read(self, address: int, count: int, now_ns: int) -> list[int]:
@@ -529,10 +591,34 @@ class RegisterImage:
         """``COUNT .. SCORE`` meaning "no result" (all 0, like the result area)."""
         return (0,) * len(PICK_AREA)
 
+    def belt_words(self, result: JobResult) -> tuple[int, ...]:
+        """``RESULT_COUNT .. QUEUED`` (map version 4) for ``result``: all 0 without a belt."""
+        belt = result.belt
+        if belt is None:
+            return (0,) * len(BELT_AREA)
+        values: list[int] = []
+        for reg, v in ((Reg.LATCH_ERR_MM, belt.error_mm), (Reg.ALONG, belt.along_mm),
+                       (Reg.ACROSS, belt.across_mm), (Reg.THETA, belt.theta_deg)):
+            values += self.codec.value(v, f"register {register_name(reg)}")
+        return (*self.codec.u32(belt.count & 0xFFFFFFFF), belt.source & 0xFFFF, *values,
+                min(belt.queued, 0xFFFF))
+
     def clear_result(self) -> list[BlockWrite]:
-        """The writes that empty the whole result area (18-39 and 41-45; WARNINGS stays)."""
-        return [BlockWrite(Reg.STATUS, self.empty_result_words()),
-                BlockWrite(Reg.COUNT, self.empty_pick_words())]
+        """The writes that empty the whole result area (18-39, 41-45 and in map version 4
+        50-61; WARNINGS stays)."""
+        writes = [BlockWrite(Reg.STATUS, self.empty_result_words()),
+                  BlockWrite(Reg.COUNT, self.empty_pick_words())]
+        if self.version >= 4:
+            writes.append(BlockWrite(Reg.RESULT_COUNT, (0,) * len(BELT_AREA)))
+        return writes
+
+    def result_writes(self, result: JobResult, position: PickPosition) -> list[BlockWrite]:
+        """The data writes of a published result (before STATE and ACK_SEQ)."""
+        writes = [BlockWrite(Reg.STATUS, self.result_words(result)),
+                  BlockWrite(Reg.COUNT, self.pick_words(position))]
+        if self.version >= 4:
+            writes.append(BlockWrite(Reg.RESULT_COUNT, self.belt_words(result)))
+        return writes
 
 
 class RegisterBank:
@@ -542,8 +628,9 @@ class RegisterBank:
     it on its event loop is atomic with respect to the read requests it serves on that loop.
     """
 
-    def __init__(self, codec: ValueCodec, journal: list[BlockWrite] | None = None) -> None:
-        self.image = RegisterImage(codec, journal)
+    def __init__(self, codec: ValueCodec, journal: list[BlockWrite] | None = None,
+                 version: int = 3) -> None:
+        self.image = RegisterImage(codec, journal, version)
         self.handshake = Handshake()
         self._heartbeat = 0
         #: requests refused by the handshake (REJECT_SEQ/REJECT_CODE), by status name
@@ -552,13 +639,27 @@ class RegisterBank:
     def read(self, address: int, count: int, now_ns: int) -> list[int]:
         return self.image.read(address, count, now_ns)
 
+    def writable(self) -> tuple[range, ...]:
+        """The areas a peer may write: the command area, and in map version 4 the latch."""
+        return (COMMAND_AREA, LATCH_AREA) if self.image.version >= 4 else (COMMAND_AREA,)
+
     def write(self, address: int, values: Sequence[int]) -> Decision:
-        """A peer's write. Only the command area is writable; raises ``RegisterAccessError``."""
+        """A peer's write. Only the command area (and in map version 4 the latch area) is
+        writable, each write inside one of them; raises ``RegisterAccessError`` naming the
+        first register that may not be written."""
         end = address + len(values)
-        if not values or address < COMMAND_AREA.start or end > COMMAND_AREA.stop:
+        areas = self.writable()
+        if not values or not any(a.start <= address and end <= a.stop for a in areas):
+            bad = next((a for a in range(address, max(end, address + 1))
+                        if not any(a in area for area in areas)), address)
+            allowed = " and ".join(f"{a.start}..{a.stop - 1} ({n} area)"
+                                   for a, n in zip(areas, ("command", "latch"), strict=False))
+            what = ("a write spans two areas" if not values or bad >= end else
+                    f"register {register_name(bad)} is read-only" if bad < self.image.size
+                    else f"register {bad} is outside map version {self.image.version}")
             raise RegisterAccessError(
-                f"write of {len(values)} registers at {address}: only "
-                f"{COMMAND_AREA.start}..{COMMAND_AREA.stop - 1} (command area) are writable"
+                f"write of {len(values)} registers at {address}: {what}; only {allowed} are "
+                "writable"
             )
         if any(not 0 <= v <= 0xFFFF for v in values):
             raise RegisterAccessError(f"write at {address}: values must be 0..65535")
@@ -570,6 +671,11 @@ class RegisterBank:
         self.apply(decision.steps)
         if decision.action is Action.REJECT:
             self.refusals[decision.code.name] += 1
+        if self.image.version >= 4 and decision.action is Action.START:
+            codec = self.image.codec
+            decision = dataclasses.replace(
+                decision, count=codec.decode_u32(w[Reg.LATCH_COUNT:Reg.LATCH_COUNT + 2]),
+                frame=codec.decode_u32(w[Reg.LATCH_FRAME:Reg.LATCH_FRAME + 2]))
         return decision
 
     def view_captured(self, seq: int, job_id: int) -> None:
@@ -590,8 +696,7 @@ class RegisterBank:
         self.handshake.check_running(seq, "publish")
         position = pick_position(result)
         try:
-            self.image.result_words(result)
-            self.image.pick_words(position)
+            self.image.result_writes(result, position)
         except (RegisterOverflowError, RegisterCapacityError) as err:
             status = (Status.OUT_OF_LIMITS if isinstance(err, RegisterOverflowError)
                       else Status.INTERNAL)
@@ -622,8 +727,7 @@ class RegisterBank:
             elif step.part is Part.RESULT:
                 assert step.result is not None
                 assert step.position is not None
-                writes += [BlockWrite(Reg.STATUS, image.result_words(step.result)),
-                           BlockWrite(Reg.COUNT, image.pick_words(step.position))]
+                writes += image.result_writes(step.result, step.position)
                 t_result = step.result.t_done_mono_ns or now_ns
             elif step.part is Part.STATE:
                 writes.append(BlockWrite(Reg.STATE, (step.value,)))

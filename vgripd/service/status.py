@@ -88,6 +88,19 @@ class StatusBoard:
                         for n in self.config.recipe_numbers()],
         }
 
+    def conveyor_snapshot(self) -> dict[str, Any]:
+        """Each conveyor recipe's part queue (docs/conveyor.md), by recipe number."""
+        r = self.runner
+        out: dict[str, Any] = {}
+        for number, line in r.core.lines.items():
+            q, lat = line.queue, sorted(line.latency_ms)
+            out[str(number)] = {
+                "queued": len(q), "seen": q.stats.seen, "duplicates": q.stats.duplicates,
+                "dropped": q.stats.dropped, "served": q.stats.served,
+                "last_count": line.last_count, "latch": line.latch_kind.name.lower(),
+                "queue_latency_ms_p50": lat[len(lat) // 2] if lat else None}
+        return out
+
     def snapshot(self, run_state: str, t_start_ns: int, health_problem: str) -> dict[str, Any]:
         """The status as JSON data (served by ``GET /status``)."""
         r, cam = self.runner, self.cameras
@@ -135,6 +148,7 @@ class StatusBoard:
                 "count": r.pick_list.count, "index": r.pick_list.index,
                 "instances": len(r.pick_list.result.instances)},
             "next_answers": dict(r.next_answers),
+            "conveyor": self.conveyor_snapshot(),
             "views": None if r.views is None else {
                 "job_id": r.views.job_id, "link": r.views.link,
                 "taken": r.views.next_view - 1, "count": r.views.count},

@@ -31,7 +31,7 @@ from vgripd.service.protocol import (
     CHECK_U16,
     CHECK_U32,
     MAP_SIZE,
-    MAP_VERSION,
+    MAP_VERSIONS,
     Command,
     HandshakeState,
     Reg,
@@ -156,7 +156,7 @@ class MockPlc:
             w[Reg.CHECK_F32 - 3:Reg.CHECK_F32 - 1], _DT.FLOAT32, self.word_order
         )
         assert isinstance(got_f32, float)
-        if w[0] != MAP_VERSION or w[1] != CHECK_U16:
+        if w[0] not in MAP_VERSIONS or w[1] != CHECK_U16:
             raise PlcCheckError(f"map version/CHECK_U16 read as {w[0]}/{w[1]:#06x}")
         if got_u32 != CHECK_U32 or abs(got_f32 - CHECK_F32) > 1e-4:
             raise PlcCheckError(

@@ -315,9 +315,9 @@ V2_MAP = {"CMD": 0, "REQ_SEQ": 1, "RECIPE": 2, "MAP_VERSION": 3, "CHECK_U16": 4,
 
 
 def test_map_version_3_appends_the_pick_list_to_version_2() -> None:
-    assert (MAP_VERSION, MAP_SIZE) == (3, 46)
+    assert (MAP_VERSION, MAP_SIZE) == (4, 46)  # MAP_SIZE: the version 3 map, the default
     assert {r.name: int(r) for r in Reg if r < 41} == V2_MAP
-    assert [(r.name, int(r)) for r in Reg if r >= 41] == [
+    assert [(r.name, int(r)) for r in Reg if 41 <= r < MAP_SIZE] == [
         ("COUNT", 41), ("INDEX", 42), ("PICK_ID", 43), ("SCORE", 44)]  # SCORE: 44-45
     assert (int(Command.TRIGGER), int(Command.CLEAR), int(Command.NEXT)) == (1, 2, 3)
     bank = RegisterBank(ValueCodec())

@@ -85,7 +85,24 @@ class _DaemonCollector(Collector):
                                 value=rc.share())
         yield GaugeMetricFamily("vgripd_healthy", "0 when the service needs a restart "
                                 "(camera fault, wedged job)", value=1.0 if d.healthy() else 0.0)
-        camera_open = bool(d.snapshot()["camera"]["open"])
+        snap = d.snapshot()
+        belts: dict[str, GaugeMetricFamily | CounterMetricFamily] = {
+            "queued": GaugeMetricFamily("vgripd_conveyor_queued", "Parts waiting in a conveyor "
+                                        "recipe's queue (docs/conveyor.md)", labels=["recipe"]),
+            "seen": CounterMetricFamily("vgripd_conveyor_seen", "Part sightings the conveyor's "
+                                        "images gave", labels=["recipe"]),
+            "duplicates": CounterMetricFamily("vgripd_conveyor_duplicates", "Sightings of a "
+                                              "part already queued or served", labels=["recipe"]),
+            "dropped": CounterMetricFamily("vgripd_conveyor_dropped", "Parts that left the pick "
+                                           "window before they were served", labels=["recipe"]),
+            "served": CounterMetricFamily("vgripd_conveyor_served", "Parts served by NEXT",
+                                          labels=["recipe"]),
+        }
+        for number, q in snap.get("conveyor", {}).items():
+            for key, family in belts.items():
+                family.add_metric([number], float(q[key]))
+        yield from belts.values()
+        camera_open = bool(snap["camera"]["open"])
         yield GaugeMetricFamily("vgripd_camera_open", "1 while the camera is open",
                                 value=1.0 if camera_open else 0.0)
         rec = d.recorder

@@ -9,7 +9,6 @@ from collections.abc import Mapping
 from typing import Any
 
 from vgripd.service.protocol import (
-    MAP_SIZE,
     MAX_VALUES,
     Command,
     HandshakeState,
@@ -19,7 +18,8 @@ from vgripd.service.protocol import (
 )
 from vgripd.types import Status
 
-_U32 = {Reg.CHECK_U32, Reg.VALUE_SCALE, Reg.JOB_ID, Reg.RESULT_AGE_MS}
+_U32 = {Reg.CHECK_U32, Reg.VALUE_SCALE, Reg.JOB_ID, Reg.RESULT_AGE_MS, Reg.LATCH_COUNT,
+        Reg.LATCH_FRAME, Reg.RESULT_COUNT}
 _ENUMS: dict[Reg, Any] = {Reg.CMD: Command, Reg.STATE: HandshakeState, Reg.STATUS: Status,
                           Reg.REJECT_CODE: Status}
 
@@ -46,13 +46,15 @@ def decode(bank: RegisterBank, words: list[int]) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     for reg in Reg:
         a = int(reg)
+        if a >= len(words):  # beyond this link's map version
+            break
         if reg is Reg.VALUES:
             for i in range(MAX_VALUES):
                 w = words[a + 2 * i: a + 2 * i + 2]
                 rows.append({"address": a + 2 * i, "name": f"VALUES[{i}]", "words": w,
                              "value": codec.decode_value(w), "meaning": ""})
             continue
-        if reg in (Reg.FIT_RMS, Reg.SCORE):
+        if reg in (Reg.FIT_RMS, Reg.SCORE, Reg.LATCH_ERR_MM, Reg.ALONG, Reg.ACROSS, Reg.THETA):
             w = words[a:a + 2]
             value: float | int = codec.decode_value(w)
         elif reg is Reg.CHECK_F32:
@@ -78,7 +80,7 @@ def register_views(links: Mapping[str, Any]) -> list[dict[str, Any]]:
         bank = getattr(link, "bank", None)
         if not isinstance(bank, RegisterBank):
             continue
-        words = bank.read(0, MAP_SIZE, time.monotonic_ns())
+        words = bank.read(0, bank.image.size, time.monotonic_ns())
         codec = bank.image.codec
         out.append({"link": name, "word_order": codec.word_order,
                     "value_format": codec.value_format, "rows": decode(bank, words)})
