@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import re
 import stat
 from pathlib import Path
 
@@ -40,7 +41,11 @@ def test_init_writes_a_config_check_accepts(example: str | None, tmp_path: Path)
     config, state = _init(tmp_path, *(["--example", example] if example else []))
     rc, text = _run("check", "--no-camera", "-c", str(config))
     assert rc == 0, text
-    assert "warning" not in text, text  # fingerprints recorded: the files belong together
+    # fingerprints recorded: the files belong together. (A port another program holds right
+    # now, e.g. a second suite's robot socket on 50100, is the machine's state, not the files'.)
+    warnings = [line for line in text.splitlines()
+                if "warning" in line and not re.search(r"\.port: \S+ is in use", line)]
+    assert not warnings, text
     assert {p.name for p in state.iterdir()} >= {"rig.toml", "cell.toml", "reference.toml"}
 
 
