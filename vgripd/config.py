@@ -23,8 +23,7 @@ validated when the config is, so a bad recipe is refused at load with its own fi
 Size: over 700 lines on purpose: this is the one place that judges a config (house style),
 so the section models and the checks across sections (every link carries ``output.vendor``,
 each recipe overlaid and validated as a whole) are read together. The section models could
-become a package ``vgripd/config/``; not done in issue 22 because other branches change this
-file in parallel.
+become a package ``vgripd/config/`` (one module per section).
 """
 
 from __future__ import annotations

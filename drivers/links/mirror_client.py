@@ -10,7 +10,7 @@ connection drops, and reconnects with doubling back-off after any error, logging
 outage (one line, no traceback). A subclass brings the transport through the hooks below
 (connect, read and write the block, disconnect) and explains a refusal of the block.
 
-No peer error stops the retrying (issue 20): a peer that answers garbage, a block the peer
+No peer error stops the retrying: a peer that answers garbage, a block the peer
 refuses (a wrong address, a DB not yet downloaded, access not yet allowed) are outages like a
 lost connection, since the peer can be fixed or replaced while vgripd runs. A refusal of the
 block is logged at ERROR with what to check (it needs a person), anything else at WARNING.

@@ -586,7 +586,7 @@ class RobotSocketLink(RobotLink):
         outage_logged = False
         # The last connection carried no valid request (the peer sent garbage at once, or
         # nothing): not a recovery, so the outage, its single log line and its growing
-        # back-off go on (issue 20: any peer error is retried with back-off, logged once).
+        # back-off go on (any peer error is retried with back-off, logged once).
         fruitless = False
         while True:
             await self._set_health(LinkState.CONNECTING, error)

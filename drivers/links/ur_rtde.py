@@ -14,7 +14,7 @@ side reads the child's pipe with ``add_reader`` (no threads) and one supervisor 
 child: it starts it, waits for ``up`` at most ``connect_timeout_s``, serves, and on any failure
 (silent controller, refused connection, dropped socket, data stream older than
 ``stale_after_s``, child crash) kills it and starts a new one after a doubling back-off, logging
-once per outage. No error of the controller stops the retrying (issue 20): a register
+once per outage. No error of the controller stops the retrying: a register
 ``IN_USE`` or a variable the controller does not know is a configuration problem of the robot,
 fixed on the robot while vgripd runs, so it is an outage too, logged once at ERROR naming it.
 

@@ -57,8 +57,7 @@ The worker ends with its daemon, whatever way the daemon ends:
 Size: over 700 lines: both ends of one private request protocol, the worker's request loop
 (``_Worker``, ``worker_main``) and the daemon's client (``WorkerClient``, ``WorkerCamera``,
 ``WorkerRecorder``), which change together; the shared-memory image transport is
-``vgripd.service.imageshm``. The worker's side is the next cut, left until the warm-up before
-READY (issue 22) has changed the start-up code both halves share.
+``vgripd.service.imageshm``. The worker's side is the next cut.
 """
 
 from __future__ import annotations
