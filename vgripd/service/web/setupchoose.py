@@ -180,6 +180,12 @@ class SetupChoices:
     def daemon(self) -> Any:
         return self.routes.daemon
 
+    def _uncalibrated(self) -> bool:
+        """A cell the daemon runs uncalibrated may stay so through a camera or link choice
+        (its first steps come before the calibration); a calibrated one must stay calibrated."""
+        d = self.daemon
+        return any(number not in d.untaught for number in d.recipe_problems)
+
     async def discover(self, request: web.Request) -> web.Response:
         self.routes._guard(request)
         rc, out, err = await run_vgripd(["cameras", "--json"], DISCOVER_TIMEOUT_S)
@@ -204,7 +210,7 @@ class SetupChoices:
             raise web.HTTPBadRequest(text=str(err)) from None
         outcome = await reloader.write(section_edit("camera.", "camera", table),
                                        f"web {request.remote}", "setup: cameras",
-                                       untaught_ok=True)
+                                       untaught_ok=True, uncalibrated_ok=self._uncalibrated())
         return self.routes._answer(outcome, camera=table)
 
     async def link_options(self, request: web.Request) -> web.Response:
@@ -226,7 +232,7 @@ class SetupChoices:
             raise web.HTTPBadRequest(text=str(err)) from None
         outcome = await reloader.write(section_edit("links", "links", links),
                                        f"web {request.remote}", "setup: link",
-                                       untaught_ok=True)
+                                       untaught_ok=True, uncalibrated_ok=self._uncalibrated())
         return self.routes._answer(outcome, links=links)
 
     async def contract(self, request: web.Request) -> web.Response:
