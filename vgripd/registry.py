@@ -73,6 +73,12 @@ LINKS: dict[str, str] = {
     "opcua": "drivers.links.opcua:OpcUaLink",
 }
 
+#: What a link asks of its peer, where a table says more than the docs (the OPC UA nodes a PLC
+#: reads and calls): a function of the driver's module, loaded as the classes are.
+CONTRACTS: dict[str, str] = {
+    "opcua": "drivers.links.opcua_vision:plc_contract",
+}
+
 
 def load_class(table: dict[str, str], kind: str, type_name: str) -> type[Any]:
     try:

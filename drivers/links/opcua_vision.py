@@ -872,3 +872,36 @@ def config_digest(text: str) -> bytes:
     return hashlib.sha256(text.encode()).digest()
 
 
+
+
+#: The plain methods (``Plc``): name, inputs, outputs (name: type), what it does.
+PLAIN_METHODS = (
+    ("PrepareRecipe", "RecipeId: String", "RecipeId: String, Error: Int32",
+     "prepare a recipe by number or name (RecipeManagement.PrepareRecipe)"),
+    ("StartJob", "RecipeId: String", "JobId: String, Error: Int32",
+     "start one job, \"\" the prepared recipe (StartSingleJob)"),
+    ("Next", "", "JobId: String, Error: Int32", "the next object of the last job's pick list"),
+)
+#: The standard's nodes a PLC with structure support calls, in the order it calls them.
+STANDARD_SEQUENCE = (
+    "VisionStateMachine.SelectModeAutomatic",
+    "RecipeManagement.PrepareRecipe",
+    "VisionStateMachine.AutomaticModeStateMachine.StartSingleJob",
+    "ResultReadyEventType (event on VisionSystem)",
+    "ResultManagement.GetResultById",
+)
+
+
+def plc_contract() -> dict[str, Any]:
+    """What a PLC reads and calls (docs/opcua.md, "OPC 40100"): the instance's namespace, the
+    plain ``Plc`` variables in the order they are written and its methods, and the standard's
+    sequence; the setup page's link step shows it."""
+    return {
+        "namespace": INSTANCE_URI, "machine_vision": MV_URI,
+        "node_id": "ns=<index of the namespace>;s=VisionSystem.<browse path>",
+        "variables": [{"node": f"VisionSystem.Plc.{name}", "type": vtype.name, "text": text}
+                      for name, vtype, _, text in PLAIN_STATE + PLAIN_RESULT + PLAIN_LAST],
+        "methods": [{"node": f"VisionSystem.Plc.{name}", "in": args, "out": out, "text": text}
+                    for name, args, out, text in PLAIN_METHODS],
+        "standard": [f"VisionSystem.{path}" for path in STANDARD_SEQUENCE],
+    }

@@ -2,7 +2,8 @@
 
 ``vgripd cameras`` prints one line per device that pylon (pypylon) and Aravis discover: stack,
 serial number, vendor and model, address, user-defined name (Aravis: its device id). A stack
-that is not installed is named with what to install.
+that is not installed is named with what to install. ``--json``: the same as one JSON object
+(``devices`` and ``unavailable``: stack -> why), as the setup page's cameras step reads it.
 
 ``vgripd cameras grab NAME -o frame.png [--set Feature=value ...]`` opens NAME (a serial
 number, user-defined name, IP address or device id; with ``-c CONFIG``, also a camera name of
@@ -42,6 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                               "is written); prints frames/s")
     parser.add_argument("--timeout", type=float, default=5.0, help="grab: seconds per frame")
     parser.add_argument("--color", action="store_true", help="grab: keep colour formats BGR")
+    parser.add_argument("--json", action="store_true", help="list: one JSON object (the setup "
+                                                            "page reads it)")
 
 
 def parse_value(text: str) -> bool | int | float | str:
@@ -69,6 +72,23 @@ def parse_sets(items: list[str]) -> dict[str, Any]:
 def _stack(name: str) -> Any:
     cls = load_class(CAMERAS, "camera", name)
     return cls.make_stack()
+
+
+def discover(stacks: tuple[str, ...]) -> dict[str, Any]:
+    """What each stack finds, as data: ``{"devices": [{stack, serial, vendor, model, address,
+    user_name, key}], "unavailable": {stack: why}}``."""
+    devices: list[dict[str, str]] = []
+    unavailable: dict[str, str] = {}
+    for name in stacks:
+        try:
+            found = _stack(name).discover()
+        except CameraError as err:
+            unavailable[name] = str(err)
+            continue
+        devices += [{"stack": name, "serial": d.serial, "vendor": d.vendor, "model": d.model,
+                     "address": d.address, "user_name": d.user_name, "key": d.key}
+                    for d in found]
+    return {"devices": devices, "unavailable": unavailable}
 
 
 def list_devices(stacks: tuple[str, ...]) -> list[str]:
@@ -145,6 +165,11 @@ async def grab(type_name: str, data: dict[str, Any], config: Config, count: int,
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.action == "list" and args.json:
+        import json
+
+        print(json.dumps(discover((args.stack,) if args.stack else STACKS)))
+        return 0
     if args.action == "list":
         print("\n".join(list_devices((args.stack,) if args.stack else STACKS)))
         return 0

@@ -49,6 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--untaught-ok", action="store_true",
                         help="a recipe whose reference is not taught (yet, or again after a new "
                              "hand-eye) is a warning, not an error: its jobs end NOT_CALIBRATED")
+    parser.add_argument("--uncalibrated-ok", action="store_true",
+                        help="a recipe not calibrated (yet) is a warning, not an error: its "
+                             "jobs end NOT_CALIBRATED (the setup page's camera and link "
+                             "choices on a cell it has not calibrated yet)")
 
 
 def check_camera_settings(config: Config) -> None:
@@ -114,7 +118,8 @@ def run(args: argparse.Namespace) -> int:
         except ConfigError as err:
             raise ConfigError(f"{args.config}: {err}") from None
     problems = {number: problem for number, problem in daemon.recipe_problems.items()
-                if not (args.untaught_ok and number in daemon.untaught)}
+                if not (args.untaught_ok and number in daemon.untaught)
+                and not args.uncalibrated_ok}
     if problems:
         raise ConfigError("\n".join(
             f"{args.config}: not calibrated: {problem}" if number == 0 else
@@ -124,6 +129,12 @@ def run(args: argparse.Namespace) -> int:
                 + ("" if number == 0 else f"recipe {daemon.recipe_label(number)}: ")
                 + f"not taught, its jobs end NOT_CALIBRATED: {daemon.recipe_problems[number]}"
                 for number in sorted(daemon.untaught) if number not in problems]
+    if args.uncalibrated_ok:
+        untaught += [f"warning: {args.config}: "
+                     + ("" if number == 0 else f"recipe {daemon.recipe_label(number)}: ")
+                     + f"not calibrated, its jobs end NOT_CALIBRATED: {problem}"
+                     for number, problem in sorted(daemon.recipe_problems.items())
+                     if number not in daemon.untaught]
     findings = commission(config, Options(running=args.running, no_links_ok=args.no_links_ok))
     for number in config.recipe_numbers()[1:]:
         findings += [Finding(f.level, f"recipes.{number}.{f.key}",

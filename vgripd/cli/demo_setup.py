@@ -3,9 +3,10 @@ to set it up (docs/setup.md).
 
 The learning cell's board camera (``drivers/cameras/board.py``, with ``plate = true``): a
 virtual operator holds a chessboard in front of two cameras while the demo plate lies on the
-table. The config is laid out as ``vgripd init`` lays one out: a main file (camera, link) and
-writable includes in the state folder, here empty (no calibration, no hand-eye, no object, no
-reference: jobs end NOT_CALIBRATED until the page has set them), plus ``access.toml`` with a new
+table. The config is laid out as ``vgripd init`` lays one out: a main file and writable
+includes in the state folder: the camera and the link in ``camera.toml`` and ``links.toml``,
+the cell's includes empty (no calibration, no hand-eye, no object, no reference: jobs end
+NOT_CALIBRATED until the page has set them), plus ``access.toml`` with a new
 token, ``allow_config_edit`` and ``allow_trigger``. Then the daemon runs on it as ``vgripd run``
 does (the web view's writes are its config transactions), until Ctrl-C.
 
@@ -27,9 +28,12 @@ from typing import Any
 
 from vgripd.serialize import toml_from_dict
 
-INCLUDES = ("rig.toml", "handeye.toml", "cell.toml", "reference.toml", "access.toml")
+INCLUDES = ("camera.toml", "links.toml", "rig.toml", "handeye.toml", "cell.toml",
+            "reference.toml", "access.toml")
 BOARD = "chessboard:9x6:30"
-WHAT = {"rig.toml": "the cameras' calibration (the setup page's calibration step)",
+WHAT = {"camera.toml": "the cameras (the setup page's cameras step; a restart applies them)",
+        "links.toml": "the PLC link (the setup page's link step; a restart applies it)",
+        "rig.toml": "the cameras' calibration (the setup page's calibration step)",
         "handeye.toml": "where the cameras are (the setup page's hand-eye step)",
         "cell.toml": "the object and the vision parameters (the setup page's object step)",
         "reference.toml": "the taught reference (the setup page's teaching)",
@@ -61,21 +65,21 @@ def write_cell(folder: Path, modbus_port: int, web_port: int, seed: int = 1) -> 
     parts: dict[str, dict[str, Any]] = {name: {} for name in INCLUDES}
     parts["access.toml"] = {"status": {"port": web_port, "token": token,
                                        "allow_config_edit": True, "allow_trigger": True}}
+    # each place held for two grabs: the first is refused as the board just moved there, the
+    # second is still and kept
+    parts["camera.toml"] = {"camera": {"type": "board", "board": BOARD, "plate": True,
+                                       "seed": seed, "hold_frames": 2, "move_frames": 0}}
+    parts["links.toml"] = {"links": [{"type": "modbus_server", "host": "127.0.0.1",
+                                      "port": modbus_port}]}
     for name, data in parts.items():
         text = f"# {WHAT[name]}\n# written by `vgripd demo --setup`\n" + toml_from_dict(data)
         path = folder / name
         path.write_text(text, encoding="utf-8")
         if name == "access.toml":
             path.chmod(0o600)
-    main.write_text("# the learning cell (vgripd demo --setup): camera and link; the cell lives "
-                    "in the includes\n" + toml_from_dict({
+    main.write_text("# the learning cell (vgripd demo --setup): the service; the camera, the "
+                    "link and the cell live in the includes\n" + toml_from_dict({
                         "include": [str(folder / name) for name in INCLUDES],
-                        # each place held for two grabs: the first is refused as the board
-                        # just moved there, the second is still and kept
-                        "camera": {"type": "board", "board": BOARD, "plate": True, "seed": seed,
-                                   "hold_frames": 2, "move_frames": 0},
-                        "links": [{"type": "modbus_server", "host": "127.0.0.1",
-                                   "port": modbus_port}],
                         "daemon": {"log_level": "WARNING"}}), encoding="utf-8")
     return main, token
 

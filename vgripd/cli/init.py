@@ -5,10 +5,12 @@
     vgripd init -c cell/vgripd.toml --state-dir cell/state --example robot-socket-kuka
 
 The main file (``-c``, default /etc/vgripd/vgripd.toml) keeps what only an installer changes:
-camera, links, output, daemon, record, status. What the web view and the calibration commands
-write goes into includes in the state directory (``--state-dir``, default /var/lib/vgripd, the
-unit's ``StateDirectory``, writable by the service):
+output, daemon, record, status. What the web view and the calibration commands write goes into
+includes in the state directory (``--state-dir``, default /var/lib/vgripd, the unit's
+``StateDirectory``, writable by the service):
 
+    camera.toml     [camera] (the setup page's cameras step; a restart applies it)
+    links.toml      [[links]] (the setup page's link step; a restart applies it)
     rig.toml        [calibration] without the hand-eye (``vgripd calibrate stereo|cameras``)
     handeye.toml    [calibration.hand_eye] (``calibrate handeye``, the walk page's accept)
     cell.toml       [object] and [vision] (the page's tuning save, camera exposure and gain)
@@ -41,7 +43,7 @@ from vgripd.serialize import toml_from_dict
 EXIT_OK = 0
 EXIT_USAGE = 2
 #: Sections the main file keeps; every other one of the source goes to an include.
-MAIN_SECTIONS = ("camera", "links", "output", "daemon", "record", "status", "picking", "limits",
+MAIN_SECTIONS = ("output", "daemon", "record", "status", "picking", "limits",
                  "recipes", "calibration_walk")
 #: The demo cell's link when no example is named: the register map on an unprivileged port.
 DEMO_LINK = {"type": "modbus_server", "host": "127.0.0.1", "port": 1502}
@@ -94,6 +96,10 @@ def layout(data: dict[str, Any], state_dir: Path, allow_edit: bool,
     config = config_from_dict(data, source)
     main = {k: v for k, v in data.items() if k in MAIN_SECTIONS}
     files: dict[str, dict[str, Any]] = {}
+    # The camera and the links in includes of their own: the setup page chooses them.
+    for section, name in (("camera", "camera.toml"), ("links", "links.toml")):
+        if section in data:
+            files[name] = {section: data[section]}
     # The hand-eye and the reference record the camera model (and the reference the hand-eye)
     # they belong to, as the calibrate and teach commands do, so check finds them consistent.
     about: dict[str, Any] = {}
@@ -115,8 +121,8 @@ def layout(data: dict[str, Any], state_dir: Path, allow_edit: bool,
         status = dict(main.pop("status", {}))
         status.update(allow_config_edit=True, token=secrets.token_urlsafe(24))
         files["access.toml"] = {"status": status}
-    unknown = sorted(set(data) - set(MAIN_SECTIONS) - {"calibration", "object", "vision",
-                                                        "reference"})
+    unknown = sorted(set(data) - set(MAIN_SECTIONS) - {"camera", "links", "calibration",
+                                                        "object", "vision", "reference"})
     if unknown:
         raise ConfigError(f"{source}: sections {', '.join(unknown)}: not known to vgripd init")
     main = {"include": [str(state_dir / name) for name in files], **main}
@@ -172,7 +178,10 @@ def merged(files: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 def header(name: str, source: str) -> str:
     what = {
-        "": "the main file: camera, links, output, service; the cell lives in the includes",
+        "": "the main file: output, service; the cameras, links and cell live in the includes",
+        "camera.toml": "the cameras (the setup page's cameras step; a restart applies a change)",
+        "links.toml": "the PLC or robot links (the setup page's link step; a restart applies "
+                      "a change)",
         "rig.toml": "the cameras' calibration (vgripd calibrate stereo | cameras writes one)",
         "handeye.toml": "where the camera is (vgripd calibrate handeye, the walk page's accept)",
         "cell.toml": "the object and the vision parameters (the web view's tuning save)",

@@ -287,15 +287,17 @@ def changed_on_disk(snapshot: Snapshot) -> list[str]:
 # --- the judge ------------------------------------------------------------------------------
 
 async def judge(snapshot: Snapshot, untaught_ok: bool = False,
-                timeout_s: float = CHECK_TIMEOUT_S) -> str:
+                timeout_s: float = CHECK_TIMEOUT_S, uncalibrated_ok: bool = False) -> str:
     """``vgripd check --running`` of ``snapshot`` in a child process (``--untaught-ok`` with
-    ``untaught_ok``): "" when it passes on exactly these bytes, else why not."""
+    ``untaught_ok``, ``--uncalibrated-ok`` with ``uncalibrated_ok``): "" when it passes on
+    exactly these bytes, else why not."""
     with tempfile.TemporaryDirectory(prefix="vgripd-judge-") as tmp:
         file = Path(tmp) / "snapshot.json"
         await asyncio.to_thread(create_file, file, snapshot.dumps(), None, 0o600)
         rc, out, err = await run_vgripd(
             ["check", "--running", "-c", str(snapshot.main), "--snapshot", str(file),
-             *(["--untaught-ok"] if untaught_ok else [])], timeout_s)
+             *(["--untaught-ok"] if untaught_ok else []),
+             *(["--uncalibrated-ok"] if uncalibrated_ok else [])], timeout_s)
     if rc != 0:
         lines = [line for line in (out + "\n" + err).splitlines()
                  if line.strip() and not line.lower().startswith(("warning:", "note:"))]
@@ -354,8 +356,10 @@ class ConfigWriter:
             await asyncio.to_thread(_replace_other, self.path, path, data)
 
     async def write(self, edit: Edit | None, source: str, note: str = "",
-                    untaught_ok: bool = False) -> Outcome:
-        """One transaction (the module's docstring): ``edit`` None reloads."""
+                    untaught_ok: bool = False, uncalibrated_ok: bool = False) -> Outcome:
+        """One transaction (the module's docstring): ``edit`` None reloads.
+        ``uncalibrated_ok``: a cell not calibrated yet is no refusal (the setup's camera and
+        link choices before its calibration step)."""
         async with self._lock:
             log.info("config reload (%s)%s: judging %s", source, f" ({note})" if note else "",
                      self.path)
@@ -381,7 +385,8 @@ class ConfigWriter:
                                                source=source, t_wall=time.time()), note)
                 judged = before.replaced(changes)
                 try:
-                    problem = await judge(judged, untaught_ok)
+                    problem = await judge(judged, untaught_ok,
+                                          uncalibrated_ok=uncalibrated_ok)
                     if problem:
                         raise ConfigError(problem)
                     new = await asyncio.to_thread(load_config, judged.main, judged.files)

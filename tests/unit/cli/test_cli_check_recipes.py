@@ -111,3 +111,22 @@ def test_a_missing_template_file_names_recipe_field_and_file(
     assert (f"{path}: recipes.3.object.features[0].template: cannot read image file "
             f"'missing.png' (no such file, tried {tmp_path / 'missing.png'})") in text
     assert "Traceback" not in text
+
+
+def test_uncalibrated_ok_makes_a_cell_not_calibrated_yet_a_warning(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """What the setup page's camera and link choices run on a cell it has not calibrated yet:
+    no calibration is a warning (its jobs end NOT_CALIBRATED); a bad link stays an error."""
+    path = tmp_path / "board.toml"
+    link = '[[links]]\ntype = "modbus_server"\nhost = "127.0.0.1"\nport = {port}\n'
+    path.write_text('[camera]\ntype = "board"\n' + link.format(port=1502))
+    rc, text = run_cli(["check", "--running", "-c", str(path)], capsys)
+    assert rc == EXIT_CONFIG
+    assert "not calibrated" in text
+    rc, text = run_cli(["check", "--running", "--uncalibrated-ok", "-c", str(path)], capsys)
+    assert rc == 0, text
+    assert f"warning: {path}: not calibrated, its jobs end NOT_CALIBRATED" in text
+    path.write_text('[camera]\ntype = "board"\n' + link.format(port=70000))
+    rc, text = run_cli(["check", "--running", "--uncalibrated-ok", "-c", str(path)], capsys)
+    assert rc == EXIT_CONFIG
+    assert "port" in text

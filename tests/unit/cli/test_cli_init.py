@@ -7,6 +7,7 @@ import contextlib
 import io
 import re
 import stat
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -56,8 +57,12 @@ def test_each_edit_of_the_page_lands_in_its_own_include(tmp_path: Path) -> None:
     assert holding_include(config, "calibration.hand_eye.", "accept") == state / "handeye.toml"
     # the main file holds no cell section the page would have to move
     text = config.read_text()
-    for section in ("[object]", "[vision]", "[reference", "[calibration"):
+    for section in ("[object]", "[vision]", "[reference", "[calibration", "[camera",
+                    "[[links"):
         assert section not in text
+    # the setup page's cameras and link steps write the camera and the links there
+    assert tomllib.loads((state / "camera.toml").read_text())["camera"]["type"] == "synthetic"
+    assert tomllib.loads((state / "links.toml").read_text())["links"][0]["port"] == 1502
 
 
 def test_allow_edit_writes_a_private_token(tmp_path: Path) -> None:

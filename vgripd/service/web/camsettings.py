@@ -66,11 +66,18 @@ def parse_settings(body: Any) -> dict[str, float]:
 
 
 def settings_target(config_path: Path, files: Mapping[str, bytes] | None = None) -> Path:
-    """The include a camera setting is written to: the tuning save's file, when no other file
-    already sets the key (``TuningError``/``ConfigError`` naming it otherwise)."""
-    target = tuning_target(config_path, files)
+    """The include a camera setting is written to: the include that sets the settings or the
+    camera (``camera.toml`` of ``vgripd init``'s layout), else the tuning save's file, when no
+    other file already sets the key (``TuningError``/``ConfigError`` naming it otherwise)."""
     owner: dict[str, str] = {}
     read_config_data(config_path, owner, files=files)
+    holders = {Path(owner[f"camera.{k}"]) for k in KEYS if f"camera.{k}" in owner}
+    camera_file = Path(owner.get("camera.type", str(config_path)))
+    if not holders and camera_file != Path(config_path):
+        return camera_file
+    if len(holders) == 1 and next(iter(holders)) != Path(config_path):
+        return next(iter(holders))
+    target = tuning_target(config_path, files)
     for key in KEYS:
         where = owner.get(f"camera.{key}")
         if where is not None and Path(where) != target:

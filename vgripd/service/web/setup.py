@@ -19,6 +19,8 @@ link, test pick, one page (``/setup``) over these routes::
     POST /api/setup/object/find          the marks both cameras see, in the base frame
     POST /api/setup/object/save          {"name", "marks": [ids]}: the object from them, judged
     GET  /api/setup/robot-program.zip    ?brand=B: vgripd robot-program for the link (child)
+    /api/setup/cameras/..., /api/setup/link/...   choosing the cameras and the link, the
+                                         link's contract (``setupchoose.py``)
 
 Every POST (and the check) needs ``status.allow_config_edit`` and the token, as tuning,
 teaching and the walk pages do; every config write is one transaction of the daemon's config
@@ -52,6 +54,7 @@ from vgripd.service.configtxn import Outcome
 from vgripd.service.web import setupimages
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.registers import register_views
+from vgripd.service.web.setupchoose import SetupChoices
 from vgripd.service.web.setupsteps import (
     DEFAULT_BOARD,
     STEP_IDS,
@@ -105,6 +108,7 @@ class SetupRoutes:
         router.add_post("/api/setup/object/find", self.find_object)
         router.add_post("/api/setup/object/save", self.save_object)
         router.add_get("/api/setup/robot-program.zip", self.robot_program)
+        SetupChoices(self).add(router)  # the cameras and the link chosen (setupchoose.py)
 
     # --- shared ---------------------------------------------------------------------------
 

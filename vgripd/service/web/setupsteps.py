@@ -40,7 +40,8 @@ STEP_PATTERNS = (
 )
 #: Where a step writes when no include sets its keys yet (``vgripd init``'s layout).
 DEFAULT_INCLUDES = {"calibration.left.": "rig.toml", "calibration.hand_eye.": "handeye.toml",
-                    "object.": "cell.toml", "reference.": "reference.toml"}
+                    "object.": "cell.toml", "reference.": "reference.toml",
+                    "camera.": "camera.toml", "links": "links.toml"}
 #: The board of the learning cell, and the one offered otherwise.
 DEFAULT_BOARD = "chessboard:9x6:30"
 

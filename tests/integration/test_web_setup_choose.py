@@ -1,0 +1,96 @@
+"""The setup page's cameras and link steps over real HTTP against ``vgripd demo --setup``: the
+devices the stacks find, a camera and a link chosen and written through the config transaction
+into ``camera.toml`` and ``links.toml`` (judged first, the keys a restart applies named), a bad
+choice refused naming its field with nothing written, and each link type's contract."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+
+from tests.integration.setup_browser import demo_setup
+
+
+async def call(s: aiohttp.ClientSession, method: str, url: str, token: str,
+               body: Any = None) -> tuple[int, Any]:
+    async with s.request(method, url, json=body,
+                         headers={"Authorization": f"Bearer {token}"}) as r:
+        text = await r.text()
+        return r.status, (await r.json() if r.content_type == "application/json" else text)
+
+
+@pytest.mark.timeout(600)
+async def test_cameras_and_link_are_chosen_through_the_transaction(tmp_path: Path) -> None:
+    async with demo_setup(tmp_path / "cell") as cell, aiohttp.ClientSession() as s:
+        base = cell.url.removesuffix("/setup")
+        camera_file, links_file = cell.folder / "camera.toml", cell.folder / "links.toml"
+
+        code, found = await call(s, "GET", f"{base}/api/setup/cameras/discover", cell.token)
+        assert code == 200, found
+        assert {"devices", "unavailable", "types", "current"} <= set(found)
+        assert found["current"]["type"] == "board"
+        code, _ = await call(s, "GET", f"{base}/api/setup/cameras/discover", "wrong")
+        assert code == 403
+
+        # a bad choice: 400 naming the field, the include untouched
+        before = camera_file.read_bytes()
+        code, text = await call(s, "POST", f"{base}/api/setup/cameras/choose", cell.token,
+                                {"type": "pylon", "cameras": [{"name": "left"}]})
+        assert code == 400
+        assert "camera.cameras[0]: exactly one of serial, ip, user_name" in text
+        # judged and refused by the check (a replay camera without its images): 422
+        code, answer = await call(s, "POST", f"{base}/api/setup/cameras/choose", cell.token,
+                                  {"type": "replay"})
+        assert code == 422, answer
+        assert "camera" in answer["message"], answer
+        assert camera_file.read_bytes() == before
+
+        # the board camera, other settings: written, applied at the next start (named)
+        code, answer = await call(s, "POST", f"{base}/api/setup/cameras/choose", cell.token,
+                                  {"type": "board", "options": {"seed": 7}})
+        assert code == 200, answer
+        assert "camera.seed" in answer["restart"], answer
+        assert tomllib.loads(camera_file.read_text())["camera"]["seed"] == 7
+        assert (cell.folder / "camera.toml.1").read_bytes() == before  # numbered backup
+
+        code, options = await call(s, "GET", f"{base}/api/setup/link/options", cell.token)
+        assert code == 200
+        assert {t["type"] for t in options["types"]} >= {"modbus_server", "s7", "opcua",
+                                                         "robot_socket", "ur_rtde"}
+        assert options["running"][0]["type"] == "modbus_server"
+        code, text = await call(s, "POST", f"{base}/api/setup/link/choose", cell.token,
+                                {"links": [{"type": "profibus"}]})
+        assert code == 400
+        assert "links[0].type" in text
+        code, answer = await call(s, "POST", f"{base}/api/setup/link/choose", cell.token,
+                                  {"links": [{"type": "modbus_server", "host": "127.0.0.1",
+                                              "port": 70000}]})
+        assert code == 422, answer
+        assert "port" in answer["message"], answer
+        link = {"type": "robot_socket", "host": "127.0.0.1", "port": 0}
+        code, answer = await call(s, "POST", f"{base}/api/setup/link/choose", cell.token,
+                                  {"links": [link]})
+        assert code == 200, answer
+        assert any(k.startswith("links.") for k in answer["restart"]), answer
+        assert tomllib.loads(links_file.read_text())["links"] == [link]
+
+        code, contract = await call(s, "GET", f"{base}/api/setup/link/contract?type=s7",
+                                    cell.token)
+        assert code == 200, contract
+        assert contract["kind"] == "registers"
+        assert contract["s7_udt"]["ok"], contract
+        assert "TYPE" in contract["s7_udt"]["source"]
+        assert contract["registers"][0]["rows"]  # the running Modbus link's map, decoded
+        code, contract = await call(s, "GET", f"{base}/api/setup/link/contract?type=opcua",
+                                    cell.token)
+        assert code == 200
+        assert "VisionSystem.Plc.StartJob" in [m["node"] for m in contract["opcua"]["methods"]]
+        code, contract = await call(s, "GET",
+                                    f"{base}/api/setup/link/contract?type=robot_socket",
+                                    cell.token)
+        assert code == 200
+        assert {"kuka", "ur", "abb"} <= set(contract["brands"])
