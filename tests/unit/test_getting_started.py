@@ -7,8 +7,10 @@ commands never saw."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import signal
 import subprocess
 import sys
 import tomllib
@@ -40,11 +42,14 @@ def on_own_address(script: str, address: str) -> str:
     """The guide's commands with one change: the cell's robot socket and web view on this test
     process's own loopback address instead of 127.0.0.1 (two suites on one machine would meet
     on port 50100 and 8730): the main file gets it right after ``vgripd init``, the robot
-    twin is told with ``--host``."""
+    twin is told with ``--host``. (The links may sit in an include beside the main file: every
+TOML under the cell's folder is moved.)"""
     init = re.search(r"^vgripd init .*-c (\S+).*$", script, re.M)
     assert init is not None, "the guide has no vgripd init line"
     main = init.group(1)
-    move = (f"sed -i 's/host = \"127.0.0.1\"/host = \"{address}\"/' {main}\n"
+    folder = main.rsplit("/", 1)[0] if "/" in main else "."
+    move = (f"find {folder} -name '*.toml' -exec "
+            f"sed -i 's/host = \"127.0.0.1\"/host = \"{address}\"/' {{}} +\n"
             f"printf '\\n[status]\\nhost = \"{address}\"\\n' >> {main}")
     script = script[:init.end()] + "\n" + move + script[init.end():]
     twins = script.count("python -m vgripd.sim.robot_twin ")
@@ -53,6 +58,25 @@ def on_own_address(script: str, address: str) -> str:
                           f"python -m vgripd.sim.robot_twin walk --host {address} ").replace(
         "python -m vgripd.sim.robot_twin locate ",
         f"python -m vgripd.sim.robot_twin locate --host {address} ")
+
+
+def run_guide(script: str, cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """The script in its own session, its output in files; when bash ends (or its time is up)
+    whatever it left in the background (``vgripd run &``, a walk still waiting for its robot
+    after a failed step) is ended with it, so a failing step reports at once."""
+    out_file, err_file = cwd / "guide.out", cwd / "guide.err"
+    with out_file.open("w") as out, err_file.open("w") as err, \
+            subprocess.Popen(["bash", "-c", script], cwd=cwd, env=env, stdout=out, stderr=err,
+                             start_new_session=True) as proc:
+        try:
+            proc.wait(timeout=840)
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    return subprocess.CompletedProcess(proc.args, proc.returncode,
+                                       out_file.read_text(errors="replace"),
+                                       err_file.read_text(errors="replace"))
 
 
 def test_only_the_install_block_is_left_out() -> None:
@@ -67,8 +91,7 @@ def test_the_guide_runs_to_a_first_ok_pick_on_the_learning_cell(tmp_path: Path) 
     bin_dir = str(Path(sys.executable).parent)
     env = {**os.environ, "PATH": bin_dir + os.pathsep + os.environ.get("PATH", ""),
            "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True,
-                          text=True, timeout=840, check=False)
+    proc = run_guide(script, tmp_path, env)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-6000:]
     assert "refused, exit 78" in out  # the old hand-eye after the new rig
