@@ -12,6 +12,7 @@ inside the window and refused past it."""
 
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 from typing import Any
@@ -21,10 +22,13 @@ import numpy as np
 import pytest
 
 from tests.integration.test_daemon import CODEC, Plc, running, values
-from vgripd.config import Config, config_from_dict
+from vgripd.config import Config, config_from_dict, load_config
 from vgripd.geometry.vendors import transform_from_vendor
 from vgripd.registry import CAMERAS, load_class, validate_options
+from vgripd.serialize import toml_from_dict
+from vgripd.service.daemon import Daemon
 from vgripd.service.protocol import Command, Reg
+from vgripd.service.reload import Reloader
 from vgripd.types import Status
 from vgripd.vision.scene import T_base_obj_ref
 
@@ -61,9 +65,13 @@ def visible(travel_mm: float) -> list[int]:
 
 
 def conveyor_config(camera: dict[str, Any]) -> Config:
+    return config_from_dict(conveyor_data(camera))
+
+
+def conveyor_data(camera: dict[str, Any]) -> dict[str, Any]:
     demo = Config().calibration
     assert demo is not None
-    return config_from_dict({
+    return {
         "camera": camera,
         "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": 0,
                    "map_version": 4}],
@@ -75,7 +83,7 @@ def conveyor_config(camera: dict[str, Any]) -> Config:
         "conveyor": {"counts_per_mm": COUNTS_PER_MM, "direction": [1.0, 0.0, 0.0],
                      "origin_mm": [0.0, BELT_Y, BELT_Z], "window_mm": list(WINDOW),
                      "trigger_distance_mm": 150.0, "speed_mm_s": 300.0, "sigma_mm": 0.5},
-    })
+    }
 
 
 async def render(folder: Path, frames: list[float]) -> None:
@@ -205,3 +213,74 @@ async def test_a_belt_served_once_per_part_in_belt_order_at_the_latched_counts(
     assert conveyor["seen"] == sightings == 9
     assert conveyor["duplicates"] == sightings - len(PARTS) == 4
     assert (conveyor["dropped"], conveyor["served"], conveyor["queued"]) == (1, 4, 0)
+
+
+async def test_a_reload_applies_a_changed_added_and_removed_conveyor(tmp_path: Path) -> None:
+    frames = [0.0, 150.0]
+    await render(tmp_path, frames)
+    data = conveyor_data({"type": "replay", "folder": str(tmp_path), "left_glob": "left_*.png",
+                          "right_glob": "right_*.png"})
+    main = tmp_path / "vgripd.toml"
+
+    def write(conveyor: dict[str, Any] | None) -> None:
+        d = copy.deepcopy(data)
+        d.pop("conveyor")
+        if conveyor is not None:
+            d["conveyor"] = conveyor
+        main.write_text(toml_from_dict(d))
+
+    belt = dict(data["conveyor"])
+    write(belt)
+    daemon = Daemon(load_config(main))
+    reloader = daemon.reloader = Reloader(daemon, main)
+    await daemon.start()
+    try:
+        async with BeltPlc(list(daemon.links.values())[0].port) as plc:
+            words = await plc.request(Command.TRIGGER, count_at(frames[0]))
+            assert words[Reg.STATUS] == Status.OK
+            assert words[Reg.QUEUED] == 2
+            line = daemon._runner.core.lines[0]
+
+            # a file whose belt did not change keeps the queue
+            (tmp_path / "note.txt").write_text("unrelated")
+            out = await reloader.reload("test")
+            assert out.applied, out.message
+            assert daemon._runner.core.lines[0] is line
+            assert len(line.queue) == 2
+
+            # a belt refused by the judge: the running one stays, queue and all
+            write({**belt, "window_mm": [900.0, 300.0]})
+            out = await reloader.reload("test")
+            assert not out.applied
+            assert "window_mm" in out.message
+            assert daemon._runner.core.lines[0] is line
+
+            # a changed window: applied, a new queue on the new belt
+            write({**belt, "window_mm": [300.0, 700.0]})
+            out = await reloader.reload("test")
+            assert out.applied, out.message
+            assert any(d.startswith("conveyor.window_mm") for d in out.diff), out.diff
+            now = daemon._runner.core.lines[0]
+            assert now.queue.window_mm == (300.0, 700.0)
+            assert len(now.queue) == 0
+            words = await plc.request(Command.TRIGGER, count_at(frames[1]))
+            assert (words[Reg.STATUS], words[Reg.QUEUED]) == (Status.OK, 2)
+
+            # removed: the recipe's jobs are a standing part's again (no latch, no queue)
+            write(None)
+            out = await reloader.reload("test")
+            assert out.applied, out.message
+            assert daemon._runner.core.lines == {}
+            assert daemon.snapshot()["conveyor"] == {}
+
+            # added back: a conveyor again, its queue empty; NEXT answers from it
+            write(belt)
+            out = await reloader.reload("test")
+            assert out.applied, out.message
+            assert len(daemon._runner.core.lines[0].queue) == 0
+            words = await plc.request(Command.NEXT, count_at(200.0))
+            assert words[Reg.STATUS] == Status.NOT_FOUND
+            assert daemon.snapshot()["conveyor"]["0"]["queued"] == 0
+    finally:
+        await reloader.close()
+        await daemon.stop()
