@@ -23,18 +23,21 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import logging
 import math
 from collections import OrderedDict, deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from vgripd.config import ConveyorConfig
+from vgripd.config import Config, ConveyorConfig
 from vgripd.geometry.belt import Belt
 from vgripd.geometry.transforms import rotation_angle
 from vgripd.geometry.vendors import target_from_transform, transform_from_vendor
 from vgripd.types import BeltPose, FloatArray, JobResult, PickInstance, Status
+
+log = logging.getLogger("vgripd.conveyor")
 
 
 class LatchSource(enum.IntEnum):
@@ -100,7 +103,9 @@ class FrameLatches:
 
 @dataclass
 class QueuedPart:
-    """A part in the queue: ``T_base_obj`` at ``count`` (its latch), the job that saw it."""
+    """A part in the queue: ``T_base_obj`` at ``count`` (its latch), the job that saw it, and
+    ``T_target`` (what the robot is told: the offset or grip transform of ``output.mode``; the
+    part's pose when None). The belt carries both by the same translation."""
 
     uid: int
     T_base_obj: FloatArray
@@ -111,10 +116,16 @@ class QueuedPart:
     pick_id: int = 0
     score: float = -1.0
     sightings: int = 1
+    T_target: FloatArray | None = None
 
     def at(self, belt: Belt, count: int) -> FloatArray:
         """Its pose at ``count``."""
         return belt.moved(self.T_base_obj, self.count, count)
+
+    def target_at(self, belt: Belt, count: int) -> FloatArray:
+        """Its target transform at ``count``."""
+        T = self.T_base_obj if self.T_target is None else self.T_target
+        return belt.moved(T, self.count, count)
 
 
 @dataclass(frozen=True)
@@ -162,8 +173,10 @@ class PartQueue:
         return math.degrees(rotation_angle(there[:3, :3].T @ T[:3, :3])) <= self.match_deg
 
     def add(self, latch: Latch, poses: Sequence[FloatArray], job_id: int,
-            pick_ids: Sequence[int] = (), scores: Sequence[float] = ()) -> Added:
-        """The parts one image found (``poses`` in the base frame at ``latch.count``)."""
+            pick_ids: Sequence[int] = (), scores: Sequence[float] = (),
+            targets: Sequence[FloatArray] = ()) -> Added:
+        """The parts one image found (``poses`` in the base frame at ``latch.count``; their
+        ``targets``, when given, are what the robot is told)."""
         self.expire(latch.count)
         new: list[QueuedPart] = []
         dup = 0
@@ -179,7 +192,9 @@ class PartQueue:
             new.append(QueuedPart(self._uid, np.array(T, dtype=np.float64), latch.count,
                                   latch.source, latch.error_mm, job_id,
                                   pick_ids[i] if i < len(pick_ids) else 0,
-                                  scores[i] if i < len(scores) else -1.0))
+                                  scores[i] if i < len(scores) else -1.0,
+                                  T_target=(np.array(targets[i], dtype=np.float64)
+                                            if i < len(targets) else None)))
         self.stats.duplicates += dup
         self.parts += new
         self.parts.sort(key=lambda p: -self.along(p, latch.count))
@@ -230,8 +245,10 @@ def belt_pose(belt: Belt, T_base: FloatArray, count: int, source: LatchSource, e
 class BeltLine:
     """One conveyor recipe as the daemon runs it (docs/conveyor.md): each job's latch, its
     parts into the ``PartQueue``, NEXT served from the queue in belt order and PREDICT (a
-    served part's pose at a later count). Poses are the pick targets (``output.vendor``):
-    the queue carries each part's target transform, moved along the belt."""
+    served part's pose at a later count). The queue places each part by its pose
+    (``T_base_obj``: the window, the match, ALONG/ACROSS/THETA) and tells the robot its
+    target (``output.vendor`` and ``output.mode``: an offset or a grip), both moved along the
+    belt by the same travel."""
 
     belt: Belt
     queue: PartQueue
@@ -274,19 +291,25 @@ class BeltLine:
         """A job's parts into the queue; its answer with the latch and the first part in
         belt terms (``BeltPose.queued``: the queue's length after it)."""
         self.last_count = latch.count
-        poses: list[FloatArray] = []
+        poses: list[FloatArray] = []  # where each part is (the belt's geometry)
+        targets: list[FloatArray] = []  # what the robot is told (output.mode)
         pick_ids: list[int] = []
         scores: list[float] = []
-        shown = [i for i in result.instances if i.status.pose_valid and i.target is not None]
+        shown = [i for i in result.instances if i.status.pose_valid and i.target is not None
+                 and i.T_base_obj is not None]
         if shown:
             for inst in shown:
                 assert inst.target is not None
-                poses.append(transform_from_vendor(inst.target.vendor, inst.target.values))
+                assert inst.T_base_obj is not None
+                poses.append(np.asarray(inst.T_base_obj, dtype=np.float64))
+                targets.append(transform_from_vendor(inst.target.vendor, inst.target.values))
                 pick_ids.append(inst.pick_id)
                 scores.append(inst.score)
-        elif result.status.pose_valid and result.target is not None:
-            poses.append(transform_from_vendor(result.target.vendor, result.target.values))
-        self.queue.add(latch, poses, result.job_id, pick_ids, scores)
+        elif (result.status.pose_valid and result.target is not None
+              and result.T_base_obj is not None):
+            poses.append(np.asarray(result.T_base_obj, dtype=np.float64))
+            targets.append(transform_from_vendor(result.target.vendor, result.target.values))
+        self.queue.add(latch, poses, result.job_id, pick_ids, scores, targets)
         first = belt_pose(self.belt, poses[0], latch.count, latch.source, latch.error_mm,
                           len(self.queue)) if poses else \
             BeltPose(latch.count, int(latch.source), latch.error_mm, queued=len(self.queue))
@@ -294,7 +317,7 @@ class BeltLine:
 
     def _answer(self, part: QueuedPart, count: int, now_ns: int, message: str) -> JobResult:
         T = part.at(self.belt, count)
-        target = target_from_transform(self.vendor, T)
+        target = target_from_transform(self.vendor, part.target_at(self.belt, count))
         inst = PickInstance(Status.OK, message, target, T, pick_id=part.pick_id,
                             score=max(part.score, 0.0))
         return JobResult(job_id=part.job_id, status=Status.OK, message=message, target=target,
@@ -353,3 +376,31 @@ def line_of(conveyor: ConveyorConfig, vendor: str) -> BeltLine:
     queue = PartQueue(belt, c.window_mm, c.sigma_mm, c.match_sigmas, c.match_deg)
     return BeltLine(belt, queue, vendor, LATCH_KINDS[c.latch], c.speed_mm_s,
                     c.timestamp_error_ms)
+
+
+def belt_lines(config: Config, running: Mapping[int, BeltLine] | None = None,
+               old: Config | None = None) -> dict[int, BeltLine]:
+    """The conveyor recipes' lines (docs/conveyor.md), by recipe number. A reload passes the
+    ``running`` lines of the ``old`` config: a recipe whose ``[conveyor]`` and ``[output]``
+    are unchanged keeps its line and queue; a changed or added one starts with an empty queue
+    (its parts were placed by the old belt), a removed one is gone."""
+    lines: dict[int, BeltLine] = {}
+    for n in config.recipe_numbers():
+        c = config.for_recipe(n)
+        if c.conveyor is None:
+            continue
+        kept = (running or {}).get(n)
+        was = old.for_recipe(n) if old is not None and n in old.recipe_numbers() else None
+        if kept is not None and was is not None and (was.conveyor, was.output) == (
+                c.conveyor, c.output):
+            lines[n] = kept
+            continue
+        lines[n] = line_of(c.conveyor, c.output.vendor)
+        if old is not None:
+            lost = len(kept.queue) if kept is not None else 0
+            log.info("conveyor of recipe %d (%s): %s by the reload, its part queue starts empty%s",
+                     n, config.recipe_name(n), "changed" if kept is not None else "added",
+                     f" ({lost} queued parts dropped)" if lost else "")
+    for n in sorted(set(running or {}) - set(lines)):
+        log.info("conveyor of recipe %d: removed by the reload", n)
+    return lines

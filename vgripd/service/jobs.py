@@ -73,7 +73,7 @@ import numpy as np
 
 from vgripd.config import Config, unknown_recipe
 from vgripd.errors import CameraError, NotCalibratedError
-from vgripd.service.beltqueue import BeltLine, line_of
+from vgripd.service.beltqueue import belt_lines
 from vgripd.service.cameras import CameraSupervisor
 from vgripd.service.jobcore import (
     Admission,
@@ -162,12 +162,6 @@ def scene_pose(pose: Any) -> np.ndarray:
     from vgripd.vision.scene import matrix_from_pose  # heavy (OpenCV); only jobs need it
 
     return matrix_from_pose(pose)
-
-
-def belt_lines(config: Config) -> dict[int, BeltLine]:
-    """The conveyor recipes' lines (docs/conveyor.md), by recipe number."""
-    return {n: line_of(c.conveyor, c.output.vendor) for n in config.recipe_numbers()
-            if (c := config.for_recipe(n)).conveyor is not None}
 
 
 def admit(core: JobCore, trigger: Trigger, accepting: bool, busy: bool) -> Admission:

@@ -14,7 +14,9 @@ A reload:
 3. accepted: the change is applied *between jobs* (it waits until no job runs and no several-view
    job waits for a view): the daemon's config, its recipes on every link, the RECALIBRATE
    threshold and the pipelines (rebuilt in the worker process, which keeps its camera; in the
-   daemon when ``daemon.worker = false``). PLC and robot connections are not touched.
+   daemon when ``daemon.worker = false``) and each recipe's ``[conveyor]`` (a changed or added
+   belt starts with an empty part queue, an unchanged one keeps its queue, a removed one is
+   gone). PLC and robot connections are not touched.
 
 What only a restart can change: the camera (``camera``), the links (``links``: ports,
 addresses, drivers), the web view (``status``), the recorder (``record``) and the service
@@ -38,6 +40,7 @@ from typing import Any
 from vgripd.config import Config, config_from_dict
 from vgripd.errors import ConfigError
 from vgripd.redaction import redact
+from vgripd.service.beltqueue import belt_lines
 from vgripd.service.configtxn import ConfigWriter, Outcome
 from vgripd.service.protocol import config_identity
 from vgripd.service.worker import WorkerError
@@ -167,6 +170,7 @@ class Reloader(ConfigWriter):
         # From here to the worker's request nothing awaits: no job starts in between, and a
         # job started later sends its requests after the reconfigure, which the worker answers
         # first (one request at a time, in order).
+        runner.core.lines = belt_lines(config, runner.core.lines, d.config)  # conveyor queues
         d.use_config(config, pipelines)
         recipes = {n: config.recipe_name(n) for n in config.recipe_numbers()}
         identity = config_identity(config)
