@@ -5,6 +5,7 @@ choice refused naming its field with nothing written, and each link type's contr
 
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,8 @@ from typing import Any
 import aiohttp
 import pytest
 
-from tests.integration.setup_browser import demo_setup
+from tests.integration.setup_browser import click, demo_setup, text, until
+from tests.integration.test_web import _chromium
 
 
 async def call(s: aiohttp.ClientSession, method: str, url: str, token: str,
@@ -94,3 +96,50 @@ async def test_cameras_and_link_are_chosen_through_the_transaction(tmp_path: Pat
                                     cell.token)
         assert code == 200
         assert {"kuka", "ur", "abb"} <= set(contract["brands"])
+
+
+@pytest.mark.timeout(600)
+async def test_the_page_discovers_chooses_and_shows_the_contract_in_chromium(
+        tmp_path: Path) -> None:
+    """The same choices clicked in the page: Discover lists the camera types, a synthetic camera
+    chosen lands in camera.toml with the restart named; the link step lists the link types,
+    shows the S7 UDT of the s7 contract, and a robot socket chosen from the settings box lands
+    in links.toml."""
+    async with demo_setup(tmp_path / "cell") as cell, \
+            _chromium(tmp_path, cell.url) as evaluate:
+        await until(evaluate, "document.getElementById('nav-cameras') !== null")
+        await evaluate(f"""(() => {{ const t = document.getElementById('token');
+            t.value = {json.dumps(cell.token)}; t.dispatchEvent(new Event('change'));
+            return true; }})()""")
+        await evaluate(click("btn-cam-discover"))
+        await until(evaluate, f"{text('cam-choose-result')}.startsWith('now: board')", 120.0)
+        types = await evaluate("[...document.getElementById('cam-type').options]"
+                               ".map((o) => o.value).join(' ')")
+        assert {"board", "synthetic", "replay", "pylon", "aravis"} <= set(types.split()), types
+        await evaluate("document.getElementById('cam-type').value = 'synthetic', true")
+        await evaluate(click("btn-cam-choose"))
+        result = await until(evaluate, f"/^(APPLIED|ACCEPTED|REFUSED)/.test("
+                                       f"{text('cam-choose-result')}) && "
+                                       f"{text('cam-choose-result')}", 120.0)
+        assert result.startswith(("APPLIED", "ACCEPTED")), result
+        assert "next start" in result, result
+        assert tomllib.loads((cell.folder / "camera.toml").read_text())["camera"]["type"] == (
+            "synthetic")
+
+        await evaluate(click("nav-link"))
+        await until(evaluate, "document.getElementById('link-type').options.length > 4", 60.0)
+        await evaluate("(() => { const s = document.getElementById('link-type');"
+                       " s.value = 's7'; s.dispatchEvent(new Event('change')); return true; })()")
+        await evaluate(click("btn-link-contract"))
+        contract = await until(evaluate, f"{text('link-contract')}.includes('TYPE') && "
+                                         f"{text('link-contract')}", 120.0)
+        assert "vgripd s7-udt" in contract, contract
+        link = {"type": "robot_socket", "host": "127.0.0.1", "port": 0}
+        await evaluate(f"document.getElementById('link-settings').value = "
+                       f"{json.dumps(json.dumps(link))}, true")
+        await evaluate(click("btn-link-choose"))
+        result = await until(evaluate, f"/^(APPLIED|ACCEPTED|REFUSED)/.test("
+                                       f"{text('link-choose-result')}) && "
+                                       f"{text('link-choose-result')}", 120.0)
+        assert result.startswith(("APPLIED", "ACCEPTED")), result
+        assert tomllib.loads((cell.folder / "links.toml").read_text())["links"] == [link]

@@ -77,6 +77,7 @@ function show(id, keepCheck) {
   }
   if (previewTimer) { clearInterval(previewTimer); previewTimer = null; }
   if (id === "cameras") previewTimer = setInterval(previews, 1000);
+  if (id === "link") linkOptions().catch(() => {});
   load().catch(() => {});
 }
 
@@ -318,6 +319,83 @@ act("btn-link-program", async () => {
 });
 
 // --- 6 test pick ------------------------------------------------------------------------------
+// --- choosing the cameras and the link (restart to run them) ---------------------------------
+function restartNote(r) {
+  const keys = (r.data.restart || []).join(", ");
+  return keys ? ` Takes effect at the next start: ${keys}.` : "";
+}
+act("btn-cam-discover", async () => {
+  $("cam-choose-result").textContent = "looking for cameras (vgripd cameras runs in a child process)…";
+  const r = await call("GET", "/api/setup/cameras/discover");
+  if (!r.ok) { $("cam-choose-result").textContent = `${r.status}: ${r.data.message}`; return; }
+  const d = r.data;
+  $("cam-type").replaceChildren(...d.types.map((t) => {
+    const o = document.createElement("option"); o.value = t; o.textContent = t;
+    o.selected = t === (d.devices.length ? d.devices[0].stack : d.current.type); return o;
+  }));
+  $("cam-devices").tBodies[0].replaceChildren(...d.devices.map((dev, i) => {
+    const use = document.createElement("input"); use.type = "checkbox"; use.checked = i < 2;
+    use.dataset.serial = dev.serial; use.dataset.stack = dev.stack;
+    const name = document.createElement("input"); name.size = 10;
+    name.value = d.devices.length === 2 ? ["left", "right"][i] : `cam${i}`;
+    return row([use, dev.stack, dev.serial, `${dev.vendor} ${dev.model}`, dev.address || "", name]);
+  }));
+  const missing = Object.entries(d.unavailable || {}).map(([k, v]) => `${k}: ${v}`);
+  $("cam-unavailable").textContent = (d.devices.length ? `${d.devices.length} device(s) found. ` :
+    "No camera device found. ") + (missing.length ? `Not available: ${missing.join("; ")}` : "");
+  $("cam-choose-result").textContent = `now: ${d.current.type}`;
+});
+act("btn-cam-choose", async () => {
+  const kind = $("cam-type").value;
+  const cameras = [...$("cam-devices").tBodies[0].rows]
+    .filter((tr) => tr.cells[0].firstChild.checked && tr.cells[0].firstChild.dataset.stack === kind)
+    .map((tr) => ({ name: tr.cells[5].firstChild.value, serial: tr.cells[0].firstChild.dataset.serial }));
+  const body = { type: kind };
+  if (cameras.length) body.cameras = cameras;
+  const r = await call("POST", "/api/setup/cameras/choose", body);
+  outcome($("cam-choose-result"), r);
+  $("cam-choose-result").textContent += restartNote(r);
+});
+let linkDefaults = {};
+async function linkOptions() {
+  const r = await call("GET", "/api/setup/link/options");
+  if (!r.ok) return;
+  linkDefaults = Object.fromEntries(r.data.types.map((t) => [t.type, t.defaults]));
+  const now = r.data.running.length ? r.data.running[0].type : r.data.types[0].type;
+  $("link-type").replaceChildren(...r.data.types.map((t) => {
+    const o = document.createElement("option"); o.value = t.type; o.textContent = `${t.type} (${t.kind})`;
+    o.selected = t.type === now; return o;
+  }));
+  linkSettings();
+}
+function linkSettings() {
+  const d = { ...(linkDefaults[$("link-type").value] || { type: $("link-type").value }) };
+  delete d.example;
+  $("link-settings").value = JSON.stringify(d, null, 2);
+}
+$("link-type").addEventListener("change", linkSettings);
+act("btn-link-contract", async () => {
+  const r = await call("GET", `/api/setup/link/contract?type=${encodeURIComponent($("link-type").value)}`);
+  if (!r.ok) { $("link-contract").textContent = `${r.status}: ${r.data.message}`; return; }
+  const d = r.data, parts = [`${d.type}: ${d.kind}`];
+  if (d.registers) parts.push(`registers: see the table above (${d.map_doc})`);
+  if (d.s7_udt) parts.push(`${d.s7_udt.command}\n${d.s7_udt.source}`);
+  if (d.opcua) parts.push(`OPC UA nodes:\n${JSON.stringify(d.opcua, null, 2)}`);
+  if (d.brands) parts.push(d.brands.length ? `robot programs: ${d.brands.join(", ")} (Download above)` :
+    "the robot runs vgripd's URScript (docs/ur_rtde.md)");
+  $("link-contract").textContent = parts.join("\n\n");
+});
+act("btn-link-choose", async () => {
+  let link;
+  try { link = JSON.parse($("link-settings").value); } catch (err) {
+    $("link-choose-result").textContent = `settings: not JSON: ${err.message}`;
+    $("link-choose-result").className = "status bad"; return;
+  }
+  const r = await call("POST", "/api/setup/link/choose", { links: [link] });
+  outcome($("link-choose-result"), r);
+  $("link-choose-result").textContent += restartNote(r);
+});
+
 function showJob(job) {
   $("pick-status").textContent = `job ${job.id} (${job.link}): ${job.status} ${job.message || ""}`;
   const t = job.target;
