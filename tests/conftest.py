@@ -140,3 +140,18 @@ def datasets() -> Path:
          "or put them at ../shared/datasets beside the clone")
     assert folder is not None
     return folder
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Files with a ``slow`` test first, the longest first (``slow(minutes=N)``: a file's whole
+    time on a busy machine, 1 when not given), their tests in their order. ``make test`` hands whole
+    files to its processes in this order (``--dist loadfile``): the long ones start at once and
+    the short ones fill the gaps at the end, instead of one long file started last holding up
+    the end of the run."""
+    minutes: dict[Path, float] = {}
+    for item in items:
+        mark = item.get_closest_marker("slow")
+        if mark is not None:
+            minutes[item.path] = max(minutes.get(item.path, 0.0), mark.kwargs.get("minutes", 1))
+    items.sort(key=lambda item: -minutes.get(item.path, 0.0))
+

@@ -37,7 +37,7 @@ from vgripd.sim.opcua_client import OpcUaClientProcess
 from vgripd.sim.opcua_raw import RawOpcUa, client_policy, status_of
 from vgripd.types import JobResult, RobotTarget, Status
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow(minutes=3)]
 
 WAIT_S = 20.0
 POSE = (412.5, -133.25, 287.0625, 12.34, -29.0, 179.5)  # KUKA X Y Z A B C (mm, deg)

@@ -32,7 +32,7 @@ from vgripd.service.protocol import (
 from vgripd.sim.ur_controller import URController
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 
 UR_FIELDS = ("x", "y", "z", "rx", "ry", "rz")
 # Values with full binary64 mantissas, so float-exactness is really tested.

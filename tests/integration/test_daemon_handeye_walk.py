@@ -61,7 +61,7 @@ from test_calib_handeye_walk import (  # noqa: E402
     truth,
 )
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.slow(minutes=2)]
 MODE = "eye-to-hand"  # a fixed camera: the replay frames need no flange pose for the check
 WAIT_S = 120.0
 #: Where the ArUco plate lies in the camera frame in replay frame 0 (the reload's check runs

@@ -39,7 +39,7 @@ from vgripd.sim.s7_plc import MockS7Plc, S7PlcServer, words_of
 from vgripd.sim.ur_controller import URController
 from vgripd.types import ImagePair, JobResult, Status
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.timeout(180), pytest.mark.slow(minutes=2)]
 
 WAIT_S = 30.0
 PLATES = 5

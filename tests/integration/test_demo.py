@@ -8,7 +8,11 @@ import re
 import subprocess
 import sys
 
+import pytest
+
 from tests.conftest import REPO
+
+pytestmark = pytest.mark.slow
 
 
 def test_demo_runs_cycles_with_a_busy_refusal_a_gated_fault_and_small_pose_errors() -> None:

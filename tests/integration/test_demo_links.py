@@ -16,7 +16,7 @@ import pytest
 
 from tests.conftest import REPO, lo, need
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 CYCLES = 3
 
 

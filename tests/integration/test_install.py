@@ -22,6 +22,8 @@ import pytest
 from tests.conftest import REPO, need_camera_sdk, need_tool
 from vgripd.service.robot_socket_format import BRANDS
 
+pytestmark = pytest.mark.slow(minutes=3)
+
 EXAMPLES = sorted(p.name for p in (REPO / "config" / "examples").glob("*.toml"))
 #: What a wheel is built from (vgripd/share/ links into robots/, docs/, systemd/, config/).
 SOURCE = ["pyproject.toml", "README.md", "LICENSE", "vgripd", "drivers", "robots", "docs",

@@ -78,7 +78,7 @@ from test_calib_handeye_walk import (  # noqa: E402
     truth,
 )
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.timeout(240), pytest.mark.slow(minutes=4)]
 COUNT = 12  # plan poses: one beyond the arm's reach, eleven seen
 SPEED_MM_S = 40.0
 #: the mounting each brand walks (one brand per mounting is also solved)

@@ -54,7 +54,7 @@ from vgripd.service.robot_socket_format import (
 from vgripd.sim.robot_socket_client import WALK_SKIP, ProgramTwin
 from vgripd.types import Status
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.timeout(240), pytest.mark.slow]
 BRAND, MODE = "kuka", "eye-in-hand"  # int32 x 10000, the kuka convention
 
 

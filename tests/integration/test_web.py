@@ -34,6 +34,8 @@ from vgripd.cli.status import run as status_run
 from vgripd.service.protocol import Reg
 from vgripd.types import Status
 
+pytestmark = pytest.mark.slow
+
 TOKEN = "a-test-token-of-32-characters-xx"
 WAIT_S = 30.0
 

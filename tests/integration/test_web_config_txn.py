@@ -29,6 +29,8 @@ from tests.integration.test_web_reload import (
     write_replay_cell,
 )
 
+pytestmark = pytest.mark.slow(minutes=2)
+
 WAIT_S = 120.0
 
 

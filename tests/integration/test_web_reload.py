@@ -33,6 +33,8 @@ from vgripd.service.protocol import Reg
 from vgripd.service.reload import Reloader
 from vgripd.types import Status
 
+pytestmark = pytest.mark.slow
+
 TOKEN = "a-test-token-of-32-characters-xx"
 WAIT_S = 60.0
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

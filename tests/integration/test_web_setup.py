@@ -16,6 +16,8 @@ from tests.integration.setup_browser import SETS, demo_setup, drive
 from vgripd.service.protocol import Reg
 from vgripd.types import Status
 
+pytestmark = pytest.mark.slow(minutes=6)
+
 
 @pytest.mark.timeout(2400)
 async def test_the_whole_setup_in_chromium_ends_in_a_plc_job(tmp_path: Path) -> None:

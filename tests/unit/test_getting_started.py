@@ -24,7 +24,7 @@ from vgripd.config import Config
 from vgripd.geometry.transforms import pose_error
 from vgripd.vision.scene import matrix_from_pose
 
-pytestmark = pytest.mark.timeout(900)
+pytestmark = [pytest.mark.timeout(900), pytest.mark.slow(minutes=2)]
 NOT_RUN = "<!-- not run by the docs test"
 
 
