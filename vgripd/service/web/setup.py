@@ -63,6 +63,7 @@ from vgripd.service.web.setupsteps import (
     dump_progress,
     hand_eye_values,
     load_progress,
+    mark_name,
     object_edit,
     parse_check,
     state_dir,
@@ -433,10 +434,11 @@ class SetupRoutes:
         if unknown:
             raise web.HTTPBadRequest(text=f"marks {unknown}: not among the marks found last "
                                           f"({', '.join(map(str, by_id)) or 'none'})")
-        chosen = [{**by_id[i], "name": f"m{i}"} for i in body["marks"]]
+        chosen = [{**by_id[i], "name": mark_name(by_id[i])} for i in body["marks"]]
         findings = judge_layout([m["name"] for m in chosen],
                                 [m["xyz_mm"] for m in chosen],  # type: ignore[arg-type]
-                                [m["diameter_mm"] for m in chosen])
+                                [m["diameter_mm"] for m in chosen],
+                                identified=[m.get("kind") == "aruco" for m in chosen])
         judged = [f.as_dict() for f in findings]
         if any(f.level == "ERROR" for f in findings):
             return web.json_response({"applied": False, "layout": judged, "message": (

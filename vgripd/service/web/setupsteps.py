@@ -182,10 +182,10 @@ def calibration_edit(rig_text: str | None, hand_eye: dict[str, Any] | None) -> E
 def object_edit(name: str, marks: list[dict[str, Any]], polarity: str = "dark") -> Edit:
     """The chosen marks as an ``object.definition = "reference"`` object (their measured
     base-frame points as ``xyz_mm``) in the object's include, and the reference reset for it
-    (no ``T_base_obj``; ``points_mm`` come with teaching; a taught ``grip`` stays)."""
-    features = [{"name": m["name"], "kind": "circle", "polarity": polarity,
-                 "diameter_mm": round(float(m["diameter_mm"]), 1),
-                 "xyz_mm": [round(float(v), 3) for v in m["xyz_mm"]]} for m in marks]
+    (no ``T_base_obj``; ``points_mm`` come with teaching; a taught ``grip`` stays). A mark of
+    ``kind = "aruco"`` becomes an ArUco feature (its id, dictionary and measured side), any
+    other a circle of ``polarity``."""
+    features = [feature_of(m, polarity) for m in marks]
 
     def edit(snapshot: Snapshot) -> dict[Path, bytes]:
         cell = include_for(snapshot, "object.")
@@ -199,6 +199,25 @@ def object_edit(name: str, marks: list[dict[str, Any]], polarity: str = "dark") 
         out[ref] = ref_data
         return {p: snapshot.encoded(p, toml_from_dict(d)) for p, d in out.items()}
     return edit
+
+
+def mark_name(mark: Mapping[str, Any]) -> str:
+    """The feature name of a surveyed mark: ``m<number>``, a marker's id added."""
+    if mark.get("kind") == "aruco":
+        return f"m{mark['id']}-aruco{mark['marker_id']}"
+    return f"m{mark['id']}"
+
+
+def feature_of(mark: Mapping[str, Any], polarity: str = "dark") -> dict[str, Any]:
+    """One surveyed mark (``Mark.as_dict`` with a ``name``) as an ``[[object.features]]``
+    table of its kind."""
+    xyz = [round(float(v), 3) for v in mark["xyz_mm"]]
+    if mark.get("kind") == "aruco":
+        return {"name": mark["name"], "kind": "aruco", "marker_id": int(mark["marker_id"]),
+                "dictionary": str(mark["dictionary"]),
+                "size_mm": round(float(mark["size_mm"]), 1), "xyz_mm": xyz}
+    return {"name": mark["name"], "kind": "circle", "polarity": polarity,
+            "diameter_mm": round(float(mark["diameter_mm"]), 1), "xyz_mm": xyz}
 
 
 def hand_eye_values(body: Any) -> dict[str, Any]:

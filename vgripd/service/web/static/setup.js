@@ -271,7 +271,8 @@ act("btn-obj-find", async () => {
     box.type = "checkbox";
     box.checked = true;
     box.dataset.id = String(m.id);
-    return row([box, String(m.id), m.xyz_mm.map((v) => fmt(v, 1)).join(", "), fmt(m.diameter_mm, 1)]);
+    const kind = m.kind === "aruco" ? `ArUco #${m.marker_id} (${m.dictionary})` : "circle";
+    return row([box, String(m.id), kind, m.xyz_mm.map((v) => fmt(v, 1)).join(", "), fmt(m.diameter_mm, 1)]);
   }));
   $("obj-result").textContent = `${r.data.marks.length} mark(s) seen by both cameras: untick those not on the object`;
 });
