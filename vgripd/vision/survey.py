@@ -1,20 +1,20 @@
 """Marks found in a stereo pair without an object model, for defining a new object: every
-circular mark in both images, paired along the epipolar lines, triangulated and put in the robot
-base frame; and the judgement of a chosen layout (enough marks, far enough apart, no symmetry a
-pose could flip on).
+circular mark in both images, paired along the epipolar lines, and every ArUco marker seen once
+in each image, paired by its id; triangulated and put in the robot base frame; and the judgement
+of a chosen layout (enough marks, far enough apart, no symmetry a pose could flip on).
 
 The setup page shows the marks numbered; the integrator ticks those that belong to the object,
 whose measured base-frame points become an ``object.definition = "reference"`` model (the object
 frame is the base frame at teach time, so no CAD is needed).
 
-Pure functions of images and calibration: no I/O. The daemon runs ``survey`` in its image
+Pure functions of images and calibration: no I/O. The daemon runs ``survey_marks`` in its image
 helper process.
 """
 
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -36,6 +36,9 @@ SYMMETRY_TOL_MM = 1.0
 #: Permutations tried exhaustively up to this many marks (8! = 40320); beyond, per-mark
 #: distance profiles are compared.
 EXHAUSTIVE_MAX = 7
+#: ArUco dictionaries looked for when the config names none (one of each marker size, and the
+#: AprilTag family most printed).
+SURVEY_DICTIONARIES = ("DICT_4X4_50", "DICT_5X5_100", "DICT_6X6_250", "DICT_APRILTAG_36h11")
 
 
 @dataclass(frozen=True)
@@ -48,12 +51,28 @@ class Mark:
     xyz_base_mm: tuple[float, float, float]
     diameter_mm: float
     epipolar_px: float
+    #: ``"circle"`` or ``"aruco"`` (then ``diameter_mm`` is the marker's side, and
+    #: ``marker_id``/``dictionary`` its identity).
+    kind: str = "circle"
+    marker_id: int | None = None
+    dictionary: str | None = None
+    #: A marker's corners in the left image (px), for drawing it and telling what lies inside.
+    outline_left: tuple[tuple[float, float], ...] = ()
+
+    @property
+    def identified(self) -> bool:
+        """Found by an identity of its own (no relabelling can swap it with another mark)."""
+        return self.kind != "circle"
 
     def as_dict(self) -> dict[str, Any]:
-        return {"id": self.id, "px_left": list(self.px_left), "px_right": list(self.px_right),
-                "xyz_mm": [round(v, 3) for v in self.xyz_base_mm],
-                "diameter_mm": round(self.diameter_mm, 2),
-                "epipolar_px": round(self.epipolar_px, 3)}
+        out: dict[str, Any] = {
+            "id": self.id, "kind": self.kind, "px_left": list(self.px_left),
+            "px_right": list(self.px_right), "xyz_mm": [round(v, 3) for v in self.xyz_base_mm],
+            "diameter_mm": round(self.diameter_mm, 2), "epipolar_px": round(self.epipolar_px, 3)}
+        if self.kind == "aruco":
+            out.update(marker_id=self.marker_id, dictionary=self.dictionary,
+                       size_mm=round(self.diameter_mm, 2))
+        return out
 
 
 def survey(left: Any, right: Any, rig: StereoRig, T_base_camera: FloatArray,
@@ -96,6 +115,79 @@ def survey(left: Any, right: Any, rig: StereoRig, T_base_camera: FloatArray,
     return marks
 
 
+def survey_aruco(left: Any, right: Any, rig: StereoRig, T_base_camera: FloatArray,
+                 dictionaries: tuple[str, ...] = SURVEY_DICTIONARIES,
+                 tolerance_px: float = 2.0, first_id: int = 1) -> list[Mark]:
+    """The ArUco markers of ``dictionaries`` seen once in each image, paired by dictionary and
+    id (a pair off its epipolar line by more than ``tolerance_px`` is dropped), their centres
+    triangulated and in the base frame, their side measured from the triangulated corners;
+    numbered from ``first_id`` in the order of (dictionary, marker id). A quad two
+    dictionaries both decode counts for the first."""
+    gray_l, gray_r = ft.gray_from_image(left), ft.gray_from_image(right)
+    found: list[tuple[str, int, FloatArray, FloatArray, FloatArray, FloatArray]] = []
+    taken: list[FloatArray] = []
+    for dictionary in dictionaries:
+        ml, mr = ft.find_aruco(gray_l, dictionary), ft.find_aruco(gray_r, dictionary)
+        for marker_id in sorted(set(ml) & set(mr)):
+            a, b = ml[marker_id], mr[marker_id]
+            if any(np.linalg.norm(a.centre - c) < 2.0 for c in taken):
+                continue
+            taken.append(a.centre)
+            found.append((dictionary, marker_id, a.centre, b.centre, a.corners, b.corners))
+    if not found:
+        return []
+    centres_l = np.array([f[2] for f in found])
+    centres_r = np.array([f[3] for f in found])
+    lines = rig.epipolar_lines_right(centres_l)
+    ideal_r = rig.ideal_pixels(rig.right, centres_r)
+    epi = np.abs(np.sum(lines * np.c_[ideal_r, np.ones(len(ideal_r))], axis=1))
+    keep = [k for k in range(len(found)) if epi[k] <= tolerance_px]
+    if not keep:
+        return []
+    centres = np.asarray(rig.triangulate(centres_l[keep], centres_r[keep]).points_mm, np.float64)
+    corners_l = np.concatenate([found[k][4] for k in keep])
+    corners_r = np.concatenate([found[k][5] for k in keep])
+    corners = np.asarray(rig.triangulate(corners_l, corners_r).points_mm,
+                         np.float64).reshape(-1, 4, 3)
+    base = centres @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
+    marks = []
+    for n, k in enumerate(keep):
+        dictionary, marker_id, cl, cr, _, _ = found[k]
+        side = float(np.mean(np.linalg.norm(corners[n] - np.roll(corners[n], 1, axis=0),
+                                            axis=1)))
+        marks.append(Mark(first_id + n, (float(cl[0]), float(cl[1])),
+                          (float(cr[0]), float(cr[1])),
+                          (float(base[n, 0]), float(base[n, 1]), float(base[n, 2])),
+                          side, float(epi[k]), "aruco", marker_id, dictionary,
+                          tuple((float(x), float(y)) for x, y in found[k][4])))
+    return marks
+
+
+def survey_marks(left: Any, right: Any, rig: StereoRig, T_base_camera: FloatArray,
+                 dictionaries: tuple[str, ...] = SURVEY_DICTIONARIES, min_contrast: float = 20.0,
+                 min_circularity: float = 0.75, tolerance_px: float = 2.0,
+                 polarity: str = "dark") -> list[Mark]:
+    """Every mark for a new object: the circles (``survey``) numbered first, then the ArUco
+    markers (``survey_aruco``). A dark square of a marker can pass for a circle: a circle whose
+    centre lies on a marker is the marker's, not a mark of its own."""
+    markers = survey_aruco(left, right, rig, T_base_camera, dictionaries, tolerance_px)
+    circles = survey(left, right, rig, T_base_camera, min_contrast, min_circularity,
+                     tolerance_px, polarity)
+    quads = [np.array(m.outline_left, np.float64) for m in markers]
+    circles = [c for c in circles if not any(_inside(q, c.px_left) for q in quads)]
+    out = [replace(c, id=k + 1) for k, c in enumerate(circles)]
+    out += [replace(m, id=len(out) + k + 1) for k, m in enumerate(markers)]
+    return out
+
+
+def _inside(quad: FloatArray, point: tuple[float, float]) -> bool:
+    """``point`` inside the convex quadrilateral ``quad`` (4, 2) or on its edge."""
+    edges = np.roll(quad, -1, axis=0) - quad
+    rel = np.asarray(point) - quad
+    cross = edges[:, 0] * rel[:, 1] - edges[:, 1] * rel[:, 0]
+    return bool(np.all(cross >= 0) or np.all(cross <= 0))
+
+
 @dataclass(frozen=True)
 class LayoutFinding:
     """``level`` ERROR (the object cannot work), WARNING (it may, poorly), or NOTE."""
@@ -107,20 +199,27 @@ class LayoutFinding:
         return {"level": self.level, "message": self.message}
 
 
-def _symmetric(points: FloatArray, tol_mm: float) -> tuple[int, ...] | None:
+def _symmetric(points: FloatArray, tol_mm: float, fixed: frozenset[int] = frozenset()
+               ) -> tuple[int, ...] | None:
     """A relabelling of the points other than the identity that keeps every pairwise distance
-    within ``tol_mm`` (the layout looks the same turned or mirrored), or None."""
+    within ``tol_mm`` (the layout looks the same turned or mirrored), or None. The points in
+    ``fixed`` carry an identity of their own (ArUco ids) and keep their labels."""
     n = len(points)
     d = np.linalg.norm(points[:, None] - points[None], axis=2)
-    if n <= EXHAUSTIVE_MAX:
-        for perm in itertools.permutations(range(n)):
+    free = [i for i in range(n) if i not in fixed]
+    if len(free) <= EXHAUSTIVE_MAX:
+        for order in itertools.permutations(free):
+            perm_list = list(range(n))
+            for i, p in zip(free, order, strict=True):
+                perm_list[i] = p
+            perm = tuple(perm_list)
             if perm == tuple(range(n)):
                 continue
             if np.max(np.abs(d - d[np.ix_(perm, perm)])) <= tol_mm:
                 return perm
         return None
     profiles = np.sort(d, axis=1)
-    for a, b in itertools.combinations(range(n), 2):
+    for a, b in itertools.combinations(free, 2):
         if np.max(np.abs(profiles[a] - profiles[b])) <= tol_mm:
             swap = list(range(n))
             swap[a], swap[b] = b, a
@@ -129,10 +228,12 @@ def _symmetric(points: FloatArray, tol_mm: float) -> tuple[int, ...] | None:
 
 
 def judge_layout(names: list[str], points: FloatArray, diameters_mm: list[float],
-                 tol_mm: float = SYMMETRY_TOL_MM) -> list[LayoutFinding]:
-    """What is wrong with an object of these marks (``points`` (n, 3) mm): too few, too close
-    to each other, or a layout the pose could flip on (pairwise distances that a relabelling
-    keeps). Empty: nothing to say."""
+                 tol_mm: float = SYMMETRY_TOL_MM,
+                 identified: list[bool] | None = None) -> list[LayoutFinding]:
+    """What is wrong with an object of these marks (``points`` (n, 3) mm, ``diameters_mm`` a
+    circle's diameter or a marker's side): too few, too close to each other, or a layout the
+    pose could flip on (pairwise distances that a relabelling keeps; a mark ``identified`` by
+    an id of its own, an ArUco marker, keeps its label). Empty: nothing to say."""
     out: list[LayoutFinding] = []
     n = len(names)
     if n < MIN_MARKS:
@@ -149,7 +250,8 @@ def judge_layout(names: list[str], points: FloatArray, diameters_mm: list[float]
             out.append(LayoutFinding("ERROR", f"{names[a]} and {names[b]} are {gap:.1f} mm "
                                               f"apart (centres): under {MIN_GAP_DIAMETERS:g} "
                                               f"diameters ({limit:.1f} mm) they blur into one"))
-    perm = _symmetric(pts, tol_mm)
+    fixed = frozenset(i for i, known in enumerate(identified or []) if known)
+    perm = _symmetric(pts, tol_mm, fixed)
     if perm is not None:
         moved = [f"{names[i]}->{names[p]}" for i, p in enumerate(perm) if p != i]
         out.append(LayoutFinding("ERROR", f"symmetric layout: relabelling {', '.join(moved)} "

@@ -11,7 +11,8 @@ link, test pick, one page (``/setup``) over these routes::
                                          board's corners in every camera, the set judged as
                                          vgripd capture judges it, kept when worth it
     GET  /api/setup/live/{n}/{k}.jpg     camera k of the last grab n, corners or marks drawn
-    POST /api/setup/calib/run            vgripd calibrate stereo on the kept sets, in a child
+    POST /api/setup/calib/run            vgripd calibrate intrinsics/stereo/cameras on the kept
+                                         sets (one, two, more cameras), in a child
     GET  /api/setup/calib[?wait=1]       the calibration: running (seconds), or its result
     POST /api/setup/calib/drop           {"sets": [n, ...]}: sets put aside (outliers)
     POST /api/setup/calib/accept         the result kept to go live with the hand-eye
@@ -59,12 +60,15 @@ from vgripd.service.web.setupsteps import (
     DEFAULT_BOARD,
     STEP_IDS,
     STEPS,
+    calibration_command,
     calibration_edit,
     dump_progress,
     hand_eye_values,
     load_progress,
+    mark_name,
     object_edit,
     parse_check,
+    read_result,
     state_dir,
 )
 from vgripd.vision.survey import judge_layout
@@ -318,14 +322,8 @@ class SetupRoutes:
         if state is None or len(state.kept) < MIN_SETS:
             raise web.HTTPConflict(text=f"capture at least {MIN_SETS} sets first (kept: "
                                         f"{0 if state is None else len(state.kept)})")
-        if state.names != ["left", "right"]:
-            raise web.HTTPConflict(text="the page calibrates a stereo pair; for "
-                                        f"{len(state.names)} camera(s) run the command: "
-                                        "vgripd capture prints it")
         out = await self._folder() / "rig-result.toml"
-        args = ["calibrate", "stereo", "--left", str(state.out / "left_*.png"),
-                "--right", str(state.out / "right_*.png"), "--board", state.board.spec,
-                "-o", str(out)]
+        args = calibration_command(state.names, state.out, state.board.spec, out)
         self._calib = {"running": True, "t0": time.monotonic(), "sets": len(state.kept),
                        "command": "vgripd " + " ".join(args)}
         task = asyncio.ensure_future(self._run_calibration(args, out))
@@ -340,7 +338,8 @@ class SetupRoutes:
             rc, stdout, stderr = await run_vgripd(args, CALIBRATE_TIMEOUT_S)
             result = None
             if rc == 0:
-                result = await asyncio.to_thread(_read_result, out)
+                text = await asyncio.to_thread(out.read_text, encoding="utf-8")
+                result = read_result(text)
             self._calib = {"running": False, "ok": rc == 0, "seconds": round(
                 time.monotonic() - t0, 1), "command": self._calib.get("command"),
                 "output": (stdout + stderr)[-4000:], "result": result}
@@ -367,6 +366,11 @@ class SetupRoutes:
         result = await self._folder() / "rig-result.toml"
         if not self._calib.get("ok") or not result.exists():
             raise web.HTTPConflict(text="no calibration result to accept: run it first")
+        if not (self._calib.get("result") or {}).get("usable"):
+            raise web.HTTPConflict(text=(
+                f"{result}: the cameras are placed in no base frame (only [about]); run "
+                "vgripd calibrate cameras with --board-in-base or --hand-eye and include its "
+                "result (docs/calibration-multicamera.md)"))
         # The hand-eye belongs to one camera model (its [about] fingerprint): a new rig goes
         # live together with the cameras' pose, confirmed or measured again (next step).
         progress = await self._progress()
@@ -433,10 +437,11 @@ class SetupRoutes:
         if unknown:
             raise web.HTTPBadRequest(text=f"marks {unknown}: not among the marks found last "
                                           f"({', '.join(map(str, by_id)) or 'none'})")
-        chosen = [{**by_id[i], "name": f"m{i}"} for i in body["marks"]]
+        chosen = [{**by_id[i], "name": mark_name(by_id[i])} for i in body["marks"]]
         findings = judge_layout([m["name"] for m in chosen],
                                 [m["xyz_mm"] for m in chosen],  # type: ignore[arg-type]
-                                [m["diameter_mm"] for m in chosen])
+                                [m["diameter_mm"] for m in chosen],
+                                identified=[m.get("kind") == "aruco" for m in chosen])
         judged = [f.as_dict() for f in findings]
         if any(f.level == "ERROR" for f in findings):
             return web.json_response({"applied": False, "layout": judged, "message": (
@@ -469,22 +474,6 @@ class SetupRoutes:
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-
-
-def _read_result(path: Path) -> dict[str, Any]:
-    """What the page shows of a stereo calibration result: the figures of its ``[about]``
-    (RMS, standard deviations, per pair, rejected, warnings) and the fitted values."""
-    import tomllib
-
-    data = tomllib.loads(path.read_text(encoding="utf-8"))
-    about = data.get("about", {})
-    cal = data.get("calibration", {})
-    return {"rms_px": about.get("rms_px"), "pairs_used": about.get("pairs_used"),
-            "std": about.get("std"), "per_pair": about.get("per_pair"),
-            "rejected": about.get("rejected"), "warnings": about.get("warnings"),
-            "model_choice": about.get("model_choice"), "epipolar_px": about.get("epipolar_px"),
-            "left": cal.get("left"), "right": cal.get("right"),
-            "T_right_left": cal.get("stereo", {}).get("T_right_left")}
 
 
 def _put_aside(folder: Path, sets: set[int]) -> list[int]:

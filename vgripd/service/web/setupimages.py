@@ -17,7 +17,7 @@ from vgripd.calib.coverage import Coverage
 from vgripd.config import Config
 from vgripd.service.web.images import _encode
 from vgripd.vision import scene
-from vgripd.vision.survey import survey
+from vgripd.vision.survey import SURVEY_DICTIONARIES, survey_marks
 
 
 def _bgr(image: Any) -> np.ndarray:
@@ -51,17 +51,22 @@ def board_corners(views: list[Any], spec: str, names: list[str]
 
 
 def find_marks(views: list[Any], config: Config) -> tuple[list[bytes], list[dict[str, Any]]]:
-    """The marks seen in both images of a stereo pair (``vgripd.vision.survey``), numbered
-    on each image; the config gives the calibration, the hand-eye and the finder's limits."""
+    """The marks seen in both images of a stereo pair (``vgripd.vision.survey``): circles and
+    ArUco markers (of the dictionaries the object names, and the usual ones), numbered on each
+    image, a marker outlined with its id; the config gives the calibration, the hand-eye and
+    the finder's limits."""
     import cv2
 
     rig = scene.stereo_rig(config)
     if rig is None or len(views) < 2:
         raise ValueError("the object step needs a calibrated stereo pair")
     v = config.vision
-    marks = survey(views[0], views[1], rig, scene.T_base_camera(config),
-                   min_contrast=v.min_contrast, min_circularity=max(0.75, v.min_circularity),
-                   tolerance_px=v.epipolar_tolerance_px)
+    named = [f.dictionary for f in config.object.features if f.kind == "aruco"]
+    dictionaries = tuple(dict.fromkeys([*named, *SURVEY_DICTIONARIES]))
+    marks = survey_marks(views[0], views[1], rig, scene.T_base_camera(config), dictionaries,
+                         min_contrast=v.min_contrast,
+                         min_circularity=max(0.75, v.min_circularity),
+                         tolerance_px=v.epipolar_tolerance_px)
     pictures = []
     for side, view in enumerate(views[:2]):
         bgr = _bgr(view)
@@ -69,8 +74,14 @@ def find_marks(views: list[Any], config: Config) -> tuple[list[bytes], list[dict
         for m in marks:
             x, y = m.px_left if side == 0 else m.px_right
             centre = (int(round(x)), int(round(y)))
-            cv2.circle(bgr, centre, 18 * scale, (0, 160, 255), 2 * scale)
-            cv2.putText(bgr, str(m.id), (centre[0] + 20 * scale, centre[1] - 12 * scale),
+            label = str(m.id)
+            if m.kind == "aruco" and side == 0:
+                quad = np.round(np.array(m.outline_left)).astype(np.int32)
+                cv2.polylines(bgr, [quad], True, (255, 120, 0), 2 * scale)
+                label = f"{m.id} (#{m.marker_id})"
+            else:
+                cv2.circle(bgr, centre, 18 * scale, (0, 160, 255), 2 * scale)
+            cv2.putText(bgr, label, (centre[0] + 20 * scale, centre[1] - 12 * scale),
                         cv2.FONT_HERSHEY_SIMPLEX, 0.9 * scale, (0, 160, 255), 2 * scale)
         pictures.append(bgr)
     return _encode(pictures), [m.as_dict() for m in marks]

@@ -137,6 +137,55 @@ def state_dir(config_path: Path, files: Mapping[str, bytes] | None = None) -> Pa
     return Path(included[0][0]).parent if included else None
 
 
+# --- the calibration's command and its result ------------------------------------------------
+
+def calibration_command(names: list[str], folder: Path, board: str, out: Path) -> list[str]:
+    """The ``vgripd calibrate`` arguments for the sets kept in ``folder`` (``NAME_NNN.png``
+    per camera): one camera ``intrinsics``, the pair ``left``/``right`` ``stereo``, any other
+    cameras ``cameras`` (one ``--camera NAME=GLOB`` each)."""
+    if not names:
+        raise ValueError("no camera in the capture")
+    if len(names) == 1:
+        return ["calibrate", "intrinsics", "--images", str(folder / f"{names[0]}_*.png"),
+                "--board", board, "-o", str(out)]
+    if names == ["left", "right"]:
+        return ["calibrate", "stereo", "--left", str(folder / "left_*.png"),
+                "--right", str(folder / "right_*.png"), "--board", board, "-o", str(out)]
+    args = ["calibrate", "cameras"]
+    for name in names:
+        args += ["--camera", f"{name}={folder / f'{name}_*.png'}"]
+    return [*args, "--board", board, "-o", str(out)]
+
+
+def read_result(text: str) -> dict[str, Any]:
+    """What the page shows of a ``calibrate intrinsics``/``stereo``/``cameras`` result: the
+    figures of its ``[about]`` (RMS, standard deviations, per set, rejected, warnings) and the
+    fitted values; ``kind`` says which, ``usable`` whether it holds a calibration a config can
+    take (a ``cameras`` result placed in no base frame holds only ``[about]``)."""
+    data = tomllib.loads(text)
+    about = data.get("about", {})
+    cal = data.get("calibration", {})
+    out: dict[str, Any] = {
+        "rms_px": about.get("rms_px"), "std": about.get("std"),
+        "rejected": about.get("rejected"), "warnings": about.get("warnings"),
+        "model_choice": about.get("model_choice")}
+    if "cameras" in about or "cameras" in cal:
+        out.update(kind="cameras", usable="cameras" in cal, sets=about.get("sets"),
+                   reference=about.get("reference"), base_frame=about.get("base_frame"),
+                   cameras=about.get("cameras"), pairs=about.get("pairs"))
+    elif "stereo" in cal:
+        out.update(kind="stereo", usable=True, pairs_used=about.get("pairs_used"),
+                   per_pair=about.get("per_pair"), epipolar_px=about.get("epipolar_px"),
+                   left=cal.get("left"), right=cal.get("right"),
+                   T_right_left=cal["stereo"].get("T_right_left"))
+    else:
+        camera = next((cal[k] for k in ("left", "right") if k in cal), None)
+        out.update(kind="intrinsics", usable=camera is not None,
+                   images_used=about.get("images_used"), per_pair=about.get("per_image"),
+                   std_model=about.get("std_model"), left=camera)
+    return out
+
+
 # --- the edits ------------------------------------------------------------------------------
 
 def rig_sections(rig_text: str) -> dict[str, Any]:
@@ -182,10 +231,10 @@ def calibration_edit(rig_text: str | None, hand_eye: dict[str, Any] | None) -> E
 def object_edit(name: str, marks: list[dict[str, Any]], polarity: str = "dark") -> Edit:
     """The chosen marks as an ``object.definition = "reference"`` object (their measured
     base-frame points as ``xyz_mm``) in the object's include, and the reference reset for it
-    (no ``T_base_obj``; ``points_mm`` come with teaching; a taught ``grip`` stays)."""
-    features = [{"name": m["name"], "kind": "circle", "polarity": polarity,
-                 "diameter_mm": round(float(m["diameter_mm"]), 1),
-                 "xyz_mm": [round(float(v), 3) for v in m["xyz_mm"]]} for m in marks]
+    (no ``T_base_obj``; ``points_mm`` come with teaching; a taught ``grip`` stays). A mark of
+    ``kind = "aruco"`` becomes an ArUco feature (its id, dictionary and measured side), any
+    other a circle of ``polarity``."""
+    features = [feature_of(m, polarity) for m in marks]
 
     def edit(snapshot: Snapshot) -> dict[Path, bytes]:
         cell = include_for(snapshot, "object.")
@@ -199,6 +248,25 @@ def object_edit(name: str, marks: list[dict[str, Any]], polarity: str = "dark") 
         out[ref] = ref_data
         return {p: snapshot.encoded(p, toml_from_dict(d)) for p, d in out.items()}
     return edit
+
+
+def mark_name(mark: Mapping[str, Any]) -> str:
+    """The feature name of a surveyed mark: ``m<number>``, a marker's id added."""
+    if mark.get("kind") == "aruco":
+        return f"m{mark['id']}-aruco{mark['marker_id']}"
+    return f"m{mark['id']}"
+
+
+def feature_of(mark: Mapping[str, Any], polarity: str = "dark") -> dict[str, Any]:
+    """One surveyed mark (``Mark.as_dict`` with a ``name``) as an ``[[object.features]]``
+    table of its kind."""
+    xyz = [round(float(v), 3) for v in mark["xyz_mm"]]
+    if mark.get("kind") == "aruco":
+        return {"name": mark["name"], "kind": "aruco", "marker_id": int(mark["marker_id"]),
+                "dictionary": str(mark["dictionary"]),
+                "size_mm": round(float(mark["size_mm"]), 1), "xyz_mm": xyz}
+    return {"name": mark["name"], "kind": "circle", "polarity": polarity,
+            "diameter_mm": round(float(mark["diameter_mm"]), 1), "xyz_mm": xyz}
 
 
 def hand_eye_values(body: Any) -> dict[str, Any]:

@@ -189,12 +189,25 @@ function calibResult(c) {
     return;
   }
   const std = res.std || {};
-  const lines = [
-    `RMS ${fmt(res.rms_px, 4)} px over ${res.pairs_used} pairs; epipolar ${JSON.stringify(res.epipolar_px)}`,
-    `left fx ${fmt(res.left.fx, 2)} +- ${fmt((std.left || {}).fx, 2)}, cx ${fmt(res.left.cx, 2)}, cy ${fmt(res.left.cy, 2)}`,
-    `baseline ${JSON.stringify(res.T_right_left.translation_mm)} mm +- ${JSON.stringify(std.translation_mm)}`,
-    `model: ${res.model_choice}`,
-  ];
+  let lines;
+  if (res.kind === "cameras") {
+    lines = [`RMS ${fmt(res.rms_px, 4)} px; poses relative to ${res.reference}; base frame: ${res.base_frame}`]
+      .concat((res.cameras || []).map((cam) => `${cam.name}: RMS ${fmt(cam.rms_px, 4)} px, pose ${JSON.stringify((cam.T_reference_camera || {}).translation_mm)} mm`));
+  } else if (res.kind === "intrinsics") {
+    lines = [
+      `RMS ${fmt(res.rms_px, 4)} px over ${res.images_used} images`,
+      `fx ${fmt(res.left.fx, 2)} +- ${fmt(std.fx, 2)}, cx ${fmt(res.left.cx, 2)}, cy ${fmt(res.left.cy, 2)}`,
+      `model: ${res.model_choice}`,
+    ];
+  } else {
+    lines = [
+      `RMS ${fmt(res.rms_px, 4)} px over ${res.pairs_used} pairs; epipolar ${JSON.stringify(res.epipolar_px)}`,
+      `left fx ${fmt(res.left.fx, 2)} +- ${fmt((std.left || {}).fx, 2)}, cx ${fmt(res.left.cx, 2)}, cy ${fmt(res.left.cy, 2)}`,
+      `baseline ${JSON.stringify(res.T_right_left.translation_mm)} mm +- ${JSON.stringify(std.translation_mm)}`,
+      `model: ${res.model_choice}`,
+    ];
+  }
+  if (!res.usable) lines.push("not usable as it is: no base frame (see the warnings)");
   const p = document.createElement("pre");
   p.id = "calib-figures";
   p.textContent = lines.concat((res.warnings || []).map((w) => `warning: ${w}`)).join("\n");
@@ -205,14 +218,14 @@ function calibResult(c) {
   for (const q of pairs) {
     const box = document.createElement("input");
     box.type = "checkbox";
-    const m = /_(\d+)\.png/.exec(q.left || q.name || "");
+    const m = /_(\d+)\.png/.exec(q.left || q.name || q.image || "");
     box.dataset.set = m ? String(Number(m[1])) : "";
     if ((q.rms_px || 0) === worst && pairs.length > 3) box.title = "the worst pair";
-    t.append(row([box, q.left || q.name || "", fmt(q.rms_px, 4)]));
+    t.append(row([box, q.left || q.name || q.image || "", fmt(q.rms_px, 4)]));
   }
   $("calib-result").replaceChildren(p, t);
   $("btn-calib-drop").hidden = false;
-  $("btn-calib-accept").hidden = false;
+  $("btn-calib-accept").hidden = !res.usable;
 }
 
 async function pollCalibration() {
@@ -271,7 +284,8 @@ act("btn-obj-find", async () => {
     box.type = "checkbox";
     box.checked = true;
     box.dataset.id = String(m.id);
-    return row([box, String(m.id), m.xyz_mm.map((v) => fmt(v, 1)).join(", "), fmt(m.diameter_mm, 1)]);
+    const kind = m.kind === "aruco" ? `ArUco #${m.marker_id} (${m.dictionary})` : "circle";
+    return row([box, String(m.id), kind, m.xyz_mm.map((v) => fmt(v, 1)).join(", "), fmt(m.diameter_mm, 1)]);
   }));
   $("obj-result").textContent = `${r.data.marks.length} mark(s) seen by both cameras: untick those not on the object`;
 });
