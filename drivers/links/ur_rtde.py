@@ -363,6 +363,18 @@ class URRtdeLink(RobotLink):
         if child is not None and self._health.state is LinkState.UP:
             await self._send(child, "warnings", (self._warnings,))
 
+    async def robot_pose(self) -> Any | None:
+        """``actual_TCP_pose`` read now by the child from the newest data package, as
+        ``T_base_flange`` (mm); None while the link is not up."""
+        child = self._child
+        if child is None or self._health.state is not LinkState.UP:
+            return None
+        values = await self._send(child, "pose", ())
+        try:
+            return transform_from_vendor("ur", values)
+        except ConversionError as err:
+            raise LinkError(f"link {self.name}: unusable actual_TCP_pose {values}: {err}") from None
+
     async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
         """Wait until ``health().state`` is one of ``states``; ``TimeoutError`` otherwise."""
         wanted = {states} if isinstance(states, LinkState) else states
@@ -384,15 +396,17 @@ class URRtdeLink(RobotLink):
                             "at the reconnect")
         await self._send(child, kind, args)
 
-    async def _send(self, child: _Child, kind: str, args: tuple[Any, ...]) -> None:
+    async def _send(self, child: _Child, kind: str, args: tuple[Any, ...]) -> Any:
+        """Send one request to the child and wait for its "done"; its value (a pose), if any."""
         req = next(self._ids)
         done = asyncio.get_running_loop().create_future()
         self._pending[req] = done
         try:
             child.send((req, kind, args))
-            await asyncio.wait_for(done, self.options.write_timeout_s)
+            return await asyncio.wait_for(done, self.options.write_timeout_s)
         except (OSError, TimeoutError):
-            raise LinkError(f"link {self.name} to {self._peer}: {kind} {args[0]} not "
+            what = f"{kind} {args[0]}" if args else kind
+            raise LinkError(f"link {self.name} to {self._peer}: {what} not "
                             f"confirmed within {self.options.write_timeout_s} s") from None
         finally:
             self._pending.pop(req, None)
@@ -487,7 +501,7 @@ class URRtdeLink(RobotLink):
             elif msg[0] == "done":
                 fut = self._pending.get(msg[1])
                 if fut is not None and not fut.done():
-                    fut.set_result(None)
+                    fut.set_result(msg[2] if len(msg) > 2 else None)
             elif msg[0] == "error":
                 return bool(msg[1]), str(msg[2])
             else:

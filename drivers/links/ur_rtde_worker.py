@@ -244,6 +244,9 @@ class _Session:
             self.pending_rotation = (seq, rotation) if rotation is not None else None
         elif kind == "warnings":
             self.write_double(regs.warnings, args[0])
+        elif kind == "pose":  # the robot's TCP pose now, from the newest data package
+            self.conn.send(("done", req, self.snapshot()[4]))
+            return
         self.conn.send(("done", req))
 
     def step(self) -> None:

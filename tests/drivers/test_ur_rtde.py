@@ -28,7 +28,9 @@ from vgripd.service.protocol import (
     URRegisterMap,
     Warnings,
     next_answer,
+    robot_pose_now,
 )
+from vgripd.service.web.trigger import WebTriggerLink
 from vgripd.sim.ur_controller import URController
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
@@ -551,3 +553,31 @@ async def test_refusal_clears_the_pick_register() -> None:
         seq = robot.start_program(9)  # unknown command: the link's own BAD_REQUEST
         result = await asyncio.to_thread(robot.program_result, seq)
         assert (result["status"], result["pick"]) == (32, 0.0)
+
+
+def ur_matrix(pose: tuple[float, ...]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(pose[3:]).as_matrix()
+    T[:3, 3] = np.array(pose[:3]) * 1000.0
+    return T
+
+
+async def test_robot_pose_is_the_controllers_actual_tcp_pose_now() -> None:
+    """The setup's capture asks the links for the flange pose between requests: the UR link
+    reads actual_TCP_pose at the call; a link without a robot pose answers None."""
+    web = WebTriggerLink()
+    assert await web.robot_pose() is None
+    assert await robot_pose_now({"web": web}) is None
+    async with connected(lo("127.0.5.68")) as (robot, lnk, _triggers):
+        np.testing.assert_allclose(await lnk.robot_pose(), ur_matrix(TCP), atol=1e-9)
+        moved = (0.25, 0.05, 0.40, 0.0, 3.0, 0.1)
+        robot.set_tcp_pose(moved)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 30.0
+        while not np.allclose(await lnk.robot_pose(), ur_matrix(moved), atol=1e-9):
+            assert loop.time() < deadline, "the link never read the moved TCP pose"
+            await asyncio.sleep(0.05)
+        name, T = await robot_pose_now({"web": web, "ur": lnk}) or ("", None)
+        assert name == "ur"
+        np.testing.assert_allclose(T, ur_matrix(moved), atol=1e-9)
+    assert await lnk.robot_pose() is None  # closed: no pose, no error

@@ -284,6 +284,14 @@ class RobotLink(ABC):
         that refuses NEXT without a pick list itself lets every NEXT through while ``walking``.
         Default: ignored."""
 
+    async def robot_pose(self) -> Any | None:
+        """The robot's flange pose now (``T_base_flange``, 4x4, mm), read from the peer at
+        this call; None when this link cannot read it now (not up, or its peer sends poses
+        only with a request, as the robot socket's CAPTURE_AT does). A link that reads the
+        controller's actual pose (UR RTDE ``actual_TCP_pose``) overrides this; it raises
+        ``LinkError`` when the peer does not answer. Default: None."""
+        return None
+
     async def set_warnings(self, bits: int) -> None:
         """Show the daemon's current ``Warnings`` bits to the peer (live, not tied to a job).
 
@@ -307,6 +315,22 @@ class RobotLink(ABC):
 
 
 # --- register map -------------------------------------------------------------------------
+
+
+async def robot_pose_now(links: Mapping[str, RobotLink],
+                         timeout_s: float = 2.0) -> tuple[str, Any] | None:
+    """The robot's flange pose now from the first link (in config order) that reads one:
+    ``(link name, T_base_flange)``; None when no link has one. A link that fails or takes
+    longer than ``timeout_s`` is skipped (a capture never waits on a silent controller)."""
+    for name, link in links.items():
+        try:
+            async with asyncio.timeout(timeout_s):
+                T = await link.robot_pose()
+        except (LinkError, TimeoutError):
+            continue
+        if T is not None:
+            return name, T
+    return None
 
 
 class Reg(enum.IntEnum):

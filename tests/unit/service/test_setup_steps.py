@@ -18,6 +18,7 @@ from vgripd.service.configtxn import EditRefused
 from vgripd.service.web.setupsteps import (
     calibration_edit,
     dump_progress,
+    flange_text,
     hand_eye_values,
     include_for,
     load_progress,
@@ -152,3 +153,14 @@ def test_progress_reads_back_and_survives_garbage(tmp_path: Path) -> None:
     assert load_progress(path) == {"done": {}}
     path.write_text('{"done": []}')
     assert load_progress(path) == {"done": {}}
+
+
+def test_flange_text_reads_as_the_flange_file_line() -> None:
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
+    T[:3, 3] = [412.34, -198.7, 502.1]
+    assert flange_text(T.tolist()) == "412.3 -198.7 502.1 mm, 0.1000 -0.2000 0.3000 rad"
+    assert flange_text(None) == ""

@@ -52,6 +52,7 @@ from vgripd.errors import VgripError
 from vgripd.serialize import jsonable
 from vgripd.service.commands import run_vgripd
 from vgripd.service.configtxn import Outcome
+from vgripd.service.protocol import robot_pose_now
 from vgripd.service.web import setupimages
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.registers import register_views
@@ -63,6 +64,7 @@ from vgripd.service.web.setupsteps import (
     calibration_command,
     calibration_edit,
     dump_progress,
+    flange_text,
     hand_eye_values,
     load_progress,
     mark_name,
@@ -244,7 +246,8 @@ class SetupRoutes:
                              "grid": c.grid, "cells": sorted(c.cells),
                              "tilts": sorted(c.tilts)}
                             for n, c in zip(state.names, state.coverage, strict=True)],
-                "manifest": [{"set": e["set"], "added": e.get("added", "")}
+                "manifest": [{"set": e["set"], "added": e.get("added", ""),
+                              "flange": flange_text(e.get("flange"))}
                              for e in state.manifest]}
 
     async def _account(self, spec: str, views: list[Any]) -> Capture:
@@ -286,8 +289,11 @@ class SetupRoutes:
                 ok, why = True, "taken on request"
             kept = None
             if ok and (body.get("keep") or body.get("auto")):
+                flange = pair.T_base_flange  # the camera's (or its request's), else a link's
+                if flange is None and (now := await robot_pose_now(self.daemon.links)):
+                    flange = now[1]
                 kept = await asyncio.to_thread(state.keep, tuple(views), dets, why,
-                                               pair.t_mono_ns, pair.T_base_flange)
+                                               pair.t_mono_ns, flange)
                 await asyncio.to_thread(state.write_manifest)
             self._grab_n += 1
             self._live = jpegs

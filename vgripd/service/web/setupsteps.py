@@ -284,3 +284,17 @@ def hand_eye_values(body: Any) -> dict[str, Any]:
                              f"got {value!r}")
         pose[key] = [float(v) for v in value]
     return {"mounting": "fixed", "T_base_camera": pose}
+
+
+def flange_text(T: Any) -> str:
+    """A kept set's flange pose (``T_base_flange``, 4x4 mm) as its ``flange.txt`` line reads
+    it, for the page's set list: ``x y z`` mm and the rotation vector in rad; "" for none."""
+    if T is None:
+        return ""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    M = np.asarray(T, dtype=np.float64)
+    rotvec = Rotation.from_matrix(M[:3, :3]).as_rotvec()
+    return (" ".join(f"{v:.1f}" for v in M[:3, 3]) + " mm, "
+            + " ".join(f"{v:.4f}" for v in rotvec) + " rad")

@@ -152,7 +152,14 @@ function coverage(c) {
   const head = document.createElement("p");
   head.id = "calib-sets";
   head.textContent = `${c.sets} set(s) kept in ${c.folder}`;
-  $("calib-coverage").replaceChildren(head, ...blocks);
+  const list = document.createElement("ul");
+  list.id = "calib-set-list";
+  for (const e of c.manifest || []) {
+    const li = document.createElement("li");
+    li.textContent = `set ${e.set}: ${e.added}` + (e.flange ? `; flange ${e.flange}` : "; no flange pose");
+    list.append(li);
+  }
+  $("calib-coverage").replaceChildren(head, list, ...blocks);
 }
 
 async function grab(keep, auto) {
