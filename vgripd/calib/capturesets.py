@@ -106,8 +106,11 @@ class Capture:
             self.flange.append(" ".join(f"{v:.6f}" for v in (*T[:3, 3], *rotvec)))
             entry["flange"] = T.round(6).tolist()
         self.manifest.append(entry)
+        mixed = 0 < len(self.flange) < len(self.manifest)
         return f"set {index} kept ({why}); " + "; ".join(
-            f"{n} {c.summary()}" for n, c in zip(self.names, self.coverage, strict=True))
+            f"{n} {c.summary()}" for n, c in zip(self.names, self.coverage, strict=True)) + (
+            "; not every set has a flange pose: no flange.txt (capture.json has each set's)"
+            if mixed else "")
 
     def resume(self) -> int:
         """Continue a capture in the same folder: its sets stay, their coverage counts, the
@@ -147,10 +150,15 @@ class Capture:
     def write_manifest(self) -> None:
         data = {"board": self.board.spec, "cameras": self.names, "sets": self.manifest}
         (self.out / "capture.json").write_text(json.dumps(data, indent=1) + "\n")
-        if self.flange:
-            (self.out / "flange.txt").write_text(
-                "# x y z (mm) rx ry rz (rotation vector, rad): T_base_flange per set\n"
-                + "\n".join(self.flange) + "\n")
+        # line k of flange.txt is set k (the replay driver's flange_poses): written only when
+        # every set has its pose; a capture where some sets have none keeps each set's pose in
+        # capture.json alone
+        path = self.out / "flange.txt"
+        if self.flange and len(self.flange) == len(self.manifest):
+            path.write_text("# x y z (mm) rx ry rz (rotation vector, rad): T_base_flange per "
+                            "set\n" + "\n".join(self.flange) + "\n")
+        elif path.exists():
+            path.unlink()
 
 
 def next_command(names: list[str], out: Path, board: Board) -> str:

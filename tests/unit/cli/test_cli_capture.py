@@ -152,3 +152,29 @@ def test_a_second_capture_goes_on_in_the_same_folder(tmp_path: Path,
     # another board in the same folder is refused, naming the folder
     rc, text = capture("-c", cfg, "--board", "chessboard:9x6:20", "-o", str(out))
     assert rc == 78
+
+
+def test_flange_file_lines_stay_one_per_set_or_the_file_is_left_out(tmp_path: Path) -> None:
+    """flange.txt is read by line (line k = set k): with every set's pose it has one line per
+    set; once a set comes without one (a robot link lost mid-capture) the file is left out and
+    each set's pose stays in capture.json only."""
+    from vgripd.calib.capturesets import Capture
+    from vgripd.calib.coverage import Coverage
+
+    image = np.zeros((40, 60), np.uint8)
+    state = Capture(Board.parse("chessboard:9x6:30"), tmp_path, 0, 1.0, 20.0, ["left"],
+                    [Coverage((60, 40))])
+    pose = np.eye(4)
+    for k in range(2):
+        pose[:3, 3] = (100.0 * k, 0.0, 500.0)
+        state.keep((image,), [None], "test", 0, pose.copy())
+        state.write_manifest()
+    lines = [line for line in (tmp_path / "flange.txt").read_text().splitlines()
+             if not line.startswith("#")]
+    assert [float(line.split()[0]) for line in lines] == [0.0, 100.0]
+    said = state.keep((image,), [None], "test", 0, None)
+    state.write_manifest()
+    assert "no flange.txt" in said
+    assert not (tmp_path / "flange.txt").exists()
+    sets = json.loads((tmp_path / "capture.json").read_text())["sets"]
+    assert ["flange" in s for s in sets] == [True, True, False]
