@@ -41,7 +41,7 @@ from vgripd.service.protocol import (
 from vgripd.sim.s7_plc import DbWrite, MockS7Plc, S7PlcServer
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = pytest.mark.timeout(300)  # link outages and recoveries, on a busy machine
 
 DB = 10
 WAIT_S = 10.0

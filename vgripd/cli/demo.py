@@ -144,6 +144,10 @@ PALLET_SCENE: dict[str, Any] = {
 }
 
 
+#: The pallet scene's job time (its rendering, not a camera, sets it).
+PALLET_JOB_TIMEOUT_S = 30.0
+
+
 def pallet_config(port: int, seed: int, vendor: str, web_port: int = 0) -> Any:
     """The demo cell with the pallet scene."""
     scene = PALLET_SCENE
@@ -154,7 +158,9 @@ def pallet_config(port: int, seed: int, vendor: str, web_port: int = 0) -> Any:
         "output": {"vendor": vendor, **scene["output"]},
         "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": port}],
         "status": {"port": web_port},
-        "daemon": {"log_level": "WARNING"},
+        # the synthetic camera renders six plates per image: on a busy PC that takes longer
+        # than a real camera's acquisition, which the default 10 s is sized for
+        "daemon": {"log_level": "WARNING", "job_timeout_s": PALLET_JOB_TIMEOUT_S},
     })
 
 
