@@ -36,7 +36,19 @@ from vgripd.service.jobcore import Action, Command, Decision, Handshake, Part, S
 from vgripd.types import JobResult, Status
 
 
-class Top(enum.Enum):
+class _Numbered(enum.Enum):
+    """A state of the standard's machines: its name and StateNumber."""
+
+    @property
+    def label(self) -> str:
+        return self.value[0]
+
+    @property
+    def number(self) -> int:
+        return self.value[1]
+
+
+class Top(_Numbered):
     """``VisionStateMachineType`` states: name and StateNumber."""
 
     PREOPERATIONAL = ("Preoperational", 1)
@@ -44,30 +56,14 @@ class Top(enum.Enum):
     ERROR = ("Error", 3)
     OPERATIONAL = ("Operational", 4)
 
-    @property
-    def label(self) -> str:
-        return self.value[0]
 
-    @property
-    def number(self) -> int:
-        return self.value[1]
-
-
-class Auto(enum.Enum):
+class Auto(_Numbered):
     """``VisionAutomaticModeStateMachineType`` states (only while Operational)."""
 
     INITIALIZED = ("Initialized", 5)
     READY = ("Ready", 6)
     SINGLE_EXECUTION = ("SingleExecution", 7)
     CONTINUOUS_EXECUTION = ("ContinuousExecution", 8)
-
-    @property
-    def label(self) -> str:
-        return self.value[0]
-
-    @property
-    def number(self) -> int:
-        return self.value[1]
 
 
 #: Results with these statuses mean the vision system itself failed (not the part): the

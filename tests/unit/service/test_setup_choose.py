@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import REPO
+from tests.unit.service.test_setup_steps import apply
 from vgripd.config import load_config
-from vgripd.configsnapshot import Snapshot
 from vgripd.registry import LINKS
 from vgripd.service.configtxn import EditRefused
 from vgripd.service.web.camsettings import settings_target
@@ -52,13 +52,6 @@ def layout(tmp_path: Path, camera_in_main: bool = False) -> Path:
     main.write_text(json.dumps({"include": [str(tmp_path / n) for n in names]})[1:-1]
                     .replace('"include":', "include =") + "\n" + main_text)
     return main
-
-
-def apply(main: Path, edit) -> Snapshot:  # noqa: ANN001
-    before = Snapshot.read(main)
-    changes = edit(before)
-    assert str(main) not in {str(p) for p in changes}  # the main file is never written
-    return before.replaced(changes)
 
 
 def test_a_discovered_pair_becomes_the_camera_table_with_its_names() -> None:
