@@ -8,23 +8,33 @@ rendered (the synthetic camera's renderer, fixed poses) with the parts under the
 travel and replayed to the daemon in order. Every answer is checked against this belt's truth at
 the count the answer names: the pose in the registers, ALONG/ACROSS/THETA, each part served
 once, a part seen in two images served once, a part past the window dropped, PREDICT answered
-inside the window and refused past it."""
+inside the window and refused past it. The belt and its PLC: tests/integration/belt_cell.py."""
 
 from __future__ import annotations
 
 import copy
-import math
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
 import pytest
 
-from tests.integration.test_daemon import CODEC, Plc, running, values
-from vgripd.config import Config, config_from_dict, load_config
-from vgripd.geometry.vendors import transform_from_vendor
-from vgripd.registry import CAMERAS, load_class, validate_options
+from tests.integration.belt_cell import (
+    COUNTS_PER_MM,
+    PARTS,
+    WINDOW,
+    BeltPlc,
+    conveyor_config,
+    conveyor_data,
+    count_at,
+    f32,
+    render,
+    travel_of,
+    u32,
+    visible,
+    which,
+)
+from tests.integration.test_daemon import running
+from vgripd.config import load_config
 from vgripd.serialize import toml_from_dict
 from vgripd.service.daemon import Daemon
 from vgripd.service.protocol import Command, Reg
@@ -33,129 +43,6 @@ from vgripd.types import Status
 from vgripd.vision.scene import T_base_obj_ref
 
 pytestmark = pytest.mark.timeout(300)
-
-COUNTS_PER_MM = 10.0
-COUNT0 = (1 << 32) - 3000  # the 32-bit counter wraps during the run
-BELT_Y, BELT_Z = 100.0, 10.0  # the belt runs along base +x through y = 100 at z = 10
-WINDOW = (300.0, 1000.0)
-#: The parts at travel 0: x (along the belt), y offset across (to the left = +y), rotation.
-PARTS = [(700.0, 8.0, 12.0), (560.0, -12.0, -25.0), (380.0, 5.0, 30.0),
-         (200.0, -6.0, -8.0), (40.0, 10.0, 20.0)]
-#: Where the camera sees a whole part (its origin's x); the layout keeps clear of the edges.
-VISIBLE = (460.0, 740.0)
-MAP_WORDS = 62
-
-
-def count_at(travel_mm: float) -> int:
-    return (COUNT0 + round(travel_mm * COUNTS_PER_MM)) % (1 << 32)
-
-
-def truth(part: int, travel_mm: float) -> np.ndarray:
-    """Part ``part``'s pose in the base frame after the belt travelled ``travel_mm``."""
-    x, y, theta = PARTS[part]
-    t = math.radians(theta)
-    T = np.eye(4)
-    T[:2, :2] = [[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]]
-    T[:3, 3] = (x + travel_mm, BELT_Y + y, BELT_Z)
-    return T
-
-
-def visible(travel_mm: float) -> list[int]:
-    return [k for k, (x, _, _) in enumerate(PARTS) if VISIBLE[0] <= x + travel_mm <= VISIBLE[1]]
-
-
-def conveyor_config(camera: dict[str, Any]) -> Config:
-    return config_from_dict(conveyor_data(camera))
-
-
-def conveyor_data(camera: dict[str, Any]) -> dict[str, Any]:
-    demo = Config().calibration
-    assert demo is not None
-    return {
-        "camera": camera,
-        "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": 0,
-                   "map_version": 4}],
-        "status": {"port": 0},
-        "daemon": {"worker": False},
-        "calibration": demo.model_dump(mode="json", exclude_none=True),
-        "picking": {"max_objects": 4},
-        "limits": {"max_translation_mm": 400.0, "max_rotation_deg": 60.0},
-        "conveyor": {"counts_per_mm": COUNTS_PER_MM, "direction": [1.0, 0.0, 0.0],
-                     "origin_mm": [0.0, BELT_Y, BELT_Z], "window_mm": list(WINDOW),
-                     "trigger_distance_mm": 150.0, "speed_mm_s": 300.0, "sigma_mm": 0.5},
-    }
-
-
-async def render(folder: Path, frames: list[float]) -> None:
-    """One stereo image per travel in ``frames``, the visible parts at their true poses."""
-    cls = load_class(CAMERAS, "camera", "synthetic")
-    for i, travel in enumerate(frames):
-        poses = [truth(k, travel) for k in visible(travel)]
-        assert poses, f"frame {i}: no part under the camera (the test's layout)"
-        rot = [cv2.Rodrigues(T[:3, :3])[0].ravel().tolist() for T in poses]
-        options = {"type": "synthetic", "seed": 100 + i,
-                   "instances": [{"translation_mm": T[:3, 3].tolist(), "rotvec_rad": r}
-                                 for T, r in zip(poses, rot, strict=True)]}
-        cfg = conveyor_config(options)
-        camera = cls(validate_options(cls, cfg.camera, "camera"), cfg)
-        await camera.open()
-        try:
-            pair = await camera.grab(30.0)
-        finally:
-            await camera.close()
-        assert pair.right is not None
-        cv2.imwrite(str(folder / f"left_{i}.png"), pair.left)
-        cv2.imwrite(str(folder / f"right_{i}.png"), pair.right)
-
-
-class BeltPlc(Plc):
-    """The PLC with the conveyor's registers: LATCH_COUNT with every request."""
-
-    seq = 0
-
-    async def request(self, command: int, count: int) -> list[int]:
-        rr = await self.client.write_registers(Reg.LATCH_COUNT, CODEC.u32(count))
-        assert not rr.isError(), rr
-        self.seq += 1
-        rr = await self.client.write_registers(Reg.CMD, [command, self.seq])
-        assert not rr.isError(), rr
-        return await self.result(self.seq)
-
-    async def read(self) -> list[int]:
-        rr = await self.client.read_holding_registers(0, count=MAP_WORDS)
-        assert not rr.isError(), rr
-        return list(rr.registers)
-
-
-def u32(words: list[int], reg: int) -> int:
-    return CODEC.decode_u32(words[reg:reg + 2])
-
-
-def f32(words: list[int], reg: int) -> float:
-    return CODEC.decode_value(words[reg:reg + 2])
-
-
-def which(words: list[int], travel_mm: float, T_ref: np.ndarray) -> int:
-    """The part whose true pose at ``travel_mm`` the answer's pose is (checked to 1 mm and
-    0.5 deg), its belt terms checked too."""
-    T_offset = transform_from_vendor("kuka", values(words))
-    T = T_offset @ T_ref  # output.mode offset: T_base_obj = T_offset @ T_base_obj_ref
-    near = min(range(len(PARTS)),
-               key=lambda k: float(np.linalg.norm(truth(k, travel_mm)[:3, 3] - T[:3, 3])))
-    want = truth(near, travel_mm)
-    assert np.linalg.norm(want[:3, 3] - T[:3, 3]) < 1.0, (near, travel_mm, T[:3, 3])
-    turn = math.degrees(math.acos(np.clip((np.trace(want[:3, :3].T @ T[:3, :3]) - 1) / 2,
-                                          -1, 1)))
-    assert turn < 0.5
-    x, y, theta = PARTS[near]
-    assert f32(words, Reg.ALONG) == pytest.approx(x + travel_mm, abs=1.0)
-    assert f32(words, Reg.ACROSS) == pytest.approx(y, abs=1.0)
-    assert f32(words, Reg.THETA) == pytest.approx(theta, abs=0.5)
-    return near
-
-
-def travel_of(count: int) -> float:
-    return ((count - COUNT0) % (1 << 32)) / COUNTS_PER_MM
 
 
 async def test_a_belt_served_once_per_part_in_belt_order_at_the_latched_counts(
