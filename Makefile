@@ -12,7 +12,9 @@ RUNTIME := $(VENV)/bin/python
 TEST_JOBS ?= 4
 # One BLAS thread per process: with several test processes (and the daemons and workers they
 # start) a threaded BLAS oversubscribes the cores and spins; single-threaded it is faster.
-TEST_ENV := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1
+# Bytecode written: the suite starts hundreds of daemons and workers, and with
+# PYTHONDONTWRITEBYTECODE set (some images set it) each would compile vgripd from source again.
+TEST_ENV := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 PYTHONDONTWRITEBYTECODE=
 
 # make explore: the property tests with fresh random examples, ROUNDS runs (tests/conftest.py)
 ROUNDS ?= 10
