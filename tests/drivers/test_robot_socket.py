@@ -112,13 +112,15 @@ def test_counted_requests_carry_the_count_and_a_belt_frame_goes_first() -> None:
     belt = BeltPose(123, 1, 0.05, 700.25, -8.5, 12.0, 3)
     result = dataclasses.replace(ok(4, (1, 2, 3, 4, 5, 6)), belt=belt)
     frames, sent = result_answer(7, result, 0, ValueEncoding(), True, counted=True)
-    assert sent is result and len(frames) == 2 * ANSWER_SIZE
+    assert sent is result
+    assert len(frames) == 2 * ANSWER_SIZE
     assert decode_belt(frames[:ANSWER_SIZE]) == BeltFrame(7, 123, 1, 0.05, 700.25, -8.5, 12.0, 3)
     assert decode_answer(frames[ANSWER_SIZE:]).values == (1, 2, 3, 4, 5, 6)
     # a belt value beyond int32 x scale: no pose at all, the BELT frame all 0
     far = dataclasses.replace(result, belt=dataclasses.replace(belt, along_mm=3000.0))
     frames, sent = result_answer(8, far, 0, ValueEncoding("int32", 1000000), True, counted=True)
-    assert sent.status is Status.OUT_OF_LIMITS and "ALONG" in sent.message
+    assert sent.status is Status.OUT_OF_LIMITS
+    assert "ALONG" in sent.message
     assert decode_belt(frames[:ANSWER_SIZE]) == BeltFrame(8)
     assert decode_answer(frames[ANSWER_SIZE:]).values == ()
 

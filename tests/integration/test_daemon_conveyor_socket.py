@@ -114,7 +114,8 @@ def checked(a: Answer, travel_mm: float, T_ref: np.ndarray) -> int:
     """The part the answer's pose is (1 mm, 0.5 deg of its truth), its belt terms checked."""
     T = transform_from_vendor("kuka", a.values) @ T_ref  # output.mode offset
     part, mm, deg = part_of(T, travel_mm)
-    assert mm < 1.0 and deg < 0.5, (part, mm, deg)
+    assert mm < 1.0
+    assert deg < 0.5, (part, mm, deg)
     x, y, theta = PARTS[part]
     _, along, across, turn = a.belt_mm
     assert along == pytest.approx(x + travel_mm, abs=1.0)
@@ -133,22 +134,27 @@ async def test_counted_frames_serve_the_belt_as_the_registers_do(tmp_path: Path)
         # an old 16-byte LOCATE on a conveyor recipe: the job ends BAD_REQUEST, nothing queued
         a = await robot.ask(LOCATE)
         assert (a.kind, a.status, a.values, a.belt) == (RESULT, Status.BAD_REQUEST, (), None)
-        assert a.job_id and a.captured
+        assert a.job_id
+        assert a.captured
 
         for i, travel in enumerate(frames[:3]):
             a = await robot.ask(LOCATE, count_at(travel), frame=i)
-            assert a.status == Status.OK and a.captured
+            assert a.status == Status.OK
+            assert a.captured
             assert a.belt is not None
             assert a.belt[:2] == (count_at(travel), 1)  # RESULT_COUNT, LATCH_SOURCE link
             assert a.belt_mm[0] == pytest.approx(0.5 / COUNTS_PER_MM, abs=1e-4)
             assert checked(a, travel, T_ref) in visible(travel)
             assert a.remaining == len(visible(travel)) - 1
-        assert a.belt is not None and a.belt[2] == 4  # QUEUED: parts 0..3, each seen once
+        assert a.belt is not None
+        assert a.belt[2] == 4  # QUEUED: parts 0..3, each seen once
 
         # NEXT at travel 350: part 0 is past the window (1050 > 1000), dropped; part 1 served
         # with its pose at its own latched count
         a = await robot.ask(NEXT, count_at(350.0))
-        assert a.status == Status.OK and not a.captured and a.belt is not None
+        assert a.status == Status.OK
+        assert not a.captured
+        assert a.belt is not None
         at = travel_of(a.belt[0])
         assert at in frames
         assert checked(a, at, T_ref) == 1
@@ -157,12 +163,14 @@ async def test_counted_frames_serve_the_belt_as_the_registers_do(tmp_path: Path)
         # PREDICT: part 1 at travel 380 (inside the window), and at 500 (past its end)
         a = await robot.ask(PREDICT, count_at(380.0))
         assert (a.kind, a.status) == (RESULT, Status.OK)
-        assert a.belt is not None and a.belt[0] == count_at(380.0)
+        assert a.belt is not None
+        assert a.belt[0] == count_at(380.0)
         assert checked(a, 380.0, T_ref) == 1
         assert PARTS[1][0] + 380.0 <= WINDOW[1]
         a = await robot.ask(PREDICT, count_at(500.0))
         assert (a.status, a.values) == (Status.OUT_OF_WORKSPACE, ())
-        assert a.belt is not None and a.belt[0] == count_at(500.0)
+        assert a.belt is not None
+        assert a.belt[0] == count_at(500.0)
 
         # PREDICT without its count (a 16-byte frame of command 5): refused, nothing changes
         a = await robot.ask(PREDICT)
@@ -175,9 +183,12 @@ async def test_counted_frames_serve_the_belt_as_the_registers_do(tmp_path: Path)
         for _ in range(3):
             a = await robot.ask(NEXT, count_at(455.0))
             if a.status == Status.NOT_FOUND:
-                assert a.values == () and a.belt is not None and a.belt[2] == 0
+                assert a.values == ()
+                assert a.belt is not None
+                assert a.belt[2] == 0
                 break
-            assert a.status == Status.OK and a.belt is not None
+            assert a.status == Status.OK
+            assert a.belt is not None
             served.append(checked(a, travel_of(a.belt[0]), T_ref))
         assert served == [2, 3]
         conveyor = run.daemon.snapshot()["conveyor"]["0"]
@@ -195,10 +206,12 @@ async def test_a_counted_locate_without_a_conveyor_is_a_plain_locate(tmp_path: P
     async with running(config) as run, Robot(run.port()) as robot:
         a = await robot.ask(LOCATE, count_at(600.0))
         assert (a.kind, a.status) == (RESULT, Status.OK)
-        assert a.belt == (0, 0, 0) and a.belt_mm == (0.0, 0.0, 0.0, 0.0)  # LATCH_SOURCE 0
+        assert a.belt == (0, 0, 0)
+        assert a.belt_mm == (0.0, 0.0, 0.0, 0.0)  # LATCH_SOURCE 0
         T = transform_from_vendor("kuka", a.values) @ T_ref
         part, mm, _ = part_of(T, 600.0)
-        assert part in visible(600.0) and mm < 1.0
+        assert part in visible(600.0)
+        assert mm < 1.0
         a = await robot.ask(PREDICT, count_at(700.0))  # no conveyor: refused by the link
         assert (a.kind, a.status, a.belt) == (REFUSED, Status.BAD_REQUEST, (0, 0, 0))
 

@@ -2,9 +2,9 @@
 
 A robot program and vgripd exchange fixed-length binary frames over one TCP connection: the
 robot sends 16-byte requests (44 bytes for CAPTURE_AT, which carries a pose; 24 for a counted
-request, which carries the conveyor's encoder count), vgripd answers with 64-byte frames. Every field is a 32-bit
-big-endian word, so a robot language that reads integers more easily than bytes (KRL through
-EthernetKRL, Karel, URScript's ``socket_read_binary_integer``, MotoPlus C) reads a request or an
+request, which carries the conveyor's encoder count), vgripd answers with 64-byte frames.
+Every field is a 32-bit big-endian word, so a robot language that reads integers more easily
+than bytes (KRL through EthernetKRL, Karel, URScript's ``socket_read_binary_integer``, MotoPlus C) reads a request or an
 answer as 4 or 16 integers. Pose values are int32 fixed-point (``raw = round(value * scale)``,
 scale a power of ten) or, for languages that unpack IEEE floats directly (RAPID's
 ``UnpackRawBytes \\Float4``), float32.
@@ -46,9 +46,10 @@ A request is answered exactly once with a final frame (RESULT or REFUSED), for L
 CAPTURED once the images are taken (the robot may move on). The final frame of a counted request
 is preceded by one BELT frame (kind 0x84; docs/robot_socket.md, "Conveyor"): the request id,
 RESULT_COUNT, LATCH_SOURCE, LATCH_ERR_MM, ALONG, ACROSS, THETA and QUEUED of register map
-version 4 (all 0 when no job ran or the part stands still), so every answer stays 64 bytes. REFUSED means no job ran: BUSY (a
-job is running), BAD_REQUEST (unknown command, id 0, recipe > 65535, reserved word not 0, NEXT
-without a pick list), or the daemon's own refusal. NEXT is answered RESULT without CAPTURED (no
+version 4 (all 0 when no job ran or the part stands still), so every answer stays 64 bytes.
+REFUSED means no job ran: BUSY (a job is running), BAD_REQUEST (unknown command, id 0, recipe
+> 65535, reserved word not 0, NEXT without a pick list, PREDICT without a count or a
+conveyor), or the daemon's own refusal. NEXT is answered RESULT without CAPTURED (no
 image is taken): the following pickable object of the last LOCATE, with that job's id, or
 NOT_FOUND without a pose once the list is used up. CAPTURE_AT is a LOCATE whose job gets the
 flange pose (``Trigger.T_base_flange``: a robot-mounted camera's pose; in a walked hand-eye
@@ -363,9 +364,10 @@ def result_answer(request_id: int, result: JobResult, warnings: int, encoding: V
 
     A pose or belt value that does not fit the encoding turns the answer into
     ``OUT_OF_LIMITS`` without a pose (and with a BELT frame of zeros), more values than the
-    frame holds (a bug: the config check refuses such a vendor) into ``INTERNAL``. ``kind``: the link's handshake says (``jobcore.answer_refused``);
-    without it a request that never got a job (no images, job id 0: the daemon's BUSY or
-    ABORTED refusal) is answered REFUSED, every other one RESULT.
+    frame holds (a bug: the config check refuses such a vendor) into ``INTERNAL``. ``kind``:
+    the link's handshake says (``jobcore.answer_refused``); without it a request that never
+    got a job (no images, job id 0: the daemon's BUSY or ABORTED refusal) is answered
+    REFUSED, every other one RESULT.
     """
     if kind is None:
         kind = AnswerKind.RESULT if captured or result.job_id else AnswerKind.REFUSED
