@@ -5,11 +5,11 @@ robot sends 16-byte requests (44 bytes for CAPTURE_AT, which carries a pose; 24 
 request, which carries the conveyor's encoder count), vgripd answers with 64-byte frames.
 Every field is a 32-bit big-endian word, so a robot language that reads integers more easily
 than bytes (KRL through EthernetKRL, Karel, URScript's ``socket_read_binary_integer``,
-MotoPlus C) reads a request or an answer as 4 or 16 integers. Pose values are int32 fixed-point (``raw = round(value * scale)``,
-scale a power of ten) or, for languages that unpack IEEE floats directly (RAPID's
-``UnpackRawBytes \\Float4``), float32.
+MotoPlus C) reads a request or an answer as 4 or 16 integers. Pose values are int32
+fixed-point (``raw = round(value * scale)``, scale a power of ten) or, for languages that
+unpack IEEE floats directly (RAPID's ``UnpackRawBytes \\Float4``), float32.
 
-Request, robot -> vgripd (16 bytes; CAPTURE_AT 44 bytes)::
+Request, robot -> vgripd (16 bytes; CAPTURE_AT 44 bytes; counted requests 24 bytes)::
 
     word  bytes  field
        0   0-3   header: "V" "G" version command (0x56 0x47 0x01 cc); command 1 LOCATE,
