@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import socket
 import struct
@@ -33,16 +34,19 @@ from vgripd.service.robot_socket_format import (
     CAPTURE_AT_SIZE,
     Answer,
     AnswerKind,
+    BeltFrame,
     FrameError,
     Request,
     SocketCommand,
     ValueEncoding,
     decode_answer,
+    decode_belt,
     decode_request,
     header_word,
+    request_size,
     result_answer,
 )
-from vgripd.types import JobResult, PickInstance, RobotTarget, Status
+from vgripd.types import BeltPose, JobResult, PickInstance, RobotTarget, Status
 
 WAIT_S = 10.0
 KUKA = ("X", "Y", "Z", "A", "B", "C")
@@ -94,6 +98,31 @@ def test_answer_values_round_trip(values: list[float], fmt: tuple[str, int]) -> 
     tol = 0.5 / fmt[1] if fmt[1] else 0.0
     for got, want in zip(answer.values, values, strict=True):
         assert got == pytest.approx(want, abs=tol + 1e-12, rel=1e-7 if not fmt[1] else 0)
+
+
+def test_counted_requests_carry_the_count_and_a_belt_frame_goes_first() -> None:
+    frame = Request(SocketCommand.NEXT, 7, 0, count=2**32 - 1, frame=9).encode()
+    assert frame == (b"VG\x01\x43" + bytes([0, 0, 0, 7]) + bytes(8) + b"\xff" * 4
+                     + bytes([0, 0, 0, 9]))
+    assert request_size(frame) == 24
+    assert decode_request(frame) == Request(SocketCommand.NEXT, 7, 0, 0, (), 2**32 - 1, 9)
+    for bad in (Request(SocketCommand.CLEAR, 1, count=5), Request(SocketCommand.PREDICT, 1),
+                Request(SocketCommand.CAPTURE_AT, 1, count=5)):
+        assert decode_request(bad.encode()).refusal() is Status.BAD_REQUEST, bad
+    belt = BeltPose(123, 1, 0.05, 700.25, -8.5, 12.0, 3)
+    result = dataclasses.replace(ok(4, (1, 2, 3, 4, 5, 6)), belt=belt)
+    frames, sent = result_answer(7, result, 0, ValueEncoding(), True, counted=True)
+    assert sent is result
+    assert len(frames) == 2 * ANSWER_SIZE
+    assert decode_belt(frames[:ANSWER_SIZE]) == BeltFrame(7, 123, 1, 0.05, 700.25, -8.5, 12.0, 3)
+    assert decode_answer(frames[ANSWER_SIZE:]).values == (1, 2, 3, 4, 5, 6)
+    # a belt value beyond int32 x scale: no pose at all, the BELT frame all 0
+    far = dataclasses.replace(result, belt=dataclasses.replace(belt, along_mm=3000.0))
+    frames, sent = result_answer(8, far, 0, ValueEncoding("int32", 1000000), True, counted=True)
+    assert sent.status is Status.OUT_OF_LIMITS
+    assert "ALONG" in sent.message
+    assert decode_belt(frames[:ANSWER_SIZE]) == BeltFrame(8)
+    assert decode_answer(frames[ANSWER_SIZE:]).values == ()
 
 
 def test_result_answer_refuses_what_does_not_fit() -> None:

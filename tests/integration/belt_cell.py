@@ -142,3 +142,14 @@ def which(words: list[int], travel_mm: float, T_ref: np.ndarray) -> int:
 
 def travel_of(count: int) -> float:
     return ((count - COUNT0) % (1 << 32)) / COUNTS_PER_MM
+
+
+def part_of(T_base_obj: np.ndarray, travel_mm: float) -> tuple[int, float, float]:
+    """The part nearest to an object pose in the base frame after ``travel_mm`` of belt travel:
+    its index, the position error (mm) and the rotation error (deg) against its truth."""
+    near = min(range(len(PARTS)),
+               key=lambda k: float(np.linalg.norm(truth(k, travel_mm)[:3, 3] - T_base_obj[:3, 3])))
+    want = truth(near, travel_mm)
+    turn = math.degrees(math.acos(np.clip((np.trace(want[:3, :3].T @ T_base_obj[:3, :3]) - 1) / 2,
+                                          -1, 1)))
+    return near, float(np.linalg.norm(want[:3, 3] - T_base_obj[:3, 3])), turn

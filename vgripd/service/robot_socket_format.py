@@ -1,15 +1,15 @@
 """The robot socket message format (``robot_socket`` link, docs/robot_socket.md), with no I/O.
 
 A robot program and vgripd exchange fixed-length binary frames over one TCP connection: the
-robot sends 16-byte requests (44 bytes for CAPTURE_AT, which carries a pose), vgripd answers
-with 64-byte frames. Every field is a 32-bit
-big-endian word, so a robot language that reads integers more easily than bytes (KRL through
-EthernetKRL, Karel, URScript's ``socket_read_binary_integer``, MotoPlus C) reads a request or an
-answer as 4 or 16 integers. Pose values are int32 fixed-point (``raw = round(value * scale)``,
-scale a power of ten) or, for languages that unpack IEEE floats directly (RAPID's
-``UnpackRawBytes \\Float4``), float32.
+robot sends 16-byte requests (44 bytes for CAPTURE_AT, which carries a pose; 24 for a counted
+request, which carries the conveyor's encoder count), vgripd answers with 64-byte frames.
+Every field is a 32-bit big-endian word, so a robot language that reads integers more easily
+than bytes (KRL through EthernetKRL, Karel, URScript's ``socket_read_binary_integer``,
+MotoPlus C) reads a request or an answer as 4 or 16 integers. Pose values are int32
+fixed-point (``raw = round(value * scale)``, scale a power of ten) or, for languages that
+unpack IEEE floats directly (RAPID's ``UnpackRawBytes \\Float4``), float32.
 
-Request, robot -> vgripd (16 bytes; CAPTURE_AT 44 bytes)::
+Request, robot -> vgripd (16 bytes; CAPTURE_AT 44 bytes; counted requests 24 bytes)::
 
     word  bytes  field
        0   0-3   header: "V" "G" version command (0x56 0x47 0x01 cc); command 1 LOCATE,
@@ -21,6 +21,11 @@ Request, robot -> vgripd (16 bytes; CAPTURE_AT 44 bytes)::
      4-10 16-43  CAPTURE_AT only: the flange pose in the base frame (no tool), 7 values in the
                  output vendor's convention and units and in the link's value encoding, as
                  answer words 6-12 (6-value conventions send 0 as the 7th)
+       4  16-19  counted requests only (command + 0x40: LOCATE 0x41, NEXT 0x43, PREDICT 0x45):
+                 the encoder count (u32; LOCATE: latched at the exposure, NEXT: now, PREDICT:
+                 the count N to predict the served part for)
+       5  20-23  counted requests only: the camera frame id the count belongs to
+                 (``conveyor.latch = "frame_id"``), else 0
 
 Answer, vgripd -> robot (64 bytes)::
 
@@ -38,9 +43,13 @@ Answer, vgripd -> robot (64 bytes)::
                  answer (0 without a pick list, on the last one and past the end)
 
 A request is answered exactly once with a final frame (RESULT or REFUSED), for LOCATE preceded by
-CAPTURED once the images are taken (the robot may move on). REFUSED means no job ran: BUSY (a
-job is running), BAD_REQUEST (unknown command, id 0, recipe > 65535, reserved word not 0, NEXT
-without a pick list), or the daemon's own refusal. NEXT is answered RESULT without CAPTURED (no
+CAPTURED once the images are taken (the robot may move on). The final frame of a counted request
+is preceded by one BELT frame (kind 0x84; docs/robot_socket.md, "Conveyor"): the request id,
+RESULT_COUNT, LATCH_SOURCE, LATCH_ERR_MM, ALONG, ACROSS, THETA and QUEUED of register map
+version 4 (all 0 when no job ran or the part stands still), so every answer stays 64 bytes.
+REFUSED means no job ran: BUSY (a job is running), BAD_REQUEST (unknown command, id 0, recipe
+> 65535, reserved word not 0, NEXT without a pick list, PREDICT without a count or a
+conveyor), or the daemon's own refusal. NEXT is answered RESULT without CAPTURED (no
 image is taken): the following pickable object of the last LOCATE, with that job's id, or
 NOT_FOUND without a pose once the list is used up. CAPTURE_AT is a LOCATE whose job gets the
 flange pose (``Trigger.T_base_flange``: a robot-mounted camera's pose; in a walked hand-eye
@@ -62,12 +71,14 @@ from typing import Literal
 
 from vgripd.registry import LinkCapabilities
 from vgripd.service.protocol import FIT_RMS_KEY, PickPosition, pick_position
-from vgripd.types import JobResult, Status
+from vgripd.types import BeltPose, JobResult, Status
 
 VERSION = 1
 MAGIC = 0x5647  # "VG"
 REQUEST_SIZE = 16
 CAPTURE_AT_SIZE = REQUEST_SIZE + 4 * 7  # the request and 7 pose value words
+COUNTED = 0x40  # command flag: the request carries the encoder count and frame id
+COUNTED_SIZE = REQUEST_SIZE + 4 * 2
 ANSWER_SIZE = 64
 N_VALUES = 7
 MAX_REQUEST_ID = 2**31 - 1
@@ -87,12 +98,14 @@ class SocketCommand(enum.IntEnum):
     CLEAR = 2
     NEXT = 3  # the next object of the last LOCATE's pick list (``Command.NEXT``)
     CAPTURE_AT = 4  # LOCATE with the flange pose reached (``Command.TRIGGER`` + the pose)
+    PREDICT = 5  # a conveyor part's pose at count N (``Command.PREDICT``); counted only
 
 
 class AnswerKind(enum.IntEnum):
     CAPTURED = 0x81
     RESULT = 0x82
     REFUSED = 0x83
+    BELT = 0x84  # a counted request's belt words, before its final frame
 
 
 def header_word(code: int) -> int:
@@ -110,8 +123,11 @@ class ValueOverflowError(ValueError):
 
 def request_size(header: bytes) -> int:
     """The length of the request whose first bytes (at least 4) are ``header``: 44 for
-    CAPTURE_AT, 16 for every other command (an unknown one is refused as a 16-byte request)."""
-    return CAPTURE_AT_SIZE if header[3] == SocketCommand.CAPTURE_AT else REQUEST_SIZE
+    CAPTURE_AT, 24 for a command byte with the ``COUNTED`` flag, 16 for every other command
+    (an unknown one is refused as a request of that length)."""
+    if header[3] == SocketCommand.CAPTURE_AT:
+        return CAPTURE_AT_SIZE
+    return COUNTED_SIZE if header[3] & COUNTED else REQUEST_SIZE
 
 
 @dataclass(frozen=True)
@@ -122,11 +138,18 @@ class Request:
     reserved: int = 0
     #: CAPTURE_AT: the 7 pose values (decoded with the link's encoding)
     values: tuple[float, ...] = ()
+    #: A counted request (``COUNTED``): the encoder count (u32) and the frame id; None: none
+    count: int | None = None
+    frame: int = 0
 
     def encode(self, encoding: ValueEncoding | None = None) -> bytes:
-        """The frame; CAPTURE_AT with its 7 values in ``encoding`` (default int32 x 10000)."""
-        head = struct.pack(">4I", header_word(self.command), self.request_id, self.recipe,
+        """The frame; CAPTURE_AT with its 7 values in ``encoding`` (default int32 x 10000), a
+        counted request (``count`` not None) with its command flagged and its two words."""
+        code = self.command | (COUNTED if self.count is not None else 0)
+        head = struct.pack(">4I", header_word(code), self.request_id, self.recipe,
                            self.reserved)
+        if self.count is not None:
+            return head + struct.pack(">2I", self.count & 0xFFFFFFFF, self.frame & 0xFFFFFFFF)
         if self.command != SocketCommand.CAPTURE_AT:
             return head
         enc = encoding or ValueEncoding()
@@ -135,8 +158,12 @@ class Request:
 
     def refusal(self) -> Status | None:
         """``BAD_REQUEST`` when the request is well framed but cannot be served; else None."""
-        if self.command not in (SocketCommand.LOCATE, SocketCommand.CLEAR, SocketCommand.NEXT,
-                                SocketCommand.CAPTURE_AT):
+        if self.count is not None:  # the conveyor's commands; PREDICT needs its count
+            if self.command not in (SocketCommand.LOCATE, SocketCommand.NEXT,
+                                    SocketCommand.PREDICT):
+                return Status.BAD_REQUEST
+        elif self.command not in (SocketCommand.LOCATE, SocketCommand.CLEAR, SocketCommand.NEXT,
+                                  SocketCommand.CAPTURE_AT):
             return Status.BAD_REQUEST
         if not 1 <= self.request_id <= MAX_REQUEST_ID:
             return Status.BAD_REQUEST
@@ -159,6 +186,10 @@ def decode_request(frame: bytes, encoding: ValueEncoding | None = None) -> Reque
     if size == CAPTURE_AT_SIZE:
         enc = encoding or ValueEncoding()
         values = tuple(enc.decode(frame[16 + 4 * i:20 + 4 * i]) for i in range(N_VALUES))
+    if size == COUNTED_SIZE:
+        count, frame_id = struct.unpack_from(">2I", frame, REQUEST_SIZE)
+        return Request(header & 0xFF & ~COUNTED, request_id, recipe, reserved, (), count,
+                       frame_id)
     return Request(header & 0xFF, request_id, recipe, reserved, values)
 
 
@@ -260,7 +291,9 @@ def decode_answer(frame: bytes) -> Answer:
     try:
         kind = AnswerKind(header & 0xFF)
     except ValueError:
-        raise FrameError(f"answer kind {header & 0xFF:#04x} is not 0x81..0x83") from None
+        raise FrameError(f"answer kind {header & 0xFF:#04x} is not 0x81..0x84") from None
+    if kind is AnswerKind.BELT:
+        raise FrameError("a BELT frame (0x84) is read with decode_belt")
     scale, remaining = struct.unpack_from(">2I", frame, 56)
     if count > N_VALUES:
         raise FrameError(f"answer count {count} exceeds {N_VALUES}")
@@ -270,15 +303,71 @@ def decode_answer(frame: bytes) -> Answer:
                   encoding.decode(frame[52:56]), remaining)
 
 
-def result_answer(request_id: int, result: JobResult, warnings: int, encoding: ValueEncoding,
-                  captured: bool, kind: AnswerKind | None = None) -> tuple[bytes, JobResult]:
-    """The final frame for ``result`` and the result actually sent.
+@dataclass(frozen=True)
+class BeltFrame:
+    """The BELT frame (kind 0x84) before a counted request's final frame: register map
+    version 4's belt result (``vgripd.types.BeltPose``), lengths in mm and angles in deg in
+    the link's value encoding whatever ``output.vendor``'s units are.
 
-    A pose value that does not fit the encoding turns the answer into ``OUT_OF_LIMITS`` without
-    a pose, more values than the frame holds (a bug: the config check refuses such a vendor)
-    into ``INTERNAL``. ``kind``: the link's handshake says (``jobcore.answer_refused``);
-    without it a request that never got a job (no images, job id 0: the daemon's BUSY or
-    ABORTED refusal) is answered REFUSED, every other one RESULT.
+    Words: 0 header, 1 request id, 2 RESULT_COUNT (u32), 3 LATCH_SOURCE, 4 LATCH_ERR_MM,
+    5 ALONG, 6 ACROSS, 7 THETA, 8 QUEUED, 9-13 reserved 0, 14 the scale word, 15 reserved 0.
+    """
+
+    request_id: int
+    count: int = 0
+    source: int = 0
+    error_mm: float = 0.0
+    along_mm: float = 0.0
+    across_mm: float = 0.0
+    theta_deg: float = 0.0
+    queued: int = 0
+
+    @classmethod
+    def of(cls, request_id: int, belt: BeltPose | None) -> BeltFrame:
+        if belt is None:
+            return cls(request_id)
+        return cls(request_id, belt.count & 0xFFFFFFFF, belt.source, belt.error_mm,
+                   belt.along_mm, belt.across_mm, belt.theta_deg, belt.queued)
+
+    def encode(self, encoding: ValueEncoding) -> bytes:
+        """The 64-byte frame; ``ValueOverflowError`` naming the word that does not fit."""
+        values = b"".join(encoding.encode(v, f"BELT word {4 + i} ({name})") for i, (name, v) in
+                          enumerate((("LATCH_ERR_MM", self.error_mm), ("ALONG", self.along_mm),
+                                     ("ACROSS", self.across_mm), ("THETA", self.theta_deg))))
+        return (struct.pack(">4I", header_word(AnswerKind.BELT), self.request_id, self.count,
+                            self.source) + values
+                + struct.pack(">7I", min(self.queued, 0xFFFFFFFF), 0, 0, 0, 0, 0,
+                              encoding.scale_word) + bytes(4))
+
+
+def decode_belt(frame: bytes) -> BeltFrame:
+    """A BELT frame, values decoded by its own scale word; ``FrameError`` when it is not one."""
+    if len(frame) != ANSWER_SIZE:
+        raise FrameError(f"a BELT frame is {ANSWER_SIZE} bytes, got {len(frame)}")
+    header, request_id, count, source = struct.unpack_from(">4I", frame)
+    check_header(header, "BELT frame")
+    if header & 0xFF != AnswerKind.BELT:
+        raise FrameError(f"answer kind {header & 0xFF:#04x} is not BELT (0x84)")
+    scale = struct.unpack_from(">I", frame, 56)[0]
+    encoding = ValueEncoding("int32", scale) if scale else ValueEncoding("float32")
+    err, along, across, theta = (encoding.decode(frame[16 + 4 * i:20 + 4 * i])
+                                 for i in range(4))
+    queued = struct.unpack_from(">I", frame, 32)[0]
+    return BeltFrame(request_id, count, source, err, along, across, theta, queued)
+
+
+def result_answer(request_id: int, result: JobResult, warnings: int, encoding: ValueEncoding,
+                  captured: bool, kind: AnswerKind | None = None,
+                  counted: bool = False) -> tuple[bytes, JobResult]:
+    """The final frame for ``result`` and the result actually sent; for a ``counted``
+    request the BELT frame (``result.belt``) and the final frame.
+
+    A pose or belt value that does not fit the encoding turns the answer into
+    ``OUT_OF_LIMITS`` without a pose (and with a BELT frame of zeros), more values than the
+    frame holds (a bug: the config check refuses such a vendor) into ``INTERNAL``. ``kind``:
+    the link's handshake says (``jobcore.answer_refused``); without it a request that never
+    got a job (no images, job id 0: the daemon's BUSY or ABORTED refusal) is answered
+    REFUSED, every other one RESULT.
     """
     if kind is None:
         kind = AnswerKind.RESULT if captured or result.job_id else AnswerKind.REFUSED
@@ -289,14 +378,16 @@ def result_answer(request_id: int, result: JobResult, warnings: int, encoding: V
     answer = Answer(kind, request_id, int(result.status), result.job_id, warnings, values, rms,
                     remaining(pick_position(result)))
     try:
-        return answer.encode(encoding), result
+        belt = BeltFrame.of(request_id, result.belt).encode(encoding) if counted else b""
+        return belt + answer.encode(encoding), result
     except ValueOverflowError as err:
         status = Status.INTERNAL if len(values) > N_VALUES else Status.OUT_OF_LIMITS
         failed = JobResult(job_id=result.job_id, status=status, message=str(err),
-                           t_done_mono_ns=result.t_done_mono_ns)
+                           t_done_mono_ns=result.t_done_mono_ns, recipe=result.recipe)
         answer = Answer(kind, request_id, int(status), result.job_id, warnings, (), rms,
                         remaining(pick_position(result)))
-        return answer.encode(encoding), failed
+        belt = BeltFrame(request_id).encode(encoding) if counted else b""
+        return belt + answer.encode(encoding), failed
 
 
 def remaining(position: PickPosition) -> int:

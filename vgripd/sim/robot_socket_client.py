@@ -35,6 +35,18 @@ bytes) with the pose the arm reports, in the brand's convention and its encoding
 scale from the controller's own resolution for MotoPlus, float32 for RAPID), then reads
 CAPTURED and the RESULT with the next target.
 The walk's requests are retried as every other request of the program.
+
+The conveyor routines (docs/robot_socket.md, "Conveyor"), for programs that have them:
+``locate_at``, ``next_at`` and ``predict`` send the counted requests (24 bytes, the encoder
+count and frame id) and read the BELT frame before the final one (``Outcome.belt``).
+``intercept(belt, arm, lead)`` is the program's intercept routine for a robot without a
+tracking option: NEXT at the count now, PREDICT at the count now + ``lead``, move there, wait
+until the encoder reaches that count, grip. ``track(belt, arm, tracker)`` is its tracking
+routine: NEXT at the count now, the pose and its RESULT_COUNT handed to the controller's own
+tracking (``tracker``: the controller's belt, which adds the travel since that count), the
+arm follows and grips when the part is at the window's middle. ``belt`` is the test's
+simulated belt (``count()``, ``advance(counts)``): the twin reads and waits on it as the
+program reads its encoder input.
 """
 
 from __future__ import annotations
@@ -92,6 +104,8 @@ class ProgramSettings:
     at_bytes: int = 44  # the length of its CAPTURE_AT request
     #: (mm, deg): the walk checks the flange pose read against the target (MotoPlus), or None
     at_tolerance: tuple[float, float] | None = None
+    #: The conveyor's words (LOCATE_AT, NEXT_AT, PREDICT, BELT) where the program has them
+    belt_words: dict[str, int] = field(default_factory=dict)
 
     @classmethod
     def parse(cls, brand: str | RobotBrand, texts: dict[str, str]) -> ProgramSettings:
@@ -120,12 +134,14 @@ class ProgramSettings:
                                                         "RESULT", "REFUSED", "CAPTURE_AT")}
             speed = (values["VG_WALK_SPEED_M_S"] * 1000 if "VG_WALK_SPEED_M_S" in values
                      else values["VG_WALK_SPEED_MM_S"])
+            belt = {k: int(values[f"VG_{k}"]) for k in ("LOCATE_AT", "NEXT_AT", "PREDICT",
+                                                        "BELT") if f"VG_{k}" in values}
             return cls(b, values["VG_SCALE"], seconds("VG_TIMEOUT"),
                        seconds("VG_CONNECT_TIMEOUT", connect_default), seconds("VG_BUSY_WAIT"),
                        int(values["VG_BUSY_TRIES"]), int(values["VG_ATTEMPTS"]), words,
                        speed, seconds("VG_WALK_SETTLE"), int(values["VG_AT_BYTES"]),
                        (values["VG_AT_TOL_UM"] / 1000, values["VG_AT_TOL_DEG4"] / 10000)
-                       if "VG_AT_TOL_UM" in values else None)
+                       if "VG_AT_TOL_UM" in values else None, belt)
         except KeyError as err:
             raise ValueError(f"{b.name} program states no {err.args[0]}") from None
 
@@ -147,6 +163,10 @@ class Outcome:
     captured: bool = False
     request_ids: list[int] = field(default_factory=list)
     remaining: int = 0  # answer word 15: pickable objects after this one
+    #: A counted request's BELT frame: RESULT_COUNT, LATCH_SOURCE, QUEUED (u32 as read)
+    belt: tuple[int, int, int] | None = None
+    #: ... and LATCH_ERR_MM, ALONG, ACROSS, THETA (mm, deg)
+    belt_values: tuple[float, ...] = ()
 
 
 @dataclass
@@ -198,6 +218,53 @@ class ProgramTwin:
         """``vg_next()`` of the program: the following object of the last locate's pick list
         (its NEXT word, recipe 0), asked and retried as its locate is."""
         return await self._ask(self.s.words["NEXT"], 0)
+
+    async def locate_at(self, recipe: int, count: int, frame: int = 0) -> Outcome:
+        """``vgLocateAt``: a locate with the encoder count latched at the image."""
+        return await self._ask(self.s.belt_words["LOCATE_AT"], recipe, count=(count, frame))
+
+    async def next_at(self, count: int) -> Outcome:
+        """``vgNextAt``: the next part of the conveyor's queue at the count now."""
+        return await self._ask(self.s.belt_words["NEXT_AT"], 0, count=(count, 0))
+
+    async def predict(self, count: int) -> Outcome:
+        """``vgPredict``: where the part last served will be at ``count``."""
+        return await self._ask(self.s.belt_words["PREDICT"], 0, count=(count, 0))
+
+    async def intercept(self, belt: Any, arm: Any, lead: int) -> tuple[Outcome, int]:
+        """The intercept routine: NEXT now, PREDICT at now + ``lead``, move there (the arm),
+        wait for the encoder to reach that count (the belt moves), grip. The answer the move
+        went to and the count at the grip; a status other than 1/2 returns at once."""
+        out = await self.next_at(belt.count())
+        if out.status not in (1, 2):
+            return out, belt.count()
+        target = (belt.count() + lead) & 0xFFFFFFFF
+        out = await self.predict(target)
+        if out.status not in (1, 2):
+            return out, belt.count()
+        arm.move(transform_from_vendor(self.s.brand.convention, out.values))
+        while arm.step() is not ArmState.SETTLED:
+            belt.advance(1)
+        while ((belt.count() - target) & 0xFFFFFFFF) >= 1 << 31:  # the program's wait
+            belt.advance(1)
+        return out, belt.count()
+
+    async def track(self, belt: Any, arm: Any, tracker: Any) -> tuple[Outcome, int]:
+        """The tracking routine: NEXT now; the pose at its RESULT_COUNT into the controller's
+        tracking (``tracker.moved(T, count_from, count_to)``), the arm follows it until the
+        part reaches ``tracker.grip_along_mm``, grip. The answer and the count at the grip."""
+        out = await self.next_at(belt.count())
+        if out.status not in (1, 2) or out.belt is None:
+            return out, belt.count()
+        T = transform_from_vendor(self.s.brand.convention, out.values)
+        while True:
+            now = belt.count()
+            arm.move(tracker.moved(T, out.belt[0], now))
+            while arm.step() is not ArmState.SETTLED:
+                pass
+            if tracker.along_mm(arm.T_true) >= tracker.grip_along_mm:
+                return out, now
+            belt.advance(tracker.step_counts)
 
     async def capture_at(self, T: Any) -> Outcome:
         """The walk routine's CAPTURE_AT alone, for flange pose ``T`` (mm): what vgripd does
@@ -259,14 +326,14 @@ class ProgramTwin:
             values = [round(v / res[i >= 3]) * res[i >= 3] for i, v in enumerate(values)]
         return tuple(values) + (0.0,) * (N_VALUES - len(values))
 
-    async def _ask(self, command_word: int, recipe: int,
-                   pose: tuple[float, ...] = ()) -> Outcome:
+    async def _ask(self, command_word: int, recipe: int, pose: tuple[float, ...] = (),
+                   count: tuple[int, int] | None = None) -> Outcome:
         unanswered = busy = 0
         ids: list[int] = []
         while True:
             self.vg_id = 1 if self.vg_id >= MAX_ID else self.vg_id + 1
             ids.append(self.vg_id)
-            outcome = await self._request(command_word, recipe, pose)
+            outcome = await self._request(command_word, recipe, pose, count)
             outcome.request_ids = ids
             if self.s.brand.connection == "per_request" or outcome.status == NO_ANSWER:
                 await self._drop()
@@ -285,8 +352,8 @@ class ProgramTwin:
 
     # -- one request ---------------------------------------------------------------------
 
-    async def _request(self, command_word: int, recipe: int,
-                       pose: tuple[float, ...] = ()) -> Outcome:
+    async def _request(self, command_word: int, recipe: int, pose: tuple[float, ...] = (),
+                       count: tuple[int, int] | None = None) -> Outcome:
         if not await self._connect():
             return Outcome(NO_ANSWER)
         assert self._writer is not None
@@ -298,6 +365,8 @@ class ProgramTwin:
             else:
                 frame += struct.pack(">7f", *pose)
             assert len(frame) == self.s.at_bytes
+        if count is not None:
+            frame += struct.pack(">2I", count[0] & 0xFFFFFFFF, count[1] & 0xFFFFFFFF)
         self.sent.append(frame)
         try:
             self._writer.write(frame)
@@ -305,6 +374,8 @@ class ProgramTwin:
         except OSError:
             return Outcome(NO_ANSWER)
         captured = False
+        belt: tuple[int, int, int] | None = None
+        belt_values: tuple[float, ...] = ()
         deadline = time.monotonic() + self.s.timeout_s
         while True:
             wait_s = (self.s.timeout_s if self.s.brand.name in PER_FRAME_TIMEOUT
@@ -315,12 +386,19 @@ class ProgramTwin:
                 return Outcome(NO_ANSWER, captured=captured)
             w = struct.unpack(">16i", answer)
             if w[0] not in (self.s.words["CAPTURED"], self.s.words["RESULT"],
-                            self.s.words["REFUSED"]):
+                            self.s.words["REFUSED"], self.s.belt_words.get("BELT")):
                 return Outcome(NO_ANSWER, captured=captured)  # out of step
             if w[1] != self.vg_id:
                 continue  # an answer to an earlier request
             if w[0] == self.s.words["CAPTURED"]:
                 captured = True
+                continue
+            if w[0] == self.s.belt_words.get("BELT"):
+                u = struct.unpack(">16I", answer)
+                belt = (u[2], u[3], u[8])
+                belt_values = tuple(v / self.s.scale if self.s.scale else v for v in
+                                    (w[4:8] if self.s.scale else
+                                     struct.unpack(">4f", answer[16:32])))
                 continue
             values: tuple[float, ...] = ()
             if w[5] == self.s.n_values:
@@ -335,7 +413,8 @@ class ProgramTwin:
                                    for v in struct.unpack(f">{self.s.n_values}i", raw))
                 else:
                     values = struct.unpack(f">{self.s.n_values}f", raw)
-            return Outcome(w[2], values, w[3], w[4], captured, remaining=w[15])
+            return Outcome(w[2], values, w[3], w[4], captured, remaining=w[15], belt=belt,
+                           belt_values=belt_values)
 
     # -- connections ---------------------------------------------------------------------
 
