@@ -32,6 +32,12 @@ daemon answers it from the last job's pick list (or ``BAD_REQUEST`` when this li
 Every answer carries the pick list position in input_double_register ``regs.pick``
 (``1000 * COUNT + INDEX``, written before the ack; 0 for refusals).
 
+Conveyor (``map_version = 4``, docs/ur_rtde.md "Conveyor"): the robot writes the encoder count
+it latched with each request into output_int_register ``regs.latch`` (read from the trigger's
+data package: ``Trigger.latch_count``); PREDICT (5) is a request; every answer carries the belt
+block (``URRegisterMap.belt_values``: its sequence, RESULT_COUNT, LATCH_SOURCE, QUEUED,
+LATCH_ERR_MM, ALONG, ACROSS, THETA), written by the child before the acknowledge.
+
 The child's stdout/stderr (ur_rtde prints its own errors there) is a pipe read on the loop:
 each line is logged through ``vgripd.link.ur_rtde`` (``link <name>: ur_rtde: <line>``, INFO),
 at most ``OUTPUT_LINES`` lines per ``OUTPUT_WINDOW_S`` and link, then a count of the held ones.
@@ -50,7 +56,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -58,6 +64,7 @@ from drivers.links import ur_rtde_worker
 from vgripd.errors import ConversionError, LinkError
 from vgripd.geometry.vendors import transform_from_vendor
 from vgripd.service.protocol import (
+    Command,
     LinkCapabilities,
     LinkHealth,
     LinkState,
@@ -145,6 +152,9 @@ class URRtdeOptions(BaseModel):
     write_timeout_s: float = Field(2.0, gt=0, le=60)
     backoff_initial_s: float = Field(0.2, gt=0, le=60)
     backoff_max_s: float = Field(10.0, gt=0, le=600)
+    #: 4: the conveyor's registers (the latch count with each request, PREDICT, the belt
+    #: block with each answer; docs/ur_rtde.md "Conveyor"), as the Modbus links' version 4.
+    map_version: Literal[3, 4] = 3
 
 
 class _Child:
@@ -163,7 +173,7 @@ class _Child:
             target=ur_rtde_worker.main, name=f"ur_rtde {opts.host}", daemon=True,
             args=(child_conn, child_output, opts.host, opts.use_upper_range_registers,
                   opts.frequency_hz, opts.stale_after_s, opts.connect_timeout_s, last_seq,
-                  os.getpid()))
+                  os.getpid(), opts.map_version == 4))
         self._child_conns: list[Connection] = [child_conn, child_output]
         self.messages: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue()
         self.exited: asyncio.Future[int] = asyncio.get_running_loop().create_future()
@@ -269,7 +279,7 @@ class URRtdeLink(RobotLink):
 
     def __init__(self, name: str, options: URRtdeOptions) -> None:
         super().__init__(name, options)
-        self.regs = URRegisterMap(options.use_upper_range_registers)
+        self.regs = URRegisterMap(options.use_upper_range_registers, options.map_version == 4)
         self._peer = f"{options.host}:{ur_rtde_worker.RTDE_PORT}"
         self._health = LinkHealth(LinkState.STOPPED, self._peer, since_mono_ns=time.monotonic_ns())
         self._health_changed: asyncio.Condition | None = None
@@ -351,8 +361,10 @@ class URRtdeLink(RobotLink):
         if status is Status.INTERNAL or not position.listed:
             position = PickPosition(0, 0)
         pick = self.regs.pick_word(position)
+        belt = (self.regs.belt_values(seq, result.belt if status is result.status else None)
+                if self.regs.conveyor else None)
         await self._request("publish", (seq, int(status), result.job_id, translation, rotation,
-                                        pick))
+                                        pick, belt))
         return status
 
     async def set_warnings(self, bits: int) -> None:
@@ -513,19 +525,23 @@ class URRtdeLink(RobotLink):
         Kept for the reconnect like any answer; a newer request replaces it."""
         self._last_seq = seq
         self._replay.clear()
-        args = (seq, int(status), 0, None, None, 0.0)
+        belt = self.regs.belt_values(seq, None) if self.regs.conveyor else None
+        args = (seq, int(status), 0, None, None, 0.0, belt)
         self._replay["publish"] = ("publish", args)
         self._refused[status.name] += 1
         log.info("link %s: request %d refused: %s (command %d; the robot program may send %s)",
                  self.name, seq, status.name, command,
-                 " or ".join(str(c) for c in sorted(self.regs.COMMANDS)))
+                 " or ".join(str(c) for c in sorted(
+                     self.regs.COMMANDS | ({int(Command.PREDICT)} if self.regs.conveyor
+                                           else set()))))
         try:
             child.send((0, "publish", args))  # nobody waits: no "done" is expected
         except OSError:
             return False
         return True
 
-    def _deliver(self, seq: int, command: int, tcp_pose: list[float], recipe: int = 0) -> None:
+    def _deliver(self, seq: int, command: int, tcp_pose: list[float], recipe: int = 0,
+                 latch: int | None = None) -> None:
         t_mono_ns = time.monotonic_ns()
         self._last_seq = seq
         self._replay.clear()  # a new request: earlier answers are no longer wanted
@@ -537,7 +553,7 @@ class URRtdeLink(RobotLink):
             T_base_flange = None
         command, view = split_command(command)
         trigger = Trigger(self.name, seq, command, t_mono_ns, T_base_flange, recipe=recipe,
-                          view=view, peer=self._peer)
+                          view=view, peer=self._peer, latch_count=latch)
         assert self._on_trigger is not None
         try:
             self._on_trigger(trigger)

@@ -8,11 +8,18 @@ restarts. The child never runs destructors: it leaves with ``os._exit`` and lets
 its sockets.
 
 Pipe messages, parent -> child: ``(req, "captured", (seq, job_id))``,
-``(req, "publish", (seq, status, job_id, translation | None, rotation | None, pick))``,
+``(req, "publish", (seq, status, job_id, translation | None, rotation | None, pick, belt))``
+(``belt``: ``URRegisterMap.belt_values`` with ``conveyor``, else None),
 ``(req, "warnings", (bits,))``, ``(0, "close", ())``. Child -> parent:
 ``("started",)`` (the process runs, ur_rtde is loaded: the setup begins),
-``("up", peer, baseline_seq, note)``, ``("trigger", seq, command, tcp_pose)``,
+``("up", peer, baseline_seq, note)``,
+``("trigger", seq, command, tcp_pose, recipe, latch_count | None)``,
 ``("done", req)``, ``("error", fatal, message)`` (the child exits right after).
+
+Conveyor (``conveyor``, the link's ``map_version = 4``): the latch count is read from the
+same data package as the trigger; the belt block goes into input registers ur_rtde cannot
+write, through the child's own RTDE connection with one input recipe (``BeltWriter``), so the
+whole block lands in one data package, before ur_rtde writes the acknowledge.
 
 The child's stdout and stderr (ur_rtde prints its errors there, e.g. ``RTDEReceiveInterface
 boost system Exception: (asio.misc:2) End of file``) are a pipe the parent reads and logs line by
@@ -121,6 +128,51 @@ def read_pending(host: str, regs: URRegisterMap, timeout_s: float) -> tuple[int,
     return seq, ack
 
 
+class BeltWriter:
+    """The belt block's input registers over a raw RTDE connection of the child's own (one
+    input recipe; data packages need no start and get no reply). A register another client or
+    a fieldbus adapter owns (IN_USE) or the controller does not know (NOT_FOUND, software
+    older than 3.9 / 5.3) is an outage that names it."""
+
+    def __init__(self, host: str, regs: URRegisterMap, timeout_s: float) -> None:
+        self.peer = f"{host}:{RTDE_PORT}"
+        self.names = regs.belt_names
+        try:
+            self.sock = socket.create_connection((host, RTDE_PORT), timeout=timeout_s)
+        except OSError as err:
+            raise _Lost(f"{self.peer}: belt registers: {err}") from None
+        try:
+            self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self.sock.sendall(struct.pack(">HBH", 5, ord("V"), 2))
+            _recv_package(self.sock)
+            body = ",".join(self.names).encode("ascii")
+            self.sock.sendall(struct.pack(">HB", 3 + len(body), ord("I")) + body)
+            letter, payload = _recv_package(self.sock)
+            while letter != "I":  # skip text messages
+                letter, payload = _recv_package(self.sock)
+        except (OSError, ConnectionError, struct.error) as err:
+            self.sock.close()
+            raise _Lost(f"{self.peer}: belt registers: {err}") from None
+        types = payload[1:].decode("ascii", "replace").split(",")
+        bad = [f"{n} {t}" for n, t in zip(self.names, types, strict=False)
+               if t in ("IN_USE", "NOT_FOUND")]
+        if bad or not payload or payload[0] == 0:
+            self.sock.close()
+            raise _Lost(f"{self.peer}: {', '.join(bad) or 'the belt registers refused'} "
+                        "(map_version = 4 needs these input registers free: a fieldbus "
+                        "adapter or another RTDE client owns them, or the controller is "
+                        "older than 3.9 / 5.3)", fatal=True)
+        self.recipe = payload[0]
+
+    def write(self, values: Sequence[int | float]) -> None:
+        body = struct.pack(">B4i4d", self.recipe, *(int(v) for v in values[:4]),
+                           *(float(v) for v in values[4:]))
+        try:
+            self.sock.sendall(struct.pack(">HB", 3 + len(body), ord("U")) + body)
+        except OSError as err:
+            raise _Lost(f"{self.peer}: writing the belt registers: {err}") from None
+
+
 def _connect(host: str, regs: URRegisterMap, frequency_hz: float,
              timeout_s: float) -> tuple[Any, Any]:
     import rtde_io
@@ -130,6 +182,8 @@ def _connect(host: str, regs: URRegisterMap, frequency_hz: float,
     names = ["timestamp", "actual_TCP_pose", *(f"output_int_register_{n}"
                                                for n in (regs.seq, regs.command,
                                                          regs.page_request, regs.recipe))]
+    if regs.conveyor:
+        names.append(f"output_int_register_{regs.latch}")
     try:
         rcv = rtde_receive.RTDEReceiveInterface(host, frequency_hz, names, False, regs.upper)
     except RuntimeError as err:
@@ -180,8 +234,10 @@ def first_baseline(seq: int, pending: tuple[int, int] | None) -> tuple[int, str]
 class _Session:
     def __init__(self, conn: Connection, rcv: Any, io: Any, regs: URRegisterMap,
                  peer: str, last_seq: int | None, stale_after_s: float,
-                 pending: tuple[int, int] | None = None) -> None:
+                 pending: tuple[int, int] | None = None,
+                 belt: BeltWriter | None = None) -> None:
         self.conn, self.rcv, self.io, self.regs, self.peer = conn, rcv, io, regs, peer
+        self.belt = belt
         self.stale_after_s = stale_after_s
         self.note = ""
         if last_seq is None:  # first connect: serve a request nobody answered yet
@@ -212,8 +268,9 @@ class _Session:
         for reg, value in zip(self.regs.page, values, strict=True):
             self.write_double(reg, value)
 
-    def snapshot(self) -> tuple[float, int, int, int, list[float], int]:
-        """Timestamp, seq, command, page request, TCP pose and recipe from one data package.
+    def snapshot(self) -> tuple[float, int, int, int, list[float], int, int | None]:
+        """Timestamp, seq, command, page request, TCP pose, recipe and (``conveyor``) the
+        latch count (32 bits, unsigned) from one data package.
 
         The getters read the newest package one by one; reading the timestamp before and after
         proves that no new package arrived in between.
@@ -223,7 +280,9 @@ class _Session:
             ts = r.getTimestamp()
             values = (r.getOutputIntRegister(regs.seq), r.getOutputIntRegister(regs.command),
                       r.getOutputIntRegister(regs.page_request), list(r.getActualTCPPose()),
-                      r.getOutputIntRegister(regs.recipe))
+                      r.getOutputIntRegister(regs.recipe),
+                      r.getOutputIntRegister(regs.latch) & 0xFFFFFFFF if regs.conveyor
+                      else None)
             if r.getTimestamp() == ts:
                 return (ts, *values)
 
@@ -234,10 +293,12 @@ class _Session:
             self.write_int(regs.job_id, job_id)
             self.write_int(regs.captured, seq)
         elif kind == "publish":
-            seq, status, job_id, translation, rotation, pick = args
+            seq, status, job_id, translation, rotation, pick, belt = args
             if translation is not None:
                 self.write_page(translation)
             self.write_double(regs.pick, pick)
+            if self.belt is not None and belt is not None:
+                self.belt.write(belt)
             self.write_int(regs.status, status)
             self.write_int(regs.job_id, job_id)
             self.write_int(regs.ack, seq)  # last: the robot reads nothing before it sees this
@@ -252,7 +313,7 @@ class _Session:
     def step(self) -> None:
         if not self.rcv.isConnected():
             raise _Lost(f"{self.peer}: data stream closed by the controller")
-        ts, seq, command, page_request, pose, recipe = self.snapshot()
+        ts, seq, command, page_request, pose, recipe, latch = self.snapshot()
         now = time.monotonic()
         if ts != self.last_ts:
             self.last_ts, self.last_ts_change = ts, now
@@ -261,7 +322,7 @@ class _Session:
         if seq != self.last_seq and seq != 0:
             self.last_seq = seq
             self.pending_rotation = None
-            self.conn.send(("trigger", seq, command, pose, recipe))
+            self.conn.send(("trigger", seq, command, pose, recipe, latch))
         pending = self.pending_rotation
         if pending is not None and page_request == pending[0]:
             self.write_page(pending[1])
@@ -291,15 +352,16 @@ def _redirect_output(output: Connection | None) -> None:
 
 def main(conn: Connection, output: Connection | None, host: str, upper: bool,
          frequency_hz: float, stale_after_s: float, probe_timeout_s: float,
-         last_seq: int | None, daemon_pid: int | None = None) -> None:
+         last_seq: int | None, daemon_pid: int | None = None, conveyor: bool = False) -> None:
     """Process entry point: connect, report ``up`` or ``error``, serve until closed or lost.
 
     ``daemon_pid``: the process that spawned this one; the kernel kills this one when it dies.
+    ``conveyor``: the link's ``map_version = 4`` (the latch and the belt block).
     """
     if daemon_pid is not None:
         die_with_daemon(daemon_pid)
     _redirect_output(output)
-    regs = URRegisterMap(upper)
+    regs = URRegisterMap(upper, conveyor)
     peer = f"{host}:{RTDE_PORT}"
     code = 0
     try:
@@ -308,13 +370,14 @@ def main(conn: Connection, output: Connection | None, host: str, upper: bool,
 
         conn.send(("started",))
         rcv, io = _connect(host, regs, frequency_hz, probe_timeout_s)
+        belt = BeltWriter(host, regs, probe_timeout_s) if conveyor else None
         pending = None
         if last_seq is None:
             try:
                 pending = read_pending(host, regs, min(probe_timeout_s, 2.0))
             except (OSError, ConnectionError, struct.error):
                 pending = None
-        session = _Session(conn, rcv, io, regs, peer, last_seq, stale_after_s, pending)
+        session = _Session(conn, rcv, io, regs, peer, last_seq, stale_after_s, pending, belt)
         conn.send(("up", peer, session.last_seq, session.note))
         session.run(1.0 / frequency_hz)
     except _Lost as err:

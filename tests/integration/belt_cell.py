@@ -121,11 +121,9 @@ def f32(words: list[int], reg: int) -> float:
     return CODEC.decode_value(words[reg:reg + 2])
 
 
-def which(words: list[int], travel_mm: float, T_ref: np.ndarray) -> int:
-    """The part whose true pose at ``travel_mm`` the answer's pose is (checked to 1 mm and
-    0.5 deg), its belt terms checked too."""
-    T_offset = transform_from_vendor("kuka", values(words))
-    T = T_offset @ T_ref  # output.mode offset: T_base_obj = T_offset @ T_base_obj_ref
+def part_at(T: np.ndarray, travel_mm: float) -> int:
+    """The part whose true pose at ``travel_mm`` the base-frame pose ``T`` (mm) is, checked to
+    1 mm and 0.5 deg."""
     near = min(range(len(PARTS)),
                key=lambda k: float(np.linalg.norm(truth(k, travel_mm)[:3, 3] - T[:3, 3])))
     want = truth(near, travel_mm)
@@ -133,10 +131,26 @@ def which(words: list[int], travel_mm: float, T_ref: np.ndarray) -> int:
     turn = math.degrees(math.acos(np.clip((np.trace(want[:3, :3].T @ T[:3, :3]) - 1) / 2,
                                           -1, 1)))
     assert turn < 0.5
-    x, y, theta = PARTS[near]
-    assert f32(words, Reg.ALONG) == pytest.approx(x + travel_mm, abs=1.0)
-    assert f32(words, Reg.ACROSS) == pytest.approx(y, abs=1.0)
-    assert f32(words, Reg.THETA) == pytest.approx(theta, abs=0.5)
+    return near
+
+
+def check_belt_terms(part: int, travel_mm: float, along: float, across: float,
+                     theta: float) -> None:
+    """ALONG/ACROSS/THETA of an answer against the part's truth at ``travel_mm``."""
+    x, y, angle = PARTS[part]
+    assert along == pytest.approx(x + travel_mm, abs=1.0)
+    assert across == pytest.approx(y, abs=1.0)
+    assert theta == pytest.approx(angle, abs=0.5)
+
+
+def which(words: list[int], travel_mm: float, T_ref: np.ndarray) -> int:
+    """The part whose true pose at ``travel_mm`` the answer's pose is (checked to 1 mm and
+    0.5 deg), its belt terms checked too."""
+    T_offset = transform_from_vendor("kuka", values(words))
+    T = T_offset @ T_ref  # output.mode offset: T_base_obj = T_offset @ T_base_obj_ref
+    near = part_at(T, travel_mm)
+    check_belt_terms(near, travel_mm, f32(words, Reg.ALONG), f32(words, Reg.ACROSS),
+                     f32(words, Reg.THETA))
     return near
 
 

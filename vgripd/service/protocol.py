@@ -139,7 +139,7 @@ from vgripd.service.jobcore import next_answer as next_answer
 from vgripd.service.jobcore import pick_position as pick_position
 from vgripd.service.jobcore import pickable_count as pickable_count
 from vgripd.service.jobcore import split_command as split_command
-from vgripd.types import FloatArray, JobResult, Status
+from vgripd.types import BeltPose, FloatArray, JobResult, Status
 
 
 class LinkState(enum.Enum):
@@ -810,9 +810,18 @@ class URRegisterMap:
     input ur_rtde can write is taken, and a double holds a 16-bit field exactly) and ``pick``
     (the pick list: ``1000 * COUNT + INDEX`` as a whole number, ``pick_word``; written with
     the result, before ``ack``).
+
+    ``conveyor`` (the link's ``map_version = 4``, docs/conveyor.md): the robot writes the
+    encoder count it latched with the request into output_int_register ``latch`` (its 32 bits
+    as UR's signed int32), and ``Command.PREDICT`` is a request too. The belt result goes
+    into input registers ur_rtde cannot write, ``belt_first`` .. + 3 of both kinds, all in one
+    RTDE data package of the link's own input recipe: ints ``belt_seq`` (the request the
+    block answers), RESULT_COUNT (int32 bits), LATCH_SOURCE, QUEUED; doubles LATCH_ERR_MM,
+    ALONG, ACROSS (mm), THETA (deg). Written before ``ack``.
     """
 
     upper: bool = False
+    conveyor: bool = False
 
     #: Commands the robot program may write to ``command``: 1 = locate (run a job), 3 = next
     #: (the next instance of the last job's pick list, ``Command.NEXT``). Any other value (0,
@@ -826,7 +835,7 @@ class URRegisterMap:
         """The status a request with ``command`` is refused with; None when it runs a job.
         A CAPTURE (``capture_word``: view * 256 + 4, view 1..8) is one view of a several-view
         job; the TCP pose read with it is the view's flange pose."""
-        if command in self.COMMANDS:
+        if command in self.COMMANDS or (self.conveyor and command == Command.PREDICT):
             return None
         kind, view = split_command(command)
         if kind == Command.CAPTURE and 1 <= view <= MAX_VIEWS:
@@ -884,6 +893,31 @@ class URRegisterMap:
     def pick(self) -> int:
         return self._n(22)
 
+    @property
+    def latch(self) -> int:
+        return self._n(16)
+
+    @property
+    def belt_first(self) -> int:
+        """First of the belt block's input registers: 24 (lower range), 30 (upper range);
+        neither range's handshake uses 24..35, nor does ur_rtde's upper range (42..47)."""
+        return 30 if self.upper else 24
+
+    @property
+    def belt_names(self) -> tuple[str, ...]:
+        """The belt block's RTDE input names in the order of ``belt_values``."""
+        b = self.belt_first
+        return (*(f"input_int_register_{b + i}" for i in range(4)),
+                *(f"input_double_register_{b + i}" for i in range(4)))
+
+    @staticmethod
+    def belt_values(seq: int, belt: BeltPose | None) -> tuple[int | float, ...]:
+        """The belt block for the answer to ``seq``: all 0 (but ``seq``) without a belt."""
+        if belt is None:
+            return (seq, 0, 0, 0, 0.0, 0.0, 0.0, 0.0)
+        return (seq, int32_bits(belt.count), belt.source, belt.queued, belt.error_mm,
+                belt.along_mm, belt.across_mm, belt.theta_deg)
+
     def pick_word(self, position: PickPosition) -> float:
         """``pick`` register value: ``PICK_BASE * count + index`` (0 = no list). COUNT and
         INDEX beyond ``PICK_BASE - 1`` (a list longer than 998 instances) raise ``LinkError``."""
@@ -891,3 +925,10 @@ class URRegisterMap:
             raise LinkError(f"pick list count {position.count} / index {position.index} do not "
                             f"fit the pick register (each below {self.PICK_BASE})")
         return float(self.PICK_BASE * position.count + position.index)
+
+
+def int32_bits(count: int) -> int:
+    """A 32-bit encoder count as UR's signed int32 with the same bits (and back: ``& 0xFFFFFFFF``
+    undoes it)."""
+    count &= 0xFFFFFFFF
+    return count - (1 << 32) if count >= 1 << 31 else count

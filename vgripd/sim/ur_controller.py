@@ -45,6 +45,7 @@ import numpy as np
 from vgripd.errors import VgripError
 from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
 from vgripd.service.protocol import URRegisterMap, capture_word
+from vgripd.sim.ur_belt import BeltProgram
 from vgripd.types import Status
 
 RTDE_PORT = 30004
@@ -187,8 +188,12 @@ class _Session:
         self.sent = 0
 
 
-class _Server:
-    """Runs in the mock's own process: the RTDE socket server plus the pipe command handler."""
+class _Server(BeltProgram):
+    """Runs in the mock's own process: the RTDE socket server plus the pipe command handler
+    (the conveyor's part of the robot program: ``BeltProgram``)."""
+
+    default_attempts = ATTEMPTS
+    default_busy_wait_s = BUSY_WAIT_S
 
     def __init__(self, host: str, port: int, version: tuple[int, int, int, int],
                  conn: Connection) -> None:
@@ -338,7 +343,8 @@ class _Server:
         previous = max(int(self.outputs.get(f"output_int_register_{regs.seq}", 0)),
                        int(self.inputs.get(f"input_int_register_{regs.ack}", 0)))
         seq = previous + 1 if previous < SEQ_MAX else 1
-        # Command, recipe and seq change in the same data package; the seq is the trigger.
+        # Command, recipe, latch and seq change in one data package; the seq is the trigger.
+        self.write_latch(command, regs)
         self.outputs[f"output_int_register_{regs.command}"] = command
         self.outputs[f"output_int_register_{regs.recipe}"] = recipe
         self.outputs[f"output_int_register_{regs.seq}"] = seq
@@ -366,6 +372,8 @@ class _Server:
         pick = float(self.inputs.get(f"input_double_register_{regs.pick}", 0.0))
         count = math.floor(pick / regs.PICK_BASE + 1e-9)
         result.update(pick=pick, count=count, index=round(pick - regs.PICK_BASE * count))
+        if regs.conveyor and not await self.read_belt(seq, regs, deadline, result):
+            return NO_ANSWER
         if status not in POSE_VALID_STATUS:
             return status
         translation = in_page()
@@ -413,8 +421,9 @@ class _Server:
 
     def start_program(self, command: int, timeout_s: float, upper: bool,
                       taught_pose: Sequence[float] | None, attempts: int = ATTEMPTS,
-                      busy_wait_s: float = BUSY_WAIT_S, recipe: int = 0) -> int:
-        regs = URRegisterMap(upper)
+                      busy_wait_s: float = BUSY_WAIT_S, recipe: int = 0,
+                      conveyor: bool = False) -> int:
+        regs = URRegisterMap(upper, conveyor)
         seq = self.trigger(command, regs, recipe)
         self.programs[seq] = self.spawn(self.program(command, seq, regs, timeout_s, taught_pose,
                                                      time.monotonic(), attempts, busy_wait_s,
@@ -487,9 +496,10 @@ class _Server:
 
     async def cmd_start_program(self, command: int, timeout_s: float, upper: bool,
                                 taught_pose: Sequence[float] | None, attempts: int,
-                                busy_wait_s: float, recipe: int = 0) -> int:
+                                busy_wait_s: float, recipe: int = 0,
+                                conveyor: bool = False) -> int:
         return self.start_program(command, timeout_s, upper, taught_pose, attempts, busy_wait_s,
-                                  recipe)
+                                  recipe, conveyor)
 
     async def cmd_capture_view(self, view: int, tcp_pose: Sequence[float], last: bool,
                                timeout_s: float, upper: bool) -> dict[str, Any]:
@@ -669,14 +679,45 @@ class URController:
     # ---- simulated robot program
     def start_program(self, command: int = 1, *, timeout_s: float = 10.0, upper: bool = False,
                       taught_pose: Sequence[float] | None = None, attempts: int = ATTEMPTS,
-                      busy_wait_s: float = BUSY_WAIT_S, recipe: int = 0) -> int:
+                      busy_wait_s: float = BUSY_WAIT_S, recipe: int = 0,
+                      conveyor: bool = False) -> int:
         """Run ``vgripd_locate(command, timeout_s)`` the way robots/urscript/vgripd.script does
-        (with ``VGRIPD_RECIPE = recipe``); returns the sequence of its first request (the key
-        for ``program_result``)."""
+        (with ``VGRIPD_RECIPE = recipe``; ``conveyor``: ``VGRIPD_CONVEYOR = True``, the latch
+        written with each request and the belt block read with each answer, ``belt``);
+        returns the sequence of its first request (the key for ``program_result``)."""
         seq: int = self._call("start_program", command, timeout_s, upper,
                               None if taught_pose is None else tuple(taught_pose), attempts,
-                              busy_wait_s, recipe)
+                              busy_wait_s, recipe, conveyor)
         return seq
+
+    # ---- the conveyor (vgripd/sim/ur_belt.py)
+    def set_encoder(self, count: int) -> None:
+        """The belt's encoder count now (``encoder_get_tick_count(.., opt="raw")``; 32 bits)."""
+        self._call("set_encoder", count)
+
+    def set_predict_count(self, count: int) -> None:
+        """The count N of the next PREDICT (the script's ``vgripd_predict_count``)."""
+        self._call("set_predict_count", count)
+
+    def belt_track(self, taught_pose: Sequence[float], direction: Sequence[float],
+                   ticks_per_m: float, *, bits: int = 32, timeout_s: float = 15.0,
+                   upper: bool = False, recipe: int = 0) -> dict[str, Any]:
+        """``vgripd_belt_track``: as ``program_result`` plus ``belt``, ``start_count`` and
+        ``start_grip`` (the grip where tracking starts; ``ur_belt.tracked`` moves it on)."""
+        result: dict[str, Any] = self._call(
+            "belt_track", tuple(taught_pose), tuple(direction), ticks_per_m, bits, timeout_s,
+            upper, recipe, timeout_s=3 * timeout_s + 5.0)
+        return result
+
+    def belt_intercept(self, taught_pose: Sequence[float], lead: int, *,
+                       timeout_s: float = 15.0, upper: bool = False,
+                       recipe: int = 0) -> dict[str, Any]:
+        """``vgripd_belt_intercept``: NEXT (``next``), then PREDICT for the encoder + ``lead``
+        ticks (``predict_count``); the PREDICT's answer as ``program_result`` has it."""
+        result: dict[str, Any] = self._call(
+            "belt_intercept", tuple(taught_pose), lead, timeout_s, upper, recipe,
+            timeout_s=6 * timeout_s + 5.0)
+        return result
 
     def capture_view(self, view: int, tcp_pose: Sequence[float], *, last: bool = False,
                      timeout_s: float = 15.0, upper: bool = False) -> dict[str, Any]:

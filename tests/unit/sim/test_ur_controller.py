@@ -227,7 +227,7 @@ def test_urscript_uses_the_register_map() -> None:
 
     regs = URRegisterMap()
     assert used("write_output_integer_register") == {regs.seq, regs.command, regs.page_request,
-                                                     regs.recipe}
+                                                     regs.recipe, regs.latch}
     assert used("read_output_integer_register") == {regs.seq}
     assert used("vgripd_wait_int") == {regs.ack, regs.page_ack}
     # vgripd_capture (several views per job) also watches ``captured``.
