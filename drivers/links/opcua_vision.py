@@ -940,14 +940,15 @@ STANDARD_SEQUENCE = (
 
 def plc_contract() -> dict[str, Any]:
     """What a PLC reads and calls (docs/opcua.md, "OPC 40100"): the instance's namespace, the
-    plain ``Plc`` variables in the order they are written and its methods, and the standard's
-    sequence; the setup page's link step shows it."""
+    plain ``Plc`` variables (first the two the PLC writes, a conveyor's latch, then those
+    vgripd writes, in the order it writes them) and its methods, and the standard's sequence;
+    the setup page's link step shows it."""
     return {
         "namespace": INSTANCE_URI, "machine_vision": MV_URI,
         "node_id": "ns=<index of the namespace>;s=VisionSystem.<browse path>",
         "variables": [{"node": f"VisionSystem.Plc.{name}", "type": vtype.name, "text": text}
-                      for name, vtype, _, text in PLAIN_STATE + PLAIN_RESULT + PLAIN_LAST
-                      + LATCH_INPUTS],
+                      for name, vtype, _, text in LATCH_INPUTS + PLAIN_STATE + PLAIN_RESULT
+                      + PLAIN_LAST],
         "methods": [{"node": f"VisionSystem.Plc.{name}", "in": args, "out": out, "text": text}
                     for name, args, out, text in PLAIN_METHODS],
         "standard": [f"VisionSystem.{path}" for path in STANDARD_SEQUENCE],
