@@ -88,6 +88,7 @@ try:
 except ImportError as err:  # the registry turns this into the one-line DriverError
     raise ImportError(f"{err}; the opcua link needs asyncua: pip install 'vgripd[opcua]'") from None
 
+from drivers.links.opcua_belt import count_argument
 from drivers.links.opcua_guard import (
     LoginThrottle,
     RejectedStore,
@@ -494,6 +495,37 @@ def untrusted(trust: TrustStore | None, rejected: RejectedStore, der: bytes) -> 
     return f"client certificate CN={name} refused: {why}{kept}"
 
 
+def exposure_warnings(options: OpcUaOptions) -> list[tuple[str, str, str]]:
+    """``vgripd check``'s warnings about what these options open to the cell network:
+    ``(level, field, message)``."""
+    found = []
+    if "None" in options.security:
+        who = ", ".join([f"user {u.name}" for u in options.users]
+                        + (["anonymous"] if options.allow_anonymous else []))
+        found.append(("WARNING", "security", "\"None\" is listed: any client on the "
+                      "network opens a session without a certificate, unsigned and "
+                      f"unencrypted, as {who}"
+                      + (" (passwords travel in clear)" if options.users and
+                         options.security == ["None"] else "")))
+    elif options.allow_anonymous and options.trusted_clients_dir is None:
+        found.append(("WARNING", "allow_anonymous", "anonymous sessions without "
+                      "trusted_clients_dir: any client with a certificate it made itself "
+                      "opens a session"))
+    return found
+
+
+def render_plan(plan: Sequence[Step], parts: tuple[Part, ...]) -> None:
+    """Check that the space's writes that follow carry out the handshake's ``plan``: the
+    ``parts`` they write, in this order (the others are not OPC UA variables). A change of the
+    rules in ``jobcore`` that these writes do not follow fails here rather than reaching a
+    client."""
+    carried = tuple(step.part for step in plan if step.part in parts)
+    if carried != tuple(p for p in parts if p in carried) or (
+            Part.ACK in parts and plan[-1].part is not Part.ACK):
+        raise LinkError(f"OPC UA writes {parts} do not carry out the handshake's "
+                        f"{tuple(step.part for step in plan)}")
+
+
 @dataclass
 class _Job:
     request_id: int
@@ -524,6 +556,7 @@ class OpcUaLink(RobotLink):
         #: and the daemon judges it at the job.
         self._recipes: dict[int, str] | None = None
         self._warnings = 0
+        self._conveyor = False  # a recipe has a conveyor (``set_conveyor``)
         self._refusals: Counter[str] = Counter()
         #: peer faults by kind (garbage, protocol, silent, login, lockout, locked, insecure,
         #: session, untrusted, refused)
@@ -603,28 +636,13 @@ class OpcUaLink(RobotLink):
             self.gate.forget(conn)
         self._job = None
         self.machine = VisionMachine()
+        self.machine.handshake.queue = self._conveyor
         self.space = self.vision = None
         self.lines.flush(force=True)
         await self._set_health(LinkState.STOPPED)
 
-    @staticmethod
-    def exposure(options: OpcUaOptions) -> list[tuple[str, str, str]]:
-        """``vgripd check``'s warnings about what these options open to the cell network:
-        ``(level, field, message)``."""
-        found = []
-        if "None" in options.security:
-            who = ", ".join([f"user {u.name}" for u in options.users]
-                            + (["anonymous"] if options.allow_anonymous else []))
-            found.append(("WARNING", "security", "\"None\" is listed: any client on the "
-                          "network opens a session without a certificate, unsigned and "
-                          f"unencrypted, as {who}"
-                          + (" (passwords travel in clear)" if options.users and
-                             options.security == ["None"] else "")))
-        elif options.allow_anonymous and options.trusted_clients_dir is None:
-            found.append(("WARNING", "allow_anonymous", "anonymous sessions without "
-                          "trusted_clients_dir: any client with a certificate it made itself "
-                          "opens a session"))
-        return found
+    #: ``vgripd check``'s warnings about these options (``exposure_warnings``)
+    exposure = staticmethod(exposure_warnings)
 
     def health(self) -> LinkHealth:
         h = self._health
@@ -650,7 +668,7 @@ class OpcUaLink(RobotLink):
     async def image_captured(self, seq: int, job_id: int) -> None:
         self._running(seq, "image_captured")
         self._open()
-        self._render(self.machine.captured(seq, job_id), (Part.CAPTURED,))
+        render_plan(self.machine.captured(seq, job_id), (Part.CAPTURED,))
         if self.space is not None:
             await self.space.captured(seq, job_id)
         if self.vision is not None:
@@ -666,15 +684,15 @@ class OpcUaLink(RobotLink):
         t_done = result.t_done_mono_ns or time.monotonic_ns()
         stamp = datetime.datetime.now(datetime.UTC) - datetime.timedelta(
             microseconds=max(0, time.monotonic_ns() - t_done) / 1000)
-        # a NEXT answer carries its job's recipe; the selected one may have changed since
-        recipe = result.recipe if job.command == Command.NEXT else job.recipe
+        # a NEXT (PREDICT) answer carries its job's recipe; the selected one may have changed
+        recipe = result.recipe if job.command in (Command.NEXT, Command.PREDICT) else job.recipe
         shown, sent = result_values(seq, recipe, result, stamp)
         if sent.status is not result.status:
             log.warning("%s: request %d answered %s instead of %s: %s", self.name, seq,
                         sent.status.name, result.status.name, sent.message)
         # RESULT and ACK: the data, then RequestId and Sequence; the state machine and the
         # event announce the answer after it (publish_result)
-        self._render(plan, (Part.RESULT, Part.ACK))
+        render_plan(plan, (Part.RESULT, Part.ACK))
         if self.space is not None:
             await self.space.publish_result(shown)
         if self.vision is not None:
@@ -695,6 +713,9 @@ class OpcUaLink(RobotLink):
         if self.vision is not None:
             self.vision.set_configuration(name, digest)
 
+    def set_conveyor(self, on: bool) -> None:
+        self._conveyor = self.machine.handshake.queue = on  # NEXT and Predict: the queue's
+
     async def set_warnings(self, bits: int) -> None:
         self._warnings = checked_warnings(bits)
         if self.space is not None:
@@ -712,20 +733,24 @@ class OpcUaLink(RobotLink):
                                 "recipe)")
         return await self._request(Command.TRIGGER, "StartSingleJob")
 
-    async def _request(self, command: Command, method: str) -> Any:
-        """A request of the older namespace (a job, or a NEXT) with a new RequestId, or
-        refused as the handshake says (BUSY while a request runs, BAD_REQUEST for a Next
-        without a list); its own rules, whatever the OPC 40100 state."""
+    async def _request(self, command: Command, method: str, count: int | None = None) -> Any:
+        """A request of the older namespace (a job, a NEXT, a PREDICT for ``count``) with a
+        new RequestId, or refused as the handshake says (BUSY while a request runs,
+        BAD_REQUEST for a Next without a list or a Predict without a conveyor); its own
+        rules, whatever the OPC 40100 state. A job or NEXT takes the latch variables."""
+        latch = (count, None) if command == Command.PREDICT or self.space is None else \
+            self.space.latch()
         verdict, request_id = await self._begin(
-            command, lambda seq: self.machine.request(command, seq, self._recipe), JobInfo())
+            command, lambda seq: self.machine.request(command, seq, self._recipe),
+            JobInfo(count=latch[0], frame=latch[1]))
         if verdict.decision is None or verdict.decision.code is Status.BUSY:
             running = self._job.request_id if self._job is not None else "-"
             return self._refuse(Status.BUSY, ua.StatusCodes.BadInvalidState,
                                 f"{method} while request {running} runs")
         if not verdict.ok:
-            return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadNoData,
-                                f"{method} without a pick list (no result yet, or the last one "
-                                "had no pickable object)")
+            return self._refuse_named(Status.BAD_REQUEST, verdict.refused, f"{method}: " + (
+                "no recipe has a [conveyor]" if command == Command.PREDICT else "no pick list "
+                "(no result yet, or the last one had no pickable object)"))
         return [ua.Variant(request_id, ua.VariantType.UInt32)]
 
     async def _begin(self, command: int, verdict_for: Any, info: JobInfo) -> tuple[Verdict, int]:
@@ -742,7 +767,7 @@ class OpcUaLink(RobotLink):
         job = self._job = _Job(request_id, decision.recipe, Command(command))
         # RETRACT (the data turns uncertain, then RequestId 0); CLEAR keeps the values (they
         # are uncertain now); STATE: a job's SingleExecution, a Next takes no image
-        self._render(decision.steps, (Part.RETRACT, Part.CLEAR, Part.STATE))
+        render_plan(decision.steps, (Part.RETRACT, Part.CLEAR, Part.STATE))
         if self.space is not None:
             await self.space.retract(executing=command == Command.TRIGGER)
         if self.vision is not None:
@@ -750,7 +775,8 @@ class OpcUaLink(RobotLink):
             await self.vision.retract(request_id)
         assert self._on_trigger is not None
         trigger = Trigger(link=self.name, seq=job.request_id, command=int(command),
-                          t_mono_ns=time.monotonic_ns(), recipe=job.recipe)
+                          t_mono_ns=time.monotonic_ns(), recipe=job.recipe,
+                          latch_count=info.count, latch_frame=info.frame)
         asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
         return verdict, request_id
 
@@ -764,6 +790,14 @@ class OpcUaLink(RobotLink):
             return self._refuse(Status.BAD_REQUEST, ua.StatusCodes.BadTooManyArguments,
                                 "Next takes no arguments")
         return await self._request(Command.NEXT, "Next")
+
+    async def _predict(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        """Where the part last served to this link will be at the argument's count (a
+        conveyor's PREDICT): a request like Next's."""
+        count = count_argument("Predict", args)
+        if isinstance(count, tuple):
+            return self._refuse_named(Status.BAD_REQUEST, *count)
+        return await self._request(Command.PREDICT, "Predict", count)
 
     async def _select_recipe(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         if not args:
@@ -812,18 +846,6 @@ class OpcUaLink(RobotLink):
     def _open(self) -> None:
         if self.space is None and self.vision is None:
             raise LinkError(f"link {self.name}: not open")
-
-    @staticmethod
-    def _render(plan: Sequence[Step], parts: tuple[Part, ...]) -> None:
-        """Check that the space's writes that follow carry out the handshake's ``plan``: the
-        ``parts`` they write, in this order (the others are not OPC UA variables). A change of
-        the rules in ``jobcore`` that these writes do not follow fails here rather than
-        reaching a client."""
-        carried = tuple(step.part for step in plan if step.part in parts)
-        if carried != tuple(p for p in parts if p in carried) or (
-                Part.ACK in parts and plan[-1].part is not Part.ACK):
-            raise LinkError(f"OPC UA writes {parts} do not carry out the handshake's "
-                            f"{tuple(step.part for step in plan)}")
 
     def _running(self, seq: int, what: str) -> _Job:
         job = self._job
@@ -937,7 +959,7 @@ class OpcUaLink(RobotLink):
             idx = await server.register_namespace(o.namespace_uri)
             space = Space(server, idx)
             await space.build(self._start_single_job, self._select_recipe, self._reset,
-                              self._next)
+                              self._next, self._predict)
             self.space = space
         if "MachineVision" in o.models:
             vision = VisionSpace(server, self.machine, self._begin, self._refuse_named)

@@ -25,8 +25,15 @@ from asyncua import Node, Server, ua
 from asyncua.common.statemachine import FiniteStateMachine, State
 from asyncua.server.event_generator import EventGenerator
 
+from drivers.links.opcua_belt import (
+    BELT_RESULT,
+    LATCH_INPUTS,
+    belt_finite,
+    belt_values,
+    read_latch,
+)
 from vgripd.service.protocol import UNKNOWN_SCORE, PickPosition, pick_position
-from vgripd.types import JobResult, Status
+from vgripd.types import BeltPose, JobResult, Status
 
 #: ``VisionStateMachine`` states: name -> number (vgripd's numbers; OPC 40100 names).
 STATES = {"Ready": 1, "SingleExecution": 2, "Error": 3}
@@ -64,6 +71,7 @@ class ResultValues:
     residuals: list[float]
     timestamp: datetime.datetime
     pick: PickPosition = PickPosition(0, 0)  # Count, Index, PickId, Score
+    belt: BeltPose | None = None  # a conveyor answer's count and pose in belt terms
 
     @property
     def status_name(self) -> str:
@@ -77,7 +85,9 @@ def result_values(request_id: int, recipe: int, result: JobResult,
     A pose is shown only with a pose-valid status; a pose or offset that is not finite (which
     the pipeline's gates should have stopped) is published as ``OUT_OF_LIMITS`` without a pose
     rather than as numbers a robot might move by. The pick-list position (``pick_position``:
-    a job's own result or a NEXT answer) keeps its count then, but shows no instance.
+    a job's own result or a NEXT answer) keeps its count then, but shows no instance; a
+    conveyor answer's belt result (``JobResult.belt``) is shown only with finite numbers, so
+    such a result shows none either.
     """
     pick = pick_position(result)
     values: list[float] = []
@@ -90,9 +100,11 @@ def result_values(request_id: int, recipe: int, result: JobResult,
         vendor = result.target.vendor
         if result.offset is not None:
             pose = [float(v) for v in result.offset.reshape(-1)]
-        if not all(math.isfinite(v) for v in values + pose) or len(pose) not in (0, 16):
+        if not all(math.isfinite(v) for v in values + pose) or len(pose) not in (0, 16) or (
+                not belt_finite(result.belt)):
             result = JobResult(job_id=result.job_id, status=Status.OUT_OF_LIMITS,
-                               message="the pose is not a finite 4x4 / vendor values",
+                               message="the pose is not a finite 4x4 / vendor values / belt "
+                                       "position",
                                residuals=result.residuals,
                                t_done_mono_ns=result.t_done_mono_ns)
             values, names, pose, vendor = [], [], [], ""
@@ -101,7 +113,8 @@ def result_values(request_id: int, recipe: int, result: JobResult,
     fit = residuals.get("fit_rms_mm", -1.0)
     shown = ResultValues(request_id, result.job_id & 0xFFFFFFFF, recipe, result.status,
                          result.message, vendor, names, values, pose, fit,
-                         list(residuals), list(residuals.values()), timestamp, pick)
+                         list(residuals), list(residuals.values()), timestamp, pick,
+                         result.belt if belt_finite(result.belt) else None)
     return shown, result
 
 
@@ -136,6 +149,7 @@ RESULT_DATA: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
      "pick point id of the object shown (picking.pick_points; 0 the object's own grip)"),
     ("Score", ua.VariantType.Double, UNKNOWN_SCORE,
      "detection score 0..1 of the object shown (-1: none shown or unknown)"),
+    *BELT_RESULT,
 )
 #: The status of the result data while a job runs: the values are the previous result's.
 UNCERTAIN = ua.StatusCodes.UncertainLastUsableValue
@@ -154,6 +168,7 @@ EVENT_FIELDS: tuple[tuple[str, ua.VariantType], ...] = (
     ("Sequence", ua.VariantType.UInt32), ("Count", ua.VariantType.UInt16),
     ("Index", ua.VariantType.UInt16), ("PickId", ua.VariantType.UInt16),
     ("Score", ua.VariantType.Double),
+    *((name, vtype) for name, vtype, _, _ in BELT_RESULT),
 )
 
 
@@ -175,7 +190,8 @@ class Space:
         self.sequence = 0
 
     async def build(self, start_job: MethodHandler, select_recipe: MethodHandler,
-                    reset: MethodHandler, next_object: MethodHandler) -> None:
+                    reset: MethodHandler, next_object: MethodHandler,
+                    predict: MethodHandler) -> None:
         s, idx = self.server, self.idx
         vs_type = await s.create_custom_object_type(
             node_id(idx, "VisionSystemType"), ua.QualifiedName("VisionSystemType", idx))
@@ -220,6 +236,12 @@ class Space:
                             next_object, [],
                             [_arg("RequestId", ua.VariantType.UInt32,
                                   "id of this request; the result shows it in Result.RequestId")])
+        await vs.add_method(node_id(idx, "VisionSystem.Predict"),
+                            ua.QualifiedName("Predict", idx), predict,
+                            [_arg("Count", ua.VariantType.UInt32,
+                                  "conveyor: the encoder count N to predict the part at")],
+                            [_arg("RequestId", ua.VariantType.UInt32,
+                                  "id of this request; the result shows it in Result.RequestId")])
         for name, vtype, value, text in (
             ("SelectedRecipe", ua.VariantType.UInt16, 0, "recipe of the next StartSingleJob"),
             ("CapturedRequestId", ua.VariantType.UInt32, 0,
@@ -227,6 +249,8 @@ class Space:
             ("Warnings", ua.VariantType.UInt16, 0, "live warning bits: bit 0 RECALIBRATE"),
         ):
             await self._variable(vs, name, name, vtype, value, text)
+        for name, vtype, value, text in LATCH_INPUTS:  # the client's to write
+            await self._variable(vs, name, name, vtype, value, text, writable=True)
         result = await vs.add_object(node_id(idx, "VisionSystem.Result"),
                                      ua.QualifiedName("Result", idx))
         for name, vtype, value, text in RESULT_DATA + RESULT_LAST:
@@ -252,8 +276,9 @@ class Space:
         return etype
 
     async def _variable(self, parent: Node, key: str, name: str, vtype: ua.VariantType,
-                        value: Any, text: str) -> None:
-        """``key``: the browse path below VisionSystem (``Warnings``, ``Result.Values``)."""
+                        value: Any, text: str, writable: bool = False) -> None:
+        """``key``: the browse path below VisionSystem (``Warnings``, ``Result.Values``);
+        ``writable``: clients may write its value (of its type: asyncua refuses another)."""
         var = await parent.add_variable(node_id(self.idx, f"VisionSystem.{key}"),
                                         ua.QualifiedName(name, self.idx),
                                         ua.Variant(value, vtype), datatype=vtype.value)
@@ -263,6 +288,8 @@ class Space:
                                       ua.DataValue(ua.Variant([0], ua.VariantType.UInt32)))
         await var.write_attribute(ua.AttributeIds.Description,
                                   ua.DataValue(ua.Variant(ua.LocalizedText(text))))
+        if writable:
+            await var.set_writable()
         self.nodes[key] = var.nodeid
         self.types[key] = vtype
         self.values[key] = value
@@ -278,6 +305,10 @@ class Space:
                               ServerTimestamp=now)
             await self.server.write_attribute_value(self.nodes[key], dv)
             self.values[key] = value
+
+    def latch(self) -> tuple[int | None, int | None]:
+        """``LatchCount`` and ``LatchFrame`` as the client left them (None: no count)."""
+        return read_latch(self.server, self.nodes["LatchCount"], self.nodes["LatchFrame"])
 
     async def set_state(self, name: str) -> None:
         """CurrentState (LocalizedText), then its Id (the state object) and Number."""
@@ -337,16 +368,19 @@ class Space:
             ("Result.Timestamp", r.timestamp),
             ("Result.Count", int(r.pick.count)), ("Result.Index", int(r.pick.index)),
             ("Result.PickId", int(r.pick.pick_id)), ("Result.Score", float(r.pick.score)),
+            *((f"Result.{name}", value) for name, value in belt_values(r.belt)),
             ("Result.RequestId", r.request_id), ("Result.Sequence", self.sequence),
         ], r.timestamp)
         await self.set_state("Error" if r.status in ERROR_STATUSES else "Ready")
         gen = self._result_ready
         assert gen is not None
         ev: Any = gen.event
+        known = {"ResultStatus": int(r.status), "Sequence": self.sequence,
+                 "Count": int(r.pick.count), "Index": int(r.pick.index),
+                 "PickId": int(r.pick.pick_id), "Score": float(r.pick.score),
+                 **dict(belt_values(r.belt))}
         for name, vtype in EVENT_FIELDS:
-            value = {"ResultStatus": int(r.status), "Sequence": self.sequence,
-                     "Count": int(r.pick.count), "Index": int(r.pick.index),
-                     "PickId": int(r.pick.pick_id), "Score": float(r.pick.score)}.get(name)
+            value = known.get(name)
             if value is None:
                 value = getattr(r, _EVENT_ATTR.get(name, name))
             setattr(ev, name, ua.Variant(value, vtype))

@@ -23,8 +23,9 @@ What each method maps to (docs/opcua.md, "OPC 40100" has the table):
   ``RECENT_RESULTS``, for ``GetResultById`` / ``GetResultComponentsById`` /
   ``GetResultListFiltered``;
 - ``Plc``: plain variables for clients that cannot take events or structures (an S7-1500's
-  OPC UA client blocks): the state, the last result's fields and the pick list, and the methods
-  ``PrepareRecipe``, ``StartJob`` and ``Next`` with plain arguments;
+  OPC UA client blocks): the state, the last result's fields, the pick list and a conveyor's
+  belt result, the latch the PLC writes (``opcua_belt``), and the methods ``PrepareRecipe``,
+  ``StartJob``, ``Next`` and ``Predict`` with plain arguments;
 - ``StartContinuous``: a chain of jobs, each a request of the link's handshake, the next one
   started after each published result (``continue_later``) until Stop, Abort, Halt or Reset.
 
@@ -47,6 +48,14 @@ from typing import Any
 from asyncua import Node, Server, ua
 from asyncua.server.event_generator import EventGenerator
 
+from drivers.links.opcua_belt import (
+    BELT_RESULT,
+    LATCH_INPUTS,
+    belt_values,
+    belt_variants,
+    count_argument,
+    read_latch,
+)
 from drivers.links.opcua_nodeset import prune
 from drivers.links.opcua_space import ResultValues
 from vgripd.service.jobcore import Command
@@ -115,6 +124,7 @@ PLAIN_RESULT: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
     ("Index", ua.VariantType.UInt16, 0, "1-based index of the object shown (0 none)"),
     ("PickId", ua.VariantType.UInt16, 0, "pick point id of the object shown"),
     ("Score", ua.VariantType.Double, -1.0, "detection score 0..1 (-1 unknown)"),
+    *BELT_RESULT,
 )
 PLAIN_LAST: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
     ("ResultId", ua.VariantType.String, "", "ResultId of the last result; \"\" while a job runs"),
@@ -146,6 +156,10 @@ class JobInfo:
     simulated: bool = False
     #: OPC 40100's JobId: the request's own sequence, or the first one of a continuous chain
     job_id: str = ""
+    #: A conveyor's latch (``Trigger.latch_count`` / ``latch_frame``): the latch variables as
+    #: the request found them, Predict's count N; None: none
+    count: int | None = None
+    frame: int | None = None
 
 
 #: Subtypes of BinaryIdBaseDataType whose Definition in the NodeSet is empty (the fields are the
@@ -353,6 +367,8 @@ class VisionMethods:
                    method: str) -> Any:
         info.started = datetime.datetime.now(datetime.UTC)
         info.t_start_ns = time.monotonic_ns()
+        if command != Command.PREDICT:  # a job or Next takes the latch in place now
+            info.count, info.frame = self.latch()
         verdict, seq = await self._request(command, verdict_for, info)
         if verdict.refused:
             status = (verdict.decision.code if verdict.decision is not None
@@ -586,6 +602,17 @@ class VisionMethods:
         answer = await self._job(Command.NEXT, self.machine.next_object, JobInfo(), "Plc.Next")
         return _plain_answer(answer)
 
+    async def _plain_predict(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        count = count_argument("Plc.Predict", args)
+        if isinstance(count, tuple):
+            return self._refuse(Status.BAD_REQUEST, *count)
+        answer = await self._job(Command.PREDICT, self.machine.predict, JobInfo(count=count),
+                                 "Plc.Predict")
+        return _plain_answer(answer)
+
+    def latch(self) -> tuple[int | None, int | None]:
+        raise NotImplementedError
+
 
 class VisionSpace(VisionMethods):
     """The VisionSystem instance and the answers to its methods (one per open link)."""
@@ -664,6 +691,8 @@ class VisionSpace(VisionMethods):
         plc = await vs.add_object(self._nid("Plc"), ua.QualifiedName("Plc", idx))
         for name, vtype, value, text in PLAIN_STATE + PLAIN_RESULT + PLAIN_LAST:
             await self._variable(plc, name, vtype, value, text)
+        for name, vtype, value, text in LATCH_INPUTS:  # the PLC's to write
+            await self._variable(plc, name, vtype, value, text, writable=True)
         string = ua.VariantType.String
         await plc.add_method(self._nid("Plc.StartJob"), ua.QualifiedName("StartJob", idx),
                              self._plain_start,
@@ -680,6 +709,12 @@ class VisionSpace(VisionMethods):
                              self._plain_next, [],
                              [_arg("JobId", string, "the request's id"),
                               _arg("Error", ua.VariantType.Int32, "0: started")])
+        await plc.add_method(self._nid("Plc.Predict"), ua.QualifiedName("Predict", idx),
+                             self._plain_predict,
+                             [_arg("Count", ua.VariantType.UInt32,
+                                   "conveyor: the encoder count N to predict the part at")],
+                             [_arg("JobId", string, "the request's id"),
+                              _arg("Error", ua.VariantType.Int32, "0: started")])
         await self._write_safety(False, "")
         await self.show_configuration()
         await self.show_state()
@@ -692,11 +727,13 @@ class VisionSpace(VisionMethods):
         return ua.NodeId(ua.Int32(number), ua.Int16(self.mv))
 
     async def _variable(self, parent: Node, name: str, vtype: ua.VariantType, value: Any,
-                        text: str) -> None:
+                        text: str, writable: bool = False) -> None:
         var = await parent.add_variable(self._nid(f"Plc.{name}"), ua.QualifiedName(name, self.idx),
                                         ua.Variant(value, vtype), datatype=vtype.value)
         if isinstance(value, list):
             await var.write_value_rank(ua.ValueRank.OneDimension)
+        if writable:  # of its type: asyncua refuses another
+            await var.set_writable()
         await var.write_attribute(ua.AttributeIds.Description,
                                   ua.DataValue(ua.Variant(ua.LocalizedText(text))))
         self._plain[name] = (var.nodeid, vtype)
@@ -719,6 +756,11 @@ class VisionSpace(VisionMethods):
 
     def set_recipes(self, recipes: Mapping[int, str]) -> None:
         self.recipes = dict(recipes) or {0: "default"}
+
+    def latch(self) -> tuple[int | None, int | None]:
+        """``Plc.LatchCount`` and ``Plc.LatchFrame`` as the PLC left them (None: no count)."""
+        return read_latch(self.server, self._plain["LatchCount"][0],
+                          self._plain["LatchFrame"][0])
 
     async def show_configuration(self) -> None:
         assert self._config_node is not None
@@ -770,7 +812,7 @@ class VisionSpace(VisionMethods):
             ("StatusName", r.status.name), ("Vendor", r.vendor), ("ValueNames", r.value_names),
             ("Values", r.values), ("Pose", r.pose), ("Count", int(r.pick.count)),
             ("Index", int(r.pick.index)), ("PickId", int(r.pick.pick_id)),
-            ("Score", float(r.pick.score)), ("ResultId", result_id),
+            ("Score", float(r.pick.score)), *belt_values(r.belt), ("ResultId", result_id),
             ("Sequence", self.sequence)])
         await self.show_state()
         data = self._result_data(result_id, seq, shown, info, t_done_ns)
@@ -811,7 +853,8 @@ class VisionSpace(VisionMethods):
                    ("Count", ua.Variant(int(r.pick.count), ua.VariantType.UInt16)),
                    ("Index", ua.Variant(int(r.pick.index), ua.VariantType.UInt16)),
                    ("PickId", ua.Variant(int(r.pick.pick_id), ua.VariantType.UInt16)),
-                   ("Score", ua.Variant(float(r.pick.score), ua.VariantType.Double))]
+                   ("Score", ua.Variant(float(r.pick.score), ua.VariantType.Double)),
+                   *belt_variants(r.belt)]
         return mv.ResultDataType(
             ResultId=mv.ResultIdDataType(Id=result_id), IsPartial=False,
             IsSimulated=info.simulated, ResultState=result_state(r.status),
@@ -880,7 +923,10 @@ PLAIN_METHODS = (
      "prepare a recipe by number or name (RecipeManagement.PrepareRecipe)"),
     ("StartJob", "RecipeId: String", "JobId: String, Error: Int32",
      "start one job, \"\" the prepared recipe (StartSingleJob)"),
-    ("Next", "", "JobId: String, Error: Int32", "the next object of the last job's pick list"),
+    ("Next", "", "JobId: String, Error: Int32",
+     "the next object of the last job's pick list (a conveyor: the queue's next part)"),
+    ("Predict", "Count: UInt32", "JobId: String, Error: Int32",
+     "a conveyor: where the part last served will be at the encoder count Count"),
 )
 #: The standard's nodes a PLC with structure support calls, in the order it calls them.
 STANDARD_SEQUENCE = (
@@ -894,13 +940,15 @@ STANDARD_SEQUENCE = (
 
 def plc_contract() -> dict[str, Any]:
     """What a PLC reads and calls (docs/opcua.md, "OPC 40100"): the instance's namespace, the
-    plain ``Plc`` variables in the order they are written and its methods, and the standard's
-    sequence; the setup page's link step shows it."""
+    plain ``Plc`` variables (first the two the PLC writes, a conveyor's latch, then those
+    vgripd writes, in the order it writes them) and its methods, and the standard's sequence;
+    the setup page's link step shows it."""
     return {
         "namespace": INSTANCE_URI, "machine_vision": MV_URI,
         "node_id": "ns=<index of the namespace>;s=VisionSystem.<browse path>",
         "variables": [{"node": f"VisionSystem.Plc.{name}", "type": vtype.name, "text": text}
-                      for name, vtype, _, text in PLAIN_STATE + PLAIN_RESULT + PLAIN_LAST],
+                      for name, vtype, _, text in LATCH_INPUTS + PLAIN_STATE + PLAIN_RESULT
+                      + PLAIN_LAST],
         "methods": [{"node": f"VisionSystem.Plc.{name}", "in": args, "out": out, "text": text}
                     for name, args, out, text in PLAIN_METHODS],
         "standard": [f"VisionSystem.{path}" for path in STANDARD_SEQUENCE],

@@ -91,7 +91,9 @@ class Vision:
 
 PLAIN = {"Plc", "State", "StateNumber", "AutoStateNumber", "PreparedRecipe", "JobId", "ResultJobId",
          "ResultState", "Status", "StatusName", "Vendor", "ValueNames", "Values", "Pose",
-         "Count", "Index", "PickId", "Score", "ResultId", "Sequence", "StartJob", "Next"}
+         "Count", "Index", "PickId", "Score", "ResultId", "Sequence", "StartJob", "Next",
+         "ResultCount", "LatchSource", "LatchErrMm", "Along", "Across", "Theta", "Queued",
+         "LatchCount", "LatchFrame", "Predict"}
 
 
 @pytest.fixture

@@ -167,3 +167,22 @@ def part_of(T_base_obj: np.ndarray, travel_mm: float) -> tuple[int, float, float
     turn = math.degrees(math.acos(np.clip((np.trace(want[:3, :3].T @ T_base_obj[:3, :3]) - 1) / 2,
                                           -1, 1)))
     return near, float(np.linalg.norm(want[:3, 3] - T_base_obj[:3, 3])), turn
+
+
+def located(pose: list[float], along: float, across: float, theta: float, travel_mm: float,
+            T_ref: np.ndarray) -> int:
+    """``which`` for a link that shows the pose as KUKA values and the belt terms as numbers of
+    their own (OPC UA variables, socket fields): the part whose true pose at ``travel_mm`` the
+    answer is (1 mm, 0.5 deg), its belt terms checked too."""
+    T = transform_from_vendor("kuka", pose) @ T_ref  # output.mode offset
+    near = min(range(len(PARTS)),
+               key=lambda k: float(np.linalg.norm(truth(k, travel_mm)[:3, 3] - T[:3, 3])))
+    want = truth(near, travel_mm)
+    assert np.linalg.norm(want[:3, 3] - T[:3, 3]) < 1.0, (near, travel_mm, T[:3, 3])
+    turn = math.degrees(math.acos(np.clip((np.trace(want[:3, :3].T @ T[:3, :3]) - 1) / 2,
+                                          -1, 1)))
+    assert turn < 0.5
+    x, y, angle = PARTS[near]
+    assert (along, across, theta) == (pytest.approx(x + travel_mm, abs=1.0),
+                                      pytest.approx(y, abs=1.0), pytest.approx(angle, abs=0.5))
+    return near

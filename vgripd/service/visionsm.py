@@ -9,13 +9,14 @@ both and answers each method call with a ``Verdict``: refused (the OPC UA status
 e.g. ``BadInvalidState`` for a call the current state does not allow) or done, with the
 transitions it fired (the NodeSet's transition names, e.g. ``ReadyToSingleExecution``).
 
-A job request (StartSingleJob, and the plain ``Next`` of the pick list) goes through the
-link's ``Handshake`` (``vgripd.service.jobcore``), so the register contract's promises hold
-for the standard's methods too: each request answered once, no stale or repeated pose,
-COUNT/INDEX. The property test (``tests/unit/service/test_jobcore.py``) drives this machine
-among the other link kinds. Halt, Reset, Stop or Abort while a job runs cannot take the job
-back from the daemon: its result still comes, once, but as ``ABORTED`` without a pose
-(``VisionMachine.publish``), and the state machine has already left SingleExecution.
+A job request (StartSingleJob, the plain ``Next`` of the pick list and a conveyor's plain
+``Predict``) goes through the link's ``Handshake`` (``vgripd.service.jobcore``), so the
+register contract's promises hold for the standard's methods too: each request answered
+once, no stale or repeated pose, COUNT/INDEX. The property test
+(``tests/unit/service/test_jobcore.py``) drives this machine among the other link kinds.
+Halt, Reset, Stop or Abort while a job runs cannot take the job back from the daemon: its
+result still comes, once, but as ``ABORTED`` without a pose (``VisionMachine.publish``), and
+the state machine has already left SingleExecution.
 
 ContinuousExecution (StartContinuous) is a chain of such requests: one at a time, each with a
 sequence of its own, the next one started by the link (``continue_job``) once the previous
@@ -255,18 +256,29 @@ class VisionMachine:
         return self.request(Command.TRIGGER, seq, self.recipe)
 
     def next_object(self, seq: int) -> Verdict:
-        """The plain ``Next`` (the next object of the last job's pick list): in Ready."""
+        """The plain ``Next`` (the next object of the last job's pick list, or a conveyor's
+        next part): in Ready."""
+        return self._answer("Next", Command.NEXT, seq)
+
+    def predict(self, seq: int) -> Verdict:
+        """The plain ``Predict`` (where a conveyor's part last served will be at a later
+        count): in Ready, like Next; ``BadNotSupported`` when no recipe has a conveyor."""
+        return self._answer("Predict", Command.PREDICT, seq)
+
+    def _answer(self, method: str, command: Command, seq: int) -> Verdict:
+        """A request answered without an image (NEXT, PREDICT) with the prepared recipe."""
         if self.auto is not Auto.READY:
             status = Status.BUSY if self.busy else Status.BAD_REQUEST
-            return _refuse(BAD_STATE, f"Next in {self.state_path}", seq, Command.NEXT, status)
-        return self.request(Command.NEXT, seq, self.recipe or 0)
+            return _refuse(BAD_STATE, f"{method} in {self.state_path}", seq, command, status)
+        return self.request(command, seq, self.recipe or 0)
 
     def request(self, command: int, seq: int, recipe: int) -> Verdict:
         """A request through the handshake; a started job moves Ready to SingleExecution.
         The link's older namespace calls this directly (its own rules, any state)."""
         decision = self.handshake.on_request(command, seq, recipe)
         if decision.action is not Action.START:
-            code = BAD_STATE if decision.code is Status.BUSY else BAD_NO_DATA
+            code = (BAD_STATE if decision.code is Status.BUSY else
+                    NOT_SUPPORTED if command == Command.PREDICT else BAD_NO_DATA)
             return Verdict(code, f"request {seq} refused {decision.code.name}",
                            decision=decision)
         self.aborted = False
