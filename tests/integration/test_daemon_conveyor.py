@@ -171,3 +171,43 @@ async def test_a_reload_applies_a_changed_added_and_removed_conveyor(tmp_path: P
     finally:
         await reloader.close()
         await daemon.stop()
+
+
+async def test_a_conveyor_added_by_a_reload_reaches_the_links(tmp_path: Path) -> None:
+    """A daemon started without a belt: its links refuse NEXT without a pick list. A reload
+    that adds a ``[conveyor]`` tells them, so NEXT is answered from the (empty) part queue, and
+    a reload that removes it again makes them refuse it again."""
+    frames = [0.0]
+    await render(tmp_path, frames)
+    data = conveyor_data({"type": "replay", "folder": str(tmp_path), "left_glob": "left_*.png",
+                          "right_glob": "right_*.png"})
+    belt = data.pop("conveyor")
+    main = tmp_path / "vgripd.toml"
+    main.write_text(toml_from_dict(data))
+    daemon = Daemon(load_config(main))
+    reloader = daemon.reloader = Reloader(daemon, main)
+    await daemon.start()
+    try:
+        async with BeltPlc(list(daemon.links.values())[0].port) as plc:
+            await refused(plc)  # no list, no queue
+            main.write_text(toml_from_dict({**data, "conveyor": belt}))
+            out = await reloader.reload("test")
+            assert out.applied, out.message
+            words = await plc.request(Command.NEXT, count_at(0.0))
+            assert words[Reg.STATUS] == Status.NOT_FOUND  # the queue answered: it is empty
+            main.write_text(toml_from_dict(data))
+            out = await reloader.reload("test")
+            assert out.applied, out.message
+            await refused(plc)
+    finally:
+        await reloader.close()
+        await daemon.stop()
+
+
+async def refused(plc: BeltPlc) -> None:
+    """NEXT refused by the link's handshake (REJECT_SEQ, REJECT_CODE BAD_REQUEST): no job."""
+    plc.seq += 1
+    rr = await plc.client.write_registers(Reg.CMD, [Command.NEXT, plc.seq])
+    assert not rr.isError(), rr
+    words = await plc.until(lambda w: w[Reg.REJECT_SEQ] == plc.seq)
+    assert words[Reg.REJECT_CODE] == Status.BAD_REQUEST

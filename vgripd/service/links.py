@@ -24,7 +24,7 @@ from vgripd.config import Config
 from vgripd.errors import LinkError
 from vgripd.registry import LINKS, load_class, validate_options
 from vgripd.service.gate import WEB_SURFACE, Budget, Gate, file_limit, open_files, plan_budget
-from vgripd.service.protocol import RobotLink, TriggerHandler, config_identity
+from vgripd.service.protocol import RobotLink, TriggerHandler, tell_links
 from vgripd.service.tasks import Background
 from vgripd.service.web import WEB_LINK, WebTriggerLink
 from vgripd.types import JobResult, Status
@@ -53,14 +53,7 @@ class LinkSupervisor:
             self.links[name] = link_cls(name, validate_options(link_cls, section, f"links.{i}"))
         if config.status.enabled and config.status.allow_trigger:  # the web view's test trigger
             self.links[WEB_LINK] = WebTriggerLink()
-        recipes = {number: config.recipe_name(number) for number in config.recipe_numbers()}
-        identity = config_identity(config)
-        belt = any(config.for_recipe(n).conveyor is not None for n in config.recipe_numbers())
-        for link in self.links.values():
-            link.set_recipes(recipes)
-            link.set_configuration(*identity)
-            link.set_vendor(config.output.vendor)
-            link.set_conveyor(belt)
+        tell_links(self.links.values(), config)
         #: How RLIMIT_NOFILE is split between the server surfaces and the reserve (at start).
         self.fd_budget: Budget | None = None
 

@@ -116,7 +116,7 @@ import math
 import struct
 from abc import ABC, abstractmethod
 from collections import Counter
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
@@ -932,3 +932,17 @@ def int32_bits(count: int) -> int:
     undoes it)."""
     count &= 0xFFFFFFFF
     return count - (1 << 32) if count >= 1 << 31 else count
+
+
+def tell_links(links: Iterable[RobotLink], config: Any) -> None:
+    """What every link learns from the config, at the start and after each reload: the recipes'
+    names, the config's identity, the pose convention (``output.vendor``) and whether a
+    recipe has a conveyor (NEXT and PREDICT served from its part queue)."""
+    recipes = {number: config.recipe_name(number) for number in config.recipe_numbers()}
+    identity = config_identity(config)
+    belt = any(config.for_recipe(n).conveyor is not None for n in config.recipe_numbers())
+    for link in links:
+        link.set_recipes(recipes)
+        link.set_configuration(*identity)
+        link.set_vendor(config.output.vendor)
+        link.set_conveyor(belt)

@@ -42,7 +42,7 @@ from vgripd.errors import ConfigError
 from vgripd.redaction import redact
 from vgripd.service.beltqueue import belt_lines
 from vgripd.service.configtxn import ConfigWriter, Outcome
-from vgripd.service.protocol import config_identity
+from vgripd.service.protocol import tell_links
 from vgripd.service.worker import WorkerError
 
 log = logging.getLogger("vgripd.reload")
@@ -172,11 +172,7 @@ class Reloader(ConfigWriter):
         # first (one request at a time, in order).
         runner.core.lines = belt_lines(config, runner.core.lines, d.config)  # conveyor queues
         d.use_config(config, pipelines)
-        recipes = {n: config.recipe_name(n) for n in config.recipe_numbers()}
-        identity = config_identity(config)
-        for link in d.links.values():
-            link.set_recipes(recipes)
-            link.set_configuration(*identity)
+        tell_links(d.links.values(), config)
         d.epipolar.threshold_px = config.vision.epipolar_warn_px
         worker = d.worker
         if worker is not None:
