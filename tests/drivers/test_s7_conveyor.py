@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import struct
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -17,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from drivers.links.s7 import S7Link, S7Options, db_bytes, plan_db_writes
+from tests.conftest import REPO
 from tests.drivers.test_s7 import DB, FORMATS, SIZES, WAIT_S, Daemon, make_link, parse_udt
 from vgripd.cli.s7_udt import db_source, udt_source
 from vgripd.configbase import DriverSection
@@ -206,3 +208,18 @@ def test_a_version_3_link_block_and_options_are_unchanged() -> None:
                                             "map_version": 5})
     with pytest.raises(ConfigError, match="map_version"):
         validate_options(S7Link, section, "links.0")
+
+
+def test_the_docs_conveyor_table_is_the_version_4_udt() -> None:
+    """docs/s7.md, "Conveyor: map version 4": each row's byte, item and S7 type are the
+    version 4 UDT's (in the Real value format), and the PLC writes exactly the latch."""
+    text = (REPO / "docs" / "s7.md").read_text()
+    part = text[text.index("## Conveyor: map version 4"):]
+    part = part[:part.index("\n## ", 1)]
+    rows = re.findall(r"^\| (\d+) \| (\w+) \| (\w+)[^|]* \| (PLC|vgripd) \|", part, re.M)
+    layout = parse_udt(udt_source("float32", version=4))
+    beyond = [r for r in sorted(Reg, key=int) if r >= Reg.LATCH_COUNT]
+    assert [(int(b), n, t) for b, n, t, _ in rows] == [
+        (layout[r.name][0], r.name, layout[r.name][1]) for r in beyond]
+    assert {n for _, n, _, who in rows if who == "PLC"} == {
+        r.name for r in Reg if r in LATCH_AREA} == {"LATCH_COUNT", "LATCH_FRAME"}
