@@ -1045,6 +1045,18 @@ class Config(Model):
         return self
 
     @model_validator(mode="after")
+    def _links_carry_the_latch(self) -> Config:
+        """A conveyor's jobs need the encoder count with each request: every register link
+        serves map version 4 (the latch area)."""
+        if self.conveyor is None or not self.links:
+            return self
+        problems = registry.latch_problems(self.links)
+        if problems:
+            raise PydanticCustomError(COMBINATION, "{problems}",
+                                      {"problems": "\n".join(problems)})
+        return self
+
+    @model_validator(mode="after")
     def _links_carry_output(self) -> Config:
         """Every link must be able to carry ``output.vendor`` (its class's capabilities)."""
         if not self.links:

@@ -118,6 +118,29 @@ def views_problems(links: Sequence[DriverSection], views: int) -> list[str]:
                                                "takes_views", False)]
 
 
+def latch_problems(links: Sequence[DriverSection]) -> list[str]:
+    """Why the link sections cannot serve a ``[conveyor]``: one line per register link (a link
+    whose options have ``map_version``) left at a map version without the latch area (below
+    4), whose every job would end BAD_REQUEST for want of the encoder count. Each line names
+    the field; a value that is no map version at all is left to the link's own options."""
+    problems = []
+    for i, section in enumerate(links):
+        if section.type not in LINKS:
+            continue  # link_problems names it
+        fields = load_class(LINKS, "link", section.type).Options.model_fields
+        if "map_version" not in fields:
+            continue
+        given = section.options().get("map_version")
+        version = fields["map_version"].default if given is None else given
+        if isinstance(version, int) and not isinstance(version, bool) and version < 4:
+            shown = f"{version}" + (" (the default)" if given is None else "")
+            problems.append(
+                f"links[{i}].map_version = {shown}: the {section.type} link then carries no "
+                "encoder count, and [conveyor] needs the count latched with every request: "
+                'set map_version = 4 (docs/registers.md, "Conveyor: map version 4")')
+    return problems
+
+
 def link_problems(links: Sequence[DriverSection], vendor: str,
                   vendor_is_default: bool = False) -> list[str]:
     """Why the link sections cannot work with ``output.vendor = vendor``, one line per section.

@@ -10,6 +10,13 @@ connection drops, and reconnects with doubling back-off after any error, logging
 outage (one line, no traceback). A subclass brings the transport through the hooks below
 (connect, read and write the block, disconnect) and explains a refusal of the block.
 
+The block is the link's ``map_version`` (3: 46 words; 4: 62, the conveyor's). The peer owns
+its writable areas (``RegisterBank.writable``: the command area, and in map version 4 the
+latch area 46-49, which the PLC writes before or with REQ_SEQ); vgripd never writes there.
+``own_segments`` are the stretches of the block that are vgripd's: every write of vgripd's
+lies inside one of them, so a write never carries a stale copy of the peer's words. A new
+request reads the latch from the same poll as its REQ_SEQ and takes it into the ``Trigger``.
+
 No peer error stops the retrying: a peer that answers garbage, a block the peer
 refuses (a wrong address, a DB not yet downloaded, access not yet allowed) are outages like a
 lost connection, since the peer can be fixed or replaced while vgripd runs. A refusal of the
@@ -23,12 +30,13 @@ import contextlib
 import logging
 import time
 from abc import abstractmethod
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Generic, TypeVar
 
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
     COMMAND_AREA,
+    LATCH_AREA,
     Action,
     BlockWrite,
     LinkHealth,
@@ -43,6 +51,33 @@ from vgripd.service.protocol import (
 from vgripd.types import JobResult, Status
 
 C = TypeVar("C")  # the transport's client object, one per connection
+
+
+def own_segments(size: int, peer: Sequence[range]) -> list[range]:
+    """The stretches of a ``size``-word block outside the ``peer`` areas, in address order
+    (map version 3: 3-45; version 4: 3-45 and 50-61)."""
+    segments: list[range] = []
+    start: int | None = None
+    for address in range(size + 1):
+        ours = address < size and not any(address in area for area in peer)
+        if ours and start is None:
+            start = address
+        elif not ours and start is not None:
+            segments.append(range(start, address))
+            start = None
+    return segments
+
+
+def without_peer_words(write: BlockWrite, peer: Sequence[range]) -> list[BlockWrite]:
+    """The parts of ``write`` that lie outside the ``peer`` areas (the peer's own words
+    dropped; a write across an area becomes one write on each side)."""
+    end = write.address + len(write.words)
+    out: list[BlockWrite] = []
+    for seg in own_segments(end, peer):
+        lo, hi = max(seg.start, write.address), seg.stop
+        if lo < hi:
+            out.append(BlockWrite(lo, write.words[lo - write.address:hi - write.address]))
+    return out
 
 
 class MirrorClientLink(RobotLink, Generic[C]):
@@ -62,8 +97,12 @@ class MirrorClientLink(RobotLink, Generic[C]):
         self._peer = f"{options.host}:{options.port}"
         self._journal: list[BlockWrite] = []
         self.bank = RegisterBank(
-            ValueCodec(options.word_order, options.value_format, options.scale), self._journal
+            ValueCodec(options.word_order, options.value_format, options.scale), self._journal,
+            version=options.map_version,
         )
+        #: The areas the peer writes (never vgripd) and the block's stretches that are vgripd's.
+        self._peer_areas = self.bank.writable()
+        self._own = own_segments(self.bank.image.size, self._peer_areas)
         self._health = LinkHealth(LinkState.STOPPED, peer=health_peer or self._peer)
         self._health_changed: asyncio.Condition | None = None
         self._on_trigger: TriggerHandler | None = None
@@ -104,7 +143,9 @@ class MirrorClientLink(RobotLink, Generic[C]):
 
     @abstractmethod
     async def _exchange(self, client: C) -> list[int]:
-        """One round of the serve loop: push what is pending, poll; the peer's command area."""
+        """One round of the serve loop: push what is pending, poll; the peer's words from
+        address 0 at least through its last writable area (one read, so a request's latch
+        comes from the same moment as its REQ_SEQ)."""
 
     @abstractmethod
     def _refusal_hint(self, err: LinkError) -> str | None:
@@ -177,6 +218,9 @@ class MirrorClientLink(RobotLink, Generic[C]):
 
     def refusals(self) -> Mapping[str, int]:
         return dict(self.bank.refusals)
+
+    def set_conveyor(self, on: bool) -> None:
+        self.bank.handshake.queue = on
 
     async def set_warnings(self, bits: int) -> None:
         """Set WARNINGS in the mirror; while the peer is connected, wait until it has it.
@@ -296,9 +340,10 @@ class MirrorClientLink(RobotLink, Generic[C]):
         poll_s = self._poll_s
         next_beat = time.monotonic() + period_s
         while True:
-            cmd = await self._exchange(client)
+            words = await self._exchange(client)
+            cmd = words[COMMAND_AREA.start:COMMAND_AREA.stop]
             if cmd != self.bank.image.words[COMMAND_AREA.start:COMMAND_AREA.stop]:
-                self._on_command(cmd)
+                self._on_command(words)
                 continue  # write the handshake's answer (if any) before the next poll
             now = time.monotonic()
             if now >= next_beat:
@@ -314,13 +359,18 @@ class MirrorClientLink(RobotLink, Generic[C]):
                 async with asyncio.timeout(min(poll_s, next_beat - now)):
                     await self._wake.wait()
 
-    def _on_command(self, cmd: list[int]) -> None:
-        decision = self.bank.write(COMMAND_AREA.start, cmd)
+    def _on_command(self, words: list[int]) -> None:
+        """The peer changed its command area (``words``: as ``_exchange`` read them). In map
+        version 4 the latch read with it goes into the mirror first: the request takes it."""
+        if LATCH_AREA in self._peer_areas:
+            self.bank.write(LATCH_AREA.start, words[LATCH_AREA.start:LATCH_AREA.stop])
+        decision = self.bank.write(COMMAND_AREA.start, words[COMMAND_AREA.start:COMMAND_AREA.stop])
         if decision.action is Action.START:
             assert self._on_trigger is not None
             trigger = Trigger(link=self.name, seq=decision.seq, command=decision.command,
                               t_mono_ns=time.monotonic_ns(), recipe=decision.recipe,
-                              view=decision.view)
+                              view=decision.view, latch_count=decision.count,
+                              latch_frame=decision.frame)
             asyncio.get_running_loop().call_soon(self._on_trigger, trigger)
         elif decision.action is Action.REJECT:
             self._log.info("%s: request %d refused: %s", self.name, decision.seq,

@@ -2,15 +2,18 @@
 
 Cells without a PLC: the robot (e.g. Universal Robots, port 502, general-purpose holding
 registers 128-255) serves the registers and its program polls them; vgripd is the client. The
-register block is ``vgripd.service.protocol``'s map (``MAP_SIZE`` words, same offsets, encoding and
-handshake as the Modbus server link), placed at ``base_address`` in the robot's register space:
-the robot program writes the command area (CMD, REQ_SEQ, RECIPE), vgripd writes the rest.
+register block is ``vgripd.service.protocol``'s map (46 words; 62 with ``map_version = 4``, the
+conveyor's; same offsets, encoding and handshake as the Modbus server link), placed at
+``base_address`` in the robot's register space: the robot program writes the command area (CMD,
+REQ_SEQ, RECIPE) and in map version 4 the latch (LATCH_COUNT, LATCH_FRAME: 46-49) before or
+with REQ_SEQ; vgripd writes the rest and never those words.
 
 The link keeps a mirror of the block in a ``RegisterBank`` (the same handshake and image code
 the server link uses) and copies its changes to the robot, in the bank's order:
 
-- the robot's command area is polled every ``poll_interval_s``; a change goes through the
-  bank's handshake: a new request sequence calls ``on_trigger``, a refusal writes REJECT_*;
+- the robot's command area is polled every ``poll_interval_s`` (map version 4: words 0-49 in
+  one read, so a request's latch is of the same moment as its REQ_SEQ); a change goes through
+  the bank's handshake: a new request sequence calls ``on_trigger``, a refusal writes REJECT_*;
 - ``image_captured``/``publish``/the heartbeat change the mirror and wake the supervisor, which
   writes the changed words with as few ``write_registers`` as the order allows; ACK_SEQ always
   travels alone, in the order the bank put it (last for a publish, first for a new job's
@@ -45,13 +48,13 @@ import functools
 import logging
 from collections.abc import Awaitable, Callable, Sequence
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
 
-from drivers.links.mirror_client import MirrorClientLink
+from drivers.links.mirror_client import MirrorClientLink, without_peer_words
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
     COMMAND_AREA,
@@ -60,6 +63,7 @@ from vgripd.service.protocol import (
     BlockWrite,
     Reg,
     RegisterOptions,
+    map_size,
 )
 
 log = logging.getLogger(__name__)
@@ -112,6 +116,15 @@ class ModbusClientOptions(RegisterOptions):
     backoff_initial_s: float = Field(0.1, gt=0, le=60)
     backoff_max_s: float = Field(5.0, gt=0, le=600)
 
+    @model_validator(mode="after")
+    def _fits(self) -> ModbusClientOptions:
+        size = map_size(self.map_version)
+        if self.base_address + size > 65536:
+            raise ValueError(f"base_address {self.base_address}: the block of map version "
+                             f"{self.map_version} ({size} registers) must end at register 65535;"
+                             f" base_address at most {65536 - size}")
+        return self
+
 
 class RegisterRefused(LinkError):
     """The robot answered a request with a Modbus exception (``code``)."""
@@ -126,21 +139,18 @@ class RegisterRefused(LinkError):
         return self.code in (ExcCodes.ILLEGAL_FUNCTION, ExcCodes.ILLEGAL_ADDRESS)
 
 
-def plan_writes(journal: Sequence[BlockWrite]) -> list[BlockWrite]:
+def plan_writes(journal: Sequence[BlockWrite],
+                peer: Sequence[range] = (COMMAND_AREA,)) -> list[BlockWrite]:
     """The bank's block writes (map offsets) as few robot writes as their order allows.
 
-    Command-area words are the robot's and are dropped. Consecutive writes merge when the next
-    starts where the previous ends (or inside it); a write touching ACK_SEQ never merges, so
-    the acknowledge stays a transaction of its own at its place in the order.
+    Words in the ``peer`` areas (the command area; in map version 4 the latch too) are the
+    robot's and are dropped. Consecutive writes merge when the next starts where the previous
+    ends (or inside it); a write touching ACK_SEQ never merges, so the acknowledge stays a
+    transaction of its own at its place in the order.
     """
     plan: list[BlockWrite] = []
-    for w in journal:
-        address, words = w.address, w.words
-        if address < COMMAND_AREA.stop:  # strip the robot's own words
-            cut = min(COMMAND_AREA.stop - address, len(words))
-            address, words = address + cut, words[cut:]
-        if not words:
-            continue
+    for piece in (p for w in journal for p in without_peer_words(w, peer)):
+        address, words = piece.address, piece.words
         is_ack = address <= Reg.ACK_SEQ < address + len(words)
         if plan and not is_ack:
             last = plan[-1]
@@ -155,12 +165,12 @@ def plan_writes(journal: Sequence[BlockWrite]) -> list[BlockWrite]:
     return plan
 
 
-def full_image_writes(words: Sequence[int]) -> list[BlockWrite]:
-    """The whole block except the command area: data first, ACK_SEQ last."""
-    first = COMMAND_AREA.stop
+def full_image_writes(words: Sequence[int],
+                      peer: Sequence[range] = (COMMAND_AREA,)) -> list[BlockWrite]:
+    """The whole block except the ``peer`` areas: data first, ACK_SEQ last."""
     return [
-        BlockWrite(first, tuple(words[first:Reg.ACK_SEQ])),
-        BlockWrite(Reg.STATUS, tuple(words[Reg.STATUS:MAP_SIZE])),
+        *without_peer_words(BlockWrite(0, tuple(words[:Reg.ACK_SEQ])), peer),
+        *without_peer_words(BlockWrite(Reg.STATUS, tuple(words[Reg.STATUS:])), peer),
         BlockWrite(Reg.ACK_SEQ, (words[Reg.ACK_SEQ],)),
     ]
 
@@ -220,15 +230,16 @@ class ModbusClientLink(MirrorClientLink[AsyncModbusTcpClient]):
     async def _write_mirror(self, client: AsyncModbusTcpClient, words: list[int]) -> None:
         """The whole mirror, whatever the robot has."""
         self._journal.clear()
-        await self._write_plan(client, full_image_writes(self.bank.image.words))
+        await self._write_plan(client, full_image_writes(self.bank.image.words,
+                                                         self._peer_areas))
 
     async def _read_block(self, client: AsyncModbusTcpClient) -> list[int]:
         """The whole block; if refused, find and name the first register the robot refuses."""
-        base = self.options.base_address
+        base, size = self.options.base_address, self.bank.image.size
         try:
-            return await self._read(client, base, MAP_SIZE)
+            return await self._read(client, base, size)
         except RegisterRefused:
-            for offset in range(MAP_SIZE):
+            for offset in range(size):
                 try:
                     await self._read(client, base + offset, 1)
                 except RegisterRefused as err:
@@ -240,11 +251,11 @@ class ModbusClientLink(MirrorClientLink[AsyncModbusTcpClient]):
 
     async def _exchange(self, client: AsyncModbusTcpClient) -> list[int]:
         await self._flush(client)
-        return await self._read(client, self.options.base_address + COMMAND_AREA.start,
-                                len(COMMAND_AREA))
+        end = max(area.stop for area in self._peer_areas)  # from CMD through the latch
+        return await self._read(client, self.options.base_address, end)
 
     async def _write_changes(self, client: AsyncModbusTcpClient) -> None:
-        plan = plan_writes(self._journal)
+        plan = plan_writes(self._journal, self._peer_areas)
         self._journal.clear()
         await self._write_plan(client, plan)
 

@@ -2,22 +2,27 @@
 
 The PLC serves nothing of vgripd's: vgripd connects to it as a client (python-snap7, the
 classic S7 protocol over ISO-on-TCP, port 102, the "PUT/GET" access of S7-1200/1500) and uses
-``DB<db>`` bytes ``start .. start + 91`` as the register block of
-``vgripd.service.protocol``: the same items, in the same order, with the same handshake as the
-Modbus links; map register ``n`` is the 16-bit word at byte ``start + 2 n``. S7 is big-endian
-throughout (16-bit and 32-bit items alike), which is the map's ``ABCD`` order, so there is no
-word-order option. ``vgripd s7-udt`` prints the block as an S7 ``UDT`` (SCL source) for the PLC
-programmer; docs/s7.md has the table and the TIA Portal settings.
+``DB<db>`` bytes ``start .. start + 91`` (``map_version = 4``: ``start + 123``, the conveyor's
+latch and belt result) as the register block of ``vgripd.service.protocol``: the same items,
+in the same order, with the same handshake as the Modbus links; map register ``n`` is the
+16-bit word at byte ``start + 2 n``. S7 is big-endian throughout (16-bit and 32-bit items
+alike), which is the map's ``ABCD`` order, so there is no word-order option. ``vgripd s7-udt``
+prints the block as an S7 ``UDT`` (SCL source) for the PLC programmer; docs/s7.md has the
+table and the TIA Portal settings.
 
-The PLC program writes CMD, REQ_SEQ and RECIPE (bytes 0-5 of the block); vgripd writes the
-rest. The link keeps a mirror of the block in a ``RegisterBank`` (the handshake and image code
-every register link uses) and copies its changes to the PLC, in the bank's order:
+The PLC program writes CMD, REQ_SEQ and RECIPE (bytes 0-5 of the block) and, in map version
+4, LATCH_COUNT and LATCH_FRAME (bytes 92-99) before or with REQ_SEQ; vgripd writes the rest
+and never those bytes. The link keeps a mirror of the block in a ``RegisterBank`` (the
+handshake and image code every register link uses) and copies its changes to the PLC, in the
+bank's order:
 
-- every ``poll_ms`` it reads the whole block (one request: 92 bytes); a change of the command
-  area goes through the bank's handshake: a new request sequence calls ``on_trigger``, a
-  refusal (BUSY, BAD_REQUEST) writes REJECT_CODE, then REJECT_SEQ;
+- every ``poll_ms`` it reads the whole block (one request: 92 bytes, 124 in version 4); a
+  change of the command area goes through the bank's handshake: a new request sequence calls
+  ``on_trigger`` (with the latch of the same read), a refusal (BUSY, BAD_REQUEST) writes
+  REJECT_CODE, then REJECT_SEQ;
 - ``image_captured`` / ``publish`` / the heartbeat change the mirror and wake the supervisor,
-  which writes what changed: everything between two changes of ACK_SEQ in one write, and each
+  which writes what changed: everything between two changes of ACK_SEQ in one write (one on
+  each side of the latch in version 4: the PLC's words are never written over), and each
   change of ACK_SEQ in a write of its own at its place in the bank's order (last for a
   publish, first for the retraction of a new job or a CLEAR: ``jobcore.Handshake``), so the
   PLC never pairs an acknowledged sequence with data of another request (``plan_db_writes``);
@@ -55,7 +60,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Literal, TypeVar
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from snap7 import Client
 from snap7.error import S7Error, S7ProtocolError, S7TimeoutError
 
@@ -69,18 +74,24 @@ from vgripd.service.protocol import (
     BlockWrite,
     Reg,
     RegisterOptions,
+    map_size,
 )
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-DB_BYTES = 2 * MAP_SIZE  # bytes of the block in the DB
+DB_BYTES = 2 * MAP_SIZE  # bytes of the block in the DB (map version 3; ``db_bytes``)
 OVERWRITE_LOG_S = 60.0  # at most one line per this long about foreign writes to vgripd's part
 S7_CAPABILITIES = LinkCapabilities(
     MAX_VALUES, None,
     f"VALUES at block bytes {2 * Reg.VALUES}-{2 * Reg.FIT_RMS - 1}, the convention's fields "
     "in its own units")
+
+
+def db_bytes(version: int) -> int:
+    """Bytes of the block in the DB for register map ``version`` (3: 92, 4: 124)."""
+    return 2 * map_size(version)
 
 
 def quiet_snap7() -> None:
@@ -106,7 +117,7 @@ class S7Options(RegisterOptions):
     rack: int = Field(0, ge=0, le=7)
     slot: int = Field(1, ge=0, le=31)
     db: int = Field(ge=1, le=65535)
-    start: int = Field(0, ge=0, le=65536 - DB_BYTES, multiple_of=2)
+    start: int = Field(0, ge=0, le=65536 - DB_BYTES, multiple_of=2)  # and see _fits
     poll_ms: int = Field(20, ge=1, le=10_000)
     timeout_s: float = Field(1.0, gt=0, le=60)  # connect, and each request
     backoff_initial_s: float = Field(0.1, gt=0, le=60)
@@ -120,31 +131,46 @@ class S7Options(RegisterOptions):
                              "(ABCD); leave word_order out")
         return value
 
+    @model_validator(mode="after")
+    def _fits(self) -> S7Options:
+        size = db_bytes(self.map_version)
+        if self.start + size > 65536:
+            raise ValueError(f"start {self.start}: the block of map version {self.map_version} "
+                             f"({size} bytes) must end within a DB's 65536 bytes; start at most "
+                             f"{65536 - size}")
+        return self
+
 
 class S7Refused(LinkError):
     """The PLC answered a request with an error (no such DB, address out of range, access
     denied), as opposed to a lost or silent connection."""
 
 
-def plan_db_writes(sent: Sequence[int], journal: Sequence[BlockWrite]) -> list[BlockWrite]:
+def plan_db_writes(sent: Sequence[int], journal: Sequence[BlockWrite],
+                   own: Sequence[range] = (range(COMMAND_AREA.stop, MAP_SIZE),),
+                   ) -> list[BlockWrite]:
     """The writes (map word addresses) that take the PLC's block from ``sent`` to the end of
     the bank's ``journal``, in the journal's order.
 
-    The PLC's command area is never written. Between two changes of ACK_SEQ, every word that
-    changed travels in one write spanning the first to the last changed word (the words in
-    between carry what the PLC already has, ACK_SEQ included); a change of ACK_SEQ is a write
-    of its own at its place in the order. A publish is thus the data in one write and the
-    acknowledge in a second; a new job's retraction goes before its data is cleared.
+    Only the ``own`` stretches of the block (``own_segments``: all but the PLC's command area,
+    and in map version 4 its latch area) are ever written. Between two changes of ACK_SEQ,
+    every word that changed travels in one write per stretch, spanning its first to its last
+    changed word there (the words in between carry what the PLC already has, ACK_SEQ
+    included); a change of ACK_SEQ is a write of its own at its place in the order. A publish
+    is thus the data in one write (one on each side of the latch) and the acknowledge after it;
+    a new job's retraction goes before its data is cleared.
     """
     image = list(sent)
     plan: list[BlockWrite] = []
     changed: set[int] = set()
 
     def flush_span() -> None:
-        if changed:
-            lo, hi = min(changed), max(changed)
-            plan.append(BlockWrite(lo, tuple(image[lo:hi + 1])))
-            changed.clear()
+        for seg in own:
+            here = [a for a in changed if a in seg]
+            if here:
+                lo, hi = min(here), max(here)
+                plan.append(BlockWrite(lo, tuple(image[lo:hi + 1])))
+        changed.clear()
 
     for w in journal:
         ack: int | None = None
@@ -152,7 +178,7 @@ def plan_db_writes(sent: Sequence[int], journal: Sequence[BlockWrite]) -> list[B
             address = w.address + i
             if address == Reg.ACK_SEQ:
                 ack = value
-            elif address >= COMMAND_AREA.stop and image[address] != value:
+            elif any(address in seg for seg in own) and image[address] != value:
                 image[address] = value
                 changed.add(address)
         if ack is not None and ack != image[Reg.ACK_SEQ]:
@@ -175,10 +201,12 @@ class S7Link(MirrorClientLink[Client]):
     _log = log
 
     def __init__(self, name: str, options: S7Options) -> None:
-        area = f"DB{options.db} bytes {options.start}..{options.start + DB_BYTES - 1}"
+        size = db_bytes(options.map_version)
+        area = f"DB{options.db} bytes {options.start}..{options.start + size - 1}"
         super().__init__(name, options, f"{options.host}:{options.port} {area}")
         self._area = area
-        self._sent = [0] * MAP_SIZE  # the block as the PLC has it, as far as vgripd knows
+        self._size = size
+        self._sent = [0] * (size // 2)  # the block as the PLC has it, as far as vgripd knows
         self._executor: ThreadPoolExecutor | None = None
         self._client: Client | None = None
         self._overwrites = 0  # foreign writes to vgripd's part not yet logged
@@ -220,7 +248,7 @@ class S7Link(MirrorClientLink[Client]):
         self._sent = list(words)
         self._journal[:] = [BlockWrite(COMMAND_AREA.stop,
                                        tuple(self.bank.image.words[COMMAND_AREA.stop:]))]
-        await self._write_plan(client)
+        await self._write_plan(client)  # only vgripd's stretches: the plan skips the PLC's
 
     async def _exchange(self, client: Client) -> list[int]:
         for _ in range(3):  # what the daemon added meanwhile goes out before the next poll
@@ -229,7 +257,7 @@ class S7Link(MirrorClientLink[Client]):
                 break
         words = await self._read_block(client)
         self._check_own_part(words)
-        return words[COMMAND_AREA.start:COMMAND_AREA.stop]
+        return words
 
     async def _write_changes(self, client: Client) -> None:
         await self._write_plan(client)
@@ -304,25 +332,31 @@ class S7Link(MirrorClientLink[Client]):
         Logged at most once per ``OVERWRITE_LOG_S`` (with the count since the last line), so a
         PLC program that keeps writing there does not flood the log.
         """
-        own = slice(COMMAND_AREA.stop, MAP_SIZE)
-        if words[own] == self._sent[own]:
+        changed = [a for seg in self._own for a in seg if words[a] != self._sent[a]]
+        if not changed:
             return
         self._overwrites += 1
         now = time.monotonic()
         if self._overwrite_logged is None or now - self._overwrite_logged >= OVERWRITE_LOG_S:
-            first = next(a for a in range(own.start, MAP_SIZE) if words[a] != self._sent[a])
+            first = changed[0]
             name = next(r.name for r in reversed(Reg) if r.value <= first)
+            theirs = ("CMD, REQ_SEQ and RECIPE (bytes 0-5)" if len(self._peer_areas) == 1 else
+                      "CMD, REQ_SEQ, RECIPE (bytes 0-5), LATCH_COUNT and LATCH_FRAME "
+                      "(bytes 92-99)")
             log.warning("%s: vgripd's part of %s on %s was changed from the PLC side (first at "
                         "block byte %d, %s; %d time(s) since the last such line): writing it "
-                        "again; only CMD, REQ_SEQ and RECIPE (bytes 0-5) are the PLC's",
-                        self.name, self._area, self._peer, 2 * first, name, self._overwrites)
+                        "again; only %s are the PLC's",
+                        self.name, self._area, self._peer, 2 * first, name, self._overwrites,
+                        theirs)
             self._overwrite_logged = now
             self._overwrites = 0
-        self._sent[own] = words[own]
-        self._journal.append(BlockWrite(own.start, tuple(self.bank.image.words[own])))
+        for seg in self._own:
+            self._sent[seg.start:seg.stop] = words[seg.start:seg.stop]
+            self._journal.append(BlockWrite(seg.start, tuple(self.bank.image.words[seg.start:
+                                                                                   seg.stop])))
 
     async def _write_plan(self, client: Client) -> None:
-        plan = plan_db_writes(self._sent, self._journal)
+        plan = plan_db_writes(self._sent, self._journal, self._own)
         self._journal.clear()
         db, start = self.options.db, self.options.start
         for w in plan:
@@ -336,7 +370,7 @@ class S7Link(MirrorClientLink[Client]):
     async def _read_block(self, client: Client) -> list[int]:
         db, start = self.options.db, self.options.start
         raw = await self._call(f"reading {self._area}",
-                               functools.partial(client.db_read, db, start, DB_BYTES))
-        if len(raw) != DB_BYTES:
+                               functools.partial(client.db_read, db, start, self._size))
+        if len(raw) != self._size:
             raise LinkError(f"{self._peer} returned {len(raw)} bytes for {self._area}")
-        return list(struct.unpack(f">{MAP_SIZE}H", raw))
+        return list(struct.unpack(f">{self._size // 2}H", raw))

@@ -158,7 +158,7 @@ def test_s7_bad_request_wording_names_every_command_and_next() -> None:
     listed = {int(n) for n in re.findall(r"\d+", said.group(1))}
     takes = {int(c) for c in Command
              if (c is not Command.CAPTURE or getattr(S7Link, "takes_views", False))
-             and c is not Command.PREDICT}  # S7 serves map version 3: no conveyor
+             and c is not Command.PREDICT}  # map version 4's: said on its own
     assert listed == takes
     assert int(said.group(2)) == Command.NEXT
 

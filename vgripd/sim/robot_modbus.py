@@ -170,25 +170,30 @@ class MockRobotModbus:
     async def run_job(
         self, seq: int, timeout_s: float, base: int = UR_FIRST_REGISTER,
         command: int = Command.TRIGGER, recipe: int = 0, codec: ValueCodec | None = None,
+        latch: int | None = None, size: int = MAP_SIZE,
     ) -> JobSeen:
         """One cycle of the robot program on ``vgripd.service.protocol``'s map at ``base``.
 
-        Sets CMD and RECIPE, then raises REQ_SEQ to ``seq``; waits until ACK_SEQ or REJECT_SEQ
-        equals ``seq``; snapshots the block and checks the byte-order words (``codec``: the
-        word order the program expects, ABCD float32 by default). Raises ``LinkError`` when the
-        check words are wrong and ``TimeoutError`` when no answer comes.
+        Sets CMD and RECIPE (and with ``latch``, map version 4: LATCH_COUNT, the encoder count
+        latched or PREDICT's N, in ``codec``'s word order), then raises REQ_SEQ to ``seq``;
+        waits until ACK_SEQ or REJECT_SEQ equals ``seq``; snapshots the block (``size`` words)
+        and checks the byte-order words (``codec``: the word order the program expects, ABCD
+        float32 by default). Raises ``LinkError`` when the check words are wrong and
+        ``TimeoutError`` when no answer comes.
         """
         codec = codec or ValueCodec()
         start = len(self.writes)
         await self.write(base + Reg.CMD, [command])
         await self.write(base + Reg.RECIPE, [recipe])
+        if latch is not None:
+            await self.write(base + Reg.LATCH_COUNT, codec.u32(latch & 0xFFFFFFFF))
         await self.write(base + Reg.REQ_SEQ, [seq])
         ack, reject = base + Reg.ACK_SEQ, base + Reg.REJECT_SEQ
         async with asyncio.timeout(timeout_s), self._changed:
             await self._changed.wait_for(
                 lambda: seq in (self._regs[ack - self.first], self._regs[reject - self.first])
             )
-        words = tuple(self.read(base, MAP_SIZE))
+        words = tuple(self.read(base, size))  # the map's words: 46, or 62 in version 4
         check = (words[Reg.CHECK_U16], codec.decode_u32(words[Reg.CHECK_U32:Reg.CHECK_U32 + 2]))
         if check != (CHECK_U16, CHECK_U32):
             raise LinkError(f"robot program: check words {check} at base {base} are not "

@@ -13,8 +13,9 @@ parent keeps them in ``writes`` (offset and bytes), so tests can check that ACK_
 alone and last.
 
 ``MockS7Plc`` is the PLC program: it drives the handshake of ``vgripd.service.protocol``'s map
-through a snap7 client, as a program in the PLC sees its own DB: write CMD and RECIPE, then a
-new REQ_SEQ; wait until ACK_SEQ or REJECT_SEQ equals it; read the block. The layout is the
+through a snap7 client, as a program in the PLC sees its own DB: write CMD and RECIPE (and on a
+conveyor, map version 4, the latched encoder count), then a new REQ_SEQ; wait until ACK_SEQ or
+REJECT_SEQ equals it; read the block. The layout is the
 register map with each 16-bit word at byte ``start + 2 * address``, big-endian, which is S7's
 own byte order, so there is no word-order option. The program decodes with ``struct`` at those
 offsets, not with vgripd's codec or the UDT generator, so an encoding bug cannot cancel out.
@@ -218,15 +219,17 @@ class S7JobSeen:
 class MockS7Plc:
     """The PLC program, as a snap7 (asyncio) client of the PLC stand-in's DB.
 
-    ``start`` is the block's byte offset in the DB (the link's ``start`` option).
+    ``start`` is the block's byte offset in the DB (the link's ``start`` option); ``size`` the
+    block's bytes (``DB_BYTES``: map version 3; 124 for version 4).
     """
 
     def __init__(self, host: str, port: int, db: int = 10, start: int = 0, rack: int = 0,
-                 slot: int = 1, poll_s: float = 0.001) -> None:
+                 slot: int = 1, poll_s: float = 0.001, size: int = DB_BYTES) -> None:
         self.host = host
         self.port = port
         self.db = db
         self.start = start
+        self.size = size
         self.rack = rack
         self.slot = slot
         self.poll_s = poll_s
@@ -266,8 +269,8 @@ class MockS7Plc:
         return self._client
 
     async def read(self) -> bytes:
-        """The whole block (``DB_BYTES`` bytes from ``start``)."""
-        return bytes(await self._c().db_read(self.db, self.start, DB_BYTES))
+        """The whole block (``size`` bytes from ``start``)."""
+        return bytes(await self._c().db_read(self.db, self.start, self.size))
 
     async def until(self, pred: Callable[[bytes], bool], timeout_s: float) -> bytes:
         """Poll the block every ``poll_s`` until ``pred(block)``; returns that block."""
@@ -286,14 +289,22 @@ class MockS7Plc:
         await self.write(reg, struct.pack(f">{len(words)}H", *words))
 
     async def run_job(self, seq: int, timeout_s: float, command: int = Command.TRIGGER,
-                      recipe: int = 0) -> S7JobSeen:
+                      recipe: int = 0, latch: int | None = None,
+                      frame: int | None = None) -> S7JobSeen:
         """One request: CMD (and RECIPE) first, then REQ_SEQ; wait for its answer.
+
+        ``latch`` (and ``frame``): map version 4, the encoder count the PLC latched (PREDICT:
+        the count N) as a DInt at LATCH_COUNT (LATCH_FRAME), written before REQ_SEQ.
 
         Raises ``LinkError`` when the check words are wrong (wrong DB, start or layout) and
         ``TimeoutError`` when no answer comes within ``timeout_s``.
         """
         await self.write_words(Reg.CMD, [command])
         await self.write_words(Reg.RECIPE, [recipe])
+        if latch is not None:
+            await self.write(Reg.LATCH_COUNT, struct.pack(">I", latch & 0xFFFFFFFF))
+        if frame is not None:
+            await self.write(Reg.LATCH_FRAME, struct.pack(">I", frame & 0xFFFFFFFF))
         t0 = time.perf_counter()
         await self.write_words(Reg.REQ_SEQ, [seq])
         captured_ms: float | None = None

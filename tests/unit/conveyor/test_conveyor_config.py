@@ -77,3 +77,24 @@ def test_motion_blur_above_the_limit_is_an_error(exposure_us: float, level: str 
 def test_blur_without_an_exposure_is_a_warning() -> None:
     cfg = config_from_dict({**CAMERA, "conveyor": BELT, "camera": {"type": "synthetic"}})
     assert [(f.level, f.key) for f in check_conveyor(cfg)] == [("WARNING", "camera.exposure_us")]
+
+
+@pytest.mark.parametrize("link", [
+    {"type": "s7", "host": "127.0.0.1", "db": 10},
+    {"type": "modbus_client", "host": "127.0.0.1"},
+    {"type": "modbus_server", "host": "127.0.0.1", "port": 1502},
+    {"type": "modbus_server", "host": "127.0.0.1", "port": 1502, "map_version": 3},
+])
+def test_a_register_link_without_the_latch_area_is_refused_naming_its_field(
+        link: dict[str, Any]) -> None:
+    """A conveyor needs the count with every request: a register link left at map version 3
+    (given or the default) is a config error naming ``links[N].map_version``; version 4 loads."""
+    other = {"type": "s7", "host": "127.0.0.1", "db": 11, "map_version": 4}
+    shown = "3" if "map_version" in link else r"3 \(the default\)"
+    with pytest.raises(ConfigError, match=rf"links\[1\]\.map_version = {shown}: the "
+                                          rf"{link['type']} link then carries no encoder count"):
+        config_from_dict({"conveyor": BELT, "links": [other, link]})
+    cfg = config_from_dict({"conveyor": BELT, "links": [other, {**link, "map_version": 4}]})
+    assert cfg.conveyor is not None
+    # without a belt, version 3 stays what it was: the default
+    assert config_from_dict({"links": [link]}).links[0].type == link["type"]
