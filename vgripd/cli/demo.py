@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from vgripd.cli import demo_setup
+from vgripd.cli import demo_conveyor, demo_setup
 from vgripd.cli.demo_links import LINK_KINDS
 from vgripd.config import config_from_dict
 from vgripd.errors import LinkError
@@ -51,9 +51,10 @@ REGISTER_VENDORS = [n for n, c in CONVENTIONS.items() if len(c.fields) <= MAX_VA
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", choices=("plate", "pallet"), default="plate",
+    parser.add_argument("--scene", choices=("plate", "pallet", "conveyor"), default="plate",
                         help="plate: one object per image (default); pallet: six plates, "
-                             "walked as a pick list with NEXT")
+                             "walked as a pick list with NEXT; conveyor: parts on a moving "
+                             "belt, queued and picked with NEXT and PREDICT")
     parser.add_argument("--cycles", type=int, default=None,
                         help="PLC cycles (default 10; with --scene pallet: 2 pallets)")
     parser.add_argument("--seed", type=int, default=1, help="synthetic poses/noise (default 1)")
@@ -77,6 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="loopback address of the --link peer (default 127.0.0.1; "
                              "ur_rtde: a free one)")
     parser.add_argument("--verbose", action="store_true", help="show the daemon's log")
+    demo_conveyor.add_arguments(parser)
     demo_setup.add_arguments(parser)
 
 
@@ -436,6 +438,8 @@ def run(args: argparse.Namespace) -> int:
     if args.link is not None:
         from vgripd.cli.demo_links import DemoCell, run_link_demo
         main = run_link_demo(args, DemoCell(Demo, demo_config, _port, web_view))
+    elif args.scene == "conveyor":
+        main = demo_conveyor.run_conveyor(args, _port(args.port), _port(args.web_port))
     else:
         main = run_pallet(args) if args.scene == "pallet" else run_demo(args)
     try:
