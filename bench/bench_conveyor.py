@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import math
+import os
 import statistics
 import sys
 import tempfile
@@ -313,8 +314,9 @@ def report(rows: dict[tuple[float, str], PickRun], speeds: tuple[float, ...],
     for speed in speeds:
         lines.append(f"| {speed:g} mm/s | " + " | ".join(stats(rows[speed, s].errors, rows[speed, s].refused)
                                                       for s in SOURCES) + " |")
-    lines += ["", "Along the belt only (signed error's median / max of its size, mm): "
-              "the exposure's smear and the latch's timing show here.", "", head,
+    lines += ["", "Along the belt only (its size, median / max, mm): the exposure's "
+              "smear and the latch's timing are all of it; across and rotation add nothing "
+              "visible.", "", head,
               "|---|" + "---|" * len(SOURCES)]
     for speed in speeds:
         lines.append(f"| {speed:g} mm/s | " + " | ".join(stats(rows[speed, s].along)
@@ -333,7 +335,8 @@ def report(rows: dict[tuple[float, str], PickRun], speeds: tuple[float, ...],
         "count at the exposure's start while the image shows the part smeared over the "
         f"exposure: half of speed x {EXPOSURE_US:g} us along the belt "
         f"({0.5 * 1000 * EXPOSURE_US * 1e-6:.2f} mm at 1000 mm/s), which the daemon does not "
-        "correct.",
+        f"correct. The machine's load average during the run: {os.getloadavg()[0]:.0f} on "
+        f"{os.cpu_count()} cores (the scatter of the request-to-image time grows with it).",
         "",
         f"Exposure to queue entry (image time to the parts in the queue, locating included, "
         f"{len(lat)} images): p50 {np.percentile(lat, 50):.0f} ms, p95 "
@@ -348,7 +351,9 @@ def report(rows: dict[tuple[float, str], PickRun], speeds: tuple[float, ...],
         "", "| belt speed | parts | picked once | missed | gripped twice |", "|---|---|---|---|---|"]
     lines += [f"| {s:g} mm/s | {n} | {once} | {miss} | {dup} |" for s, n, once, miss, dup in thr]
     clean = [s for s, n, once, miss, dup in thr if miss == 0 and dup == 0]
-    lines += ["", f"Highest speed with every part picked once: {max(clean):g} mm/s"
+    lines += ["", f"Highest speed with every part picked once: {max(clean):g} mm/s ("
+              f"{args.parts} parts: the window's slack carries a short run past gap / cycle; "
+              "a longer run at a speed above it misses parts)"
               if clean else "No speed tried picked every part once.", "",
               "Limits: simulated belts and renderers (no real encoder, camera or robot); the "
               "belt's time is simulated in part 2 (the robot and PLC act at the counts of a "

@@ -19,6 +19,10 @@ map version 3, docs/registers.md): one line per plate with its INDEX of COUNT, p
 score, pose and error against the renderer's truth of that plate, until NOT_FOUND ends the
 list. A NEXT after CLEAR closes the run, refused BAD_REQUEST.
 
+``--scene conveyor`` runs parts on a moving belt instead (``vgripd.cli.demo_conveyor``): images
+at the latched counts, the part queue, NEXT and PREDICT, every grip judged against the
+simulated belt.
+
 Exit code 0 when every cycle got a consistent handshake answer (and the fault cycle was
 refused by the gate), 1 otherwise.
 """
