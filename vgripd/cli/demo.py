@@ -19,6 +19,10 @@ map version 3, docs/registers.md): one line per plate with its INDEX of COUNT, p
 score, pose and error against the renderer's truth of that plate, until NOT_FOUND ends the
 list. A NEXT after CLEAR closes the run, refused BAD_REQUEST.
 
+``--scene conveyor`` runs parts on a moving belt instead (``vgripd.cli.demo_conveyor``): images
+at the latched counts, the part queue, NEXT and PREDICT, every grip judged against the
+simulated belt.
+
 Exit code 0 when every cycle got a consistent handshake answer (and the fault cycle was
 refused by the gate), 1 otherwise.
 """
@@ -33,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from vgripd.cli import demo_setup
+from vgripd.cli import demo_conveyor, demo_setup
 from vgripd.cli.demo_links import LINK_KINDS
 from vgripd.config import config_from_dict
 from vgripd.errors import LinkError
@@ -51,9 +55,10 @@ REGISTER_VENDORS = [n for n, c in CONVENTIONS.items() if len(c.fields) <= MAX_VA
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", choices=("plate", "pallet"), default="plate",
+    parser.add_argument("--scene", choices=("plate", "pallet", "conveyor"), default="plate",
                         help="plate: one object per image (default); pallet: six plates, "
-                             "walked as a pick list with NEXT")
+                             "walked as a pick list with NEXT; conveyor: parts on a moving "
+                             "belt, queued and picked with NEXT and PREDICT")
     parser.add_argument("--cycles", type=int, default=None,
                         help="PLC cycles (default 10; with --scene pallet: 2 pallets)")
     parser.add_argument("--seed", type=int, default=1, help="synthetic poses/noise (default 1)")
@@ -77,6 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="loopback address of the --link peer (default 127.0.0.1; "
                              "ur_rtde: a free one)")
     parser.add_argument("--verbose", action="store_true", help="show the daemon's log")
+    demo_conveyor.add_arguments(parser)
     demo_setup.add_arguments(parser)
 
 
@@ -436,6 +442,8 @@ def run(args: argparse.Namespace) -> int:
     if args.link is not None:
         from vgripd.cli.demo_links import DemoCell, run_link_demo
         main = run_link_demo(args, DemoCell(Demo, demo_config, _port, web_view))
+    elif args.scene == "conveyor":
+        main = demo_conveyor.run_conveyor(args, _port(args.port), _port(args.web_port))
     else:
         main = run_pallet(args) if args.scene == "pallet" else run_demo(args)
     try:

@@ -15,10 +15,26 @@ from typing import Any
 import numpy as np
 
 from vgripd.config import Config
+from vgripd.service.beltqueue import BeltLine, belt_pose
 from vgripd.service.cameras import CameraSupervisor
 from vgripd.service.jobs import JobRunner, recipe_label
 from vgripd.service.links import LinkSupervisor
 from vgripd.service.worker import WorkerClient
+
+
+def queued_parts(line: BeltLine) -> list[dict[str, Any]]:
+    """The queued parts in belt terms at the newest count (downstream first): the web view's
+    belt strip draws them there, with the window."""
+    at = line.last_count
+    if at is None:
+        return []
+    out = []
+    for p in line.queue.parts:
+        b = belt_pose(line.belt, p.at(line.belt, at), at, p.source, p.error_mm, 0)
+        out.append({"uid": p.uid, "job_id": p.job_id, "along_mm": round(b.along_mm, 2),
+                    "across_mm": round(b.across_mm, 2), "theta_deg": round(b.theta_deg, 2),
+                    "sightings": p.sightings})
+    return out
 
 
 class StatusBoard:
@@ -98,7 +114,8 @@ class StatusBoard:
                 "queued": len(q), "seen": q.stats.seen, "duplicates": q.stats.duplicates,
                 "dropped": q.stats.dropped, "served": q.stats.served,
                 "last_count": line.last_count, "latch": line.latch_kind.name.lower(),
-                "queue_latency_ms_p50": lat[len(lat) // 2] if lat else None}
+                "queue_latency_ms_p50": lat[len(lat) // 2] if lat else None,
+                "window_mm": list(q.window_mm), "parts": queued_parts(line)}
         return out
 
     def snapshot(self, run_state: str, t_start_ns: int, health_problem: str) -> dict[str, Any]:

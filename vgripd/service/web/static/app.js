@@ -203,6 +203,7 @@ function showStatus(s) {
   const pick = pl && pl.instances ? `; pick list of job ${pl.job_id} (${pl.link}): ` +
     (pl.index > pl.count ? `used up (${pl.count} handed out)` : `${pl.index} of ${pl.count} shown`) : "";
   $("counters").textContent = counts + cyc + pick;
+  drawBelts(s.conveyor || {});
   const cal = [`calibrated: ${s.calibrated ? "yes" : "NO"}`];
   if (rc && rc.jobs) {
     cal.push(`epipolar: ${rc.above} of the last ${rc.jobs} stereo jobs above ${rc.threshold_px} px ` +
@@ -558,3 +559,62 @@ async function main() {
 }
 
 main();
+
+// --- conveyor: each conveyor recipe's belt from above, travel to the right: the pick window
+// shaded, each queued part where the queue predicts it at the newest count (a dot and a tick
+// for its rotation). Data: /api/status "conveyor" (docs/conveyor.md, "The belt strip").
+function drawBelts(conveyor) {
+  const box = $("belts");
+  const entries = Object.entries(conveyor);
+  box.hidden = entries.length === 0;
+  const keep = new Set(entries.map(([n]) => `belt-${n}`));
+  for (const fig of [...box.children]) if (!keep.has(fig.id)) fig.remove();
+  for (const [n, c] of entries) {
+    let fig = $(`belt-${n}`);
+    if (!fig) {
+      fig = document.createElement("figure");
+      fig.id = `belt-${n}`;
+      fig.className = "belt";
+      fig.append(svgNode("svg", { viewBox: "0 0 800 120", role: "img",
+        "aria-label": `conveyor of recipe ${n}: queued parts and the pick window` }),
+      document.createElement("figcaption"));
+      box.append(fig);
+    }
+    drawBelt(fig.querySelector("svg"), c);
+    fig.querySelector("figcaption").textContent = `Conveyor of recipe ${n}: ${c.queued} queued ` +
+      `at count ${c.last_count ?? "(none yet)"}, pick window ${c.window_mm[0]} .. ${c.window_mm[1]} mm ` +
+      `along the belt (travel to the right); seen ${c.seen}, duplicates ${c.duplicates}, ` +
+      `served ${c.served}, dropped ${c.dropped}; latch ${c.latch}` +
+      (c.queue_latency_ms_p50 == null ? "" : `, exposure -> queue p50 ${fmt(c.queue_latency_ms_p50)} ms`);
+  }
+}
+
+function drawBelt(svg, c) {
+  const W = 800, H = 120, M = 20;
+  const [w0, w1] = c.window_mm;
+  const along = c.parts.map((p) => p.along_mm);
+  const span = w1 - w0;
+  const lo = Math.min(w0 - 0.5 * span, ...along.map((a) => a - 60));
+  const hi = Math.max(w1 + 0.1 * span, ...along.map((a) => a + 60));
+  const half = Math.max(100, ...c.parts.map((p) => Math.abs(p.across_mm) + 60));
+  const x = (a) => M + (a - lo) / (hi - lo) * (W - 2 * M);
+  const y = (across) => H / 2 - across / half * (H / 2 - 10);  // left of the travel: up
+  const r = Math.max(4, 40 / (hi - lo) * (W - 2 * M));
+  const parts = [
+    svgNode("rect", { class: "belt-surface", x: M, y: 10, width: W - 2 * M, height: H - 20 }),
+    svgNode("rect", { class: "belt-window", x: x(w0), y: 10, width: x(w1) - x(w0), height: H - 20 }),
+    svgNode("text", { x: x(w0) + 3, y: H - 14, class: "belt-label" }, `window ${w0}`),
+    svgNode("text", { x: x(w1) - 3, y: H - 14, class: "belt-label", "text-anchor": "end" }, `${w1} mm`),
+    svgNode("path", { class: "belt-arrow", d: `M${W - M - 40},18 h30 m-6,-4 l6,4 l-6,4` }),
+  ];
+  for (const p of c.parts) {
+    const g = svgNode("g", { class: "belt-part", "data-uid": p.uid, "data-along": p.along_mm,
+      transform: `translate(${x(p.along_mm).toFixed(1)},${y(p.across_mm).toFixed(1)}) rotate(${-p.theta_deg})` });
+    g.append(svgNode("circle", { r: r.toFixed(1) }),
+      svgNode("line", { x1: 0, y1: 0, x2: (r * 1.4).toFixed(1), y2: 0 }),
+      svgNode("title", {}, `part ${p.uid} (job ${p.job_id}, seen ${p.sightings}x): ` +
+        `${fmt(p.along_mm)} mm along, ${fmt(p.across_mm)} mm across, ${fmt(p.theta_deg)} deg`));
+    parts.push(g);
+  }
+  svg.replaceChildren(...parts);
+}
