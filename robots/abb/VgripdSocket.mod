@@ -10,6 +10,8 @@ MODULE VgripdSocket
   ! A pallet (pick lists): vgStatus := vgLocate(0), then while vgStatus is 1 or 2 pick the
   ! object and ask vgStatus := vgNext() until it answers 10 (NOT_FOUND: all picked).
   ! Walked hand-eye calibration: vgWalk; (docs/robots/abb.md, "Walked hand-eye calibration").
+  ! A conveyor (docs/robots/abb.md, "Conveyor"): vgLocateAt(0, count latched at the image),
+  ! then vgIntercept lead, tGrip, v500, tGripper; and close the gripper on 1 or 2.
   CONST string VG_HOST := "@@HOST@@";
   CONST num VG_PORT := @@PORT@@;
   CONST num VG_SCALE := @@SCALE@@; ! 0: the answer's values are float32
@@ -26,6 +28,12 @@ MODULE VgripdSocket
   CONST dnum VG_REFUSED := @@REFUSED@@;
   CONST dnum VG_CAPTURE_AT := @@CAPTURE_AT@@; ! a locate with the flange pose reached (vgWalk)
   CONST num VG_AT_BYTES := @@AT_BYTES@@; ! its length: 16 + 7 pose words
+  ! A conveyor: the counted requests (24 bytes: the encoder count and a frame id), the BELT frame
+  CONST dnum VG_LOCATE_AT := @@LOCATE_AT@@;
+  CONST dnum VG_NEXT_AT := @@NEXT_AT@@;
+  CONST dnum VG_PREDICT := @@PREDICT@@;
+  CONST dnum VG_BELT := @@BELT@@;
+  CONST num VG_COUNTED_BYTES := @@COUNTED_BYTES@@;
   ! vgWalk (from [calibration_walk] of the config): linear speed, standstill before the image
   CONST num VG_WALK_SPEED_MM_S := @@WALK_SPEED_MM_S@@;
   CONST num VG_WALK_SETTLE_S := @@WALK_SETTLE_S@@;
@@ -36,6 +44,16 @@ MODULE VgripdSocket
   VAR num vgWarnings := 0;
   VAR num vgRemaining := 0; ! pick lists: objects after this one
   VAR bool vgCaptured := FALSE;
+  ! The BELT frame of the last counted request: the count vgOffset belongs to, the latch, the
+  ! part in belt terms (mm, deg) and the parts still queued
+  VAR dnum vgBeltCount := 0;
+  VAR num vgBeltSource := 0;
+  VAR num vgLatchErr := 0;
+  VAR num vgAlong := 0;
+  VAR num vgAcross := 0;
+  VAR num vgTheta := 0;
+  VAR num vgQueued := 0;
+  VAR dnum vgCount := 0; ! the count a counted request sends
   VAR dnum vgId := 0;
   VAR bool vgConnected := FALSE;
   VAR socketdev vgSocket;
@@ -51,6 +69,71 @@ MODULE VgripdSocket
   FUNC num vgNext()
     RETURN vgAsk(VG_NEXT, 0);
   ENDFUNC
+
+  ! A locate on a conveyor recipe: vgLatched is the encoder count latched at the exposure.
+  FUNC num vgLocateAt(num vgRecipe, dnum vgLatched)
+    vgCount := vgLatched;
+    RETURN vgAsk(VG_LOCATE_AT, vgRecipe);
+  ENDFUNC
+
+  ! The conveyor's next part (most downstream in the window at count vgNow), its offset at its
+  ! own latched count vgBeltCount: what a tracking option takes with that count.
+  FUNC num vgNextAt(dnum vgNow)
+    vgCount := vgNow;
+    RETURN vgAsk(VG_NEXT_AT, 0);
+  ENDFUNC
+
+  ! Where the part vgNextAt served will be at count vgN (vgOffset; 21: past the window).
+  FUNC num vgPredict(dnum vgN)
+    vgCount := vgN;
+    RETURN vgAsk(VG_PREDICT, 0);
+  ENDFUNC
+
+  ! The belt's encoder count now: the 32-bit group input vgEncoder (the PLC or encoder card
+  ! mapped there in the I/O configuration; change this function to your wiring).
+  FUNC dnum vgEncoderNow()
+    RETURN GInputDnum(vgEncoder);
+  ENDFUNC
+
+  ! TRUE once the count vgNow has reached vgN; the difference wraps with the 32-bit counter.
+  FUNC bool vgReached(dnum vgNow, dnum vgN)
+    VAR dnum vgD;
+    vgD := vgNow - vgN;
+    IF vgD < 0 THEN
+      vgD := vgD + 4294967296;
+    ENDIF
+    RETURN vgD < 2147483648;
+  ENDFUNC
+
+  ! Without a tracking option: the next part, predicted vgLead counts ahead, the grip moved
+  ! there (PoseMult(vgOffset, vgGrip) with vgTool, base frame), then waits until the encoder
+  ! reaches that count. vgStatus 1 or 2: the part is under the gripper (close it at once);
+  ! else the status, unmoved.
+  PROC vgIntercept(dnum vgLead, robtarget vgGrip, speeddata vgSpeed, PERS tooldata vgTool)
+    VAR dnum vgN;
+    VAR pose vgP;
+    VAR robtarget vgTarget;
+    vgStatus := vgNextAt(vgEncoderNow());
+    IF vgStatus <> 1 AND vgStatus <> 2 THEN
+      RETURN;
+    ENDIF
+    vgN := vgEncoderNow() + vgLead;
+    IF vgN >= 4294967296 THEN
+      vgN := vgN - 4294967296;
+    ENDIF
+    vgStatus := vgPredict(vgN);
+    IF vgStatus <> 1 AND vgStatus <> 2 THEN
+      RETURN;
+    ENDIF
+    vgP := PoseMult(vgOffset, [vgGrip.trans, vgGrip.rot]);
+    vgTarget := vgGrip;
+    vgTarget.trans := vgP.trans;
+    vgTarget.rot := vgP.rot;
+    MoveL vgTarget, vgSpeed, fine, vgTool \WObj:=wobj0;
+    WHILE NOT vgReached(vgEncoderNow(), vgN) DO
+      WaitTime 0.004;
+    ENDWHILE
+  ENDPROC
 
   ! Walked hand-eye calibration (docs/calibration-handeye.md, "Walked calibration"): vgripd
   ! hands out the plan's targets (absolute flange poses in the robot's base frame), this
@@ -133,8 +216,9 @@ MODULE VgripdSocket
     RETURN -1;
   ENDFUNC
 
-  ! One request (VG_LOCATE, VG_NEXT, or VG_CAPTURE_AT with the pose in vgAt): the status of
-  ! its final answer, or -1 when none came in time.
+  ! One request (VG_LOCATE, VG_NEXT, VG_CAPTURE_AT with the pose in vgAt, or a counted one
+  ! with vgCount): the status of its final answer, or -1 when none came in time; a counted
+  ! request's BELT frame sets vgBeltCount .. vgQueued.
   FUNC num vgRequest(dnum vgCmd, num vgRecipe)
     VAR dnum vgWord;
     VAR dnum vgKind;
@@ -156,6 +240,10 @@ MODULE VgripdSocket
         PackRawBytes vgAt{vgI}, vgRaw \Network, 13 + 4 * vgI \Float4;
       ENDFOR
       SocketSend vgSocket \RawData:=vgRaw \NoOfBytes:=VG_AT_BYTES;
+    ELSEIF vgCmd = VG_LOCATE_AT OR vgCmd = VG_NEXT_AT OR vgCmd = VG_PREDICT THEN
+      PackRawBytes vgCount, vgRaw \Network, 17 \IntX:=UDINT;
+      PackRawBytes 0, vgRaw \Network, 21 \IntX:=UDINT; ! the frame id: 0
+      SocketSend vgSocket \RawData:=vgRaw \NoOfBytes:=VG_COUNTED_BYTES;
     ELSE
       SocketSend vgSocket \RawData:=vgRaw;
     ENDIF
@@ -163,13 +251,21 @@ MODULE VgripdSocket
       ClearRawBytes vgRaw;
       SocketReceive vgSocket \RawData:=vgRaw \ReadNoOfBytes:=64 \Time:=VG_TIMEOUT_S;
       UnpackRawBytes vgRaw \Network, 1, vgKind \IntX:=UDINT;
-      IF vgKind <> VG_CAPTURED AND vgKind <> VG_RESULT AND vgKind <> VG_REFUSED THEN
+      IF vgKind <> VG_CAPTURED AND vgKind <> VG_RESULT AND vgKind <> VG_REFUSED AND vgKind <> VG_BELT THEN
         RETURN -1; ! not a vgripd answer: the stream is out of step
       ENDIF
       UnpackRawBytes vgRaw \Network, 5, vgWord \IntX:=UDINT;
       IF vgWord = vgId THEN
         IF vgKind = VG_CAPTURED THEN
           vgCaptured := TRUE; ! the images are taken: a robot-mounted camera may move on
+        ELSEIF vgKind = VG_BELT THEN
+          UnpackRawBytes vgRaw \Network, 9, vgBeltCount \IntX:=UDINT; ! vgOffset's count
+          UnpackRawBytes vgRaw \Network, 13, vgBeltSource \IntX:=UDINT;
+          UnpackRawBytes vgRaw \Network, 17, vgLatchErr \Float4;
+          UnpackRawBytes vgRaw \Network, 21, vgAlong \Float4;
+          UnpackRawBytes vgRaw \Network, 25, vgAcross \Float4;
+          UnpackRawBytes vgRaw \Network, 29, vgTheta \Float4;
+          UnpackRawBytes vgRaw \Network, 33, vgQueued \IntX:=UDINT;
         ELSE
           UnpackRawBytes vgRaw \Network, 13, vgJob \IntX:=UDINT;
           UnpackRawBytes vgRaw \Network, 17, vgWarnings \IntX:=UDINT;

@@ -16,6 +16,14 @@
  * is skipped (NEXT with recipe 1) and the next one is left in D052..D057. Tool file 0 must be
  * all 0 (the flange), as the tool VGWALK moves with: a pose read more than VG_AT_TOL_UM /
  * VG_AT_TOL_DEG4 off the target the job moved to is not sent, the step answers -2.
+ *
+ * A conveyor (docs/robots/yaskawa.md, "Conveyor"): I054 = 4 a locate with the count latched at
+ * the image in D059 (VGBLOC); I054 = 5 the intercept's requests: the next part at the count
+ * now, predicted D059 counts ahead (VGCATCH); I054 = 6 waits until the count reaches D061;
+ * I054 = 7 the next part at the count now (for a tracking option). The encoder count now is
+ * D060 (vgEncoderNow: change it to your wiring). A counted request's BELT frame leaves D061
+ * the count the offset belongs to, D062 ALONG and D063 ACROSS (0.001 mm), D064 THETA
+ * (0.0001 deg), D065 the parts queued, D066 the latch source.
  */
 #include "motoPlus.h"
 
@@ -32,6 +40,12 @@
 #define VG_REFUSED @@REFUSED@@
 #define VG_CAPTURE_AT @@CAPTURE_AT@@ /* a locate with the flange pose reached (VGWALK) */
 #define VG_AT_BYTES @@AT_BYTES@@ /* its length: 16 + 7 pose words */
+/* A conveyor: the counted requests (24 bytes: the encoder count and a frame id), BELT */
+#define VG_LOCATE_AT @@LOCATE_AT@@
+#define VG_NEXT_AT @@NEXT_AT@@
+#define VG_PREDICT @@PREDICT@@
+#define VG_BELT @@BELT@@
+#define VG_COUNTED_BYTES @@COUNTED_BYTES@@
 #define VG_WALK_SPEED_MM_S @@WALK_SPEED_V@@ /* VGWALK.JBI's MOVL V= ([calibration_walk]) */
 #define VG_WALK_SETTLE_S @@WALK_SETTLE_T@@ /* VGWALK.JBI's TIMER T= before CAPTURE_AT */
 #define VG_AT_TOL_UM 1000 /* the flange pose read at a target: within 1 mm ... */
@@ -42,6 +56,7 @@
 static int vgClient = -1;
 static LONG vgId = 0;
 static LONG vgW[16];
+static LONG vgCount = 0; /* the count a counted request sends */
 
 static LONG vgGet(USHORT vgType, USHORT vgIndex)
 {
@@ -69,6 +84,19 @@ static void vgDrop(void)
         mpClose(vgClient);
         vgClient = -1;
     }
+}
+
+/* The belt's encoder count now: D060, kept current by the cell (the PLC over the fieldbus,
+ * or an encoder card): change this to your wiring. */
+static LONG vgEncoderNow(void)
+{
+    return vgGet(MP_RESTYPE_VAR_D, VG_VAR + 10);
+}
+
+/* 1 once the count vgNow has reached vgN; the difference wraps with the 32-bit counter. */
+static int vgReached(LONG vgNow, LONG vgN)
+{
+    return (unsigned int)vgNow - (unsigned int)vgN <= 2147483647;
 }
 
 /* The robot's joint angles now; 0 when read. */
@@ -138,8 +166,8 @@ static int vgAtTarget(const MP_COORD *vgCoord)
     return 1;
 }
 
-/* One request (VG_LOCATE, VG_NEXT, or VG_CAPTURE_AT with the 7 pose words vgAt): the status
- * of its final answer, or -1 when none came in time. */
+/* One request (VG_LOCATE, VG_NEXT, VG_CAPTURE_AT with the 7 pose words vgAt, or a counted
+ * one with vgCount): the status of its final answer, or -1 when none came in time. */
 static LONG vgRequest(LONG vgCmd, LONG vgRecipe, const LONG *vgAt)
 {
     LONG vgReq[11];
@@ -161,6 +189,11 @@ static LONG vgRequest(LONG vgCmd, LONG vgRecipe, const LONG *vgAt)
         }
         vgLen = VG_AT_BYTES;
     }
+    if (vgCmd == VG_LOCATE_AT || vgCmd == VG_NEXT_AT || vgCmd == VG_PREDICT) {
+        vgReq[4] = mpHtonl(vgCount);
+        vgReq[5] = 0; /* the frame id */
+        vgLen = VG_COUNTED_BYTES;
+    }
     if (mpSend(vgClient, (char *)vgReq, vgLen, 0) != vgLen) {
         return -1;
     }
@@ -175,8 +208,18 @@ static LONG vgRequest(LONG vgCmd, LONG vgRecipe, const LONG *vgAt)
         for (vgI = 0; vgI < 16; vgI++) {
             vgW[vgI] = mpNtohl(vgW[vgI]);
         }
-        if (vgW[0] != VG_CAPTURED && vgW[0] != VG_RESULT && vgW[0] != VG_REFUSED) {
+        if (vgW[0] != VG_CAPTURED && vgW[0] != VG_RESULT && vgW[0] != VG_REFUSED
+                && vgW[0] != VG_BELT) {
             return -1; /* not a vgripd answer: the stream is out of step */
+        }
+        if (vgW[1] == vgId && vgW[0] == VG_BELT) {
+            vgPut(MP_RESTYPE_VAR_D, VG_VAR + 11, vgW[2]); /* the count the offset belongs to */
+            vgPut(MP_RESTYPE_VAR_D, VG_VAR + 12, vgW[5] / (VG_SCALE / 1000));
+            vgPut(MP_RESTYPE_VAR_D, VG_VAR + 13, vgW[6] / (VG_SCALE / 1000));
+            vgPut(MP_RESTYPE_VAR_D, VG_VAR + 14, vgW[7] / (VG_SCALE / 10000));
+            vgPut(MP_RESTYPE_VAR_D, VG_VAR + 15, vgW[8]);
+            vgPut(MP_RESTYPE_VAR_D, VG_VAR + 16, vgW[3]);
+            continue;
         }
         if (vgW[1] == vgId && vgW[0] != VG_CAPTURED) {
             vgPut(MP_RESTYPE_VAR_D, VG_VAR, vgW[3]);
@@ -255,8 +298,32 @@ static LONG vgWalkStep(LONG vgMode)
     return vgStatus;
 }
 
+/* The conveyor's steps (I054 = 4 .. 7, see the head of this file): the status. */
+static LONG vgBeltStep(LONG vgMode)
+{
+    LONG vgStatus;
+    if (vgMode == 4) {
+        vgCount = vgGet(MP_RESTYPE_VAR_D, VG_VAR + 9);
+        return vgAsk(VG_LOCATE_AT, vgGet(MP_RESTYPE_VAR_I, VG_VAR + 2), 0);
+    }
+    if (vgMode == 6) { /* the part reaches the gripper: the status stays the PREDICT's */
+        while (!vgReached(vgEncoderNow(), vgGet(MP_RESTYPE_VAR_D, VG_VAR + 11))) {
+            mpTaskDelay(1);
+        }
+        return vgGet(MP_RESTYPE_VAR_I, VG_VAR + 3);
+    }
+    vgCount = vgEncoderNow();
+    vgStatus = vgAsk(VG_NEXT_AT, 0, 0);
+    if (vgMode == 7 || (vgStatus != 1 && vgStatus != 2)) {
+        return vgStatus;
+    }
+    /* the intercept: where the part will be D059 counts from now (D061 = that count) */
+    vgCount = (LONG)((unsigned int)vgEncoderNow() + (unsigned int)vgGet(MP_RESTYPE_VAR_D, VG_VAR + 9));
+    return vgAsk(VG_PREDICT, 0, 0);
+}
+
 /* Serves the INFORM jobs: I050 = 1 starts a locate (I054 = 1: a next; 2, 3: the walk's
- * steps), I051 = 1 says it is done. */
+ * steps; 4 .. 7: the conveyor's), I051 = 1 says it is done. */
 static void vg_job_task(void)
 {
     LONG vgMode;
@@ -267,6 +334,8 @@ static void vg_job_task(void)
                 vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3, vgAsk(VG_NEXT, 0, 0));
             } else if (vgMode == 2 || vgMode == 3) {
                 vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3, vgWalkStep(vgMode));
+            } else if (vgMode >= 4 && vgMode <= 7) {
+                vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3, vgBeltStep(vgMode));
             } else {
                 vgPut(MP_RESTYPE_VAR_I, VG_VAR + 3,
                       vgAsk(VG_LOCATE, vgGet(MP_RESTYPE_VAR_I, VG_VAR + 2), 0));

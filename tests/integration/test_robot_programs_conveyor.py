@@ -9,7 +9,9 @@ belt (tests/integration/belt_cell.py), simulated here independently of the code 
   controller's own tracking, simulated here from the test's belt (the controller's conveyor
   calibration), which the arm follows until the part reaches the grip line.
 
-Only brands whose program has the conveyor routines are run (``BELT_BRANDS``)."""
+Every robot-socket brand but UR (whose conveyor runs over RTDE, docs/ur_rtde.md) is run
+(``BELT_BRANDS``); the twin reads each program's own command words from its text, and
+``INTERCEPT`` checks that each program's intercept does the twin's steps in the twin's order."""
 
 from __future__ import annotations
 
@@ -38,7 +40,37 @@ from vgripd.types import Status
 from vgripd.vision.scene import T_base_obj_ref
 
 pytestmark = pytest.mark.timeout(300)
-BELT_BRANDS = ["kuka"]
+BELT_BRANDS = ["kuka", "abb", "fanuc", "staubli", "yaskawa"]
+#: Each program's intercept, per file, in the order the program does it: NEXT at the count
+#: now, PREDICT at now + lead, the move to the predicted grip, the wait for that count.
+INTERCEPT = {
+    "kuka": {"vgripd.src": ["vgSt = vgNextAt(VG_ENCODER)", "vgN = VG_ENCODER + vgLead",
+                            "vgSt = vgPredict(vgN)", "LIN vgOffset : vgGrip",
+                            "IF VG_ENCODER - vgN >= 0 THEN"]},
+    "abb": {"VgripdSocket.mod": ["vgStatus := vgNextAt(vgEncoderNow());",
+                                 "vgN := vgEncoderNow() + vgLead;",
+                                 "vgStatus := vgPredict(vgN);",
+                                 "vgP := PoseMult(vgOffset, [vgGrip.trans, vgGrip.rot]);",
+                                 "MoveL vgTarget, vgSpeed, fine, vgTool",
+                                 "WHILE NOT vgReached(vgEncoderNow(), vgN) DO"]},
+    "fanuc": {"VG_CATCH.ls": ["CALL VGRIPD(0,7,AR[1])", "L PR[52] 500mm/sec FINE Offset,PR[50]",
+                              "CALL VGRIPD(0,8)"],
+              "vgripd.kl": ["vg_cmd = VG_NEXT_AT -- the next part at the count now",
+                            "vg_count = vg_reg(VG_REG + 19)",
+                            "WHILE NOT vg_reached(vg_reg(VG_REG + 19), vg_reg(VG_REG + 12)) DO",
+                            "vg_cmd = VG_PREDICT -- the intercept",
+                            "vg_count = vg_plus(vg_reg(VG_REG + 19), vg_arg)"]},
+    "staubli": {"vgIntercept.pgx": ["call vgNextAt(aioGet(vgEncoder), x_vgStatus)",
+                                    "l_vgN = aioGet(vgEncoder) + x_vgLead",
+                                    "call vgPredict(l_vgN, x_vgStatus)",
+                                    "movel(l_vgTarget, x_vgTool, x_vgDesc)",
+                                    "l_vgD = aioGet(vgEncoder) - l_vgN"]},
+    "yaskawa": {"VGCATCH.JBI": ["SET I054 5", "MOVL P051", "SET I054 6"],
+                "vgripd_task.c": ["vgCount = vgEncoderNow();\n    vgStatus = vgAsk(VG_NEXT_AT, 0, 0);",
+                                  "vgCount = (LONG)((unsigned int)vgEncoderNow() + (unsigned int)"
+                                  "vgGet(MP_RESTYPE_VAR_D, VG_VAR + 9));\n    return vgAsk(VG_PREDICT",
+                                  ]},
+}
 PICK_MM, PICK_DEG = 1.0, 0.5  # the allowed pick error (the cell's pose check)
 
 
@@ -100,7 +132,8 @@ async def test_the_intercept_and_tracking_routines_pick_parts_off_the_belt(
     T_ref = T_base_obj_ref(config)
     belt = Belt(0.0)
     arm = SimulatedArm(np.eye(4), reach_mm=5000.0, settle_cycles=3)
-    async with running(config), ProgramTwin(settings, "127.0.0.1", port) as twin:
+    # the twin first: the Yaskawa task listens and vgripd dials it
+    async with ProgramTwin(settings, "127.0.0.1", port) as twin, running(config):
         for travel in (0.0, 150.0):  # a camera trigger every 150 mm, the count latched with it
             while travel_of(belt.count()) < travel:
                 belt.advance(10)
@@ -131,3 +164,17 @@ async def test_the_intercept_and_tracking_routines_pick_parts_off_the_belt(
     counted = [f for f in twin.sent if len(f) == COUNTED_SIZE]
     words = {struct.unpack(">I", f[:4])[0] for f in counted}
     assert words == {settings.belt_words[k] for k in ("LOCATE_AT", "NEXT_AT", "PREDICT")}
+
+
+@pytest.mark.parametrize("brand", BELT_BRANDS)
+def test_each_programs_intercept_does_the_twins_steps_in_order(brand: str) -> None:
+    """What the twin's ``intercept`` does is what the program text does: NEXT at the count
+    now, PREDICT ``lead`` counts later, the move, the wait for the count, in that order."""
+    texts = program(brand, belt_cell(brand, Path("/nonexistent"), 50100))
+    for name, steps in INTERCEPT[brand].items():
+        text = texts[name]
+        at = -1
+        for step in steps:
+            found = text.find(step, at + 1)
+            assert found > at, f"{brand} {name}: {step!r} not after the step before it"
+            at = found
