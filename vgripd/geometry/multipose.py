@@ -21,12 +21,8 @@ import numpy as np
 import numpy.typing as npt
 
 from vgripd.errors import ConvergenceError, DegenerateInputError
-from vgripd.geometry.multiview import (
-    MIN_DEPTH_MM,
-    MultiView,
-    pixel_table,
-    project_with_jacobian,
-)
+from vgripd.geometry.camera_model import project_with_jacobian
+from vgripd.geometry.multiview import MIN_DEPTH_MM, MultiView, pixel_table
 from vgripd.geometry.orientation import horn, pnp
 from vgripd.geometry.transforms import (
     check_transform,

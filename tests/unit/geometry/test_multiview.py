@@ -17,9 +17,9 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from vgripd.errors import DegenerateInputError
-from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.camera_model import CameraModel, project_with_jacobian
 from vgripd.geometry.multipose import fit_pose, rig_consistency
-from vgripd.geometry.multiview import MultiView, project_with_jacobian
+from vgripd.geometry.multiview import MultiView
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform, make_transform, pose_error
 
