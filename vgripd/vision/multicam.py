@@ -8,16 +8,16 @@ with ``calibration.cameras`` (docs/multicamera.md):
    frame) and kept when in front of both within ``vision.working_distance_mm``;
 2. tracks: candidates that share a mark and agree in 3D (within ``vision.model_tolerance_mm``)
    are grouped into one track (a mark seen by 2+ cameras, at most one image mark per camera),
-   then triangulated from all its rays (:class:`~vgripd.geometry.multiview.MultiView`);
+   then triangulated from all its rays (:class:`~vgripd.geometry.points_from_views.MultiView`);
 3. identification against the model by rigid distances (``features.match_model``, as the
    stereo path does; identified features, ArUco/templates, pair by identity);
-4. joint fit (:func:`~vgripd.geometry.multipose.fit_pose`): Horn over the tracks, then the
+4. joint fit (:func:`~vgripd.geometry.pose_from_views.fit_pose`): Horn over the tracks, then the
    6-DOF pose refined over every observation of every camera. Marks the tracks missed (seen
    by one camera only, or a view a candidate pair did not contain) are then added where the
    fitted pose predicts them, within the epipolar tolerance, and the fit repeated once more
    with the perspective bias of the circle centres removed;
 5. per-rig residuals and the linearised leave-one-rig-out check
-   (:func:`~vgripd.geometry.multipose.rig_consistency`) that names a rig that disagrees.
+   (:func:`~vgripd.geometry.pose_from_views.rig_consistency`) that names a rig that disagrees.
 
 Pure CPU, no state between jobs.
 """
@@ -34,9 +34,9 @@ import numpy.typing as npt
 from vgripd.config import Config
 from vgripd.errors import GeometryError
 from vgripd.geometry.camera_model import CameraModel
-from vgripd.geometry.multipose import MultiViewPose, fit_pose, rig_consistency
-from vgripd.geometry.multiview import MultiView
 from vgripd.geometry.orientation import horn
+from vgripd.geometry.points_from_views import MultiView
+from vgripd.geometry.pose_from_views import MultiViewPose, fit_pose, rig_consistency
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform
 from vgripd.types import FloatArray

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from vgripd.geometry.multipose import GroupCheck, MultiViewPose
+from vgripd.geometry.pose_from_views import GroupCheck, MultiViewPose
 from vgripd.types import FloatArray
 
 

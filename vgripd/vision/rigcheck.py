@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from vgripd.config import VisionConfig
-from vgripd.geometry.multipose import GroupCheck
+from vgripd.geometry.pose_from_views import GroupCheck
 from vgripd.types import Status
 from vgripd.vision.multiestimate import MultiEstimate
 

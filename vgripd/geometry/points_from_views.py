@@ -12,7 +12,7 @@ them. Here everything lives in the robot ``base`` frame, where every camera has 
 * :meth:`MultiView.refine_points`: Gauss-Newton on the reprojection error of each point in all
   cameras that see it (the gold-standard criterion, which the ray criterion approximates).
 
-The object pose over all cameras is :mod:`vgripd.geometry.multipose`.
+The object pose over all cameras is :mod:`vgripd.geometry.pose_from_views`.
 
 Pixels of a set of points are given as an (m, N, 2) array, N = number of cameras in the order
 of ``MultiView.cameras``, NaN where a camera does not see the point. Millimetres, radians,

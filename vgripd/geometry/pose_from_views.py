@@ -8,7 +8,7 @@ camera (marks seen by a single camera count too), with residuals per camera grou
 :func:`rig_consistency`: a linearised leave-one-group-out analysis around the joint fit that
 names the group (rig) that disagrees with the others: a camera knocked out of its calibration.
 
-Pixels are (n, N, 2) tables as in :mod:`vgripd.geometry.multiview` (NaN = not seen);
+Pixels are (n, N, 2) tables as in :mod:`vgripd.geometry.points_from_views` (NaN = not seen);
 millimetres, radians, pixels.
 """
 
@@ -22,8 +22,8 @@ import numpy.typing as npt
 
 from vgripd.errors import ConvergenceError, DegenerateInputError
 from vgripd.geometry.camera_model import project_with_jacobian
-from vgripd.geometry.multiview import MIN_DEPTH_MM, MultiView, pixel_table
 from vgripd.geometry.orientation import horn, pnp
+from vgripd.geometry.points_from_views import MIN_DEPTH_MM, MultiView, pixel_table
 from vgripd.geometry.transforms import (
     check_transform,
     left_jacobians,

@@ -18,8 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from vgripd.errors import DegenerateInputError
 from vgripd.geometry.camera_model import CameraModel, project_with_jacobian
-from vgripd.geometry.multipose import fit_pose, rig_consistency
-from vgripd.geometry.multiview import MultiView
+from vgripd.geometry.points_from_views import MultiView
+from vgripd.geometry.pose_from_views import fit_pose, rig_consistency
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform, make_transform, pose_error
 
