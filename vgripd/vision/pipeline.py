@@ -46,8 +46,8 @@ from vgripd.vision import picklist, scene
 from vgripd.vision.found import Found, _Finder
 from vgripd.vision.gates import Measurement, gate, limit_point
 from vgripd.vision.jobstate import PoseEstimate, StereoPoints, _Job
-from vgripd.vision.multicam import MultiCamera
 from vgripd.vision.rigcheck import rig_verdict
+from vgripd.vision.views_locator import ViewsLocator
 
 #: Minimum number of matched features for PnP (three points have up to four poses).
 MIN_PNP_FEATURES = 4
@@ -122,10 +122,10 @@ class Pipeline:
         )
         identified = int((~self.is_circle).sum())
         # A multi-camera cell (calibration.cameras): its own path, one finder per camera.
-        self.multi: MultiCamera | None = None
+        self.multi: ViewsLocator | None = None
         self.finders: list[_Finder] = []
         if scene.is_multi_camera(config):
-            self.multi = MultiCamera(config, self.model, self.T_base_obj_ref)
+            self.multi = ViewsLocator(config, self.model, self.T_base_obj_ref)
             self.finders = [_Finder(config, cam.fx) for cam in self.multi.cameras]
         elif self.rig is None and identified < MIN_PNP_FEATURES:
             raise ConfigError(
@@ -271,7 +271,7 @@ class Pipeline:
         return status, message, target
 
     # ------------------------------------------------------------------ multi-camera
-    def _run_multi(self, multi: MultiCamera, pair: ImagePair, job: _Job
+    def _run_multi(self, multi: ViewsLocator, pair: ImagePair, job: _Job
                    ) -> tuple[Status, str, Any]:
         """A multi-camera cell (docs/multicamera.md): marks in every image, one joint fit."""
         vision, limits = self.config.vision, self.config.limits

@@ -2,7 +2,7 @@
 the status and message a job ends with when a rig disagrees (docs/multicamera.md, "Which rig
 disagrees").
 
-Apart from :mod:`vgripd.vision.multicam` (which measures) so that the rules that turn the
+Apart from :mod:`vgripd.vision.views_locator` (which measures) so that the rules that turn the
 measurements into a status read in one place.
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 from vgripd.config import VisionConfig
 from vgripd.geometry.pose_from_views import GroupCheck
 from vgripd.types import Status
-from vgripd.vision.multiestimate import MultiEstimate
+from vgripd.vision.views_estimate import ViewsEstimate
 
 #: A rig fitted alone leaving this many times the residuals of the best other rig is
 #: inconsistent in itself (:func:`self_inconsistent`) ...
@@ -57,7 +57,7 @@ def self_inconsistent(checks: Sequence[GroupCheck], observations: dict[str, int]
     return out
 
 
-def rig_verdict(status: Status, message: str, est: MultiEstimate,
+def rig_verdict(status: Status, message: str, est: ViewsEstimate,
                 vision: VisionConfig) -> tuple[Status, str]:
     """The status of a multi-camera job after the common gates: every rig's own reprojection
     RMS is gated too, and a rig that disagrees with the others is named; a pose that passed
@@ -82,7 +82,7 @@ def rig_verdict(status: Status, message: str, est: MultiEstimate,
     return status, f"{message}; {blame}"
 
 
-def _blame(est: MultiEstimate) -> str:
+def _blame(est: ViewsEstimate) -> str:
     """The sentence naming the rig(s) the consistency check found odd ('' for none)."""
     if not est.odd or est.pose is None:
         return ""

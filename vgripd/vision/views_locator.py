@@ -19,7 +19,8 @@ with ``calibration.cameras`` (docs/multicamera.md):
 5. per-rig residuals and the linearised leave-one-rig-out check
    (:func:`~vgripd.geometry.pose_from_views.rig_consistency`) that names a rig that disagrees.
 
-Pure CPU, no state between jobs.
+Pure CPU, no state between jobs. The images come from the ``multi`` camera driver
+(``drivers/cameras/multi.py``), which grabs every camera of the cell.
 """
 
 from __future__ import annotations
@@ -42,8 +43,8 @@ from vgripd.geometry.transforms import invert_transform
 from vgripd.types import FloatArray
 from vgripd.vision import features as ft
 from vgripd.vision import scene
-from vgripd.vision.multiestimate import MultiEstimate
 from vgripd.vision.rigcheck import self_inconsistent
+from vgripd.vision.views_estimate import ViewsEstimate
 
 #: Pixels a mark's predicted centre must be inside the image to count as visible there.
 EDGE_MARGIN_PX = 4.0
@@ -53,7 +54,7 @@ EDGE_MARGIN_PX = 4.0
 COMPLETE_FACTOR = 4.0
 #: An observation this many times the RMS of its camera's other observations (and above
 #: ``OUTLIER_FLOOR`` of ``vision.max_reprojection_px``) is an outlier of its own camera
-#: (:meth:`MultiCamera._without_outliers`); at most ``MAX_OUTLIERS`` are dropped per job.
+#: (:meth:`ViewsLocator._without_outliers`); at most ``MAX_OUTLIERS`` are dropped per job.
 OUTLIER_FACTOR = 8.0
 OUTLIER_FLOOR = 0.2
 MAX_OUTLIERS = 8
@@ -83,8 +84,8 @@ def visible(camera: CameraModel, T_camera_base: FloatArray, points_base: FloatAr
     return inside
 
 
-class MultiCamera:
-    """The multi-camera geometry of one configured cell, prepared once.
+class ViewsLocator:
+    """The multi-camera geometry of one configured cell, prepared once; :meth:`locate` per job.
 
     Parameters
     ----------
@@ -141,7 +142,7 @@ class MultiCamera:
 
     # ------------------------------------------------------------------ the job
     def locate(self, circles: Sequence[FloatArray], identified: Sequence[dict[int, FloatArray]],
-               T_base_flange: FloatArray | None) -> MultiEstimate:
+               T_base_flange: FloatArray | None) -> ViewsEstimate:
         """The object pose from the marks of every camera (``circles[j]`` (k_j, 2) px,
         ``identified[j]`` feature index -> px)."""
         vision = self.config.vision
@@ -170,7 +171,7 @@ class MultiCamera:
         for k, index in enumerate(fixed):
             if np.isfinite(points[k]).all():
                 assignment[index] = k
-        est = MultiEstimate(used=np.zeros(n, dtype=bool), camera_names=self.names)
+        est = ViewsEstimate(used=np.zeros(n, dtype=bool), camera_names=self.names)
         rows = np.array([k for k in range(len(fixed), len(all_tracks))
                          if np.isfinite(points[k]).all()], dtype=np.intp)
         circle_model = np.flatnonzero(self.is_circle)
@@ -216,7 +217,7 @@ class MultiCamera:
                                               zip(circles, identified, strict=True)])
         return est
 
-    def _lost(self, view: MultiView, est: MultiEstimate, px: FloatArray, blobs: list[int]
+    def _lost(self, view: MultiView, est: ViewsEstimate, px: FloatArray, blobs: list[int]
               ) -> tuple[str, ...]:
         """Cameras that found mark-like blobs (3 or more) and should see 3 or more marks at
         the found pose, yet contribute no observation: their image is not what their
@@ -227,7 +228,7 @@ class MultiCamera:
         return tuple(name for j, name in enumerate(self.names)
                      if seen[j] >= 3 and blobs[j] >= 3 and np.isnan(px[:, j, 0]).all())
 
-    def _without_odd_rig(self, view: MultiView, est: MultiEstimate, px: FloatArray) -> None:
+    def _without_odd_rig(self, view: MultiView, est: ViewsEstimate, px: FloatArray) -> None:
         """When one rig is named and the others agree among themselves, the pose the job
         gives is theirs: the named rig's calibration is wrong, so its rays only pull the
         joint pose off (by up to a millimetre, measured). Residuals, gates and the verdict
@@ -447,7 +448,7 @@ class MultiCamera:
         return out
 
     def _measure(self, view: MultiView, rigs: dict[tuple[int, int], StereoRig],
-                 est: MultiEstimate, pose: MultiViewPose, px: FloatArray) -> MultiEstimate:
+                 est: ViewsEstimate, pose: MultiViewPose, px: FloatArray) -> ViewsEstimate:
         vision = self.config.vision
         seen: npt.NDArray[np.bool_] = ~np.isnan(px[..., 0])
         est.used = np.asarray(seen.any(axis=1), dtype=bool)
