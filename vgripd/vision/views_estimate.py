@@ -16,7 +16,7 @@ from vgripd.types import FloatArray
 @dataclass
 class ViewsEstimate:
     """What the multi-camera path measured: the pose, which features it used, the residuals
-    (``rig.<name>.*``, ``camera.<name>.*`` and the gate figures) and the groups the consistency
+    (``rig.<name>.*``, ``camera.<name>.*`` and the checked figures) and the groups the consistency
     check found odd (names). ``pose`` is None when fewer than 3 features were identified."""
 
     used: npt.NDArray[np.bool_]

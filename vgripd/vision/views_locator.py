@@ -231,7 +231,7 @@ class ViewsLocator:
     def _without_odd_rig(self, view: MultiView, est: ViewsEstimate, px: FloatArray) -> None:
         """When one rig is named and the others agree among themselves, the pose the job
         gives is theirs: the named rig's calibration is wrong, so its rays only pull the
-        joint pose off (by up to a millimetre, measured). Residuals, gates and the verdict
+        joint pose off (by up to a millimetre, measured). Residuals, pose checks and the verdict
         stay those of the joint fit: a job refused for its residuals is still refused; one
         published with OK_RECALIBRATE gets the better pose. ``est.excluded`` names the rig."""
         if len(est.odd) != 1 or est.pose is None:
@@ -275,9 +275,9 @@ class ViewsLocator:
         different: all its marks are off alike, none stands out, so the rig check still sees
         it. Dropped, worst first and refitting each time: an observation whose error is
         above ``OUTLIER_FACTOR`` times the RMS of its camera's other observations and above
-        ``OUTLIER_FLOOR`` of the gate; at most a quarter of a camera's observations, and
+        ``OUTLIER_FLOOR`` of the limit; at most a quarter of a camera's observations, and
         never below 3 marks per camera."""
-        gate = self.config.vision.max_reprojection_px
+        limit_px = self.config.vision.max_reprojection_px
         dropped = 0
         out = px
         for _ in range(MAX_OUTLIERS):
@@ -290,7 +290,7 @@ class ViewsLocator:
                 k = rows[int(np.argmax(e[rows]))]
                 rest = e[rows[rows != k]]
                 limit = max(OUTLIER_FACTOR * float(np.sqrt(np.mean(rest * rest))),
-                            OUTLIER_FLOOR * gate)
+                            OUTLIER_FLOOR * limit_px)
                 if e[k] > limit and (worst is None or e[k] / limit > worst[0]):
                     worst = (float(e[k] / limit), int(k), j)
             if worst is None:
@@ -498,7 +498,7 @@ class ViewsLocator:
             r[f"rig.{name}.fit_rms_mm"] = joint_fit[name]
         if len(self.groups) >= 2:
             est.checks = rig_consistency(
-                view, self.model, px, T, gate_px=vision.max_reprojection_px,
+                view, self.model, px, T, limit_px=vision.max_reprojection_px,
                 max_deviation_mm=vision.rig_deviation_mm,
                 max_deviation_deg=vision.rig_deviation_deg)
             for c in est.checks:
@@ -509,7 +509,7 @@ class ViewsLocator:
                         r[f"rig.{c.name}.{key}"] = value
             # A rig that is not consistent in itself (its own marks do not fit the model in
             # 3D, its cameras break their epipolar geometry, or its own pose fit leaves
-            # pixel residuals beyond the gate) while every other rig is: one of its
+            # pixel residuals beyond the limit) while every other rig is: one of its
             # cameras moved. (The leave-one-out check alone misses a camera moved along its
             # rig's baseline: that scales the rig's depths, which a pose fitted on pixels
             # mostly absorbs.)
@@ -520,7 +520,7 @@ class ViewsLocator:
             inconsistent |= self_inconsistent(
                 est.checks, {g.name: g.observations for g in pose.groups},
                 vision.max_reprojection_px)
-            # Or, failing that, the one rig whose residuals under the joint pose break a gate
+            # Or, failing that, the one rig whose residuals under the joint pose break a limit
             # while the others' do not (its residuals dominate the job's).
             dominant = {g.name for g in pose.groups
                         if joint_fit.get(g.name, 0.0) > vision.max_fit_rms_mm
