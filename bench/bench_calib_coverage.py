@@ -239,7 +239,7 @@ def cameras_z(trials: int, profile: str = "far") -> list[dict[str, np.ndarray]]:
     Per trial the second camera's position error (x y z, in the reference camera) in units of
     its reported sigma (``new``) and of the fit's own sigma (``old``, ``std_model``: the
     intrinsics taken as exact), and the rotation error angle over ``rotation_std_deg``."""
-    from vgripd.calib.multicam import Observation, calibrate_cameras
+    from vgripd.calib.camera_poses import Observation, calibrate_cameras
     from vgripd.geometry.transforms import invert_transform, make_transform, rotation_angle
 
     p = PROFILES[profile]

@@ -50,8 +50,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.render_board import Camera  # noqa: E402
 from bench.results import write_section  # noqa: E402
 from vgripd.calib.boards import Board, Detection, detect  # noqa: E402
+from vgripd.calib.camera_poses import Observation, calibrate_cameras  # noqa: E402
 from vgripd.calib.intrinsics import calibrate_intrinsics  # noqa: E402
-from vgripd.calib.multicam import Observation, calibrate_cameras  # noqa: E402
 from vgripd.calib.rig import calibrate_rig  # noqa: E402
 from vgripd.errors import CalibrationError  # noqa: E402
 

@@ -43,7 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.results import write_section  # noqa: E402
-from vgripd.calib.multicam import Observation, calibrate_cameras  # noqa: E402
+from vgripd.calib.camera_poses import Observation, calibrate_cameras  # noqa: E402
 from vgripd.geometry.transforms import pose_error  # noqa: E402
 
 SIZE = (640, 480)

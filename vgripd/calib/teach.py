@@ -9,7 +9,7 @@ The pose in the base frame, ``T_base_obj = T_base_camera @ T_cam_obj``, depends 
 calibration and the images, never on the reference already in the config: the reference enters
 only the offset and its limits. So shots are measured with :func:`measuring_config`, which
 lifts the offset limits (a re-taught object may sit far from the old reference) and keeps every
-other gate (residuals, workspace box).
+other check (residuals, workspace box).
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ is the same (``nl_007.png`` and ``sr-7.png`` are set 7); a camera may miss a set
 the board not seen). Intrinsics come from ``--intrinsics NAME=FILE`` (a ``calibrate
 intrinsics``/``stereo`` result or a config; ``FILE:right`` picks ``[calibration.right]``) or,
 for a camera without, from its own images (as ``calibrate intrinsics``). The cameras' poses are
-fitted jointly over every board corner (``vgripd.calib.multicam``: PnP per image, view graph,
+fitted jointly over every board corner (``vgripd.calib.camera_poses``: PnP per image, view graph,
 spanning tree -- chaining where two cameras share no set --, sparse bundle adjustment with
 intrinsics fixed unless ``--refine-intrinsics``), relative to ``--reference`` (default the
 first camera).
@@ -39,9 +39,7 @@ import cv2
 import numpy as np
 
 from vgripd.calib.boards import Board, Detection, detect_files
-from vgripd.calib.files import pose_table, write_result
-from vgripd.calib.intrinsics import DIST_NAMES, calibrate_intrinsics
-from vgripd.calib.multicam import (
+from vgripd.calib.camera_poses import (
     MAX_CAMERAS,
     MIN_POINTS,
     MultiResult,
@@ -51,6 +49,8 @@ from vgripd.calib.multicam import (
     calibrate_cameras,
     place,
 )
+from vgripd.calib.files import pose_table, write_result
+from vgripd.calib.intrinsics import DIST_NAMES, calibrate_intrinsics
 from vgripd.calib.output import add_output_arguments, emit
 from vgripd.cli.calibrate_intrinsics import add_model_arguments, model_words
 from vgripd.config import HandEyeConfig, IntrinsicsConfig, read_config_data

@@ -15,7 +15,9 @@ For a point ``(X, Y, Z)`` in the camera frame (mm, Z along the optical axis, Z >
 
 ``dist`` is stored in OpenCV's order ``(k1, k2, p1, p2, k3)``, which equals Bouguet's ``kc``;
 ``skew`` is in pixels (``K[0, 1]``), i.e. ``fx * alpha_c`` in Bouguet's notation.
-No I/O here: loading and saving calibrations lives in ``vgripd.calibrate``.
+The distortion itself (forward, derivative, inverse) is :mod:`vgripd.geometry.distortion`, the
+one implementation of it. No I/O here: loading and saving calibrations lives in
+``vgripd.calib``.
 """
 
 from __future__ import annotations
@@ -23,88 +25,21 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, NamedTuple, NoReturn, cast
+from typing import Any, NamedTuple, NoReturn
 
-import cv2
 import numpy as np
-import numpy.typing as npt
 
 from vgripd.errors import ConvergenceError, DegenerateInputError
-
-FloatArray = npt.NDArray[np.float64]
-
-_EYE3 = np.eye(3)
-# A fixed number of OpenCV fixed-point iterations for the starting point: 20 reach ~1e-13 at
-# |k1| ~ 0.3 and cost ~2x the default 5; an EPS criterion would make OpenCV reproject every
-# iteration, several times slower than Newton's own check.
-_GUESS_CRITERIA = (cv2.TERM_CRITERIA_COUNT, 20, 0.0)
-
-
-class Coefficients(NamedTuple):
-    """The distortion as :func:`_newton` takes it: one column per point, or one for all.
-
-    k1, k2, k3 are floats or (n,) arrays; tang = (p2, p1) and tang2 = 2 tang are (2, 1) or
-    (2, n).
-    """
-
-    k1: Any
-    k2: Any
-    k3: Any
-    tang: FloatArray
-    tang2: FloatArray
-
-    @classmethod
-    def of(cls, dist: tuple[float, float, float, float, float]) -> Coefficients:
-        k1, k2, p1, p2, k3 = dist
-        return cls(k1, k2, k3, np.array([[p2], [p1]]), np.array([[2.0 * p2], [2.0 * p1]]))
-
-    @classmethod
-    def stacked(cls, a: Coefficients, b: Coefficients, n: int) -> Coefficients:
-        """n points of camera a, then n of camera b."""
-        def per_point(x: Any, y: Any) -> FloatArray:
-            if np.ndim(x) == 0:  # k1, k2, k3 -> (2n,)
-                return np.repeat([x, y], n)
-            return np.repeat(np.hstack([x, y]), n, axis=1)  # (m, 1) columns -> (m, 2n)
-
-        return cls(*(per_point(x, y) for x, y in zip(a, b, strict=True)))
-
-
-def _newton(target: FloatArray, P: FloatArray, coef: Coefficients, max_iter: int,
-            tol: float) -> tuple[FloatArray, FloatArray, FloatArray, bool]:
-    """Newton's method on ``distort(P) = target``, vectorised over the points (columns).
-
-    Parameters
-    ----------
-    target : (2, n) distorted normalized coordinates, one row per axis.
-    P : (2, n) starting point (undistorted normalized coordinates).
-    coef : the distortion, per point (the points may belong to different cameras).
-    max_iter : Newton steps allowed after the starting point.
-    tol : every point's residual must end below it (normalized units).
-
-    Returns
-    -------
-    P (2, n), its r2 = x^2 + y^2 (n,), the residual F (2, n), and whether
-    ``sum |F|^2 < tol^2`` (so every point converged); not finite stops at once.
-    """
-    k1, k2, k3, tang, tang2 = coef
-    for step in range(max_iter + 1):
-        P2 = P * P
-        r2 = P2[0] + P2[1]
-        # With c = p2 x + p1 y the tangential terms are 2 c (x, y) + (p2, p1) r2, which lets
-        # both coordinates share one array expression.
-        scale = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)) + np.add.reduce(tang2 * P)
-        F = scale * P + tang * r2
-        F -= target
-        ss = float(np.vdot(F, F))
-        converged = ss < tol * tol  # every point's residual < tol
-        if converged or step == max_iter or not math.isfinite(ss):
-            break
-        dradial = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2))  # 2 d(radial)/d(r2)
-        # The Jacobian of (xd, yd) w.r.t. (x, y) is symmetric: [[J0, Jxy], [Jxy, J1]].
-        J = scale + dradial * P2 + (tang2 + tang2) * P
-        Jxy = dradial * (P[0] * P[1]) + np.add.reduce(tang2[::-1] * P)
-        P = P - (J[::-1] * F - Jxy * F[::-1]) / (J[0] * J[1] - Jxy * Jxy)
-    return P, r2, F, converged
+from vgripd.geometry.distortion import (
+    Brown,
+    distort,
+    distort_with_jacobian,
+    opencv_start,
+    radial_slope,
+    safe_r2,
+    undistort,
+)
+from vgripd.types import FloatArray
 
 
 class _Inverse(NamedTuple):
@@ -114,8 +49,8 @@ class _Inverse(NamedTuple):
     f: FloatArray  # (fx, fy), px
     dist: FloatArray  # (5,), OpenCV order
     distorted: bool  # any coefficient non-zero
-    coef: Coefficients  # for _newton
-    r2_safe: float  # see _safe_r2
+    coef: Brown  # for distortion.undistort
+    r2_safe: float  # distortion.safe_r2
 
 
 class PairInverse(NamedTuple):
@@ -125,7 +60,7 @@ class PairInverse(NamedTuple):
     c: FloatArray  # (2n, 2)
     f: FloatArray  # (2n, 2)
     skew: FloatArray | None  # (2n,), None when both cameras have none
-    coef: Coefficients  # k1, k2, k3 (2n,); tang2 (2, 2n)
+    coef: Brown  # k1, k2, k3 (2n,); tang2 (2, 2n)
     r2_safe: float  # the smaller of both
 
 
@@ -145,38 +80,37 @@ def undistort_pair(pc: PairInverse, px_a: FloatArray, px_b: FloatArray,
         d[:, 0] -= pc.skew * (d[:, 1] / pc.f[:, 1])
     target = d / pc.f
     a, b = pc.cameras
-    guess = np.concatenate([
-        cv2.undistortPoints(t.reshape(-1, 1, 2), _EYE3, cam._inverse.dist, criteria=_GUESS_CRITERIA)
-        for t, cam in ((target[:n], a), (target[n:], b))
-    ])
-    P, r2, _, converged = _newton(target.T, guess.reshape(-1, 2).T, pc.coef, 20, 1e-12)
+    start = np.concatenate([opencv_start(target[:n], a._inverse.dist),
+                            opencv_start(target[n:], b._inverse.dist)], axis=1)
+    P, r2, _, converged = undistort(target.T, start, pc.coef, 20, 1e-12)
     if converged and np.maximum.reduce(r2) < pc.r2_safe:
         return P, r2
     return None
 
 
-def _safe_r2(k1: float, k2: float, k3: float) -> float:
-    """An r2 = x^2 + y^2 below which the model is surely invertible (inf if everywhere).
+def project_with_jacobian(camera: CameraModel, P: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Pixels (n, 2) of camera-frame points P (n, 3) and their derivative (n, 2, 3) d px / d P.
 
-    The slope ``d(r_d)/dr = 1 + 3 k1 r2 + 5 k2 r2^2 + 7 k3 r2^3`` is at least ``g(r2)``, the
-    same polynomial without its positive terms, which falls monotonically from 1; found by
-    bisection where ``g`` is still 1e-6, so rounding cannot flip the sign of the slope. Points
-    inside need no slope evaluation; points outside get the exact one.
+    The analytic derivative of :meth:`CameraModel.project` (pinhole, Brown distortion, skew),
+    so a pose refinement needs no finite differences. Depths are not checked here (the
+    callers keep them positive).
     """
-    c1, c2, c3 = min(0.0, 3.0 * k1), min(0.0, 5.0 * k2), min(0.0, 7.0 * k3)
-    if not (c1 or c2 or c3):
-        return math.inf
-
-    def g(s: float) -> float:
-        return 1.0 + s * (c1 + s * (c2 + s * c3))
-
-    lo, hi = 0.0, 1.0
-    while g(hi) > 1e-6:
-        lo, hi = hi, 2.0 * hi
-    for _ in range(64):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if g(mid) > 1e-6 else (lo, mid)
-    return lo
+    inv_z = 1.0 / P[:, 2]
+    xn = P[:, :2].T * inv_z
+    (xd, yd), (a, d), b = distort_with_jacobian(xn, camera._inverse.coef)
+    px = np.empty((P.shape[0], 2))
+    px[:, 0] = camera.fx * xd + camera.skew * yd + camera.cx
+    px[:, 1] = camera.fy * yd + camera.cy
+    # d(u, v) / d(x, y): K's upper-left 2x2 times the distortion's derivative [[a, b], [b, d]]
+    du = np.stack([camera.fx * a + camera.skew * b, camera.fx * b + camera.skew * d], axis=1)
+    dv = np.stack([camera.fy * b, camera.fy * d], axis=1)
+    x, y = xn
+    J = np.empty((P.shape[0], 2, 3))
+    for row, g in ((0, du), (1, dv)):
+        J[:, row, 0] = g[:, 0] * inv_z
+        J[:, row, 1] = g[:, 1] * inv_z
+        J[:, row, 2] = -(g[:, 0] * x + g[:, 1] * y) * inv_z
+    return px, J
 
 
 def _points(a: Any, dims: int, what: str) -> FloatArray:
@@ -237,11 +171,10 @@ class CameraModel:
     @cached_property
     def _inverse(self) -> _Inverse:
         """Constants of the undistortion hot path, computed once per camera."""
-        k1, k2, p1, p2, k3 = self.dist
+        k1, k2, _, _, k3 = self.dist
         return _Inverse(c=np.array([self.cx, self.cy]), f=np.array([self.fx, self.fy]),
                         dist=self.dist_array, distorted=any(self.dist),
-                        coef=Coefficients.of(self.dist),
-                        r2_safe=_safe_r2(k1, k2, k3))
+                        coef=Brown.of(self.dist), r2_safe=safe_r2(k1, k2, k3))
 
     # ------------------------------------------------------------------ conversions
     @property
@@ -295,18 +228,7 @@ class CameraModel:
         (n, 2) normalized distorted coordinates ``(xd, yd)``.
         """
         p = _points(xn, 2, "distort")
-        return np.stack(self._distort_xy(p[:, 0], p[:, 1]), axis=1)
-
-    def _distort_xy(self, x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
-        k1, k2, p1, p2, k3 = self.dist
-        xy = x * y
-        x2 = x * x
-        y2 = y * y
-        r2 = x2 + y2
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = radial * x + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x2)
-        yd = radial * y + p1 * (r2 + 2.0 * y2) + 2.0 * p2 * xy
-        return xd, yd
+        return distort(p.T, self._inverse.coef).T.copy()
 
     def project(self, points_cam: Any) -> FloatArray:
         """Project points given in the camera frame to pixels (chapter eqs. 3, 4, 8).
@@ -330,9 +252,7 @@ class CameraModel:
             i = int(np.argmax(behind))
             raise DegenerateInputError(
                 f"project: point {i} is not in front of the camera (Z = {P[i, 2]} mm)")
-        x = P[:, 0] / P[:, 2]
-        y = P[:, 1] / P[:, 2]
-        xd, yd = self._distort_xy(x, y)
+        xd, yd = distort(P[:, :2].T / P[:, 2], self._inverse.coef)
         out = np.empty((P.shape[0], 2))
         out[:, 0] = self.fx * xd + self.skew * yd + self.cx
         out[:, 1] = self.fy * yd + self.cy
@@ -379,9 +299,8 @@ class CameraModel:
                 return self._normalized(p)
         # Not finite pixels are found (and named) only if Newton fails: NaN propagates there.
         target = self._normalized(p)
-        guess = cast(FloatArray, cv2.undistortPoints(target.reshape(-1, 1, 2), _EYE3, inv.dist,
-                                                     criteria=_GUESS_CRITERIA))
-        P, r2, F, converged = _newton(target.T, guess.reshape(-1, 2).T, inv.coef, max_iter, tol)
+        start = opencv_start(target, inv.dist)
+        P, r2, F, converged = undistort(target.T, start, inv.coef, max_iter, tol)
         if not (converged and np.maximum.reduce(r2) < inv.r2_safe):
             self._check_inverse(p, r2, F, converged, tol)
         return P.T.copy()
@@ -394,7 +313,7 @@ class CameraModel:
             c=np.repeat([c.c for c in cams], n, axis=0),
             f=np.repeat([c.f for c in cams], n, axis=0),
             skew=np.repeat([self.skew, other.skew], n) if self.skew or other.skew else None,
-            coef=Coefficients.stacked(cams[0].coef, cams[1].coef, n),
+            coef=Brown.stacked(cams[0].coef, cams[1].coef, n),
             r2_safe=min(c.r2_safe for c in cams),
         )
 
@@ -417,8 +336,7 @@ class CameraModel:
         if not converged:
             _points(p, 2, "undistort")
         k1, k2, _, _, k3 = self.dist
-        # d(r_d)/dr along the ray (r_d = r radial(r^2)); > 0 on the invertible side of the fold.
-        slope = 1.0 + r2 * (3.0 * k1 + r2 * (5.0 * k2 + r2 * 7.0 * k3))
+        slope = radial_slope(k1, k2, k3, r2)  # > 0 on the invertible side of the fold
         if not converged or not slope.min() > 0:
             self._raise_not_converged(F, slope, tol)
 

@@ -27,8 +27,8 @@ from vgripd.errors import VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.transforms import invert_transform
 from vgripd.types import FloatArray
-from vgripd.vision.multicam import MultiCamera
 from vgripd.vision.pipeline import MIN_PNP_FEATURES, Pipeline
+from vgripd.vision.views_locator import ViewsLocator
 
 Level = Literal["ERROR", "WARNING", "NOTE"]
 
@@ -330,7 +330,7 @@ def _distance_and_size(pipeline: Pipeline, views: Sequence[View], names: Sequenc
     return findings
 
 
-def check_cameras(pipeline: Pipeline, multi: MultiCamera) -> list[Finding]:
+def check_cameras(pipeline: Pipeline, multi: ViewsLocator) -> list[Finding]:
     """A multi-camera cell (docs/multicamera.md): which marks of the reference object each
     camera sees (in front, facing it, inside its image), their imaged size against the finder's
     range, and whether enough marks are seen by two or more cameras for a pose."""

@@ -96,7 +96,7 @@ _CHUNK = 1024
 
 def score_scale(tolerance_mm: float, max_rms_mm: float) -> float:
     """Distance (mm) at which a feature stops adding to a hypothesis' score: the tolerance, or
-    twice the RMS the fit gate accepts when that is tighter. A feature at a fifth of it scores
+    twice the RMS the fit check accepts when that is tighter. A feature at a fifth of it scores
     0.96, at half of it 0.75; a clutter blob that merely falls within a 3 mm tolerance of
     where a mark should be adds little against marks fitted to a tenth of a millimetre."""
     return min(tolerance_mm, 2.0 * max_rms_mm)
@@ -340,11 +340,11 @@ class _Search:
         ok = rms <= self.max_rms
         hyps = [h for h in self.full if h.rms <= self.max_rms]
         if hyps or ok.any():
-            # Valid hypotheses (RMS within the fit gate) compete by score.
+            # Valid hypotheses (RMS within the fit check) compete by score.
             value, bare_value, margin = (lambda h: h.score), score, AMBIGUITY_MARGIN
         else:
-            # Nothing fits within the gate: the most features (then the least RMS) is kept for
-            # the residual gate to judge; another pose with as many makes it ambiguous.
+            # Nothing fits within the limit: the most features (then the least RMS) is kept for
+            # the residual check to judge; another pose with as many makes it ambiguous.
             hyps, ok = list(self.full), np.ones_like(ok)
             value, bare_value, margin = (lambda h: float(h.count)), np.full(rms.shape, 3.0), 0.0
         best = max(hyps, key=lambda h: (value(h), -h.rms), default=None)
@@ -432,7 +432,7 @@ def match_model(
         do not collide); two points sharing a key are never both used.
     max_rms_mm : a hypothesis whose fitted RMS exceeds this is not a valid pose: it neither
         wins over a valid one nor makes it ambiguous (the pipeline passes
-        ``vision.max_fit_rms_mm``, the same bound its residual gate applies).
+        ``vision.max_fit_rms_mm``, the same bound its residual check applies).
     max_hypotheses, max_seeds : the work bound: hypotheses verified one by one, seeds scored
         in bulk. A search stopped by it is ``complete`` only if what it did not see could not
         have come within the margin of the winner; otherwise it is ``ambiguous``.
@@ -498,7 +498,7 @@ def _verify(
     assignment settles (at most four rounds). Then, while the RMS exceeds ``max_rms_mm``, gross
     outliers (e.g. a blob that happens to lie within the tolerance of a hidden mark's place)
     are dropped; uniformly high residuals (a drifted calibration) are left for the residual
-    gate. None when fewer than 3 features are explained."""
+    check. None when fewer than 3 features are explained."""
     assignment, _ = assign_nearest(model, points, T, tolerance_mm, keys)
     for _ in range(4):
         sel = np.flatnonzero(assignment >= 0)
@@ -513,9 +513,9 @@ def _verify(
     hyp = _fitted(model, points, assignment, scale)
     if hyp is None:
         return None
-    # Gross outliers: the worst point goes when the rest then fits within the gate, or at
+    # Gross outliers: the worst point goes when the rest then fits within the limit, or at
     # least halves the RMS (several blobs in hidden marks' places); a uniform misfit (each
-    # removal helps a little) keeps every point and is judged by the residual gate.
+    # removal helps a little) keeps every point and is judged by the residual check.
     best = hyp
     while best.rms > max_rms_mm and best.count > 3:
         res = np.linalg.norm(

@@ -1,6 +1,6 @@
 """Why a job found no valid pose: what each stage saw, and the likely causes.
 
-Very different mistakes end with the same gate message ("0 feature(s) matched, need at least
+Very different mistakes end with the same check message ("0 feature(s) matched, need at least
 3"): marks of the other polarity, a ``vision.working_distance_mm`` that excludes the object, the
 stereo transform given the wrong way round, a wrong hand-eye. A failed job therefore carries a
 :class:`Diagnosis` (``JobResult.diagnosis``):

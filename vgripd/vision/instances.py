@@ -195,8 +195,8 @@ def find_instances(
     tolerance_mm : how far a measured distance or point may deviate from the model.
     keys : per point the keys it occupies (left and right blob ids); two points sharing a key
         are never both used, by one instance or by two.
-    max_rms_mm : the fit gate (``vision.max_fit_rms_mm``): it sets the score scale; an
-        instance over it is still returned (the residual gate judges it).
+    max_rms_mm : the fit check (``vision.max_fit_rms_mm``): it sets the score scale; an
+        instance over it is still returned (the residual check judges it).
     max_verified : the work bound (default ``MAX_VERIFIED_PER_POINT`` per point); a search
         stopped by it is not ``complete``.
     """
@@ -279,7 +279,7 @@ def _bare(model: FloatArray, points: FloatArray, tree: cKDTree, seed_model: Floa
 
 def _explained(pool: _Pool) -> set[int]:
     """Points that share an image blob (a key) with a verified hypothesis of four or more
-    features that fits within the gate and scores more than a bare triangle could come within
+    features that fits within the limit and scores more than a bare triangle could come within
     ``AMBIGUITY_MARGIN`` of: a bare triangle made only of such points can neither be selected
     (its blobs are taken by a better instance) nor make one of those ambiguous. The shared
     blob covers the other epipolar pairings of a plate's marks, too."""

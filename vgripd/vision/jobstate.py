@@ -24,7 +24,7 @@ from vgripd.geometry.stereo import StereoRig
 from vgripd.types import FloatArray, PickInstance
 from vgripd.vision import features as ft
 from vgripd.vision.found import Found, _Finder
-from vgripd.vision.multicam import MultiCamera
+from vgripd.vision.views_locator import ViewsLocator
 
 
 @dataclass
@@ -101,7 +101,7 @@ class PipelineView(Protocol):
     left: CameraModel
     right: CameraModel | None
     rig: StereoRig | None
-    multi: MultiCamera | None
+    multi: ViewsLocator | None
     names: tuple[str, ...]
     model: FloatArray
     T_base_obj_ref: FloatArray

@@ -1,15 +1,15 @@
-"""Pick lists: every instance of the object in one stereo job, each gated on its own, with its
+"""Pick lists: every instance of the object in one stereo job, each checked on its own, with its
 chosen pick point, in the configured pick order (docs/picklists.md).
 
 The pipeline calls :func:`locate_all` instead of its single-object match when
 ``picking.max_objects > 1``. The points it gets are the job's paired and triangulated marks;
 ``instances.find_instances`` groups them into objects, and each object then goes through the
 same fit (``Pipeline._fit_stereo``: robust Horn, circle-centre bias removed) and the same
-gates (``pipeline.gate``) as a single object, so that one rule decides what the robot may
+checks (``pose_checks.check_pose``) as a single object, so that one rule decides what the robot may
 receive whether the image holds one plate or six.
 
 Pick points (``picking.pick_points``) are tried per instance in priority order (then by id);
-the first one whose target passes the gates is chosen (see :func:`choose`). The ordering
+the first one whose target passes the pose checks is chosen (see :func:`choose`). The ordering
 (:func:`ordered`) puts the pickable instances first, in the configured order, then the rejected
 ones by score, and keeps ``max_objects`` of them.
 """
@@ -29,10 +29,10 @@ from vgripd.types import FloatArray, PickInstance, RobotTarget, Status
 from vgripd.vision import scene
 from vgripd.vision.correspondence import kabsch, score_scale
 from vgripd.vision.found import Found
-from vgripd.vision.gates import Measurement, gate
 from vgripd.vision.instances import InstanceMatch, find_instances, find_instances_mono
 from vgripd.vision.jobstate import PipelineView as Pipeline
 from vgripd.vision.jobstate import PoseEstimate, StereoPoints, _Job
+from vgripd.vision.pose_checks import Measurement, check_pose
 
 #: Gate failures that one pick point may pass and another not (where the grip is): the
 #: others (counts, ambiguity, residuals) belong to the instance and end the search at once.
@@ -113,10 +113,10 @@ def detection_score(model: FloatArray, estimate: PoseEstimate, scale_mm: float) 
 def choose(pipe: Pipeline, T_base_obj: FloatArray, offset: FloatArray, estimate: PoseEstimate,
            needed: int, points: tuple[PickPoint, ...]
            ) -> tuple[Status, str, PickPoint | None]:
-    """The gate of one instance and its pick point.
+    """The pose check of one instance and its pick point.
 
-    Without pick points: ``pipeline.gate`` as for a single object (pick point None). With
-    them: each in turn (priority, then id) is gated with its own position as the limit point
+    Without pick points: ``pose_checks.check_pose`` as for a single object (pick point None). With
+    them: each in turn (priority, then id) is checked with its own position as the limit point
     when ``limits.point = "grip"``, and its position must also lie in the workspace box; the
     first that passes is chosen. A failure no pick point can change (counts, ambiguity,
     residuals) ends the search; if none passes, the status is the highest-priority pick point's
@@ -129,7 +129,7 @@ def choose(pipe: Pipeline, T_base_obj: FloatArray, offset: FloatArray, estimate:
         lp, lp_name = pipe.limit_point, pipe.limit_point_name
         if point is not None and limits.point == "grip" and limits.point_mm is None:
             lp, lp_name = point.T_obj_pick[:3, 3], f"pick point {point.id}"
-        status, message = gate(Measurement(
+        status, message = check_pose(Measurement(
             found=int(estimate.used.sum()), needed=needed, ambiguous=estimate.ambiguous,
             T_base_obj=T_base_obj, offset=offset, model_base=model_base,
             residuals=estimate.residuals, limit_point=lp, limit_point_name=lp_name,
@@ -171,7 +171,7 @@ def _sent(pipe: Pipeline, T_base_obj: FloatArray, offset: FloatArray,
 def _instance(pipe: Pipeline, match: InstanceMatch, paired: StereoPoints,
               T_base_camera: FloatArray, needed: int, points: tuple[PickPoint, ...]
               ) -> Located:
-    """One grouped stereo instance fitted, gated and given its pick point."""
+    """One grouped stereo instance fitted, checked and given its pick point."""
     config = pipe.config
     scratch = _Job()
     estimate = pipe._fit_stereo(match.assignment, paired.points, paired.gap, paired.px_l,
@@ -180,7 +180,7 @@ def _instance(pipe: Pipeline, match: InstanceMatch, paired: StereoPoints,
     if lone is not None:
         # One mark far off a fit the others agree on (a mark partly covered by a mark of a
         # neighbouring plate in one image: its centre is pulled by half a pixel): fit again
-        # without it (docs/picklists.md, "Gates per instance").
+        # without it (docs/picklists.md, "Pose checks per instance").
         assignment = match.assignment.copy()
         assignment[lone] = -1
         again = _Job()
@@ -189,7 +189,7 @@ def _instance(pipe: Pipeline, match: InstanceMatch, paired: StereoPoints,
         if refit is not None and int(refit.used.sum()) >= needed:
             estimate, scratch = refit, again
     if estimate is None:
-        status, message = gate(Measurement(found=len(scratch.used), needed=needed),
+        status, message = check_pose(Measurement(found=len(scratch.used), needed=needed),
                                config.vision, config.limits)
         T = T_base_camera @ match.T_points_model
         centre = (pipe.model @ T[:3, :3].T + T[:3, 3]).mean(axis=0)
@@ -211,7 +211,7 @@ def _lone_outlier(model: FloatArray, estimate: PoseEstimate | None, needed: int)
 
     A mark partly covered by another plate's mark in one image keeps a centre biased by half a
     pixel: its triangulated point lies some tenths of a millimetre off, well inside the fit
-    gate and the robust fit's threshold (the model tolerance), yet it turns a whole plate by a
+    check and the robust fit's threshold (the model tolerance), yet it turns a whole plate by a
     few tenths of a degree (measured 0.18-0.26 mm, 0.28-0.32 deg). The fit spreads that error
     over every mark, so the residuals do not show which one it is; leaving each out in turn
     does: when the fit's RMS is over ``LONE_FLOOR_MM`` and the others fit to ``LONE_RATIO`` of
@@ -243,7 +243,7 @@ def _lone_outlier(model: FloatArray, estimate: PoseEstimate | None, needed: int)
 def _judged(pipe: Pipeline, estimate: PoseEstimate, used: tuple[str, ...],
             T_base_camera: FloatArray, needed: int, points: tuple[PickPoint, ...],
             score: float) -> Located:
-    """An instance's pose through the gates and the pick point choice."""
+    """An instance's pose through the pose checks and the pick point choice."""
     config = pipe.config
     T_base_obj = T_base_camera @ estimate.T_cam_obj
     offset = T_base_obj @ invert_transform(pipe.T_base_obj_ref)  # as the single path does

@@ -1,4 +1,4 @@
-"""ImagePair -> features -> pose -> offset -> RobotTarget, with the gates in between.
+"""ImagePair -> features -> pose -> offset -> RobotTarget, with the pose checks in between.
 
 The chain (docs/pipeline.md has the whole story and the status table):
 
@@ -10,14 +10,14 @@ The chain (docs/pipeline.md has the whole story and the status table):
    ``T_cam_obj``;
 5. ``T_base_obj = T_base_camera @ T_cam_obj`` (fixed camera, or ``T_base_flange @
    T_flange_camera`` for a robot-mounted one), offset ``T_base_obj @ inv(T_base_obj_ref)``;
-6. gates (:func:`gate`), then the vendor convention of ``output.vendor`` for the offset
+6. pose checks (:func:`check_pose`), then the vendor convention of ``output.vendor`` for the offset
    (``output.mode = "offset"``) or for the grip ``T_offset @ reference.grip`` (``"grip"``).
 
 The model is the features' ``xyz_mm``, or for ``object.definition = "reference"`` the taught
 ``reference.points_mm`` when set (base-frame points measured by ``vgripd teach``).
 
 ``Pipeline.process`` never raises for bad images: every job ends with one status, and a pose
-that failed a gate is never carried as a target. It is pure CPU and keeps no state between jobs,
+that failed a check is never carried as a target. It is pure CPU and keeps no state between jobs,
 so the daemon may run it in an executor.
 """
 
@@ -44,10 +44,10 @@ from vgripd.vision import diagnosis as dg
 from vgripd.vision import features as ft
 from vgripd.vision import picklist, scene
 from vgripd.vision.found import Found, _Finder
-from vgripd.vision.gates import Measurement, gate, limit_point
 from vgripd.vision.jobstate import PoseEstimate, StereoPoints, _Job
-from vgripd.vision.multicam import MultiCamera
+from vgripd.vision.pose_checks import Measurement, check_pose, limit_point
 from vgripd.vision.rigcheck import rig_verdict
+from vgripd.vision.views_locator import ViewsLocator
 
 #: Minimum number of matched features for PnP (three points have up to four poses).
 MIN_PNP_FEATURES = 4
@@ -122,10 +122,10 @@ class Pipeline:
         )
         identified = int((~self.is_circle).sum())
         # A multi-camera cell (calibration.cameras): its own path, one finder per camera.
-        self.multi: MultiCamera | None = None
+        self.multi: ViewsLocator | None = None
         self.finders: list[_Finder] = []
         if scene.is_multi_camera(config):
-            self.multi = MultiCamera(config, self.model, self.T_base_obj_ref)
+            self.multi = ViewsLocator(config, self.model, self.T_base_obj_ref)
             self.finders = [_Finder(config, cam.fx) for cam in self.multi.cameras]
         elif self.rig is None and identified < MIN_PNP_FEATURES:
             raise ConfigError(
@@ -230,7 +230,7 @@ class Pipeline:
             needed = max(vision.min_features, MIN_PNP_FEATURES)
         job.lap("pose")
         if estimate is None:
-            return (*gate(Measurement(found=len(job.used), needed=needed), vision, limits), None)
+            return (*check_pose(Measurement(len(job.used), needed), vision, limits), None)
 
         T_base_obj = T_base_camera @ estimate.T_cam_obj
         points_base = estimate.points_cam @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
@@ -238,12 +238,12 @@ class Pipeline:
                                    points_base, strict=True))
         measurement = self._measurement(job, T_base_obj, int(estimate.used.sum()), needed,
                                         estimate.ambiguous, estimate.residuals)
-        status, message = gate(measurement, vision, limits)
+        status, message = check_pose(measurement, vision, limits)
         return self._output(job, status, message)
 
     def _measurement(self, job: _Job, T_base_obj: FloatArray, found: int, needed: int,
                      ambiguous: bool, residuals: dict[str, float]) -> Measurement:
-        """The gates' view of a pose (and the job's record of it)."""
+        """The pose checks' view of a pose (and the job's record of it)."""
         offset = T_base_obj @ invert_transform(self.T_base_obj_ref)
         job.T_base_obj, job.offset = T_base_obj, offset
         job.residuals.update(residuals)
@@ -271,7 +271,7 @@ class Pipeline:
         return status, message, target
 
     # ------------------------------------------------------------------ multi-camera
-    def _run_multi(self, multi: MultiCamera, pair: ImagePair, job: _Job
+    def _run_multi(self, multi: ViewsLocator, pair: ImagePair, job: _Job
                    ) -> tuple[Status, str, Any]:
         """A multi-camera cell (docs/multicamera.md): marks in every image, one joint fit."""
         vision, limits = self.config.vision, self.config.limits
@@ -298,12 +298,12 @@ class Pipeline:
         job.missing = tuple(self.names[i] for i in np.flatnonzero(~est.used))
         needed = vision.min_features
         if est.pose is None:
-            return (*gate(Measurement(found=len(job.used), needed=needed,
+            return (*check_pose(Measurement(found=len(job.used), needed=needed,
                                       ambiguous=est.ambiguous), vision, limits), None)
         job.points_base = est.points_base
         measurement = self._measurement(job, est.pose.T_base_obj, len(job.used), needed,
                                         est.ambiguous, est.residuals)
-        status, message = rig_verdict(*gate(measurement, vision, limits), est, vision)
+        status, message = rig_verdict(*check_pose(measurement, vision, limits), est, vision)
         return self._output(job, status, message)
 
     # ------------------------------------------------------------------ stereo

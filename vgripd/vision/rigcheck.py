@@ -2,7 +2,7 @@
 the status and message a job ends with when a rig disagrees (docs/multicamera.md, "Which rig
 disagrees").
 
-Apart from :mod:`vgripd.vision.multicam` (which measures) so that the rules that turn the
+Apart from :mod:`vgripd.vision.views_locator` (which measures) so that the rules that turn the
 measurements into a status read in one place.
 """
 
@@ -13,9 +13,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from vgripd.config import VisionConfig
-from vgripd.geometry.multipose import GroupCheck
+from vgripd.geometry.pose_from_views import GroupCheck
 from vgripd.types import Status
-from vgripd.vision.multiestimate import MultiEstimate
+from vgripd.vision.views_estimate import ViewsEstimate
 
 #: A rig fitted alone leaving this many times the residuals of the best other rig is
 #: inconsistent in itself (:func:`self_inconsistent`) ...
@@ -27,15 +27,15 @@ MIN_DOF = 6
 
 
 def self_inconsistent(checks: Sequence[GroupCheck], observations: dict[str, int],
-                      gate_px: float) -> set[str]:
+                      limit_px: float) -> set[str]:
     """Groups whose own fit is far worse than every other group's (names).
 
-    The absolute gates judge a rig by pixels, but a pixel means little at one rig and much
+    The absolute limits judge a rig by pixels, but a pixel means little at one rig and much
     at another: a low-resolution rig far away whose camera moved 2 mm sees it as half a
-    pixel, under every gate, yet its wrong rays pull the joint pose by half a millimetre. The
+    pixel, under every limit, yet its wrong rays pull the joint pose by half a millimetre. The
     finder's noise is about the same in every camera, so a rig fitted alone leaving
     ``SELF_FACTOR`` times the residuals of the most consistent other rig (and more than
-    ``SELF_FLOOR`` of the gate, so that noise among good rigs never counts) is inconsistent in
+    ``SELF_FLOOR`` of the limit, so that noise among good rigs never counts) is inconsistent in
     itself: one of its cameras moved. RMS values are compared per degree of freedom
     (``observations``: pixel observations per group), and only groups with ``MIN_DOF`` of them
     serve as the reference.
@@ -52,16 +52,16 @@ def self_inconsistent(checks: Sequence[GroupCheck], observations: dict[str, int]
     out = set()
     for name, rms in alone.items():
         others = [v for other, v in reference.items() if other != name]
-        if others and rms > max(SELF_FACTOR * min(others), SELF_FLOOR * gate_px):
+        if others and rms > max(SELF_FACTOR * min(others), SELF_FLOOR * limit_px):
             out.add(name)
     return out
 
 
-def rig_verdict(status: Status, message: str, est: MultiEstimate,
+def rig_verdict(status: Status, message: str, est: ViewsEstimate,
                 vision: VisionConfig) -> tuple[Status, str]:
-    """The status of a multi-camera job after the common gates: every rig's own reprojection
-    RMS is gated too, and a rig that disagrees with the others is named; a pose that passed
-    every gate is still published then, but as OK_RECALIBRATE (docs/multicamera.md)."""
+    """The status of a multi-camera job after the common checks: every rig's own reprojection
+    RMS is checked too, and a rig that disagrees with the others is named; a pose that passed
+    every check is still published then, but as OK_RECALIBRATE (docs/multicamera.md)."""
     groups = est.pose.groups if est.pose is not None else ()
     over = [(g.rms_px, g.name) for g in groups if g.rms_px > vision.max_reprojection_px]
     if status.pose_valid and over:
@@ -82,7 +82,7 @@ def rig_verdict(status: Status, message: str, est: MultiEstimate,
     return status, f"{message}; {blame}"
 
 
-def _blame(est: MultiEstimate) -> str:
+def _blame(est: ViewsEstimate) -> str:
     """The sentence naming the rig(s) the consistency check found odd ('' for none)."""
     if not est.odd or est.pose is None:
         return ""

@@ -64,8 +64,8 @@ async def test_a_good_job_and_the_image_causes_are_unchanged() -> None:
 def test_cameras_swapped_across_rigs_are_named() -> None:
     """north_left's and south_left's images exchanged (rigs north and south of the sample
     two-rig cell, rendered): NOT_FOUND, and the cause names the two cameras."""
-    from tests.unit.vision.test_multicam import config as two_rigs
-    from tests.unit.vision.test_multicam import grab as grab_views
+    from tests.unit.vision.test_views_locator import config as two_rigs
+    from tests.unit.vision.test_views_locator import grab as grab_views
 
     cfg = two_rigs()
     pair = grab_views(cfg, 1)[0]

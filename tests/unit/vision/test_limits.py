@@ -16,8 +16,8 @@ from vgripd.errors import ConfigError, NotCalibratedError
 from vgripd.geometry.transforms import invert_transform, make_transform, matrix_from_rotvec
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.types import Status
-from vgripd.vision.gates import displacement_mm
-from vgripd.vision.pipeline import Measurement, Pipeline, gate, limit_point
+from vgripd.vision.pipeline import Pipeline
+from vgripd.vision.pose_checks import Measurement, check_pose, displacement_mm, limit_point
 
 REF_T = (600.0, 100.0, 10.0)  # the demo cell's taught reference
 REF_ROT = (0.0, 0.0, 0.05)
@@ -49,7 +49,7 @@ def judge(config: Config, T_base_obj: np.ndarray) -> tuple[Status, str]:
                     offset=T_base_obj @ invert_transform(pipeline.T_base_obj_ref),
                     residuals=GOOD, limit_point=pipeline.limit_point,
                     limit_point_name=pipeline.limit_point_name)
-    return gate(m, config.vision, config.limits)
+    return check_pose(m, config.vision, config.limits)
 
 
 def test_a_plate_turned_about_itself_far_from_the_base_is_within_the_limits() -> None:

@@ -1,4 +1,4 @@
-"""The pipeline on synthetic scenes with known truth, its gates and its bad-input statuses.
+"""The pipeline on synthetic scenes with known truth, its checks and its bad-input statuses.
 
 Images come from the synthetic camera driver (the demo cell: f ~ 1800 px, 150 mm baseline,
 Z ~ 690 mm, six 10 mm dark marks ~ 26 px across, blur 0.7 px, noise 2 grey levels); the truth is
@@ -19,7 +19,8 @@ from vgripd.geometry.vendors import transform_from_vendor
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.types import ImagePair, Status
 from vgripd.vision import features as ft
-from vgripd.vision.pipeline import Measurement, Pipeline, gate
+from vgripd.vision.pipeline import Pipeline
+from vgripd.vision.pose_checks import Measurement, check_pose
 from vgripd.vision.warmup import warm_up
 
 # docs/pipeline.md: 1-sigma predictions 0.04 mm (depth of the object origin) and 0.025 deg,
@@ -236,7 +237,7 @@ def test_gate_order_and_thresholds():
 
     def status(**kw: Any) -> Status:
         m = {"found": 6, "needed": 4, "T_base_obj": T, "offset": T, "residuals": good, **kw}
-        return gate(Measurement(**m), vision, limits)[0]
+        return check_pose(Measurement(**m), vision, limits)[0]
 
     assert status() is Status.OK
     assert status(found=2) is Status.NOT_FOUND

@@ -1,4 +1,4 @@
-"""N-camera calibration (``vgripd.calib.multicam``) on board corners projected through known
+"""N-camera calibration (``vgripd.calib.camera_poses``) on board corners projected through known
 cameras.
 
 Oracles: ``cv2.projectPoints`` for the projection model and for the truth (every corner is
@@ -25,7 +25,7 @@ from hypothesis import strategies as st
 from scipy.optimize import least_squares
 from scipy.optimize._numdiff import approx_derivative
 
-from vgripd.calib.multicam import (
+from vgripd.calib.camera_poses import (
     INTRINSIC_KEYS,
     Observation,
     _Problem,

@@ -8,18 +8,19 @@ with ``calibration.cameras`` (docs/multicamera.md):
    frame) and kept when in front of both within ``vision.working_distance_mm``;
 2. tracks: candidates that share a mark and agree in 3D (within ``vision.model_tolerance_mm``)
    are grouped into one track (a mark seen by 2+ cameras, at most one image mark per camera),
-   then triangulated from all its rays (:class:`~vgripd.geometry.multiview.MultiView`);
+   then triangulated from all its rays (:class:`~vgripd.geometry.points_from_views.MultiView`);
 3. identification against the model by rigid distances (``features.match_model``, as the
    stereo path does; identified features, ArUco/templates, pair by identity);
-4. joint fit (:func:`~vgripd.geometry.multipose.fit_pose`): Horn over the tracks, then the
+4. joint fit (:func:`~vgripd.geometry.pose_from_views.fit_pose`): Horn over the tracks, then the
    6-DOF pose refined over every observation of every camera. Marks the tracks missed (seen
    by one camera only, or a view a candidate pair did not contain) are then added where the
    fitted pose predicts them, within the epipolar tolerance, and the fit repeated once more
    with the perspective bias of the circle centres removed;
 5. per-rig residuals and the linearised leave-one-rig-out check
-   (:func:`~vgripd.geometry.multipose.rig_consistency`) that names a rig that disagrees.
+   (:func:`~vgripd.geometry.pose_from_views.rig_consistency`) that names a rig that disagrees.
 
-Pure CPU, no state between jobs.
+Pure CPU, no state between jobs. The images come from the ``multi`` camera driver
+(``drivers/cameras/multi.py``), which grabs every camera of the cell.
 """
 
 from __future__ import annotations
@@ -34,16 +35,16 @@ import numpy.typing as npt
 from vgripd.config import Config
 from vgripd.errors import GeometryError
 from vgripd.geometry.camera_model import CameraModel
-from vgripd.geometry.multipose import MultiViewPose, fit_pose, rig_consistency
-from vgripd.geometry.multiview import MultiView
 from vgripd.geometry.orientation import horn
+from vgripd.geometry.points_from_views import MultiView
+from vgripd.geometry.pose_from_views import MultiViewPose, fit_pose, rig_consistency
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform
 from vgripd.types import FloatArray
 from vgripd.vision import features as ft
 from vgripd.vision import scene
-from vgripd.vision.multiestimate import MultiEstimate
 from vgripd.vision.rigcheck import self_inconsistent
+from vgripd.vision.views_estimate import ViewsEstimate
 
 #: Pixels a mark's predicted centre must be inside the image to count as visible there.
 EDGE_MARGIN_PX = 4.0
@@ -53,7 +54,7 @@ EDGE_MARGIN_PX = 4.0
 COMPLETE_FACTOR = 4.0
 #: An observation this many times the RMS of its camera's other observations (and above
 #: ``OUTLIER_FLOOR`` of ``vision.max_reprojection_px``) is an outlier of its own camera
-#: (:meth:`MultiCamera._without_outliers`); at most ``MAX_OUTLIERS`` are dropped per job.
+#: (:meth:`ViewsLocator._without_outliers`); at most ``MAX_OUTLIERS`` are dropped per job.
 OUTLIER_FACTOR = 8.0
 OUTLIER_FLOOR = 0.2
 MAX_OUTLIERS = 8
@@ -83,8 +84,8 @@ def visible(camera: CameraModel, T_camera_base: FloatArray, points_base: FloatAr
     return inside
 
 
-class MultiCamera:
-    """The multi-camera geometry of one configured cell, prepared once.
+class ViewsLocator:
+    """The multi-camera geometry of one configured cell, prepared once; :meth:`locate` per job.
 
     Parameters
     ----------
@@ -141,7 +142,7 @@ class MultiCamera:
 
     # ------------------------------------------------------------------ the job
     def locate(self, circles: Sequence[FloatArray], identified: Sequence[dict[int, FloatArray]],
-               T_base_flange: FloatArray | None) -> MultiEstimate:
+               T_base_flange: FloatArray | None) -> ViewsEstimate:
         """The object pose from the marks of every camera (``circles[j]`` (k_j, 2) px,
         ``identified[j]`` feature index -> px)."""
         vision = self.config.vision
@@ -170,7 +171,7 @@ class MultiCamera:
         for k, index in enumerate(fixed):
             if np.isfinite(points[k]).all():
                 assignment[index] = k
-        est = MultiEstimate(used=np.zeros(n, dtype=bool), camera_names=self.names)
+        est = ViewsEstimate(used=np.zeros(n, dtype=bool), camera_names=self.names)
         rows = np.array([k for k in range(len(fixed), len(all_tracks))
                          if np.isfinite(points[k]).all()], dtype=np.intp)
         circle_model = np.flatnonzero(self.is_circle)
@@ -216,7 +217,7 @@ class MultiCamera:
                                               zip(circles, identified, strict=True)])
         return est
 
-    def _lost(self, view: MultiView, est: MultiEstimate, px: FloatArray, blobs: list[int]
+    def _lost(self, view: MultiView, est: ViewsEstimate, px: FloatArray, blobs: list[int]
               ) -> tuple[str, ...]:
         """Cameras that found mark-like blobs (3 or more) and should see 3 or more marks at
         the found pose, yet contribute no observation: their image is not what their
@@ -227,10 +228,10 @@ class MultiCamera:
         return tuple(name for j, name in enumerate(self.names)
                      if seen[j] >= 3 and blobs[j] >= 3 and np.isnan(px[:, j, 0]).all())
 
-    def _without_odd_rig(self, view: MultiView, est: MultiEstimate, px: FloatArray) -> None:
+    def _without_odd_rig(self, view: MultiView, est: ViewsEstimate, px: FloatArray) -> None:
         """When one rig is named and the others agree among themselves, the pose the job
         gives is theirs: the named rig's calibration is wrong, so its rays only pull the
-        joint pose off (by up to a millimetre, measured). Residuals, gates and the verdict
+        joint pose off (by up to a millimetre, measured). Residuals, pose checks and the verdict
         stay those of the joint fit: a job refused for its residuals is still refused; one
         published with OK_RECALIBRATE gets the better pose. ``est.excluded`` names the rig."""
         if len(est.odd) != 1 or est.pose is None:
@@ -274,9 +275,9 @@ class MultiCamera:
         different: all its marks are off alike, none stands out, so the rig check still sees
         it. Dropped, worst first and refitting each time: an observation whose error is
         above ``OUTLIER_FACTOR`` times the RMS of its camera's other observations and above
-        ``OUTLIER_FLOOR`` of the gate; at most a quarter of a camera's observations, and
+        ``OUTLIER_FLOOR`` of the limit; at most a quarter of a camera's observations, and
         never below 3 marks per camera."""
-        gate = self.config.vision.max_reprojection_px
+        limit_px = self.config.vision.max_reprojection_px
         dropped = 0
         out = px
         for _ in range(MAX_OUTLIERS):
@@ -289,7 +290,7 @@ class MultiCamera:
                 k = rows[int(np.argmax(e[rows]))]
                 rest = e[rows[rows != k]]
                 limit = max(OUTLIER_FACTOR * float(np.sqrt(np.mean(rest * rest))),
-                            OUTLIER_FLOOR * gate)
+                            OUTLIER_FLOOR * limit_px)
                 if e[k] > limit and (worst is None or e[k] / limit > worst[0]):
                     worst = (float(e[k] / limit), int(k), j)
             if worst is None:
@@ -447,7 +448,7 @@ class MultiCamera:
         return out
 
     def _measure(self, view: MultiView, rigs: dict[tuple[int, int], StereoRig],
-                 est: MultiEstimate, pose: MultiViewPose, px: FloatArray) -> MultiEstimate:
+                 est: ViewsEstimate, pose: MultiViewPose, px: FloatArray) -> ViewsEstimate:
         vision = self.config.vision
         seen: npt.NDArray[np.bool_] = ~np.isnan(px[..., 0])
         est.used = np.asarray(seen.any(axis=1), dtype=bool)
@@ -497,7 +498,7 @@ class MultiCamera:
             r[f"rig.{name}.fit_rms_mm"] = joint_fit[name]
         if len(self.groups) >= 2:
             est.checks = rig_consistency(
-                view, self.model, px, T, gate_px=vision.max_reprojection_px,
+                view, self.model, px, T, limit_px=vision.max_reprojection_px,
                 max_deviation_mm=vision.rig_deviation_mm,
                 max_deviation_deg=vision.rig_deviation_deg)
             for c in est.checks:
@@ -508,7 +509,7 @@ class MultiCamera:
                         r[f"rig.{c.name}.{key}"] = value
             # A rig that is not consistent in itself (its own marks do not fit the model in
             # 3D, its cameras break their epipolar geometry, or its own pose fit leaves
-            # pixel residuals beyond the gate) while every other rig is: one of its
+            # pixel residuals beyond the limit) while every other rig is: one of its
             # cameras moved. (The leave-one-out check alone misses a camera moved along its
             # rig's baseline: that scales the rig's depths, which a pose fitted on pixels
             # mostly absorbs.)
@@ -519,7 +520,7 @@ class MultiCamera:
             inconsistent |= self_inconsistent(
                 est.checks, {g.name: g.observations for g in pose.groups},
                 vision.max_reprojection_px)
-            # Or, failing that, the one rig whose residuals under the joint pose break a gate
+            # Or, failing that, the one rig whose residuals under the joint pose break a limit
             # while the others' do not (its residuals dominate the job's).
             dominant = {g.name for g in pose.groups
                         if joint_fit.get(g.name, 0.0) > vision.max_fit_rms_mm

@@ -34,9 +34,10 @@ own per-set estimates (step 2) around the final relative pose, in degrees and mm
 that moved between sets or an image from another instant shows up here; per image set the RMS
 over all cameras that saw it.
 
-The projection model is OpenCV's pinhole + Brown (k1 k2 p1 p2 k3), written out here in numpy
-so all observations project in one vectorised call; tests check it against
-``cv2.projectPoints`` and the whole fit against ``cv2.stereoCalibrate``.
+The projection model is OpenCV's pinhole + Brown (k1 k2 p1 p2 k3), the distortion from
+:mod:`vgripd.geometry.distortion` with one set of coefficients per observation, so all
+observations project in one vectorised call; tests check it against ``cv2.projectPoints`` and
+the whole fit against ``cv2.stereoCalibrate``.
 
 Size: a little over 700 lines: the five steps above are one algorithm and read in order. The
 generic solver (``levenberg_marquardt``, ``_Normal``) is the part that could go to a module
@@ -57,6 +58,12 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.sparse import coo_matrix, csr_matrix
 
 from vgripd.errors import CalibrationError
+from vgripd.geometry.distortion import (
+    Brown,
+    coefficient_jacobian,
+    distort,
+    distort_with_jacobian,
+)
 from vgripd.geometry.transforms import (
     invert_transform,
     left_jacobians,
@@ -132,13 +139,8 @@ def vector_from_pose(T: FloatArray) -> FloatArray:
 def project(points_cam: FloatArray, k: FloatArray, skew: FloatArray | float = 0.0) -> FloatArray:
     """Pixels (M, 2) of camera-frame points (M, 3), mm, through per-point intrinsics ``k``
     (M, 9) in the order of ``INTRINSIC_KEYS`` (OpenCV's model; ``skew`` px, default 0)."""
-    x = points_cam[:, 0] / points_cam[:, 2]
-    y = points_cam[:, 1] / points_cam[:, 2]
     fx, fy, cx, cy, k1, k2, p1, p2, k3 = k.T
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    xd, yd = distort(points_cam[:, :2].T / points_cam[:, 2], Brown.per_point(k1, k2, p1, p2, k3))
     return np.column_stack([fx * xd + skew * yd + cx, fy * yd + cy])
 
 
@@ -262,16 +264,10 @@ class _Problem:
         fx, fy, _cx, _cy, k1, k2, p1, p2, k3 = k.T
         sk = skews[self.cam]
         X, Y, Z = Xc.T
-        xn, yn = X / Z, Y / Z
-        r2 = xn * xn + yn * yn
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        drad = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)  # d radial / d r2
-        xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
-        yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
-        dxd_dx = radial + 2.0 * xn * xn * drad + 2.0 * p1 * yn + 6.0 * p2 * xn
-        dxd_dy = 2.0 * xn * yn * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
-        dyd_dx = 2.0 * xn * yn * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
-        dyd_dy = radial + 2.0 * yn * yn * drad + 6.0 * p1 * yn + 2.0 * p2 * xn
+        N = Xc[:, :2].T / Z  # normalized (xn, yn), (2, M)
+        (xd, yd), (dxd_dx, dyd_dy), dxd_dy = distort_with_jacobian(
+            N, Brown.per_point(k1, k2, p1, p2, k3))
+        dyd_dx = dxd_dy  # the distortion's derivative is symmetric
         # d(u, v)/d(xn, yn), (M, 2, 2)
         A = np.empty((len(X), 2, 2))
         A[:, 0, 0] = fx * dxd_dx + sk * dyd_dx
@@ -309,14 +305,9 @@ class _Problem:
         Ji[:, 1, 1] = yd
         Ji[:, 0, 2] = 1.0
         Ji[:, 1, 3] = 1.0
-        for j, powr in ((4, r2), (5, r2 * r2), (8, r2 * r2 * r2)):
-            Ji[:, 0, j] = (fx * xn + sk * yn) * powr
-            Ji[:, 1, j] = fy * yn * powr
-        dp1 = (2.0 * xn * yn, r2 + 2.0 * yn * yn)
-        dp2 = (r2 + 2.0 * xn * xn, 2.0 * xn * yn)
-        for j, (dx_, dy_) in ((6, dp1), (7, dp2)):
-            Ji[:, 0, j] = fx * dx_ + sk * dy_
-            Ji[:, 1, j] = fy * dy_
+        G = coefficient_jacobian(N)  # d(xd, yd)/d(k1, k2, p1, p2, k3), (2, 5, M)
+        Ji[:, 0, 4:] = (fx * G[0] + sk * G[1]).T
+        Ji[:, 1, 4:] = (fy * G[1]).T
         for c, idx in enumerate(self.free_idx):
             on = np.flatnonzero(self.cam == c)
             if idx and len(on):

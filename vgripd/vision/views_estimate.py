@@ -1,5 +1,6 @@
-"""What the multi-camera path measured for one job (``MultiEstimate``): made by
-:mod:`vgripd.vision.multicam`, judged by :mod:`vgripd.vision.rigcheck`, so it sits below both."""
+"""What the multi-camera path measured for one job (``ViewsEstimate``): made by
+:mod:`vgripd.vision.views_locator`, judged by :mod:`vgripd.vision.rigcheck`, so it sits below
+both."""
 
 from __future__ import annotations
 
@@ -8,14 +9,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from vgripd.geometry.multipose import GroupCheck, MultiViewPose
+from vgripd.geometry.pose_from_views import GroupCheck, MultiViewPose
 from vgripd.types import FloatArray
 
 
 @dataclass
-class MultiEstimate:
+class ViewsEstimate:
     """What the multi-camera path measured: the pose, which features it used, the residuals
-    (``rig.<name>.*``, ``camera.<name>.*`` and the gate figures) and the groups the consistency
+    (``rig.<name>.*``, ``camera.<name>.*`` and the checked figures) and the groups the consistency
     check found odd (names). ``pose`` is None when fewer than 3 features were identified."""
 
     used: npt.NDArray[np.bool_]

@@ -1,5 +1,5 @@
-"""The gates of a job: what they look at (``Measurement``) and the status they give it
-(``gate``), shared by the single-object pipeline (``vgripd.vision.pipeline``) and pick lists
+"""The pose checks of a job: what they look at (``Measurement``) and the status they give it
+(``check_pose``), shared by the single-object pipeline (``vgripd.vision.pipeline``) and pick lists
 (``vgripd.vision.picklist``) so that one rule decides what the robot may receive."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from vgripd.vision import scene
 
 @dataclass(frozen=True)
 class Measurement:
-    """What the gates look at: counts, pose and residuals of one job (mm, rad, px)."""
+    """What the pose checks look at: counts, pose and residuals of one job (mm, rad, px)."""
 
     found: int
     needed: int
@@ -73,7 +73,7 @@ def limit_point(config: Config, model: FloatArray,
     return None, "object origin"
 
 
-def gate(m: Measurement, vision: VisionConfig, limits: LimitsConfig) -> tuple[Status, str]:
+def check_pose(m: Measurement, vision: VisionConfig, limits: LimitsConfig) -> tuple[Status, str]:
     """The status of a job from its measurement, checked in a fixed order (first failure wins).
 
     Counts (NOT_FOUND under 3 matched, PARTIAL under ``needed``), ambiguity, residuals (fit RMS

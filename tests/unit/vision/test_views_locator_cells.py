@@ -338,7 +338,7 @@ def test_a_lone_camera_with_few_marks_does_not_make_the_rigs_look_bad(marks: int
 def test_self_consistency_is_compared_per_degree_of_freedom() -> None:
     """Real cameras: rigs at 0.3 px RMS, a lone camera with 4 marks at 0.01 px (it fits its
     own pose almost exactly). Neither rig is inconsistent; a rig at 10 x the other's is."""
-    from vgripd.geometry.multipose import GroupCheck
+    from vgripd.geometry.pose_from_views import GroupCheck
     from vgripd.vision.rigcheck import self_inconsistent
 
     def check(name: str, alone: float) -> GroupCheck:

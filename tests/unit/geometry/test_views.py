@@ -17,9 +17,9 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from vgripd.errors import DegenerateInputError
-from vgripd.geometry.camera_model import CameraModel
-from vgripd.geometry.multipose import fit_pose, rig_consistency
-from vgripd.geometry.multiview import MultiView, project_with_jacobian
+from vgripd.geometry.camera_model import CameraModel, project_with_jacobian
+from vgripd.geometry.points_from_views import MultiView
+from vgripd.geometry.pose_from_views import fit_pose, rig_consistency
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform, make_transform, pose_error
 
@@ -285,7 +285,7 @@ def test_a_pose_behind_an_observing_camera_is_refused() -> None:
 def test_consistent_cell_names_no_rig() -> None:
     mv, model, px, _, _ = _two_rig_scene(seed=2, noise_px=0.2)
     fit = fit_pose(mv, model, px)
-    checks = rig_consistency(mv, model, px, fit.T_base_obj, gate_px=1.5,
+    checks = rig_consistency(mv, model, px, fit.T_base_obj, limit_px=1.5,
                              max_deviation_mm=3.0, max_deviation_deg=0.5)
     assert [c.name for c in checks] == ["north", "south"]
     assert not any(c.odd for c in checks)
@@ -301,7 +301,7 @@ def test_a_moved_camera_names_its_rig(moved: int) -> None:
         Rotation.from_rotvec([0.0, np.radians(0.2), 0.0]).as_matrix(), [3.0, 0.0, 0.0])
     bad = MultiView(list(mv.cameras), knocked, names=mv.names, groups=mv.groups)
     fit = fit_pose(bad, model, px)
-    checks = rig_consistency(bad, model, px, fit.T_base_obj, gate_px=1.5,
+    checks = rig_consistency(bad, model, px, fit.T_base_obj, limit_px=1.5,
                              max_deviation_mm=3.0, max_deviation_deg=0.5)
     rig = "north" if moved < 2 else "south"
     assert [c.name for c in checks if c.odd] == [rig]
@@ -313,7 +313,7 @@ def test_linearised_leave_one_out_agrees_with_a_real_refit() -> None:
     knocked[3] = Ts[3] @ make_transform(np.eye(3), [0.0, 4.0, 0.0])
     bad = MultiView(list(mv.cameras), knocked, names=mv.names, groups=mv.groups)
     fit = fit_pose(bad, model, px)
-    north, south = rig_consistency(bad, model, px, fit.T_base_obj, gate_px=1.5,
+    north, south = rig_consistency(bad, model, px, fit.T_base_obj, limit_px=1.5,
                                    max_deviation_mm=3.0, max_deviation_deg=0.5)
     # The real fit of the north rig alone (the "rest" of south) and south's RMS under it.
     only_north = px.copy()
@@ -364,13 +364,13 @@ def test_with_three_rigs_a_rig_moved_as_a_whole_is_named() -> None:
         Ts_config = [knock @ T if j // 2 == moved else T for j, T in enumerate(Ts)]
         mv = MultiView([CAM] * 6, Ts_config, groups=groups)
         fit = fit_pose(mv, model, px)
-        checks = rig_consistency(mv, model, px, fit.T_base_obj, gate_px=1.5,
+        checks = rig_consistency(mv, model, px, fit.T_base_obj, limit_px=1.5,
                                  max_deviation_mm=3.0, max_deviation_deg=0.5)
         assert [c.name for c in checks if c.odd] == ["abc"[moved]]
     # With only two of the rigs, the same knock makes both disagree: no single one to blame.
     two = MultiView([CAM] * 4, [knock @ Ts[0], knock @ Ts[1], Ts[2], Ts[3]],
                     groups=groups[:2])
     fit = fit_pose(two, model, px[:, :4])
-    checks = rig_consistency(two, model, px[:, :4], fit.T_base_obj, gate_px=1.5,
+    checks = rig_consistency(two, model, px[:, :4], fit.T_base_obj, limit_px=1.5,
                              max_deviation_mm=3.0, max_deviation_deg=0.5)
     assert [c.odd for c in checks] == [True, True]

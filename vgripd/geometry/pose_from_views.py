@@ -8,7 +8,7 @@ camera (marks seen by a single camera count too), with residuals per camera grou
 :func:`rig_consistency`: a linearised leave-one-group-out analysis around the joint fit that
 names the group (rig) that disagrees with the others: a camera knocked out of its calibration.
 
-Pixels are (n, N, 2) tables as in :mod:`vgripd.geometry.multiview` (NaN = not seen);
+Pixels are (n, N, 2) tables as in :mod:`vgripd.geometry.points_from_views` (NaN = not seen);
 millimetres, radians, pixels.
 """
 
@@ -21,13 +21,9 @@ import numpy as np
 import numpy.typing as npt
 
 from vgripd.errors import ConvergenceError, DegenerateInputError
-from vgripd.geometry.multiview import (
-    MIN_DEPTH_MM,
-    MultiView,
-    pixel_table,
-    project_with_jacobian,
-)
+from vgripd.geometry.camera_model import project_with_jacobian
 from vgripd.geometry.orientation import horn, pnp
+from vgripd.geometry.points_from_views import MIN_DEPTH_MM, MultiView, pixel_table
 from vgripd.geometry.transforms import (
     check_transform,
     left_jacobians,
@@ -44,16 +40,16 @@ TOLERANCE = 1e-12
 MAX_EVALUATIONS = 100
 #: A group counts as odd only when the other groups agree about as well without it as they
 #: do without the best candidate: their RMS within this factor of the best rest's, or within
-#: this share of the gate above it (noise-free data has rests near 0).
+#: this share of the limit above it (noise-free data has rests near 0).
 AGREE_FACTOR = 2.0
 AGREE_SLACK = 0.1
 #: Condition number of a 6x6 normal matrix above which a group (or the rest of the cameras)
 #: does not determine the pose on its own.
 MAX_CONDITION = 1e10
 #: How many standard deviations of the poses' noise a rig's disagreement must exceed, on top of
-#: the gates, before the rig is blamed. A rig far away, with a short baseline or a low
+#: the pose checks, before the rig is blamed. A rig far away, with a short baseline or a low
 #: resolution fixes the object's pose loosely; a near high-resolution rig then sees that
-#: pose's noise as pixels beyond the gate although no camera moved. The noise comes from the
+#: pose's noise as pixels beyond the limit although no camera moved. The noise comes from the
 #: same Jacobian (covariance s^2 H^-1, s^2 from the residuals), so it costs nothing extra. A
 #: knocked camera leaves the residuals of the others at the finder's noise: its allowance
 #: stays a small fraction of a pixel.
@@ -121,8 +117,8 @@ class GroupCheck:
     alone (NaN when it cannot: too few marks); ``deviation_mm`` / ``deviation_deg``: how far
     the pose from this group alone is from the pose from the rest, at this group's marks (mm:
     the largest displacement of its marks) and in rotation (deg); NaN when either cannot be
-    fitted. ``odd``: the rest agree among themselves (``rest_rms_px`` within the gate) and this
-    group does not (predicted RMS beyond the gate, or deviation beyond its limits).
+    fitted. ``odd``: the rest agree among themselves (``rest_rms_px`` within the limit) and this
+    group does not (predicted RMS beyond the limit, or deviation beyond its limits).
     """
 
     name: str
@@ -309,7 +305,7 @@ def _group_residuals(mv: MultiView, errors: FloatArray) -> tuple[GroupResidual, 
 
 # ------------------------------------------------------------------ consistency
 def rig_consistency(mv: MultiView, model_points: object, pixels: object, T_base_obj: object, *,
-                gate_px: float, max_deviation_mm: float, max_deviation_deg: float
+                limit_px: float, max_deviation_mm: float, max_deviation_deg: float
                 ) -> tuple[GroupCheck, ...]:
     """Which group (rig) disagrees with the others, around the joint pose ``T_base_obj``.
 
@@ -329,9 +325,9 @@ def rig_consistency(mv: MultiView, model_points: object, pixels: object, T_base_
     linearisation holds while the poses differ by small motions (well beyond the
     millimetres and tenths of a degree a knocked camera causes).
 
-    A group is ``odd`` when the rest agree (``rest_rms_px <= gate_px``, and about as well as
+    A group is ``odd`` when the rest agree (``rest_rms_px <= limit_px``, and about as well as
     the rest of the best candidate: ``AGREE_FACTOR``, ``AGREE_SLACK``) and g does not
-    (``predicted_rms_px > gate_px``, or the deviation beyond ``max_deviation_mm`` /
+    (``predicted_rms_px > limit_px``, or the deviation beyond ``max_deviation_mm`` /
     ``max_deviation_deg``). With three or more groups, a group moved as a whole is named
     alone. With two groups both can be odd (a rig moved as a whole is
     self-consistent: nothing tells which of two moved); with one camera of a stereo rig
@@ -383,19 +379,19 @@ def rig_consistency(mv: MultiView, model_points: object, pixels: object, T_base_
                 np.einsum("kij,jl,kil->k", dX[marks], cov, dX[marks]))), 0.0))
             slack_deg = UNCERTAINTY_SIGMAS * math.degrees(math.sqrt(max(float(np.trace(
                 cov[:3, :3])), 0.0)))
-        off = (pred_rms > gate_px + slack_px or dev_mm > max_deviation_mm + slack_mm
+        off = (pred_rms > limit_px + slack_px or dev_mm > max_deviation_mm + slack_mm
                or dev_deg > max_deviation_deg + slack_deg)
         out.append(GroupCheck(name=name, rest_rms_px=rest_rms, predicted_rms_px=pred_rms,
                               alone_rms_px=alone_rms, deviation_mm=dev_mm,
                               deviation_deg=dev_deg,
-                              odd=bool(rest_rms <= gate_px and off)))
+                              odd=bool(rest_rms <= limit_px and off)))
     # Of the candidates, only those whose rest agrees about as well as the best one's: with
     # three rigs and one knocked, leaving out a good rig leaves the knocked one in its rest,
-    # whose RMS, though within the gate, is then far above the noise the best rest shows.
+    # whose RMS, though within the limit, is then far above the noise the best rest shows.
     rests = [c.rest_rms_px for c in out if c.odd]
     if rests:
         best = min(rests)
-        agree = max(AGREE_FACTOR * best, best + AGREE_SLACK * gate_px)
+        agree = max(AGREE_FACTOR * best, best + AGREE_SLACK * limit_px)
         out = [c if not c.odd or c.rest_rms_px <= agree else replace(c, odd=False)
                for c in out]
     return tuple(out)

@@ -12,7 +12,7 @@ them. Here everything lives in the robot ``base`` frame, where every camera has 
 * :meth:`MultiView.refine_points`: Gauss-Newton on the reprojection error of each point in all
   cameras that see it (the gold-standard criterion, which the ray criterion approximates).
 
-The object pose over all cameras is :mod:`vgripd.geometry.multipose`.
+The object pose over all cameras is :mod:`vgripd.geometry.pose_from_views`.
 
 Pixels of a set of points are given as an (m, N, 2) array, N = number of cameras in the order
 of ``MultiView.cameras``, NaN where a camera does not see the point. Millimetres, radians,
@@ -29,11 +29,11 @@ import numpy as np
 import numpy.typing as npt
 
 from vgripd.errors import DegenerateInputError
-from vgripd.geometry.camera_model import CameraModel
+from vgripd.geometry.camera_model import CameraModel, project_with_jacobian
 from vgripd.geometry.transforms import check_transform, invert_transforms
 from vgripd.types import FloatArray
 
-__all__ = ["MultiView", "MultiViewTriangulation", "pixel_table", "project_with_jacobian"]
+__all__ = ["MultiView", "MultiViewTriangulation", "pixel_table"]
 
 #: Rays meeting at a smaller angle than this do not determine a depth (as in StereoRig).
 MIN_RAY_ANGLE_RAD = 1e-6
@@ -42,41 +42,6 @@ POINT_ITERATIONS = 10
 #: Smallest depth (mm) a trial point may have in a camera that sees it; nearer counts as
 #: behind the camera.
 MIN_DEPTH_MM = 1e-3
-
-
-def project_with_jacobian(camera: CameraModel, P: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Pixels (n, 2) of camera-frame points P (n, 3) and their derivative (n, 2, 3) d px / d P.
-
-    The analytic derivative of :meth:`CameraModel.project` (pinhole, Brown distortion, skew),
-    so the pose refinement needs no finite differences. Depths are not checked here (the
-    callers keep them positive).
-    """
-    k1, k2, p1, p2, k3 = camera.dist
-    inv_z = 1.0 / P[:, 2]
-    x = P[:, 0] * inv_z
-    y = P[:, 1] * inv_z
-    x2, y2, xy = x * x, y * y, x * y
-    r2 = x2 + y2
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
-    xd = radial * x + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x2)
-    yd = radial * y + p1 * (r2 + 2.0 * y2) + 2.0 * p2 * xy
-    px = np.empty((P.shape[0], 2))
-    px[:, 0] = camera.fx * xd + camera.skew * yd + camera.cx
-    px[:, 1] = camera.fy * yd + camera.cy
-    # d(xd, yd) / d(x, y)
-    a = radial + 2.0 * x2 * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-    b = 2.0 * xy * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-    d = radial + 2.0 * y2 * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-    # d(u, v) / d(x, y): K's upper-left 2x2 times the distortion's derivative (b is symmetric)
-    du = np.stack([camera.fx * a + camera.skew * b, camera.fx * b + camera.skew * d], axis=1)
-    dv = np.stack([camera.fy * b, camera.fy * d], axis=1)
-    J = np.empty((P.shape[0], 2, 3))
-    for row, g in ((0, du), (1, dv)):
-        J[:, row, 0] = g[:, 0] * inv_z
-        J[:, row, 1] = g[:, 1] * inv_z
-        J[:, row, 2] = -(g[:, 0] * x + g[:, 1] * y) * inv_z
-    return px, J
 
 
 @dataclass(frozen=True, eq=False)
