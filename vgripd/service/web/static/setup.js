@@ -282,19 +282,77 @@ $("he-form").addEventListener("submit", async (e) => {
 });
 
 // --- 4 object ---------------------------------------------------------------------------------
-act("btn-obj-find", async () => {
-  const r = await call("POST", "/api/setup/object/find");
-  if (!r.ok) { $("obj-result").textContent = `${r.status}: ${r.data.message}`; return; }
-  $("obj-images").replaceChildren(...r.data.images.map((src, k) => img(src, `marks ${k}`)));
-  $("obj-marks").tBodies[0].replaceChildren(...r.data.marks.map((m) => {
+function markKind(m) {
+  if (m.kind === "aruco") return `ArUco #${m.marker_id} (${m.dictionary})`;
+  if (m.kind === "template") return `template ${m.label} (score ${fmt(m.score, 2)})`;
+  return "circle";
+}
+// The marks found (and taught) with the pair; a region dragged on the left image fills obj-box.
+function showMarks(d) {
+  const [left, ...rest] = d.images.map((src, k) => img(src, `marks ${k}`));
+  const frame = document.createElement("span");
+  frame.className = "draw";
+  const box = document.createElement("div");
+  box.className = "box";
+  box.hidden = true;
+  left.id = "obj-left";
+  left.dataset.width = String(d.sizes[0][0]);
+  left.draggable = false;
+  let start = null;
+  const at = (e) => {
+    // the picture's content box (inside its border), scaled from the camera's pixels
+    const r = left.getBoundingClientRect(), s = Number(left.dataset.width) / left.clientWidth;
+    return [(e.clientX - r.left - left.clientLeft) * s, (e.clientY - r.top - left.clientTop) * s, 1 / s];
+  };
+  const drawn = (e) => {
+    const [x, y, s] = at(e);
+    const x0 = Math.min(start[0], x), y0 = Math.min(start[1], y);
+    const w = Math.abs(x - start[0]), h = Math.abs(y - start[1]);
+    Object.assign(box.style, { left: `${x0 * s + left.clientLeft}px`, top: `${y0 * s + left.clientTop}px`,
+                               width: `${w * s}px`, height: `${h * s}px` });
+    box.hidden = false;
+    return [x0, y0, w, h].map(Math.round);
+  };
+  left.addEventListener("mousedown", (e) => { e.preventDefault(); start = at(e); });
+  left.addEventListener("mousemove", (e) => { if (start) drawn(e); });
+  left.addEventListener("mouseup", (e) => {
+    if (!start) return;
+    $("obj-box").value = drawn(e).join(" ");
+    start = null;
+  });
+  frame.append(left, box);
+  $("obj-images").replaceChildren(frame, ...rest);
+  $("obj-marks").tBodies[0].replaceChildren(...d.marks.map((m) => {
     const box = document.createElement("input");
     box.type = "checkbox";
     box.checked = true;
     box.dataset.id = String(m.id);
-    const kind = m.kind === "aruco" ? `ArUco #${m.marker_id} (${m.dictionary})` : "circle";
-    return row([box, String(m.id), kind, m.xyz_mm.map((v) => fmt(v, 1)).join(", "), fmt(m.diameter_mm, 1)]);
+    return row([box, String(m.id), markKind(m), m.xyz_mm.map((v) => fmt(v, 1)).join(", "),
+                fmt(m.size_mm ?? m.diameter_mm, 1)]);
   }));
-  $("obj-result").textContent = `${r.data.marks.length} mark(s) seen by both cameras: untick those not on the object`;
+}
+act("btn-obj-find", async () => {
+  const r = await call("POST", "/api/setup/object/find");
+  if (!r.ok) { $("obj-result").textContent = `${r.status}: ${r.data.message}`; return; }
+  showMarks(r.data);
+  $("obj-result").textContent = `${r.data.marks.length} mark(s) seen by both cameras: untick those not on the object` +
+    (r.data.missed.length ? `; not found: ${r.data.missed.join("; ")}` : "");
+});
+act("btn-obj-template", async () => {
+  $("obj-template-result").textContent = "looking for the region in both images…";
+  const r = await call("POST", "/api/setup/object/template",
+                       { box: numbers($("obj-box").value), label: $("obj-label").value });
+  if (!r.ok) {
+    $("obj-template-result").textContent = `REFUSED (${r.status}): ${r.data.message}`;
+    $("obj-template-result").className = "status bad";
+    return;
+  }
+  showMarks(r.data);
+  const m = r.data.taught;
+  $("obj-template-result").textContent = `TAUGHT: mark ${m.id}, template ${m.label}, ` +
+    `${m.size_px} px (${fmt(m.size_mm, 1)} mm) at ${m.xyz_mm.map((v) => fmt(v, 1)).join(", ")} mm, ` +
+    `score ${fmt(m.score, 2)}, epipolar ${fmt(m.epipolar_px, 2)} px`;
+  $("obj-template-result").className = "status ok";
 });
 act("btn-obj-save", async () => {
   const marks = [...document.querySelectorAll("#obj-marks input:checked")].map((b) => Number(b.dataset.id));
