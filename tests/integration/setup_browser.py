@@ -156,6 +156,22 @@ def click(id_: str) -> str:
     return f"document.getElementById({json.dumps(id_)}).click(), true"
 
 
+async def capture_and_calibrate(evaluate: Evaluate, kind: str = "auto") -> str:
+    """On the calibration step: auto-capture until ``SETS`` sets are kept, calibrate as
+    ``kind`` (the page's "Calibrate as"), wait for the result; its figures."""
+    await evaluate(click("calib-auto"))
+    await until(evaluate, f"/^(\\d+) set/.test({text('calib-sets')}) && "
+                          f"Number(/^(\\d+) set/.exec({text('calib-sets')})[1]) >= {SETS}",
+                wait_s=900.0)
+    await evaluate(click("calib-auto"))
+    await evaluate(f"document.getElementById('calib-kind').value = {json.dumps(kind)}, true")
+    await evaluate(click("btn-calib-run"))
+    await until(evaluate, f"{text('calib-progress')}.startsWith('calibrated in')", 900.0)
+    figures = str(await evaluate(text("calib-figures")))
+    assert "RMS" in figures, figures
+    return figures
+
+
 async def drive(cell: Cell, tmp_path: Path) -> Flow:
     """Every step of the page, in order; then the PLC's first job."""
     flow = Flow()
@@ -183,14 +199,7 @@ async def drive(cell: Cell, tmp_path: Path) -> Flow:
                     every="true")
         await done("cameras", "calibration")
         # 2 calibration: auto-capture until SETS sets, calibrate, accept
-        await evaluate(click("calib-auto"))
-        await until(evaluate, f"/^(\\d+) set/.test({text('calib-sets')}) && "
-                              f"Number(/^(\\d+) set/.exec({text('calib-sets')})[1]) >= {SETS}",
-                    wait_s=900.0)
-        await evaluate(click("calib-auto"))
-        await evaluate(click("btn-calib-run"))
-        await until(evaluate, f"{text('calib-progress')}.startsWith('calibrated in')", 900.0)
-        assert "RMS" in await evaluate(text("calib-figures"))
+        await capture_and_calibrate(evaluate)
         await evaluate(click("btn-calib-accept"))
         await until(evaluate, f"{text('calib-accepted')}.startsWith('ACCEPTED')")
         await done("calibration", "handeye")

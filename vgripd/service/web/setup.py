@@ -17,6 +17,9 @@ link, test pick, one page (``/setup``) over these routes::
     POST /api/setup/calib/drop           {"sets": [n, ...]}: sets put aside (outliers)
     POST /api/setup/calib/accept         the result kept to go live with the hand-eye
     POST /api/setup/handeye              {"translation_mm", "rotvec_rad"}: a fixed camera's pose
+                                         (of a cameras result: the reference camera's)
+    /api/setup/handeye/solve, .../use    the hand-eye from the captured sets' flange poses
+                                         (``setuphandeye.py``)
     POST /api/setup/object/find          the marks both cameras see, in the base frame (the
                                          templates taught here found again)
     POST /api/setup/object/template      {"box": [x, y, w, h], "label"}: a region of the last
@@ -41,6 +44,7 @@ import asyncio
 import io
 import json
 import logging
+import secrets
 import shutil
 import tempfile
 import time
@@ -61,6 +65,7 @@ from vgripd.service.web import setupimages
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.registers import register_views
 from vgripd.service.web.setupchoose import SetupChoices
+from vgripd.service.web.setuphandeye import SetupHandEye
 from vgripd.service.web.setupobject import SetupObject
 from vgripd.service.web.setupsteps import (
     DEFAULT_BOARD,
@@ -102,6 +107,8 @@ class SetupRoutes:
         self._calib: dict[str, Any] = {"running": False}
         self._tasks: set[asyncio.Task[Any]] = set()
         self._lock = asyncio.Lock()  # one grab or capture change at a time
+        self.instance = secrets.token_hex(6)
+        self.solver = SetupHandEye(self)  # the hand-eye from the captured sets
 
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/setup", self.page)
@@ -116,6 +123,7 @@ class SetupRoutes:
         router.add_post("/api/setup/calib/accept", self.accept)
         router.add_post("/api/setup/handeye", self.hand_eye)
         SetupObject(self).add(router)  # the object step (setupobject.py)
+        self.solver.add(router)
         router.add_get("/api/setup/robot-program.zip", self.robot_program)
         SetupChoices(self).add(router)  # the cameras and the link chosen (setupchoose.py)
 
@@ -187,6 +195,7 @@ class SetupRoutes:
             capture = self._capture_view(self.capture)
         return web.json_response(jsonable({
             "steps": [{"id": s, "title": t, "done": s in progress["done"]} for s, t in STEPS],
+            "instance": self.instance,  # another after a restart
             "edit": bool(config.status.allow_config_edit),
             "trigger": bool(config.status.allow_trigger),
             "camera": {"type": cam.type, "describe": getattr(self.daemon.camera, "describe",
@@ -332,7 +341,7 @@ class SetupRoutes:
         if state is None or len(state.kept) < MIN_SETS:
             raise web.HTTPConflict(text=f"capture at least {MIN_SETS} sets first (kept: "
                                         f"{0 if state is None else len(state.kept)})")
-        body = await json_body(request) if request.can_read_body else {}
+        body = await json_body(request) if request.body_exists else {}
         kind = body.get("kind", "auto") if isinstance(body, dict) else body
         out = await self._folder() / "rig-result.toml"
         try:
@@ -408,11 +417,26 @@ class SetupRoutes:
                                       result.read_text, encoding="utf-8"))})
 
     async def hand_eye(self, request: web.Request) -> web.Response:
-        """The cameras' pose saved with the accepted calibration: a fixed camera's
-        ``T_base_camera``; for an accepted ``calibrate cameras`` result the reference camera's
-        pose, which places every camera (none needed when the command placed them)."""
-        reloader = self._guard(request)
+        """A fixed camera's ``T_base_camera`` typed on the page (for an accepted ``calibrate
+        cameras`` result the reference camera's, none when the command placed them)."""
+        self._guard(request)
         body = await json_body(request)
+        waiting = await asyncio.to_thread(_pending, (await self._progress()).get(
+            "pending_calibration"))
+        if waiting is not None and waiting.get("placed"):
+            return await self.save_hand_eye(request, None)
+        try:
+            hand_eye = hand_eye_values(body)
+        except ValueError as err:
+            raise web.HTTPBadRequest(text=str(err)) from None
+        return await self.save_hand_eye(request, hand_eye)
+
+    async def save_hand_eye(self, request: web.Request,
+                            hand_eye: dict[str, Any] | None) -> web.Response:
+        """The cameras' pose saved with the accepted calibration as one transaction; for an
+        accepted ``calibrate cameras`` result ``hand_eye`` (fixed) is the reference camera's
+        pose, which places every camera (None: the command placed them)."""
+        reloader = self._guard(request)
         progress = await self._progress()
         pending = progress.get("pending_calibration")
         text = None
@@ -421,13 +445,13 @@ class SetupRoutes:
         elif self.daemon.config.calibration is None:
             raise web.HTTPConflict(text="calibrate the cameras first (step Calibration)")
         waiting = pending_view(text)
-        placed = waiting is not None and waiting.get("placed")
-        try:
-            hand_eye = None if placed else hand_eye_values(body)
-        except ValueError as err:
-            raise web.HTTPBadRequest(text=str(err)) from None
         if waiting is not None and waiting["kind"] == "cameras":
             assert text is not None
+            if hand_eye is not None and hand_eye.get("mounting") != "fixed":
+                raise web.HTTPUnprocessableEntity(text=(
+                    "calibration.cameras: a robot-mounted hand-eye does not place a cameras "
+                    "result here; run vgripd calibrate cameras --hand-eye NAME=FILE "
+                    "(docs/calibration-multicamera.md)"))
             try:
                 edit = cameras_edit(placed_cameras(
                     text, None if hand_eye is None else hand_eye["T_base_camera"]))
@@ -462,6 +486,7 @@ class SetupRoutes:
             "Content-Disposition": f'attachment; filename="vgripd-{brand}.zip"'})
 
     async def close(self) -> None:
+        await self.solver.close()
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
