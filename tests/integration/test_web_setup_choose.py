@@ -102,7 +102,8 @@ async def test_cameras_and_link_are_chosen_through_the_transaction(tmp_path: Pat
 @pytest.mark.timeout(600)
 async def test_the_page_discovers_chooses_and_shows_the_contract_in_chromium(
         tmp_path: Path) -> None:
-    """The same choices clicked in the page: Discover lists the camera types, a synthetic camera
+    """The same choices clicked in the page: the focus control says why the learning cell has
+    none; Discover lists the camera types, a synthetic camera
     chosen lands in camera.toml with the restart named; the link step lists the link types,
     shows the S7 UDT of the s7 contract, and a robot socket chosen from the settings box lands
     in links.toml."""
@@ -112,6 +113,18 @@ async def test_the_page_discovers_chooses_and_shows_the_contract_in_chromium(
         await evaluate(f"""(() => {{ const t = document.getElementById('token');
             t.value = {json.dumps(cell.token)}; t.dispatchEvent(new Event('change'));
             return true; }})()""")
+        # the learning cell's cameras have no lens: the focus control says so, and a value
+        # sent anyway is refused with the same reason
+        focus = await until(evaluate, f"{text('cam-focus-state')}.startsWith('not available')"
+                                      f" && {text('cam-focus-state')}", 120.0)
+        assert focus == ("not available: board: the learning cell renders its images: no lens "
+                         "to focus (blur_px sets their sharpness)"), focus
+        assert await evaluate("document.getElementById('cam-focus-form').hidden")
+        refused = await evaluate(f"""fetch('/api/setup/focus', {{method: 'POST', headers: {{
+            Authorization: 'Bearer ' + {json.dumps(cell.token)},
+            'Content-Type': 'application/json'}}, body: JSON.stringify({{value: 3}})}})
+            .then(async (r) => r.status + ' ' + await r.text())""")
+        assert refused.startswith("409 no focus to set: board: the learning cell"), refused
         await evaluate(click("btn-cam-discover"))
         await until(evaluate, f"{text('cam-choose-result')}.startsWith('now: board')", 120.0)
         types = await evaluate("[...document.getElementById('cam-type').options]"

@@ -11,6 +11,9 @@ robot link, and what the chosen link asks of the PLC or robot (its contract)::
     GET  /api/setup/link/contract        ?type=T: the register map, the S7 UDT (``vgripd
                                          s7-udt``, a child), the OPC UA nodes a PLC uses, the
                                          robot program brands
+    GET  /api/setup/focus                the lens focus where the camera has a focus control
+                                         (a GenICam focus feature), else why not
+    POST /api/setup/focus                {"value": number}: written between jobs, read back
     POST /api/setup/restart              the files as saved judged once more, then the daemon
                                          stopped between jobs to be started again (systemd;
                                          ``vgripd demo --setup`` itself)
@@ -38,7 +41,7 @@ from typing import Any
 from aiohttp import web
 
 from vgripd.configsnapshot import Snapshot
-from vgripd.errors import VgripError
+from vgripd.errors import CameraError, CameraSettingError, VgripError
 from vgripd.registry import CONTRACTS, LINKS, load_class
 from vgripd.resources import EXAMPLES, shared
 from vgripd.serialize import jsonable, toml_from_dict
@@ -189,6 +192,8 @@ class SetupChoices:
         router.add_post("/api/setup/link/choose", self.choose_links)
         router.add_get("/api/setup/link/contract", self.contract)
         router.add_post("/api/setup/restart", self.restart)
+        router.add_get("/api/setup/focus", self.focus)
+        router.add_post("/api/setup/focus", self.focus)
 
     @property
     def daemon(self) -> Any:
@@ -268,6 +273,40 @@ class SetupChoices:
             # the URScript of robots/urscript (docs/ur_rtde.md), no program to fill in.
             answer["brands"] = [] if kind == "ur_rtde" else sorted(BRANDS)
             answer["vendor"] = self.daemon.config.output.vendor
+        return web.json_response(jsonable(answer))
+
+    async def focus(self, request: web.Request) -> web.Response:
+        """The camera's focus control (the driver's ``focus``): read (GET), or a value written
+        between jobs and read back (POST, the token). Applied live, not saved: the page says
+        how to keep it."""
+        value = None
+        if request.method == "POST":
+            self.routes._guard(request)
+            body = await json_body(request)
+            value = body.get("value") if isinstance(body, dict) else None
+            if isinstance(value, bool) or not isinstance(value, int | float) or value != value:
+                raise web.HTTPBadRequest(text=f'{{"value": number}}: the focus, got {value!r}')
+        camera = self.daemon.camera
+        if not hasattr(camera, "focus"):
+            return web.json_response({"available": False, "reason": (
+                f"{self.daemon.config.camera.type}: this camera type has no focus control")})
+        async with self.routes.server.previews.between_jobs() as idle:
+            if not idle:
+                raise web.HTTPConflict(text="a job runs: the focus is read and set only "
+                                            "between jobs; try again")
+            try:
+                answer = await camera.focus(value)
+            except CameraSettingError as err:
+                raise web.HTTPBadRequest(text=str(err)) from None
+            except CameraError as err:
+                raise web.HTTPServiceUnavailable(text=f"the camera cannot take it now: {err}"
+                                                 ) from None
+        if value is not None and not answer.get("available"):
+            raise web.HTTPConflict(text=f"no focus to set: {answer.get('reason')}")
+        if value is not None:
+            answer["note"] = ("applied live, not saved: to keep it at the next start, add it "
+                              "to [camera] features (e.g. features = {"
+                              f"{answer['cameras'][0]['feature']} = {value:g}}})")
         return web.json_response(jsonable(answer))
 
     async def restart(self, request: web.Request) -> web.Response:

@@ -76,7 +76,7 @@ function show(id, keepCheck) {
     $("check-summary").textContent = "";
   }
   if (previewTimer) { clearInterval(previewTimer); previewTimer = null; }
-  if (id === "cameras") previewTimer = setInterval(previews, 1000);
+  if (id === "cameras") { previewTimer = setInterval(previews, 1000); focusState().catch(() => {}); }
   if (id === "link") linkOptions().catch(() => {});
   load().catch(() => {});
 }
@@ -138,6 +138,31 @@ $("cam-form").addEventListener("submit", async (e) => {
   const r = await call("POST", "/api/cameras/0/settings", body);
   $("cam-result").textContent = r.ok ? `applied: ${JSON.stringify(r.data.read_back)}; ${r.data.saved.message}` :
     `REFUSED (${r.status}): ${r.data.message}`;
+});
+
+// The lens focus where the camera has a focus control; else the reason it has none.
+function showFocus(d) {
+  if (!d.available) {
+    $("cam-focus-state").textContent = `not available: ${d.reason}`;
+    $("cam-focus-form").hidden = true;
+    return;
+  }
+  $("cam-focus-state").textContent = d.cameras.map((c) => `${c.name}: ${c.feature} = ${c.value} (${c.range})`).join("; ");
+  $("cam-focus-feature").textContent = d.cameras[0].feature;
+  if (!$("cam-focus").value) $("cam-focus").value = d.cameras[0].value ?? "";
+  $("cam-focus-form").hidden = false;
+}
+async function focusState() {
+  const r = await call("GET", "/api/setup/focus");
+  if (r.ok) showFocus(r.data); else $("cam-focus-state").textContent = `${r.status}: ${r.data.message}`;
+}
+$("cam-focus-form").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  window.setupActions += 1;
+  const r = await call("POST", "/api/setup/focus", { value: Number($("cam-focus").value) });
+  if (!r.ok) { $("cam-focus-result").textContent = `REFUSED (${r.status}): ${r.data.message}`; return; }
+  showFocus(r.data);
+  $("cam-focus-result").textContent = `APPLIED: ${r.data.note}`;
 });
 
 // --- 2 calibration ----------------------------------------------------------------------------
