@@ -96,7 +96,7 @@ async def serve_setup(main: Path, token: str, announce: Any = print) -> None:
 
     while True:
         daemon = Daemon(load_config(main))
-        daemon.reloader = Reloader(daemon, main)
+        daemon.reloader = reloader = Reloader(daemon, main)
 
         async def tell(daemon: Daemon = daemon) -> None:
             await daemon.wait_for(lambda: daemon.status_server is not None
@@ -115,9 +115,9 @@ async def serve_setup(main: Path, token: str, announce: Any = print) -> None:
             await serve(daemon)
         finally:
             teller.cancel()
-        if not daemon.restart_requested:
+        if not reloader.restart_requested:
             return
-        announce(f"vgripd demo --setup: restarting (asked by {daemon.restart_requested}) "
+        announce(f"vgripd demo --setup: restarting (asked by {reloader.restart_requested}) "
                  "with the files as saved")
 
 

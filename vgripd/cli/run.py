@@ -14,9 +14,9 @@ from vgripd.cli.paths import DEFAULT_CONFIG
 from vgripd.config import load_config
 from vgripd.errors import ConfigError
 from vgripd.service.configtxn import recover
-from vgripd.service.daemon import EXIT_RESTART, Daemon
+from vgripd.service.daemon import Daemon
 from vgripd.service.logsetup import configure_logging
-from vgripd.service.reload import Reloader
+from vgripd.service.reload import EXIT_RESTART, Reloader
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,9 +56,9 @@ def run(args: argparse.Namespace) -> int:
     # The process is the daemon's alone: its start-up heap leaves the collector's walks.
     daemon.freeze_heap_at_ready = True
     asyncio.run(serve(daemon))
-    if daemon.restart_requested:  # systemd (Restart=on-failure) starts it again
+    if daemon.reloader.restart_requested:  # systemd (Restart=on-failure) starts it again
         logging.getLogger("vgripd").warning(
-            "stopped for a restart (asked by %s): exit %d", daemon.restart_requested,
+            "stopped for a restart (asked by %s): exit %d", daemon.reloader.restart_requested,
             EXIT_RESTART)
         return EXIT_RESTART
     return 0

@@ -92,9 +92,6 @@ ABORT_LINGER_S = 1.0
 # The watchdog stops pinging when a job runs this long past its timeout: the timeout should
 # have ended it, so the job machinery is wedged and systemd should restart the service.
 WATCHDOG_GRACE_S = 5.0
-#: ``vgripd run``'s exit status after a restart asked for (the setup page's "Restart the daemon
-#: now"): EX_TEMPFAIL, so systemd's ``Restart=on-failure`` starts the service again.
-EXIT_RESTART = 75
 
 
 class RunState(enum.Enum):
@@ -197,8 +194,6 @@ class Daemon:
         # asyncio.Event binds to the running loop on first use, not here.
         self._wake = asyncio.Event()
         self._stop_requested = asyncio.Event()
-        #: Who asked for a restart ("" none): the service stops to be started again.
-        self.restart_requested = ""
         self._t_start_ns = 0
 
     # --- the rooms' state, as callers and tests read it ----------------------------------
@@ -397,16 +392,6 @@ class Daemon:
     def request_stop(self) -> None:
         """Ask ``serve()`` to stop (signal handlers call this; also before start finished)."""
         self._stop_requested.set()
-
-    async def restart_between_jobs(self, source: str, timeout_s: float) -> None:
-        """Stop between jobs (none running, no several-view job waiting; TimeoutError) for
-        the caller to start the service again with its files as saved: ``vgripd run`` exits
-        with ``EXIT_RESTART``, ``vgripd demo --setup`` starts it again itself."""
-        runner = self._runner
-        await self.wait_for(lambda: runner.job is None and runner.views is None, timeout_s)
-        log.warning("restart asked by %s: stopping to be started again", source)
-        self.restart_requested = source
-        self.request_stop()
 
     async def serve(self) -> None:
         """Start, run until ``request_stop()``, then stop cleanly."""

@@ -325,7 +325,7 @@ class SetupChoices:
 
         async def later() -> None:
             await asyncio.sleep(RESTART_DELAY_S)  # the answer goes out first
-            await self.daemon.restart_between_jobs(source, RESTART_IDLE_S)
+            await reloader.restart_between_jobs(source, RESTART_IDLE_S)
 
         task = asyncio.ensure_future(later())
         self._pending.add(task)
