@@ -115,6 +115,9 @@ class CameraDriver(ABC):
     Options: ClassVar[type[DriverOptions]]
     #: The registry type name, used in messages and ``ImagePair.source``.
     type_name: ClassVar[str]
+    #: Why a camera of this type has no focus to drive (a driver with one overrides
+    #: ``_focus_blocking``): the setup page shows it.
+    no_focus: ClassVar[str] = "this camera type has no focus control"
 
     def __init__(self, options: Any, config: Config) -> None:
         self.options = options
@@ -161,6 +164,14 @@ class CameraDriver(ABC):
         ``CameraSettingError`` names the camera, the feature and the device's range. Optional:
         a driver without the hook refuses."""
         return await self._run(self._settings_blocking, exposure_us, gain_db)
+
+    async def focus(self, value: float | None) -> dict[str, Any]:
+        """The lens focus where the camera has a focus control: ``value`` None reads it, else
+        it is written (between jobs: the caller's part) and read back. ``{"available": False,
+        "reason": ...}`` where there is none; per camera ``name``, ``feature``, ``value`` and
+        ``range`` where there is. A refused value raises ``CameraSettingError`` naming the
+        camera, the feature and the range."""
+        return await self._run(self._focus_blocking, value)
 
     def stuck_s(self) -> float:
         """How long the executor's current call has been running (s); 0 when it is idle.
@@ -209,6 +220,10 @@ class CameraDriver(ABC):
         """Runs on the executor in ``set_settings``; a driver with live settings overrides."""
         raise CameraSettingError(f"{self.type_name}: this camera type has no exposure or gain "
                                  "to set")
+
+    def _focus_blocking(self, value: float | None) -> dict[str, Any]:
+        """Runs on the executor in ``focus``; a driver with a focus control overrides."""
+        return {"available": False, "reason": f"{self.type_name}: {self.no_focus}"}
 
     def _close_blocking(self) -> None:  # noqa: B027 - optional hook
         """Runs on the executor in ``close()``; releases handles."""

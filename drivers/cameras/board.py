@@ -154,6 +154,8 @@ class BoardCamera(CameraDriver):
 
     Options = BoardOptions
     type_name = "board"
+    no_focus = ("the learning cell renders its images: no lens to focus (blur_px sets their "
+                "sharpness)")
 
     def __init__(self, options: BoardOptions, config: Config) -> None:
         super().__init__(options, config)

@@ -135,6 +135,8 @@ class GenICamStackOptions(DriverOptions):
     packet_size: int | None = Field(default=None, gt=0)
     inter_packet_delay: int | None = Field(default=None, ge=0)
     features: dict[str, FeatureValue] = Field(default_factory=dict)
+    #: The lens controller's focus feature when it is none of ``FOCUS_FEATURES``.
+    focus_feature: str | None = Field(default=None, min_length=1, max_length=64)
     max_skew_ms: float | None = Field(default=None, gt=0)
     frame_timeout_s: float = Field(default=2.0, gt=0)
     no_frame_limit: int = Field(default=2, ge=1)
@@ -158,6 +160,11 @@ class GenICamStackOptions(DriverOptions):
         if len(set(names)) != len(names):
             raise ValueError(f"cameras: names must differ (got {', '.join(names)})")
         return self
+
+
+#: GenICam features a motorised or liquid lens is focused with, looked for in this order (a
+#: lens controller under another name: ``camera.focus_feature``).
+FOCUS_FEATURES = ("FocusPos", "FocusPosition", "Focus", "LensFocus", "FocalPower")
 
 
 def camera_names(entries: Sequence[CameraEntry]) -> list[str]:
@@ -374,6 +381,42 @@ class GenICamStackCamera(CameraDriver):
                   if v is not None}
         self.options = self.options.model_copy(update=update)
         return applied
+
+    def _focus_blocking(self, value: float | None) -> dict[str, Any]:
+        """The focus feature of every camera (``focus_feature``, else the first of
+        ``FOCUS_FEATURES`` the device has): read, or written on all of them and read back;
+        not available, naming the camera and what was looked for, where a device has none."""
+        if not self._devices:
+            raise CameraError(f"{self.type_name}: {self.outage or 'the cameras are not open'}")
+        names = (self.options.focus_feature,) if self.options.focus_feature else FOCUS_FEATURES
+        found = []
+        for name, device in zip(self.names, self._devices, strict=True):
+            feature = next((n for n in names if device.feature(n) is not None), None)
+            if feature is None:
+                looked = (f"the feature {names[0]} (camera.focus_feature)"
+                          if self.options.focus_feature else
+                          f"none of the GenICam focus features {', '.join(names)}")
+                return {"available": False, "reason": (
+                    f"{camera_label(name)} ({device.info.label()}): {looked} on this device "
+                    "(a fixed-focus lens: turn its ring, the preview's focus figure guides; a "
+                    "lens controller under another name: camera.focus_feature)")}
+            found.append((name, device, feature))
+        if value is not None:
+            refused = [f"{camera_label(n)} ({d.info.label()}): {f} {why}"
+                       for n, d, f in found
+                       if (why := check_value(d.feature(f), value)) is not None]  # type: ignore[arg-type]
+            if refused:
+                raise SettingError("\n".join(refused))
+            for name, device, feature in found:
+                apply_settings(name, device, [(feature, value)])
+        cameras = []
+        for name, device, feature in found:
+            info = device.feature(feature)
+            assert info is not None
+            now = device.read(feature) if info.readable else value
+            cameras.append({"name": name, "feature": feature, "value": now,
+                            "range": info.range_text(), "writable": info.writable})
+        return {"available": True, "cameras": cameras}
 
     async def check_settings(self) -> list[tuple[int, int]]:
         """Open (which applies and reads back every setting) and close again: `vgripd check`.

@@ -109,6 +109,7 @@ class ReplayCamera(CameraDriver):
 
     Options = ReplayOptions
     type_name = "replay"
+    no_focus = "it replays recorded images: no lens to focus"
     options: ReplayOptions
 
     def __init__(self, options: ReplayOptions, config: Config) -> None:

@@ -239,6 +239,7 @@ class SyntheticCamera(CameraDriver):
 
     Options = SyntheticOptions
     type_name = "synthetic"
+    no_focus = "it renders its images: no lens to focus (blur_px sets their sharpness)"
     options: SyntheticOptions
 
     def __init__(self, options: SyntheticOptions, config: Config) -> None:

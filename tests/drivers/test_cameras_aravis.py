@@ -26,7 +26,7 @@ import pytest
 from drivers.cameras.aravis import AravisCamera, AravisStack
 from tests.conftest import REPO, need, need_tool
 from vgripd.config import Config
-from vgripd.errors import CameraError
+from vgripd.errors import CameraError, CameraSettingError
 
 FAKE = "arv-fake-gv-camera-0.8"
 WAIT_S = 20.0
@@ -416,3 +416,33 @@ async def test_a_camera_that_answers_but_gives_no_frames_is_reopened_logged_once
     assert sum("gave no frame to 2 grabs in a row although it answers" in m
                for m in messages) == 1, messages
     assert sum("camera back after" in m for m in messages) == 1, messages
+
+
+async def test_focus_where_the_device_has_a_focus_feature_else_why_not(fake: FakeCamera) -> None:
+    """The setup page's focus control: the fake has no lens, so none of the GenICam focus
+    features, said naming the camera; a lens controller under another name is
+    ``focus_feature`` (the fake's TestRegister stands in for one): written, refused out of its
+    range naming camera, feature and range, nothing changed then."""
+    cam = camera(cameras=[{"name": "top", "serial": "GV01"}])
+    await cam.open()
+    try:
+        none = await cam.focus(None)
+    finally:
+        await cam.close()
+    assert none["available"] is False
+    assert none["reason"].startswith("camera top (Aravis Fake, serial GV01, 127.0.0.1): none "
+                                     "of the GenICam focus features FocusPos, FocusPosition")
+
+    cam = camera(cameras=[{"name": "top", "serial": "GV01"}], focus_feature="TestRegister")
+    await cam.open()
+    try:
+        written = await cam.focus(1234)
+        with pytest.raises(CameraSettingError) as info:
+            await cam.focus(-5)
+    finally:
+        await cam.close()
+    assert written["available"] is True
+    assert written["cameras"][0]["feature"] == "TestRegister"
+    assert written["cameras"][0]["value"] == 1234
+    assert "camera top (Aravis Fake, serial GV01, 127.0.0.1): TestRegister = -5 is out of " \
+           "the device's range 0 .. " in str(info.value)

@@ -90,6 +90,52 @@ async def demo_setup(folder: Path) -> AsyncIterator[Cell]:
             await drain
 
 
+def seed_calibrated(folder: Path) -> None:
+    """The learning cell's files as ``vgripd demo --setup`` lays them out, with the calibration
+    and hand-eye steps already done by their true values (the board camera's truth cameras):
+    for the tests of the later steps, which need a calibrated cell but not the minutes its
+    capture takes. The object, the reference and the link stay as demo --setup writes them."""
+    from vgripd.cli.demo_setup import write_cell
+    from vgripd.config import DEMO_CALIBRATION
+    from vgripd.geometry.fingerprint import camera_about
+    from vgripd.serialize import toml_from_dict
+
+    write_cell(folder, 0, 0)
+    cal = DEMO_CALIBRATION.model_dump(mode="json", exclude_none=True)
+    rig = {k: cal[k] for k in ("left", "right", "stereo")}
+    (folder / "rig.toml").write_text(toml_from_dict({"calibration": rig}), encoding="utf-8")
+    (folder / "handeye.toml").write_text(toml_from_dict({
+        "about": camera_about(rig), "calibration": {"hand_eye": cal["hand_eye"]}}),
+        encoding="utf-8")
+    progress = folder / "setup" / "progress.json"
+    progress.parent.mkdir(exist_ok=True)
+    progress.write_text(json.dumps({"done": {"cameras": 1.0, "calibration": 1.0,
+                                             "handeye": 1.0}}))
+
+
+async def open_page(evaluate: Evaluate, token: str) -> None:
+    """The page loaded and the token typed into it."""
+    await until(evaluate, "document.getElementById('nav-cameras') !== null")
+    await evaluate(f"""(() => {{ const t = document.getElementById('token');
+        t.value = {json.dumps(token)}; t.dispatchEvent(new Event('change'));
+        return true; }})()""")
+
+
+def drag(img_selector: str, box: tuple[int, int, int, int]) -> str:
+    """JS: a mouse drag over the image ``img_selector`` across ``box`` (x, y, w, h in the full
+    camera image's pixels; the image is shown scaled), as the integrator draws a region."""
+    x, y, w, h = box
+    return f"""(() => {{
+        const im = document.querySelector({json.dumps(img_selector)});
+        const r = im.getBoundingClientRect(), s = im.clientWidth / Number(im.dataset.width);
+        const at = (type, px, py) => im.dispatchEvent(new MouseEvent(type, {{bubbles: true,
+            clientX: r.left + im.clientLeft + px * s, clientY: r.top + im.clientTop + py * s,
+            buttons: 1}}));
+        at('mousedown', {x}, {y}); at('mousemove', {x + w / 2}, {y + h / 2});
+        at('mousemove', {x + w}, {y + h}); at('mouseup', {x + w}, {y + h});
+        return true; }})()"""
+
+
 async def until(evaluate: Evaluate, expression: str, wait_s: float = STEP_WAIT_S,
                 every: str | None = None) -> Any:
     """The first truthy value of ``expression``; ``every``: a click (JS) repeated while the
@@ -108,6 +154,22 @@ def text(id_: str) -> str:
 
 def click(id_: str) -> str:
     return f"document.getElementById({json.dumps(id_)}).click(), true"
+
+
+async def capture_and_calibrate(evaluate: Evaluate, kind: str = "auto") -> str:
+    """On the calibration step: auto-capture until ``SETS`` sets are kept, calibrate as
+    ``kind`` (the page's "Calibrate as"), wait for the result; its figures."""
+    await evaluate(click("calib-auto"))
+    await until(evaluate, f"/^(\\d+) set/.test({text('calib-sets')}) && "
+                          f"Number(/^(\\d+) set/.exec({text('calib-sets')})[1]) >= {SETS}",
+                wait_s=900.0)
+    await evaluate(click("calib-auto"))
+    await evaluate(f"document.getElementById('calib-kind').value = {json.dumps(kind)}, true")
+    await evaluate(click("btn-calib-run"))
+    await until(evaluate, f"{text('calib-progress')}.startsWith('calibrated in')", 900.0)
+    figures = str(await evaluate(text("calib-figures")))
+    assert "RMS" in figures, figures
+    return figures
 
 
 async def drive(cell: Cell, tmp_path: Path) -> Flow:
@@ -137,14 +199,7 @@ async def drive(cell: Cell, tmp_path: Path) -> Flow:
                     every="true")
         await done("cameras", "calibration")
         # 2 calibration: auto-capture until SETS sets, calibrate, accept
-        await evaluate(click("calib-auto"))
-        await until(evaluate, f"/^(\\d+) set/.test({text('calib-sets')}) && "
-                              f"Number(/^(\\d+) set/.exec({text('calib-sets')})[1]) >= {SETS}",
-                    wait_s=900.0)
-        await evaluate(click("calib-auto"))
-        await evaluate(click("btn-calib-run"))
-        await until(evaluate, f"{text('calib-progress')}.startsWith('calibrated in')", 900.0)
-        assert "RMS" in await evaluate(text("calib-figures"))
+        await capture_and_calibrate(evaluate)
         await evaluate(click("btn-calib-accept"))
         await until(evaluate, f"{text('calib-accepted')}.startsWith('ACCEPTED')")
         await done("calibration", "handeye")

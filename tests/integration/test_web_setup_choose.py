@@ -1,7 +1,8 @@
 """The setup page's cameras and link steps over real HTTP against ``vgripd demo --setup``: the
 devices the stacks find, a camera and a link chosen and written through the config transaction
 into ``camera.toml`` and ``links.toml`` (judged first, the keys a restart applies named), a bad
-choice refused naming its field with nothing written, and each link type's contract."""
+choice refused naming its field with nothing written, and each link type's contract; the
+restart the page offers to run a chosen camera."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from typing import Any
 import aiohttp
 import pytest
 
-from tests.integration.setup_browser import click, demo_setup, text, until
+from tests.integration.setup_browser import click, demo_setup, open_page, text, until
 from tests.integration.test_web import _chromium
 
 
@@ -101,7 +102,8 @@ async def test_cameras_and_link_are_chosen_through_the_transaction(tmp_path: Pat
 @pytest.mark.timeout(600)
 async def test_the_page_discovers_chooses_and_shows_the_contract_in_chromium(
         tmp_path: Path) -> None:
-    """The same choices clicked in the page: Discover lists the camera types, a synthetic camera
+    """The same choices clicked in the page: the focus control says why the learning cell has
+    none; Discover lists the camera types, a synthetic camera
     chosen lands in camera.toml with the restart named; the link step lists the link types,
     shows the S7 UDT of the s7 contract, and a robot socket chosen from the settings box lands
     in links.toml."""
@@ -111,6 +113,18 @@ async def test_the_page_discovers_chooses_and_shows_the_contract_in_chromium(
         await evaluate(f"""(() => {{ const t = document.getElementById('token');
             t.value = {json.dumps(cell.token)}; t.dispatchEvent(new Event('change'));
             return true; }})()""")
+        # the learning cell's cameras have no lens: the focus control says so, and a value
+        # sent anyway is refused with the same reason
+        focus = await until(evaluate, f"{text('cam-focus-state')}.startsWith('not available')"
+                                      f" && {text('cam-focus-state')}", 120.0)
+        assert focus == ("not available: board: the learning cell renders its images: no lens "
+                         "to focus (blur_px sets their sharpness)"), focus
+        assert await evaluate("document.getElementById('cam-focus-form').hidden")
+        refused = await evaluate(f"""fetch('/api/setup/focus', {{method: 'POST', headers: {{
+            Authorization: 'Bearer ' + {json.dumps(cell.token)},
+            'Content-Type': 'application/json'}}, body: JSON.stringify({{value: 3}})}})
+            .then(async (r) => r.status + ' ' + await r.text())""")
+        assert refused.startswith("409 no focus to set: board: the learning cell"), refused
         await evaluate(click("btn-cam-discover"))
         await until(evaluate, f"{text('cam-choose-result')}.startsWith('now: board')", 120.0)
         types = await evaluate("[...document.getElementById('cam-type').options]"
@@ -143,3 +157,48 @@ async def test_the_page_discovers_chooses_and_shows_the_contract_in_chromium(
                                        f"{text('link-choose-result')}", 120.0)
         assert result.startswith(("APPLIED", "ACCEPTED")), result
         assert tomllib.loads((cell.folder / "links.toml").read_text())["links"] == [link]
+
+
+@pytest.mark.timeout(600)
+async def test_a_chosen_camera_runs_after_the_restart_the_page_offers(tmp_path: Path) -> None:
+    """A camera chosen on the page is saved, and the page offers the restart that runs it: the
+    files are judged first (a camera include broken by hand meanwhile is refused naming it, the
+    daemon answering on), then the daemon stops between jobs and ``vgripd demo --setup`` starts
+    it again on the saved files: the page reconnects to a daemon running the chosen camera."""
+    async with demo_setup(tmp_path / "cell") as cell, \
+            _chromium(tmp_path, cell.url) as evaluate:
+        await open_page(evaluate, cell.token)
+        instance = await until(evaluate, "state && state.instance", 60.0)
+        await evaluate(click("btn-cam-discover"))
+        await until(evaluate, f"{text('cam-choose-result')}.startsWith('now: board')", 120.0)
+        await evaluate("document.getElementById('cam-type').value = 'synthetic', true")
+        await evaluate(click("btn-cam-choose"))
+        result = await until(evaluate, f"/^(APPLIED|ACCEPTED|REFUSED)/.test("
+                                       f"{text('cam-choose-result')}) && "
+                                       f"{text('cam-choose-result')}", 120.0)
+        assert result.startswith("APPLIED"), result
+        assert await evaluate("!document.getElementById('restart-bar').hidden")
+        assert "camera.type" in await evaluate(text("restart-keys"))
+
+        camera_file = cell.folder / "camera.toml"
+        saved = camera_file.read_bytes()
+        camera_file.write_text('[camera]\ntype = "replay"\n')  # broken by hand meanwhile
+        await evaluate(click("btn-restart"))
+        refused = await until(evaluate, f"/^(REFUSED|RESTARTING)/.test("
+                                        f"{text('restart-result')}) && "
+                                        f"{text('restart-result')}", 300.0)
+        assert refused.startswith("REFUSED (422): refused, the daemon keeps running"), refused
+        assert "camera" in refused, refused
+        assert await evaluate("fetch('/api/setup').then((r) => r.json())"
+                              ".then((d) => d.instance)") == instance
+        assert cell.proc.returncode is None
+
+        camera_file.write_bytes(saved)
+        await evaluate(click("btn-restart"))
+        await until(evaluate, f"{text('restart-result')}.startsWith('RESTARTING')", 300.0)
+        note = await until(evaluate, f"{text('setup-note')}.startsWith('RESTARTED') && "
+                                     f"{text('setup-note')}", 300.0)
+        assert "camera type synthetic" in note, note
+        assert await evaluate("state.instance") != instance
+        assert (await evaluate(text("cam-describe"))).startswith("camera type synthetic")
+        assert cell.proc.returncode is None  # the same demo process, its daemon started again

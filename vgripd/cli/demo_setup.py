@@ -62,6 +62,7 @@ def write_cell(folder: Path, modbus_port: int, web_port: int, seed: int = 1) -> 
         token = str(tomllib.loads(access.read_text())["status"]["token"])
         return main, token
     token = secrets.token_urlsafe(24)
+    modbus_port, web_port = modbus_port or free_port(), web_port or free_port()
     parts: dict[str, dict[str, Any]] = {name: {} for name in INCLUDES}
     parts["access.toml"] = {"status": {"port": web_port, "token": token,
                                        "allow_config_edit": True, "allow_trigger": True}}
@@ -86,32 +87,45 @@ def write_cell(folder: Path, modbus_port: int, web_port: int, seed: int = 1) -> 
 
 async def serve_setup(main: Path, token: str, announce: Any = print) -> None:
     """The daemon on ``main`` as ``vgripd run`` runs it, the setup page announced, until
-    Ctrl-C or SIGTERM."""
+    Ctrl-C or SIGTERM; a restart asked for on the page starts it again on the files as saved
+    (where ``vgripd run`` leaves that to systemd)."""
     from vgripd.cli.run import serve
     from vgripd.config import load_config
     from vgripd.service.daemon import Daemon
     from vgripd.service.reload import Reloader
 
-    daemon = Daemon(load_config(main))
-    daemon.reloader = Reloader(daemon, main)
+    while True:
+        daemon = Daemon(load_config(main))
+        daemon.reloader = reloader = Reloader(daemon, main)
 
-    async def tell() -> None:
-        await daemon.wait_for(lambda: daemon.status_server is not None
-                              and daemon.run_state.value == "running", 120.0)
-        assert daemon.status_server is not None
-        link = next(iter(daemon.links.values()))
-        announce(f"vgripd demo --setup: the learning cell (config {main})\n"
-                 f"  setup page: http://127.0.0.1:{daemon.status_server.port}/setup\n"
-                 f"  token:      {token}\n"
-                 f"  PLC link:   Modbus/TCP on 127.0.0.1:{getattr(link, 'port', '?')}\n"
-                 f"up until Ctrl-C (the page and the link end with it; the folder stays: "
-                 f"vgripd demo --setup --state-dir {main.parent} goes on)")
+        async def tell(daemon: Daemon = daemon) -> None:
+            await daemon.wait_for(lambda: daemon.status_server is not None
+                                  and daemon.run_state.value == "running", 120.0)
+            assert daemon.status_server is not None
+            link = next(iter(daemon.links.values()))
+            announce(f"vgripd demo --setup: the learning cell (config {main})\n"
+                     f"  setup page: http://127.0.0.1:{daemon.status_server.port}/setup\n"
+                     f"  token:      {token}\n"
+                     f"  PLC link:   Modbus/TCP on 127.0.0.1:{getattr(link, 'port', '?')}\n"
+                     f"up until Ctrl-C (the page and the link end with it; the folder stays: "
+                     f"vgripd demo --setup --state-dir {main.parent} goes on)")
 
-    teller = asyncio.ensure_future(tell())
-    try:
-        await serve(daemon)
-    finally:
-        teller.cancel()
+        teller = asyncio.ensure_future(tell())
+        try:
+            await serve(daemon)
+        finally:
+            teller.cancel()
+        if not reloader.restart_requested:
+            return
+        announce(f"vgripd demo --setup: restarting (asked by {reloader.restart_requested}) "
+                 "with the files as saved")
+
+
+def free_port() -> int:
+    """A port free on 127.0.0.1 now (written into the cell, so a restart keeps it)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
 
 
 def bindable(port: int) -> int:

@@ -1,5 +1,7 @@
 """Run the vgripd service until SIGTERM/SIGINT (what systemd starts); SIGHUP reloads the config
-file (``systemctl reload vgripd``, ``vgripd.service.reload``)."""
+file (``systemctl reload vgripd``, ``vgripd.service.reload``). A restart asked for on the setup
+page ends it with exit status 75 (``EXIT_RESTART``), which systemd's ``Restart=on-failure``
+starts again."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from vgripd.errors import ConfigError
 from vgripd.service.configtxn import recover
 from vgripd.service.daemon import Daemon
 from vgripd.service.logsetup import configure_logging
-from vgripd.service.reload import Reloader
+from vgripd.service.reload import EXIT_RESTART, Reloader
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,4 +56,9 @@ def run(args: argparse.Namespace) -> int:
     # The process is the daemon's alone: its start-up heap leaves the collector's walks.
     daemon.freeze_heap_at_ready = True
     asyncio.run(serve(daemon))
+    if daemon.reloader.restart_requested:  # systemd (Restart=on-failure) starts it again
+        logging.getLogger("vgripd").warning(
+            "stopped for a restart (asked by %s): exit %d", daemon.reloader.restart_requested,
+            EXIT_RESTART)
+        return EXIT_RESTART
     return 0

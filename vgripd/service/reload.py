@@ -21,7 +21,8 @@ A reload:
 What only a restart can change: the camera (``camera``), the links (``links``: ports,
 addresses, drivers), the web view (``status``), the recorder (``record``) and the service
 (``daemon``). A reload keeps those sections as they run and names each changed key as needing a
-restart (``Outcome.restart``); the rest is applied.
+restart (``Outcome.restart``); the rest is applied. The setup page's "Restart the daemon now"
+(``restart_between_jobs``) stops the daemon between jobs to be started again on the saved files.
 
 Every reload and save, applied or refused, is one audit entry: wall time, who asked (``SIGHUP``
 or the web client's address), the outcome and a diff of the effective config (secrets
@@ -52,6 +53,9 @@ log = logging.getLogger("vgripd.reload")
 RESTART_SECTIONS = ("camera", "links", "status", "record", "daemon")
 #: A reload waits this long for the running job (or several-view job) to end.
 IDLE_TIMEOUT_S = 3600.0
+#: ``vgripd run``'s exit status after a restart asked for (the setup page's "Restart the daemon
+#: now"): EX_TEMPFAIL, so systemd's ``Restart=on-failure`` starts the service again.
+EXIT_RESTART = 75
 
 
 def _flat(data: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
@@ -134,6 +138,20 @@ class Reloader(ConfigWriter):
         #: exposure and gain: ``camera.exposure_us``): a file with the same value does not name
         #: them as needing a restart, and the running config takes them.
         self.live: dict[str, Any] = {}
+        #: Who asked for a restart ("" none): the daemon stopped to be started again.
+        self.restart_requested = ""
+
+    async def restart_between_jobs(self, source: str, timeout_s: float) -> None:
+        """What only a start applies (the camera, the links) made to run: the daemon stopped
+        between jobs (none running, no several-view job waiting; TimeoutError) for its caller
+        to start it again on the files as saved: ``vgripd run`` exits with ``EXIT_RESTART``,
+        ``vgripd demo --setup`` starts it again itself."""
+        d = self.daemon
+        runner = d._runner
+        await d.wait_for(lambda: runner.job is None and runner.views is None, timeout_s)
+        log.warning("restart asked by %s: stopping to be started again", source)
+        self.restart_requested = source
+        d.request_stop()
 
     async def apply(self, config: Config, source: str) -> Outcome:
         """The judged ``config`` applied between jobs: what a reload can apply, the keys only a

@@ -109,7 +109,7 @@ log = logging.getLogger("vgripd.worker")
 #: The processor the worker builds from the config (``module:Class``, called with the Config).
 DEFAULT_PROCESSOR = "vgripd.vision.checked:CheckedPipeline"
 #: Requests after which the worker may hold the camera (until a ``camera_close``).
-_CAMERA_OPS = frozenset({"camera_open", "camera_grab", "camera_settings"})
+_CAMERA_OPS = frozenset({"camera_open", "camera_grab", "camera_settings", "camera_focus"})
 #: Payload length (bytes) and request id; id 0 is the worker's "ready" message.
 HEADER = struct.Struct("!IQ")
 #: Spawn, imports, pipeline and recorder set-up; a worker not ready by then is killed.
@@ -312,6 +312,12 @@ class _Worker:
             self.camera.set_settings(exposure_us, gain_db))
         return settings
 
+    def camera_focus(self, value: float | None) -> dict[str, Any]:
+        """The driver's ``focus`` (opening the camera first if needed)."""
+        self.open_camera()
+        focus: dict[str, Any] = self.loop.run_until_complete(self.camera.focus(value))
+        return focus
+
     def close_camera(self) -> None:
         if self.camera_open:
             self.camera_open = False
@@ -381,7 +387,7 @@ def worker_main(sock: socket.socket, config: Config, processor: str, log_level: 
     handlers: dict[str, Callable[..., Any]] = {
         "camera_open": worker.open_camera, "camera_grab": worker.grab,
         "camera_put": worker.put, "camera_close": worker.close_camera,
-        "camera_settings": worker.camera_settings,
+        "camera_settings": worker.camera_settings, "camera_focus": worker.camera_focus,
         "process": worker.process, "record": worker.record,
         "reconfigure": worker.reconfigure,
     }
@@ -889,6 +895,15 @@ class WorkerCamera:
         except WorkerError as err:
             raise CameraError(f"{self.type_name}: {err}") from None
         return settings
+
+    async def focus(self, value: float | None) -> dict[str, Any]:
+        """The driver's ``focus`` in the worker (between jobs: the caller's part)."""
+        try:
+            focus: dict[str, Any] = await self._client.call("camera_focus", value,
+                                                            what="camera focus")
+        except WorkerError as err:
+            raise CameraError(f"{self.type_name}: {err}") from None
+        return focus
 
     async def close(self) -> None:
         await self._client.close_camera()

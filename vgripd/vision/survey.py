@@ -1,7 +1,8 @@
 """Marks found in a stereo pair without an object model, for defining a new object: every
 circular mark in both images, paired along the epipolar lines, and every ArUco marker seen once
-in each image, paired by its id; triangulated and put in the robot base frame; and the judgement
-of a chosen layout (enough marks, far enough apart, no symmetry a pose could flip on).
+in each image, paired by its id, and a template taught from a region of the left image, found
+once in each image; triangulated and put in the robot base frame; and the judgement of a chosen
+layout (enough marks, far enough apart, no symmetry a pose could flip on).
 
 The setup page shows the marks numbered; the integrator ticks those that belong to the object,
 whose measured base-frame points become an ``object.definition = "reference"`` model (the object
@@ -39,6 +40,14 @@ EXHAUSTIVE_MAX = 7
 #: ArUco dictionaries looked for when the config names none (one of each marker size, and the
 #: AprilTag family most printed).
 SURVEY_DICTIONARIES = ("DICT_4X4_50", "DICT_5X5_100", "DICT_6X6_250", "DICT_APRILTAG_36h11")
+#: A taught template's side (px): smaller has too little to match on, larger is slow to search.
+TEMPLATE_SIDE_PX = (12, 400)
+#: A region whose grey levels spread less than this (standard deviation) has nothing to match.
+TEMPLATE_MIN_STD = 8.0
+
+
+class TemplateRefused(ValueError):
+    """A region that cannot be a template (the text says why and where)."""
 
 
 @dataclass(frozen=True)
@@ -51,13 +60,17 @@ class Mark:
     xyz_base_mm: tuple[float, float, float]
     diameter_mm: float
     epipolar_px: float
-    #: ``"circle"`` or ``"aruco"`` (then ``diameter_mm`` is the marker's side, and
-    #: ``marker_id``/``dictionary`` its identity).
+    #: ``"circle"``, ``"aruco"`` (then ``diameter_mm`` is the marker's side, and
+    #: ``marker_id``/``dictionary`` its identity) or ``"template"`` (``diameter_mm`` the
+    #: patch's larger side, ``label`` its name, ``size_px`` that side in pixels).
     kind: str = "circle"
     marker_id: int | None = None
     dictionary: str | None = None
     #: A marker's corners in the left image (px), for drawing it and telling what lies inside.
     outline_left: tuple[tuple[float, float], ...] = ()
+    label: str | None = None
+    size_px: int = 0
+    score: float = 0.0
 
     @property
     def identified(self) -> bool:
@@ -71,6 +84,9 @@ class Mark:
             "diameter_mm": round(self.diameter_mm, 2), "epipolar_px": round(self.epipolar_px, 3)}
         if self.kind == "aruco":
             out.update(marker_id=self.marker_id, dictionary=self.dictionary,
+                       size_mm=round(self.diameter_mm, 2))
+        if self.kind == "template":
+            out.update(label=self.label, size_px=self.size_px, score=round(self.score, 3),
                        size_mm=round(self.diameter_mm, 2))
         return out
 
@@ -178,6 +194,81 @@ def survey_marks(left: Any, right: Any, rig: StereoRig, T_base_camera: FloatArra
     out = [replace(c, id=k + 1) for k, c in enumerate(circles)]
     out += [replace(m, id=len(out) + k + 1) for k, m in enumerate(markers)]
     return out
+
+
+def template_patch(image: Any, box: tuple[int, int, int, int]) -> ft.UInt8Image:
+    """The region ``box`` (x, y, width, height px of the left image) as a template patch;
+    ``TemplateRefused`` when it leaves the image, is too small or too large, or is flat."""
+    gray = ft.gray_from_image(np.asarray(image))
+    x, y, w, h = (int(round(v)) for v in box)
+    lo, hi = TEMPLATE_SIDE_PX
+    if not (lo <= w <= hi and lo <= h <= hi):
+        raise TemplateRefused(f"region {w}x{h} px: each side {lo} to {hi} px")
+    if x < 0 or y < 0 or x + w > gray.shape[1] or y + h > gray.shape[0]:
+        raise TemplateRefused(f"region at ({x}, {y}) size {w}x{h} px leaves the "
+                              f"{gray.shape[1]}x{gray.shape[0]} image")
+    patch = np.ascontiguousarray(gray[y:y + h, x:x + w])
+    if float(patch.std()) < TEMPLATE_MIN_STD:
+        raise TemplateRefused(f"region at ({x}, {y}) size {w}x{h} px is nearly uniform (grey "
+                              f"level spread {patch.std():.1f} < {TEMPLATE_MIN_STD:g}): draw it "
+                              "round something with edges")
+    return patch
+
+
+def template_hits(gray: ft.UInt8Image, patch: ft.UInt8Image
+                  ) -> tuple[FloatArray, float, float] | None:
+    """The best match of ``patch`` (its centre, sub-pixel) and its score, and the best score
+    elsewhere (at least half a patch away): a second place the job's finder could take."""
+    import cv2
+
+    hit = ft.find_template(gray, patch, -1.0)
+    if hit is None:
+        return None
+    centre, best = hit
+    scores = cv2.matchTemplate(gray, patch, cv2.TM_CCOEFF_NORMED)
+    h, w = patch.shape
+    cx, cy = int(round(centre[0] - (w - 1) / 2.0)), int(round(centre[1] - (h - 1) / 2.0))
+    scores[max(0, cy - h // 2):cy + h // 2 + 1, max(0, cx - w // 2):cx + w // 2 + 1] = -1.0
+    return centre, best, float(scores.max())
+
+
+def survey_template(left: Any, right: Any, rig: StereoRig, T_base_camera: FloatArray,
+                    patch: ft.UInt8Image, label: str, min_score: float,
+                    tolerance_px: float = 2.0, mark_id: int = 1) -> Mark:
+    """A template found once in each image (best score at least ``min_score``, no other place
+    that reaches it), on the epipolar line of its left match within ``tolerance_px``; its
+    centre triangulated into the base frame. ``TemplateRefused`` naming what failed."""
+    hits = []
+    for side, image in (("left", left), ("right", right)):
+        found = template_hits(ft.gray_from_image(np.asarray(image)), patch)
+        if found is None or found[1] < min_score:
+            best = "none" if found is None else f"{found[1]:.2f}"
+            raise TemplateRefused(f"template {label}: not found in the {side} image (best "
+                                  f"score {best} < vision.template_min_score {min_score:g})")
+        if found[2] >= min_score:
+            raise TemplateRefused(f"template {label}: found at two places in the {side} image "
+                                  f"(scores {found[1]:.2f} and {found[2]:.2f}, both >= "
+                                  f"{min_score:g}): a job could take either; draw a region "
+                                  "round something that is there once")
+        hits.append(found)
+    (cl, score_l, _), (cr, score_r, _) = hits
+    line = rig.epipolar_lines_right(cl[None])[0]
+    ideal_r = rig.ideal_pixels(rig.right, cr[None])[0]
+    epi = abs(float(line @ np.r_[ideal_r, 1.0]))
+    if epi > tolerance_px:
+        raise TemplateRefused(f"template {label}: the right image's match is {epi:.1f} px off "
+                              f"the epipolar line (> {tolerance_px:g}): another place, or a "
+                              "region that looks different from the right camera")
+    pt = np.asarray(rig.triangulate(cl[None], cr[None]).points_mm, np.float64)[0]
+    base = T_base_camera[:3, :3] @ pt + T_base_camera[:3, 3]
+    h, w = patch.shape
+    side_mm = max(w, h) * float(pt[2]) / float(rig.left.fx)
+    x0, y0 = cl[0] - (w - 1) / 2.0, cl[1] - (h - 1) / 2.0
+    outline = ((x0, y0), (x0 + w, y0), (x0 + w, y0 + h), (x0, y0 + h))
+    return Mark(mark_id, (float(cl[0]), float(cl[1])), (float(cr[0]), float(cr[1])),
+                (float(base[0]), float(base[1]), float(base[2])), side_mm, epi, "template",
+                outline_left=tuple((float(a), float(b)) for a, b in outline), label=label,
+                size_px=max(w, h), score=min(score_l, score_r))
 
 
 def _inside(quad: FloatArray, point: tuple[float, float]) -> bool:

@@ -17,7 +17,14 @@ link, test pick, one page (``/setup``) over these routes::
     POST /api/setup/calib/drop           {"sets": [n, ...]}: sets put aside (outliers)
     POST /api/setup/calib/accept         the result kept to go live with the hand-eye
     POST /api/setup/handeye              {"translation_mm", "rotvec_rad"}: a fixed camera's pose
-    POST /api/setup/object/find          the marks both cameras see, in the base frame
+                                         (of a cameras result: the reference camera's)
+    /api/setup/handeye/solve, .../use    the hand-eye from the captured sets' flange poses
+                                         (``setuphandeye.py``)
+    POST /api/setup/object/find          the marks both cameras see, in the base frame (the
+                                         templates taught here found again)
+    POST /api/setup/object/template      {"box": [x, y, w, h], "label"}: a region of the last
+                                         find's left image taught as a template, found in
+                                         both images, offered as a mark
     POST /api/setup/object/save          {"name", "marks": [ids]}: the object from them, judged
     GET  /api/setup/robot-program.zip    ?brand=B: vgripd robot-program for the link (child)
     /api/setup/cameras/..., /api/setup/link/...   choosing the cameras and the link, the
@@ -37,6 +44,7 @@ import asyncio
 import io
 import json
 import logging
+import secrets
 import shutil
 import tempfile
 import time
@@ -57,23 +65,25 @@ from vgripd.service.web import setupimages
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.registers import register_views
 from vgripd.service.web.setupchoose import SetupChoices
+from vgripd.service.web.setuphandeye import SetupHandEye
+from vgripd.service.web.setupobject import SetupObject
 from vgripd.service.web.setupsteps import (
     DEFAULT_BOARD,
     STEP_IDS,
     STEPS,
     calibration_command,
     calibration_edit,
+    cameras_edit,
     dump_progress,
     flange_text,
     hand_eye_values,
     load_progress,
-    mark_name,
-    object_edit,
     parse_check,
+    pending_view,
+    placed_cameras,
     read_result,
     state_dir,
 )
-from vgripd.vision.survey import judge_layout
 
 log = logging.getLogger(__name__)
 
@@ -94,10 +104,11 @@ class SetupRoutes:
         self.capture: Capture | None = None
         self._grab_n = 0
         self._live: list[bytes] = []
-        self._marks: list[dict[str, Any]] = []
         self._calib: dict[str, Any] = {"running": False}
         self._tasks: set[asyncio.Task[Any]] = set()
         self._lock = asyncio.Lock()  # one grab or capture change at a time
+        self.instance = secrets.token_hex(6)
+        self.solver = SetupHandEye(self)  # the hand-eye from the captured sets
 
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/setup", self.page)
@@ -111,8 +122,8 @@ class SetupRoutes:
         router.add_post("/api/setup/calib/drop", self.drop)
         router.add_post("/api/setup/calib/accept", self.accept)
         router.add_post("/api/setup/handeye", self.hand_eye)
-        router.add_post("/api/setup/object/find", self.find_object)
-        router.add_post("/api/setup/object/save", self.save_object)
+        SetupObject(self).add(router)  # the object step (setupobject.py)
+        self.solver.add(router)
         router.add_get("/api/setup/robot-program.zip", self.robot_program)
         SetupChoices(self).add(router)  # the cameras and the link chosen (setupchoose.py)
 
@@ -184,6 +195,7 @@ class SetupRoutes:
             capture = self._capture_view(self.capture)
         return web.json_response(jsonable({
             "steps": [{"id": s, "title": t, "done": s in progress["done"]} for s, t in STEPS],
+            "instance": self.instance,  # another after a restart
             "edit": bool(config.status.allow_config_edit),
             "trigger": bool(config.status.allow_trigger),
             "camera": {"type": cam.type, "describe": getattr(self.daemon.camera, "describe",
@@ -194,6 +206,7 @@ class SetupRoutes:
                                                                          exclude_none=True),
             "learning_hand_eye": self._learning_hand_eye(),
             "pending_calibration": progress.get("pending_calibration") is not None,
+            "pending": await asyncio.to_thread(_pending, progress.get("pending_calibration")),
             "board": progress.get("board") or options.get("board") or DEFAULT_BOARD,
             "object": {"name": config.object.name, "definition": config.object.definition,
                        "features": [f.name for f in config.object.features]},
@@ -328,8 +341,14 @@ class SetupRoutes:
         if state is None or len(state.kept) < MIN_SETS:
             raise web.HTTPConflict(text=f"capture at least {MIN_SETS} sets first (kept: "
                                         f"{0 if state is None else len(state.kept)})")
+        body = await json_body(request) if request.body_exists else {}
+        kind = body.get("kind", "auto") if isinstance(body, dict) else body
         out = await self._folder() / "rig-result.toml"
-        args = calibration_command(state.names, state.out, state.board.spec, out)
+        try:
+            args = calibration_command(state.names, state.out, state.board.spec, out,
+                                       str(kind))
+        except ValueError as err:
+            raise web.HTTPBadRequest(text=str(err)) from None
         self._calib = {"running": True, "t0": time.monotonic(), "sets": len(state.kept),
                        "command": "vgripd " + " ".join(args)}
         task = asyncio.ensure_future(self._run_calibration(args, out))
@@ -372,28 +391,52 @@ class SetupRoutes:
         result = await self._folder() / "rig-result.toml"
         if not self._calib.get("ok") or not result.exists():
             raise web.HTTPConflict(text="no calibration result to accept: run it first")
-        if not (self._calib.get("result") or {}).get("usable"):
-            raise web.HTTPConflict(text=(
-                f"{result}: the cameras are placed in no base frame (only [about]); run "
-                "vgripd calibrate cameras with --board-in-base or --hand-eye and include its "
-                "result (docs/calibration-multicamera.md)"))
+        found = self._calib.get("result") or {}
         # The hand-eye belongs to one camera model (its [about] fingerprint): a new rig goes
         # live together with the cameras' pose, confirmed or measured again (next step).
         progress = await self._progress()
         progress["pending_calibration"] = str(result)
         progress["done"]["calibration"] = time.time()
         await self._save_progress(progress)
-        return web.json_response({"applied": False, "pending": True, "message": (
-            "accepted: it goes live with the cameras' pose (next step, hand-eye), which "
-            "belongs to the camera model")})
+        if found.get("kind") == "cameras" and not found.get("usable"):
+            reference = found.get("reference")
+            message = (f"accepted: {len(found.get('cameras') or [])} cameras, their poses "
+                       f"relative to {reference} (placed in no base frame yet). Next step, "
+                       f"hand-eye: {reference}'s pose in the robot base frame places every "
+                       f"camera (T_base_camera = T_base_{reference} @ T_{reference}_camera) "
+                       "and writes them as [[calibration.cameras]], judged as one transaction")
+        elif found.get("kind") == "cameras":
+            message = ("accepted: the cameras are placed in the base frame by the calibration "
+                       f"({found.get('base_frame')}); the next step (hand-eye) writes them as "
+                       "[[calibration.cameras]], judged as one transaction")
+        else:
+            message = ("accepted: it goes live with the cameras' pose (next step, hand-eye), "
+                       "which belongs to the camera model")
+        return web.json_response({"applied": False, "pending": True, "message": message,
+                                  "next": pending_view(await asyncio.to_thread(
+                                      result.read_text, encoding="utf-8"))})
 
     async def hand_eye(self, request: web.Request) -> web.Response:
-        reloader = self._guard(request)
+        """A fixed camera's ``T_base_camera`` typed on the page (for an accepted ``calibrate
+        cameras`` result the reference camera's, none when the command placed them)."""
+        self._guard(request)
         body = await json_body(request)
+        waiting = await asyncio.to_thread(_pending, (await self._progress()).get(
+            "pending_calibration"))
+        if waiting is not None and waiting.get("placed"):
+            return await self.save_hand_eye(request, None)
         try:
             hand_eye = hand_eye_values(body)
         except ValueError as err:
             raise web.HTTPBadRequest(text=str(err)) from None
+        return await self.save_hand_eye(request, hand_eye)
+
+    async def save_hand_eye(self, request: web.Request,
+                            hand_eye: dict[str, Any] | None) -> web.Response:
+        """The cameras' pose saved with the accepted calibration as one transaction; for an
+        accepted ``calibrate cameras`` result ``hand_eye`` (fixed) is the reference camera's
+        pose, which places every camera (None: the command placed them)."""
+        reloader = self._guard(request)
         progress = await self._progress()
         pending = progress.get("pending_calibration")
         text = None
@@ -401,8 +444,22 @@ class SetupRoutes:
             text = await asyncio.to_thread(Path(pending).read_text, encoding="utf-8")
         elif self.daemon.config.calibration is None:
             raise web.HTTPConflict(text="calibrate the cameras first (step Calibration)")
-        outcome = await reloader.write(calibration_edit(text, hand_eye),
-                                       f"web {request.remote}", "setup: hand-eye",
+        waiting = pending_view(text)
+        if waiting is not None and waiting["kind"] == "cameras":
+            assert text is not None
+            if hand_eye is not None and hand_eye.get("mounting") != "fixed":
+                raise web.HTTPUnprocessableEntity(text=(
+                    "calibration.cameras: a robot-mounted hand-eye does not place a cameras "
+                    "result here; run vgripd calibrate cameras --hand-eye NAME=FILE "
+                    "(docs/calibration-multicamera.md)"))
+            try:
+                edit = cameras_edit(placed_cameras(
+                    text, None if hand_eye is None else hand_eye["T_base_camera"]))
+            except VgripError as err:
+                raise web.HTTPUnprocessableEntity(text=str(err)) from None
+        else:
+            edit = calibration_edit(text, hand_eye)
+        outcome = await reloader.write(edit, f"web {request.remote}", "setup: hand-eye",
                                        untaught_ok=True)
         if outcome.applied:
             progress = await self._progress()
@@ -410,54 +467,6 @@ class SetupRoutes:
             progress["done"]["handeye"] = time.time()
             await self._save_progress(progress)
         return self._answer(outcome)
-
-    # --- the object ---------------------------------------------------------------------------
-
-    async def find_object(self, request: web.Request) -> web.Response:
-        self._guard(request)
-        if self.daemon.config.calibration is None:
-            raise web.HTTPConflict(text="the marks are measured with the calibration and the "
-                                        "hand-eye: those steps first")
-        async with self._lock:
-            pair = await self.server.previews.grab_between_jobs()
-            if pair is None:
-                raise web.HTTPConflict(text="a job runs (or the camera cannot grab): try again")
-            try:
-                jpegs, marks = await self.server.images.call(
-                    setupimages.find_marks, list(pair.views), self.daemon.config)
-            except (ValueError, VgripError) as err:
-                raise web.HTTPConflict(text=str(err)) from None
-            self._grab_n += 1
-            self._live, self._marks = jpegs, marks
-        return web.json_response({"marks": marks, "images": [
-            f"/api/setup/live/{self._grab_n}/{k}.jpg" for k in range(len(jpegs))]})
-
-    async def save_object(self, request: web.Request) -> web.Response:
-        reloader = self._guard(request)
-        body = await json_body(request)
-        if not isinstance(body, dict) or not isinstance(body.get("marks"), list):
-            raise web.HTTPBadRequest(text='{"name": "...", "marks": [ids]}')
-        name = str(body.get("name") or "object").strip()[:64] or "object"
-        by_id = {m["id"]: m for m in self._marks}
-        unknown = [i for i in body["marks"] if i not in by_id]
-        if unknown:
-            raise web.HTTPBadRequest(text=f"marks {unknown}: not among the marks found last "
-                                          f"({', '.join(map(str, by_id)) or 'none'})")
-        chosen = [{**by_id[i], "name": mark_name(by_id[i])} for i in body["marks"]]
-        findings = judge_layout([m["name"] for m in chosen],
-                                [m["xyz_mm"] for m in chosen],  # type: ignore[arg-type]
-                                [m["diameter_mm"] for m in chosen],
-                                identified=[m.get("kind") == "aruco" for m in chosen])
-        judged = [f.as_dict() for f in findings]
-        if any(f.level == "ERROR" for f in findings):
-            return web.json_response({"applied": False, "layout": judged, "message": (
-                "refused, nothing written: " + "; ".join(
-                    f.message for f in findings if f.level == "ERROR"))}, status=422)
-        outcome = await reloader.write(object_edit(name, chosen), f"web {request.remote}",
-                                       "setup: object")
-        if outcome.applied:
-            await self._mark("object")
-        return self._answer(outcome, layout=judged)
 
     # --- the link -------------------------------------------------------------------------------
 
@@ -477,9 +486,20 @@ class SetupRoutes:
             "Content-Disposition": f'attachment; filename="vgripd-{brand}.zip"'})
 
     async def close(self) -> None:
+        await self.solver.close()
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+
+
+def _pending(path: str | None) -> dict[str, Any] | None:
+    """``pending_view`` of the accepted result file (None when there is none, or it is gone)."""
+    if not path:
+        return None
+    try:
+        return pending_view(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
 
 
 def _put_aside(folder: Path, sets: set[int]) -> list[int]:

@@ -11,12 +11,23 @@ robot link, and what the chosen link asks of the PLC or robot (its contract)::
     GET  /api/setup/link/contract        ?type=T: the register map, the S7 UDT (``vgripd
                                          s7-udt``, a child), the OPC UA nodes a PLC uses, the
                                          robot program brands
+    GET  /api/setup/focus                the lens focus where the camera has a focus control
+                                         (a GenICam focus feature), else why not
+    POST /api/setup/focus                {"value": number}: written between jobs, read back
+    POST /api/setup/restart              the files as saved judged once more, then the daemon
+                                         stopped between jobs to be started again (systemd;
+                                         ``vgripd demo --setup`` itself)
 
 A choice is written through the one config transaction (``vgripd.service.configtxn``) into the
 include that holds the section (``camera.toml``, ``links.toml`` of ``vgripd init``'s layout),
 judged first; a layout whose main file holds the section is refused naming the file. The camera
 and the links are built once at start: the transaction saves the judged file and names the keys
-that take effect at the next start (``Outcome.restart``); the page says so.
+that take effect at the next start (``Outcome.restart``); the page says so and offers the
+restart: the camera driver (in the worker process, with the live preview's grabs) and the link
+servers (their sockets, the PLC's connections) are built once, and swapping them under a
+running job machinery is a start's work, not a reload's. The restart judges the files first
+(a refused one keeps the daemon running, the reason shown), waits until no job runs, and stops
+the daemon with exit status 75, which systemd's ``Restart=on-failure`` starts again.
 """
 
 from __future__ import annotations
@@ -30,18 +41,22 @@ from typing import Any
 from aiohttp import web
 
 from vgripd.configsnapshot import Snapshot
-from vgripd.errors import VgripError
+from vgripd.errors import CameraError, CameraSettingError, VgripError
 from vgripd.registry import CONTRACTS, LINKS, load_class
 from vgripd.resources import EXAMPLES, shared
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.commands import run_vgripd
-from vgripd.service.configtxn import Edit
+from vgripd.service.configtxn import Edit, judge
 from vgripd.service.robot_socket_format import BRANDS
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.registers import register_views
 from vgripd.service.web.setupsteps import include_for
 
 DISCOVER_TIMEOUT_S = 60.0
+#: The restart waits this long for the answer to go out, then at most this long for the
+#: running job to end.
+RESTART_DELAY_S = 0.3
+RESTART_IDLE_S = 600.0
 UDT_TIMEOUT_S = 60.0
 #: Camera types the page offers: the two GenICam stacks (devices discovered) and the ones that
 #: need no device (the learning cell's board camera, rendered images, recorded images).
@@ -168,6 +183,7 @@ class SetupChoices:
 
     def __init__(self, routes: Any) -> None:
         self.routes = routes
+        self._pending: set[Any] = set()
 
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/api/setup/cameras/discover", self.discover)
@@ -175,6 +191,9 @@ class SetupChoices:
         router.add_get("/api/setup/link/options", self.link_options)
         router.add_post("/api/setup/link/choose", self.choose_links)
         router.add_get("/api/setup/link/contract", self.contract)
+        router.add_post("/api/setup/restart", self.restart)
+        router.add_get("/api/setup/focus", self.focus)
+        router.add_post("/api/setup/focus", self.focus)
 
     @property
     def daemon(self) -> Any:
@@ -255,6 +274,66 @@ class SetupChoices:
             answer["brands"] = [] if kind == "ur_rtde" else sorted(BRANDS)
             answer["vendor"] = self.daemon.config.output.vendor
         return web.json_response(jsonable(answer))
+
+    async def focus(self, request: web.Request) -> web.Response:
+        """The camera's focus control (the driver's ``focus``): read (GET), or a value written
+        between jobs and read back (POST, the token). Applied live, not saved: the page says
+        how to keep it."""
+        value = None
+        if request.method == "POST":
+            self.routes._guard(request)
+            body = await json_body(request)
+            value = body.get("value") if isinstance(body, dict) else None
+            if isinstance(value, bool) or not isinstance(value, int | float) or value != value:
+                raise web.HTTPBadRequest(text=f'{{"value": number}}: the focus, got {value!r}')
+        camera = self.daemon.camera
+        if not hasattr(camera, "focus"):
+            return web.json_response({"available": False, "reason": (
+                f"{self.daemon.config.camera.type}: this camera type has no focus control")})
+        async with self.routes.server.previews.between_jobs() as idle:
+            if not idle:
+                raise web.HTTPConflict(text="a job runs: the focus is read and set only "
+                                            "between jobs; try again")
+            try:
+                answer = await camera.focus(value)
+            except CameraSettingError as err:
+                raise web.HTTPBadRequest(text=str(err)) from None
+            except CameraError as err:
+                raise web.HTTPServiceUnavailable(text=f"the camera cannot take it now: {err}"
+                                                 ) from None
+        if value is not None and not answer.get("available"):
+            raise web.HTTPConflict(text=f"no focus to set: {answer.get('reason')}")
+        if value is not None:
+            answer["note"] = ("applied live, not saved: to keep it at the next start, add it "
+                              "to [camera] features (e.g. features = {"
+                              f"{answer['cameras'][0]['feature']} = {value:g}}})")
+        return web.json_response(jsonable(answer))
+
+    async def restart(self, request: web.Request) -> web.Response:
+        """The daemon started again on its files as saved, so a chosen camera or link runs:
+        judged first as a write is (refused: 422, the daemon keeps running), then stopped
+        between jobs once this answer is out."""
+        import asyncio
+
+        reloader = self.routes._guard(request)
+        snapshot = await asyncio.to_thread(Snapshot.read, reloader.path)
+        problem = await judge(snapshot, untaught_ok=True, uncalibrated_ok=self._uncalibrated())
+        if problem:
+            return web.json_response({"restarting": False, "message": (
+                f"refused, the daemon keeps running: {problem}")}, status=422)
+        source = f"web {request.remote}"
+
+        async def later() -> None:
+            await asyncio.sleep(RESTART_DELAY_S)  # the answer goes out first
+            await reloader.restart_between_jobs(source, RESTART_IDLE_S)
+
+        task = asyncio.ensure_future(later())
+        self._pending.add(task)
+        task.add_done_callback(self._pending.discard)
+        return web.json_response({"restarting": True, "message": (
+            "judged: restarting between jobs with the files as saved (under systemd the "
+            "service comes back by itself, Restart=on-failure; vgripd run by hand ends with "
+            "exit status 75: start it again)")})
 
     async def _s7_udt(self) -> dict[str, Any]:
         """``vgripd s7-udt`` for the running config's s7 link, else with its defaults."""

@@ -1,11 +1,13 @@
 """The setup page's image work, run in the web view's image helper process (``images.
 ImageRenderer.call``), never on the daemon's loop: the board's corners found and drawn in every
-camera, the marks surveyed in a stereo pair and drawn numbered, and a capture folder's account
-read back (which detects the board in every image kept so far).
+camera, the marks surveyed in a stereo pair and drawn numbered (a template taught from a region
+of the left image among them), and a capture folder's account read back (which detects the board
+in every image kept so far).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +19,14 @@ from vgripd.calib.coverage import Coverage
 from vgripd.config import Config
 from vgripd.service.web.images import _encode
 from vgripd.vision import scene
-from vgripd.vision.survey import SURVEY_DICTIONARIES, survey_marks
+from vgripd.vision.survey import (
+    SURVEY_DICTIONARIES,
+    Mark,
+    TemplateRefused,
+    survey_marks,
+    survey_template,
+    template_patch,
+)
 
 
 def _bgr(image: Any) -> np.ndarray:
@@ -50,23 +59,67 @@ def board_corners(views: list[Any], spec: str, names: list[str]
     return _encode(pictures), dets
 
 
-def find_marks(views: list[Any], config: Config) -> tuple[list[bytes], list[dict[str, Any]]]:
-    """The marks seen in both images of a stereo pair (``vgripd.vision.survey``): circles and
-    ArUco markers (of the dictionaries the object names, and the usual ones), numbered on each
-    image, a marker outlined with its id; the config gives the calibration, the hand-eye and
-    the finder's limits."""
-    import cv2
-
+def find_marks(views: list[Any], config: Config,
+               templates: Mapping[str, np.ndarray] | None = None
+               ) -> tuple[list[bytes], list[dict[str, Any]], list[str]]:
+    """The marks seen in both images of a stereo pair (``vgripd.vision.survey``): circles, ArUco
+    markers (of the dictionaries the object names, and the usual ones) and the ``templates``
+    taught so far (name -> patch), numbered on each image, a marker or template outlined; the
+    config gives the calibration, the hand-eye and the finder's limits. Also why a taught
+    template was not among them."""
     rig = scene.stereo_rig(config)
     if rig is None or len(views) < 2:
         raise ValueError("the object step needs a calibrated stereo pair")
     v = config.vision
     named = [f.dictionary for f in config.object.features if f.kind == "aruco"]
     dictionaries = tuple(dict.fromkeys([*named, *SURVEY_DICTIONARIES]))
-    marks = survey_marks(views[0], views[1], rig, scene.T_base_camera(config), dictionaries,
+    T_base_camera = scene.T_base_camera(config)
+    marks = survey_marks(views[0], views[1], rig, T_base_camera, dictionaries,
                          min_contrast=v.min_contrast,
                          min_circularity=max(0.75, v.min_circularity),
                          tolerance_px=v.epipolar_tolerance_px)
+    missed = []
+    for label, patch in (templates or {}).items():
+        try:
+            marks.append(survey_template(views[0], views[1], rig, T_base_camera, patch, label,
+                                         v.template_min_score, template_tolerance(config),
+                                         len(marks) + 1))
+        except TemplateRefused as err:
+            missed.append(str(err))
+    return draw_marks(views, marks), [m.as_dict() for m in marks], missed
+
+
+def template_tolerance(config: Config) -> float:
+    """How far (px) a template's right match may lie off the epipolar line: a patch's centre is
+    less sharp than a circle's, so twice the circles' tolerance, 3 px at least."""
+    return max(3.0, 2.0 * config.vision.epipolar_tolerance_px)
+
+
+def teach_template(views: list[Any], config: Config, box: tuple[int, int, int, int],
+                   label: str, mark_id: int
+                   ) -> tuple[list[bytes], dict[str, Any], np.ndarray, bytes]:
+    """The region ``box`` of the left image taught as a template: found once in each image and
+    triangulated (``TemplateRefused`` naming why not); the images with it outlined, the mark,
+    the patch and the patch as PNG (the file the object's feature names)."""
+    import cv2
+
+    rig = scene.stereo_rig(config)
+    if rig is None or len(views) < 2:
+        raise ValueError("the object step needs a calibrated stereo pair")
+    patch = template_patch(views[0], box)
+    mark = survey_template(views[0], views[1], rig, scene.T_base_camera(config), patch, label,
+                           config.vision.template_min_score, template_tolerance(config),
+                           mark_id)
+    ok, png = cv2.imencode(".png", patch)
+    if not ok:
+        raise ValueError("cannot encode the template as PNG")
+    return draw_marks(views, [mark]), mark.as_dict(), patch, png.tobytes()
+
+
+def draw_marks(views: list[Any], marks: list[Mark]) -> list[bytes]:
+    """The pair with every mark numbered: a circle ringed, a marker or template outlined."""
+    import cv2
+
     pictures = []
     for side, view in enumerate(views[:2]):
         bgr = _bgr(view)
@@ -75,16 +128,16 @@ def find_marks(views: list[Any], config: Config) -> tuple[list[bytes], list[dict
             x, y = m.px_left if side == 0 else m.px_right
             centre = (int(round(x)), int(round(y)))
             label = str(m.id)
-            if m.kind == "aruco" and side == 0:
+            if m.kind != "circle" and side == 0:
                 quad = np.round(np.array(m.outline_left)).astype(np.int32)
                 cv2.polylines(bgr, [quad], True, (255, 120, 0), 2 * scale)
-                label = f"{m.id} (#{m.marker_id})"
+                label = f"{m.id} (#{m.marker_id})" if m.kind == "aruco" else f"{m.id} {m.label}"
             else:
                 cv2.circle(bgr, centre, 18 * scale, (0, 160, 255), 2 * scale)
             cv2.putText(bgr, label, (centre[0] + 20 * scale, centre[1] - 12 * scale),
                         cv2.FONT_HERSHEY_SIMPLEX, 0.9 * scale, (0, 160, 255), 2 * scale)
         pictures.append(bgr)
-    return _encode(pictures), [m.as_dict() for m in marks]
+    return _encode(pictures)
 
 
 def resume_capture(spec: str, folder: str, names: list[str], sizes: list[tuple[int, int]]

@@ -139,16 +139,25 @@ def state_dir(config_path: Path, files: Mapping[str, bytes] | None = None) -> Pa
 
 # --- the calibration's command and its result ------------------------------------------------
 
-def calibration_command(names: list[str], folder: Path, board: str, out: Path) -> list[str]:
+#: What the calibration step may be asked for: the usual command for the cameras captured, or
+#: ``calibrate cameras`` (each camera relative to the first) for a pair too.
+CALIBRATION_KINDS = ("auto", "cameras")
+
+
+def calibration_command(names: list[str], folder: Path, board: str, out: Path,
+                        kind: str = "auto") -> list[str]:
     """The ``vgripd calibrate`` arguments for the sets kept in ``folder`` (``NAME_NNN.png``
-    per camera): one camera ``intrinsics``, the pair ``left``/``right`` ``stereo``, any other
-    cameras ``cameras`` (one ``--camera NAME=GLOB`` each)."""
+    per camera): one camera ``intrinsics``, the pair ``left``/``right`` ``stereo`` (or
+    ``cameras`` with ``kind = "cameras"``), any other cameras ``cameras`` (one ``--camera
+    NAME=GLOB`` each)."""
     if not names:
         raise ValueError("no camera in the capture")
+    if kind not in CALIBRATION_KINDS:
+        raise ValueError(f"kind: one of {', '.join(CALIBRATION_KINDS)}, got {kind!r}")
     if len(names) == 1:
         return ["calibrate", "intrinsics", "--images", str(folder / f"{names[0]}_*.png"),
                 "--board", board, "-o", str(out)]
-    if names == ["left", "right"]:
+    if names == ["left", "right"] and kind == "auto":
         return ["calibrate", "stereo", "--left", str(folder / "left_*.png"),
                 "--right", str(folder / "right_*.png"), "--board", board, "-o", str(out)]
     args = ["calibrate", "cameras"]
@@ -187,6 +196,93 @@ def read_result(text: str) -> dict[str, Any]:
 
 
 # --- the edits ------------------------------------------------------------------------------
+
+def placed_cameras(result_text: str, T_base_reference: Mapping[str, Any] | None
+                   ) -> dict[str, Any]:
+    """The ``[calibration]`` of a ``calibrate cameras`` result: as it is when the command placed
+    the cameras in the base frame; else every camera placed by the reference camera's pose in
+    the base frame (``T_base_reference``, a pose table; required then): ``T_base_camera =
+    T_base_reference @ T_reference_camera``, each fixed, with the intrinsics of ``[about]``.
+    ``EditRefused`` naming what is missing."""
+    data = tomllib.loads(result_text)
+    if data.get("calibration", {}).get("cameras"):
+        return dict(data["calibration"])
+    about = data.get("about", {})
+    cameras = about.get("cameras")
+    if not isinstance(cameras, list) or not cameras:
+        raise EditRefused("the calibration result has neither [[calibration.cameras]] nor "
+                          "[about] cameras")
+    if T_base_reference is None:
+        raise EditRefused(f"calibration.cameras: the cameras are placed relative to "
+                          f"{about.get('reference')}: its pose in the base frame is needed")
+    import numpy as np
+
+    from vgripd.calib.files import pose_table
+    from vgripd.geometry.transforms import make_transform, matrix_from_rotvec
+
+    def matrix(pose: Mapping[str, Any]) -> Any:
+        return make_transform(matrix_from_rotvec(pose.get("rotvec_rad") or (0.0, 0.0, 0.0)),
+                              pose["translation_mm"])
+
+    T_base_ref = matrix(T_base_reference)
+    out = []
+    for k, cam in enumerate(cameras):
+        if not isinstance(cam, dict) or not {"name", "intrinsics", "T_reference_camera"} <= set(
+                cam):
+            raise EditRefused(f"the calibration result's [about] cameras[{k}]: no name, "
+                              "intrinsics and T_reference_camera")
+        T = np.asarray(T_base_ref @ matrix(cam["T_reference_camera"]), np.float64)
+        out.append({"name": cam["name"], "intrinsics": cam["intrinsics"], "mounting": "fixed",
+                    "T_base_camera": pose_table(T)})
+    return {"cameras": out}
+
+
+def cameras_edit(calibration: dict[str, Any]) -> Edit:
+    """N cameras placed in the base frame (``[[calibration.cameras]]``) into the calibration's
+    include, as one write with the single-camera hand-eye taken out of its include (each camera
+    carries its pose; the first camera's is the cell's hand-eye), so no old pose contradicts
+    them."""
+    def edit(snapshot: Snapshot) -> dict[Path, bytes]:
+        texts: dict[Path, dict[str, Any]] = {}
+
+        def data(path: Path) -> dict[str, Any]:
+            if path not in texts:
+                texts[path] = tomllib.loads(snapshot.text(path))
+            return texts[path]
+
+        target = include_for(snapshot, "calibration.left.")
+        data(target)["calibration"] = dict(calibration)
+        try:
+            hand_eye = include_for(snapshot, "calibration.hand_eye.")
+        except EditRefused:
+            hand_eye = None  # no include holds or is laid out for it: nothing to take out
+        if hand_eye is not None and hand_eye != target:
+            part = data(hand_eye)
+            part.get("calibration", {}).pop("hand_eye", None)
+            if not part.get("calibration"):
+                part.pop("calibration", None)
+            about = part.get("about", {})
+            for key in ("camera_model", "camera_model_parts"):
+                about.pop(key, None)
+            if not about:
+                part.pop("about", None)
+        return {p: snapshot.encoded(p, toml_from_dict(d)) for p, d in texts.items()}
+    return edit
+
+
+def pending_view(text: str | None) -> dict[str, Any] | None:
+    """What the hand-eye step shows of an accepted calibration waiting for it: its kind, and
+    for a ``calibrate cameras`` result the reference camera, the cameras and whether the
+    command placed them in the base frame already."""
+    if text is None:
+        return None
+    result = read_result(text)
+    out: dict[str, Any] = {"kind": result["kind"]}
+    if result["kind"] == "cameras":
+        out.update(reference=result.get("reference"), placed=bool(result.get("usable")),
+                   cameras=[c.get("name") for c in result.get("cameras") or []])
+    return out
+
 
 def rig_sections(rig_text: str) -> dict[str, Any]:
     """``[calibration]`` of a ``vgripd calibrate stereo`` result (left, right, stereo)."""
@@ -232,8 +328,9 @@ def object_edit(name: str, marks: list[dict[str, Any]], polarity: str = "dark") 
     """The chosen marks as an ``object.definition = "reference"`` object (their measured
     base-frame points as ``xyz_mm``) in the object's include, and the reference reset for it
     (no ``T_base_obj``; ``points_mm`` come with teaching; a taught ``grip`` stays). A mark of
-    ``kind = "aruco"`` becomes an ArUco feature (its id, dictionary and measured side), any
-    other a circle of ``polarity``."""
+    ``kind = "aruco"`` becomes an ArUco feature (its id, dictionary and measured side), one of
+    ``kind = "template"`` a template feature (its patch file), any other a circle of
+    ``polarity``."""
     features = [feature_of(m, polarity) for m in marks]
 
     def edit(snapshot: Snapshot) -> dict[Path, bytes]:
@@ -254,19 +351,47 @@ def mark_name(mark: Mapping[str, Any]) -> str:
     """The feature name of a surveyed mark: ``m<number>``, a marker's id added."""
     if mark.get("kind") == "aruco":
         return f"m{mark['id']}-aruco{mark['marker_id']}"
+    if mark.get("kind") == "template":
+        return f"m{mark['id']}-{mark['label']}"
     return f"m{mark['id']}"
 
 
 def feature_of(mark: Mapping[str, Any], polarity: str = "dark") -> dict[str, Any]:
-    """One surveyed mark (``Mark.as_dict`` with a ``name``) as an ``[[object.features]]``
-    table of its kind."""
+    """One surveyed mark (``Mark.as_dict`` with a ``name``; a template's with ``template``, the
+    path of its patch) as an ``[[object.features]]`` table of its kind."""
     xyz = [round(float(v), 3) for v in mark["xyz_mm"]]
+    if mark.get("kind") == "template":
+        return {"name": mark["name"], "kind": "template", "template": str(mark["template"]),
+                "size_px": int(mark["size_px"]), "xyz_mm": xyz}
     if mark.get("kind") == "aruco":
         return {"name": mark["name"], "kind": "aruco", "marker_id": int(mark["marker_id"]),
                 "dictionary": str(mark["dictionary"]),
                 "size_mm": round(float(mark["size_mm"]), 1), "xyz_mm": xyz}
     return {"name": mark["name"], "kind": "circle", "polarity": polarity,
             "diameter_mm": round(float(mark["diameter_mm"]), 1), "xyz_mm": xyz}
+
+
+#: A taught template's name: it becomes part of a feature name and of its file's name.
+TEMPLATE_LABEL = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,23}")
+
+
+def template_box(body: Any) -> tuple[tuple[int, int, int, int], str]:
+    """The page's region and name for a template: ``{"box": [x, y, w, h], "label": "..."}``
+    (left image px); ``ValueError`` naming the field."""
+    if not isinstance(body, dict):
+        raise ValueError('a JSON object {"box": [x, y, width, height], "label": "..."}')
+    box = body.get("box")
+    if not (isinstance(box, list) and len(box) == 4 and all(
+            isinstance(v, int | float) and not isinstance(v, bool) and v == v
+            and abs(v) < 1e6 for v in box)):
+        raise ValueError(f"box: four numbers x, y, width, height (px of the left image), "
+                         f"got {box!r}")
+    label = body.get("label") or "template"
+    if not isinstance(label, str) or not TEMPLATE_LABEL.fullmatch(label):
+        raise ValueError(f"label: a letter, then up to 23 letters, digits, _ or - (got "
+                         f"{label!r})")
+    x, y, w, h = (int(round(float(v))) for v in box)
+    return (x, y, w, h), label
 
 
 def hand_eye_values(body: Any) -> dict[str, Any]:

@@ -76,7 +76,7 @@ function show(id, keepCheck) {
     $("check-summary").textContent = "";
   }
   if (previewTimer) { clearInterval(previewTimer); previewTimer = null; }
-  if (id === "cameras") previewTimer = setInterval(previews, 1000);
+  if (id === "cameras") { previewTimer = setInterval(previews, 1000); focusState().catch(() => {}); }
   if (id === "link") linkOptions().catch(() => {});
   load().catch(() => {});
 }
@@ -86,8 +86,7 @@ function fill() {
   $("cam-describe").textContent = `camera type ${s.camera.type}: ${s.camera.describe}`;
   if (!$("calib-board").value) $("calib-board").value = s.board;
   if (s.capture) coverage(s.capture);
-  $("he-current").textContent = s.hand_eye ? `now: ${JSON.stringify(s.hand_eye)}` :
-    (s.pending_calibration ? "the accepted calibration waits for this pose" : "no hand-eye yet");
+  $("he-current").textContent = heCurrent(s);
   $("btn-he-learning").hidden = !s.learning_hand_eye;
   const pose = s.hand_eye && s.hand_eye.T_base_camera;
   if (pose && !$("he-t").value) {  // a new rig goes live with the pose confirmed again
@@ -103,6 +102,20 @@ function fill() {
     t.append(cap, ...reg.rows.slice(0, 40).map((r) => row([String(r.address), r.name, String(r.value ?? ""), r.meaning || ""])));
     return t;
   }));
+}
+
+// What the hand-eye step does with the accepted calibration (a cameras result: the reference
+// camera's pose places them all).
+function heCurrent(s) {
+  const p = s.pending;
+  if (p && p.kind === "cameras" && p.placed)
+    return `the accepted calibration places its ${p.cameras.length} cameras (${p.cameras.join(", ")}) in the base frame already: Save writes them as [[calibration.cameras]] (the pose fields are not used)`;
+  if (p && p.kind === "cameras")
+    return `the accepted calibration holds ${p.cameras.length} cameras (${p.cameras.join(", ")}) relative to ${p.reference}: ` +
+      `enter ${p.reference}'s pose in the robot base frame; Save places every camera by it ` +
+      `(T_base_camera = T_base_${p.reference} @ T_${p.reference}_camera) and writes them as [[calibration.cameras]], judged as one transaction`;
+  if (s.pending_calibration) return "the accepted calibration waits for this pose";
+  return s.hand_eye ? `now: ${JSON.stringify(s.hand_eye)}` : "no hand-eye yet";
 }
 
 async function previews() {
@@ -125,6 +138,31 @@ $("cam-form").addEventListener("submit", async (e) => {
   const r = await call("POST", "/api/cameras/0/settings", body);
   $("cam-result").textContent = r.ok ? `applied: ${JSON.stringify(r.data.read_back)}; ${r.data.saved.message}` :
     `REFUSED (${r.status}): ${r.data.message}`;
+});
+
+// The lens focus where the camera has a focus control; else the reason it has none.
+function showFocus(d) {
+  if (!d.available) {
+    $("cam-focus-state").textContent = `not available: ${d.reason}`;
+    $("cam-focus-form").hidden = true;
+    return;
+  }
+  $("cam-focus-state").textContent = d.cameras.map((c) => `${c.name}: ${c.feature} = ${c.value} (${c.range})`).join("; ");
+  $("cam-focus-feature").textContent = d.cameras[0].feature;
+  if (!$("cam-focus").value) $("cam-focus").value = d.cameras[0].value ?? "";
+  $("cam-focus-form").hidden = false;
+}
+async function focusState() {
+  const r = await call("GET", "/api/setup/focus");
+  if (r.ok) showFocus(r.data); else $("cam-focus-state").textContent = `${r.status}: ${r.data.message}`;
+}
+$("cam-focus-form").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  window.setupActions += 1;
+  const r = await call("POST", "/api/setup/focus", { value: Number($("cam-focus").value) });
+  if (!r.ok) { $("cam-focus-result").textContent = `REFUSED (${r.status}): ${r.data.message}`; return; }
+  showFocus(r.data);
+  $("cam-focus-result").textContent = `APPLIED: ${r.data.note}`;
 });
 
 // --- 2 calibration ----------------------------------------------------------------------------
@@ -214,7 +252,7 @@ function calibResult(c) {
       `model: ${res.model_choice}`,
     ];
   }
-  if (!res.usable) lines.push("not usable as it is: no base frame (see the warnings)");
+  if (!res.usable) lines.push(`no base frame yet: Accept, then the hand-eye step places every camera by ${res.reference}'s pose`);
   const p = document.createElement("pre");
   p.id = "calib-figures";
   p.textContent = lines.concat((res.warnings || []).map((w) => `warning: ${w}`)).join("\n");
@@ -232,7 +270,7 @@ function calibResult(c) {
   }
   $("calib-result").replaceChildren(p, t);
   $("btn-calib-drop").hidden = false;
-  $("btn-calib-accept").hidden = !res.usable;
+  $("btn-calib-accept").hidden = !(res.usable || res.kind === "cameras");
 }
 
 async function pollCalibration() {
@@ -240,7 +278,7 @@ async function pollCalibration() {
     const r = await call("GET", "/api/setup/calib?wait=1");
     const c = r.data;
     if (c.running) {
-      $("calib-progress").textContent = `calibrating ${c.sets} sets in a child process: ${fmt(c.elapsed_s, 0)} s`;
+      $("calib-progress").textContent = `calibrating ${c.sets} sets in a child process: ${fmt(c.elapsed_s, 0)} s (${c.command})`;
       continue;
     }
     $("calib-progress").textContent = c.ok ? `calibrated in ${c.seconds} s` : (c.ok === false ? "calibration failed" : "");
@@ -250,7 +288,7 @@ async function pollCalibration() {
 }
 act("btn-calib-run", async () => {
   $("calib-auto").checked = false;
-  const r = await call("POST", "/api/setup/calib/run");
+  const r = await call("POST", "/api/setup/calib/run", { kind: $("calib-kind").value });
   if (!r.ok) { $("calib-progress").textContent = `${r.status}: ${r.data.message}`; return; }
   pollCalibration();
 });
@@ -281,20 +319,119 @@ $("he-form").addEventListener("submit", async (e) => {
   load().catch(() => {});
 });
 
+function solution(c) {
+  const res = c.result;
+  if (!res) return c.ok === false ? `FAILED: ${c.output}` : "";
+  const he = res.hand_eye || {};
+  const pose = he.T_flange_camera || he.T_base_camera || {};
+  const lines = [
+    `${res.mode} (${he.mounting}), ${res.samples} sets, solver ${res.solver}, RMS ${fmt(res.rms_px, 3)} px`,
+    `${he.T_flange_camera ? "T_flange_camera" : "T_base_camera"}: ${(pose.translation_mm || []).map((v) => fmt(v, 2)).join(" ")} mm, ` +
+      `${(pose.rotvec_rad || []).map((v) => fmt(v, 5)).join(" ")} rad`,
+  ];
+  if (res.fit_check) lines.push(`fit check: ${res.fit_check.ok ? "OK" : "NOT OK"}, ratio ${fmt(res.fit_check.ratio, 2)}`);
+  for (const q of res.per_sample || []) lines.push(`sample ${q.sample} ${q.image}: ${fmt(q.rms_px, 3)} px`);
+  return lines.concat((res.warnings || []).map((w) => `warning: ${w}`)).join("\n");
+}
+async function pollSolve() {
+  for (;;) {
+    const r = await call("GET", "/api/setup/handeye/solve?wait=1");
+    const c = r.data;
+    if (c.running) {
+      $("he-solve-progress").textContent = `solving from ${c.sets} sets in a child process: ${fmt(c.elapsed_s, 0)} s`;
+      continue;
+    }
+    $("he-solve-progress").textContent = c.ok ? `solved in ${c.seconds} s` : (c.ok === false ? "the solve failed" : "");
+    $("he-solve-result").textContent = solution(c);
+    $("btn-he-use").hidden = !c.ok;
+    return;
+  }
+}
+act("btn-he-solve", async () => {
+  $("btn-he-use").hidden = true;
+  const r = await call("POST", "/api/setup/handeye/solve", { mode: $("he-mode").value });
+  if (!r.ok) { $("he-solve-progress").textContent = `REFUSED (${r.status}): ${r.data.message}`; return; }
+  pollSolve();
+});
+act("btn-he-use", async () => {
+  $("he-use-result").textContent = "judging (as vgripd check does)…";
+  const r = await call("POST", "/api/setup/handeye/use");
+  outcome($("he-use-result"), r);
+  load().catch(() => {});
+});
+
 // --- 4 object ---------------------------------------------------------------------------------
-act("btn-obj-find", async () => {
-  const r = await call("POST", "/api/setup/object/find");
-  if (!r.ok) { $("obj-result").textContent = `${r.status}: ${r.data.message}`; return; }
-  $("obj-images").replaceChildren(...r.data.images.map((src, k) => img(src, `marks ${k}`)));
-  $("obj-marks").tBodies[0].replaceChildren(...r.data.marks.map((m) => {
+function markKind(m) {
+  if (m.kind === "aruco") return `ArUco #${m.marker_id} (${m.dictionary})`;
+  if (m.kind === "template") return `template ${m.label} (score ${fmt(m.score, 2)})`;
+  return "circle";
+}
+// The marks found (and taught) with the pair; a region dragged on the left image fills obj-box.
+function showMarks(d) {
+  const [left, ...rest] = d.images.map((src, k) => img(src, `marks ${k}`));
+  const frame = document.createElement("span");
+  frame.className = "draw";
+  const box = document.createElement("div");
+  box.className = "box";
+  box.hidden = true;
+  left.id = "obj-left";
+  left.dataset.width = String(d.sizes[0][0]);
+  left.draggable = false;
+  let start = null;
+  const at = (e) => {
+    // the picture's content box (inside its border), scaled from the camera's pixels
+    const r = left.getBoundingClientRect(), s = Number(left.dataset.width) / left.clientWidth;
+    return [(e.clientX - r.left - left.clientLeft) * s, (e.clientY - r.top - left.clientTop) * s, 1 / s];
+  };
+  const drawn = (e) => {
+    const [x, y, s] = at(e);
+    const x0 = Math.min(start[0], x), y0 = Math.min(start[1], y);
+    const w = Math.abs(x - start[0]), h = Math.abs(y - start[1]);
+    Object.assign(box.style, { left: `${x0 * s + left.clientLeft}px`, top: `${y0 * s + left.clientTop}px`,
+                               width: `${w * s}px`, height: `${h * s}px` });
+    box.hidden = false;
+    return [x0, y0, w, h].map(Math.round);
+  };
+  left.addEventListener("mousedown", (e) => { e.preventDefault(); start = at(e); });
+  left.addEventListener("mousemove", (e) => { if (start) drawn(e); });
+  left.addEventListener("mouseup", (e) => {
+    if (!start) return;
+    $("obj-box").value = drawn(e).join(" ");
+    start = null;
+  });
+  frame.append(left, box);
+  $("obj-images").replaceChildren(frame, ...rest);
+  $("obj-marks").tBodies[0].replaceChildren(...d.marks.map((m) => {
     const box = document.createElement("input");
     box.type = "checkbox";
     box.checked = true;
     box.dataset.id = String(m.id);
-    const kind = m.kind === "aruco" ? `ArUco #${m.marker_id} (${m.dictionary})` : "circle";
-    return row([box, String(m.id), kind, m.xyz_mm.map((v) => fmt(v, 1)).join(", "), fmt(m.diameter_mm, 1)]);
+    return row([box, String(m.id), markKind(m), m.xyz_mm.map((v) => fmt(v, 1)).join(", "),
+                fmt(m.size_mm ?? m.diameter_mm, 1)]);
   }));
-  $("obj-result").textContent = `${r.data.marks.length} mark(s) seen by both cameras: untick those not on the object`;
+}
+act("btn-obj-find", async () => {
+  const r = await call("POST", "/api/setup/object/find");
+  if (!r.ok) { $("obj-result").textContent = `${r.status}: ${r.data.message}`; return; }
+  showMarks(r.data);
+  $("obj-result").textContent = `${r.data.marks.length} mark(s) seen by both cameras: untick those not on the object` +
+    (r.data.missed.length ? `; not found: ${r.data.missed.join("; ")}` : "");
+});
+act("btn-obj-template", async () => {
+  $("obj-template-result").textContent = "looking for the region in both images…";
+  const r = await call("POST", "/api/setup/object/template",
+                       { box: numbers($("obj-box").value), label: $("obj-label").value });
+  if (!r.ok) {
+    $("obj-template-result").textContent = `REFUSED (${r.status}): ${r.data.message}`;
+    $("obj-template-result").className = "status bad";
+    return;
+  }
+  showMarks(r.data);
+  const m = r.data.taught;
+  $("obj-template-result").textContent = `TAUGHT: mark ${m.id}, template ${m.label}, ` +
+    `${m.size_px} px (${fmt(m.size_mm, 1)} mm) at ${m.xyz_mm.map((v) => fmt(v, 1)).join(", ")} mm, ` +
+    `score ${fmt(m.score, 2)}, epipolar ${fmt(m.epipolar_px, 2)} px`;
+  $("obj-template-result").className = "status ok";
 });
 act("btn-obj-save", async () => {
   const marks = [...document.querySelectorAll("#obj-marks input:checked")].map((b) => Number(b.dataset.id));
@@ -343,8 +480,29 @@ act("btn-link-program", async () => {
 // --- choosing the cameras and the link (restart to run them) ---------------------------------
 function restartNote(r) {
   const keys = (r.data.restart || []).join(", ");
+  if (keys && r.ok) {
+    $("restart-keys").textContent = keys;
+    $("restart-result").textContent = "";
+    $("restart-bar").hidden = false;
+  }
   return keys ? ` Takes effect at the next start: ${keys}.` : "";
 }
+// The restart: judged by the server first; then the page waits for another daemon to answer.
+act("btn-restart", async () => {
+  const before = state.instance;
+  $("restart-result").textContent = "judging the files as saved…";
+  const r = await call("POST", "/api/setup/restart");
+  if (!r.ok) { $("restart-result").textContent = `REFUSED (${r.status}): ${r.data.message}`; return; }
+  $("restart-result").textContent = `RESTARTING: ${r.data.message}`;
+  for (;;) {
+    await new Promise((res) => setTimeout(res, 1000));
+    const again = await call("GET", "/api/setup").catch(() => null);
+    if (again && again.ok && again.data.instance !== before) break;
+  }
+  await load();
+  $("restart-bar").hidden = true;
+  $("setup-note").textContent = `RESTARTED: camera type ${state.camera.type}; links ${Object.keys(state.links || {}).join(", ")}`;
+});
 act("btn-cam-discover", async () => {
   $("cam-choose-result").textContent = "looking for cameras (vgripd cameras runs in a child process)…";
   const r = await call("GET", "/api/setup/cameras/discover");
