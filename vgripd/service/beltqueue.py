@@ -272,8 +272,9 @@ class BeltLine:
         the request came; ``t_exposure_ns``: the image's time (one clock); ``frame_seen``:
         the camera's frame id of the image (None when the camera reports none)."""
         if count is None:
-            return ("conveyor: the link carries no encoder count with the request (register "
-                    "links: map_version = 4 and LATCH_COUNT; robot socket: the count field)")
+            return ("conveyor: the link carries no encoder count with the request (Modbus, "
+                    "RTU, S7 and UR RTDE: map_version = 4 and its latch register; robot "
+                    "socket: a counted request; OPC UA: LatchCount written before the call)")
         if self.latch_kind is LatchSource.LINK:
             return latch_from_link(self.belt, count)
         if self.latch_kind is LatchSource.TIMESTAMP:
