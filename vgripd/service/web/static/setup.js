@@ -227,6 +227,13 @@ $("calib-auto").addEventListener("change", async () => {
   } finally { autoRunning = false; }
 });
 
+
+// The distortion model the calibration chose, and why ([about.model_choice]).
+function modelLine(choice) {
+  if (!choice || typeof choice !== "object") return `model: ${choice || "not reported"}`;
+  return `model: ${choice.model} (${choice.chosen_by}${choice.reason ? `: ${choice.reason}` : ""})`;
+}
+
 function calibResult(c) {
   const res = c.result;
   if (!res) {
@@ -242,14 +249,14 @@ function calibResult(c) {
     lines = [
       `RMS ${fmt(res.rms_px, 4)} px over ${res.images_used} images`,
       `fx ${fmt(res.left.fx, 2)} +- ${fmt(std.fx, 2)}, cx ${fmt(res.left.cx, 2)}, cy ${fmt(res.left.cy, 2)}`,
-      `model: ${res.model_choice}`,
+      modelLine(res.model_choice),
     ];
   } else {
     lines = [
       `RMS ${fmt(res.rms_px, 4)} px over ${res.pairs_used} pairs; epipolar ${JSON.stringify(res.epipolar_px)}`,
       `left fx ${fmt(res.left.fx, 2)} +- ${fmt((std.left || {}).fx, 2)}, cx ${fmt(res.left.cx, 2)}, cy ${fmt(res.left.cy, 2)}`,
       `baseline ${JSON.stringify(res.T_right_left.translation_mm)} mm +- ${JSON.stringify(std.translation_mm)}`,
-      `model: ${res.model_choice}`,
+      modelLine(res.model_choice),
     ];
   }
   if (!res.usable) lines.push(`no base frame yet: Accept, then the hand-eye step places every camera by ${res.reference}'s pose`);
