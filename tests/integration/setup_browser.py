@@ -170,7 +170,8 @@ async def capture_and_calibrate(evaluate: Evaluate, kind: str = "auto") -> str:
     figures = str(await evaluate(text("calib-figures")))
     assert "RMS" in figures, figures
     if kind != "cameras":  # the chosen distortion model, named with how it was chosen
-        assert "model: " in figures and "[object Object]" not in figures, figures
+        assert "model: " in figures, figures
+        assert "[object Object]" not in figures, figures
     return figures
 
 

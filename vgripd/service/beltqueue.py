@@ -273,7 +273,7 @@ class BeltLine:
         the camera's frame id of the image (None when the camera reports none)."""
         if count is None:
             return ("conveyor: the link carries no encoder count with the request (Modbus, "
-                    "RTU, S7 and UR RTDE: map_version = 4 and its latch register; robot "
+                    "RTU, S7 and UR RTDE: map_version = 4 and LATCH_COUNT written; robot "
                     "socket: a counted request; OPC UA: LatchCount written before the call)")
         if self.latch_kind is LatchSource.LINK:
             return latch_from_link(self.belt, count)
