@@ -51,7 +51,8 @@ def test_images_come_once_per_trigger_distance_and_never_while_the_belt_stands(
     out = run(r, 12345, steps)
     positions = [sum(steps[:i]) for i in range(len(steps) + 1)]
     images = [positions[i] for i, s in enumerate(out) if s.action is Travel.IMAGE]
-    assert out[0].action is Travel.IMAGE and out[0].first  # the first count seen
+    assert out[0].action is Travel.IMAGE  # the first count seen
+    assert out[0].first
     for a, b in zip(images, images[1:], strict=False):
         assert d_counts - 1e-6 <= b - a < d_counts + top  # one distance on, never two
     assert positions[-1] - images[-1] < d_counts  # no image left untaken
@@ -139,7 +140,8 @@ def test_a_jump_is_re_based_into_one_image_not_a_burst(cpm: float, distance: flo
     after = data.draw(st.lists(st.integers(0, top), max_size=30))
     out = run(r, 5, [int(distance * cpm / 3), jump, *after], [False, False, busy])
     hit = out[2]
-    assert hit.jump and hit.first
+    assert hit.jump
+    assert hit.first
     assert hit.action is (Travel.SKIP if busy else Travel.IMAGE)
     assert r.stats.rebased == 1
     # from the jump on, the new count is the base: one image per distance again
