@@ -331,10 +331,13 @@ class ConveyorConfig(Model):
     and the timestamp latch); ``max_blur_px``: the largest smear in the image during one
     exposure at that speed; ``sigma_mm``: one sigma of a part's position carried along the belt
     (from ``vgripd calibrate conveyor``), whose ``match_sigmas`` multiple matches the same part
-    in two images.
+    in two images. ``trigger``: ``"request"`` (each image is a job the PLC or robot asks for)
+    or ``"travel"`` (the PLC only publishes the count; the daemon starts a job every
+    ``trigger_distance_mm`` of travel, docs/conveyor.md "Triggering by travel").
     """
 
     latch: Literal["link", "frame_id", "timestamp"] = "link"
+    trigger: Literal["request", "travel"] = "request"
     counts_per_mm: float = Field(gt=0)
     encoder_bits: Literal[16, 32] = 32
     direction: tuple[float, float, float]
@@ -376,7 +379,24 @@ class ConveyorConfig(Model):
             raise ValueError(f"conveyor.trigger_distance_mm {self.trigger_distance_mm:g} is "
                              f"not shorter than the pick window ({down - up:g} mm): parts "
                              "would pass between two images")
+        if self.trigger == "travel":
+            self._travel_fits()
         return self
+
+    def _travel_fits(self) -> None:
+        """Triggering by travel: the count is read, not latched at the exposure, and the
+        trigger distance is a small part of the counter's range (the wrap stays unambiguous)."""
+        if self.latch != "timestamp":
+            raise ValueError(f'conveyor.latch = "{self.latch}" with trigger = "travel": the '
+                             "link publishes the count now, none is latched at the exposure "
+                             'and LATCH_FRAME has no count of its own: set latch = "timestamp" '
+                             "(the count carried to the image's time)")
+        span = 1 << self.encoder_bits
+        if self.trigger_distance_mm * self.counts_per_mm >= span / 4:
+            raise ValueError(f"conveyor.trigger_distance_mm {self.trigger_distance_mm:g} is "
+                             f"{self.trigger_distance_mm * self.counts_per_mm:.0f} counts, not "
+                             f"below a quarter of the {self.encoder_bits}-bit counter "
+                             f"({span // 4}): the travel between two counts read is ambiguous")
 
     def window_points(self) -> list[tuple[float, float, float]]:
         """The pick window's two ends on the belt line, in the base frame."""
@@ -1048,9 +1068,13 @@ class Config(Model):
     def _links_carry_the_latch(self) -> Config:
         """A conveyor's jobs need the encoder count with each request: every register link
         serves map version 4 (the latch area)."""
-        if self.conveyor is None or not self.links:
+        if self.conveyor is None:
             return self
-        problems = registry.latch_problems(self.links)
+        problems = registry.travel_problems(self.links, self.vision.views) \
+            if self.conveyor.trigger == "travel" else []
+        if not self.links and not problems:
+            return self
+        problems += registry.latch_problems(self.links)
         if problems:
             raise PydanticCustomError(COMBINATION, "{problems}",
                                       {"problems": "\n".join(problems)})

@@ -141,6 +141,24 @@ def latch_problems(links: Sequence[DriverSection]) -> list[str]:
     return problems
 
 
+def travel_problems(links: Sequence[DriverSection], views: int) -> list[str]:
+    """Why the link sections cannot serve ``conveyor.trigger = "travel"``: no link publishes
+    the belt's encoder count (a link class with ``publishes_count``: the register links, read
+    at map version 4, which ``latch_problems`` asks for), or every job would be N views."""
+    able = sorted(t for t in LINKS if getattr(load_class(LINKS, "link", t), "publishes_count",
+                                              False))
+    problems = []
+    if not any(s.type in able for s in links):
+        have = ", ".join(f'links[{i}].type = "{s.type}"' for i, s in enumerate(links)) or "none"
+        problems.append(f'conveyor.trigger = "travel": no link publishes the belt\'s encoder '
+                        f"count (links: {have}): add one of {', '.join(able)} with "
+                        "map_version = 4, the PLC writing LATCH_COUNT")
+    if views > 1:
+        problems.append(f'conveyor.trigger = "travel" with vision.views = {views}: a job started '
+                        "by the belt's travel is one image")
+    return problems
+
+
 def link_problems(links: Sequence[DriverSection], vendor: str,
                   vendor_is_default: bool = False) -> list[str]:
     """Why the link sections cannot work with ``output.vendor = vendor``, one line per section.

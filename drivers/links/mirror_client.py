@@ -39,6 +39,7 @@ from vgripd.service.protocol import (
     LATCH_AREA,
     Action,
     BlockWrite,
+    CountHandler,
     LinkHealth,
     LinkState,
     Reg,
@@ -106,6 +107,7 @@ class MirrorClientLink(RobotLink, Generic[C]):
         self._health = LinkHealth(LinkState.STOPPED, peer=health_peer or self._peer)
         self._health_changed: asyncio.Condition | None = None
         self._on_trigger: TriggerHandler | None = None
+        self._on_count: CountHandler | None = None
         self._task: asyncio.Task[None] | None = None
         self._wake: asyncio.Event | None = None
         self._waiters: list[asyncio.Future[None]] = []
@@ -218,6 +220,11 @@ class MirrorClientLink(RobotLink, Generic[C]):
 
     def refusals(self) -> Mapping[str, int]:
         return dict(self.bank.refusals)
+
+    publishes_count = True
+
+    def watch_count(self, handler: CountHandler | None) -> None:
+        self._on_count = handler
 
     def set_conveyor(self, on: bool) -> None:
         self.bank.handshake.queue = on
@@ -341,6 +348,9 @@ class MirrorClientLink(RobotLink, Generic[C]):
         next_beat = time.monotonic() + period_s
         while True:
             words = await self._exchange(client)
+            count = self.bank.published_count(0, words)
+            if count is not None and self._on_count is not None:  # the belt's count (travel)
+                self._on_count(count, time.monotonic_ns())
             cmd = words[COMMAND_AREA.start:COMMAND_AREA.stop]
             if cmd != self.bank.image.words[COMMAND_AREA.start:COMMAND_AREA.stop]:
                 self._on_command(words)

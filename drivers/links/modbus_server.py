@@ -71,6 +71,7 @@ from vgripd.service.gate import Gate
 from vgripd.service.protocol import (
     REGISTER_CAPABILITIES,
     Action,
+    CountHandler,
     LinkHealth,
     LinkState,
     RegisterAccessError,
@@ -153,6 +154,7 @@ class RegisterServerLink(RobotLink):
         self._serving = False
         self._heartbeat: asyncio.Task[None] | None = None
         self._on_trigger: TriggerHandler | None = None
+        self._on_count: CountHandler | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._state = LinkState.STOPPED
         self._since_ns = time.monotonic_ns()
@@ -239,6 +241,11 @@ class RegisterServerLink(RobotLink):
     def set_conveyor(self, on: bool) -> None:
         self.bank.handshake.queue = on
 
+    publishes_count = True
+
+    def watch_count(self, handler: CountHandler | None) -> None:
+        self._on_count = handler
+
     def dispatch(self, seq: int, command: int, recipe: int, view: int = 0,
                  count: int | None = None, frame: int | None = None) -> None:
         """Hand a new job to the daemon, outside the Modbus request that triggered it (an error
@@ -283,6 +290,9 @@ class RegisterServerLink(RobotLink):
             decision = self.bank.write(address, values)
         except RegisterAccessError as err:
             raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
+        count = self.bank.published_count(address, values)
+        if count is not None and self._on_count is not None:  # the belt's count now (travel)
+            self._on_count(count, time.monotonic_ns())
         if decision.action is Action.START:
             self.dispatch(decision.seq, decision.command, decision.recipe, decision.view,
                           decision.count, decision.frame)

@@ -153,3 +153,37 @@ async def test_a_robot_range_too_short_for_version_4_names_the_register() -> Non
     finally:
         await link.close()
         await robot.stop()
+
+
+async def test_every_poll_hands_the_published_count_to_the_travel_trigger(
+        robot: MockRobotModbus) -> None:
+    """``conveyor.trigger = "travel"``: the PLC keeps LATCH_COUNT at the count now; the link
+    hands the count of every poll (a standing count too, with its newer time) to the handler,
+    across the 32-bit wrap, and never writes the PLC's latch."""
+    link = make_link(robot, map_version=4)
+    got: list[tuple[int, int]] = []
+    read = asyncio.Event()
+
+    def on_count(count: int, t_ns: int) -> None:
+        got.append((count, t_ns))
+        read.set()
+
+    link.watch_count(on_count)
+    await link.open(Daemon(link).on_trigger)
+    try:
+        for count in ((1 << 32) - 5, (1 << 32) - 5, 4, 1000):
+            await robot.write(BASE + Reg.LATCH_COUNT,
+                              list(struct.unpack(">2H", struct.pack(">I", count))))
+            mark = len(got)
+            async with asyncio.timeout(WAIT_S):  # two polls after the write: the second sees it
+                while len(got) < mark + 2:
+                    read.clear()
+                    await read.wait()
+            assert got[-1][0] == count
+    finally:
+        await link.close()
+    counts = [c for c, _ in got]
+    assert set(counts) >= {(1 << 32) - 5, 4, 1000}
+    times = [t for _, t in got]
+    assert times == sorted(times)
+    assert not into_latch(robot.writes), into_latch(robot.writes)

@@ -9,7 +9,9 @@ came from (``LatchSource``, the value of the LATCH_SOURCE register):
   latched for each frame id (``FrameLatches``), matched with the frame's id from the camera.
 - ``TIMESTAMP`` (3): no latch. The last count the link reported, carried to the exposure's
   device timestamp at the belt speed; the error is speed x the timestamps' uncertainty, stated
-  with every result.
+  with every result. Where the link publishes the count all the time (``conveyor.trigger =
+  "travel"``) the counts read just before and after the exposure are interpolated instead
+  (``latch_from_counts``), at the speed they show.
 
 ``PartQueue``: the parts seen, in belt order, each with its pose at its own latched count.
 A part seen again in a later image (matched by its pose carried to the new count: position
@@ -21,6 +23,7 @@ still in reach (the first to leave), once.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import enum
 import logging
@@ -32,9 +35,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vgripd.config import Config, ConveyorConfig
-from vgripd.geometry.belt import Belt
+from vgripd.geometry.belt import Belt, count_delta
 from vgripd.geometry.transforms import rotation_angle
 from vgripd.geometry.vendors import target_from_transform, transform_from_vendor
+from vgripd.service.belttravel import TravelRule
 from vgripd.types import BeltPose, FloatArray, JobResult, PickInstance, Status
 
 log = logging.getLogger("vgripd.conveyor")
@@ -71,6 +75,32 @@ def latch_from_timestamp(belt: Belt, count: int, t_count_ns: int, t_exposure_ns:
     carried = (count + round(travel_mm * belt.counts_per_mm)) % (1 << belt.bits)
     error = math.hypot(speed_mm_s * timestamp_error_ms * 1e-3, 0.5 / belt.counts_per_mm)
     return Latch(carried, LatchSource.TIMESTAMP, error)
+
+
+#: The longest gap (ns) between the two counts read around an exposure that is still
+#: interpolated; a longer one leaves the exposure to the timestamp rule.
+MAX_BRACKET_NS = 1_000_000_000
+
+
+def latch_from_counts(belt: Belt, samples: Sequence[tuple[int, int]], t_exposure_ns: int,
+                      timestamp_error_ms: float) -> Latch | None:
+    """Source (c) where the link publishes the count continuously (``conveyor.trigger =
+    "travel"``): the counts read just before and just after the exposure, ``samples`` of
+    ``(t_mono_ns, count)`` in time order, interpolated to ``t_exposure_ns``. Error: the belt's
+    speed between them times the timestamps' uncertainty, plus the encoder's resolution.
+    None without a reading on both sides within ``MAX_BRACKET_NS``."""
+    i = bisect.bisect_right(samples, t_exposure_ns, key=lambda s: s[0])
+    if i == 0 or i == len(samples):
+        return None
+    (t0, c0), (t1, c1) = samples[i - 1], samples[i]
+    if t1 - t0 > MAX_BRACKET_NS:
+        return None
+    delta = count_delta(c0, c1, belt.bits)
+    frac = (t_exposure_ns - t0) / (t1 - t0) if t1 > t0 else 0.0
+    count = (c0 + round(delta * frac)) % (1 << belt.bits)
+    speed_mm_s = abs(delta) / belt.counts_per_mm / max((t1 - t0) * 1e-9, 1e-9)
+    error = math.hypot(speed_mm_s * timestamp_error_ms * 1e-3, 0.5 / belt.counts_per_mm)
+    return Latch(count, LatchSource.TIMESTAMP, error)
 
 
 class FrameLatches:
@@ -227,6 +257,9 @@ class PartQueue:
 
 # --- one conveyor recipe in the daemon ------------------------------------------------------
 
+#: Counts read kept per travel-triggered line: 40 s at a 10 ms poll.
+COUNT_SAMPLES = 4096
+
 LATCH_KINDS = {"link": LatchSource.LINK, "frame_id": LatchSource.FRAME_ID,
                "timestamp": LatchSource.TIMESTAMP}
 
@@ -263,6 +296,15 @@ class BeltLine:
     last_count: int | None = None
     #: ms from each image's exposure to its parts' entry in the queue (the last 1000).
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
+    #: ``trigger = "travel"``: when to take an image, and the counts the link published
+    #: (``(t_mono_ns, count)``, the newest ``COUNT_SAMPLES``) that latch each image.
+    travel: TravelRule | None = None
+    counts: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=COUNT_SAMPLES))
+
+    def count_read(self, count: int, t_ns: int) -> None:
+        """A count the link published (``trigger = "travel"``): the newest count, kept."""
+        self.counts.append((t_ns, count % (1 << self.belt.bits)))
+        self.last_count = count % (1 << self.belt.bits)
 
     def latch(self, count: int | None, frame: int | None, t_request_ns: int,
               t_exposure_ns: int, frame_seen: int | None) -> Latch | str:
@@ -278,7 +320,9 @@ class BeltLine:
         if self.latch_kind is LatchSource.LINK:
             return latch_from_link(self.belt, count)
         if self.latch_kind is LatchSource.TIMESTAMP:
-            return latch_from_timestamp(self.belt, count, t_request_ns, t_exposure_ns,
+            read = latch_from_counts(self.belt, self.counts, t_exposure_ns,
+                                     self.timestamp_error_ms) if self.travel else None
+            return read or latch_from_timestamp(self.belt, count, t_request_ns, t_exposure_ns,
                                         self.speed_mm_s, self.timestamp_error_ms)
         if self.frames is None:
             self.frames = FrameLatches(self.belt)
@@ -375,8 +419,10 @@ def line_of(conveyor: ConveyorConfig, vendor: str) -> BeltLine:
     c = conveyor
     belt = Belt(c.direction, c.counts_per_mm, c.origin_mm, c.normal, c.encoder_bits)
     queue = PartQueue(belt, c.window_mm, c.sigma_mm, c.match_sigmas, c.match_deg)
+    travel = TravelRule(c.counts_per_mm, c.trigger_distance_mm, c.speed_mm_s,
+                        c.encoder_bits) if c.trigger == "travel" else None
     return BeltLine(belt, queue, vendor, LATCH_KINDS[c.latch], c.speed_mm_s,
-                    c.timestamp_error_ms)
+                    c.timestamp_error_ms, travel=travel)
 
 
 def belt_lines(config: Config, running: Mapping[int, BeltLine] | None = None,

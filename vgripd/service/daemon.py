@@ -11,6 +11,8 @@
 - ``status.StatusBoard``: the status line and snapshot read from the others;
 - ``walkmode.WalkMode``: a walked hand-eye calibration: its link's requests go to the walk,
   the others' are answered BUSY meanwhile (every trigger passes it first);
+- ``travel.BeltTravel``: a conveyor with ``trigger = "travel"``: the belt's count in, a job
+  every trigger distance (docs/conveyor.md, "Triggering by travel");
 - ``web.WebServer``: the web view, /api/status, /metrics.
 
 A trigger goes link -> ``JobRunner.on_trigger`` -> camera -> worker -> link; the runner
@@ -74,6 +76,7 @@ from vgripd.service.reload import Reloader
 from vgripd.service.sdnotify import Notifier, watchdog_interval_s
 from vgripd.service.status import StatusBoard
 from vgripd.service.tasks import Background
+from vgripd.service.travel import BeltTravel
 from vgripd.service.walkmode import WalkMode
 from vgripd.service.web import WebServer
 from vgripd.service.worker import DEFAULT_PROCESSOR, WorkerClient, WorkerRecorder
@@ -138,8 +141,7 @@ class Daemon:
     Raises ``ConfigError`` for a bad driver type or options. A missing/invalid calibration
     (``NotCalibratedError``) does not stop the service: every job then answers
     ``NOT_CALIBRATED``, so the PLC sees why (``not_calibrated`` says so). The same holds per
-    recipe: a recipe not taught yet answers ``NOT_CALIBRATED`` (``recipe_problems``), the
-    others run.
+    recipe: a recipe not taught yet answers ``NOT_CALIBRATED``, the others run.
 
     ``pipeline``: a ``Processor`` object runs in this process (on the job thread, camera
     included); a ``"module:Class"`` path names one built from the config in the worker process.
@@ -185,6 +187,7 @@ class Daemon:
                                  changed=self._changed)
         self.walks = WalkMode(self._runner, self._links, self._cameras, self._background,
                               self._changed)
+        self.travel = BeltTravel(self._runner, self._links, self.walks)  # trigger = "travel"
         self._status = StatusBoard(config, self._runner, self._links, self._cameras,
                                    self._worker)
         self.reloader: Reloader | None = None  # set by whoever knows the config file (run)

@@ -189,6 +189,9 @@ class Trigger:
 
 
 TriggerHandler = Callable[[Trigger], None]
+#: ``conveyor.trigger = "travel"``: the belt's encoder count as a link read it, and when
+#: (``time.monotonic_ns()``): ``handler(count, t_mono_ns)``.
+CountHandler = Callable[[int, int], None]
 
 
 def config_identity(config: Any) -> tuple[str, bytes]:
@@ -210,6 +213,9 @@ class RobotLink(ABC):
     capabilities: ClassVar[LinkCapabilities]
     #: The link can send CAPTURE requests and implements ``view_captured`` (``vision.views``).
     takes_views: ClassVar[bool] = False
+    #: The link reads the belt's encoder count its peer publishes (map version 4: LATCH_COUNT)
+    #: and hands each reading to ``watch_count``'s handler (``conveyor.trigger = "travel"``).
+    publishes_count: ClassVar[bool] = False
 
     def __init__(self, name: str, options: Any) -> None:
         self.name = name
@@ -278,6 +284,11 @@ class RobotLink(ABC):
         """A recipe has a conveyor: the part queue answers NEXT and PREDICT, so a link that
         refuses NEXT without a pick list itself lets them through (``Handshake.queue``).
         Default: ignored."""
+
+    def watch_count(self, handler: CountHandler | None) -> None:  # noqa: B027 - optional
+        """Hand every encoder count the peer publishes to ``handler`` (None: stop), with the
+        time it was read; called on the event loop, never raising into the link. Only links
+        with ``publishes_count`` have counts to hand. Default: ignored."""
 
     def set_walking(self, walking: bool) -> None:  # noqa: B027 - optional
         """A walked hand-eye calibration is served (``vgripd.service.handeye_walk``): a link
@@ -701,6 +712,14 @@ class RegisterBank:
                 decision, count=codec.decode_u32(w[Reg.LATCH_COUNT:Reg.LATCH_COUNT + 2]),
                 frame=codec.decode_u32(w[Reg.LATCH_FRAME:Reg.LATCH_FRAME + 2]))
         return decision
+
+    def published_count(self, address: int, words: Sequence[int]) -> int | None:
+        """LATCH_COUNT in a peer's ``words`` (a write or a read starting at ``address``) when
+        they hold both of its words, in map version 4; else None (half a count is none)."""
+        i = Reg.LATCH_COUNT - address
+        if self.image.version < 4 or i < 0 or i + 2 > len(words):
+            return None
+        return self.image.codec.decode_u32(words[i:i + 2])
 
     def view_captured(self, seq: int, job_id: int) -> None:
         """View request ``seq`` has its image: JOB_ID, STATE 4 VIEWS, then CAPTURED_SEQ."""

@@ -110,7 +110,12 @@ class StatusBoard:
         out: dict[str, Any] = {}
         for number, line in r.core.lines.items():
             q, lat = line.queue, sorted(line.latency_ms)
+            travel = line.travel.stats if line.travel is not None else None
             out[str(number)] = {
+                "trigger": "request" if travel is None else "travel",
+                "travel_images": travel.images if travel else 0,
+                "skipped": travel.skipped if travel else 0,
+                "rebased": travel.rebased if travel else 0,
                 "queued": len(q), "seen": q.stats.seen, "duplicates": q.stats.duplicates,
                 "dropped": q.stats.dropped, "served": q.stats.served,
                 "last_count": line.last_count, "latch": line.latch_kind.name.lower(),

@@ -98,3 +98,54 @@ def test_a_register_link_without_the_latch_area_is_refused_naming_its_field(
     assert cfg.conveyor is not None
     # without a belt, version 3 stays what it was: the default
     assert config_from_dict({"links": [link]}).links[0].type == link["type"]
+
+
+TRAVEL: dict[str, Any] = {**BELT, "trigger": "travel", "latch": "timestamp"}
+COUNTING = {"type": "modbus_server", "host": "127.0.0.1", "port": 1502, "map_version": 4}
+
+
+@pytest.mark.parametrize("link", [
+    COUNTING,
+    {"type": "modbus_rtu", "device": "/dev/ttyS0", "map_version": 4},
+    {"type": "modbus_client", "host": "127.0.0.1", "map_version": 4},
+    {"type": "s7", "host": "127.0.0.1", "db": 10, "map_version": 4},
+])
+def test_triggering_by_travel_loads_with_a_link_that_publishes_the_count(
+        link: dict[str, Any]) -> None:
+    socket = {"type": "robot_socket", "host": "127.0.0.1", "port": 50100}
+    cfg = config_from_dict({"conveyor": TRAVEL, "links": [socket, link]})
+    assert cfg.conveyor is not None
+    default = config().conveyor
+    assert default is not None
+    assert (cfg.conveyor.trigger, default.trigger) == ("travel", "request")
+
+
+@pytest.mark.parametrize("links", [
+    [],
+    [{"type": "robot_socket", "host": "127.0.0.1", "port": 50100}],
+    [{"type": "opcua", "host": "127.0.0.1", "port": 4840}],
+    [{"type": "ur_rtde", "host": "127.0.0.1", "map_version": 4}],
+])
+def test_triggering_by_travel_without_a_link_that_publishes_the_count_is_refused(
+        links: list[dict[str, Any]]) -> None:
+    with pytest.raises(ConfigError, match=r'conveyor\.trigger = "travel": no link publishes '
+                                          r"the belt's encoder count \(links: "
+                                          + (r'links\[0\]\.type = "' if links else "none")):
+        config_from_dict({"conveyor": TRAVEL, "links": links})
+
+
+@pytest.mark.parametrize(("change", "words"), [
+    ({"latch": "link"}, r'conveyor\.latch = "link" with trigger = "travel": the link publishes '
+                        r"the count now"),
+    ({"latch": "frame_id"}, r'conveyor\.latch = "frame_id" with trigger = "travel"'),
+    ({"encoder_bits": 16, "counts_per_mm": 200.0},
+     r"conveyor\.trigger_distance_mm 150 is 30000 counts, not below a quarter of the 16-bit "
+     r"counter \(16384\)"),
+])
+def test_a_travel_trigger_that_cannot_work_is_refused_naming_the_field(
+        change: dict[str, Any], words: str) -> None:
+    with pytest.raises(ConfigError, match=words):
+        config_from_dict({"conveyor": {**TRAVEL, **change}, "links": [COUNTING]})
+    # the same belt triggered by requests loads
+    assert config_from_dict({"conveyor": {**TRAVEL, **change, "trigger": "request"},
+                             "links": [COUNTING]}).conveyor is not None

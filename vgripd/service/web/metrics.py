@@ -97,6 +97,15 @@ class _DaemonCollector(Collector):
                                            "window before they were served", labels=["recipe"]),
             "served": CounterMetricFamily("vgripd_conveyor_served", "Parts served by NEXT",
                                           labels=["recipe"]),
+            "travel_images": CounterMetricFamily("vgripd_conveyor_travel_images", "Jobs the "
+                                                 "belt's travel started (trigger = travel)",
+                                                 labels=["recipe"]),
+            "skipped": CounterMetricFamily("vgripd_conveyor_skipped", "Trigger points the belt "
+                                           "passed without their image (a job still ran)",
+                                           labels=["recipe"]),
+            "rebased": CounterMetricFamily("vgripd_conveyor_rebased", "Jumps of the published "
+                                           "count the travel trigger started again from",
+                                           labels=["recipe"]),
         }
         for number, q in snap.get("conveyor", {}).items():
             for key, family in belts.items():
