@@ -124,13 +124,9 @@ def f32(words: list[int], reg: int) -> float:
 def part_at(T: np.ndarray, travel_mm: float) -> int:
     """The part whose true pose at ``travel_mm`` the base-frame pose ``T`` (mm) is, checked to
     1 mm and 0.5 deg."""
-    near = min(range(len(PARTS)),
-               key=lambda k: float(np.linalg.norm(truth(k, travel_mm)[:3, 3] - T[:3, 3])))
-    want = truth(near, travel_mm)
-    assert np.linalg.norm(want[:3, 3] - T[:3, 3]) < 1.0, (near, travel_mm, T[:3, 3])
-    turn = math.degrees(math.acos(np.clip((np.trace(want[:3, :3].T @ T[:3, :3]) - 1) / 2,
-                                          -1, 1)))
-    assert turn < 0.5
+    near, mm, deg = part_of(T, travel_mm)
+    assert mm < 1.0, (near, travel_mm, T[:3, 3])
+    assert deg < 0.5
     return near
 
 
@@ -175,14 +171,6 @@ def located(pose: list[float], along: float, across: float, theta: float, travel
     their own (OPC UA variables, socket fields): the part whose true pose at ``travel_mm`` the
     answer is (1 mm, 0.5 deg), its belt terms checked too."""
     T = transform_from_vendor("kuka", pose) @ T_ref  # output.mode offset
-    near = min(range(len(PARTS)),
-               key=lambda k: float(np.linalg.norm(truth(k, travel_mm)[:3, 3] - T[:3, 3])))
-    want = truth(near, travel_mm)
-    assert np.linalg.norm(want[:3, 3] - T[:3, 3]) < 1.0, (near, travel_mm, T[:3, 3])
-    turn = math.degrees(math.acos(np.clip((np.trace(want[:3, :3].T @ T[:3, :3]) - 1) / 2,
-                                          -1, 1)))
-    assert turn < 0.5
-    x, y, angle = PARTS[near]
-    assert (along, across, theta) == (pytest.approx(x + travel_mm, abs=1.0),
-                                      pytest.approx(y, abs=1.0), pytest.approx(angle, abs=0.5))
+    near = part_at(T, travel_mm)
+    check_belt_terms(near, travel_mm, along, across, theta)
     return near
