@@ -52,8 +52,12 @@ explore: $(STAMP)
 	        $$(grep -rl "^from hypothesis" tests --include='test_*.py') || exit 1; \
 	done
 
+# Every bench writes its own section of bench/RESULTS.md (grouped by subject, bench/harness.py);
+# the link bench once per link. Several benches take minutes: a single one is `$(PY) bench/NAME.py`.
+BENCH_LINKS := modbus rtu s7 opcua robot_socket ur_rtde
 bench: $(STAMP)
-	for f in bench/bench_*.py; do $(PY) $$f || exit 1; done
+	for f in $$(ls bench/bench_*.py | grep -v bench_link.py); do $(PY) $$f || exit 1; done
+	for l in $(BENCH_LINKS); do $(PY) bench/bench_link.py --link $$l || exit 1; done
 
 # The systemd service (systemd/README.md): venv in /opt/vgripd, unit, first config; as root.
 install:

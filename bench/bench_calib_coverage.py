@@ -2,7 +2,7 @@
 
 Run from the repository root with the project's interpreter::
 
-    .venv/bin/python bench/bench_calib_coverage.py [--trials 40]
+    .venv/bin/python bench/bench_calib_coverage.py [--trials 40] [--print-only]
 
 Intrinsics: per trial 14 views of a 9x7-corner chessboard at random tilts (up to 35 deg) and rolls, the
 corners projected through a known camera with 0.1 px Gaussian noise (projected, not rendered:
@@ -27,7 +27,6 @@ board at 500 mm.
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from collections import Counter
@@ -38,6 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench import harness  # noqa: E402
 from vgripd.calib.boards import Board, Detection  # noqa: E402
 from vgripd.calib.intrinsics import calibrate_intrinsics  # noqa: E402
 from vgripd.errors import CalibrationError  # noqa: E402
@@ -113,9 +113,16 @@ def _share(z: np.ndarray) -> str:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser()
+    ap = harness.parser(__doc__)
     ap.add_argument("--trials", type=int, default=40)
     args = ap.parse_args()
+    stamp = harness.Stamp(harness.bench_command())
+    lines: list[str] = []
+
+    def say(line: str) -> None:
+        say(line, flush=True)
+        lines.append(line)
+
     for name, p in PROFILES.items():
         board = Board.parse(p["board"])
         for label, opts in (("auto", {}), ("all free", {"fix_k3": False,
@@ -131,7 +138,7 @@ def main() -> int:
                     r = calibrate_intrinsics(board, dets, (p["camera"].width,
                                                            p["camera"].height), **opts)
                 except CalibrationError as err:
-                    print(f"  {name} trial {trial}: {err}")
+                    say(f"  {name} trial {trial}: {err}")
                     continue
                 models[r.model.model.name] += 1
                 z = z_scores(r, p["camera"])
@@ -144,13 +151,13 @@ def main() -> int:
             worst = {k: max((abs(z[k]) for z in zs if k in z), default=0.0) for k in NAMES}
             worst_text = " ".join(f"{k} {v:.1f}" for k, v in worst.items())
             med = " ".join(f"{k} {np.median(v):.3g}" for k, v in errors.items() if v)
-            print(f"{name:5s} {label:8s} within 2 sigma {_share(flat)} (old rule "
+            say(f"{name:5s} {label:8s} within 2 sigma {_share(flat)} (old rule "
                   f"{_share(flat_old)}) | largest |z|: {worst_text} | models {dict(models)}")
-            print(f"      median |error|: {med}")
+            say(f"      median |error|: {med}")
     for name in PROFILES:
         new_z, old_z = rig_z_both(args.trials, name)
         new, old = np.array(new_z), np.array(old_z)
-        print(f"{name:5s} stereo rotation + translation: within 2 sigma {_share(new)} (old rule "
+        say(f"{name:5s} stereo rotation + translation: within 2 sigma {_share(new)} (old rule "
               f"{_share(old)})")
     for name in PROFILES:
         rows = cameras_z(args.trials, name)
@@ -158,9 +165,13 @@ def main() -> int:
         old = np.array([r["old"][:3] for r in rows])
         rot = np.array([r["new"][3] for r in rows])
         rot_old = np.array([r["old"][3] for r in rows])
-        print(f"{name:5s} cameras position: within 2 sigma {_share(new)} (fit's own "
+        say(f"{name:5s} cameras position: within 2 sigma {_share(new)} (fit's own "
               f"{_share(old)}); rotation angle / rotation_std: {_share(rot)} (fit's own "
               f"{_share(rot_old)})")
+    harness.report("Calibration", "Coverage of the reported intrinsic uncertainties",
+                   f"{args.trials} sets per profile, projected corners (0.1 px noise); profiles, "
+                   "paths and the old rule: bench/bench_calib_coverage.py's docstring.\n\n```\n"
+                   + "\n".join(lines) + "\n```", stamp, args.print_only)
     return 0
 
 

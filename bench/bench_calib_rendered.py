@@ -2,7 +2,7 @@
 
 Run from the repository root with the project's interpreter::
 
-    .venv/bin/python bench/bench_calib_rendered.py [--sets 30] [--write-results]
+    .venv/bin/python bench/bench_calib_rendered.py [--sets 30] [--print-only]
 
 Per set and profile: a two-camera rig (both cameras with the profile's intrinsics, the right
 one turned and moved by the profile's ``T_right_left``) sees a chessboard in 14 poses (tilt
@@ -34,7 +34,6 @@ variances). Detections are cached (``--cache``), so a rerun only recalibrates.
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
@@ -47,8 +46,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench import harness  # noqa: E402
 from bench.render_board import Camera  # noqa: E402
-from bench.results import write_section  # noqa: E402
 from vgripd.calib.boards import Board, Detection, detect  # noqa: E402
 from vgripd.calib.camera_poses import Observation, calibrate_cameras  # noqa: E402
 from vgripd.calib.intrinsics import calibrate_intrinsics  # noqa: E402
@@ -274,12 +273,12 @@ def summarise(rows: list[tuple[str, str, float, float, float]]) -> list[str]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser()
+    ap = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     ap.add_argument("--sets", type=int, default=30)
     ap.add_argument("--profiles", default="far,far_noisy,wide,cell",
                     help="comma-separated; NAME:N runs N sets of that profile")
     ap.add_argument("--cache", default="/tmp/vgripd_calib_rendered")
-    ap.add_argument("--write-results", action="store_true")
     args = ap.parse_args()
     text = []
     t0 = time.monotonic()
@@ -309,18 +308,10 @@ def main() -> int:
         block = [head, *summarise(rows)]
         print("\n".join(block), f"[{time.monotonic() - t0:.0f} s]", flush=True)
         text += block
-    if args.write_results:
-        write_results(text, args)
+    body = "\n".join(text)
+    harness.report("Calibration", "Coverage of the reported calibration uncertainties, rendered",
+                   f"```\n{body}\n```", stamp, args.print_only)
     return 0
-
-
-def write_results(lines: list[str], args: argparse.Namespace) -> None:
-    body = "\n".join(lines)
-    write_section("## Coverage of the reported calibration uncertainties, rendered (issue 24)",
-                  "## Coverage of the reported calibration uncertainties, rendered (issue 24)\n\n"
-                  f"`.venv/bin/python bench/bench_calib_rendered.py --sets {args.sets} "
-                  f"--profiles {args.profiles}`, "
-                  f"{time.strftime('%Y-%m-%d')}.\n\n```\n{body}\n```\n")
 
 
 if __name__ == "__main__":

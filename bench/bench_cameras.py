@@ -21,15 +21,13 @@ Frames per second: ``vgripd cameras grab NAME --count N`` (the command's own cou
 excluded) against ``arv-camera-test-0.8 -n 127.0.0.1 -o 200`` (Aravis' tool,
 software trigger at 200 Hz, its last full-second figure) and the bare pypylon loop above.
 
-Run: ``.venv/bin/python bench/bench_cameras.py [--frames 100] [--write-results]``
+Run: ``.venv/bin/python bench/bench_cameras.py [--frames 100] [--print-only]``
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import os
-import platform
 import re
 import shutil
 import statistics
@@ -46,7 +44,7 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from bench.results import write_section  # noqa: E402
+from bench import harness  # noqa: E402
 from vgripd.config import Config  # noqa: E402
 
 SAMPLES = REPO / "config" / "samples"
@@ -194,9 +192,9 @@ def arv_camera_test_fps(seconds: float) -> float:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     parser.add_argument("--frames", type=int, default=100)
-    parser.add_argument("--write-results", action="store_true")
     args = parser.parse_args()
     rows = []
     results: dict[str, tuple[float, float]] = {}
@@ -248,10 +246,7 @@ def main() -> int:
         f"{fps_arv_tool:.1f} | {fps_arv_cli / fps_arv_tool:.2f} |",
     ]
     print("\n".join(fps_rows))
-    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
-    text = f"""## Real camera stacks: trigger to image, driver vs the SDK's bare loop (issue 21)
-
-`.venv/bin/python bench/bench_cameras.py --frames {n} --write-results`, {time.strftime('%Y-%m-%d')}, {platform.machine()}, 2 cores shared with other work (load average {load}), Python {platform.python_version()}. Times per acquisition (all cameras triggered, every image in hand), median / p95 ms over {n} after 3 warm-up grabs. The bare loop ran before and after the driver (both shown; the ratio uses the faster median). Peers and what each loop does: bench/bench_cameras.py's docstring. Goal: driver <= 1.2x bare.
+    text = f"""Times per acquisition (all cameras triggered, every image in hand), median / p95 ms over {n} after 3 warm-up grabs. The bare loop ran before and after the driver (both shown; the ratio uses the faster median). Peers and what each loop does: bench/bench_cameras.py's docstring. Goal: driver <= 1.2x bare.
 
 | stack | bare loop ms (before ; after) | driver grab ms | ratio | goal |
 |---|---:|---:|---:|---|
@@ -265,8 +260,8 @@ Frames per second of `vgripd cameras grab NAME --count {n}` (software trigger, o
 
 The emulated pylon cameras produce a frame as fast as the host copies it, so their figures are the software overhead alone; the fake GigE camera paces frames with its own clock (about 25 Hz) and sends them over UDP, so both loops wait mostly for it: its ratio says only that the driver adds no wait of its own to the fake's 40 ms tick, and the pylon row is the one that measures the driver's overhead (executor hop, draining, conversion). Neither is a real sensor's exposure and readout, nor a real network: on a device, exposure and transfer add the same time to both columns.
 """
-    if args.write_results:
-        write_section(text.splitlines()[0], text)
+    harness.report("Cameras", "Real camera stacks: trigger to image, driver vs the SDK's bare loop",
+                   text, stamp, args.print_only)
     return 0
 
 

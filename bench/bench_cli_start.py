@@ -10,12 +10,11 @@ Commands: ``vgripd --help``; ``vgripd convert`` of one pose (numpy and the vendo
 ``vgripd robot-program`` and ``vgripd check`` of config/examples/robot-socket-kuka.toml (the
 config model and the drivers; check also the daemon's pipeline: commands that need them).
 
-Run: ``.venv/bin/python bench/bench_cli_start.py [--runs 15] [--before DIR] [--write-results]``
+Run: ``.venv/bin/python bench/bench_cli_start.py [--runs 15] [--before DIR] [--print-only]``
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import subprocess
@@ -24,9 +23,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from results import write_section
-
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench import harness  # noqa: E402
+
 VGRIPD = [sys.executable, "-m", "vgripd"]
 
 
@@ -45,9 +46,9 @@ def commands(out: Path) -> dict[str, list[str]]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     parser.add_argument("--runs", type=int, default=15)
-    parser.add_argument("--write-results", action="store_true")
     parser.add_argument("--before", type=Path, default=None, metavar="DIR",
                         help="also time the commands of another source tree (e.g. `git archive "
                              "REV | tar -x -C DIR`), interleaved with these")
@@ -76,11 +77,7 @@ def main() -> None:
                      f"max {max(ts) * 1000:6.0f} ms  median - peer {(med - peer) * 1000:6.0f} ms")
     text = "\n".join(lines)
     print(text)
-    if args.write_results:
-        write_section("## Command start time", f"""## Command start time
-
-`.venv/bin/python bench/bench_cli_start.py --runs {args.runs}{' --before DIR' if args.before else ''} --write-results`, 2-core VM
-shared with other jobs (load average {load[0]:.1f}). Each command is a fresh process started
+    harness.report("Start and install", "Command start time", f"""Each command is a fresh process started
 from a temporary folder, timed from exec to exit; the peer is the interpreter's own start
 (`python -c pass`). "before:" rows (with `--before`) are the same commands from another source
 tree, interleaved with the rest. Each command imports only its own module (`vgripd/__main__.py`
@@ -91,7 +88,7 @@ builds the parser of the chosen command alone), so `--help` loads no command at 
 ```
 {text}
 ```
-""")
+""", stamp, args.print_only)
 
 
 if __name__ == "__main__":

@@ -51,8 +51,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from bench import harness  # noqa: E402
 from bench import render_independent as indep  # noqa: E402
-from bench.results import write_section  # noqa: E402
 from vgripd.cli import demo_conveyor  # noqa: E402
 from vgripd.config import config_from_dict  # noqa: E402
 from vgripd.geometry.transforms import pose_error  # noqa: E402
@@ -64,7 +64,7 @@ from vgripd.sim.conveyor import BeltCamera, BeltPlc, SimBelt, SimPart  # noqa: E
 from vgripd.types import Status  # noqa: E402
 from vgripd.vision.scene import T_base_obj_ref  # noqa: E402
 
-SECTION = "## Conveyor tracking: error at the pick, highest speed, exposure to queue"
+SECTION = "Conveyor tracking: error at the pick, highest speed, exposure to queue"
 SPEEDS = (100.0, 250.0, 500.0, 1000.0)
 SOURCES = ("link", "frame_id", "timestamp", "no latch")
 COUNTS_PER_MM = 10.0
@@ -266,6 +266,7 @@ def stats(v: list[float], refused: int = 0) -> str:
 
 
 async def main_async(args: argparse.Namespace) -> None:
+    stamp = harness.Stamp(harness.bench_command())
     rng = np.random.default_rng(args.seed)
     parts = layout(args.frames, rng)
     speeds = SPEEDS[::3] if args.quick else SPEEDS
@@ -295,17 +296,16 @@ async def main_async(args: argparse.Namespace) -> None:
         thr.append((speed, *got))
         print(f"throughput {speed:g} mm/s: parts {got[0]}, picked once {got[1]}, missed "
               f"{got[2]}, twice {got[3]}", flush=True)
-    report(rows, speeds, latency, spread, thr, args)
+    report(rows, speeds, latency, spread, thr, args, stamp)
 
 
 def report(rows: dict[tuple[float, str], PickRun], speeds: tuple[float, ...],
            latency: list[float], spread: list[float],
-           thr: list[tuple[float, int, int, int, int]], args: argparse.Namespace) -> None:
+           thr: list[tuple[float, int, int, int, int]], args: argparse.Namespace,
+           stamp: harness.Stamp) -> None:
     lead = statistics.median(spread)
     head = "| belt speed | " + " | ".join(SOURCES) + " |"
-    lines = [SECTION, "",
-             "`bench/bench_conveyor.py` (`--frames " + str(args.frames) + "`): the daemon "
-             "in-process with a conveyor recipe, the PLC over Modbus/TCP (map version 4). "
+    lines = ["The daemon in-process with a conveyor recipe, the PLC over Modbus/TCP (map version 4). "
              "Method, truth and peer: the bench's docstring. Error at the pick: PREDICT's "
              "pose against the independent belt's truth at the grip's count, "
              f"{args.frames} parts per cell (one per image, random across +-20 mm, rotation "
@@ -362,19 +362,16 @@ def report(rows: dict[tuple[float, str], PickRun], speeds: tuple[float, ...],
               "daemon's timing, not a camera's. One part per image in part 1; straight belt, "
               "exact encoder scale (calibration errors of `vgripd calibrate conveyor` add "
               "to every row)."]
-    text = "\n".join(lines)
-    print("\n" + text)
-    if not args.quick:
-        write_section(SECTION, text)
+    harness.report("Conveyor", SECTION, "\n".join(lines), stamp, args.print_only or args.quick)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = harness.parser(__doc__)
     parser.add_argument("--frames", type=int, default=5, help="parts (images) per run")
     parser.add_argument("--parts", type=int, default=12, help="parts per throughput run")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--quick", action="store_true",
-                        help="two speeds, no RESULTS.md (a smoke run)")
+                        help="two speeds, printed only (a smoke run)")
     args = parser.parse_args()
     asyncio.run(main_async(args))
 

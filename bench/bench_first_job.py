@@ -11,15 +11,12 @@ own cycle of each job (trigger received -> result published, from its log) and t
 ``--base DIR`` also runs another checkout of vgripd (e.g. the commit before the warm-up, from
 ``git archive``) in the same rounds, interleaved, so both see the same machine load.
 
-Run: ``.venv/bin/python bench/bench_first_job.py [--rounds 3] [--base DIR] [--write-results]``
+Run: ``.venv/bin/python bench/bench_first_job.py [--rounds 3] [--base DIR] [--print-only]``
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
-import os
-import platform
 import re
 import statistics
 import sys
@@ -30,10 +27,11 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.bench_poll import DaemonProcess, load_average, run_client  # noqa: E402
-from bench.results import write_section  # noqa: E402
+from bench.harness import DaemonProcess, Stamp, bench_command, report, run_client  # noqa: E402
+from bench.harness import parser as bench_parser  # noqa: E402
 
-SECTION = "## First job after start against the tenth (issue 22)"
+SUBJECT = "Daemon: polls, jobs, memory"
+SECTION = "First job after start against the tenth"
 JOBS = 10
 
 
@@ -80,8 +78,8 @@ def line(name: str, rounds: list[dict[str, object]]) -> str:
             f"| {statistics.median(firsts) / statistics.median(rest):.2f} |")
 
 
-async def main(rounds: int, base: Path | None, write: bool, samples: list[Path]) -> None:
-    before_load = load_average()
+async def main(rounds: int, base: Path | None, print_only: bool, samples: list[Path]) -> None:
+    stamp = Stamp(bench_command())
     trees = {"this tree": REPO, **({"base": base} if base is not None else {})}
     results: dict[str, list[dict[str, object]]] = {}
     with tempfile.TemporaryDirectory(prefix="bench_first_job-") as tmp:
@@ -93,14 +91,7 @@ async def main(rounds: int, base: Path | None, write: bool, samples: list[Path])
                     got = await one_round(folder, tree, sample)
                     print(key, i, got, flush=True)
                     results.setdefault(key, []).append(got)
-    after_load = load_average()
     lines = [
-        SECTION,
-        "",
-        f"`.venv/bin/python bench/bench_first_job.py --rounds {rounds}"
-        + (" --base DIR" if base is not None else "") + " --write-results`, "
-        f"{time.strftime('%Y-%m-%d %H:%M')}, {platform.machine()}, {os.cpu_count()} cores "
-        f"shared with other work (load average {before_load} before, {after_load} after). "
         f"Each round starts the real daemon (worker process, synthetic stereo camera "
         f"1280x1024, Modbus/TCP server, recording on), waits until it runs, and a PLC "
         f"stand-in triggers {JOBS} jobs one after the other; PLC trigger-to-result times in "
@@ -113,20 +104,15 @@ async def main(rounds: int, base: Path | None, write: bool, samples: list[Path])
         *(line(name, got) for name, got in results.items()),
         "",
     ]
-    text = "\n".join(lines)
-    print(text)
-    if write:
-        write_section(SECTION, text)
+    report(SUBJECT, SECTION, "\n".join(lines), stamp, print_only)
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = bench_parser(__doc__)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--base", type=Path, help="another vgripd checkout, run interleaved")
-    parser.add_argument("--write-results", action="store_true",
-                        help="write the section of bench/RESULTS.md")
     parser.add_argument("--sample", type=Path, action="append", default=[],
                         help="also a config of config/samples (its link port is replaced)")
     args = parser.parse_args()
-    asyncio.run(main(args.rounds, args.base, args.write_results,
+    asyncio.run(main(args.rounds, args.base, args.print_only,
                      [p.resolve() for p in args.sample]))

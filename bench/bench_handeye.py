@@ -30,7 +30,6 @@ with ``--peer-python`` (an interpreter with OpenCV 4.x from PyPI).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -46,7 +45,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.results import write_section  # noqa: E402
+from bench import harness  # noqa: E402
 from vgripd.calib.handeye import (  # noqa: E402
     SOLVERS,
     Sample,
@@ -313,11 +312,11 @@ def visp(python: str | None) -> list[str]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--peer-python", default=os.environ.get("VGRIPD_BENCH_OPENCV_PYTHON"),
                     help="interpreter whose cv2 has calibrateHandEye (if ours lacks it)")
-    ap.add_argument("--no-write", action="store_true", help="do not touch bench/RESULTS.md")
     args = ap.parse_args()
     python = sys.executable if hasattr(cv2, "calibrateHandEye") else args.peer_python
     rng = np.random.default_rng(2026)
@@ -330,19 +329,16 @@ def main() -> None:
     lines.append(f"peer: OpenCV {version} calibrateHandEye ({python})" if version else
                  f"peer: none (cv2 {cv2.__version__} lacks calibrateHandEye; pass --peer-python)")
     text = "\n".join(lines)
-    print(text)
-    if not args.no_write:
-        import scipy
+    import scipy
 
-        env = (f"`.venv/bin/python bench/bench_handeye.py --trials {args.trials}"
-               + (" --peer-python PY`" if python == args.peer_python else "`")
-               + f", {time.strftime('%Y-%m-%d')}, {os.cpu_count()}-core VM shared with other "
-               f"jobs. Python {platform.python_version()}, numpy {np.__version__}, "
-               f"scipy {scipy.__version__}, OpenCV {cv2.__version__} (ours)"
-               + (f", peer OpenCV {version}" if version else "") + ".")
-        write_section("## Hand-eye calibration (issue 6)",
-                      f"## Hand-eye calibration (issue 6)\n\n{env}\n\n```\n{text}\n```\n"
-                      + SUMMARY)
+    env = (f"`.venv/bin/python bench/bench_handeye.py --trials {args.trials}"
+           + (" --peer-python PY`" if python == args.peer_python else "`")
+           + f", {time.strftime('%Y-%m-%d')}, {os.cpu_count()}-core VM shared with other "
+           f"jobs. Python {platform.python_version()}, numpy {np.__version__}, "
+           f"scipy {scipy.__version__}, OpenCV {cv2.__version__} (ours)"
+           + (f", peer OpenCV {version}" if version else "") + ".")
+    harness.report("Calibration", "Hand-eye calibration",
+                   f"{env}\n\n```\n{text}\n```\n" + SUMMARY, stamp, args.print_only)
 
 
 SUMMARY = """

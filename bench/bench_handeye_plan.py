@@ -2,7 +2,7 @@
 
 Run from the repository root with the project's interpreter::
 
-    .venv/bin/python bench/bench_handeye_plan.py [--seeds 10] [--count 15]
+    .venv/bin/python bench/bench_handeye_plan.py [--seeds 10] [--count 15] [--print-only]
 
 Scene (each seed draws its own hand-eye X and start pose): a 1280 x 960 camera (f 1500 px), a
 9 x 6 chessboard (25 mm) seen at 420 mm at the start pose, eye-in-hand and eye-to-hand. Two sets
@@ -16,14 +16,13 @@ of ``--count`` flange poses around the same start pose:
 
 Samples: the board corners projected from each pose with 0.1 px Gaussian noise, the reported
 robot poses with 0.02 deg and 0.05 mm per axis (an industrial robot's repeatability). Solved
-by ``calibrate_hand_eye`` (default likelihood objective, no leave-one-out). Printed per mode and
+by ``calibrate_hand_eye`` (default likelihood objective, no leave-one-out). Written (bench/RESULTS.md) per mode and
 set: median and worst over seeds of the result's error (mm, deg) and of the condition figure
 (``plan_condition``: condition, effective rotation).
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import statistics
 import sys
@@ -33,6 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench import harness  # noqa: E402
 from vgripd.calib.boards import Board  # noqa: E402
 from vgripd.calib.handeye import Sample, calibrate_hand_eye  # noqa: E402
 from vgripd.calib.handeye.plan import _view, plan_condition, plan_hand_eye  # noqa: E402
@@ -101,12 +101,12 @@ def solve(mode, X, poses, board, rng):
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser()
+    ap = harness.parser(__doc__)
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--count", type=int, default=15)
     args = ap.parse_args()
-    print(f"{args.count} poses per set, {args.seeds} seeds; corners 0.1 px, robot 0.02 deg / "
-          "0.05 mm per axis; planned box 250 mm / 30 deg; by hand <= 10 deg, <= 40 mm per axis")
+    stamp = harness.Stamp(harness.bench_command())
+    lines: list[str] = []
     for mode in ("eye-in-hand", "eye-to-hand"):
         rows: dict[str, list[tuple[float, float, float, float]]] = {"planned": [], "by hand": []}
         for seed in range(args.seeds):
@@ -123,11 +123,20 @@ def main() -> int:
                 rows[name].append((mm, deg, c.condition, c.effective_deg))
         for name, r in rows.items():
             mm, deg, cond, eff = (list(col) for col in zip(*r, strict=True))
-            print(f"{mode:12s} {name:8s} error median {statistics.median(mm):7.3f} mm "
+            lines.append(f"{mode:12s} {name:8s} error median {statistics.median(mm):7.3f} mm "
                   f"{statistics.median(deg):6.4f} deg, worst {max(mm):7.3f} mm "
                   f"{max(deg):6.4f} deg | condition median {statistics.median(cond):5.2f} "
                   f"(worst {max(cond):5.2f}), effective rotation median "
                   f"{statistics.median(eff):5.1f} deg (least {min(eff):4.1f})")
+    head = (f"{args.count} poses per set, {args.seeds} seeds, each drawing its own hand-eye X "
+            "and start pose; 1280x960 camera (f 1500 px), 9x6 chessboard (25 mm) at 420 mm; "
+            "corners 0.1 px, robot poses 0.02 deg / 0.05 mm per axis. Planned: `plan_hand_eye` "
+            "in a 250 mm / 30 deg box; by hand: the start pose turned by up to 10 deg about "
+            "random axes and moved up to 40 mm per axis (what people do when they jog the "
+            "robot), both with the board inside the image. Solved by `calibrate_hand_eye` "
+            "(likelihood); error against the truth, median and worst over seeds.")
+    harness.report("Calibration", "Planned hand-eye poses against a hand-made set",
+                   head + "\n\n```\n" + "\n".join(lines) + "\n```", stamp, args.print_only)
     return 0
 
 

@@ -27,14 +27,12 @@ Poses are compared with the truth (object pose in the base frame) by
 markdown section for bench/RESULTS.md (single-camera mode is not benchmarked: circle marks carry
 no identity, so vgripd locates them in stereo only).
 
-    .venv/bin/python bench/bench_locate.py [--pairs 100] [--write-results]
+    .venv/bin/python bench/bench_locate.py [--pairs 100] [--print-only]
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
-import datetime
 import os
 import sys
 import time
@@ -47,8 +45,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench import harness  # noqa: E402
 from bench import render_independent as indep  # noqa: E402
-from bench.results import write_section  # noqa: E402
 from drivers.cameras.synthetic import SyntheticCamera, SyntheticOptions  # noqa: E402
 from vgripd.config import Config, config_from_dict  # noqa: E402
 from vgripd.geometry.transforms import make_transform, pose_error  # noqa: E402
@@ -58,7 +56,7 @@ from vgripd.vision import scene  # noqa: E402
 from vgripd.vision.pipeline import Pipeline  # noqa: E402
 
 W, H, F = indep.W, indep.H, indep.F
-SECTION = "## Locate latency and accuracy (issue 3)"
+SECTION = "Locate latency and accuracy"
 
 
 def cell_config(plate: indep.Plate) -> Config:
@@ -284,13 +282,12 @@ def table(results: dict[str, dict[str, list[Row]]]) -> list[str]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     parser.add_argument("--pairs", type=int, default=100)
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument("--supersample", type=int, default=4,
                         help="samples per pixel and axis of the synthetic camera (vgripd's model)")
-    parser.add_argument("--write-results", action="store_true",
-                        help=f"replace the section {SECTION!r} in bench/RESULTS.md")
     args = parser.parse_args()
     plate = indep.Plate.from_toml()
     config = cell_config(plate)
@@ -325,10 +322,7 @@ def main() -> None:
     paired = max(float(np.abs(a - b).max()) for a, b in zip(*truths, strict=True)) < 1e-9
     check = indep.verify(indep.Cell(plate), 1, args.seed + 3)
     lines = [
-        SECTION,
-        "",
-        f"`.venv/bin/python bench/bench_locate.py --pairs {args.pairs} --write-results`, "
-        f"{datetime.date.today()}, 2-core machine shared with other work (load average "
+        "A 2-core machine shared with other work (load average "
         f"{load_before:.2f} before, {load_after:.2f} after). {W}x{H} 8-bit stereo pairs in memory "
         "-> object pose in the base frame; demo plate (six 10 mm dark marks, ~42 px) at ~840 mm, "
         "f = 3500 px, 200 mm baseline toed in, Brown distortion k1 = -0.05, blur 0.8 px, noise 2 "
@@ -393,10 +387,8 @@ def main() -> None:
         "other work shares the 2 cores), the errors do not. No target is stated for this "
         "benchmark.",
     ]
-    text = "\n".join(lines)
-    print(text)
-    if args.write_results:
-        write_section(SECTION, text + "\n")
+    harness.report("Vision: accuracy and locate time", SECTION, "\n".join(lines), stamp,
+                   args.print_only)
 
 
 if __name__ == "__main__":

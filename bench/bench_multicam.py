@@ -3,7 +3,7 @@ solver) vs chaining OpenCV's pairwise ``cv2.stereoCalibrate``, on the same board
 
 Run from the repository root::
 
-    .venv/bin/python bench/bench_multicam.py [--trials 5] [--write-results]
+    .venv/bin/python bench/bench_multicam.py [--trials 5] [--print-only]
 
 Synthetic cell: N cameras (2..8) in a row, 150 mm apart, 900 mm above the table, looking down,
 each tilted and rolled a little differently (fx ~800 px, 640x480, Brown distortion); a 7x5
@@ -42,7 +42,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.results import write_section  # noqa: E402
+from bench import harness  # noqa: E402
 from vgripd.calib.camera_poses import Observation, calibrate_cameras  # noqa: E402
 from vgripd.geometry.transforms import pose_error  # noqa: E402
 
@@ -133,10 +133,10 @@ def errors(T_0_c: list[np.ndarray], poses: list[np.ndarray]) -> np.ndarray:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     ap.add_argument("--trials", type=int, default=5)
     ap.add_argument("--cameras", default="2,3,4,6,8")
-    ap.add_argument("--write-results", action="store_true")
     args = ap.parse_args()
     load_before = os.getloadavg()
     rows = []
@@ -173,18 +173,13 @@ def main() -> None:
               f"deg; time ours {1e3 * row['t_ours']:.1f} ms, peer {1e3 * row['t_peer']:.1f} ms",
               flush=True)
     text = report(rows, args, load_before, os.getloadavg())
-    print()
-    print(text)
-    if args.write_results:
-        write_section("## N-camera calibration: joint bundle adjustment vs chained "
-                      "stereoCalibrate (issue 15)", text)
+    harness.report("Calibration", "N-camera calibration: joint bundle adjustment vs chained "
+                   "stereoCalibrate", text, stamp, args.print_only)
 
 
 def report(rows: list[dict], args: argparse.Namespace, load_before: tuple[float, ...],
            load_after: tuple[float, ...]) -> str:
     lines = [
-        "## N-camera calibration: joint bundle adjustment vs chained stereoCalibrate (issue 15)",
-        "",
         f"`.venv/bin/python bench/bench_multicam.py --trials {args.trials} --cameras "
         f"{args.cameras}`, {time.strftime('%Y-%m-%d')}, {platform.machine()}, 2 cores shared "
         f"with other work (load average {load_before[0]:.2f} before, {load_after[0]:.2f} "

@@ -22,16 +22,14 @@ The peer is given the rigs (which cameras pair) and the taught pose; vgripd find
 Errors: ``mm`` = the largest displacement of any of the 16 marks between the found and the true
 pose (the far face included: what a gripper at the far end would miss by); ``deg`` = rotation.
 
-    .venv/bin/python bench/bench_multiview.py [--poses 8] [--write-results]
+    .venv/bin/python bench/bench_multiview.py [--poses 8] [--print-only]
 """
 
 from __future__ import annotations
 
-import argparse
 import copy
 import math
 import os
-import platform
 import sys
 import time
 import tomllib
@@ -43,14 +41,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench import harness  # noqa: E402
 from bench import render_independent as indep  # noqa: E402
-from bench.results import write_section  # noqa: E402
 from vgripd.config import config_from_dict  # noqa: E402
 from vgripd.types import ImagePair  # noqa: E402
 from vgripd.vision.pipeline import Pipeline  # noqa: E402
 
 SAMPLE = ROOT / "config" / "samples" / "two_rigs_frame.toml"
-SECTION = "## Multi-camera locating: N cameras around a 1.5 m frame"
+SECTION = "Multi-camera locating: N cameras around a 1.5 m frame"
 W, H = 1280, 1024
 DIST = [-0.05, 0.08, 0.0002, -0.0001, 0.0]
 INTRINSICS = {"fx": 1400.0, "fy": 1400.0, "cx": 639.5 + 1.7, "cy": 511.5 - 0.9, "dist": DIST,
@@ -229,10 +227,10 @@ def stats(values: list[float]) -> tuple[float, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     parser.add_argument("--poses", type=int, default=8)
     parser.add_argument("--seed", type=int, default=5)
-    parser.add_argument("--write-results", action="store_true")
     args = parser.parse_args()
     with SAMPLE.open("rb") as fh:
         doc = tomllib.load(fh)
@@ -298,22 +296,15 @@ def main() -> None:
             f"{float(np.median(p['ms'])):.1f} / {float(np.median(p['cpu_ms'])):.1f} | "
             f"{st}{fail} |")
     text = "\n".join(table)
-    print(text)
     print(f"{elapsed:.0f} s, load {load_before} -> {load_after}")
-    if args.write_results:
-        head = [SECTION, "",
-                f"`.venv/bin/python bench/bench_multiview.py --poses {args.poses} "
-                f"--write-results`, {time.strftime('%Y-%m-%d')}, {platform.machine()}, "
-                f"{os.cpu_count()} cores shared with other work (load average "
-                f"{' '.join(f'{x:.2f}' for x in load_before)} before, "
-                f"{' '.join(f'{x:.2f}' for x in load_after)} after), Python "
-                f"{platform.python_version()}. {args.poses} poses of the frame (shift +-"
-                f"{MAX_SHIFT_MM:g} mm, tilt +-{MAX_TILT_DEG:g} deg), the same for every row, "
-                f"rendered independently of vgripd at {W}x{H}; errors are the largest "
-                "displacement of any of the 16 marks (far face included) and the rotation "
-                "angle, against the rendered truth. Peer: pairwise cv2.triangulatePoints per "
-                "rig, averaging, Kabsch (bench/bench_multiview.py docstring).", "", text, ""]
-        write_section(SECTION, "\n".join(head))
+    head = [f"{args.poses} poses of the frame (shift +-"
+            f"{MAX_SHIFT_MM:g} mm, tilt +-{MAX_TILT_DEG:g} deg), the same for every row, "
+            f"rendered independently of vgripd at {W}x{H}; errors are the largest "
+            "displacement of any of the 16 marks (far face included) and the rotation "
+            "angle, against the rendered truth. Peer: pairwise cv2.triangulatePoints per "
+            "rig, averaging, Kabsch (bench/bench_multiview.py docstring).", "", text, ""]
+    harness.report("Vision: accuracy and locate time", SECTION, "\n".join(head), stamp,
+                   args.print_only)
 
 
 if __name__ == "__main__":

@@ -1,20 +1,27 @@
-"""Emptying a pallet over Modbus/TCP: one TRIGGER and NEXTs vs one TRIGGER per plate, same run.
+"""Emptying a pallet: one request and NEXTs vs a request per plate, over Modbus/TCP or OPC UA.
 
 The real daemon (worker process, vision pipeline) on the synthetic pallet of six touching
-plates (config/samples/pallet.toml's scene), its Modbus/TCP server on 127.0.0.1, and the mock
-PLC (``vgripd.sim.plc``) polling every 5 ms. Per pallet the PLC needs one pose per plate:
+plates (config/samples/pallet.toml's scene), its link on 127.0.0.1, and the link's peer client
+doing what the link's page tells a PLC to. Per pallet the client needs one pose per plate:
 
-- pick list: one TRIGGER (every plate located in one job), then NEXT until NOT_FOUND;
-- named peer, "a job per plate": what a map version 2 PLC does without NEXT, one TRIGGER per
-  plate taken (each a full acquisition and location of the whole pallet, the first pose used).
+- pick list: one request (every plate located in one job), then NEXT until NOT_FOUND;
+- named peer, "a job per plate": what a client without NEXT does, one request per plate taken
+  (each a full acquisition and location of the whole pallet, the first pose used).
 
-Time is on the PLC's clock, from the first request written to the last answer seen; the figure
-is ms per plate handed out. The two alternate pallet by pallet, so load changes hit both. The
-pose errors of the pick list's plates against the synthetic camera's truth are a sanity check
-that the list is the pallet, not an accuracy benchmark (the vision's pick list accuracy bench
+``--link modbus``: the mock PLC (``vgripd.sim.plc``) polling every 5 ms; time on its clock, from
+the first request written to the last answer seen. ``--link opcua`` (security None): asyncua's
+client in its own process (``vgripd.sim.opcua_client``): call ``StartSingleJob``, poll
+``Result.RequestId`` until it is the call's, read the result in one Read request, wait for the
+ResultReady event; time on this process's clock around each command sent to the client process
+(the same pipe overhead for both ways), and the median round trip of one ``Next`` against one
+``StartSingleJob`` (the job's own time included).
+
+The figure is ms per plate handed out; the two ways alternate pallet by pallet, so load changes
+hit both. The pose errors of the pick list's plates against the synthetic camera's truth are a
+sanity check that the list is the pallet, not an accuracy benchmark (bench/bench_picklist.py
 renders with the independent path of ``bench/render_independent.py``).
 
-    .venv/bin/python bench/bench_next.py [pallets]
+    .venv/bin/python bench/bench_next.py [--link modbus|opcua] [--pallets 5] [--print-only]
 """
 
 from __future__ import annotations
@@ -30,9 +37,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
+from bench import harness  # noqa: E402
 from vgripd.config import config_from_dict  # noqa: E402
 from vgripd.geometry.transforms import pose_error  # noqa: E402
 from vgripd.service.daemon import Daemon, JobRecord  # noqa: E402
+from vgripd.sim.opcua_client import OpcUaClientProcess  # noqa: E402
 from vgripd.sim.plc import MockPlc  # noqa: E402
 from vgripd.types import ImagePair, Status  # noqa: E402
 
@@ -71,20 +80,21 @@ def plate_errors(job: tuple[ImagePair | None, JobRecord]) -> list[tuple[float, f
 
 
 def report(what: str, listed: list[float], per_plate: list[float],
-           errors: list[tuple[float, float]], list_way: str, peer_way: str) -> None:
+           errors: list[tuple[float, float]], list_way: str, peer_way: str) -> list[str]:
     a, b = statistics.median(listed), statistics.median(per_plate)
     e = np.array(errors)
-    print(what)
-    print(f"pick list ({list_way}):  median {a:7.1f} ms per plate "
-          f"(min {min(listed):.1f}, max {max(listed):.1f})")
-    print(f"a job per plate ({peer_way} x {PLATES}): median {b:7.1f} ms per plate "
-          f"(min {min(per_plate):.1f}, max {max(per_plate):.1f})")
-    print(f"ratio (job per plate / pick list): x{b / a:.2f}")
-    print(f"sanity: pick list poses vs the synthetic camera's truth over {len(e)} plates: "
-          f"max {e[:, 0].max():.3f} mm, {e[:, 1].max():.3f} deg (mean {e[:, 0].mean():.3f} mm)")
+    return [
+        what, "",
+        "| way to get six poses | median ms per plate | min | max |", "|---|---:|---:|---:|",
+        f"| pick list: {list_way} | {a:.1f} | {min(listed):.1f} | {max(listed):.1f} |",
+        f"| a job per plate: {peer_way} x {PLATES} | {b:.1f} | {min(per_plate):.1f} | "
+        f"{max(per_plate):.1f} |", "",
+        f"Ratio (job per plate / pick list): x{b / a:.2f}. Sanity: the pick list's poses against "
+        f"the synthetic camera's truth over {len(e)} plates: max {e[:, 0].max():.3f} mm, "
+        f"{e[:, 1].max():.3f} deg (mean {e[:, 0].mean():.3f} mm)."]
 
 
-async def main(pallets: int) -> None:
+async def over_modbus(pallets: int) -> list[str]:
     daemon, jobs = await started_daemon([{"type": "modbus_server", "host": "127.0.0.1",
                                           "port": 0}])
     listed: list[float] = []
@@ -108,9 +118,77 @@ async def main(pallets: int) -> None:
                 per_plate.append((time.perf_counter() - t0) * 1e3 / PLATES)
     finally:
         await daemon.stop()
-    report(f"{pallets} pallets of {PLATES} plates, Modbus/TCP on 127.0.0.1, PLC polling 5 ms",
-           listed, per_plate, errors, "1 TRIGGER + NEXT", "TRIGGER")
+    return report(f"{pallets} pallets of {PLATES} plates, Modbus/TCP on 127.0.0.1, PLC polling "
+                  "5 ms.", listed, per_plate, errors, "1 TRIGGER + NEXT", "TRIGGER")
+
+
+OPCUA_LINK = {"type": "opcua", "host": "127.0.0.1", "port": 0, "security": ["None"],
+        "allow_anonymous": True}
+
+
+async def timed(client: OpcUaClientProcess, line: str) -> tuple[dict[str, Any], float]:
+    t0 = time.perf_counter()
+    answer = await client.send(line)
+    assert answer["event"] == "result", answer
+    return answer, (time.perf_counter() - t0) * 1e3
+
+
+async def over_opcua(pallets: int) -> list[str]:
+    daemon, jobs = await started_daemon([OPCUA_LINK])
+    listed: list[float] = []
+    per_plate: list[float] = []
+    next_ms: list[float] = []
+    job_ms: list[float] = []
+    errors: list[tuple[float, float]] = []
+    try:
+        port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+        async with OpcUaClientProcess(f"opc.tcp://127.0.0.1:{port}/vgripd") as client:
+            assert client.connected["event"] == "connected", client.connected
+            await timed(client, "job")  # warm-up: the worker's first job
+            for _ in range(pallets):
+                t0 = time.perf_counter()
+                first, ms = await timed(client, "job")
+                job_ms.append(ms)
+                answers = [first]
+                while answers[-1]["Status"] in (1, 2):
+                    answer, ms = await timed(client, "next")
+                    next_ms.append(ms)
+                    answers.append(answer)
+                listed.append((time.perf_counter() - t0) * 1e3 / PLATES)
+                assert len(answers) == PLATES + 1, [a["StatusName"] for a in answers]
+                errors += plate_errors(jobs[first["JobId"]])
+                t0 = time.perf_counter()
+                for _ in range(PLATES):
+                    answer, ms = await timed(client, "job")
+                    assert answer["Status"] == Status.OK, answer
+                    job_ms.append(ms)
+                per_plate.append((time.perf_counter() - t0) * 1e3 / PLATES)
+    finally:
+        await daemon.stop()
+    lines = report(f"{pallets} pallets of {PLATES} plates, OPC UA (asyncua client process) on "
+                   "127.0.0.1, security None.", listed, per_plate, errors,
+                   "StartSingleJob + Next", "StartSingleJob")
+    n, j = statistics.median(next_ms), statistics.median(job_ms)
+    return [*lines, "", f"One Next: median {n:.1f} ms (min {min(next_ms):.1f}, max "
+            f"{max(next_ms):.1f}, {len(next_ms)} calls); one StartSingleJob: median {j:.1f} ms "
+            f"({len(job_ms)} calls); ratio x{j / n:.1f}."]
+
+SECTIONS = {
+    "modbus": ("Pick lists over Modbus/TCP: one TRIGGER and NEXT vs a job per plate", over_modbus),
+    "opcua": ("Pick lists over OPC UA: StartSingleJob and Next vs a job per plate", over_opcua),
+}
+
+
+def main() -> None:
+    ap = harness.parser(__doc__)
+    ap.add_argument("--link", choices=sorted(SECTIONS), default="modbus")
+    ap.add_argument("--pallets", type=int, default=5)
+    args = ap.parse_args()
+    stamp = harness.Stamp(harness.bench_command())
+    heading, run = SECTIONS[args.link]
+    lines = asyncio.run(run(args.pallets))
+    harness.report("Pick lists", heading, "\n".join(lines), stamp, args.print_only)
 
 
 if __name__ == "__main__":
-    asyncio.run(main(int(sys.argv[1]) if len(sys.argv) > 1 else 5))
+    main()

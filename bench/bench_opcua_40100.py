@@ -23,7 +23,7 @@
    network add: the call's round trip before the trigger, the publish's writes, the event's
    way to the client (at most one publishing interval).
 
-    .venv/bin/python bench/bench_opcua_40100.py [jobs] [--write-results]
+    .venv/bin/python bench/bench_opcua_40100.py [jobs] [--print-only]
 """
 
 from __future__ import annotations
@@ -31,8 +31,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -45,7 +43,7 @@ sys.path.insert(0, str(REPO))
 
 from asyncua import Client, ua  # noqa: E402
 
-from bench.results import write_section  # noqa: E402
+from bench import harness  # noqa: E402
 from drivers.links.opcua import OpcUaLink, OpcUaOptions  # noqa: E402
 from drivers.links.opcua_vision import (  # noqa: E402
     INSTANCE_URI,
@@ -58,7 +56,7 @@ from vgripd.service.daemon import Daemon, JobRecord  # noqa: E402
 from vgripd.service.protocol import LinkState  # noqa: E402
 from vgripd.types import ImagePair  # noqa: E402
 
-HEADING = "## OPC 40100 on the official NodeSet against the older namespace (issue 32)"
+HEADING = "OPC 40100 on the official NodeSet against the older namespace"
 OLD_NS = "urn:vgripd:machine-vision"
 STARTS = 3
 BLOCK = 5
@@ -229,24 +227,16 @@ async def latency(jobs: int) -> tuple[dict[str, list[float]], dict[str, list[flo
 
 
 def p95(xs: list[float]) -> float:
-    s = sorted(xs)
-    return s[int(0.95 * (len(s) - 1))]
+    return harness.percentile(xs, 95)
 
 
-def this_commit() -> str:
-    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                          text=True, cwd=REPO).stdout.strip()
-
-
-async def main(jobs: int, write: bool) -> None:
+async def main(jobs: int, print_only: bool) -> None:
     import asyncua
 
+    stamp = harness.Stamp(harness.bench_command())
     t_start = time.perf_counter()
-    load_before = os.getloadavg()
     started = await starts()
     client, over = await latency(jobs)
-    load_after = os.getloadavg()
-    commit = this_commit()
     start_rows = []
     for name, runs in started.items():
         med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
@@ -258,15 +248,10 @@ async def main(jobs: int, write: bool) -> None:
     job_rows = [f"| {names[k]} | {statistics.median(client[k]):.1f} | {p95(client[k]):.1f} | "
                 f"{statistics.median(over[k]):.1f} | {p95(over[k]):.1f} |" for k in names]
     a, b = (statistics.median(over[k]) for k in ("40100", "old"))
-    head = (f"`.venv/bin/python bench/bench_opcua_40100.py {jobs} --write-results`, commit "
-            f"{commit}, {time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} "
-            f"cores shared with other work (load average "
-            f"{' '.join(f'{x:.2f}' for x in load_before)} before, "
-            f"{' '.join(f'{x:.2f}' for x in load_after)} after), Python "
-            f"{platform.python_version()}, asyncua {getattr(asyncua, '__version__', '?')}; "
+    head = (f"asyncua {getattr(asyncua, '__version__', '?')}; "
             f"{time.perf_counter() - t_start:.0f} s in all.")
     text = "\n".join([
-        HEADING, "", head, "",
+        head, "",
         f"Start of the link (security None, anonymous), a fresh process each, {STARTS} starts "
         "per row alternating, medians:", "",
         "| models | open, wall s | open, CPU s | RSS after open, MB | RSS added by open, MB |",
@@ -289,9 +274,7 @@ async def main(jobs: int, write: bool) -> None:
         "opcua_nodeset.prune removes the same nodes and references in about 0.02 s, which the "
         "NodeSet row above includes.",
     ])
-    print(text)
-    if write:
-        write_section(HEADING, text)
+    harness.report("Links", HEADING, text, stamp, print_only)
 
 
 if __name__ == "__main__":
@@ -300,5 +283,7 @@ if __name__ == "__main__":
     elif len(sys.argv) > 1 and sys.argv[1] == "--client":
         asyncio.run(client_main(sys.argv[2], int(sys.argv[3])))
     else:
-        args = [a for a in sys.argv[1:] if not a.startswith("--")]
-        asyncio.run(main(int(args[0]) if args else 60, "--write-results" in sys.argv))
+        ap = harness.parser(__doc__)
+        ap.add_argument("jobs", type=int, nargs="?", default=60)
+        args = ap.parse_args()
+        asyncio.run(main(args.jobs, args.print_only))

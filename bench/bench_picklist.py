@@ -17,17 +17,14 @@ Per scene, on the same plates and the same noise:
   generator state), as a cell without pick lists would have to be used: one plate at a time.
 
 Prints per-instance error (translation mm, rotation deg: RMS, max), time per instance and the
-ratio, and with ``--write-results`` the section of bench/RESULTS.md.
+ratio, and its section of bench/RESULTS.md (``--print-only``: printed only).
 
-    .venv/bin/python bench/bench_picklist.py [--scenes 3] [--plates 6] [--write-results]
+    .venv/bin/python bench/bench_picklist.py [--scenes 3] [--plates 6] [--print-only]
 """
 
 from __future__ import annotations
 
-import argparse
-import datetime
 import math
-import os
 import sys
 import time
 from collections import Counter
@@ -39,14 +36,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench import harness  # noqa: E402
 from bench import render_independent as indep  # noqa: E402
-from bench.results import write_section  # noqa: E402
 from vgripd.config import Config, config_from_dict  # noqa: E402
 from vgripd.geometry.transforms import pose_error  # noqa: E402
 from vgripd.types import ImagePair  # noqa: E402
 from vgripd.vision.pipeline import Pipeline  # noqa: E402
 
-SECTION = "## Pick lists: accuracy and time per instance (issue 15)"
+SECTION = "Pick lists: accuracy and time per instance"
 JITTER_MM, JITTER_DEG = 2.0, 3.0
 
 
@@ -132,11 +129,11 @@ def render(cell: indep.Cell, poses: list[np.ndarray], seed: int) -> ImagePair:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     ap.add_argument("--scenes", type=int, default=3)
     ap.add_argument("--plates", type=int, default=6)
     ap.add_argument("--seed", type=int, default=15)
-    ap.add_argument("--write-results", action="store_true")
     args = ap.parse_args()
 
     plate = indep.Plate.from_toml()
@@ -199,26 +196,20 @@ def main() -> None:
     print(f"time per instance, pick list / single object: {ratio:.2f}; pick-list job median "
           f"{np.median(jobs_ms):.1f} ms for {args.plates} plates")
     print(f"rendering: {render_s:.1f} s")
-    if args.write_results:
-        load = " ".join(f"{x:.2f}" for x in os.getloadavg())
-        body = (
-            f"{SECTION}\n\n"
-            f"`.venv/bin/python bench/bench_picklist.py --scenes {args.scenes} --plates "
-            f"{args.plates} --write-results`, {datetime.date.today()}, "
-            f"{os.cpu_count()} cores shared with other work (load average {load}), Python "
-            f"{sys.version.split()[0]}. render_independent's 5 MP stereo cell; {args.scenes} "
-            f"pallets of {args.plates} demo plates (3 columns, footprints touching, +-{JITTER_MM:g}"
-            f" mm, +-{JITTER_DEG:g} deg), rendered by the bench with OpenCV's projection (no "
-            "vgripd code); truth = the poses drawn. Pick list: one job per pallet "
-            f"(`picking.max_objects = {args.plates}`), its time divided by the instances "
-            "returned. Peer: the single-object path (`max_objects = 1`), one job per plate on a "
-            "pair of that plate alone, same pose and noise.\n\n"
-            f"{text}\n\n"
-            f"Time per instance, pick list / single object: **{ratio:.2f}** (median); a whole "
-            f"pick-list job took {np.median(jobs_ms):.0f} ms (median) for {args.plates} plates, "
-            f"against {args.plates} x {med['single object']:.0f} ms one plate at a time.\n"
-        )
-        write_section(SECTION, body)
+    body = (
+        f"render_independent's 5 MP stereo cell; {args.scenes} "
+        f"pallets of {args.plates} demo plates (3 columns, footprints touching, +-{JITTER_MM:g}"
+        f" mm, +-{JITTER_DEG:g} deg), rendered by the bench with OpenCV's projection (no "
+        "vgripd code); truth = the poses drawn. Pick list: one job per pallet "
+        f"(`picking.max_objects = {args.plates}`), its time divided by the instances "
+        "returned. Peer: the single-object path (`max_objects = 1`), one job per plate on a "
+        "pair of that plate alone, same pose and noise.\n\n"
+        f"{text}\n\n"
+        f"Time per instance, pick list / single object: **{ratio:.2f}** (median); a whole "
+        f"pick-list job took {np.median(jobs_ms):.0f} ms (median) for {args.plates} plates, "
+        f"against {args.plates} x {med['single object']:.0f} ms one plate at a time.\n"
+    )
+    harness.report("Pick lists", SECTION, body, stamp, args.print_only)
 
 
 if __name__ == "__main__":

@@ -17,17 +17,14 @@ Per pallet:
   plate alone, same pose and noise): the time a cell without pick lists spends on the pallet.
 
 Errors of every plate against the truth for both. No timed assertion anywhere; the figures are
-printed, and with ``--write-results`` appended to bench/RESULTS.md.
+printed and written to its section of bench/RESULTS.md.
 
-    .venv/bin/python bench/bench_pickscale.py [--plates 6 12 24] [--repeat 3] [--write-results]
+    .venv/bin/python bench/bench_pickscale.py [--plates 6 12 24] [--repeat 3] [--print-only]
 """
 
 from __future__ import annotations
 
-import argparse
-import datetime
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -38,15 +35,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench import harness  # noqa: E402
 from bench import render_independent as indep  # noqa: E402
 from bench.bench_picklist import cell_config, pallet, render  # noqa: E402
-from bench.results import write_section  # noqa: E402
 from vgripd.config import Config, config_from_dict  # noqa: E402
 from vgripd.geometry.transforms import pose_error  # noqa: E402
 from vgripd.types import ImagePair  # noqa: E402
 from vgripd.vision.pipeline import Pipeline  # noqa: E402
 
-SECTION = "## Pick lists at 6, 12 and 24 plates: time per job (pickreview)"
+SECTION = "Pick lists at 6, 12 and 24 plates: time per job"
 SCALE = 0.5
 COLUMNS = 6
 
@@ -176,11 +173,11 @@ def mono_rows(counts: list[int], repeat: int, rng: np.random.Generator) -> list[
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     ap.add_argument("--plates", type=int, nargs="+", default=[6, 12, 24])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=24)
-    ap.add_argument("--write-results", action="store_true")
     args = ap.parse_args()
 
     plate = half_plate()
@@ -230,29 +227,23 @@ def main() -> None:
     print(text)
     mono = "\n".join(mono_rows(args.plates, args.repeat, rng))
     print(mono)
-    if args.write_results:
-        load = " ".join(f"{x:.2f}" for x in os.getloadavg())
-        body = (
-            f"{SECTION}\n\n"
-            f"`.venv/bin/python bench/bench_pickscale.py --plates {' '.join(map(str, args.plates))}"
-            f" --repeat {args.repeat} --write-results`, {datetime.date.today()}, "
-            f"{os.cpu_count()} cores shared with other work (load average {load}), Python "
-            f"{sys.version.split()[0]}. render_independent's 5 MP stereo cell, the demo plate at "
-            f"half size (5 mm marks), one pallet per size in {COLUMNS} columns, footprints "
-            "touching, rendered by the bench (no vgripd code); truth = the poses drawn. Pick "
-            f"list: one job per pallet, median of {args.repeat}; grouping = the job's `pose` "
-            "lap. Peer: the single-object path, one job per plate on a pair of that plate "
-            "alone (same pose and noise), summed; ratio = pick-list job / that sum.\n\n"
-            f"{text}\n\n"
-            "One camera, ArUco on every plate: the demo cell's left camera (distortion-free), "
-            "a plate of five 30 mm markers, pallets in 5 columns 1.6 m away rendered by the "
-            "bench (OpenCV's marker images warped by their corners' homography, no vgripd "
-            "code). Peer: the single-object path on an image of each plate alone; the last "
-            "column is the largest difference between the two poses of a plate (one camera's "
-            "depth error itself is the same for both, a millimetre or two at this distance).\n\n"
-            f"{mono}\n"
-        )
-        write_section(SECTION, body)
+    body = (
+        f"render_independent's 5 MP stereo cell, the demo plate at "
+        f"half size (5 mm marks), one pallet per size in {COLUMNS} columns, footprints "
+        "touching, rendered by the bench (no vgripd code); truth = the poses drawn. Pick "
+        f"list: one job per pallet, median of {args.repeat}; grouping = the job's `pose` "
+        "lap. Peer: the single-object path, one job per plate on a pair of that plate "
+        "alone (same pose and noise), summed; ratio = pick-list job / that sum.\n\n"
+        f"{text}\n\n"
+        "One camera, ArUco on every plate: the demo cell's left camera (distortion-free), "
+        "a plate of five 30 mm markers, pallets in 5 columns 1.6 m away rendered by the "
+        "bench (OpenCV's marker images warped by their corners' homography, no vgripd "
+        "code). Peer: the single-object path on an image of each plate alone; the last "
+        "column is the largest difference between the two poses of a plate (one camera's "
+        "depth error itself is the same for both, a millimetre or two at this distance).\n\n"
+        f"{mono}\n"
+    )
+    harness.report("Pick lists", SECTION, body, stamp, args.print_only)
 
 
 if __name__ == "__main__":

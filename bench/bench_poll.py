@@ -28,206 +28,41 @@ The PLC stand-in runs under SCHED_FIFO when the system allows it (``--no-realtim
 not): a real PLC is a device of its own, and on a loaded machine the stand-in's own wake-ups
 would otherwise be in every figure, the peer's too.
 
-Run: ``.venv/bin/python bench/bench_poll.py [--seconds 20] [--write-results]``
+Run: ``.venv/bin/python bench/bench_poll.py [--seconds 20] [--print-only]``
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
-import contextlib
-import json
 import math
 import os
-import platform
-import signal
-import socket
 import statistics
 import sys
 import tempfile
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.results import write_section  # noqa: E402
-from vgripd.service.protocol import MAP_SIZE, Reg  # noqa: E402
-from vgripd.types import Status  # noqa: E402
+from bench.harness import (  # noqa: E402
+    DaemonProcess,
+    Stamp,
+    bench_command,
+    load_average,
+    percentile,
+    report,
+    run_client,
+    static_modbus_server,
+)
+from bench.harness import parser as bench_parser  # noqa: E402
+from vgripd.service.protocol import MAP_SIZE  # noqa: E402
 
-POLL_PERIOD_S = 0.01
-SECTION = "## Modbus poll latency (issue 4)"
+SUBJECT = "Daemon: polls, jobs, memory"
+SECTION = "Modbus poll latency while jobs run"
 TARGET_P99_MS = 2.0
 TARGET_MAX_MS = 10.0
-START_TIMEOUT_S = 120.0
-
-
-# --- the PLC stand-in (child process) -----------------------------------------------------------
-
-def client_main(port: int, mode: str, seconds: float, jobs: int) -> None:
-    """Poll all registers at 100 Hz for ``seconds`` (or until ``jobs`` results in cycle mode);
-    in ``cycle`` mode trigger the next job as soon as the last result is read. JSON on stdout."""
-    from pymodbus.client import ModbusTcpClient
-
-    realtime = os.environ.get("BENCH_CLIENT_REALTIME") == "1"
-    if realtime:
-        try:  # a real PLC is a device of its own: keep our stand-in's wake-ups out of the figures
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
-        except PermissionError:
-            realtime = False
-    client = ModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
-    assert client.connect()
-    rtt_ms: list[float] = []
-    cycle_ms: list[float] = []
-    statuses: dict[str, int] = {}
-    end = time.monotonic() + seconds if seconds > 0 else float("inf")
-    try:
-        _poll_loop(client, mode, end, jobs, rtt_ms, cycle_ms, statuses)
-        error = ""
-    except Exception as err:  # the server went away: report what was measured until then
-        error = f"{type(err).__name__}: {err}"
-    client.close()
-    print(json.dumps({"rtt_ms": rtt_ms, "cycle_ms": cycle_ms, "statuses": statuses,
-                      "realtime": realtime, "error": error}))
-
-
-def _poll_loop(client: Any, mode: str, end: float, jobs: int, rtt_ms: list[float],
-               cycle_ms: list[float], statuses: dict[str, int]) -> None:
-    seq = 0
-    pending: tuple[int, float] | None = None
-    next_tick = time.monotonic()
-    while time.monotonic() < end and (not jobs or len(cycle_ms) < jobs):
-        if mode == "cycle" and pending is None:
-            seq = seq % 0xFFFF + 1
-            pending = (seq, time.perf_counter())
-            r = client.write_registers(Reg.CMD, [1, seq, 0], device_id=1)
-            assert not r.isError(), r
-        t0 = time.perf_counter()
-        r = client.read_holding_registers(0, count=MAP_SIZE, device_id=1)
-        t1 = time.perf_counter()
-        assert not r.isError(), r
-        rtt_ms.append(round((t1 - t0) * 1000, 4))
-        if pending is not None and r.registers[Reg.ACK_SEQ] == pending[0]:
-            name = Status(r.registers[Reg.STATUS]).name
-            statuses[name] = statuses.get(name, 0) + 1
-            cycle_ms.append(round((t1 - pending[1]) * 1000, 3))
-            pending = None
-        next_tick += POLL_PERIOD_S
-        delay = next_tick - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
-        else:
-            next_tick = time.monotonic()
-
-
-async def run_client(port: int, mode: str, seconds: float, jobs: int = 0,
-                     allow_error: bool = False) -> dict[str, Any]:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, __file__, "--client", str(port), mode, str(seconds), str(jobs),
-        stdout=asyncio.subprocess.PIPE,
-    )
-    out, _ = await proc.communicate()
-    assert proc.returncode == 0, "bench client failed"
-    result: dict[str, Any] = json.loads(out)
-    if result["error"] and not allow_error:
-        raise RuntimeError(f"bench client: {result['error']}")
-    return result
-
-
-# --- the real daemon (child process) ---------------------------------------------------------
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
-async def get_status(port: int) -> dict[str, Any]:
-    """``GET /status`` of a daemon (plain asyncio, no thread)."""
-    reader, writer = await asyncio.open_connection("127.0.0.1", port)
-    writer.write(b"GET /status HTTP/1.0\r\n\r\n")
-    data = await reader.read()
-    writer.close()
-    with contextlib.suppress(ConnectionError):
-        await writer.wait_closed()
-    status: dict[str, Any] = json.loads(data.partition(b"\r\n\r\n")[2])
-    return status
-
-
-class DaemonProcess:
-    """``python -m vgripd run`` on a generated config; its log goes to ``folder/daemon.log``."""
-
-    def __init__(self, folder: Path, worker: bool, record: bool = True, max_mb: float = 200.0,
-                 log_level: str = "INFO", command: list[str] | None = None) -> None:
-        self.folder = folder
-        self.port = free_port()
-        self.status_port = free_port()
-        self.config = folder / "vgripd.toml"
-        folder.mkdir(parents=True, exist_ok=True)
-        self.config.write_text(f"""
-[camera]
-type = "synthetic"
-seed = 3
-max_tilt_deg = 2.0
-
-[[links]]
-type = "modbus_server"
-host = "127.0.0.1"
-port = {self.port}
-
-[status]
-port = {self.status_port}
-
-[daemon]
-worker = {str(worker).lower()}
-log_level = "{log_level}"
-
-[record]
-enabled = {str(record).lower()}
-folder = "{folder / 'record'}"
-max_mb = {max_mb}
-""")
-        self.proc: asyncio.subprocess.Process | None = None
-        self.command = command or [sys.executable, "-m", "vgripd", "run", "-c", str(self.config)]
-
-    async def __aenter__(self) -> DaemonProcess:
-        log = (self.folder / "daemon.log").open("ab")
-        self.proc = await asyncio.create_subprocess_exec(
-            *self.command, cwd=REPO,
-            env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=log, stderr=log)
-        log.close()
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while True:
-            assert self.proc.returncode is None, f"daemon exited, see {self.folder}/daemon.log"
-            with contextlib.suppress(OSError, ValueError):
-                if (await self.status())["run_state"] == "running":
-                    return self
-            assert time.monotonic() < deadline, "daemon did not start"
-            await asyncio.sleep(0.2)
-
-    async def __aexit__(self, *exc: object) -> None:
-        assert self.proc is not None
-        if self.proc.returncode is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                async with asyncio.timeout(30):
-                    await self.proc.wait()
-            except TimeoutError:
-                self.proc.kill()
-                await self.proc.wait()
-
-    @property
-    def pid(self) -> int:
-        assert self.proc is not None
-        return self.proc.pid
-
-    async def status(self) -> dict[str, Any]:
-        return await get_status(self.status_port)
 
 
 def realtime_command(config: Path) -> list[str]:
@@ -260,7 +95,7 @@ async def bench_daemon(folder: Path, worker: bool, seconds: float, jobs: bool = 
 
 async def bench_peer_beside_daemon(folder: Path, seconds: float) -> dict[str, Any]:
     """The plain pymodbus server polled while a worker daemon runs jobs back to back."""
-    server, port = await static_server()
+    server, port = await static_modbus_server()
     try:
         async with DaemonProcess(folder, worker=True) as daemon:
             driver = asyncio.create_task(run_client(daemon.port, "cycle", seconds + 4))
@@ -275,7 +110,7 @@ async def bench_peer_beside_daemon(folder: Path, seconds: float) -> dict[str, An
 
 # --- as the shipped unit runs it, against another checkout, interleaved ---------------------
 
-SHIPPED_SECTION = "## Modbus poll latency as the shipped unit runs it (issue 22)"
+SHIPPED_SECTION = "Modbus poll latency as the shipped unit runs it"
 
 
 def unit_nice(tree: Path) -> int:
@@ -320,7 +155,7 @@ async def shipped_daemon(folder: Path, tree: Path, seconds: float) -> dict[str, 
 
 async def shipped_peer(folder: Path, tree: Path, seconds: float) -> dict[str, Any]:
     """The plain pymodbus server polled beside ``tree``'s daemon as shipped running jobs."""
-    server, port = await static_server()
+    server, port = await static_modbus_server()
     try:
         daemon = DaemonProcess(folder, worker=True)
         daemon.command = shipped_command(tree, daemon.config)
@@ -341,10 +176,10 @@ def merged(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "load_jobs": sum(r.get("load_jobs", 0) for r in runs)}
 
 
-async def main_shipped(seconds: float, rounds: int, base: Path, write: bool) -> None:
+async def main_shipped(seconds: float, rounds: int, base: Path, print_only: bool) -> None:
     """This tree and ``base`` each as its own unit runs it, and the plain pymodbus server
     beside this tree's daemon, interleaved round by round so all see the same load."""
-    before_load = load_average()
+    stamp = Stamp(bench_command())
     runs: dict[str, list[dict[str, Any]]] = {"this": [], "base": [], "peer": []}
     rounds_text = []
     with tempfile.TemporaryDirectory(prefix="bench_poll-") as tmp:
@@ -355,20 +190,14 @@ async def main_shipped(seconds: float, rounds: int, base: Path, write: bool) -> 
                 got = await job(Path(tmp) / f"{name}{i}")
                 runs[name].append(got)
                 rtt = got["rtt_ms"]
-                rounds_text.append(f"{name} round {i + 1}: p99 {pct(rtt, 99):.2f} max "
+                rounds_text.append(f"{name} round {i + 1}: p99 {percentile(rtt, 99):.2f} max "
                                    f"{max(rtt):.2f} ms")
                 print(rounds_text[-1], flush=True)
-    after_load = load_average()
     this, old, peer = merged(runs["this"]), merged(runs["base"]), merged(runs["peer"])
-    p99, worst = pct(this["rtt_ms"], 99), max(this["rtt_ms"])
+    p99, worst = percentile(this["rtt_ms"], 99), max(this["rtt_ms"])
     met = p99 <= TARGET_P99_MS and worst <= TARGET_MAX_MS
     lines = [
-        SHIPPED_SECTION,
-        "",
-        f"`.venv/bin/python bench/bench_poll.py --shipped BASE --rounds {rounds} --seconds "
-        f"{seconds:g} --write-results`, {time.strftime('%Y-%m-%d %H:%M')}, "
-        f"{platform.machine()}, {os.cpu_count()} cores shared with other helpers' work (load "
-        f"average {before_load} before, {after_load} after). Each daemon is `vgripd run` at the "
+        f"Each daemon is `vgripd run` at the "
         f"niceness its own unit sets, in a session of its own whose scheduler autogroup has the "
         f"weight of the unit's CPUWeight= (this tree: Nice={unit_nice(REPO)}, CPUWeight as "
         f"autogroup nice {unit_weight_nice(REPO)}, worker 15 below under SCHED_BATCH, start-up heap frozen; base: "
@@ -391,30 +220,15 @@ async def main_shipped(seconds: float, rounds: int, base: Path, write: bool) -> 
         "",
         f"As shipped: p99 {p99:.2f} / max {worst:.2f} ms: **{'MET' if met else 'MISSED'}** "
         f"(p99 <= {TARGET_P99_MS:g} ms and max <= {TARGET_MAX_MS:g} ms); base p99 "
-        f"{pct(old['rtt_ms'], 99):.2f} / max {max(old['rtt_ms']):.2f} ms. PLC trigger-to-result "
+        f"{percentile(old['rtt_ms'], 99):.2f} / max {max(old['rtt_ms']):.2f} ms. PLC trigger-to-result "
         f"p50: this {statistics.median(this['cycle_ms']):.1f} ms, base "
         f"{statistics.median(old['cycle_ms']):.1f} ms.",
         "",
     ]
-    text = "\n".join(lines)
-    print(text)
-    if write:
-        write_section(SHIPPED_SECTION, text)
+    report(SUBJECT, SHIPPED_SECTION, "\n".join(lines), stamp, print_only)
 
 
 # --- the peer as this bench ran it before: the job in the server's own process ---------------
-
-async def static_server() -> tuple[Any, int]:
-    from pymodbus.server import ModbusTcpServer
-    from pymodbus.simulator import DataType, SimData, SimDevice
-
-    device = SimDevice(1, simdata=[SimData(0, values=list(range(MAP_SIZE)),
-                                           datatype=DataType.REGISTERS)])
-    server = ModbusTcpServer(device, address=("127.0.0.1", 0))
-    await server.serve_forever(background=True)
-    port: int = server.transport.sockets[0].getsockname()[1]
-    return server, port
-
 
 def pipeline_job_factory() -> Any:
     """``Pipeline.process`` on pre-rendered demo-cell stereo pairs (1280x1024)."""
@@ -449,7 +263,7 @@ def pipeline_job_factory() -> Any:
 
 async def bench_peer_in_process(seconds: float) -> dict[str, Any]:
     job = await asyncio.to_thread(pipeline_job_factory)
-    server, port = await static_server()
+    server, port = await static_modbus_server()
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     jobs = 0
@@ -474,17 +288,9 @@ async def bench_peer_in_process(seconds: float) -> dict[str, Any]:
 
 # --- report ------------------------------------------------------------------------------------
 
-def pct(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values), q)) if values else float("nan")
-
-
-def load_average() -> str:
-    return "{:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
-
-
 def row(name: str, got: dict[str, Any]) -> str:
     rtt = got["rtt_ms"]
-    return (f"| {name} | {len(rtt)} | {statistics.median(rtt):.3f} | {pct(rtt, 99):.3f} | "
+    return (f"| {name} | {len(rtt)} | {statistics.median(rtt):.3f} | {percentile(rtt, 99):.3f} | "
             f"{max(rtt):.3f} |")
 
 
@@ -496,8 +302,9 @@ def cycle_text(got: dict[str, Any]) -> str:
             f"p50 {statistics.median(plc):.1f} ms")
 
 
-async def main(seconds: float, write: bool, realtime: bool) -> None:
+async def main(seconds: float, print_only: bool, realtime: bool) -> None:
     os.environ["BENCH_CLIENT_REALTIME"] = "1" if realtime else "0"
+    stamp = Stamp(bench_command())
     before_load = load_average()
     with tempfile.TemporaryDirectory(prefix="bench_poll-") as tmp:
         folder = Path(tmp)
@@ -511,10 +318,9 @@ async def main(seconds: float, write: bool, realtime: bool) -> None:
         idle = await bench_daemon(folder / "idle", True, seconds, jobs=False)
         peer = await bench_peer_beside_daemon(folder / "peer", seconds)
         peer_old = await bench_peer_in_process(seconds)
-    after_load = load_average()
 
     a, b = after["rtt_ms"], before["rtt_ms"]
-    p99, worst = pct(a, 99), max(a)
+    p99, worst = percentile(a, 99), max(a)
     met = p99 <= TARGET_P99_MS and worst <= TARGET_MAX_MS
     verdict = "MET" if met else "MISSED"
     ca, cb = after["daemon_cycle_ms"]["p50"], before["daemon_cycle_ms"]["p50"]
@@ -522,17 +328,12 @@ async def main(seconds: float, write: bool, realtime: bool) -> None:
     fifo_text = "not measured (SCHED_FIFO not permitted here)"
     if fifo is not None:
         f = fifo["rtt_ms"]
-        fifo_met = pct(f, 99) <= TARGET_P99_MS and max(f) <= TARGET_MAX_MS
-        fifo_text = (f"p99 {pct(f, 99):.2f} / max {max(f):.2f} ms: **"
+        fifo_met = percentile(f, 99) <= TARGET_P99_MS and max(f) <= TARGET_MAX_MS
+        fifo_text = (f"p99 {percentile(f, 99):.2f} / max {max(f):.2f} ms: **"
                      f"{'MET' if fifo_met else 'MISSED'}**; job cycle p50 "
                      f"{fifo['daemon_cycle_ms']['p50']:.1f} ms")
     lines = [
-        SECTION,
-        "",
-        f"`.venv/bin/python bench/bench_poll.py --seconds {seconds:g} --write-results`, "
-        f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores shared "
-        f"with other work (load average {before_load} before, {after_load} after), Python "
-        f"{platform.python_version()}. The real daemon (`python -m vgripd run`: synthetic "
+        "The real daemon (`python -m vgripd run`: synthetic "
         "stereo camera 1280x1024 rendered by its driver, Modbus/TCP server link, recording on) "
         f"and a PLC stand-in in its own process reading all {MAP_SIZE} registers at 100 Hz, "
         "triggering the next job as soon as it reads a result (jobs back to back); "
@@ -554,10 +355,10 @@ async def main(seconds: float, write: bool, realtime: bool) -> None:
         row(f"pymodbus static, Pipeline.process in its own executor thread "
             f"({peer_old['load_jobs']} jobs; the old peer)", peer_old),
         "",
-        f"Poll p99 / max: after {p99:.2f} / {worst:.2f} ms, before {pct(b, 99):.2f} / "
-        f"{max(b):.2f} ms (after / before p99 {p99 / pct(b, 99):.2f}, max "
+        f"Poll p99 / max: after {p99:.2f} / {worst:.2f} ms, before {percentile(b, 99):.2f} / "
+        f"{max(b):.2f} ms (after / before p99 {p99 / percentile(b, 99):.2f}, max "
         f"{worst / max(b):.2f}); after / peer beside the daemon p99 "
-        f"{p99 / pct(peer['rtt_ms'], 99):.2f}. As shipped (normal scheduling): **{verdict}** "
+        f"{p99 / percentile(peer['rtt_ms'], 99):.2f}. As shipped (normal scheduling): **{verdict}** "
         f"(p99 <= {TARGET_P99_MS:g} ms and max <= {TARGET_MAX_MS:g} ms). With the daemon under "
         f"SCHED_FIFO (its worker drops to time sharing, SCHED_BATCH, nice +15): {fifo_text}.",
         "",
@@ -566,20 +367,12 @@ async def main(seconds: float, write: bool, realtime: bool) -> None:
         f"After / before daemon cycle p50: {ca / cb:.2f}: no slower **{cycle_verdict}**.",
         "",
     ]
-    text = "\n".join(lines)
-    print(text)
-    if write:
-        write_section(SECTION, text)
+    report(SUBJECT, SECTION, "\n".join(lines), stamp, print_only)
 
 
 if __name__ == "__main__":
-    if len(sys.argv) > 1 and sys.argv[1] == "--client":
-        client_main(int(sys.argv[2]), sys.argv[3], float(sys.argv[4]), int(sys.argv[5]))
-        sys.exit(0)
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = bench_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=20.0, help="per row")
-    parser.add_argument("--write-results", action="store_true",
-                        help="write the section of bench/RESULTS.md")
     parser.add_argument("--no-realtime-client", dest="realtime", action="store_false",
                         help="run the PLC stand-in at normal priority (default: SCHED_FIFO when "
                              "allowed)")
@@ -591,6 +384,6 @@ if __name__ == "__main__":
     if args.shipped is not None:
         os.environ["BENCH_CLIENT_REALTIME"] = "1" if args.realtime else "0"
         asyncio.run(main_shipped(args.seconds, args.rounds, args.shipped.resolve(),
-                                 args.write_results))
+                                 args.print_only))
     else:
-        asyncio.run(main(args.seconds, args.write_results, args.realtime))
+        asyncio.run(main(args.seconds, args.print_only, args.realtime))

@@ -2,7 +2,7 @@
 
 Run from the repository root with the project's interpreter::
 
-    .venv/bin/python bench/bench_pose_chain.py [--write-results]
+    .venv/bin/python bench/bench_pose_chain.py [--print-only]
 
 Scene: a stereo rig (120 mm baseline, 4 deg vergence, strong Brown distortion k1 ~ -0.25),
 12 model points of a 160 x 120 x 60 mm object at ~600 mm, known pose T_left_obj; pixels get
@@ -17,14 +17,12 @@ T_left_obj.
 
 Prints median and p99 wall time per chain (microseconds, ``perf_counter_ns``, the chains
 interleaved so that load from other processes hits both alike), the ratio ours/peer, and the
-pose error of each chain against the ground truth. ``--write-results`` also replaces this
+pose error of each chain against the ground truth. It also replaces this
 benchmark's section of bench/RESULTS.md with the run's figures.
 """
 
 from __future__ import annotations
 
-import argparse
-import datetime
 import os
 import platform
 import sys
@@ -36,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.results import write_section  # noqa: E402
+from bench import harness  # noqa: E402
 from vgripd.geometry.camera_model import CameraModel  # noqa: E402
 from vgripd.geometry.orientation import horn  # noqa: E402
 from vgripd.geometry.stereo import StereoRig  # noqa: E402
@@ -46,7 +44,7 @@ N_POINTS = 12
 NOISE_PX = 0.2
 REPS = 5000
 ACCURACY_TRIALS = 500
-SECTION = "## Pose chain (issue 2)"
+SECTION = "Pose chain"
 
 LEFT = CameraModel(810.0, 805.0, 330.0, 245.0, dist=(-0.25, 0.08, 0.001, -0.0005, 0.01))
 RIGHT = CameraModel(790.0, 792.0, 318.0, 236.0, dist=(-0.22, 0.06, -0.0007, 0.0004, 0.0))
@@ -83,9 +81,8 @@ def make_peer(criteria: tuple[int, int, float] | None):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--write-results", action="store_true",
-                        help=f"replace the section {SECTION!r} in bench/RESULTS.md")
+    parser = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     args = parser.parse_args()
     rng = np.random.default_rng(1)
     model = np.c_[rng.uniform(-80, 80, N_POINTS), rng.uniform(-60, 60, N_POINTS), rng.uniform(-30, 30, N_POINTS)]
@@ -145,8 +142,9 @@ def main() -> None:
     load_after = os.getloadavg()[0]
     print("\n" + "\n".join(timing))
     print(f"load average after: {load_after:.2f}")
-    if args.write_results:
-        write_section(SECTION, results_text(header, timing, accuracy, med, load_before, load_after))
+    harness.report("Vision: accuracy and locate time", SECTION,
+                   results_text(header, timing, accuracy, med, load_before, load_after), stamp,
+                   args.print_only)
 
 
 def results_text(header: str, timing: list[str], accuracy: list[str], med: dict[str, float],
@@ -154,10 +152,7 @@ def results_text(header: str, timing: list[str], accuracy: list[str], med: dict[
     """This run's section of bench/RESULTS.md: figures from the run, the method around them."""
     ratio = med["ours (vgripd)"] / med["peer (OpenCV, default undistort)"]
     return "\n".join([
-        SECTION,
-        "",
-        f"`.venv/bin/python bench/bench_pose_chain.py --write-results`, {datetime.date.today()}, "
-        f"shared 2-core VM (load average {load_before:.2f} before, {load_after:.2f} after; absolute "
+        f"Shared 2-core VM (load average {load_before:.2f} before, {load_after:.2f} after; absolute "
         "times swing 1.5x with the other jobs, ratios much less: the chains are interleaved in "
         "blocks of 50).",
         "",

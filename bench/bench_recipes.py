@@ -17,16 +17,13 @@ over Modbus/TCP on 127.0.0.1 triggers jobs back to back:
 
 Cycle = the PLC's trigger write to the answer seen (the mock PLC polls every 2 ms).
 
-    .venv/bin/python bench/bench_recipes.py [--jobs 60] [--restarts 3] [--write-results]
+    .venv/bin/python bench/bench_recipes.py [--jobs 60] [--restarts 3] [--print-only]
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import logging
-import os
-import platform
 import statistics
 import sys
 import time
@@ -36,7 +33,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.results import write_section  # noqa: E402
+from bench import harness  # noqa: E402
 from vgripd.config import Config, config_from_dict  # noqa: E402
 from vgripd.service.daemon import Daemon  # noqa: E402
 from vgripd.sim.plc import MockPlc  # noqa: E402
@@ -44,7 +41,7 @@ from vgripd.types import Status  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "config" / "samples" / "recipes.toml"
-SECTION = "## Recipes: switching by number against restarting the daemon"
+SECTION = "Recipes: switching by number against restarting the daemon"
 WAIT_S = 30.0
 
 
@@ -90,8 +87,8 @@ async def started(config: Config) -> tuple[Daemon, MockPlc]:
     return daemon, plc
 
 
-async def main(jobs: int, restarts: int, write: bool) -> None:
-    load_before = os.getloadavg()
+async def main(jobs: int, restarts: int, print_only: bool) -> None:
+    stamp = harness.Stamp(harness.bench_command())
     daemon, plc = await started(cell())
     try:
         await cycles(plc, [2, 3], Status.OK)  # warm-up: first grab, first job per recipe
@@ -121,7 +118,6 @@ async def main(jobs: int, restarts: int, write: bool) -> None:
     finally:
         plc.close()
         await daemon.stop()
-    load_after = os.getloadavg()
 
     added = statistics.median(switching) - statistics.median(fixed)
     lines = [
@@ -135,29 +131,21 @@ async def main(jobs: int, restarts: int, write: bool) -> None:
         f"{statistics.median(restart_ms) / statistics.median(switching):.1f}x a whole cycle "
         "with a switch",
     ]
-    print("\n".join(lines))
-    if write:
-        load = " ".join(f"{v:.2f}" for v in load_before), " ".join(f"{v:.2f}" for v in load_after)
-        text = "\n".join([
-            SECTION, "",
-            f"`.venv/bin/python bench/bench_recipes.py --jobs {jobs} --restarts {restarts} "
-            f"--write-results`, {time.strftime('%Y-%m-%d')}, {platform.machine()}, "
-            f"{os.cpu_count()} cores shared with other work (load average {load[0]} before, "
-            f"{load[1]} after), Python {platform.python_version()}. The daemon with its worker "
-            "process on config/samples/recipes.toml (synthetic stereo camera 1280x1024 "
-            "rendering plate B) plus recipe 3 = plate B with another limit; mock PLC over "
-            "Modbus/TCP on 127.0.0.1 polling every 2 ms; cycle = trigger write to answer seen; "
-            "recipes 2, 2, 3, 3, ... so that every other job switches.",
-            "", "```", *lines, "```", ""])
-        write_section(SECTION, text)
+    text = "\n".join([
+        "The daemon with its worker "
+        "process on config/samples/recipes.toml (synthetic stereo camera 1280x1024 "
+        "rendering plate B) plus recipe 3 = plate B with another limit; mock PLC over "
+        "Modbus/TCP on 127.0.0.1 polling every 2 ms; cycle = trigger write to answer seen; "
+        "recipes 2, 2, 3, 3, ... so that every other job switches.",
+        "", "```", *lines, "```", ""])
+    harness.report("Daemon: polls, jobs, memory", SECTION, text, stamp, print_only)
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = harness.parser(__doc__)
     parser.add_argument("--jobs", type=int, default=60,
                         help="jobs per alternative (default 60)")
     parser.add_argument("--restarts", type=int, default=3)
-    parser.add_argument("--write-results", action="store_true")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    asyncio.run(main(args.jobs, args.restarts, args.write_results))
+    asyncio.run(main(args.jobs, args.restarts, args.print_only))

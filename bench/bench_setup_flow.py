@@ -3,14 +3,13 @@ empty includes to the first OK job of a pymodbus PLC (tests/integration/setup_br
 acceptance test's drive): page actions (clicks and form submits the integrator makes) and wall
 time per step.
 
-    .venv/bin/python -m bench.bench_setup_flow [--runs 1] [--write]
+    .venv/bin/python -m bench.bench_setup_flow [--runs 1] [--print-only]
 
-``--write`` replaces the "Setup in the browser" section of bench/RESULTS.md.
+Writes the "Setup in the browser" section of bench/RESULTS.md.
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import os
 import platform
@@ -19,10 +18,12 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.results import write_section
-from tests.integration.setup_browser import SETS, Flow, demo_setup, drive
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-HEADING = "## Setup in the browser"
+from bench import harness  # noqa: E402
+from tests.integration.setup_browser import SETS, Flow, demo_setup, drive  # noqa: E402
+
+HEADING = "Setup in the browser"
 
 
 async def one(tmp: Path) -> tuple[Flow, float]:
@@ -33,9 +34,9 @@ async def one(tmp: Path) -> tuple[Flow, float]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     parser.add_argument("--runs", type=int, default=1)
-    parser.add_argument("--write", action="store_true")
     args = parser.parse_args()
     lines = []
     for run in range(args.runs):
@@ -48,8 +49,7 @@ def main() -> int:
         lines.append(line)
     load = " ".join(f"{x:.1f}" for x in os.getloadavg())
     text = "\n".join([
-        HEADING, "",
-        "`python -m bench.bench_setup_flow`: `vgripd demo --setup` (the learning cell, empty "
+        "`vgripd demo --setup` (the learning cell, empty "
         "includes) driven in headless Chromium through every step of `/setup` by the page's own "
         f"buttons (auto-capture until {SETS} sets, calibrate, accept, the learning cell's camera "
         "pose, the plate's six marks, three teaching shots, the register map, a test pick), then "
@@ -61,9 +61,7 @@ def main() -> int:
         f"load average {load}; {os.cpu_count()} CPUs; Python {platform.python_version()}",
         *lines,
         "```"])
-    if args.write:
-        write_section(HEADING, text)
-    print(text)
+    harness.report("Web view and setup", HEADING, text, stamp, args.print_only)
     return 0 if all(" PLC status 1;" in line for line in lines) else 1
 
 

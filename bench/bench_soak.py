@@ -13,16 +13,14 @@ least-squares slope of RSS (MB per 1000 jobs) and the change from that sample to
 file descriptors and threads must not change at all.
 
 Run (takes a while; progress on stdout):
-``.venv/bin/python bench/bench_soak.py [--jobs 10000] [--every 250] [--write-results]``
+``.venv/bin/python bench/bench_soak.py [--jobs 10000] [--every 250] [--print-only]``
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -35,10 +33,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.bench_poll import DaemonProcess, load_average, pct, run_client  # noqa: E402
-from bench.results import write_section  # noqa: E402
+from bench.harness import DaemonProcess, Stamp, bench_command, percentile, report, run_client  # noqa: E402
+from bench.harness import parser as bench_parser  # noqa: E402
 
-SECTION = "## Soak: memory and file descriptors over many jobs"
+SUBJECT = "Daemon: polls, jobs, memory"
+SECTION = "Soak: memory and file descriptors over many jobs"
 
 
 def proc_figures(pid: int) -> tuple[float, int, int]:
@@ -65,8 +64,8 @@ def slope_per_1000(jobs: list[int], values: list[float]) -> float:
     return float(np.polyfit(np.asarray(jobs, float), np.asarray(values, float), 1)[0] * 1000)
 
 
-async def main(n_jobs: int, every: int, warmup: int, write: bool, keep: Path | None) -> None:
-    load_before = load_average()
+async def main(n_jobs: int, every: int, warmup: int, print_only: bool, keep: Path | None) -> None:
+    stamp = Stamp(bench_command())
     t_start = time.monotonic()
     samples: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="bench_soak-") as tmp:
@@ -106,7 +105,6 @@ async def main(n_jobs: int, every: int, warmup: int, write: bool, keep: Path | N
                 await asyncio.sleep(1.0)
             got = await client
             final = await daemon.status()
-    load_after = load_average()
     minutes = (time.monotonic() - t_start) / 60
 
     warm = [s for s in samples if s["jobs"] >= warmup] or samples[-1:]
@@ -116,12 +114,7 @@ async def main(n_jobs: int, every: int, warmup: int, write: bool, keep: Path | N
     stopped = (f" **Stopped early** after {len(got['cycle_ms'])} of {n_jobs} jobs: "
                f"{got['error']}." if got["error"] else "")
     lines = [
-        SECTION,
-        "",
-        f"`.venv/bin/python bench/bench_soak.py --jobs {n_jobs} --every {every} --warmup "
-        f"{warmup} --write-results`, {time.strftime('%Y-%m-%d')}, {platform.machine()}, "
-        f"{os.cpu_count()} cores shared with other work (load average {load_before} before, "
-        f"{load_after} after), Python {platform.python_version()}. The real daemon with its "
+        "The real daemon with its "
         "worker process (synthetic stereo camera 1280x1024, Modbus/TCP server, recording on "
         "with a 200 MB cap), jobs back to back from a PLC stand-in polling at 100 Hz; "
         f"{len(got['cycle_ms'])} jobs in {minutes:.0f} min ({got['statuses']}), sampled every "
@@ -151,15 +144,12 @@ async def main(n_jobs: int, every: int, warmup: int, write: bool, keep: Path | N
         f"{sorted(threads)}; shared-memory segments {sorted({s['shm'] for s in samples})}; "
         f"worker restarts {final['worker']['restarts']}.",
         f"Poll over the whole soak ({len(rtt)} polls): median {statistics.median(rtt):.3f} ms, "
-        f"p99 {pct(rtt, 99):.3f} ms, p99.9 {pct(rtt, 99.9):.3f} ms, max {max(rtt):.3f} ms. "
+        f"p99 {percentile(rtt, 99):.3f} ms, p99.9 {percentile(rtt, 99.9):.3f} ms, max {max(rtt):.3f} ms. "
         f"Job cycle (PLC, trigger to result): median {statistics.median(got['cycle_ms']):.1f} "
-        f"ms, p99 {pct(got['cycle_ms'], 99):.1f} ms.",
+        f"ms, p99 {percentile(got['cycle_ms'], 99):.1f} ms.",
         "",
     ]
-    text = "\n".join(lines)
-    print(text)
-    if write:
-        write_section(SECTION, text)
+    report(SUBJECT, SECTION, "\n".join(lines), stamp, print_only)
 
 
 if __name__ == "__main__":
@@ -167,15 +157,13 @@ if __name__ == "__main__":
         from vgripd.__main__ import main as vgripd_main
 
         sys.exit(vgripd_main(["run", "-c", sys.argv[2]]))
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = bench_parser(__doc__)
     parser.add_argument("--jobs", type=int, default=10_000)
     parser.add_argument("--every", type=int, default=250, help="sample every N jobs")
     parser.add_argument("--warmup", type=int, default=500,
                         help="judge flatness from the first sample at or after this many jobs")
-    parser.add_argument("--write-results", action="store_true",
-                        help="write the section of bench/RESULTS.md")
     parser.add_argument("--folder", type=Path,
                         help="keep the daemon's config, log and recordings here (default: a "
                              "temporary folder, removed)")
     args = parser.parse_args()
-    asyncio.run(main(args.jobs, args.every, args.warmup, args.write_results, args.folder))
+    asyncio.run(main(args.jobs, args.every, args.warmup, args.print_only, args.folder))

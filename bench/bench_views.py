@@ -18,15 +18,13 @@ multi-view pipeline (triangulatePoints per pair of views, averaging, Kabsch) on 
 Errors: ``mm`` = the largest displacement of any of the 16 marks between found and true pose
 (the far face included); ``deg`` = rotation angle.
 
-    .venv/bin/python bench/bench_views.py [--poses 6] [--write-results]
+    .venv/bin/python bench/bench_views.py [--poses 6] [--print-only]
 """
 
 from __future__ import annotations
 
-import argparse
 import copy
 import os
-import platform
 import sys
 import time
 import tomllib
@@ -38,14 +36,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench import harness  # noqa: E402
 from bench import render_independent as indep  # noqa: E402
 from bench.bench_multiview import INTRINSICS, SAMPLE, Frame, Peer, cell, errors, stats  # noqa: E402
-from bench.results import write_section  # noqa: E402
 from vgripd.config import config_from_dict  # noqa: E402
 from vgripd.types import ImagePair  # noqa: E402
 from vgripd.vision.pipeline import Pipeline  # noqa: E402
 
-SECTION = "## Several views per job: one robot-mounted camera, 1 to 8 views of a 1.5 m frame"
+SECTION = "Several views per job: one robot-mounted camera, 1 to 8 views of a 1.5 m frame"
 #: The camera on the flange (independent of vgripd: composed here with OpenCV's Rodrigues).
 FC_ROTVEC, FC_T = np.array([0.02, -0.01, 0.03]), np.array([10.0, 60.0, 120.0])
 
@@ -104,10 +102,10 @@ class PnpPeer:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = harness.parser(__doc__)
+    stamp = harness.Stamp(harness.bench_command())
     parser.add_argument("--poses", type=int, default=6)
     parser.add_argument("--seed", type=int, default=5)
-    parser.add_argument("--write-results", action="store_true")
     args = parser.parse_args()
     with SAMPLE.open("rb") as fh:
         doc = tomllib.load(fh)
@@ -170,22 +168,15 @@ def main() -> None:
             f"triangulate + Kabsch | {float(np.median(ours[n]['cpu_ms'])):.1f} | "
             f"{statuses[n]} | {len(theirs[n]['mm'])}/{args.poses} |")
     text = "\n".join(table)
-    print(text)
     print(f"{elapsed:.0f} s, load {load_before} -> {load_after}")
-    if args.write_results:
-        head = [SECTION, "",
-                f"`.venv/bin/python bench/bench_views.py --poses {args.poses} --write-results`, "
-                f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores "
-                f"shared with other work (load average "
-                f"{' '.join(f'{x:.2f}' for x in load_before)} before, "
-                f"{' '.join(f'{x:.2f}' for x in load_after)} after), Python "
-                f"{platform.python_version()}. {args.poses} poses of the frame, each rendered "
-                "independently of vgripd from 8 view poses; N views use the first N images "
-                "(1-2 front face, 3-4 back face, 5-8 at 45 deg). vgripd: `vision.views = N` "
-                "through `Pipeline.process` (the daemon's path after the last CAPTURE). Errors "
-                "against the rendered truth (largest displacement of the 16 marks, rotation "
-                "angle).", "", text, ""]
-        write_section(SECTION, "\n".join(head))
+    head = [f"{args.poses} poses of the frame, each rendered "
+            "independently of vgripd from 8 view poses; N views use the first N images "
+            "(1-2 front face, 3-4 back face, 5-8 at 45 deg). vgripd: `vision.views = N` "
+            "through `Pipeline.process` (the daemon's path after the last CAPTURE). Errors "
+            "against the rendered truth (largest displacement of the 16 marks, rotation "
+            "angle).", "", text, ""]
+    harness.report("Vision: accuracy and locate time", SECTION, "\n".join(head), stamp,
+                   args.print_only)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Modbus poll latency with the operator web view open in a browser, versus without it.
 
-The same harness as ``bench/bench_poll.py`` (imported from it): the real daemon
+The daemon and PLC stand-in of ``bench/harness.py``: the real daemon
 (``python -m vgripd run``: synthetic stereo camera 1280x1024, Modbus/TCP server link, worker
 process, recording on) and a PLC stand-in in its own process (pymodbus' synchronous client)
 reading all registers at 100 Hz and triggering the next job as soon as it reads a result (jobs
@@ -11,21 +11,18 @@ Chromium open on ``about:blank`` (the browser's own CPU on this machine, no requ
 daemon), the page's requests made by a plain aiohttp client process (the daemon's share),
 then without again (the machine's drift).
 
-Run: ``.venv/bin/python bench/bench_web_poll.py [--seconds 20]`` (needs ``chromium``)
+Run: ``.venv/bin/python bench/bench_web_poll.py [--seconds 20] [--print-only]`` (needs ``chromium``)
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import os
-import platform
 import shutil
 import statistics
 import sys
 import tempfile
-import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -33,7 +30,8 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.bench_poll import DaemonProcess, pct, run_client  # noqa: E402
+from bench.harness import DaemonProcess, Stamp, bench_command, percentile, report, run_client  # noqa: E402
+from bench.harness import parser as bench_parser  # noqa: E402
 
 
 @contextlib.asynccontextmanager
@@ -121,41 +119,45 @@ async def one_row(folder: Path, seconds: float, page: str = "") -> dict[str, Any
 
 def line(name: str, got: dict[str, Any]) -> str:
     rtt = got["rtt_ms"]
-    return (f"| {name} | {len(rtt)} | {statistics.median(rtt):.3f} | {pct(rtt, 99):.3f} | "
+    return (f"| {name} | {len(rtt)} | {statistics.median(rtt):.3f} | {percentile(rtt, 99):.3f} | "
             f"{max(rtt):.3f} | {len(got['cycle_ms'])} | {got['daemon_cycle_ms']['p50']:.1f} |")
 
 
-async def main(seconds: float) -> None:
+async def main(seconds: float, print_only: bool) -> None:
     os.environ.setdefault("BENCH_CLIENT_REALTIME", "0")
-    load_before = "{:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
+    stamp = Stamp(bench_command())
     with tempfile.TemporaryDirectory(prefix="bench_web_poll-") as tmp:
         without = await one_row(Path(tmp) / "without", seconds)
         with_page = await one_row(Path(tmp) / "with", seconds, page="view")
         blank = await one_row(Path(tmp) / "blank", seconds, page="blank")
         requests = await one_row(Path(tmp) / "requests", seconds, page="requests")
         again = await one_row(Path(tmp) / "again", seconds)
-    load_after = "{:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
     w, o = with_page["rtt_ms"], without["rtt_ms"] + again["rtt_ms"]
-    print(f"\n{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores, "
-          f"load average {load_before} before, {load_after} after; {seconds:g} s per row, "
-          f"PLC stand-in at {'SCHED_FIFO' if with_page.get('realtime') else 'normal priority'}\n")
-    print("| daemon | polls | median ms | p99 ms | max ms | jobs | daemon cycle p50 ms |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
-    print(line("no page open", without))
-    print(line("page open in headless Chromium (event stream, images per job)", with_page))
-    print(line("Chromium open on about:blank (the browser's own load, no web view)", blank))
-    print(line("the page's requests from a client process, no browser", requests))
-    print(line("no page open, again", again))
-    print(f"\nwith page / without (both without rows): median "
-          f"{statistics.median(w) / statistics.median(o):.2f}, p99 {pct(w, 99) / pct(o, 99):.2f}, "
+    lines = [
+        f"The real daemon (worker process, synthetic stereo camera 1280x1024, Modbus/TCP server, "
+        f"recording on), jobs back to back from the PLC stand-in polling all registers at "
+        f"100 Hz ({'SCHED_FIFO' if with_page.get('realtime') else 'normal priority'}); "
+        f"{seconds:g} s per row. Rows and the page's traffic: bench/bench_web_poll.py's "
+        "docstring.", "",
+        "| daemon | polls | median ms | p99 ms | max ms | jobs | daemon cycle p50 ms |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+        line("no page open", without),
+        line("page open in headless Chromium (event stream, images per job)", with_page),
+        line("Chromium open on about:blank (the browser's own load, no web view)", blank),
+        line("the page's requests from a client process, no browser", requests),
+        line("no page open, again", again), ""]
+    lines.append(f"With page / without (both without rows): median "
+          f"{statistics.median(w) / statistics.median(o):.2f}, p99 {percentile(w, 99) / percentile(o, 99):.2f}, "
           f"max {max(w) / max(o):.2f}; with page / about:blank p99 "
-          f"{pct(w, 99) / pct(blank['rtt_ms'], 99):.2f}, max {max(w) / max(blank['rtt_ms']):.2f}; requests only / without p99 "
-          f"{pct(requests['rtt_ms'], 99) / pct(o, 99):.2f}, max "
-          f"{max(requests['rtt_ms']) / max(o):.2f}")
+          f"{percentile(w, 99) / percentile(blank['rtt_ms'], 99):.2f}, max {max(w) / max(blank['rtt_ms']):.2f}; requests only / without p99 "
+          f"{percentile(requests['rtt_ms'], 99) / percentile(o, 99):.2f}, max "
+          f"{max(requests['rtt_ms']) / max(o):.2f}.")
+    report("Web view and setup", "Modbus poll latency with the web view open", "\n".join(lines), stamp,
+           print_only)
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = bench_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=20.0, help="per row")
     args = parser.parse_args()
-    asyncio.run(main(args.seconds))
+    asyncio.run(main(args.seconds, args.print_only))

@@ -1,6 +1,6 @@
 """Modbus poll latency and job cycle with three live camera previews open, versus none.
 
-The harness of ``bench/bench_poll.py`` (imported): the real daemon (``python -m vgripd run``:
+The daemon and PLC stand-in of ``bench/harness.py``: the real daemon (``python -m vgripd run``:
 synthetic stereo camera 1280x1024, Modbus/TCP server link, worker process, recording on) and a
 PLC stand-in in its own process reading all registers at 100 Hz and triggering the next job as
 soon as it reads a result (jobs back to back). The previews: a client process with three
@@ -9,20 +9,17 @@ does with "live preview" ticked). Rows: none, three previews, none again (the ma
 then the PLC polling with no job at all, without and with the three previews (the previews then
 grab all along: the poll's worst case).
 
-Run: ``.venv/bin/python bench/bench_web_preview.py [--seconds 15]``
+Run: ``.venv/bin/python bench/bench_web_preview.py [--seconds 15] [--print-only]``
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import os
-import platform
 import statistics
 import sys
 import tempfile
-import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -30,7 +27,8 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.bench_poll import DaemonProcess, pct, run_client  # noqa: E402
+from bench.harness import DaemonProcess, Stamp, bench_command, percentile, report, run_client  # noqa: E402
+from bench.harness import parser as bench_parser  # noqa: E402
 
 PAGES = """
 import asyncio, sys
@@ -87,35 +85,37 @@ def line(name: str, got: dict[str, Any]) -> str:
     rtt, cyc = got["rtt_ms"], got["daemon_cycle_ms"]
     p50 = f"{cyc['p50']:.1f}" if cyc.get("window") else "-"
     p99 = f"{cyc['p99']:.1f}" if cyc.get("window") else "-"
-    return (f"| {name} | {len(rtt)} | {statistics.median(rtt):.3f} | {pct(rtt, 99):.3f} | "
+    return (f"| {name} | {len(rtt)} | {statistics.median(rtt):.3f} | {percentile(rtt, 99):.3f} | "
             f"{max(rtt):.3f} | {len(got['cycle_ms'])} | {p50} | {p99} | "
             f"{got['grabs']} |")
 
 
-async def main(seconds: float) -> None:
+async def main(seconds: float, print_only: bool) -> None:
     os.environ.setdefault("BENCH_CLIENT_REALTIME", "0")
-    load_before = "{:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
+    stamp = Stamp(bench_command())
     with tempfile.TemporaryDirectory(prefix="bench_web_preview-") as tmp:
         none = await one_row(Path(tmp) / "none", seconds, 0)
         three = await one_row(Path(tmp) / "three", seconds, 3)
         again = await one_row(Path(tmp) / "again", seconds, 0)
         idle = await one_row(Path(tmp) / "idle", seconds, 0, "poll")
         idle_three = await one_row(Path(tmp) / "idle3", seconds, 3, "poll")
-    load_after = "{:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
-    print(f"\n{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores, "
-          f"load average {load_before} before, {load_after} after; {seconds:g} s per row\n")
-    print("| previews | polls | median ms | p99 ms | max ms | jobs | daemon cycle p50 ms | "
-          "cycle p99 ms | preview grabs |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
-    print(line("none", none))
-    print(line("three pages with live preview (2 cameras each, every 0.5 s)", three))
-    print(line("none, again", again))
-    print(line("no jobs (polls only), no preview", idle))
-    print(line("no jobs (polls only), three pages with live preview", idle_three))
+    lines = [
+        f"The real daemon and the PLC stand-in polling at 100 Hz; {seconds:g} s per row; rows "
+        "and what a preview page fetches: bench/bench_web_preview.py's docstring.", "",
+        "| previews | polls | median ms | p99 ms | max ms | jobs | daemon cycle p50 ms | "
+        "cycle p99 ms | preview grabs |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        line("none", none),
+        line("three pages with live preview (2 cameras each, every 0.5 s)", three),
+        line("none, again", again),
+        line("no jobs (polls only), no preview", idle),
+        line("no jobs (polls only), three pages with live preview", idle_three)]
+    report("Web view and setup", "Poll and job cycle with three live camera previews open",
+           "\n".join(lines), stamp, print_only)
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = bench_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=15.0, help="per row")
     args = parser.parse_args()
-    asyncio.run(main(args.seconds))
+    asyncio.run(main(args.seconds, args.print_only))

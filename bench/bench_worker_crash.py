@@ -13,15 +13,13 @@ Most of both is the new worker's start (spawn, imports, warm-up); a GigE camera 
 the dead process's control channel (its heartbeat timeout), which runs meanwhile.
 
 Run: ``.venv/bin/python bench/bench_worker_crash.py [--rounds 5] [--camera aravis|pylon|both]
-[--write-results]``
+[--print-only]``
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import os
-import platform
 import signal
 import statistics
 import sys
@@ -34,8 +32,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 os.environ.setdefault("PYLON_CAMEMU", "3")
 
-from bench.bench_poll import load_average  # noqa: E402
-from bench.results import write_section  # noqa: E402
+from bench.harness import Stamp, bench_command, report  # noqa: E402
+from bench.harness import parser as bench_parser  # noqa: E402
 from tests.drivers.test_cameras_aravis import (  # noqa: E402
     FakeCamera,
     _aravis,
@@ -50,7 +48,8 @@ from tests.integration.test_daemon_worker_crash import (  # noqa: E402
 )
 from vgripd.service.protocol import Reg  # noqa: E402
 
-SECTION = "## Worker process killed while it holds the camera (issue 33)"
+SUBJECT = "Daemon: polls, jobs, memory"
+SECTION = "Worker process killed while it holds the camera"
 
 
 async def rounds(config: Any, n: int) -> dict[str, Any]:
@@ -89,14 +88,12 @@ def line(name: str, values: list[float]) -> str:
 
 
 async def main() -> None:
-    ap = argparse.ArgumentParser()
+    ap = bench_parser(__doc__)
+    stamp = Stamp(bench_command())
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--camera", choices=("aravis", "pylon", "both"), default="both")
-    ap.add_argument("--write-results", action="store_true")
     args = ap.parse_args()
-    out = [f"`.venv/bin/python bench/bench_worker_crash.py --rounds {args.rounds}`, "
-           f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores, "
-           f"load average {load_average()} at the start.", "", "```"]
+    out = ["```"]
     if args.camera in ("aravis", "both"):
         _aravis()
         second_loopback()
@@ -115,9 +112,7 @@ async def main() -> None:
         out += [f"pylon emulation, 2 cameras: answers {got['statuses']} (before the kills: "
                 f"{got['first']})", line("answer", got["answer"]), line("healthy", got["healthy"])]
     out.append("```")
-    print("\n".join(out))
-    if args.write_results:
-        write_section(SECTION, SECTION + "\n\n" + "\n".join(out))
+    report(SUBJECT, SECTION, "\n".join(out), stamp, args.print_only)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,4 @@
-"""Trigger-to-result latency over the UR RTDE link vs a bare ur_rtde responder, and whether the
-receive side keeps up with a 500 Hz stream. Everything runs against the mock UR controller
+"""UR RTDE link: trigger to result vs a bare ur_rtde responder, and whether the receive side keeps up with a 500 Hz stream. Everything runs against the mock UR controller
 (its own process) with the real ur_rtde 1.6.5 client, in the same run.
 
 Latency is timed by the mock's simulated robot program on its own clock: from writing the
@@ -13,38 +12,26 @@ trigger (output_int_register_12) to having read its last value.
 Stream: a child process polls ``getTimestamp()`` of a 500 Hz ``RTDEReceiveInterface`` for
 ``STREAM_S`` and counts distinct timestamps against the packages the mock sent; a gap is a step
 between consecutive timestamps larger than 1.5 periods.
-
-    cd /work/main && .venv/bin/python bench/bench_rtde.py [cycles]
 """
 
 from __future__ import annotations
 
 import asyncio
 import multiprocessing
-import statistics
-import sys
 import time
 from multiprocessing.connection import Connection
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.links import LinkRun, Series
+from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
+from vgripd.service.protocol import Trigger
+from vgripd.sim.ur_controller import URController
+from vgripd.types import JobResult, RobotTarget, Status
 
-from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions  # noqa: E402
-from vgripd.service.protocol import Trigger  # noqa: E402
-from vgripd.sim.ur_controller import URController  # noqa: E402
-from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
-
+DEFAULT_JOBS = 200
 HOST = "127.0.5.40"
 POSE = (0.0123456789, -0.0345678901, 0.1 / 3, 0.0314159, -0.0285714, 0.1111111)
 POLL_S = 0.002  # the link's child polls at its stream rate (500 Hz); the bare peer does the same
 STREAM_S = 5.0
-
-
-def summary(name: str, seconds: list[float]) -> str:
-    ms = sorted(1000.0 * s for s in seconds)
-    p99 = ms[min(len(ms) - 1, round(0.99 * (len(ms) - 1)))]
-    return (f"{name:<34} median {statistics.median(ms):6.2f} ms  p99 {p99:6.2f} ms  "
-            f"max {ms[-1]:6.2f} ms  (n={len(ms)})")
 
 
 async def link_cycles(robot: URController, cycles: int, with_pose: bool) -> list[float]:
@@ -140,21 +127,25 @@ def stream_check(robot: URController) -> str:
             f"still connected: {connected}")
 
 
-async def main(cycles: int) -> None:
+async def measure(cycles: int) -> LinkRun:
     with URController(HOST) as robot:
         pose = await link_cycles(robot, cycles, with_pose=True)
         status_only = await link_cycles(robot, cycles, with_pose=False)
         bare = bare_cycles(robot, cycles)
         stream = stream_check(robot)
-    print(f"{cycles} cycles each, mock UR controller on {HOST}, ur_rtde 1.6.5, 500 Hz stream")
-    print(summary("URRtdeLink, status + pose (2 RT)", pose))
-    print(summary("URRtdeLink, status only (1 RT)", status_only))
-    print(summary("bare ur_rtde, status only (1 RT)", bare))
-    print(f"median ratio link/bare, 1 round trip: "
-          f"{statistics.median(status_only) / statistics.median(bare):.2f}; "
-          f"full pose / bare: {statistics.median(pose) / statistics.median(bare):.2f}")
-    print(stream)
-
-
-if __name__ == "__main__":
-    asyncio.run(main(int(sys.argv[1]) if len(sys.argv) > 1 else 200))
+    peer = "bare ur_rtde, status only (1 round trip)"
+    return LinkRun(
+        heading="UR RTDE link",
+        setup=(f"{cycles} cycles per row against the mock UR controller "
+               f"(`vgripd/sim/ur_controller.py`, its own process, {HOST}:30004) with the real "
+               "ur_rtde client; the link first (with the pose, then status only), then the "
+               "peer. Timed on the mock's clock: its simulated robot program from writing the "
+               "trigger (output_int_register_12) to having read its last value; the daemon "
+               "side answers at once. Peer: a child process with ur_rtde's two interfaces and "
+               "nothing else, polling at the stream rate and writing status + ack."),
+        series=[Series("vgripd URRtdeLink, status + pose (2 round trips)",
+                       [1000.0 * s for s in pose], against=peer),
+                Series("vgripd URRtdeLink, status only (1 round trip)",
+                       [1000.0 * s for s in status_only], against=peer),
+                Series(peer, [1000.0 * s for s in bare])],
+        notes=[stream + "."])

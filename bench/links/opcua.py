@@ -1,11 +1,11 @@
-"""Trigger -> result latency of the opcua link vs a bare asyncua server, same run.
+"""OPC UA link: trigger to result vs a bare asyncua server, same run.
 
 Servers in this process, on one event loop: vgripd's ``OpcUaLink`` (security None, anonymous;
 a daemon stand-in that answers each trigger at once: image_captured, then publish, no vision
 work) and the named peer, a bare asyncua ``Server`` with one method that returns a constant
 result (status and six values) as its output arguments: the least an OPC UA server can do for
 "locate and tell me". The client is asyncua's ``Client`` in a child process (this script with
-``--client``), one session to each server, jobs in alternating blocks so load changes hit both.
+``python -m bench.links.opcua --client``), one session to each server, jobs in alternating blocks so load changes hit both.
 
 What a job is, measured in the client from the call to having the result:
 
@@ -15,9 +15,9 @@ What a job is, measured in the client from the call to having the result:
 - bare: one ``Call`` whose output arguments are the result (one round trip).
 
 So the link's figure holds at least two round trips and the trigger hand-off to the daemon;
-the ratio says what the job sequence costs against the least possible exchange.
-
-    .venv/bin/python bench/bench_opcua.py [jobs] [--write-results]
+the ratio says what the job sequence costs against the least possible exchange. Both
+security modes are measured: None, and Basic256Sha256 SignAndEncrypt (the peer then uses the
+link's generated certificate).
 """
 
 from __future__ import annotations
@@ -25,52 +25,38 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from asyncua import Client, Server, ua
 
-from asyncua import Client, Server, ua  # noqa: E402
+from bench.harness import REPO
+from bench.links import LinkRun, Series, answer_at_once
+from drivers.links.opcua import OpcUaLink, OpcUaOptions
+from vgripd.types import RobotTarget, Status
 
-from bench.results import write_section  # noqa: E402
-from drivers.links.opcua import OpcUaLink, OpcUaOptions  # noqa: E402
-from vgripd.service.protocol import Trigger  # noqa: E402
-from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
-
+DEFAULT_JOBS = 1000
 POSE = (412.5, -133.25, 287.0625, 0.1234, -2.9, 179.5)
 BLOCK = 100
 NS = "urn:vgripd:machine-vision"
-HEADING = "## OPC UA link (Beyond Modbus, section 2)"
 
 
 # -- servers (this process) ----------------------------------------------------------------
 
 
-async def link_server(pki: Path | None) -> tuple[OpcUaLink, set[asyncio.Task[None]]]:
+async def link_server(pki: Path | None) -> OpcUaLink:
     security = ["Basic256Sha256_SignAndEncrypt"] if pki else ["None"]
     link = OpcUaLink("bench", OpcUaOptions.model_validate({
         "host": "127.0.0.1", "port": 0, "security": security, "allow_anonymous": True,
         "certificate_dir": str(pki) if pki else None}))
-    tasks: set[asyncio.Task[None]] = set()
     target = RobotTarget("kuka", ("x", "y", "z", "a", "b", "c"), POSE)
-
-    async def answer(t: Trigger) -> None:
-        await link.image_captured(t.seq, t.seq)
-        await link.publish(t.seq, JobResult(job_id=t.seq, status=Status.OK, target=target,
-                                            residuals={"fit_rms_mm": 0.01}))
-
-    def on_trigger(t: Trigger) -> None:
-        task = asyncio.create_task(answer(t))
-        tasks.add(task)
-        task.add_done_callback(tasks.discard)
-
-    await link.open(on_trigger)
-    return link, tasks
+    await link.open(answer_at_once(link, target, residuals={"fit_rms_mm": 0.01}))
+    return link
 
 
 async def bare_server(link: OpcUaLink) -> Server:
@@ -178,22 +164,16 @@ async def client_main(link_url: str, bare_url: str, jobs: int, server_cert: str)
 # -- report ----------------------------------------------------------------------------------
 
 
-def stats(ms: list[float]) -> dict[str, float]:
-    s = sorted(ms)
-    return {"median": statistics.median(s), "p95": s[int(0.95 * (len(s) - 1))],
-            "p99": s[int(0.99 * (len(s) - 1))], "max": s[-1]}
-
-
-async def measure(jobs: int, pki: Path | None) -> dict[str, Any]:
-    link, _tasks = await link_server(pki)
+async def measure_mode(jobs: int, pki: Path | None) -> dict[str, Any]:
+    link = await link_server(pki)
     bare = await bare_server(link)
     assert bare.bserver is not None
     link_url = f"opc.tcp://127.0.0.1:{link.port}/vgripd"
     bare_url = f"opc.tcp://127.0.0.1:{bare.bserver.port}/bare"
     cert = str(link.certificate) if link.certificate is not None else ""
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, __file__, "--client", link_url, bare_url, str(jobs), cert,
-        stdout=subprocess.PIPE)
+        sys.executable, "-m", "bench.links.opcua", "--client", link_url, bare_url, str(jobs),
+        cert, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE)
     out, _ = await proc.communicate()
     await link.close()
     await bare.stop()
@@ -202,60 +182,36 @@ async def measure(jobs: int, pki: Path | None) -> dict[str, Any]:
     return data
 
 
-async def main(jobs: int, write: bool) -> None:
-    import tempfile
-
+async def measure(jobs: int) -> LinkRun:
     import asyncua
 
-    load_before = os.getloadavg()
     runs: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        runs["None"] = await measure(jobs, None)
-        runs["Basic256Sha256 SignAndEncrypt"] = await measure(jobs, Path(tmp) / "pki")
-    load_after = os.getloadavg()
-    lines, ratios, notes = [], [], []
+        runs["None"] = await measure_mode(jobs, None)
+        runs["Basic256Sha256 SignAndEncrypt"] = await measure_mode(jobs, Path(tmp) / "pki")
+    series, notes = [], []
     for mode, data in runs.items():
-        ls, bs = stats(data["times"]["link"]), stats(data["times"]["bare"])
         reads = data["reads"]
-        ratios.append(f"{ratio_text(ls, bs)} ({mode})")
+        peer = f"bare asyncua server, {mode}: one method call returning the result"
+        series += [Series(f"vgripd opcua link, {mode}: StartSingleJob, poll Result until "
+                          "RequestId", data["times"]["link"], against=peer),
+                   Series(peer, data["times"]["bare"])]
         notes.append(f"{statistics.mean(reads):.2f} Read requests on average with {mode} "
                      f"(min {min(reads)}, max {max(reads)})")
-        for name, st in ((f"opcua link, {mode}: StartSingleJob, poll Result until RequestId",
-                          ls),
-                         (f"bare asyncua server, {mode}: one method call returning the result",
-                          bs)):
-            lines.append(f"| {name} | {st['median']:.2f} | {st['p95']:.2f} | "
-                         f"{st['p99']:.2f} | {st['max']:.2f} |")
-    version = getattr(asyncua, "__version__", "?")
-    head = (f"`.venv/bin/python bench/bench_opcua.py {jobs} --write-results`, "
-            f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores shared "
-            f"with other work (load average {' '.join(f'{x:.2f}' for x in load_before)} before, "
-            f"{' '.join(f'{x:.2f}' for x in load_after)} after), Python "
-            f"{platform.python_version()}, asyncua {version}. {jobs} jobs each per row, "
-            f"blocks of {BLOCK} alternating link and peer, both servers on one event loop in "
-            "the bench process (anonymous sessions; with encryption the peer uses the link's "
-            "generated certificate), asyncua's client in a child process; the daemon stand-in "
-            "answers each trigger at once (no vision work).")
-    text = "\n".join([
-        HEADING, "", head, "",
-        "| trigger -> result, ms | median | p95 | p99 | max |", "|---|---:|---:|---:|---:|",
-        *lines, "",
-        f"Median ratio link / bare: {'; '.join(ratios)}. The link's job is the call plus "
-        f"the reads ({'; '.join(notes)}; one read means the stand-in had published before the "
-        "first Read arrived): two round trips, the hand-off to the daemon's handler and the "
-        "publish (15 variable writes, the state machine twice, two events), against one round "
-        "trip for the bare method. A client that waits on the ResultReady event or a "
-        "subscription instead of polling pays its publishing interval instead of the reads. "
-        "No target was set for this link; the figures are for comparison with the other links "
-        "(bench/RESULTS.md) and between security modes.",
-    ])
-    print(text)
-    if write:
-        write_section(HEADING, text)
-
-
-def ratio_text(ls: dict[str, float], bs: dict[str, float]) -> str:
-    return f"{ls['median'] / bs['median']:.2f}"
+    return LinkRun(
+        heading="OPC UA link",
+        setup=(f"{jobs} jobs per row, blocks of {BLOCK} alternating link and peer, both "
+               "servers on one event loop in the bench process (anonymous sessions), asyncua "
+               f"{getattr(asyncua, '__version__', '?')}'s client in a child process; the daemon "
+               "side answers each trigger at once. Client, job sequence and peer: "
+               "bench/links/opcua.py's docstring."),
+        series=series,
+        notes=[f"The link's job is the call plus the reads ({'; '.join(notes)}; one read means "
+               "the stand-in had published before the first Read arrived): two round trips, "
+               "the hand-off to the daemon's handler and the publish, against one round trip "
+               "for the bare method. A client that waits on the ResultReady event or a "
+               "subscription instead of polling pays its publishing interval instead of the "
+               "reads."])
 
 
 if __name__ == "__main__":
@@ -263,5 +219,4 @@ if __name__ == "__main__":
         asyncio.run(client_main(sys.argv[2], sys.argv[3], int(sys.argv[4]),
                                 sys.argv[5] if len(sys.argv) > 5 else ""))
     else:
-        args = [a for a in sys.argv[1:] if not a.startswith("--")]
-        asyncio.run(main(int(args[0]) if args else 1000, "--write-results" in sys.argv))
+        sys.exit("usage: python -m bench.links.opcua --client LINK_URL BARE_URL JOBS [CERT]")

@@ -1,32 +1,25 @@
-"""Trigger -> result latency of the robot socket link vs a bare asyncio socket peer, same run.
+"""Robot socket link: trigger to result vs a bare asyncio socket peer, same run.
 
 The robot side is one asyncio client (a kept connection, like the KUKA, ABB and Staubli
 programs) that writes a 16-byte LOCATE and waits for the 64-byte RESULT; the time is from the
-write to the RESULT being read, over TCP on 127.0.0.1. The daemon side answers at once
-(image_captured, then publish; no vision work), so what is timed is the link: framing, request
+write to the RESULT being read, over TCP on 127.0.0.1. The daemon stand-in answers at once,
+so what is timed is the link: framing, request
 judging, the trigger hand-off to the daemon's handler, CAPTURED and RESULT encoding.
 
 The named peer is a bare ``asyncio.start_server`` handler that reads 16 bytes and writes a
 prepared CAPTURED and RESULT with the request id patched in: the least any server speaking this
 format can do. Both run in blocks of 100 jobs, alternating, so load changes hit both.
-
-    cd /work/main && .venv/bin/python bench/bench_robot_socket.py [jobs]
 """
 
 from __future__ import annotations
 
 import asyncio
-import statistics
 import struct
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions  # noqa: E402
-from vgripd.service.protocol import Trigger  # noqa: E402
-from vgripd.service.robot_socket_format import (  # noqa: E402
+from bench.links import LinkRun, Series, answer_at_once
+from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
+from vgripd.service.robot_socket_format import (
     ANSWER_SIZE,
     Answer,
     AnswerKind,
@@ -35,8 +28,9 @@ from vgripd.service.robot_socket_format import (  # noqa: E402
     ValueEncoding,
     decode_answer,
 )
-from vgripd.types import JobResult, RobotTarget, Status  # noqa: E402
+from vgripd.types import RobotTarget, Status
 
+DEFAULT_JOBS = 2000
 POSE = (412.5, -133.25, 287.0625, 0.1234, -2.9, 179.5)
 BLOCK = 100
 
@@ -61,22 +55,11 @@ class Robot:
         return dt_ms
 
 
-async def link_peer() -> tuple[RobotSocketLink, set[asyncio.Task[None]]]:
+async def link_peer() -> RobotSocketLink:
     link = RobotSocketLink("bench", RobotSocketOptions(host="127.0.0.1", port=0))
-    tasks: set[asyncio.Task[None]] = set()
-    target = RobotTarget("kuka", ("X", "Y", "Z", "A", "B", "C"), POSE)
-
-    async def answer(t: Trigger) -> None:
-        await link.image_captured(t.seq, t.seq)
-        await link.publish(t.seq, JobResult(job_id=t.seq, status=Status.OK, target=target))
-
-    def on_trigger(t: Trigger) -> None:
-        task = asyncio.create_task(answer(t))
-        tasks.add(task)
-        task.add_done_callback(tasks.discard)
-
-    await link.open(on_trigger)
-    return link, tasks
+    await link.open(answer_at_once(link, RobotTarget("kuka", ("X", "Y", "Z", "A", "B", "C"),
+                                                     POSE)))
+    return link
 
 
 async def bare_peer(finished: asyncio.Event) -> asyncio.Server:
@@ -99,16 +82,8 @@ async def bare_peer(finished: asyncio.Event) -> asyncio.Server:
     return await asyncio.start_server(serve, "127.0.0.1", 0)
 
 
-def summary(name: str, ms: list[float]) -> str:
-    ms = sorted(ms)
-    p95 = ms[int(0.95 * (len(ms) - 1))]
-    p99 = ms[int(0.99 * (len(ms) - 1))]
-    return (f"{name:<26} median {statistics.median(ms):6.3f} ms  p95 {p95:6.3f} ms  "
-            f"p99 {p99:6.3f} ms  max {ms[-1]:6.3f} ms  (n={len(ms)})")
-
-
-async def main(jobs: int) -> None:
-    link, _tasks = await link_peer()
+async def measure(jobs: int) -> LinkRun:
+    link = await link_peer()
     bare_done = asyncio.Event()
     bare = await bare_peer(bare_done)
     robots = {}
@@ -132,15 +107,16 @@ async def main(jobs: int) -> None:
     await link.close()
     bare.close()
     await bare.wait_closed()
-    print(f"{jobs} jobs each, kept connection on 127.0.0.1, python "
-          f"{'.'.join(map(str, sys.version_info[:3]))}, blocks of {BLOCK} alternating")
-    print(summary("RobotSocketLink", times["link"]))
-    print(summary("bare asyncio socket peer", times["bare"]))
-    ratio = statistics.median(times["link"]) / statistics.median(times["bare"])
-    print(f"median ratio link / bare: {ratio:.2f}")
     frame = struct.calcsize(">4I"), ANSWER_SIZE
-    print(f"bytes per job: {frame[0]} request + 2 x {frame[1]} answers (CAPTURED, RESULT)")
-
-
-if __name__ == "__main__":
-    asyncio.run(main(int(sys.argv[1]) if len(sys.argv) > 1 else 2000))
+    peer = "bare asyncio socket peer: read 16 bytes, write two prepared answers"
+    return LinkRun(
+        heading="Robot socket link",
+        setup=(f"{jobs} jobs per row, a kept connection on 127.0.0.1, blocks of {BLOCK} "
+               "alternating link and peer after 20 warm-up jobs each. Timed: a robot-side "
+               "asyncio client (as the KUKA, ABB and Staubli programs keep theirs), from "
+               "writing a 16-byte LOCATE to having read the RESULT; the daemon side answers at "
+               "once."),
+        series=[Series("vgripd RobotSocketLink", times["link"], against=peer),
+                Series(peer, times["bare"])],
+        notes=[f"Bytes per job: {frame[0]} request + 2 x {frame[1]} answers (CAPTURED, "
+               "RESULT)."])
