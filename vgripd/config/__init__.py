@@ -47,6 +47,7 @@ from vgripd.config.loader import (
 from vgripd.config.objects import (
     DEMO_OBJECT,
     DEMO_REFERENCE,
+    MIN_PNP_FEATURES,
     ArucoFeature,
     CircleFeature,
     FeatureConfig,
@@ -68,13 +69,14 @@ from vgripd.config.vision import PickingConfig, PickPointConfig, VisionConfig
 from vgripd.configbase import DriverSection, format_validation_error
 
 __all__ = [
-    "BELT_PLANE_DEG", "COUNTS_PER_MM_RANGE", "DEMO_CALIBRATION", "DEMO_OBJECT", "DEMO_REFERENCE",
-    "MAX_CAMERAS", "MAX_RECIPE_NAME", "MEASURED_REFERENCE_KEYS", "NAME_PATTERN", "RECIPE_SECTIONS",
-    "RECIPE_WHOLE_SECTIONS", "REDO_STEPS", "AllowList", "ArucoFeature", "CalibrationConfig",
-    "CalibrationWalkConfig", "CameraEntryConfig", "CircleFeature", "Config", "ConveyorConfig",
-    "DaemonConfig", "DriverSection", "FeatureConfig", "HandEyeConfig", "IntrinsicsConfig",
-    "LimitsConfig", "Model", "ObjectConfig", "OutputConfig", "PickPointConfig", "PickingConfig",
-    "PoseConfig", "RecipeConfig", "RecordConfig", "ReferenceConfig", "RigConfig", "StatusConfig",
+    "BELT_PLANE_DEG", "COUNTS_PER_MM_RANGE", "DEMO_CALIBRATION", "DEMO_OBJECT",
+    "DEMO_REFERENCE", "MAX_CAMERAS", "MAX_RECIPE_NAME", "MEASURED_REFERENCE_KEYS",
+    "MIN_PNP_FEATURES", "NAME_PATTERN", "RECIPE_SECTIONS", "RECIPE_WHOLE_SECTIONS",
+    "REDO_STEPS", "AllowList", "ArucoFeature", "CalibrationConfig", "CalibrationWalkConfig",
+    "CameraEntryConfig", "CircleFeature", "Config", "ConveyorConfig", "DaemonConfig",
+    "DriverSection", "FeatureConfig", "HandEyeConfig", "IntrinsicsConfig", "LimitsConfig",
+    "Model", "ObjectConfig", "OutputConfig", "PickPointConfig", "PickingConfig", "PoseConfig",
+    "RecipeConfig", "RecordConfig", "ReferenceConfig", "RigConfig", "StatusConfig",
     "StereoConfig", "TemplateFeature", "Vec3", "check_calibration_files", "config_from_dict",
     "format_validation_error", "load_config", "measured_references", "read_config_data",
     "VisionConfig", "unknown_recipe",

@@ -10,6 +10,37 @@ from pydantic import Field, field_validator
 
 from vgripd.config.common import Model, PoseConfig, Vec3
 
+#: The fewest identified features (ArUco markers, templates) a single-camera (PnP) pose needs
+#: (three points have up to four poses).
+MIN_PNP_FEATURES = 4
+
+#: OpenCV's predefined ArUco dictionaries (``cv2.aruco.DICT_*``), named here so that judging a
+#: config needs no OpenCV; a test holds the set to OpenCV's own.
+ARUCO_DICTIONARIES = frozenset(
+    [f"DICT_{n}X{n}_{size}" for n in (4, 5, 6, 7) for size in (50, 100, 250, 1000)]
+    + ["DICT_ARUCO_ORIGINAL", "DICT_ARUCO_MIP_36H12", "DICT_APRILTAG_16H5",
+       "DICT_APRILTAG_25H9", "DICT_APRILTAG_36H10", "DICT_APRILTAG_36H11"])
+
+
+def marker_problems(features: tuple[FeatureConfig, ...]) -> list[str]:
+    """Why the object's ArUco markers cannot be told apart, one line per feature starting with
+    its field (``object.features[i]``): an id used twice in one dictionary, an unknown
+    dictionary."""
+    problems = []
+    seen: set[tuple[str, int]] = set()
+    for i, f in enumerate(features):
+        if f.kind != "aruco":
+            continue
+        if (f.dictionary, f.marker_id) in seen:
+            problems.append(f"object.features[{i}]: marker id {f.marker_id} of {f.dictionary} "
+                            "is used twice")
+            continue
+        seen.add((f.dictionary, f.marker_id))
+        if f.dictionary.upper() not in ARUCO_DICTIONARIES:
+            problems.append(f"object.features[{i}].dictionary: unknown ArUco dictionary "
+                            f"{f.dictionary!r}")
+    return problems
+
 
 class _FeatureBase(Model):
     """``normal``: optional outward normal of the mark's face (object frame, any length > 0).

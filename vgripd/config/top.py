@@ -22,12 +22,24 @@ from vgripd import registry
 from vgripd.config.calibration import DEMO_CALIBRATION, CalibrationConfig, CalibrationWalkConfig
 from vgripd.config.common import Model
 from vgripd.config.conveyor import ConveyorConfig
-from vgripd.config.objects import DEMO_OBJECT, DEMO_REFERENCE, ObjectConfig, ReferenceConfig
+from vgripd.config.objects import (
+    DEMO_OBJECT,
+    DEMO_REFERENCE,
+    ObjectConfig,
+    ReferenceConfig,
+    marker_problems,
+)
 from vgripd.config.output import LimitsConfig, OutputConfig
 from vgripd.config.recipes import RECIPE_WHOLE_SECTIONS, RecipeConfig, RecipeNumber, unknown_recipe
 from vgripd.config.service import DaemonConfig, RecordConfig, StatusConfig
 from vgripd.config.vision import PickingConfig, VisionConfig
-from vgripd.configbase import COMBINATION, RECIPE_PROBLEMS, DriverSection, format_validation_error
+from vgripd.configbase import (
+    COMBINATION,
+    PLACED,
+    RECIPE_PROBLEMS,
+    DriverSection,
+    format_validation_error,
+)
 from vgripd.errors import ConfigError
 
 
@@ -102,6 +114,32 @@ class Config(Model):
                     f"reference.points_mm must name every feature of object {self.object.name!r}"
                     f" exactly once: missing {missing}, unknown {unknown}"
                 )
+        return self
+
+    @model_validator(mode="after")
+    def _features_findable(self) -> Config:
+        """What finding the object needs of its features: pick lists group one kind of mark
+        per camera setup, and ArUco ids are unique in known dictionaries. Judged once the cell
+        is calibrated (without a calibration the jobs answer NOT_CALIBRATED anyway).
+
+        Enough identified features for one camera (PnP) stays the pipeline's to judge: a cell
+        calibrating its cameras before its object loads a single-camera config with circle
+        marks on purpose."""
+        cal = self.calibration
+        if cal is None:
+            return self
+        problems = []
+        kinds = [f.kind for f in self.object.features]
+        stereo = cal.right is not None
+        if self.picking.max_objects > 1 and not (
+                (stereo and all(k == "circle" for k in kinds))
+                or (not stereo and all(k == "aruco" for k in kinds))):
+            problems.append(
+                "picking.max_objects > 1 needs a stereo rig and an object of circle marks only, "
+                "or a single camera and an object of ArUco markers only (docs/picklists.md)")
+        problems += marker_problems(self.object.features)
+        if problems:
+            raise PydanticCustomError(PLACED, "{problems}", {"problems": "\n".join(problems)})
         return self
 
     @model_validator(mode="after")
@@ -233,6 +271,8 @@ def _problem_lines(err: ValidationError) -> list[str]:
     for e in err.errors():
         if e["type"] in (COMBINATION, RECIPE_PROBLEMS):
             lines += [f"<root>: {line}" for line in e["msg"].splitlines()]
+        elif e["type"] == PLACED:  # each line starts with its field path
+            lines += e["msg"].splitlines()
         else:
             lines.append(f"{'.'.join(str(p) for p in e['loc']) or '<root>'}: {e['msg']}")
     return lines
