@@ -20,6 +20,11 @@ COMBINATION = "combination"
 #: per problem, each starting with the full field path (``recipes.2.vision.downscale: ...``).
 RECIPE_PROBLEMS = "recipe_problems"
 
+#: pydantic error type of a refused combination whose message is one line per problem, each
+#: starting with the field it is about (``object.features[3]: marker id 7 of ... is used
+#: twice``): shown as it is, blamed on the file that set that field.
+PLACED = "placed"
+
 #: Highest recipe number: the RECIPE register is one 16-bit word.
 MAX_RECIPE = 65535
 
@@ -50,7 +55,7 @@ def format_validation_error(
             where = (owner or {}).get("links", source)
             lines += [f"{where}: {line}" for line in e["msg"].splitlines()]
             continue
-        if e["type"] == RECIPE_PROBLEMS:  # each line starts with its recipes.N... path
+        if e["type"] in (RECIPE_PROBLEMS, PLACED):  # each line starts with its field path
             lines += [f"{_blame(line.split(':', 1)[0], source, owner)}: {line}"
                       for line in e["msg"].splitlines()]
             continue

@@ -23,11 +23,12 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from vgripd.config import MIN_PNP_FEATURES
 from vgripd.errors import VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.transforms import invert_transform
 from vgripd.types import FloatArray
-from vgripd.vision.pipeline import MIN_PNP_FEATURES, Pipeline
+from vgripd.vision.pipeline import Pipeline
 from vgripd.vision.views_locator import ViewsLocator
 
 Level = Literal["ERROR", "WARNING", "NOTE"]

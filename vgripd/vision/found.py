@@ -42,18 +42,8 @@ class _Finder:
         for i, f in enumerate(config.object.features):
             if f.kind == "circle":
                 circles.setdefault(f.polarity, []).append(f.diameter_mm)
-            elif f.kind == "aruco":
-                ids = self.aruco.setdefault(f.dictionary, {})
-                if f.marker_id in ids:
-                    raise ConfigError(
-                        f"object.features[{i}]: marker id {f.marker_id} of {f.dictionary} is "
-                        "used twice"
-                    )
-                try:
-                    ft.aruco_dictionary(f.dictionary)
-                except ValueError as err:
-                    raise ConfigError(f"object.features[{i}].dictionary: {err}") from None
-                ids[f.marker_id] = i
+            elif f.kind == "aruco":  # ids unique, dictionaries known: judged by the config
+                self.aruco.setdefault(f.dictionary, {})[f.marker_id] = i
             else:
                 self.templates.append((i, _load_template(f.template, f"object.features[{i}]")))
         for polarity, diameters in circles.items():

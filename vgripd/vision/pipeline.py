@@ -32,13 +32,13 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from vgripd.config import Config
+from vgripd.config import MIN_PNP_FEATURES, Config
 from vgripd.errors import ConfigError, GeometryError, NotCalibratedError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.orientation import horn, horn_robust, pnp
 from vgripd.geometry.stereo import StereoRig
 from vgripd.geometry.transforms import invert_transform
-from vgripd.geometry.vendors import VENDORS, target_from_transform
+from vgripd.geometry.vendors import target_from_transform
 from vgripd.types import FloatArray, ImagePair, JobResult, Status
 from vgripd.vision import diagnosis as dg
 from vgripd.vision import features as ft
@@ -48,10 +48,6 @@ from vgripd.vision.jobstate import PoseEstimate, StereoPoints, _Job
 from vgripd.vision.pose_checks import Measurement, check_pose, limit_point
 from vgripd.vision.rigcheck import rig_verdict
 from vgripd.vision.views_locator import ViewsLocator
-
-#: Minimum number of matched features for PnP (three points have up to four poses).
-MIN_PNP_FEATURES = 4
-
 
 # --------------------------------------------------------------------------- pipeline
 
@@ -110,18 +106,14 @@ class Pipeline:
             if config.calibration.hand_eye.mounting == "fixed"
             else None
         )
-        if config.output.vendor not in VENDORS:
-            raise ConfigError(
-                f"output.vendor: unknown vendor {config.output.vendor!r} "
-                f"(known: {', '.join(sorted(VENDORS))})"
-            )
         self.kinds = tuple(f.kind for f in config.object.features)
         self.is_circle = np.array([k == "circle" for k in self.kinds])
         self.diameters = np.array(
             [f.diameter_mm if f.kind == "circle" else 0.0 for f in config.object.features]
         )
         identified = int((~self.is_circle).sum())
-        # A multi-camera cell (calibration.cameras): its own path, one finder per camera.
+        # A multi-camera cell (calibration.cameras): its own path, one finder per camera. The
+        # kinds of marks a pick list needs and unique ArUco ids the config judged at load.
         self.multi: ViewsLocator | None = None
         self.finders: list[_Finder] = []
         if scene.is_multi_camera(config):
@@ -133,12 +125,6 @@ class Pipeline:
                 f"{MIN_PNP_FEATURES} aruco/template features, the object has {identified} "
                 "(circle marks cannot be told apart in one image)"
             )
-        all_aruco = all(k == "aruco" for k in self.kinds)
-        if self.many and not ((self.rig is not None and self.is_circle.all())
-                              or (self.rig is None and all_aruco)):
-            raise ConfigError(
-                "picking.max_objects > 1 needs a stereo rig and an object of circle marks only, "
-                "or a single camera and an object of ArUco markers only (docs/picklists.md)")
         self.find_left = _Finder(config, self.left.fx)
         self.find_left.keep_all = self.many and self.rig is None
         self.find_right = _Finder(config, self.right.fx) if self.right is not None else None

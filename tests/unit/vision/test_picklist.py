@@ -318,17 +318,17 @@ def test_config_refuses(picking: dict[str, Any], message: str) -> None:
 
 
 def test_pick_lists_need_one_kind_of_feature_per_camera_setup() -> None:
-    """Stereo groups circle marks, one camera groups ArUco markers; a mix is refused."""
+    """Stereo groups circle marks, one camera groups ArUco markers; a mix is refused when the
+    config is loaded."""
     demo = config_from_dict({})
     feats = [f.model_dump() for f in demo.object.features]
     tag = {"name": "t", "xyz_mm": [0.0, 0.0, 0.0], "kind": "aruco", "marker_id": 3,
            "size_mm": 20.0}
-    config = config_from_dict({"object": {"features": [*feats, tag]},
-                               "reference": demo.reference.model_dump(exclude_none=True),
-                               "picking": {"max_objects": 3}})
     with pytest.raises(ConfigError, match="picking.max_objects > 1 needs a stereo rig and an "
                                           "object of circle marks only, or a single camera"):
-        Pipeline(config)
+        config_from_dict({"object": {"features": [*feats, tag]},
+                          "reference": demo.reference.model_dump(exclude_none=True),
+                          "picking": {"max_objects": 3}})
 
 
 def test_a_plate_with_three_marks_is_listed_partial_one_with_two_is_not_found() -> None:
