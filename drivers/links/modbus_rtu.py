@@ -41,7 +41,7 @@ from pydantic import Field, model_validator
 
 from drivers.links.modbus_server import MalformedFrame, RegisterServerLink
 from vgripd.errors import LinkError
-from vgripd.service.protocol import LinkHealth, LinkState, RegisterOptions, TriggerHandler
+from vgripd.service.protocol import LinkState, RegisterOptions, TriggerHandler
 
 log = logging.getLogger(__name__)
 
@@ -329,11 +329,6 @@ class ModbusRtuLink(RegisterServerLink):
         super().__init__(name, options)
         self._line: _Line | None = None
         self._supervisor: asyncio.Task[None] | None = None
-        self._rtu_state = LinkState.STOPPED
-        self._rtu_error = ""
-        self._rtu_since_ns = time.monotonic_ns()
-        self._reconnects = 0
-        self._state_changed: asyncio.Event | None = None
         self.frames_answered = 0
         self.frames_other_units = 0
 
@@ -350,13 +345,13 @@ class ModbusRtuLink(RegisterServerLink):
             self._line = _Line(self, open_port(self.options, self.describe()))
         except PortFault as fault:
             if fault.permanent:  # the caller (the daemon) reports it
-                self._set_rtu_state(LinkState.FAILED, str(fault))
+                self.cell.set(LinkState.FAILED, str(fault))
                 raise LinkError(f"link {self.name}: {fault}") from None
-            self._set_rtu_state(LinkState.DOWN, str(fault))
+            self.cell.set(LinkState.DOWN, str(fault))
             log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, fault,
                         self.options.backoff_max_s)
         else:
-            self._set_rtu_state(LinkState.UP)
+            self.cell.set(LinkState.UP)
             log.info("%s: serving Modbus registers on %s", self.name, self.describe())
         self._heartbeat = asyncio.create_task(self._beat(), name=f"{self.name}-heartbeat")
         self._supervisor = asyncio.create_task(self._supervise(),
@@ -371,25 +366,10 @@ class ModbusRtuLink(RegisterServerLink):
             self._line.close()
             self._line = None
         await super().close()
-        self._set_rtu_state(LinkState.STOPPED)
-
-    def health(self) -> LinkHealth:
-        return LinkHealth(state=self._rtu_state, peer=self.describe(),
-                          last_error=self._rtu_error, reconnects=self._reconnects,
-                          since_mono_ns=self._rtu_since_ns, peers=0)
+        self.cell.set(LinkState.STOPPED)
 
     def peers(self) -> int:
         return 0  # a serial line has no connection to count
-
-    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
-        """Wait until ``health().state`` is one of ``states``; ``TimeoutError`` otherwise."""
-        wanted = {states} if isinstance(states, LinkState) else states
-        async with asyncio.timeout(timeout_s):
-            while self._rtu_state not in wanted:
-                if self._state_changed is None:
-                    self._state_changed = asyncio.Event()
-                await self._state_changed.wait()
-        return self.health()
 
     def describe(self) -> str:
         o = self.options
@@ -423,15 +403,6 @@ class ModbusRtuLink(RegisterServerLink):
 
     # -- supervisor ------------------------------------------------------------------------
 
-    def _set_rtu_state(self, state: LinkState, error: str = "") -> None:
-        if state is not self._rtu_state:
-            self._rtu_state = state
-            self._rtu_since_ns = time.monotonic_ns()
-        self._rtu_error = error
-        changed, self._state_changed = self._state_changed, None
-        if changed is not None:
-            changed.set()  # wakes every waiter once; later waiters make a fresh event
-
     async def _supervise(self) -> None:
         o = self.options
         delay = o.backoff_initial_s
@@ -441,7 +412,7 @@ class ModbusRtuLink(RegisterServerLink):
                 reason = await line.lost
                 line.close()
                 self._line = None
-                self._set_rtu_state(LinkState.DOWN, reason)
+                self.cell.set(LinkState.DOWN, reason)
                 log.warning("%s: %s; reopening with back-off up to %.1f s", self.name, reason,
                             o.backoff_max_s)
                 delay = o.backoff_initial_s
@@ -454,9 +425,8 @@ class ModbusRtuLink(RegisterServerLink):
                     self._line = _Line(self, open_port(o, self.describe()))
                 except PortFault as fault:
                     # Logged once per outage (above, or by open()); the state says the latest.
-                    self._set_rtu_state(LinkState.DOWN, str(fault))
+                    self.cell.set(LinkState.DOWN, str(fault))
                     log.debug("%s: still down (attempt %d): %s", self.name, attempts, fault)
-            self._reconnects += 1
-            self._set_rtu_state(LinkState.UP)
+            self.cell.set(LinkState.UP, reconnect=True)
             log.info("%s: serial port %s is back (reconnects %d)", self.name, self.describe(),
-                     self._reconnects)
+                     self.cell.reconnects)

@@ -77,12 +77,12 @@ from vgripd.service.protocol import (
     RegisterAccessError,
     RegisterBank,
     RegisterOptions,
-    RobotLink,
     Trigger,
     TriggerHandler,
     ValueCodec,
 )
 from vgripd.service.ratelog import RateLimitedLog
+from vgripd.service.supervisor import SupervisedLink
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
@@ -130,7 +130,7 @@ def _need_byte_count(pdu: bytes, fixed: int) -> int:
     return byte_count
 
 
-class RegisterServerLink(RobotLink):
+class RegisterServerLink(SupervisedLink):
     """A Modbus server link over some transport: register bank, heartbeat, handshake.
 
     Each transport starts with ``_start_serving`` and stops with ``_stop_serving``; every
@@ -156,9 +156,6 @@ class RegisterServerLink(RobotLink):
         self._on_trigger: TriggerHandler | None = None
         self._on_count: CountHandler | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._state = LinkState.STOPPED
-        self._since_ns = time.monotonic_ns()
-        self._last_error = ""
         self._functions: dict[int, Callable[[bytes, str], bytes]] = {
             3: self._read_holding, 6: self._write_single, 16: self._write_multiple,
             22: self._mask_write, 23: self._read_write,
@@ -179,11 +176,11 @@ class RegisterServerLink(RobotLink):
         try:
             await self._start_serving()
         except LinkError as err:
-            self._set_state(LinkState.FAILED, str(err))
+            self.cell.set(LinkState.FAILED, str(err) or None)
             raise LinkError(f"link {self.name}: {err}") from None
         self._serving = True
         self._heartbeat = asyncio.create_task(self._beat(), name=f"{self.name}-heartbeat")
-        self._set_state(LinkState.UP)
+        self.cell.set(LinkState.UP, None)
         log.info("%s: serving Modbus registers on %s", self.name, self._describe())
 
     async def _start_serving(self) -> None:
@@ -202,16 +199,10 @@ class RegisterServerLink(RobotLink):
         await self._stop_serving()
         self._serving = False
         self.ratelog.flush(force=True)
-        self._set_state(LinkState.STOPPED)
+        self.cell.set(LinkState.STOPPED, None)
 
     def health(self) -> LinkHealth:
-        return LinkHealth(
-            state=self._state,
-            peer=self._describe(),
-            last_error=self._last_error,
-            since_mono_ns=self._since_ns,
-            peers=self.peers(),
-        )
+        return self.cell.health(peer=self._describe(), peers=self.peers())
 
     def peers(self) -> int:
         """Connected peers (TCP clients); 0 where the transport has none to count."""
@@ -362,13 +353,6 @@ class RegisterServerLink(RobotLink):
         while True:
             await asyncio.sleep(period_s)
             self.bank.beat()
-
-    def _set_state(self, state: LinkState, error: str = "") -> None:
-        if state is not self._state:
-            self._state = state
-            self._since_ns = time.monotonic_ns()
-        if error:
-            self._last_error = error
 
 
 class TcpOptions(RegisterOptions):

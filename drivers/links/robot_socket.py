@@ -69,7 +69,6 @@ from vgripd.service.jobcore import Action, Command, Handshake
 from vgripd.service.protocol import (
     LinkHealth,
     LinkState,
-    RobotLink,
     Trigger,
     TriggerHandler,
     checked_warnings,
@@ -92,6 +91,7 @@ from vgripd.service.robot_socket_format import (
     request_size,
     result_answer,
 )
+from vgripd.service.supervisor import SupervisedLink
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
@@ -288,7 +288,7 @@ class RobotConnection(asyncio.Protocol):
             self.transport.close()
 
 
-class RobotSocketLink(RobotLink):
+class RobotSocketLink(SupervisedLink):
     Options = RobotSocketOptions
     capabilities = SOCKET_CAPABILITIES
     options: RobotSocketOptions
@@ -315,8 +315,6 @@ class RobotSocketLink(RobotLink):
         self.gate = Gate(name, options.max_connections, allow=options.allow,
                          idle_timeout_s=options.idle_timeout_s, lines=self._lines,
                          faults=self.faults)
-        self._health = LinkHealth(LinkState.STOPPED, peer=self._where)
-        self._health_changed: asyncio.Condition | None = None
 
     # -- RobotLink ---------------------------------------------------------------------------
 
@@ -326,7 +324,6 @@ class RobotSocketLink(RobotLink):
         if self._tasks or self._listener is not None:
             raise LinkError(f"link {self.name}: already open")
         self._on_trigger = on_trigger
-        self._health_changed = asyncio.Condition()
         o = self.options
         if o.mode == "server":
             try:
@@ -336,10 +333,10 @@ class RobotSocketLink(RobotLink):
                 reason = os.strerror(err.errno) if err.errno else str(err)
                 error = (f"cannot listen on {o.host}:{o.port}: {reason} (check host and port of "
                          f"this [[links]] entry)")
-                await self._set_health(LinkState.FAILED, error)
+                self.cell.set(LinkState.FAILED, error)
                 raise LinkError(f"link {self.name}: {error}") from None
             self._where = f"{o.host}:{self.port}"
-            await self._set_health(LinkState.UP)
+            self.cell.set(LinkState.UP)
             log.info("%s: robot socket server on %s (values %s)", self.name, self._where,
                      f"int32 x {o.scale}" if o.value_format == "int32" else "float32")
         else:
@@ -364,7 +361,7 @@ class RobotSocketLink(RobotLink):
             await listener.wait_closed()
         self._job = None
         self._handshake = Handshake(edge=False)
-        await self._set_health(LinkState.STOPPED)
+        self.cell.set(LinkState.STOPPED)
 
     @staticmethod
     def exposure(options: RobotSocketOptions) -> list[tuple[str, str, str]]:
@@ -382,10 +379,7 @@ class RobotSocketLink(RobotLink):
                  "address>\"]")]
 
     def health(self) -> LinkHealth:
-        h = self._health
-        return LinkHealth(h.state, peer=self._where, last_error=h.last_error,
-                          reconnects=h.reconnects, since_mono_ns=h.since_mono_ns,
-                          peers=len(self.gate))
+        return self.cell.health(peer=self._where, peers=len(self.gate))
 
     @property
     def port(self) -> int:
@@ -450,10 +444,6 @@ class RobotSocketLink(RobotLink):
     async def set_warnings(self, bits: int) -> None:
         """The bits go into every later answer (word 4); nothing is sent unasked."""
         self._warnings = checked_warnings(bits)
-
-    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
-        """Wait until ``health().state`` is in ``states``; ``TimeoutError`` otherwise."""
-        return await self._wait_health(self._health_changed, states, timeout_s)
 
     # -- requests ----------------------------------------------------------------------------
 
@@ -601,7 +591,7 @@ class RobotSocketLink(RobotLink):
         # back-off go on (any peer error is retried with back-off, logged once).
         fruitless = False
         while True:
-            await self._set_health(LinkState.CONNECTING, error)
+            self.cell.set(LinkState.CONNECTING, error)
             conn: RobotConnection | None = None
             self.attempts += 1
             try:
@@ -617,7 +607,7 @@ class RobotSocketLink(RobotLink):
                 log.exception("%s: unexpected error connecting to %s", self.name, self._where)
                 error = f"internal error: {err!r}"
             if conn is not None:
-                await self._set_health(LinkState.UP, reconnect=outage_logged)
+                self.cell.set(LinkState.UP, reconnect=outage_logged)
                 if not fruitless:
                     log.info("%s: connected to the robot at %s%s", self.name, self._where,
                              " again" if outage_logged else "")
@@ -632,7 +622,7 @@ class RobotSocketLink(RobotLink):
                 log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, error,
                             o.backoff_max_s)
                 outage_logged = True
-            await self._set_health(LinkState.DOWN, error)
+            self.cell.set(LinkState.DOWN, error)
             await asyncio.sleep(delay)
             delay = min(2 * delay, o.backoff_max_s)
 
@@ -640,19 +630,6 @@ class RobotSocketLink(RobotLink):
 
     def _spawn(self, coro: Any, what: str) -> None:
         self._tasks.append(asyncio.create_task(coro, name=f"{self.name}-{what}"))
-
-    async def _set_health(self, state: LinkState, error: str = "",
-                          reconnect: bool = False) -> None:
-        h = self._health
-        if state is h.state and error == h.last_error:
-            return
-        self._health = LinkHealth(
-            state, peer=self._where, last_error=error,
-            reconnects=h.reconnects + int(reconnect),
-            since_mono_ns=time.monotonic_ns() if state is not h.state else h.since_mono_ns)
-        if self._health_changed is not None:
-            async with self._health_changed:
-                self._health_changed.notify_all()
 
 
 def set_keepalive(sock: Any, idle_s: int, interval_s: int, count: int) -> None:
