@@ -47,7 +47,7 @@ from vgripd.service.protocol import (
     TriggerHandler,
     ValueCodec,
 )
-from vgripd.service.supervisor import SupervisedLink
+from vgripd.service.supervisor import Ended, OutagePolicy, Reconnector, SupervisedLink
 from vgripd.types import JobResult, Status
 
 C = TypeVar("C")  # the transport's client object, one per connection
@@ -261,44 +261,34 @@ class MirrorClientLink(SupervisedLink, Generic[C]):
 
     async def _supervise(self) -> None:
         opt = self.options
-        delay = opt.backoff_initial_s
-        error = ""
-        refusal = False
-        outage_logged = False
-        while True:
-            self.cell.set(LinkState.CONNECTING, error)
-            client = self._new_client()
-            try:
-                await self._connect(client)
-                await self._first_contact(client)
-                self.cell.set(LinkState.UP, reconnect=outage_logged)
-                if outage_logged:
-                    self._log.info("%s: %s %s is back", self.name, self.peer_kind, self._peer)
-                outage_logged = False
-                delay = opt.backoff_initial_s
-                await self._serve(client)
-            except LinkError as err:
-                hint = self._refusal_hint(err)
-                refusal = hint is not None
-                error = hint or str(err)
-            except Exception as err:
-                reason = self._transport_error(err)
-                if reason is None:  # a bug must not leave a dead link reporting UP
-                    self._log.exception("%s: unexpected error talking to %s", self.name,
-                                        self._peer)
-                    reason = f"internal error: {err!r}"
-                error, refusal = reason, False
-            finally:
-                self._drop(client)
-            self._release_waiters(LinkError(f"link {self.name}: {error}"))
-            if not outage_logged:
-                self._log.log(logging.ERROR if refusal else logging.WARNING,
-                              "%s: %s; retrying with back-off up to %.1f s", self.name,
-                              error, opt.backoff_max_s)
-                outage_logged = True
-            self.cell.set(LinkState.DOWN, error)
-            await asyncio.sleep(delay)
-            delay = min(2 * delay, opt.backoff_max_s)
+        reconnector = Reconnector(self.name, self.cell,
+                                  OutagePolicy(opt.backoff_initial_s, opt.backoff_max_s), self._log)
+        await reconnector.run(lambda: self._session(reconnector))
+
+    async def _session(self, reconnector: Reconnector) -> Ended:
+        """One connection: connect, first contact, serve until it ends; why it ended."""
+        self.cell.set(LinkState.CONNECTING, None)  # the last outage's reason stays in view
+        client = self._new_client()
+        try:
+            await self._connect(client)
+            await self._first_contact(client)
+            if reconnector.up():
+                self._log.info("%s: %s %s is back", self.name, self.peer_kind, self._peer)
+            await self._serve(client)
+        except LinkError as err:
+            hint = self._refusal_hint(err)
+            ended = Ended(hint or str(err), logging.WARNING if hint is None else logging.ERROR)
+        except Exception as err:
+            reason = self._transport_error(err)
+            if reason is None:  # a bug must not leave a dead link reporting UP
+                self._log.exception("%s: unexpected error talking to %s", self.name,
+                                    self._peer)
+                reason = f"internal error: {err!r}"
+            ended = Ended(reason)
+        finally:
+            self._drop(client)
+        self._release_waiters(LinkError(f"link {self.name}: {ended.error}"))
+        return ended
 
     async def _first_contact(self, client: C) -> None:
         """Read the peer's block, adopt its command area (first contact only), write the mirror

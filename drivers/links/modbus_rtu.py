@@ -42,6 +42,7 @@ from pydantic import Field, model_validator
 from drivers.links.modbus_server import MalformedFrame, RegisterServerLink
 from vgripd.errors import LinkError
 from vgripd.service.protocol import LinkState, RegisterOptions, TriggerHandler
+from vgripd.service.supervisor import Ended, OutagePolicy, Reconnector
 
 log = logging.getLogger(__name__)
 
@@ -341,20 +342,22 @@ class ModbusRtuLink(RegisterServerLink):
             raise LinkError(f"link {self.name}: already open")
         self._on_trigger = on_trigger
         self._loop = asyncio.get_running_loop()
+        o = self.options
+        reconnector = Reconnector(self.name, self.cell,
+                                  OutagePolicy(o.backoff_initial_s, o.backoff_max_s), log,
+                                  down_line="%s: %s; reopening with back-off up to %.1f s")
         try:
-            self._line = _Line(self, open_port(self.options, self.describe()))
+            self._line = _Line(self, open_port(o, self.describe()))
         except PortFault as fault:
             if fault.permanent:  # the caller (the daemon) reports it
                 self.cell.set(LinkState.FAILED, str(fault))
                 raise LinkError(f"link {self.name}: {fault}") from None
-            self.cell.set(LinkState.DOWN, str(fault))
-            log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, fault,
-                        self.options.backoff_max_s)
+            reconnector.failed(Ended(str(fault)))  # DOWN; the supervisor waits, then reopens
         else:
             self.cell.set(LinkState.UP)
             log.info("%s: serving Modbus registers on %s", self.name, self.describe())
         self._heartbeat = asyncio.create_task(self._beat(), name=f"{self.name}-heartbeat")
-        self._supervisor = asyncio.create_task(self._supervise(),
+        self._supervisor = asyncio.create_task(reconnector.run(lambda: self._session(reconnector)),
                                                name=f"{self.name}-supervisor")
 
     async def close(self) -> None:
@@ -403,30 +406,18 @@ class ModbusRtuLink(RegisterServerLink):
 
     # -- supervisor ------------------------------------------------------------------------
 
-    async def _supervise(self) -> None:
-        o = self.options
-        delay = o.backoff_initial_s
-        while True:
-            line = self._line
-            if line is not None:
-                reason = await line.lost
-                line.close()
-                self._line = None
-                self.cell.set(LinkState.DOWN, reason)
-                log.warning("%s: %s; reopening with back-off up to %.1f s", self.name, reason,
-                            o.backoff_max_s)
-                delay = o.backoff_initial_s
-            attempts = 0
-            while self._line is None:
-                await asyncio.sleep(delay)
-                delay = min(2 * delay, o.backoff_max_s)
-                attempts += 1
-                try:
-                    self._line = _Line(self, open_port(o, self.describe()))
-                except PortFault as fault:
-                    # Logged once per outage (above, or by open()); the state says the latest.
-                    self.cell.set(LinkState.DOWN, str(fault))
-                    log.debug("%s: still down (attempt %d): %s", self.name, attempts, fault)
-            self.cell.set(LinkState.UP, reconnect=True)
+    async def _session(self, reconnector: Reconnector) -> Ended:
+        """Reopen the port if it is closed, then serve until the line is lost; why it ended."""
+        if self._line is None:
+            try:
+                self._line = _Line(self, open_port(self.options, self.describe()))
+            except PortFault as fault:
+                return Ended(str(fault))
+            reconnector.up(reconnect=True)
             log.info("%s: serial port %s is back (reconnects %d)", self.name, self.describe(),
                      self.cell.reconnects)
+        line = self._line
+        reason = await line.lost
+        line.close()
+        self._line = None
+        return Ended(reason)

@@ -91,7 +91,7 @@ from vgripd.service.robot_socket_format import (
     request_size,
     result_answer,
 )
-from vgripd.service.supervisor import SupervisedLink
+from vgripd.service.supervisor import Ended, OutagePolicy, Reconnector, SupervisedLink
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
@@ -310,6 +310,8 @@ class RobotSocketLink(SupervisedLink):
         #: peer faults by kind (malformed, incomplete, not_reading, evicted, idle)
         self.faults: Counter[str] = Counter()
         self.attempts = 0  # client mode: connection attempts made
+        #: client mode: the last connection carried no valid request
+        self._fruitless = False
         self._lines = RateLimitedLog(log, options.log_interval_s)
         #: the connections (in order of arrival), their cap, eviction, idle timeout, allow
         self.gate = Gate(name, options.max_connections, allow=options.allow,
@@ -582,49 +584,41 @@ class RobotSocketLink(SupervisedLink):
 
     async def _supervise(self) -> None:
         o = self.options
-        loop = asyncio.get_running_loop()
-        delay = o.backoff_initial_s
-        error = ""
-        outage_logged = False
-        # The last connection carried no valid request (the peer sent garbage at once, or
-        # nothing): not a recovery, so the outage, its single log line and its growing
-        # back-off go on (any peer error is retried with back-off, logged once).
-        fruitless = False
-        while True:
-            self.cell.set(LinkState.CONNECTING, error)
-            conn: RobotConnection | None = None
-            self.attempts += 1
-            try:
-                async with asyncio.timeout(o.connect_timeout_s):
-                    _, conn = await loop.create_connection(
-                        lambda: RobotConnection(self), o.host, o.port)
-            except TimeoutError:
-                error = f"no connection to {self._where} within {o.connect_timeout_s:g} s"
-            except OSError as err:
-                reason = os.strerror(err.errno) if err.errno else str(err)
-                error = f"cannot connect to {self._where}: {reason}"
-            except Exception as err:  # a bug must not leave a dead link reporting UP
-                log.exception("%s: unexpected error connecting to %s", self.name, self._where)
-                error = f"internal error: {err!r}"
-            if conn is not None:
-                self.cell.set(LinkState.UP, reconnect=outage_logged)
-                if not fruitless:
-                    log.info("%s: connected to the robot at %s%s", self.name, self._where,
-                             " again" if outage_logged else "")
-                await asyncio.shield(conn.closed)
-                malformed = conn.close_reason.startswith("malformed")
-                fruitless = conn.requests <= int(malformed)
-                if not fruitless:
-                    outage_logged = False
-                    delay = o.backoff_initial_s
-                error = f"connection to {self._where} lost: {conn.close_reason}"
-            if not outage_logged:
-                log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, error,
-                            o.backoff_max_s)
-                outage_logged = True
-            self.cell.set(LinkState.DOWN, error)
-            await asyncio.sleep(delay)
-            delay = min(2 * delay, o.backoff_max_s)
+        self._fruitless = False
+        reconnector = Reconnector(self.name, self.cell,
+                                  OutagePolicy(o.backoff_initial_s, o.backoff_max_s), log)
+        await reconnector.run(lambda: self._session(reconnector))
+
+    async def _session(self, reconnector: Reconnector) -> Ended:
+        """One connection to the robot, from dialling until it closes; why it ended.
+
+        A connection that carried no valid request (the peer sent garbage at once, or nothing)
+        is not a recovery: the outage, its single log line and its growing back-off go on."""
+        o = self.options
+        self.cell.set(LinkState.CONNECTING, None)
+        self.attempts += 1
+        try:
+            async with asyncio.timeout(o.connect_timeout_s):
+                _, conn = await asyncio.get_running_loop().create_connection(
+                    lambda: RobotConnection(self), o.host, o.port)
+        except TimeoutError:
+            return Ended(f"no connection to {self._where} within {o.connect_timeout_s:g} s")
+        except OSError as err:
+            reason = os.strerror(err.errno) if err.errno else str(err)
+            return Ended(f"cannot connect to {self._where}: {reason}")
+        except Exception as err:  # a bug must not leave a dead link reporting UP
+            log.exception("%s: unexpected error connecting to %s", self.name, self._where)
+            return Ended(f"internal error: {err!r}")
+        again = reconnector.up(recovered=False)
+        if not self._fruitless:
+            log.info("%s: connected to the robot at %s%s", self.name, self._where,
+                     " again" if again else "")
+        await asyncio.shield(conn.closed)
+        malformed = conn.close_reason.startswith("malformed")
+        self._fruitless = conn.requests <= int(malformed)
+        if not self._fruitless:
+            reconnector.recovered()
+        return Ended(f"connection to {self._where} lost: {conn.close_reason}")
 
     # -- helpers -----------------------------------------------------------------------------
 

@@ -75,7 +75,7 @@ from vgripd.service.protocol import (
     pick_position,
     split_command,
 )
-from vgripd.service.supervisor import SupervisedLink
+from vgripd.service.supervisor import Ended, OutagePolicy, Reconnector, SupervisedLink
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger("vgripd.link.ur_rtde")
@@ -411,36 +411,36 @@ class URRtdeLink(SupervisedLink):
     # -- supervisor ---------------------------------------------------------------------------
 
     async def _supervise(self) -> None:
-        backoff = self.options.backoff_initial_s
-        failures = 0
+        o = self.options
+        reconnector = Reconnector(
+            self.name, self.cell, OutagePolicy(o.backoff_initial_s, o.backoff_max_s), log,
+            down_line="link %s down: %s (retrying with back-off up to %.0f s)",
+            still_line="link %s still down (attempt %d): %s")
         ever_up = False
-        while True:
+
+        async def session() -> Ended:
+            nonlocal ever_up
             child = _Child(self.options, self._last_seq, self._output)
             self._child = child
             try:
                 child.start()
-                fatal, error = await self._serve(child, ever_up)
+                fatal, error = await self._serve(child, reconnector, ever_up)
             finally:
                 self._child = None
                 for fut in self._pending.values():
                     if not fut.done():
                         fut.set_exception(LinkError(f"link {self.name}: connection lost"))
                 await child.stop(grace_s=1.0)
-            if self.cell.state is LinkState.UP:
-                ever_up, failures, backoff = True, 0, self.options.backoff_initial_s
-            failures += 1
-            if failures == 1:  # a refused register needs a person: ERROR, else WARNING
-                log.log(logging.ERROR if fatal else logging.WARNING,
-                        "link %s down: %s (retrying with back-off up to %.0f s)",
-                        self.name, error, self.options.backoff_max_s)
-            else:
-                log.debug("link %s still down (attempt %d): %s", self.name, failures, error)
-            self.cell.set(LinkState.DOWN, error)
-            await asyncio.sleep(backoff)
-            backoff = min(2 * backoff, self.options.backoff_max_s)
+            ever_up = ever_up or self.cell.state is LinkState.UP
+            # a refused register needs a person: ERROR, else WARNING
+            return Ended(error, logging.ERROR if fatal else logging.WARNING)
 
-    async def _serve(self, child: _Child, ever_up: bool) -> tuple[bool, str]:
-        """Run one child until it fails; return (fatal, reason)."""
+        await reconnector.run(session)
+
+    async def _serve(self, child: _Child, reconnector: Reconnector,
+                     ever_up: bool) -> tuple[bool, str]:
+        """Run one child until it fails; return (fatal, reason). ``ever_up``: an earlier child
+        was up (only reconnections after that count)."""
         if not ever_up and self.cell.state is LinkState.STOPPED:
             self.cell.set(LinkState.CONNECTING, None)
         # The child's own start (an interpreter and ur_rtde loaded) is not the controller's
@@ -465,9 +465,7 @@ class URRtdeLink(SupervisedLink):
             self._last_seq = first[2]  # the baseline: later connects serve anything newer
             if first[3]:
                 log.info("link %s: %s", self.name, first[3])
-        was_down = self.cell.state is LinkState.DOWN
-        self.cell.set(LinkState.UP, "", reconnect=ever_up)
-        if was_down:
+        if reconnector.up(reconnect=ever_up):
             log.info("link %s up again (%s)", self.name, self._peer)
         try:
             child.send((0, "warnings", (self._warnings,)))

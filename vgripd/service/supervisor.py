@@ -5,14 +5,24 @@ outages.
 wakes whoever waits for a state. Setting it is synchronous, so a link may change its health
 from a callback as well as from a task. ``SupervisedLink`` is the base of the links that keep
 one: their ``health`` and ``wait_state``.
+
+``OutagePolicy`` is what a link does about a lost peer, without sockets, tasks or clocks (time
+is an argument): wait ``backoff_initial_s`` before the first retry, double the wait after each
+failure up to ``backoff_max_s``, log the outage once (its first failure), start over once the
+peer is back. ``Reconnector`` is the one loop that runs it for every link that reconnects: it
+runs the link's session (connect, serve until the connection ends), then marks the link DOWN,
+logs the outage's one line and waits the policy's delay before the next session.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
+from collections.abc import Awaitable, Callable
 from collections.abc import Set as AbstractSet
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, NoReturn
 
 from vgripd.service.protocol import LinkHealth, LinkState, RobotLink
 
@@ -79,3 +89,119 @@ class SupervisedLink(RobotLink):
         """Wait until ``health().state`` is one of ``states``; ``TimeoutError`` otherwise."""
         await self.cell.wait(states, timeout_s)
         return self.health()
+
+
+# --- outages -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Retry:
+    """``OutagePolicy.failed``'s decision: wait ``delay_s`` (until ``at``, the caller's clock)
+    before the next attempt. ``first``: this failure begins an outage (log it); ``attempt``:
+    the failures of this outage so far, this one included; ``outage_s``: how long it lasts."""
+
+    delay_s: float
+    at: float
+    first: bool
+    attempt: int
+    outage_s: float
+
+
+class OutagePolicy:
+    """Doubling back-off and one log line per outage; no I/O, no clock of its own."""
+
+    def __init__(self, initial_s: float, max_s: float) -> None:
+        if not 0 < initial_s <= max_s:
+            raise ValueError(f"back-off needs 0 < initial ({initial_s}) <= max ({max_s})")
+        self.initial_s = initial_s
+        self.max_s = max_s
+        self._failures = 0
+        self._began = 0.0
+        self._delay_s = initial_s
+
+    @property
+    def in_outage(self) -> bool:
+        """A failure since the peer was last back (or since the start)."""
+        return self._failures > 0
+
+    def failed(self, now: float) -> Retry:
+        """An attempt failed or a connection ended at ``now`` (seconds)."""
+        if self._failures == 0:
+            self._began = now
+        self._failures += 1
+        delay = self._delay_s
+        self._delay_s = min(2 * delay, self.max_s)
+        return Retry(delay, now + delay, self._failures == 1, self._failures, now - self._began)
+
+    def recovered(self) -> bool:
+        """The peer is back: the next failure is a new outage, waited from ``initial_s``.
+        True when this ends an outage."""
+        was = self._failures > 0
+        self._failures = 0
+        self._delay_s = self.initial_s
+        return was
+
+
+@dataclass(frozen=True)
+class Ended:
+    """How a session ended: the link's ``error`` (its health's ``last_error``) and the level of
+    the outage's one log line (ERROR when it needs a person, such as a refused register)."""
+
+    error: str
+    level: int = logging.WARNING
+
+
+class Reconnector:
+    """The reconnect loop of a link whose peer comes and goes (``run``), on an
+    ``OutagePolicy`` and the link's ``HealthCell``.
+
+    ``down_line`` is the outage's one line (arguments: link name, error, ``backoff_max_s``);
+    every later failure of the same outage is a DEBUG line ``still_line`` (link name, attempt,
+    error)."""
+
+    def __init__(self, name: str, cell: HealthCell, policy: OutagePolicy, log: logging.Logger,
+                 down_line: str = "%s: %s; retrying with back-off up to %.1f s",
+                 still_line: str = "%s: still down (attempt %d): %s",
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.name = name
+        self.cell = cell
+        self.policy = policy
+        self.log = log
+        self.down_line = down_line
+        self.still_line = still_line
+        self.clock = clock
+        self._retry: Retry | None = None
+
+    def up(self, reconnect: bool | None = None, recovered: bool = True) -> bool:
+        """The peer answers: the link is UP. ``reconnect``: count a reconnection (default: when
+        an outage was on); ``recovered``: the outage is over now (False: the caller says so
+        later with ``recovered``, once the connection proved itself). True when an outage
+        was on."""
+        outage = self.policy.in_outage
+        self.cell.set(LinkState.UP, "", reconnect=outage if reconnect is None else reconnect)
+        if recovered:
+            self.recovered()
+        return outage
+
+    def recovered(self) -> None:
+        self.policy.recovered()
+        self._retry = None
+
+    def failed(self, ended: Ended) -> Retry:
+        """The link is DOWN for ``ended``: log the outage's first failure, plan the retry (the
+        next ``run`` round waits for it)."""
+        retry = self._retry = self.policy.failed(self.clock())
+        if retry.first:
+            self.log.log(ended.level, self.down_line, self.name, ended.error, self.policy.max_s)
+        else:
+            self.log.debug(self.still_line, self.name, retry.attempt, ended.error)
+        self.cell.set(LinkState.DOWN, ended.error)
+        return retry
+
+    async def run(self, session: Callable[[], Awaitable[Ended]]) -> NoReturn:
+        """Run ``session`` again and again, each after the back-off its predecessor's end (or
+        the failure the link reported at its start) asks for."""
+        while True:
+            if self._retry is not None:
+                await asyncio.sleep(self._retry.delay_s)
+            self.failed(await session())
