@@ -37,12 +37,19 @@ from collections.abc import Iterator
 from typing import Any, Literal
 
 import serial
-from pydantic import Field, model_validator
+from pydantic import Field
 
 from drivers.links.modbus_server import MalformedFrame, RegisterServerLink
 from vgripd.errors import LinkError
 from vgripd.service.protocol import LinkState, RegisterOptions, TriggerHandler
-from vgripd.service.supervisor import Ended, OutagePolicy, Reconnector
+from vgripd.service.supervisor import (
+    BackoffOptions,
+    Ended,
+    OutagePolicy,
+    Reconnector,
+    backoff_initial,
+    backoff_max,
+)
 
 log = logging.getLogger(__name__)
 
@@ -202,7 +209,7 @@ class PortFault(LinkError):
         self.permanent = permanent
 
 
-class RtuOptions(RegisterOptions):
+class RtuOptions(RegisterOptions, BackoffOptions):
     """``port``: the serial device (``/dev/ttyUSB0``). ``parity``: N(one), E(ven), O(dd).
     ``unit_id``: this slave's address on the line (1-247). ``backoff_initial_s`` ..
     ``backoff_max_s``: reopen delay after the port is lost, doubling."""
@@ -212,15 +219,9 @@ class RtuOptions(RegisterOptions):
     parity: Literal["N", "E", "O"] = "E"
     stopbits: Literal[1, 2] = 1
     unit_id: int = Field(1, ge=1, le=247)
-    backoff_initial_s: float = Field(0.5, gt=0, le=60)
-    backoff_max_s: float = Field(10.0, gt=0, le=600)
-
-    @model_validator(mode="after")
-    def _backoff_ordered(self) -> RtuOptions:
-        if self.backoff_max_s < self.backoff_initial_s:
-            raise ValueError(f"backoff_max_s = {self.backoff_max_s} is below backoff_initial_s "
-                             f"= {self.backoff_initial_s}")
-        return self
+    # a serial adapter takes longer to come back than a TCP peer
+    backoff_initial_s: float = backoff_initial(0.5)
+    backoff_max_s: float = backoff_max(10.0)
 
 
 def _reason(err: BaseException) -> str:

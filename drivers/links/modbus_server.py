@@ -55,7 +55,6 @@ import asyncio
 import contextlib
 import logging
 import os
-import socket
 import struct
 import time
 from collections import Counter
@@ -67,7 +66,7 @@ from pymodbus.constants import ExcCodes
 
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
-from vgripd.service.gate import Gate
+from vgripd.service.gate import Gate, set_keepalive
 from vgripd.service.protocol import (
     REGISTER_CAPABILITIES,
     Action,
@@ -625,18 +624,3 @@ class ModbusServerLink(RegisterServerLink):
         # valid: answered normally (not an exception): what a polling PLC gets
         self.gate.activity(conn, valid=bool(reply) and reply[0] < 0x80)
         return reply
-
-
-def set_keepalive(sock: Any, idle_s: int, interval_s: int, count: int) -> None:
-    """TCP keepalive on ``sock`` (Linux options where the platform has them). A peer that
-    stops answering probes is also given up on while answers are unacknowledged
-    (``TCP_USER_TIMEOUT``), so a vanished peer never holds a connection for long."""
-    options = [(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)]
-    for name, value in (("TCP_KEEPIDLE", idle_s), ("TCP_KEEPINTVL", interval_s),
-                        ("TCP_KEEPCNT", count),
-                        ("TCP_USER_TIMEOUT", 1000 * (idle_s + interval_s * count))):
-        if hasattr(socket, name):
-            options.append((socket.IPPROTO_TCP, getattr(socket, name), value))
-    for level, option, value in options:
-        with contextlib.suppress(OSError):
-            sock.setsockopt(level, option, value)

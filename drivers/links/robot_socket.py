@@ -51,19 +51,18 @@ import contextlib
 import ipaddress
 import logging
 import os
-import socket
 import time
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import ConversionError, convention, transform_from_vendor
-from vgripd.service.gate import Gate
+from vgripd.service.gate import Gate, set_keepalive
 from vgripd.service.handeye_walk import walk_request_refusal
 from vgripd.service.jobcore import Action, Command, Handshake
 from vgripd.service.protocol import (
@@ -91,7 +90,15 @@ from vgripd.service.robot_socket_format import (
     request_size,
     result_answer,
 )
-from vgripd.service.supervisor import Ended, OutagePolicy, Reconnector, SupervisedLink
+from vgripd.service.supervisor import (
+    BackoffOptions,
+    Ended,
+    OutagePolicy,
+    Reconnector,
+    SupervisedLink,
+    backoff_initial,
+    backoff_max,
+)
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
@@ -99,7 +106,7 @@ log = logging.getLogger(__name__)
 WILDCARD_HOSTS = ("", "0.0.0.0", "::")
 
 
-class RobotSocketOptions(BaseModel):
+class RobotSocketOptions(BackoffOptions):
     """Options of ``type = "robot_socket"`` (docs/robot_socket.md, "Options")."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -118,8 +125,8 @@ class RobotSocketOptions(BaseModel):
     keepalive_interval_s: int = Field(5, ge=1, le=600)
     keepalive_count: int = Field(3, ge=1, le=30)
     connect_timeout_s: float = Field(3.0, gt=0.0, le=60.0)  # client mode
-    backoff_initial_s: float = Field(0.2, gt=0.0, le=60.0)
-    backoff_max_s: float = Field(10.0, gt=0.0, le=600.0)
+    backoff_initial_s: float = backoff_initial(0.2)  # client mode
+    backoff_max_s: float = backoff_max(10.0)
     log_interval_s: float = Field(60.0, ge=0.1, le=3600.0)
     allow: AllowList = None  # server: client addresses/networks accepted (unset: any)
 
@@ -624,17 +631,3 @@ class RobotSocketLink(SupervisedLink):
 
     def _spawn(self, coro: Any, what: str) -> None:
         self._tasks.append(asyncio.create_task(coro, name=f"{self.name}-{what}"))
-
-
-def set_keepalive(sock: Any, idle_s: int, interval_s: int, count: int) -> None:
-    """TCP keepalive on ``sock``, with Linux's per-socket timings where the platform has them;
-    ``TCP_USER_TIMEOUT`` also bounds how long unacknowledged answers keep a vanished peer."""
-    settings = [(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)]
-    for name, value in (("TCP_KEEPIDLE", idle_s), ("TCP_KEEPINTVL", interval_s),
-                        ("TCP_KEEPCNT", count),
-                        ("TCP_USER_TIMEOUT", 1000 * (idle_s + interval_s * count))):
-        if hasattr(socket, name):
-            settings.append((socket.IPPROTO_TCP, getattr(socket, name), value))
-    for level, option, value in settings:
-        with contextlib.suppress(OSError):
-            sock.setsockopt(level, option, value)

@@ -58,7 +58,7 @@ from collections.abc import Callable, Mapping
 from multiprocessing.connection import Connection
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from drivers.links import ur_rtde_worker
 from vgripd.errors import ConversionError, LinkError
@@ -75,7 +75,15 @@ from vgripd.service.protocol import (
     pick_position,
     split_command,
 )
-from vgripd.service.supervisor import Ended, OutagePolicy, Reconnector, SupervisedLink
+from vgripd.service.supervisor import (
+    BackoffOptions,
+    Ended,
+    OutagePolicy,
+    Reconnector,
+    SupervisedLink,
+    backoff_initial,
+    backoff_max,
+)
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger("vgripd.link.ur_rtde")
@@ -133,7 +141,7 @@ class OutputLog:
         log.info("link %s: ur_rtde: %s", self.link, text)
 
 
-class URRtdeOptions(BaseModel):
+class URRtdeOptions(BackoffOptions):
     """Options of ``type = "ur_rtde"`` (TOML ``[links.<name>]``)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -149,8 +157,8 @@ class URRtdeOptions(BaseModel):
     stale_after_s: float = Field(1.0, gt=0, lt=2.5)
     #: Longest wait for the child to confirm a register write.
     write_timeout_s: float = Field(2.0, gt=0, le=60)
-    backoff_initial_s: float = Field(0.2, gt=0, le=60)
-    backoff_max_s: float = Field(10.0, gt=0, le=600)
+    backoff_initial_s: float = backoff_initial(0.2)
+    backoff_max_s: float = backoff_max(10.0)
     #: 4: the conveyor's registers (the latch count with each request, PREDICT, the belt
     #: block with each answer; docs/ur_rtde.md "Conveyor"), as the Modbus links' version 4.
     map_version: Literal[3, 4] = 3

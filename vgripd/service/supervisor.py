@@ -12,6 +12,10 @@ failure up to ``backoff_max_s``, log the outage once (its first failure), start 
 peer is back. ``Reconnector`` is the one loop that runs it for every link that reconnects: it
 runs the link's session (connect, serve until the connection ends), then marks the link DOWN,
 logs the outage's one line and waits the policy's delay before the next session.
+
+``BackoffOptions`` is the back-off part of those links' options: one pair of bounds, one set of
+defaults, one check; a link whose documented defaults differ keeps them with
+``backoff_initial(...)``/``backoff_max(...)`` on its own fields.
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ from collections.abc import Awaitable, Callable
 from collections.abc import Set as AbstractSet
 from dataclasses import dataclass
 from typing import Any, NoReturn
+
+from pydantic import BaseModel, Field, ValidationInfo, field_validator
 
 from vgripd.service.protocol import LinkHealth, LinkState, RobotLink
 
@@ -89,6 +95,35 @@ class SupervisedLink(RobotLink):
         """Wait until ``health().state`` is one of ``states``; ``TimeoutError`` otherwise."""
         await self.cell.wait(states, timeout_s)
         return self.health()
+
+
+# --- options -------------------------------------------------------------------------------
+
+
+def backoff_initial(default_s: float = 0.1) -> Any:
+    """The ``backoff_initial_s`` field (s), with a link's own default."""
+    return Field(default_s, gt=0, le=60)
+
+
+def backoff_max(default_s: float = 5.0) -> Any:
+    """The ``backoff_max_s`` field (s), with a link's own default."""
+    return Field(default_s, gt=0, le=600)
+
+
+class BackoffOptions(BaseModel):
+    """``backoff_initial_s``: the wait before the first retry after a failure; it doubles
+    after each further failure, up to ``backoff_max_s`` (not below ``backoff_initial_s``)."""
+
+    backoff_initial_s: float = backoff_initial()
+    backoff_max_s: float = backoff_max()
+
+    @field_validator("backoff_max_s")
+    @classmethod
+    def _not_below_initial(cls, value: float, info: ValidationInfo) -> float:
+        initial = info.data.get("backoff_initial_s")
+        if initial is not None and value < initial:
+            raise ValueError(f"{value:g} is below backoff_initial_s = {initial:g}")
+        return value
 
 
 # --- outages -------------------------------------------------------------------------------
