@@ -40,15 +40,14 @@ from vgripd.service.protocol import (
     Action,
     BlockWrite,
     CountHandler,
-    LinkHealth,
     LinkState,
     Reg,
     RegisterBank,
-    RobotLink,
     Trigger,
     TriggerHandler,
     ValueCodec,
 )
+from vgripd.service.supervisor import Ended, OutagePolicy, Reconnector, SupervisedLink
 from vgripd.types import JobResult, Status
 
 C = TypeVar("C")  # the transport's client object, one per connection
@@ -81,7 +80,7 @@ def without_peer_words(write: BlockWrite, peer: Sequence[range]) -> list[BlockWr
     return out
 
 
-class MirrorClientLink(RobotLink, Generic[C]):
+class MirrorClientLink(SupervisedLink, Generic[C]):
     """A register block mirrored in a ``RegisterBank`` and copied to a polled peer.
 
     Subclasses set ``peer_kind`` (``"PLC"``, ``"robot"``: it names the peer in messages) and
@@ -94,7 +93,7 @@ class MirrorClientLink(RobotLink, Generic[C]):
     _log: ClassVar[logging.Logger]
 
     def __init__(self, name: str, options: Any, health_peer: str | None = None) -> None:
-        super().__init__(name, options)
+        super().__init__(name, options, health_peer or f"{options.host}:{options.port}")
         self._peer = f"{options.host}:{options.port}"
         self._journal: list[BlockWrite] = []
         self.bank = RegisterBank(
@@ -104,8 +103,6 @@ class MirrorClientLink(RobotLink, Generic[C]):
         #: The areas the peer writes (never vgripd) and the block's stretches that are vgripd's.
         self._peer_areas = self.bank.writable()
         self._own = own_segments(self.bank.image.size, self._peer_areas)
-        self._health = LinkHealth(LinkState.STOPPED, peer=health_peer or self._peer)
-        self._health_changed: asyncio.Condition | None = None
         self._on_trigger: TriggerHandler | None = None
         self._on_count: CountHandler | None = None
         self._task: asyncio.Task[None] | None = None
@@ -174,7 +171,6 @@ class MirrorClientLink(RobotLink, Generic[C]):
             raise LinkError(f"link {self.name}: already open")
         self._starting()
         self._on_trigger = on_trigger
-        self._health_changed = asyncio.Condition()
         self._wake = asyncio.Event()
         self._task = asyncio.create_task(self._supervise(), name=f"{self.name}-supervisor")
         # connect + one read each take at most timeout_s; a slower first contact stays with
@@ -182,17 +178,13 @@ class MirrorClientLink(RobotLink, Generic[C]):
         with contextlib.suppress(TimeoutError):
             await self.wait_state({LinkState.UP, LinkState.DOWN, LinkState.FAILED},
                                   2 * self.options.timeout_s + 1.0)
-        health = self._health
-        if health.state is LinkState.FAILED:
+        if self.cell.state is LinkState.FAILED:
             await self._stop()
-            raise LinkError(f"link {self.name}: {health.last_error}")
+            raise LinkError(f"link {self.name}: {self.cell.last_error}")
 
     async def close(self) -> None:
         await self._stop()
-        await self._set_health(LinkState.STOPPED)
-
-    def health(self) -> LinkHealth:
-        return self._health
+        self.cell.set(LinkState.STOPPED)
 
     async def image_captured(self, seq: int, job_id: int) -> None:
         self.bank.captured(seq, job_id)
@@ -236,20 +228,16 @@ class MirrorClientLink(RobotLink, Generic[C]):
         at the reconnect, WARNINGS included.
         """
         self.bank.set_warnings(bits)
-        if self._health.state is LinkState.UP:
+        if self.cell.state is LinkState.UP:
             await self._flushed()
-
-    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
-        """Wait until ``health().state`` is in ``states``; ``TimeoutError`` otherwise."""
-        return await self._wait_health(self._health_changed, states, timeout_s)
 
     # -- helpers for the daemon-facing calls -------------------------------------------------
 
     async def _flushed(self) -> None:
-        if self._health.state is not LinkState.UP or self._wake is None:
+        if self.cell.state is not LinkState.UP or self._wake is None:
             raise LinkError(
-                f"link {self.name}: {self.peer_kind} {self._peer} is {self._health.state.value}"
-                f" ({self._health.last_error or 'not connected'}); kept for the reconnect"
+                f"link {self.name}: {self.peer_kind} {self._peer} is {self.cell.state.value}"
+                f" ({self.cell.last_error or 'not connected'}); kept for the reconnect"
             )
         done = asyncio.get_running_loop().create_future()
         self._waiters.append(done)
@@ -269,63 +257,38 @@ class MirrorClientLink(RobotLink, Generic[C]):
             await asyncio.gather(task, return_exceptions=True)
         self._release_waiters(LinkError(f"link {self.name}: closed"))
 
-    async def _set_health(self, state: LinkState, error: str = "", reconnect: bool = False) -> None:
-        h = self._health
-        if state is h.state and error == h.last_error:
-            return
-        self._health = LinkHealth(
-            state,
-            peer=h.peer,
-            last_error=error,
-            reconnects=h.reconnects + int(reconnect),
-            since_mono_ns=time.monotonic_ns() if state is not h.state else h.since_mono_ns,
-        )
-        if self._health_changed is not None:
-            async with self._health_changed:
-                self._health_changed.notify_all()
-
     # -- supervisor --------------------------------------------------------------------------
 
     async def _supervise(self) -> None:
         opt = self.options
-        delay = opt.backoff_initial_s
-        error = ""
-        refusal = False
-        outage_logged = False
-        while True:
-            await self._set_health(LinkState.CONNECTING, error)
-            client = self._new_client()
-            try:
-                await self._connect(client)
-                await self._first_contact(client)
-                await self._set_health(LinkState.UP, reconnect=outage_logged)
-                if outage_logged:
-                    self._log.info("%s: %s %s is back", self.name, self.peer_kind, self._peer)
-                outage_logged = False
-                delay = opt.backoff_initial_s
-                await self._serve(client)
-            except LinkError as err:
-                hint = self._refusal_hint(err)
-                refusal = hint is not None
-                error = hint or str(err)
-            except Exception as err:
-                reason = self._transport_error(err)
-                if reason is None:  # a bug must not leave a dead link reporting UP
-                    self._log.exception("%s: unexpected error talking to %s", self.name,
-                                        self._peer)
-                    reason = f"internal error: {err!r}"
-                error, refusal = reason, False
-            finally:
-                self._drop(client)
-            self._release_waiters(LinkError(f"link {self.name}: {error}"))
-            if not outage_logged:
-                self._log.log(logging.ERROR if refusal else logging.WARNING,
-                              "%s: %s; retrying with back-off up to %.1f s", self.name,
-                              error, opt.backoff_max_s)
-                outage_logged = True
-            await self._set_health(LinkState.DOWN, error)
-            await asyncio.sleep(delay)
-            delay = min(2 * delay, opt.backoff_max_s)
+        reconnector = Reconnector(self.name, self.cell,
+                                  OutagePolicy(opt.backoff_initial_s, opt.backoff_max_s), self._log)
+        await reconnector.run(lambda: self._session(reconnector))
+
+    async def _session(self, reconnector: Reconnector) -> Ended:
+        """One connection: connect, first contact, serve until it ends; why it ended."""
+        self.cell.set(LinkState.CONNECTING, None)  # the last outage's reason stays in view
+        client = self._new_client()
+        try:
+            await self._connect(client)
+            await self._first_contact(client)
+            if reconnector.up():
+                self._log.info("%s: %s %s is back", self.name, self.peer_kind, self._peer)
+            await self._serve(client)
+        except LinkError as err:
+            hint = self._refusal_hint(err)
+            ended = Ended(hint or str(err), logging.WARNING if hint is None else logging.ERROR)
+        except Exception as err:
+            reason = self._transport_error(err)
+            if reason is None:  # a bug must not leave a dead link reporting UP
+                self._log.exception("%s: unexpected error talking to %s", self.name,
+                                    self._peer)
+                reason = f"internal error: {err!r}"
+            ended = Ended(reason)
+        finally:
+            self._drop(client)
+        self._release_waiters(LinkError(f"link {self.name}: {ended.error}"))
+        return ended
 
     async def _first_contact(self, client: C) -> None:
         """Read the peer's block, adopt its command area (first contact only), write the mirror

@@ -65,6 +65,7 @@ from vgripd.service.protocol import (
     RegisterOptions,
     map_size,
 )
+from vgripd.service.supervisor import BackoffOptions
 
 log = logging.getLogger(__name__)
 
@@ -103,9 +104,10 @@ def quiet_pymodbus() -> None:
         logger.addFilter(_NOISE_FILTER)
 
 
-class ModbusClientOptions(RegisterOptions):
+class ModbusClientOptions(RegisterOptions, BackoffOptions):
     """Options of ``type = "modbus_client"``; word order, value format and heartbeat as for
-    every register link (``RegisterOptions``)."""
+    every register link (``RegisterOptions``), back-off as every link that reconnects
+    (``BackoffOptions``)."""
 
     host: str = Field(min_length=1)
     port: int = Field(502, ge=1, le=65535)
@@ -113,8 +115,6 @@ class ModbusClientOptions(RegisterOptions):
     base_address: int = Field(128, ge=0, le=65536 - MAP_SIZE)
     poll_interval_s: float = Field(0.02, gt=0, le=10)
     timeout_s: float = Field(1.0, gt=0, le=60)  # connect, and each request
-    backoff_initial_s: float = Field(0.1, gt=0, le=60)
-    backoff_max_s: float = Field(5.0, gt=0, le=600)
 
     @model_validator(mode="after")
     def _fits(self) -> ModbusClientOptions:

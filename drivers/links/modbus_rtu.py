@@ -37,11 +37,19 @@ from collections.abc import Iterator
 from typing import Any, Literal
 
 import serial
-from pydantic import Field, model_validator
+from pydantic import Field
 
 from drivers.links.modbus_server import MalformedFrame, RegisterServerLink
 from vgripd.errors import LinkError
-from vgripd.service.protocol import LinkHealth, LinkState, RegisterOptions, TriggerHandler
+from vgripd.service.protocol import LinkState, RegisterOptions, TriggerHandler
+from vgripd.service.supervisor import (
+    BackoffOptions,
+    Ended,
+    OutagePolicy,
+    Reconnector,
+    backoff_initial,
+    backoff_max,
+)
 
 log = logging.getLogger(__name__)
 
@@ -201,7 +209,7 @@ class PortFault(LinkError):
         self.permanent = permanent
 
 
-class RtuOptions(RegisterOptions):
+class RtuOptions(RegisterOptions, BackoffOptions):
     """``port``: the serial device (``/dev/ttyUSB0``). ``parity``: N(one), E(ven), O(dd).
     ``unit_id``: this slave's address on the line (1-247). ``backoff_initial_s`` ..
     ``backoff_max_s``: reopen delay after the port is lost, doubling."""
@@ -211,15 +219,9 @@ class RtuOptions(RegisterOptions):
     parity: Literal["N", "E", "O"] = "E"
     stopbits: Literal[1, 2] = 1
     unit_id: int = Field(1, ge=1, le=247)
-    backoff_initial_s: float = Field(0.5, gt=0, le=60)
-    backoff_max_s: float = Field(10.0, gt=0, le=600)
-
-    @model_validator(mode="after")
-    def _backoff_ordered(self) -> RtuOptions:
-        if self.backoff_max_s < self.backoff_initial_s:
-            raise ValueError(f"backoff_max_s = {self.backoff_max_s} is below backoff_initial_s "
-                             f"= {self.backoff_initial_s}")
-        return self
+    # a serial adapter takes longer to come back than a TCP peer
+    backoff_initial_s: float = backoff_initial(0.5)
+    backoff_max_s: float = backoff_max(10.0)
 
 
 def _reason(err: BaseException) -> str:
@@ -329,11 +331,6 @@ class ModbusRtuLink(RegisterServerLink):
         super().__init__(name, options)
         self._line: _Line | None = None
         self._supervisor: asyncio.Task[None] | None = None
-        self._rtu_state = LinkState.STOPPED
-        self._rtu_error = ""
-        self._rtu_since_ns = time.monotonic_ns()
-        self._reconnects = 0
-        self._state_changed: asyncio.Event | None = None
         self.frames_answered = 0
         self.frames_other_units = 0
 
@@ -346,20 +343,22 @@ class ModbusRtuLink(RegisterServerLink):
             raise LinkError(f"link {self.name}: already open")
         self._on_trigger = on_trigger
         self._loop = asyncio.get_running_loop()
+        o = self.options
+        reconnector = Reconnector(self.name, self.cell,
+                                  OutagePolicy(o.backoff_initial_s, o.backoff_max_s), log,
+                                  down_line="%s: %s; reopening with back-off up to %.1f s")
         try:
-            self._line = _Line(self, open_port(self.options, self.describe()))
+            self._line = _Line(self, open_port(o, self.describe()))
         except PortFault as fault:
             if fault.permanent:  # the caller (the daemon) reports it
-                self._set_rtu_state(LinkState.FAILED, str(fault))
+                self.cell.set(LinkState.FAILED, str(fault))
                 raise LinkError(f"link {self.name}: {fault}") from None
-            self._set_rtu_state(LinkState.DOWN, str(fault))
-            log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, fault,
-                        self.options.backoff_max_s)
+            reconnector.failed(Ended(str(fault)))  # DOWN; the supervisor waits, then reopens
         else:
-            self._set_rtu_state(LinkState.UP)
+            self.cell.set(LinkState.UP)
             log.info("%s: serving Modbus registers on %s", self.name, self.describe())
         self._heartbeat = asyncio.create_task(self._beat(), name=f"{self.name}-heartbeat")
-        self._supervisor = asyncio.create_task(self._supervise(),
+        self._supervisor = asyncio.create_task(reconnector.run(lambda: self._session(reconnector)),
                                                name=f"{self.name}-supervisor")
 
     async def close(self) -> None:
@@ -371,25 +370,10 @@ class ModbusRtuLink(RegisterServerLink):
             self._line.close()
             self._line = None
         await super().close()
-        self._set_rtu_state(LinkState.STOPPED)
-
-    def health(self) -> LinkHealth:
-        return LinkHealth(state=self._rtu_state, peer=self.describe(),
-                          last_error=self._rtu_error, reconnects=self._reconnects,
-                          since_mono_ns=self._rtu_since_ns, peers=0)
+        self.cell.set(LinkState.STOPPED)
 
     def peers(self) -> int:
         return 0  # a serial line has no connection to count
-
-    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
-        """Wait until ``health().state`` is one of ``states``; ``TimeoutError`` otherwise."""
-        wanted = {states} if isinstance(states, LinkState) else states
-        async with asyncio.timeout(timeout_s):
-            while self._rtu_state not in wanted:
-                if self._state_changed is None:
-                    self._state_changed = asyncio.Event()
-                await self._state_changed.wait()
-        return self.health()
 
     def describe(self) -> str:
         o = self.options
@@ -423,40 +407,18 @@ class ModbusRtuLink(RegisterServerLink):
 
     # -- supervisor ------------------------------------------------------------------------
 
-    def _set_rtu_state(self, state: LinkState, error: str = "") -> None:
-        if state is not self._rtu_state:
-            self._rtu_state = state
-            self._rtu_since_ns = time.monotonic_ns()
-        self._rtu_error = error
-        changed, self._state_changed = self._state_changed, None
-        if changed is not None:
-            changed.set()  # wakes every waiter once; later waiters make a fresh event
-
-    async def _supervise(self) -> None:
-        o = self.options
-        delay = o.backoff_initial_s
-        while True:
-            line = self._line
-            if line is not None:
-                reason = await line.lost
-                line.close()
-                self._line = None
-                self._set_rtu_state(LinkState.DOWN, reason)
-                log.warning("%s: %s; reopening with back-off up to %.1f s", self.name, reason,
-                            o.backoff_max_s)
-                delay = o.backoff_initial_s
-            attempts = 0
-            while self._line is None:
-                await asyncio.sleep(delay)
-                delay = min(2 * delay, o.backoff_max_s)
-                attempts += 1
-                try:
-                    self._line = _Line(self, open_port(o, self.describe()))
-                except PortFault as fault:
-                    # Logged once per outage (above, or by open()); the state says the latest.
-                    self._set_rtu_state(LinkState.DOWN, str(fault))
-                    log.debug("%s: still down (attempt %d): %s", self.name, attempts, fault)
-            self._reconnects += 1
-            self._set_rtu_state(LinkState.UP)
+    async def _session(self, reconnector: Reconnector) -> Ended:
+        """Reopen the port if it is closed, then serve until the line is lost; why it ended."""
+        if self._line is None:
+            try:
+                self._line = _Line(self, open_port(self.options, self.describe()))
+            except PortFault as fault:
+                return Ended(str(fault))
+            reconnector.up(reconnect=True)
             log.info("%s: serial port %s is back (reconnects %d)", self.name, self.describe(),
-                     self._reconnects)
+                     self.cell.reconnects)
+        line = self._line
+        reason = await line.lost
+        line.close()
+        self._line = None
+        return Ended(reason)

@@ -55,7 +55,6 @@ import asyncio
 import contextlib
 import logging
 import os
-import socket
 import struct
 import time
 from collections import Counter
@@ -67,7 +66,7 @@ from pymodbus.constants import ExcCodes
 
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
-from vgripd.service.gate import Gate
+from vgripd.service.gate import Gate, set_keepalive
 from vgripd.service.protocol import (
     REGISTER_CAPABILITIES,
     Action,
@@ -77,12 +76,12 @@ from vgripd.service.protocol import (
     RegisterAccessError,
     RegisterBank,
     RegisterOptions,
-    RobotLink,
     Trigger,
     TriggerHandler,
     ValueCodec,
 )
 from vgripd.service.ratelog import RateLimitedLog
+from vgripd.service.supervisor import SupervisedLink
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
@@ -130,7 +129,7 @@ def _need_byte_count(pdu: bytes, fixed: int) -> int:
     return byte_count
 
 
-class RegisterServerLink(RobotLink):
+class RegisterServerLink(SupervisedLink):
     """A Modbus server link over some transport: register bank, heartbeat, handshake.
 
     Each transport starts with ``_start_serving`` and stops with ``_stop_serving``; every
@@ -156,9 +155,6 @@ class RegisterServerLink(RobotLink):
         self._on_trigger: TriggerHandler | None = None
         self._on_count: CountHandler | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._state = LinkState.STOPPED
-        self._since_ns = time.monotonic_ns()
-        self._last_error = ""
         self._functions: dict[int, Callable[[bytes, str], bytes]] = {
             3: self._read_holding, 6: self._write_single, 16: self._write_multiple,
             22: self._mask_write, 23: self._read_write,
@@ -179,11 +175,11 @@ class RegisterServerLink(RobotLink):
         try:
             await self._start_serving()
         except LinkError as err:
-            self._set_state(LinkState.FAILED, str(err))
+            self.cell.set(LinkState.FAILED, str(err) or None)
             raise LinkError(f"link {self.name}: {err}") from None
         self._serving = True
         self._heartbeat = asyncio.create_task(self._beat(), name=f"{self.name}-heartbeat")
-        self._set_state(LinkState.UP)
+        self.cell.set(LinkState.UP, None)
         log.info("%s: serving Modbus registers on %s", self.name, self._describe())
 
     async def _start_serving(self) -> None:
@@ -202,16 +198,10 @@ class RegisterServerLink(RobotLink):
         await self._stop_serving()
         self._serving = False
         self.ratelog.flush(force=True)
-        self._set_state(LinkState.STOPPED)
+        self.cell.set(LinkState.STOPPED, None)
 
     def health(self) -> LinkHealth:
-        return LinkHealth(
-            state=self._state,
-            peer=self._describe(),
-            last_error=self._last_error,
-            since_mono_ns=self._since_ns,
-            peers=self.peers(),
-        )
+        return self.cell.health(peer=self._describe(), peers=self.peers())
 
     def peers(self) -> int:
         """Connected peers (TCP clients); 0 where the transport has none to count."""
@@ -362,13 +352,6 @@ class RegisterServerLink(RobotLink):
         while True:
             await asyncio.sleep(period_s)
             self.bank.beat()
-
-    def _set_state(self, state: LinkState, error: str = "") -> None:
-        if state is not self._state:
-            self._state = state
-            self._since_ns = time.monotonic_ns()
-        if error:
-            self._last_error = error
 
 
 class TcpOptions(RegisterOptions):
@@ -641,18 +624,3 @@ class ModbusServerLink(RegisterServerLink):
         # valid: answered normally (not an exception): what a polling PLC gets
         self.gate.activity(conn, valid=bool(reply) and reply[0] < 0x80)
         return reply
-
-
-def set_keepalive(sock: Any, idle_s: int, interval_s: int, count: int) -> None:
-    """TCP keepalive on ``sock`` (Linux options where the platform has them). A peer that
-    stops answering probes is also given up on while answers are unacknowledged
-    (``TCP_USER_TIMEOUT``), so a vanished peer never holds a connection for long."""
-    options = [(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)]
-    for name, value in (("TCP_KEEPIDLE", idle_s), ("TCP_KEEPINTVL", interval_s),
-                        ("TCP_KEEPCNT", count),
-                        ("TCP_USER_TIMEOUT", 1000 * (idle_s + interval_s * count))):
-        if hasattr(socket, name):
-            options.append((socket.IPPROTO_TCP, getattr(socket, name), value))
-    for level, option, value in options:
-        with contextlib.suppress(OSError):
-            sock.setsockopt(level, option, value)

@@ -108,12 +108,12 @@ from vgripd.service.protocol import (
     Command,
     LinkHealth,
     LinkState,
-    RobotLink,
     Trigger,
     TriggerHandler,
     checked_warnings,
 )
 from vgripd.service.ratelog import RateLimitedLog
+from vgripd.service.supervisor import SupervisedLink
 from vgripd.service.visionsm import Verdict, VisionMachine
 from vgripd.types import JobResult, Status
 
@@ -533,14 +533,14 @@ class _Job:
     command: Command = Command.TRIGGER
 
 
-class OpcUaLink(RobotLink):
+class OpcUaLink(SupervisedLink):
     Options = OpcUaOptions
     capabilities = OPCUA_CAPABILITIES
     listens = True  # `vgripd check` tries its host and port
     options: OpcUaOptions
 
     def __init__(self, name: str, options: OpcUaOptions) -> None:
-        super().__init__(name, options)
+        super().__init__(name, options, f"{options.host}:{options.port}")
         self.server: _Server | None = None
         self.space: Space | None = None  # the older namespace ("vgripd" in models)
         self.vision: VisionSpace | None = None  # OPC 40100 ("MachineVision" in models)
@@ -579,8 +579,6 @@ class OpcUaLink(RobotLink):
                          faults=self.faults)
         self._watch_task: asyncio.Task[None] | None = None
         self._where = f"{options.host}:{options.port}"
-        self._health = LinkHealth(LinkState.STOPPED, peer=self._where)
-        self._health_changed: asyncio.Condition | None = None
         self.certificate: Path | None = None  # the server certificate in use
         self._trust: TrustStore | None = None  # trusted_clients_dir, loaded at open
 
@@ -590,7 +588,6 @@ class OpcUaLink(RobotLink):
         if self.server is not None:
             raise LinkError(f"link {self.name}: already open")
         self._on_trigger = on_trigger
-        self._health_changed = asyncio.Condition()
         route_asyncua_logs()
         mute_asyncua_refusals()
         o = self.options
@@ -599,7 +596,7 @@ class OpcUaLink(RobotLink):
             server = await self._make_server(passwords)
         except LinkError as err:
             self.space = self.vision = None
-            await self._set_health(LinkState.FAILED, str(err))
+            self.cell.set(LinkState.FAILED, str(err))
             raise LinkError(f"link {self.name}: {err}") from None
         try:
             await server.start()
@@ -608,12 +605,12 @@ class OpcUaLink(RobotLink):
             reason = os.strerror(err.errno) if err.errno else str(err)
             error = (f"cannot listen on {o.host}:{o.port}: {reason} (check host and port of "
                      f"this [[links]] entry)")
-            await self._set_health(LinkState.FAILED, error)
+            self.cell.set(LinkState.FAILED, error)
             raise LinkError(f"link {self.name}: {error}") from None
         self.server = server
         self._where = f"{o.host}:{self.port}"
         self._watch_task = asyncio.create_task(self._watch(), name=f"{self.name}-watch")
-        await self._set_health(LinkState.UP)
+        self.cell.set(LinkState.UP)
         logins = [f"user {u.name}" for u in o.users] + (["anonymous"] if o.allow_anonymous else [])
         log.info("%s: OPC UA server on %s (security %s; %s)", self.name, self.endpoint_url,
                  ", ".join(o.security), ", ".join(logins))
@@ -639,16 +636,13 @@ class OpcUaLink(RobotLink):
         self.machine.handshake.queue = self._conveyor
         self.space = self.vision = None
         self.lines.flush(force=True)
-        await self._set_health(LinkState.STOPPED)
+        self.cell.set(LinkState.STOPPED)
 
     #: ``vgripd check``'s warnings about these options (``exposure_warnings``)
     exposure = staticmethod(exposure_warnings)
 
     def health(self) -> LinkHealth:
-        h = self._health
-        return LinkHealth(h.state, peer=self._where, last_error=h.last_error,
-                          reconnects=h.reconnects, since_mono_ns=h.since_mono_ns,
-                          peers=len(self.gate))
+        return self.cell.health(peer=self._where, peers=len(self.gate))
 
     @property
     def port(self) -> int:
@@ -720,9 +714,6 @@ class OpcUaLink(RobotLink):
         self._warnings = checked_warnings(bits)
         if self.space is not None:
             await self.space.write([("Warnings", self._warnings)])
-
-    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
-        return await self._wait_health(self._health_changed, states, timeout_s)
 
     # -- methods -----------------------------------------------------------------------------
 
@@ -968,15 +959,4 @@ class OpcUaLink(RobotLink):
             await vision.build()
             self.vision = vision
         return server
-
-    async def _set_health(self, state: LinkState, error: str = "") -> None:
-        h = self._health
-        if state is h.state and error == h.last_error:
-            return
-        self._health = LinkHealth(
-            state, peer=self._where, last_error=error, reconnects=h.reconnects,
-            since_mono_ns=time.monotonic_ns() if state is not h.state else h.since_mono_ns)
-        if self._health_changed is not None:
-            async with self._health_changed:
-                self._health_changed.notify_all()
 

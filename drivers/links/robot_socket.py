@@ -51,25 +51,23 @@ import contextlib
 import ipaddress
 import logging
 import os
-import socket
 import time
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import ConversionError, convention, transform_from_vendor
-from vgripd.service.gate import Gate
+from vgripd.service.gate import Gate, set_keepalive
 from vgripd.service.handeye_walk import walk_request_refusal
 from vgripd.service.jobcore import Action, Command, Handshake
 from vgripd.service.protocol import (
     LinkHealth,
     LinkState,
-    RobotLink,
     Trigger,
     TriggerHandler,
     checked_warnings,
@@ -92,6 +90,15 @@ from vgripd.service.robot_socket_format import (
     request_size,
     result_answer,
 )
+from vgripd.service.supervisor import (
+    BackoffOptions,
+    Ended,
+    OutagePolicy,
+    Reconnector,
+    SupervisedLink,
+    backoff_initial,
+    backoff_max,
+)
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
@@ -99,7 +106,7 @@ log = logging.getLogger(__name__)
 WILDCARD_HOSTS = ("", "0.0.0.0", "::")
 
 
-class RobotSocketOptions(BaseModel):
+class RobotSocketOptions(BackoffOptions):
     """Options of ``type = "robot_socket"`` (docs/robot_socket.md, "Options")."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -118,8 +125,8 @@ class RobotSocketOptions(BaseModel):
     keepalive_interval_s: int = Field(5, ge=1, le=600)
     keepalive_count: int = Field(3, ge=1, le=30)
     connect_timeout_s: float = Field(3.0, gt=0.0, le=60.0)  # client mode
-    backoff_initial_s: float = Field(0.2, gt=0.0, le=60.0)
-    backoff_max_s: float = Field(10.0, gt=0.0, le=600.0)
+    backoff_initial_s: float = backoff_initial(0.2)  # client mode
+    backoff_max_s: float = backoff_max(10.0)
     log_interval_s: float = Field(60.0, ge=0.1, le=3600.0)
     allow: AllowList = None  # server: client addresses/networks accepted (unset: any)
 
@@ -288,7 +295,7 @@ class RobotConnection(asyncio.Protocol):
             self.transport.close()
 
 
-class RobotSocketLink(RobotLink):
+class RobotSocketLink(SupervisedLink):
     Options = RobotSocketOptions
     capabilities = SOCKET_CAPABILITIES
     options: RobotSocketOptions
@@ -310,13 +317,13 @@ class RobotSocketLink(RobotLink):
         #: peer faults by kind (malformed, incomplete, not_reading, evicted, idle)
         self.faults: Counter[str] = Counter()
         self.attempts = 0  # client mode: connection attempts made
+        #: client mode: the last connection carried no valid request
+        self._fruitless = False
         self._lines = RateLimitedLog(log, options.log_interval_s)
         #: the connections (in order of arrival), their cap, eviction, idle timeout, allow
         self.gate = Gate(name, options.max_connections, allow=options.allow,
                          idle_timeout_s=options.idle_timeout_s, lines=self._lines,
                          faults=self.faults)
-        self._health = LinkHealth(LinkState.STOPPED, peer=self._where)
-        self._health_changed: asyncio.Condition | None = None
 
     # -- RobotLink ---------------------------------------------------------------------------
 
@@ -326,7 +333,6 @@ class RobotSocketLink(RobotLink):
         if self._tasks or self._listener is not None:
             raise LinkError(f"link {self.name}: already open")
         self._on_trigger = on_trigger
-        self._health_changed = asyncio.Condition()
         o = self.options
         if o.mode == "server":
             try:
@@ -336,10 +342,10 @@ class RobotSocketLink(RobotLink):
                 reason = os.strerror(err.errno) if err.errno else str(err)
                 error = (f"cannot listen on {o.host}:{o.port}: {reason} (check host and port of "
                          f"this [[links]] entry)")
-                await self._set_health(LinkState.FAILED, error)
+                self.cell.set(LinkState.FAILED, error)
                 raise LinkError(f"link {self.name}: {error}") from None
             self._where = f"{o.host}:{self.port}"
-            await self._set_health(LinkState.UP)
+            self.cell.set(LinkState.UP)
             log.info("%s: robot socket server on %s (values %s)", self.name, self._where,
                      f"int32 x {o.scale}" if o.value_format == "int32" else "float32")
         else:
@@ -364,7 +370,7 @@ class RobotSocketLink(RobotLink):
             await listener.wait_closed()
         self._job = None
         self._handshake = Handshake(edge=False)
-        await self._set_health(LinkState.STOPPED)
+        self.cell.set(LinkState.STOPPED)
 
     @staticmethod
     def exposure(options: RobotSocketOptions) -> list[tuple[str, str, str]]:
@@ -382,10 +388,7 @@ class RobotSocketLink(RobotLink):
                  "address>\"]")]
 
     def health(self) -> LinkHealth:
-        h = self._health
-        return LinkHealth(h.state, peer=self._where, last_error=h.last_error,
-                          reconnects=h.reconnects, since_mono_ns=h.since_mono_ns,
-                          peers=len(self.gate))
+        return self.cell.health(peer=self._where, peers=len(self.gate))
 
     @property
     def port(self) -> int:
@@ -450,10 +453,6 @@ class RobotSocketLink(RobotLink):
     async def set_warnings(self, bits: int) -> None:
         """The bits go into every later answer (word 4); nothing is sent unasked."""
         self._warnings = checked_warnings(bits)
-
-    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
-        """Wait until ``health().state`` is in ``states``; ``TimeoutError`` otherwise."""
-        return await self._wait_health(self._health_changed, states, timeout_s)
 
     # -- requests ----------------------------------------------------------------------------
 
@@ -592,78 +591,43 @@ class RobotSocketLink(RobotLink):
 
     async def _supervise(self) -> None:
         o = self.options
-        loop = asyncio.get_running_loop()
-        delay = o.backoff_initial_s
-        error = ""
-        outage_logged = False
-        # The last connection carried no valid request (the peer sent garbage at once, or
-        # nothing): not a recovery, so the outage, its single log line and its growing
-        # back-off go on (any peer error is retried with back-off, logged once).
-        fruitless = False
-        while True:
-            await self._set_health(LinkState.CONNECTING, error)
-            conn: RobotConnection | None = None
-            self.attempts += 1
-            try:
-                async with asyncio.timeout(o.connect_timeout_s):
-                    _, conn = await loop.create_connection(
-                        lambda: RobotConnection(self), o.host, o.port)
-            except TimeoutError:
-                error = f"no connection to {self._where} within {o.connect_timeout_s:g} s"
-            except OSError as err:
-                reason = os.strerror(err.errno) if err.errno else str(err)
-                error = f"cannot connect to {self._where}: {reason}"
-            except Exception as err:  # a bug must not leave a dead link reporting UP
-                log.exception("%s: unexpected error connecting to %s", self.name, self._where)
-                error = f"internal error: {err!r}"
-            if conn is not None:
-                await self._set_health(LinkState.UP, reconnect=outage_logged)
-                if not fruitless:
-                    log.info("%s: connected to the robot at %s%s", self.name, self._where,
-                             " again" if outage_logged else "")
-                await asyncio.shield(conn.closed)
-                malformed = conn.close_reason.startswith("malformed")
-                fruitless = conn.requests <= int(malformed)
-                if not fruitless:
-                    outage_logged = False
-                    delay = o.backoff_initial_s
-                error = f"connection to {self._where} lost: {conn.close_reason}"
-            if not outage_logged:
-                log.warning("%s: %s; retrying with back-off up to %.1f s", self.name, error,
-                            o.backoff_max_s)
-                outage_logged = True
-            await self._set_health(LinkState.DOWN, error)
-            await asyncio.sleep(delay)
-            delay = min(2 * delay, o.backoff_max_s)
+        self._fruitless = False
+        reconnector = Reconnector(self.name, self.cell,
+                                  OutagePolicy(o.backoff_initial_s, o.backoff_max_s), log)
+        await reconnector.run(lambda: self._session(reconnector))
+
+    async def _session(self, reconnector: Reconnector) -> Ended:
+        """One connection to the robot, from dialling until it closes; why it ended.
+
+        A connection that carried no valid request (the peer sent garbage at once, or nothing)
+        is not a recovery: the outage, its single log line and its growing back-off go on."""
+        o = self.options
+        self.cell.set(LinkState.CONNECTING, None)
+        self.attempts += 1
+        try:
+            async with asyncio.timeout(o.connect_timeout_s):
+                _, conn = await asyncio.get_running_loop().create_connection(
+                    lambda: RobotConnection(self), o.host, o.port)
+        except TimeoutError:
+            return Ended(f"no connection to {self._where} within {o.connect_timeout_s:g} s")
+        except OSError as err:
+            reason = os.strerror(err.errno) if err.errno else str(err)
+            return Ended(f"cannot connect to {self._where}: {reason}")
+        except Exception as err:  # a bug must not leave a dead link reporting UP
+            log.exception("%s: unexpected error connecting to %s", self.name, self._where)
+            return Ended(f"internal error: {err!r}")
+        again = reconnector.up(recovered=False)
+        if not self._fruitless:
+            log.info("%s: connected to the robot at %s%s", self.name, self._where,
+                     " again" if again else "")
+        await asyncio.shield(conn.closed)
+        malformed = conn.close_reason.startswith("malformed")
+        self._fruitless = conn.requests <= int(malformed)
+        if not self._fruitless:
+            reconnector.recovered()
+        return Ended(f"connection to {self._where} lost: {conn.close_reason}")
 
     # -- helpers -----------------------------------------------------------------------------
 
     def _spawn(self, coro: Any, what: str) -> None:
         self._tasks.append(asyncio.create_task(coro, name=f"{self.name}-{what}"))
-
-    async def _set_health(self, state: LinkState, error: str = "",
-                          reconnect: bool = False) -> None:
-        h = self._health
-        if state is h.state and error == h.last_error:
-            return
-        self._health = LinkHealth(
-            state, peer=self._where, last_error=error,
-            reconnects=h.reconnects + int(reconnect),
-            since_mono_ns=time.monotonic_ns() if state is not h.state else h.since_mono_ns)
-        if self._health_changed is not None:
-            async with self._health_changed:
-                self._health_changed.notify_all()
-
-
-def set_keepalive(sock: Any, idle_s: int, interval_s: int, count: int) -> None:
-    """TCP keepalive on ``sock``, with Linux's per-socket timings where the platform has them;
-    ``TCP_USER_TIMEOUT`` also bounds how long unacknowledged answers keep a vanished peer."""
-    settings = [(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)]
-    for name, value in (("TCP_KEEPIDLE", idle_s), ("TCP_KEEPINTVL", interval_s),
-                        ("TCP_KEEPCNT", count),
-                        ("TCP_USER_TIMEOUT", 1000 * (idle_s + interval_s * count))):
-        if hasattr(socket, name):
-            settings.append((socket.IPPROTO_TCP, getattr(socket, name), value))
-    for level, option, value in settings:
-        with contextlib.suppress(OSError):
-            sock.setsockopt(level, option, value)

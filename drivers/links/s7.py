@@ -76,6 +76,7 @@ from vgripd.service.protocol import (
     RegisterOptions,
     map_size,
 )
+from vgripd.service.supervisor import BackoffOptions
 
 log = logging.getLogger(__name__)
 
@@ -102,9 +103,10 @@ def quiet_snap7() -> None:
         logger.setLevel(logging.WARNING)
 
 
-class S7Options(RegisterOptions):
+class S7Options(RegisterOptions, BackoffOptions):
     """Options of ``type = "s7"``; value format, scale and heartbeat as for every register link
-    (``RegisterOptions``); ``word_order`` can only be ``ABCD`` (S7 is big-endian).
+    (``RegisterOptions``), back-off as every link that reconnects (``BackoffOptions``);
+    ``word_order`` can only be ``ABCD`` (S7 is big-endian).
 
     ``rack``/``slot``: of the CPU (S7-300: 0/2; S7-400: see the hardware configuration;
     S7-1200/1500: 0/1, or 0/0 for some; docs/s7.md). ``db``: the data block's number;
@@ -120,8 +122,6 @@ class S7Options(RegisterOptions):
     start: int = Field(0, ge=0, le=65536 - DB_BYTES, multiple_of=2)  # and see _fits
     poll_ms: int = Field(20, ge=1, le=10_000)
     timeout_s: float = Field(1.0, gt=0, le=60)  # connect, and each request
-    backoff_initial_s: float = Field(0.1, gt=0, le=60)
-    backoff_max_s: float = Field(5.0, gt=0, le=600)
 
     @field_validator("word_order", mode="before")
     @classmethod

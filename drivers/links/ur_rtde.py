@@ -58,7 +58,7 @@ from collections.abc import Callable, Mapping
 from multiprocessing.connection import Connection
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from drivers.links import ur_rtde_worker
 from vgripd.errors import ConversionError, LinkError
@@ -66,16 +66,23 @@ from vgripd.geometry.vendors import transform_from_vendor
 from vgripd.service.protocol import (
     Command,
     LinkCapabilities,
-    LinkHealth,
     LinkState,
     PickPosition,
-    RobotLink,
     Trigger,
     TriggerHandler,
     URRegisterMap,
     checked_warnings,
     pick_position,
     split_command,
+)
+from vgripd.service.supervisor import (
+    BackoffOptions,
+    Ended,
+    OutagePolicy,
+    Reconnector,
+    SupervisedLink,
+    backoff_initial,
+    backoff_max,
 )
 from vgripd.types import JobResult, Status
 
@@ -134,7 +141,7 @@ class OutputLog:
         log.info("link %s: ur_rtde: %s", self.link, text)
 
 
-class URRtdeOptions(BaseModel):
+class URRtdeOptions(BackoffOptions):
     """Options of ``type = "ur_rtde"`` (TOML ``[links.<name>]``)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -150,8 +157,8 @@ class URRtdeOptions(BaseModel):
     stale_after_s: float = Field(1.0, gt=0, lt=2.5)
     #: Longest wait for the child to confirm a register write.
     write_timeout_s: float = Field(2.0, gt=0, le=60)
-    backoff_initial_s: float = Field(0.2, gt=0, le=60)
-    backoff_max_s: float = Field(10.0, gt=0, le=600)
+    backoff_initial_s: float = backoff_initial(0.2)
+    backoff_max_s: float = backoff_max(10.0)
     #: 4: the conveyor's registers (the latch count with each request, PREDICT, the belt
     #: block with each answer; docs/ur_rtde.md "Conveyor"), as the Modbus links' version 4.
     map_version: Literal[3, 4] = 3
@@ -267,7 +274,7 @@ def _describe_exit(code: int | None) -> str:
     return f"worker process ended with code {code}"
 
 
-class URRtdeLink(RobotLink):
+class URRtdeLink(SupervisedLink):
     """RobotLink over UR RTDE registers (see module docstring and docs/ur_rtde.md)."""
 
     Options = URRtdeOptions
@@ -278,11 +285,9 @@ class URRtdeLink(RobotLink):
     options: URRtdeOptions
 
     def __init__(self, name: str, options: URRtdeOptions) -> None:
-        super().__init__(name, options)
+        super().__init__(name, options, f"{options.host}:{ur_rtde_worker.RTDE_PORT}")
         self.regs = URRegisterMap(options.use_upper_range_registers, options.map_version == 4)
-        self._peer = f"{options.host}:{ur_rtde_worker.RTDE_PORT}"
-        self._health = LinkHealth(LinkState.STOPPED, self._peer, since_mono_ns=time.monotonic_ns())
-        self._health_changed: asyncio.Condition | None = None
+        self._peer = self.cell.peer
         self._task: asyncio.Task[None] | None = None
         self._child: _Child | None = None
         self._on_trigger: TriggerHandler | None = None
@@ -305,13 +310,12 @@ class URRtdeLink(RobotLink):
         if self._task is not None:
             raise LinkError(f"link {self.name}: already open")
         self._on_trigger = on_trigger
-        self._health_changed = asyncio.Condition()
         self._task = asyncio.create_task(self._supervise(), name=f"link {self.name} supervisor")
         health = await self.wait_state({LinkState.UP, LinkState.DOWN, LinkState.FAILED},
                                        timeout_s=self.options.connect_timeout_s + 5.0)
         if health.state is LinkState.FAILED:
             await self.close()
-            self._health = health
+            self.cell.set(LinkState.FAILED, health.last_error)
             raise LinkError(f"link {self.name}: {health.last_error}")
 
     async def close(self) -> None:
@@ -319,10 +323,7 @@ class URRtdeLink(RobotLink):
         if task is not None:
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)
-        await self._set_health(LinkState.STOPPED)
-
-    def health(self) -> LinkHealth:
-        return self._health
+        self.cell.set(LinkState.STOPPED, None)
 
     def refusals(self) -> Mapping[str, int]:
         return dict(self._refused)
@@ -372,14 +373,14 @@ class URRtdeLink(RobotLink):
         they are kept and written at the reconnect (no error: they are state, not an answer)."""
         self._warnings = checked_warnings(bits)
         child = self._child
-        if child is not None and self._health.state is LinkState.UP:
+        if child is not None and self.cell.state is LinkState.UP:
             await self._send(child, "warnings", (self._warnings,))
 
     async def robot_pose(self) -> Any | None:
         """``actual_TCP_pose`` read now by the child from the newest data package, as
         ``T_base_flange`` (mm); None while the link is not up."""
         child = self._child
-        if child is None or self._health.state is not LinkState.UP:
+        if child is None or self.cell.state is not LinkState.UP:
             return None
         values = await self._send(child, "pose", ())
         try:
@@ -387,24 +388,16 @@ class URRtdeLink(RobotLink):
         except ConversionError as err:
             raise LinkError(f"link {self.name}: unusable actual_TCP_pose {values}: {err}") from None
 
-    async def wait_state(self, states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
-        """Wait until ``health().state`` is one of ``states``; ``TimeoutError`` otherwise."""
-        wanted = {states} if isinstance(states, LinkState) else states
-        assert self._health_changed is not None, "open() first"
-        async with asyncio.timeout(timeout_s), self._health_changed:
-            await self._health_changed.wait_for(lambda: self._health.state in wanted)
-        return self._health
-
     # -- requests to the child ----------------------------------------------------------------
 
     async def _request(self, kind: str, args: tuple[Any, ...]) -> None:
-        if self._task is None or self._health.state is LinkState.FAILED:
-            raise LinkError(f"link {self.name} to {self._peer} is {self._health.state.value}")
+        if self._task is None or self.cell.state is LinkState.FAILED:
+            raise LinkError(f"link {self.name} to {self._peer} is {self.cell.state.value}")
         self._replay[kind] = (kind, args)
         child = self._child
-        if child is None or self._health.state is not LinkState.UP:
-            raise LinkError(f"link {self.name} to {self._peer} is {self._health.state.value} "
-                            f"({self._health.last_error}); {kind} seq {args[0]} will be written "
+        if child is None or self.cell.state is not LinkState.UP:
+            raise LinkError(f"link {self.name} to {self._peer} is {self.cell.state.value} "
+                            f"({self.cell.last_error}); {kind} seq {args[0]} will be written "
                             "at the reconnect")
         await self._send(child, kind, args)
 
@@ -425,50 +418,39 @@ class URRtdeLink(RobotLink):
 
     # -- supervisor ---------------------------------------------------------------------------
 
-    async def _set_health(self, state: LinkState, error: str | None = None,
-                          reconnected: bool = False) -> None:
-        h = self._health
-        self._health = LinkHealth(
-            state, self._peer, h.last_error if error is None else error,
-            h.reconnects + reconnected,
-            h.since_mono_ns if state is h.state else time.monotonic_ns())
-        if self._health_changed is not None:
-            async with self._health_changed:
-                self._health_changed.notify_all()
-
     async def _supervise(self) -> None:
-        backoff = self.options.backoff_initial_s
-        failures = 0
+        o = self.options
+        reconnector = Reconnector(
+            self.name, self.cell, OutagePolicy(o.backoff_initial_s, o.backoff_max_s), log,
+            down_line="link %s down: %s (retrying with back-off up to %.0f s)",
+            still_line="link %s still down (attempt %d): %s")
         ever_up = False
-        while True:
+
+        async def session() -> Ended:
+            nonlocal ever_up
             child = _Child(self.options, self._last_seq, self._output)
             self._child = child
             try:
                 child.start()
-                fatal, error = await self._serve(child, ever_up)
+                fatal, error = await self._serve(child, reconnector, ever_up)
             finally:
                 self._child = None
                 for fut in self._pending.values():
                     if not fut.done():
                         fut.set_exception(LinkError(f"link {self.name}: connection lost"))
                 await child.stop(grace_s=1.0)
-            if self._health.state is LinkState.UP:
-                ever_up, failures, backoff = True, 0, self.options.backoff_initial_s
-            failures += 1
-            if failures == 1:  # a refused register needs a person: ERROR, else WARNING
-                log.log(logging.ERROR if fatal else logging.WARNING,
-                        "link %s down: %s (retrying with back-off up to %.0f s)",
-                        self.name, error, self.options.backoff_max_s)
-            else:
-                log.debug("link %s still down (attempt %d): %s", self.name, failures, error)
-            await self._set_health(LinkState.DOWN, error)
-            await asyncio.sleep(backoff)
-            backoff = min(2 * backoff, self.options.backoff_max_s)
+            ever_up = ever_up or self.cell.state is LinkState.UP
+            # a refused register needs a person: ERROR, else WARNING
+            return Ended(error, logging.ERROR if fatal else logging.WARNING)
 
-    async def _serve(self, child: _Child, ever_up: bool) -> tuple[bool, str]:
-        """Run one child until it fails; return (fatal, reason)."""
-        if not ever_up and self._health.state is LinkState.STOPPED:
-            await self._set_health(LinkState.CONNECTING)
+        await reconnector.run(session)
+
+    async def _serve(self, child: _Child, reconnector: Reconnector,
+                     ever_up: bool) -> tuple[bool, str]:
+        """Run one child until it fails; return (fatal, reason). ``ever_up``: an earlier child
+        was up (only reconnections after that count)."""
+        if not ever_up and self.cell.state is LinkState.STOPPED:
+            self.cell.set(LinkState.CONNECTING, None)
         # The child's own start (an interpreter and ur_rtde loaded) is not the controller's
         # time: a busy cell PC takes seconds for it. connect_timeout_s runs from "started".
         try:
@@ -491,9 +473,7 @@ class URRtdeLink(RobotLink):
             self._last_seq = first[2]  # the baseline: later connects serve anything newer
             if first[3]:
                 log.info("link %s: %s", self.name, first[3])
-        was_down = self._health.state is LinkState.DOWN
-        await self._set_health(LinkState.UP, "", reconnected=ever_up)
-        if was_down:
+        if reconnector.up(reconnect=ever_up):
             log.info("link %s up again (%s)", self.name, self._peer)
         try:
             child.send((0, "warnings", (self._warnings,)))

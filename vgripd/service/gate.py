@@ -19,8 +19,9 @@ keep one ``Gate``. A surface is a listening socket; its gate decides, for every 
 
 ``Slots`` is the policy, without sockets, tasks or clocks (time is an argument), tested by
 feeding it events; ``Gate`` is the thin shell that asks a connection to ``shut`` and runs the
-periodic sweep. ``plan_budget`` splits the process's file limit (RLIMIT_NOFILE) between the
-surfaces and a reserve (docs/daemon.md, "File budget").
+periodic sweep; ``set_keepalive`` is the TCP keepalive every TCP server link sets on the
+connections its gate admits. ``plan_budget`` splits the process's file limit (RLIMIT_NOFILE)
+between the surfaces and a reserve (docs/daemon.md, "File budget").
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import ipaddress
 import logging
 import os
 import resource
+import socket
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -372,3 +374,19 @@ def open_files() -> int:
 def file_limit() -> int:
     soft, _hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     return soft if soft != resource.RLIM_INFINITY else 1 << 20
+
+
+def set_keepalive(sock: Any, idle_s: int, interval_s: int, count: int) -> None:
+    """TCP keepalive on ``sock``: probes after ``idle_s`` of silence, every ``interval_s``,
+    ``count`` unanswered ones end the connection (Linux's per-socket timings where the
+    platform has them). ``TCP_USER_TIMEOUT`` bounds, by the same total, how long unacknowledged
+    answers keep a peer that vanished without a FIN."""
+    settings = [(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)]
+    for name, value in (("TCP_KEEPIDLE", idle_s), ("TCP_KEEPINTVL", interval_s),
+                        ("TCP_KEEPCNT", count),
+                        ("TCP_USER_TIMEOUT", 1000 * (idle_s + interval_s * count))):
+        if hasattr(socket, name):
+            settings.append((socket.IPPROTO_TCP, getattr(socket, name), value))
+    for level, option, value in settings:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(level, option, value)

@@ -312,18 +312,6 @@ class RobotLink(ABC):
         """
         checked_warnings(bits)
 
-    async def _wait_health(self, changed: asyncio.Condition | None,
-                           states: set[LinkState] | LinkState, timeout_s: float) -> LinkHealth:
-        """``wait_state`` of a link that notifies ``changed`` at every change of its health:
-        wait until ``health().state`` is in ``states``; ``TimeoutError`` otherwise, and
-        ``LinkError`` if the link is not open (``changed`` is None)."""
-        wanted = {states} if isinstance(states, LinkState) else states
-        if changed is None:
-            raise LinkError(f"link {self.name}: not open")
-        async with asyncio.timeout(timeout_s), changed:
-            await changed.wait_for(lambda: self.health().state in wanted)
-        return self.health()
-
 
 # --- register map -------------------------------------------------------------------------
 
