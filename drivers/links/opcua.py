@@ -44,12 +44,6 @@ silent beyond its session timeout (at most ``max_session_timeout_s``), or one wh
 asyncua cannot process. Each is one log line per client and kind per ``log_interval_s``
 (``RateLimitedLog``), without a traceback; asyncua's own warnings are routed the same way
 unless the ``asyncua`` logger is configured explicitly. The server keeps serving.
-
-Size: over 700 lines: the link and the asyncua server classes it extends to gate connections
-(``_Protocol``, ``_BinaryServer``, ``_Server``, ``_Users``); the address space is already
-``opcua_space.py`` and the guards ``opcua_guard.py``. The server classes call back into the
-link (admission, trust, forgetting a connection), so moving them out needs a small protocol
-type for the link first; that is the next cut.
 """
 
 from __future__ import annotations

@@ -28,9 +28,6 @@ What each method maps to (docs/opcua.md, "OPC 40100" has the table):
   ``StartJob``, ``Next`` and ``Predict`` with plain arguments;
 - ``StartContinuous``: a chain of jobs, each a request of the link's handshake, the next one
   started after each published result (``continue_later``) until Stop, Abort, Halt or Reset.
-
-Size: over 600 lines: the standard's methods each with their argument checks, the result
-structures and the plain variables; the rules are ``VisionMachine``'s.
 """
 
 from __future__ import annotations

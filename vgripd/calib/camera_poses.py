@@ -38,10 +38,6 @@ The projection model is OpenCV's pinhole + Brown (k1 k2 p1 p2 k3), the distortio
 :mod:`vgripd.geometry.distortion` with one set of coefficients per observation, so all
 observations project in one vectorised call; tests check it against ``cv2.projectPoints`` and
 the whole fit against ``cv2.stereoCalibrate``.
-
-Size: a little over 700 lines: the five steps above are one algorithm and read in order. The
-generic solver (``levenberg_marquardt``, ``_Normal``) is the part that could go to a module
-of its own.
 """
 
 from __future__ import annotations

@@ -100,10 +100,6 @@ request takes the values in place at that moment. ``Command.PREDICT`` (5) asks w
 last served to this link will be at count N = LATCH_COUNT. 50-61 are part of the result (belt
 fields, cleared with it, written before ACK_SEQ; all 0 for a part that stands still). A
 version 3 link serves 0-45 as before and refuses addresses beyond.
-
-Size: a little over 750 lines, of which this docstring (the register map as docs/registers.md
-and the README follow it) is about 90: the link contract and the register map it is written
-against are one job.
 """
 
 from __future__ import annotations

@@ -53,11 +53,6 @@ The worker ends with its daemon, whatever way the daemon ends:
   ``alarm``, which needs no Python code to run), and at once when the daemon is already gone.
 - The daemon killed (SIGKILL, a crash): the kernel sends the worker SIGKILL
   (``PR_SET_PDEATHSIG``, ``die_with_daemon``), even in the middle of a computation.
-
-Size: over 700 lines: both ends of one private request protocol, the worker's request loop
-(``_Worker``, ``worker_main``) and the daemon's client (``WorkerClient``, ``WorkerCamera``,
-``WorkerRecorder``), which change together; the shared-memory image transport is
-``vgripd.service.imageshm``. The worker's side is the next cut.
 """
 
 from __future__ import annotations

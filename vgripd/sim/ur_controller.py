@@ -22,9 +22,6 @@ on a real controller; ``set_inputs`` presets them (values left by an earlier cli
 Faults for tests: ``set_silent`` (accept connections, answer nothing), ``drop`` (close every
 connection, optionally stop listening so connects are refused), ``set_in_use`` (input names owned
 by "a fieldbus adapter": I replies say ``IN_USE``), ``pause_stream`` (no ``U`` packages).
-
-Size: a little over 700 lines: the RTDE server process and its in-process handle speak one
-pipe protocol and change together (one simulator).
 """
 
 from __future__ import annotations
