@@ -18,6 +18,10 @@ from vgripd.vision import scene
 LEFT = {"fx": 1000.0, "fy": 1000.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480}
 T_FC = {"translation_mm": [10.0, 60.0, 120.0], "rotvec_rad": [0.02, -0.01, 0.3]}
 ROBOT = {"mounting": "robot", "T_flange_camera": T_FC}
+MARKERS = {"name": "tag_plate", "definition": "cad", "features": [
+    {"name": f"t{i}", "xyz_mm": [x, y, 0.0], "kind": "aruco", "marker_id": i,
+     "dictionary": "DICT_4X4_50", "size_mm": 20.0}
+    for i, (x, y) in enumerate([(-60.0, -40.0), (60.0, -40.0), (60.0, 40.0), (-60.0, 45.0)])]}
 
 
 def cfg(views: int = 3, **vision: Any) -> Any:
@@ -32,7 +36,9 @@ def cfg(views: int = 3, **vision: Any) -> Any:
     ({"left": LEFT, "right": LEFT, "hand_eye": ROBOT,
       "stereo": {"T_right_left": {"translation_mm": [-100, 0, 0]}}}, {},
      "calibration.right is set"),
-    ({"left": LEFT, "hand_eye": ROBOT}, {"picking": {"max_objects": 3}}, "max_objects"),
+    # ArUco markers: a pick list's marks for one camera, so the views rule is what refuses
+    ({"left": LEFT, "hand_eye": ROBOT}, {"picking": {"max_objects": 3}, "object": MARKERS},
+     "max_objects"),
 ])
 def test_views_need_one_robot_mounted_camera(calibration: dict[str, Any],
                                              extra: dict[str, Any], why: str) -> None:
