@@ -133,3 +133,41 @@ def test_an_action_with_the_bearer_token_passes() -> None:
     request = make_mocked_request("POST", "/api/reload",
                                   headers={"Authorization": "Bearer s3cret-token-0123456789"})
     _access().require_action(request, True, "allow_config_edit")
+
+
+def test_recorded_job_is_the_newest_folder_of_this_run(tmp_path: Path) -> None:
+    """The recorder's folder of a job, as the image route opens an older job: this run's
+    (stamped after its start), never one still being written."""
+    from vgripd.service.recorder import PARTIAL_PREFIX, recorded_job
+
+    start = 1_700_000_000.0
+
+    def stamp(t: float) -> str:
+        import time
+
+        return time.strftime("%Y%m%d-%H%M%S", time.localtime(t)) + ".000"
+
+    (tmp_path / f"{stamp(start - 3600)}-job000007").mkdir()  # an earlier run's job 7
+    assert recorded_job(tmp_path, 7, start) is None
+    (tmp_path / f"{PARTIAL_PREFIX}{stamp(start + 5)}-job000007").mkdir()  # being written
+    assert recorded_job(tmp_path, 7, start) is None
+    (tmp_path / f"{stamp(start + 5)}-job000007").mkdir()
+    (tmp_path / f"{stamp(start + 9)}-job000008").mkdir()
+    assert recorded_job(tmp_path, 7, start) == str(tmp_path / f"{stamp(start + 5)}-job000007")
+    assert recorded_job(tmp_path / "gone", 7, start) is None
+
+
+def test_put_aside_moves_sets_out_of_the_capture(tmp_path: Path) -> None:
+    import json
+
+    from vgripd.calib.capturesets import put_aside
+
+    sets = [{"set": n, "files": [f"left_{n:03d}.png"]} for n in (1, 2, 3)]
+    for entry in sets:
+        (tmp_path / entry["files"][0]).write_bytes(b"png")
+    (tmp_path / "capture.json").write_text(json.dumps({"sets": sets}))
+    assert put_aside(tmp_path, {2, 9}) == [2]
+    assert [e["set"] for e in json.loads((tmp_path / "capture.json").read_text())["sets"]] == [
+        1, 3]
+    assert (tmp_path / "dropped" / "left_002.png").exists()
+    assert not (tmp_path / "left_002.png").exists()

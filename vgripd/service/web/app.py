@@ -58,7 +58,7 @@ from vgripd.errors import VgripError
 from vgripd.redaction import REDACTED, redact
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.jobrecord import JobRecord
-from vgripd.service.recorder import PARTIAL_PREFIX, dict_from_result
+from vgripd.service.recorder import dict_from_result, recorded_job
 from vgripd.service.web.access import Access, ServerLogLimit
 from vgripd.service.web.bundle import write_bundle
 from vgripd.service.web.camsettings import CameraSettingsRoutes
@@ -402,22 +402,6 @@ class WebServer:
             raise web.HTTPNotFound(text="no such job in the history")
         return web.json_response(found[1])
 
-    def _recorded_folder(self, job_id: int) -> str | None:
-        """The recorder's folder of ``job_id`` from this run (names sort by time; job ids
-        restart with the daemon, so only folders stamped after the start count)."""
-        rec = self.daemon.recorder
-        if rec is None:
-            return None
-        start = time.strftime("%Y%m%d-%H%M%S", time.localtime(self._t_start_wall - 1))
-        suffix = f"-job{job_id:06d}"
-        try:
-            names = sorted(e.name for e in os.scandir(rec.folder)
-                           if e.name.endswith(suffix) and not e.name.startswith(PARTIAL_PREFIX)
-                           and e.name >= start)
-        except OSError:
-            return None
-        return str(Path(rec.folder) / names[-1]) if names else None
-
     async def _image(self, request: web.Request) -> web.Response:
         job_id = _id(request.match_info["id"])
         name = request.match_info["side"]
@@ -430,9 +414,11 @@ class WebServer:
             if found is None or not found[1]["images"]:
                 raise web.HTTPNotFound(text="no images for this job")
             source: ImagePair | str | None = self.jobs.pair_of(job_id)
-            if source is None:
+            rec = self.daemon.recorder
+            if source is None and rec is not None:
                 loop = asyncio.get_running_loop()
-                source = await loop.run_in_executor(self._io, self._recorded_folder, job_id)
+                source = await loop.run_in_executor(self._io, recorded_job, Path(rec.folder),
+                                                    job_id, self._t_start_wall)
             if source is None:
                 raise web.HTTPNotFound(text="the job's images are no longer kept (enable "
                                             "[record] to open older jobs)")

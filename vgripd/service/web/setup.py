@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import asyncio
 import io
-import json
 import logging
 import secrets
 import shutil
@@ -54,7 +53,7 @@ from typing import Any
 
 from aiohttp import web
 
-from vgripd.calib.capturesets import Capture, camera_names
+from vgripd.calib.capturesets import Capture, camera_names, put_aside
 from vgripd.config import DEMO_CALIBRATION
 from vgripd.errors import VgripError
 from vgripd.serialize import jsonable
@@ -328,7 +327,7 @@ class SetupRoutes:
             state = self.state.capture
             if state is None:
                 raise web.HTTPConflict(text="no capture")
-            moved = await asyncio.to_thread(_put_aside, state.out, set(sets))
+            moved = await asyncio.to_thread(put_aside, state.out, set(sets))
             self.state.capture = None  # read back without them at the next grab
             self._calib = {"running": False}
         return web.json_response({"dropped": moved})
@@ -447,25 +446,6 @@ def _pending(path: str | None) -> dict[str, Any] | None:
         return pending_view(Path(path).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
-
-
-def _put_aside(folder: Path, sets: set[int]) -> list[int]:
-    """Sets ``sets`` of a capture folder moved to ``dropped/`` and out of its manifest."""
-    manifest_path = folder / "capture.json"
-    data = json.loads(manifest_path.read_text())
-    aside = folder / "dropped"
-    aside.mkdir(exist_ok=True)
-    kept, moved = [], []
-    for entry in data["sets"]:
-        if entry["set"] in sets:
-            for name in entry["files"]:
-                (folder / name).replace(aside / name)
-            moved.append(entry["set"])
-        else:
-            kept.append(entry)
-    data["sets"] = kept
-    manifest_path.write_text(json.dumps(data, indent=1) + "\n")
-    return moved
 
 
 def _zip_folder(folder: Path) -> bytes:
