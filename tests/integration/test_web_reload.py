@@ -416,7 +416,7 @@ async def test_live_previews_show_figures_between_jobs_and_never_grab_during_one
     async with running(config) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as s:
         assert run.daemon.status_server is not None
         base = f"http://127.0.0.1:{run.daemon.status_server.port}"
-        previews = run.daemon.status_server.previews
+        turns = run.daemon.status_server.camera
         for j in (0, 1):
             code, (headers, content_type, body) = await between_jobs(
                 lambda j=j: preview(s, f"{base}/api/cameras/{j}/preview.jpg"), 503)
@@ -428,14 +428,14 @@ async def test_live_previews_show_figures_between_jobs_and_never_grab_during_one
             cams = await r.json()
         assert [f["marks"] for f in cams["figures"]] == [6, 6]  # the plate's six marks
         assert all(0 <= f["saturated_share"] < 0.01 for f in cams["figures"])
-        grabs = previews.grabs
+        grabs = turns.grabs
         assert grabs >= 1
         await plc.trigger(1)
         await run.busy()
         async with s.get(f"{base}/api/cameras/0/preview.jpg") as r:
             assert r.status == 200  # the last picture again
         assert run.daemon.state.value != "idle"  # still the same job: the check held
-        assert previews.grabs == grabs
+        assert turns.grabs == grabs
         assert (await plc.result(1))[Reg.STATUS] == Status.OK
 
 

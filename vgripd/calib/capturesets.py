@@ -178,3 +178,23 @@ def detect_or_none(board: Board, image: Any, where: str) -> Detection | None:
         return detect(board, image, where)
     except CalibrationError:
         return None
+
+
+def put_aside(folder: Path, sets: set[int]) -> list[int]:
+    """Sets ``sets`` of a capture folder moved to ``dropped/`` and out of its manifest
+    (``capture.json``); the set numbers moved. Blocking."""
+    manifest_path = folder / "capture.json"
+    data = json.loads(manifest_path.read_text())
+    aside = folder / "dropped"
+    aside.mkdir(exist_ok=True)
+    kept, moved = [], []
+    for entry in data["sets"]:
+        if entry["set"] in sets:
+            for name in entry["files"]:
+                (folder / name).replace(aside / name)
+            moved.append(entry["set"])
+        else:
+            kept.append(entry)
+    data["sets"] = kept
+    manifest_path.write_text(json.dumps(data, indent=1) + "\n")
+    return moved

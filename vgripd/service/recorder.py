@@ -235,3 +235,19 @@ class Recorder:
         if self._executor is not None:
             self._executor.shutdown(wait=True)
             self._executor = None
+
+
+def recorded_job(folder: Path, job_id: int, since_wall: float) -> str | None:
+    """The folder ``Recorder.write`` made for ``job_id`` in ``folder`` during the run started
+    at ``since_wall`` (time.time()): names sort by time and job ids restart with the daemon,
+    so only folders stamped after the start count (None: none, or the folder cannot be
+    read). Blocking."""
+    start = time.strftime("%Y%m%d-%H%M%S", time.localtime(since_wall - 1))
+    suffix = f"-job{job_id:06d}"
+    try:
+        names = sorted(e.name for e in os.scandir(folder)
+                       if e.name.endswith(suffix) and not e.name.startswith(PARTIAL_PREFIX)
+                       and e.name >= start)
+    except OSError:
+        return None
+    return str(folder / names[-1]) if names else None

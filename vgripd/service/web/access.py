@@ -202,6 +202,17 @@ class Access:
             await asyncio.sleep(delay)
         return False
 
+    def require_action(self, request: web.Request, enabled: bool, key: str) -> None:
+        """The check of an action: 404 while it is disabled (naming ``status.<key>``, the
+        switch that enables it), 403 unless the request carries the token in its header
+        (never the login cookie)."""
+        if not enabled:
+            raise web.HTTPNotFound(text=f"this action is disabled in the config: it needs "
+                                        f"status.{key} = true (with status.token)")
+        if not self.bearer_ok(request):
+            raise web.HTTPForbidden(text="this action needs the token: "
+                                         "Authorization: Bearer <status.token>")
+
     def holds_token(self, request: web.Request) -> bool:
         """The request carries the token: the header, or the session cookie of ``/login``."""
         if self.bearer_ok(request):

@@ -58,11 +58,12 @@ from vgripd.errors import VgripError
 from vgripd.redaction import REDACTED, redact
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.jobrecord import JobRecord
-from vgripd.service.recorder import PARTIAL_PREFIX, dict_from_result
+from vgripd.service.recorder import dict_from_result, recorded_job
 from vgripd.service.web.access import Access, ServerLogLimit
 from vgripd.service.web.bundle import write_bundle
 from vgripd.service.web.camsettings import CameraSettingsRoutes
 from vgripd.service.web.commission import CommissionRoutes
+from vgripd.service.web.context import CameraTurns, JobHistory, WebContext
 from vgripd.service.web.daemonview import DaemonView
 from vgripd.service.web.guard import GuardedSite, make_guard
 from vgripd.service.web.images import ImageRenderer
@@ -231,17 +232,19 @@ class WebServer:
         self._log_limit = ServerLogLimit(self.access.ratelog)
         self._allow_trigger = st.allow_trigger
         self._allow_bundle = st.allow_support_bundle
-        self.history: deque[tuple[JobRecord, dict[str, Any]]] = deque(maxlen=st.history)
+        self.jobs = JobHistory(st.history)
         self.events = EventHub()
         self.metrics = Metrics(daemon, self.access)
         self.images = ImageRenderer(daemon.config)
+        self.camera = CameraTurns(daemon)
+        self.context = WebContext(daemon, self.access, self.images, self.jobs, self.camera,
+                                  self.events.publish)
         self.logs = LogRing()
         self._runner: web.AppRunner | None = None
         self._port = 0
         self._io: ThreadPoolExecutor | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self._t_start_wall = time.time()
-        self._last_pair: tuple[int, ImagePair] | None = None
         self.app = self._make_app()
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -316,15 +319,13 @@ class WebServer:
         summary = job_summary(record, time.time(), images=pair is not None)
         summary["stereo"] = None if pair is None else pair.is_stereo
         summary["views"] = [] if pair is None else view_names(self.daemon.config, pair)
-        self.history.append((record, summary))
+        self.jobs.add(record, summary, pair)
         self.metrics.observe(record)
-        if pair is not None:
-            # Drawn at once while a page watches; otherwise on request (the last pair is
-            # kept for that, older jobs come from the recorder), so an unwatched cell spends
-            # no CPU on pictures.
-            self._last_pair = (record.job_id, pair)
-            if self.events.clients:
-                self.images.submit(record.job_id, pair, record.result, eager=True)
+        # Drawn at once while a page watches; otherwise on request (the last pair is kept for
+        # that, older jobs come from the recorder), so an unwatched cell spends no CPU on
+        # pictures.
+        if pair is not None and self.events.clients:
+            self.images.submit(record.job_id, pair, record.result, eager=True)
         self.events.publish("job", summary)
 
     async def _watch_links(self) -> None:
@@ -365,14 +366,15 @@ class WebServer:
         r.add_get("/metrics", self._metrics)
         r.add_route("*", "/api/trigger", self._trigger)
         r.add_get("/api/support-bundle", self._bundle)
-        CommissionRoutes(self).add(r)
-        TeachRoutes(self).add(r)
-        self.previews = PreviewRoutes(self)
+        ctx = self.context
+        CommissionRoutes(ctx).add(r)
+        TeachRoutes(ctx).add(r)
+        self.previews = PreviewRoutes(ctx)
         self.previews.add(r)
-        self.camera_settings = CameraSettingsRoutes(self)
+        self.camera_settings = CameraSettingsRoutes(ctx)
         self.camera_settings.add(r)
-        WalkRoutes(self).add(r)
-        self.setup = SetupRoutes(self)
+        WalkRoutes(ctx).add(r)
+        self.setup = SetupRoutes(ctx)
         self.setup.add(r)
         r.add_static("/static/", STATIC)
         return app
@@ -387,40 +389,18 @@ class WebServer:
         status = self.daemon.snapshot()
         status["web"] = {"trigger": self._allow_trigger, "support_bundle": self._allow_bundle,
                          "config_edit": self.daemon.config.status.allow_config_edit,
-                         "history": self.history.maxlen}
+                         "history": self.jobs.maxlen}
         return web.Response(text=json.dumps(redact(jsonable(status)), indent=1),
                             content_type="application/json")
 
-    def _find(self, job_id: int) -> tuple[JobRecord, dict[str, Any]] | None:
-        for record, summary in reversed(self.history):
-            if record.job_id == job_id:
-                return record, summary
-        return None
-
     async def _jobs(self, request: web.Request) -> web.Response:
-        return web.json_response([s for _, s in reversed(self.history)])
+        return web.json_response(self.jobs.summaries())
 
     async def _job(self, request: web.Request) -> web.Response:
-        found = self._find(_id(request.match_info["id"]))
+        found = self.jobs.find(_id(request.match_info["id"]))
         if found is None:
             raise web.HTTPNotFound(text="no such job in the history")
         return web.json_response(found[1])
-
-    def _recorded_folder(self, job_id: int) -> str | None:
-        """The recorder's folder of ``job_id`` from this run (names sort by time; job ids
-        restart with the daemon, so only folders stamped after the start count)."""
-        rec = self.daemon.recorder
-        if rec is None:
-            return None
-        start = time.strftime("%Y%m%d-%H%M%S", time.localtime(self._t_start_wall - 1))
-        suffix = f"-job{job_id:06d}"
-        try:
-            names = sorted(e.name for e in os.scandir(rec.folder)
-                           if e.name.endswith(suffix) and not e.name.startswith(PARTIAL_PREFIX)
-                           and e.name >= start)
-        except OSError:
-            return None
-        return str(Path(rec.folder) / names[-1]) if names else None
 
     async def _image(self, request: web.Request) -> web.Response:
         job_id = _id(request.match_info["id"])
@@ -430,15 +410,15 @@ class WebServer:
         assert side is not None  # the route admits nothing else
         fut = self.images.cached(job_id)
         if fut is None:
-            found = self._find(job_id)
+            found = self.jobs.find(job_id)
             if found is None or not found[1]["images"]:
                 raise web.HTTPNotFound(text="no images for this job")
-            source: ImagePair | str | None = None
-            if self._last_pair is not None and self._last_pair[0] == job_id:
-                source = self._last_pair[1]
-            else:
+            source: ImagePair | str | None = self.jobs.pair_of(job_id)
+            rec = self.daemon.recorder
+            if source is None and rec is not None:
                 loop = asyncio.get_running_loop()
-                source = await loop.run_in_executor(self._io, self._recorded_folder, job_id)
+                source = await loop.run_in_executor(self._io, recorded_job, Path(rec.folder),
+                                                    job_id, self._t_start_wall)
             if source is None:
                 raise web.HTTPNotFound(text="the job's images are no longer kept (enable "
                                             "[record] to open older jobs)")
@@ -495,18 +475,8 @@ class WebServer:
 
     # --- guarded actions ------------------------------------------------------------------
 
-    def check_action(self, request: web.Request, enabled: bool, key: str) -> None:
-        """404 while the action is disabled (naming ``status.<key>``, the switch that enables
-        it), 403 unless the request carries the token."""
-        if not enabled:
-            raise web.HTTPNotFound(text=f"this action is disabled in the config: it needs "
-                                        f"status.{key} = true (with status.token)")
-        if not self.access.bearer_ok(request):  # the header only: never the login cookie
-            raise web.HTTPForbidden(text="this action needs the token: "
-                                         "Authorization: Bearer <status.token>")
-
     async def _trigger(self, request: web.Request) -> web.Response:
-        self.check_action(request, self._allow_trigger, "allow_trigger")
+        self.access.require_action(request, self._allow_trigger, "allow_trigger")
         if request.method != "POST":
             raise web.HTTPMethodNotAllowed(request.method, ["POST"])
         link = self.daemon.links.get(WEB_LINK)
@@ -524,13 +494,13 @@ class WebServer:
         return web.json_response(jsonable(dict_from_result(result)))
 
     async def _bundle(self, request: web.Request) -> web.StreamResponse:
-        self.check_action(request, self._allow_bundle, "allow_support_bundle")
+        self.access.require_action(request, self._allow_bundle, "allow_support_bundle")
         log.info("web view: support bundle for %s", request.remote)
         loop = asyncio.get_running_loop()
         status = self.daemon.snapshot()
         parts = {
             "status.json": json.dumps(redact(jsonable(status)), indent=1),
-            "jobs.json": json.dumps([s for _, s in reversed(self.history)], indent=1),
+            "jobs.json": json.dumps(self.jobs.summaries(), indent=1),
             "config.toml": toml_from_dict(redact(jsonable(
                 self.daemon.config.model_dump(mode="json", exclude_none=True)))),
             "metrics.txt": self.metrics.render().decode(),

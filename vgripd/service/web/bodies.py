@@ -7,6 +7,9 @@ never an internal error: the JSON of the action routes and the ``/login`` form.
   sends); another content type (multipart) is 415, bytes that are no UTF-8 are 400.
 
 The size of every body is bounded before this by the application's ``client_max_size``.
+
+The answer to a config write (``outcome_response``) is here too: every edit route answers the
+writer's ``Outcome`` alike, 422 when refused.
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ from typing import Any
 from urllib.parse import parse_qs
 
 from aiohttp import web
+
+from vgripd.service.configtxn import Outcome
 
 #: The deepest nesting of arrays and objects an action's JSON body may have (the pages send 3).
 MAX_JSON_DEPTH = 32
@@ -75,3 +80,9 @@ async def login_form(request: web.Request) -> dict[str, str]:
     except (ValueError, UnicodeDecodeError) as err:
         raise web.HTTPBadRequest(text=f"the login form: {err}") from None
     return {k: v[-1] for k, v in fields.items()}
+
+
+def outcome_response(outcome: Outcome, **extra: Any) -> web.Response:
+    """A config write's outcome as JSON (``extra`` beside it): 200 applied, 422 refused."""
+    return web.json_response({**outcome.as_dict(), **extra},
+                             status=200 if outcome.applied else 422)

@@ -41,6 +41,7 @@ from vgripd.service.configtxn import Edit, Outcome
 from vgripd.service.reload import Reloader
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.commission import tuning_target
+from vgripd.service.web.context import WebContext
 
 log = logging.getLogger(__name__)
 
@@ -108,10 +109,10 @@ async def save_settings(reloader: Reloader, values: dict[str, float], source: st
 
 
 class CameraSettingsRoutes:
-    """The routes above for one ``WebServer``."""
+    """The routes above for one web view."""
 
-    def __init__(self, server: Any) -> None:
-        self.server = server
+    def __init__(self, ctx: WebContext) -> None:
+        self.ctx = ctx
         #: What the cameras read back after the last change (None: as configured at start).
         self.live: dict[str, Any] | None = None
         self._values: dict[str, float] = {}
@@ -121,19 +122,14 @@ class CameraSettingsRoutes:
         router.add_post("/api/cameras/{j:\\d+}/settings", self.change)
 
     async def current(self, request: web.Request) -> web.Response:
-        section = self.server.daemon.config.camera
+        section = self.ctx.daemon.config.camera
         values = {k: self._values.get(k, getattr(section, k, None)) for k in KEYS}
         return web.json_response({**values, "read_back": self.live,
-                                  "enabled": bool(self.server.daemon.config.status
-                                                  .allow_config_edit)})
+                                  "enabled": self.ctx.edit_allowed})
 
     async def change(self, request: web.Request) -> web.Response:
-        daemon = self.server.daemon
-        self.server.check_action(request, bool(daemon.config.status.allow_config_edit),
-                                  "allow_config_edit")
-        reloader = daemon.reloader
-        if reloader is None:
-            raise web.HTTPNotFound(text="this daemon was not started from a config file")
+        daemon = self.ctx.daemon
+        reloader = self.ctx.config_writer(request)
         body = await json_body(request)
         values = parse_settings(body)
         text = request.match_info["j"]
@@ -145,7 +141,7 @@ class CameraSettingsRoutes:
         if not hasattr(camera, "set_settings"):
             raise web.HTTPBadRequest(text=f"camera {daemon.config.camera.type}: no exposure or "
                                           "gain to set")
-        async with self.server.previews.between_jobs() as idle:
+        async with self.ctx.camera.between_jobs() as idle:
             if not idle:
                 raise web.HTTPConflict(text="a job runs: exposure and gain are changed only "
                                             "between jobs; try again")

@@ -38,7 +38,8 @@ from vgripd.errors import ConfigError
 from vgripd.serialize import toml_from_dict
 from vgripd.service.configtxn import Edit, Outcome
 from vgripd.service.reload import Reloader
-from vgripd.service.web.bodies import json_body
+from vgripd.service.web.bodies import json_body, outcome_response
+from vgripd.service.web.context import WebContext
 from vgripd.service.web.health import calibration_files, cell_geometry
 
 log = logging.getLogger(__name__)
@@ -171,16 +172,12 @@ def tuning_values(config: Any) -> dict[str, Any]:
 
 
 class CommissionRoutes:
-    """The routes above for one ``WebServer`` (``guard``: its 404/403 check of an action)."""
+    """The routes above for one web view."""
 
-    def __init__(self, server: Any) -> None:
-        self.server = server
+    def __init__(self, ctx: WebContext) -> None:
+        self.ctx = ctx
         self._trying = asyncio.Lock()  # one trial at a time (the image helper is one process)
         self._trial: tuple[int, list[bytes]] = (0, [])
-
-    @property
-    def enabled(self) -> bool:
-        return bool(self.server.daemon.config.status.allow_config_edit)
 
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/api/audit", self.audit)
@@ -191,80 +188,62 @@ class CommissionRoutes:
         router.add_post("/api/tuning/try", self.trial)
         router.add_get("/api/tuning/trial/{n:\\d+}/{k:\\d+}.jpg", self.trial_image)
 
-    def _reloader(self) -> Reloader:
-        reloader = self.server.daemon.reloader
-        if reloader is None:
-            raise web.HTTPNotFound(text="this daemon was not started from a config file")
-        assert isinstance(reloader, Reloader)
-        return reloader
-
     async def audit(self, request: web.Request) -> web.Response:
-        reloader = self.server.daemon.reloader
+        reloader = self.ctx.daemon.reloader
         entries = [] if reloader is None else [o.as_dict() for o in reloader.audit]
-        return web.json_response({"enabled": self.enabled, "reloading": bool(
+        return web.json_response({"enabled": self.ctx.edit_allowed, "reloading": bool(
             reloader is not None and reloader.running), "entries": entries})
 
     async def calibration(self, request: web.Request) -> web.Response:
-        daemon = self.server.daemon
+        daemon = self.ctx.daemon
         reloader = daemon.reloader
-        last = None
-        for record, _ in reversed(self.server.history):
-            if record.result.T_base_obj is not None:
-                last = record.result.T_base_obj
-                break
         return web.json_response({
             "files": calibration_files(None if reloader is None else reloader.path,
-                                       full_paths=self.server.access.holds_token(request)),
-            "geometry": cell_geometry(daemon.config, last),
+                                       full_paths=self.ctx.access.holds_token(request)),
+            "geometry": cell_geometry(daemon.config, self.ctx.jobs.last_pose()),
             "recalibrate": daemon.epipolar.snapshot(time.monotonic_ns()),
         })
 
     async def tuning(self, request: web.Request) -> web.Response:
-        return web.json_response(tuning_values(self.server.daemon.config))
-
-    @staticmethod
-    def _answer(outcome: Outcome) -> web.Response:
-        return web.json_response(outcome.as_dict(), status=200 if outcome.applied else 422)
+        return web.json_response(tuning_values(self.ctx.daemon.config))
 
     async def reload(self, request: web.Request) -> web.Response:
-        self.server.check_action(request, self.enabled, "allow_config_edit")
-        reloader = self._reloader()
-        return self._answer(await reloader.reload(f"web {request.remote}"))
+        reloader = self.ctx.config_writer(request)
+        return outcome_response(await reloader.reload(f"web {request.remote}"))
 
     async def save(self, request: web.Request) -> web.Response:
-        self.server.check_action(request, self.enabled, "allow_config_edit")
-        reloader = self._reloader()
+        reloader = self.ctx.config_writer(request)
         body = await json_body(request)
         vision, polarity = parse_edit(body)
-        return self._answer(await save_tuning(reloader, vision, polarity,
+        return outcome_response(await save_tuning(reloader, vision, polarity,
                                               f"web {request.remote}"))
 
     async def trial(self, request: web.Request) -> web.Response:
         """The edited pipeline on the last job's images (in the image helper process, never on
         the loop); nothing is saved or applied."""
-        self.server.check_action(request, self.enabled, "allow_config_edit")
+        self.ctx.check_edit(request)
         body = await json_body(request)
         vision, polarity = parse_edit(body)
         job_id: int | None
         if body.get("grab"):  # a fresh picture, taken as a live preview is: between jobs only
-            pair = await self.server.previews.grab_between_jobs()
+            pair = await self.ctx.camera.grab_between_jobs()
             if pair is None:
                 raise web.HTTPConflict(text="a job runs (or the camera cannot grab): a fresh "
                                             "grab is taken only between jobs; try again")
             job_id = None
         else:
-            last = self.server._last_pair
+            last = self.ctx.jobs.last_pair
             if last is None:
                 raise web.HTTPConflict(text="no job's images yet: trigger a job first")
             job_id, pair = last
         try:
-            config = edited_config(self.server.daemon.config, vision, polarity)
+            config = edited_config(self.ctx.daemon.config, vision, polarity)
         except ConfigError as err:
             return web.json_response({"status": None, "message": f"refused: {err}"},
                                      status=422)
         async with self._trying:
             try:
-                jpegs, outcome = await self.server.images.trial(pair, config)
+                jpegs, outcome = await self.ctx.images.trial(pair, config)
             except Exception as err:
                 raise web.HTTPInternalServerError(text=f"the trial failed: {err!r}") from None
             n = self._trial[0] + 1

@@ -7,21 +7,71 @@ not import each other: the daemon sits above the web view and hands itself in.
 
 from __future__ import annotations
 
+import enum
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Set
+from pathlib import Path
 from typing import Any, Protocol
 
 from vgripd.config import Config
+from vgripd.service.gate import Budget
 from vgripd.service.jobrecord import EpipolarMonitor, JobListener
 from vgripd.service.protocol import RobotLink
 from vgripd.service.recorder import Recorder
+from vgripd.service.reload import Reloader
 from vgripd.service.worker import WorkerRecorder
 
 
+class WalksView(Protocol):
+    """What the walk pages use of the daemon's hand-eye walk (``vgripd.service.walkmode``)."""
+
+    solution: dict[str, Any] | None
+
+    @property
+    def listeners(self) -> list[Callable[[dict[str, Any]], None]]: ...
+
+    @property
+    def walking(self) -> bool: ...
+
+    def snapshot(self) -> dict[str, Any]: ...
+
+    def start(self, config_path: Path, plan: str | Path, link_index: int) -> dict[str, Any]: ...
+
+    async def stop(self, why: str = ...) -> dict[str, Any]: ...
+
+    async def solve(self, config_path: Path) -> dict[str, Any]: ...
+
+
 class DaemonView(Protocol):
-    """What ``WebServer`` and ``Metrics`` use of ``vgripd.service.daemon.Daemon``."""
+    """What ``WebServer``, its routes and ``Metrics`` use of ``vgripd.service.daemon.Daemon``
+    (the job and run states as plain enums: their classes live above this module)."""
 
     config: Config
+    reloader: Reloader | None
+
+    @property
+    def camera(self) -> Any: ...
+
+    @property
+    def state(self) -> enum.Enum: ...
+
+    @property
+    def views(self) -> object | None: ...
+
+    @property
+    def run_state(self) -> enum.Enum: ...
+
+    @property
+    def walks(self) -> WalksView: ...
+
+    @property
+    def untaught(self) -> Set[int]: ...
+
+    @property
+    def recipe_problems(self) -> Mapping[int, str]: ...
+
+    @property
+    def fd_budget(self) -> Budget | None: ...
 
     @property
     def listeners(self) -> list[JobListener]: ...

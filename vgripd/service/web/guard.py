@@ -25,6 +25,7 @@ from typing import Any
 from aiohttp import web
 
 from vgripd.service.gate import WEB_SURFACE, Gate
+from vgripd.service.web.daemonview import DaemonView
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +66,13 @@ class WebGuard:
             if guard is not None:
                 guard.request_finished()
 
+    def connected(self, transport: asyncio.BaseTransport, connection: _Guard) -> None:
+        """An admitted connection, found again by its transport when a request comes."""
+        self._by_transport[transport] = connection
+
+    def disconnected(self, transport: asyncio.BaseTransport) -> None:
+        self._by_transport.pop(transport, None)
+
     def start(self) -> None:
         self.gate.start()
 
@@ -98,7 +106,7 @@ class _Guard(asyncio.Protocol):
             transport.close()  # nothing written yet: closes at once
             return
         self.admitted = True
-        self.guard._by_transport[transport] = self
+        self.guard.connected(transport, self)
         self.inner.connection_made(transport)
         self._arm()
 
@@ -121,7 +129,7 @@ class _Guard(asyncio.Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
         if self.transport is not None:
-            self.guard._by_transport.pop(self.transport, None)
+            self.guard.disconnected(self.transport)
         self.guard.gate.forget(self)
         if self.admitted:
             self.admitted = False
@@ -200,11 +208,11 @@ class GuardedSite(web.TCPSite):
                             else self._port)
 
 
-def make_guard(daemon: Any) -> WebGuard:
+def make_guard(daemon: DaemonView) -> WebGuard:
     """The guard of ``daemon``'s web view: ``[status]``'s options, the cap the file budget
     gave it (``Daemon.fd_budget``) when there is one."""
     st = daemon.config.status
-    budget = getattr(daemon, "fd_budget", None)
+    budget = daemon.fd_budget
     cap = budget.caps.get(WEB_SURFACE, st.max_connections) if budget is not None \
         else st.max_connections
     return WebGuard(cap, st.header_timeout_s, st.body_timeout_s, st.allow)

@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import asyncio
 import io
-import json
 import logging
 import secrets
 import shutil
@@ -54,19 +53,20 @@ from typing import Any
 
 from aiohttp import web
 
-from vgripd.calib.capturesets import Capture, camera_names
+from vgripd.calib.capturesets import Capture, camera_names, put_aside
 from vgripd.config import DEMO_CALIBRATION
 from vgripd.errors import VgripError
 from vgripd.serialize import jsonable
 from vgripd.service.commands import run_vgripd
-from vgripd.service.configtxn import Outcome
 from vgripd.service.protocol import robot_pose_now
 from vgripd.service.web import setupimages
-from vgripd.service.web.bodies import json_body
+from vgripd.service.web.bodies import json_body, outcome_response
+from vgripd.service.web.context import WebContext
 from vgripd.service.web.registers import register_views
 from vgripd.service.web.setupchoose import SetupChoices
 from vgripd.service.web.setuphandeye import SetupHandEye
 from vgripd.service.web.setupobject import SetupObject
+from vgripd.service.web.setupstate import SetupState
 from vgripd.service.web.setupsteps import (
     DEFAULT_BOARD,
     STEP_IDS,
@@ -74,15 +74,12 @@ from vgripd.service.web.setupsteps import (
     calibration_command,
     calibration_edit,
     cameras_edit,
-    dump_progress,
     flange_text,
     hand_eye_values,
-    load_progress,
     parse_check,
     pending_view,
     placed_cameras,
     read_result,
-    state_dir,
 )
 
 log = logging.getLogger(__name__)
@@ -97,18 +94,15 @@ MIN_SETS = 3
 
 
 class SetupRoutes:
-    """The routes above for one ``WebServer``."""
+    """The routes above for one web view."""
 
-    def __init__(self, server: Any) -> None:
-        self.server = server
-        self.capture: Capture | None = None
-        self._grab_n = 0
-        self._live: list[bytes] = []
+    def __init__(self, ctx: WebContext) -> None:
+        self.ctx = ctx
+        self.state = SetupState(ctx)
         self._calib: dict[str, Any] = {"running": False}
         self._tasks: set[asyncio.Task[Any]] = set()
-        self._lock = asyncio.Lock()  # one grab or capture change at a time
         self.instance = secrets.token_hex(6)
-        self.solver = SetupHandEye(self)  # the hand-eye from the captured sets
+        self.solver = SetupHandEye(self.state, self.save_hand_eye)  # from the captured sets
 
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/setup", self.page)
@@ -122,62 +116,15 @@ class SetupRoutes:
         router.add_post("/api/setup/calib/drop", self.drop)
         router.add_post("/api/setup/calib/accept", self.accept)
         router.add_post("/api/setup/handeye", self.hand_eye)
-        SetupObject(self).add(router)  # the object step (setupobject.py)
+        SetupObject(self.state).add(router)  # the object step (setupobject.py)
         self.solver.add(router)
         router.add_get("/api/setup/robot-program.zip", self.robot_program)
-        SetupChoices(self).add(router)  # the cameras and the link chosen (setupchoose.py)
+        SetupChoices(self.ctx).add(router)  # the cameras and the link chosen (setupchoose.py)
 
     # --- shared ---------------------------------------------------------------------------
 
-    @property
-    def daemon(self) -> Any:
-        return self.server.daemon
-
-    def _guard(self, request: web.Request) -> Any:
-        """The action check (404 disabled, 403 without the token); the daemon's reloader."""
-        self.server.check_action(request, bool(self.daemon.config.status.allow_config_edit),
-                                 "allow_config_edit")
-        reloader = self.daemon.reloader
-        if reloader is None:
-            raise web.HTTPNotFound(text="this daemon was not started from a config file")
-        return reloader
-
-    async def _folder(self) -> Path:
-        """The setup's own folder beside the writable includes (``<state>/setup``)."""
-        reloader = self.daemon.reloader
-        if reloader is None:
-            raise web.HTTPNotFound(text="this daemon was not started from a config file")
-        state = await asyncio.to_thread(state_dir, reloader.path)
-        if state is None:
-            raise web.HTTPConflict(text=f"{reloader.path} includes no writable files: the setup "
-                                        "writes into the includes vgripd init lays out")
-        folder = state / "setup"
-        await asyncio.to_thread(folder.mkdir, parents=True, exist_ok=True)
-        return folder
-
-    async def _progress(self) -> dict[str, Any]:
-        return await asyncio.to_thread(load_progress, await self._folder() / "progress.json")
-
-    async def _save_progress(self, data: dict[str, Any]) -> None:
-        path = await self._folder() / "progress.json"
-        await self.daemon.reloader.write_file(path, dump_progress(data))
-
-    async def _mark(self, *steps: str, done: bool = True) -> None:
-        data = await self._progress()
-        for step in steps:
-            if done:
-                data["done"][step] = time.time()
-            else:
-                data["done"].pop(step, None)
-        await self._save_progress(data)
-
-    @staticmethod
-    def _answer(outcome: Outcome, **extra: Any) -> web.Response:
-        return web.json_response({**outcome.as_dict(), **extra},
-                                 status=200 if outcome.applied else 422)
-
     def _names(self, n_views: int) -> list[str]:
-        return camera_names(self.daemon.config, n_views)
+        return camera_names(self.ctx.daemon.config, n_views)
 
     # --- reads ----------------------------------------------------------------------------
 
@@ -185,20 +132,20 @@ class SetupRoutes:
         return web.FileResponse(STATIC / "setup.html", headers={"Cache-Control": "no-cache"})
 
     async def show(self, request: web.Request) -> web.Response:
-        config = self.daemon.config
-        progress = await self._progress()
+        config = self.ctx.daemon.config
+        progress = await self.state.progress()
         cal = config.calibration
         cam = config.camera
         options = cam.model_dump(mode="json", exclude_none=True)
         capture = None
-        if self.capture is not None:
-            capture = self._capture_view(self.capture)
+        if self.state.capture is not None:
+            capture = self._capture_view(self.state.capture)
         return web.json_response(jsonable({
             "steps": [{"id": s, "title": t, "done": s in progress["done"]} for s, t in STEPS],
             "instance": self.instance,  # another after a restart
             "edit": bool(config.status.allow_config_edit),
             "trigger": bool(config.status.allow_trigger),
-            "camera": {"type": cam.type, "describe": getattr(self.daemon.camera, "describe",
+            "camera": {"type": cam.type, "describe": getattr(self.ctx.daemon.camera, "describe",
                                                              lambda: cam.type)(),
                        "options": {k: v for k, v in options.items() if k != "type"}},
             "calibrated": cal is not None,
@@ -211,21 +158,21 @@ class SetupRoutes:
             "object": {"name": config.object.name, "definition": config.object.definition,
                        "features": [f.name for f in config.object.features]},
             "vendor": config.output.vendor,
-            "links": self.daemon.snapshot().get("links"),
-            "registers": register_views(self.daemon.links),
+            "links": self.ctx.daemon.snapshot().get("links"),
+            "registers": register_views(self.ctx.daemon.links),
             "capture": capture,
         }))
 
     def _learning_hand_eye(self) -> dict[str, Any] | None:
         """Where the learning cell's cameras are (the board camera renders through the demo
         cell's hand-eye): offered as the hand-eye step's values there, never elsewhere."""
-        if self.daemon.config.camera.type != "board":
+        if self.ctx.daemon.config.camera.type != "board":
             return None
         return DEMO_CALIBRATION.hand_eye.model_dump(mode="json", exclude_none=True)
 
     async def check(self, request: web.Request) -> web.Response:
-        self._guard(request)
-        path = str(self.daemon.reloader.path)
+        self.ctx.config_writer(request)
+        path = str(self.ctx.reloader().path)
         rc, out, err = await run_vgripd(["check", "--running", "--untaught-ok", "-c", path],
                                         CHECK_TIMEOUT_S)
         ok, findings = parse_check(rc, out, err, path)
@@ -236,19 +183,20 @@ class SetupRoutes:
             "findings": [f.as_dict() for f in chosen], "all": len(findings)})
 
     async def done(self, request: web.Request) -> web.Response:
-        self._guard(request)
+        self.ctx.config_writer(request)
         body = await json_body(request)
         step = body.get("step") if isinstance(body, dict) else None
         if step not in STEP_IDS:
             raise web.HTTPBadRequest(text=f"step: one of {', '.join(STEP_IDS)}")
-        await self._mark(step, done=bool(body.get("done", True)))
+        await self.state.mark(step, done=bool(body.get("done", True)))
         return web.json_response({"step": step, "done": bool(body.get("done", True))})
 
     async def live(self, request: web.Request) -> web.Response:
         n, k = request.match_info["n"], request.match_info["k"]
-        if len(n) > 9 or len(k) > 2 or int(n) != self._grab_n or int(k) >= len(self._live):
+        live = self.state.live
+        if len(n) > 9 or len(k) > 2 or int(n) != self.state.grab_n or int(k) >= len(live):
             raise web.HTTPNotFound(text="only the last grab's pictures are kept")
-        return web.Response(body=self._live[int(k)], content_type="image/jpeg",
+        return web.Response(body=live[int(k)], content_type="image/jpeg",
                             headers={"Cache-Control": "no-store"})
 
     # --- calibration capture ----------------------------------------------------------------
@@ -266,19 +214,19 @@ class SetupRoutes:
     async def _account(self, spec: str, views: list[Any]) -> Capture:
         """The capture account of the setup folder for ``spec`` (read back once)."""
         names = self._names(len(views))
-        if self.capture is not None and self.capture.board.spec == spec and (
-                self.capture.names == names):
-            return self.capture
-        folder = await self._folder() / "calib"
-        if self.capture is not None and self.capture.board.spec != spec:
+        if self.state.capture is not None and self.state.capture.board.spec == spec and (
+                self.state.capture.names == names):
+            return self.state.capture
+        folder = await self.state.folder() / "calib"
+        if self.state.capture is not None and self.state.capture.board.spec != spec:
             await asyncio.to_thread(shutil.rmtree, folder, True)  # a new board starts over
         sizes = [(int(v.shape[1]), int(v.shape[0])) for v in views]
-        self.capture = await self.server.images.call(setupimages.resume_capture, spec,
+        self.state.capture = await self.ctx.images.call(setupimages.resume_capture, spec,
                                                      str(folder), names, sizes)
-        return self.capture
+        return self.state.capture
 
     async def grab(self, request: web.Request) -> web.Response:
-        self._guard(request)
+        self.ctx.config_writer(request)
         body = await json_body(request)
         if not isinstance(body, dict):
             raise web.HTTPBadRequest(text='a JSON object {"board": ..., "keep": ..., "auto": ...}')
@@ -289,13 +237,13 @@ class SetupRoutes:
             spec = Board.parse(spec).spec
         except VgripError as err:
             raise web.HTTPBadRequest(text=f"board: {err}") from None
-        async with self._lock:
-            pair = await self.server.previews.grab_between_jobs()
+        async with self.state.lock:
+            pair = await self.ctx.camera.grab_between_jobs()
             if pair is None:
                 raise web.HTTPConflict(text="a job runs (or the camera cannot grab): try again")
             views = list(pair.views)
             state = await self._account(spec, views)
-            jpegs, dets = await self.server.images.call(setupimages.board_corners, views,
+            jpegs, dets = await self.ctx.images.call(setupimages.board_corners, views,
                                                         spec, state.names)
             ok, why = state.judge(dets)
             if body.get("keep") and not ok and all(d is not None for d in dets):
@@ -303,21 +251,19 @@ class SetupRoutes:
             kept = None
             if ok and (body.get("keep") or body.get("auto")):
                 flange = pair.T_base_flange  # the camera's (or its request's), else a link's
-                if flange is None and (now := await robot_pose_now(self.daemon.links)):
+                if flange is None and (now := await robot_pose_now(self.ctx.daemon.links)):
                     flange = now[1]
                 kept = await asyncio.to_thread(state.keep, tuple(views), dets, why,
                                                pair.t_mono_ns, flange)
                 await asyncio.to_thread(state.write_manifest)
-            self._grab_n += 1
-            self._live = jpegs
-            progress = await self._progress()
+            grab_n = self.state.show(jpegs)
+            progress = await self.state.progress()
             if progress.get("board") != spec:
                 progress["board"] = spec
-                await self._save_progress(progress)
+                await self.state.save_progress(progress)
         return web.json_response({
-            "grab": self._grab_n, "seen": [d is not None for d in dets], "worth": ok,
-            "why": why, "kept": kept,
-            "images": [f"/api/setup/live/{self._grab_n}/{k}.jpg" for k in range(len(jpegs))],
+            "grab": grab_n, "seen": [d is not None for d in dets], "worth": ok,
+            "why": why, "kept": kept, "images": self.state.live_urls(),
             "capture": self._capture_view(state)})
 
     # --- calibration --------------------------------------------------------------------------
@@ -334,16 +280,16 @@ class SetupRoutes:
         return web.json_response(jsonable(calib))
 
     async def calibrate(self, request: web.Request) -> web.Response:
-        self._guard(request)
+        self.ctx.config_writer(request)
         if self._calib.get("running"):
             raise web.HTTPConflict(text="a calibration runs")
-        state = self.capture
+        state = self.state.capture
         if state is None or len(state.kept) < MIN_SETS:
             raise web.HTTPConflict(text=f"capture at least {MIN_SETS} sets first (kept: "
                                         f"{0 if state is None else len(state.kept)})")
         body = await json_body(request) if request.body_exists else {}
         kind = body.get("kind", "auto") if isinstance(body, dict) else body
-        out = await self._folder() / "rig-result.toml"
+        out = await self.state.folder() / "rig-result.toml"
         try:
             args = calibration_command(state.names, state.out, state.board.spec, out,
                                        str(kind))
@@ -372,32 +318,32 @@ class SetupRoutes:
             self._calib = {"running": False, "ok": False, "output": str(err), "result": None}
 
     async def drop(self, request: web.Request) -> web.Response:
-        self._guard(request)
+        self.ctx.config_writer(request)
         body = await json_body(request)
         sets = body.get("sets") if isinstance(body, dict) else None
         if not (isinstance(sets, list) and all(isinstance(s, int) for s in sets)):
             raise web.HTTPBadRequest(text='{"sets": [set numbers]}')
-        async with self._lock:
-            state = self.capture
+        async with self.state.lock:
+            state = self.state.capture
             if state is None:
                 raise web.HTTPConflict(text="no capture")
-            moved = await asyncio.to_thread(_put_aside, state.out, set(sets))
-            self.capture = None  # read back without them at the next grab
+            moved = await asyncio.to_thread(put_aside, state.out, set(sets))
+            self.state.capture = None  # read back without them at the next grab
             self._calib = {"running": False}
         return web.json_response({"dropped": moved})
 
     async def accept(self, request: web.Request) -> web.Response:
-        self._guard(request)
-        result = await self._folder() / "rig-result.toml"
+        self.ctx.config_writer(request)
+        result = await self.state.folder() / "rig-result.toml"
         if not self._calib.get("ok") or not result.exists():
             raise web.HTTPConflict(text="no calibration result to accept: run it first")
         found = self._calib.get("result") or {}
         # The hand-eye belongs to one camera model (its [about] fingerprint): a new rig goes
         # live together with the cameras' pose, confirmed or measured again (next step).
-        progress = await self._progress()
+        progress = await self.state.progress()
         progress["pending_calibration"] = str(result)
         progress["done"]["calibration"] = time.time()
-        await self._save_progress(progress)
+        await self.state.save_progress(progress)
         if found.get("kind") == "cameras" and not found.get("usable"):
             reference = found.get("reference")
             message = (f"accepted: {len(found.get('cameras') or [])} cameras, their poses "
@@ -419,9 +365,9 @@ class SetupRoutes:
     async def hand_eye(self, request: web.Request) -> web.Response:
         """A fixed camera's ``T_base_camera`` typed on the page (for an accepted ``calibrate
         cameras`` result the reference camera's, none when the command placed them)."""
-        self._guard(request)
+        self.ctx.config_writer(request)
         body = await json_body(request)
-        waiting = await asyncio.to_thread(_pending, (await self._progress()).get(
+        waiting = await asyncio.to_thread(_pending, (await self.state.progress()).get(
             "pending_calibration"))
         if waiting is not None and waiting.get("placed"):
             return await self.save_hand_eye(request, None)
@@ -436,13 +382,13 @@ class SetupRoutes:
         """The cameras' pose saved with the accepted calibration as one transaction; for an
         accepted ``calibrate cameras`` result ``hand_eye`` (fixed) is the reference camera's
         pose, which places every camera (None: the command placed them)."""
-        reloader = self._guard(request)
-        progress = await self._progress()
+        reloader = self.ctx.config_writer(request)
+        progress = await self.state.progress()
         pending = progress.get("pending_calibration")
         text = None
         if pending:
             text = await asyncio.to_thread(Path(pending).read_text, encoding="utf-8")
-        elif self.daemon.config.calibration is None:
+        elif self.ctx.daemon.config.calibration is None:
             raise web.HTTPConflict(text="calibrate the cameras first (step Calibration)")
         waiting = pending_view(text)
         if waiting is not None and waiting["kind"] == "cameras":
@@ -462,20 +408,20 @@ class SetupRoutes:
         outcome = await reloader.write(edit, f"web {request.remote}", "setup: hand-eye",
                                        untaught_ok=True)
         if outcome.applied:
-            progress = await self._progress()
+            progress = await self.state.progress()
             progress.pop("pending_calibration", None)
             progress["done"]["handeye"] = time.time()
-            await self._save_progress(progress)
-        return self._answer(outcome)
+            await self.state.save_progress(progress)
+        return outcome_response(outcome)
 
     # --- the link -------------------------------------------------------------------------------
 
     async def robot_program(self, request: web.Request) -> web.Response:
-        self._guard(request)
+        self.ctx.config_writer(request)
         brand = request.query.get("brand", "")
         if not brand.isascii() or not brand.isalpha() or len(brand) > 20:
             raise web.HTTPBadRequest(text="brand: a robot brand (vgripd robot-program --help)")
-        path = str(self.daemon.reloader.path)
+        path = str(self.ctx.reloader().path)
         with tempfile.TemporaryDirectory(prefix="vgripd-program-") as tmp:
             rc, out, err = await run_vgripd(["robot-program", "--brand", brand, "-c", path,
                                              "-o", tmp], PROGRAM_TIMEOUT_S)
@@ -500,25 +446,6 @@ def _pending(path: str | None) -> dict[str, Any] | None:
         return pending_view(Path(path).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
-
-
-def _put_aside(folder: Path, sets: set[int]) -> list[int]:
-    """Sets ``sets`` of a capture folder moved to ``dropped/`` and out of its manifest."""
-    manifest_path = folder / "capture.json"
-    data = json.loads(manifest_path.read_text())
-    aside = folder / "dropped"
-    aside.mkdir(exist_ok=True)
-    kept, moved = [], []
-    for entry in data["sets"]:
-        if entry["set"] in sets:
-            for name in entry["files"]:
-                (folder / name).replace(aside / name)
-            moved.append(entry["set"])
-        else:
-            kept.append(entry)
-    data["sets"] = kept
-    manifest_path.write_text(json.dumps(data, indent=1) + "\n")
-    return moved
 
 
 def _zip_folder(folder: Path) -> bytes:

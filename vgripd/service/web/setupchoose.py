@@ -48,7 +48,8 @@ from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.commands import run_vgripd
 from vgripd.service.configtxn import Edit, judge
 from vgripd.service.robot_socket_format import BRANDS
-from vgripd.service.web.bodies import json_body
+from vgripd.service.web.bodies import json_body, outcome_response
+from vgripd.service.web.context import WebContext
 from vgripd.service.web.registers import register_views
 from vgripd.service.web.setupsteps import include_for
 
@@ -179,10 +180,10 @@ def opcua_nodes() -> dict[str, Any]:
 
 
 class SetupChoices:
-    """The routes above, beside ``SetupRoutes`` (``routes``: the guard, the daemon)."""
+    """The routes above, beside ``SetupRoutes``."""
 
-    def __init__(self, routes: Any) -> None:
-        self.routes = routes
+    def __init__(self, ctx: WebContext) -> None:
+        self.ctx = ctx
         self._pending: set[Any] = set()
 
     def add(self, router: web.UrlDispatcher) -> None:
@@ -195,18 +196,14 @@ class SetupChoices:
         router.add_get("/api/setup/focus", self.focus)
         router.add_post("/api/setup/focus", self.focus)
 
-    @property
-    def daemon(self) -> Any:
-        return self.routes.daemon
-
     def _uncalibrated(self) -> bool:
         """A cell the daemon runs uncalibrated may stay so through a camera or link choice
         (its first steps come before the calibration); a calibrated one must stay calibrated."""
-        d = self.daemon
+        d = self.ctx.daemon
         return any(number not in d.untaught for number in d.recipe_problems)
 
     async def discover(self, request: web.Request) -> web.Response:
-        self.routes._guard(request)
+        self.ctx.config_writer(request)
         rc, out, err = await run_vgripd(["cameras", "--json"], DISCOVER_TIMEOUT_S)
         try:
             found = json.loads(out) if rc == 0 else None
@@ -215,14 +212,14 @@ class SetupChoices:
         if not isinstance(found, dict):
             raise web.HTTPBadGateway(text=f"vgripd cameras --json failed (exit {rc}): "
                                           f"{(err or out).strip()[-500:]}")
-        current = self.daemon.config.camera.model_dump(mode="json", exclude_none=True)
+        current = self.ctx.daemon.config.camera.model_dump(mode="json", exclude_none=True)
         return web.json_response(jsonable({**found, "types": list(CAMERA_TYPES),
                                            "current": current}))
 
     async def choose_camera(self, request: web.Request) -> web.Response:
-        reloader = self.routes._guard(request)
+        reloader = self.ctx.config_writer(request)
         body = await json_body(request)
-        current = self.daemon.config.camera.model_dump(mode="json", exclude_none=True)
+        current = self.ctx.daemon.config.camera.model_dump(mode="json", exclude_none=True)
         try:
             table = camera_section(body, current)
         except ChoiceError as err:
@@ -230,20 +227,20 @@ class SetupChoices:
         outcome = await reloader.write(section_edit("camera.", "camera", table),
                                        f"web {request.remote}", "setup: cameras",
                                        untaught_ok=True, uncalibrated_ok=self._uncalibrated())
-        return self.routes._answer(outcome, camera=table)
+        return outcome_response(outcome, camera=table)
 
     async def link_options(self, request: web.Request) -> web.Response:
         import asyncio
 
         defaults = await asyncio.to_thread(link_defaults)
-        running = [{"type": link.type, **link.options()} for link in self.daemon.config.links]
+        running = [{"type": link.type, **link.options()} for link in self.ctx.daemon.config.links]
         return web.json_response(jsonable({
             "types": [{"type": t, "kind": link_kind(t), "defaults": defaults[t]}
                       for t in sorted(LINKS)],
             "running": running}))
 
     async def choose_links(self, request: web.Request) -> web.Response:
-        reloader = self.routes._guard(request)
+        reloader = self.ctx.config_writer(request)
         body = await json_body(request)
         try:
             links = links_section(body)
@@ -252,7 +249,7 @@ class SetupChoices:
         outcome = await reloader.write(section_edit("links", "links", links),
                                        f"web {request.remote}", "setup: link",
                                        untaught_ok=True, uncalibrated_ok=self._uncalibrated())
-        return self.routes._answer(outcome, links=links)
+        return outcome_response(outcome, links=links)
 
     async def contract(self, request: web.Request) -> web.Response:
         kind = request.query.get("type", "")
@@ -260,7 +257,7 @@ class SetupChoices:
             raise web.HTTPBadRequest(text=f"type: one of {', '.join(sorted(LINKS))}")
         answer: dict[str, Any] = {"type": kind, "kind": link_kind(kind)}
         if kind in REGISTER_LINKS:
-            answer["registers"] = register_views(self.daemon.links)
+            answer["registers"] = register_views(self.ctx.daemon.links)
             answer["map_doc"] = "docs/registers.md"
         if kind == "s7":
             answer["s7_udt"] = await self._s7_udt()
@@ -272,7 +269,7 @@ class SetupChoices:
             # The robot socket's program per brand (vgripd robot-program); a UR on RTDE runs
             # the URScript of robots/urscript (docs/ur_rtde.md), no program to fill in.
             answer["brands"] = [] if kind == "ur_rtde" else sorted(BRANDS)
-            answer["vendor"] = self.daemon.config.output.vendor
+            answer["vendor"] = self.ctx.daemon.config.output.vendor
         return web.json_response(jsonable(answer))
 
     async def focus(self, request: web.Request) -> web.Response:
@@ -281,16 +278,16 @@ class SetupChoices:
         how to keep it."""
         value = None
         if request.method == "POST":
-            self.routes._guard(request)
+            self.ctx.config_writer(request)
             body = await json_body(request)
             value = body.get("value") if isinstance(body, dict) else None
             if isinstance(value, bool) or not isinstance(value, int | float) or value != value:
                 raise web.HTTPBadRequest(text=f'{{"value": number}}: the focus, got {value!r}')
-        camera = self.daemon.camera
+        camera = self.ctx.daemon.camera
         if not hasattr(camera, "focus"):
             return web.json_response({"available": False, "reason": (
-                f"{self.daemon.config.camera.type}: this camera type has no focus control")})
-        async with self.routes.server.previews.between_jobs() as idle:
+                f"{self.ctx.daemon.config.camera.type}: this camera type has no focus control")})
+        async with self.ctx.camera.between_jobs() as idle:
             if not idle:
                 raise web.HTTPConflict(text="a job runs: the focus is read and set only "
                                             "between jobs; try again")
@@ -315,7 +312,7 @@ class SetupChoices:
         between jobs once this answer is out."""
         import asyncio
 
-        reloader = self.routes._guard(request)
+        reloader = self.ctx.config_writer(request)
         snapshot = await asyncio.to_thread(Snapshot.read, reloader.path)
         problem = await judge(snapshot, untaught_ok=True, uncalibrated_ok=self._uncalibrated())
         if problem:
@@ -338,8 +335,8 @@ class SetupChoices:
     async def _s7_udt(self) -> dict[str, Any]:
         """``vgripd s7-udt`` for the running config's s7 link, else with its defaults."""
         args = ["s7-udt"]
-        reloader = self.daemon.reloader
-        if reloader is not None and any(link.type == "s7" for link in self.daemon.config.links):
+        reloader = self.ctx.daemon.reloader
+        if reloader is not None and any(link.type == "s7" for link in self.ctx.daemon.config.links):
             args += ["-c", str(reloader.path)]
         rc, out, err = await run_vgripd(args, UDT_TIMEOUT_S)
         return {"command": "vgripd " + " ".join(args), "ok": rc == 0,

@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import time
 import tomllib
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,12 +29,15 @@ from vgripd.errors import VgripError
 from vgripd.serialize import jsonable
 from vgripd.service.commands import run_vgripd
 from vgripd.service.web.bodies import json_body
+from vgripd.service.web.setupstate import SetupState
 
 SOLVE_TIMEOUT_S = 600.0
 POLL_S = 5.0
 MODES = ("eye-in-hand", "eye-to-hand")
 #: A hand-eye needs this many sets with a flange pose at least (the command's own minimum).
 MIN_POSES = 3
+#: The hand-eye step's save of a hand-eye (``SetupRoutes.save_hand_eye``).
+SaveHandEye = Callable[[web.Request, dict[str, Any] | None], Awaitable[web.Response]]
 
 
 def poses_file(manifest: list[dict[str, Any]]) -> str:
@@ -78,10 +82,12 @@ def read_solution(text: str) -> dict[str, Any]:
 
 
 class SetupHandEye:
-    """The routes above for one ``SetupRoutes`` (its guard, capture, folder, progress)."""
+    """The routes above, beside ``SetupRoutes`` (the setup's shared state: its capture,
+    folder, progress; ``save``: the hand-eye step's save of a hand-eye)."""
 
-    def __init__(self, routes: Any) -> None:
-        self.routes = routes
+    def __init__(self, setup: SetupState, save: SaveHandEye) -> None:
+        self.setup = setup
+        self.save = save
         self._solve: dict[str, Any] = {"running": False}
         self._tasks: set[asyncio.Task[Any]] = set()
 
@@ -100,8 +106,7 @@ class SetupHandEye:
         return web.json_response(jsonable(solve))
 
     async def start(self, request: web.Request) -> web.Response:
-        routes = self.routes
-        routes._guard(request)
+        self.setup.ctx.config_writer(request)
         body = await json_body(request)
         mode = body.get("mode") if isinstance(body, dict) else None
         if mode not in MODES:
@@ -110,7 +115,7 @@ class SetupHandEye:
                                           f"got {mode!r}")
         if self._solve.get("running"):
             raise web.HTTPConflict(text="a hand-eye solve runs")
-        state = routes.capture
+        state = self.setup.capture
         if state is None or not state.manifest:
             raise web.HTTPConflict(text="no captured sets: capture them on the calibration "
                                         "step (each keeps the robot's flange pose)")
@@ -118,9 +123,10 @@ class SetupHandEye:
             text = poses_file(state.manifest)
         except ValueError as err:
             raise web.HTTPConflict(text=f"{state.out}: {err}") from None
-        folder = await routes._folder()
-        progress = await routes._progress()
-        intrinsics = Path(progress.get("pending_calibration") or routes.daemon.reloader.path)
+        folder = await self.setup.folder()
+        progress = await self.setup.progress()
+        intrinsics = Path(progress.get("pending_calibration")
+                          or self.setup.ctx.reloader().path)
         poses, out = folder / "handeye-poses.txt", folder / "handeye-result.toml"
         await asyncio.to_thread(poses.write_text, text, encoding="utf-8")
         args = solve_command(str(mode), poses, str(state.out / f"{state.names[0]}_*.png"),
@@ -150,12 +156,12 @@ class SetupHandEye:
 
     async def use(self, request: web.Request) -> web.Response:
         """The solved hand-eye saved as the hand-eye step's Save saves a typed one."""
-        self.routes._guard(request)
+        self.setup.ctx.config_writer(request)
         result = self._solve.get("result") or {}
         if not self._solve.get("ok") or not result.get("hand_eye"):
             raise web.HTTPConflict(text="no solved hand-eye: solve it from the captured sets "
                                         "first")
-        return await self.routes.save_hand_eye(request, dict(result["hand_eye"]))
+        return await self.save(request, dict(result["hand_eye"]))
 
     async def close(self) -> None:
         for task in list(self._tasks):

@@ -23,16 +23,19 @@ from aiohttp import web
 
 from vgripd.errors import VgripError
 from vgripd.service.web import setupimages
-from vgripd.service.web.bodies import json_body
+from vgripd.service.web.bodies import json_body, outcome_response
+from vgripd.service.web.setupstate import SetupState
 from vgripd.service.web.setupsteps import mark_name, object_edit, template_box
 from vgripd.vision.survey import judge_layout
 
 
 class SetupObject:
-    """The routes above for one ``SetupRoutes`` (its guard, lock, last grab and folder)."""
+    """The routes above, beside ``SetupRoutes`` (the setup's shared state: its lock, last
+    grab and folder)."""
 
-    def __init__(self, routes: Any) -> None:
-        self.routes = routes
+    def __init__(self, state: SetupState) -> None:
+        self.state = state
+        self.ctx = state.ctx
         self._marks: list[dict[str, Any]] = []
         self._views: list[Any] = []  # the last find's images (a template is cut from them)
         self._templates: dict[str, Any] = {}  # label -> patch, taught on this page
@@ -43,66 +46,60 @@ class SetupObject:
         router.add_post("/api/setup/object/template", self.teach_template)
         router.add_post("/api/setup/object/save", self.save_object)
 
-    @property
-    def daemon(self) -> Any:
-        return self.routes.daemon
-
     async def find_object(self, request: web.Request) -> web.Response:
-        self.routes._guard(request)
-        if self.daemon.config.calibration is None:
+        self.ctx.config_writer(request)
+        if self.ctx.daemon.config.calibration is None:
             raise web.HTTPConflict(text="the marks are measured with the calibration and the "
                                         "hand-eye: those steps first")
-        async with self.routes._lock:
-            pair = await self.routes.server.previews.grab_between_jobs()
+        async with self.state.lock:
+            pair = await self.ctx.camera.grab_between_jobs()
             if pair is None:
                 raise web.HTTPConflict(text="a job runs (or the camera cannot grab): try again")
             views = list(pair.views)
             try:
-                jpegs, marks, missed = await self.routes.server.images.call(
-                    setupimages.find_marks, views, self.daemon.config, dict(self._templates))
+                jpegs, marks, missed = await self.ctx.images.call(
+                    setupimages.find_marks, views, self.ctx.daemon.config, dict(self._templates))
             except (ValueError, VgripError) as err:
                 raise web.HTTPConflict(text=str(err)) from None
-            self.routes._grab_n += 1
-            self.routes._live, self._marks, self._views = jpegs, marks, views
+            self.state.show(jpegs)
+            self._marks, self._views = marks, views
         return web.json_response(self._marks_view(missed))
 
     def _marks_view(self, missed: list[str]) -> dict[str, Any]:
-        return {"marks": self._marks, "missed": missed, "grab": self.routes._grab_n,
+        return {"marks": self._marks, "missed": missed, "grab": self.state.grab_n,
                 "sizes": [[int(v.shape[1]), int(v.shape[0])] for v in self._views],
-                "images": [f"/api/setup/live/{self.routes._grab_n}/{k}.jpg"
-                           for k in range(len(self.routes._live))]}
+                "images": self.state.live_urls()}
 
     async def teach_template(self, request: web.Request) -> web.Response:
         """A region of the last find's left image taught as a template (docs/setup.md, step
         4): found once in each image, triangulated, added to the marks offered; found again
         by every later find. Nothing is written until the object is saved."""
-        self.routes._guard(request)
+        self.ctx.config_writer(request)
         body = await json_body(request)
         try:
             box, label = template_box(body)
         except ValueError as err:
             raise web.HTTPBadRequest(text=str(err)) from None
-        async with self.routes._lock:
+        async with self.state.lock:
             if not self._views:
                 raise web.HTTPConflict(text="find the marks first: the template is cut from "
                                             "that left image")
             self._marks = [m for m in self._marks if m.get("label") != label]
             mark_id = max((int(m["id"]) for m in self._marks), default=0) + 1
             try:
-                jpegs, mark, patch, png = await self.routes.server.images.call(
-                    setupimages.teach_template, self._views, self.daemon.config, box, label,
+                jpegs, mark, patch, png = await self.ctx.images.call(
+                    setupimages.teach_template, self._views, self.ctx.daemon.config, box, label,
                     mark_id)
             except (ValueError, VgripError) as err:  # TemplateRefused is a ValueError
                 raise web.HTTPUnprocessableEntity(text=str(err)) from None
             self._templates[label] = patch
             self._template_png[label] = png
             self._marks.append(mark)
-            self.routes._grab_n += 1
-            self.routes._live = jpegs
+            self.state.show(jpegs)
         return web.json_response({**self._marks_view([]), "taught": mark})
 
     async def save_object(self, request: web.Request) -> web.Response:
-        reloader = self.routes._guard(request)
+        reloader = self.ctx.config_writer(request)
         body = await json_body(request)
         if not isinstance(body, dict) or not isinstance(body.get("marks"), list):
             raise web.HTTPBadRequest(text='{"name": "...", "marks": [ids]}')
@@ -130,8 +127,8 @@ class SetupObject:
         outcome = await reloader.write(object_edit(name, chosen), f"web {request.remote}",
                                        "setup: object")
         if outcome.applied:
-            await self.routes._mark("object")
-        return self.routes._answer(outcome, layout=judged)
+            await self.state.mark("object")
+        return outcome_response(outcome, layout=judged)
 
     async def _template_file(self, label: str) -> Path:
         """The taught template's patch saved as ``<state>/setup/templates/LABEL-HASH.png``
@@ -139,9 +136,9 @@ class SetupObject:
         config's file is never changed under it; the object's feature names it once the object
         is judged and saved."""
         png = self._template_png[label]
-        folder = await self.routes._folder() / "templates"
+        folder = await self.state.folder() / "templates"
         await asyncio.to_thread(folder.mkdir, exist_ok=True)
         path = folder / f"{label}-{hashlib.sha256(png).hexdigest()[:12]}.png"
         if not await asyncio.to_thread(path.exists):
-            await self.daemon.reloader.write_file(path, png)
+            await self.ctx.reloader().write_file(path, png)
         return path

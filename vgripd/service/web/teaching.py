@@ -42,8 +42,8 @@ from vgripd.geometry.fingerprint import camera_about, hand_eye_fingerprint
 from vgripd.geometry.transforms import pose_error
 from vgripd.serialize import toml_from_dict
 from vgripd.service.configtxn import Edit
-from vgripd.service.reload import Reloader
 from vgripd.service.web.commission import holding_include
+from vgripd.service.web.context import WebContext
 from vgripd.types import ImagePair
 
 log = logging.getLogger(__name__)
@@ -95,16 +95,12 @@ def with_reference(text: str, recipe: int, section: dict[str, Any],
 
 
 class TeachRoutes:
-    """The routes above for one ``WebServer``."""
+    """The routes above for one web view."""
 
-    def __init__(self, server: Any) -> None:
-        self.server = server
+    def __init__(self, ctx: WebContext) -> None:
+        self.ctx = ctx
         self.shots: dict[int, list[tuple[int, teach.Shot]]] = {}
         self._lock = asyncio.Lock()
-
-    @property
-    def enabled(self) -> bool:
-        return bool(self.server.daemon.config.status.allow_config_edit)
 
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/api/teach", self.show)
@@ -124,7 +120,7 @@ class TeachRoutes:
         out.update(mean={"translation_mm": T[:3, 3].tolist()},
                    spread_mm=taught.spread_mm, spread_deg=taught.spread_deg)
         try:
-            config = self.server.daemon.config.for_recipe(recipe)
+            config = self.ctx.daemon.config.for_recipe(recipe)
             from vgripd.vision.scene import T_base_obj_ref
 
             mm, deg = pose_error(T_base_obj_ref(config), T)
@@ -137,11 +133,7 @@ class TeachRoutes:
     def _recipe(self, request: web.Request) -> int:
         text = request.query.get("recipe")
         if text is None:
-            last = self.server._last_pair
-            if last is None:
-                return 0
-            found = self.server._find(last[0])
-            return 0 if found is None else int(found[0].recipe)
+            return self.ctx.jobs.last_recipe()
         if not text.isascii() or not text.isdigit() or len(text) > 5:
             raise web.HTTPBadRequest(text=f"recipe={text!r}: a recipe number")
         return int(text)
@@ -150,20 +142,19 @@ class TeachRoutes:
         return web.json_response(self._summary(self._recipe(request)))
 
     async def shot(self, request: web.Request) -> web.Response:
-        self.server.check_action(request, self.enabled, "allow_config_edit")
-        last = self.server._last_pair
+        self.ctx.check_edit(request)
+        last = self.ctx.jobs.last_pair
         if last is None:
             raise web.HTTPConflict(text="no job's images yet: trigger a job first")
         job_id, pair = last
-        found = self.server._find(job_id)
-        recipe = 0 if found is None else int(found[0].recipe)
+        recipe = self.ctx.jobs.last_recipe()
         async with self._lock:
             taken = self.shots.setdefault(recipe, [])
             if any(j == job_id for j, _ in taken):
                 raise web.HTTPConflict(text=f"job {job_id} is already a shot: trigger a new job")
-            config = self.server.daemon.config.for_recipe(recipe)
+            config = self.ctx.daemon.config.for_recipe(recipe)
             try:
-                shot = await self.server.images.call(
+                shot = await self.ctx.images.call(
                     measure_shot, (pair.views, pair.T_base_flange), config)
             except CalibrationError as err:
                 return web.json_response({**self._summary(recipe),
@@ -175,23 +166,20 @@ class TeachRoutes:
         return web.json_response(self._summary(recipe))
 
     async def clear(self, request: web.Request) -> web.Response:
-        self.server.check_action(request, self.enabled, "allow_config_edit")
+        self.ctx.check_edit(request)
         recipe = self._recipe(request)
         self.shots.pop(recipe, None)
         return web.json_response(self._summary(recipe))
 
     async def save(self, request: web.Request) -> web.Response:
-        self.server.check_action(request, self.enabled, "allow_config_edit")
-        reloader = self.server.daemon.reloader
-        if not isinstance(reloader, Reloader):
-            raise web.HTTPNotFound(text="this daemon was not started from a config file")
+        reloader = self.ctx.config_writer(request)
         recipe = self._recipe(request)
         shots = self.shots.get(recipe, [])
         if not shots:
             raise web.HTTPConflict(text=f"no shots for recipe {recipe}: add one first")
         source = f"web {request.remote}"
         async with self._lock:
-            config = self.server.daemon.config.for_recipe(recipe)
+            config = self.ctx.daemon.config.for_recipe(recipe)
             taught = teach.average([s for _, s in shots])
             section = teach.reference_sections(config, taught)
             calibration = (None if config.calibration is None

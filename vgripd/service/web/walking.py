@@ -50,9 +50,9 @@ from vgripd.errors import VgripError
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.commands import run_vgripd
 from vgripd.service.configtxn import Edit, EditRefused
-from vgripd.service.reload import Reloader
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.commission import TuningError, holding_include
+from vgripd.service.web.context import WebContext
 from vgripd.service.web.stale import set_aside, stale_references
 
 log = logging.getLogger(__name__)
@@ -183,20 +183,14 @@ def _reason(stderr: str, rc: int) -> str:
 
 
 class WalkRoutes:
-    """The routes above for one ``WebServer``."""
+    """The routes above for one web view."""
 
-    def __init__(self, server: Any) -> None:
-        self.server = server
+    def __init__(self, ctx: WebContext) -> None:
+        self.ctx = ctx
         self.last_plan: dict[str, Any] | None = None
         self.drawing: bytes | None = None
         self._lock = asyncio.Lock()
-        walks = getattr(server.daemon, "walks", None)
-        if walks is not None:
-            walks.listeners.append(lambda data: server.events.publish("walk", data))
-
-    @property
-    def enabled(self) -> bool:
-        return bool(self.server.daemon.config.status.allow_config_edit)
+        ctx.daemon.walks.listeners.append(lambda data: ctx.publish("walk", data))
 
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/handeye/plan", self._page("handeye-plan.html"))
@@ -215,21 +209,6 @@ class WalkRoutes:
             return web.FileResponse(STATIC / name, headers={"Cache-Control": "no-cache"})
         return page
 
-    def _walks(self) -> Any:
-        walks = getattr(self.server.daemon, "walks", None)
-        if walks is None:
-            raise web.HTTPNotFound(text="this daemon serves no walk")
-        return walks
-
-    def _reloader(self) -> Reloader:
-        reloader = self.server.daemon.reloader
-        if not isinstance(reloader, Reloader):
-            raise web.HTTPNotFound(text="this daemon was not started from a config file")
-        return reloader
-
-    def _config_path(self) -> Path:
-        return self._reloader().path
-
     async def _body(self, request: web.Request) -> dict[str, Any]:
         body = await json_body(request)
         if not isinstance(body, dict):
@@ -237,12 +216,11 @@ class WalkRoutes:
         return body
 
     async def show(self, request: web.Request) -> web.Response:
-        walks = self._walks()
-        links = [{"index": i, "type": s.type} for i, s in
-                 enumerate(self.server.daemon.config.links)]
-        return web.json_response(jsonable({"walk": walks.snapshot(), "plan": self.last_plan,
-                                           "links": links,
-                                           "vendor": self.server.daemon.config.output.vendor}))
+        config = self.ctx.daemon.config
+        links = [{"index": i, "type": s.type} for i, s in enumerate(config.links)]
+        return web.json_response(jsonable({"walk": self.ctx.daemon.walks.snapshot(),
+                                           "plan": self.last_plan, "links": links,
+                                           "vendor": config.output.vendor}))
 
     async def plan_png(self, request: web.Request) -> web.Response:
         if self.drawing is None:
@@ -251,18 +229,17 @@ class WalkRoutes:
                             headers={"Cache-Control": "no-cache"})
 
     async def plan(self, request: web.Request) -> web.Response:
-        self.server.check_action(request, self.enabled, "allow_config_edit")
-        config_path = self._config_path()
+        reloader = self.ctx.config_writer(request)
+        config_path = reloader.path
         form = await self._body(request)
         save = form.get("save") or None
-        reloader = self._reloader()
         async with self._lock:
             try:
                 output = None if save is None else plan_inside(config_path, str(save))
                 if output is not None and output.exists() and b"[plan]" not in \
                         output.read_bytes()[:4096]:
                     raise TuningError(f"{output}: exists and is no plan: choose another name")
-                board_problem = planned_board_problem(form, self.server.daemon.config)
+                board_problem = planned_board_problem(form, self.ctx.daemon.config)
                 if board_problem:
                     raise TuningError(f"plan: {board_problem}; the planner was not started")
                 with tempfile.TemporaryDirectory(prefix="vgripd-plan-") as tmp:
@@ -293,43 +270,39 @@ class WalkRoutes:
         return web.json_response(summary)
 
     async def start(self, request: web.Request) -> web.Response:
-        self.server.check_action(request, self.enabled, "allow_config_edit")
-        config_path = self._config_path()
+        config_path = self.ctx.config_writer(request).path
         body = await self._body(request)
         plan, link = body.get("plan"), body.get("link", 0)
         if not isinstance(plan, str) or not isinstance(link, int) or isinstance(link, bool):
             raise web.HTTPBadRequest(text='{"plan": "name.toml", "link": 0}')
         try:
-            data = self._walks().start(config_path, plan, link)
+            data = self.ctx.daemon.walks.start(config_path, plan, link)
         except VgripError as err:
             return web.json_response({"refused": str(err)}, status=409)
         log.info("web view: walk of %s started on link %d from %s", plan, link, request.remote)
         return web.json_response(jsonable(data))
 
     async def stop(self, request: web.Request) -> web.Response:
-        self.server.check_action(request, self.enabled, "allow_config_edit")
+        self.ctx.check_edit(request)
         by = request.query.get("by", "web")
         if by not in STOPPED_BY:
             raise web.HTTPBadRequest(text=f"by={by[:40]!r}: one of {', '.join(STOPPED_BY)}")
         why = f"{STOPPED_BY[by]} ({request.remote})"
         log.info("web view: walk %s", why)
-        return web.json_response(jsonable(await self._walks().stop(why)))
+        return web.json_response(jsonable(await self.ctx.daemon.walks.stop(why)))
 
     async def solve(self, request: web.Request) -> web.Response:
-        self.server.check_action(request, self.enabled, "allow_config_edit")
-        config_path = self._config_path()
+        config_path = self.ctx.config_writer(request).path
         try:
-            data = await self._walks().solve(config_path)
+            data = await self.ctx.daemon.walks.solve(config_path)
         except VgripError as err:
             return web.json_response({"refused": str(err)}, status=409)
         ok = bool(data["solution"] and data["solution"]["ok"])
         return web.json_response(jsonable(data), status=200 if ok else 422)
 
     async def accept(self, request: web.Request) -> web.Response:
-        self.server.check_action(request, self.enabled, "allow_config_edit")
-        reloader = self._reloader()
-        walks = self._walks()
-        solution = walks.solution
+        reloader = self.ctx.config_writer(request)
+        solution = self.ctx.daemon.walks.solution
         if not solution or not solution.get("ok"):
             raise web.HTTPConflict(text="nothing solved to accept: solve the walk first")
         body = await self._body(request) if request.body_exists else {}
