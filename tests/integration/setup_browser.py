@@ -220,8 +220,10 @@ async def drive(cell: Cell, tmp_path: Path) -> Flow:
         await until(evaluate, f"/^(APPLIED|REFUSED)/.test({text('obj-result')})")
         assert (await evaluate(text("obj-result"))).startswith("APPLIED"), \
             await evaluate(text("obj-result"))
-        shots = 0
+        shots, tries = 0, 0
         while shots < 3:
+            tries += 1
+            assert tries <= 20, f"no OK test job in 20 tries: {await evaluate(text('teach-result'))}"
             await evaluate(click("btn-teach-trigger"))
             status = await until(evaluate, f"/^(test job|\\d)/.test({text('teach-result')}) "
                                            f"&& {text('teach-result')}")

@@ -417,17 +417,25 @@ function showMarks(d) {
                 fmt(m.size_mm ?? m.diameter_mm, 1)]);
   }));
 }
+// The object step's actions in the order they were clicked: an answer that comes after a later
+// action started (a slow "Find marks" after "Save") is dropped, so it never overwrites the later
+// action's outcome or the marks it saved.
+let objTurn = 0;
 act("btn-obj-find", async () => {
+  const turn = ++objTurn;
   const r = await call("POST", "/api/setup/object/find");
+  if (turn !== objTurn) return;
   if (!r.ok) { $("obj-result").textContent = `${r.status}: ${r.data.message}`; return; }
   showMarks(r.data);
   $("obj-result").textContent = `${r.data.marks.length} mark(s) seen by both cameras: untick those not on the object` +
     (r.data.missed.length ? `; not found: ${r.data.missed.join("; ")}` : "");
 });
 act("btn-obj-template", async () => {
+  const turn = ++objTurn;
   $("obj-template-result").textContent = "looking for the region in both images…";
   const r = await call("POST", "/api/setup/object/template",
                        { box: numbers($("obj-box").value), label: $("obj-label").value });
+  if (turn !== objTurn) return;
   if (!r.ok) {
     $("obj-template-result").textContent = `REFUSED (${r.status}): ${r.data.message}`;
     $("obj-template-result").className = "status bad";
@@ -441,6 +449,7 @@ act("btn-obj-template", async () => {
   $("obj-template-result").className = "status ok";
 });
 act("btn-obj-save", async () => {
+  objTurn += 1;
   const marks = [...document.querySelectorAll("#obj-marks input:checked")].map((b) => Number(b.dataset.id));
   $("obj-result").textContent = "judging (as vgripd check does)…";
   const r = await call("POST", "/api/setup/object/save", { name: $("obj-name").value, marks });
