@@ -311,8 +311,11 @@ class URRtdeLink(SupervisedLink):
             raise LinkError(f"link {self.name}: already open")
         self._on_trigger = on_trigger
         self._task = asyncio.create_task(self._supervise(), name=f"link {self.name} supervisor")
-        health = await self.wait_state({LinkState.UP, LinkState.DOWN, LinkState.FAILED},
-                                       timeout_s=self.options.connect_timeout_s + 5.0)
+        try:
+            health = await self.wait_state({LinkState.UP, LinkState.DOWN, LinkState.FAILED},
+                                           timeout_s=self.options.connect_timeout_s + 5.0)
+        except TimeoutError:  # the first attempt still running (a busy machine): it goes on
+            health = self.health()
         if health.state is LinkState.FAILED:
             await self.close()
             self.cell.set(LinkState.FAILED, health.last_error)

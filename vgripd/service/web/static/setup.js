@@ -417,12 +417,13 @@ function showMarks(d) {
                 fmt(m.size_mm ?? m.diameter_mm, 1)]);
   }));
 }
-// The object step's actions in the order they were clicked: an answer that comes after a later
-// action started (a slow "Find marks" after "Save") is dropped, so it never overwrites the later
-// action's outcome or the marks it saved.
+// "Save" and "Teach the region" each start a new turn of the object step: a "Find marks" answer
+// from an earlier turn (a slow one, arriving after "Save" was clicked) is dropped, so it never
+// overwrites the later action's outcome or the marks it saved. Finds do not overtake each other:
+// each answer is shown as it comes.
 let objTurn = 0;
 act("btn-obj-find", async () => {
-  const turn = ++objTurn;
+  const turn = objTurn;
   const r = await call("POST", "/api/setup/object/find");
   if (turn !== objTurn) return;
   if (!r.ok) { $("obj-result").textContent = `${r.status}: ${r.data.message}`; return; }
