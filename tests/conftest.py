@@ -22,6 +22,7 @@ Property tests (hypothesis) run under one of two profiles, chosen by ``VGRIPD_HY
 
 from __future__ import annotations
 
+import asyncio
 import fcntl
 import os
 import shutil
@@ -113,6 +114,19 @@ def lo(address: str) -> str:
     if len(parts) != 4 or parts[:2] != ["127", "0"]:
         raise ValueError(f"lo({address!r}): expected 127.0.A.B")
     return f"127.{loopback_slot()}.{parts[2]}.{parts[3]}"
+
+
+async def stop_task(task: asyncio.Task[object], wait_s: float = 10.0) -> None:
+    """Cancel ``task`` and wait until it has ended, cancelling again if a cancel was lost.
+
+    Python 3.11's ``asyncio.wait_for`` (inside snap7's asyncio client, among others) drops a
+    cancel that arrives as the awaited read completes; one ``cancel()`` then leaves the task
+    running (a mock PLC polling on).
+    """
+    async with asyncio.timeout(wait_s):
+        while not task.done():
+            task.cancel()
+            await asyncio.wait({task}, timeout=0.1)
 
 
 @pytest.fixture(autouse=True)

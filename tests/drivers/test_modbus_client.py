@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from drivers.links.modbus_client import ModbusClientLink, ModbusClientOptions, plan_writes
-from tests.conftest import need_tool
+from tests.conftest import need_tool, stop_task
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
     MAP_SIZE,
@@ -229,8 +229,7 @@ async def test_silent_robot_times_out_and_loop_stays_responsive(robot: MockRobot
 
         tick_task = asyncio.create_task(ticker())
         down = await link.wait_state(LinkState.DOWN, WAIT_S)
-        tick_task.cancel()
-        await asyncio.gather(tick_task, return_exceptions=True)
+        await stop_task(tick_task)
         assert "no answer within 0.3 s" in down.last_error
         assert f"{robot.host}:{robot.port}" in down.last_error
         assert ticks > 100  # the loop kept running other tasks while the link waited

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from drivers.links.s7 import DB_BYTES, S7Link, S7Options, plan_db_writes
-from tests.conftest import REPO
+from tests.conftest import REPO, stop_task
 from vgripd.cli.s7_udt import udt_source
 from vgripd.errors import ConfigError, LinkError
 from vgripd.service.protocol import (
@@ -261,8 +261,7 @@ async def test_plc_gone_mid_job_then_back_logged_once(
             job = asyncio.create_task(plc.run_job(1, WAIT_S))
             trigger = await asyncio.wait_for(daemon.triggers.get(), WAIT_S)
             await link.image_captured(trigger.seq, 1)
-            job.cancel()
-            await asyncio.gather(job, return_exceptions=True)
+            await stop_task(job)
             await server.kill()  # the PLC is gone while the job is processed
             down = await link.wait_state(LinkState.DOWN, WAIT_S)
             assert f"{server.host}:{server.port}" in down.last_error
@@ -313,8 +312,7 @@ async def test_silent_plc_times_out_and_loop_stays_responsive(server: S7PlcServe
             down = await link.wait_state(LinkState.DOWN, WAIT_S)
         finally:
             server.thaw()
-            tick_task.cancel()
-            await asyncio.gather(tick_task, return_exceptions=True)
+            await stop_task(tick_task)
         assert "no answer within 0.3 s" in down.last_error
         assert f"{server.host}:{server.port}" in down.last_error
         assert ticks > 100  # the loop kept running other tasks while the link waited

@@ -19,7 +19,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
-from tests.conftest import lo
+from tests.conftest import lo, stop_task
 from vgripd.errors import LinkError
 from vgripd.service.protocol import (
     Command,
@@ -384,8 +384,7 @@ async def test_silent_controller_does_not_block_the_loop() -> None:
             await link.wait_state(LinkState.UP, timeout_s=45)
         finally:
             await link.close()
-            beat.cancel()
-            await asyncio.gather(beat, return_exceptions=True)
+            await stop_task(beat)
 
 
 async def test_register_in_use_is_an_outage_naming_it_until_released(

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
-from tests.conftest import lo
+from tests.conftest import lo, stop_task
 from vgripd.__main__ import main
 from vgripd.calib.handeye.plan import load_plan
 from vgripd.calib.handeye.walk import SEEN, UNREACHABLE, Walk
@@ -102,8 +102,7 @@ async def serve_walk(robot: URController, arm: SimulatedArm, walk_file: Path, pl
         if not result.get("stopped"):
             await asyncio.wait_for(task, 30)
     finally:
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
+        await stop_task(task)
         await link.close()
     return result
 
@@ -274,8 +273,7 @@ async def test_an_image_request_asked_again_after_its_timeout_gets_the_same_answ
             on = await asyncio.to_thread(at_target, robot, 1, 30.0)
             assert is_target(on, 2), on
         finally:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
+            await stop_task(task)
             await link.close()
     assert grabs == [0, 1]
     final = Walk(tmp_path / "walk.json", plan, BOARD, CAMERA)

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from pymodbus.client import AsyncModbusTcpClient
 
-from tests.conftest import lo
+from tests.conftest import lo, stop_task
 from vgripd.config import config_from_dict
 from vgripd.service.daemon import Daemon, RunState
 from vgripd.service.protocol import CHECK_U16, MAP_SIZE, LinkState, Reg
@@ -118,6 +118,5 @@ async def test_silent_ur_controller_delays_neither_the_plc_nor_the_status(
         assert f"did not complete the RTDE setup within {CONNECT_TIMEOUT_S} s" in health.last_error
     finally:
         if not starting.done():
-            starting.cancel()
-            await asyncio.gather(starting, return_exceptions=True)
+            await stop_task(starting)
         await daemon.stop()

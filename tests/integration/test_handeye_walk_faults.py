@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
+from tests.conftest import stop_task
 from tests.drivers.test_robot_socket import Peer, until
 from vgripd.calib.handeye.plan import load_plan
 from vgripd.calib.handeye.walk import NOT_SEEN, UNREACHABLE, Walk
@@ -71,8 +72,7 @@ async def test_a_lost_answer_and_a_restarted_program_skip_no_target(tmp_path: Pa
         assert mm < 1e-3
         assert [r.status for r in walk.records.values()] == [UNREACHABLE]
         await robot.close()
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
+        await stop_task(task)
     finally:
         await link.close()
 
@@ -155,8 +155,7 @@ async def test_the_walk_belongs_to_the_connection_that_asked_its_first_next(
         await stranger.close()
         await again.close()
     finally:
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
+        await stop_task(task)
         await link.close()
 
 

@@ -35,6 +35,7 @@ import numpy as np
 import pytest
 
 from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
+from tests.conftest import stop_task
 from tests.drivers.test_robot_socket import Peer
 from tests.integration.test_daemon import running
 from tests.integration.test_daemon_handeye_walk import PLATE
@@ -136,8 +137,7 @@ async def serving_walk(brand: str, port: int, walk: Walk, arm: SimulatedArm, mod
     try:
         yield task
     finally:
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
+        await stop_task(task)
         await link.close()
 
 

@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 
 from drivers.links.robot_socket import RobotSocketLink
+from tests.conftest import stop_task
 from tests.drivers.test_robot_socket import Peer, until
 from tests.integration.test_robot_programs import free_port
 from tests.integration.test_robot_programs_walk import (
@@ -98,8 +99,7 @@ async def running(server: WalkServer) -> AsyncIterator[asyncio.Task[None]]:
     try:
         yield task
     finally:
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
+        await stop_task(task)
 
 
 async def captured_then_result(peer: Peer) -> Answer:

@@ -54,6 +54,7 @@ from vgripd.service.protocol import (
 
 DB_BYTES = 2 * MAP_SIZE  # the map's 16-bit words, one after the other
 STARTUP_S = 20.0  # a loaded 2-core CI machine can take seconds to start a Python process
+CLOSE_S = 2.0  # the goodbye of the mock PLC program; then its socket is dropped
 REPO = str(Path(__file__).resolve().parents[2])  # so the child imports this checkout
 
 
@@ -258,10 +259,22 @@ class MockS7Plc:
                 return
 
     async def close(self) -> None:
+        """Say goodbye if the PLC still listens; a dead or half-read connection is aborted.
+
+        snap7's ``disconnect`` writes a disconnect request and waits for the socket to close,
+        with no bound: after a request cancelled half-way, or a server killed under it, that
+        wait can last for ever, so it gets ``CLOSE_S`` and then the socket is dropped.
+        """
         client, self._client = self._client, None
-        if client is not None:
-            with contextlib.suppress(Exception):
+        if client is None:
+            return
+        writer = getattr(getattr(client, "connection", None), "_writer", None)
+        try:
+            async with asyncio.timeout(CLOSE_S):
                 await client.disconnect()
+        except Exception:  # noqa: BLE001 - a timeout or a dead peer: drop the socket either way
+            if writer is not None:
+                writer.transport.abort()
 
     def _c(self) -> AsyncClient:
         if self._client is None:

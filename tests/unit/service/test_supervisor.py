@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from tests.conftest import stop_task
 from vgripd.service.protocol import LinkState
 from vgripd.service.supervisor import Ended, HealthCell, OutagePolicy, Reconnector
 
@@ -120,8 +121,7 @@ async def test_reconnector_logs_once_per_outage_counts_reconnects_and_waits_the_
 
     task = asyncio.create_task(rec.run(session))
     await asyncio.wait_for(done.wait(), 60)
-    task.cancel()
-    await asyncio.gather(task, return_exceptions=True)
+    await stop_task(task)
     assert seen == [(LinkState.STOPPED, ""), (LinkState.DOWN, "refused"),
                     (LinkState.DOWN, "refused"), (LinkState.DOWN, "lost"),
                     (LinkState.DOWN, "refused")]
