@@ -22,6 +22,7 @@ LAYERS = [
      "config", "registry"},
     {"vision"},
     {"calib"},
+    {"peer"},
     {"service"},
     {"sim"},
     {"cli", "__main__"},
