@@ -52,7 +52,8 @@ from drivers.links.opcua_vision import (  # noqa: E402
     register_binary_ids,
 )
 from vgripd.config import config_from_dict  # noqa: E402
-from vgripd.service.daemon import Daemon, JobRecord  # noqa: E402
+from vgripd.service.daemon import Daemon  # noqa: E402
+from vgripd.service.jobrecord import JobRecord  # noqa: E402
 from vgripd.service.protocol import LinkState  # noqa: E402
 from vgripd.types import ImagePair  # noqa: E402
 

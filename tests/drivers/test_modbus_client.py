@@ -418,7 +418,7 @@ async def test_daemon_jobs_through_the_robot_modbus_server(robot: MockRobotModbu
     program gets the pose the daemon computed, bit-exact in float32, ACK_SEQ last."""
     from vgripd.config import config_from_dict
     from vgripd.service.daemon import Daemon as VgripDaemon
-    from vgripd.service.daemon import JobRecord
+    from vgripd.service.jobrecord import JobRecord
 
     config = config_from_dict({
         "camera": {"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0},

@@ -559,7 +559,7 @@ async def test_daemon_jobs_through_the_s7_link(server: S7PlcServer, plc: MockS7P
     the pose the daemon computed, bit-exact in float32 (S7 Real)."""
     from vgripd.config import config_from_dict
     from vgripd.service.daemon import Daemon as VgripDaemon
-    from vgripd.service.daemon import JobRecord
+    from vgripd.service.jobrecord import JobRecord
 
     config = config_from_dict({
         "camera": {"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0},

@@ -25,7 +25,8 @@ from tests.conftest import REPO, need
 from tests.drivers.test_cameras_aravis import two_fake_cameras
 from tests.integration.test_daemon import Plc, Run, running
 from vgripd.config import config_from_dict
-from vgripd.service.daemon import Daemon, JobState
+from vgripd.service.daemon import Daemon
+from vgripd.service.jobs import JobState
 from vgripd.service.protocol import Reg
 from vgripd.types import Status
 

@@ -57,9 +57,6 @@ from vgripd.config import Config
 from vgripd.errors import ConfigError, NotCalibratedError, NotTaughtError
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.cameras import (
-    CAMERA_CLOSE_TIMEOUT_S,
-    CAMERA_HUNG_GRACE_S,
-    CAMERA_OPEN_TIMEOUT_S,
     CameraSupervisor,
     watchdog,
 )
@@ -67,8 +64,8 @@ from vgripd.service.gate import Budget
 from vgripd.service.heap import freeze_start_up_heap
 from vgripd.service.jobcore import JobCore, PickCursor
 from vgripd.service.jobrecord import EpipolarMonitor, JobListener, JobRecord
-from vgripd.service.jobs import JobRunner, JobState, Processor, ViewJob, recipe_label, scene_pose
-from vgripd.service.links import LINK_CALL_TIMEOUT_S, LinkSupervisor
+from vgripd.service.jobs import JobRunner, JobState, Processor, ViewJob, recipe_label
+from vgripd.service.links import LinkSupervisor
 from vgripd.service.protocol import RobotLink, Warnings
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.recorder import Recorder
@@ -82,12 +79,6 @@ from vgripd.service.web import WebServer
 from vgripd.service.worker import DEFAULT_PROCESSOR, WorkerClient, WorkerRecorder
 
 log = logging.getLogger("vgripd")
-
-__all__ = [  # where the rooms' names were imported from before the split
-    "CAMERA_CLOSE_TIMEOUT_S", "CAMERA_HUNG_GRACE_S", "CAMERA_OPEN_TIMEOUT_S",
-    "LINK_CALL_TIMEOUT_S", "ABORT_LINGER_S", "WATCHDOG_GRACE_S", "Daemon", "EpipolarMonitor",
-    "JobRecord", "JobState", "Processor", "RunState", "ViewJob", "scene_pose",
-]
 
 # After publishing ABORTED on shutdown the links stay up this long, so that a polling PLC
 # reads the answer to its trigger before the server goes away.
