@@ -39,8 +39,9 @@ from typing import Any, Literal
 import serial
 from pydantic import Field
 
-from drivers.links.modbus_server import MalformedFrame, RegisterServerLink
+from drivers.links.modbus_server import RegisterServerLink
 from vgripd.errors import LinkError
+from vgripd.peer.mbap import MalformedFrame
 from vgripd.service.protocol import LinkState, RegisterOptions, TriggerHandler
 from vgripd.service.supervisor import (
     BackoffOptions,
