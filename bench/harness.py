@@ -8,7 +8,9 @@ writes: the commit measured, the machine (cores, CPU model) and the load average
 after, since every figure here comes from a machine shared with other work.
 
 The PLC stand-in runs as ``python -m bench.harness --plc-client PORT MODE SECONDS JOBS`` (its
-own process, so its timing shares no GIL with the server it polls).
+own process, so its timing shares no GIL with the server it polls); ``--pair-client A B
+SECONDS`` polls two servers interleaved, and ``--bare-server`` is the plain pymodbus server as a
+process of its own.
 """
 
 from __future__ import annotations
@@ -416,6 +418,80 @@ def _poll_loop(client: Any, mode: str, end: float, jobs: int, rtt_ms: list[float
             next_tick = time.monotonic()
 
 
+def pair_client_main(port_a: int, port_b: int, seconds: float) -> None:
+    """One PLC stand-in reading all registers of two servers at 100 Hz each, interleaved: each
+    tick reads both, the order alternating tick by tick so neither always goes second. Same
+    client library, same process, same moment: the two series see the same load. JSON on
+    stdout: ``{"a": [ms...], "b": [ms...], "realtime": bool, "error": str}``."""
+    from pymodbus.client import ModbusTcpClient
+
+    from vgripd.service.protocol import MAP_SIZE
+
+    realtime = os.environ.get("BENCH_CLIENT_REALTIME") == "1"
+    if realtime:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+        except PermissionError:
+            realtime = False
+    clients = {name: ModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+               for name, port in (("a", port_a), ("b", port_b))}
+    for client in clients.values():
+        assert client.connect()
+    rtt_ms: dict[str, list[float]] = {"a": [], "b": []}
+    end = time.monotonic() + seconds
+    next_tick = time.monotonic()
+    error = ""
+    try:
+        tick = 0
+        while time.monotonic() < end:
+            for name in (("a", "b") if tick % 2 == 0 else ("b", "a")):
+                t0 = time.perf_counter()
+                r = clients[name].read_holding_registers(0, count=MAP_SIZE, device_id=1)
+                t1 = time.perf_counter()
+                assert not r.isError(), r
+                rtt_ms[name].append(round((t1 - t0) * 1000, 4))
+            tick += 1
+            next_tick += POLL_PERIOD_S
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            else:
+                next_tick = time.monotonic()
+    except Exception as err:  # a server went away: report what was measured until then
+        error = f"{type(err).__name__}: {err}"
+    for client in clients.values():
+        client.close()
+    print(json.dumps({**rtt_ms, "realtime": realtime, "error": error}))
+
+
+async def run_pair_client(port_a: int, port_b: int, seconds: float) -> dict[str, Any]:
+    """Run :func:`pair_client_main` in its own process and return its figures."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "bench.harness", "--pair-client", str(port_a), str(port_b),
+        str(seconds), cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdout=asyncio.subprocess.PIPE,
+    )
+    out, _ = await proc.communicate()
+    assert proc.returncode == 0, "bench pair client failed"
+    result: dict[str, Any] = json.loads(out)
+    if result["error"]:
+        raise RuntimeError(f"bench pair client: {result['error']}")
+    return result
+
+
+def bare_server_main() -> None:
+    """:func:`static_modbus_server` as a process of its own: prints its port, serves until
+    stdin closes (so the bench can run it under the same scheduling as the daemon)."""
+
+    async def serve() -> None:
+        server, port = await static_modbus_server()
+        print(port, flush=True)
+        await asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
+        await server.shutdown()
+
+    asyncio.run(serve())
+
+
 async def run_client(port: int, mode: str, seconds: float, jobs: int = 0,
                      allow_error: bool = False) -> dict[str, Any]:
     """Run the PLC stand-in against ``port`` in its own process and return its figures."""
@@ -473,5 +549,9 @@ async def pty_pair() -> AsyncIterator[tuple[Path, Path]]:
 if __name__ == "__main__":
     if len(sys.argv) == 6 and sys.argv[1] == "--plc-client":
         plc_client_main(int(sys.argv[2]), sys.argv[3], float(sys.argv[4]), int(sys.argv[5]))
+    elif len(sys.argv) == 5 and sys.argv[1] == "--pair-client":
+        pair_client_main(int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]))
+    elif sys.argv[1:] == ["--bare-server"]:
+        bare_server_main()
     else:
         sys.exit("usage: python -m bench.harness --plc-client PORT MODE SECONDS JOBS")

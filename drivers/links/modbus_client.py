@@ -15,7 +15,8 @@ the server link uses) and copies its changes to the robot, in the bank's order:
   one read, so a request's latch is of the same moment as its REQ_SEQ); a change goes through
   the bank's handshake: a new request sequence calls ``on_trigger``, a refusal writes REJECT_*;
 - ``image_captured``/``publish``/the heartbeat change the mirror and wake the supervisor, which
-  writes the changed words with as few ``write_registers`` as the order allows; ACK_SEQ always
+  writes the changed words with as few ``write_registers`` as the order allows (pieces a few
+  untouched words apart join, carrying those words' unchanged values); ACK_SEQ always
   travels alone, in the order the bank put it (last for a publish, first for a new job's
   retraction), so the robot never pairs an acknowledged sequence with other data;
 - after every (re)connect the whole mirror is written (data, then ACK_SEQ), so a result
@@ -139,15 +140,30 @@ class RegisterRefused(LinkError):
         return self.code in (ExcCodes.ILLEGAL_FUNCTION, ExcCodes.ILLEGAL_ADDRESS)
 
 
-def plan_writes(journal: Sequence[BlockWrite],
-                peer: Sequence[range] = (COMMAND_AREA,)) -> list[BlockWrite]:
+#: The most untouched words a write may carry to join two pieces into one transaction.
+MAX_GAP_WORDS = 8
+
+
+def plan_writes(journal: Sequence[BlockWrite], peer: Sequence[range] = (COMMAND_AREA,),
+                image: Sequence[int] | None = None) -> list[BlockWrite]:
     """The bank's block writes (map offsets) as few robot writes as their order allows.
 
     Words in the ``peer`` areas (the command area; in map version 4 the latch too) are the
     robot's and are dropped. Consecutive writes merge when the next starts where the previous
     ends (or inside it); a write touching ACK_SEQ never merges, so the acknowledge stays a
-    transaction of its own at its place in the order.
+    transaction of its own at its place in the order. With ``image`` (the mirror's words, the
+    journal applied), two pieces a few words apart merge too, the words between them taken from
+    ``image``: only words no write of this journal touches (the robot already holds exactly
+    those values, so writing them again changes nothing it can see), never ACK_SEQ or a peer
+    word. A publish's data and pick-list words either side of WARNINGS are then one write.
     """
+    touched = {a for w in journal for a in range(w.address, w.address + len(w.words))}
+
+    def fills(start: int, stop: int) -> bool:
+        return (image is not None and 0 < stop - start <= MAX_GAP_WORDS
+                and not any(a in touched or a == Reg.ACK_SEQ or any(a in area for area in peer)
+                            for a in range(start, stop)))
+
     plan: list[BlockWrite] = []
     for piece in (p for w in journal for p in without_peer_words(w, peer)):
         address, words = piece.address, piece.words
@@ -160,6 +176,11 @@ def plan_writes(journal: Sequence[BlockWrite],
                 merged = list(last.words[: address - last.address]) + list(words)
                 merged += last.words[address - last.address + len(words):]
                 plan[-1] = BlockWrite(last.address, tuple(merged))
+                continue
+            if not last_is_ack and fills(end, address):
+                assert image is not None
+                plan[-1] = BlockWrite(last.address,
+                                      (*last.words, *image[end:address], *words))
                 continue
         plan.append(BlockWrite(address, tuple(words)))
     return plan
@@ -255,7 +276,7 @@ class ModbusClientLink(MirrorClientLink[AsyncModbusTcpClient]):
         return await self._read(client, self.options.base_address, end)
 
     async def _write_changes(self, client: AsyncModbusTcpClient) -> None:
-        plan = plan_writes(self._journal, self._peer_areas)
+        plan = plan_writes(self._journal, self._peer_areas, self.bank.image.words)
         self._journal.clear()
         await self._write_plan(client, plan)
 

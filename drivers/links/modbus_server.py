@@ -15,7 +15,7 @@ request per received segment (pipelined requests go unanswered); its decoder ref
 0 or 126 registers at decode time, which the server answers with function code 0x80; and it
 logs decode failures and datastore errors with tracebacks, one per frame. MBAP framing is seven
 bytes and the register map is served by five function codes, so the link frames and answers
-them itself (``ModbusTcpConnection``, ``RegisterServerLink.answer_pdu``):
+them itself (the framer ``vgripd.peer.mbap``, ``RegisterServerLink.answer_pdu``):
 
 - MBAP header: transaction id (echoed), protocol id 0, length 2..254 (unit id + PDU). Anything
   else is a malformed frame. So is a request whose PDU length does not match its function code
@@ -66,6 +66,8 @@ from pymodbus.constants import ExcCodes
 
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
+from vgripd.peer import mbap
+from vgripd.peer.mbap import MalformedFrame
 from vgripd.service.gate import Gate, set_keepalive
 from vgripd.service.protocol import (
     REGISTER_CAPABILITIES,
@@ -96,13 +98,7 @@ MAX_READ = 125
 MAX_WRITE = 123
 MAX_RW_WRITE = 121
 
-MBAP_HEADER = 7  # transaction id, protocol id, length (2 bytes each), unit id
-MBAP_MAX_LENGTH = 254  # unit id + the largest PDU (253 bytes)
 REQUESTS_PER_BATCH = 64  # pipelined requests answered before other clients get the loop
-
-
-class MalformedFrame(Exception):
-    """A frame that is not a Modbus request at all: its connection is closed."""
 
 
 class Refused(Exception):
@@ -391,7 +387,8 @@ class TcpOptions(RegisterOptions):
 
 
 class ModbusTcpConnection(asyncio.Protocol):
-    """One client connection: MBAP framing, requests answered in order, output bounded."""
+    """One client connection: bytes through the MBAP framer (``vgripd.peer.mbap``), requests
+    answered in order, output bounded."""
 
     def __init__(self, link: ModbusServerLink) -> None:
         self.link = link
@@ -404,7 +401,7 @@ class ModbusTcpConnection(asyncio.Protocol):
         self.peak_unsent = 0  # the most answer bytes that ever waited for this client
         self.closing = False
         self.refused = False  # closed at accept by the gate (allow, full)
-        self._buffer = bytearray()
+        self.framer = mbap.MbapFramer()
         self._paused = False
         self._continue: asyncio.Handle | None = None
 
@@ -422,7 +419,7 @@ class ModbusTcpConnection(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         if self.closing:
             return
-        self._buffer += data
+        self.framer.feed(data)
         if not self._paused:
             self._answer_batch()
 
@@ -443,38 +440,26 @@ class ModbusTcpConnection(asyncio.Protocol):
     # framing ---------------------------------------------------------------------------
 
     def _answer_batch(self) -> None:
-        """Answer the complete requests in the buffer, at most a batch; when more remain,
+        """Answer the complete requests the framer holds, at most a batch; when more remain,
         stop reading and go on after the loop has served the others."""
-        buffer, pos, answered, more = self._buffer, 0, 0, False
+        framer, answered, more = self.framer, 0, False
         now = time.monotonic()
         try:
-            while len(buffer) - pos >= 6:
-                tid, protocol, length = struct.unpack_from(">HHH", buffer, pos)
-                if protocol != 0:
-                    raise MalformedFrame(f"MBAP protocol id {protocol} (Modbus is 0)")
-                if not 2 <= length <= MBAP_MAX_LENGTH:
-                    raise MalformedFrame(f"MBAP length {length} (2..{MBAP_MAX_LENGTH})")
-                end = pos + 6 + length
-                if end > len(buffer):
-                    break
-                if answered == REQUESTS_PER_BATCH:
-                    more = True
-                    break
-                unit = buffer[pos + 6]
-                pdu = bytes(buffer[pos + MBAP_HEADER:end])
-                pos = end
+            while (frame := framer.next_frame()) is not None:
                 answered += 1
                 self.requests += 1
                 self.last_request = now
-                reply = self.link._answer(unit, pdu, self)
-                if reply is not None and not self._send(tid, unit, reply):
+                reply = self.link._answer(frame.unit, frame.pdu, self)
+                if reply is not None and not self._send(frame.tid, frame.unit, reply):
                     return
+                if answered == REQUESTS_PER_BATCH:
+                    more = framer.has_frame()
+                    break
         except MalformedFrame as err:
             self.link.fault(self.host, "malformed", logging.WARNING,
                             "%s: malformed frame, connection closed: %s", self.client, err)
             self.link._drop(self, abort=False)
             return
-        del buffer[:pos]
         if more:
             self._yield_loop()
         else:
@@ -483,7 +468,7 @@ class ModbusTcpConnection(asyncio.Protocol):
     def _send(self, tid: int, unit: int, reply: bytes) -> bool:
         """Write one answer; False when the client was dropped for not reading."""
         assert self.transport is not None
-        self.transport.write(struct.pack(">HHHB", tid, 0, len(reply) + 1, unit) + reply)
+        self.transport.write(mbap.encode(tid, unit, reply))
         unsent = self.transport.get_write_buffer_size()
         if unsent > self.peak_unsent:
             self.peak_unsent = unsent

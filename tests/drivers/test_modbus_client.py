@@ -352,6 +352,37 @@ def test_plan_keeps_ack_alone_and_last() -> None:
     assert image[3:] == bank.image.words[3:]
 
 
+async def test_a_job_costs_eight_writes_and_its_polls(robot: MockRobotModbus) -> None:
+    """Per job the link writes: the retract (ACK_SEQ 0), the cleared result, STATE; at the
+    capture JOB_ID, then STATE with CAPTURED_SEQ; the result (STATUS through SCORE in one
+    write, across WARNINGS), STATE, ACK_SEQ. Everything else it sends is a read of the command
+    area: one per poll and one after each flush."""
+    poll_s = 0.05
+    link = make_link(robot, poll_interval_s=poll_s, heartbeat_ms=1000)
+    daemon = Daemon(link, lambda t: ur_result(100 + t.seq))
+    await link.open(daemon.on_trigger)
+    try:
+        for seq in range(1, 6):
+            before = robot.requests
+            t0 = asyncio.get_running_loop().time()
+            seen = await robot.run_job(seq, WAIT_S)
+            elapsed = asyncio.get_running_loop().time() - t0
+            await link.wait_state({LinkState.UP}, WAIT_S)
+            writes = [w for w in seen.writes
+                      if w.address != BASE + Reg.HEARTBEAT or len(w.values) != 1]
+            assert len(writes) == 8, writes
+            result = writes[-3]
+            assert (result.address, len(result.values)) == (BASE + Reg.STATUS,
+                                                             Reg.SCORE + 2 - Reg.STATUS)
+            assert result.values[Reg.N_VALUES - Reg.STATUS] == 6
+            assert writes[-1] == RegisterWrite(BASE + Reg.ACK_SEQ, (seq,))
+            reads = robot.requests - before - len(seen.writes)
+            # the ACK_SEQ write can be counted before or after run_job returns
+            assert 1 <= reads <= 4 + elapsed / poll_s, (reads, elapsed)
+    finally:
+        await link.close()
+
+
 @pytest.mark.parametrize(("word_order", "flags"), [("ABCD", ["-B"]), ("CDAB", [])])
 async def test_mbpoll_reads_the_pose_vgripd_wrote(
     robot: MockRobotModbus, word_order: str, flags: list[str]

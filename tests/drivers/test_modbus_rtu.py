@@ -16,16 +16,10 @@ import pytest
 from pymodbus.client import AsyncModbusSerialClient
 from pymodbus.exceptions import ModbusIOException
 
-from drivers.links.modbus_rtu import (
-    ModbusRtuLink,
-    RtuFramer,
-    char_time_s,
-    crc_ok,
-    silence_s,
-    with_crc,
-)
+from drivers.links.modbus_rtu import ModbusRtuLink
 from tests.conftest import need_tool
 from vgripd.errors import LinkError
+from vgripd.peer.rtu import RtuFramer, char_time_s, crc_ok, silence_s, with_crc
 from vgripd.service.protocol import (
     CHECK_F32,
     MAP_SIZE,

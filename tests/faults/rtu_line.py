@@ -15,8 +15,8 @@ from pathlib import Path
 
 import serial
 
-from drivers.links.modbus_rtu import crc_ok, with_crc
 from tests.conftest import need_tool
+from vgripd.peer.rtu import crc_ok, with_crc
 
 BAUD = 115200
 

@@ -18,8 +18,9 @@ from pathlib import Path
 
 import pytest
 
-from drivers.links.modbus_rtu import ModbusRtuLink, crc_ok, with_crc
+from drivers.links.modbus_rtu import ModbusRtuLink
 from tests.faults.rtu_line import BAUD, PtyLine, RawMaster, read_request, read_words
+from vgripd.peer.rtu import crc_ok, with_crc
 from vgripd.service.protocol import MAP_SIZE, LinkState, Reg, Trigger
 
 pytestmark = pytest.mark.timeout(120)

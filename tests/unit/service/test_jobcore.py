@@ -155,7 +155,7 @@ class RegisterLink:
     def _replay(self) -> None:
         writes = (self.journal if self.wire == "server" else
                   plan_db_writes(self.seen, self.journal) if self.wire == "s7" else
-                  plan_writes(self.journal))
+                  plan_writes(self.journal, image=self.bank.image.words))
         for w in writes:
             before = self.seen[Reg.ACK_SEQ]
             rejected = self.seen[Reg.REJECT_SEQ]
