@@ -14,7 +14,7 @@ MotoPlus task); one supervisor task owns that connection and reconnects with dou
 logging one line per outage. Either way the robot sends the requests; TCP roles only decide who
 dials.
 
-Semantics follow the register handshake (``vgripd.service.jobcore.Handshake``, the same
+Semantics follow the register handshake (``vgripd.peer.jobcore.Handshake``, the same
 object the other links use): one job at a time per link (a request while this
 link's job runs is refused BUSY by the link itself, counted in ``refusals()``), unknown commands
 and out-of-range fields are refused BAD_REQUEST, CLEAR is answered RESULT with status IDLE.
@@ -62,9 +62,9 @@ from pydantic import ConfigDict, Field, model_validator
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import ConversionError, convention, transform_from_vendor
+from vgripd.peer.jobcore import Action, Command, Handshake
 from vgripd.service.gate import Gate, set_keepalive
 from vgripd.service.handeye_walk import walk_request_refusal
-from vgripd.service.jobcore import Action, Command, Handshake
 from vgripd.service.protocol import (
     LinkHealth,
     LinkState,

@@ -55,6 +55,7 @@ from typing import Any
 
 from vgripd.config import Config
 from vgripd.errors import ConfigError, NotCalibratedError, NotTaughtError
+from vgripd.peer.jobcore import JobCore, PickCursor
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.cameras import (
     CAMERA_CLOSE_TIMEOUT_S,
@@ -65,7 +66,6 @@ from vgripd.service.cameras import (
 )
 from vgripd.service.gate import Budget
 from vgripd.service.heap import freeze_start_up_heap
-from vgripd.service.jobcore import JobCore, PickCursor
 from vgripd.service.jobrecord import EpipolarMonitor, JobListener, JobRecord
 from vgripd.service.jobs import JobRunner, JobState, Processor, ViewJob, recipe_label, scene_pose
 from vgripd.service.links import LINK_CALL_TIMEOUT_S, LinkSupervisor

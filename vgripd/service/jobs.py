@@ -73,9 +73,7 @@ import numpy as np
 
 from vgripd.config import Config, unknown_recipe
 from vgripd.errors import CameraError, NotCalibratedError
-from vgripd.service.beltqueue import belt_lines
-from vgripd.service.cameras import CameraSupervisor
-from vgripd.service.jobcore import (
+from vgripd.peer.jobcore import (
     Admission,
     Admit,
     JobCore,
@@ -84,6 +82,8 @@ from vgripd.service.jobcore import (
     ViewStep,
     view_admission,
 )
+from vgripd.service.beltlines import belt_lines
+from vgripd.service.cameras import CameraSupervisor
 from vgripd.service.jobrecord import EpipolarMonitor, JobListener, JobRecord
 from vgripd.service.links import LinkSupervisor
 from vgripd.service.protocol import Command, Trigger, Warnings, pick_position

@@ -65,7 +65,7 @@ acknowledged under its own sequence).
 Ordering, so that a poller never pairs an acknowledged sequence with data of another request:
 a publish writes all data first and ``ACK_SEQ`` last; a new job and CLEAR retract ``ACK_SEQ``
 (0) first and only then clear the data (CLEAR then writes ``ACK_SEQ`` = seq last). The rules and
-the handshake itself live in ``vgripd.service.jobcore`` (``Handshake``: every link's plans of
+the handshake itself live in ``vgripd.peer.jobcore`` (``Handshake``: every link's plans of
 writes); ``RegisterBank`` renders its steps as block writes. Servers apply each list of block
 writes without yielding to readers; client links (S7, Modbus client) send them in order.
 
@@ -119,22 +119,22 @@ from typing import Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from vgripd.errors import LinkError
+from vgripd.peer.jobcore import MAX_VIEWS as MAX_VIEWS
+from vgripd.peer.jobcore import UNKNOWN_SCORE as UNKNOWN_SCORE
+from vgripd.peer.jobcore import Action as Action
+from vgripd.peer.jobcore import Command as Command
+from vgripd.peer.jobcore import Decision as Decision
+from vgripd.peer.jobcore import Handshake as Handshake
+from vgripd.peer.jobcore import HandshakeState as HandshakeState
+from vgripd.peer.jobcore import NextAnswer as NextAnswer
+from vgripd.peer.jobcore import Part, Step
+from vgripd.peer.jobcore import PickPosition as PickPosition
+from vgripd.peer.jobcore import capture_word as capture_word
+from vgripd.peer.jobcore import next_answer as next_answer
+from vgripd.peer.jobcore import pick_position as pick_position
+from vgripd.peer.jobcore import pickable_count as pickable_count
+from vgripd.peer.jobcore import split_command as split_command
 from vgripd.registry import LinkCapabilities
-from vgripd.service.jobcore import MAX_VIEWS as MAX_VIEWS
-from vgripd.service.jobcore import UNKNOWN_SCORE as UNKNOWN_SCORE
-from vgripd.service.jobcore import Action as Action
-from vgripd.service.jobcore import Command as Command
-from vgripd.service.jobcore import Decision as Decision
-from vgripd.service.jobcore import Handshake as Handshake
-from vgripd.service.jobcore import HandshakeState as HandshakeState
-from vgripd.service.jobcore import NextAnswer as NextAnswer
-from vgripd.service.jobcore import Part, Step
-from vgripd.service.jobcore import PickPosition as PickPosition
-from vgripd.service.jobcore import capture_word as capture_word
-from vgripd.service.jobcore import next_answer as next_answer
-from vgripd.service.jobcore import pick_position as pick_position
-from vgripd.service.jobcore import pickable_count as pickable_count
-from vgripd.service.jobcore import split_command as split_command
 from vgripd.types import BeltPose, FloatArray, JobResult, Status
 
 

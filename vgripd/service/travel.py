@@ -20,8 +20,8 @@ from typing import ClassVar
 
 from pydantic import BaseModel
 
+from vgripd.peer.belttravel import Travel, TravelRule
 from vgripd.registry import LinkCapabilities
-from vgripd.service.belttravel import Travel, TravelRule
 from vgripd.service.jobs import JobRunner
 from vgripd.service.links import LinkSupervisor
 from vgripd.service.protocol import (

@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vgripd.geometry.vendors import target_from_transform, transform_from_vendor
-from vgripd.service.beltqueue import BeltLine, Latch, LatchSource, line_of
-from vgripd.service.jobcore import Admit, Command, JobCore
+from vgripd.peer.beltqueue import BeltLine, Latch, LatchSource, line_of
+from vgripd.peer.jobcore import Admit, Command, JobCore
 from vgripd.service.protocol import Reg, RegisterBank, ValueCodec
 from vgripd.types import JobResult, PickInstance, Status
 

@@ -1,4 +1,4 @@
-"""The job core (``vgripd.service.jobcore``) fed random sequences of events, without I/O.
+"""The job core (``vgripd.peer.jobcore``) fed random sequences of events, without I/O.
 
 A cell of five links, each kind, shares one ``JobCore`` as the daemon does:
 
@@ -44,7 +44,7 @@ from hypothesis import strategies as st
 
 from drivers.links.modbus_client import plan_writes
 from drivers.links.s7 import plan_db_writes
-from vgripd.service.jobcore import (
+from vgripd.peer.jobcore import (
     Action,
     Admit,
     Command,
