@@ -41,7 +41,8 @@ from pydantic import Field
 
 from drivers.links.modbus_server import MalformedFrame, RegisterServerLink
 from vgripd.errors import LinkError
-from vgripd.service.protocol import LinkState, RegisterOptions, TriggerHandler
+from vgripd.peer.registers import RegisterOptions
+from vgripd.service.protocol import LinkState, TriggerHandler
 from vgripd.service.supervisor import (
     BackoffOptions,
     Ended,

@@ -95,17 +95,11 @@ from drivers.links.opcua_vision import JobInfo, VisionSpace
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import CONVENTIONS
-from vgripd.peer.jobcore import Part, Step
+from vgripd.peer.jobcore import Command, Part, Step
+from vgripd.peer.registers import checked_warnings
 from vgripd.registry import LinkCapabilities
 from vgripd.service.gate import Gate
-from vgripd.service.protocol import (
-    Command,
-    LinkHealth,
-    LinkState,
-    Trigger,
-    TriggerHandler,
-    checked_warnings,
-)
+from vgripd.service.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.supervisor import SupervisedLink
 from vgripd.service.visionsm import Verdict, VisionMachine

@@ -63,15 +63,10 @@ from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import ConversionError, convention, transform_from_vendor
 from vgripd.peer.jobcore import Action, Command, Handshake
+from vgripd.peer.registers import checked_warnings
 from vgripd.service.gate import Gate, set_keepalive
 from vgripd.service.handeye_walk import walk_request_refusal
-from vgripd.service.protocol import (
-    LinkHealth,
-    LinkState,
-    Trigger,
-    TriggerHandler,
-    checked_warnings,
-)
+from vgripd.service.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.robot_socket_format import (
     REQUEST_SIZE,

@@ -3,7 +3,7 @@
 The PLC serves nothing of vgripd's: vgripd connects to it as a client (python-snap7, the
 classic S7 protocol over ISO-on-TCP, port 102, the "PUT/GET" access of S7-1200/1500) and uses
 ``DB<db>`` bytes ``start .. start + 91`` (``map_version = 4``: ``start + 123``, the conveyor's
-latch and belt result) as the register block of ``vgripd.service.protocol``: the same items,
+latch and belt result) as the register block of ``vgripd.peer.registers``: the same items,
 in the same order, with the same handshake as the Modbus links; map register ``n`` is the
 16-bit word at byte ``start + 2 n``. S7 is big-endian throughout (16-bit and 32-bit items
 alike), which is the map's ``ABCD`` order, so there is no word-order option. ``vgripd s7-udt``
@@ -66,8 +66,7 @@ from snap7.error import S7Error, S7ProtocolError, S7TimeoutError
 
 from drivers.links.mirror_client import MirrorClientLink
 from vgripd.errors import LinkError
-from vgripd.registry import LinkCapabilities
-from vgripd.service.protocol import (
+from vgripd.peer.registers import (
     COMMAND_AREA,
     MAP_SIZE,
     MAX_VALUES,
@@ -76,6 +75,7 @@ from vgripd.service.protocol import (
     RegisterOptions,
     map_size,
 )
+from vgripd.registry import LinkCapabilities
 from vgripd.service.supervisor import BackoffOptions
 
 log = logging.getLogger(__name__)

@@ -28,7 +28,8 @@ from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
 from vgripd.errors import LinkError
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import transform_from_vendor
-from vgripd.service.protocol import LinkState, Trigger, next_answer
+from vgripd.peer.jobcore import next_answer
+from vgripd.service.protocol import LinkState, Trigger
 from vgripd.service.robot_socket_format import (
     ANSWER_SIZE,
     CAPTURE_AT_SIZE,

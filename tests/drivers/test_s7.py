@@ -25,19 +25,17 @@ from drivers.links.s7 import DB_BYTES, S7Link, S7Options, plan_db_writes
 from tests.conftest import REPO, stop_task
 from vgripd.cli.s7_udt import udt_source
 from vgripd.errors import ConfigError, LinkError
-from vgripd.service.protocol import (
+from vgripd.peer.jobcore import Command, next_answer
+from vgripd.peer.registers import (
     MAP_SIZE,
     MAP_VERSIONS,
     BlockWrite,
-    Command,
-    LinkState,
     Reg,
     RegisterBank,
-    Trigger,
     ValueCodec,
     Warnings,
-    next_answer,
 )
+from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.s7_plc import DbWrite, MockS7Plc, S7PlcServer
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 

@@ -23,18 +23,10 @@ from tests.drivers.test_s7 import DB, FORMATS, SIZES, WAIT_S, Daemon, make_link,
 from vgripd.cli.s7_udt import db_source, udt_source
 from vgripd.configbase import DriverSection
 from vgripd.errors import ConfigError
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import LATCH_AREA, MAP_SIZE_V4, BlockWrite, Reg, RegisterBank, ValueCodec
 from vgripd.registry import validate_options
-from vgripd.service.protocol import (
-    LATCH_AREA,
-    MAP_SIZE_V4,
-    BlockWrite,
-    Command,
-    LinkState,
-    Reg,
-    RegisterBank,
-    Trigger,
-    ValueCodec,
-)
+from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.s7_plc import MockS7Plc, S7PlcServer
 from vgripd.types import BeltPose, JobResult, RobotTarget, Status
 

@@ -20,7 +20,8 @@ import pytest
 
 from drivers.links.modbus_rtu import ModbusRtuLink, crc_ok, with_crc
 from tests.faults.rtu_line import BAUD, PtyLine, RawMaster, read_request, read_words
-from vgripd.service.protocol import MAP_SIZE, LinkState, Reg, Trigger
+from vgripd.peer.registers import MAP_SIZE, Reg
+from vgripd.service.protocol import LinkState, Trigger
 
 pytestmark = pytest.mark.timeout(120)
 SEED = int(os.environ.get("VGRIPD_FUZZ_SEED", "5150"))

@@ -19,7 +19,9 @@ import pytest
 
 from tests.integration.test_daemon import Plc, running
 from vgripd.config import Config, config_from_dict
-from vgripd.service.protocol import MAP_SIZE, PICK_AREA, Command, LinkState, Reg
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import MAP_SIZE, PICK_AREA, Reg
+from vgripd.service.protocol import LinkState
 from vgripd.service.robot_socket_format import (
     ANSWER_SIZE,
     AnswerKind,

@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 
 from tests.integration.test_daemon import Plc, Run, make_config
+from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon, JobState
-from vgripd.service.protocol import Reg
 from vgripd.service.worker import (
     SHM_DIR,
     WORKER_NICE,

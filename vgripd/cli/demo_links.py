@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from vgripd.errors import LinkError
-from vgripd.service.protocol import Reg, Warnings
+from vgripd.peer.registers import Reg, Warnings
 from vgripd.sim.plc import CycleResult
 from vgripd.types import Status
 

@@ -61,15 +61,8 @@ from vgripd.peer.jobcore import (
     pick_position,
     view_admission,
 )
-from vgripd.service.protocol import (
-    MAP_SIZE,
-    PICK_AREA,
-    BlockWrite,
-    Reg,
-    RegisterBank,
-    URRegisterMap,
-    ValueCodec,
-)
+from vgripd.peer.registers import MAP_SIZE, PICK_AREA, BlockWrite, Reg, RegisterBank, ValueCodec
+from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.service.robot_socket_format import remaining
 from vgripd.service.visionsm import EXECUTING, Auto, VisionMachine
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
