@@ -1,6 +1,6 @@
 """Robot socket link: the robot program and vgripd exchange fixed-length binary frames over TCP.
 
-The message format is ``vgripd.service.robot_socket_format`` (docs/robot_socket.md has the byte
+The message format is ``vgripd.peer.socket_frames`` (docs/robot_socket.md has the byte
 tables): 16-byte requests (LOCATE, CLEAR, NEXT; CAPTURE_AT, a LOCATE with the flange pose the
 robot reached, 44 bytes; the conveyor's counted LOCATE, NEXT and PREDICT with the encoder count,
 24 bytes), 64-byte answers (CAPTURED, RESULT, REFUSED, and BELT before a counted request's
@@ -64,11 +64,7 @@ from vgripd.errors import LinkError
 from vgripd.geometry.vendors import ConversionError, convention, transform_from_vendor
 from vgripd.peer.jobcore import Action, Command, Handshake
 from vgripd.peer.registers import checked_warnings
-from vgripd.service.gate import Gate, set_keepalive
-from vgripd.service.handeye_walk import walk_request_refusal
-from vgripd.service.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
-from vgripd.service.ratelog import RateLimitedLog
-from vgripd.service.robot_socket_format import (
+from vgripd.peer.socket_frames import (
     REQUEST_SIZE,
     SOCKET_CAPABILITIES,
     Answer,
@@ -85,6 +81,10 @@ from vgripd.service.robot_socket_format import (
     request_size,
     result_answer,
 )
+from vgripd.service.gate import Gate, set_keepalive
+from vgripd.service.handeye_walk import walk_request_refusal
+from vgripd.service.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
+from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.supervisor import (
     BackoffOptions,
     Ended,

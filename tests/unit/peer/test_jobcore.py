@@ -62,8 +62,8 @@ from vgripd.peer.jobcore import (
     view_admission,
 )
 from vgripd.peer.registers import MAP_SIZE, PICK_AREA, BlockWrite, Reg, RegisterBank, ValueCodec
+from vgripd.peer.socket_frames import remaining
 from vgripd.peer.ur_registers import URRegisterMap
-from vgripd.service.robot_socket_format import remaining
 from vgripd.service.visionsm import EXECUTING, Auto, VisionMachine
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
