@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.links.s7 import DB_BYTES, S7Link, S7Options, plan_db_writes
+from drivers.links.s7 import S7Link, S7Options
 from tests.conftest import REPO, stop_task
 from vgripd.cli.s7_udt import udt_source
 from vgripd.errors import ConfigError, LinkError
@@ -35,6 +35,7 @@ from vgripd.peer.registers import (
     ValueCodec,
     Warnings,
 )
+from vgripd.peer.s7_block import DB_BYTES, plan_db_writes
 from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.s7_plc import DbWrite, MockS7Plc, S7PlcServer
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status

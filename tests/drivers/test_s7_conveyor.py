@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from drivers.links.s7 import S7Link, S7Options, db_bytes, plan_db_writes
+from drivers.links.s7 import S7Link, S7Options
 from tests.conftest import REPO
 from tests.drivers.test_s7 import DB, FORMATS, SIZES, WAIT_S, Daemon, make_link, parse_udt
 from vgripd.cli.s7_udt import db_source, udt_source
@@ -25,6 +25,7 @@ from vgripd.configbase import DriverSection
 from vgripd.errors import ConfigError
 from vgripd.peer.jobcore import Command
 from vgripd.peer.registers import LATCH_AREA, MAP_SIZE_V4, BlockWrite, Reg, RegisterBank, ValueCodec
+from vgripd.peer.s7_block import db_bytes, plan_db_writes
 from vgripd.registry import validate_options
 from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.s7_plc import MockS7Plc, S7PlcServer

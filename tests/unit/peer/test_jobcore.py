@@ -43,7 +43,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.links.modbus_client import plan_writes
-from drivers.links.s7 import plan_db_writes
 from vgripd.peer.jobcore import (
     Action,
     Admit,
@@ -62,6 +61,7 @@ from vgripd.peer.jobcore import (
     view_admission,
 )
 from vgripd.peer.registers import MAP_SIZE, PICK_AREA, BlockWrite, Reg, RegisterBank, ValueCodec
+from vgripd.peer.s7_block import plan_db_writes
 from vgripd.peer.socket_frames import remaining
 from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.service.visionsm import EXECUTING, Auto, VisionMachine
