@@ -57,8 +57,8 @@ from vgripd.cli import demo_conveyor  # noqa: E402
 from vgripd.config import config_from_dict  # noqa: E402
 from vgripd.geometry.transforms import pose_error  # noqa: E402
 from vgripd.geometry.vendors import transform_from_vendor  # noqa: E402
+from vgripd.peer.jobcore import Command  # noqa: E402
 from vgripd.service.daemon import Daemon  # noqa: E402
-from vgripd.service.protocol import Command  # noqa: E402
 from vgripd.sim.belt_robot import RobotTiming, run_belt  # noqa: E402
 from vgripd.sim.conveyor import BeltCamera, BeltPlc, SimBelt, SimPart  # noqa: E402
 from vgripd.types import Status  # noqa: E402

@@ -61,7 +61,7 @@ from bench.harness import (  # noqa: E402
     static_modbus_server,
 )
 from bench.harness import parser as bench_parser  # noqa: E402
-from vgripd.service.protocol import MAP_SIZE  # noqa: E402
+from vgripd.peer.registers import MAP_SIZE  # noqa: E402
 
 SUBJECT = "Daemon: polls, jobs, memory"
 SECTION = "Modbus poll latency while jobs run"

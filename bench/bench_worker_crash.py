@@ -46,7 +46,7 @@ from tests.integration.test_daemon_worker_crash import (  # noqa: E402
     pylon_cell,
     running,
 )
-from vgripd.service.protocol import Reg  # noqa: E402
+from vgripd.peer.registers import Reg  # noqa: E402
 
 SUBJECT = "Daemon: polls, jobs, memory"
 SECTION = "Worker process killed while it holds the camera"

@@ -388,7 +388,7 @@ def plc_client_main(port: int, mode: str, seconds: float, jobs: int) -> None:
 
 def _poll_loop(client: Any, mode: str, end: float, jobs: int, rtt_ms: list[float],
                cycle_ms: list[float], statuses: dict[str, int]) -> None:
-    from vgripd.service.protocol import MAP_SIZE, Reg
+    from vgripd.peer.registers import MAP_SIZE, Reg
     from vgripd.types import Status
 
     seq = 0
@@ -513,7 +513,7 @@ async def static_modbus_server() -> tuple[Any, int]:
     from pymodbus.server import ModbusTcpServer
     from pymodbus.simulator import DataType, SimData, SimDevice
 
-    from vgripd.service.protocol import MAP_SIZE
+    from vgripd.peer.registers import MAP_SIZE
 
     device = SimDevice(1, simdata=[SimData(0, values=list(range(MAP_SIZE)),
                                            datatype=DataType.REGISTERS)])

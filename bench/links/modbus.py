@@ -16,7 +16,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from bench.links import LinkRun, Series, answer_at_once
 from drivers.links.modbus_client import ModbusClientLink, ModbusClientOptions
-from vgripd.service.protocol import MAP_SIZE, Reg
+from vgripd.peer.registers import MAP_SIZE, Reg
 from vgripd.sim.robot_modbus import MockRobotModbus
 from vgripd.types import RobotTarget
 

@@ -19,7 +19,7 @@ import time
 
 from bench.links import LinkRun, Series, answer_at_once
 from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
-from vgripd.service.robot_socket_format import (
+from vgripd.peer.socket_frames import (
     ANSWER_SIZE,
     Answer,
     AnswerKind,

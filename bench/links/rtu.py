@@ -27,7 +27,7 @@ from pathlib import Path
 from bench.harness import REPO, pty_pair
 from bench.links import LinkRun, Series, answer_at_once
 from drivers.links.modbus_rtu import ModbusRtuLink
-from vgripd.service.protocol import MAP_SIZE, Reg
+from vgripd.peer.registers import MAP_SIZE, Reg
 from vgripd.types import RobotTarget, Status
 
 DEFAULT_JOBS = 300

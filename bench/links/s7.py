@@ -21,8 +21,9 @@ import time
 import snap7
 
 from bench.links import LinkRun, Series, answer_at_once
-from drivers.links.s7 import DB_BYTES, S7Link, S7Options
-from vgripd.service.protocol import Reg
+from drivers.links.s7 import S7Link, S7Options
+from vgripd.peer.registers import Reg
+from vgripd.peer.s7_block import DB_BYTES
 from vgripd.sim.s7_plc import MockS7Plc, S7PlcServer
 from vgripd.types import RobotTarget, Status
 

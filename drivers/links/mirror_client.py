@@ -1,7 +1,7 @@
 """What the register client links share: a ``RegisterBank`` mirror pushed to a peer they poll.
 
 ``MirrorClientLink`` is the base of the links where vgripd is the client of a peer holding the
-register block of ``vgripd.service.protocol`` (``drivers.links.s7``: a PLC data block;
+register block of ``vgripd.peer.registers`` (``drivers.links.s7``: a PLC data block;
 ``drivers.links.modbus_client``: the robot's holding registers). It owns the mirror (a
 ``RegisterBank`` and its journal), the daemon-facing calls that wait until the peer has a change
 (``_flushed`` and its waiters, released with an outage), the health and its condition, and the
@@ -34,19 +34,16 @@ from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Generic, TypeVar
 
 from vgripd.errors import LinkError
-from vgripd.service.protocol import (
+from vgripd.peer.jobcore import Action
+from vgripd.peer.registers import (
     COMMAND_AREA,
     LATCH_AREA,
-    Action,
     BlockWrite,
-    CountHandler,
-    LinkState,
     Reg,
     RegisterBank,
-    Trigger,
-    TriggerHandler,
     ValueCodec,
 )
+from vgripd.service.protocol import CountHandler, LinkState, Trigger, TriggerHandler
 from vgripd.service.supervisor import Ended, OutagePolicy, Reconnector, SupervisedLink
 from vgripd.types import JobResult, Status
 

@@ -2,7 +2,7 @@
 
 Cells without a PLC: the robot (e.g. Universal Robots, port 502, general-purpose holding
 registers 128-255) serves the registers and its program polls them; vgripd is the client. The
-register block is ``vgripd.service.protocol``'s map (46 words; 62 with ``map_version = 4``, the
+register block is ``vgripd.peer.registers``'s map (46 words; 62 with ``map_version = 4``, the
 conveyor's; same offsets, encoding and handshake as the Modbus server link), placed at
 ``base_address`` in the robot's register space: the robot program writes the command area (CMD,
 REQ_SEQ, RECIPE) and in map version 4 the latch (LATCH_COUNT, LATCH_FRAME: 46-49) before or
@@ -57,7 +57,7 @@ from pymodbus.pdu import ModbusPDU
 
 from drivers.links.mirror_client import MirrorClientLink, without_peer_words
 from vgripd.errors import LinkError
-from vgripd.service.protocol import (
+from vgripd.peer.registers import (
     COMMAND_AREA,
     MAP_SIZE,
     REGISTER_CAPABILITIES,

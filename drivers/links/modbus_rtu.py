@@ -35,8 +35,9 @@ from pydantic import Field
 from drivers.links.modbus_server import RegisterServerLink
 from vgripd.errors import LinkError
 from vgripd.peer.mbap import MalformedFrame
+from vgripd.peer.registers import RegisterOptions
 from vgripd.peer.rtu import RtuFramer, char_time_s, silence_s, with_crc
-from vgripd.service.protocol import LinkState, RegisterOptions, TriggerHandler
+from vgripd.service.protocol import LinkState, TriggerHandler
 from vgripd.service.supervisor import (
     BackoffOptions,
     Ended,

@@ -1,5 +1,5 @@
 """Modbus/TCP server link: the PLC polls and writes vgripd's registers (map in
-vgripd.service.protocol).
+vgripd.peer.registers).
 
 Every read and write is answered from a ``RegisterBank`` on the event loop, with no ``await``
 inside one request. A write to the command area runs the handshake and, for a new job, schedules
@@ -67,21 +67,17 @@ from pymodbus.constants import ExcCodes
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.peer import mbap
+from vgripd.peer.jobcore import Action
 from vgripd.peer.mbap import MalformedFrame
-from vgripd.service.gate import Gate, set_keepalive
-from vgripd.service.protocol import (
+from vgripd.peer.registers import (
     REGISTER_CAPABILITIES,
-    Action,
-    CountHandler,
-    LinkHealth,
-    LinkState,
     RegisterAccessError,
     RegisterBank,
     RegisterOptions,
-    Trigger,
-    TriggerHandler,
     ValueCodec,
 )
+from vgripd.service.gate import Gate, set_keepalive
+from vgripd.service.protocol import CountHandler, LinkHealth, LinkState, Trigger, TriggerHandler
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.supervisor import SupervisedLink
 from vgripd.types import JobResult, Status

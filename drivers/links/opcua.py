@@ -6,7 +6,7 @@ runs the job; ``Result.*`` variables and a ``ResultReadyEventType`` event carry 
 The address space is ``drivers/links/opcua_space.py``; docs/opcua.md has it in full, the job
 sequence a client follows, the security set-up and what of OPC 40100 is implemented.
 
-Semantics follow the register handshake (``vgripd.service.jobcore.Handshake``, whose plans the
+Semantics follow the register handshake (``vgripd.peer.jobcore.Handshake``, whose plans the
 space's writes carry out): one job at a time per link; a start while this link's
 job runs is refused at once with ``BadInvalidState`` (the state machine is in SingleExecution)
 and counted as ``BUSY`` in ``refusals()``; a recipe that is not configured (the daemon tells the
@@ -95,17 +95,11 @@ from drivers.links.opcua_vision import JobInfo, VisionSpace
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import CONVENTIONS
+from vgripd.peer.jobcore import Command, Part, Step
+from vgripd.peer.registers import checked_warnings
 from vgripd.registry import LinkCapabilities
 from vgripd.service.gate import Gate
-from vgripd.service.jobcore import Part, Step
-from vgripd.service.protocol import (
-    Command,
-    LinkHealth,
-    LinkState,
-    Trigger,
-    TriggerHandler,
-    checked_warnings,
-)
+from vgripd.service.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.supervisor import SupervisedLink
 from vgripd.service.visionsm import Verdict, VisionMachine

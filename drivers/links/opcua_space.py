@@ -32,7 +32,7 @@ from drivers.links.opcua_belt import (
     belt_values,
     read_latch,
 )
-from vgripd.service.protocol import UNKNOWN_SCORE, PickPosition, pick_position
+from vgripd.peer.jobcore import UNKNOWN_SCORE, PickPosition, pick_position
 from vgripd.types import BeltPose, JobResult, Status
 
 #: ``VisionStateMachine`` states: name -> number (vgripd's numbers; OPC 40100 names).

@@ -55,7 +55,7 @@ from drivers.links.opcua_belt import (
 )
 from drivers.links.opcua_nodeset import prune
 from drivers.links.opcua_space import ResultValues
-from vgripd.service.jobcore import Command
+from vgripd.peer.jobcore import Command
 from vgripd.service.visionsm import (
     BAD_ARGUMENT,
     Auto,

@@ -1,6 +1,6 @@
 """Robot socket link: the robot program and vgripd exchange fixed-length binary frames over TCP.
 
-The message format is ``vgripd.service.robot_socket_format`` (docs/robot_socket.md has the byte
+The message format is ``vgripd.peer.socket_frames`` (docs/robot_socket.md has the byte
 tables): 16-byte requests (LOCATE, CLEAR, NEXT; CAPTURE_AT, a LOCATE with the flange pose the
 robot reached, 44 bytes; the conveyor's counted LOCATE, NEXT and PREDICT with the encoder count,
 24 bytes), 64-byte answers (CAPTURED, RESULT, REFUSED, and BELT before a counted request's
@@ -14,7 +14,7 @@ MotoPlus task); one supervisor task owns that connection and reconnects with dou
 logging one line per outage. Either way the robot sends the requests; TCP roles only decide who
 dials.
 
-Semantics follow the register handshake (``vgripd.service.jobcore.Handshake``, the same
+Semantics follow the register handshake (``vgripd.peer.jobcore.Handshake``, the same
 object the other links use): one job at a time per link (a request while this
 link's job runs is refused BUSY by the link itself, counted in ``refusals()``), unknown commands
 and out-of-range fields are refused BAD_REQUEST, CLEAR is answered RESULT with status IDLE.
@@ -62,18 +62,9 @@ from pydantic import ConfigDict, Field, model_validator
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import ConversionError, convention, transform_from_vendor
-from vgripd.service.gate import Gate, set_keepalive
-from vgripd.service.handeye_walk import walk_request_refusal
-from vgripd.service.jobcore import Action, Command, Handshake
-from vgripd.service.protocol import (
-    LinkHealth,
-    LinkState,
-    Trigger,
-    TriggerHandler,
-    checked_warnings,
-)
-from vgripd.service.ratelog import RateLimitedLog
-from vgripd.service.robot_socket_format import (
+from vgripd.peer.jobcore import Action, Command, Handshake
+from vgripd.peer.registers import checked_warnings
+from vgripd.peer.socket_frames import (
     REQUEST_SIZE,
     SOCKET_CAPABILITIES,
     Answer,
@@ -90,6 +81,10 @@ from vgripd.service.robot_socket_format import (
     request_size,
     result_answer,
 )
+from vgripd.service.gate import Gate, set_keepalive
+from vgripd.service.handeye_walk import walk_request_refusal
+from vgripd.service.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
+from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.supervisor import (
     BackoffOptions,
     Ended,

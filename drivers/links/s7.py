@@ -3,7 +3,7 @@
 The PLC serves nothing of vgripd's: vgripd connects to it as a client (python-snap7, the
 classic S7 protocol over ISO-on-TCP, port 102, the "PUT/GET" access of S7-1200/1500) and uses
 ``DB<db>`` bytes ``start .. start + 91`` (``map_version = 4``: ``start + 123``, the conveyor's
-latch and belt result) as the register block of ``vgripd.service.protocol``: the same items,
+latch and belt result) as the register block of ``vgripd.peer.registers``: the same items,
 in the same order, with the same handshake as the Modbus links; map register ``n`` is the
 16-bit word at byte ``start + 2 n``. S7 is big-endian throughout (16-bit and 32-bit items
 alike), which is the map's ``ABCD`` order, so there is no word-order option. ``vgripd s7-udt``
@@ -25,7 +25,7 @@ bank's order:
   each side of the latch in version 4: the PLC's words are never written over), and each
   change of ACK_SEQ in a write of its own at its place in the bank's order (last for a
   publish, first for the retraction of a new job or a CLEAR: ``jobcore.Handshake``), so the
-  PLC never pairs an acknowledged sequence with data of another request (``plan_db_writes``);
+  PLC never pairs an acknowledged sequence with data of another request (``peer.s7_block``);
 - after every (re)connect the PLC's block is read and whatever differs from the mirror is
   written (data, then ACK_SEQ), so a result published while the PLC was away reaches it as
   soon as it is back;
@@ -56,7 +56,7 @@ import logging
 import socket
 import struct
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Literal, TypeVar
 
@@ -66,33 +66,26 @@ from snap7.error import S7Error, S7ProtocolError, S7TimeoutError
 
 from drivers.links.mirror_client import MirrorClientLink
 from vgripd.errors import LinkError
-from vgripd.registry import LinkCapabilities
-from vgripd.service.protocol import (
+from vgripd.peer.registers import (
     COMMAND_AREA,
-    MAP_SIZE,
     MAX_VALUES,
     BlockWrite,
     Reg,
     RegisterOptions,
-    map_size,
 )
+from vgripd.peer.s7_block import DB_BYTES, block_bytes, db_bytes, plan_db_writes
+from vgripd.registry import LinkCapabilities
 from vgripd.service.supervisor import BackoffOptions
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-DB_BYTES = 2 * MAP_SIZE  # bytes of the block in the DB (map version 3; ``db_bytes``)
 OVERWRITE_LOG_S = 60.0  # at most one line per this long about foreign writes to vgripd's part
 S7_CAPABILITIES = LinkCapabilities(
     MAX_VALUES, None,
     f"VALUES at block bytes {2 * Reg.VALUES}-{2 * Reg.FIT_RMS - 1}, the convention's fields "
     "in its own units")
-
-
-def db_bytes(version: int) -> int:
-    """Bytes of the block in the DB for register map ``version`` (3: 92, 4: 124)."""
-    return 2 * map_size(version)
 
 
 def quiet_snap7() -> None:
@@ -144,53 +137,6 @@ class S7Options(RegisterOptions, BackoffOptions):
 class S7Refused(LinkError):
     """The PLC answered a request with an error (no such DB, address out of range, access
     denied), as opposed to a lost or silent connection."""
-
-
-def plan_db_writes(sent: Sequence[int], journal: Sequence[BlockWrite],
-                   own: Sequence[range] = (range(COMMAND_AREA.stop, MAP_SIZE),),
-                   ) -> list[BlockWrite]:
-    """The writes (map word addresses) that take the PLC's block from ``sent`` to the end of
-    the bank's ``journal``, in the journal's order.
-
-    Only the ``own`` stretches of the block (``own_segments``: all but the PLC's command area,
-    and in map version 4 its latch area) are ever written. Between two changes of ACK_SEQ,
-    every word that changed travels in one write per stretch, spanning its first to its last
-    changed word there (the words in between carry what the PLC already has, ACK_SEQ
-    included); a change of ACK_SEQ is a write of its own at its place in the order. A publish
-    is thus the data in one write (one on each side of the latch) and the acknowledge after it;
-    a new job's retraction goes before its data is cleared.
-    """
-    image = list(sent)
-    plan: list[BlockWrite] = []
-    changed: set[int] = set()
-
-    def flush_span() -> None:
-        for seg in own:
-            here = [a for a in changed if a in seg]
-            if here:
-                lo, hi = min(here), max(here)
-                plan.append(BlockWrite(lo, tuple(image[lo:hi + 1])))
-        changed.clear()
-
-    for w in journal:
-        ack: int | None = None
-        for i, value in enumerate(w.words):
-            address = w.address + i
-            if address == Reg.ACK_SEQ:
-                ack = value
-            elif any(address in seg for seg in own) and image[address] != value:
-                image[address] = value
-                changed.add(address)
-        if ack is not None and ack != image[Reg.ACK_SEQ]:
-            flush_span()  # the data written with (before) the acknowledge goes first
-            image[Reg.ACK_SEQ] = ack
-            plan.append(BlockWrite(Reg.ACK_SEQ, (ack,)))
-    flush_span()
-    return plan
-
-
-def block_bytes(words: Sequence[int]) -> bytearray:
-    return bytearray(struct.pack(f">{len(words)}H", *words))
 
 
 class S7Link(MirrorClientLink[Client]):

@@ -1,7 +1,7 @@
 """Universal Robots RTDE link: the robot program triggers jobs and reads results through RTDE
 general-purpose registers (port 30004), with the ``ur_rtde`` client.
 
-The register map and handshake are ``vgripd.service.protocol.URRegisterMap`` (docs/ur_rtde.md);
+The register map and handshake are ``vgripd.peer.ur_registers.URRegisterMap`` (docs/ur_rtde.md);
 the robot side is ``robots/urscript/vgripd.script``. The pose goes to the robot in two pages
 (translation, then rotation vector) because ur_rtde can write only 5 input double registers; each
 page is written data first, acknowledge last. The robot program uses the six numbers as
@@ -63,18 +63,11 @@ from pydantic import ConfigDict, Field
 from drivers.links import ur_rtde_worker
 from vgripd.errors import ConversionError, LinkError
 from vgripd.geometry.vendors import transform_from_vendor
-from vgripd.service.protocol import (
-    Command,
-    LinkCapabilities,
-    LinkState,
-    PickPosition,
-    Trigger,
-    TriggerHandler,
-    URRegisterMap,
-    checked_warnings,
-    pick_position,
-    split_command,
-)
+from vgripd.peer.jobcore import Command, PickPosition, pick_position, split_command
+from vgripd.peer.registers import checked_warnings
+from vgripd.peer.ur_registers import URRegisterMap
+from vgripd.registry import LinkCapabilities
+from vgripd.service.protocol import LinkState, Trigger, TriggerHandler
 from vgripd.service.supervisor import (
     BackoffOptions,
     Ended,

@@ -42,8 +42,8 @@ from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from typing import Any
 
+from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.service.lifetime import die_with_daemon
-from vgripd.service.protocol import URRegisterMap
 
 RTDE_PORT = 30004
 

@@ -17,20 +17,17 @@ import pytest
 from drivers.links.modbus_client import ModbusClientLink, ModbusClientOptions, plan_writes
 from tests.conftest import need_tool, stop_task
 from vgripd.errors import LinkError
-from vgripd.service.protocol import (
+from vgripd.peer.jobcore import Command, next_answer
+from vgripd.peer.registers import (
     MAP_SIZE,
     MAP_VERSIONS,
     BlockWrite,
-    Command,
-    LinkHealth,
-    LinkState,
     Reg,
     RegisterBank,
-    Trigger,
     ValueCodec,
     Warnings,
-    next_answer,
 )
+from vgripd.service.protocol import LinkHealth, LinkState, Trigger
 from vgripd.sim.robot_modbus import MockRobotModbus, RegisterWrite, RobotMode
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 

@@ -20,16 +20,9 @@ from drivers.links.modbus_client import (
     plan_writes,
 )
 from tests.drivers.test_modbus_client import Daemon, make_link
-from vgripd.service.protocol import (
-    COMMAND_AREA,
-    LATCH_AREA,
-    MAP_SIZE_V4,
-    BlockWrite,
-    Command,
-    LinkState,
-    Reg,
-    Trigger,
-)
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import COMMAND_AREA, LATCH_AREA, MAP_SIZE_V4, BlockWrite, Reg
+from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.robot_modbus import UR_FIRST_REGISTER, MockRobotModbus, RegisterWrite
 from vgripd.types import BeltPose, JobResult, RobotTarget, Status
 

@@ -19,20 +19,10 @@ from pymodbus.exceptions import ModbusIOException
 from drivers.links.modbus_rtu import ModbusRtuLink
 from tests.conftest import need_tool
 from vgripd.errors import LinkError
+from vgripd.peer.jobcore import Command, HandshakeState, capture_word, next_answer
+from vgripd.peer.registers import CHECK_F32, MAP_SIZE, MAP_VERSIONS, Reg, Warnings
 from vgripd.peer.rtu import RtuFramer, char_time_s, crc_ok, silence_s, with_crc
-from vgripd.service.protocol import (
-    CHECK_F32,
-    MAP_SIZE,
-    MAP_VERSIONS,
-    Command,
-    HandshakeState,
-    LinkState,
-    Reg,
-    Trigger,
-    Warnings,
-    capture_word,
-    next_answer,
-)
+from vgripd.service.protocol import LinkState, Trigger
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 BAUD = 115200

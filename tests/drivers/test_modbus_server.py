@@ -22,17 +22,9 @@ from pymodbus.client import AsyncModbusTcpClient
 from drivers.links.modbus_server import ModbusServerLink
 from tests.conftest import need_tool
 from vgripd.errors import LinkError
-from vgripd.service.protocol import (
-    CHECK_F32,
-    MAP_SIZE,
-    BlockWrite,
-    Command,
-    LinkState,
-    Reg,
-    Trigger,
-    Warnings,
-    next_answer,
-)
+from vgripd.peer.jobcore import Command, next_answer
+from vgripd.peer.registers import CHECK_F32, MAP_SIZE, BlockWrite, Reg, Warnings
+from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.plc import MockPlc, PlcCheckError
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 

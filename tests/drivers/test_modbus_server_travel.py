@@ -11,7 +11,7 @@ import pytest
 from pymodbus.client import AsyncModbusTcpClient
 
 from drivers.links.modbus_server import ModbusServerLink
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 
 pytestmark = pytest.mark.timeout(120)
 

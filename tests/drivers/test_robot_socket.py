@@ -28,8 +28,8 @@ from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
 from vgripd.errors import LinkError
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import transform_from_vendor
-from vgripd.service.protocol import LinkState, Trigger, next_answer
-from vgripd.service.robot_socket_format import (
+from vgripd.peer.jobcore import next_answer
+from vgripd.peer.socket_frames import (
     ANSWER_SIZE,
     CAPTURE_AT_SIZE,
     Answer,
@@ -46,6 +46,7 @@ from vgripd.service.robot_socket_format import (
     request_size,
     result_answer,
 )
+from vgripd.service.protocol import LinkState, Trigger
 from vgripd.types import BeltPose, JobResult, PickInstance, RobotTarget, Status
 
 WAIT_S = 10.0

@@ -21,23 +21,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.links.s7 import DB_BYTES, S7Link, S7Options, plan_db_writes
+from drivers.links.s7 import S7Link, S7Options
 from tests.conftest import REPO, stop_task
 from vgripd.cli.s7_udt import udt_source
 from vgripd.errors import ConfigError, LinkError
-from vgripd.service.protocol import (
+from vgripd.peer.jobcore import Command, next_answer
+from vgripd.peer.registers import (
     MAP_SIZE,
     MAP_VERSIONS,
-    BlockWrite,
-    Command,
-    LinkState,
     Reg,
-    RegisterBank,
-    Trigger,
-    ValueCodec,
     Warnings,
-    next_answer,
 )
+from vgripd.peer.s7_block import DB_BYTES
+from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.s7_plc import DbWrite, MockS7Plc, S7PlcServer
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
@@ -414,34 +410,6 @@ async def test_warnings_reach_the_plc_and_survive_an_outage(
 
 
 # -- planning, options, registry -------------------------------------------------------------
-
-
-def test_plan_sends_data_in_one_write_then_ack_alone() -> None:
-    journal: list[BlockWrite] = []
-    bank = RegisterBank(ValueCodec(), journal)
-    sent = list(bank.image.words)
-    journal.clear()
-    bank.write(0, [1, 9, 0])
-    bank.captured(9, 3)
-    bank.publish(9, kuka_result(3), 0)
-    plan = plan_db_writes(sent, journal)
-    assert all(w.address >= 3 for w in plan)
-    acks = [w for w in plan if w.address <= Reg.ACK_SEQ < w.address + len(w.words)
-            and len(w.words) == 1]
-    assert acks == [BlockWrite(Reg.ACK_SEQ, (9,))]  # 0 -> 0 at the start is no change
-    assert plan[-1] == BlockWrite(Reg.ACK_SEQ, (9,))
-    assert len(plan) == 2  # the job's data (state, captured, result) in one write
-    # replaying the plan on the PLC's copy gives the bank's image outside the command area
-    image = list(sent)
-    for w in plan:
-        image[w.address:w.address + len(w.words)] = w.words
-    assert image[3:] == bank.image.words[3:]
-    # The next job retracts the acknowledge before its data is cleared.
-    sent2, journal[:] = image, []
-    bank.write(0, [1, 10, 0])
-    plan2 = plan_db_writes(sent2, journal)
-    assert plan2[0] == BlockWrite(Reg.ACK_SEQ, (0,))
-    assert all(len(w.words) > 1 or w.address != Reg.ACK_SEQ for w in plan2[1:])
 
 
 def test_options_and_registry() -> None:

@@ -17,24 +17,17 @@ from pathlib import Path
 
 import pytest
 
-from drivers.links.s7 import S7Link, S7Options, db_bytes, plan_db_writes
+from drivers.links.s7 import S7Link, S7Options
 from tests.conftest import REPO
 from tests.drivers.test_s7 import DB, FORMATS, SIZES, WAIT_S, Daemon, make_link, parse_udt
 from vgripd.cli.s7_udt import db_source, udt_source
 from vgripd.configbase import DriverSection
 from vgripd.errors import ConfigError
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import LATCH_AREA, MAP_SIZE_V4, Reg
+from vgripd.peer.s7_block import db_bytes
 from vgripd.registry import validate_options
-from vgripd.service.protocol import (
-    LATCH_AREA,
-    MAP_SIZE_V4,
-    BlockWrite,
-    Command,
-    LinkState,
-    Reg,
-    RegisterBank,
-    Trigger,
-    ValueCodec,
-)
+from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.s7_plc import MockS7Plc, S7PlcServer
 from vgripd.types import BeltPose, JobResult, RobotTarget, Status
 
@@ -138,27 +131,6 @@ async def test_a_version_4_block_on_a_version_3_db_is_refused_naming_it() -> Non
             assert "DB10 bytes 0..123" in health.last_error
         finally:
             await link.close()
-
-
-def test_the_plan_never_writes_the_latch() -> None:
-    """A publish changes words on both sides of the latch (the pick list below, the belt
-    result above): one write on each side, never a span over the PLC's LATCH_COUNT."""
-    journal: list[BlockWrite] = []
-    bank = RegisterBank(ValueCodec(), journal, version=4)
-    bank.handshake.queue = True
-    sent = list(bank.image.words)
-    journal.clear()
-    bank.write(Reg.LATCH_COUNT, [0x1234, 0x5678])
-    bank.write(0, [1, 9, 0])
-    bank.captured(9, 3)
-    trigger = Trigger("plc", 9, 1, 0, latch_count=0x12345678)
-    bank.publish(9, belt_result(trigger), 0)
-    own = [range(3, LATCH_AREA.start), range(LATCH_AREA.stop, MAP_SIZE_V4)]
-    plan = plan_db_writes(sent, journal, own)
-    assert all(not (w.address < LATCH_AREA.stop and w.address + len(w.words) > LATCH_AREA.start)
-               for w in plan), plan
-    assert plan[-1] == BlockWrite(Reg.ACK_SEQ, (9,))
-    assert [w.address for w in plan[:-1]] == [Reg.STATE, Reg.RESULT_COUNT]
 
 
 def test_start_leaves_room_for_the_version_4_block() -> None:

@@ -21,15 +21,10 @@ from scipy.spatial.transform import Rotation
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
 from tests.conftest import lo, stop_task
 from vgripd.errors import LinkError
-from vgripd.service.protocol import (
-    Command,
-    LinkState,
-    Trigger,
-    URRegisterMap,
-    Warnings,
-    next_answer,
-    robot_pose_now,
-)
+from vgripd.peer.jobcore import Command, next_answer
+from vgripd.peer.registers import Warnings
+from vgripd.peer.ur_registers import URRegisterMap
+from vgripd.service.protocol import LinkState, Trigger, robot_pose_now
 from vgripd.service.web.trigger import WebTriggerLink
 from vgripd.sim.ur_controller import URController
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status

@@ -20,7 +20,8 @@ import pytest
 
 from drivers.links.modbus_client import ModbusClientLink, ModbusClientOptions
 from vgripd.errors import LinkError
-from vgripd.service.protocol import LinkState, Reg, Trigger, Warnings
+from vgripd.peer.registers import Reg, Warnings
+from vgripd.service.protocol import LinkState, Trigger
 from vgripd.sim.robot_modbus import MockRobotModbus, RobotMode
 from vgripd.types import JobResult, RobotTarget, Status
 

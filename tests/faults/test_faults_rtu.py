@@ -29,7 +29,8 @@ from tests.faults.rtu_line import BAUD, PtyLine, RawMaster, read_request, read_w
 from tests.integration.test_daemon import Plc, running, values
 from vgripd.config import config_from_dict
 from vgripd.errors import LinkError
-from vgripd.service.protocol import CHECK_U16, MAP_SIZE, LinkState, Reg
+from vgripd.peer.registers import CHECK_U16, MAP_SIZE, Reg
+from vgripd.service.protocol import LinkState
 from vgripd.types import Status
 
 pytestmark = pytest.mark.timeout(120)

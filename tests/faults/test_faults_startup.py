@@ -16,8 +16,9 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from tests.conftest import lo, stop_task
 from vgripd.config import config_from_dict
+from vgripd.peer.registers import CHECK_U16, MAP_SIZE, Reg
 from vgripd.service.daemon import Daemon, RunState
-from vgripd.service.protocol import CHECK_U16, MAP_SIZE, LinkState, Reg
+from vgripd.service.protocol import LinkState
 
 pytestmark = pytest.mark.timeout(120)
 SILENT_HOST = lo("127.0.8.1")

@@ -20,8 +20,9 @@ import pytest
 
 from drivers.links.modbus_rtu import ModbusRtuLink
 from tests.faults.rtu_line import BAUD, PtyLine, RawMaster, read_request, read_words
+from vgripd.peer.registers import MAP_SIZE, Reg
 from vgripd.peer.rtu import crc_ok, with_crc
-from vgripd.service.protocol import MAP_SIZE, LinkState, Reg, Trigger
+from vgripd.service.protocol import LinkState, Trigger
 
 pytestmark = pytest.mark.timeout(120)
 SEED = int(os.environ.get("VGRIPD_FUZZ_SEED", "5150"))

@@ -25,7 +25,8 @@ from tests.faults.modbus_raw import (
     recv_frame,
     silent,
 )
-from vgripd.service.protocol import CHECK_U16, MAP_SIZE, MAP_VERSIONS, LinkState, Reg
+from vgripd.peer.registers import CHECK_U16, MAP_SIZE, MAP_VERSIONS, Reg
+from vgripd.service.protocol import LinkState
 from vgripd.sim.plc import MockPlc
 from vgripd.types import JobResult, RobotTarget, Status
 

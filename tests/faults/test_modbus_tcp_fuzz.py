@@ -21,14 +21,9 @@ import struct
 import pytest
 
 from tests.faults.modbus_raw import Served, mbap
-from vgripd.service.protocol import (
-    CHECK_U16,
-    MAP_SIZE,
-    MAP_VERSIONS,
-    HandshakeState,
-    LinkState,
-    Reg,
-)
+from vgripd.peer.jobcore import HandshakeState
+from vgripd.peer.registers import CHECK_U16, MAP_SIZE, MAP_VERSIONS, Reg
+from vgripd.service.protocol import LinkState
 from vgripd.sim.plc import MockPlc
 from vgripd.types import JobResult, RobotTarget, Status
 

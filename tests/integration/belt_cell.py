@@ -17,8 +17,8 @@ import pytest
 from tests.integration.test_daemon import CODEC, Plc, values
 from vgripd.config import Config, config_from_dict
 from vgripd.geometry.vendors import transform_from_vendor
+from vgripd.peer.registers import Reg
 from vgripd.registry import CAMERAS, load_class, validate_options
-from vgripd.service.protocol import Reg
 
 COUNTS_PER_MM = 10.0
 COUNT0 = (1 << 32) - 3000  # the 32-bit counter wraps during the run

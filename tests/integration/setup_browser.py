@@ -25,7 +25,7 @@ from typing import Any
 
 from tests.integration.test_daemon import Plc
 from tests.integration.test_web import _chromium
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 
 Evaluate = Callable[[str], Awaitable[Any]]
 #: Sets the calibration step captures before it calibrates.

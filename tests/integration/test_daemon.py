@@ -27,11 +27,12 @@ from vgripd.cli.status import format_status
 from vgripd.cli.status import run as status_run
 from vgripd.config import Config, config_from_dict
 from vgripd.geometry.transforms import pose_error
+from vgripd.peer.jobcore import Command, HandshakeState
+from vgripd.peer.registers import MAP_SIZE, MAX_VALUES, Reg, ValueCodec
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.daemon import Daemon
 from vgripd.service.jobrecord import JobRecord
 from vgripd.service.jobs import JobState
-from vgripd.service.protocol import MAP_SIZE, MAX_VALUES, Command, HandshakeState, Reg, ValueCodec
 from vgripd.types import ImagePair, Status
 
 WAIT_S = 30.0

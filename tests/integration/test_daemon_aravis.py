@@ -16,7 +16,7 @@ from tests.conftest import REPO
 from tests.drivers.test_cameras_aravis import FakeCamera, two_fake_cameras
 from tests.integration.test_daemon import WAIT_S, Plc, running
 from vgripd.config import config_from_dict
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 from vgripd.types import Status
 
 

@@ -13,7 +13,7 @@ import cv2
 
 from tests.integration.test_daemon import Plc, _synthetic_pair, make_config, running
 from vgripd.config import Config
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 from vgripd.types import Status
 
 

@@ -35,9 +35,10 @@ from tests.integration.belt_cell import (
 )
 from tests.integration.test_daemon import running
 from vgripd.config import load_config
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import Reg
 from vgripd.serialize import toml_from_dict
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import Command, Reg
 from vgripd.service.reload import Reloader
 from vgripd.types import Status
 from vgripd.vision.scene import T_base_obj_ref

@@ -37,7 +37,8 @@ from tests.integration.belt_cell import (
 )
 from tests.integration.test_daemon import Run, running
 from vgripd.config import config_from_dict
-from vgripd.service.protocol import Command, Reg, ValueCodec
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import Reg, ValueCodec
 from vgripd.sim.robot_modbus import UR_FIRST_REGISTER, MockRobotModbus
 from vgripd.sim.s7_plc import MockS7Plc, S7PlcServer, words_of
 from vgripd.types import Status

@@ -41,8 +41,9 @@ from tests.integration.belt_cell import (
 )
 from tests.integration.test_daemon import CODEC, Run, running
 from vgripd.config import config_from_dict
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import Reg
 from vgripd.service.jobs import JobState
-from vgripd.service.protocol import Command, Reg
 from vgripd.types import Status
 from vgripd.vision.scene import T_base_obj_ref
 

@@ -36,7 +36,8 @@ from tests.integration.belt_cell import (
 from tests.integration.test_daemon import WAIT_S, running
 from vgripd.config import config_from_dict
 from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
-from vgripd.service.protocol import Command, LinkState
+from vgripd.peer.jobcore import Command
+from vgripd.service.protocol import LinkState
 from vgripd.sim.ur_belt import tracked, travel_m
 from vgripd.sim.ur_controller import URController
 from vgripd.types import Status

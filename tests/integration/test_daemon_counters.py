@@ -19,7 +19,7 @@ from tests.integration.test_daemon import Plc, running
 from vgripd.cli.status import format_status
 from vgripd.config import Config, config_from_dict
 from vgripd.errors import LinkError
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 from vgripd.types import JobResult, Status
 
 pytestmark = pytest.mark.timeout(90)

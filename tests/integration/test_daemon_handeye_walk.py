@@ -42,8 +42,8 @@ from vgripd.config import load_config
 from vgripd.geometry.fingerprint import camera_about, hand_eye_fingerprint, intrinsics_table
 from vgripd.geometry.transforms import make_transform, matrix_from_rotvec, pose_error
 from vgripd.geometry.vendors import vendor_from_transform
+from vgripd.peer.registers import Reg
 from vgripd.serialize import toml_from_dict
-from vgripd.service.protocol import Reg
 from vgripd.sim.arm import SimulatedArm
 from vgripd.sim.ur_controller import URController
 from vgripd.types import Status

@@ -24,7 +24,8 @@ import aiohttp
 from pymodbus.client import AsyncModbusTcpClient
 
 from tests.conftest import REPO
-from vgripd.service.protocol import MAP_SIZE, Command, Reg
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import MAP_SIZE, Reg
 from vgripd.service.worker import segments_of
 
 WAIT_S = 60.0

@@ -22,8 +22,8 @@ from tests.conftest import REPO
 from tests.integration.test_daemon import Plc, running
 from vgripd.config import config_from_dict, read_config_data
 from vgripd.geometry.transforms import pose_error
+from vgripd.peer.registers import Reg
 from vgripd.registry import CAMERAS, load_class, validate_options
-from vgripd.service.protocol import Reg
 from vgripd.types import Status
 
 SAMPLE = REPO / "config" / "samples" / "two_rigs_frame.toml"

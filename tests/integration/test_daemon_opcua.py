@@ -33,8 +33,9 @@ import pytest
 from tests.conftest import REPO
 from tests.integration.test_daemon import Plc, Run, running
 from vgripd.config import config_from_dict
+from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import LinkState, Reg
+from vgripd.service.protocol import LinkState
 from vgripd.sim.opcua_client import OpcUaClientProcess
 from vgripd.types import ImagePair, JobResult, Status
 

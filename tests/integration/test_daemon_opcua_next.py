@@ -26,8 +26,9 @@ from tests.integration.test_daemon_picklinks import (
     pallet_config,
     running,
 )
+from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import LinkState, Reg
+from vgripd.service.protocol import LinkState
 from vgripd.sim.opcua_client import OpcUaClientProcess
 from vgripd.types import Status
 

@@ -29,9 +29,11 @@ from vgripd.cli.robot_program import render
 from vgripd.cli.status import format_status
 from vgripd.config import Config, config_from_dict
 from vgripd.geometry.transforms import pose_error
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import Reg
+from vgripd.peer.socket_frames import BRANDS, Request, SocketCommand
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import Command, LinkState, Reg
-from vgripd.service.robot_socket_format import BRANDS, Request, SocketCommand
+from vgripd.service.protocol import LinkState
 from vgripd.sim.plc import MockPlc
 from vgripd.sim.robot_modbus import MockRobotModbus
 from vgripd.sim.robot_socket_client import ProgramSettings, ProgramTwin

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from tests.integration.test_daemon import Plc, Run, make_config
+from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import Reg
 from vgripd.types import Status
 from vgripd.vision.pipeline import Pipeline
 

@@ -15,7 +15,8 @@ import pytest
 from pymodbus.client import AsyncModbusTcpClient
 
 from tests.conftest import REPO
-from vgripd.service.protocol import MAP_SIZE, Command, HandshakeState, Reg
+from vgripd.peer.jobcore import Command, HandshakeState
+from vgripd.peer.registers import MAP_SIZE, Reg
 from vgripd.types import Status
 
 WAIT_S = 60.0

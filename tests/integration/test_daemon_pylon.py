@@ -20,7 +20,8 @@ from pathlib import Path
 from pymodbus.client import AsyncModbusTcpClient
 
 from tests.conftest import REPO, need
-from vgripd.service.protocol import MAP_SIZE, Command, Reg
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import MAP_SIZE, Reg
 from vgripd.types import Status
 
 WAIT_S = 90.0

@@ -28,9 +28,9 @@ import pytest
 from tests.integration.test_daemon import Plc, running
 from vgripd.cli.status import format_status
 from vgripd.config import config_from_dict
+from vgripd.peer.registers import Reg, Warnings
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.jobrecord import EpipolarMonitor
-from vgripd.service.protocol import Reg, Warnings
 from vgripd.sim.robot_modbus import UR_FIRST_REGISTER as BASE
 from vgripd.sim.robot_modbus import MockRobotModbus, RegisterWrite
 from vgripd.types import ImagePair, Status

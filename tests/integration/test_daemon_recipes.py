@@ -25,8 +25,9 @@ from vgripd.__main__ import main
 from vgripd.cli.status import format_status
 from vgripd.config import config_from_dict, load_config
 from vgripd.geometry.transforms import pose_error
+from vgripd.peer.registers import Reg
 from vgripd.serialize import toml_from_dict
-from vgripd.service.protocol import LinkState, Reg
+from vgripd.service.protocol import LinkState
 from vgripd.sim.plc import MockPlc
 from vgripd.types import Status
 from vgripd.vision.scene import matrix_from_pose

@@ -18,15 +18,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vgripd.config import config_from_dict
+from vgripd.peer.jobcore import Command
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import (
-    Command,
-    LinkHealth,
-    LinkState,
-    RobotLink,
-    Trigger,
-    TriggerHandler,
-)
+from vgripd.service.protocol import LinkHealth, LinkState, RobotLink, Trigger, TriggerHandler
 from vgripd.types import ImagePair, JobResult, RobotTarget, Status
 
 N = 3

@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 
 from tests.integration.test_daemon import Plc, Run, make_config
+from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon
 from vgripd.service.jobs import JobState
-from vgripd.service.protocol import Reg
 from vgripd.service.worker import (
     SHM_DIR,
     WORKER_NICE,

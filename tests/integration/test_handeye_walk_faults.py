@@ -22,8 +22,8 @@ from vgripd.calib.handeye.plan import load_plan
 from vgripd.calib.handeye.walk import NOT_SEEN, UNREACHABLE, Walk
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
+from vgripd.peer.socket_frames import AnswerKind, Request, SocketCommand
 from vgripd.service.handeye_walk import SKIP, WalkServer
-from vgripd.service.robot_socket_format import AnswerKind, Request, SocketCommand
 from vgripd.types import Status
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit" / "calib"))

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import REPO, need_camera_sdk, need_tool
-from vgripd.service.robot_socket_format import BRANDS
+from vgripd.peer.socket_frames import BRANDS
 
 pytestmark = pytest.mark.slow(minutes=3)
 

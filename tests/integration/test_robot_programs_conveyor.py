@@ -33,7 +33,7 @@ from tests.integration.belt_cell import (
 from tests.integration.test_daemon import running
 from tests.integration.test_robot_programs import free_port, program
 from vgripd.config import config_from_dict
-from vgripd.service.robot_socket_format import BRANDS, COUNTED_SIZE
+from vgripd.peer.socket_frames import BRANDS, COUNTED_SIZE
 from vgripd.sim.arm import SimulatedArm
 from vgripd.sim.robot_socket_client import ProgramSettings, ProgramTwin
 from vgripd.types import Status

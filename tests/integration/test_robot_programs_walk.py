@@ -47,10 +47,7 @@ from vgripd.calib.handeye.walk import SEEN, UNREACHABLE, Walk
 from vgripd.config import config_from_dict
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import convention, transform_from_vendor
-from vgripd.serialize import toml_from_dict
-from vgripd.service.handeye_walk import WalkServer
-from vgripd.service.protocol import LinkState
-from vgripd.service.robot_socket_format import (
+from vgripd.peer.socket_frames import (
     BRANDS,
     CAPTURE_AT_SIZE,
     REQUEST_SIZE,
@@ -58,6 +55,9 @@ from vgripd.service.robot_socket_format import (
     SocketCommand,
     header_word,
 )
+from vgripd.serialize import toml_from_dict
+from vgripd.service.handeye_walk import WalkServer
+from vgripd.service.protocol import LinkState
 from vgripd.sim.arm import SimulatedArm
 from vgripd.sim.robot_socket_client import (
     AT_ELSEWHERE,

@@ -43,8 +43,7 @@ from vgripd.calib.handeye.plan import LoadedPlan, load_plan
 from vgripd.calib.handeye.walk import SEEN, UNREACHABLE, Walk
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import vendor_from_transform
-from vgripd.service.handeye_walk import WalkServer
-from vgripd.service.robot_socket_format import (
+from vgripd.peer.socket_frames import (
     BRANDS,
     Answer,
     AnswerKind,
@@ -52,6 +51,7 @@ from vgripd.service.robot_socket_format import (
     SocketCommand,
     header_word,
 )
+from vgripd.service.handeye_walk import WalkServer
 from vgripd.sim.robot_socket_client import WALK_SKIP, ProgramTwin
 from vgripd.types import Status
 

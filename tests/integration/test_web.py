@@ -31,7 +31,7 @@ from tests.integration.test_daemon import Plc, Run, make_config, running
 from vgripd.__main__ import EXIT_CONFIG
 from vgripd.__main__ import main as vgripd_main
 from vgripd.cli.status import run as status_run
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 from vgripd.types import Status
 
 pytestmark = pytest.mark.slow

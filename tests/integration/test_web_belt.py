@@ -21,7 +21,8 @@ from tests.integration.belt_cell import (
 )
 from tests.integration.test_daemon import running
 from tests.integration.test_web import _base, _chromium, _until
-from vgripd.service.protocol import Command, Reg
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import Reg
 from vgripd.types import Status
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]

@@ -19,7 +19,7 @@ from tests.integration.test_daemon import Plc
 from tests.integration.test_web import _chromium, _until
 from tests.integration.test_web_reload import TOKEN, job, post, running_file, write_cell
 from vgripd.config import load_config
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 from vgripd.types import Status
 
 SAMPLES = REPO / "config" / "samples"

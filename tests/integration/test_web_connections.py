@@ -17,7 +17,7 @@ import aiohttp
 import pytest
 
 from tests.integration.test_daemon import Plc, Run, make_config, running
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 from vgripd.types import Status
 
 WAIT_S = 30.0

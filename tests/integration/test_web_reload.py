@@ -27,9 +27,9 @@ from tests.integration.test_daemon import Plc, Run, make_config
 from tests.integration.test_daemon_process import _free_port
 from tests.integration.test_web import _chromium, _until
 from vgripd.config import load_config, read_config_data
+from vgripd.peer.registers import Reg
 from vgripd.serialize import toml_from_dict
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import Reg
 from vgripd.service.reload import Reloader
 from vgripd.types import Status
 
@@ -213,7 +213,8 @@ async def _line(stream: asyncio.StreamReader, wanted: str, seen: list[str]) -> s
 async def _process_job(client: Any, seq: int) -> int:
     from pymodbus.client import AsyncModbusTcpClient
 
-    from vgripd.service.protocol import MAP_SIZE, Command
+    from vgripd.peer.jobcore import Command
+    from vgripd.peer.registers import MAP_SIZE
 
     assert isinstance(client, AsyncModbusTcpClient)
     await client.write_registers(Reg.CMD, [Command.TRIGGER, seq])

@@ -26,7 +26,7 @@ import pytest
 from tests.integration.test_daemon import Plc, Run, make_config, running
 from tests.integration.test_web import TOKEN, WAIT_S, _recorded
 from vgripd.config import load_config
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 from vgripd.service.web.access import SECURITY_HEADERS, SESSION_COOKIE
 from vgripd.types import Status
 

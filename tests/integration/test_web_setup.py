@@ -13,7 +13,7 @@ import pytest
 
 from tests.conftest import need_tool
 from tests.integration.setup_browser import SETS, demo_setup, drive
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 from vgripd.types import Status
 
 pytestmark = pytest.mark.slow(minutes=6)

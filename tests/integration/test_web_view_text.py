@@ -12,7 +12,7 @@ import aiohttp
 from tests.integration.test_daemon import Plc, running
 from tests.integration.test_daemon_multicam import cell
 from tests.integration.test_web import _base, _chromium, _until
-from vgripd.service.protocol import Reg
+from vgripd.peer.registers import Reg
 from vgripd.types import Status
 
 LABELS = """(() => {

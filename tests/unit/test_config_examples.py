@@ -20,7 +20,7 @@ import pytest
 
 from tests.conftest import REPO, need, need_camera_sdk
 from vgripd.__main__ import main
-from vgripd.service.robot_socket_format import BRANDS
+from vgripd.peer.socket_frames import BRANDS
 
 EXAMPLES = REPO / "config" / "examples"
 FILES = sorted(EXAMPLES.glob("*.toml"))

@@ -13,14 +13,8 @@ import numpy as np
 from tests.conftest import REPO
 from vgripd.cli.s7_udt import db_source
 from vgripd.geometry.vendors import CONVENTIONS
-from vgripd.service.protocol import (
-    COMMAND_AREA,
-    MAP_SIZE,
-    MAP_VERSIONS,
-    Command,
-    HandshakeState,
-    Reg,
-)
+from vgripd.peer.jobcore import Command, HandshakeState
+from vgripd.peer.registers import COMMAND_AREA, MAP_SIZE, MAP_VERSIONS, Reg
 from vgripd.service.recorder import Recorder
 from vgripd.types import ImagePair, JobResult, Status
 

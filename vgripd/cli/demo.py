@@ -43,10 +43,10 @@ from vgripd.config import config_from_dict
 from vgripd.errors import LinkError
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import CONVENTIONS, convention
+from vgripd.peer.registers import MAX_VALUES
 from vgripd.service.daemon import Daemon
 from vgripd.service.jobrecord import JobRecord
 from vgripd.service.logsetup import configure_logging
-from vgripd.service.protocol import MAX_VALUES
 from vgripd.sim.plc import CycleResult, MockPlc
 from vgripd.types import ImagePair, Status
 

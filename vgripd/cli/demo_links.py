@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from vgripd.errors import LinkError
-from vgripd.service.protocol import Reg, Warnings
+from vgripd.peer.registers import Reg, Warnings
 from vgripd.sim.plc import CycleResult
 from vgripd.types import Status
 
@@ -56,13 +56,13 @@ def vendor_for(kind: str, vendor: str) -> str | None:
     if kind == "ur_rtde":
         return "ur"
     if kind == "robot_socket":
-        from vgripd.service.robot_socket_format import BRANDS
+        from vgripd.peer.socket_frames import BRANDS
         return BRANDS[vendor].convention if vendor in BRANDS else None
     return vendor
 
 
 def robot_socket_brands() -> list[str]:
-    from vgripd.service.robot_socket_format import BRANDS
+    from vgripd.peer.socket_frames import BRANDS
     return sorted(BRANDS)
 
 
@@ -160,7 +160,7 @@ class Peers:
         return self.spec
 
     async def _robot_socket(self) -> LinkPeer:
-        from vgripd.service.robot_socket_format import BRANDS
+        from vgripd.peer.socket_frames import BRANDS
         self._brand = brand = BRANDS[self.vendor]
         scale = 1000000 if brand.name == "ur" else 10000
         link: dict[str, Any] = {"type": "robot_socket", "mode": brand.mode,

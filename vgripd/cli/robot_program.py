@@ -26,9 +26,7 @@ from pathlib import Path
 from vgripd.cli.paths import DEFAULT_CONFIG
 from vgripd.config import Config, DriverSection, load_config
 from vgripd.geometry.vendors import CONVENTIONS
-from vgripd.registry import LINKS, load_class, validate_options
-from vgripd.resources import DOCS, ROBOTS, shared
-from vgripd.service.robot_socket_format import (
+from vgripd.peer.socket_frames import (
     BRANDS,
     CAPTURE_AT_SIZE,
     COUNTED,
@@ -38,6 +36,8 @@ from vgripd.service.robot_socket_format import (
     SocketCommand,
     header_word,
 )
+from vgripd.registry import LINKS, load_class, validate_options
+from vgripd.resources import DOCS, ROBOTS, shared
 
 EXIT_OK = 0
 EXIT_USAGE = 2

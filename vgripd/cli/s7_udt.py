@@ -1,6 +1,6 @@
 """Print the S7 link's data block layout as SCL source for TIA Portal: a UDT, and a DB using it.
 
-The layout is the register map of ``vgripd.service.protocol`` (docs/registers.md) with map
+The layout is the register map of ``vgripd.peer.registers`` (docs/registers.md) with map
 register n at byte 2 n of the block: the same items in the same order, 16-bit items as Int or
 Word, 32-bit items as DInt, DWord or Real, all big-endian (S7's own byte order). Offsets come
 from ``Reg``; this module adds only each item's S7 type. With ``-c CONFIG`` the value format
@@ -29,8 +29,7 @@ from typing import Any
 
 from vgripd.config import load_config
 from vgripd.errors import ConfigError
-from vgripd.registry import LINKS, load_class, validate_options
-from vgripd.service.protocol import (
+from vgripd.peer.registers import (
     COMMAND_AREA,
     LATCH_AREA,
     MAP_VERSIONS,
@@ -39,6 +38,7 @@ from vgripd.service.protocol import (
     ValueFormat,
     map_size,
 )
+from vgripd.registry import LINKS, load_class, validate_options
 
 #: The map version without ``map_version`` in the link's options (4 is the conveyor's).
 S7_MAP_VERSION = MAP_VERSIONS[0]

@@ -55,6 +55,8 @@ from typing import Any
 
 from vgripd.config import Config
 from vgripd.errors import ConfigError, NotCalibratedError, NotTaughtError
+from vgripd.peer.jobcore import JobCore, PickCursor
+from vgripd.peer.registers import Warnings
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.cameras import (
     CameraSupervisor,
@@ -62,11 +64,10 @@ from vgripd.service.cameras import (
 )
 from vgripd.service.gate import Budget
 from vgripd.service.heap import freeze_start_up_heap
-from vgripd.service.jobcore import JobCore, PickCursor
 from vgripd.service.jobrecord import EpipolarMonitor, JobListener, JobRecord
 from vgripd.service.jobs import JobRunner, JobState, Processor, ViewJob, recipe_label
 from vgripd.service.links import LinkSupervisor
-from vgripd.service.protocol import RobotLink, Warnings
+from vgripd.service.protocol import RobotLink
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.recorder import Recorder
 from vgripd.service.reload import Reloader

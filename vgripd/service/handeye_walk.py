@@ -57,7 +57,7 @@ from vgripd.calib.handeye.walk import Walk
 from vgripd.errors import VgripError
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import convention, vendor_from_transform
-from vgripd.service.jobcore import Command
+from vgripd.peer.jobcore import Command
 from vgripd.service.protocol import RobotLink, Trigger
 from vgripd.types import JobResult, RobotTarget, Status
 

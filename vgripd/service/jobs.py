@@ -73,20 +73,23 @@ import numpy as np
 
 from vgripd.config import Config, unknown_recipe
 from vgripd.errors import CameraError, NotCalibratedError
-from vgripd.service.beltqueue import belt_lines
-from vgripd.service.cameras import CameraSupervisor
-from vgripd.service.jobcore import (
+from vgripd.peer.jobcore import (
     Admission,
     Admit,
+    Command,
     JobCore,
     PickCursor,
     ViewsAt,
     ViewStep,
+    pick_position,
     view_admission,
 )
+from vgripd.peer.registers import Warnings
+from vgripd.service.beltlines import belt_lines
+from vgripd.service.cameras import CameraSupervisor
 from vgripd.service.jobrecord import EpipolarMonitor, JobListener, JobRecord
 from vgripd.service.links import LinkSupervisor
-from vgripd.service.protocol import Command, Trigger, Warnings, pick_position
+from vgripd.service.protocol import Trigger
 from vgripd.service.recorder import Recorder
 from vgripd.service.tasks import Background
 from vgripd.service.worker import WorkerClient, WorkerError, WorkerRecorder

@@ -41,7 +41,7 @@ from typing import Any
 from vgripd.config import Config, config_from_dict
 from vgripd.errors import ConfigError
 from vgripd.redaction import redact
-from vgripd.service.beltqueue import belt_lines
+from vgripd.service.beltlines import belt_lines
 from vgripd.service.configtxn import ConfigWriter, Outcome
 from vgripd.service.protocol import tell_links
 from vgripd.service.worker import WorkerError

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from vgripd.config import Config
-from vgripd.service.beltqueue import BeltLine, belt_pose
+from vgripd.peer.beltqueue import BeltLine, belt_pose
 from vgripd.service.cameras import CameraSupervisor
 from vgripd.service.jobs import JobRunner, recipe_label
 from vgripd.service.links import LinkSupervisor

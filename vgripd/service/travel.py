@@ -20,18 +20,12 @@ from typing import ClassVar
 
 from pydantic import BaseModel
 
+from vgripd.peer.belttravel import Travel, TravelRule
+from vgripd.peer.jobcore import Command
 from vgripd.registry import LinkCapabilities
-from vgripd.service.belttravel import Travel, TravelRule
 from vgripd.service.jobs import JobRunner
 from vgripd.service.links import LinkSupervisor
-from vgripd.service.protocol import (
-    Command,
-    LinkHealth,
-    LinkState,
-    RobotLink,
-    Trigger,
-    TriggerHandler,
-)
+from vgripd.service.protocol import LinkHealth, LinkState, RobotLink, Trigger, TriggerHandler
 from vgripd.service.ratelog import RateLimitedLog
 from vgripd.service.walkmode import WalkMode
 from vgripd.types import JobResult, Status

@@ -10,10 +10,10 @@ e.g. ``BadInvalidState`` for a call the current state does not allow) or done, w
 transitions it fired (the NodeSet's transition names, e.g. ``ReadyToSingleExecution``).
 
 A job request (StartSingleJob, the plain ``Next`` of the pick list and a conveyor's plain
-``Predict``) goes through the link's ``Handshake`` (``vgripd.service.jobcore``), so the
+``Predict``) goes through the link's ``Handshake`` (``vgripd.peer.jobcore``), so the
 register contract's promises hold for the standard's methods too: each request answered
 once, no stale or repeated pose, COUNT/INDEX. The property test
-(``tests/unit/service/test_jobcore.py``) drives this machine among the other link kinds.
+(``tests/unit/peer/test_jobcore.py``) drives this machine among the other link kinds.
 Halt, Reset, Stop or Abort while a job runs cannot take the job back from the daemon: its
 result still comes, once, but as ``ABORTED`` without a pose (``VisionMachine.publish``), and
 the state machine has already left SingleExecution.
@@ -33,7 +33,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-from vgripd.service.jobcore import Action, Command, Decision, Handshake, Part, Step
+from vgripd.peer.jobcore import Action, Command, Decision, Handshake, Part, Step
 from vgripd.types import JobResult, Status
 
 

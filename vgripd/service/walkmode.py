@@ -50,10 +50,10 @@ from vgripd.calib.handeye.plan import load_plan, plan_inside
 from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
 from vgripd.errors import CalibrationError, CameraError, ConfigError, VgripError
 from vgripd.geometry.camera_model import CameraModel
+from vgripd.peer.jobcore import Command
 from vgripd.service.cameras import CameraSupervisor
 from vgripd.service.commands import CommandTimeout, run_vgripd
 from vgripd.service.handeye_walk import WalkServer, walk_refusal
-from vgripd.service.jobcore import Command
 from vgripd.service.jobs import JobRunner
 from vgripd.service.links import LinkSupervisor, link_names
 from vgripd.service.protocol import Trigger

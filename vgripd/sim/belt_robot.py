@@ -22,7 +22,7 @@ import numpy as np
 
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import transform_from_vendor
-from vgripd.service.protocol import Command
+from vgripd.peer.jobcore import Command
 from vgripd.sim.conveyor import BeltAnswer, BeltPlc, SimBelt
 from vgripd.types import FloatArray, Status
 

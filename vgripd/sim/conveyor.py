@@ -23,8 +23,9 @@ import cv2
 import numpy as np
 
 from vgripd.config import Config, ConveyorConfig
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import MAP_SIZE_V4, Reg
 from vgripd.registry import CAMERAS, load_class, validate_options
-from vgripd.service.protocol import MAP_SIZE_V4, Command, Reg
 from vgripd.sim.plc import CycleResult, MockPlc
 from vgripd.types import FloatArray
 from vgripd.vision import scene

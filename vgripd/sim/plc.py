@@ -1,5 +1,5 @@
 """A scripted PLC: the Modbus/TCP client side of the register handshake
-(``vgripd.service.protocol``).
+(``vgripd.peer.registers``).
 
 It triggers a job (command, recipe and a new request sequence in one write), polls until the
 request is answered (acknowledged or refused), and checks what a careful PLC program would:
@@ -26,19 +26,17 @@ from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.client.mixin import ModbusClientMixin
 
 from vgripd.errors import LinkError
-from vgripd.service.protocol import (
+from vgripd.peer.jobcore import Command, HandshakeState, capture_word
+from vgripd.peer.registers import (
     CHECK_F32,
     CHECK_U16,
     CHECK_U32,
     MAP_SIZE,
     MAP_VERSIONS,
-    Command,
-    HandshakeState,
     Reg,
     ValueFormat,
     Warnings,
     WordOrder,
-    capture_word,
 )
 from vgripd.types import Status
 
@@ -56,7 +54,7 @@ class CycleResult:
     ``values``: the pose in the vendor convention (empty unless ``status.pose_valid``).
     ``fit_rms``: FIT_RMS as published (-1 = unknown). ``age_ms``: RESULT_AGE_MS at the answer.
     ``cycle_ms``: trigger write to answer seen, on the PLC's clock. ``warnings``: the
-    WARNINGS bits (``vgripd.service.protocol.Warnings``) in the read that saw the answer.
+    WARNINGS bits (``vgripd.peer.registers.Warnings``) in the read that saw the answer.
     """
 
     seq: int

@@ -6,7 +6,7 @@ run by pymodbus on 127.0.0.1 (a free port unless one is given):
 
 - holding registers ``first .. first+count-1`` only; any other address or table answers with
   the Modbus exception ILLEGAL_DATA_ADDRESS, as UR's server does;
-- a simulated robot program on ``vgripd.service.protocol``'s map (``run_job``, or ``start_program``
+- a simulated robot program on ``vgripd.peer.registers``'s map (``run_job``, or ``start_program``
 for
   a loop on an asyncio task): writes a new request sequence, waits until vgripd acknowledges
   (or refuses) it, snapshots the block and checks the byte-order words;
@@ -31,7 +31,8 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from vgripd.errors import LinkError
-from vgripd.service.protocol import CHECK_U16, CHECK_U32, MAP_SIZE, Command, Reg, ValueCodec
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import CHECK_U16, CHECK_U32, MAP_SIZE, Reg, ValueCodec
 
 UR_FIRST_REGISTER = 128
 UR_REGISTER_COUNT = 128
@@ -172,7 +173,7 @@ class MockRobotModbus:
         command: int = Command.TRIGGER, recipe: int = 0, codec: ValueCodec | None = None,
         latch: int | None = None, size: int = MAP_SIZE,
     ) -> JobSeen:
-        """One cycle of the robot program on ``vgripd.service.protocol``'s map at ``base``.
+        """One cycle of the robot program on ``vgripd.peer.registers``'s map at ``base``.
 
         Sets CMD and RECIPE (and with ``latch``, map version 4: LATCH_COUNT, the encoder count
         latched or PREDICT's N, in ``codec``'s word order), then raises REQ_SEQ to ``seq``;

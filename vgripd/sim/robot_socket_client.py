@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 
 from vgripd.geometry.vendors import convention, transform_from_vendor, vendor_from_transform
-from vgripd.service.robot_socket_format import ANSWER_SIZE, BRANDS, N_VALUES, RobotBrand
+from vgripd.peer.socket_frames import ANSWER_SIZE, BRANDS, N_VALUES, RobotBrand
 from vgripd.sim.arm import ArmState
 
 NO_ANSWER = -1

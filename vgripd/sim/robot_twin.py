@@ -38,7 +38,7 @@ import numpy as np
 
 from vgripd.errors import ConversionError
 from vgripd.geometry.vendors import convention, transform_from_vendor
-from vgripd.service.robot_socket_format import BRANDS
+from vgripd.peer.socket_frames import BRANDS
 from vgripd.sim.arm import SimulatedArm
 from vgripd.sim.robot_socket_client import (
     NOT_FOUND,

@@ -12,7 +12,7 @@ The child reports every DB write it serves, in arrival order, as a line on its s
 parent keeps them in ``writes`` (offset and bytes), so tests can check that ACK_SEQ travelled
 alone and last.
 
-``MockS7Plc`` is the PLC program: it drives the handshake of ``vgripd.service.protocol``'s map
+``MockS7Plc`` is the PLC program: it drives the handshake of ``vgripd.peer.registers``'s map
 through a snap7 client, as a program in the PLC sees its own DB: write CMD and RECIPE (and on a
 conveyor, map version 4, the latched encoder count), then a new REQ_SEQ; wait until ACK_SEQ or
 REJECT_SEQ equals it; read the block. The layout is the
@@ -42,15 +42,8 @@ from snap7 import AsyncClient
 from snap7.error import S7Error
 
 from vgripd.errors import LinkError
-from vgripd.service.protocol import (
-    CHECK_F32,
-    CHECK_U16,
-    CHECK_U32,
-    MAP_SIZE,
-    Command,
-    Reg,
-    ValueFormat,
-)
+from vgripd.peer.jobcore import Command
+from vgripd.peer.registers import CHECK_F32, CHECK_U16, CHECK_U32, MAP_SIZE, Reg, ValueFormat
 
 DB_BYTES = 2 * MAP_SIZE  # the map's 16-bit words, one after the other
 STARTUP_S = 20.0  # a loaded 2-core CI machine can take seconds to start a Python process

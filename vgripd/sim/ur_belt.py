@@ -20,10 +20,11 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from vgripd.service.protocol import Command, URRegisterMap, int32_bits
+from vgripd.peer.jobcore import Command
+from vgripd.peer.ur_registers import URRegisterMap, int32_bits
 
 if TYPE_CHECKING:
-    from vgripd.service.protocol import URRegisterMap as _Regs
+    from vgripd.peer.ur_registers import URRegisterMap as _Regs
 
 
 def travel_m(count_from: int, count_to: int, ticks_per_m: float, bits: int = 32) -> float:

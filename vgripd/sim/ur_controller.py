@@ -11,10 +11,9 @@ in-process handle: it spawns the server process and drives it over a pipe (set o
 inputs the client wrote, run the simulated robot program, switch faults on and off).
 
 The simulated robot program (``start_program`` / ``program_result``) is the Python twin of
-``robots/urscript/vgripd.script``, including what it does when vgripd does not answer (asks
-again, ``attempts`` requests in all, then gives up as the script's popup does) and when vgripd
-answers BUSY (waits ``busy_wait_s`` and asks again); the register map is in ``docs/ur_rtde.md``.
-Both take their register numbers from ``vgripd.service.protocol.URRegisterMap``.
+``robots/urscript/vgripd.script``, including what it does when vgripd does not answer (asks again,
+``attempts`` requests in all, then gives up as the script's popup does) and when it answers BUSY
+(waits ``busy_wait_s``, asks again). Both take their registers from ``peer.ur_registers``.
 
 Input registers can also be named in an output recipe (the controller's "input read back"), as
 on a real controller; ``set_inputs`` presets them (values left by an earlier client).
@@ -41,7 +40,8 @@ import numpy as np
 
 from vgripd.errors import VgripError
 from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
-from vgripd.service.protocol import URRegisterMap, capture_word
+from vgripd.peer.jobcore import capture_word
+from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.sim.ur_belt import BeltProgram
 from vgripd.types import Status
 

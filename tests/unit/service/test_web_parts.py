@@ -19,14 +19,9 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from vgripd.config import config_from_dict
 from vgripd.errors import ConfigError
+from vgripd.peer.registers import RegisterBank, ValueCodec
 from vgripd.redaction import redact
-from vgripd.service.protocol import (
-    LinkHealth,
-    LinkState,
-    RegisterBank,
-    Trigger,
-    ValueCodec,
-)
+from vgripd.service.protocol import LinkHealth, LinkState, Trigger
 from vgripd.service.web.app import MAX_EVENTS_QUEUED, EventHub
 from vgripd.service.web.images import render
 from vgripd.service.web.metrics import Metrics

@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tests.conftest import lo
-from vgripd.service.protocol import URRegisterMap
+from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.sim.ur_controller import MockControllerError, URController, pose_trans
 
 pytestmark = pytest.mark.timeout(30)

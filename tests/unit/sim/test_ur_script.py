@@ -7,7 +7,8 @@ from __future__ import annotations
 import re
 
 from tests.conftest import REPO
-from vgripd.service.protocol import Command, URRegisterMap
+from vgripd.peer.jobcore import Command
+from vgripd.peer.ur_registers import URRegisterMap
 
 SCRIPT = REPO / "robots" / "urscript" / "vgripd.script"
 OWN = re.compile(r"^(vgripd_|VGRIPD_)")

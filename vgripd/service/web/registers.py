@@ -1,5 +1,5 @@
 """The register map of each register link as its peer reads it, decoded with the names of
-``vgripd.service.protocol.Reg`` (what an integrator compares with the PLC's watch table)."""
+``vgripd.peer.registers.Reg`` (what an integrator compares with the PLC's watch table)."""
 
 from __future__ import annotations
 
@@ -8,14 +8,8 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from vgripd.service.protocol import (
-    MAX_VALUES,
-    Command,
-    HandshakeState,
-    Reg,
-    RegisterBank,
-    Warnings,
-)
+from vgripd.peer.jobcore import Command, HandshakeState
+from vgripd.peer.registers import MAX_VALUES, Reg, RegisterBank, Warnings
 from vgripd.types import Status
 
 _U32 = {Reg.CHECK_U32, Reg.VALUE_SCALE, Reg.JOB_ID, Reg.RESULT_AGE_MS, Reg.LATCH_COUNT,

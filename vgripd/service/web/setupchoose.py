@@ -42,12 +42,12 @@ from aiohttp import web
 
 from vgripd.configsnapshot import Snapshot
 from vgripd.errors import CameraError, CameraSettingError, VgripError
+from vgripd.peer.socket_frames import BRANDS
 from vgripd.registry import CONTRACTS, LINKS, load_class
 from vgripd.resources import EXAMPLES, shared
 from vgripd.serialize import jsonable, toml_from_dict
 from vgripd.service.commands import run_vgripd
 from vgripd.service.configtxn import Edit, judge
-from vgripd.service.robot_socket_format import BRANDS
 from vgripd.service.web.bodies import json_body, outcome_response
 from vgripd.service.web.context import WebContext
 from vgripd.service.web.registers import register_views

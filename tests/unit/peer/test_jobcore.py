@@ -1,4 +1,4 @@
-"""The job core (``vgripd.service.jobcore``) fed random sequences of events, without I/O.
+"""The job core (``vgripd.peer.jobcore``) fed random sequences of events, without I/O.
 
 A cell of five links, each kind, shares one ``JobCore`` as the daemon does:
 
@@ -43,8 +43,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.links.modbus_client import plan_writes
-from drivers.links.s7 import plan_db_writes
-from vgripd.service.jobcore import (
+from vgripd.peer.jobcore import (
     Action,
     Admit,
     Command,
@@ -61,16 +60,10 @@ from vgripd.service.jobcore import (
     pick_position,
     view_admission,
 )
-from vgripd.service.protocol import (
-    MAP_SIZE,
-    PICK_AREA,
-    BlockWrite,
-    Reg,
-    RegisterBank,
-    URRegisterMap,
-    ValueCodec,
-)
-from vgripd.service.robot_socket_format import remaining
+from vgripd.peer.registers import MAP_SIZE, PICK_AREA, BlockWrite, Reg, RegisterBank, ValueCodec
+from vgripd.peer.s7_block import plan_db_writes
+from vgripd.peer.socket_frames import remaining
+from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.service.visionsm import EXECUTING, Auto, VisionMachine
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 

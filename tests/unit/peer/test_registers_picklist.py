@@ -1,5 +1,5 @@
 """Pick lists in the register map (version 3): COUNT, INDEX, PICK_ID, SCORE and Command.NEXT
-(vgripd.service.protocol), without I/O.
+(vgripd.peer.registers), without I/O.
 
 The answers a NEXT gets are built with ``next_answer`` (what the daemon does) and published
 through the same ``RegisterBank`` a Modbus server, RTU or mirror client link uses.
@@ -15,24 +15,20 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from vgripd.errors import LinkError
-from vgripd.service.protocol import (
-    MAP_SIZE,
+from vgripd.peer.jobcore import (
     UNKNOWN_SCORE,
     Action,
-    BlockWrite,
     Command,
     Handshake,
     HandshakeState,
     NextAnswer,
     PickPosition,
-    Reg,
-    RegisterBank,
-    URRegisterMap,
-    ValueCodec,
     next_answer,
     pick_position,
     pickable_count,
 )
+from vgripd.peer.registers import MAP_SIZE, BlockWrite, Reg, RegisterBank, ValueCodec
+from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 FIELDS = tuple(f"v{i}" for i in range(6))

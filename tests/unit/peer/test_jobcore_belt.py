@@ -13,9 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vgripd.geometry.vendors import target_from_transform, transform_from_vendor
-from vgripd.service.beltqueue import BeltLine, Latch, LatchSource, line_of
-from vgripd.service.jobcore import Admit, Command, JobCore
-from vgripd.service.protocol import Reg, RegisterBank, ValueCodec
+from vgripd.peer.beltqueue import BeltLine, Latch, LatchSource, line_of
+from vgripd.peer.jobcore import Admit, Command, JobCore
+from vgripd.peer.registers import Reg, RegisterBank, ValueCodec
 from vgripd.types import JobResult, PickInstance, Status
 
 COUNTS_PER_MM = 4.0
@@ -214,7 +214,7 @@ def test_map_version_4_latch_area_and_belt_result() -> None:
     assert bank.write(0, (5, 2, 0)).count == 70000
     import pytest
 
-    from vgripd.service.protocol import RegisterAccessError
+    from vgripd.peer.registers import RegisterAccessError
     with pytest.raises(RegisterAccessError, match=r"50 \(RESULT_COUNT\) is read-only"):
         bank.write(50, (1,))
     v3 = RegisterBank(codec)

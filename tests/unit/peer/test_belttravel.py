@@ -1,8 +1,8 @@
-"""Triggering by belt travel (vgripd.service.belttravel) against belts simulated here with
+"""Triggering by belt travel (vgripd.peer.belttravel) against belts simulated here with
 unwrapped whole counts: images only where the count has advanced the trigger distance since
 the last one, none while it stands, skips while a job runs (never taken late), the same
 decisions on either side of the counter's wrap, a jump re-based into one image; and the latch
-interpolated from the counts read around an exposure (vgripd.service.beltqueue)."""
+interpolated from the counts read around an exposure (vgripd.peer.beltqueue)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vgripd.geometry.belt import Belt
-from vgripd.service.beltqueue import LatchSource, latch_from_counts
-from vgripd.service.belttravel import Travel, TravelRule, TravelStep
+from vgripd.peer.beltqueue import LatchSource, latch_from_counts
+from vgripd.peer.belttravel import Travel, TravelRule, TravelStep
 
 MS = 1_000_000  # ns
 

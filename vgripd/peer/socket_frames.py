@@ -34,7 +34,7 @@ Answer, vgripd -> robot (64 bytes)::
        1   4-7   request id of the request answered
        2   8-11  status (``vgripd.types.Status``)
        3  12-15  job id (u32; 0 when no job ran)
-       4  16-19  warnings (``vgripd.service.protocol.Warnings`` bits, live)
+       4  16-19  warnings (``vgripd.peer.registers.Warnings`` bits, live)
        5  20-23  count: valid pose values, 0, 6 or 7
        6  24-51  7 values in the output vendor's convention and units (int32 scaled or float32)
       13  52-55  fit RMS in mm, same encoding; -1 = unknown
@@ -69,8 +69,9 @@ import struct
 from dataclasses import dataclass
 from typing import Literal
 
+from vgripd.peer.jobcore import PickPosition, pick_position
+from vgripd.peer.registers import FIT_RMS_KEY
 from vgripd.registry import LinkCapabilities
-from vgripd.service.protocol import FIT_RMS_KEY, PickPosition, pick_position
 from vgripd.types import BeltPose, JobResult, Status
 
 VERSION = 1

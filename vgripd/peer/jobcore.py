@@ -5,7 +5,7 @@ request, an image taken, a result, a NEXT, a CLEAR) and returns a decision (refu
 start a job, write these parts of the answer area in this order, answer the NEXT with this
 instance). The links (``drivers/links/*``) and the daemon carry the decisions out; the tests
 feed the machines random sequences of events and check the rules on what comes out
-(``tests/unit/service/test_jobcore.py``), so the rules hold for every link kind at once.
+(``tests/unit/peer/test_jobcore.py``), so the rules hold for every link kind at once.
 
 Two machines:
 
@@ -55,7 +55,7 @@ import enum
 from dataclasses import dataclass
 
 from vgripd.errors import LinkError
-from vgripd.service.beltqueue import BeltLine, Latch
+from vgripd.peer.beltqueue import BeltLine, Latch
 from vgripd.types import JobResult, Status
 
 

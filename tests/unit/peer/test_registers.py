@@ -1,4 +1,4 @@
-"""Register map, codec, handshake and publish ordering (vgripd.service.protocol), without I/O.
+"""Register map, codec, handshake and publish ordering (vgripd.peer.registers), without I/O.
 
 Oracle for the encodings: ``struct`` packing written out here by hand (big-endian bytes, words
 swapped for CDAB), not the codec under test.
@@ -16,18 +16,14 @@ from hypothesis import strategies as st
 
 from vgripd.errors import LinkError
 from vgripd.geometry.vendors import CONVENTIONS
-from vgripd.service.protocol import (
+from vgripd.peer.jobcore import Action, Command, Handshake, HandshakeState
+from vgripd.peer.registers import (
     CHECK_F32,
     MAP_SIZE,
     MAP_VERSION,
     NO_AGE,
     REGISTER_CAPABILITIES,
-    Action,
     BlockWrite,
-    Command,
-    Handshake,
-    HandshakeState,
-    LinkCapabilities,
     Reg,
     RegisterAccessError,
     RegisterBank,
@@ -35,6 +31,7 @@ from vgripd.service.protocol import (
     ValueCodec,
     Warnings,
 )
+from vgripd.registry import LinkCapabilities
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 

@@ -1,4 +1,4 @@
-"""The conveyor's latch and part-queue rules (vgripd.service.beltqueue) against a belt
+"""The conveyor's latch and part-queue rules (vgripd.peer.beltqueue) against a belt
 simulated here: true parts carried by their own arithmetic, seen by a camera window with
 noise, picked by a robot at random counts."""
 
@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vgripd.geometry.belt import Belt
-from vgripd.service.beltqueue import (
+from vgripd.peer.beltqueue import (
     FrameLatches,
     LatchSource,
     PartQueue,

@@ -10,19 +10,17 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from vgripd.errors import LinkError
-from vgripd.service.protocol import (
+from vgripd.peer.jobcore import (
     MAX_VIEWS,
     Action,
     Command,
     Handshake,
     HandshakeState,
-    Reg,
-    RegisterBank,
-    URRegisterMap,
-    ValueCodec,
     capture_word,
     split_command,
 )
+from vgripd.peer.registers import Reg, RegisterBank, ValueCodec
+from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.types import JobResult, Status
 
 

@@ -26,22 +26,19 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import enum
-import logging
 import math
 from collections import OrderedDict, deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from vgripd.config import Config, ConveyorConfig
+from vgripd.config import ConveyorConfig
 from vgripd.geometry.belt import Belt, count_delta
 from vgripd.geometry.transforms import rotation_angle
 from vgripd.geometry.vendors import target_from_transform, transform_from_vendor
-from vgripd.service.belttravel import TravelRule
+from vgripd.peer.belttravel import TravelRule
 from vgripd.types import BeltPose, FloatArray, JobResult, PickInstance, Status
-
-log = logging.getLogger("vgripd.conveyor")
 
 
 class LatchSource(enum.IntEnum):
@@ -423,31 +420,3 @@ def line_of(conveyor: ConveyorConfig, vendor: str) -> BeltLine:
                         c.encoder_bits) if c.trigger == "travel" else None
     return BeltLine(belt, queue, vendor, LATCH_KINDS[c.latch], c.speed_mm_s,
                     c.timestamp_error_ms, travel=travel)
-
-
-def belt_lines(config: Config, running: Mapping[int, BeltLine] | None = None,
-               old: Config | None = None) -> dict[int, BeltLine]:
-    """The conveyor recipes' lines (docs/conveyor.md), by recipe number. A reload passes the
-    ``running`` lines of the ``old`` config: a recipe whose ``[conveyor]`` and ``[output]``
-    are unchanged keeps its line and queue; a changed or added one starts with an empty queue
-    (its parts were placed by the old belt), a removed one is gone."""
-    lines: dict[int, BeltLine] = {}
-    for n in config.recipe_numbers():
-        c = config.for_recipe(n)
-        if c.conveyor is None:
-            continue
-        kept = (running or {}).get(n)
-        was = old.for_recipe(n) if old is not None and n in old.recipe_numbers() else None
-        if kept is not None and was is not None and (was.conveyor, was.output) == (
-                c.conveyor, c.output):
-            lines[n] = kept
-            continue
-        lines[n] = line_of(c.conveyor, c.output.vendor)
-        if old is not None:
-            lost = len(kept.queue) if kept is not None else 0
-            log.info("conveyor of recipe %d (%s): %s by the reload, its part queue starts empty%s",
-                     n, config.recipe_name(n), "changed" if kept is not None else "added",
-                     f" ({lost} queued parts dropped)" if lost else "")
-    for n in sorted(set(running or {}) - set(lines)):
-        log.info("conveyor of recipe %d: removed by the reload", n)
-    return lines
