@@ -1,6 +1,6 @@
 """Modbus RTU server link on a serial line: the register map and handshake of the TCP server
-(``RegisterServerLink``: every request PDU is answered by ``answer_pdu``), framed here for RTU
-over pyserial.
+(``RegisterServerLink``: every request PDU is answered by ``vgripd.peer.modbus_pdu`` through
+``answer_pdu``), framed here for RTU over pyserial.
 
 An RTU slave answers only its own unit id; frames for other units (and broadcasts, unit 0) are
 left unanswered. FC23 is all or nothing as on TCP.
@@ -34,7 +34,7 @@ from pydantic import Field
 
 from drivers.links.modbus_server import RegisterServerLink
 from vgripd.errors import LinkError
-from vgripd.peer.mbap import MalformedFrame
+from vgripd.peer.modbus_pdu import Malformed
 from vgripd.peer.registers import RegisterOptions
 from vgripd.peer.rtu import RtuFramer, char_time_s, silence_s, with_crc
 from vgripd.service.protocol import LinkState, TriggerHandler
@@ -242,15 +242,12 @@ class ModbusRtuLink(RegisterServerLink):
         if unit != self.options.unit_id:
             self.frames_other_units += 1
             return None
-        pdu = frame[1:-2]
-        try:
-            reply = self.answer_pdu(pdu, self.options.port)
-        except MalformedFrame as err:
-            # The CRC was right, the request is not: answer it as an illegal data value.
+        reply, decision = self.answer_pdu(frame[1:-2], self.options.port)
+        if isinstance(decision, Malformed):
+            # The CRC was right, the request is not: the reply is exception 03 (illegal value).
             self.fault(self.options.port, "malformed", logging.INFO,
                        "%s: malformed request answered with exception 03: %s",
-                       self.options.port, err)
-            reply = bytes((pdu[0] | 0x80, 3))
+                       self.options.port, decision.detail)
         self.frames_answered += 1
         return with_crc(bytes((unit,)) + reply)
 

@@ -15,7 +15,8 @@ request per received segment (pipelined requests go unanswered); its decoder ref
 0 or 126 registers at decode time, which the server answers with function code 0x80; and it
 logs decode failures and datastore errors with tracebacks, one per frame. MBAP framing is seven
 bytes and the register map is served by five function codes, so the link frames and answers
-them itself (the framer ``vgripd.peer.mbap``, ``RegisterServerLink.answer_pdu``):
+them itself (the framer ``vgripd.peer.mbap``, the answerer ``vgripd.peer.modbus_pdu``; this
+module acts on the answerer's decisions and does the I/O):
 
 - MBAP header: transaction id (echoed), protocol id 0, length 2..254 (unit id + PDU). Anything
   else is a malformed frame. So is a request whose PDU length does not match its function code
@@ -40,7 +41,7 @@ them itself (the framer ``vgripd.peer.mbap``, ``RegisterServerLink.answer_pdu``)
 FC23 is all or nothing: both ranges are checked before anything is written, so a request with
 an illegal read range changes nothing and triggers nothing. The RTU link
 (``drivers.links.modbus_rtu``) does its own serial framing and answers through the same
-``answer_pdu``.
+answerer (``RegisterServerLink.answer_pdu``).
 
 The link carries up to ``MAX_VALUES`` pose values in any vendor convention
 (``REGISTER_CAPABILITIES``); the config check refuses a vendor with more.
@@ -55,23 +56,23 @@ import asyncio
 import contextlib
 import logging
 import os
-import struct
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 from pydantic import Field, model_validator
-from pymodbus.constants import ExcCodes
 
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
-from vgripd.peer import mbap
-from vgripd.peer.jobcore import Action
+from vgripd.peer import mbap, modbus_pdu
+from vgripd.peer.jobcore import Action, Decision
 from vgripd.peer.mbap import MalformedFrame
+from vgripd.peer.modbus_pdu import Decision as PduDecision
+from vgripd.peer.modbus_pdu import Malformed, Written
+from vgripd.peer.modbus_pdu import Refused as PduRefused
 from vgripd.peer.registers import (
     REGISTER_CAPABILITIES,
-    RegisterAccessError,
     RegisterBank,
     RegisterOptions,
     ValueCodec,
@@ -84,49 +85,14 @@ from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
 
-# Holding-register function codes: 3 read, 6 write single, 16 write multiple, 22 mask write,
-# 23 read/write multiple. Writes read back what they wrote (6, 22) for the response.
-HOLDING_WRITE = {6, 16, 22, 23}
-HOLDING_READ = {3} | HOLDING_WRITE
-
-# Quantity limits of the Modbus application protocol (V1.1b3), per function.
-MAX_READ = 125
-MAX_WRITE = 123
-MAX_RW_WRITE = 121
-
 REQUESTS_PER_BATCH = 64  # pipelined requests answered before other clients get the loop
-
-
-class Refused(Exception):
-    """A well-formed request answered with a Modbus exception (``code``)."""
-
-    def __init__(self, code: int, detail: str) -> None:
-        super().__init__(detail)
-        self.code = code
-
-
-def _need_length(pdu: bytes, length: int) -> None:
-    if len(pdu) != length:
-        raise MalformedFrame(f"function {pdu[0]} needs a {length}-byte PDU, got {len(pdu)}")
-
-
-def _need_byte_count(pdu: bytes, fixed: int) -> int:
-    """The byte count at ``pdu[fixed - 1]``, which must be what follows it in the PDU."""
-    if len(pdu) < fixed:
-        raise MalformedFrame(f"function {pdu[0]}: PDU of {len(pdu)} bytes is truncated")
-    byte_count = pdu[fixed - 1]
-    if len(pdu) != fixed + byte_count:
-        raise MalformedFrame(f"function {pdu[0]}: byte count {byte_count} but "
-                             f"{len(pdu) - fixed} data bytes")
-    return byte_count
 
 
 class RegisterServerLink(SupervisedLink):
     """A Modbus server link over some transport: register bank, heartbeat, handshake.
 
     Each transport starts with ``_start_serving`` and stops with ``_stop_serving``; every
-    request, whatever its framing, is answered by ``answer_pdu`` and every write goes through
-    ``write_registers``.
+    request, whatever its framing, is answered by ``answer_pdu``.
     """
 
     capabilities = REGISTER_CAPABILITIES
@@ -147,10 +113,6 @@ class RegisterServerLink(SupervisedLink):
         self._on_trigger: TriggerHandler | None = None
         self._on_count: CountHandler | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._functions: dict[int, Callable[[bytes, str], bytes]] = {
-            3: self._read_holding, 6: self._write_single, 16: self._write_multiple,
-            22: self._mask_write, 23: self._read_write,
-        }
 
     def _describe(self) -> str:
         """Where this link serves, for messages (``host:port``, ``/dev/ttyS0``)."""
@@ -246,98 +208,33 @@ class RegisterServerLink(SupervisedLink):
         self.faults[kind] += 1
         self.ratelog.log(level, client, kind, f"%s: {msg}", self.name, *args)
 
-    def answer_pdu(self, pdu: bytes, client: str) -> bytes:
-        """The response PDU to request ``pdu`` (function code first), answered from the bank.
-
-        Raises ``MalformedFrame`` for a PDU that is not a well-formed request. ``client`` names
-        the peer (its address) in the log, which is rate limited per client.
+    def answer_pdu(self, pdu: bytes, client: str) -> tuple[bytes, PduDecision[Decision]]:
+        """The reply PDU to request ``pdu`` (function code first), answered from the bank by
+        ``vgripd.peer.modbus_pdu``, and its decision, carried out here but for ``Malformed``,
+        which the transport handles. ``client`` names the peer (its address) in the log,
+        which is rate limited per client.
         """
-        if not pdu or pdu[0] == 0 or pdu[0] & 0x80:
-            raise MalformedFrame(f"function code {pdu[0] if pdu else 'missing'} is not a request")
-        function = pdu[0]
-        handler = self._functions.get(function)
-        try:
-            if handler is None:
-                raise Refused(ExcCodes.ILLEGAL_FUNCTION, f"function code {function} is not served")
-            return handler(pdu, client)
-        except Refused as refused:
-            self.fault(client, f"exception {refused.code:02d}", logging.INFO,
-                       "%s: function %d answered with exception %02d: %s", client, function,
-                       refused.code, refused)
-            return bytes((function | 0x80, refused.code))
+        reply, decision = modbus_pdu.answer(pdu, self.bank, time.monotonic_ns())
+        if isinstance(decision, Written):
+            self._written(decision, client)
+        elif isinstance(decision, PduRefused):
+            self.fault(client, f"exception {decision.code:02d}", logging.INFO,
+                       "%s: function %d answered with exception %02d: %s", client,
+                       decision.function, decision.code, decision.detail)
+        return reply, decision
 
-    def write_registers(self, address: int, values: Sequence[int], client: str) -> None:
-        """A peer's write through the handshake; ``Refused`` (02) when it may not write there."""
-        try:
-            decision = self.bank.write(address, values)
-        except RegisterAccessError as err:
-            raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
-        count = self.bank.published_count(address, values)
+    def _written(self, written: Written[Decision], client: str) -> None:
+        """A peer's write went through the handshake: the belt's count, a new job, a refusal."""
+        count = self.bank.published_count(written.address, written.values)
         if count is not None and self._on_count is not None:  # the belt's count now (travel)
             self._on_count(count, time.monotonic_ns())
+        decision = written.outcome
         if decision.action is Action.START:
             self.dispatch(decision.seq, decision.command, decision.recipe, decision.view,
                           decision.count, decision.frame)
         elif decision.action is Action.REJECT:
             self.ratelog.info(client, "handshake", "%s: %s: request %d refused: %s", self.name,
                               client, decision.seq, decision.code.name)
-
-    def _read_words(self, address: int, count: int) -> list[int]:
-        if not 1 <= count <= MAX_READ:
-            raise Refused(ExcCodes.ILLEGAL_VALUE, f"read of {count} registers (1..{MAX_READ})")
-        try:
-            self.bank.image.check_read(address, count)
-        except RegisterAccessError as err:
-            raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
-        return self.bank.read(address, count, time.monotonic_ns())
-
-    def _read_holding(self, pdu: bytes, client: str) -> bytes:
-        _need_length(pdu, 5)
-        address, count = struct.unpack_from(">HH", pdu, 1)
-        words = self._read_words(address, count)
-        return struct.pack(f">BB{count}H", 3, 2 * count, *words)
-
-    def _write_single(self, pdu: bytes, client: str) -> bytes:
-        _need_length(pdu, 5)
-        address, value = struct.unpack_from(">HH", pdu, 1)
-        self.write_registers(address, [value], client)
-        return pdu
-
-    def _write_multiple(self, pdu: bytes, client: str) -> bytes:
-        byte_count = _need_byte_count(pdu, 6)
-        address, count = struct.unpack_from(">HH", pdu, 1)
-        if not 1 <= count <= MAX_WRITE or byte_count != 2 * count:
-            raise Refused(ExcCodes.ILLEGAL_VALUE,
-                          f"write of {count} registers in {byte_count} bytes (1..{MAX_WRITE})")
-        self.write_registers(address, struct.unpack_from(f">{count}H", pdu, 6), client)
-        return struct.pack(">BHH", 16, address, count)
-
-    def _mask_write(self, pdu: bytes, client: str) -> bytes:
-        _need_length(pdu, 7)
-        address, and_mask, or_mask = struct.unpack_from(">HHH", pdu, 1)
-        if address >= self.bank.image.size:
-            raise Refused(ExcCodes.ILLEGAL_ADDRESS, f"mask write at {address} outside the map")
-        current = self.bank.image.words[address]
-        self.write_registers(address, [(current & and_mask) | (or_mask & ~and_mask & 0xFFFF)],
-                             client)
-        return pdu
-
-    def _read_write(self, pdu: bytes, client: str) -> bytes:
-        byte_count = _need_byte_count(pdu, 10)
-        read_address, read_count, write_address, write_count = struct.unpack_from(">HHHH", pdu, 1)
-        if (not 1 <= read_count <= MAX_READ or not 1 <= write_count <= MAX_RW_WRITE
-                or byte_count != 2 * write_count):
-            raise Refused(ExcCodes.ILLEGAL_VALUE,
-                          f"read {read_count} / write {write_count} registers in {byte_count} "
-                          f"bytes (1..{MAX_READ} / 1..{MAX_RW_WRITE})")
-        try:  # all or nothing: the read range is checked before anything is written
-            self.bank.image.check_read(read_address, read_count)
-        except RegisterAccessError as err:
-            raise Refused(ExcCodes.ILLEGAL_ADDRESS, str(err)) from None
-        self.write_registers(write_address, struct.unpack_from(f">{write_count}H", pdu, 10),
-                             client)
-        words = self.bank.read(read_address, read_count, time.monotonic_ns())
-        return struct.pack(f">BB{read_count}H", 23, 2 * read_count, *words)
 
     async def _beat(self) -> None:
         period_s = self.options.heartbeat_ms / 1000
@@ -601,7 +498,9 @@ class ModbusServerLink(RegisterServerLink):
                        ", 0 and 255" if o.unit_id_wildcards else "")
             self.gate.activity(conn, valid=False)
             return None
-        reply = self.answer_pdu(pdu, conn.host)
+        reply, decision = self.answer_pdu(pdu, conn.host)
+        if isinstance(decision, Malformed):
+            raise MalformedFrame(decision.detail)
         # valid: answered normally (not an exception): what a polling PLC gets
         self.gate.activity(conn, valid=bool(reply) and reply[0] < 0x80)
         return reply
