@@ -72,7 +72,7 @@ class Bank(Protocol[Outcome_co]):
     def read(self, address: int, count: int, now_ns: int) -> list[int]: ...
 
     def write(self, address: int, values: Sequence[int]) -> Outcome_co:
-        """Write ``values`` at ``address``; ``RegisterAccessError`` naming the register it refuses."""
+        """Write ``values`` at ``address``; ``RegisterAccessError`` naming the refused one."""
         ...
 
 
