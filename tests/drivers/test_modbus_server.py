@@ -377,7 +377,7 @@ async def test_read_write_multiple_is_all_or_nothing(served: Harness) -> None:
         assert after[Reg.CMD:Reg.RECIPE + 1] == [0, 0, 0]  # the write did not happen
         assert after[Reg.STATE] == before[Reg.STATE] == 0
         assert after[Reg.REJECT_SEQ:Reg.ACK_SEQ + 1] == [0, 0, 0]
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # time passes: a job started by mistake would show here
         assert served.triggers.empty()  # no job was started
         # The same request with a legal read is the trigger, and its read sees it.
         r = await client.readwrite_registers(

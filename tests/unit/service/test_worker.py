@@ -47,9 +47,12 @@ WAIT_S = 60.0
 
 
 class SlowPipeline(Pipeline):
-    """The pipeline, after sleeping ``pair.meta["sleep_s"]`` seconds."""
+    """The pipeline, after sleeping ``pair.meta["sleep_s"]`` seconds (having created the file
+    ``pair.meta["started"]`` first, when given: the test's sign that the sleep has begun)."""
 
     def process(self, pair: ImagePair, job_id: int) -> JobResult:
+        if "started" in pair.meta:
+            Path(pair.meta["started"]).touch()
         time.sleep(float(pair.meta.get("sleep_s", 0.0)))
         return super().process(pair, job_id)
 
@@ -286,13 +289,16 @@ async def test_segments_of_daemons_that_no_longer_run_are_removed_at_start() -> 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSEGV], ids=["SIGKILL", "SIGSEGV"])
 async def test_a_worker_that_dies_fails_the_request_naming_why_and_is_replaced(
-    worker: WorkerClient, sig: signal.Signals
+    worker: WorkerClient, sig: signal.Signals, tmp_path: Path
 ) -> None:
     pair = await _local_pair(worker.config)
     first = worker.pid
     assert first is not None
-    job = asyncio.create_task(worker.process(_with(pair, sleep_s=60), 1))
-    await asyncio.sleep(1.0)  # the worker is sleeping in process()
+    started = tmp_path / "started"
+    job = asyncio.create_task(worker.process(_with(pair, sleep_s=60, started=str(started)), 1))
+    async with asyncio.timeout(WAIT_S):  # until the worker is sleeping in process()
+        while not started.exists():  # noqa: ASYNC110 - another process's file, no event
+            await asyncio.sleep(0.02)
     os.kill(first, sig)
     with pytest.raises(WorkerError, match=f"worker process exited with signal {int(sig)} "
                                           rf"\({sig.name}\)"):
