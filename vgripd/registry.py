@@ -1,9 +1,10 @@
 """Driver registry: a config ``type`` name -> the class that implements it, imported lazily.
 
 A missing optional SDK breaks only the driver that needs it, with a clear ``DriverError``.
-``vgripd`` reaches ``drivers/`` only through this table. ``link_problems`` is how the config
-model (``vgripd.config``) judges the link sections against ``output.vendor`` when a config is
-loaded, without importing ``drivers/`` itself; this module takes what it needs of the config from
+``vgripd`` reaches ``drivers/`` only through this table. What the config judges of a link type
+(the pose it carries, CAPTURE, the belt's count, its register map) is data here
+(``LINK_TRAITS``), so ``link_problems`` and the rules beside it judge the link sections when a
+config is loaded without importing ``drivers/``; this module takes what it needs of the config from
 ``vgripd.configbase``, below both, so the two do not import each other.
 """
 
@@ -63,15 +64,60 @@ CAMERAS: dict[str, str] = {
     "board": "drivers.cameras.board:BoardCamera",
 }
 
-LINKS: dict[str, str] = {
-    "modbus_server": "drivers.links.modbus_server:ModbusServerLink",
-    "modbus_client": "drivers.links.modbus_client:ModbusClientLink",
-    "modbus_rtu": "drivers.links.modbus_rtu:ModbusRtuLink",
-    "ur_rtde": "drivers.links.ur_rtde:URRtdeLink",
-    "s7": "drivers.links.s7:S7Link",
-    "robot_socket": "drivers.links.robot_socket:RobotSocketLink",
-    "opcua": "drivers.links.opcua:OpcUaLink",
+#: The pose each link type carries (``LinkCapabilities``), declared here and taken by the link
+#: classes, so that the config is judged without importing a driver. The texts name the wire
+#: layout; tests/unit/test_registry.py checks them against it.
+REGISTER_CAPABILITIES = LinkCapabilities(
+    7, None, "VALUES registers 24-37, the convention's fields in its own units")
+S7_CAPABILITIES = LinkCapabilities(
+    7, None, "VALUES at block bytes 48-75, the convention's fields in its own units")
+SOCKET_CAPABILITIES = LinkCapabilities(
+    7, None, "answer words 6-12, the convention's fields in its own units",
+    flange_pose="request CAPTURE_AT (4), words 4-10")
+UR_CAPABILITIES = LinkCapabilities(
+    6, frozenset({"ur"}), "x, y, z in m and rotation vector rx, ry, rz in rad: the robot "
+    "program's p[x, y, z, rx, ry, rz]",
+    flange_pose="RTDE's actual_TCP_pose, read with the request")
+OPCUA_CAPABILITIES = LinkCapabilities(
+    max(len(c.fields) for c in CONVENTIONS.values()), None,
+    "Result.Values (Double array) with Result.ValueNames, the convention's fields in its own "
+    "units")
+
+
+@dataclass(frozen=True)
+class LinkTraits:
+    """A link type as the config judges it, without importing its driver.
+
+    ``path``: ``"module:Class"``. ``capabilities``: the pose it carries (the class takes it from
+    here). ``takes_views``: it can send CAPTURE, so it serves ``vision.views`` > 1.
+    ``publishes_count``: it reads the belt's encoder count from its peer (``conveyor.trigger =
+    "travel"``). ``map_version``: a register link's default map version (the latch area comes
+    with 4); None for a link without a register map. tests/unit/test_registry.py checks every
+    entry against its class.
+    """
+
+    path: str
+    capabilities: LinkCapabilities
+    takes_views: bool = False
+    publishes_count: bool = False
+    map_version: int | None = None
+
+
+LINK_TRAITS: dict[str, LinkTraits] = {
+    "modbus_server": LinkTraits("drivers.links.modbus_server:ModbusServerLink",
+                                REGISTER_CAPABILITIES, True, True, 3),
+    "modbus_client": LinkTraits("drivers.links.modbus_client:ModbusClientLink",
+                                REGISTER_CAPABILITIES, True, True, 3),
+    "modbus_rtu": LinkTraits("drivers.links.modbus_rtu:ModbusRtuLink",
+                             REGISTER_CAPABILITIES, True, True, 3),
+    "ur_rtde": LinkTraits("drivers.links.ur_rtde:URRtdeLink", UR_CAPABILITIES, True, False, 3),
+    "s7": LinkTraits("drivers.links.s7:S7Link", S7_CAPABILITIES, True, True, 3),
+    "robot_socket": LinkTraits("drivers.links.robot_socket:RobotSocketLink",
+                               SOCKET_CAPABILITIES),
+    "opcua": LinkTraits("drivers.links.opcua:OpcUaLink", OPCUA_CAPABILITIES),
 }
+
+LINKS: dict[str, str] = {name: traits.path for name, traits in LINK_TRAITS.items()}
 
 #: What a link asks of its peer, where a table says more than the docs (the OPC UA nodes a PLC
 #: reads and calls): a function of the driver's module, loaded as the classes are.
@@ -105,17 +151,15 @@ def validate_options(cls: type[Any], section: DriverSection, where: str) -> Any:
 
 def views_problems(links: Sequence[DriverSection], views: int) -> list[str]:
     """Why the link sections cannot serve a cell of ``vision.views`` > 1: one line per known
-    link type whose class cannot send a CAPTURE (``takes_views`` is not set), since every
-    job there is N CAPTUREs and such a link could only ever be refused."""
+    link type that cannot send a CAPTURE (``LinkTraits.takes_views``), since every job there is
+    N CAPTUREs and such a link could only ever be refused."""
     if views == 1:
         return []
-    able = sorted(t for t in LINKS if getattr(load_class(LINKS, "link", t), "takes_views",
-                                              False))
+    able = sorted(t for t, traits in LINK_TRAITS.items() if traits.takes_views)
     return [f'links[{i}].type = "{s.type}" cannot send CAPTURE, and vision.views = {views} '
             f"makes every job {views} CAPTUREs: use {', '.join(able)}"
             for i, s in enumerate(links)
-            if s.type in LINKS and not getattr(load_class(LINKS, "link", s.type),
-                                               "takes_views", False)]
+            if s.type in LINK_TRAITS and not LINK_TRAITS[s.type].takes_views]
 
 
 def latch_problems(links: Sequence[DriverSection]) -> list[str]:
@@ -125,13 +169,13 @@ def latch_problems(links: Sequence[DriverSection]) -> list[str]:
     the field; a value that is no map version at all is left to the link's own options."""
     problems = []
     for i, section in enumerate(links):
-        if section.type not in LINKS:
+        if section.type not in LINK_TRAITS:
             continue  # link_problems names it
-        fields = load_class(LINKS, "link", section.type).Options.model_fields
-        if "map_version" not in fields:
+        default = LINK_TRAITS[section.type].map_version
+        if default is None:
             continue
         given = section.options().get("map_version")
-        version = fields["map_version"].default if given is None else given
+        version = default if given is None else given
         if isinstance(version, int) and not isinstance(version, bool) and version < 4:
             shown = f"{version}" + (" (the default)" if given is None else "")
             problems.append(
@@ -145,8 +189,7 @@ def travel_problems(links: Sequence[DriverSection], views: int) -> list[str]:
     """Why the link sections cannot serve ``conveyor.trigger = "travel"``: no link publishes
     the belt's encoder count (a link class with ``publishes_count``: the register links, read
     at map version 4, which ``latch_problems`` asks for), or every job would be N views."""
-    able = sorted(t for t in LINKS if getattr(load_class(LINKS, "link", t), "publishes_count",
-                                              False))
+    able = sorted(t for t, traits in LINK_TRAITS.items() if traits.publishes_count)
     problems = []
     if not any(s.type in able for s in links):
         have = ", ".join(f'links[{i}].type = "{s.type}"' for i, s in enumerate(links)) or "none"
@@ -164,9 +207,9 @@ def link_problems(links: Sequence[DriverSection], vendor: str,
     """Why the link sections cannot work with ``output.vendor = vendor``, one line per section.
 
     A section of an unknown type, or whose link class cannot carry the vendor's convention
-    (its ``capabilities``), is a problem; each line names both fields. The driver options are
-    not judged here (the daemon validates them when it builds the link). ``DriverError`` when
-    a link's module cannot be imported.
+    (``LinkTraits.capabilities``), is a problem; each line names both fields. The driver
+    options are not judged here (the daemon validates them when it builds the link); no driver
+    is imported, so a link whose optional SDK is missing is judged all the same.
     """
     conv = CONVENTIONS[vendor]
     shown = f'output.vendor = "{vendor}"' + (" (the default)" if vendor_is_default else "")
@@ -176,7 +219,7 @@ def link_problems(links: Sequence[DriverSection], vendor: str,
         if section.type not in LINKS:
             problems.append(f"{field}: unknown link type (known: {', '.join(sorted(LINKS))})")
             continue
-        caps: LinkCapabilities = load_class(LINKS, "link", section.type).capabilities
+        caps = LINK_TRAITS[section.type].capabilities
         why = caps.refusal(conv)
         if why is None:
             continue

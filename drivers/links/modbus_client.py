@@ -60,12 +60,12 @@ from vgripd.errors import LinkError
 from vgripd.peer.registers import (
     COMMAND_AREA,
     MAP_SIZE,
-    REGISTER_CAPABILITIES,
     BlockWrite,
     Reg,
     RegisterOptions,
     map_size,
 )
+from vgripd.registry import REGISTER_CAPABILITIES
 from vgripd.service.supervisor import BackoffOptions
 
 log = logging.getLogger(__name__)

@@ -72,11 +72,11 @@ from vgripd.peer.modbus_pdu import Decision as PduDecision
 from vgripd.peer.modbus_pdu import Malformed, Written
 from vgripd.peer.modbus_pdu import Refused as PduRefused
 from vgripd.peer.registers import (
-    REGISTER_CAPABILITIES,
     RegisterBank,
     RegisterOptions,
     ValueCodec,
 )
+from vgripd.registry import REGISTER_CAPABILITIES
 from vgripd.service.gate import Gate, set_keepalive
 from vgripd.service.protocol import CountHandler, LinkHealth, LinkState, Trigger, TriggerHandler
 from vgripd.service.ratelog import RateLimitedLog

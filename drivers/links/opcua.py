@@ -94,10 +94,9 @@ from drivers.links.opcua_space import Space, ensure_certificate, result_values
 from drivers.links.opcua_vision import JobInfo, VisionSpace
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
-from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.peer.jobcore import Command, Part, Step
 from vgripd.peer.registers import checked_warnings
-from vgripd.registry import LinkCapabilities
+from vgripd.registry import OPCUA_CAPABILITIES
 from vgripd.service.gate import Gate
 from vgripd.service.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
 from vgripd.service.ratelog import RateLimitedLog
@@ -107,10 +106,6 @@ from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)
 
-OPCUA_CAPABILITIES = LinkCapabilities(
-    max(len(c.fields) for c in CONVENTIONS.values()), None,
-    "Result.Values (Double array) with Result.ValueNames, the convention's fields in its own "
-    "units")
 SECURITY_MODES = {
     "None": ua.SecurityPolicyType.NoSecurity,
     "Basic256Sha256_Sign": ua.SecurityPolicyType.Basic256Sha256_Sign,

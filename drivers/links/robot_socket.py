@@ -66,7 +66,6 @@ from vgripd.peer.jobcore import Action, Command, Handshake
 from vgripd.peer.registers import checked_warnings
 from vgripd.peer.socket_frames import (
     REQUEST_SIZE,
-    SOCKET_CAPABILITIES,
     Answer,
     AnswerKind,
     BeltFrame,
@@ -81,6 +80,7 @@ from vgripd.peer.socket_frames import (
     request_size,
     result_answer,
 )
+from vgripd.registry import SOCKET_CAPABILITIES
 from vgripd.service.gate import Gate, set_keepalive
 from vgripd.service.handeye_walk import walk_request_refusal
 from vgripd.service.protocol import LinkHealth, LinkState, Trigger, TriggerHandler

@@ -68,13 +68,12 @@ from drivers.links.mirror_client import MirrorClientLink
 from vgripd.errors import LinkError
 from vgripd.peer.registers import (
     COMMAND_AREA,
-    MAX_VALUES,
     BlockWrite,
     Reg,
     RegisterOptions,
 )
 from vgripd.peer.s7_block import DB_BYTES, block_bytes, db_bytes, plan_db_writes
-from vgripd.registry import LinkCapabilities
+from vgripd.registry import S7_CAPABILITIES
 from vgripd.service.supervisor import BackoffOptions
 
 log = logging.getLogger(__name__)
@@ -82,10 +81,6 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 OVERWRITE_LOG_S = 60.0  # at most one line per this long about foreign writes to vgripd's part
-S7_CAPABILITIES = LinkCapabilities(
-    MAX_VALUES, None,
-    f"VALUES at block bytes {2 * Reg.VALUES}-{2 * Reg.FIT_RMS - 1}, the convention's fields "
-    "in its own units")
 
 
 def quiet_snap7() -> None:

@@ -66,7 +66,7 @@ from vgripd.geometry.vendors import transform_from_vendor
 from vgripd.peer.jobcore import Command, PickPosition, pick_position, split_command
 from vgripd.peer.registers import checked_warnings
 from vgripd.peer.ur_registers import URRegisterMap
-from vgripd.registry import LinkCapabilities
+from vgripd.registry import UR_CAPABILITIES
 from vgripd.service.protocol import LinkState, Trigger, TriggerHandler
 from vgripd.service.supervisor import (
     BackoffOptions,
@@ -271,10 +271,7 @@ class URRtdeLink(SupervisedLink):
     """RobotLink over UR RTDE registers (see module docstring and docs/ur_rtde.md)."""
 
     Options = URRtdeOptions
-    capabilities = LinkCapabilities(
-        6, frozenset({"ur"}), "x, y, z in m and rotation vector rx, ry, rz in rad: the robot "
-        "program's p[x, y, z, rx, ry, rz]",
-        flange_pose="RTDE's actual_TCP_pose, read with the request")
+    capabilities = UR_CAPABILITIES
     options: URRtdeOptions
 
     def __init__(self, name: str, options: URRtdeOptions) -> None:

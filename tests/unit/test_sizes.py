@@ -20,7 +20,7 @@ LARGE_MODULES = {
     "vgripd/service/worker.py": (990, "both ends of one private request protocol (the worker's "
                                  "loop and the daemon's client) change together; the worker's "
                                  "side is the next cut"),
-    "drivers/links/opcua.py": (950, "the link and the asyncua server classes it extends to gate "
+    "drivers/links/opcua.py": (945, "the link and the asyncua server classes it extends to gate "
                                "connections, which call back into the link"),
     "drivers/links/opcua_vision.py": (952, "OPC 40100's methods with their argument checks, the "
                                       "result structures and the plain variables"),

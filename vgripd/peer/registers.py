@@ -122,7 +122,6 @@ from vgripd.peer.jobcore import (
     Step,
     pick_position,
 )
-from vgripd.registry import LinkCapabilities
 from vgripd.types import JobResult, Status
 
 
@@ -199,8 +198,6 @@ def register_name(address: int) -> str:
 #: The result area after WARNINGS (COUNT .. SCORE), written with STATUS .. FIT_RMS.
 PICK_AREA = range(Reg.COUNT, MAP_SIZE)
 MAX_VALUES = 7  # ABB/quaternion conventions: XYZ + 4; the others use 6
-REGISTER_CAPABILITIES = LinkCapabilities(
-    MAX_VALUES, None, "VALUES registers 24-37, the convention's fields in its own units")
 COMMAND_AREA = range(Reg.CMD, Reg.RECIPE + 1)
 CHECK_U16 = 0x1234
 CHECK_U32 = 0x12345678

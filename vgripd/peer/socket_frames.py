@@ -71,7 +71,6 @@ from typing import Literal
 
 from vgripd.peer.jobcore import PickPosition, pick_position
 from vgripd.peer.registers import FIT_RMS_KEY
-from vgripd.registry import LinkCapabilities
 from vgripd.types import BeltPose, JobResult, Status
 
 VERSION = 1
@@ -87,9 +86,6 @@ MAX_RECIPE = 0xFFFF
 UNKNOWN_RMS = -1.0
 
 #: Any 6- or 7-value convention: the robot program reads plain numbers in its own convention.
-SOCKET_CAPABILITIES = LinkCapabilities(
-    N_VALUES, None, "answer words 6-12, the convention's fields in its own units",
-    flange_pose="request CAPTURE_AT (4), words 4-10")
 
 ValueFormat = Literal["int32", "float32"]
 

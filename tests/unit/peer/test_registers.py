@@ -22,7 +22,6 @@ from vgripd.peer.registers import (
     MAP_SIZE,
     MAP_VERSION,
     NO_AGE,
-    REGISTER_CAPABILITIES,
     BlockWrite,
     Reg,
     RegisterAccessError,
@@ -31,7 +30,7 @@ from vgripd.peer.registers import (
     ValueCodec,
     Warnings,
 )
-from vgripd.registry import LinkCapabilities
+from vgripd.registry import REGISTER_CAPABILITIES, LinkCapabilities
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 
