@@ -25,10 +25,18 @@ request already pending when the link first connects (the robot's sequence diffe
 acknowledge register, read back once at the first connect) is served, as is one that arrives
 while the link is down (at the reconnect); an answered one is never run again.
 
-A request whose command is not one of ``URRegisterMap.COMMANDS`` (1 = locate, 3 = next) is
-answered by the link itself with ``BAD_REQUEST`` (32) and job id 0, without a job;
-``refusals()`` counts it. A next (``Command.NEXT``) goes to the daemon like a locate; the
-daemon answers it from the last job's pick list (or ``BAD_REQUEST`` when this link has none).
+The request rules are ``jobcore.Handshake``'s, as on every link, decided here in the parent:
+the child is the RTDE I/O shell, reporting each change of the robot's sequence register with
+its data package and carrying out the register writes the handshake's plans become
+(``ur_wire.writes``, one pipe message per plan, as before). The decision costs no extra
+round trip: the child sent every new sequence to this side before as well. The rotation page
+stays in the child (answered at the polling rate, no trip through the pipe).
+
+A request whose command is not one of ``URRegisterMap.COMMANDS`` (1 = locate, 3 = next), a
+capture or (map version 4) a predict, a next without a pick list, or a request while this
+link's own one runs is answered by the link itself (``BAD_REQUEST`` 32, ``BUSY`` 40) with job
+id 0, without a job; ``refusals()`` counts it. A next with a list goes to the daemon like a
+locate; the daemon answers it from the last job's pick list.
 Every answer carries the pick list position in input_double_register ``regs.pick``
 (``1000 * COUNT + INDEX``, written before the ack; 0 for refusals).
 
@@ -49,7 +57,6 @@ import asyncio
 import contextlib
 import itertools
 import logging
-import math
 import multiprocessing
 import os
 import time
@@ -63,7 +70,8 @@ from pydantic import ConfigDict, Field
 from drivers.links import ur_rtde_worker
 from vgripd.errors import ConversionError, LinkError
 from vgripd.geometry.vendors import transform_from_vendor
-from vgripd.peer.jobcore import Command, PickPosition, pick_position, split_command
+from vgripd.peer import ur_wire
+from vgripd.peer.jobcore import Action, Command, Step, split_command
 from vgripd.peer.registers import checked_warnings
 from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.registry import UR_CAPABILITIES
@@ -277,13 +285,18 @@ class URRtdeLink(SupervisedLink):
     def __init__(self, name: str, options: URRtdeOptions) -> None:
         super().__init__(name, options, f"{options.host}:{ur_rtde_worker.RTDE_PORT}")
         self.regs = URRegisterMap(options.use_upper_range_registers, options.map_version == 4)
+        #: The link's request rules (``jobcore.Handshake``); the child reports the sequence.
+        self.handshake = ur_wire.handshake(self.regs)
         self._peer = self.cell.peer
         self._task: asyncio.Task[None] | None = None
         self._child: _Child | None = None
         self._on_trigger: TriggerHandler | None = None
-        self._last_seq: int | None = None
-        self._replay: dict[str, tuple[str, tuple[Any, ...]]] = {}
+        #: The robot's sequence at the first connect is known (``handshake.last_req_seq``).
+        self._baseline = False
+        #: The writes since the last request, written again at a reconnect.
+        self._replay: list[ur_wire.Write] = []
         self._warnings = 0
+        self._walking = False
         self._pending: dict[int, asyncio.Future[None]] = {}
         self._ids = itertools.count(1)
         self._refused: Counter[str] = Counter()
@@ -322,14 +335,17 @@ class URRtdeLink(SupervisedLink):
         return dict(self._refused)
 
     async def image_captured(self, seq: int, job_id: int) -> None:
-        await self._request("captured", (seq, job_id))
+        self._check_open()
+        await self._write(f"image_captured seq {seq}", self.handshake.on_captured(seq, job_id))
 
     takes_views = True
 
     async def view_captured(self, seq: int, job_id: int) -> None:
         """A view before the last is taken: ``captured`` = seq, the robot moves to the next
         view (it knows which view is its last; only that one gets ``ack``)."""
-        await self._request("captured", (seq, job_id))
+        self._check_open()
+        await self._write(f"view_captured seq {seq}",
+                          self.handshake.on_view_captured(seq, job_id))
 
     async def publish(self, seq: int, result: JobResult) -> Status:
         """Write status, job id and (for a valid pose) the translation page, then the ack;
@@ -340,26 +356,23 @@ class URRtdeLink(SupervisedLink):
         pose and logged as an error: the config check (``capabilities``) refuses any
         ``output.vendor`` but ``ur``, so only a bug gets here.
         """
-        status, translation, rotation = result.status, None, None
-        if result.status.pose_valid:
-            target = result.target
-            if target is None or target.vendor != "ur" or len(target.values) != 6 or not all(
-                    math.isfinite(v) for v in target.values):
-                log.error("link %s: job %d: status %s needs a 'ur' target of 6 finite values, "
-                          "got %s; answered INTERNAL", self.name, result.job_id,
-                          result.status.name, target)
-                status = Status.INTERNAL
-            else:
-                translation, rotation = tuple(target.values[:3]), tuple(target.values[3:])
-        position = pick_position(result)
-        if status is Status.INTERNAL or not position.listed:
-            position = PickPosition(0, 0)
-        pick = self.regs.pick_word(position)
-        belt = (self.regs.belt_values(seq, result.belt if status is result.status else None)
-                if self.regs.conveyor else None)
-        await self._request("publish", (seq, int(status), result.job_id, translation, rotation,
-                                        pick, belt))
-        return status
+        self._check_open()
+        answer, why = ur_wire.ur_answer(result)
+        if why:
+            log.error("link %s: %s; answered INTERNAL", self.name, why)
+        await self._write(f"publish seq {seq}", self.handshake.publish(seq, answer))
+        return answer.status
+
+    def set_conveyor(self, on: bool) -> None:
+        """A recipe has a conveyor: NEXT and PREDICT go to the daemon (its part queue)."""
+        self.handshake.queue = on and self.regs.conveyor
+
+    def set_walking(self, walking: bool) -> None:
+        """A walked hand-eye calibration is served: every NEXT goes on (the walk answers it,
+        the first one asks for a target). After the walk there is no pick list."""
+        self._walking = walking
+        if not walking:
+            self.handshake.listed = False
 
     async def set_warnings(self, bits: int) -> None:
         """Write the bits to input_double_register ``regs.warnings``; while the link is down
@@ -367,7 +380,7 @@ class URRtdeLink(SupervisedLink):
         self._warnings = checked_warnings(bits)
         child = self._child
         if child is not None and self.cell.state is LinkState.UP:
-            await self._send(child, "warnings", (self._warnings,))
+            await self._send(child, "write", (self._warnings_writes(),))
 
     async def robot_pose(self) -> Any | None:
         """``actual_TCP_pose`` read now by the child from the newest data package, as
@@ -383,16 +396,24 @@ class URRtdeLink(SupervisedLink):
 
     # -- requests to the child ----------------------------------------------------------------
 
-    async def _request(self, kind: str, args: tuple[Any, ...]) -> None:
+    def _check_open(self) -> None:
         if self._task is None or self.cell.state is LinkState.FAILED:
             raise LinkError(f"link {self.name} to {self._peer} is {self.cell.state.value}")
-        self._replay[kind] = (kind, args)
+
+    def _warnings_writes(self) -> tuple[ur_wire.Write, ...]:
+        return (("double", self.regs.warnings, float(self._warnings)),)
+
+    async def _write(self, what: str, plan: tuple[Step, ...]) -> None:
+        """Carry out a handshake plan: kept for the reconnect, written now when the link is up
+        (``LinkError`` when it is not: the writes wait for the reconnect)."""
+        writes = ur_wire.writes(self.regs, plan)
+        self._replay += writes
         child = self._child
         if child is None or self.cell.state is not LinkState.UP:
             raise LinkError(f"link {self.name} to {self._peer} is {self.cell.state.value} "
-                            f"({self.cell.last_error}); {kind} seq {args[0]} will be written "
-                            "at the reconnect")
-        await self._send(child, kind, args)
+                            f"({self.cell.last_error}); {what} will be written at the "
+                            "reconnect")
+        await self._send(child, "write", (writes,))
 
     async def _send(self, child: _Child, kind: str, args: tuple[Any, ...]) -> Any:
         """Send one request to the child and wait for its "done"; its value (a pose), if any."""
@@ -421,7 +442,8 @@ class URRtdeLink(SupervisedLink):
 
         async def session() -> Ended:
             nonlocal ever_up
-            child = _Child(self.options, self._last_seq, self._output)
+            known = self.handshake.last_req_seq if self._baseline else None
+            child = _Child(self.options, known, self._output)
             self._child = child
             try:
                 child.start()
@@ -462,26 +484,22 @@ class URRtdeLink(SupervisedLink):
             return bool(first[1]), str(first[2])
         if first[0] == "exit":
             return False, f"{self._peer}: {_describe_exit(first[1])} during setup"
-        if self._last_seq is None:
-            self._last_seq = first[2]  # the baseline: later connects serve anything newer
+        if not self._baseline:  # the baseline: later connects serve anything newer
+            self._baseline = True
+            self.handshake.last_req_seq = first[2]
             if first[3]:
                 log.info("link %s: %s", self.name, first[3])
         if reconnector.up(reconnect=ever_up):
             log.info("link %s up again (%s)", self.name, self._peer)
         try:
-            child.send((0, "warnings", (self._warnings,)))
-            for kind, args in list(self._replay.values()):
-                child.send((0, kind, args))  # nobody waits for these: no "done" is expected
+            # nobody waits for these: no "done" is expected
+            child.send((0, "write", (self._warnings_writes() + tuple(self._replay),)))
         except OSError as err:
             return False, f"{self._peer}: {err}"
         while True:
             msg = await child.next_message()
-            if msg[0] == "trigger":
-                seq, command = msg[1], msg[2]
-                refusal = self.regs.refusal(command)
-                if refusal is None:
-                    self._deliver(*msg[1:])
-                elif not self._refuse(child, seq, command, refusal):
+            if msg[0] == "request":
+                if not self._on_request(child, *msg[1:]):
                     return False, f"{self._peer}: the worker process pipe closed"
             elif msg[0] == "done":
                 fut = self._pending.get(msg[1])
@@ -492,32 +510,49 @@ class URRtdeLink(SupervisedLink):
             else:
                 return False, f"{self._peer}: {_describe_exit(msg[1])}"
 
-    def _refuse(self, child: _Child, seq: int, command: int, status: Status) -> bool:
-        """Answer request ``seq`` with ``status`` (no job, job id 0); False if the pipe broke.
-
-        Kept for the reconnect like any answer; a newer request replaces it."""
-        self._last_seq = seq
-        self._replay.clear()
-        belt = self.regs.belt_values(seq, None) if self.regs.conveyor else None
-        args = (seq, int(status), 0, None, None, 0.0, belt)
-        self._replay["publish"] = ("publish", args)
-        self._refused[status.name] += 1
-        log.info("link %s: request %d refused: %s (command %d; the robot program may send %s)",
-                 self.name, seq, status.name, command,
-                 " or ".join(str(c) for c in sorted(
-                     self.regs.COMMANDS | ({int(Command.PREDICT)} if self.regs.conveyor
-                                           else set()))))
+    def _on_request(self, child: _Child, seq: int, command: int, tcp_pose: list[float],
+                    recipe: int = 0, latch: int | None = None) -> bool:
+        """The robot's sequence changed: the handshake decides; a refusal is written here (no
+        job), a request goes to the daemon. False when the pipe broke."""
+        if self._walking and split_command(command)[0] == Command.NEXT:
+            self.handshake.listed = True  # a walk answers every NEXT
+        decision = self.handshake.on_request(command, seq, recipe)
+        if decision.action is Action.IGNORE:
+            return True
+        self._replay.clear()  # a new request: earlier answers are no longer wanted
+        if decision.action is Action.REJECT:
+            writes = ur_wire.writes(self.regs, decision.steps)
+            self._replay += writes
+            self._refused[decision.code.name] += 1
+            if decision.code is Status.BUSY:
+                why = f"request {self.handshake.running_seq} still runs"
+            else:
+                why = "the robot program may send " + " or ".join(str(c) for c in sorted(
+                    self.handshake.commands or ()) if c != Command.CAPTURE) + " or a capture"
+            log.info("link %s: request %d refused: %s (command %d; %s)", self.name, seq,
+                     decision.code.name, command, why)
+            try:
+                child.send((0, "write", (writes,)))  # nobody waits: no "done" is expected
+            except OSError:
+                return False
+            return True
+        if self._deliver(seq, command, tcp_pose, recipe, latch):
+            return True
+        # the handler failed: the request still ends, with INTERNAL, so the next one is no BUSY
+        plan = self.handshake.publish(seq, JobResult(0, Status.INTERNAL,
+                                                     "the trigger handler failed"))
+        writes = ur_wire.writes(self.regs, plan)
+        self._replay += writes
         try:
-            child.send((0, "publish", args))  # nobody waits: no "done" is expected
+            child.send((0, "write", (writes,)))
         except OSError:
             return False
         return True
 
     def _deliver(self, seq: int, command: int, tcp_pose: list[float], recipe: int = 0,
-                 latch: int | None = None) -> None:
+                 latch: int | None = None) -> bool:
+        """Hand the request to the daemon; False when its handler raised."""
         t_mono_ns = time.monotonic_ns()
-        self._last_seq = seq
-        self._replay.clear()  # a new request: earlier answers are no longer wanted
         try:
             T_base_flange = transform_from_vendor("ur", tcp_pose)
         except ConversionError as err:
@@ -532,3 +567,5 @@ class URRtdeLink(SupervisedLink):
             self._on_trigger(trigger)
         except Exception:  # the handler's bug must not take the link down
             log.exception("link %s: trigger handler failed for seq %d", self.name, seq)
+            return False
+        return True

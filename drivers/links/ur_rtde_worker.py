@@ -7,14 +7,19 @@ aborts the process (SIGABRT). Here the worst case costs a child, which the paren
 restarts. The child never runs destructors: it leaves with ``os._exit`` and lets the kernel close
 its sockets.
 
-Pipe messages, parent -> child: ``(req, "captured", (seq, job_id))``,
-``(req, "publish", (seq, status, job_id, translation | None, rotation | None, pick, belt))``
-(``belt``: ``URRegisterMap.belt_values`` with ``conveyor``, else None),
-``(req, "warnings", (bits,))``, ``(0, "close", ())``. Child -> parent:
+The child is the RTDE I/O shell: it decides nothing about requests. It reports every change of
+the robot's request sequence with the data package it came in, and carries out the register
+writes the parent's handshake planned (``vgripd.peer.ur_wire``), in order. The one rule it
+keeps is the rotation page: the robot's page request is answered here, at the polling rate,
+without a round trip through the parent (the pose's second half is as quick as before).
+
+Pipe messages, parent -> child: ``(req, "write", (writes,))`` (``ur_wire.writes``),
+``(req, "pose", ())``, ``(0, "close", ())``. Child -> parent:
 ``("started",)`` (the process runs, ur_rtde is loaded: the setup begins),
 ``("up", peer, baseline_seq, note)``,
-``("trigger", seq, command, tcp_pose, recipe, latch_count | None)``,
-``("done", req)``, ``("error", fatal, message)`` (the child exits right after).
+``("request", seq, command, tcp_pose, recipe, latch_count | None)`` (the sequence changed: the
+parent's ``Handshake`` judges it), ``("done", req)`` or ``("done", req, tcp_pose)``,
+``("error", fatal, message)`` (the child exits right after).
 
 Conveyor (``conveyor``, the link's ``map_version = 4``): the latch count is read from the
 same data package as the trigger; the belt block goes into input registers ur_rtde cannot
@@ -287,28 +292,26 @@ class _Session:
                 return (ts, *values)
 
     def handle(self, req: int, kind: str, args: tuple[Any, ...]) -> None:
-        regs = self.regs
-        if kind == "captured":
-            seq, job_id = args
-            self.write_int(regs.job_id, job_id)
-            self.write_int(regs.captured, seq)
-        elif kind == "publish":
-            seq, status, job_id, translation, rotation, pick, belt = args
-            if translation is not None:
-                self.write_page(translation)
-            self.write_double(regs.pick, pick)
-            if self.belt is not None and belt is not None:
-                self.belt.write(belt)
-            self.write_int(regs.status, status)
-            self.write_int(regs.job_id, job_id)
-            self.write_int(regs.ack, seq)  # last: the robot reads nothing before it sees this
-            self.pending_rotation = (seq, rotation) if rotation is not None else None
-        elif kind == "warnings":
-            self.write_double(regs.warnings, args[0])
+        if kind == "write":  # the parent's plan (``ur_wire.writes``), in order
+            for write in args[0]:
+                self.write(write)
         elif kind == "pose":  # the robot's TCP pose now, from the newest data package
             self.conn.send(("done", req, self.snapshot()[4]))
             return
         self.conn.send(("done", req))
+
+    def write(self, write: tuple[Any, ...]) -> None:
+        what = write[0]
+        if what == "int":
+            self.write_int(write[1], write[2])
+        elif what == "double":
+            self.write_double(write[1], write[2])
+        elif what == "belt":
+            if self.belt is not None:
+                self.belt.write(write[1])
+        elif what == "page":  # the rotation page, handed out when the robot asks for it
+            seq, rotation = write[1], write[2]
+            self.pending_rotation = (seq, rotation) if rotation is not None else None
 
     def step(self) -> None:
         if not self.rcv.isConnected():
@@ -319,10 +322,11 @@ class _Session:
             self.last_ts, self.last_ts_change = ts, now
         elif now - self.last_ts_change > self.stale_after_s:
             raise _Lost(f"{self.peer}: no new data package for {self.stale_after_s} s")
-        if seq != self.last_seq and seq != 0:
+        if seq != self.last_seq:  # the parent's handshake judges whether it is a request
             self.last_seq = seq
-            self.pending_rotation = None
-            self.conn.send(("trigger", seq, command, pose, recipe, latch))
+            if seq != 0:  # a new sequence: the previous answer's rotation page is not wanted
+                self.pending_rotation = None
+            self.conn.send(("request", seq, command, pose, recipe, latch))
         pending = self.pending_rotation
         if pending is not None and page_request == pending[0]:
             self.write_page(pending[1])

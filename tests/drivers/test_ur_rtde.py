@@ -256,14 +256,24 @@ async def test_busy_answer_is_asked_again_after_a_pause() -> None:
 
 async def test_unanswered_request_is_asked_again_then_given_up() -> None:
     async with connected(lo("127.0.5.25")) as (robot, lnk, triggers):
-        first = robot.start_program(1, timeout_s=0.3)
-        assert (await triggers.next()).seq == first  # never answered
-        second = await triggers.next()
-        assert second.seq == first + 1
-        await lnk.publish(second.seq, ur_result(6))
-        result = robot.program_result(first)
-        assert (result["status"], result["unanswered"], result["seq"]) == (1, 1, second.seq)
+        # The robot stops waiting for its first request after 0.3 s and asks again; while the
+        # first one's job still runs the retry is answered BUSY by the link (as every link's
+        # handshake does), and the robot asks once more after its BUSY wait.
+        first = robot.start_program(1, timeout_s=0.3, busy_wait_s=5.0)
+        assert (await triggers.next()).seq == first  # answered only after the retry
+        assert await asyncio.to_thread(robot.wait_input, "input_int_register_18", first + 1,
+                                       60.0)
+        assert robot.inputs("input_int_register_19")["input_int_register_19"] == Status.BUSY
+        assert lnk.refusals() == {"BUSY": 1}
+        await lnk.publish(first, ur_result(5))  # too late: the robot waits for its retry
+        third = await triggers.next(timeout_s=60.0)  # after the robot's BUSY wait
+        assert third.seq == first + 2
+        await lnk.publish(third.seq, ur_result(6))
+        result = robot.program_result(first, timeout_s=60.0)
+        assert (result["status"], result["unanswered"], result["busy"], result["seq"]) == (
+            1, 1, 1, third.seq)
 
+        await lnk.close()  # vgripd gone: nobody answers
         gave_up = robot.start_program(1, timeout_s=0.2, attempts=2)
         result = robot.program_result(gave_up)
         assert result["requests"] == [gave_up, gave_up + 1]

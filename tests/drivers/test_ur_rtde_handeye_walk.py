@@ -33,7 +33,7 @@ from vgripd.peer.jobcore import Command
 from vgripd.service.handeye_walk import WalkServer
 from vgripd.service.protocol import Trigger
 from vgripd.sim.arm import ArmState, SimulatedArm
-from vgripd.sim.ur_controller import URController
+from vgripd.sim.ur_controller import BUSY_WAIT_S, URController
 from vgripd.types import Status
 
 # the rendered scene of the walk test (bare module names, as pytest imports them there)
@@ -215,8 +215,9 @@ def test_the_scripts_walk_skips_with_recipe_1_and_asks_with_recipe_0() -> None:
 async def test_an_image_request_asked_again_after_its_timeout_gets_the_same_answer(
         tmp_path: Path) -> None:
     """The first image request's answer is held until the robot program, its timeout run out,
-    has asked again with a new sequence (the robot standing at target 0): the repeat gets the
-    same answer (target 1) and records nothing, and target 1 is then recorded with its own
+    has asked again with a new sequence (the robot standing at target 0; the link answers BUSY
+    while the first request runs, and the program asks again after its BUSY wait): the repeat
+    gets the same answer (target 1) and records nothing, and target 1 is then recorded with its own
     pose. Before, the repeat was recorded as target 1 with target 0's pose and image, and
     answered target 2: target 1 never visited."""
     assert make_plan(tmp_path, MODE) == 0
@@ -224,14 +225,16 @@ async def test_an_image_request_asked_again_after_its_timeout_gets_the_same_answ
     walk = Walk(tmp_path / "walk.json", plan, BOARD, CAMERA)
     triggers: list[Trigger] = []
     grabs: list[int] = []
-    asked_again = asyncio.Event()
 
     async def grab() -> np.ndarray:
         index = server.pending
         assert index is not None
         grabs.append(index)
-        if len(grabs) == 1:  # held until the program asked again
-            await asyncio.wait_for(asked_again.wait(), 60)
+        if len(grabs) == 1:  # held until the program asked again: the link answers it BUSY
+            # while this request runs (polled: the mock's pipe is busy with the program)
+            async with asyncio.timeout(60):
+                while not link.refusals().get("BUSY"):  # noqa: ASYNC110 - no event to wait on
+                    await asyncio.sleep(0.01)
         return await asyncio.to_thread(image_at, MODE, plan.poses[index], index)
 
     link = URRtdeLink("ur", URRtdeOptions(host=lo("127.0.5.67")))
@@ -239,14 +242,13 @@ async def test_an_image_request_asked_again_after_its_timeout_gets_the_same_answ
 
     def on_trigger(trigger: Trigger) -> None:
         triggers.append(trigger)
-        if sum(t.command == Command.TRIGGER for t in triggers) == 2:
-            asked_again.set()
         server.on_trigger(trigger)
 
-    def at_target(robot: URController, index: int, timeout_s: float) -> dict[str, Any]:
+    def at_target(robot: URController, index: int, timeout_s: float,
+                  busy_wait_s: float = BUSY_WAIT_S) -> dict[str, Any]:
         robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[index]))
         seq = robot.start_program(int(Command.TRIGGER), taught_pose=ZERO, timeout_s=timeout_s,
-                                  attempts=10)
+                                  attempts=10, busy_wait_s=busy_wait_s)
         return robot.program_result(seq, timeout_s=90.0)
 
     def is_target(result: dict[str, Any], index: int) -> bool:
@@ -264,7 +266,9 @@ async def test_an_image_request_asked_again_after_its_timeout_gets_the_same_answ
                                           taught_pose=ZERO, timeout_s=30.0)
             first = await asyncio.to_thread(robot.program_result, seq, 60.0)
             assert is_target(first, 0)
-            again = await asyncio.to_thread(at_target, robot, 0, 2.0)  # its timeout: 2 s
+            # its timeout: 2 s; one BUSY wait long enough for the first image's work on a
+            # busy machine
+            again = await asyncio.to_thread(at_target, robot, 0, 2.0, 20.0)
             assert again["unanswered"] >= 1  # it asked again
             assert is_target(again, 1), again  # target 1 again, not target 2
             assert sorted(walk.records) == [0]

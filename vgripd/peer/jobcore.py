@@ -294,6 +294,9 @@ class Handshake:
         #: A conveyor's part queue answers NEXT and PREDICT (the daemon judges them): they
         #: need no list here. Without it PREDICT is refused like a NEXT without a list.
         self.queue = False
+        #: The commands this link's peer may send (None: every one above); any other is
+        #: refused BAD_REQUEST like an unknown one (the UR registers carry no CLEAR).
+        self.commands: frozenset[int] | None = None
 
     @property
     def busy(self) -> bool:
@@ -312,7 +315,8 @@ class Handshake:
         command, view = split_command(command)
         if (command not in (Command.TRIGGER, Command.CLEAR, Command.NEXT, Command.CAPTURE,
                             Command.PREDICT)
-                or (command == Command.CAPTURE and not 1 <= view <= MAX_VIEWS)):
+                or (command == Command.CAPTURE and not 1 <= view <= MAX_VIEWS)
+                or (self.commands is not None and command not in self.commands)):
             return self._reject(seq, command, recipe, Status.BAD_REQUEST, view)
         if self.busy:
             return self._reject(seq, command, recipe, Status.BUSY, view)

@@ -1,6 +1,6 @@
 """The job core (``vgripd.peer.jobcore``) fed random sequences of events, without I/O.
 
-A cell of five links, each kind, shares one ``JobCore`` as the daemon does:
+A cell of seven links, each kind, shares one ``JobCore`` as the daemon does:
 
 - ``plc``, ``s7``, ``mbclient``: register links (Modbus server / RTU; S7; Modbus client),
   through the ``RegisterBank`` the drivers use; its journal of block writes is replayed one
@@ -11,6 +11,9 @@ A cell of five links, each kind, shares one ``JobCore`` as the daemon does:
   answer area of RequestId and result data;
 - ``robot``: the robot socket's handshake (a request per frame); its answers are frames whose
   kind (RESULT or REFUSED) the plan's ACK says;
+- ``ur``: the UR RTDE link's handshake (register semantics: a request is a new non-zero
+  sequence) and its plans as UR register writes (``ur_wire.writes``), read as the robot
+  program reads them (the answer when ``ack`` names its request; a refusal is an answer);
 - ``vision``: an OPC UA link's OPC 40100 state machine (``VisionMachine``): StartSingleJob and
   the plain Next go through its states first (refused in any state but Ready), CLEAR and
   unknown commands stand for the older namespace's calls on the same link; random
@@ -36,6 +39,7 @@ trigger ABORTED) and taking jobs again. The rules checked on what comes out:
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import pytest
@@ -43,6 +47,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.links.modbus_client import plan_writes
+from vgripd.peer import ur_wire
 from vgripd.peer.jobcore import (
     Action,
     Admit,
@@ -226,6 +231,68 @@ class MessageLink:
                                            d.count, d.index, frame))
 
 
+class URLink:
+    """The UR RTDE link: its handshake (``ur_wire.handshake``) and its plans rendered as
+    UR register writes (``ur_wire.writes``), applied one by one to the input registers
+    as the robot program reads them: it takes the answer to its request when ``ack`` names
+    it, reading status, job id, the pick word and both pose pages in that moment. The map has
+    no retraction and no refusal registers: a refusal is an answer (status, job id 0, ack),
+    and data may change under an older request's ack once the robot asked anew (it reads
+    nothing before ``ack`` names its new request)."""
+
+    edge = True
+
+    def __init__(self) -> None:
+        self.regs = URRegisterMap()
+        self.handshake = ur_wire.handshake(self.regs)
+        self.ints: dict[int, int] = {}
+        self.doubles: dict[int, float] = {}
+        self.answers: list[Answer] = []
+        self.faults: list[str] = []
+        self.current = 0  # the robot's request register
+        self.refused_current = False  # its current request was refused by the link
+
+    def request(self, command: int, seq: int) -> Decision:
+        self.current = seq
+        decision = self.handshake.on_request(command, seq)
+        self.refused_current = decision.action is Action.REJECT
+        self._apply(decision.steps, refused=self.refused_current)
+        return decision
+
+    def captured(self, seq: int, job_id: int) -> None:
+        self._apply(self.handshake.on_captured(seq, job_id))
+
+    def publish(self, seq: int, result: JobResult) -> None:
+        self._apply(self.handshake.publish(seq, result))
+
+    def _apply(self, plan: tuple[Step, ...], refused: bool = False) -> None:
+        regs = self.regs
+        for write in ur_wire.writes(regs, plan):
+            acked = self.ints.get(regs.ack, 0)
+            if write[0] in ("int", "double") and write[1] != regs.ack and write[1] != \
+                    regs.captured and acked and acked == self.current \
+                    and not self.refused_current:
+                self.faults.append(f"{write} while ack names the robot's request {acked}")
+            if write[0] == "int":
+                self.ints[write[1]] = write[2]
+            elif write[0] == "double":
+                self.doubles[write[1]] = write[2]
+            elif write[0] == "page":
+                assert write[1] == acked  # the rotation page of the request just answered
+                if write[2] is not None:
+                    self.answers[-1] = dataclasses.replace(
+                        self.answers[-1], pose=self.answers[-1].pose + tuple(write[2]))
+            if write[0] == "int" and write[1] == regs.ack:
+                pick = int(self.doubles.get(regs.pick, 0.0))
+                status = self.ints.get(regs.status, 0)
+                translation = (tuple(self.doubles[r] for r in regs.page)
+                               if Status(status).pose_valid else ())
+                self.answers.append(Answer(write[2], refused, status,
+                                           self.ints.get(regs.job_id, 0), translation,
+                                           pick // URRegisterMap.PICK_BASE,
+                                           pick % URRegisterMap.PICK_BASE))
+
+
 class VisionLink(MessageLink):
     """An OPC UA link's OPC 40100 side: requests through ``VisionMachine``'s states."""
 
@@ -287,7 +354,7 @@ class VisionLink(MessageLink):
         assert (m.auto is None) == (m.top.label != "Operational")
 
 
-Link = RegisterLink | MessageLink
+Link = RegisterLink | MessageLink | URLink
 
 
 @dataclass
@@ -298,7 +365,7 @@ class Cell:
     links: dict[str, Link] = field(default_factory=lambda: {
         "plc": RegisterLink(), "s7": RegisterLink("s7"), "mbclient": RegisterLink("client"),
         "ua": MessageLink(frames=False), "robot": MessageLink(frames=True),
-        "vision": VisionLink()})
+        "vision": VisionLink(), "ur": URLink()})
     core: JobCore = field(default_factory=JobCore)
     running: tuple[str, int, int, bool] | None = None  # link, seq, job id, captured
     accepting: bool = True  # False: shutting down, every trigger is refused ABORTED
@@ -382,7 +449,7 @@ class Cell:
 
 COMMANDS = st.sampled_from([Command.TRIGGER, Command.TRIGGER, Command.NEXT, Command.NEXT,
                             Command.CLEAR, 99])
-LINKS = st.sampled_from(["plc", "s7", "mbclient", "ua", "robot", "vision"])
+LINKS = st.sampled_from(["plc", "s7", "mbclient", "ua", "robot", "vision", "ur"])
 VISION_CALLS = st.sampled_from(["ready", "ready", "ready", "select", "prepare", "unprepare",
                                 "halt", "reset", "stop", "abort"])
 RESULTS = st.tuples(st.sampled_from(["one", "none", "pallet", "pallet", "died"]),
@@ -468,7 +535,30 @@ def run(events: list[tuple]) -> Cell:
 @settings(max_examples=300, deadline=None)
 @given(st.lists(EVENTS, max_size=60))
 def test_random_event_sequences_keep_the_handshake_rules(events: list[tuple]) -> None:
-    cell = run(events)
+    check_rules(run(events))
+
+
+#: Events of the UR link and one other (a job of either keeps the other BUSY), in sequences
+#: long enough that UR's requests meet its running job, refusals, NEXT walks and shutdowns.
+UR_LINKS = st.sampled_from(["ur", "ur", "plc"])
+UR_EVENTS = st.one_of(
+    st.tuples(st.just("request"), UR_LINKS, COMMANDS,
+              st.sampled_from(["fresh", "fresh", "fresh", "again", "zero"])),
+    st.tuples(st.just("capture")),
+    st.tuples(st.just("finish"), RESULTS),
+    st.tuples(st.just("job"), UR_LINKS, RESULTS),
+    st.tuples(st.just("next"), UR_LINKS),
+    st.tuples(st.just("accepting"), st.booleans()),
+)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(UR_EVENTS, min_size=10, max_size=60))
+def test_the_ur_registers_keep_the_handshake_rules(events: list[tuple]) -> None:
+    check_rules(run(events))
+
+
+def check_rules(cell: Cell) -> None:
     for name, link in cell.links.items():
         assert link.faults == [], name
         # each request answered exactly once, and only requests
