@@ -377,7 +377,9 @@ async def test_silent_controller_does_not_block_the_loop() -> None:
         link = URRtdeLink("ur", URRtdeOptions(host=robot.host, connect_timeout_s=1.0, **FAST))
         try:
             await link.open(Triggers())  # the child hangs in ur_rtde's constructor
-            health = link.health()
+            # open waits connect_timeout_s + 5 s for the first attempt's outcome, then goes on
+            # (a busy machine can take longer to start the child): the outcome is awaited here.
+            health = await link.wait_state({LinkState.DOWN, LinkState.UP}, timeout_s=45)
             assert health.state is LinkState.DOWN
             assert "did not complete the RTDE setup within 1.0 s" in health.last_error
             # While the child hung for >= 1 s, the loop kept running (10 ms ticks).
