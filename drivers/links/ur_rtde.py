@@ -67,8 +67,8 @@ from vgripd.peer.jobcore import Command, PickPosition, pick_position, split_comm
 from vgripd.peer.registers import checked_warnings
 from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.registry import LinkCapabilities
-from vgripd.service.protocol import LinkState, Trigger, TriggerHandler
-from vgripd.service.supervisor import (
+from vgripd.service.links.protocol import LinkState, Trigger, TriggerHandler
+from vgripd.service.links.supervisor import (
     BackoffOptions,
     Ended,
     OutagePolicy,
