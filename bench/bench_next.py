@@ -41,7 +41,7 @@ from bench import harness  # noqa: E402
 from vgripd.config import config_from_dict  # noqa: E402
 from vgripd.geometry.transforms import pose_error  # noqa: E402
 from vgripd.service.daemon import Daemon  # noqa: E402
-from vgripd.service.jobrecord import JobRecord  # noqa: E402
+from vgripd.service.jobs.jobrecord import JobRecord  # noqa: E402
 from vgripd.sim.opcua_client import OpcUaClientProcess  # noqa: E402
 from vgripd.sim.plc import MockPlc  # noqa: E402
 from vgripd.types import ImagePair, Status  # noqa: E402

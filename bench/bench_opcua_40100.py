@@ -53,8 +53,8 @@ from drivers.links.opcua_vision import (  # noqa: E402
 )
 from vgripd.config import config_from_dict  # noqa: E402
 from vgripd.service.daemon import Daemon  # noqa: E402
-from vgripd.service.jobrecord import JobRecord  # noqa: E402
-from vgripd.service.protocol import LinkState  # noqa: E402
+from vgripd.service.jobs.jobrecord import JobRecord  # noqa: E402
+from vgripd.service.links.protocol import LinkState  # noqa: E402
 from vgripd.types import ImagePair  # noqa: E402
 
 HEADING = "OPC 40100 on the official NodeSet against the older namespace"

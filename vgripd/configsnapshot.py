@@ -1,6 +1,6 @@
 """The bytes of a config: the main file and its ``include = [...]`` files, read once.
 
-A config write is judged and applied from one ``Snapshot`` (``vgripd.service.configtxn``): the
+A config write is judged and applied from one ``Snapshot`` (``vgripd.service.host.configtxn``): the
 check child (``vgripd check --snapshot FILE``) and the daemon both parse exactly these bytes
 (``load_config(path, files=snapshot.files)``), never the files again, so what runs is what was
 judged. ``digest`` names the bytes: the child prints it and the daemon compares it with its own.

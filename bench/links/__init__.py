@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from vgripd.service.protocol import Trigger
+from vgripd.service.links.protocol import Trigger
 from vgripd.types import JobResult, RobotTarget, Status
 
 

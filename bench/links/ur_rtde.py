@@ -23,7 +23,7 @@ from multiprocessing.connection import Connection
 
 from bench.links import LinkRun, Series
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
-from vgripd.service.protocol import Trigger
+from vgripd.service.links.protocol import Trigger
 from vgripd.sim.ur_controller import URController
 from vgripd.types import JobResult, RobotTarget, Status
 

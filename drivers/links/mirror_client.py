@@ -43,8 +43,8 @@ from vgripd.peer.registers import (
     RegisterBank,
     ValueCodec,
 )
-from vgripd.service.protocol import CountHandler, LinkState, Trigger, TriggerHandler
-from vgripd.service.supervisor import Ended, OutagePolicy, Reconnector, SupervisedLink
+from vgripd.service.links.protocol import CountHandler, LinkState, Trigger, TriggerHandler
+from vgripd.service.links.supervisor import Ended, OutagePolicy, Reconnector, SupervisedLink
 from vgripd.types import JobResult, Status
 
 C = TypeVar("C")  # the transport's client object, one per connection

@@ -66,7 +66,7 @@ from vgripd.peer.registers import (
     map_size,
 )
 from vgripd.registry import REGISTER_CAPABILITIES
-from vgripd.service.supervisor import BackoffOptions
+from vgripd.service.links.supervisor import BackoffOptions
 
 log = logging.getLogger(__name__)
 

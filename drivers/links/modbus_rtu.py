@@ -37,8 +37,8 @@ from vgripd.errors import LinkError
 from vgripd.peer.modbus_pdu import Malformed
 from vgripd.peer.registers import RegisterOptions
 from vgripd.peer.rtu import RtuFramer, char_time_s, silence_s, with_crc
-from vgripd.service.protocol import LinkState, TriggerHandler
-from vgripd.service.supervisor import (
+from vgripd.service.links.protocol import LinkState, TriggerHandler
+from vgripd.service.links.supervisor import (
     BackoffOptions,
     Ended,
     OutagePolicy,

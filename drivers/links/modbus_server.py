@@ -28,7 +28,7 @@ module acts on the answerer's decisions and does the I/O):
   write outside the command area exception 02; any other function code exception 01.
 - Requests are answered in order, every request of a segment (pipelining), a batch at a time
   so that one client cannot hold the loop.
-- Connections go through the daemon's one connection manager (``vgripd.service.gate``):
+- Connections go through the daemon's one connection manager (``vgripd.service.links.gate``):
   addresses outside ``allow`` are closed at accept; at most ``max_connections`` (the daemon's
   file budget may lower it); beyond that a new connection evicts the oldest one that never got
   a normal answer, and is refused when every connection has (a flood of newcomers never evicts
@@ -77,10 +77,16 @@ from vgripd.peer.registers import (
     ValueCodec,
 )
 from vgripd.registry import REGISTER_CAPABILITIES
-from vgripd.service.gate import Gate, set_keepalive
-from vgripd.service.protocol import CountHandler, LinkHealth, LinkState, Trigger, TriggerHandler
-from vgripd.service.ratelog import RateLimitedLog
-from vgripd.service.supervisor import SupervisedLink
+from vgripd.service.links.gate import Gate, set_keepalive
+from vgripd.service.links.protocol import (
+    CountHandler,
+    LinkHealth,
+    LinkState,
+    Trigger,
+    TriggerHandler,
+)
+from vgripd.service.links.ratelog import RateLimitedLog
+from vgripd.service.links.supervisor import SupervisedLink
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)

@@ -33,10 +33,10 @@ policy and mode are listed (a SecurityPolicy None channel serves endpoint discov
 ``"None"`` is listed); failed logins are slowed and locked out per client address; refused
 client certificates are kept, bounded, in ``certificate_dir/rejected`` (``opcua_guard``).
 
-Connections go through the daemon's one connection manager (``vgripd.service.gate``) at accept:
-addresses outside ``allow`` are closed at once; beyond ``max_connections`` (which the daemon's
-file budget may lower) a newcomer evicts the oldest connection that has not activated a session,
-and is refused when every connection has one.
+Connections go through the daemon's one connection manager (``vgripd.service.links.gate``) at
+accept: addresses outside ``allow`` are closed at once; beyond ``max_connections`` (which the
+daemon's file budget may lower) a newcomer evicts the oldest connection that has not activated a
+session, and is refused when every connection has one.
 
 Faults are the peer's, never the daemon's: a connection whose first bytes are not an OPC UA
 Hello is closed, as is one that opens no session within ``activation_timeout_s`` or stays
@@ -96,12 +96,12 @@ from vgripd.config import AllowList
 from vgripd.errors import LinkError
 from vgripd.peer.jobcore import Command, Part, Step
 from vgripd.peer.registers import checked_warnings
+from vgripd.peer.visionsm import Verdict, VisionMachine
 from vgripd.registry import OPCUA_CAPABILITIES
-from vgripd.service.gate import Gate
-from vgripd.service.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
-from vgripd.service.ratelog import RateLimitedLog
-from vgripd.service.supervisor import SupervisedLink
-from vgripd.service.visionsm import Verdict, VisionMachine
+from vgripd.service.links.gate import Gate
+from vgripd.service.links.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
+from vgripd.service.links.ratelog import RateLimitedLog
+from vgripd.service.links.supervisor import SupervisedLink
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger(__name__)

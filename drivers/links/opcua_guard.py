@@ -12,7 +12,7 @@ refused client certificates are kept (docs/opcua.md, "Security").
   (asyncua would keep both, and a watchdog task for each). RegisterServer(2) is refused (vgripd
   is no discovery server). A refused session request is answered without asyncua's ERROR
   lines: one rate-limited WARNING of ours.
-- ``LoginThrottle`` (``vgripd.service.throttle``, shared with the web view) slows failed
+- ``LoginThrottle`` (``vgripd.service.links.throttle``, shared with the web view) slows failed
   logins per client address and locks an address out after ``login_failures`` failures in a
   row.
 - ``RejectedStore`` keeps refused client certificates, one file per thumbprint, the oldest
@@ -37,7 +37,7 @@ from asyncua.crypto.security_policies import SECURITY_POLICY_TYPE_MAP
 from asyncua.server.uaprocessor import UaProcessor
 from asyncua.ua.ua_binary import struct_from_binary
 
-from vgripd.service.throttle import LoginThrottle
+from vgripd.service.links.throttle import LoginThrottle
 
 
 class GuardedLink(Protocol):

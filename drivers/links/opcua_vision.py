@@ -5,7 +5,7 @@
 builds its data types, and adds one ``VisionSystemType`` instance, ``Objects/VisionSystem`` in
 the namespace ``urn:vgripd:vision-system`` (string node ids by browse path, e.g.
 ``VisionSystem.VisionStateMachine.AutomaticModeStateMachine.StartSingleJob``). Its methods are
-answered here by the rules of ``vgripd.service.visionsm.VisionMachine`` (the link's one state
+answered here by the rules of ``vgripd.peer.visionsm.VisionMachine`` (the link's one state
 machine and handshake); the optional nodes vgripd does not implement (file transfer, products,
 adding or removing recipes and configurations, step models) are removed from the instance so
 that a client never calls a method without an implementation.
@@ -56,7 +56,7 @@ from drivers.links.opcua_belt import (
 from drivers.links.opcua_nodeset import prune
 from drivers.links.opcua_space import ResultValues
 from vgripd.peer.jobcore import Command
-from vgripd.service.visionsm import (
+from vgripd.peer.visionsm import (
     BAD_ARGUMENT,
     Auto,
     Top,

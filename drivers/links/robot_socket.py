@@ -36,7 +36,7 @@ a new image.
 Faults are the peer's, never the daemon's: a frame that is not a request (magic, version) closes
 that connection, as does a request left incomplete for ``frame_timeout_s`` (a silent peer) or a
 peer that does not read its answers (``max_unsent_bytes``). Connections go through the daemon's
-one connection manager (``vgripd.service.gate``): addresses outside ``allow`` are closed at
+one connection manager (``vgripd.service.links.gate``): addresses outside ``allow`` are closed at
 accept; at most ``max_connections``, beyond which a new one evicts the oldest connection that
 never sent a valid request and is refused when every one has (a robot that has talked is never
 evicted by newcomers); ``idle_timeout_s`` closes a silent one, never the one waiting for its
@@ -81,11 +81,11 @@ from vgripd.peer.socket_frames import (
     result_answer,
 )
 from vgripd.registry import SOCKET_CAPABILITIES
-from vgripd.service.gate import Gate, set_keepalive
-from vgripd.service.handeye_walk import walk_request_refusal
-from vgripd.service.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
-from vgripd.service.ratelog import RateLimitedLog
-from vgripd.service.supervisor import (
+from vgripd.service.links.gate import Gate, set_keepalive
+from vgripd.service.links.handeye_walk import walk_request_refusal
+from vgripd.service.links.protocol import LinkHealth, LinkState, Trigger, TriggerHandler
+from vgripd.service.links.ratelog import RateLimitedLog
+from vgripd.service.links.supervisor import (
     BackoffOptions,
     Ended,
     OutagePolicy,

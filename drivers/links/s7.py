@@ -74,7 +74,7 @@ from vgripd.peer.registers import (
 )
 from vgripd.peer.s7_block import DB_BYTES, block_bytes, db_bytes, plan_db_writes
 from vgripd.registry import S7_CAPABILITIES
-from vgripd.service.supervisor import BackoffOptions
+from vgripd.service.links.supervisor import BackoffOptions
 
 log = logging.getLogger(__name__)
 

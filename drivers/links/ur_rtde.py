@@ -75,8 +75,8 @@ from vgripd.peer.jobcore import Action, Command, Step, split_command
 from vgripd.peer.registers import checked_warnings
 from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.registry import UR_CAPABILITIES
-from vgripd.service.protocol import LinkState, Trigger, TriggerHandler
-from vgripd.service.supervisor import (
+from vgripd.service.links.protocol import LinkState, Trigger, TriggerHandler
+from vgripd.service.links.supervisor import (
     BackoffOptions,
     Ended,
     OutagePolicy,

@@ -48,7 +48,7 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from vgripd.peer.ur_registers import URRegisterMap
-from vgripd.service.lifetime import die_with_daemon
+from vgripd.service.host.lifetime import die_with_daemon
 
 RTDE_PORT = 30004
 

@@ -27,7 +27,7 @@ from vgripd.peer.registers import (
     ValueCodec,
     Warnings,
 )
-from vgripd.service.protocol import LinkHealth, LinkState, Trigger
+from vgripd.service.links.protocol import LinkHealth, LinkState, Trigger
 from vgripd.sim.robot_modbus import MockRobotModbus, RegisterWrite, RobotMode
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
@@ -446,7 +446,7 @@ async def test_daemon_jobs_through_the_robot_modbus_server(robot: MockRobotModbu
     program gets the pose the daemon computed, bit-exact in float32, ACK_SEQ last."""
     from vgripd.config import config_from_dict
     from vgripd.service.daemon import Daemon as VgripDaemon
-    from vgripd.service.jobrecord import JobRecord
+    from vgripd.service.jobs.jobrecord import JobRecord
 
     config = config_from_dict({
         "camera": {"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0},

@@ -22,7 +22,7 @@ from drivers.links.modbus_client import (
 from tests.drivers.test_modbus_client import Daemon, make_link
 from vgripd.peer.jobcore import Command
 from vgripd.peer.registers import COMMAND_AREA, LATCH_AREA, MAP_SIZE_V4, BlockWrite, Reg
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.links.protocol import LinkState, Trigger
 from vgripd.sim.robot_modbus import UR_FIRST_REGISTER, MockRobotModbus, RegisterWrite
 from vgripd.types import BeltPose, JobResult, RobotTarget, Status
 

@@ -21,7 +21,7 @@ from tests.conftest import need_tool
 from vgripd.errors import LinkError
 from vgripd.peer.jobcore import Command, HandshakeState, capture_word, next_answer
 from vgripd.peer.registers import CHECK_F32, MAP_SIZE, MAP_VERSIONS, Reg, Warnings
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.links.protocol import LinkState, Trigger
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 BAUD = 115200

@@ -24,7 +24,7 @@ from tests.conftest import need_tool
 from vgripd.errors import LinkError
 from vgripd.peer.jobcore import Command, next_answer
 from vgripd.peer.registers import CHECK_F32, MAP_SIZE, BlockWrite, Reg, Warnings
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.links.protocol import LinkState, Trigger
 from vgripd.sim.plc import MockPlc, PlcCheckError
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 

@@ -32,7 +32,7 @@ from drivers.links.opcua import OpcUaLink, OpcUaOptions
 from tests.conftest import REPO, need
 from vgripd.errors import ConfigError, LinkError
 from vgripd.geometry.vendors import CONVENTIONS
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.links.protocol import LinkState, Trigger
 from vgripd.sim.opcua_client import OpcUaClientProcess
 from vgripd.sim.opcua_raw import RawOpcUa, client_policy, status_of
 from vgripd.types import JobResult, RobotTarget, Status
@@ -582,7 +582,7 @@ def test_options_and_registry() -> None:
 
 def test_check_tries_the_opcua_port() -> None:
     from vgripd.config import config_from_dict
-    from vgripd.service.commissioning import _listening
+    from vgripd.service.host.commissioning import _listening
 
     config = config_from_dict({
         "camera": {"type": "synthetic"}, "status": {"enabled": False},
@@ -980,7 +980,7 @@ async def test_timestamp_before_the_first_result_reads_in_one_read(
 
 def test_check_warns_about_security_none_and_open_anonymous_sessions(tmp_path: Path) -> None:
     from vgripd.config import config_from_dict
-    from vgripd.service.commissioning import check_link_exposure
+    from vgripd.service.host.commissioning import check_link_exposure
 
     def found(**link: Any) -> list[str]:
         config = config_from_dict({

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from drivers.links.opcua_guard import RejectedStore
-from vgripd.service.throttle import LoginThrottle
+from vgripd.service.links.throttle import LoginThrottle
 
 
 def test_failures_are_spaced_then_the_address_is_locked_out() -> None:

@@ -46,7 +46,7 @@ from vgripd.peer.socket_frames import (
     request_size,
     result_answer,
 )
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.links.protocol import LinkState, Trigger
 from vgripd.types import BeltPose, JobResult, PickInstance, RobotTarget, Status
 
 WAIT_S = 10.0
@@ -773,7 +773,7 @@ def test_check_warns_about_a_server_link_without_allow(
     address, or in client mode."""
     from vgripd.__main__ import main
     from vgripd.config import config_from_dict
-    from vgripd.service.commissioning import check_link_exposure
+    from vgripd.service.host.commissioning import check_link_exposure
 
     def found(**link: Any) -> list[str]:
         config = config_from_dict({

@@ -33,7 +33,7 @@ from vgripd.peer.registers import (
     Warnings,
 )
 from vgripd.peer.s7_block import DB_BYTES
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.links.protocol import LinkState, Trigger
 from vgripd.sim.s7_plc import DbWrite, MockS7Plc, S7PlcServer
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
@@ -527,7 +527,7 @@ async def test_daemon_jobs_through_the_s7_link(server: S7PlcServer, plc: MockS7P
     the pose the daemon computed, bit-exact in float32 (S7 Real)."""
     from vgripd.config import config_from_dict
     from vgripd.service.daemon import Daemon as VgripDaemon
-    from vgripd.service.jobrecord import JobRecord
+    from vgripd.service.jobs.jobrecord import JobRecord
 
     config = config_from_dict({
         "camera": {"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0},

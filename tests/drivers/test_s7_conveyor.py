@@ -27,7 +27,7 @@ from vgripd.peer.jobcore import Command
 from vgripd.peer.registers import LATCH_AREA, MAP_SIZE_V4, Reg
 from vgripd.peer.s7_block import db_bytes
 from vgripd.registry import validate_options
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.links.protocol import LinkState, Trigger
 from vgripd.sim.s7_plc import MockS7Plc, S7PlcServer
 from vgripd.types import BeltPose, JobResult, RobotTarget, Status
 

@@ -24,8 +24,8 @@ from vgripd.errors import LinkError
 from vgripd.peer.jobcore import Command, next_answer
 from vgripd.peer.registers import Warnings
 from vgripd.peer.ur_registers import URRegisterMap
-from vgripd.service.protocol import LinkState, Trigger, robot_pose_now
-from vgripd.service.web.trigger import WebTriggerLink
+from vgripd.service.links.protocol import LinkState, Trigger, robot_pose_now
+from vgripd.service.links.webtrigger import WebTriggerLink
 from vgripd.sim.ur_controller import URController
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 

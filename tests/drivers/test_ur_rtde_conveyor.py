@@ -14,7 +14,7 @@ from tests.conftest import lo
 from tests.drivers.test_ur_rtde import TAUGHT, Triggers, connected, ur_result
 from vgripd.peer.jobcore import Command
 from vgripd.peer.ur_registers import URRegisterMap
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.ur_controller import URController
 from vgripd.types import BeltPose, JobResult, Status
 

@@ -30,8 +30,8 @@ from vgripd.calib.handeye.walk import SEEN, UNREACHABLE, Walk
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
 from vgripd.peer.jobcore import Command
-from vgripd.service.handeye_walk import WalkServer
-from vgripd.service.protocol import Trigger
+from vgripd.service.links.handeye_walk import WalkServer
+from vgripd.service.links.protocol import Trigger
 from vgripd.sim.arm import ArmState, SimulatedArm
 from vgripd.sim.ur_controller import BUSY_WAIT_S, URController
 from vgripd.types import Status

@@ -8,7 +8,7 @@ import contextlib
 import struct
 
 from drivers.links.modbus_server import ModbusServerLink
-from vgripd.service.protocol import Trigger
+from vgripd.service.links.protocol import Trigger
 
 WAIT_S = 5.0
 

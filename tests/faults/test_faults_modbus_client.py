@@ -21,7 +21,7 @@ import pytest
 from drivers.links.modbus_client import ModbusClientLink, ModbusClientOptions
 from vgripd.errors import LinkError
 from vgripd.peer.registers import Reg, Warnings
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.links.protocol import LinkState, Trigger
 from vgripd.sim.robot_modbus import MockRobotModbus, RobotMode
 from vgripd.types import JobResult, RobotTarget, Status
 

@@ -30,7 +30,7 @@ from tests.integration.test_daemon import Plc, running, values
 from vgripd.config import config_from_dict
 from vgripd.errors import LinkError
 from vgripd.peer.registers import CHECK_U16, MAP_SIZE, Reg
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.types import Status
 
 pytestmark = pytest.mark.timeout(120)

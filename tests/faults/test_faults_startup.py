@@ -18,7 +18,7 @@ from tests.conftest import lo, stop_task
 from vgripd.config import config_from_dict
 from vgripd.peer.registers import CHECK_U16, MAP_SIZE, Reg
 from vgripd.service.daemon import Daemon, RunState
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 
 pytestmark = pytest.mark.timeout(120)
 SILENT_HOST = lo("127.0.8.1")

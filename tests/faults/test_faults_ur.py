@@ -17,7 +17,7 @@ import pytest
 from tests.conftest import lo
 from tests.integration.test_daemon import running
 from tests.integration.test_daemon_links import TAUGHT, link_state, make_config
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.ur_controller import URController
 from vgripd.types import Status
 

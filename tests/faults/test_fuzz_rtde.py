@@ -19,7 +19,7 @@ import pytest
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
 from tests.conftest import lo
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.links.protocol import LinkState, Trigger
 from vgripd.sim.ur_controller import URController
 from vgripd.types import JobResult, RobotTarget, Status
 

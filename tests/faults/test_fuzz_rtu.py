@@ -22,7 +22,7 @@ from drivers.links.modbus_rtu import ModbusRtuLink
 from tests.faults.rtu_line import BAUD, PtyLine, RawMaster, read_request, read_words
 from vgripd.peer.registers import MAP_SIZE, Reg
 from vgripd.peer.rtu import crc_ok, with_crc
-from vgripd.service.protocol import LinkState, Trigger
+from vgripd.service.links.protocol import LinkState, Trigger
 
 pytestmark = pytest.mark.timeout(120)
 SEED = int(os.environ.get("VGRIPD_FUZZ_SEED", "5150"))

@@ -23,7 +23,7 @@ import pytest
 from tests.faults.modbus_raw import Served, mbap
 from vgripd.peer.jobcore import HandshakeState
 from vgripd.peer.registers import CHECK_U16, MAP_SIZE, MAP_VERSIONS, Reg
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.plc import MockPlc
 from vgripd.types import JobResult, RobotTarget, Status
 

@@ -6,7 +6,7 @@ import logging
 
 import pytest
 
-from vgripd.service.ratelog import RateLimitedLog
+from vgripd.service.links.ratelog import RateLimitedLog
 
 
 class Clock:

@@ -31,8 +31,8 @@ from vgripd.peer.jobcore import Command, HandshakeState
 from vgripd.peer.registers import MAP_SIZE, MAX_VALUES, Reg, ValueCodec
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.daemon import Daemon
-from vgripd.service.jobrecord import JobRecord
-from vgripd.service.jobs import JobState
+from vgripd.service.jobs.jobrecord import JobRecord
+from vgripd.service.jobs.runner import JobState
 from vgripd.types import ImagePair, Status
 
 WAIT_S = 30.0

@@ -39,7 +39,7 @@ from vgripd.peer.jobcore import Command
 from vgripd.peer.registers import Reg
 from vgripd.serialize import toml_from_dict
 from vgripd.service.daemon import Daemon
-from vgripd.service.reload import Reloader
+from vgripd.service.ops.reload import Reloader
 from vgripd.types import Status
 from vgripd.vision.scene import T_base_obj_ref
 

@@ -43,7 +43,7 @@ from tests.integration.test_daemon import CODEC, Run, running
 from vgripd.config import config_from_dict
 from vgripd.peer.jobcore import Command
 from vgripd.peer.registers import Reg
-from vgripd.service.jobs import JobState
+from vgripd.service.jobs.runner import JobState
 from vgripd.types import Status
 from vgripd.vision.scene import T_base_obj_ref
 

@@ -37,7 +37,7 @@ from tests.integration.test_daemon import WAIT_S, running
 from vgripd.config import config_from_dict
 from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
 from vgripd.peer.jobcore import Command
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.ur_belt import tracked, travel_m
 from vgripd.sim.ur_controller import URController
 from vgripd.types import Status

@@ -22,7 +22,7 @@ from vgripd.config import Config, config_from_dict
 from vgripd.peer.jobcore import Command
 from vgripd.peer.registers import MAP_SIZE, PICK_AREA, Reg
 from vgripd.peer.socket_frames import ANSWER_SIZE, AnswerKind, Request, SocketCommand, decode_answer
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.opcua_client import OpcUaClientProcess
 from vgripd.sim.s7_plc import DbWrite, MockS7Plc, S7PlcServer, words_of
 from vgripd.types import Status

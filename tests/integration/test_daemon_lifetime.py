@@ -26,7 +26,7 @@ from pymodbus.client import AsyncModbusTcpClient
 from tests.conftest import REPO
 from vgripd.peer.jobcore import Command
 from vgripd.peer.registers import MAP_SIZE, Reg
-from vgripd.service.worker import segments_of
+from vgripd.service.worker.process import segments_of
 
 WAIT_S = 60.0
 #: issue 20: `systemctl stop` with a job in flight and an open browser completes within this.

@@ -19,7 +19,7 @@ from tests.conftest import lo
 from tests.integration.test_daemon import Plc, running, values
 from vgripd.config import Config, config_from_dict
 from vgripd.peer.registers import Reg
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.ur_controller import URController
 from vgripd.types import Status
 

@@ -35,7 +35,7 @@ from tests.integration.test_daemon import Plc, Run, running
 from vgripd.config import config_from_dict
 from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.opcua_client import OpcUaClientProcess
 from vgripd.types import ImagePair, JobResult, Status
 

@@ -27,7 +27,7 @@ from tests.conftest import REPO
 from tests.integration.test_daemon import Run, running
 from tests.integration.test_daemon_opcua import free_port
 from vgripd.config import config_from_dict
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.opcua_client import OpcUaClientProcess
 from vgripd.types import Status
 

@@ -33,7 +33,7 @@ from tests.integration.belt_cell import (
 )
 from tests.integration.test_daemon import running
 from vgripd.config import config_from_dict
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.types import Status
 from vgripd.vision.scene import T_base_obj_ref
 

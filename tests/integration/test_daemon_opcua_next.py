@@ -28,7 +28,7 @@ from tests.integration.test_daemon_picklinks import (
 )
 from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.opcua_client import OpcUaClientProcess
 from vgripd.types import Status
 

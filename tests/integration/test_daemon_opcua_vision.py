@@ -46,8 +46,8 @@ from tests.integration.test_daemon_picklinks import (
 from vgripd.config import Config, config_from_dict
 from vgripd.geometry.transforms import pose_error
 from vgripd.service.daemon import Daemon
-from vgripd.service.jobs import JobState
-from vgripd.service.protocol import LinkState
+from vgripd.service.jobs.runner import JobState
+from vgripd.service.links.protocol import LinkState
 from vgripd.types import Status
 
 pytestmark = pytest.mark.timeout(240)

@@ -33,7 +33,7 @@ from vgripd.peer.jobcore import Command
 from vgripd.peer.registers import Reg
 from vgripd.peer.socket_frames import BRANDS, Request, SocketCommand
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.plc import MockPlc
 from vgripd.sim.robot_modbus import MockRobotModbus
 from vgripd.sim.robot_socket_client import ProgramSettings, ProgramTwin

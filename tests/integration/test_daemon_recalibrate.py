@@ -30,7 +30,7 @@ from vgripd.cli.status import format_status
 from vgripd.config import config_from_dict
 from vgripd.peer.registers import Reg, Warnings
 from vgripd.registry import CAMERAS, load_class, validate_options
-from vgripd.service.jobrecord import EpipolarMonitor
+from vgripd.service.jobs.jobrecord import EpipolarMonitor
 from vgripd.sim.robot_modbus import UR_FIRST_REGISTER as BASE
 from vgripd.sim.robot_modbus import MockRobotModbus, RegisterWrite
 from vgripd.types import ImagePair, Status

@@ -27,7 +27,7 @@ from vgripd.config import config_from_dict, load_config
 from vgripd.geometry.transforms import pose_error
 from vgripd.peer.registers import Reg
 from vgripd.serialize import toml_from_dict
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.plc import MockPlc
 from vgripd.types import Status
 from vgripd.vision.scene import matrix_from_pose

@@ -36,7 +36,7 @@ from vgripd.geometry.transforms import (
 from vgripd.peer.jobcore import Command, HandshakeState, capture_word
 from vgripd.peer.registers import Reg
 from vgripd.serialize import toml_from_dict
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.plc import MockPlc
 from vgripd.sim.robot_modbus import UR_FIRST_REGISTER, MockRobotModbus
 from vgripd.sim.ur_controller import URController

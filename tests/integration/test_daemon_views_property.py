@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from vgripd.config import config_from_dict
 from vgripd.peer.jobcore import Command
 from vgripd.service.daemon import Daemon
-from vgripd.service.protocol import LinkHealth, LinkState, RobotLink, Trigger, TriggerHandler
+from vgripd.service.links.protocol import LinkHealth, LinkState, RobotLink, Trigger, TriggerHandler
 from vgripd.types import ImagePair, JobResult, RobotTarget, Status
 
 N = 3

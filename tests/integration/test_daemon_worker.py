@@ -24,8 +24,8 @@ import pytest
 from tests.integration.test_daemon import Plc, Run, make_config
 from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon
-from vgripd.service.jobs import JobState
-from vgripd.service.worker import (
+from vgripd.service.jobs.runner import JobState
+from vgripd.service.worker.process import (
     SHM_DIR,
     WORKER_NICE,
     WORKER_NICE_FLOOR,

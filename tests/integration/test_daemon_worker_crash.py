@@ -27,7 +27,7 @@ from tests.integration.test_daemon import Plc, Run, running
 from vgripd.config import config_from_dict
 from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon
-from vgripd.service.jobs import JobState
+from vgripd.service.jobs.runner import JobState
 from vgripd.types import Status
 
 # pylon's waits end early under pytest-timeout's SIGALRM method (tests/drivers/test_cameras_pylon.py)

@@ -1,4 +1,4 @@
-"""The walk when the robot side misbehaves (``vgripd.service.handeye_walk``), over the real
+"""The walk when the robot side misbehaves (``vgripd.service.links.handeye_walk``), over the real
 robot_socket link with a raw robot peer: an answer that cannot be delivered (the program gone
 before it) does not end the walk, and the restarted program, asking NEXT (recipe 0) while a
 target is pending, gets that same target again: nothing is skipped. Only NEXT with recipe 1
@@ -23,7 +23,7 @@ from vgripd.calib.handeye.walk import NOT_SEEN, UNREACHABLE, Walk
 from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import transform_from_vendor, vendor_from_transform
 from vgripd.peer.socket_frames import AnswerKind, Request, SocketCommand
-from vgripd.service.handeye_walk import SKIP, WalkServer
+from vgripd.service.links.handeye_walk import SKIP, WalkServer
 from vgripd.types import Status
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit" / "calib"))

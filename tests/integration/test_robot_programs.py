@@ -35,7 +35,7 @@ from vgripd.__main__ import main
 from vgripd.cli.robot_program import ProgramRefused, render
 from vgripd.config import config_from_dict
 from vgripd.peer.socket_frames import BRANDS, Request, SocketCommand
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.robot_socket_client import ProgramSettings, ProgramStopped, ProgramTwin
 from vgripd.types import Status
 

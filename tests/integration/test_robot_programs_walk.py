@@ -56,8 +56,8 @@ from vgripd.peer.socket_frames import (
     header_word,
 )
 from vgripd.serialize import toml_from_dict
-from vgripd.service.handeye_walk import WalkServer
-from vgripd.service.protocol import LinkState
+from vgripd.service.links.handeye_walk import WalkServer
+from vgripd.service.links.protocol import LinkState
 from vgripd.sim.arm import SimulatedArm
 from vgripd.sim.robot_socket_client import (
     AT_ELSEWHERE,

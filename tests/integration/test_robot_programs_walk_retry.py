@@ -51,7 +51,7 @@ from vgripd.peer.socket_frames import (
     SocketCommand,
     header_word,
 )
-from vgripd.service.handeye_walk import WalkServer
+from vgripd.service.links.handeye_walk import WalkServer
 from vgripd.sim.robot_socket_client import WALK_SKIP, ProgramTwin
 from vgripd.types import Status
 

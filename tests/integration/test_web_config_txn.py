@@ -1,4 +1,4 @@
-"""Every config write is one judged transaction (``vgripd.service.configtxn``), tried the way a
+"""Every config write is one judged transaction (``vgripd.service.host.configtxn``), tried the way a
 plant's day goes: a reload and a save at the same moment, a camera setting saved while a tuning
 save is judged, a hand-annotated CRLF include, a 0600 include, a link planted beside the
 include, and ``vgripd run`` killed (SIGKILL, SIGTERM) at many points of many saves: the include

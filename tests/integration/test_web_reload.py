@@ -30,7 +30,7 @@ from vgripd.config import load_config, read_config_data
 from vgripd.peer.registers import Reg
 from vgripd.serialize import toml_from_dict
 from vgripd.service.daemon import Daemon
-from vgripd.service.reload import Reloader
+from vgripd.service.ops.reload import Reloader
 from vgripd.types import Status
 
 pytestmark = pytest.mark.slow

@@ -15,7 +15,7 @@ from vgripd.cli.s7_udt import db_source
 from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.peer.jobcore import Command, HandshakeState
 from vgripd.peer.registers import COMMAND_AREA, MAP_SIZE, MAP_VERSIONS, Reg
-from vgripd.service.recorder import Recorder
+from vgripd.service.worker.recorder import Recorder
 from vgripd.types import ImagePair, JobResult, Status
 
 

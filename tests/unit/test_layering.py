@@ -75,6 +75,36 @@ def test_every_room_has_a_level() -> None:
     assert rooms - {"__init__"} <= set(LEVEL), rooms - set(LEVEL)
 
 
+
+# The rooms of vgripd/service/, bottom first (README "Layout"): the same rule one level down.
+SERVICE_ROOMS = ["host", "links", "worker", "jobs", "ops", "web", "daemon"]
+SERVICE_LEVEL = {room: i for i, room in enumerate(SERVICE_ROOMS)}
+SERVICE_MODULES = sorted((REPO / "vgripd" / "service").rglob("*.py"))
+
+
+def _service_room(module: str) -> str:
+    """``vgripd.service.jobs.runner`` -> ``jobs``; ``vgripd.service`` -> ``__init__``."""
+    parts = module.split(".")
+    return parts[2] if len(parts) > 2 else "__init__"
+
+
+@pytest.mark.parametrize("path", SERVICE_MODULES, ids=lambda p: str(p.relative_to(REPO)))
+def test_service_rooms_import_downwards(path: Path) -> None:
+    here = _service_room(".".join(path.relative_to(REPO).with_suffix("").parts))
+    if here == "__init__":
+        return
+    bad = [f"line {line}: {name} ({here} is below {_service_room(name)})"
+           for line, name in _imports(path)
+           if name.startswith("vgripd.service.")
+           and SERVICE_LEVEL.get(_service_room(name), len(SERVICE_ROOMS)) > SERVICE_LEVEL[here]]
+    assert not bad, f"{path.relative_to(REPO)} imports upwards:\n" + "\n".join(bad)
+
+
+def test_every_service_room_has_a_level() -> None:
+    rooms = {_service_room(".".join(p.relative_to(REPO).with_suffix("").parts))
+             for p in SERVICE_MODULES}
+    assert rooms - {"__init__"} <= set(SERVICE_LEVEL), rooms - set(SERVICE_LEVEL)
+
 @pytest.mark.parametrize("path", sorted((REPO / "drivers").rglob("*.py")),
                          ids=lambda p: str(p.relative_to(REPO)))
 def test_drivers_do_not_use_the_service_or_cli(path: Path) -> None:

@@ -1,5 +1,5 @@
 """vgripd calibrate handeye walk: serve a plan's targets to the robot program over the cell's
-link and record an image with the flange pose at each (``vgripd.service.handeye_walk``).
+link and record an image with the flange pose at each (``vgripd.service.links.handeye_walk``).
 
 Run it instead of the daemon (it opens the config's camera and its first link, or ``--link``).
 The robot program walks: NEXT asks for a target, TRIGGER for the image once settled there, NEXT
@@ -32,7 +32,7 @@ from vgripd.config import load_config
 from vgripd.errors import CalibrationError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.registry import CAMERAS, LINKS, load_class, validate_options
-from vgripd.service.handeye_walk import WalkServer, walk_refusal
+from vgripd.service.links.handeye_walk import WalkServer, walk_refusal
 
 
 def add_walk_arguments(parser: argparse.ArgumentParser) -> None:

@@ -9,7 +9,7 @@ configured, read back and closed (skipped with ``--running`` or ``--no-camera``)
 device lacks or refuses, or a value out of its range, is a config error naming the camera, the
 feature and the device's range. An ERROR means the config cannot work here: exit 78, one line per
 problem naming the config key. WARNINGs are printed after the OK line; the exit code stays 0.
-With ``--snapshot FILE`` (the daemon's judge of a save or reload, ``vgripd.service.configtxn``)
+With ``--snapshot FILE`` (the daemon's judge of a save or reload, ``vgripd.service.host.configtxn``)
 the config's bytes are read from that one file, not from disk, and their digest is printed.
 
 Every recipe (docs/recipes.md) is checked: its effective config is validated with the file, a
@@ -28,8 +28,8 @@ from vgripd.config import Config, load_config
 from vgripd.configsnapshot import Snapshot
 from vgripd.errors import CameraError, ConfigError
 from vgripd.registry import CAMERAS, load_class, validate_options
-from vgripd.service.commissioning import Options, check_scene, commission
 from vgripd.service.daemon import Daemon
+from vgripd.service.host.commissioning import Options, check_scene, commission
 from vgripd.vision.commissioning import Finding
 
 

@@ -45,8 +45,8 @@ from vgripd.geometry.transforms import pose_error
 from vgripd.geometry.vendors import CONVENTIONS, convention
 from vgripd.peer.registers import MAX_VALUES
 from vgripd.service.daemon import Daemon
-from vgripd.service.jobrecord import JobRecord
-from vgripd.service.logsetup import configure_logging
+from vgripd.service.host.logsetup import configure_logging
+from vgripd.service.jobs.jobrecord import JobRecord
 from vgripd.sim.plc import CycleResult, MockPlc
 from vgripd.types import ImagePair, Status
 

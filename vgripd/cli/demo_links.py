@@ -288,7 +288,7 @@ async def run_link_demo(args: Any, cell: DemoCell) -> int:
 
     from vgripd.geometry.vendors import convention
     from vgripd.service.daemon import Daemon
-    from vgripd.service.protocol import LinkState
+    from vgripd.service.links.protocol import LinkState
 
     kind = args.link
     if args.scene != "plate":

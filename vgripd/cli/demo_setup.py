@@ -92,7 +92,7 @@ async def serve_setup(main: Path, token: str, announce: Any = print) -> None:
     from vgripd.cli.run import serve
     from vgripd.config import load_config
     from vgripd.service.daemon import Daemon
-    from vgripd.service.reload import Reloader
+    from vgripd.service.ops.reload import Reloader
 
     while True:
         daemon = Daemon(load_config(main))
@@ -139,7 +139,7 @@ def bindable(port: int) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vgripd.service.logsetup import configure_logging
+    from vgripd.service.host.logsetup import configure_logging
 
     folder = args.state_dir or Path(tempfile.mkdtemp(prefix="vgripd-setup-"))
     main, token = write_cell(folder.absolute(), bindable(args.port), bindable(args.web_port),

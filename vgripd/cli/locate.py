@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from vgripd.config import load_config
-from vgripd.service.recorder import dict_from_result
+from vgripd.service.worker.recorder import dict_from_result
 from vgripd.types import ImagePair, JobResult
 from vgripd.vision.checked import CheckedPipeline
 

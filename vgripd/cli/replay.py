@@ -50,7 +50,7 @@ from vgripd.config import Config, DriverSection, load_config
 from vgripd.errors import CameraError
 from vgripd.imagefiles import Frames, list_frames, list_images, list_views
 from vgripd.registry import CAMERAS, load_class, validate_options
-from vgripd.service.recorder import dict_from_result
+from vgripd.service.worker.recorder import dict_from_result
 from vgripd.types import ImagePair, JobResult
 from vgripd.vision.annotate import annotate
 from vgripd.vision.checked import CheckedPipeline

@@ -1,5 +1,5 @@
 """Run the vgripd service until SIGTERM/SIGINT (what systemd starts); SIGHUP reloads the config
-file (``systemctl reload vgripd``, ``vgripd.service.reload``). A restart asked for on the setup
+file (``systemctl reload vgripd``, ``vgripd.service.ops.reload``). A restart asked for on the setup
 page ends it with exit status 75 (``EXIT_RESTART``), which systemd's ``Restart=on-failure``
 starts again."""
 
@@ -13,10 +13,10 @@ import signal
 from vgripd.cli.paths import DEFAULT_CONFIG
 from vgripd.config import load_config
 from vgripd.errors import ConfigError
-from vgripd.service.configtxn import recover
 from vgripd.service.daemon import Daemon
-from vgripd.service.logsetup import configure_logging
-from vgripd.service.reload import EXIT_RESTART, Reloader
+from vgripd.service.host.configtxn import recover
+from vgripd.service.host.logsetup import configure_logging
+from vgripd.service.ops.reload import EXIT_RESTART, Reloader
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -32,7 +32,7 @@ def _allow_entry(entry: str) -> str:
 
 
 #: ``allow = ["10.0.0.5", "10.0.1.0/24"]`` of a server surface (a link or the web view): other
-#: client addresses are closed at accept (vgripd.service.gate); unset = every address. An
+#: client addresses are closed at accept (vgripd.service.links.gate); unset = every address. An
 #: empty list is refused (it would lock every client out).
 AllowList = Annotated[list[Annotated[str, AfterValidator(_allow_entry)]], Field(min_length=1)] \
     | None

@@ -19,7 +19,7 @@ A trigger goes link -> ``JobRunner.on_trigger`` -> camera -> worker -> link; the
 reaches the daemon only through ``changed`` (the status line and ``wait_for``'s waiters).
 Lifecycle (start, READY, stop, shutdown order) stays here.
 
-- Grabbing, processing and recording run in a worker process (``vgripd.service.worker``:
+- Grabbing, processing and recording run in a worker process (``vgripd.service.worker.process``:
   images through shared memory, the rest pickled), so the event loop's interpreter only
   handles links and state and answers a poll in about a millisecond while a job runs. A worker
   that dies is replaced: a job in its processing ends ``INTERNAL`` naming why ("worker process
@@ -58,26 +58,26 @@ from vgripd.errors import ConfigError, NotCalibratedError, NotTaughtError
 from vgripd.peer.jobcore import JobCore, PickCursor
 from vgripd.peer.registers import Warnings
 from vgripd.registry import CAMERAS, load_class, validate_options
-from vgripd.service.cameras import (
+from vgripd.service.host.heap import freeze_start_up_heap
+from vgripd.service.host.sdnotify import Notifier, watchdog_interval_s
+from vgripd.service.host.tasks import Background
+from vgripd.service.jobs.jobrecord import EpipolarMonitor, JobListener, JobRecord
+from vgripd.service.jobs.runner import JobRunner, JobState, Processor, ViewJob, recipe_label
+from vgripd.service.jobs.travel import BeltTravel
+from vgripd.service.jobs.walkmode import WalkMode
+from vgripd.service.links.gate import Budget
+from vgripd.service.links.protocol import RobotLink
+from vgripd.service.links.ratelog import RateLimitedLog
+from vgripd.service.links.supervision import LinkSupervisor
+from vgripd.service.ops.reload import Reloader
+from vgripd.service.ops.status import StatusBoard
+from vgripd.service.web import WebServer
+from vgripd.service.worker.cameras import (
     CameraSupervisor,
     watchdog,
 )
-from vgripd.service.gate import Budget
-from vgripd.service.heap import freeze_start_up_heap
-from vgripd.service.jobrecord import EpipolarMonitor, JobListener, JobRecord
-from vgripd.service.jobs import JobRunner, JobState, Processor, ViewJob, recipe_label
-from vgripd.service.links import LinkSupervisor
-from vgripd.service.protocol import RobotLink
-from vgripd.service.ratelog import RateLimitedLog
-from vgripd.service.recorder import Recorder
-from vgripd.service.reload import Reloader
-from vgripd.service.sdnotify import Notifier, watchdog_interval_s
-from vgripd.service.status import StatusBoard
-from vgripd.service.tasks import Background
-from vgripd.service.travel import BeltTravel
-from vgripd.service.walkmode import WalkMode
-from vgripd.service.web import WebServer
-from vgripd.service.worker import DEFAULT_PROCESSOR, WorkerClient, WorkerRecorder
+from vgripd.service.worker.process import DEFAULT_PROCESSOR, WorkerClient, WorkerRecorder
+from vgripd.service.worker.recorder import Recorder
 
 log = logging.getLogger("vgripd")
 
@@ -348,7 +348,7 @@ class Daemon:
             await self._shutdown()
             raise
         self._set_run_state(RunState.RUNNING)
-        if self.freeze_heap_at_ready:  # vgripd/service/heap.py: no 100 ms pass on a poll
+        if self.freeze_heap_at_ready:  # vgripd/service/host/heap.py: no 100 ms pass on a poll
             log.debug("%d start-up objects frozen", freeze_start_up_heap())
         self.notifier.ready(self.status_line())
         log.info("ready: %s", self.status_line())
@@ -432,7 +432,7 @@ class Daemon:
         self._set_run_state(RunState.STOPPED)
         log.info("stopped")
 
-    # --- a reloaded config (vgripd.service.reload) --------------------------------------
+    # --- a reloaded config (vgripd.service.ops.reload) --------------------------------------
 
     def use_config(self, config: Config, pipelines: dict[int, Processor] | None) -> None:
         """Every room reads ``config`` from now on (between jobs; the worker reports its

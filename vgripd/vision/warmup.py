@@ -1,5 +1,5 @@
 """The worker's warm-up of a pipeline (``vgripd.vision.pipeline.Pipeline``, typed ``Any`` here:
-the pipeline imports this module) before it reports ready (vgripd.service.worker): one job
+the pipeline imports this module) before it reports ready (vgripd.service.worker.process): one job
 on made-up images, so the first real job does not pay for first calls."""
 
 from __future__ import annotations

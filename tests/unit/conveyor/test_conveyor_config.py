@@ -9,7 +9,7 @@ import pytest
 
 from vgripd.config import config_from_dict
 from vgripd.errors import ConfigError
-from vgripd.service.commissioning import check_conveyor
+from vgripd.service.host.commissioning import check_conveyor
 
 BELT: dict[str, Any] = {"counts_per_mm": 30.0, "direction": [1.0, 0.0, 0.0],
                         "origin_mm": [0.0, 0.0, 0.0], "window_mm": [300.0, 800.0],

@@ -69,7 +69,7 @@ from vgripd.peer.registers import MAP_SIZE, PICK_AREA, BlockWrite, Reg, Register
 from vgripd.peer.s7_block import plan_db_writes
 from vgripd.peer.socket_frames import remaining
 from vgripd.peer.ur_registers import URRegisterMap
-from vgripd.service.visionsm import EXECUTING, Auto, VisionMachine
+from vgripd.peer.visionsm import EXECUTING, Auto, VisionMachine
 from vgripd.types import JobResult, PickInstance, RobotTarget, Status
 
 FIELDS = tuple("xyzabc")

@@ -8,7 +8,7 @@ from typing import Any
 
 from tests.unit.vision.test_diagnosis import grab, make_config
 from vgripd.config import Config, config_from_dict
-from vgripd.service.commissioning import check_scene
+from vgripd.service.host.commissioning import check_scene
 from vgripd.types import ImagePair, Status
 from vgripd.vision.checked import CheckedPipeline
 from vgripd.vision.pipeline import Pipeline

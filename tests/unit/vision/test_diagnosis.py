@@ -23,7 +23,7 @@ from vgripd.config import Config, config_from_dict, load_config
 from vgripd.geometry.transforms import invert_transform
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.serialize import toml_from_dict
-from vgripd.service.recorder import dict_from_result
+from vgripd.service.worker.recorder import dict_from_result
 from vgripd.types import ImagePair, Status
 from vgripd.vision import scene
 from vgripd.vision.annotate import annotate

@@ -136,7 +136,7 @@ def test_a_camera_moved_after_calibration_names_its_rig(
 
 
 def test_commissioning_checks_every_camera() -> None:
-    from vgripd.service.commissioning import commission
+    from vgripd.service.host.commissioning import commission
     from vgripd.vision.commissioning import check_scene
 
     assert check_scene(Pipeline(config())) == []
@@ -262,7 +262,7 @@ def test_commissioning_runs_the_replay_frames_of_every_camera(frames: list[Image
                                                               tmp_path: Any) -> None:
     import cv2
 
-    from vgripd.service.commissioning import check_replay, check_samples
+    from vgripd.service.host.commissioning import check_replay, check_samples
 
     names = ["north_left", "north_right", "south_left", "south_right"]
     for k, pair in enumerate(frames):

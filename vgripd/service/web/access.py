@@ -38,8 +38,8 @@ from typing import TYPE_CHECKING, Any
 from aiohttp import web
 
 from vgripd.redaction import REDACTED
-from vgripd.service.ratelog import RateLimitedLog
-from vgripd.service.throttle import LoginThrottle
+from vgripd.service.links.ratelog import RateLimitedLog
+from vgripd.service.links.throttle import LoginThrottle
 from vgripd.service.web.bodies import login_form
 
 if TYPE_CHECKING:

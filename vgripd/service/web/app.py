@@ -57,8 +57,8 @@ from aiohttp import web
 from vgripd.errors import VgripError
 from vgripd.redaction import REDACTED, redact
 from vgripd.serialize import jsonable, toml_from_dict
-from vgripd.service.jobrecord import JobRecord
-from vgripd.service.recorder import dict_from_result, recorded_job
+from vgripd.service.jobs.jobrecord import JobRecord
+from vgripd.service.links.webtrigger import WEB_LINK, WebTriggerLink
 from vgripd.service.web.access import Access, ServerLogLimit
 from vgripd.service.web.bundle import write_bundle
 from vgripd.service.web.camsettings import CameraSettingsRoutes
@@ -73,8 +73,8 @@ from vgripd.service.web.preview import PreviewRoutes
 from vgripd.service.web.registers import register_views
 from vgripd.service.web.setup import SetupRoutes
 from vgripd.service.web.teaching import TeachRoutes
-from vgripd.service.web.trigger import WEB_LINK, WebTriggerLink
 from vgripd.service.web.walking import WalkRoutes
+from vgripd.service.worker.recorder import dict_from_result, recorded_job
 from vgripd.types import ImagePair
 
 log = logging.getLogger(__name__)

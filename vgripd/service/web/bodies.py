@@ -20,7 +20,7 @@ from urllib.parse import parse_qs
 
 from aiohttp import web
 
-from vgripd.service.configtxn import Outcome
+from vgripd.service.host.configtxn import Outcome
 
 #: The deepest nesting of arrays and objects an action's JSON body may have (the pages send 3).
 MAX_JSON_DEPTH = 32

@@ -1,11 +1,11 @@
 """The support bundle's zip (``GET /api/support-bundle``), built off the event loop.
 
-Beside the parts the view hands in (redacted config, status, history, metrics, log lines) it
-takes the last recorded jobs, and reads from the recording folder only what the recorder
-writes (``vgripd.service.recorder``): job folders named ``<date>-<time>.<ms>-job<id>``, in each
-``left.png``, ``right.png``, ``view<j>.png``, ``pair.json`` and ``result.json``. Nothing else
-is read, and no symbolic link is followed: each folder and file is opened relative to its
-parent with ``O_NOFOLLOW`` and must be a directory or a regular file, so a link planted in the
+Beside the parts the view hands in (redacted config, status, history, metrics, log lines) it takes
+the last recorded jobs, and reads from the recording folder only what the recorder writes
+(``vgripd.service.worker.recorder``): job folders named ``<date>-<time>.<ms>-job<id>``, in each
+``left.png``, ``right.png``, ``view<j>.png``, ``pair.json`` and ``result.json``. Nothing else is
+read, and no symbolic link is followed: each folder and file is opened relative to its parent with
+``O_NOFOLLOW`` and must be a directory or a regular file, so a link planted in the
 folder (to a private key, a password file, a FIFO) is left out. The JSON files pass through the
 redaction again (a recording made by an older version may hold a camera URL's password); the
 recorded ``config.toml`` is left out, the bundle's own is at the top.

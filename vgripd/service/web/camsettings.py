@@ -15,7 +15,7 @@ as at open against what the device reports and reads them back. Only between job
 
 Applied, the values are written to the include file that holds ``[object]`` (the tuning save's
 file), as ``[camera]`` keys beside the main file's ``[camera]`` table, so the next start keeps
-them: one transaction of the config writer (``vgripd.service.configtxn``: judged, numbered
+them: one transaction of the config writer (``vgripd.service.host.configtxn``: judged, numbered
 backup, one audit entry with the diff), in turn with every other save and reload. A reload
 does not apply a ``camera`` key (it needs a restart), so this route applies them live itself
 and tells the reloader (``Reloader.live``): the running config takes the values the file now
@@ -37,8 +37,8 @@ from vgripd.config import read_config_data
 from vgripd.configsnapshot import Snapshot
 from vgripd.errors import CameraError, CameraSettingError, ConfigError
 from vgripd.serialize import toml_from_dict
-from vgripd.service.configtxn import Edit, Outcome
-from vgripd.service.reload import Reloader
+from vgripd.service.host.configtxn import Edit, Outcome
+from vgripd.service.ops.reload import Reloader
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.commission import tuning_target
 from vgripd.service.web.context import WebContext

@@ -14,10 +14,10 @@
 
 A save edits the include file that holds ``[object]`` (the config's own ``include = [...]``):
 its ``[vision]`` keys and the circle marks' ``polarity``, as one transaction of the daemon's
-config writer (``vgripd.service.configtxn``): judged as ``vgripd check`` judges it before the
+config writer (``vgripd.service.host.configtxn``): judged as ``vgripd check`` judges it before the
 include is replaced (the old file kept as a numbered backup, ``cell.toml.1``, ``.2`` ...); a
 refused edit never reaches the include. Both routes answer the outcome
-(``vgripd.service.configtxn.Outcome``); 422 when refused.
+(``vgripd.service.host.configtxn.Outcome``); 422 when refused.
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ from vgripd.config import Config, config_from_dict, read_config_data
 from vgripd.configsnapshot import Snapshot
 from vgripd.errors import ConfigError
 from vgripd.serialize import toml_from_dict
-from vgripd.service.configtxn import Edit, Outcome
-from vgripd.service.reload import Reloader
+from vgripd.service.host.configtxn import Edit, Outcome
+from vgripd.service.ops.reload import Reloader
 from vgripd.service.web.bodies import json_body, outcome_response
 from vgripd.service.web.context import WebContext
 from vgripd.service.web.health import calibration_files, cell_geometry
@@ -135,7 +135,7 @@ def parse_edit(body: Any) -> tuple[dict[str, Any], str | None]:
 
 
 def tuning_edit(vision: dict[str, Any], polarity: str | None) -> Edit:
-    """The tuning save as an edit of the config writer (``vgripd.service.configtxn``)."""
+    """The tuning save as an edit of the config writer (``vgripd.service.host.configtxn``)."""
     def edit(snapshot: Snapshot) -> dict[Path, bytes]:
         target = tuning_target(snapshot.main, snapshot.files)
         return {target: snapshot.encoded(target, edited(snapshot.text(target), vision,

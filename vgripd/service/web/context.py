@@ -3,7 +3,7 @@
 A route parses the request and answers; what it reads or changes lives in a room of its own,
 reached through the context by public names only: the daemon (``DaemonView``), the access
 check (``Access.require_action``), the config writer (``config_writer``: the daemon's one
-judged transaction, ``vgripd.service.configtxn``, the only way a route writes a file the daemon
+judged transaction, ``vgripd.service.host.configtxn``, the only way a route writes a file the daemon
 runs on), the jobs this view has seen (``JobHistory``), the camera between jobs
 (``CameraTurns``), the image helper process and the event stream.
 """
@@ -22,8 +22,8 @@ import numpy as np
 from aiohttp import web
 
 from vgripd.errors import VgripError
-from vgripd.service.jobrecord import JobRecord
-from vgripd.service.reload import Reloader
+from vgripd.service.jobs.jobrecord import JobRecord
+from vgripd.service.ops.reload import Reloader
 from vgripd.service.web.access import Access
 from vgripd.service.web.daemonview import DaemonView
 from vgripd.service.web.images import ImageRenderer

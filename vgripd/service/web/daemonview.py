@@ -14,16 +14,16 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from vgripd.config import Config
-from vgripd.service.gate import Budget
-from vgripd.service.jobrecord import EpipolarMonitor, JobListener
-from vgripd.service.protocol import RobotLink
-from vgripd.service.recorder import Recorder
-from vgripd.service.reload import Reloader
-from vgripd.service.worker import WorkerRecorder
+from vgripd.service.jobs.jobrecord import EpipolarMonitor, JobListener
+from vgripd.service.links.gate import Budget
+from vgripd.service.links.protocol import RobotLink
+from vgripd.service.ops.reload import Reloader
+from vgripd.service.worker.process import WorkerRecorder
+from vgripd.service.worker.recorder import Recorder
 
 
 class WalksView(Protocol):
-    """What the walk pages use of the daemon's hand-eye walk (``vgripd.service.walkmode``)."""
+    """What the walk pages use of the daemon's hand-eye walk (``vgripd.service.jobs.walkmode``)."""
 
     solution: dict[str, Any] | None
 

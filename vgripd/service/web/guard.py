@@ -1,4 +1,4 @@
-"""The web view's accept path: the daemon's connection manager (``vgripd.service.gate``) in
+"""The web view's accept path: the daemon's connection manager (``vgripd.service.links.gate``) in
 front of aiohttp, and the HTTP read timeouts aiohttp does not have.
 
 aiohttp's server has no header or body read timeout: a client that sends half a request line
@@ -24,7 +24,7 @@ from typing import Any
 
 from aiohttp import web
 
-from vgripd.service.gate import WEB_SURFACE, Gate
+from vgripd.service.links.gate import WEB_SURFACE, Gate
 from vgripd.service.web.daemonview import DaemonView
 
 log = logging.getLogger(__name__)

@@ -46,7 +46,7 @@ _pipeline: Any = None  # in the helper process: the Pipeline, or None when not c
 
 
 #: The image helper's niceness: at least this many levels below the daemon and at least
-#: WEB_IMAGES_NICE_FLOOR, below the worker (``vgripd.service.worker.WORKER_NICE``): nice 9
+#: WEB_IMAGES_NICE_FLOOR, below the worker (``vgripd.service.worker.process.WORKER_NICE``): nice 9
 #: under the unit (daemon at -10), 10 by hand.
 WEB_IMAGES_NICE = 10
 WEB_IMAGES_NICE_FLOOR = 9
@@ -61,8 +61,8 @@ def _init_helper(config: Config, daemon_pid: int) -> None:
     (a terminal's Ctrl-C to the process group) is left to the daemon, which closes the helper.
     """
     global _pipeline
-    from vgripd.service.lifetime import die_with_daemon
-    from vgripd.service.worker import run_below_daemon
+    from vgripd.service.host.lifetime import die_with_daemon
+    from vgripd.service.worker.process import run_below_daemon
 
     die_with_daemon(daemon_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -16,8 +16,8 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, gene
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
-from vgripd.service.jobrecord import JobRecord
-from vgripd.service.protocol import LinkState
+from vgripd.service.jobs.jobrecord import JobRecord
+from vgripd.service.links.protocol import LinkState
 from vgripd.service.web.daemonview import DaemonView
 from vgripd.types import Status
 

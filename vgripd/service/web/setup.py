@@ -32,10 +32,10 @@ link, test pick, one page (``/setup``) over these routes::
 
 Every POST (and the check) needs ``status.allow_config_edit`` and the token, as tuning,
 teaching and the walk pages do; every config write is one transaction of the daemon's config
-writer (``vgripd.service.configtxn``): judged as ``vgripd check`` judges it, then applied and
+writer (``vgripd.service.host.configtxn``): judged as ``vgripd check`` judges it, then applied and
 saved, or refused with the includes untouched. Image work (corners, marks, a capture folder read
 back) runs in the image helper process, the calibration and the check in child processes
-(``vgripd.service.commands``): the loop keeps answering the PLC.
+(``vgripd.service.host.commands``): the loop keeps answering the PLC.
 """
 
 from __future__ import annotations
@@ -57,8 +57,8 @@ from vgripd.calib.capturesets import Capture, camera_names, put_aside
 from vgripd.config import DEMO_CALIBRATION
 from vgripd.errors import VgripError
 from vgripd.serialize import jsonable
-from vgripd.service.commands import run_vgripd
-from vgripd.service.protocol import robot_pose_now
+from vgripd.service.host.commands import run_vgripd
+from vgripd.service.links.protocol import robot_pose_now
 from vgripd.service.web import setupimages
 from vgripd.service.web.bodies import json_body, outcome_response
 from vgripd.service.web.context import WebContext

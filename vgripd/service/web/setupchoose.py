@@ -18,7 +18,7 @@ robot link, and what the chosen link asks of the PLC or robot (its contract)::
                                          stopped between jobs to be started again (systemd;
                                          ``vgripd demo --setup`` itself)
 
-A choice is written through the one config transaction (``vgripd.service.configtxn``) into the
+A choice is written through the one config transaction (``vgripd.service.host.configtxn``) into the
 include that holds the section (``camera.toml``, ``links.toml`` of ``vgripd init``'s layout),
 judged first; a layout whose main file holds the section is refused naming the file. The camera
 and the links are built once at start: the transaction saves the judged file and names the keys
@@ -46,8 +46,8 @@ from vgripd.peer.socket_frames import BRANDS
 from vgripd.registry import CONTRACTS, LINKS, load_class
 from vgripd.resources import EXAMPLES, shared
 from vgripd.serialize import jsonable, toml_from_dict
-from vgripd.service.commands import run_vgripd
-from vgripd.service.configtxn import Edit, judge
+from vgripd.service.host.commands import run_vgripd
+from vgripd.service.host.configtxn import Edit, judge
 from vgripd.service.web.bodies import json_body, outcome_response
 from vgripd.service.web.context import WebContext
 from vgripd.service.web.registers import register_views

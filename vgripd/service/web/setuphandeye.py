@@ -27,7 +27,7 @@ from aiohttp import web
 
 from vgripd.errors import VgripError
 from vgripd.serialize import jsonable
-from vgripd.service.commands import run_vgripd
+from vgripd.service.host.commands import run_vgripd
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.setupstate import SetupState
 

@@ -8,8 +8,8 @@
     POST /api/setup/object/save          {"name", "marks": [ids]}: the object from them, judged
 
 The image work (marks, a template's search) runs in the web view's image helper process; the
-object is one config transaction (``vgripd.service.configtxn``), a template's patch file written
-before it under a new name.
+object is one config transaction (``vgripd.service.host.configtxn``), a template's patch file
+written before it under a new name.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The guided setup's server-side steps, apart from the routes (``setup.py``): the steps and
 their order, what the page keeps between visits (resumable), ``vgripd check``'s findings sorted
 to the step they belong to, and the config edits each step makes through the one config
-transaction (``vgripd.service.configtxn``).
+transaction (``vgripd.service.host.configtxn``).
 
 Where a step writes: the include that sets the keys now (as the tuning save and teaching find
 theirs), else the include of the layout ``vgripd init`` writes (``rig.toml`` for the cameras'
@@ -23,7 +23,7 @@ from vgripd.config import read_config_data
 from vgripd.configsnapshot import Snapshot
 from vgripd.geometry.fingerprint import camera_about
 from vgripd.serialize import toml_from_dict
-from vgripd.service.configtxn import Edit, EditRefused
+from vgripd.service.host.configtxn import Edit, EditRefused
 
 #: (id, title) of each step, in the order of a commissioning.
 STEPS = (("cameras", "Cameras"), ("calibration", "Calibration"), ("handeye", "Hand-eye"),

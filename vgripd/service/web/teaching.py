@@ -18,7 +18,7 @@ job already measured is refused.
 Saving writes the ``[reference]`` section (for recipe N ``[recipes.N.reference]``) into the
 include file that holds it now, keeping its ``grip``, with the fingerprints of the camera model
 and hand-eye it was measured with in its ``[about]`` (as ``vgripd teach`` writes them): one
-transaction of the config writer (``vgripd.service.configtxn``, as the tuning save), judged as
+transaction of the config writer (``vgripd.service.host.configtxn``, as the tuning save), judged as
 ``vgripd check`` judges it; refused, the include is not touched.
 """
 
@@ -41,7 +41,7 @@ from vgripd.errors import CalibrationError, VgripError
 from vgripd.geometry.fingerprint import camera_about, hand_eye_fingerprint
 from vgripd.geometry.transforms import pose_error
 from vgripd.serialize import toml_from_dict
-from vgripd.service.configtxn import Edit
+from vgripd.service.host.configtxn import Edit
 from vgripd.service.web.commission import holding_include
 from vgripd.service.web.context import WebContext
 from vgripd.types import ImagePair

@@ -20,7 +20,7 @@ the command's reason. A plan file is a ``.toml`` inside the config's folder.
 
 Accepting writes ``[calibration.hand_eye]`` (and the solved file's ``[about]``: residuals,
 leave-one-out spread, plan condition, camera-model fingerprint) into the one included file that
-holds the hand-eye now: one transaction of the config writer (``vgripd.service.configtxn``, as
+holds the hand-eye now: one transaction of the config writer (``vgripd.service.host.configtxn``, as
 the tuning save), judged as ``vgripd check`` judges it; refused, no include is touched. A saved
 plan is written by the same writer (``write_file``), in turn with the config writes. A taught
 reference not measured with the new hand-eye would be wrong with it: the accept is refused,
@@ -48,8 +48,8 @@ from vgripd.config import read_config_data
 from vgripd.configsnapshot import Snapshot
 from vgripd.errors import VgripError
 from vgripd.serialize import jsonable, toml_from_dict
-from vgripd.service.commands import run_vgripd
-from vgripd.service.configtxn import Edit, EditRefused
+from vgripd.service.host.commands import run_vgripd
+from vgripd.service.host.configtxn import Edit, EditRefused
 from vgripd.service.web.bodies import json_body
 from vgripd.service.web.commission import TuningError, holding_include
 from vgripd.service.web.context import WebContext
