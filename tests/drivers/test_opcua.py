@@ -706,7 +706,7 @@ def test_trust_list_needs_signed_endpoints() -> None:
         options(trusted_clients_dir="/tmp")
 
 
-# -- a raw client doing what an attacker does (issue 20) --------------------------------------
+# -- a raw client doing what an attacker does ----------------------------------------------
 # asyncua's high-level Client refuses SecurityPolicy None against a secure server on its own;
 # RawOpcUa builds the channel and the session requests itself.
 

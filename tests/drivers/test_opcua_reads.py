@@ -1,5 +1,5 @@
 """OpcUaLink: what a client reads before the first result, through asyncua's own client over
-TCP on 127.0.0.1 (issue 20: a Read naming ``Result.Timestamp`` before the first result failed
+TCP on 127.0.0.1 (a Read naming ``Result.Timestamp`` before the first result failed
 whole with BadInternalError and an AttributeError logged at ERROR). The older namespace alone
 (``models = ["vgripd"]``): these are its variables."""
 

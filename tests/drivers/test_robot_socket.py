@@ -544,7 +544,7 @@ async def test_client_mode_reconnects_with_back_off_and_one_line_per_outage(
 
 async def test_client_mode_peer_sending_garbage_at_once_is_one_outage_until_a_robot_answers(
         caplog: pytest.LogCaptureFixture) -> None:
-    """A peer on the robot's port that sends garbage on every connection (issue 20): one
+    """A peer on the robot's port that sends garbage on every connection: one
     outage, logged once and retried with back-off; a real robot on that port then serves."""
     caplog.set_level(logging.INFO)
     port = free_port()

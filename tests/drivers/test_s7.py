@@ -638,7 +638,7 @@ async def test_next_walks_the_pick_list_through_the_db(server: S7PlcServer,
     assert field(seen[1].raw, "CAPTURED_SEQ") == (1,)  # no image for a NEXT
 
 
-# -- a misbehaving peer (issue 20) -----------------------------------------------------------
+# -- a misbehaving peer --------------------------------------------------------------------
 
 
 async def _garbage_peer(port: int, garbage: bytes) -> asyncio.Server:

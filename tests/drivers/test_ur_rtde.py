@@ -397,7 +397,7 @@ async def test_silent_controller_does_not_block_the_loop() -> None:
 async def test_register_in_use_is_an_outage_naming_it_until_released(
         caplog: pytest.LogCaptureFixture) -> None:
     """A register another client owns can be freed on the robot while vgripd runs: DOWN naming
-    it, one ERROR line, retried, UP once it is free (issue 20: never FAILED for good)."""
+    it, one ERROR line, retried, UP once it is free (never FAILED for good)."""
     with URController(lo("127.0.5.14")) as robot:
         robot.set_in_use("input_int_register_19")
         link = URRtdeLink("ur", URRtdeOptions(host=robot.host, backoff_initial_s=0.05,

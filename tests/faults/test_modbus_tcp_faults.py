@@ -243,7 +243,7 @@ async def test_clients_that_do_not_read_are_dropped_and_their_output_is_bounded(
 
 async def test_connection_cap_evicts_never_answered_ones_and_a_new_plc_is_served() -> None:
     """Today (before the cap): 1,100 idle connections exhaust the file limit and nothing new
-    connects. Then (issue 20, row 6): a newcomer evicted the longest-idle connection, so a
+    connects. Then: a newcomer evicted the longest-idle connection, so a
     flood evicted clients that had been polling. Now only connections that never got a normal
     answer are evicted; when every one has, the newcomer is refused."""
     served = await Served.open(max_connections=4)

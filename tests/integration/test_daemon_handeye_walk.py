@@ -1,4 +1,4 @@
-"""The walked hand-eye calibration served by the running daemon (issue 24, "from the browser
+"""The walked hand-eye calibration served by the running daemon ("from the browser
 too"): started over the web API with the token, walked by the mock UR controller's simulated
 robot program through the real ur_rtde client of the daemon's ``ur_rtde`` link, the images taken
 by the daemon's own camera (a replay folder read in the worker process, the frames rendered

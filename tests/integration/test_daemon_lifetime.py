@@ -29,7 +29,7 @@ from vgripd.peer.registers import MAP_SIZE, Reg
 from vgripd.service.worker.process import segments_of
 
 WAIT_S = 60.0
-#: issue 20: `systemctl stop` with a job in flight and an open browser completes within this.
+#: `systemctl stop` with a job in flight and an open browser completes within this.
 STOP_BOUND_S = 3.0
 ENV = {**os.environ, "PYTHONPATH": str(REPO)}
 

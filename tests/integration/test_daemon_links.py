@@ -1,4 +1,4 @@
-"""The daemon with the robot links of issue 5, end to end with real jobs.
+"""The daemon with the robot links, end to end with real jobs.
 
 - A UR robot triggers over RTDE (the real ur_rtde client in the link's child process, against the
   mock controller in its own process); the daemon runs a real synthetic job and the simulated

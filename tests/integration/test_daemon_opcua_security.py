@@ -1,5 +1,5 @@
 """``vgripd run`` with an encrypted, password-protected OPC UA link, probed as an attacker on
-the cell network would (issue 20): a raw client (``vgripd.sim.opcua_raw``, asyncua's lower
+the cell network would: a raw client (``vgripd.sim.opcua_raw``, asyncua's lower
 layer, which does not refuse on its own what the server must refuse) opens a SecurityPolicy
 None channel and asks for a session, a job and the result; then guesses passwords on an
 encrypted channel. A real client's jobs before it complete; the daemon's log holds one line

@@ -62,7 +62,7 @@ def test_unit_key_settings() -> None:
 
 def test_systemd_analyze_security_exposure_at_most_1_8(tmp_path: Path) -> None:
     """`systemd-analyze security` rates the unit's exposure (0 = locked down, 10 = none): the
-    hardening must not slip above 1.8 (issue 20; docs/security.md)."""
+    hardening must not slip above 1.8 (docs/security.md)."""
     analyze = need_tool("systemd-analyze", "systemd")
     unit = tmp_path / "vgripd.service"
     unit.write_text(UNIT.read_text().replace(

@@ -1,4 +1,4 @@
-"""The web view's connections against raw sockets on loopback (issue 20, row 4): partial
+"""The web view's connections against raw sockets on loopback: partial
 headers and silent connections are closed by ``header_timeout_s``, a slow body by
 ``body_timeout_s``, the cap evicts connections that never sent a request and never the live
 event stream, and ``allow`` closes other addresses at accept. The daemon-process flood (file

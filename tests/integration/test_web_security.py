@@ -1,4 +1,4 @@
-"""The web view's doors, tried as a raw client on the cell network would (issue 20, rows 5, 8-13):
+"""The web view's doors, tried as a raw client on the cell network would:
 the token on every route of a non-loopback bind (bound to 0.0.0.0, reached through 127.0.0.1),
 the login cookie, the Host check, the security headers, bad ids, rate-limited error lines, the
 event-stream cap with the operator always served, redaction in the API and in a recorded job,

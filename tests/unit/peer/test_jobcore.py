@@ -629,7 +629,7 @@ def test_a_next_pose_is_of_the_last_job_of_its_own_link(events: list[tuple]) -> 
                     assert cell.last_finished == last  # no job started meanwhile
 
 
-# --- the three defects of issue 20, at the core -------------------------------------------
+# --- three protocol defects of a security review, at the core -----------------------------
 
 
 def test_clear_retracts_the_acknowledge_before_its_data_and_writes_it_last() -> None:

@@ -1,4 +1,4 @@
-"""The daemon's start-up heap frozen out of the cyclic collector's way (issue 22, poll p99)."""
+"""The daemon's start-up heap frozen out of the cyclic collector's way (the poll's p99)."""
 
 from __future__ import annotations
 

@@ -262,7 +262,7 @@ def test_view_names_cover_stereo_n_cameras_and_views() -> None:
 
 
 def test_redact_hides_credentials_in_urls_anywhere() -> None:
-    """Row 12 of issue 20: ``rtsp://admin:pw@host/stream`` in a camera option stayed in
+    """A security review's finding: ``rtsp://admin:pw@host/stream`` in a camera option stayed in
     /api/config (redaction went by key name only)."""
     data = {"camera": {"type": "opencv", "left": "rtsp://admin:pw@cam/stream",
                        "right": "http://u:p%40ss@10.0.0.5:8080/mjpg?x=1&token=abc&key=k"},
@@ -318,7 +318,8 @@ def test_event_streams_without_the_token_are_capped_and_holders_always_admitted(
 
 def test_check_warns_about_the_test_trigger_and_public_reads(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Row 16 of issue 20: ``vgripd check`` printed OK and no warning with allow_trigger on."""
+    """A security review's finding: ``vgripd check`` printed OK, no warning, with allow_trigger
+    on."""
     from vgripd.__main__ import main
 
     cfg = tmp_path / "cell.toml"
