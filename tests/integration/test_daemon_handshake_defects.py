@@ -1,6 +1,5 @@
 """Protocol defects a security review found, each through the real daemon (worker process,
-synthetic
-camera, one object per image) and the real peer of its link:
+synthetic camera, one object per image) and the real peer of its link:
 
 - S7 (snap7's server as the PLC, its own log of writes): CLEAR wrote STATUS 0 and JOB_ID 0 while
   ACK_SEQ still named the previous request, then changed ACK_SEQ straight to CLEAR's. Replaying
