@@ -617,6 +617,7 @@ class OpcUaLink(SupervisedLink):
                     await server.stop()
             except Exception as err:  # closing must go on; say why once
                 log.warning("%s: stopping the OPC UA server: %r", self.name, err)
+            await self._end_sessions()
         for conn in self.gate.connections():
             self.gate.forget(conn)
         self._job = None
@@ -625,6 +626,20 @@ class OpcUaLink(SupervisedLink):
         self.space = self.vision = None
         self.lines.flush(force=True)
         self.cell.set(LinkState.STOPPED)
+
+    async def _end_sessions(self) -> None:
+        """Close every session the server still holds. asyncua's ``stop`` closes its own
+        internal session only; a session whose client went away while it had subscriptions
+        is kept for the client to take over (OPC UA Part 4, 6.7) and, with its timeout watch
+        and its subscriptions' publish loops, would outlive the link by its session
+        timeout."""
+        for session in list(self.session_certs):
+            try:
+                async with asyncio.timeout(CLOSE_TIMEOUT_S):
+                    await session.close_session(True)
+            except Exception as err:  # closing must go on; say why once
+                log.warning("%s: closing an OPC UA session: %r", self.name, err)
+        self.session_certs.clear()
 
     #: ``vgripd check``'s warnings about these options (``exposure_warnings``)
     exposure = staticmethod(exposure_warnings)
