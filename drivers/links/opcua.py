@@ -55,7 +55,6 @@ import logging
 import os
 import socket
 import time
-import weakref
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -86,6 +85,7 @@ from drivers.links.opcua_belt import count_argument
 from drivers.links.opcua_guard import (
     LoginThrottle,
     RejectedStore,
+    SessionCerts,
     SessionGuard,
     allowed_channels,
     mute_asyncua_refusals,
@@ -556,8 +556,7 @@ class OpcUaLink(SupervisedLink):
         #: a password can travel encrypted (a signed mode is configured: the server has a key)
         self.can_encrypt = any(m != "None" for m in options.security)
         #: the client certificate each session was created with (SessionGuard)
-        self.session_certs: weakref.WeakKeyDictionary[Any, bytes | None] = \
-            weakref.WeakKeyDictionary()
+        self.session_certs = SessionCerts()
         self.rejected = RejectedStore(
             (options.certificate_dir or Path(".")) / "rejected", options.rejected_max_files
             if options.certificate_dir is not None else 0)
@@ -617,7 +616,7 @@ class OpcUaLink(SupervisedLink):
                     await server.stop()
             except Exception as err:  # closing must go on; say why once
                 log.warning("%s: stopping the OPC UA server: %r", self.name, err)
-            await self._end_sessions()
+            await self.session_certs.end(self.name)
         for conn in self.gate.connections():
             self.gate.forget(conn)
         self._job = None
@@ -626,20 +625,6 @@ class OpcUaLink(SupervisedLink):
         self.space = self.vision = None
         self.lines.flush(force=True)
         self.cell.set(LinkState.STOPPED)
-
-    async def _end_sessions(self) -> None:
-        """Close every session the server still holds. asyncua's ``stop`` closes its own
-        internal session only; a session whose client went away while it had subscriptions
-        is kept for the client to take over (OPC UA Part 4, 6.7) and, with its timeout watch
-        and its subscriptions' publish loops, would outlive the link by its session
-        timeout."""
-        for session in list(self.session_certs):
-            try:
-                async with asyncio.timeout(CLOSE_TIMEOUT_S):
-                    await session.close_session(True)
-            except Exception as err:  # closing must go on; say why once
-                log.warning("%s: closing an OPC UA session: %r", self.name, err)
-        self.session_certs.clear()
 
     #: ``vgripd check``'s warnings about these options (``exposure_warnings``)
     exposure = staticmethod(exposure_warnings)
