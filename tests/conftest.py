@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import fcntl
+import inspect
 import os
 import shutil
 import tempfile
@@ -160,6 +161,21 @@ def _task_where(task: asyncio.Task[object]) -> str:
     return f"{task.get_name()} ({what}{where})"
 
 
+def _async_fixture_runner(request: pytest.FixtureRequest) -> str | None:
+    """The loop runner a plain (sync) test's async fixtures run on, or None if it has none.
+    pytest-asyncio requests that runner only while it sets such a fixture up, so it is not
+    among the test's fixture names: it is found from the fixtures' own definitions."""
+    default = request.config.getini("asyncio_default_fixture_loop_scope")
+    defs = getattr(getattr(request.node, "_fixtureinfo", None), "name2fixturedefs", {})
+    for name in request.fixturenames:
+        for fixturedef in defs.get(name, ())[-1:]:  # the definition the test gets
+            func = fixturedef.func
+            if inspect.iscoroutinefunction(func) or inspect.isasyncgenfunction(func):
+                scope = getattr(func, "_loop_scope", None) or default or fixturedef.scope
+                return f"_{scope}_scoped_runner"
+    return None
+
+
 @pytest.fixture(autouse=True)
 def no_leaked_tasks(request: pytest.FixtureRequest, no_leaked_threads: None) -> Iterator[None]:
     """Fails a test that leaves tasks pending on its event loop once its own fixtures are torn
@@ -168,7 +184,8 @@ def no_leaked_tasks(request: pytest.FixtureRequest, no_leaked_threads: None) -> 
     the test; the loop is run for up to 2 s first, for tasks that are still ending. It needs
     ``no_leaked_threads`` so that the thread check comes after the loop has closed (and with it
     the loop's default executor, whose threads are no leak)."""
-    runner_name = next((name for name in _RUNNERS if name in request.fixturenames), None)
+    runner_name = next((name for name in _RUNNERS if name in request.fixturenames),
+                       None) or _async_fixture_runner(request)
     if runner_name is None:  # a test without an event loop
         yield
         return
