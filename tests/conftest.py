@@ -1,7 +1,9 @@
 """Shared test fixtures.
 
-An autouse fixture fails any test that leaves a thread behind (a leaked supervisor or executor
-would keep a real daemon from shutting down).
+Two autouse fixtures fail any test that leaves a thread behind (a leaked supervisor or executor
+would keep a real daemon from shutting down) or an asyncio task still pending on its event loop
+after its teardown (a daemon, link or peer that does not end what it started); each waits a few
+seconds first, so a busy machine is no failure.
 
 Tests that need something from outside the repository (the public datasets, a system tool such
 as ``mbpoll`` or ``socat``) go through :func:`need` / :func:`need_tool` / the ``datasets``
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import fcntl
+import inspect
 import os
 import shutil
 import tempfile
@@ -143,6 +146,70 @@ def no_leaked_threads() -> Iterator[None]:
             break
         time.sleep(0.02)
     assert not leaked, f"test leaked threads: {[t.name for t in leaked]}"
+
+
+_RUNNERS = tuple(f"_{scope}_scoped_runner" for scope in ("function", "class", "module",
+                                                          "package", "session"))
+
+
+def _task_where(task: asyncio.Task[object]) -> str:
+    """``task``'s name and its coroutine, with the file and line that defines it."""
+    coro = task.get_coro()
+    what = getattr(coro, "__qualname__", repr(coro))
+    code = getattr(coro, "cr_code", None)
+    where = f" {code.co_filename}:{code.co_firstlineno}" if code is not None else ""
+    return f"{task.get_name()} ({what}{where})"
+
+
+def _async_fixture_runner(request: pytest.FixtureRequest) -> str | None:
+    """The loop runner a plain (sync) test's async fixtures run on, or None if it has none.
+    pytest-asyncio requests that runner only while it sets such a fixture up, so it is not
+    among the test's fixture names: it is found from the fixtures' own definitions."""
+    default = request.config.getini("asyncio_default_fixture_loop_scope")
+    defs = getattr(getattr(request.node, "_fixtureinfo", None), "name2fixturedefs", {})
+    for name in request.fixturenames:
+        for fixturedef in defs.get(name, ())[-1:]:  # the definition the test gets
+            func = fixturedef.func
+            if inspect.iscoroutinefunction(func) or inspect.isasyncgenfunction(func):
+                scope = getattr(func, "_loop_scope", None) or default or fixturedef.scope
+                return f"_{scope}_scoped_runner"
+    return None
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_tasks(request: pytest.FixtureRequest, no_leaked_threads: None) -> Iterator[None]:
+    """Fails a test that leaves tasks pending on its event loop once its own fixtures are torn
+    down (pytest-asyncio would cancel them silently when it closes the loop). Requesting the
+    test's loop runner here sets it up before, and tears it down after, every other fixture of
+    the test; the loop is run for up to 2 s first, for tasks that are still ending. It needs
+    ``no_leaked_threads`` so that the thread check comes after the loop has closed (and with it
+    the loop's default executor, whose threads are no leak)."""
+    runner_name = next((name for name in _RUNNERS if name in request.fixturenames),
+                       None) or _async_fixture_runner(request)
+    if runner_name is None:  # a test without an event loop
+        yield
+        return
+    loop: asyncio.AbstractEventLoop = request.getfixturevalue(runner_name).get_loop()
+    before = asyncio.all_tasks(loop)
+    yield
+
+    async def pending(wait_s: float) -> list[asyncio.Task[object]]:
+        deadline = time.monotonic() + wait_s
+        while True:
+            left = [t for t in asyncio.all_tasks()
+                    if t is not asyncio.current_task() and t not in before]
+            if not left or time.monotonic() > deadline:
+                return left
+            await asyncio.sleep(0.02)
+
+    leaked = loop.run_until_complete(pending(2.0))
+    if not leaked:
+        return
+    names = [_task_where(t) for t in leaked]
+    for task in leaked:
+        task.cancel()
+    loop.run_until_complete(asyncio.wait(leaked, timeout=5.0))
+    pytest.fail(f"test leaked asyncio tasks: {names}", pytrace=False)
 
 
 @pytest.fixture(scope="session")

@@ -55,7 +55,6 @@ import logging
 import os
 import socket
 import time
-import weakref
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -86,6 +85,7 @@ from drivers.links.opcua_belt import count_argument
 from drivers.links.opcua_guard import (
     LoginThrottle,
     RejectedStore,
+    SessionCerts,
     SessionGuard,
     allowed_channels,
     mute_asyncua_refusals,
@@ -551,8 +551,7 @@ class OpcUaLink(SupervisedLink):
         #: a password can travel encrypted (a signed mode is configured: the server has a key)
         self.can_encrypt = any(m != "None" for m in options.security)
         #: the client certificate each session was created with (SessionGuard)
-        self.session_certs: weakref.WeakKeyDictionary[Any, bytes | None] = \
-            weakref.WeakKeyDictionary()
+        self.session_certs = SessionCerts()
         self.rejected = RejectedStore(
             (options.certificate_dir or Path(".")) / "rejected", options.rejected_max_files
             if options.certificate_dir is not None else 0)
@@ -612,6 +611,7 @@ class OpcUaLink(SupervisedLink):
                     await server.stop()
             except Exception as err:  # closing must go on; say why once
                 log.warning("%s: stopping the OPC UA server: %r", self.name, err)
+            await self.session_certs.end(self.name)
         for conn in self.gate.connections():
             self.gate.forget(conn)
         self._job = None

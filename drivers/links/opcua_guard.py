@@ -27,6 +27,7 @@ import contextvars
 import logging
 import os
 import time
+import weakref
 from collections import Counter
 from pathlib import Path
 from typing import Any, Protocol
@@ -38,6 +39,8 @@ from asyncua.server.uaprocessor import UaProcessor
 from asyncua.ua.ua_binary import struct_from_binary
 
 from vgripd.service.links.throttle import LoginThrottle
+
+log = logging.getLogger(__name__)
 
 
 class GuardedLink(Protocol):
@@ -189,6 +192,24 @@ class RejectedStore:
 
 
 # -- the message processor --------------------------------------------------------------------
+
+
+class SessionCerts(weakref.WeakKeyDictionary[Any, "bytes | None"]):
+    """The client certificate each session was created with (``SessionGuard``), by session:
+    every session the link's server created that is still alive."""
+
+    async def end(self, link: str) -> None:
+        """Close each session still open, after the server stopped: asyncua's ``stop`` closes
+        only its own internal session, and keeps one whose client went away while it had
+        subscriptions for the client to take over (OPC UA Part 4, 6.7); that session's timeout
+        watch and its subscriptions' publish loops would outlive the link by its timeout."""
+        for session in list(self):
+            try:
+                async with asyncio.timeout(5.0):
+                    await session.close_session(True)
+            except Exception as err:  # closing goes on; say why once
+                log.warning("%s: closing an OPC UA session: %r", link, err)
+        self.clear()
 
 
 class SessionGuard(UaProcessor):
