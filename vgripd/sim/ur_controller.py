@@ -568,11 +568,14 @@ class URController:
         differ by address.
     version : tuple of 4 int
         Controller version reported in the ``v`` reply (it changes ur_rtde's default recipe).
+    timeout_s : float
+        How long a call waits for the controller process's reply (its start included, a fresh
+        Python process: seconds on a busy machine). A bound, not a target.
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = RTDE_PORT,
                  version: tuple[int, int, int, int] = DEFAULT_CONTROLLER_VERSION,
-                 timeout_s: float = 10.0) -> None:
+                 timeout_s: float = 30.0) -> None:
         self.host, self.port, self.version, self.timeout_s = host, port, version, timeout_s
         self._ids = itertools.count(1)
         self._conn: Connection | None = None
