@@ -49,7 +49,7 @@ from vgripd.peer.socket_frames import (
 from vgripd.service.links.protocol import LinkState, Trigger
 from vgripd.types import BeltPose, JobResult, PickInstance, RobotTarget, Status
 
-WAIT_S = 10.0
+WAIT_S = 30.0  # a bound for a busy machine, not a target
 KUKA = ("X", "Y", "Z", "A", "B", "C")
 POSE = (412.5, -133.25, 287.0625, 0.1234, -2.9, 179.5)
 

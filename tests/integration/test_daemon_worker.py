@@ -165,7 +165,9 @@ async def test_shutdown_mid_processing_does_not_wait_for_the_computation() -> No
             await daemon.wait_for(lambda: daemon.state is JobState.PROCESSING, WAIT_S)
             t0 = time.monotonic()
             await daemon.stop()
-            assert time.monotonic() - t0 < 10  # the job would run on for a minute
+            # the job would run on for a minute: stopping ends it (a bound well below that,
+            # which a busy machine's slow process exits still keep)
+            assert time.monotonic() - t0 < 45
     finally:
         await daemon.stop()
     _, rec = run.jobs[0]
