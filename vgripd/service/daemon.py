@@ -72,6 +72,7 @@ from vgripd.service.links.supervision import LinkSupervisor
 from vgripd.service.ops.reload import Reloader
 from vgripd.service.ops.status import StatusBoard
 from vgripd.service.web import WebServer
+from vgripd.service.worker.camera import Camera
 from vgripd.service.worker.cameras import (
     CameraSupervisor,
     watchdog,
@@ -150,7 +151,7 @@ class Daemon:
         self.config = config
         self._env = dict(os.environ if env is None else env)
         cam_cls = load_class(CAMERAS, "camera", config.camera.type)
-        camera = cam_cls(validate_options(cam_cls, config.camera, "camera"), config)
+        camera: Camera = cam_cls(validate_options(cam_cls, config.camera, "camera"), config)
         self._background = Background()
         self._links = LinkSupervisor(config, self._background)
         #: Why a recipe cannot run (not calibrated or taught), by number; its jobs answer
@@ -211,11 +212,11 @@ class Daemon:
         return self._links.fd_budget
 
     @property
-    def camera(self) -> Any:
+    def camera(self) -> Camera:
         return self._cameras.camera
 
     @camera.setter
-    def camera(self, camera: Any) -> None:
+    def camera(self, camera: Camera) -> None:
         self._cameras.camera = camera
 
     @property

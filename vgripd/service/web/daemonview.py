@@ -18,6 +18,7 @@ from vgripd.service.jobs.jobrecord import EpipolarMonitor, JobListener
 from vgripd.service.links.gate import Budget
 from vgripd.service.links.protocol import RobotLink
 from vgripd.service.ops.reload import Reloader
+from vgripd.service.worker.camera import Camera
 from vgripd.service.worker.process import WorkerRecorder
 from vgripd.service.worker.recorder import Recorder
 
@@ -50,7 +51,7 @@ class DaemonView(Protocol):
     reloader: Reloader | None
 
     @property
-    def camera(self) -> Any: ...
+    def camera(self) -> Camera: ...
 
     @property
     def state(self) -> enum.Enum: ...

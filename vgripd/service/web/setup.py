@@ -145,8 +145,7 @@ class SetupRoutes:
             "instance": self.instance,  # another after a restart
             "edit": bool(config.status.allow_config_edit),
             "trigger": bool(config.status.allow_trigger),
-            "camera": {"type": cam.type, "describe": getattr(self.ctx.daemon.camera, "describe",
-                                                             lambda: cam.type)(),
+            "camera": {"type": cam.type, "describe": self.ctx.daemon.camera.describe(),
                        "options": {k: v for k, v in options.items() if k != "type"}},
             "calibrated": cal is not None,
             "hand_eye": None if cal is None else cal.hand_eye.model_dump(mode="json",

@@ -284,9 +284,6 @@ class SetupChoices:
             if isinstance(value, bool) or not isinstance(value, int | float) or value != value:
                 raise web.HTTPBadRequest(text=f'{{"value": number}}: the focus, got {value!r}')
         camera = self.ctx.daemon.camera
-        if not hasattr(camera, "focus"):
-            return web.json_response({"available": False, "reason": (
-                f"{self.ctx.daemon.config.camera.type}: this camera type has no focus control")})
         async with self.ctx.camera.between_jobs() as idle:
             if not idle:
                 raise web.HTTPConflict(text="a job runs: the focus is read and set only "
