@@ -191,7 +191,7 @@ async def pick_errors(folder: Path, parts: list[tuple[float, float, float]], sou
     await daemon.start()
     out = PickRun()
     try:
-        port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+        port: int = next(iter(daemon.rooms.links.links.values())).port  # type: ignore[attr-defined]
         async with BeltPlc("127.0.0.1", port, timeout_s=90.0) as plc:
             for k, (along0, across, theta) in enumerate(parts):
                 travel = k * TRIGGER_MM
@@ -218,7 +218,7 @@ async def pick_errors(folder: Path, parts: list[tuple[float, float, float]], sou
                 truth = part_pose(along0 + travel_of(grip), across, theta)
                 out.errors.append(pose_error(T, truth)[0])
                 out.along.append(float(T[0, 3] - truth[0, 3]))
-        out.latency = list(daemon._runner.core.lines[0].latency_ms)
+        out.latency = list(daemon.rooms.jobs.core.lines[0].latency_ms)
     finally:
         await daemon.stop()
     return out
@@ -249,7 +249,7 @@ async def throughput(speed: float, n: int, seed: int) -> tuple[int, int, int, in
         daemon = Daemon(config)
         await daemon.start()
         try:
-            port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+            port: int = next(iter(daemon.rooms.links.links.values())).port  # type: ignore[attr-defined]
             async with BeltPlc("127.0.0.1", port, timeout_s=90.0) as plc:
                 run = await run_belt(plc, camera.belt, frames, speed, config.conveyor.window_mm,
                                      T_base_obj_ref(config), "kuka", RobotTiming(), shown=shown)

@@ -63,7 +63,7 @@ async def started_daemon(
     """The pallet cell with ``links``, started; the second value fills with every job."""
     daemon = Daemon(config_from_dict({**CONFIG, "links": links}))
     jobs: dict[int, tuple[ImagePair | None, JobRecord]] = {}
-    daemon.listeners.append(lambda pair, rec: jobs.__setitem__(rec.job_id, (pair, rec)))
+    daemon.rooms.jobs.listeners.append(lambda pair, rec: jobs.__setitem__(rec.job_id, (pair, rec)))
     await daemon.start()
     return daemon, jobs
 
@@ -102,7 +102,7 @@ async def over_modbus(pallets: int) -> list[str]:
     per_plate: list[float] = []
     errors: list[tuple[float, float]] = []
     try:
-        port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+        port: int = next(iter(daemon.rooms.links.links.values())).port  # type: ignore[attr-defined]
         async with MockPlc("127.0.0.1", port, poll_s=0.005) as plc:
             await plc.cycle()  # warm-up: the worker's first job
             for _ in range(pallets):
@@ -142,7 +142,7 @@ async def over_opcua(pallets: int) -> list[str]:
     job_ms: list[float] = []
     errors: list[tuple[float, float]] = []
     try:
-        port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+        port: int = next(iter(daemon.rooms.links.links.values())).port  # type: ignore[attr-defined]
         async with OpcUaClientProcess(f"opc.tcp://127.0.0.1:{port}/vgripd") as client:
             assert client.connected["event"] == "connected", client.connected
             await timed(client, "job")  # warm-up: the worker's first job

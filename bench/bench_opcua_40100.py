@@ -201,12 +201,12 @@ async def latency(jobs: int) -> tuple[dict[str, list[float]], dict[str, list[flo
     def listen(pair: ImagePair | None, rec: JobRecord) -> None:
         records[rec.seq] = rec
 
-    daemon.listeners.append(listen)
+    daemon.rooms.jobs.listeners.append(listen)
     await daemon.start()
     try:
         await daemon.wait_for(lambda: all(link.health().state is LinkState.UP
-                                          for link in daemon.links.values()), 60)
-        port = list(daemon.links.values())[0].port
+                                          for link in daemon.rooms.links.links.values()), 60)
+        port = list(daemon.rooms.links.links.values())[0].port
         proc = await asyncio.create_subprocess_exec(
             sys.executable, __file__, "--client", f"opc.tcp://127.0.0.1:{port}/vgripd",
             str(jobs), stdout=subprocess.PIPE)

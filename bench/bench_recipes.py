@@ -81,7 +81,7 @@ async def cycles(plc: MockPlc, recipes: list[int], expected: Status) -> list[flo
 async def started(config: Config) -> tuple[Daemon, MockPlc]:
     daemon = Daemon(config)
     await daemon.start()
-    port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+    port: int = next(iter(daemon.rooms.links.links.values())).port  # type: ignore[attr-defined]
     plc = MockPlc("127.0.0.1", port, timeout_s=WAIT_S, poll_s=0.002)
     await plc.connect()
     return daemon, plc

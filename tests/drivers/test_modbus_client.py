@@ -456,7 +456,7 @@ async def test_daemon_jobs_through_the_robot_modbus_server(robot: MockRobotModbu
     })
     daemon = VgripDaemon(config)
     jobs: list[JobRecord] = []
-    daemon.listeners.append(lambda pair, rec: jobs.append(rec))
+    daemon.rooms.jobs.listeners.append(lambda pair, rec: jobs.append(rec))
     await daemon.start()
     try:
         for seq in (1, 2):

@@ -537,7 +537,7 @@ async def test_daemon_jobs_through_the_s7_link(server: S7PlcServer, plc: MockS7P
     })
     daemon = VgripDaemon(config)
     jobs: list[JobRecord] = []
-    daemon.listeners.append(lambda pair, rec: jobs.append(rec))
+    daemon.rooms.jobs.listeners.append(lambda pair, rec: jobs.append(rec))
     await daemon.start()
     try:
         for seq in (1, 2):

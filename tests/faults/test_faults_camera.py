@@ -98,7 +98,7 @@ async def pings(sock: socket.socket, seconds: float) -> int:
 
 
 @contextlib.asynccontextmanager
-async def hanging_daemon(notify: str, reopen: str, **daemon: Any) -> AsyncIterator[
+async def hanging_daemon(notify: str, reopen: str, **cameras: Any) -> AsyncIterator[
         tuple[Daemon, HangingCamera]]:
     config = config_from_dict({
         "camera": {"type": "synthetic", "seed": 1},
@@ -109,9 +109,9 @@ async def hanging_daemon(notify: str, reopen: str, **daemon: Any) -> AsyncIterat
     d = Daemon(config, pipeline=Stub(),
                env={"NOTIFY_SOCKET": notify, "WATCHDOG_USEC": "200000"})  # ping every 0.1 s
     camera = HangingCamera(config, reopen)
-    d.camera = camera
-    for name, value in daemon.items():
-        setattr(d, name, value)
+    d.rooms.cameras.camera = camera
+    for name, value in cameras.items():  # the camera room's settings
+        setattr(d.rooms.cameras, name, value)
     await d.start()
     try:
         yield d, camera
@@ -121,7 +121,7 @@ async def hanging_daemon(notify: str, reopen: str, **daemon: Any) -> AsyncIterat
 
 
 async def plc_job(daemon: Daemon, seq: int) -> list[int]:
-    port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+    port: int = next(iter(daemon.rooms.links.links.values())).port  # type: ignore[attr-defined]
     async with Plc(port) as plc:
         await plc.trigger(seq)
         return await plc.result(seq)
@@ -146,11 +146,11 @@ async def test_hung_grab_camera_opened_again_next_job_runs(
 async def test_camera_that_cannot_be_opened_again_stops_the_watchdog(
         watchdog_socket: tuple[str, socket.socket], reopen: str) -> None:
     path, sock = watchdog_socket
-    async with hanging_daemon(path, reopen, camera_open_timeout_s=1.0) as (daemon, camera):
+    async with hanging_daemon(path, reopen, open_timeout_s=1.0) as (daemon, camera):
         assert await pings(sock, 0.3) >= 1
         words = await plc_job(daemon, 1)
         assert words[18] == Status.CAMERA_ERROR
-        await daemon.wait_for(lambda: bool(daemon.camera_fault), 15)
+        await daemon.wait_for(lambda: bool(daemon.rooms.cameras.fault), 15)
         await asyncio.sleep(0.15)  # a ping already on its way (0.1 s period) has arrived
         assert await pings(sock, 0.6) == 0  # systemd will restart the service
         assert not daemon.healthy()
@@ -166,5 +166,5 @@ async def test_camera_that_cannot_be_opened_again_stops_the_watchdog(
         words = await plc_job(daemon, 2)
         assert words[18] == Status.CAMERA_ERROR
         assert time.monotonic() - t0 < JOB_TIMEOUT_S  # at once, not after a timeout
-        assert daemon.last_job is not None
-        assert "unusable" in daemon.last_job.result.message
+        assert daemon.rooms.jobs.last_job is not None
+        assert "unusable" in daemon.rooms.jobs.last_job.result.message

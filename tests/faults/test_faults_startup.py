@@ -78,7 +78,7 @@ async def test_silent_ur_controller_delays_neither_the_plc_nor_the_status(
         "status": {"port": 0},
     })
     daemon = Daemon(config)
-    ur, plc = daemon.links.values()
+    ur, plc = daemon.rooms.links.links.values()
     t0 = time.monotonic()
     starting = asyncio.create_task(daemon.start())
     try:

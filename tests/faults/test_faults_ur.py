@@ -48,7 +48,7 @@ async def test_unknown_command_is_a_counted_bad_request(command: int) -> None:
     with URController(lo(f"127.0.8.{20 + command}")) as robot:
         config = make_config([{"type": "ur_rtde", "host": robot.host}], vendor="ur")
         async with running(config) as run:
-            ur = next(iter(run.daemon.links))
+            ur = next(iter(run.daemon.rooms.links.links))
             await run.daemon.wait_for(
                 lambda: link_state(run.daemon.snapshot(), ur)["state"] == LinkState.UP.value, 30)
             seq = robot.start_program(command, taught_pose=TAUGHT)

@@ -55,10 +55,10 @@ class Run:
     def __init__(self, daemon: Daemon) -> None:
         self.daemon = daemon
         self.jobs: list[tuple[ImagePair | None, JobRecord]] = []
-        daemon.listeners.append(lambda pair, rec: self.jobs.append((pair, rec)))
+        daemon.rooms.jobs.listeners.append(lambda pair, rec: self.jobs.append((pair, rec)))
 
     def port(self, index: int = 0) -> int:
-        port: int = list(self.daemon.links.values())[index].port
+        port: int = list(self.daemon.rooms.links.links.values())[index].port
         return port
 
     async def job_done(self, n: int) -> tuple[ImagePair | None, JobRecord]:
@@ -66,7 +66,7 @@ class Run:
         return self.jobs[n - 1]
 
     async def busy(self) -> None:
-        await self.daemon.wait_for(lambda: self.daemon.state is not JobState.IDLE, WAIT_S)
+        await self.daemon.wait_for(lambda: self.daemon.rooms.jobs.state is not JobState.IDLE, WAIT_S)
 
 
 @contextlib.asynccontextmanager
@@ -136,7 +136,7 @@ async def test_cycles_publish_accurate_poses_in_the_registers() -> None:
             dt, dr = pose_error(pair.truth["T_base_obj"], rec.result.T_base_obj)
             assert dt < 0.5
             assert dr < 0.1
-        assert run.daemon.counters == {"OK": 3}
+        assert run.daemon.rooms.jobs.counters == {"OK": 3}
         assert run.daemon.snapshot()["cycle_ms"]["window"] == 3
 
 
@@ -197,7 +197,7 @@ async def test_trigger_while_busy_is_refused_and_the_running_job_completes() -> 
         # Link B still shows its own answer, not A's result.
         assert (await plc_b.read())[Reg.ACK_SEQ] == 1
         assert (await plc_b.read())[Reg.STATUS] == Status.BUSY
-        assert run.daemon.counters == {"OK": 1, "BUSY": 1}
+        assert run.daemon.rooms.jobs.counters == {"OK": 1, "BUSY": 1}
 
 
 async def test_camera_timeout_is_camera_error_and_the_daemon_keeps_serving() -> None:

@@ -67,4 +67,4 @@ async def test_a_camera_unplugged_between_jobs_is_camera_error_then_reopened(
                     break
         assert words[Reg.STATUS] == first.result.status, statuses
         assert all("stopped answering" in m for s, m in statuses[:-1]), statuses
-        assert run.daemon.camera_fault == ""
+        assert run.daemon.rooms.cameras.fault == ""

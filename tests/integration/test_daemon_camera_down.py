@@ -47,7 +47,7 @@ async def test_grabs_failing_in_a_row_are_unhealthy_and_stop_the_watchdog_after_
         assert "CAMERA DOWN" in daemon.status_line()
         assert daemon.watchdog_problem() == ""  # the camera may come back on its own first
 
-        daemon._cameras.down_since -= 31.0  # the same, 31 s later
+        daemon.rooms.cameras.down_since -= 31.0  # the same, 31 s later
         assert daemon.watchdog_problem().endswith(
             "(longer than daemon.camera_down_restart_s = 30 s)")
         assert daemon.watchdog_problem().startswith("camera replay: no frame for 31.")

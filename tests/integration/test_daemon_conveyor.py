@@ -123,17 +123,17 @@ async def test_a_reload_applies_a_changed_added_and_removed_conveyor(tmp_path: P
     reloader = daemon.reloader = Reloader(daemon, main)
     await daemon.start()
     try:
-        async with BeltPlc(list(daemon.links.values())[0].port) as plc:
+        async with BeltPlc(list(daemon.rooms.links.links.values())[0].port) as plc:
             words = await plc.request(Command.TRIGGER, count_at(frames[0]))
             assert words[Reg.STATUS] == Status.OK
             assert words[Reg.QUEUED] == 2
-            line = daemon._runner.core.lines[0]
+            line = daemon.rooms.jobs.core.lines[0]
 
             # a file whose belt did not change keeps the queue
             (tmp_path / "note.txt").write_text("unrelated")
             out = await reloader.reload("test")
             assert out.applied, out.message
-            assert daemon._runner.core.lines[0] is line
+            assert daemon.rooms.jobs.core.lines[0] is line
             assert len(line.queue) == 2
 
             # a belt refused by the judge: the running one stays, queue and all
@@ -141,14 +141,14 @@ async def test_a_reload_applies_a_changed_added_and_removed_conveyor(tmp_path: P
             out = await reloader.reload("test")
             assert not out.applied
             assert "window_mm" in out.message
-            assert daemon._runner.core.lines[0] is line
+            assert daemon.rooms.jobs.core.lines[0] is line
 
             # a changed window: applied, a new queue on the new belt
             write({**belt, "window_mm": [300.0, 700.0]})
             out = await reloader.reload("test")
             assert out.applied, out.message
             assert any(d.startswith("conveyor.window_mm") for d in out.diff), out.diff
-            now = daemon._runner.core.lines[0]
+            now = daemon.rooms.jobs.core.lines[0]
             assert now.queue.window_mm == (300.0, 700.0)
             assert len(now.queue) == 0
             words = await plc.request(Command.TRIGGER, count_at(frames[1]))
@@ -158,14 +158,14 @@ async def test_a_reload_applies_a_changed_added_and_removed_conveyor(tmp_path: P
             write(None)
             out = await reloader.reload("test")
             assert out.applied, out.message
-            assert daemon._runner.core.lines == {}
+            assert daemon.rooms.jobs.core.lines == {}
             assert daemon.snapshot()["conveyor"] == {}
 
             # added back: a conveyor again, its queue empty; NEXT answers from it
             write(belt)
             out = await reloader.reload("test")
             assert out.applied, out.message
-            assert len(daemon._runner.core.lines[0].queue) == 0
+            assert len(daemon.rooms.jobs.core.lines[0].queue) == 0
             words = await plc.request(Command.NEXT, count_at(200.0))
             assert words[Reg.STATUS] == Status.NOT_FOUND
             assert daemon.snapshot()["conveyor"]["0"]["queued"] == 0
@@ -189,7 +189,7 @@ async def test_a_conveyor_added_by_a_reload_reaches_the_links(tmp_path: Path) ->
     reloader = daemon.reloader = Reloader(daemon, main)
     await daemon.start()
     try:
-        async with BeltPlc(list(daemon.links.values())[0].port) as plc:
+        async with BeltPlc(list(daemon.rooms.links.links.values())[0].port) as plc:
             await refused(plc)  # no list, no queue
             main.write_text(toml_from_dict({**data, "conveyor": belt}))
             out = await reloader.reload("test")

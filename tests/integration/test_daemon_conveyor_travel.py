@@ -68,7 +68,7 @@ class CountingPlc(BeltPlc):
 async def processing_held(run: Run) -> AsyncIterator[threading.Event]:
     """The daemon's job thread kept busy until the block ends (or the event is set): the next
     job waits in PROCESSING, its image taken."""
-    runner = run.daemon._runner
+    runner = run.daemon.rooms.jobs
     assert runner._executor is not None
     gate = threading.Event()
     runner._executor.submit(gate.wait, WAIT_S * 2)
@@ -83,10 +83,10 @@ async def image_at(run: Run, plc: CountingPlc, travel: float, job: int,
     """The count reaches ``travel``, where job ``job`` must start; the count is written again
     once its image is taken (the belt stood), then the ``meanwhile`` counts while it is still
     processing; then the job is let finish."""
-    d, runner = run.daemon, run.daemon._runner
+    d, runner = run.daemon, run.daemon.rooms.jobs
     async with processing_held(run):
         await plc.count(travel)
-        await d.wait_for(lambda: runner.job_seq == job and d.state is JobState.PROCESSING,
+        await d.wait_for(lambda: runner.job_seq == job and d.rooms.jobs.state is JobState.PROCESSING,
                          WAIT_S)
         await plc.count(travel)
         for t in meanwhile:
@@ -107,7 +107,7 @@ async def moves(run: Run, plc: CountingPlc, start: float, end: float, job: int) 
     travel = start + 30.0
     while travel < end:
         await plc.count(travel)
-        assert run.daemon._runner.job_seq == job, travel
+        assert run.daemon.rooms.jobs.job_seq == job, travel
         travel += 30.0
 
 
@@ -145,7 +145,7 @@ async def test_the_belt_travel_starts_the_jobs_and_next_serves_their_parts(
         return part
 
     async with running(config) as run, CountingPlc(run.port()) as plc:
-        runner = run.daemon._runner
+        runner = run.daemon.rooms.jobs
         await image_at(run, plc, FRAMES[0], 1)  # the first count seen: parts 0 and 1
         await moves(run, plc, 0.0, 150.0, 1)
         await image_at(run, plc, FRAMES[1], 2)  # parts 1 (again) and 2
@@ -169,7 +169,7 @@ async def test_the_belt_travel_starts_the_jobs_and_next_serves_their_parts(
         assert [await next_part(610.0) for _ in range(4)] == [2, 3, 4, None]
         status = run.daemon.snapshot()
         conveyor = status["conveyor"]["0"]
-        assert run.daemon.counters["OK"] >= 4
+        assert run.daemon.rooms.jobs.counters["OK"] >= 4
         belt_link = next(link for link in status["links"] if link["name"] == "belt")
         assert (belt_link["state"], belt_link["peer"]) == ("up", "belt travel (count from "
                                                                   "modbus_server)")

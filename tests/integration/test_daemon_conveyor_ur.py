@@ -92,7 +92,7 @@ async def test_a_ur_robot_latches_tracks_and_intercepts_across_the_wrap(
                                            timeout_s=WAIT_S)
 
         async with running(config) as run:
-            link = next(iter(run.daemon.links.values()))
+            link = next(iter(run.daemon.rooms.links.links.values()))
             await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
             served = []
             for frame in range(3):

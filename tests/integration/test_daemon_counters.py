@@ -54,7 +54,7 @@ async def test_a_status_the_link_put_in_place_of_the_jobs_is_what_is_counted() -
     assert words[Reg.STATUS] == Status.OUT_OF_LIMITS
     assert record.result.status is Status.OK
     assert record.published is Status.OUT_OF_LIMITS
-    assert run.daemon.counters == {"OUT_OF_LIMITS": 1}
+    assert run.daemon.rooms.jobs.counters == {"OUT_OF_LIMITS": 1}
     assert snapshot["counters"] == {"OUT_OF_LIMITS": 1}
     assert snapshot["last_job"]["published"] == "OUT_OF_LIMITS"
     text = format_status(snapshot)
@@ -65,7 +65,7 @@ async def test_a_status_the_link_put_in_place_of_the_jobs_is_what_is_counted() -
 
 async def test_a_failed_publish_is_counted_as_not_delivered(monkeypatch: pytest.MonkeyPatch) -> None:
     async with running(config()) as run, Plc(run.port()) as plc:
-        link = next(iter(run.daemon.links.values()))
+        link = next(iter(run.daemon.rooms.links.links.values()))
 
         async def unplugged(seq: int, result: JobResult) -> Status:
             raise LinkError("cable pulled")
@@ -77,7 +77,7 @@ async def test_a_failed_publish_is_counted_as_not_delivered(monkeypatch: pytest.
         line = run.daemon.status_line()
     assert record.result.status is Status.OK
     assert record.published is None
-    assert run.daemon.counters == {}
+    assert run.daemon.rooms.jobs.counters == {}
     assert snapshot["counters"] == {}
     assert snapshot["undelivered"] == {"OK": 1}
     assert snapshot["last_job"]["published"] is None
@@ -106,7 +106,7 @@ async def test_handshake_refusals_are_counted_by_code_with_the_daemons() -> None
         await run.job_done(1)
         snapshot = run.daemon.snapshot()
         line = run.daemon.status_line()
-    assert run.daemon.counters == {"OK": 1, "BUSY": 1}  # the daemon's own answers
+    assert run.daemon.rooms.jobs.counters == {"OK": 1, "BUSY": 1}  # the daemon's own answers
     assert snapshot["counters"] == {"OK": 1, "BUSY": 2, "BAD_REQUEST": 1}
     assert snapshot["refusals"] == {"BUSY": 2, "BAD_REQUEST": 1}
     assert snapshot["undelivered"] == {}

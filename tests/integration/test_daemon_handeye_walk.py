@@ -169,7 +169,7 @@ async def test_walk_in_the_running_daemon_busy_resumed_solved_and_accepted(
             assert walk["state"] == "walking"
             assert walk["seen"] + walk["not_seen"] + walk["unreachable"] == 2
             assert walk["index"] == 2
-            assert run.daemon.counters["BUSY"] == 1
+            assert run.daemon.rooms.jobs.counters["BUSY"] == 1
             assert "hand-eye walk walking on ur_rtde" in format_status(status)  # vgripd status
 
             # Stopped: the record stays; too few samples to solve: refused, nothing written.
@@ -190,7 +190,7 @@ async def test_walk_in_the_running_daemon_busy_resumed_solved_and_accepted(
             assert out["index"] == 2
             last = await asyncio.to_thread(robot_program, robot, arm, None)
             assert last["status"] == Status.NOT_FOUND
-            await run.daemon.wait_for(lambda: run.daemon.walks.state.value == "complete",
+            await run.daemon.wait_for(lambda: run.daemon.rooms.walks.state.value == "complete",
                                       WAIT_S)
             record = Walk(tmp_path / "plan.walk.json", plan, BOARD, CAMERA)
             statuses = [r.status for _, r in sorted(record.records.items())]
@@ -329,10 +329,10 @@ async def test_a_walk_stopped_by_the_daemons_stop_resumes_through_the_command(
     with URController(host) as robot:
         robot.set_tcp_pose(vendor_from_transform("ur", plan.poses[0]))
         async with running_file(main_config) as run:
-            run.daemon.walks.start(main_config, "plan.toml", 0)
+            run.daemon.rooms.walks.start(main_config, "plan.toml", 0)
             first = await asyncio.to_thread(robot_program, robot, arm, 2)
             assert first["stopped"]
-            walks = run.daemon.walks
+            walks = run.daemon.rooms.walks
         assert walks.state.value == "stopped"
         assert "daemon" in walks.message
         assert len(Walk(tmp_path / "plan.walk.json", plan, BOARD, CAMERA).records) == 2
@@ -344,7 +344,7 @@ async def test_a_walk_stopped_by_the_daemons_stop_resumes_through_the_command(
                 "calibrate", "handeye", "walk", "--running", url, "--plan", "plan.toml",
                 "--link", "0"]))
             try:
-                await run.daemon.wait_for(lambda: run.daemon.walks.walking, WAIT_S)
+                await run.daemon.wait_for(lambda: run.daemon.rooms.walks.walking, WAIT_S)
                 result = await asyncio.to_thread(robot_program, robot, arm, None)
                 assert await command == 0
             finally:
@@ -396,7 +396,7 @@ async def test_ctrl_c_of_the_command_prints_every_target_and_says_who_stopped(
             finally:
                 walked.set()
                 await asyncio.gather(command, return_exceptions=True)
-            walks = run.daemon.walks
+            walks = run.daemon.rooms.walks
             assert walks.state.value == "stopped"
             assert "Ctrl-C of vgripd calibrate handeye walk --running" in walks.message
     out = capsys.readouterr().out

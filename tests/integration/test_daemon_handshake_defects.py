@@ -68,7 +68,7 @@ def s7_config(server: S7PlcServer) -> Config:
 async def test_s7_clear_retracts_ack_first_and_writes_it_last() -> None:
     async with S7PlcServer(DB) as server, MockS7Plc(server.host, server.port, DB) as plc, \
             running(s7_config(server)) as run:
-            link = run.daemon.links["s7"]
+            link = run.daemon.rooms.links.links["s7"]
             await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
             job = words_of((await plc.run_job(1, WAIT_S)).raw)
             clear = words_of((await plc.run_job(2, WAIT_S, Command.CLEAR)).raw)
@@ -92,7 +92,7 @@ async def test_s7_clear_retracts_ack_first_and_writes_it_last() -> None:
 async def test_s7_next_after_one_object_is_a_list_of_one() -> None:
     async with S7PlcServer(DB) as server, MockS7Plc(server.host, server.port, DB) as plc, \
             running(s7_config(server)) as run:
-            link = run.daemon.links["s7"]
+            link = run.daemon.rooms.links.links["s7"]
             await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
             job = words_of((await plc.run_job(1, WAIT_S)).raw)
             nxt = words_of((await plc.run_job(2, WAIT_S, Command.NEXT)).raw)
@@ -113,7 +113,7 @@ async def test_opcua_next_after_one_object_is_a_list_of_one() -> None:
         "status": {"port": 0}})
     async with running(config) as run:
         await run.daemon.wait_for(lambda: all(link.health().state is LinkState.UP
-                                              for link in run.daemon.links.values()), WAIT_S)
+                                              for link in run.daemon.rooms.links.links.values()), WAIT_S)
         async with OpcUaClientProcess(f"opc.tcp://127.0.0.1:{run.port(0)}/vgripd") as client:
             assert client.connected["event"] == "connected", client.connected
             job = await client.send("job")

@@ -50,7 +50,7 @@ async def test_ur_robot_triggers_a_job_and_reads_the_computed_offset() -> None:
         async with running(config) as run:
             await run.daemon.wait_for(
                 lambda: all(link.health().state is LinkState.UP
-                            for link in run.daemon.links.values()), 30)
+                            for link in run.daemon.rooms.links.links.values()), 30)
             seq = robot.start_program(1, taught_pose=TAUGHT)
             result = await asyncio.to_thread(robot.program_result, seq)
             _, record = await run.job_done(1)
@@ -75,7 +75,7 @@ async def test_a_silent_ur_controller_does_not_stop_the_plc_link() -> None:
             {"type": "modbus_server", "host": "127.0.0.1", "port": 0},
             {"type": "ur_rtde", "host": robot.host, "connect_timeout_s": 1.0}], vendor="ur")
         async with running(config) as run:
-            plc_name, ur_name = run.daemon.links  # in config order
+            plc_name, ur_name = run.daemon.rooms.links.links  # in config order
             await run.daemon.wait_for(
                 lambda: link_state(run.daemon.snapshot(), ur_name)["state"] == "down", 30)
             async with Plc(run.port(0)) as plc:

@@ -72,7 +72,7 @@ async def test_two_rigs_locate_a_frame_neither_sees_whole(tmp_path: Path) -> Non
                 assert r[f"rig.{rig}.reprojection_px"] < 0.2
                 assert r[f"rig.{rig}.fit_rms_mm"] < 0.5
             assert r["reprojection_px"] < 0.2
-        assert run.daemon.counters == {"OK": 3}
+        assert run.daemon.rooms.jobs.counters == {"OK": 3}
     # The recorder got all four images of every job, in camera order.
     jobs = sorted((tmp_path / "record").iterdir())
     assert len(jobs) == 3

@@ -54,7 +54,7 @@ async def test_jobs_through_the_opcua_link_carry_the_computed_pose() -> None:
     async with running(config) as run:
         await run.daemon.wait_for(
             lambda: all(link.health().state is LinkState.UP
-                        for link in run.daemon.links.values()), 30)
+                        for link in run.daemon.rooms.links.links.values()), 30)
         url = f"opc.tcp://127.0.0.1:{run.port(0)}/vgripd"
         async with OpcUaClientProcess(url) as client:
             assert client.connected["event"] == "connected", client.connected

@@ -115,7 +115,7 @@ async def call(c: Any, method: str, *args: Any) -> Any:
 
 async def link_up(run: Run) -> str:
     await run.daemon.wait_for(lambda: all(link.health().state is LinkState.UP
-                                          for link in run.daemon.links.values()), WAIT_S)
+                                          for link in run.daemon.rooms.links.links.values()), WAIT_S)
     return f"opc.tcp://127.0.0.1:{run.port(0)}/vgripd"
 
 
@@ -161,7 +161,7 @@ async def test_select_recipe_that_does_not_exist() -> None:
             rid = await call(a, "StartSingleJob")
             seen = await wa.until("RequestId", rid)
             assert (seen["Status"], seen["RecipeId"]) == (Status.OK, 2)
-        link = next(iter(run.daemon.links.values()))
+        link = next(iter(run.daemon.rooms.links.links.values()))
         assert link.refusals()["BAD_REQUEST"] == 1
 
 

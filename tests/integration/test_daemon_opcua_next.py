@@ -41,7 +41,7 @@ MODBUS = {"type": "modbus_server", "host": "127.0.0.1", "port": 0}
 
 async def wait_up(run: Run) -> None:
     await run.daemon.wait_for(lambda: all(link.health().state is LinkState.UP
-                                          for link in run.daemon.links.values()), 30)
+                                          for link in run.daemon.rooms.links.links.values()), 30)
 
 
 def url(run: Run, index: int) -> str:
@@ -137,7 +137,7 @@ async def test_opcua_next_refusals_never_show_a_stale_pose() -> None:
             own = await client.send("next")  # this link's job runs
             gated.gate.set()
             done = await client.send(f"wait {started['request_id']}")
-        refusals = daemon.links["opcua"].refusals()
+        refusals = daemon.rooms.links.links["opcua"].refusals()
     finally:
         gated.gate.set()
         await daemon.stop()

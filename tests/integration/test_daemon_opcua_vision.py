@@ -73,7 +73,7 @@ async def cell() -> AsyncIterator[tuple[Run, GatedPipeline, Vision]]:
     await daemon.start()
     try:
         await daemon.wait_for(lambda: all(link.health().state is LinkState.UP
-                                          for link in daemon.links.values()), WAIT_S)
+                                          for link in daemon.rooms.links.links.values()), WAIT_S)
         client = Client(f"opc.tcp://127.0.0.1:{run.port(0)}/vgripd", timeout=WAIT_S)
         async with client:
             await client.load_data_type_definitions()
@@ -203,7 +203,7 @@ async def test_start_continuous_locates_part_after_part_until_stop() -> None:
                 if await v.state() == ("Operational", "Ready"):
                     break
                 await asyncio.sleep(0.01)  # polled: a PLC reads the state
-        await run.daemon.wait_for(lambda: run.daemon.state is JobState.IDLE, WAIT_S)
+        await run.daemon.wait_for(lambda: run.daemon.rooms.jobs.state is JobState.IDLE, WAIT_S)
         n = len(run.jobs)
         assert n in (3, 4)  # Stop between two jobs, or during the fourth
         while len(got) < n:

@@ -241,7 +241,7 @@ async def test_ur_program_walks_the_pallet_with_next() -> None:
     with URController(lo("127.0.7.31")) as robot:
         config = pallet_config("ur", [{"type": "ur_rtde", "host": robot.host}])
         async with running(config) as run:
-            link = run.daemon.links["ur_rtde"]
+            link = run.daemon.rooms.links.links["ur_rtde"]
             await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
             seq = robot.start_program(1)
             results = [await asyncio.to_thread(robot.program_result, seq)]
@@ -276,7 +276,7 @@ async def test_each_robot_program_walks_the_pallet_with_next(brand: str) -> None
     config = config_from_dict(data)
     settings = ProgramSettings.parse(brand, render(BRANDS[brand], config, source="pallet.toml"))
     async with ProgramTwin(settings, "127.0.0.1", port) as twin, running(config) as run:
-        link = run.daemon.links["robot_socket"]
+        link = run.daemon.rooms.links.links["robot_socket"]
         await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
         walk = [await twin.locate()]
         assert walk[0].captured
@@ -323,7 +323,7 @@ async def test_a_programs_next_waits_out_busy_and_never_gets_a_stale_pose(brand:
         async with ProgramTwin(settings, "127.0.0.1", port) as twin, \
                 MockPlc("127.0.0.1", run.port(1), poll_s=0.005, timeout_s=PLC_TIMEOUT_S) as plc:
             await run.daemon.wait_for(lambda: all(
-                link.health().state is LinkState.UP for link in daemon.links.values()), WAIT_S)
+                link.health().state is LinkState.UP for link in daemon.rooms.links.links.values()), WAIT_S)
             no_list = await twin.next()  # nothing located yet: refused at once, no retry
             assert (await twin.locate()).remaining == PLATES - 1
             gated.gate.clear()
@@ -354,7 +354,7 @@ async def test_s7_plc_walks_the_pallet_with_next() -> None:
         config = pallet_config("kuka", [{"type": "s7", "host": server.host,
                                          "port": server.port, "db": 10}])
         async with running(config) as run:
-            link = run.daemon.links["s7"]
+            link = run.daemon.rooms.links.links["s7"]
             await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
             seen = [words_of((await plc.run_job(1, WAIT_S)).raw)]
             for seq in range(2, PLATES + 3):
@@ -375,7 +375,7 @@ async def test_robot_modbus_registers_walk_the_pallet_with_next() -> None:
         config = pallet_config("ur", [{"type": "modbus_client", "host": robot.host,
                                        "port": robot.port, "poll_interval_s": 0.005}])
         async with running(config) as run:
-            link = run.daemon.links["modbus_client"]
+            link = run.daemon.rooms.links.links["modbus_client"]
             await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
             seen = [(await robot.run_job(1, WAIT_S)).words]
             for seq in range(2, PLATES + 2):

@@ -92,8 +92,8 @@ async def test_recalibrate_warning_rises_and_clears(tmp_path: Path,
     warnings_at_ack: list[int] = []  # WARNINGS in the read that shows ACK_SEQ == seq
     warnings_other: list[int] = []  # WARNINGS of the second link, read after each job
     async with running(config) as run, Plc(run.port()) as plc, Plc(run.port(1)) as hmi:
-        run.daemon.listeners.append(
-            lambda pair, rec: warning_after.append(run.daemon.epipolar.warning))
+        run.daemon.rooms.jobs.listeners.append(
+            lambda pair, rec: warning_after.append(run.daemon.rooms.jobs.epipolar.warning))
         assert run.daemon.status_server is not None
         url = f"http://127.0.0.1:{run.daemon.status_server.port}/status"
         loop = asyncio.get_running_loop()

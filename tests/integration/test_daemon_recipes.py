@@ -127,14 +127,14 @@ async def test_unknown_recipe_is_bad_request_without_an_image() -> None:
     config = sample_config(1, worker=False)
     async with running(config) as run, MockPlc("127.0.0.1", run.port(), timeout_s=WAIT_S) as plc:
         grabs = 0
-        grab = run.daemon.camera.grab
+        grab = run.daemon.rooms.cameras.camera.grab
 
         async def counting_grab(timeout_s: float, *hints: Any, **named: Any) -> Any:
             nonlocal grabs
             grabs += 1
             return await grab(timeout_s, *hints, **named)
 
-        run.daemon.camera.grab = counting_grab  # type: ignore[method-assign]
+        run.daemon.rooms.cameras.camera.grab = counting_grab  # type: ignore[method-assign]
         answer = await plc.cycle(7)
         pair, record = await run.job_done(1)
         assert answer.status is Status.BAD_REQUEST
@@ -146,7 +146,7 @@ async def test_unknown_recipe_is_bad_request_without_an_image() -> None:
         assert record.result.message == ("recipe 7 is not configured (configured: 0, 1, 2; "
                                          "0 = the top-level config)")
         assert run.daemon.snapshot()["counters"] == {"BAD_REQUEST": 1}
-        assert run.daemon.active_recipe is None  # an unknown number selects nothing
+        assert run.daemon.rooms.jobs.active_recipe is None  # an unknown number selects nothing
         answer = await plc.cycle(1)  # the daemon goes on
         assert answer.status is Status.OK
         assert grabs == 1
@@ -172,8 +172,8 @@ async def test_mbpoll_selects_recipes_by_the_recipe_register() -> None:
                                       (43, 1, Status.NOT_FOUND)):
             await mbpoll(port, "-t", "4", "-r", str(Reg.CMD), "127.0.0.1", "1", str(seq),
                          str(recipe))
-            await run.daemon.wait_for(lambda s=seq: run.daemon.last_job is not None
-                                      and run.daemon.last_job.seq == s, WAIT_S)
+            await run.daemon.wait_for(lambda s=seq: run.daemon.rooms.jobs.last_job is not None
+                                      and run.daemon.rooms.jobs.last_job.seq == s, WAIT_S)
             head = await mbpoll(port, "-t", "4", "-r", str(Reg.RECIPE), "127.0.0.1")
             assert head == {Reg.RECIPE: recipe}
             answer = await mbpoll(port, "-t", "4", "-r", str(Reg.ACK_SEQ), "-c", "2", "127.0.0.1")
@@ -302,7 +302,7 @@ async def test_ur_robot_program_selects_the_recipe() -> None:
         async with running(config_from_dict(data)) as run:
             await run.daemon.wait_for(
                 lambda: all(link.health().state is LinkState.UP
-                            for link in run.daemon.links.values()), WAIT_S)
+                            for link in run.daemon.rooms.links.links.values()), WAIT_S)
             for n, (recipe, status) in enumerate(((2, Status.OK), (1, Status.NOT_FOUND),
                                                   (5, Status.BAD_REQUEST)), start=1):
                 seq = robot.start_program(1, taught_pose=(0.3, 0.1, 0.2, 0.0, 3.1, 0.05),

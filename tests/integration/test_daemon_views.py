@@ -82,12 +82,12 @@ def views_config(n: int, taught: bool = True, timeout_s: float = 30.0,
 
 
 def last_message(run: Any) -> str:
-    message: str = run.daemon.last_job.result.message
+    message: str = run.daemon.rooms.jobs.last_job.result.message
     return message
 
 
 def port(run: Any, index: int = 0) -> int:
-    value: int = list(run.daemon.links.values())[index].port
+    value: int = list(run.daemon.rooms.links.links.values())[index].port
     return value
 
 
@@ -135,7 +135,7 @@ async def test_views_out_of_order_repeated_or_interrupted_end_the_job_bad_reques
         assert await plc.capture_view(1) is None
         job = await _ended(plc, 3, Status.BAD_REQUEST)
         assert job > 0
-        assert run.daemon.last_job.job_id == job
+        assert run.daemon.rooms.jobs.last_job.job_id == job
         assert "view 3 out of order" in last_message(run)
         assert await _ended(plc, 2, Status.BAD_REQUEST) == 0  # that job is gone
         # Repeated: 1, 2, 2.
@@ -171,7 +171,7 @@ async def test_views_out_of_order_repeated_or_interrupted_end_the_job_bad_reques
         # After all of it the daemon serves a clean job.
         answer = await plc.views_cycle(3)
         assert answer.status is Status.OK
-        assert run.daemon.views is None
+        assert run.daemon.rooms.jobs.views is None
 
 
 async def test_no_next_view_in_time_ends_the_job_camera_error_under_the_last_view() -> None:
@@ -216,9 +216,9 @@ async def test_mbpoll_drives_a_two_view_job() -> None:
         p = port(run)
         await mbpoll(p, "-t", "4", "-r", str(Reg.CMD), "127.0.0.1", str(capture_word(1)), "7",
                      "0")
-        await run.daemon.wait_for(lambda: run.daemon.views is not None
-                                  and run.daemon.views.next_view == 2
-                                  and run.daemon.views.timer is not None, WAIT_S)
+        await run.daemon.wait_for(lambda: run.daemon.rooms.jobs.views is not None
+                                  and run.daemon.rooms.jobs.views.next_view == 2
+                                  and run.daemon.rooms.jobs.views.timer is not None, WAIT_S)
         assert (await mbpoll(p, "-t", "4", "-r", str(Reg.STATE), "-c", "2", "127.0.0.1")
                 == {Reg.STATE: int(HandshakeState.VIEWS), Reg.CAPTURED_SEQ: 7})
         assert await mbpoll(p, "-t", "4", "-r", str(Reg.ACK_SEQ), "127.0.0.1") == {
@@ -248,7 +248,7 @@ async def test_a_ur_robot_reports_its_own_pose_for_each_view() -> None:
         async with running(config_from_dict(data)) as run:
             await run.daemon.wait_for(
                 lambda: all(link.health().state is LinkState.UP
-                            for link in run.daemon.links.values()), WAIT_S)
+                            for link in run.daemon.rooms.links.links.values()), WAIT_S)
             flanges = view_flanges(3)
             answers = [await asyncio.to_thread(robot.capture_view, k, ur_pose(F), last=k == 3)
                        for k, F in enumerate(flanges, start=1)]
@@ -277,7 +277,7 @@ async def test_views_over_the_modbus_client_link() -> None:
         data["links"] = [{"type": "modbus_client", "host": robot.host, "port": robot.port,
                           "poll_interval_s": 0.005}]
         async with running(config_from_dict(data)) as run:
-            link = run.daemon.links["modbus_client"]
+            link = run.daemon.rooms.links.links["modbus_client"]
             await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
             base = UR_FIRST_REGISTER
             await robot.write(base + Reg.CMD, [capture_word(1)])

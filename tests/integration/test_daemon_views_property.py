@@ -81,7 +81,7 @@ async def run(ops: list[int | str]) -> tuple[list[tuple[Any, ...]], Fit]:
     fit = Fit()
     daemon = Daemon(config(), pipeline=fit)
     robot = Robot()
-    daemon.links = {"robot": robot}
+    daemon.rooms.links.links = {"robot": robot}
     await daemon.start()
     history: list[tuple[Any, ...]] = []
     try:

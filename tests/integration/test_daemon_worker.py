@@ -117,7 +117,7 @@ async def test_a_worker_killed_mid_job_ends_it_internal_and_the_next_job_is_ok()
             Plc(run.port()) as plc:
         first = _worker_pid(run)
         await plc.trigger(1)
-        await run.daemon.wait_for(lambda: run.daemon.state is JobState.PROCESSING, WAIT_S)
+        await run.daemon.wait_for(lambda: run.daemon.rooms.jobs.state is JobState.PROCESSING, WAIT_S)
         os.kill(first, signal.SIGKILL)
         words = await plc.result(1)
         assert words[Reg.STATUS] == Status.INTERNAL
@@ -146,8 +146,8 @@ async def test_a_job_timeout_while_processing_kills_and_restarts_the_worker() ->
         assert rec.cycle_ms < 45_000  # ended by the timeout, not by the 60 s computation
         # The next job gets a new worker: let it start first (on a loaded machine its start
         # alone can take much of a 15 s job budget, which is not what this test is about).
-        assert run.daemon._worker is not None
-        await run.daemon._worker.wait_ready()
+        assert run.daemon.rooms.worker is not None
+        await run.daemon.rooms.worker.wait_ready()
         await plc.trigger(2)
         assert (await plc.result(2))[Reg.STATUS] == Status.OK
         assert _worker_pid(run) != first
@@ -162,7 +162,7 @@ async def test_shutdown_mid_processing_does_not_wait_for_the_computation() -> No
         first = _worker_pid(run)
         async with Plc(run.port()) as plc:
             await plc.trigger(1)
-            await daemon.wait_for(lambda: daemon.state is JobState.PROCESSING, WAIT_S)
+            await daemon.wait_for(lambda: daemon.rooms.jobs.state is JobState.PROCESSING, WAIT_S)
             t0 = time.monotonic()
             await daemon.stop()
             # the job would run on for a minute: stopping ends it (a bound well below that,

@@ -145,7 +145,7 @@ async def kills_at_every_point(run: Run) -> None:
         # during the grab: the job is grabbed again on the new worker, within its time
         cell.downs = []
         seq = await cell.trigger()
-        await cell.daemon.wait_for(lambda: cell.daemon.state is JobState.ACQUIRING, WAIT_S)
+        await cell.daemon.wait_for(lambda: cell.daemon.rooms.jobs.state is JobState.ACQUIRING, WAIT_S)
         cell.kill_worker()
         await cell.watch_health()
         status, message = await cell.answer(seq)
@@ -155,7 +155,7 @@ async def kills_at_every_point(run: Run) -> None:
         # during processing: that job ends INTERNAL naming the signal; the next is good
         cell.downs = []
         seq = await cell.trigger()
-        await cell.daemon.wait_for(lambda: cell.daemon.state is JobState.PROCESSING, WAIT_S)
+        await cell.daemon.wait_for(lambda: cell.daemon.rooms.jobs.state is JobState.PROCESSING, WAIT_S)
         cell.kill_worker()
         status, message = await cell.answer(seq)
         assert (status, message) == (Status.INTERNAL, KILLED)

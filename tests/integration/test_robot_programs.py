@@ -231,7 +231,7 @@ async def test_each_program_locates_against_the_daemon(brand: str) -> None:
     data = cell(brand, port)
     data["recipes"] = {"3": {"name": "tighter", "limits": {"max_rotation_deg": 9.0}}}
     async with twin_for(brand, port, data) as twin, running(config_from_dict(data)) as run:
-        link = next(iter(run.daemon.links.values()))
+        link = next(iter(run.daemon.rooms.links.links.values()))
         await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, WAIT_S)
         for n, recipe in ((1, 0), (2, 3)):
             outcome = await twin.locate(recipe)
@@ -251,7 +251,7 @@ async def test_each_program_locates_against_the_daemon(brand: str) -> None:
                     assert abs(got - want) <= 0.5 / scale + 1e-12
                 else:
                     assert got == pytest.approx(want, rel=1e-6, abs=1e-9)
-        assert run.daemon.counters == {"OK": 2}
+        assert run.daemon.rooms.jobs.counters == {"OK": 2}
         expected_connects = 2 if BRANDS[brand].connection == "per_request" else 1
         assert twin.connects == expected_connects
 

@@ -169,7 +169,7 @@ async def daemon_walking(brand: str, port: int, walk: Walk, arm: SimulatedArm, m
         url = f"http://127.0.0.1:{run.daemon.status_server.port}/api/handeye/walk/start"
         code, out = await post(session, url, {"plan": Path(walk.plan.path).name, "link": 0})
         assert code == 200, out
-        walks = run.daemon.walks
+        walks = run.daemon.rooms.walks
         yield asyncio.ensure_future(
             run.daemon.wait_for(lambda: walks.state.value == "complete", WALK_S))
 
@@ -356,7 +356,7 @@ async def test_capture_at_outside_a_walk_is_a_locate_with_the_flange_pose(brand:
     data = cell(brand, port)
     T = transform_from_vendor("kuka", (512.25, -80.5, 640.125, 12.5, -3.25, 178.0))
     async with running(config_from_dict(data)) as run:
-        link = next(iter(run.daemon.links.values()))
+        link = next(iter(run.daemon.rooms.links.links.values()))
         await run.daemon.wait_for(lambda: link.health().state is LinkState.UP, 30.0)
         async with ProgramTwin(settings_for(brand), "127.0.0.1", port) as twin:
             outcome = await twin.capture_at(T)

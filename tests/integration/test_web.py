@@ -85,7 +85,7 @@ async def test_live_view_api_events_images_metrics_and_actions(
     async with running(config) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as http:
         base = _base(run)
         done_at: dict[int, float] = {}
-        run.daemon.listeners.append(lambda pair, rec: done_at.setdefault(rec.job_id,
+        run.daemon.rooms.jobs.listeners.append(lambda pair, rec: done_at.setdefault(rec.job_id,
                                                                           time.monotonic()))
         async with http.get(f"{base}/api/events") as sse:
             assert sse.headers["Content-Type"].startswith("text/event-stream")
@@ -215,7 +215,7 @@ async def test_actions_are_404_while_disabled_and_the_view_is_read_only() -> Non
     async with running(make_config(daemon={"worker": False})) as run, \
             aiohttp.ClientSession() as http:
         base = _base(run)
-        assert "web" not in run.daemon.links
+        assert "web" not in run.daemon.rooms.links.links
         auth = {"Authorization": f"Bearer {TOKEN}"}
         async with http.post(f"{base}/api/trigger", headers=auth) as resp:
             assert resp.status == 404

@@ -42,7 +42,7 @@ async def test_exposure_and_gain_are_applied_live_and_kept_in_the_include(
         base = f"http://127.0.0.1:{run.daemon.status_server.port}"
         url = f"{base}/api/cameras/0/settings"
         assert await job(plc, run, 1) == Status.OK
-        before = float(np.mean((await run.daemon.camera.grab(10.0)).views[0]))
+        before = float(np.mean((await run.daemon.rooms.cameras.camera.grab(10.0)).views[0]))
 
         # Without the token (or with a wrong one): refused, nothing written.
         code, _ = await post(s, url, {"exposure_us": 5000}, headers={})
@@ -68,7 +68,7 @@ async def test_exposure_and_gain_are_applied_live_and_kept_in_the_include(
         assert out["read_back"]["camera"]["ExposureTime"] == 5000.0
         assert out["saved"]["applied"], out
         assert out["saved"]["diff"] == ["camera.exposure_us: (unset) -> 5000.0"]
-        after = float(np.mean((await run.daemon.camera.grab(10.0)).views[0]))
+        after = float(np.mean((await run.daemon.rooms.cameras.camera.grab(10.0)).views[0]))
         assert after < 0.6 * before, (before, after)
         assert tomllib.loads(cell.read_text())["camera"]["exposure_us"] == 5000.0
         assert "camera" not in tomllib.loads((tmp_path / "cell.toml.1").read_text())

@@ -119,7 +119,7 @@ async def test_a_tuning_save_applies_between_jobs_without_dropping_the_plc(
     async with running_file(main) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as s:
         assert run.daemon.status_server is not None
         base = f"http://127.0.0.1:{run.daemon.status_server.port}"
-        link = next(iter(run.daemon.links.values()))
+        link = next(iter(run.daemon.rooms.links.links.values()))
         assert await job(plc, run, 1) == Status.OK
 
         # Without the token (or with a wrong one) nothing is written.
@@ -195,7 +195,7 @@ async def test_a_tuning_save_applies_between_jobs_without_dropping_the_plc(
         assert all(e["source"] == "web 127.0.0.1" and e["time"] for e in entries)
         assert "object.features.0.polarity: 'dark' -> 'bright'" in entries[-1]["diff"]
         assert link.health().reconnects == 0
-        assert run.daemon.counters == {"OK": 3, "NOT_FOUND": 1}
+        assert run.daemon.rooms.jobs.counters == {"OK": 3, "NOT_FOUND": 1}
 
 
 async def _line(stream: asyncio.StreamReader, wanted: str, seen: list[str]) -> str:
@@ -358,7 +358,7 @@ async def test_chromium_tunes_a_wrong_polarity_until_the_plc_job_is_ok(tmp_path:
                                    ".map((r) => r.textContent)")
             assert any("vgripd.toml" in f and "calibration.hand_eye" in f for f in files)
             assert any("cell.toml" in f and "reference" in f for f in files)
-        assert next(iter(run.daemon.links.values())).health().reconnects == 0
+        assert next(iter(run.daemon.rooms.links.links.values())).health().reconnects == 0
 
 
 async def test_teaching_from_the_page_saves_the_mean_of_the_shots(tmp_path: Path) -> None:
@@ -435,7 +435,7 @@ async def test_live_previews_show_figures_between_jobs_and_never_grab_during_one
         await run.busy()
         async with s.get(f"{base}/api/cameras/0/preview.jpg") as r:
             assert r.status == 200  # the last picture again
-        assert run.daemon.state.value != "idle"  # still the same job: the check held
+        assert run.daemon.rooms.jobs.state.value != "idle"  # still the same job: the check held
         assert turns.grabs == grabs
         assert (await plc.result(1))[Reg.STATUS] == Status.OK
 

@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
         if others:
             print("\n".join(others))
         raise ConfigError("\n".join(f"{args.config}: {f}" for f in errors))
-    links = ", ".join(daemon.links) or "none"
+    links = ", ".join(daemon.rooms.links.links) or "none"
     recipes = "".join(f", recipe {daemon.recipe_label(n)}" for n in config.recipe_numbers()[1:])
     print(f"OK {args.config}: camera {config.camera.type}, links {links}, "
           f"output {config.output.vendor}, job timeout {config.daemon.job_timeout_s:g} s, "

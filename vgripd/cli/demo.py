@@ -193,7 +193,8 @@ class Demo:
         """Follow this daemon's jobs (job ids restart with each daemon)."""
         self.daemon = daemon
         self.jobs.clear()
-        daemon.listeners.append(lambda pair, rec: self.jobs.__setitem__(rec.job_id, (pair, rec)))
+        daemon.rooms.jobs.listeners.append(
+            lambda pair, rec: self.jobs.__setitem__(rec.job_id, (pair, rec)))
 
     def header(self) -> str:
         units = [self.conv.length_unit] * 3 + [self.conv.angle_unit] * (len(self.conv.fields) - 3)
@@ -253,7 +254,7 @@ async def _with_daemon(demo: Demo, config: Any,
     demo.attach(daemon)
     await daemon.start()
     try:
-        link_port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+        link_port: int = next(iter(daemon.rooms.links.links.values())).port  # type: ignore[attr-defined]
         # the daemon answers every request within its job timeout: the PLC waits that long
         # (and a little), so a slow machine's job is not given up on by the PLC first
         async with MockPlc("127.0.0.1", link_port,

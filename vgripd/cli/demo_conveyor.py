@@ -134,7 +134,7 @@ async def run_conveyor(args: argparse.Namespace, port: int, web_port: int) -> in
         daemon = Daemon(config)
         await daemon.start()
         try:
-            link_port: int = next(iter(daemon.links.values())).port  # type: ignore[attr-defined]
+            link_port: int = next(iter(daemon.rooms.links.links.values())).port  # type: ignore[attr-defined]
             assert daemon.status_server is not None
             print(f"daemon serving Modbus/TCP (map version 4) on 127.0.0.1:{link_port}, web "
                   f"view on http://127.0.0.1:{daemon.status_server.port}/", flush=True)

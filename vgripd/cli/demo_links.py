@@ -199,7 +199,7 @@ class Peers:
         """The daemon is up: connect the clients of its servers."""
         assert self.spec is not None
         spec = self.spec
-        link = next(iter(daemon.links.values()))
+        link = next(iter(daemon.rooms.links.links.values()))
         if self.kind == "s7":
             from vgripd.sim.s7_plc import MockS7Plc
             plc = await self.stack.enter_async_context(
@@ -319,7 +319,8 @@ async def run_link_demo(args: Any, cell: DemoCell) -> int:
             await daemon.start()
             try:
                 await daemon.wait_for(lambda: all(
-                    link.health().state is LinkState.UP for link in daemon.links.values()),
+                    link.health().state is LinkState.UP
+                    for link in daemon.rooms.links.links.values()),
                     60.0)
                 await p.after(daemon)
                 assert daemon.status_server is not None

@@ -102,7 +102,7 @@ async def serve_setup(main: Path, token: str, announce: Any = print) -> None:
             await daemon.wait_for(lambda: daemon.status_server is not None
                                   and daemon.run_state.value == "running", 120.0)
             assert daemon.status_server is not None
-            link = next(iter(daemon.links.values()))
+            link = next(iter(daemon.rooms.links.links.values()))
             announce(f"vgripd demo --setup: the learning cell (config {main})\n"
                      f"  setup page: http://127.0.0.1:{daemon.status_server.port}/setup\n"
                      f"  token:      {token}\n"

@@ -15,6 +15,11 @@
   every trigger distance (docs/conveyor.md, "Triggering by travel");
 - ``web.WebServer``: the web view, /api/status, /metrics.
 
+The daemon hands its rooms out by name (``rooms``, an ``ops.rooms.Rooms``): the web view, the
+reload and tests read each room's state there (``daemon.rooms.jobs.counters``,
+``daemon.rooms.cameras.fault``); the daemon keeps only what is its own: the lifecycle, the
+recipes that cannot run, waiting on state, health and the snapshot.
+
 A trigger goes link -> ``JobRunner.on_trigger`` -> camera -> worker -> link; the runner
 reaches the daemon only through ``changed`` (the status line and ``wait_for``'s waiters).
 Lifecycle (start, READY, stop, shutdown order) stays here.
@@ -31,7 +36,7 @@ Lifecycle (start, READY, stop, shutdown order) stays here.
   and not the status endpoint); a link that cannot start is shown FAILED while the others
   serve. READY=1 follows the first outcome of each.
 - A grab that runs out of time and still hangs in the driver is abandoned and the camera opened
-  again; if that fails or hangs too, ``camera_fault`` says why and the watchdog stops pinging
+  again; if that fails or hangs too, ``rooms.cameras.fault`` says why and the watchdog stops pinging
   (``health_problem``), so systemd restarts the service.
 - Shutdown (SIGTERM/SIGINT) aborts the job in flight (unless it is already publishing), so the
   PLC gets ``ABORTED`` for its trigger at once instead of waiting; the links stay up for
@@ -49,34 +54,31 @@ import errno
 import logging
 import os
 import time
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Callable, Mapping
 from typing import Any
 
 from vgripd.config import Config
 from vgripd.errors import ConfigError, NotCalibratedError, NotTaughtError
-from vgripd.peer.jobcore import JobCore, PickCursor
-from vgripd.peer.registers import Warnings
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.host.heap import freeze_start_up_heap
 from vgripd.service.host.sdnotify import Notifier, watchdog_interval_s
 from vgripd.service.host.tasks import Background
-from vgripd.service.jobs.jobrecord import EpipolarMonitor, JobListener, JobRecord
-from vgripd.service.jobs.runner import JobRunner, JobState, Processor, ViewJob, recipe_label
+from vgripd.service.jobs.runner import JobRunner, Processor, recipe_label
 from vgripd.service.jobs.travel import BeltTravel
 from vgripd.service.jobs.walkmode import WalkMode
-from vgripd.service.links.gate import Budget
-from vgripd.service.links.protocol import RobotLink
 from vgripd.service.links.ratelog import RateLimitedLog
 from vgripd.service.links.supervision import LinkSupervisor
 from vgripd.service.ops.reload import Reloader
+from vgripd.service.ops.rooms import Rooms
 from vgripd.service.ops.status import StatusBoard
 from vgripd.service.web import WebServer
+from vgripd.service.worker.camera import Camera
 from vgripd.service.worker.cameras import (
     CameraSupervisor,
     watchdog,
 )
-from vgripd.service.worker.process import DEFAULT_PROCESSOR, WorkerClient, WorkerRecorder
+from vgripd.service.worker.process import DEFAULT_PROCESSOR, WorkerClient
 from vgripd.service.worker.recorder import Recorder
 
 log = logging.getLogger("vgripd")
@@ -150,7 +152,7 @@ class Daemon:
         self.config = config
         self._env = dict(os.environ if env is None else env)
         cam_cls = load_class(CAMERAS, "camera", config.camera.type)
-        camera = cam_cls(validate_options(cam_cls, config.camera, "camera"), config)
+        camera: Camera = cam_cls(validate_options(cam_cls, config.camera, "camera"), config)
         self._background = Background()
         self._links = LinkSupervisor(config, self._background)
         #: Why a recipe cannot run (not calibrated or taught), by number; its jobs answer
@@ -177,11 +179,15 @@ class Daemon:
                                  worker=self._worker, pipelines=pipelines,
                                  recipe_problems=self.recipe_problems,
                                  changed=self._changed)
-        self.walks = WalkMode(self._runner, self._links, self._cameras, self._background,
-                              self._changed)
-        self.travel = BeltTravel(self._runner, self._links, self.walks)  # trigger = "travel"
+        self._walks = WalkMode(self._runner, self._links, self._cameras, self._background,
+                               self._changed)
         self._status = StatusBoard(config, self._runner, self._links, self._cameras,
                                    self._worker)
+        #: The rooms by name: what the web view, the reload and tests read and change.
+        self.rooms = Rooms(links=self._links, cameras=self._cameras, jobs=self._runner,
+                           walks=self._walks,
+                           travel=BeltTravel(self._runner, self._links, self._walks),
+                           status=self._status, worker=self._worker)
         self.reloader: Reloader | None = None  # set by whoever knows the config file (run)
         self._resource_log = RateLimitedLog(log, interval_s=10.0)
         self._opening: list[asyncio.Task[Any]] = []  # start(): camera and links, concurrently
@@ -190,111 +196,6 @@ class Daemon:
         self._wake = asyncio.Event()
         self._stop_requested = asyncio.Event()
         self._t_start_ns = 0
-
-    # --- the rooms' state, as callers and tests read it ----------------------------------
-
-    @property
-    def links(self) -> dict[str, RobotLink]:
-        return self._links.links
-
-    @links.setter
-    def links(self, links: dict[str, RobotLink]) -> None:  # tests stand a robot in
-        self._links.links = links
-
-    @property
-    def worker(self) -> WorkerClient | None:  # None: the pipeline runs in this process
-        return self._worker
-
-    @property
-    def fd_budget(self) -> Budget | None:
-        """How RLIMIT_NOFILE is split between the server surfaces and the reserve (at start)."""
-        return self._links.fd_budget
-
-    @property
-    def camera(self) -> Any:
-        return self._cameras.camera
-
-    @camera.setter
-    def camera(self, camera: Any) -> None:
-        self._cameras.camera = camera
-
-    @property
-    def camera_open_timeout_s(self) -> float:
-        return self._cameras.open_timeout_s
-
-    @camera_open_timeout_s.setter
-    def camera_open_timeout_s(self, value: float) -> None:
-        self._cameras.open_timeout_s = value
-
-    @property
-    def camera_fault(self) -> str:
-        """Why the camera cannot be used any more ("" while it can)."""
-        return self._cameras.fault
-
-    @property
-    def state(self) -> JobState:
-        return self._runner.state
-
-    @property
-    def jobs(self) -> JobCore:
-        """Admission and the last job's pick list (the rules, without I/O)."""
-        return self._runner.core
-
-    @property
-    def listeners(self) -> list[JobListener]:
-        return self._runner.listeners
-
-    @property
-    def recorder(self) -> Recorder | WorkerRecorder | None:
-        return self._runner.recorder
-
-    @property
-    def counters(self) -> Counter[str]:
-        """What the daemon's answers told the peers, by status name (``snapshot()`` adds the
-        links' own refusals)."""
-        return self._runner.counters
-
-    @property
-    def refusals(self) -> Counter[str]:
-        return self._runner.refusals
-
-    @property
-    def undelivered(self) -> Counter[str]:
-        return self._runner.undelivered
-
-    @property
-    def next_answers(self) -> Counter[str]:
-        return self._runner.next_answers
-
-    @property
-    def record_dropped(self) -> int:
-        return self._runner.record_dropped
-
-    @property
-    def cycle_ms(self) -> deque[float]:
-        return self._runner.cycle_ms
-
-    @property
-    def last_job(self) -> JobRecord | None:
-        return self._runner.last_job
-
-    @property
-    def views(self) -> ViewJob | None:
-        return self._runner.views
-
-    @property
-    def epipolar(self) -> EpipolarMonitor:
-        return self._runner.epipolar
-
-    @property
-    def active_recipe(self) -> int | None:
-        """The recipe of the running or last job (None before the first)."""
-        return self._runner.active_recipe
-
-    @property
-    def pick_list(self) -> PickCursor | None:
-        """The last job's pick list (None: no job yet, a job running, or nothing pickable)."""
-        return self._runner.pick_list
 
     @property
     def not_calibrated(self) -> str:
@@ -305,10 +206,6 @@ class Daemon:
         """``2 (plate-b)`` for logs and messages."""
         return recipe_label(self.config, number)
 
-    def warning_bits(self) -> Warnings:
-        """The warnings every link shows (``RobotLink.set_warnings``)."""
-        return self._runner.warning_bits()
-
     # --- lifecycle --------------------------------------------------------------------
 
     async def start(self) -> None:
@@ -318,7 +215,7 @@ class Daemon:
         self._t_start_ns = time.monotonic_ns()
         self._set_run_state(RunState.STARTING)
         self._runner.start()
-        self.walks.bind()
+        self._walks.bind()
         try:
             for number, problem in self.recipe_problems.items():
                 log.error("recipe %s not calibrated, its jobs will answer NOT_CALIBRATED: %s",
@@ -356,7 +253,7 @@ class Daemon:
     def _begin_opening(self) -> None:
         """Open the camera and every link at once (tasks; ``_opened`` waits for them), so a
         silent controller or a slow camera delays nothing else: a PLC link serves at once."""
-        self._opening = list(self._links.begin_opening(self.walks.on_trigger))
+        self._opening = list(self._links.begin_opening(self._walks.on_trigger))
         self._opening.append(asyncio.create_task(self._cameras.open(),
                                                  name="vgripd-open-camera"))
 
@@ -411,16 +308,16 @@ class Daemon:
         for task in opening:
             task.cancel()
         await asyncio.gather(*opening, return_exceptions=True)
-        walked = await self.walks.shutdown()  # its record stays: resumable
-        if (await self._runner.abort() or walked) and self.links:
+        walked = await self._walks.shutdown()  # its record stays: resumable
+        if (await self._runner.abort() or walked) and self._links.links:
             await asyncio.sleep(ABORT_LINGER_S)
         await self._background.cancel()
         if self.status_server is not None:
             await self.status_server.close()
         await self._links.close()
         await self._cameras.close()
-        if self.recorder is not None:
-            self.recorder.close()
+        if self._runner.recorder is not None:
+            self._runner.recorder.close()
         if self._worker is not None:
             # Writes the recordings still queued, then unlinks the shared memory.
             await self._worker.close()
@@ -445,7 +342,7 @@ class Daemon:
             self._runner.pipelines = pipelines
 
     def show_state(self) -> None:  # the status line and the waiters see it (a reload)
-        self._runner._set_state(self.state)
+        self._runner._set_state(self._runner.state)
 
     # --- waiting on state (for callers and tests) --------------------------------------
 
@@ -477,15 +374,15 @@ class Daemon:
 
     def health_problem(self) -> str:
         """Why the service is not healthy ("" when it is): the camera is faulty
-        (``camera_fault``), no job can get a frame (the camera is down), or a job has outlived
-        its timeout by ``WATCHDOG_GRACE_S`` (wedged)."""
-        return self.camera_fault or self._cameras.down_problem() or self._wedged_job()
+        (``rooms.cameras.fault``), no job can get a frame (the camera is down), or a job has
+        outlived its timeout by ``WATCHDOG_GRACE_S`` (wedged)."""
+        return self._cameras.fault or self._cameras.down_problem() or self._wedged_job()
 
     def watchdog_problem(self) -> str:
         """Why the watchdog stops pinging, so that systemd restarts the service ("" while it
         pings): as ``health_problem``, but a camera down only once it has been down longer
         than ``daemon.camera_down_restart_s`` (recovering on its own failed)."""
-        return (self.camera_fault or self._wedged_job()
+        return (self._cameras.fault or self._wedged_job()
                 or self._cameras.down_problem(self.config.daemon.camera_down_restart_s))
 
     def _wedged_job(self) -> str:
@@ -512,7 +409,7 @@ class Daemon:
 
     def answered(self) -> tuple[Counter[str], Counter[str]]:
         """All answers the peers were told and the refusals among them, by status name: the
-        daemon's (``counters``, ``refusals``) plus the links' own refusals."""
+        daemon's (``rooms.jobs.counters``, ``.refusals``) plus the links' own refusals."""
         return self._status.answered()
 
     def status_line(self) -> str:
@@ -526,4 +423,4 @@ class Daemon:
     def snapshot(self) -> dict[str, Any]:
         """The status as JSON data (served by ``GET /status``)."""
         return {**self._status.snapshot(self.run_state.value, self._t_start_ns,
-                                        self.health_problem()), "walk": self.walks.snapshot()}
+                                        self.health_problem()), "walk": self._walks.snapshot()}

@@ -147,7 +147,7 @@ class Reloader(ConfigWriter):
         to start it again on the files as saved: ``vgripd run`` exits with ``EXIT_RESTART``,
         ``vgripd demo --setup`` starts it again itself."""
         d = self.daemon
-        runner = d._runner
+        runner = d.rooms.jobs
         await d.wait_for(lambda: runner.job is None and runner.views is None, timeout_s)
         log.warning("restart asked by %s: stopping to be started again", source)
         self.restart_requested = source
@@ -182,7 +182,7 @@ class Reloader(ConfigWriter):
     async def _apply(self, config: Config) -> None:
         """Swap ``config`` in between jobs: no job running, no several-view job waiting."""
         d = self.daemon
-        runner = d._runner  # the job room: its pipelines, its job thread, its jobs
+        runner = d.rooms.jobs  # the job room: its pipelines, its job thread, its jobs
         pipelines = await _in_process_pipelines(runner, config)
         await d.wait_for(lambda: runner.job is None and runner.views is None, IDLE_TIMEOUT_S)
         # From here to the worker's request nothing awaits: no job starts in between, and a
@@ -190,9 +190,9 @@ class Reloader(ConfigWriter):
         # first (one request at a time, in order).
         runner.core.lines = belt_lines(config, runner.core.lines, d.config)  # conveyor queues
         d.use_config(config, pipelines)
-        tell_links(d.links.values(), config)
-        d.epipolar.threshold_px = config.vision.epipolar_warn_px
-        worker = d.worker
+        tell_links(d.rooms.links.links.values(), config)
+        d.rooms.jobs.epipolar.threshold_px = config.vision.epipolar_warn_px
+        worker = d.rooms.worker
         if worker is not None:
             try:
                 for n in await worker.reconfigure(config):

@@ -277,7 +277,7 @@ class WebServer:
         self._port = site.port
         self.guard.start()
         self._io = ThreadPoolExecutor(1, thread_name_prefix="vgripd-web-io")
-        self.daemon.listeners.append(self._on_job)
+        self.daemon.rooms.jobs.listeners.append(self._on_job)
         logging.getLogger().addHandler(self.logs)
         for name in SERVER_LOGGERS:
             logging.getLogger(name).addFilter(self._log_limit)
@@ -288,7 +288,7 @@ class WebServer:
 
     async def close(self) -> None:
         with contextlib.suppress(ValueError):
-            self.daemon.listeners.remove(self._on_job)
+            self.daemon.rooms.jobs.listeners.remove(self._on_job)
         logging.getLogger().removeHandler(self.logs)
         for name in SERVER_LOGGERS:
             logging.getLogger(name).removeFilter(self._log_limit)
@@ -333,7 +333,8 @@ class WebServer:
         last: list[tuple[Any, ...]] = []
         while True:
             now = [(name, h.state.value, h.peer, h.reconnects, h.peers)
-                   for name, h in ((n, link.health()) for n, link in self.daemon.links.items())]
+                   for name, h in ((n, link.health())
+                                   for n, link in self.daemon.rooms.links.links.items())]
             if now != last:
                 if last:
                     self.events.publish("links", redact(self.daemon.snapshot()["links"]))
@@ -414,7 +415,7 @@ class WebServer:
             if found is None or not found[1]["images"]:
                 raise web.HTTPNotFound(text="no images for this job")
             source: ImagePair | str | None = self.jobs.pair_of(job_id)
-            rec = self.daemon.recorder
+            rec = self.daemon.rooms.jobs.recorder
             if source is None and rec is not None:
                 loop = asyncio.get_running_loop()
                 source = await loop.run_in_executor(self._io, recorded_job, Path(rec.folder),
@@ -467,7 +468,7 @@ class WebServer:
         return web.json_response(redact(data))
 
     async def _registers(self, request: web.Request) -> web.Response:
-        return web.json_response(jsonable(register_views(self.daemon.links)))
+        return web.json_response(jsonable(register_views(self.daemon.rooms.links.links)))
 
     async def _metrics(self, request: web.Request) -> web.Response:
         return web.Response(body=self.metrics.render(),
@@ -479,7 +480,7 @@ class WebServer:
         self.access.require_action(request, self._allow_trigger, "allow_trigger")
         if request.method != "POST":
             raise web.HTTPMethodNotAllowed(request.method, ["POST"])
-        link = self.daemon.links.get(WEB_LINK)
+        link = self.daemon.rooms.links.links.get(WEB_LINK)
         if not isinstance(link, WebTriggerLink):
             raise web.HTTPNotFound(text="no web trigger link")
         text = request.query.get("recipe", "0")
@@ -506,7 +507,7 @@ class WebServer:
             "metrics.txt": self.metrics.render().decode(),
             "log.txt": "\n".join(redact(list(self.logs.lines))) + "\n",
         }
-        rec = self.daemon.recorder
+        rec = self.daemon.rooms.jobs.recorder
         folder = None if rec is None else Path(rec.folder)
         n_jobs = self.daemon.config.status.bundle_jobs
         file = await loop.run_in_executor(self._io, write_bundle, parts, folder, n_jobs)

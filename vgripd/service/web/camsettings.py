@@ -137,10 +137,7 @@ class CameraSettingsRoutes:
                    else None)
         if len(text) > 2 or int(text) >= (2 if cameras is None else len(cameras)):
             raise web.HTTPNotFound(text="no such camera")
-        camera = daemon.camera
-        if not hasattr(camera, "set_settings"):
-            raise web.HTTPBadRequest(text=f"camera {daemon.config.camera.type}: no exposure or "
-                                          "gain to set")
+        camera = daemon.rooms.cameras.camera
         async with self.ctx.camera.between_jobs() as idle:
             if not idle:
                 raise web.HTTPConflict(text="a job runs: exposure and gain are changed only "

@@ -201,7 +201,7 @@ class CommissionRoutes:
             "files": calibration_files(None if reloader is None else reloader.path,
                                        full_paths=self.ctx.access.holds_token(request)),
             "geometry": cell_geometry(daemon.config, self.ctx.jobs.last_pose()),
-            "recalibrate": daemon.epipolar.snapshot(time.monotonic_ns()),
+            "recalibrate": daemon.rooms.jobs.epipolar.snapshot(time.monotonic_ns()),
         })
 
     async def tuning(self, request: web.Request) -> web.Response:

@@ -105,7 +105,8 @@ class CameraTurns:
 
     def idle(self) -> bool:
         d = self._daemon
-        return (d.state.value == "idle" and d.views is None and not d.walks.walking
+        jobs = d.rooms.jobs
+        return (jobs.state.value == "idle" and jobs.views is None and not d.rooms.walks.walking
                 and d.run_state.value == "running")
 
     @contextlib.asynccontextmanager
@@ -117,7 +118,7 @@ class CameraTurns:
 
     async def grab(self) -> ImagePair:
         """A pair grabbed now; only inside ``between_jobs`` that found the daemon idle."""
-        pair: ImagePair = await self._daemon.camera.grab(PREVIEW_GRAB_TIMEOUT_S)
+        pair: ImagePair = await self._daemon.rooms.cameras.camera.grab(PREVIEW_GRAB_TIMEOUT_S)
         self.grabs += 1
         return pair
 

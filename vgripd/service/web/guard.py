@@ -210,9 +210,9 @@ class GuardedSite(web.TCPSite):
 
 def make_guard(daemon: DaemonView) -> WebGuard:
     """The guard of ``daemon``'s web view: ``[status]``'s options, the cap the file budget
-    gave it (``Daemon.fd_budget``) when there is one."""
+    gave it (``rooms.links.fd_budget``) when there is one."""
     st = daemon.config.status
-    budget = daemon.fd_budget
+    budget = daemon.rooms.links.fd_budget
     cap = budget.caps.get(WEB_SURFACE, st.max_connections) if budget is not None \
         else st.max_connections
     return WebGuard(cap, st.header_timeout_s, st.body_timeout_s, st.allow)

@@ -46,7 +46,7 @@ class _DaemonCollector(Collector):
                                          "link since the daemon started", labels=["link"])
         peers = GaugeMetricFamily("vgripd_link_peers", "Connected clients of a server link",
                                   labels=["link"])
-        for name, link in d.links.items():
+        for name, link in d.rooms.links.links.items():
             h = link.health()
             up.add_metric([name], 1.0 if h.state is LinkState.UP else 0.0)
             for s in LinkState:
@@ -66,7 +66,7 @@ class _DaemonCollector(Collector):
         yield refusals
         undelivered = CounterMetricFamily("vgripd_undelivered", "Answers whose publish "
                                           "failed, by the job's status", labels=["status"])
-        for name, n in sorted(d.undelivered.items()):
+        for name, n in sorted(d.rooms.jobs.undelivered.items()):
             undelivered.add_metric([name], n)
         yield undelivered
 
@@ -77,7 +77,7 @@ class _DaemonCollector(Collector):
             recipe.add_metric([str(r["number"]), r["name"]],
                               1.0 if r["number"] == recipes["active"] else 0.0)
         yield recipe
-        rc = d.epipolar
+        rc = d.rooms.jobs.epipolar
         yield GaugeMetricFamily("vgripd_recalibrate_warning", "1 while the RECALIBRATE "
                                 "warning is up", value=1.0 if rc.warning else 0.0)
         yield GaugeMetricFamily("vgripd_epipolar_share_above", "Share of the recent stereo jobs "
@@ -114,12 +114,12 @@ class _DaemonCollector(Collector):
         camera_open = bool(snap["camera"]["open"])
         yield GaugeMetricFamily("vgripd_camera_open", "1 while the camera is open",
                                 value=1.0 if camera_open else 0.0)
-        rec = d.recorder
+        rec = d.rooms.jobs.recorder
         if rec is not None:
             yield GaugeMetricFamily("vgripd_recorder_bytes", "Bytes in the recording folder",
                                     value=float(rec.total_bytes))
-            yield CounterMetricFamily("vgripd_recorder_dropped", "Jobs not recorded "
-                                      "because the disk was behind", value=d.record_dropped)
+            yield CounterMetricFamily("vgripd_recorder_dropped", "Jobs not recorded because "
+                                      "the disk was behind", value=d.rooms.jobs.record_dropped)
 
 
 class _AccessCollector(Collector):

@@ -145,8 +145,8 @@ class SetupRoutes:
             "instance": self.instance,  # another after a restart
             "edit": bool(config.status.allow_config_edit),
             "trigger": bool(config.status.allow_trigger),
-            "camera": {"type": cam.type, "describe": getattr(self.ctx.daemon.camera, "describe",
-                                                             lambda: cam.type)(),
+            "camera": {"type": cam.type,
+                       "describe": self.ctx.daemon.rooms.cameras.camera.describe(),
                        "options": {k: v for k, v in options.items() if k != "type"}},
             "calibrated": cal is not None,
             "hand_eye": None if cal is None else cal.hand_eye.model_dump(mode="json",
@@ -159,7 +159,7 @@ class SetupRoutes:
                        "features": [f.name for f in config.object.features]},
             "vendor": config.output.vendor,
             "links": self.ctx.daemon.snapshot().get("links"),
-            "registers": register_views(self.ctx.daemon.links),
+            "registers": register_views(self.ctx.daemon.rooms.links.links),
             "capture": capture,
         }))
 
@@ -251,7 +251,8 @@ class SetupRoutes:
             kept = None
             if ok and (body.get("keep") or body.get("auto")):
                 flange = pair.T_base_flange  # the camera's (or its request's), else a link's
-                if flange is None and (now := await robot_pose_now(self.ctx.daemon.links)):
+                links = self.ctx.daemon.rooms.links.links
+                if flange is None and (now := await robot_pose_now(links)):
                     flange = now[1]
                 kept = await asyncio.to_thread(state.keep, tuple(views), dets, why,
                                                pair.t_mono_ns, flange)

@@ -257,7 +257,7 @@ class SetupChoices:
             raise web.HTTPBadRequest(text=f"type: one of {', '.join(sorted(LINKS))}")
         answer: dict[str, Any] = {"type": kind, "kind": link_kind(kind)}
         if kind in REGISTER_LINKS:
-            answer["registers"] = register_views(self.ctx.daemon.links)
+            answer["registers"] = register_views(self.ctx.daemon.rooms.links.links)
             answer["map_doc"] = "docs/registers.md"
         if kind == "s7":
             answer["s7_udt"] = await self._s7_udt()
@@ -283,10 +283,7 @@ class SetupChoices:
             value = body.get("value") if isinstance(body, dict) else None
             if isinstance(value, bool) or not isinstance(value, int | float) or value != value:
                 raise web.HTTPBadRequest(text=f'{{"value": number}}: the focus, got {value!r}')
-        camera = self.ctx.daemon.camera
-        if not hasattr(camera, "focus"):
-            return web.json_response({"available": False, "reason": (
-                f"{self.ctx.daemon.config.camera.type}: this camera type has no focus control")})
+        camera = self.ctx.daemon.rooms.cameras.camera
         async with self.ctx.camera.between_jobs() as idle:
             if not idle:
                 raise web.HTTPConflict(text="a job runs: the focus is read and set only "

@@ -190,7 +190,7 @@ class WalkRoutes:
         self.last_plan: dict[str, Any] | None = None
         self.drawing: bytes | None = None
         self._lock = asyncio.Lock()
-        ctx.daemon.walks.listeners.append(lambda data: ctx.publish("walk", data))
+        ctx.daemon.rooms.walks.listeners.append(lambda data: ctx.publish("walk", data))
 
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/handeye/plan", self._page("handeye-plan.html"))
@@ -218,7 +218,7 @@ class WalkRoutes:
     async def show(self, request: web.Request) -> web.Response:
         config = self.ctx.daemon.config
         links = [{"index": i, "type": s.type} for i, s in enumerate(config.links)]
-        return web.json_response(jsonable({"walk": self.ctx.daemon.walks.snapshot(),
+        return web.json_response(jsonable({"walk": self.ctx.daemon.rooms.walks.snapshot(),
                                            "plan": self.last_plan, "links": links,
                                            "vendor": config.output.vendor}))
 
@@ -276,7 +276,7 @@ class WalkRoutes:
         if not isinstance(plan, str) or not isinstance(link, int) or isinstance(link, bool):
             raise web.HTTPBadRequest(text='{"plan": "name.toml", "link": 0}')
         try:
-            data = self.ctx.daemon.walks.start(config_path, plan, link)
+            data = self.ctx.daemon.rooms.walks.start(config_path, plan, link)
         except VgripError as err:
             return web.json_response({"refused": str(err)}, status=409)
         log.info("web view: walk of %s started on link %d from %s", plan, link, request.remote)
@@ -289,12 +289,12 @@ class WalkRoutes:
             raise web.HTTPBadRequest(text=f"by={by[:40]!r}: one of {', '.join(STOPPED_BY)}")
         why = f"{STOPPED_BY[by]} ({request.remote})"
         log.info("web view: walk %s", why)
-        return web.json_response(jsonable(await self.ctx.daemon.walks.stop(why)))
+        return web.json_response(jsonable(await self.ctx.daemon.rooms.walks.stop(why)))
 
     async def solve(self, request: web.Request) -> web.Response:
         config_path = self.ctx.config_writer(request).path
         try:
-            data = await self.ctx.daemon.walks.solve(config_path)
+            data = await self.ctx.daemon.rooms.walks.solve(config_path)
         except VgripError as err:
             return web.json_response({"refused": str(err)}, status=409)
         ok = bool(data["solution"] and data["solution"]["ok"])
@@ -302,7 +302,7 @@ class WalkRoutes:
 
     async def accept(self, request: web.Request) -> web.Response:
         reloader = self.ctx.config_writer(request)
-        solution = self.ctx.daemon.walks.solution
+        solution = self.ctx.daemon.rooms.walks.solution
         if not solution or not solution.get("ok"):
             raise web.HTTPConflict(text="nothing solved to accept: solve the walk first")
         body = await self._body(request) if request.body_exists else {}

@@ -30,6 +30,7 @@ from vgripd.errors import CameraError
 from vgripd.service.host.sdnotify import Notifier
 from vgripd.service.host.tasks import Background
 from vgripd.service.links.protocol import Trigger
+from vgripd.service.worker.camera import Camera
 from vgripd.types import CaptureView, ImagePair
 
 log = logging.getLogger("vgripd")
@@ -54,7 +55,7 @@ class CameraSupervisor:
     ``changed`` is called when the status line should show a change (open again, a fault).
     """
 
-    def __init__(self, config: Config, camera: Any, background: Background, *,
+    def __init__(self, config: Config, camera: Camera, background: Background, *,
                  changed: Callable[[], None]) -> None:
         self.config = config
         self.camera = camera
@@ -111,7 +112,7 @@ class CameraSupervisor:
             self.is_open = False
 
     def name(self) -> str:
-        return str(getattr(self.camera, "type_name", "") or self.config.camera.type)
+        return self.camera.type_name or self.config.camera.type
 
     # --- whether a job can get a frame ---------------------------------------------------
 
@@ -191,12 +192,12 @@ class CameraSupervisor:
         process, cannot be seen), abandon it and open the camera again; when that fails or
         hangs too, the camera is faulty (``fault``) and the watchdog stops."""
         camera, kind = self.camera, self.name()
-        stuck_s = getattr(camera, "stuck_s", None)
-        if callable(stuck_s):
+        if camera.stuck_s() is not None:  # the driver runs here: its call can be seen
             await asyncio.sleep(CAMERA_HUNG_GRACE_S)  # a late grab may still return meanwhile
-            if stuck_s() == 0:
+            stuck_s = camera.stuck_s()
+            if not stuck_s:
                 return
-            what = f"a grab has been stuck in the driver for {stuck_s():.1f} s"
+            what = f"a grab has been stuck in the driver for {stuck_s:.1f} s"
         else:
             what = f"no image within {waited_s:.1f} s"
         log.error("camera %s: %s; closing it and opening it again", kind, what)

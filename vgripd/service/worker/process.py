@@ -83,6 +83,7 @@ from vgripd.config import Config
 from vgripd.errors import CameraError, CameraSettingError, NotCalibratedError
 from vgripd.service.host.lifetime import die_with_daemon, end_on_sigterm
 from vgripd.service.host.logsetup import configure_logging
+from vgripd.service.worker.camera import Camera
 from vgripd.service.worker.imageshm import SHM_DIR as SHM_DIR  # where tests look for segments
 from vgripd.service.worker.imageshm import (
     ImageLayout,
@@ -192,7 +193,7 @@ class _Worker:
 
         self.loop = asyncio.new_event_loop()  # the camera drivers' API is async
         cls = load_class(CAMERAS, "camera", config.camera.type)
-        self.camera = cls(validate_options(cls, config.camera, "camera"), config)
+        self.camera: Camera = cls(validate_options(cls, config.camera, "camera"), config)
         self.camera_open = False
         # One processor per recipe (config.recipes), so a recipe switch costs nothing.
         self.processors = {n: _load_processor(processor, config.for_recipe(n))
@@ -861,7 +862,7 @@ class WorkerClient:
 
 class WorkerCamera:
     """The camera driver as the daemon sees it when the driver runs in the worker process
-    (the ``CameraDriver`` async API: open, grab, close, describe)."""
+    (a ``Camera``)."""
 
     def __init__(self, client: WorkerClient, type_name: str, description: str) -> None:
         self._client = client
@@ -871,11 +872,14 @@ class WorkerCamera:
     def describe(self) -> str:
         return self._description
 
-    async def open(self) -> None:
+    async def _call(self, op: str, *args: Any) -> Any:
         try:
-            await self._client.call("camera_open", what="camera open")
+            return await self._client.call(op, *args, what=op.replace("_", " "))
         except WorkerError as err:
             raise CameraError(f"{self.type_name}: {err}") from None
+
+    async def open(self) -> None:
+        await self._call("camera_open")
 
     async def grab(self, timeout_s: float, view: CaptureView | None = None,
                    recipe: int = 0) -> ImagePair:
@@ -884,21 +888,17 @@ class WorkerCamera:
     async def set_settings(self, exposure_us: float | None, gain_db: float | None
                            ) -> dict[str, Any]:
         """The driver's ``set_settings`` in the worker (between jobs: the caller's part)."""
-        try:
-            settings: dict[str, Any] = await self._client.call(
-                "camera_settings", exposure_us, gain_db, what="camera settings")
-        except WorkerError as err:
-            raise CameraError(f"{self.type_name}: {err}") from None
+        settings: dict[str, Any] = await self._call("camera_settings", exposure_us, gain_db)
         return settings
 
     async def focus(self, value: float | None) -> dict[str, Any]:
         """The driver's ``focus`` in the worker (between jobs: the caller's part)."""
-        try:
-            focus: dict[str, Any] = await self._client.call("camera_focus", value,
-                                                            what="camera focus")
-        except WorkerError as err:
-            raise CameraError(f"{self.type_name}: {err}") from None
+        focus: dict[str, Any] = await self._call("camera_focus", value)
         return focus
+
+    def stuck_s(self) -> None:
+        """None: the driver's calls run in the worker process, out of this one's sight."""
+        return None
 
     async def close(self) -> None:
         await self._client.close_camera()

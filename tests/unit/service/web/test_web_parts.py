@@ -112,11 +112,15 @@ class _Link:
 
 def _fake_daemon() -> Any:
     epipolar = SimpleNamespace(warning=False, share=lambda: 0.25)
+    links = {"plc": _Link(LinkState.UP, 2), "robot": _Link(LinkState.CONNECTING, 0)}
+    rooms = SimpleNamespace(
+        links=SimpleNamespace(links=links),
+        jobs=SimpleNamespace(undelivered=Counter(), epipolar=epipolar, recorder=None,
+                             record_dropped=0))
     return SimpleNamespace(
-        links={"plc": _Link(LinkState.UP, 2), "robot": _Link(LinkState.CONNECTING, 0)},
+        rooms=rooms,
         answered=lambda: (Counter({"OK": 3, "BUSY": 1}), Counter({"BUSY": 1})),
-        undelivered=Counter(), epipolar=epipolar, healthy=lambda: True,
-        snapshot=lambda: {"camera": {"open": True}}, recorder=None,
+        healthy=lambda: True, snapshot=lambda: {"camera": {"open": True}},
         recipe_snapshot=lambda: {"active": 2, "recipes": [
             {"number": 0, "name": "default"}, {"number": 2, "name": "plate-b"}]})
 
@@ -218,9 +222,9 @@ def test_the_grafana_dashboard_and_docs_use_only_exported_metrics() -> None:
     from tests.conftest import REPO
 
     daemon = _fake_daemon()
-    daemon.recorder = SimpleNamespace(total_bytes=10)
-    daemon.record_dropped = 0
-    daemon.undelivered = Counter({"OK": 1})
+    daemon.rooms.jobs.recorder = SimpleNamespace(total_bytes=10)
+    daemon.rooms.jobs.record_dropped = 0
+    daemon.rooms.jobs.undelivered = Counter({"OK": 1})
     metrics = Metrics(daemon, SimpleNamespace(failures=0, lockouts=0, refused_locked=0))
     result = JobResult(job_id=1, status=Status.OK, timings_ms={"process": 1.0})
     metrics.observe(SimpleNamespace(result=result, cycle_ms=1.0, published=None))
