@@ -564,13 +564,11 @@ class URController:
     Parameters
     ----------
     host : str
-        Loopback address such as ``"127.0.0.7"``; ur_rtde has no port argument, so parallel tests
-        differ by address.
+        Loopback address such as ``"127.0.0.7"`` (ur_rtde has no port argument: tests differ by it).
     version : tuple of 4 int
         Controller version reported in the ``v`` reply (it changes ur_rtde's default recipe).
     timeout_s : float
-        How long a call waits for the controller process's reply (its start included, a fresh
-        Python process: seconds on a busy machine). A bound, not a target.
+        A call's wait for its reply, the process's start's too: a bound, not a target.
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = RTDE_PORT,
@@ -661,8 +659,7 @@ class URController:
         return result
 
     def wait_input(self, name: str, value: Any, timeout_s: float = 5.0) -> bool:
-        """Wait until a client has written ``value`` to input ``name``; False after
-        ``timeout_s``."""
+        """Wait until a client has written ``value`` to input ``name``; False after timeout_s."""
         ok: bool = self._call("wait_input", name, value, timeout_s, timeout_s=timeout_s + 5.0)
         return ok
 
