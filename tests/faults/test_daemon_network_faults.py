@@ -106,7 +106,8 @@ async def _recv_until(sock: socket.socket, wanted: str) -> None:
 
 
 async def _job(port: int, seq: int) -> list[int]:
-    client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+    client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0,
+                                  reconnect_delay=0)
     try:
         assert await client.connect(), "a new PLC connection was not accepted"
         r = await client.write_registers(Reg.CMD, [Command.TRIGGER, seq, 0])
@@ -250,7 +251,8 @@ async def test_web_flood_of_idle_and_slow_loris_connections_fails_no_plc_job(
             sys.executable, "-m", "vgripd", "run", "-c", str(cfg), cwd=REPO,
             env={**ENV, "NOTIFY_SOCKET": str(tmp_path / "notify.sock")},
             stdout=subprocess.DEVNULL, stderr=log_file, preexec_fn=_limit_files_1024)
-    plc = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+    plc = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0,
+                                  reconnect_delay=0)
     try:
         await _recv_until(notify, "READY=1")
         assert await plc.connect()

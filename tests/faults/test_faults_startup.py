@@ -44,7 +44,8 @@ async def silent_controller() -> AsyncIterator[str]:
 
 
 async def read_map(port: int) -> list[int] | None:
-    client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=0.5, retries=0)
+    client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=0.5, retries=0,
+                                  reconnect_delay=0)
     try:
         if not await client.connect():
             return None

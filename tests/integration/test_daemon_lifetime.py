@@ -111,7 +111,8 @@ port = {http_port}
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "vgripd", "run", "-c", str(cfg), cwd=REPO, env=ENV,
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
-    plc = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+    plc = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0,
+                                  reconnect_delay=0)
     try:
         async with aiohttp.ClientSession() as http:
             base = f"http://127.0.0.1:{http_port}"

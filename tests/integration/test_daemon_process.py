@@ -74,7 +74,8 @@ enabled = false
         sys.executable, "-m", "vgripd", "run", "-c", str(cfg), cwd=REPO, env=env,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     messages: list[str] = []
-    client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+    client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0,
+                                  reconnect_delay=0)
     try:
         await _recv_until(notify, "READY=1", messages)
         await _recv_until(notify, "WATCHDOG=1", messages)

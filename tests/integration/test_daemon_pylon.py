@@ -58,7 +58,8 @@ async def _jobs(cfg: Path, env: dict[str, str], port: int) -> list[list[int]]:
         sys.executable, "-m", "vgripd", "run", "-c", str(cfg), cwd=REPO,
         env={**env, "NOTIFY_SOCKET": str(cfg.with_suffix(".sock"))},
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+    client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0,
+                                  reconnect_delay=0)
     results = []
     loop = asyncio.get_running_loop()
     try:
