@@ -425,7 +425,7 @@ def pair_client_main(port_a: int, port_b: int, seconds: float) -> None:
     stdout: ``{"a": [ms...], "b": [ms...], "realtime": bool, "error": str}``."""
     from pymodbus.client import ModbusTcpClient
 
-    from vgripd.service.links.protocol import MAP_SIZE
+    from vgripd.peer.registers import MAP_SIZE
 
     realtime = os.environ.get("BENCH_CLIENT_REALTIME") == "1"
     if realtime:
