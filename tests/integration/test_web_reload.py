@@ -412,8 +412,11 @@ async def test_live_previews_show_figures_between_jobs_and_never_grab_during_one
     job runs (a slow synthetic render) a preview request gets the last picture, no grab."""
     from tests.integration.test_daemon import running
 
+    # supersample 8: a render of ~0.1 s on a quiet machine, so the job is long enough to ask for
+    # a preview while it runs, and a preview grab still fits the page's 2 s with two suites on
+    # two cores (at 16, 0.3 s quiet, a load of 14 made every preview grab miss its 2 s)
     config = make_config(camera={"type": "synthetic", "seed": 11, "max_tilt_deg": 2.0,
-                                 "supersample": 16})
+                                 "supersample": 8})
     async with running(config) as run, Plc(run.port()) as plc, aiohttp.ClientSession() as s:
         assert run.daemon.status_server is not None
         base = f"http://127.0.0.1:{run.daemon.status_server.port}"
