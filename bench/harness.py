@@ -386,6 +386,16 @@ def plc_client_main(port: int, mode: str, seconds: float, jobs: int) -> None:
                       "realtime": realtime, "error": error}))
 
 
+def wait_for_tick(tick: float) -> float:
+    """Sleep until the monotonic time ``tick``; a tick already past (the client fell behind)
+    restarts the pace from now. Returns the tick the next period counts from."""
+    delay = tick - time.monotonic()
+    if delay > 0:
+        time.sleep(delay)
+        return tick
+    return time.monotonic()
+
+
 def _poll_loop(client: Any, mode: str, end: float, jobs: int, rtt_ms: list[float],
                cycle_ms: list[float], statuses: dict[str, int]) -> None:
     from vgripd.peer.registers import MAP_SIZE, Reg
@@ -410,12 +420,7 @@ def _poll_loop(client: Any, mode: str, end: float, jobs: int, rtt_ms: list[float
             statuses[name] = statuses.get(name, 0) + 1
             cycle_ms.append(round((t1 - pending[1]) * 1000, 3))
             pending = None
-        next_tick += POLL_PERIOD_S
-        delay = next_tick - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
-        else:
-            next_tick = time.monotonic()
+        next_tick = wait_for_tick(next_tick + POLL_PERIOD_S)
 
 
 def pair_client_main(port_a: int, port_b: int, seconds: float) -> None:
@@ -451,12 +456,7 @@ def pair_client_main(port_a: int, port_b: int, seconds: float) -> None:
                 assert not r.isError(), r
                 rtt_ms[name].append(round((t1 - t0) * 1000, 4))
             tick += 1
-            next_tick += POLL_PERIOD_S
-            delay = next_tick - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            else:
-                next_tick = time.monotonic()
+            next_tick = wait_for_tick(next_tick + POLL_PERIOD_S)
     except Exception as err:  # a server went away: report what was measured until then
         error = f"{type(err).__name__}: {err}"
     for client in clients.values():
