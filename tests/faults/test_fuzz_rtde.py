@@ -43,18 +43,25 @@ async def test_fuzzed_robot_registers(caplog: pytest.LogCaptureFixture) -> None:
         link = URRtdeLink("ur", URRtdeOptions(host=robot.host))
         await link.open(triggers.put_nowait)
         last = 0  # the sequence the link has seen (0 at the first connect)
+        zeroed = False  # a 0 was written since the last request
         jobs = refused = 0
         try:
             for i in range(CASES):
                 seq = rng.choice([rng.randint(*INT32), *INT32, 0, -1, last, last + 1
                                   if last < INT32[1] else 1])
                 command = rng.choice([1, 1, 1, 0, -1, 2, 7, *INT32, rng.randint(*INT32)])
+                if seq == last and zeroed:
+                    # The old sequence after a 0 is a new request if the link sampled the 0
+                    # (an edge) and none if the next write came first: a race in this test,
+                    # not a fault of the link. A 0 again is no request either way.
+                    seq = 0
+                zeroed = zeroed or seq == 0
                 where = f"seed {SEED} case {i}: seq {seq} command {command}"
                 robot.set_outputs(output_int_register_12=seq, output_int_register_13=command,
                                   output_int_register_14=rng.choice([seq, last, 0]))
                 if seq == 0 or seq == last:
                     continue  # not a request: nothing may happen (checked at the end)
-                last = seq
+                last, zeroed = seq, False
                 if command == 1:
                     trigger = await asyncio.wait_for(triggers.get(), 10)
                     assert (trigger.seq, trigger.command) == (seq, 1), where
