@@ -34,7 +34,7 @@ os.environ.setdefault("PYLON_CAMEMU", "3")
 
 from bench.harness import Stamp, bench_command, report  # noqa: E402
 from bench.harness import parser as bench_parser  # noqa: E402
-from tests.drivers.test_cameras_aravis import (  # noqa: E402
+from tests.drivers.cameras.test_cameras_aravis import (  # noqa: E402
     FakeCamera,
     _aravis,
     gige_exclusive,

@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import REPO
-from tests.drivers.test_cameras_aravis import FakeCamera, two_fake_cameras
+from tests.drivers.cameras.test_cameras_aravis import FakeCamera, two_fake_cameras
 from tests.integration.test_daemon import WAIT_S, Plc, running
 from vgripd.config import config_from_dict
 from vgripd.peer.registers import Reg

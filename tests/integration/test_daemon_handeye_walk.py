@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import lo
-from tests.drivers.test_ur_rtde_handeye_walk import robot_program
+from tests.drivers.links.test_ur_rtde_handeye_walk import robot_program
 from tests.integration.test_daemon import Plc
 from tests.integration.test_web import _chromium, _until
 from tests.integration.test_web_reload import TOKEN, post, running_file

@@ -24,7 +24,7 @@ import pytest
 from asyncua import Client
 
 from drivers.links.opcua_vision import INSTANCE_URI, MV_URI, register_binary_ids
-from tests.drivers.test_opcua_vision import (
+from tests.drivers.links.test_opcua_vision import (
     AUTO,
     RESULT_READY,
     Vision,

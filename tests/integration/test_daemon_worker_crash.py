@@ -22,7 +22,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import REPO, need
-from tests.drivers.test_cameras_aravis import two_fake_cameras
+from tests.drivers.cameras.test_cameras_aravis import two_fake_cameras
 from tests.integration.test_daemon import Plc, Run, running
 from vgripd.config import config_from_dict
 from vgripd.peer.registers import Reg
@@ -30,7 +30,7 @@ from vgripd.service.daemon import Daemon
 from vgripd.service.jobs.runner import JobState
 from vgripd.types import Status
 
-# pylon's waits end early under pytest-timeout's SIGALRM method (tests/drivers/test_cameras_pylon.py)
+# pylon's waits end early under pytest-timeout's SIGALRM method (tests/drivers/cameras/test_cameras_pylon.py)
 pytestmark = pytest.mark.timeout(600, method="thread")
 os.environ["PYLON_CAMEMU"] = "3"  # read when pylon's transport layers load (in the worker too)
 

@@ -17,7 +17,7 @@ import pytest
 
 from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
 from tests.conftest import stop_task
-from tests.drivers.test_robot_socket import Peer, until
+from tests.drivers.links.test_robot_socket import Peer, until
 from vgripd.calib.handeye.plan import load_plan
 from vgripd.calib.handeye.walk import NOT_SEEN, UNREACHABLE, Walk
 from vgripd.geometry.transforms import pose_error

@@ -36,7 +36,7 @@ import pytest
 
 from drivers.links.robot_socket import RobotSocketLink, RobotSocketOptions
 from tests.conftest import stop_task
-from tests.drivers.test_robot_socket import Peer
+from tests.drivers.links.test_robot_socket import Peer
 from tests.integration.test_daemon import running
 from tests.integration.test_daemon_handeye_walk import PLATE
 from tests.integration.test_robot_programs import cell, free_port, program

@@ -25,7 +25,7 @@ import pytest
 
 from drivers.links.robot_socket import RobotSocketLink
 from tests.conftest import stop_task
-from tests.drivers.test_robot_socket import Peer, until
+from tests.drivers.links.test_robot_socket import Peer, until
 from tests.integration.test_robot_programs import free_port
 from tests.integration.test_robot_programs_walk import (
     BOARD,

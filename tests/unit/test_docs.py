@@ -190,7 +190,7 @@ def test_opcua_value_names_example_is_the_convention() -> None:
 
 def test_opcua_uacall_line_names_the_method_by_browse_name() -> None:
     """asyncua 2.1's ``uacall -m`` takes the method's browse name (``ns:Name``) of a child of
-    ``-n``, not a node id; tests/drivers/test_opcua.py runs the lines against the link."""
+    ``-n``, not a node id; tests/drivers/links/test_opcua.py runs the lines against the link."""
     text = doc("docs/opcua.md")
     block = re.search(r"```sh\n(uals.*?)```", text, re.S)
     assert block is not None

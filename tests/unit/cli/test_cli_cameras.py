@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import REPO, need
-from tests.drivers.test_cameras_aravis import FakeCamera, one_fake
+from tests.drivers.cameras.test_cameras_aravis import FakeCamera, one_fake
 from vgripd.cli.cameras import parse_sets, parse_value
 from vgripd.errors import ConfigError
 

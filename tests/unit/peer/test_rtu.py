@@ -1,6 +1,6 @@
 """The RTU framer without a serial line: silence by the spec, stray bytes, CRC errors, frames
 in pieces, other slaves' responses. The link on a pty pair is tested in
-tests/drivers/test_modbus_rtu.py."""
+tests/drivers/links/test_modbus_rtu.py."""
 
 from __future__ import annotations
 

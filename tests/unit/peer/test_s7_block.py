@@ -1,6 +1,6 @@
 """The S7 link's data block without the PLC (``vgripd.peer.s7_block``): the plan of writes that
 takes the PLC's copy of the block to the register bank's state, replayed on a list of words.
-The link sending these plans to a PLC: tests/drivers/test_s7.py, test_s7_conveyor.py."""
+The link sending these plans to a PLC: tests/drivers/links/test_s7.py, test_s7_conveyor.py."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The opcua link's login throttle and rejected-certificate store, without a server: the clock
 is passed in, the store is a temporary folder. The server-side behaviour against a raw client
-is tests/drivers/test_opcua.py."""
+is tests/drivers/links/test_opcua.py."""
 
 from __future__ import annotations
 

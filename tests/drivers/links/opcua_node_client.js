@@ -1,5 +1,5 @@
 // The OPC 40100 PLC sequence with node-opcua's client (a stack that shares no code with the
-// server): tests/drivers/test_opcua_node.py runs it with NODE_PATH at a node-opcua-client
+// server): tests/drivers/links/test_opcua_node.py runs it with NODE_PATH at a node-opcua-client
 // install and reads the one JSON object it prints. Usage: node opcua_node_client.js URL PARTS
 "use strict";
 const {

@@ -11,7 +11,7 @@ import pytest
 
 from drivers.links.ur_rtde import URRtdeLink, URRtdeOptions
 from tests.conftest import lo
-from tests.drivers.test_ur_rtde import TAUGHT, Triggers, connected, ur_result
+from tests.drivers.links.test_ur_rtde import TAUGHT, Triggers, connected, ur_result
 from vgripd.peer.jobcore import Command
 from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.service.links.protocol import LinkState

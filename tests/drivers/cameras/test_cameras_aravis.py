@@ -351,7 +351,7 @@ def hold_and_wait() -> None:
 def killed_holder() -> None:
     """Start ``hold_and_wait`` in another process and SIGKILL it once it holds the camera: its
     GigE control channel and its acquisition are left behind on the device."""
-    holder = subprocess.Popen([sys.executable, "-c", "from tests.drivers.test_cameras_aravis "
+    holder = subprocess.Popen([sys.executable, "-c", "from tests.drivers.cameras.test_cameras_aravis "
                                "import hold_and_wait; hold_and_wait()"], cwd=REPO,
                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
     try:

@@ -26,7 +26,7 @@ from vgripd.vision import scene
 
 DEMO = config_from_dict({})
 QUIET = {"noise_std": 0, "blur_px": 0}
-SAMPLES = Path(__file__).resolve().parents[2] / "config" / "samples"
+SAMPLES = Path(__file__).resolve().parents[3] / "config" / "samples"
 SAMPLE_TRUTH = (SAMPLES / "truth.json").read_text(encoding="utf-8")
 
 

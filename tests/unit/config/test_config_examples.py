@@ -111,7 +111,7 @@ def test_pylon_example_on_pylons_camera_emulation() -> None:
 
 @pytest.fixture
 def fake_gige() -> Iterator[None]:
-    from tests.drivers.test_cameras_aravis import two_fake_cameras
+    from tests.drivers.cameras.test_cameras_aravis import two_fake_cameras
 
     with two_fake_cameras():
         yield

@@ -19,7 +19,7 @@ import pytest
 
 from drivers.links.s7 import S7Link, S7Options
 from tests.conftest import REPO
-from tests.drivers.test_s7 import DB, FORMATS, SIZES, WAIT_S, Daemon, make_link, parse_udt
+from tests.drivers.links.test_s7 import DB, FORMATS, SIZES, WAIT_S, Daemon, make_link, parse_udt
 from vgripd.cli.s7_udt import db_source, udt_source
 from vgripd.configbase import DriverSection
 from vgripd.errors import ConfigError

@@ -4,7 +4,7 @@ over real TCP on 127.0.0.1: the official NodeSet's types, the PLC sequence of th
 GetResultById), wrong-state calls refused, results, recipes, configuration and the plain
 variables. The daemon is stood in for by test_opcua's ``Daemon`` (fixed results), so the pose a
 client reads is compared with the numbers the stand-in published. The second, independent
-client stack (node-opcua) is tests/drivers/test_opcua_node.py; the real daemon
+client stack (node-opcua) is tests/drivers/links/test_opcua_node.py; the real daemon
 tests/integration/test_daemon_opcua_vision.py.
 """
 
@@ -28,7 +28,7 @@ from drivers.links.opcua_vision import (
     NOT_IMPLEMENTED,
     register_binary_ids,
 )
-from tests.drivers.test_opcua import POSE, Daemon, open_link, options, url
+from tests.drivers.links.test_opcua import POSE, Daemon, open_link, options, url
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -37,7 +37,7 @@ from vgripd.sim.ur_controller import BUSY_WAIT_S, URController
 from vgripd.types import Status
 
 # the rendered scene of the walk test (bare module names, as pytest imports them there)
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit" / "calib"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "unit" / "calib"))
 import test_calib_boards  # noqa: E402
 from test_calib_handeye_walk import (  # noqa: E402
     BOARD,
@@ -197,7 +197,7 @@ def test_the_scripts_walk_skips_with_recipe_1_and_asks_with_recipe_0() -> None:
     """robots/urscript's ``vgripd_handeye_walk`` does what ``robot_program`` does: its first
     next goes with VGRIPD_RECIPE (register 15) 0, its skip with 1, and the jobs' recipe is
     given back at the end. Before, both went with the jobs' recipe (0 by default)."""
-    text = (Path(__file__).resolve().parents[2] / "robots" / "urscript" / "vgripd.script"
+    text = (Path(__file__).resolve().parents[3] / "robots" / "urscript" / "vgripd.script"
             ).read_text()
     start = text.index("def vgripd_handeye_walk(")
     body = text[start:text.index("\nend\n", start)]

@@ -21,7 +21,7 @@ import pytest
 
 from drivers.links.opcua import OpcUaLink
 from tests.conftest import need
-from tests.drivers.test_opcua import POSE, Daemon, open_link, options, url
+from tests.drivers.links.test_opcua import POSE, Daemon, open_link, options, url
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -13,7 +13,7 @@ os.environ["PYLON_CAMEMU"] = "3"  # read when pylon's transport layers load
 
 from drivers.cameras.gencam_sdk import SettingError  # noqa: E402
 from tests.conftest import need  # noqa: E402
-from tests.drivers.test_cameras_pylon import LEFT, RIGHT, camera, feed  # noqa: E402
+from tests.drivers.cameras.test_cameras_pylon import LEFT, RIGHT, camera, feed  # noqa: E402
 
 
 @pytest.fixture(autouse=True)

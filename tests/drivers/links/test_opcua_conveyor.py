@@ -20,8 +20,8 @@ from asyncua import Client, ua
 
 from drivers.links.opcua import OpcUaLink
 from drivers.links.opcua_vision import INSTANCE_URI, MV_URI, register_binary_ids
-from tests.drivers.test_opcua import POSE, Daemon, kuka_result, options, until, url
-from tests.drivers.test_opcua_vision import AUTO, RESULT_READY, Vision, content, job_args
+from tests.drivers.links.test_opcua import POSE, Daemon, kuka_result, options, until, url
+from tests.drivers.links.test_opcua_vision import AUTO, RESULT_READY, Vision, content, job_args
 from vgripd.peer.jobcore import Command
 from vgripd.service.links.protocol import Trigger
 from vgripd.types import BeltPose, JobResult

@@ -19,7 +19,7 @@ from drivers.links.modbus_client import (
     full_image_writes,
     plan_writes,
 )
-from tests.drivers.test_modbus_client import Daemon, make_link
+from tests.drivers.links.test_modbus_client import Daemon, make_link
 from vgripd.peer.jobcore import Command
 from vgripd.peer.registers import COMMAND_AREA, LATCH_AREA, MAP_SIZE_V4, BlockWrite, Reg
 from vgripd.service.links.protocol import LinkState, Trigger
