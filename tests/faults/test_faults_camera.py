@@ -5,7 +5,9 @@ server link and systemd's watchdog socket bound by the test:
   camera again, and the next job runs normally; the watchdog keeps pinging;
 - when opening it again fails (or hangs too), the camera is faulty: the watchdog stops pinging
   (systemd restarts the service), ``healthy()`` is False and the status says why; later jobs
-  answer CAMERA_ERROR at once.
+  answer CAMERA_ERROR at once;
+- the web view's grabs go through the same supervisor: a preview grab that hangs has the
+  camera opened again as a job's would; page grabs that fail at once mark nothing for the jobs.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
+import aiohttp
 import numpy as np
 import pytest
 
@@ -27,6 +30,7 @@ from tests.integration.test_daemon import Plc
 from vgripd.config import Config, config_from_dict
 from vgripd.errors import CameraError
 from vgripd.service.daemon import Daemon
+from vgripd.service.worker.cameras import DOWN_AFTER_FAILURES
 from vgripd.types import ImagePair, JobResult, Status
 
 pytestmark = pytest.mark.timeout(90)
@@ -34,15 +38,17 @@ JOB_TIMEOUT_S = 1.0
 
 
 class HangingCamera(CameraDriver):
-    """Its first grab blocks until the test ends; opening it again does ``reopen``."""
+    """Its first grab blocks until the test ends (or its first ``failures`` grabs fail at
+    once); opening it again does ``reopen``."""
 
     Options = DriverOptions
     type_name = "hanging"
 
-    def __init__(self, config: Config, reopen: str = "ok") -> None:
+    def __init__(self, config: Config, reopen: str = "ok", failures: int = 0) -> None:
         super().__init__(DriverOptions(), config)
         self.release = threading.Event()
         self.reopen = reopen  # "ok", "fail" or "hang"
+        self.failures = failures  # > 0: so many first grabs fail at once, none hangs
         self.opens = 0
         self.grabs = 0
 
@@ -55,7 +61,9 @@ class HangingCamera(CameraDriver):
 
     def _grab_blocking(self, timeout_s: float) -> ImagePair:
         self.grabs += 1
-        if self.grabs == 1:
+        if self.grabs <= self.failures:
+            raise CameraError("hanging: frame lost")
+        if self.grabs == 1 and not self.failures:
             self.release.wait()  # the wedged device call
         return ImagePair(left=np.zeros((4, 4), np.uint8), right=None,
                          t_mono_ns=time.monotonic_ns(), source="hanging")
@@ -98,7 +106,8 @@ async def pings(sock: socket.socket, seconds: float) -> int:
 
 
 @contextlib.asynccontextmanager
-async def hanging_daemon(notify: str, reopen: str, **cameras: Any) -> AsyncIterator[
+async def hanging_daemon(notify: str, reopen: str, failures: int = 0,
+                         **cameras: Any) -> AsyncIterator[
         tuple[Daemon, HangingCamera]]:
     config = config_from_dict({
         "camera": {"type": "synthetic", "seed": 1},
@@ -108,7 +117,7 @@ async def hanging_daemon(notify: str, reopen: str, **cameras: Any) -> AsyncItera
     })
     d = Daemon(config, pipeline=Stub(),
                env={"NOTIFY_SOCKET": notify, "WATCHDOG_USEC": "200000"})  # ping every 0.1 s
-    camera = HangingCamera(config, reopen)
+    camera = HangingCamera(config, reopen, failures)
     d.rooms.cameras.camera = camera
     for name, value in cameras.items():  # the camera room's settings
         setattr(d.rooms.cameras, name, value)
@@ -168,3 +177,46 @@ async def test_camera_that_cannot_be_opened_again_stops_the_watchdog(
         assert time.monotonic() - t0 < JOB_TIMEOUT_S  # at once, not after a timeout
         assert daemon.rooms.jobs.last_job is not None
         assert "unusable" in daemon.rooms.jobs.last_job.result.message
+
+
+async def preview_status(daemon: Daemon) -> int:
+    """GET camera 0's live picture from the daemon's web view: the HTTP status."""
+    assert daemon.status_server is not None
+    url = f"http://127.0.0.1:{daemon.status_server.port}/api/cameras/0/preview.jpg"
+    async with aiohttp.ClientSession() as http, http.get(url) as response:
+        return response.status
+
+
+async def test_preview_grab_that_hangs_is_recovered_as_a_jobs_would_be(
+        watchdog_socket: tuple[str, socket.socket]) -> None:
+    """The web view grabs through the camera supervisor: a preview grab that hangs has the
+    camera opened again, without waiting for a job to find the wedged driver."""
+    path, _ = watchdog_socket
+    async with hanging_daemon(path, "ok") as (daemon, camera):
+        assert await preview_status(daemon) == 503  # the grab ran out of time
+        await daemon.wait_for(lambda: camera.opens == 2 and daemon.snapshot()["camera"]["open"],
+                              30)
+        assert daemon.rooms.cameras.fault == ""
+        words = await plc_job(daemon, 1)
+        assert words[18] == Status.NOT_FOUND  # the first job's grab delivered
+        assert camera.grabs == 2
+        assert daemon.healthy()
+
+
+async def test_preview_grabs_that_fail_mark_nothing_for_the_jobs(
+        watchdog_socket: tuple[str, socket.socket]) -> None:
+    """Page grabs that fail at once (as many in a row as mark the camera down when jobs'
+    grabs fail) leave the camera up, not faulty and healthy; the next job runs."""
+    path, _ = watchdog_socket
+    async with hanging_daemon(path, "ok", failures=DOWN_AFTER_FAILURES) as (daemon, camera):
+        assert daemon.status_server is not None
+        turns = daemon.status_server.camera
+        for _ in range(DOWN_AFTER_FAILURES):
+            assert await turns.grab_between_jobs() is None  # failed, said so in the log
+        assert camera.grabs == DOWN_AFTER_FAILURES
+        assert daemon.rooms.cameras.down == ""
+        assert daemon.rooms.cameras.fault == ""
+        assert daemon.healthy()
+        words = await plc_job(daemon, 1)
+        assert words[18] == Status.NOT_FOUND  # the job's grab delivered
+        assert await turns.grab_between_jobs() is not None

@@ -117,8 +117,10 @@ class CameraTurns:
             yield self.idle()
 
     async def grab(self) -> ImagePair:
-        """A pair grabbed now; only inside ``between_jobs`` that found the daemon idle."""
-        pair: ImagePair = await self._daemon.rooms.cameras.camera.grab(PREVIEW_GRAB_TIMEOUT_S)
+        """A pair grabbed now through the camera supervisor (``grab_for_page``: a grab that
+        hangs is recovered from as a job's is); only inside ``between_jobs`` that found the
+        daemon idle."""
+        pair = await self._daemon.rooms.cameras.grab_for_page(PREVIEW_GRAB_TIMEOUT_S)
         self.grabs += 1
         return pair
 

@@ -6,7 +6,8 @@
     GET /api/cameras/{j}/preview.jpg camera j's live picture (over-exposure red, the marks the
                                      finder sees circled)
 
-A preview grabs through the same camera as the jobs (in the worker process), so it is taken
+A preview grabs through the same camera as the jobs (in the worker process), through the
+camera supervisor (a grab that hangs is recovered from as a job's is), so it is taken
 only while the daemon is idle (no job, no several-view job between views, no hand-eye walk), at
 most ``MAX_PREVIEW_FPS`` grabs a second whatever the number of pages watching (they share the last
 picture), one at a time, and drawn in the image helper process. During a job a page gets the

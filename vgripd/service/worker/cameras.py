@@ -10,6 +10,8 @@ then runs), grabbing with a deadline, recovery after a hung grab, and the system
 - The worker process died while it held the camera (``lost``): the camera is opened again in
   the new worker at once, in the background, with back-off until it opens, so the next job
   finds it open (a GigE camera first waits out the dead process's control channel).
+- The web view's pages grab between jobs through ``grab_for_page``: a hang is handled as a
+  job's, a one-off failure marks nothing.
 - ``down`` says why no job can get a frame: the camera was lost with its worker and is not
   open again yet, or ``DOWN_AFTER_FAILURES`` grabs in a row failed. Cleared when the camera is
   open again or a grab delivers. The daemon's health reports it at once; the watchdog stops
@@ -254,6 +256,32 @@ class CameraSupervisor:
         flange = trigger.T_base_flange if view is None else view.T_base_flange
         if pair.T_base_flange is None and flange is not None:
             pair = dataclasses.replace(pair, T_base_flange=flange)
+        return pair
+
+    async def grab_for_page(self, timeout_s: float) -> ImagePair:
+        """One grab for a page of the web view between jobs (preview, trial, setup): the pages
+        grab through here, so the camera has one owner. A grab that runs out of time is checked
+        for a hang as a job's is (a hung camera is opened again, or found faulty, whoever
+        grabbed); a failure does not count towards ``down`` (a page's one-off failure marks
+        nothing for the jobs), a delivered frame clears it. ``CameraError`` when the camera is
+        faulty, not open, being opened again or fails."""
+        recovery = self._recovery
+        if recovery is not None and not recovery.done():
+            raise CameraError(f"camera {self.name()}: being opened again after a hang")
+        if self.fault:
+            raise CameraError(f"camera {self.name()} is unusable: {self.fault}")
+        if not self.is_open:
+            raise CameraError(f"camera {self.name()} is not open"
+                              + (f": {self.error}" if self.error else ""))
+        t0 = time.monotonic()
+        try:
+            pair: ImagePair = await self.camera.grab(timeout_s)
+        except CameraError:
+            waited_s = time.monotonic() - t0
+            if waited_s >= 0.9 * timeout_s:  # out of time: hung?
+                self._ran_out(waited_s)
+            raise
+        self._up("a grab for the web view delivered")
         return pair
 
 
