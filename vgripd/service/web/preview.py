@@ -7,14 +7,17 @@
                                      finder sees circled)
 
 A preview grabs through the same camera as the jobs (in the worker process), through the
-camera supervisor (a grab that hangs is recovered from as a job's is), so it is taken
-only while the daemon is idle (no job, no several-view job between views, no hand-eye walk), at
-most ``MAX_PREVIEW_FPS`` grabs a second whatever the number of pages watching (they share the last
-picture), one at a time, and drawn in the image helper process. During a job a page gets the
-last picture again (its ``X-Vgripd-Preview-Age-S`` header says how old). A trigger that arrives
-while a preview grab runs waits for that grab (one grab, a few tens of ms with a real camera):
-the preview never starts while a job runs, but the camera is one. The camera's turns between
-jobs (shared with the trials, the setup and the camera settings) are ``context.CameraTurns``.
+camera supervisor (``CameraSupervisor.grab_for_page``), so it is taken only while the daemon is
+idle (no job, no several-view job between views, no hand-eye walk), at most ``MAX_PREVIEW_FPS``
+grabs a second whatever the number of pages watching (they share the last picture), one at a
+time, and drawn in the image helper process. During a job a page gets the last picture again
+(its ``X-Vgripd-Preview-Age-S`` header says how old). A page waits for its grab
+``context.PREVIEW_GRAB_TIMEOUT_S`` at most, then answers as for a failed grab (the last picture,
+or 503 "camera busy"); the grab goes on, is judged hung only as a job's is (by
+``daemon.job_timeout_s``) and is taken by the next preview. A trigger that arrives while a
+preview grab runs waits for that grab (one grab, a few tens of ms with a real camera): the
+preview never starts while a job runs, but the camera is one. The camera's turns between jobs
+(shared with the trials, the setup and the camera settings) are ``context.CameraTurns``.
 """
 
 from __future__ import annotations
@@ -76,7 +79,7 @@ class PreviewRoutes:
         j = int(text)
         if j >= len(jpegs):
             raise web.HTTPServiceUnavailable(text="no preview yet (a job runs, or the camera "
-                                                  "cannot grab)")
+                                                  "is busy or cannot grab)")
         return web.Response(body=jpegs[j], content_type="image/jpeg", headers={
             "Cache-Control": "no-store", "X-Vgripd-Preview-Age-S": f"{time.monotonic() - t:.2f}",
             "X-Vgripd-Focus": f"{figures[j]['focus']:.1f}",
