@@ -47,6 +47,9 @@ CAMERA_HUNG_GRACE_S = 1.0
 # Grabs in a row that failed before the camera counts as down (one failure may be one lost
 # frame; the GenICam drivers reopen a camera after as many grabs without a frame).
 DOWN_AFTER_FAILURES = 2
+# Stopping: a page's grab still running is given this long to end, as the web view's requests
+# are (then it is cancelled, as a job's grab is at shutdown).
+PAGE_GRAB_STOP_WAIT_S = 1.0
 # Opening the camera again after its worker died: first retry after the first, doubling up to
 # the second (seconds).
 REOPEN_BACKOFF_S = (0.5, 8.0)
@@ -108,6 +111,7 @@ class CameraSupervisor:
             log.info("camera %s open", kind)
 
     async def close(self) -> None:
+        await self._end_page_grab()
         if self.is_open:
             try:
                 await self.camera.close()
@@ -295,7 +299,8 @@ class CameraSupervisor:
             if not self.is_open:
                 raise CameraError(f"camera {self.name()} is not open"
                                   + (f": {self.error}" if self.error else ""))
-            grab = self._background.spawn(self._page_grab_run(), name="vgripd-page-grab")
+            # Not a background task: it may end its device call at shutdown (``close``).
+            grab = asyncio.create_task(self._page_grab_run(), name="vgripd-page-grab")
             grab.add_done_callback(_seen)
             self._page_grab = grab
         await asyncio.wait({grab}, timeout=wait_s)  # never cancels the grab
@@ -316,6 +321,15 @@ class CameraSupervisor:
             raise
         self._up("a grab for the web view delivered")
         return pair
+
+    async def _end_page_grab(self) -> None:
+        """Stopping: a page's grab still running gets ``PAGE_GRAB_STOP_WAIT_S`` to end."""
+        grab = self._page_grab
+        if grab is None or grab.done():
+            return
+        await asyncio.wait({grab}, timeout=PAGE_GRAB_STOP_WAIT_S)
+        grab.cancel()
+        await asyncio.gather(grab, return_exceptions=True)
 
     async def _after_page_grab(self, deadline_ns: int) -> None:
         """A job's grab follows a page's grab still running (the camera takes one at a time),
