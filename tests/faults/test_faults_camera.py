@@ -246,11 +246,14 @@ async def test_camera_that_cannot_be_opened_again_stops_the_watchdog(
         assert "unusable" in daemon.rooms.jobs.last_job.result.message
 
 
-async def preview_status(daemon: Daemon) -> int:
-    """GET camera 0's live picture from the daemon's web view: the HTTP status."""
+async def preview_status(daemon: Daemon, busy: list[str] | None = None) -> int:
+    """GET camera 0's live picture from the daemon's web view: the HTTP status (the text of a
+    503 appended to ``busy``)."""
     assert daemon.status_server is not None
     url = f"http://127.0.0.1:{daemon.status_server.port}/api/cameras/0/preview.jpg"
     async with aiohttp.ClientSession() as http, http.get(url) as response:
+        if response.status == 503 and busy is not None:
+            busy.append(await response.text())
         return response.status
 
 
@@ -307,15 +310,17 @@ async def test_a_camera_slower_than_the_page_is_not_reopened_by_previews(
     async with camera_daemon(path, lambda config: SlowCamera(config, SLOW_GRAB_S),
                              SLOW_JOB_TIMEOUT_S) as (daemon, camera):
         codes: list[int] = []
+        texts: list[str] = []
         deadline = time.monotonic() + 4 * WAIT_S
         while camera.grabs < 3 and time.monotonic() < deadline:
-            codes.append(await preview_status(daemon))
+            codes.append(await preview_status(daemon, texts))
             await asyncio.sleep(0.1)  # a page's poll period
         await until(lambda: camera.running == 0, "the last preview grab ends")
         assert camera.grabs == 3
         assert camera.opens == 1  # never opened again
         assert camera.overlaps == 0
         assert 503 in codes  # the first page stopped waiting: no picture yet
+        assert "camera slow is busy: no image within the page's 2 s" in texts[0]
         assert 200 in codes  # a later one took the grab that went on
         cameras = daemon.rooms.cameras
         assert (cameras.fault, cameras.down) == ("", "")

@@ -43,6 +43,7 @@ class PreviewRoutes:
     def __init__(self, ctx: WebContext) -> None:
         self.ctx = ctx
         self._last: tuple[float, list[bytes], list[dict[str, Any]]] = (0.0, [], [])
+        self._failed = ""  # why the last preview grab gave no picture ("" when it gave one)
 
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/api/cameras", self.cameras)
@@ -66,7 +67,9 @@ class PreviewRoutes:
             except (VgripError, TimeoutError) as err:
                 log.info("web view: preview grab failed: %s", err)
                 self._last = (time.monotonic(), self._last[1], self._last[2])
+                self._failed = str(err)
                 return
+            self._failed = ""
             jpegs, figures = await self.ctx.images.call(render_preview, list(pair.views))
             self._last = (time.monotonic(), jpegs, figures)
 
@@ -79,7 +82,8 @@ class PreviewRoutes:
         j = int(text)
         if j >= len(jpegs):
             raise web.HTTPServiceUnavailable(text="no preview yet (a job runs, or the camera "
-                                                  "is busy or cannot grab)")
+                                                  "cannot grab)" + (f": {self._failed}"
+                                                                    if self._failed else ""))
         return web.Response(body=jpegs[j], content_type="image/jpeg", headers={
             "Cache-Control": "no-store", "X-Vgripd-Preview-Age-S": f"{time.monotonic() - t:.2f}",
             "X-Vgripd-Focus": f"{figures[j]['focus']:.1f}",
