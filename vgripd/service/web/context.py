@@ -31,8 +31,8 @@ from vgripd.types import ImagePair
 
 log = logging.getLogger(__name__)
 
-#: A grab for the page (preview, trial, setup) that takes longer is given up (the camera is
-#: then the job's problem).
+#: A page (preview, trial, setup) waits this long for its grab, then answers as for a failed
+#: one; the grab itself goes on and is judged by the camera supervisor, as a job's is.
 PREVIEW_GRAB_TIMEOUT_S = 2.0
 NO_CONFIG_FILE = "this daemon was not started from a config file"
 
@@ -117,8 +117,11 @@ class CameraTurns:
             yield self.idle()
 
     async def grab(self) -> ImagePair:
-        """A pair grabbed now; only inside ``between_jobs`` that found the daemon idle."""
-        pair: ImagePair = await self._daemon.rooms.cameras.camera.grab(PREVIEW_GRAB_TIMEOUT_S)
+        """A pair grabbed now through the camera supervisor (``grab_for_page``: a grab that
+        hangs is recovered from as a job's is), waited for ``PREVIEW_GRAB_TIMEOUT_S`` at most
+        (``CameraError`` "busy" after that); only inside ``between_jobs`` that found the
+        daemon idle."""
+        pair = await self._daemon.rooms.cameras.grab_for_page(PREVIEW_GRAB_TIMEOUT_S)
         self.grabs += 1
         return pair
 

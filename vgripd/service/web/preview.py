@@ -6,14 +6,18 @@
     GET /api/cameras/{j}/preview.jpg camera j's live picture (over-exposure red, the marks the
                                      finder sees circled)
 
-A preview grabs through the same camera as the jobs (in the worker process), so it is taken
-only while the daemon is idle (no job, no several-view job between views, no hand-eye walk), at
-most ``MAX_PREVIEW_FPS`` grabs a second whatever the number of pages watching (they share the last
-picture), one at a time, and drawn in the image helper process. During a job a page gets the
-last picture again (its ``X-Vgripd-Preview-Age-S`` header says how old). A trigger that arrives
-while a preview grab runs waits for that grab (one grab, a few tens of ms with a real camera):
-the preview never starts while a job runs, but the camera is one. The camera's turns between
-jobs (shared with the trials, the setup and the camera settings) are ``context.CameraTurns``.
+A preview grabs through the same camera as the jobs (in the worker process), through the
+camera supervisor (``CameraSupervisor.grab_for_page``), so it is taken only while the daemon is
+idle (no job, no several-view job between views, no hand-eye walk), at most ``MAX_PREVIEW_FPS``
+grabs a second whatever the number of pages watching (they share the last picture), one at a
+time, and drawn in the image helper process. During a job a page gets the last picture again
+(its ``X-Vgripd-Preview-Age-S`` header says how old). A page waits for its grab
+``context.PREVIEW_GRAB_TIMEOUT_S`` at most, then answers as for a failed grab (the last picture,
+or 503 "camera busy"); the grab goes on, is judged hung only as a job's is (by
+``daemon.job_timeout_s``) and is taken by the next preview. A trigger that arrives while a
+preview grab runs waits for that grab (one grab, a few tens of ms with a real camera): the
+preview never starts while a job runs, but the camera is one. The camera's turns between jobs
+(shared with the trials, the setup and the camera settings) are ``context.CameraTurns``.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ class PreviewRoutes:
     def __init__(self, ctx: WebContext) -> None:
         self.ctx = ctx
         self._last: tuple[float, list[bytes], list[dict[str, Any]]] = (0.0, [], [])
+        self._failed = ""  # why the last preview grab gave no picture ("" when it gave one)
 
     def add(self, router: web.UrlDispatcher) -> None:
         router.add_get("/api/cameras", self.cameras)
@@ -62,7 +67,9 @@ class PreviewRoutes:
             except (VgripError, TimeoutError) as err:
                 log.info("web view: preview grab failed: %s", err)
                 self._last = (time.monotonic(), self._last[1], self._last[2])
+                self._failed = str(err)
                 return
+            self._failed = ""
             jpegs, figures = await self.ctx.images.call(render_preview, list(pair.views))
             self._last = (time.monotonic(), jpegs, figures)
 
@@ -75,7 +82,8 @@ class PreviewRoutes:
         j = int(text)
         if j >= len(jpegs):
             raise web.HTTPServiceUnavailable(text="no preview yet (a job runs, or the camera "
-                                                  "cannot grab)")
+                                                  "cannot grab)" + (f": {self._failed}"
+                                                                    if self._failed else ""))
         return web.Response(body=jpegs[j], content_type="image/jpeg", headers={
             "Cache-Control": "no-store", "X-Vgripd-Preview-Age-S": f"{time.monotonic() - t:.2f}",
             "X-Vgripd-Focus": f"{figures[j]['focus']:.1f}",

@@ -10,6 +10,9 @@ then runs), grabbing with a deadline, recovery after a hung grab, and the system
 - The worker process died while it held the camera (``lost``): the camera is opened again in
   the new worker at once, in the background, with back-off until it opens, so the next job
   finds it open (a GigE camera first waits out the dead process's control channel).
+- The web view's pages grab between jobs through ``grab_for_page``: the page waits its own
+  short time, the grab is given a job's and judged by the same rule (a slow camera is never
+  taken for a hung one), a job waits for it, a one-off failure marks nothing.
 - ``down`` says why no job can get a frame: the camera was lost with its worker and is not
   open again yet, or ``DOWN_AFTER_FAILURES`` grabs in a row failed. Cleared when the camera is
   open again or a grab delivers. The daemon's health reports it at once; the watchdog stops
@@ -44,6 +47,9 @@ CAMERA_HUNG_GRACE_S = 1.0
 # Grabs in a row that failed before the camera counts as down (one failure may be one lost
 # frame; the GenICam drivers reopen a camera after as many grabs without a frame).
 DOWN_AFTER_FAILURES = 2
+# Stopping: a page's grab still running is given this long to end, as the web view's requests
+# are (then it is cancelled, as a job's grab is at shutdown).
+PAGE_GRAB_STOP_WAIT_S = 1.0
 # Opening the camera again after its worker died: first retry after the first, doubling up to
 # the second (seconds).
 REOPEN_BACKOFF_S = (0.5, 8.0)
@@ -68,6 +74,7 @@ class CameraSupervisor:
         self._lock = asyncio.Lock()  # one open/close of the camera at a time
         self._recovery: asyncio.Task[None] | None = None
         self._reopening: asyncio.Task[None] | None = None
+        self._page_grab: asyncio.Task[ImagePair] | None = None  # the web view's, see grab_for_page
         #: Why no job can get a frame now ("" while grabs can deliver); since when (monotonic).
         self.down = ""
         self.down_since = 0.0
@@ -104,6 +111,7 @@ class CameraSupervisor:
             log.info("camera %s open", kind)
 
     async def close(self) -> None:
+        await self._end_page_grab()
         if self.is_open:
             try:
                 await self.camera.close()
@@ -179,6 +187,12 @@ class CameraSupervisor:
                   "restarts vgripd", why)
         self._changed()  # status line and waiters see it
 
+    def _judge_late(self, waited_s: float, timeout_s: float) -> None:
+        """A grab given ``timeout_s`` failed after ``waited_s``: when it ran out of its time,
+        check whether the camera hangs (the one rule for a job's grab and a page's)."""
+        if timeout_s > 0 and waited_s >= 0.9 * timeout_s:
+            self._ran_out(waited_s)
+
     def _ran_out(self, waited_s: float) -> None:
         """A grab did not deliver in time: check in the background whether it hangs."""
         if not self.accepting:
@@ -219,7 +233,9 @@ class CameraSupervisor:
     async def acquire(self, trigger: Trigger, deadline_ns: int,
                       view: CaptureView | None = None) -> ImagePair:
         """One grab for ``trigger`` within ``deadline_ns``, with the flange pose it (or the
-        view) carries; ``CameraError`` when the camera is faulty, not open or fails."""
+        view) carries; ``CameraError`` when the camera is faulty, not open or fails. A page's
+        grab still running is waited for first (within the job's time)."""
+        await self._after_page_grab(deadline_ns)
         recovery = self._recovery
         if recovery is not None and not recovery.done():
             await asyncio.shield(recovery)  # the camera is being opened again
@@ -243,9 +259,7 @@ class CameraSupervisor:
             pair: ImagePair = await self.camera.grab(remaining_s, **hints)
         except (CameraError, asyncio.CancelledError) as err:
             self._grab_failed(err)
-            waited_s = time.monotonic() - t0
-            if remaining_s > 0 and waited_s >= 0.9 * remaining_s:  # out of time: hung?
-                self._ran_out(waited_s)
+            self._judge_late(time.monotonic() - t0, remaining_s)
             raise
         except Exception as err:  # the worker process died during the grab, twice
             self._grab_failed(err)
@@ -255,6 +269,87 @@ class CameraSupervisor:
         if pair.T_base_flange is None and flange is not None:
             pair = dataclasses.replace(pair, T_base_flange=flange)
         return pair
+
+    # --- the web view's grabs between jobs ---------------------------------------------
+
+    def grab_timeout_s(self) -> float:
+        """The longest a page's grab may take before it counts as run out: a job's whole time
+        (``daemon.job_timeout_s``), the most a job's grab is given."""
+        return float(self.config.daemon.job_timeout_s)
+
+    async def grab_for_page(self, wait_s: float) -> ImagePair:
+        """One grab for a page of the web view between jobs (preview, trial, setup), waited
+        for ``wait_s`` at most: the pages grab through here, so the camera has one owner.
+
+        The grab itself is given ``grab_timeout_s()`` and judged as a job's is: only when it
+        runs out of that time is the camera checked for a hang (a hung camera is opened again,
+        or found faulty, whoever grabbed). A page that stops waiting earlier gets
+        ``CameraError`` ("busy") while the grab goes on; the next page's call takes that same
+        grab rather than starting another, and a job waits for it (one grab at a time). A
+        failure does not count towards ``down`` (a page's one-off failure marks nothing for
+        the jobs); a delivered frame clears it. ``CameraError`` also when the camera is
+        faulty, not open, being opened again or fails."""
+        grab = self._page_grab
+        if grab is None or grab.done():
+            recovery = self._recovery
+            if recovery is not None and not recovery.done():
+                raise CameraError(f"camera {self.name()}: being opened again after a hang")
+            if self.fault:
+                raise CameraError(f"camera {self.name()} is unusable: {self.fault}")
+            if not self.is_open:
+                raise CameraError(f"camera {self.name()} is not open"
+                                  + (f": {self.error}" if self.error else ""))
+            # Not a background task: it may end its device call at shutdown (``close``).
+            grab = asyncio.create_task(self._page_grab_run(), name="vgripd-page-grab")
+            grab.add_done_callback(_seen)
+            self._page_grab = grab
+        await asyncio.wait({grab}, timeout=wait_s)  # never cancels the grab
+        if not grab.done():
+            raise CameraError(f"camera {self.name()} is busy: no image within the page's "
+                              f"{wait_s:g} s (the grab goes on, for up to daemon.job_timeout_s"
+                              f" = {self.grab_timeout_s():g} s)")
+        pair: ImagePair = grab.result()
+        return pair
+
+    async def _page_grab_run(self) -> ImagePair:
+        timeout_s = self.grab_timeout_s()
+        t0 = time.monotonic()
+        try:
+            pair: ImagePair = await self.camera.grab(timeout_s)
+        except CameraError:
+            self._judge_late(time.monotonic() - t0, timeout_s)
+            raise
+        self._up("a grab for the web view delivered")
+        return pair
+
+    async def _end_page_grab(self) -> None:
+        """Stopping: a page's grab still running gets ``PAGE_GRAB_STOP_WAIT_S`` to end."""
+        grab = self._page_grab
+        if grab is None or grab.done():
+            return
+        await asyncio.wait({grab}, timeout=PAGE_GRAB_STOP_WAIT_S)
+        grab.cancel()
+        await asyncio.gather(grab, return_exceptions=True)
+
+    async def _after_page_grab(self, deadline_ns: int) -> None:
+        """A job's grab follows a page's grab still running (the camera takes one at a time),
+        within the job's time; ``CameraError`` when the page's outlasts it."""
+        grab = self._page_grab
+        if grab is None or grab.done():
+            return
+        await asyncio.wait({grab}, timeout=max(0.0, (deadline_ns - time.monotonic_ns()) / 1e9))
+        if not grab.done():
+            err = CameraError(f"camera {self.name()}: a grab for the web view still ran at "
+                              "the job's deadline")
+            self._grab_failed(err)
+            raise err
+
+
+def _seen(task: asyncio.Task[Any]) -> None:
+    """Mark a background grab's failure as read (the page that waited for it, if any, said
+    it)."""
+    if not task.cancelled():
+        task.exception()
 
 
 async def watchdog(period_s: float, health_problem: Callable[[], str],
