@@ -354,3 +354,22 @@ async def test_a_job_triggered_while_a_preview_grab_runs_takes_its_own_frame(
         assert stub.exposed[job.result.job_id] > triggered_ns  # its own frame, not the page's
         assert (camera.grabs, camera.overlaps, camera.opens) == (2, 0, 1)
         assert daemon.healthy()
+
+
+async def test_a_fresh_page_grab_never_takes_a_frame_exposed_before_it_asked(
+        watchdog_socket: tuple[str, socket.socket]) -> None:
+    """A trial or a calibration set taken with the robot's pose (``fresh``) while a preview's
+    grab still runs: that grab is waited out, not taken; the frame is exposed after the call."""
+    path, _ = watchdog_socket
+    async with camera_daemon(path, lambda config: SlowCamera(config, SLOW_GRAB_S),
+                             SLOW_JOB_TIMEOUT_S) as (daemon, camera):
+        cameras = daemon.rooms.cameras
+        with pytest.raises(CameraError, match="busy"):
+            await cameras.grab_for_page(0.1)  # a preview that stopped waiting
+        assert camera.running == 1
+        asked_ns = time.monotonic_ns()
+        pair = await cameras.grab_for_page(WAIT_S, fresh=True)
+        assert pair.t_mono_ns > asked_ns
+        assert (camera.grabs, camera.overlaps, camera.opens) == (2, 0, 1)
+        taken = await cameras.grab_for_page(WAIT_S)  # a preview may share: here none runs
+        assert taken.t_mono_ns > pair.t_mono_ns

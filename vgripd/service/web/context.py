@@ -116,12 +116,14 @@ class CameraTurns:
         async with self._lock:
             yield self.idle()
 
-    async def grab(self) -> ImagePair:
+    async def grab(self, *, fresh: bool = False) -> ImagePair:
         """A pair grabbed now through the camera supervisor (``grab_for_page``: a grab that
         hangs is recovered from as a job's is), waited for ``PREVIEW_GRAB_TIMEOUT_S`` at most
         (``CameraError`` "busy" after that); only inside ``between_jobs`` that found the
-        daemon idle."""
-        pair = await self._daemon.rooms.cameras.grab_for_page(PREVIEW_GRAB_TIMEOUT_S)
+        daemon idle. The preview may take a grab another page started; ``fresh`` (trials,
+        setup) never does: its frame is exposed after the call."""
+        pair = await self._daemon.rooms.cameras.grab_for_page(PREVIEW_GRAB_TIMEOUT_S,
+                                                              fresh=fresh)
         self.grabs += 1
         return pair
 
@@ -132,7 +134,7 @@ class CameraTurns:
             if not idle:
                 return None
             try:
-                return await self.grab()
+                return await self.grab(fresh=True)
             except (VgripError, TimeoutError) as err:
                 log.info("web view: grab for a trial failed: %s", err)
                 return None

@@ -277,7 +277,7 @@ class CameraSupervisor:
         (``daemon.job_timeout_s``), the most a job's grab is given."""
         return float(self.config.daemon.job_timeout_s)
 
-    async def grab_for_page(self, wait_s: float) -> ImagePair:
+    async def grab_for_page(self, wait_s: float, *, fresh: bool = False) -> ImagePair:
         """One grab for a page of the web view between jobs (preview, trial, setup), waited
         for ``wait_s`` at most: the pages grab through here, so the camera has one owner.
 
@@ -288,8 +288,19 @@ class CameraSupervisor:
         grab rather than starting another, and a job waits for it (one grab at a time). A
         failure does not count towards ``down`` (a page's one-off failure marks nothing for
         the jobs); a delivered frame clears it. ``CameraError`` also when the camera is
-        faulty, not open, being opened again or fails."""
+        faulty, not open, being opened again or fails.
+
+        ``fresh``: the frame must be exposed after this call (a trial, a calibration set taken
+        with the robot's pose): a grab already running is waited out, not taken, and a new
+        one started, all within ``wait_s``."""
+        t_end = time.monotonic() + wait_s
         grab = self._page_grab
+        if fresh and grab is not None and not grab.done():
+            await asyncio.wait({grab}, timeout=wait_s)
+            if not grab.done():
+                raise CameraError(f"camera {self.name()} is busy: an earlier grab for the web "
+                                  f"view did not end within {wait_s:g} s")
+            wait_s = max(0.0, t_end - time.monotonic())
         if grab is None or grab.done():
             recovery = self._recovery
             if recovery is not None and not recovery.done():
