@@ -59,7 +59,6 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from vgripd.config import Config
-from vgripd.errors import ConfigError, NotCalibratedError, NotTaughtError
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.host.heap import freeze_start_up_heap
 from vgripd.service.host.sdnotify import Notifier, watchdog_interval_s
@@ -80,6 +79,7 @@ from vgripd.service.worker.cameras import (
 )
 from vgripd.service.worker.process import DEFAULT_PROCESSOR, WorkerClient
 from vgripd.service.worker.recorder import Recorder
+from vgripd.vision.readiness import ready, recipe_readiness
 
 log = logging.getLogger("vgripd")
 
@@ -99,34 +99,11 @@ class RunState(enum.Enum):
     STOPPED = "stopped"
 
 
-def _make_pipeline(config: Config) -> Processor:
-    from vgripd.vision.checked import CheckedPipeline  # heavy (OpenCV); only the daemon
+def _in_process(config: Config) -> Processor:
+    from vgripd.vision.checked import CheckedPipeline  # heavy (OpenCV); only in-process
 
     pipeline: Processor = CheckedPipeline(config)
     return pipeline
-
-
-def _recipe_pipelines(config: Config, pipeline: Processor | str | None,
-                      problems: dict[int, str], untaught: set[int]) -> dict[int, Processor]:
-    """Each recipe's processor (``pipeline`` when it is one), judging each recipe's config
-    once: a recipe that cannot run goes to ``problems`` (and to ``untaught`` when only its
-    reference is missing); a bad recipe section is a ``ConfigError`` naming it."""
-    pipelines: dict[int, Processor] = {}
-    for number in config.recipe_numbers():
-        if pipeline is not None and not isinstance(pipeline, str):
-            pipelines[number] = pipeline
-            continue
-        try:
-            pipelines[number] = _make_pipeline(config.for_recipe(number))
-        except NotCalibratedError as err:
-            problems[number] = str(err)
-            if isinstance(err, NotTaughtError):
-                untaught.add(number)
-        except ConfigError as err:  # a template file, an ArUco id: name the recipe
-            if not number:
-                raise
-            raise ConfigError(f"recipes.{number}.{err}") from None
-    return pipelines
 
 
 class Daemon:
@@ -160,12 +137,20 @@ class Daemon:
         self.recipe_problems: dict[int, str] = {}
         #: The recipes among them whose only lack is the taught reference.
         self.untaught: set[int] = set()
-        pipelines = _recipe_pipelines(config, pipeline, self.recipe_problems, self.untaught)
+        pipelines: dict[int, Processor] = {}
         self._worker: WorkerClient | None = None
-        if isinstance(pipeline, str) or (pipeline is None and config.daemon.worker):
+        if pipeline is not None and not isinstance(pipeline, str):
+            pipelines = dict.fromkeys(config.recipe_numbers(), pipeline)  # taken as it is
+        elif pipeline is not None or config.daemon.worker:  # judged here, built there
+            _, problems, untaught = recipe_readiness(config, ready)
+            self.recipe_problems.update(problems)
+            self.untaught |= untaught
             self._worker = WorkerClient(config, pipeline or DEFAULT_PROCESSOR, camera.describe())
             camera = self._worker.camera  # the driver runs in the worker
-            pipelines = {}  # built above only to judge the config; the worker runs them
+        else:  # built here, once (each pipeline judges its recipe as readiness does)
+            pipelines, problems, untaught = recipe_readiness(config, _in_process)
+            self.recipe_problems.update(problems)
+            self.untaught |= untaught
 
         self.run_state = RunState.CREATED
         self.freeze_heap_at_ready = False  # `vgripd run` sets it (a process of its own)

@@ -20,8 +20,10 @@ no pipeline (no finders, no OpenCV). Only a template feature loads OpenCV, to re
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -33,6 +35,8 @@ from vgripd.geometry.stereo import StereoRig
 from vgripd.types import FloatArray
 from vgripd.vision import scene
 from vgripd.vision.pose_checks import limit_point
+
+T = TypeVar("T")
 
 #: A grey template image, (h, w) uint8.
 Template = npt.NDArray[np.uint8]
@@ -94,15 +98,18 @@ def ready(config: Config) -> Ready:
                  T_base_grip_ref, templates)
 
 
-def recipe_readiness(config: Config) -> tuple[dict[int, str], set[int]]:
-    """Every recipe judged by ``ready``: why each one that cannot run cannot (by number), and
-    the numbers among them whose only lack is the taught reference. A bad section is a
+def recipe_readiness(config: Config, build: Callable[[Config], T]
+                     ) -> tuple[dict[int, T], dict[int, str], set[int]]:
+    """Every recipe judged by ``build`` (``ready``, or a pipeline class, which calls it):
+    what it built for each recipe that can run, why each other one cannot (by number), and
+    the numbers among those whose only lack is the taught reference. A bad section is a
     ``ConfigError`` naming its recipe (``recipes.2.object.features[0].template: ...``)."""
+    built: dict[int, T] = {}
     problems: dict[int, str] = {}
     untaught: set[int] = set()
     for number in config.recipe_numbers():
         try:
-            ready(config.for_recipe(number))
+            built[number] = build(config.for_recipe(number))
         except NotCalibratedError as err:
             problems[number] = str(err)
             if isinstance(err, NotTaughtError):
@@ -111,7 +118,7 @@ def recipe_readiness(config: Config) -> tuple[dict[int, str], set[int]]:
             if not number:
                 raise
             raise ConfigError(f"recipes.{number}.{err}") from None
-    return problems, untaught
+    return built, problems, untaught
 
 
 def load_template(path: str, where: str) -> Template:
