@@ -107,7 +107,9 @@ def _in_process(config: Config) -> Processor:
 
 
 class Daemon:
-    """One vgripd service instance. Construction validates drivers and does no I/O.
+    """One vgripd service instance. Construction validates drivers and judges each recipe
+    (``vgripd.vision.readiness``; reading template files is its only I/O). It builds the
+    pipelines only when they run in this process.
 
     Raises ``ConfigError`` for a bad driver type or options. A missing/invalid calibration
     (``NotCalibratedError``) does not stop the service: every job then answers
