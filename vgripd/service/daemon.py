@@ -32,6 +32,9 @@ Lifecycle (start, READY, stop, shutdown order) stays here.
   the camera it held is opened again in the new one at once (``CameraSupervisor.lost``).
   ``daemon.worker = false`` (or a ``Processor`` object passed in) keeps the old in-process
   path: driver thread, single-thread job executor.
+- The recipes that cannot run (``recipe_problems``, ``untaught``) are judged at construction
+  by ``vgripd.vision.readiness``, which builds no pipeline: the pipelines are built where they
+  run, in the worker, or here, once, on the in-process path.
 - Start-up opens the camera and every link at once (a silent controller delays no other link
   and not the status endpoint); a link that cannot start is shown FAILED while the others
   serve. READY=1 follows the first outcome of each.
