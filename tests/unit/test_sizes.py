@@ -34,7 +34,7 @@ LARGE_MODULES = {
 LARGE_CLASSES = {
     "vgripd/vision/views_locator.py:ViewsLocator": (475, "the several-camera pipeline, one job "
                                                     "state across its stages"),
-    "vgripd/vision/pipeline.py:Pipeline": (431, "the one-camera pipeline; its stages share the "
+    "vgripd/vision/pipeline.py:Pipeline": (410, "the one-camera pipeline; its stages share the "
                                            "job state (vision/jobstate.py)"),
     "drivers/links/opcua.py:OpcUaLink": (426, "the OPC UA link's methods and address-space "
                                          "callbacks; the server classes are the next cut"),

@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
                               f"{args.config}")
         config = load_config(snapshot.main, snapshot.files)
         print(f"snapshot {snapshot.digest()}")
-    try:  # drivers validated and every recipe's pipeline built, no I/O
+    try:  # drivers validated and every recipe judged (vgripd.vision.readiness)
         daemon = Daemon(config)
     except ConfigError as err:  # a template file, driver options: name the file judged
         raise ConfigError(f"{args.config}: {err}") from None

@@ -64,7 +64,7 @@ from vgripd.config.recipes import (
     unknown_recipe,
 )
 from vgripd.config.service import DaemonConfig, RecordConfig, StatusConfig
-from vgripd.config.top import Config, config_from_dict
+from vgripd.config.top import Config, config_from_dict, single_camera_problem
 from vgripd.config.vision import PickingConfig, PickPointConfig, VisionConfig
 from vgripd.configbase import DriverSection, format_validation_error
 
@@ -79,5 +79,6 @@ __all__ = [
     "RecipeConfig", "RecordConfig", "ReferenceConfig", "RigConfig", "StatusConfig",
     "StereoConfig", "TemplateFeature", "Vec3", "check_calibration_files", "config_from_dict",
     "format_validation_error", "load_config", "measured_references", "read_config_data",
+    "single_camera_problem",
     "VisionConfig", "unknown_recipe",
 ]

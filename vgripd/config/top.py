@@ -25,6 +25,7 @@ from vgripd.config.conveyor import ConveyorConfig
 from vgripd.config.objects import (
     DEMO_OBJECT,
     DEMO_REFERENCE,
+    MIN_PNP_FEATURES,
     ObjectConfig,
     ReferenceConfig,
     marker_problems,
@@ -122,9 +123,9 @@ class Config(Model):
         per camera setup, and ArUco ids are unique in known dictionaries. Judged once the cell
         is calibrated (without a calibration the jobs answer NOT_CALIBRATED anyway).
 
-        Enough identified features for one camera (PnP) stays the pipeline's to judge: a cell
-        calibrating its cameras before its object loads a single-camera config with circle
-        marks on purpose."""
+        Enough identified features for one camera (PnP) is judged before a job runs, not at
+        load (``single_camera_problem``): a cell calibrating its cameras before its object
+        loads a single-camera config with circle marks on purpose."""
         cal = self.calibration
         if cal is None:
             return self
@@ -263,6 +264,22 @@ class Config(Model):
         if number not in self._recipe_configs:  # a copy made without validation
             self._recipe_configs[number] = Config.model_validate(self._recipe_data(number))
         return self._recipe_configs[number]
+
+
+def single_camera_problem(config: Config) -> str:
+    """Why one camera cannot locate the object ("" when it can, or the cell has more cameras
+    or views): a single-camera (PnP) pose needs ``MIN_PNP_FEATURES`` identified features, since
+    circle marks cannot be told apart in one image. Not a load rule (``_features_findable``);
+    ``vgripd.vision.readiness`` raises it as a ``ConfigError`` naming ``object.features``."""
+    cal = config.calibration
+    if cal is None or cal.cameras is not None or cal.right is not None or config.vision.views > 1:
+        return ""
+    identified = sum(f.kind != "circle" for f in config.object.features)
+    if identified >= MIN_PNP_FEATURES:
+        return ""
+    return ("object.features: single-camera (PnP) mode needs at least "
+            f"{MIN_PNP_FEATURES} aruco/template features, the object has {identified} "
+            "(circle marks cannot be told apart in one image)")
 
 
 def _problem_lines(err: ValidationError) -> list[str]:

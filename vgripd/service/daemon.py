@@ -32,6 +32,9 @@ Lifecycle (start, READY, stop, shutdown order) stays here.
   the camera it held is opened again in the new one at once (``CameraSupervisor.lost``).
   ``daemon.worker = false`` (or a ``Processor`` object passed in) keeps the old in-process
   path: driver thread, single-thread job executor.
+- The recipes that cannot run (``recipe_problems``, ``untaught``) are judged at construction
+  by ``vgripd.vision.readiness``, which builds no pipeline: the pipelines are built where they
+  run, in the worker, or here, once, on the in-process path.
 - Start-up opens the camera and every link at once (a silent controller delays no other link
   and not the status endpoint); a link that cannot start is shown FAILED while the others
   serve. READY=1 follows the first outcome of each.
@@ -59,7 +62,6 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from vgripd.config import Config
-from vgripd.errors import ConfigError, NotCalibratedError, NotTaughtError
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.host.heap import freeze_start_up_heap
 from vgripd.service.host.sdnotify import Notifier, watchdog_interval_s
@@ -80,6 +82,7 @@ from vgripd.service.worker.cameras import (
 )
 from vgripd.service.worker.process import DEFAULT_PROCESSOR, WorkerClient
 from vgripd.service.worker.recorder import Recorder
+from vgripd.vision.readiness import ready, recipe_readiness
 
 log = logging.getLogger("vgripd")
 
@@ -99,38 +102,17 @@ class RunState(enum.Enum):
     STOPPED = "stopped"
 
 
-def _make_pipeline(config: Config) -> Processor:
-    from vgripd.vision.checked import CheckedPipeline  # heavy (OpenCV); only the daemon
+def _in_process(config: Config) -> Processor:
+    from vgripd.vision.checked import CheckedPipeline  # heavy (OpenCV); only in-process
 
     pipeline: Processor = CheckedPipeline(config)
     return pipeline
 
 
-def _recipe_pipelines(config: Config, pipeline: Processor | str | None,
-                      problems: dict[int, str], untaught: set[int]) -> dict[int, Processor]:
-    """Each recipe's processor (``pipeline`` when it is one), judging each recipe's config
-    once: a recipe that cannot run goes to ``problems`` (and to ``untaught`` when only its
-    reference is missing); a bad recipe section is a ``ConfigError`` naming it."""
-    pipelines: dict[int, Processor] = {}
-    for number in config.recipe_numbers():
-        if pipeline is not None and not isinstance(pipeline, str):
-            pipelines[number] = pipeline
-            continue
-        try:
-            pipelines[number] = _make_pipeline(config.for_recipe(number))
-        except NotCalibratedError as err:
-            problems[number] = str(err)
-            if isinstance(err, NotTaughtError):
-                untaught.add(number)
-        except ConfigError as err:  # a template file, an ArUco id: name the recipe
-            if not number:
-                raise
-            raise ConfigError(f"recipes.{number}.{err}") from None
-    return pipelines
-
-
 class Daemon:
-    """One vgripd service instance. Construction validates drivers and does no I/O.
+    """One vgripd service instance. Construction validates drivers and judges each recipe
+    (``vgripd.vision.readiness``; reading template files is its only I/O). It builds the
+    pipelines only when they run in this process.
 
     Raises ``ConfigError`` for a bad driver type or options. A missing/invalid calibration
     (``NotCalibratedError``) does not stop the service: every job then answers
@@ -160,12 +142,20 @@ class Daemon:
         self.recipe_problems: dict[int, str] = {}
         #: The recipes among them whose only lack is the taught reference.
         self.untaught: set[int] = set()
-        pipelines = _recipe_pipelines(config, pipeline, self.recipe_problems, self.untaught)
+        pipelines: dict[int, Processor] = {}
         self._worker: WorkerClient | None = None
-        if isinstance(pipeline, str) or (pipeline is None and config.daemon.worker):
+        if pipeline is not None and not isinstance(pipeline, str):
+            pipelines = dict.fromkeys(config.recipe_numbers(), pipeline)  # taken as it is
+        elif pipeline is not None or config.daemon.worker:  # judged here, built there
+            _, problems, untaught = recipe_readiness(config, ready)
+            self.recipe_problems.update(problems)
+            self.untaught |= untaught
             self._worker = WorkerClient(config, pipeline or DEFAULT_PROCESSOR, camera.describe())
             camera = self._worker.camera  # the driver runs in the worker
-            pipelines = {}  # built above only to judge the config; the worker runs them
+        else:  # built here, once (each pipeline judges its recipe as readiness does)
+            pipelines, problems, untaught = recipe_readiness(config, _in_process)
+            self.recipe_problems.update(problems)
+            self.untaught |= untaught
 
         self.run_state = RunState.CREATED
         self.freeze_heap_at_ready = False  # `vgripd run` sets it (a process of its own)

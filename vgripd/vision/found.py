@@ -4,13 +4,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
-import cv2
 import numpy as np
 
 from vgripd.config import Config
-from vgripd.errors import ConfigError
 from vgripd.types import FloatArray
 from vgripd.vision import features as ft
 
@@ -32,7 +29,8 @@ class Found:
 class _Finder:
     """The finders the object's features need, prepared once from the config."""
 
-    def __init__(self, config: Config, focal_px: float) -> None:
+    def __init__(self, config: Config, focal_px: float,
+                 templates: dict[int, ft.UInt8Image]) -> None:
         vision = config.vision
         near, far = vision.working_distance_mm
         self.specs: list[ft.CircleSpec] = []
@@ -44,8 +42,8 @@ class _Finder:
                 circles.setdefault(f.polarity, []).append(f.diameter_mm)
             elif f.kind == "aruco":  # ids unique, dictionaries known: judged by the config
                 self.aruco.setdefault(f.dictionary, {})[f.marker_id] = i
-            else:
-                self.templates.append((i, _load_template(f.template, f"object.features[{i}]")))
+            else:  # read (and judged readable) by vgripd.vision.readiness
+                self.templates.append((i, templates[i]))
         for polarity, diameters in circles.items():
             self.specs.append(
                 ft.CircleSpec(
@@ -80,14 +78,3 @@ class _Finder:
         circles = np.vstack([b.xy for b in blobs]) if blobs else np.zeros((0, 2))
         return Found(identified, circles, blobs, tuple(markers))
 
-
-def _load_template(path: str, where: str) -> ft.UInt8Image:
-    """The template image; a relative path is taken from the working directory (as every path
-    of the config is), so the message names the file actually tried."""
-    file = Path(path)
-    image = cv2.imread(str(file), cv2.IMREAD_GRAYSCALE) if file.is_file() else None
-    if image is None:
-        why = "not an image" if file.is_file() else "no such file"
-        tried = "" if file.is_absolute() else f", tried {file.absolute()}"
-        raise ConfigError(f"{where}.template: cannot read image file {path!r} ({why}{tried})")
-    return np.asarray(image, dtype=np.uint8)

@@ -33,7 +33,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vgripd.config import MIN_PNP_FEATURES, Config
-from vgripd.errors import ConfigError, GeometryError, NotCalibratedError
+from vgripd.errors import GeometryError, NotCalibratedError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.geometry.orientation import horn, horn_robust, pnp
 from vgripd.geometry.stereo import StereoRig
@@ -45,7 +45,8 @@ from vgripd.vision import features as ft
 from vgripd.vision import picklist, scene
 from vgripd.vision.found import Found, _Finder
 from vgripd.vision.jobstate import PoseEstimate, StereoPoints, _Job
-from vgripd.vision.pose_checks import Measurement, check_pose, limit_point
+from vgripd.vision.pose_checks import Measurement, check_pose
+from vgripd.vision.readiness import ready
 from vgripd.vision.rigcheck import rig_verdict
 from vgripd.vision.views_locator import ViewsLocator
 
@@ -64,43 +65,27 @@ class _Reject(Exception):
 class Pipeline:
     """The configured vision chain; construct once, call :meth:`process` per image pair.
 
-    Raises
-    ------
-    NotCalibratedError
-        Calibration missing or invalid, or (CAD object) no taught reference.
-    ConfigError
-        Unknown vendor, unreadable template, or single-camera calibration with fewer than
-        four identified (ArUco/template) features: circle marks carry no identity in one image.
+    Raises what ``vgripd.vision.readiness.ready`` raises for a config that cannot run jobs
+    (``NotCalibratedError``, ``ConfigError``).
     """
 
     def __init__(self, config: Config) -> None:
         # Several views of one robot-mounted camera are a multi-camera cell of N views; their
         # taught flange poses (if any) let `vgripd check` place the object in each view.
         self.view_poses = tuple(scene.matrix_from_pose(p) for p in config.vision.view_poses)
-        config = scene.views_config(config)
+        judged = ready(config)  # every rule a config must meet to run jobs (its docstring)
+        config = judged.config
         self.config = config
-        self.left, self.right = scene.camera_models(config)
-        self.rig: StereoRig | None = scene.stereo_rig(config)
+        self.left, self.right = judged.left, judged.right
+        self.rig: StereoRig | None = judged.rig
         self.names = scene.feature_names(config)
-        self.model = model_points(config)
-        self.T_base_obj_ref = scene.T_base_obj_ref(config)
+        self.model = judged.model
+        self.T_base_obj_ref = judged.T_base_obj_ref
         # Pick lists (docs/picklists.md): with pick points, "the grip" is each pick point.
         self.many = config.picking.max_objects > 1
-        picks = bool(config.picking.pick_points)
-        if picks and config.limits.point == "grip" and config.limits.point_mm is None:
-            self.limit_point, self.limit_point_name = None, "object origin"
-        else:
-            self.limit_point, self.limit_point_name = limit_point(config, self.model,
-                                                                  self.T_base_obj_ref)
-        self.T_base_grip_ref: FloatArray | None = None
-        if config.output.mode == "grip" and not picks:
-            if config.reference.grip is None:
-                raise NotCalibratedError(
-                    'reference.grip: output.mode = "grip" needs the grip pose taught on the '
-                    "reference object (vgripd teach --grip)"
-                )
-            self.T_base_grip_ref = scene.matrix_from_pose(config.reference.grip)
-        assert config.calibration is not None  # camera_models raised otherwise
+        self.limit_point, self.limit_point_name = judged.limit_point, judged.limit_point_name
+        self.T_base_grip_ref: FloatArray | None = judged.T_base_grip_ref
+        assert config.calibration is not None  # ready() raised otherwise
         self.fixed_T_base_camera = (
             scene.T_base_camera(config)
             if config.calibration.hand_eye.mounting == "fixed"
@@ -111,23 +96,18 @@ class Pipeline:
         self.diameters = np.array(
             [f.diameter_mm if f.kind == "circle" else 0.0 for f in config.object.features]
         )
-        identified = int((~self.is_circle).sum())
         # A multi-camera cell (calibration.cameras): its own path, one finder per camera. The
         # kinds of marks a pick list needs and unique ArUco ids the config judged at load.
         self.multi: ViewsLocator | None = None
         self.finders: list[_Finder] = []
+        templates = judged.templates
         if scene.is_multi_camera(config):
             self.multi = ViewsLocator(config, self.model, self.T_base_obj_ref)
-            self.finders = [_Finder(config, cam.fx) for cam in self.multi.cameras]
-        elif self.rig is None and identified < MIN_PNP_FEATURES:
-            raise ConfigError(
-                "object.features: single-camera (PnP) mode needs at least "
-                f"{MIN_PNP_FEATURES} aruco/template features, the object has {identified} "
-                "(circle marks cannot be told apart in one image)"
-            )
-        self.find_left = _Finder(config, self.left.fx)
+            self.finders = [_Finder(config, cam.fx, templates) for cam in self.multi.cameras]
+        self.find_left = _Finder(config, self.left.fx, templates)
         self.find_left.keep_all = self.many and self.rig is None
-        self.find_right = _Finder(config, self.right.fx) if self.right is not None else None
+        self.find_right = (_Finder(config, self.right.fx, templates)
+                           if self.right is not None else None)
 
     def T_base_camera(self, pair: ImagePair) -> FloatArray:
         """Pose of the left camera in the base frame when ``pair`` was taken (mm)."""
@@ -492,15 +472,6 @@ class Pipeline:
         T = result.T_cam_obj
         return PoseEstimate(T, used, result.ambiguous, residuals,
                             self.model[index] @ T[:3, :3].T + T[:3, 3])
-
-
-def model_points(config: Config) -> FloatArray:
-    """(n, 3) mm model points in feature order: ``reference.points_mm`` when taught (``reference``
-    definition), else the features' ``xyz_mm`` (``scene.object_points``)."""
-    taught = config.reference.points_mm
-    if config.object.definition == "reference" and taught is not None:
-        return np.array([taught[name] for name in scene.feature_names(config)], dtype=np.float64)
-    return scene.object_points(config)
 
 
 #: Rim vertices for predicting the imaged centre of a circle (bias error < 1e-4 px).

@@ -118,6 +118,15 @@ def object_points(cfg: Config) -> FloatArray:
     return np.array([f.xyz_mm for f in cfg.object.features], dtype=np.float64)
 
 
+def model_points(cfg: Config) -> FloatArray:
+    """(n, 3) mm model points in feature order: ``reference.points_mm`` when taught (``reference``
+    definition), else the features' ``xyz_mm`` (``object_points``)."""
+    taught = cfg.reference.points_mm
+    if cfg.object.definition == "reference" and taught is not None:
+        return np.array([taught[name] for name in feature_names(cfg)], dtype=np.float64)
+    return object_points(cfg)
+
+
 def T_base_obj_ref(cfg: Config) -> FloatArray:
     """The taught reference pose of the object in the base frame (4, 4).
 

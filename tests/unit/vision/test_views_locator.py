@@ -228,7 +228,6 @@ def test_identified_features_pair_by_identity_even_in_one_camera() -> None:
     """ArUco-like features carry their identity: seen by two cameras they are tracks without
     any epipolar search, seen by one they still enter the joint fit."""
     from vgripd.vision import scene
-    from vgripd.vision.pipeline import model_points
     from vgripd.vision.views_locator import ViewsLocator
 
     data = copy.deepcopy(DATA)
@@ -238,7 +237,7 @@ def test_identified_features_pair_by_identity_even_in_one_camera() -> None:
         for i, f in enumerate(DATA["object"]["features"])]
     cfg = config_from_dict(data)
     T_ref = scene.T_base_obj_ref(cfg)
-    multi = ViewsLocator(cfg, model_points(cfg), T_ref)
+    multi = ViewsLocator(cfg, scene.model_points(cfg), T_ref)
     truth = T_ref.copy()
     truth[:3, 3] += [4.0, -3.0, 2.0]
     view = multi.view(None)

@@ -180,7 +180,7 @@ def _load_processor(path: str, config: Config) -> Processor | None:
     try:
         processor: Processor = cls(config)
     except NotCalibratedError:
-        return None  # the daemon knows (it built one too) and answers NOT_CALIBRATED itself
+        return None  # the daemon judged it too (vision.readiness) and answers NOT_CALIBRATED
     return processor
 
 
