@@ -181,7 +181,7 @@ class _Child:
             target=ur_rtde_worker.main, name=f"ur_rtde {opts.host}", daemon=True,
             args=(child_conn, child_output, opts.host, opts.use_upper_range_registers,
                   opts.frequency_hz, opts.stale_after_s, opts.connect_timeout_s, last_seq,
-                  os.getpid(), opts.map_version == 4))
+                  ur_rtde_worker.link_child_setup(os.getpid()), opts.map_version == 4))
         self._child_conns: list[Connection] = [child_conn, child_output]
         self.messages: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue()
         self.exited: asyncio.Future[int] = asyncio.get_running_loop().create_future()

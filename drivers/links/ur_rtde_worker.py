@@ -48,7 +48,7 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from vgripd.peer.ur_registers import URRegisterMap
-from vgripd.service.host.lifetime import die_with_daemon
+from vgripd.service.host.children import ChildSetup, start_child
 
 RTDE_PORT = 30004
 
@@ -344,6 +344,13 @@ class _Session:
             self.step()
 
 
+def link_child_setup(daemon_pid: int) -> ChildSetup:
+    """How the link's process starts (``start_child``): it ends with the daemon and ignores a
+    terminal's SIGINT (the link closes it); it keeps the daemon's priority (it answers the
+    robot at the polling rate) and logs nothing itself (its output goes to the parent)."""
+    return ChildSetup(daemon_pid)
+
+
 def _redirect_output(output: Connection | None) -> None:
     """Send this process's stdout and stderr (C++ and Python alike) into the parent's pipe."""
     if output is None:
@@ -356,14 +363,15 @@ def _redirect_output(output: Connection | None) -> None:
 
 def main(conn: Connection, output: Connection | None, host: str, upper: bool,
          frequency_hz: float, stale_after_s: float, probe_timeout_s: float,
-         last_seq: int | None, daemon_pid: int | None = None, conveyor: bool = False) -> None:
+         last_seq: int | None, setup: ChildSetup | None = None, conveyor: bool = False
+         ) -> None:
     """Process entry point: connect, report ``up`` or ``error``, serve until closed or lost.
 
-    ``daemon_pid``: the process that spawned this one; the kernel kills this one when it dies.
+    ``setup``: the daemon's child set-up (``link_child_setup``: it ends with the daemon).
     ``conveyor``: the link's ``map_version = 4`` (the latch and the belt block).
     """
-    if daemon_pid is not None:
-        die_with_daemon(daemon_pid)
+    if setup is not None:
+        start_child(setup)
     _redirect_output(output)
     regs = URRegisterMap(upper, conveyor)
     peer = f"{host}:{RTDE_PORT}"

@@ -24,12 +24,12 @@ import pytest
 from tests.integration.test_daemon import Plc, Run, make_config
 from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon
+from vgripd.service.host.children import helper_niceness
 from vgripd.service.jobs.runner import JobState
 from vgripd.service.worker.process import (
     SHM_DIR,
     WORKER_NICE,
     WORKER_NICE_FLOOR,
-    helper_niceness,
     segments_of,
 )
 from vgripd.types import ImagePair, JobResult, Status

@@ -66,15 +66,11 @@ def child_main(argv: list[str]) -> None:
     import resource
     import runpy
 
-    from vgripd.service.host.lifetime import die_with_daemon
+    from vgripd.service.host.children import ChildSetup, start_child
 
     daemon_pid, cpu_s, args = int(argv[0]), int(argv[1]), argv[2:]
-    die_with_daemon(daemon_pid)
-    with contextlib.suppress(OSError, AttributeError):
-        if os.sched_getscheduler(0) != os.SCHED_IDLE:
-            os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
-    inherited = os.getpriority(os.PRIO_PROCESS, 0)
-    os.nice(min(19, max(inherited + CHILD_NICE_BELOW, CHILD_NICE_FLOOR)) - inherited)
+    start_child(ChildSetup(daemon_pid, nice_below=CHILD_NICE_BELOW,
+                           nice_floor=CHILD_NICE_FLOOR))
     _soft, hard = resource.getrlimit(resource.RLIMIT_CPU)
     limit = cpu_s if hard == resource.RLIM_INFINITY else min(cpu_s, hard)
     resource.setrlimit(resource.RLIMIT_CPU, (limit, hard))

@@ -35,7 +35,6 @@ import json
 import logging
 import multiprocessing
 import os
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -51,6 +50,7 @@ from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
 from vgripd.errors import CalibrationError, CameraError, ConfigError, VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.peer.jobcore import Command
+from vgripd.service.host.children import ChildSetup, end_pool, start_child
 from vgripd.service.host.commands import CommandTimeout, run_vgripd
 from vgripd.service.host.tasks import Background
 from vgripd.service.jobs.runner import JobRunner
@@ -58,6 +58,7 @@ from vgripd.service.links.handeye_walk import WalkServer, walk_refusal
 from vgripd.service.links.protocol import Trigger
 from vgripd.service.links.supervision import LinkSupervisor, link_names
 from vgripd.service.worker.cameras import CameraSupervisor
+from vgripd.service.worker.process import WORKER_NICE, WORKER_NICE_FLOOR
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger("vgripd.calib.walk")
@@ -66,15 +67,14 @@ log = logging.getLogger("vgripd.calib.walk")
 SOLVE_TIMEOUT_S = 600.0
 
 
-def _init_finder(daemon_pid: int) -> None:
-    """The board finder's process: ends with the daemon, runs below the worker."""
-    from vgripd.service.host.lifetime import die_with_daemon
-    from vgripd.service.worker.process import WORKER_NICE, WORKER_NICE_FLOOR, run_below_daemon
+#: A board search still running when the walk ends gets this long, then its process is ended.
+FINDER_STOP_S = 30.0
 
-    die_with_daemon(daemon_pid)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    run_below_daemon(WORKER_NICE, WORKER_NICE_FLOOR)
+
+def _finder_setup(daemon_pid: int) -> ChildSetup:
+    """The board finder's process: ends with the daemon, runs below the daemon as the worker
+    does (its SIGTERM ends it at once: it holds nothing)."""
+    return ChildSetup(daemon_pid, nice_below=WORKER_NICE, nice_floor=WORKER_NICE_FLOOR)
 
 
 class WalkRefused(VgripError):
@@ -269,13 +269,13 @@ class WalkMode:
         not hold the event loop's interpreter (called on the walk's record thread)."""
         if self._finder is None:
             self._finder = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context(
-                "spawn"), initializer=_init_finder, initargs=(os.getpid(),))
+                "spawn"), initializer=start_child, initargs=(_finder_setup(os.getpid()),))
         return self._finder.submit(detect, board, image, name).result()
 
     async def _close_finder(self) -> None:
         finder, self._finder = self._finder, None
         if finder is not None:  # waits for a search still running (off the loop)
-            await asyncio.to_thread(finder.shutdown, True, cancel_futures=True)
+            await asyncio.to_thread(end_pool, finder, FINDER_STOP_S)
 
     def _answered(self) -> None:
         self._announce()

@@ -20,7 +20,6 @@ import json
 import logging
 import multiprocessing
 import os
-import signal
 import threading
 from collections import OrderedDict
 from concurrent.futures import ProcessPoolExecutor
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from vgripd.config import Config
+from vgripd.service.host.children import ChildSetup, end_pool, start_child
 from vgripd.types import ImagePair, JobResult, Status
 
 log = logging.getLogger(__name__)
@@ -50,25 +50,22 @@ _pipeline: Any = None  # in the helper process: the Pipeline, or None when not c
 #: under the unit (daemon at -10), 10 by hand.
 WEB_IMAGES_NICE = 10
 WEB_IMAGES_NICE_FLOOR = 9
+#: A helper let go (a reload, a restart, the daemon's stop) finishes what it holds within
+#: this (a render: tens of milliseconds; a helper still starting: its start-up), then is ended.
+STOP_S = 30.0
 
 
-def _init_helper(config: Config, daemon_pid: int) -> None:
+def _init_helper(config: Config, setup: ChildSetup) -> None:
     """Helper process start: end with the daemon, build the pipeline once.
 
     The helper holds nothing worth saving (a cache of pictures), so it ends as soon as the
     daemon does: SIGTERM (systemd signals the whole unit on stop) ends it at once (the default
-    action), the daemon's death by any cause through the kernel (``die_with_daemon``). SIGINT
-    (a terminal's Ctrl-C to the process group) is left to the daemon, which closes the helper.
+    action), the daemon's death by any cause through the kernel. SIGINT (a terminal's Ctrl-C
+    to the process group) is left to the daemon, which closes the helper. Pictures for a
+    browser matter least: it runs below the worker, far below the daemon's loop.
     """
     global _pipeline
-    from vgripd.service.host.lifetime import die_with_daemon
-    from vgripd.service.worker.process import run_below_daemon
-
-    die_with_daemon(daemon_pid)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    # Pictures for a browser matter least: below the worker, far below the daemon's loop.
-    run_below_daemon(WEB_IMAGES_NICE, WEB_IMAGES_NICE_FLOOR)
+    start_child(setup)
     try:
         from vgripd.vision.pipeline import Pipeline
 
@@ -265,7 +262,9 @@ class ImageRenderer:
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
                 1, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_init_helper, initargs=(self._config, os.getpid()))
+                initializer=_init_helper, initargs=(self._config, ChildSetup(
+                    os.getpid(), nice_below=WEB_IMAGES_NICE,
+                    nice_floor=WEB_IMAGES_NICE_FLOOR)))
         return self._pool
 
     def cached(self, job_id: int) -> asyncio.Future[list[bytes]] | None:
@@ -344,14 +343,15 @@ class ImageRenderer:
         pool, self._pool = self._pool, None
         self._retiring = [t for t in self._retiring if t.is_alive()]
         if pool is not None:
-            ender = threading.Thread(target=pool.shutdown, name="web-images-retire",
-                                     kwargs={"wait": True, "cancel_futures": cancel_futures})
+            ender = threading.Thread(target=end_pool, name="web-images-retire",
+                                     args=(pool, STOP_S, cancel_futures))
             ender.start()
             self._retiring.append(ender)
 
     def close(self) -> None:
         """Stop the helpers, the current one and any a reload let go (a render in progress is
-        waited for: tens of milliseconds; a helper still starting: its start-up)."""
+        waited for: tens of milliseconds; a helper still starting: its start-up; each at most
+        ``STOP_S``)."""
         self._retire(cancel_futures=True)
         for fut in self._cache.values():
             fut.cancel()

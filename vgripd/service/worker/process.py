@@ -81,8 +81,7 @@ from typing import Any, Protocol
 
 from vgripd.config import Config
 from vgripd.errors import CameraError, CameraSettingError, NotCalibratedError
-from vgripd.service.host.lifetime import die_with_daemon, end_on_sigterm
-from vgripd.service.host.logsetup import configure_logging
+from vgripd.service.host.children import ChildSetup, end_process, start_child, wait_exit
 from vgripd.service.worker.camera import Camera
 from vgripd.service.worker.imageshm import SHM_DIR as SHM_DIR  # where tests look for segments
 from vgripd.service.worker.imageshm import (
@@ -346,32 +345,17 @@ class _Worker:
         self.loop.close()
 
 
-def helper_niceness(daemon_nice: int, below: int, floor: int) -> int:
-    """The niceness of a helper process of a daemon running at ``daemon_nice``: ``below``
-    levels under it, at least ``floor``, at most 19."""
-    return min(19, max(daemon_nice + below, floor))
+def worker_setup(daemon_pid: int, log_level: str) -> ChildSetup:
+    """How the worker starts (``start_child``): it holds the camera and the recorder, so
+    SIGTERM leaves the daemon ``TERM_GRACE_S`` to stop it in order; below the daemon."""
+    return ChildSetup(daemon_pid, nice_below=WORKER_NICE, nice_floor=WORKER_NICE_FLOOR,
+                      term_grace_s=TERM_GRACE_S, log_level=log_level)
 
 
-def run_below_daemon(below: int, floor: int) -> None:
-    """Make this helper process (image work) yield to the daemon's event loop: a real-time
-    policy inherited from the daemon (systemd ``CPUSchedulingPolicy=``) is for its event loop
-    only, so drop to ``SCHED_BATCH`` (normal time sharing for a CPU-bound task, which never
-    preempts a running task when it wakes; ``SCHED_IDLE`` is kept), then lower the priority to
-    ``helper_niceness`` of the daemon's (which this process inherited)."""
-    if os.sched_getscheduler(0) != os.SCHED_IDLE:
-        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
-    inherited = os.getpriority(os.PRIO_PROCESS, 0)
-    os.nice(helper_niceness(inherited, below, floor) - inherited)
-
-
-def worker_main(sock: socket.socket, config: Config, processor: str, log_level: str,
-                daemon_pid: int) -> None:
+def worker_main(sock: socket.socket, config: Config, processor: str,
+                setup: ChildSetup) -> None:
     """Entry point of the worker process (``multiprocessing`` spawn target)."""
-    die_with_daemon(daemon_pid)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    end_on_sigterm(daemon_pid, TERM_GRACE_S)
-    run_below_daemon(WORKER_NICE, WORKER_NICE_FLOOR)
-    configure_logging(log_level)
+    start_child(setup)
     try:
         worker = _Worker(config, processor)
     except BaseException as err:
@@ -595,8 +579,8 @@ class WorkerClient:
             try:
                 proc = self._ctx.Process(
                     target=worker_main, name="vgripd-worker", daemon=True,
-                    args=(child, self.config, self.processor, self.config.daemon.log_level,
-                          os.getpid()))
+                    args=(child, self.config, self.processor,
+                          worker_setup(os.getpid(), self.config.daemon.log_level)))
                 proc.start()  # spawn: fork+exec, a few ms
             finally:
                 child.close()
@@ -612,9 +596,7 @@ class WorkerClient:
         finally:
             self._starting = None
             if proc is not None and proc.pid is not None:  # cancelled half way
-                proc.kill()
-                proc.join(5.0)
-                proc.close()
+                end_process(proc)
             if parent is not None:
                 parent.close()
 
@@ -657,9 +639,9 @@ class WorkerClient:
             pass
         finally:
             gen.writer.close()
-            if not await _wait_exit(gen.proc, 2.0):  # alive but closed its end: a bug
+            if not await wait_exit(gen.proc, 2.0):  # alive but closed its end: a bug
                 self._kill(gen, "closed its connection")
-                await _wait_exit(gen.proc, 10.0)
+                await wait_exit(gen.proc, 10.0)
             exitcode = gen.proc.exitcode
             gen.exited = exitcode is not None
             if gen.exited:
@@ -966,25 +948,3 @@ def _consume(fut: asyncio.Future[Any]) -> None:
     """Mark a future's exception as retrieved (nobody may be waiting for a ready message)."""
     if not fut.cancelled():
         fut.exception()
-
-
-async def _wait_exit(proc: BaseProcess, timeout_s: float) -> bool:
-    """Wait (without a thread) until ``proc`` has exited; False on timeout."""
-    if proc.exitcode is not None:
-        return True
-    loop = asyncio.get_running_loop()
-    done: asyncio.Future[None] = loop.create_future()
-    fd = proc.sentinel
-    loop.add_reader(fd, _resolve, done, None)
-    try:
-        async with asyncio.timeout(timeout_s):
-            await done
-    except TimeoutError:
-        return False
-    finally:
-        loop.remove_reader(fd)
-    # The sentinel closes as the process exits, a moment before it can be reaped: this
-    # waitpid returns within microseconds.
-    proc.join(1.0)
-    return proc.exitcode is not None
-

@@ -24,6 +24,7 @@ import pytest
 from vgripd.config import Config, config_from_dict
 from vgripd.errors import CameraError
 from vgripd.registry import CAMERAS, load_class, validate_options
+from vgripd.service.host.children import helper_niceness
 from vgripd.service.worker.process import (
     SHM_DIR,
     WORKER_NICE,
@@ -31,7 +32,6 @@ from vgripd.service.worker.process import (
     WorkerClient,
     WorkerError,
     describe_exit,
-    helper_niceness,
     images_nbytes,
     read_images,
     segments_of,
