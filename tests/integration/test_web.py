@@ -99,7 +99,7 @@ async def test_live_view_api_events_images_metrics_and_actions(
                     if event == "job":
                         job, t_seen = data, t_data
                         break
-        assert set(kinds) <= {"job", "links"}  # the PLC's connection is a links event
+        assert set(kinds) <= {"status", "job", "links"}  # the PLC connecting: links, status
         assert job["id"] == 1
         assert job["status"] == "OK"
         assert job["images"]
