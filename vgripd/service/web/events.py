@@ -136,6 +136,7 @@ class StatusFeed:
         self.hub = hub
         self.document = document  # the status document, as /api/status answers it
         self.pushed = 0  # status documents pushed (to every stream at once)
+        self.documented = 0  # the daemon's change count the last one was built at
 
     async def run(self) -> None:
         seen = self.daemon.changes
@@ -150,6 +151,7 @@ class StatusFeed:
             if self.hub.clients:  # an unwatched daemon builds no documents
                 self.hub.publish("status", self.document())
                 self.pushed += 1
+                self.documented = seen
             # Coalescing: changes meanwhile are counted and sent as one document afterwards.
             await asyncio.sleep(PUSH_INTERVAL_S)
 
