@@ -17,10 +17,10 @@ import aiohttp
 import pytest
 
 from tests.integration.test_daemon import Plc, Run, make_config, running
-from tests.integration.test_web import TOKEN, WAIT_S, _events
+from tests.integration.test_web import TOKEN, WAIT_S, _chromium, _events, _until
 from vgripd.config import config_from_dict
 from vgripd.peer.registers import Reg
-from vgripd.service.web.events import PUSH_INTERVAL_S
+from vgripd.service.web.events import MAX_EVENT_CLIENTS_PER_ADDRESS, PUSH_INTERVAL_S
 from vgripd.sim.robot_modbus import MockRobotModbus
 from vgripd.types import Status
 
@@ -168,4 +168,37 @@ async def test_event_streams_leave_connections_for_requests() -> None:
                 assert resp.status == 200
         finally:
             for resp in opened:
+                resp.close()
+
+
+async def test_the_page_polls_while_its_stream_is_refused_and_streams_again(
+        tmp_path: Path) -> None:
+    """Headless Chromium: while every stream its address may hold is taken, the page's own is
+    refused and it polls ``/api/status`` (a new job still shows); once streams are free it
+    opens one again and is fed by the daemon."""
+    text = "(id) => document.getElementById(id)?.textContent ?? ''"
+    async with running(make_config()) as run, Plc(run.port()) as plc, \
+            aiohttp.ClientSession() as http:
+        base = _base(run)
+        taken = [await http.get(f"{base}/api/events")
+                 for _ in range(MAX_EVENT_CLIENTS_PER_ADDRESS)]
+        try:
+            assert [r.status for r in taken] == [200] * MAX_EVENT_CLIENTS_PER_ADDRESS
+            async with _chromium(tmp_path, base + "/") as evaluate:
+                assert await _until(evaluate, "document.body?.dataset.live === 'polling'")
+                await plc.trigger(1)
+                assert (await plc.result(1))[Reg.STATUS] == Status.OK
+                assert "job 1: OK" in await _until(
+                    evaluate, f"({text})('job-status').includes('job 1') && "
+                              f"({text})('job-status')")
+                for resp in taken:
+                    resp.close()
+                assert await _until(evaluate, "document.body?.dataset.live === 'events'")
+                await plc.trigger(2)
+                assert (await plc.result(2))[Reg.STATUS] == Status.OK
+                assert "job 2: OK" in await _until(
+                    evaluate, f"({text})('job-status').includes('job 2') && "
+                              f"({text})('job-status')")
+        finally:
+            for resp in taken:
                 resp.close()

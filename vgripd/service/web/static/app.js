@@ -486,7 +486,10 @@ async function loadRegisters() {
 
 async function refresh() {
   try {
-    showStatus(await getJSON("/api/status"));
+    const s = await getJSON("/api/status");
+    showStatus(s);
+    // Polled while the stream is down: a job the page has not seen reloads the history.
+    if (pollTimer !== null && s.last_job && s.last_job.id !== jobs[0]?.id) await loadJobs();
   } catch (err) {
     $("run-state").textContent = `daemon not reachable (${err.message})`;
   }
