@@ -99,7 +99,7 @@ async def test_live_view_api_events_images_metrics_and_actions(
                     if event == "job":
                         job, t_seen = data, t_data
                         break
-        assert set(kinds) <= {"job", "links"}  # the PLC's connection is a links event
+        assert set(kinds) <= {"status", "job", "links"}  # the PLC connecting: links, status
         assert job["id"] == 1
         assert job["status"] == "OK"
         assert job["images"]
@@ -359,11 +359,15 @@ async def test_chromium_page_updates_live_links_images_and_refuses_actions_witho
             async with asyncio.timeout(WAIT_S):
                 while not server.events.clients:  # noqa: ASYNC110
                     await asyncio.sleep(0.02)
+            assert await _until(evaluate, "document.body?.dataset.live === 'events'")
             await plc.trigger(2)
             assert (await plc.result(2))[Reg.STATUS] == Status.OK
             status = await _until(evaluate, f"({text})('job-status').includes('job 2') && "
                                             f"({text})('job-status')")
             assert "job 2: OK" in status
+            # the status part of the page too, pushed (the page does not poll while it streams)
+            assert await _until(evaluate, "lastStatus?.last_job?.id === 2")
+            assert await evaluate("document.body.dataset.live") == "events"
             title = await evaluate(f"({text})('job-title')")
             assert title.startswith("2 (seq 2 from modbus_server")
             left = await evaluate("document.getElementById('img-left').src")

@@ -287,7 +287,7 @@ async def test_event_streams_are_capped_per_address_and_the_operator_is_served()
     """100 anonymous EventSource clients from 25 loopback addresses: at most 4 streams each and
     32 in all; the operator who carries the token (header or login cookie) is served anyway and
     gets the next job live."""
-    from vgripd.service.web.app import MAX_EVENT_CLIENTS, MAX_EVENT_CLIENTS_PER_ADDRESS
+    from vgripd.service.web.events import MAX_EVENT_CLIENTS, MAX_EVENT_CLIENTS_PER_ADDRESS
 
     config = make_config(status={"port": 0, "token": TOKEN}, daemon={"worker": False})
     async with running(config) as run, Plc(run.port()) as plc:

@@ -136,7 +136,7 @@ class Daemon:
         cam_cls = load_class(CAMERAS, "camera", config.camera.type)
         camera: Camera = cam_cls(validate_options(cam_cls, config.camera, "camera"), config)
         self._background = Background()
-        self._links = LinkSupervisor(config, self._background)
+        self._links = LinkSupervisor(config, self._background, changed=self._changed)
         #: Why a recipe cannot run (not calibrated or taught), by number; its jobs answer
         #: NOT_CALIBRATED with it.
         self.recipe_problems: dict[int, str] = {}
@@ -184,6 +184,8 @@ class Daemon:
         self._loop: asyncio.AbstractEventLoop | None = None
         # asyncio.Event binds to the running loop on first use, not here.
         self._wake = asyncio.Event()
+        #: State changes so far (``next_change``: the web view's pushed status waits on it).
+        self.changes = 0
         self._stop_requested = asyncio.Event()
         self._t_start_ns = 0
 
@@ -342,8 +344,15 @@ class Daemon:
             while not predicate():
                 await self._wake.wait()
 
+    async def next_change(self, seen: int) -> int:
+        """Wait until the state has changed since ``changes`` was ``seen``; the count now."""
+        while self.changes == seen:
+            await self._wake.wait()
+        return self.changes
+
     def _notify_changed(self) -> None:
-        # Wake every waiter once, then hand later waiters a fresh event.
+        # Count it, wake every waiter once, then hand later waiters a fresh event.
+        self.changes += 1
         self._wake.set()
         self._wake = asyncio.Event()
 

@@ -52,9 +52,11 @@ class BeltLink(RobotLink):
 
     async def open(self, on_trigger: TriggerHandler) -> None:
         self._state = LinkState.UP
+        self.health_changed()
 
     async def close(self) -> None:
         self._state = LinkState.STOPPED
+        self.health_changed()
 
     def health(self) -> LinkHealth:
         return LinkHealth(state=self._state, peer=f"belt travel (count from {self.source})")
@@ -127,7 +129,10 @@ class BeltTravel:
 
     def _start(self, recipe: int, count: int, t_ns: int) -> None:
         if BELT_LINK not in self.links.links:  # added with the first job the belt starts
-            self.links.links[BELT_LINK] = BeltLink(self.source or "?")
+            belt = BeltLink(self.source or "?")
+            self.links.links[BELT_LINK] = belt
+            self.links.watch(belt)
+            belt.health_changed()  # a new link in the status
         self._seq = self._seq % 0xFFFF + 1
         self._walks.on_trigger(Trigger(link=BELT_LINK, seq=self._seq, command=Command.TRIGGER,
                               t_mono_ns=t_ns, recipe=recipe, latch_count=count))

@@ -207,6 +207,9 @@ class Gate:
         self.configured_cap = cap
         self._clock = clock
         self._task: asyncio.Task[None] | None = None
+        #: Called when the number of connections changes (a link's ``peers``: the link
+        #: supervisor points it at the link's ``health_changed``).
+        self.count_changed: Callable[[], None] | None = None
 
     # the budget ---------------------------------------------------------------------------
 
@@ -256,6 +259,7 @@ class Gate:
                        "idle between requests" if self.slots.was_valid(victim)
                        else "it never completed a valid request")
             victim.shut(f"evicted for {conn.client} (max_connections = {self.cap})")
+        self._counted()
         return True
 
     def activity(self, conn: Guarded, valid: bool = True) -> None:
@@ -266,13 +270,21 @@ class Gate:
 
     def forget(self, conn: Guarded) -> bool:
         """The connection closed; True when the gate held it."""
-        return self.slots.forget(conn)
+        held = self.slots.forget(conn)
+        if held:
+            self._counted()
+        return held
+
+    def _counted(self) -> None:
+        if self.count_changed is not None:
+            self.count_changed()
 
     def sweep(self) -> None:
         """Close connections past ``pending_timeout_s`` / ``idle_timeout_s``."""
         for conn, kind, seconds in self.slots.expired(self._clock(), self.idle_timeout_s,
                                                       self.pending_timeout_s):
             self.slots.forget(conn)
+            self._counted()
             if kind == "pending":
                 what = (f"no valid request within {self.pending_timeout_s:g} s of connecting "
                         f"({seconds:.1f} s)")

@@ -84,6 +84,10 @@ def config_identity(config: Any) -> tuple[str, bytes]:
     return f"config-{digest.hex()[:12]}", digest
 
 
+def _no_one_listens() -> None:
+    pass
+
+
 class RobotLink(ABC):
     """Base of every link driver. ``__init__`` does no I/O.
 
@@ -105,6 +109,10 @@ class RobotLink(ABC):
         self.options = options
         #: ``output.vendor``: the convention of poses the peer sends (``set_vendor``)
         self.vendor: str | None = None
+        #: Called whenever what ``health()`` reports changes (state, error, reconnects, peers);
+        #: the link supervisor points it at the daemon's change hook, which pushes the status
+        #: to the web view.
+        self.health_changed: Callable[[], None] = _no_one_listens
 
     @abstractmethod
     async def open(self, on_trigger: TriggerHandler) -> None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
 from vgripd.config import Config
@@ -42,11 +43,14 @@ def link_names(config: Config) -> list[str]:
 
 class LinkSupervisor:
     """The daemon's links by name. Construction validates the drivers and does no I/O
-    (``ConfigError`` for a bad link type or options)."""
+    (``ConfigError`` for a bad link type or options). ``changed`` is called whenever a link's
+    health changes (its state, last error, reconnects or connected peers)."""
 
-    def __init__(self, config: Config, background: Background) -> None:
+    def __init__(self, config: Config, background: Background,
+                 changed: Callable[[], None] | None = None) -> None:
         self.config = config
         self._background = background
+        self._changed = changed
         self.links: dict[str, RobotLink] = {}
         for i, (name, section) in enumerate(zip(link_names(config), config.links, strict=True)):
             link_cls = load_class(LINKS, "link", section.type)
@@ -54,8 +58,20 @@ class LinkSupervisor:
         if config.status.enabled and config.status.allow_trigger:  # the web view's test trigger
             self.links[WEB_LINK] = WebTriggerLink()
         tell_links(self.links.values(), config)
+        for link in self.links.values():
+            self.watch(link)
         #: How RLIMIT_NOFILE is split between the server surfaces and the reserve (at start).
         self.fd_budget: Budget | None = None
+
+    def watch(self, link: RobotLink) -> None:
+        """Report ``link``'s health changes (and its server gate's connection count) to the
+        ``changed`` hook."""
+        if self._changed is None:
+            return
+        link.health_changed = self._changed
+        gate = getattr(link, "gate", None)
+        if isinstance(gate, Gate):
+            gate.count_changed = self._changed
 
     # --- start and stop -----------------------------------------------------------------
 

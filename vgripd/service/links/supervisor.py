@@ -37,7 +37,7 @@ class HealthCell:
     """A link's health and the waiters for its changes.
 
     ``since_mono_ns`` moves only when the state does. ``set`` without a change (same state,
-    same error, no reconnect) wakes nobody.
+    same error, no reconnect) wakes nobody; a change also calls ``changed``.
     """
 
     def __init__(self, peer: str = "") -> None:
@@ -47,6 +47,8 @@ class HealthCell:
         self.last_error = ""
         self.reconnects = 0
         self._changed: asyncio.Event | None = None
+        #: Called after every change (``SupervisedLink``: its ``health_changed``).
+        self.changed: Callable[[], None] | None = None
 
     def set(self, state: LinkState, error: str | None = "", reconnect: bool = False) -> None:
         """Enter ``state`` with ``error`` as the last error ("" clears it, None keeps it);
@@ -62,6 +64,8 @@ class HealthCell:
         changed, self._changed = self._changed, None
         if changed is not None:
             changed.set()  # wakes every waiter once; later ones wait on a fresh event
+        if self.changed is not None:
+            self.changed()
 
     def health(self, peer: str | None = None, peers: int = 0) -> LinkHealth:
         """The health now (``peer``: where the link is now, if it differs from ``self.peer``;
@@ -87,6 +91,7 @@ class SupervisedLink(RobotLink):
     def __init__(self, name: str, options: Any, peer: str = "") -> None:
         super().__init__(name, options)
         self.cell = HealthCell(peer)
+        self.cell.changed = lambda: self.health_changed()  # read at call: set after this
 
     def health(self) -> LinkHealth:
         return self.cell.health()

@@ -41,9 +41,11 @@ class WebTriggerLink(RobotLink):
     async def open(self, on_trigger: TriggerHandler) -> None:
         self._on_trigger = on_trigger
         self._state = LinkState.UP
+        self.health_changed()
 
     async def close(self) -> None:
         self._state = LinkState.STOPPED
+        self.health_changed()
         for fut in self._waiting.values():
             fut.cancel()
         self._waiting.clear()

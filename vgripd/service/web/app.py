@@ -17,7 +17,7 @@ Routes (docs/web.md)::
     GET  /api/jobs/{id}              one job
     GET  /api/jobs/{id}/image/{left|right}.jpg   annotated, downscaled JPEG
     GET  /api/jobs/{id}/image/view{j}.jpg        camera j of a multi-camera cell (from 0)
-    GET  /api/events                 server-sent events: ``job``, ``links``, ``walk``
+    GET  /api/events                 server-sent events: ``status``, ``job``, ``links``, ``walk``
     GET  /api/config                 the loaded config, secrets redacted
     GET  /api/registers              each register link's map as its peer reads it, decoded
     GET  /metrics                    Prometheus text format
@@ -65,6 +65,14 @@ from vgripd.service.web.camsettings import CameraSettingsRoutes
 from vgripd.service.web.commission import CommissionRoutes
 from vgripd.service.web.context import CameraTurns, JobHistory, WebContext
 from vgripd.service.web.daemonview import DaemonView
+from vgripd.service.web.events import (
+    KEEPALIVE_S,
+    RETRY_MS,
+    EventHub,
+    StatusFeed,
+    frame,
+    stream_caps,
+)
 from vgripd.service.web.guard import GuardedSite, make_guard
 from vgripd.service.web.images import ImageRenderer
 from vgripd.service.web.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
@@ -80,15 +88,6 @@ from vgripd.types import ImagePair
 log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).parent / "static"
-# Server-sent event streams: of clients without the token at once (all of them, and from one
-# address), of token holders (the oldest is dropped for a new one: the operator is always
-# served), and the events one may have unsent before it is dropped.
-MAX_EVENT_CLIENTS = 32
-MAX_EVENT_CLIENTS_PER_ADDRESS = 4
-MAX_HOLDER_STREAMS = 16
-MAX_EVENTS_QUEUED = 64
-KEEPALIVE_S = 15.0
-LINK_POLL_S = 0.25
 LOG_LINES = 2000
 SHUTDOWN_TIMEOUT_S = 1.0
 LOG_FLUSH_S = 10.0
@@ -123,67 +122,6 @@ class LogRing(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         with contextlib.suppress(Exception):
             self.lines.append(self.format(record))
-
-
-class _Client:
-    def __init__(self, address: str = "", holder: bool = False) -> None:
-        self.queue: asyncio.Queue[bytes | None] = asyncio.Queue(MAX_EVENTS_QUEUED)
-        self.address = address
-        self.holder = holder  # the request carried the token
-
-
-class EventHub:
-    """Server-sent events to every connected page; a page that does not read is dropped.
-
-    Streams are bounded so that no crowd locks the operator out: clients without the token
-    get at most ``MAX_EVENT_CLIENTS`` streams in all and ``MAX_EVENT_CLIENTS_PER_ADDRESS``
-    from one address; a token holder is always served, the oldest holder stream dropped
-    beyond ``MAX_HOLDER_STREAMS``.
-    """
-
-    def __init__(self) -> None:
-        self.clients: set[_Client] = set()
-        self._holders: deque[_Client] = deque()  # oldest first
-
-    def admit(self, address: str, holder: bool) -> _Client | None:
-        """A new stream's client, or None when its kind is full (answer 503)."""
-        if holder:
-            while len(self._holders) >= MAX_HOLDER_STREAMS:
-                self._drop(self._holders[0])
-        else:
-            anonymous = [c for c in self.clients if not c.holder]
-            if (len(anonymous) >= MAX_EVENT_CLIENTS or sum(
-                    c.address == address for c in anonymous) >= MAX_EVENT_CLIENTS_PER_ADDRESS):
-                return None
-        client = _Client(address, holder)
-        self.clients.add(client)
-        if holder:
-            self._holders.append(client)
-        return client
-
-    def leave(self, client: _Client) -> None:
-        self.clients.discard(client)
-        with contextlib.suppress(ValueError):
-            self._holders.remove(client)
-
-    def publish(self, event: str, data: Any) -> None:
-        frame = f"event: {event}\ndata: {json.dumps(jsonable(data))}\n\n".encode()
-        for client in list(self.clients):
-            try:
-                client.queue.put_nowait(frame)
-            except asyncio.QueueFull:
-                self._drop(client)
-
-    def _drop(self, client: _Client) -> None:
-        self.leave(client)
-        with contextlib.suppress(asyncio.QueueEmpty):
-            while True:
-                client.queue.get_nowait()
-        client.queue.put_nowait(None)  # ends its stream
-
-    def close(self) -> None:
-        for client in list(self.clients):
-            self._drop(client)
 
 
 def job_summary(record: JobRecord, t_wall: float, images: bool) -> dict[str, Any]:
@@ -234,6 +172,7 @@ class WebServer:
         self._allow_bundle = st.allow_support_bundle
         self.jobs = JobHistory(st.history)
         self.events = EventHub()
+        self.feed = StatusFeed(daemon, self.events, self.status_document)
         self.metrics = Metrics(daemon, self.access)
         self.images = ImageRenderer(daemon.config)
         self.camera = CameraTurns(daemon)
@@ -259,6 +198,7 @@ class WebServer:
     async def start(self) -> None:
         # connections: the daemon's gate at accept, HTTP read timeouts (guard.py)
         self.guard = make_guard(self.daemon)
+        self.events.anonymous, self.events.holders = stream_caps(self.guard.gate.cap)
         self.app.middlewares.append(self.guard.middleware)
         runner = web.AppRunner(self.app, access_log=None, handle_signals=False,
                                shutdown_timeout=SHUTDOWN_TIMEOUT_S)
@@ -281,7 +221,7 @@ class WebServer:
         logging.getLogger().addHandler(self.logs)
         for name in SERVER_LOGGERS:
             logging.getLogger(name).addFilter(self._log_limit)
-        self._spawn(self._watch_links())
+        self._spawn(self.feed.run())
         self._spawn(self._flush_logs())
         log.info("web view: http://%s:%d/ (status JSON at /api/status, metrics at /metrics)",
                  self.host, self.port)
@@ -328,19 +268,6 @@ class WebServer:
             self.images.submit(record.job_id, pair, record.result, eager=True)
         self.events.publish("job", summary)
 
-    async def _watch_links(self) -> None:
-        """One ``links`` event whenever a link's state, peer or reconnect count changes."""
-        last: list[tuple[Any, ...]] = []
-        while True:
-            now = [(name, h.state.value, h.peer, h.reconnects, h.peers)
-                   for name, h in ((n, link.health())
-                                   for n, link in self.daemon.rooms.links.links.items())]
-            if now != last:
-                if last:
-                    self.events.publish("links", redact(self.daemon.snapshot()["links"]))
-                last = now
-            await asyncio.sleep(LINK_POLL_S)
-
     async def _flush_logs(self) -> None:
         """Report held rate-limited log lines whose minute is over (a burst that stopped)."""
         while True:
@@ -384,14 +311,19 @@ class WebServer:
         return web.FileResponse(STATIC / "index.html",
                                 headers={"Cache-Control": "no-cache"})
 
-    async def _status(self, request: web.Request) -> web.Response:
-        if request.method != "GET":
-            return web.json_response({"error": "only GET /api/status"}, status=404)
+    def status_document(self) -> dict[str, Any]:
+        """The status JSON of ``/api/status`` and the pushed ``status`` event (redacted)."""
         status = self.daemon.snapshot()
         status["web"] = {"trigger": self._allow_trigger, "support_bundle": self._allow_bundle,
                          "config_edit": self.daemon.config.status.allow_config_edit,
                          "history": self.jobs.maxlen}
-        return web.Response(text=json.dumps(redact(jsonable(status)), indent=1),
+        result: dict[str, Any] = redact(jsonable(status))
+        return result
+
+    async def _status(self, request: web.Request) -> web.Response:
+        if request.method != "GET":
+            return web.json_response({"error": "only GET /api/status"}, status=404)
+        return web.Response(text=json.dumps(self.status_document(), indent=1),
                             content_type="application/json")
 
     async def _jobs(self, request: web.Request) -> web.Response:
@@ -447,16 +379,18 @@ class WebServer:
                                            "Cache-Control": "no-cache"})
         try:
             await resp.prepare(request)
-            await resp.write(b"retry: 2000\n\n")
+            # the state now, then every change (``StatusFeed``)
+            await resp.write(f"retry: {RETRY_MS}\n\n".encode()
+                             + frame("status", self.status_document()))
             while True:
                 try:
                     async with asyncio.timeout(KEEPALIVE_S):
-                        frame = await client.queue.get()
+                        event = await client.queue.get()
                 except TimeoutError:
-                    frame = b": keepalive\n\n"
-                if frame is None:
+                    event = b": keepalive\n\n"
+                if event is None:
                     break
-                await resp.write(frame)
+                await resp.write(event)
         except (ConnectionError, asyncio.CancelledError):
             pass
         finally:

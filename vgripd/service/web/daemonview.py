@@ -25,6 +25,7 @@ class DaemonView(Protocol):
 
     config: Config
     reloader: Reloader | None
+    changes: int  # state changes so far
 
     @property
     def rooms(self) -> Rooms: ...
@@ -45,3 +46,5 @@ class DaemonView(Protocol):
     def recipe_snapshot(self) -> dict[str, Any]: ...
 
     def snapshot(self) -> dict[str, Any]: ...
+
+    async def next_change(self, seen: int) -> int: ...

@@ -23,7 +23,7 @@ from vgripd.peer.registers import RegisterBank, ValueCodec
 from vgripd.redaction import redact
 from vgripd.service.links.protocol import LinkHealth, LinkState, Trigger
 from vgripd.service.links.webtrigger import WebTriggerLink
-from vgripd.service.web.app import MAX_EVENTS_QUEUED, EventHub
+from vgripd.service.web.events import MAX_EVENTS_QUEUED, EventHub
 from vgripd.service.web.images import render
 from vgripd.service.web.metrics import Metrics
 from vgripd.service.web.registers import register_views
@@ -163,7 +163,7 @@ def test_metrics_count_jobs_by_status_and_read_links_at_scrape_time() -> None:
 
 async def test_a_page_that_does_not_read_is_dropped_not_buffered() -> None:
     hub = EventHub()
-    from vgripd.service.web.app import _Client
+    from vgripd.service.web.events import _Client
 
     slow, fast = _Client(), _Client()
     hub.clients |= {slow, fast}
@@ -299,7 +299,7 @@ def test_allowed_hosts_are_names_and_a_redacted_token_loads() -> None:
 
 
 def test_event_streams_without_the_token_are_capped_and_holders_always_admitted() -> None:
-    from vgripd.service.web.app import (
+    from vgripd.service.web.events import (
         MAX_EVENT_CLIENTS,
         MAX_EVENT_CLIENTS_PER_ADDRESS,
         MAX_HOLDER_STREAMS,

@@ -1,5 +1,6 @@
 // The vgripd operator page: plain DOM, no framework, no build step.
-// Data: /api/status, /api/jobs, /api/registers, /api/config; live: /api/events (SSE).
+// Data: /api/jobs, /api/registers, /api/config; live: /api/events (SSE: the status, each job),
+// /api/status on loading and while the stream fails.
 "use strict";
 
 const $ = (id) => document.getElementById(id);
@@ -485,7 +486,10 @@ async function loadRegisters() {
 
 async function refresh() {
   try {
-    showStatus(await getJSON("/api/status"));
+    const s = await getJSON("/api/status");
+    showStatus(s);
+    // Polled while the stream is down: a job the page has not seen reloads the history.
+    if (pollTimer !== null && s.last_job && s.last_job.id !== jobs[0]?.id) await loadJobs();
   } catch (err) {
     $("run-state").textContent = `daemon not reachable (${err.message})`;
   }
@@ -524,21 +528,42 @@ async function loadJobs() {
   showHistory();
 }
 
-// Live updates. Every (re)connection reloads the history first, so a job that finished while
-// the stream was down is not missed.
+// Live updates: the daemon pushes the status document and each job over one event stream.
+// While the stream fails the page asks /api/status every POLL_MS instead; EventSource
+// reconnects by itself (a stream refused outright is opened again after REOPEN_MS). Every
+// (re)connection reloads the history first, so a job that finished while it was down is not
+// missed. body[data-live] says which way the page is fed: "events" or "polling".
+const POLL_MS = 2000;
+const REOPEN_MS = 10000;
+let pollTimer = null;
+
+function feedBy(how) {
+  document.body.dataset.live = how;
+  if (how === "events") {
+    clearInterval(pollTimer);
+    pollTimer = null;
+  } else if (pollTimer === null) {
+    pollTimer = setInterval(refresh, POLL_MS);
+  }
+}
+
 function connectEvents() {
   const events = new EventSource("/api/events");
-  events.addEventListener("open", () => { loadJobs().catch(() => {}); refresh(); });
+  events.addEventListener("open", () => { feedBy("events"); loadJobs().catch(() => {}); });
+  events.addEventListener("error", () => {
+    feedBy("polling");
+    if (events.readyState === EventSource.CLOSED) setTimeout(connectEvents, REOPEN_MS);
+  });
+  events.addEventListener("status", (e) => showStatus(JSON.parse(e.data)));
   events.addEventListener("job", (e) => {
     const job = JSON.parse(e.data);
     jobs.unshift(job);
     jobs.length = Math.min(jobs.length, lastStatus?.web?.history ?? 100);
     showJob(job);
     showHistory();
-    refresh();
     loadCalibration().catch(() => {});  // the last pose in the drawings
   });
-  events.addEventListener("links", () => { refresh(); loadRegisters().catch(() => {}); });
+  events.addEventListener("links", () => { loadRegisters().catch(() => {}); });
 }
 
 async function main() {
@@ -554,7 +579,6 @@ async function main() {
   // The stream opens once the page has drawn what is there (a headless browser dumping the
   // page after a virtual-time budget sees it complete; the open event catches up anyway).
   setTimeout(connectEvents, 1000);
-  setInterval(refresh, 5000);
   setInterval(() => loadRegisters().catch(() => {}), 2000);
 }
 
