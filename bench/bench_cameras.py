@@ -2,7 +2,7 @@
 own bare grab loop in the same run, and frames per second of ``vgripd cameras grab`` against
 ``arv-camera-test-0.8`` and a bare pypylon loop.
 
-Issue 21, "Benchmarks". Goal: the driver's trigger-to-image time at most 1.2x the bare loop's.
+Goal: the driver's trigger-to-image time at most 1.2x the bare loop's.
 
 Peers, all on this machine:
 

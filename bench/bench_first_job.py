@@ -1,6 +1,6 @@
 """The first job after start against the tenth: the real daemon, worker process, recording on.
 
-Issue 22, item 4: "the first job after start as fast as the tenth". Each round starts
+Goal: the first job after start as fast as the tenth. Each round starts
 ``python -m vgripd run`` (synthetic stereo camera 1280x1024 rendered by its driver, Modbus/TCP
 server link on 127.0.0.1, recording on, the worker process), waits until it reports running
 (READY=1 under systemd), then a PLC stand-in in its own process (bench_poll's, pymodbus'

@@ -1,6 +1,6 @@
 """Modbus poll latency of the real daemon while jobs run back to back, recording on.
 
-Issue 4 and "A PLC interface nothing on the network can stall", part 2. Target: poll p99 <= 2 ms
+Target: poll p99 <= 2 ms
 and max <= 10 ms at 100 Hz while jobs run back to back with recording on, the job cycle no
 slower than the in-process path.
 

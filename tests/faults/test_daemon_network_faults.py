@@ -234,7 +234,7 @@ async def _closed_by_server(reader: asyncio.StreamReader) -> bool:
 
 async def test_web_flood_of_idle_and_slow_loris_connections_fails_no_plc_job(
         tmp_path: Path) -> None:
-    """Issue 20, row 4: 1,000 idle and 1,000 slow-loris (partial header) connections to the web
+    """1,000 idle and 1,000 slow-loris (partial header) connections to the web
     view were all held (no header timeout, no cap); with the file limit at 1024 a Modbus job on
     an already open PLC connection ended INTERNAL ("Too many open files: /dev/shm/...") and new
     PLC connections were not served. Now the web view holds at most its share of the file
@@ -287,7 +287,18 @@ async def test_web_flood_of_idle_and_slow_loris_connections_fails_no_plc_job(
         assert words[Reg.STATUS] == Status.OK, words
         # every flood connection is closed by the server (cap at accept, header timeout)
         closed = await asyncio.gather(*(_closed_by_server(reader) for reader, _ in flood))
-        assert all(closed), f"{closed.count(False)} flood connections still open"
+        # A connect the kernel completed for the client while the server's accept queue was
+        # full is never handed to the server (it stays half-open in the kernel, then is dropped
+        # without a word): the server holds nothing for it. One byte of a request line tells
+        # them apart: such a connection is reset at once, one the server holds ends at its
+        # header timeout (a byte that completes no request cannot end it sooner).
+        for (_, writer), done in zip(flood, closed, strict=True):
+            if not done:
+                with contextlib.suppress(OSError):
+                    writer.write(b"G")
+        left = [reader for (reader, _), done in zip(flood, closed, strict=True) if not done]
+        closed_late = await asyncio.gather(*(_closed_by_server(reader) for reader in left))
+        assert all(closed_late), f"{closed_late.count(False)} flood connections still open"
         status = await _get_status(status_port)
         assert status["links"][0]["state"] == "up"  # type: ignore[index]
         proc.send_signal(signal.SIGTERM)

@@ -304,7 +304,7 @@ async def test_connection_cap_evicts_never_answered_ones_and_a_new_plc_is_served
 
 
 async def test_flood_of_never_valid_newcomers_never_evicts_a_polling_plc() -> None:
-    """Issue 20, row 6: a PLC polling every 100 ms was evicted 15 times in 12 s by newcomers
+    """A PLC polling every 100 ms was evicted 15 times in 12 s by newcomers
     that never sent a request (the longest-idle connection went first, and a newcomer's clock
     starts at its connect). Now the flood evicts only itself; the PLC's connection stays."""
     served = await Served.open(max_connections=4)

@@ -400,7 +400,7 @@ async def test_silent_peers_are_closed_once_each(
 
 async def test_a_flood_of_silent_connections_neither_evicts_a_session_nor_locks_out_a_client(
         daemon: Daemon, caplog: pytest.LogCaptureFixture) -> None:
-    """Issue 20: connections that never say Hello held every slot (asyncua refused newcomers at
+    """Connections that never say Hello held every slot (asyncua refused newcomers at
     max_connections) until activation_timeout_s. Through the gate they evict each other, the
     oldest first; the client with an activated session is never evicted and a new client is
     served at once."""
@@ -732,7 +732,7 @@ async def refused(coro: Any) -> str:
 async def test_raw_none_channel_serves_discovery_only_on_a_secure_server(
         daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         caplog: pytest.LogCaptureFixture) -> None:
-    """Issue 20 row 1: OpenSecureChannel with SecurityPolicy None, then CreateSession +
+    """OpenSecureChannel with SecurityPolicy None, then CreateSession +
     ActivateSession with the password in clear, against a Basic256Sha256 SignAndEncrypt
     server: discovery answers, every session step is refused, no job runs."""
     caplog.set_level(logging.INFO)
@@ -771,7 +771,7 @@ async def test_raw_none_channel_serves_discovery_only_on_a_secure_server(
 
 async def test_raw_anonymous_on_none_channel_does_not_bypass_the_trust_list(
         daemon: Daemon, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    """Issue 20 row 2: ``trusted_clients_dir`` and ``allow_anonymous``: a None channel has no
+    """``trusted_clients_dir`` and ``allow_anonymous``: a None channel has no
     certificate to judge, so it carries no session at all."""
     trusted = tmp_path / "trusted"
     trusted.mkdir()
@@ -792,7 +792,7 @@ async def test_raw_anonymous_on_none_channel_does_not_bypass_the_trust_list(
 async def test_raw_password_guessing_is_slowed_then_locked_out(
         daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         caplog: pytest.LogCaptureFixture) -> None:
-    """Issue 20 row 3: 60 ActivateSession guesses on one SignAndEncrypt connection: the first
+    """60 ActivateSession guesses on one SignAndEncrypt connection: the first
     ``login_failures`` are checked (BadUserAccessDenied), the rest refused unchecked
     (BadRequestNotAllowed), the right password too; one lockout line, no library ERROR."""
     from asyncua import ua
@@ -931,7 +931,7 @@ async def test_raw_create_session_flood_on_one_connection_holds_one_session(
 
 async def test_rejected_certificates_are_capped_and_deduplicated(
         daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Issue 20 row 14: 70 distinct self-signed client certificates against a trust list, then
+    """70 distinct self-signed client certificates against a trust list, then
     the first again: the rejected store keeps the last ``rejected_max_files`` (64), one file
     per thumbprint (the first's file refreshed, not doubled)."""
     from asyncua import ua

@@ -377,7 +377,7 @@ async def test_connections_are_bounded_and_the_waiting_one_is_kept(
 
 async def test_a_flood_of_never_valid_newcomers_never_evicts_the_robot_that_talked(
         caplog: pytest.LogCaptureFixture) -> None:
-    """Issue 20, row 6: the idle robot was evicted by newcomers that never sent a request (the
+    """The idle robot was evicted by newcomers that never sent a request (the
     longest idle went first). Now the flood evicts only itself; the robot's next LOCATE is
     answered on the same connection, and the eviction lines are rate limited."""
     async with serving(max_connections=4) as (link, triggers):

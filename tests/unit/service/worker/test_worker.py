@@ -167,7 +167,7 @@ def test_exit_descriptions() -> None:
 
 
 async def test_the_worker_warms_each_recipes_pipeline_before_it_reports_ready() -> None:
-    """Issue 22: the first job as fast as the tenth. The worker runs each recipe's pipeline
+    """The first job as fast as the tenth. The worker runs each recipe's pipeline
     once (``vgripd.vision.warmup.warm_up``) before its ready answer, so the daemon's READY=1 (which waits
     for the camera opened through the worker) comes after it; the snapshot says which."""
     config = _config(recipes={"4": {"name": "narrow", "limits": {"max_translation_mm": 50.0}}})
