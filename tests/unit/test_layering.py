@@ -313,3 +313,15 @@ def test_every_import_of_our_own_names_resolves() -> None:
                     except ImportError:
                         bad.append(f"{where}: {node.module} has no {alias.name}")
     assert not bad, "\n".join(bad)
+
+
+@pytest.mark.parametrize(("tests_root", "code_root"), [("tests/unit", "vgripd"),
+                                                       ("tests/drivers", "drivers")])
+def test_tests_sit_where_their_code_sits(tests_root: str, code_root: str) -> None:
+    """Every folder of unit and driver tests is a package of the code it tests (tests/unit/
+    service/jobs/ for vgripd/service/jobs/), so a module's tests are found by its path."""
+    strays = [str(d.relative_to(REPO)) for d in sorted((REPO / tests_root).rglob("*"))
+              if d.is_dir() and d.name != "__pycache__" and any(d.glob("test_*.py"))
+              and not (REPO / code_root / d.relative_to(REPO / tests_root) / "__init__.py"
+                       ).is_file()]
+    assert strays == [], f"test folders with no package of that path under {code_root}/"
