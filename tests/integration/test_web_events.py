@@ -186,19 +186,19 @@ async def test_the_page_polls_while_its_stream_is_refused_and_streams_again(
             assert [r.status for r in taken] == [200] * MAX_EVENT_CLIENTS_PER_ADDRESS
             async with _chromium(tmp_path, base + "/") as evaluate:
                 assert await _until(evaluate, "document.body?.dataset.live === 'polling'")
-                await plc.trigger(1)
-                assert (await plc.result(1))[Reg.STATUS] == Status.OK
-                assert "job 1: OK" in await _until(
-                    evaluate, f"({text})('job-status').includes('job 1') && "
-                              f"({text})('job-status')")
+
+                async def job_shows(seq: int) -> None:
+                    await plc.trigger(seq)
+                    assert (await plc.result(seq))[Reg.STATUS] == Status.OK
+                    assert f"job {seq}: OK" in await _until(
+                        evaluate, f"({text})('job-status').includes('job {seq}') && "
+                                  f"({text})('job-status')")
+
+                await job_shows(1)  # while polling
                 for resp in taken:
                     resp.close()
                 assert await _until(evaluate, "document.body?.dataset.live === 'events'")
-                await plc.trigger(2)
-                assert (await plc.result(2))[Reg.STATUS] == Status.OK
-                assert "job 2: OK" in await _until(
-                    evaluate, f"({text})('job-status').includes('job 2') && "
-                              f"({text})('job-status')")
+                await job_shows(2)  # streaming again
         finally:
             for resp in taken:
                 resp.close()
