@@ -4,6 +4,7 @@ hand-eye calibration); and the embedded demo cell's calibration."""
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 from pydantic import Field, ValidationError, model_validator
@@ -52,6 +53,15 @@ class StereoConfig(Model):
 
     T_right_left: PoseConfig
 
+    @model_validator(mode="after")
+    def _has_a_baseline(self) -> StereoConfig:
+        baseline = math.dist(self.T_right_left.translation(), (0.0, 0.0, 0.0))
+        if baseline < MIN_BASELINE_MM:
+            raise ValueError(f"T_right_left: baseline {baseline:.3g} mm: the two cameras are at "
+                             f"one place, nothing to triangulate (at least {MIN_BASELINE_MM:g} "
+                             "mm; a calibration file copied over the wrong one?)")
+        return self
+
 
 class HandEyeConfig(Model):
     """Where the (left) camera is: fixed in the cell or carried by the robot.
@@ -85,6 +95,8 @@ NAME_PATTERN = r"^[a-z0-9_]+$"
 
 #: How many cameras one cell may have (``calibration.cameras``).
 MAX_CAMERAS = 8
+#: Two cameras closer than this are one place (a pose copied twice): no baseline between them.
+MIN_BASELINE_MM = 1.0
 
 
 class CameraEntryConfig(Model):
@@ -222,7 +234,27 @@ class CalibrationConfig(Model):
                     raise ValueError(f"{where}.cameras.{j}: camera {cam_name!r} is already in "
                                      f"rig {owner[cam_name]!r} (a camera is in one rig at most)")
                 owner[cam_name] = rig.name
+        self._cameras_apart()
         return self
+
+    def _cameras_apart(self) -> None:
+        """Two cameras mounted alike (both fixed, or both on the flange) at one place: a pose
+        pasted twice; the pair between them has no baseline to triangulate on."""
+        assert self.cameras is not None
+        seen: dict[tuple[str, int], tuple[float, float, float]] = {}
+        for i, cam in enumerate(self.cameras):
+            pose = cam.T_base_camera if cam.mounting == "fixed" else cam.T_flange_camera
+            if pose is None:
+                continue  # named by the camera's own validator
+            here = pose.translation()
+            for (mounting, j), there in seen.items():
+                if mounting == cam.mounting and math.dist(here, there) < MIN_BASELINE_MM:
+                    field = "T_base_camera" if mounting == "fixed" else "T_flange_camera"
+                    raise ValueError(
+                        f"calibration.cameras.{i}.{field}: {math.dist(here, there):.3g} mm from "
+                        f"calibration.cameras.{j} ({self.cameras[j].name!r}): two cameras at one "
+                        f"place (at least {MIN_BASELINE_MM:g} mm apart; a pose pasted twice?)")
+            seen[(cam.mounting, i)] = here
 
     def camera_groups(self) -> tuple[tuple[str, tuple[int, ...]], ...]:
         """``(group name, camera indices)`` of a multi-camera cell: the rigs in config order,

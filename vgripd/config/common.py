@@ -81,6 +81,13 @@ class PoseConfig(Model):
                 raise ValueError(str(err)) from None
         return m
 
+    def translation(self) -> tuple[float, float, float]:
+        """Where frame b's origin is in frame a (mm), whichever form was given."""
+        if self.matrix is not None:
+            return (self.matrix[0][3], self.matrix[1][3], self.matrix[2][3])
+        assert self.translation_mm is not None  # _one_form
+        return (self.translation_mm[0], self.translation_mm[1], self.translation_mm[2])
+
     @model_validator(mode="after")
     def _one_form(self) -> PoseConfig:
         if self.matrix is not None:

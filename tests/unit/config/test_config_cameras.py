@@ -88,6 +88,48 @@ def test_bad_camera_sections_are_refused_naming_the_field(
     assert "left: Field required" not in str(err.value)
 
 
+def _pasted(i: int, j: int, matrix: bool = False) -> list[dict[str, Any]]:
+    """Four cameras, camera j's pose pasted over camera i's (a matrix with ``matrix``)."""
+    cams = _cams(4)
+    cams[i] = dict(cams[i], T_base_camera=cams[j]["T_base_camera"])
+    if matrix:
+        t = cams[j]["T_base_camera"]["translation_mm"]
+        cams[i]["T_base_camera"] = {"matrix": [[1, 0, 0, t[0]], [0, -1, 0, t[1] + 0.4],
+                                               [0, 0, -1, t[2]], [0, 0, 0, 1]]}
+    return cams
+
+
+@pytest.mark.parametrize(("cams", "expected"), [
+    (_pasted(2, 0), "calibration.cameras.2.T_base_camera: 0 mm from calibration.cameras.0 "
+                    "('cam0'): two cameras at one place"),
+    (_pasted(3, 1, matrix=True), "calibration.cameras.3.T_base_camera: 0.4 mm from "
+                                 "calibration.cameras.1 ('cam1')"),
+])
+def test_two_cameras_at_one_place_are_refused_naming_the_second(
+        cams: list[dict[str, Any]], expected: str) -> None:
+    """A pose pasted twice leaves a pair with no baseline: refused at load (``vgripd check``
+    and the config transaction say so), not a worker that cannot build its locator."""
+    with pytest.raises(ConfigError) as err:
+        _cfg(cameras=cams)
+    assert expected in str(err.value)
+
+
+def test_cameras_at_one_place_but_mounted_differently_load() -> None:
+    """A fixed camera and one on the flange with equal numbers are in different frames."""
+    cams = _cams(2)
+    cams[1] = {"name": "hand", "intrinsics": INTR, "mounting": "robot",
+               "T_flange_camera": cams[0]["T_base_camera"]}
+    assert _cfg(cameras=cams).calibration.cameras is not None
+
+
+@pytest.mark.parametrize("t", [[0.0, 0.0, 0.0], [0.3, -0.2, 0.5]])
+def test_a_stereo_pair_without_a_baseline_is_refused(t: list[float]) -> None:
+    with pytest.raises(ConfigError, match=r"calibration.stereo: Value error, T_right_left: "
+                                          r"baseline .* mm: the two cameras are at one place"):
+        _cfg(left=INTR, right=INTR, stereo={"T_right_left": {"translation_mm": t}},
+             hand_eye={"T_base_camera": {"translation_mm": [0, 0, 800]}})
+
+
 def test_robot_mounted_camera_needs_the_flange_pose() -> None:
     cams = _cams(2)
     cams[1] = {"name": "hand", "intrinsics": INTR, "mounting": "robot",
