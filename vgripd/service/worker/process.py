@@ -172,14 +172,22 @@ def _recv_exact(sock: socket.socket, n: int) -> bytes | None:
     return bytes(buf)
 
 
-def _load_processor(path: str, config: Config) -> Processor | None:
-    """The processor class at ``module:Class`` built from ``config``; None if not calibrated."""
+def _load_processor(path: str, config: Config, problems: dict[int, str],
+                    recipe: int) -> Processor | None:
+    """The processor class at ``module:Class`` built from ``config``; None (and the reason in
+    ``problems``) if it cannot be built: its jobs answer NOT_CALIBRATED, the other recipes and
+    the worker run on."""
     module_name, _, class_name = path.partition(":")
     cls = getattr(importlib.import_module(module_name), class_name)
     try:
         processor: Processor = cls(config)
-    except NotCalibratedError:
-        return None  # the daemon judged it too (vision.readiness) and answers NOT_CALIBRATED
+    except NotCalibratedError as err:
+        problems[recipe] = str(err)  # the daemon judged it too (vision.readiness)
+        return None
+    except Exception as err:  # what the config's judges did not foresee: this recipe only
+        problems[recipe] = f"its pipeline cannot be built: {type(err).__name__}: {err}"
+        log.exception("worker: recipe %d: %s", recipe, problems[recipe])
+        return None
     return processor
 
 
@@ -195,7 +203,8 @@ class _Worker:
         self.camera: Camera = cls(validate_options(cls, config.camera, "camera"), config)
         self.camera_open = False
         # One processor per recipe (config.recipes), so a recipe switch costs nothing.
-        self.processors = {n: _load_processor(processor, config.for_recipe(n))
+        self.problems: dict[int, str] = {}
+        self.processors = {n: _load_processor(processor, config.for_recipe(n), self.problems, n)
                            for n in config.recipe_numbers()}
         self.warmed = self._warm_up()
         self.recorder: Recorder | None = None
@@ -321,13 +330,15 @@ class _Worker:
     def process(self, ref: Any, job_id: int, recipe: int = 0) -> JobResult:
         processor = self.processors.get(recipe)
         if processor is None:
-            raise NotCalibratedError(f"the worker has no calibrated pipeline for recipe {recipe}")
+            raise NotCalibratedError(f"recipe {recipe}: " + self.problems.get(
+                recipe, "the worker has no pipeline for it"))
         return _wire_result(processor.process(self._pair(ref), job_id))
 
     def reconfigure(self, config: Config, processor: str) -> list[int]:
         """Rebuild every recipe's processor from ``config`` (a reload, ``ops.reload``); the camera
         and the recorder stay. Returns the recipes that are not calibrated."""
-        self.processors = {n: _load_processor(processor, config.for_recipe(n))
+        self.problems = {}
+        self.processors = {n: _load_processor(processor, config.for_recipe(n), self.problems, n)
                            for n in config.recipe_numbers()}
         return [n for n, p in self.processors.items() if p is None]
 

@@ -64,6 +64,15 @@ class RaisingPipeline(Pipeline):
         return super().process(pair, job_id)
 
 
+class AbbBrokenPipeline(Pipeline):
+    """Cannot be built for a recipe whose output is ABB's (what no judge foresaw)."""
+
+    def __init__(self, config: Config) -> None:
+        if config.output.vendor == "abb":
+            raise RuntimeError("a locator that cannot be built")
+        super().__init__(config)
+
+
 def _explode() -> None:
     raise RuntimeError("cannot be unpickled")
 
@@ -348,6 +357,21 @@ async def test_an_exception_in_the_worker_fails_the_request_and_the_worker_stays
             await client.process(_with(pair, **{"raise": True}), 1)
         assert (await client.process(pair, 2)).status is Status.OK
         assert client.pid == pid
+
+
+async def test_a_recipe_whose_pipeline_cannot_be_built_fails_only_its_own_jobs() -> None:
+    """The worker starts (no restart loop), names the recipe and the reason in its answer, and
+    the other recipes run."""
+    config = _config(recipes={"1": {"name": "abb", "output": {"vendor": "abb"}}})
+    async with running(config, f"{HERE}:AbbBrokenPipeline") as client:
+        pair = await _local_pair(client.config)
+        pid = client.pid
+        with pytest.raises(WorkerError, match=r"recipe 1: its pipeline cannot be built: "
+                                              r"RuntimeError: a locator that cannot be built"):
+            await client.process(pair, 1, 1)
+        pair = await _local_pair(client.config)  # a request's images are its own
+        assert (await client.process(pair, 2, 0)).status is Status.OK
+        assert (client.pid, client.restarts) == (pid, 0)
 
 
 async def test_a_camera_failure_in_the_worker_is_a_camera_error(tmp_path: Path) -> None:
