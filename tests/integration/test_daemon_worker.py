@@ -26,10 +26,9 @@ from vgripd.peer.registers import Reg
 from vgripd.service.daemon import Daemon
 from vgripd.service.host.children import helper_niceness
 from vgripd.service.jobs.runner import JobState
+from vgripd.service.worker.child import WORKER_NICE, WORKER_NICE_FLOOR
 from vgripd.service.worker.process import (
     SHM_DIR,
-    WORKER_NICE,
-    WORKER_NICE_FLOOR,
     segments_of,
 )
 from vgripd.types import ImagePair, JobResult, Status

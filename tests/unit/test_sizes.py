@@ -17,9 +17,6 @@ CLASS_LINES = 400
 
 #: Modules over the limit today, at most this many lines each, and why they are not split yet.
 LARGE_MODULES = {
-    "vgripd/service/worker/process.py": (950, "both ends of one private request protocol (the worker's "
-                                 "loop and the daemon's client) change together; the worker's "
-                                 "side is the next cut"),
     "drivers/links/opcua.py": (945, "the link and the asyncua server classes it extends to gate "
                                "connections, which call back into the link"),
     "drivers/links/opcua_vision.py": (952, "OPC 40100's methods with their argument checks, the "

@@ -67,7 +67,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -91,6 +91,7 @@ from vgripd.service.jobs.jobrecord import EpipolarMonitor, JobListener, JobRecor
 from vgripd.service.links.protocol import Trigger
 from vgripd.service.links.supervision import LinkSupervisor
 from vgripd.service.worker.cameras import CameraSupervisor
+from vgripd.service.worker.child import Processor
 from vgripd.service.worker.process import WorkerClient, WorkerError, WorkerRecorder
 from vgripd.service.worker.recorder import Recorder
 from vgripd.types import CaptureView, ImagePair, JobResult, Status
@@ -104,12 +105,6 @@ class JobState(enum.Enum):
     ACQUIRING = "acquiring"
     PROCESSING = "processing"
     PUBLISHING = "publishing"
-
-
-class Processor(Protocol):
-    """What the daemon needs from the vision pipeline (``vgripd.vision.pipeline.Pipeline``)."""
-
-    def process(self, pair: ImagePair, job_id: int) -> JobResult: ...
 
 
 @dataclasses.dataclass

@@ -58,7 +58,7 @@ from vgripd.service.links.handeye_walk import WalkServer, walk_refusal
 from vgripd.service.links.protocol import Trigger
 from vgripd.service.links.supervision import LinkSupervisor, link_names
 from vgripd.service.worker.cameras import CameraSupervisor
-from vgripd.service.worker.process import WORKER_NICE, WORKER_NICE_FLOOR
+from vgripd.service.worker.child import WORKER_NICE, WORKER_NICE_FLOOR
 from vgripd.types import JobResult, Status
 
 log = logging.getLogger("vgripd.calib.walk")

@@ -25,15 +25,14 @@ from vgripd.config import Config, config_from_dict
 from vgripd.errors import CameraError
 from vgripd.registry import CAMERAS, load_class, validate_options
 from vgripd.service.host.children import helper_niceness
+from vgripd.service.worker.child import WORKER_NICE, WORKER_NICE_FLOOR
+from vgripd.service.worker.imageshm import read_images
 from vgripd.service.worker.process import (
     SHM_DIR,
-    WORKER_NICE,
-    WORKER_NICE_FLOOR,
     WorkerClient,
     WorkerError,
     describe_exit,
     images_nbytes,
-    read_images,
     segments_of,
     write_images,
 )
@@ -407,7 +406,7 @@ def test_the_wire_format_carries_pick_instances() -> None:
     import pickle
     from types import MappingProxyType
 
-    from vgripd.service.worker.process import _wire_result
+    from vgripd.service.worker.child import _wire_result
     from vgripd.types import PickInstance
 
     instances = (PickInstance(status=Status.OK, T_base_obj=np.eye(4), pick_id=2, score=0.9,
