@@ -238,23 +238,23 @@ class CalibrationConfig(Model):
         return self
 
     def _cameras_apart(self) -> None:
-        """Two cameras mounted alike (both fixed, or both on the flange) at one place: a pose
-        pasted twice; the pair between them has no baseline to triangulate on."""
+        """Two fixed cameras at one place: a pose pasted twice; the pair between them has no
+        baseline to triangulate on. (Cameras on the flange may share a pose: the views of one
+        camera that the robot moves between them, docs/multicamera.md.)"""
         assert self.cameras is not None
-        seen: dict[tuple[str, int], tuple[float, float, float]] = {}
+        seen: dict[int, tuple[float, float, float]] = {}
         for i, cam in enumerate(self.cameras):
-            pose = cam.T_base_camera if cam.mounting == "fixed" else cam.T_flange_camera
-            if pose is None:
-                continue  # named by the camera's own validator
-            here = pose.translation()
-            for (mounting, j), there in seen.items():
-                if mounting == cam.mounting and math.dist(here, there) < MIN_BASELINE_MM:
-                    field = "T_base_camera" if mounting == "fixed" else "T_flange_camera"
+            if cam.mounting != "fixed" or cam.T_base_camera is None:
+                continue
+            here = cam.T_base_camera.translation()
+            for j, there in seen.items():
+                if math.dist(here, there) < MIN_BASELINE_MM:
                     raise ValueError(
-                        f"calibration.cameras.{i}.{field}: {math.dist(here, there):.3g} mm from "
-                        f"calibration.cameras.{j} ({self.cameras[j].name!r}): two cameras at one "
-                        f"place (at least {MIN_BASELINE_MM:g} mm apart; a pose pasted twice?)")
-            seen[(cam.mounting, i)] = here
+                        f"calibration.cameras.{i}.T_base_camera: {math.dist(here, there):.3g} mm "
+                        f"from calibration.cameras.{j} ({self.cameras[j].name!r}): two fixed "
+                        f"cameras at one place (at least {MIN_BASELINE_MM:g} mm apart; a pose "
+                        "pasted twice?)")
+            seen[i] = here
 
     def camera_groups(self) -> tuple[tuple[str, tuple[int, ...]], ...]:
         """``(group name, camera indices)`` of a multi-camera cell: the rigs in config order,

@@ -101,7 +101,7 @@ def _pasted(i: int, j: int, matrix: bool = False) -> list[dict[str, Any]]:
 
 @pytest.mark.parametrize(("cams", "expected"), [
     (_pasted(2, 0), "calibration.cameras.2.T_base_camera: 0 mm from calibration.cameras.0 "
-                    "('cam0'): two cameras at one place"),
+                    "('cam0'): two fixed cameras at one place"),
     (_pasted(3, 1, matrix=True), "calibration.cameras.3.T_base_camera: 0.4 mm from "
                                  "calibration.cameras.1 ('cam1')"),
 ])
@@ -114,11 +114,13 @@ def test_two_cameras_at_one_place_are_refused_naming_the_second(
     assert expected in str(err.value)
 
 
-def test_cameras_at_one_place_but_mounted_differently_load() -> None:
-    """A fixed camera and one on the flange with equal numbers are in different frames."""
-    cams = _cams(2)
-    cams[1] = {"name": "hand", "intrinsics": INTR, "mounting": "robot",
-               "T_flange_camera": cams[0]["T_base_camera"]}
+def test_cameras_on_the_flange_may_share_a_pose() -> None:
+    """A fixed camera and one on the flange with equal numbers are in different frames, and
+    cameras on the flange at one pose are the views of one camera the robot moves."""
+    cams = _cams(3)
+    for i in (1, 2):
+        cams[i] = {"name": f"view{i}", "intrinsics": INTR, "mounting": "robot",
+                   "T_flange_camera": cams[0]["T_base_camera"]}
     assert _cfg(cameras=cams).calibration.cameras is not None
 
 

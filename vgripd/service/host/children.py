@@ -171,7 +171,13 @@ def end_pool(pool: ProcessPoolExecutor, grace_s: float, cancel_futures: bool = T
             end_process(proc, 1.0)
     manager = getattr(pool, "_executor_manager_thread", None)
     if manager is not None:
-        manager.join(KILL_REAP_S)
+        # It notices its processes' ends when it next wakes and then cleans up (queues, the
+        # feeder thread): seconds on a busy machine, so the rest of the grace, not less than
+        # KILL_REAP_S.
+        manager.join(max(KILL_REAP_S, deadline - time.monotonic()))
+        if manager.is_alive():
+            log.warning("helper pool's manager thread still running %g s after its "
+                        "processes ended", KILL_REAP_S)
 
 
 async def wait_exit(proc: BaseProcess, timeout_s: float) -> bool:

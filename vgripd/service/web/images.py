@@ -282,13 +282,7 @@ class ImageRenderer:
             return fut
         if eager and self._pending >= MAX_PENDING:
             return None
-        loop = asyncio.get_running_loop()
-        args = _portable(pair, result)
-        try:
-            fut = asyncio.wrap_future(self._executor().submit(render, *args), loop=loop)
-        except BrokenProcessPool:
-            self._restart()
-            fut = asyncio.wrap_future(self._executor().submit(render, *args), loop=loop)
+        fut = asyncio.get_running_loop().create_task(self.call(render, *_portable(pair, result)))
         self._pending += 1
         fut.add_done_callback(self._done)
         self._cache[job_id] = fut
@@ -306,21 +300,25 @@ class ImageRenderer:
         for job_id, cached in list(self._cache.items()):
             if cached is fut:  # a failure is not cached: the next request tries again
                 del self._cache[job_id]
-        if isinstance(err, BrokenProcessPool):
-            log.warning("web images: the helper process died; starting another")
-            self._restart()
-        else:
-            log.warning("web images: rendering failed: %r", err)
+        log.warning("web images: rendering failed: %r", err)
 
     async def call(self, fn: Any, *args: Any) -> Any:
-        """``fn(*args)`` in the helper process (a trial, a teaching shot; not cached)."""
+        """``fn(*args)`` in the helper process (a render, a trial, a teaching shot). A helper
+        that died, before or while it ran the call, is replaced and the call given once to the
+        new one: the pool learns of the death only when its manager thread wakes, so a call
+        may go to a dead helper and fail ``BrokenProcessPool`` although nothing else is wrong."""
         loop = asyncio.get_running_loop()
-        try:
-            fut = self._executor().submit(fn, *args)
-        except BrokenProcessPool:
-            self._restart()
-            fut = self._executor().submit(fn, *args)
-        return await asyncio.wrap_future(fut, loop=loop)
+        for attempt in (1, 2):
+            pool = self._executor()
+            try:
+                return await asyncio.wrap_future(pool.submit(fn, *args), loop=loop)
+            except BrokenProcessPool:
+                if attempt == 2:
+                    raise
+                log.warning("web images: the helper process died; starting another")
+                if self._pool is pool:  # not yet replaced by another call that saw it
+                    self._restart()
+        raise AssertionError("unreachable")
 
     async def trial(self, pair: ImagePair, config: Config
                     ) -> tuple[list[bytes], dict[str, Any]]:

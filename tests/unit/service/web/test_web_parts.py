@@ -5,6 +5,8 @@ rendering (in this process)."""
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 import threading
 import time
 from collections import Counter
@@ -367,5 +369,33 @@ def test_closing_the_image_helper_waits_for_helpers_a_reload_let_go() -> None:
         left = [t.name for t in threading.enumerate()
                 if t not in before and t.is_alive() and not t.daemon]
         assert left == []
+
+    asyncio.run(main())
+
+
+def test_a_render_sent_to_a_helper_that_just_died_is_drawn_by_a_new_one() -> None:
+    """The pool learns of a dead helper only when its manager thread wakes: a render submitted
+    in between fails ``BrokenProcessPool``. It is given once to a new helper, so the page gets
+    its picture and not a 404."""
+    from vgripd.service.web.images import ImageRenderer
+
+    renderer = ImageRenderer(config_from_dict({}))
+    pair = ImagePair(np.zeros((64, 80), np.uint8), np.zeros((64, 80), np.uint8),
+                     time.monotonic_ns())
+
+    async def main() -> None:
+        first = renderer.submit(1, pair, JobResult(job_id=1, status=Status.OK))
+        assert first is not None
+        assert (await asyncio.wait_for(first, 120))[0][:2] == b"\xff\xd8"  # a JPEG
+        pool = renderer._pool
+        assert pool is not None
+        (helper,) = pool._processes.values()
+        os.kill(helper.pid, signal.SIGKILL)  # dies idle, between two renders
+        # at once, before the pool's manager thread can notice
+        second = renderer.submit(2, pair, JobResult(job_id=2, status=Status.OK))
+        assert second is not None
+        assert (await asyncio.wait_for(second, 120))[0][:2] == b"\xff\xd8"
+        assert renderer._pool is not pool  # a new helper drew it
+        renderer.close()
 
     asyncio.run(main())
