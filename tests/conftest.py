@@ -34,6 +34,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -117,6 +118,19 @@ def lo(address: str) -> str:
     if len(parts) != 4 or parts[:2] != ["127", "0"]:
         raise ValueError(f"lo({address!r}): expected 127.0.A.B")
     return f"127.{loopback_slot()}.{parts[2]}.{parts[3]}"
+
+
+#: asyncua's client watchdog in the tests: a probe of the server every this many seconds, given
+#: as long to answer. Its default (1 s, answered within 1 s) takes a busy machine for a dead
+#: server and drops the connection under a request in flight.
+UA_WATCHDOG_S = 30.0
+
+
+def ua_client(url: str, timeout: float = 30.0, **options: object) -> Any:
+    """asyncua's ``Client`` as the tests use it (``UA_WATCHDOG_S``, ``timeout`` per request)."""
+    from asyncua import Client
+
+    return Client(url, timeout=timeout, watchdog_intervall=UA_WATCHDOG_S, **options)
 
 
 async def stop_task(task: asyncio.Task[object], wait_s: float = 10.0) -> None:

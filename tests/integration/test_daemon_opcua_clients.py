@@ -23,7 +23,7 @@ from typing import Any
 
 import pytest
 
-from tests.conftest import REPO
+from tests.conftest import REPO, ua_client
 from tests.integration.test_daemon import Run, running
 from tests.integration.test_daemon_opcua import free_port
 from vgripd.config import config_from_dict
@@ -32,7 +32,7 @@ from vgripd.sim.opcua_client import OpcUaClientProcess
 from vgripd.types import Status
 
 asyncua = pytest.importorskip("asyncua")
-from asyncua import Client, ua  # noqa: E402
+from asyncua import ua  # noqa: E402
 from asyncua.ua.uaerrors import UaStatusCodeError  # noqa: E402
 
 pytestmark = pytest.mark.timeout(180)
@@ -87,7 +87,7 @@ class Watcher:
 async def client(url: str, interval_ms: float = 100.0) -> AsyncIterator[tuple[Any, Watcher]]:
     """A connected client with one subscription (``interval_ms`` publishing interval) on the
     result variables and the ResultReady event."""
-    c = Client(url, timeout=30)
+    c = ua_client(url, timeout=30)
     await c.connect()
     try:
         idx = await c.get_namespace_index(NS)
@@ -171,7 +171,7 @@ async def test_a_client_comes_back_after_the_daemon_restarts() -> None:
     async with running(opcua_config()) as run:
         url = await link_up(run)
         port = run.port(0)
-        c = Client(url, timeout=30)
+        c = ua_client(url, timeout=30)
         await c.connect()
         await c.create_subscription(100, Watcher())
     # The daemon is stopped: the client's next request fails, it does not hang.

@@ -20,6 +20,7 @@ import pytest
 from asyncua import Client, ua
 
 from drivers.links.opcua_vision import INSTANCE_URI
+from tests.conftest import ua_client
 from tests.integration.belt_cell import (
     COUNTS_PER_MM,
     PARTS,
@@ -120,7 +121,7 @@ async def test_a_plc_on_opc_ua_walks_the_belt_once_per_part_at_the_latched_count
     async with running(config) as run:
         await run.daemon.wait_for(lambda: all(link.health().state is LinkState.UP
                                               for link in run.daemon.rooms.links.links.values()), WAIT_S)
-        async with Client(f"opc.tcp://127.0.0.1:{run.port()}/vgripd", timeout=WAIT_S) as client:
+        async with ua_client(f"opc.tcp://127.0.0.1:{run.port()}/vgripd", timeout=WAIT_S) as client:
             plc = PlainPlc(client, await client.get_namespace_index(INSTANCE_URI))
             vsm = client.get_node(plc.id("VisionStateMachine"))
             await vsm.call_method(plc.id("VisionStateMachine.SelectModeAutomatic"))

@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 import pytest
-from asyncua import Client
 
 from drivers.links.opcua_vision import INSTANCE_URI, MV_URI, register_binary_ids
+from tests.conftest import ua_client
 from tests.drivers.links.test_opcua_vision import (
     AUTO,
     RESULT_READY,
@@ -74,7 +74,7 @@ async def cell() -> AsyncIterator[tuple[Run, GatedPipeline, Vision]]:
     try:
         await daemon.wait_for(lambda: all(link.health().state is LinkState.UP
                                           for link in daemon.rooms.links.links.values()), WAIT_S)
-        client = Client(f"opc.tcp://127.0.0.1:{run.port(0)}/vgripd", timeout=WAIT_S)
+        client = ua_client(f"opc.tcp://127.0.0.1:{run.port(0)}/vgripd", timeout=WAIT_S)
         async with client:
             await client.load_data_type_definitions()
             mv = await client.get_namespace_index(MV_URI)

@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 from drivers.links.opcua import OpcUaLink, OpcUaOptions
-from tests.conftest import REPO, need
+from tests.conftest import REPO, need, ua_client
 from vgripd.errors import ConfigError, LinkError
 from vgripd.geometry.vendors import CONVENTIONS
 from vgripd.service.links.protocol import LinkState, Trigger
@@ -190,10 +190,10 @@ async def test_busy_start_is_refused_and_the_running_job_completes(
 
 
 async def test_wrong_arguments_are_bad_request(link: OpcUaLink) -> None:
-    from asyncua import Client, ua
+    from asyncua import ua
     from asyncua.ua.uaerrors import UaStatusCodeError
 
-    async with Client(url(link)) as c:
+    async with ua_client(url(link)) as c:
         idx = await c.get_namespace_index("urn:vgripd:machine-vision")
         vs = c.get_node(ua.NodeId("VisionSystem", idx))
         codes = []
@@ -253,12 +253,12 @@ async def test_publish_for_another_request_is_a_link_error(link: OpcUaLink) -> N
 
 
 async def test_warnings_are_live(link: OpcUaLink) -> None:
-    from asyncua import Client, ua
+    from asyncua import ua
 
     await link.set_warnings(1)
     with pytest.raises(LinkError):
         await link.set_warnings(4)
-    async with Client(url(link)) as c:
+    async with ua_client(url(link)) as c:
         idx = await c.get_namespace_index("urn:vgripd:machine-vision")
         assert await c.get_node(ua.NodeId("VisionSystem.Warnings", idx)).read_value() == 1
         maker = ua.NodeId(ua.ObjectIds.Server_ServerStatus_BuildInfo_ManufacturerName)
@@ -267,10 +267,10 @@ async def test_warnings_are_live(link: OpcUaLink) -> None:
 
 async def test_state_machine_current_state_id_and_number(
         link: OpcUaLink, daemon: Daemon) -> None:
-    from asyncua import Client, ua
+    from asyncua import ua
 
     daemon.hold = True
-    async with Client(url(link)) as c:
+    async with ua_client(url(link)) as c:
         idx = await c.get_namespace_index("urn:vgripd:machine-vision")
         vs = c.get_node(ua.NodeId(ua.String("VisionSystem"), ua.Int16(idx)))
         sm = await vs.get_child([f"{idx}:VisionStateMachine"])
@@ -299,7 +299,7 @@ async def test_a_publish_never_shows_a_request_id_with_other_data(daemon: Daemon
     """Between any two steps of the loop (where a Read request could be served), the result
     variables show either no request (RequestId 0) or a request with its own values, also
     while a client's subscription on them publishes at once (interval 0)."""
-    from asyncua import Client, ua
+    from asyncua import ua
 
     daemon.result_for = lambda t: kuka_result(t.seq, values=(float(t.seq),) * 6)
     link = await open_link(daemon, options())
@@ -323,7 +323,7 @@ async def test_a_publish_never_shows_a_request_id_with_other_data(daemon: Daemon
             pass
 
     try:
-        async with Client(url(link)) as c:
+        async with ua_client(url(link)) as c:
             sub = await c.create_subscription(0, Changes())
             await sub.subscribe_data_change([c.get_node(rid_node), c.get_node(values_node)])
             observer = asyncio.create_task(observe())

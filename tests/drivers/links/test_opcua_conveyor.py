@@ -20,6 +20,7 @@ from asyncua import Client, ua
 
 from drivers.links.opcua import OpcUaLink
 from drivers.links.opcua_vision import INSTANCE_URI, MV_URI, register_binary_ids
+from tests.conftest import ua_client
 from tests.drivers.links.test_opcua import POSE, Daemon, kuka_result, options, until, url
 from tests.drivers.links.test_opcua_vision import AUTO, RESULT_READY, Vision, content, job_args
 from vgripd.peer.jobcore import Command
@@ -107,7 +108,7 @@ class Cell:
 
 @contextlib.asynccontextmanager
 async def cell(link: OpcUaLink) -> AsyncIterator[Cell]:
-    client = Client(url(link), timeout=WAIT_S)
+    client = ua_client(url(link), timeout=WAIT_S)
     async with client:
         await client.load_data_type_definitions()
         mv = await client.get_namespace_index(MV_URI)

@@ -9,10 +9,11 @@ import datetime
 import logging
 
 import pytest
-from asyncua import Client, ua
+from asyncua import ua
 
 from drivers.links.opcua import OpcUaLink, OpcUaOptions
 from drivers.links.opcua_space import RESULT_DATA, RESULT_LAST
+from tests.conftest import ua_client
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -26,7 +27,7 @@ async def test_every_result_variable_reads_before_the_first_result(
     names = [name for name, *_ in RESULT_DATA + RESULT_LAST]
     try:
         with caplog.at_level(logging.ERROR):
-            async with Client(f"opc.tcp://127.0.0.1:{link.port}/vgripd") as client:
+            async with ua_client(f"opc.tcp://127.0.0.1:{link.port}/vgripd") as client:
                 nodes = [client.get_node(ua.NodeId(ua.String(f"VisionSystem.Result.{name}"),
                                                    ua.Int16(2))) for name in names]
                 values = await client.read_values(nodes)  # one Read request for all of them

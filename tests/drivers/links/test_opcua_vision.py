@@ -28,6 +28,7 @@ from drivers.links.opcua_vision import (
     NOT_IMPLEMENTED,
     register_binary_ids,
 )
+from tests.conftest import ua_client
 from tests.drivers.links.test_opcua import POSE, Daemon, open_link, options, url
 
 pytestmark = pytest.mark.timeout(120)
@@ -114,7 +115,7 @@ async def link(daemon: Daemon) -> AsyncIterator[OpcUaLink]:
 
 @pytest.fixture
 async def vision(link: OpcUaLink) -> AsyncIterator[Vision]:
-    client = Client(url(link), timeout=WAIT_S)
+    client = ua_client(url(link), timeout=WAIT_S)
     async with client:
         await client.load_data_type_definitions()
         mv = await client.get_namespace_index(MV_URI)
@@ -314,7 +315,7 @@ async def test_start_continuous_runs_jobs_until_stop_and_abort_ends_at_once(
     d = permits
     link = await open_link(d, options(old_only=False))
     try:
-        client = Client(url(link), timeout=WAIT_S)
+        client = ua_client(url(link), timeout=WAIT_S)
         async with client:
             await client.load_data_type_definitions()
             mv = await client.get_namespace_index(MV_URI)
