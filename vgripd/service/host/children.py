@@ -174,10 +174,11 @@ def end_pool(pool: ProcessPoolExecutor, grace_s: float, cancel_futures: bool = T
         # It notices its processes' ends when it next wakes and then cleans up (queues, the
         # feeder thread): seconds on a busy machine, so the rest of the grace, not less than
         # KILL_REAP_S.
-        manager.join(max(KILL_REAP_S, deadline - time.monotonic()))
+        wait_s = max(KILL_REAP_S, deadline - time.monotonic())
+        manager.join(wait_s)
         if manager.is_alive():
-            log.warning("helper pool's manager thread still running %g s after its "
-                        "processes ended", KILL_REAP_S)
+            log.warning("a helper pool's manager thread still runs %g s after its processes "
+                        "were ended", wait_s)
 
 
 async def wait_exit(proc: BaseProcess, timeout_s: float) -> bool:
