@@ -301,6 +301,7 @@ class CameraSupervisor:
                 raise CameraError(f"camera {self.name()} is busy: an earlier grab for the web "
                                   f"view did not end within {wait_s:g} s")
             wait_s = max(0.0, t_end - time.monotonic())
+            grab = self._page_grab  # one another page started meanwhile began after this call
         if grab is None or grab.done():
             recovery = self._recovery
             if recovery is not None and not recovery.done():
