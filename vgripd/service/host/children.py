@@ -136,10 +136,11 @@ def run_below_daemon(below: int, floor: int) -> None:
 
 # --- ending a child ------------------------------------------------------------------------
 
-def end_process(proc: BaseProcess, grace_s: float = 0.0) -> int | None:
+def end_process(proc: BaseProcess, grace_s: float = 0.0, close: bool = True) -> int | None:
     """End a started child and reap it: SIGTERM and up to ``grace_s`` for it to exit (0: no
     SIGTERM), then SIGKILL; its exit code (None only when even a killed child was not reaped
-    within ``KILL_REAP_S``). The process object is closed once reaped."""
+    within ``KILL_REAP_S``). The process object is closed once reaped, unless ``close`` is
+    False (a pool's process: its manager thread still joins it)."""
     if proc.exitcode is None and grace_s > 0:
         with contextlib.suppress(OSError):
             proc.terminate()
@@ -149,7 +150,7 @@ def end_process(proc: BaseProcess, grace_s: float = 0.0) -> int | None:
             proc.kill()
         proc.join(KILL_REAP_S)
     code = proc.exitcode
-    if code is not None:
+    if code is not None and close:
         proc.close()
     return code
 
@@ -168,7 +169,7 @@ def end_pool(pool: ProcessPoolExecutor, grace_s: float, cancel_futures: bool = T
         if proc.exitcode is None:
             log.warning("helper process %s did not finish within %g s: ended", proc.pid,
                         grace_s)
-            end_process(proc, 1.0)
+            end_process(proc, 1.0, close=False)
     manager = getattr(pool, "_executor_manager_thread", None)
     if manager is not None:
         # It notices its processes' ends when it next wakes and then cleans up (queues, the

@@ -106,6 +106,9 @@ def test_end_process_reaps_a_child_that_ignores_sigterm(tmp_path: Path) -> None:
             os.kill(pid, signal.SIGKILL)
 
 
+# The pool's manager thread joins its processes after end_pool ended them: a process object
+# closed under it raised in that thread ("process object is closed").
+@pytest.mark.filterwarnings("error::pytest.PytestUnhandledThreadExceptionWarning")
 def test_a_pool_child_is_set_up_and_its_pool_ended_within_the_bound() -> None:
     setup = ChildSetup(os.getpid(), nice_below=3, nice_floor=3)
     pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
