@@ -376,7 +376,7 @@ async def test_redaction_in_the_api_and_the_recorded_job(tmp_path: Path) -> None
 
 
 async def test_a_daemon_does_not_serve_with_a_redacted_token(tmp_path: Path) -> None:
-    from vgripd.service.web import StatusEndpointError
+    from vgripd.service.web.app import StatusEndpointError
 
     config = make_config(status={"port": 0, "token": "<redacted>"}, daemon={"worker": False})
     with pytest.raises(StatusEndpointError, match="status.token"):

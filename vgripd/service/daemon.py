@@ -74,7 +74,7 @@ from vgripd.service.links.supervision import LinkSupervisor
 from vgripd.service.ops.reload import Reloader
 from vgripd.service.ops.rooms import Rooms
 from vgripd.service.ops.status import StatusBoard
-from vgripd.service.web import WebServer
+from vgripd.service.web.app import WebServer
 from vgripd.service.worker.camera import Camera
 from vgripd.service.worker.cameras import (
     CameraSupervisor,

@@ -1,5 +1,6 @@
-"""The operator web view, its JSON API and Prometheus metrics (docs/web.md)."""
+"""The operator web view, its JSON API and Prometheus metrics (docs/web.md); the server is
+``vgripd.service.web.app.WebServer``.
 
-from vgripd.service.web.app import StatusEndpointError, WebServer
-
-__all__ = ["StatusEndpointError", "WebServer"]
+Nothing is imported here: the web view's image helper process imports
+``vgripd.service.web.images`` alone, without the server and its HTTP stack.
+"""
