@@ -49,16 +49,14 @@ unless the ``asyncua`` logger is configured explicitly. The server keeps serving
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import datetime
-import gc
 import hmac
 import logging
 import os
 import socket
 import time
 from collections import Counter
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -92,7 +90,7 @@ from drivers.links.opcua_guard import (
     allowed_channels,
     mute_asyncua_refusals,
 )
-from drivers.links.opcua_space import Space, ensure_certificate, result_values
+from drivers.links.opcua_space import Space, collector_paused, ensure_certificate, result_values
 from drivers.links.opcua_vision import JobInfo, VisionSpace
 from vgripd.config import AllowList
 from vgripd.errors import LinkError
@@ -343,21 +341,6 @@ class _Protocol(OPCUAProtocol):
         self.transport.abort()
 
 
-@contextlib.contextmanager
-def _collector_paused() -> Iterator[None]:
-    """No cyclic garbage collection while the server's address space is built: its tens of
-    thousands of nodes are long-lived, and collecting while they are made (in asyncua's
-    thread, holding the interpreter lock the event loop waits for) spent some 40 % of the
-    build on passes that free nothing. Afterwards collection is on again if it was."""
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was_enabled:
-            gc.enable()
-
-
 class _BinaryServer(BinaryServer):
     def __init__(self, link: OpcUaLink, *args: Any) -> None:
         super().__init__(*args)
@@ -591,9 +574,8 @@ class OpcUaLink(SupervisedLink):
         mute_asyncua_refusals()
         o = self.options
         try:
-            passwords = read_passwords(o)
-            with _collector_paused():
-                server = await self._make_server(passwords)
+            with collector_paused():
+                server = await self._make_server(read_passwords(o))
         except LinkError as err:
             self.space = self.vision = None
             self.cell.set(LinkState.FAILED, str(err))
