@@ -57,7 +57,6 @@ import asyncio
 import contextlib
 import itertools
 import logging
-import multiprocessing
 import os
 import time
 from collections import Counter
@@ -75,6 +74,7 @@ from vgripd.peer.jobcore import Action, Command, Step, split_command
 from vgripd.peer.registers import checked_warnings
 from vgripd.peer.ur_registers import URRegisterMap
 from vgripd.registry import UR_CAPABILITIES
+from vgripd.service.host import children
 from vgripd.service.links.protocol import LinkState, Trigger, TriggerHandler
 from vgripd.service.links.supervisor import (
     BackoffOptions,
@@ -169,7 +169,7 @@ class _Child:
     """One worker process and the asyncio side of its pipes (messages; stdout/stderr)."""
 
     def __init__(self, opts: URRtdeOptions, last_seq: int | None, output: OutputLog) -> None:
-        ctx = multiprocessing.get_context("spawn")
+        ctx = children.context()
         self.conn, child_conn = ctx.Pipe()
         self._output_r, output_w = os.pipe()
         os.set_blocking(self._output_r, False)
@@ -181,7 +181,7 @@ class _Child:
             target=ur_rtde_worker.main, name=f"ur_rtde {opts.host}", daemon=True,
             args=(child_conn, child_output, opts.host, opts.use_upper_range_registers,
                   opts.frequency_hz, opts.stale_after_s, opts.connect_timeout_s, last_seq,
-                  ur_rtde_worker.link_child_setup(os.getpid()), opts.map_version == 4))
+                  ur_rtde_worker.link_child_setup(), opts.map_version == 4))
         self._child_conns: list[Connection] = [child_conn, child_output]
         self.messages: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue()
         self.exited: asyncio.Future[int] = asyncio.get_running_loop().create_future()

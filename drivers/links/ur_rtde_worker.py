@@ -344,11 +344,11 @@ class _Session:
             self.step()
 
 
-def link_child_setup(daemon_pid: int) -> ChildSetup:
+def link_child_setup() -> ChildSetup:
     """How the link's process starts (``start_child``): it ends with the daemon and ignores a
     terminal's SIGINT (the link closes it); it keeps the daemon's priority (it answers the
     robot at the polling rate) and logs nothing itself (its output goes to the parent)."""
-    return ChildSetup(daemon_pid)
+    return ChildSetup.here()
 
 
 def _redirect_output(output: Connection | None) -> None:

@@ -10,10 +10,17 @@ The children (docs/daemon.md, "Signals and lifetime"):
   keeps the daemon's priority;
 - the vgripd commands the daemon runs in a child (``vgripd.service.host.commands``).
 
+The ``multiprocessing`` children start from one fork server (``context``): it imports numpy,
+OpenCV and the children's modules once (``PRELOAD``), and each child is a fork of it, where a
+spawned interpreter imported them again at every start (0.5-1 s of CPU, seconds on a busy
+core). The fork server's environment and working folder are those of its own start, so a
+child takes the daemon's as they are when it is started (``ChildSetup.here``).
+
 Every child calls ``start_child`` first thing (a pool as its initializer), with a
 ``ChildSetup`` naming what differs between them. What they share: the kernel kills the
-child when the daemon dies, whatever the cause (``PR_SET_PDEATHSIG``), and one the daemon left
-before it got there exits at once; SIGINT is ignored (a terminal's Ctrl-C goes to the whole
+child when its parent dies, whatever the cause (``PR_SET_PDEATHSIG``; the fork server ends
+with the daemon, ``vgripd.service.host.forkserver``), and one whose parent was gone before it
+got there exits at once; SIGINT is ignored (a terminal's Ctrl-C goes to the whole
 process group, and the daemon stops its children itself); SIGTERM either ends the child at
 once or, for a child that must stop in order, leaves the daemon a grace to do it. A child
 doing CPU work drops to ``SCHED_BATCH`` some levels of niceness below the daemon, so the
@@ -34,11 +41,15 @@ import contextlib
 import ctypes
 import dataclasses
 import logging
+import multiprocessing
 import os
 import signal
 import sys
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import forkserver
+from multiprocessing.context import ForkServerContext
 from multiprocessing.process import BaseProcess
 from typing import Any
 
@@ -50,13 +61,51 @@ _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 KILL_REAP_S = 5.0
 
 
+#: What the fork server imports at its start (``context``): its own set-up first, then the
+#: modules of the children it starts (and so numpy, OpenCV, pydantic and the config).
+PRELOAD = ("vgripd.service.host.forkserver", "vgripd.service.worker.child",
+           "vgripd.service.web.images", "vgripd.calib.boards", "drivers.links.ur_rtde_worker")
+
+_preload_lock = threading.Lock()
+
+
+def context() -> ForkServerContext:
+    """The ``multiprocessing`` context the daemon's children start from: the fork server,
+    started at the first child (or ``start_server``) with ``PRELOAD`` imported."""
+    with _preload_lock:
+        forkserver.set_forkserver_preload(list(PRELOAD))
+    return multiprocessing.get_context("forkserver")
+
+
+def start_server() -> int:
+    """Start the fork server unless it runs, and wait until it has imported ``PRELOAD``
+    (the first child's start would wait as long); its pid. Blocking: the event loop runs it
+    in a thread."""
+    proc = context().Process(target=int, name="vgripd-forkserver-ready")
+    proc.start()
+    proc.join()
+    return server_pid()
+
+
+def server_pid() -> int:
+    """The fork server's pid (started if it was not running): the parent of every child
+    started from ``context``."""
+    context()
+    forkserver.ensure_running()
+    pid = getattr(forkserver._forkserver, "_forkserver_pid", None)  # noqa: SLF001
+    if not isinstance(pid, int):
+        raise RuntimeError("multiprocessing's fork server does not say its pid")
+    return pid
+
+
 @dataclasses.dataclass(frozen=True)
 class ChildSetup:
-    """What one kind of child sets up on start (``start_child``); picklable, so a spawned
+    """What one kind of child sets up on start (``start_child``); picklable, so a started
     child gets it among its arguments."""
 
-    #: The daemon that started the child: the child ends when it does.
-    daemon_pid: int
+    #: The child's parent (the fork server for a child started from ``context``, else the
+    #: daemon): the child ends when it does.
+    parent_pid: int
     #: Niceness levels below the daemon's (with ``nice_floor``: ``helper_niceness``) and
     #: ``SCHED_BATCH``; None keeps the daemon's priority and policy (a link's I/O).
     nice_below: int | None = None
@@ -67,16 +116,37 @@ class ChildSetup:
     #: The daemon's log level for the child's own logging (``configure_logging``); None
     #: leaves logging as the interpreter starts it.
     log_level: str | None = None
+    #: The environment and working folder the child takes (a fork server's are those of its
+    #: own start); None keeps what the child has.
+    environ: dict[str, str] | None = None
+    cwd: str | None = None
+    #: Forked by the fork server (``here``): ``start_child`` lets go of the server's pipe.
+    from_server: bool = False
+
+    @classmethod
+    def here(cls, **what: Any) -> ChildSetup:
+        """The set-up of a child started from ``context`` now: its parent is the fork server,
+        and it takes this process's environment and working folder as they are now."""
+        return cls(server_pid(), environ=dict(os.environ), cwd=os.getcwd(), from_server=True,
+                   **what)
 
 
 def start_child(setup: ChildSetup) -> None:
     """The set-up every child runs first thing (its initializer)."""
-    die_with_daemon(setup.daemon_pid)
+    if setup.from_server:
+        let_go_of_server()
+    die_with_daemon(setup.parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if setup.term_grace_s is None:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
     else:
-        end_on_sigterm(setup.daemon_pid, setup.term_grace_s)
+        end_on_sigterm(setup.parent_pid, setup.term_grace_s)
+    if setup.environ is not None:
+        os.environ.clear()
+        os.environ.update(setup.environ)
+    if setup.cwd is not None:
+        with contextlib.suppress(OSError):  # a folder removed meanwhile: as a spawn would
+            os.chdir(setup.cwd)
     if setup.nice_below is not None:
         run_below_daemon(setup.nice_below, setup.nice_floor)
     if setup.log_level is not None:
@@ -85,29 +155,44 @@ def start_child(setup: ChildSetup) -> None:
         configure_logging(setup.log_level)
 
 
-def die_with_daemon(daemon_pid: int) -> None:
-    """Have the kernel SIGKILL this child process when the daemon that spawned it dies (Linux
-    ``PR_SET_PDEATHSIG``; elsewhere nothing). A daemon that died before this call leaves the
-    child re-parented already: it exits at once.
+def let_go_of_server() -> None:
+    """In a child forked by the fork server: close the child's copy of the pipe by which the
+    server learns that the daemon is gone. ``multiprocessing`` hands every child one, so that
+    the server ends only once all its clients have; but this child ends with the server
+    (``die_with_daemon``), so holding it would keep both running after the daemon died."""
+    fd = getattr(forkserver._forkserver, "_forkserver_alive_fd", None)  # noqa: SLF001
+    if isinstance(fd, int):
+        with contextlib.suppress(OSError):
+            os.close(fd)
+        setattr(forkserver._forkserver, "_forkserver_alive_fd", None)  # noqa: B010, SLF001
 
-    The signal follows the death of the spawning *thread*: the daemon spawns its children from
-    its event loop's thread, which lives as long as the daemon serves.
+
+def die_with_daemon(parent_pid: int) -> None:
+    """Have the kernel SIGKILL this child process when its parent dies (Linux
+    ``PR_SET_PDEATHSIG``; elsewhere nothing): the daemon, or the fork server, which ends when
+    the daemon does. A parent that died before this call leaves the child re-parented
+    already: it exits at once.
+
+    The signal follows the death of the starting *thread*: the fork server has one, and the
+    daemon starts its other children from its event loop's thread, which lives as long as the
+    daemon serves.
     """
     if sys.platform.startswith("linux"):
         libc = ctypes.CDLL(None, use_errno=True)
         if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
             log.warning("prctl(PR_SET_PDEATHSIG) failed: %s", os.strerror(ctypes.get_errno()))
-    if os.getppid() != daemon_pid:
+    if os.getppid() != parent_pid:
         os._exit(0)
 
 
-def end_on_sigterm(daemon_pid: int, grace_s: int) -> None:
-    """SIGTERM handling of a child process: when the daemon is gone, exit now (``finally``
-    blocks run); while it lives (systemd signalled the whole unit) leave it ``grace_s`` to stop
-    this process in order, then the kernel ends it (SIGALRM's default action)."""
+def end_on_sigterm(parent_pid: int, grace_s: int) -> None:
+    """SIGTERM handling of a child process: when its parent (and so the daemon) is gone, exit
+    now (``finally`` blocks run); while it lives (systemd signalled the whole unit) leave the
+    daemon ``grace_s`` to stop this process in order, then the kernel ends it (SIGALRM's
+    default action)."""
 
     def on_term(signum: int, frame: Any) -> None:
-        if os.getppid() != daemon_pid:
+        if os.getppid() != parent_pid:
             raise SystemExit(0)
         signal.alarm(grace_s)
 

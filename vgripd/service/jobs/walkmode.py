@@ -33,8 +33,6 @@ import contextlib
 import enum
 import json
 import logging
-import multiprocessing
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -50,6 +48,7 @@ from vgripd.calib.handeye.walk import NOT_SEEN, SEEN, UNREACHABLE, Walk
 from vgripd.errors import CalibrationError, CameraError, ConfigError, VgripError
 from vgripd.geometry.camera_model import CameraModel
 from vgripd.peer.jobcore import Command
+from vgripd.service.host import children
 from vgripd.service.host.children import ChildSetup, end_pool, start_child
 from vgripd.service.host.commands import CommandTimeout, run_vgripd
 from vgripd.service.host.tasks import Background
@@ -71,10 +70,10 @@ SOLVE_TIMEOUT_S = 600.0
 FINDER_STOP_S = 30.0
 
 
-def _finder_setup(daemon_pid: int) -> ChildSetup:
+def _finder_setup() -> ChildSetup:
     """The board finder's process: ends with the daemon, runs below the daemon as the worker
     does (its SIGTERM ends it at once: it holds nothing)."""
-    return ChildSetup(daemon_pid, nice_below=WORKER_NICE, nice_floor=WORKER_NICE_FLOOR)
+    return ChildSetup.here(nice_below=WORKER_NICE, nice_floor=WORKER_NICE_FLOOR)
 
 
 class WalkRefused(VgripError):
@@ -268,8 +267,9 @@ class WalkMode:
         """The board finder in a helper process, so that the CPU work of finding corners does
         not hold the event loop's interpreter (called on the walk's record thread)."""
         if self._finder is None:
-            self._finder = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context(
-                "spawn"), initializer=start_child, initargs=(_finder_setup(os.getpid()),))
+            self._finder = ProcessPoolExecutor(1, mp_context=children.context(),
+                                               initializer=start_child,
+                                               initargs=(_finder_setup(),))
         return self._finder.submit(detect, board, image, name).result()
 
     async def _close_finder(self) -> None:

@@ -18,8 +18,6 @@ import contextlib
 import dataclasses
 import json
 import logging
-import multiprocessing
-import os
 import threading
 from collections import OrderedDict
 from concurrent.futures import ProcessPoolExecutor
@@ -31,6 +29,7 @@ import numpy as np
 
 from vgripd.config import Config
 from vgripd.service.host.children import ChildSetup, end_pool, start_child
+from vgripd.service.host.children import context as children_context
 from vgripd.types import ImagePair, JobResult, Status
 
 log = logging.getLogger(__name__)
@@ -261,10 +260,9 @@ class ImageRenderer:
     def _executor(self) -> ProcessPoolExecutor:
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
-                1, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_init_helper, initargs=(self._config, ChildSetup(
-                    os.getpid(), nice_below=WEB_IMAGES_NICE,
-                    nice_floor=WEB_IMAGES_NICE_FLOOR)))
+                1, mp_context=children_context(),
+                initializer=_init_helper, initargs=(self._config, ChildSetup.here(
+                    nice_below=WEB_IMAGES_NICE, nice_floor=WEB_IMAGES_NICE_FLOOR)))
         return self._pool
 
     def cached(self, job_id: int) -> asyncio.Future[list[bytes]] | None:

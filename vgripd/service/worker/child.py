@@ -280,16 +280,17 @@ class _Worker:
         self.loop.close()
 
 
-def worker_setup(daemon_pid: int, log_level: str) -> ChildSetup:
-    """How the worker starts (``start_child``): it holds the camera and the recorder, so
-    SIGTERM leaves the daemon ``TERM_GRACE_S`` to stop it in order; below the daemon."""
-    return ChildSetup(daemon_pid, nice_below=WORKER_NICE, nice_floor=WORKER_NICE_FLOOR,
-                      term_grace_s=TERM_GRACE_S, log_level=log_level)
+def worker_setup(log_level: str) -> ChildSetup:
+    """How the worker starts (``start_child``; called by the daemon as it starts one): it
+    holds the camera and the recorder, so SIGTERM leaves the daemon ``TERM_GRACE_S`` to stop
+    it in order; below the daemon."""
+    return ChildSetup.here(nice_below=WORKER_NICE, nice_floor=WORKER_NICE_FLOOR,
+                           term_grace_s=TERM_GRACE_S, log_level=log_level)
 
 
 def worker_main(sock: socket.socket, config: Config, processor: str,
                 setup: ChildSetup) -> None:
-    """Entry point of the worker process (``multiprocessing`` spawn target)."""
+    """Entry point of the worker process (its ``multiprocessing`` target)."""
     start_child(setup)
     try:
         worker = _Worker(config, processor)

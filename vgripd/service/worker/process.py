@@ -62,7 +62,6 @@ import contextlib
 import dataclasses
 import itertools
 import logging
-import multiprocessing
 import os
 import pickle
 import secrets
@@ -77,6 +76,7 @@ from typing import Any
 
 from vgripd.config import Config
 from vgripd.errors import CameraError, CameraSettingError
+from vgripd.service.host import children
 from vgripd.service.host.children import end_process, wait_exit
 from vgripd.service.worker.child import HEADER, _frame, _wire_result, worker_main, worker_setup
 from vgripd.service.worker.imageshm import SHM_DIR as SHM_DIR  # where tests look for segments
@@ -168,7 +168,7 @@ class WorkerClient:
         self.last_exit = ""
         #: Called with the reason when a worker that held the camera died and is replaced.
         self.camera_lost: Callable[[str], None] | None = None
-        self._ctx = multiprocessing.get_context("spawn")
+        self._ctx = children.context()
         self._gen: _Generation | None = None
         self._starting: asyncio.Task[None] | None = None
         self._next_start_mono = 0.0
@@ -281,11 +281,13 @@ class WorkerClient:
                 await asyncio.sleep(delay_s)
             parent, child = socket.socketpair()
             try:
+                setup = await asyncio.to_thread(worker_setup, self.config.daemon.log_level)
                 proc = self._ctx.Process(
                     target=worker_main, name="vgripd-worker", daemon=True,
-                    args=(child, self.config, self.processor,
-                          worker_setup(os.getpid(), self.config.daemon.log_level)))
-                proc.start()  # spawn: fork+exec, a few ms
+                    args=(child, self.config, self.processor, setup))
+                # A fork of the fork server: milliseconds, but the first start waits for the
+                # server to import what it preloads, so off the event loop.
+                await asyncio.to_thread(proc.start)
             finally:
                 child.close()
             reader, writer = await asyncio.open_connection(sock=parent)

@@ -1,5 +1,7 @@
 """The one helper-process mechanism (``vgripd.service.host.children``): a child set up by
-``start_child`` dies with its daemon, even one killed by SIGKILL; it ignores SIGINT and runs
+``start_child`` dies with its daemon, even one killed by SIGKILL, also through the fork server,
+whose children take the daemon's environment and working folder of the moment; it ignores
+SIGINT and runs
 below the daemon when asked; ``end_process`` ends and reaps a child that ignores SIGTERM;
 ``end_pool`` ends a pool whose call outlives the bound, its manager thread included."""
 
@@ -83,6 +85,74 @@ def test_a_child_dies_when_its_daemon_is_killed(tmp_path: Path) -> None:
             parent.wait(DEADLINE_S)
         if child_pid and not _gone(child_pid):
             os.kill(child_pid, signal.SIGKILL)
+        if parent.stdout is not None:
+            parent.stdout.close()
+
+
+# The daemon stand-in with a fork server: it starts the server, then changes its environment
+# and working folder, starts a child from the server, tells both pids, then waits.
+_FORKSERVER_PARENT = """
+import os, sys, time
+from vgripd.service.host import children
+server = children.start_server()
+os.environ["VGRIPD_TEST_LATE"] = "set after the fork server started"
+os.chdir(sys.argv[2])
+setup = children.ChildSetup.here(term_grace_s=60)
+proc = children.context().Process(target=exec,
+                                  args=(sys.argv[1], {"setup": setup, "out": sys.argv[3]}))
+proc.start()
+print(proc.pid, server, flush=True)
+time.sleep(600)
+"""
+_FORKSERVER_CHILD = """
+import os, time
+from vgripd.service.host.children import start_child
+start_child(setup)
+with open(out + ".tmp", "w") as f:
+    f.write(os.environ.get("VGRIPD_TEST_LATE", "-") + "\\n" + os.getcwd())
+os.rename(out + ".tmp", out)
+time.sleep(600)
+"""
+
+
+def _parent_of(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
+def test_a_fork_server_child_takes_the_daemons_state_and_ends_with_it(tmp_path: Path) -> None:
+    """A child forked by the fork server takes the environment and working folder the daemon
+    has when it starts the child (not those of the server's start); the server outlives the
+    SIGTERM systemd sends the whole unit, so the worker is not killed under the daemon that
+    stops it in order; and both end when the daemon is SIGKILLed."""
+    work = tmp_path / "work"
+    work.mkdir()
+    out = tmp_path / "child.txt"
+    parent = subprocess.Popen(
+        [sys.executable, "-c", _FORKSERVER_PARENT, _FORKSERVER_CHILD, str(work), str(out)],
+        cwd=REPO, stdout=subprocess.PIPE, text=True)
+    child_pid = server_pid = 0
+    try:
+        assert parent.stdout is not None
+        child_pid, server_pid = map(int, parent.stdout.readline().split())
+        _wait_for("the child set itself up", out.exists)
+        assert out.read_text().splitlines() == ["set after the fork server started", str(work)]
+        assert _parent_of(child_pid) == server_pid
+        assert _parent_of(server_pid) == parent.pid
+        os.kill(server_pid, signal.SIGTERM)  # systemd's stop signals every process of the unit
+        time.sleep(0.5)
+        assert not _gone(server_pid)
+        assert not _gone(child_pid)
+        parent.kill()
+        parent.wait(DEADLINE_S)
+        _wait_for(f"fork server {server_pid} ended with its daemon", lambda: _gone(server_pid))
+        _wait_for(f"child {child_pid} ended with its daemon", lambda: _gone(child_pid))
+    finally:
+        if parent.returncode is None:
+            parent.kill()
+            parent.wait(DEADLINE_S)
+        for pid in (child_pid, server_pid):
+            if pid and not _gone(pid):
+                os.kill(pid, signal.SIGKILL)
         if parent.stdout is not None:
             parent.stdout.close()
 
