@@ -1,5 +1,5 @@
-"""Every child process of `vgripd run` (the worker, the web view's JPEG helper, multiprocessing's
-resource tracker) ends with the daemon: on SIGTERM to the whole process group (what systemd's
+"""Every child process of `vgripd run` (the worker and the web view's JPEG helper, forked by
+multiprocessing's fork server, the server itself, and the resource tracker) ends with the daemon: on SIGTERM to the whole process group (what systemd's
 ``KillMode=control-group`` does on ``systemctl stop``) with a job in flight and a browser's event
 stream open, and on SIGKILL of the daemon alone, which no code of the daemon sees.
 
@@ -151,13 +151,21 @@ async def _job_with_image(d: Daemon, seq: int) -> None:
         assert (await resp.read())[:2] == b"\xff\xd8"
 
 
+def _parent(pid: int) -> int:
+    with open(f"/proc/{pid}/stat") as f:
+        return int(f.read().rsplit(")", 1)[1].split()[1])
+
+
 def _children_of_kind(pids: dict[int, str]) -> dict[str, list[int]]:
-    kinds: dict[str, list[int]] = {"tracker": [], "spawned": []}
+    """The daemon's descendants by kind: multiprocessing's resource tracker, its fork server,
+    and the children forked by that server (which show the server's command line)."""
+    kinds: dict[str, list[int]] = {"tracker": [], "server": [], "forked": []}
+    servers = {pid for pid, cmd in pids.items() if "multiprocessing.forkserver" in cmd}
     for pid, cmd in pids.items():
         if "resource_tracker" in cmd:
             kinds["tracker"].append(pid)
-        elif "spawn_main" in cmd:
-            kinds["spawned"].append(pid)
+        elif pid in servers:
+            kinds["forked" if _parent(pid) in servers else "server"].append(pid)
     return kinds
 
 
@@ -167,7 +175,8 @@ async def test_systemd_stop_ends_every_child_with_a_job_in_flight_and_a_browser_
         await _job_with_image(d, 1)
         children = _descendants(d.proc.pid)
         kinds = _children_of_kind(children)
-        assert len(kinds["spawned"]) == 2, children  # the worker and the JPEG helper
+        assert len(kinds["forked"]) == 2, children  # the worker and the JPEG helper
+        assert len(kinds["server"]) == 1, children
         assert len(kinds["tracker"]) == 1, children
         # A browser: the live event stream stays open.
         events = await d.http.get(f"{d.base}/api/events")
@@ -199,7 +208,7 @@ async def test_sigkill_of_the_daemon_ends_every_child(tmp_path: Path) -> None:
     async with _daemon(tmp_path) as d:
         await _job_with_image(d, 1)
         children = _descendants(d.proc.pid)
-        assert len(_children_of_kind(children)["spawned"]) == 2, children
+        assert len(_children_of_kind(children)["forked"]) == 2, children
         assert segments_of(f"vgripd-{d.proc.pid}-")  # the daemon's shared memory
         d.proc.kill()  # the daemon alone: no code of it runs any more
         await d.proc.wait()
@@ -216,13 +225,13 @@ async def test_the_image_helper_ends_on_sigterm_and_the_next_image_gets_a_new_on
         helper = _descendants(d.proc.pid)
         worker_pid = int((await (await d.http.get(f"{d.base}/api/status")).json())
                          ["worker"]["pid"])
-        helpers = [pid for pid in _children_of_kind(helper)["spawned"] if pid != worker_pid]
+        helpers = [pid for pid in _children_of_kind(helper)["forked"] if pid != worker_pid]
         assert len(helpers) == 1, helper
         os.kill(helpers[0], signal.SIGTERM)
         assert not await _survivors({helpers[0]: "image helper"}, time.monotonic() + WAIT_S)
         # The daemon keeps serving: the next job's image comes from a new helper.
         await _job_with_image(d, 2)
-        now = _children_of_kind(_descendants(d.proc.pid))["spawned"]
+        now = _children_of_kind(_descendants(d.proc.pid))["forked"]
         assert worker_pid in now
         assert len(now) == 2, now
         assert helpers[0] not in now, now
