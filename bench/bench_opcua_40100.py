@@ -125,7 +125,7 @@ class Arrivals:
 
 
 async def client_main(url: str, jobs: int) -> None:
-    async with Client(url, timeout=60) as c:
+    async with Client(url, timeout=60, watchdog_intervall=30) as c:  # asyncua probes every 1 s
         mv = await c.get_namespace_index(MV_URI)
         # asyncua's client cannot build ResultDataType before the BinaryIdBase subtypes have
         # classes of their own (register_binary_ids): its first load logs that and skips it,

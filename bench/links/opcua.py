@@ -102,7 +102,8 @@ async def secure(client: Client, server_cert: str, folder: Path) -> Client:
 
 
 async def client_main(link_url: str, bare_url: str, jobs: int, server_cert: str) -> None:
-    lc, bc = Client(link_url), Client(bare_url)
+    # a probe every 30 s (asyncua: every 1 s, 1 s to answer, which drops a loaded connection)
+    lc, bc = Client(link_url, watchdog_intervall=30), Client(bare_url, watchdog_intervall=30)
     if server_cert:
         folder = Path(server_cert).parent.parent / "client"
         await secure(lc, server_cert, folder)

@@ -133,7 +133,7 @@ async def connect(args: argparse.Namespace) -> tuple[Any, Session]:
     from asyncua import Client, ua
     from asyncua.crypto import security_policies
 
-    client = Client(args.url, timeout=args.timeout)
+    client = Client(args.url, timeout=args.timeout, watchdog_intervall=args.watchdog_s)
     client.application_uri = "urn:vgripd:sim:opcua-client"
     client.session_timeout = int(args.session_timeout_s * 1000)
     if args.user:
@@ -224,6 +224,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--namespace", default=NAMESPACE)
     p.add_argument("--timeout", type=float, default=30.0)
     p.add_argument("--session-timeout-s", type=float, default=3600.0)
+    # asyncua's default probes the server every 1 s and gives it 1 s to answer: a loaded
+    # machine (the demo beside other work, a test suite) is taken for a dead server and the
+    # connection dropped under a job in flight ("client is disconnected").
+    p.add_argument("--watchdog-s", type=float, default=30.0,
+                   help="probe the server's state this often, given as long to answer")
     return p.parse_args(argv)
 
 

@@ -21,6 +21,7 @@ import shlex
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
@@ -396,6 +397,23 @@ async def test_silent_peers_are_closed_once_each(
     assert len(lines(caplog, "session timeout 1.5 s")) == 1
     assert link.faults["silent"] == 2
     assert not [r for r in caplog.records if r.exc_info]
+
+
+async def test_a_server_stalled_for_seconds_keeps_its_client(daemon: Daemon) -> None:
+    """A loaded machine can hold the server's process for seconds. The demo's OPC UA client
+    (``vgripd.sim.opcua_client``) keeps its session through it: with asyncua's own watchdog (a
+    probe every 1 s, 1 s to answer) it dropped the connection and the next job ended "client
+    is disconnected" (seen under two suites side by side)."""
+    link = await open_link(daemon, options())
+    try:
+        async with OpcUaClientProcess(url(link)) as client:
+            answer = await client.send("job")
+            assert answer.get("Status") == Status.OK, answer
+            time.sleep(3.0)  # noqa: ASYNC251 - the point: the server's event loop stalls
+            answer = await client.send("job")
+            assert answer.get("Status") == Status.OK, answer
+    finally:
+        await link.close()
 
 
 async def test_a_flood_of_silent_connections_neither_evicts_a_session_nor_locks_out_a_client(
