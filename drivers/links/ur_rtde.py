@@ -443,6 +443,8 @@ class URRtdeLink(SupervisedLink):
         async def session() -> Ended:
             nonlocal ever_up
             known = self.handshake.last_req_seq if self._baseline else None
+            # the fork server ready off the event loop: the child's start then takes ms
+            await asyncio.to_thread(children.start_server)
             child = _Child(self.options, known, self._output)
             self._child = child
             try:

@@ -225,7 +225,8 @@ enabled = false
                     await asyncio.sleep(0.1)
         async with OpcUaClientProcess(url) as c1, OpcUaClientProcess(url) as c2:
             assert (c1.connected["event"], c2.connected["event"]) == ("connected", "connected")
-            assert (await c1.send("job"))["Status"] == Status.OK
+            answer = await c1.send("job")
+            assert answer.get("Status") == Status.OK, answer
             assert (await c2.send("start"))["event"] == "started"
             proc.send_signal(signal.SIGTERM)
             async with asyncio.timeout(WAIT_S):

@@ -83,6 +83,7 @@ class Session:
                        for n in RESULT_NAMES}
         self.captured = client.get_node(self.node_id("VisionSystem.CapturedRequestId"))
         self.events = _Events()
+        self.keep_alive: asyncio.Task[None] | None = None
 
     def node_id(self, path: str) -> Any:
         """vgripd's string node id of ``path`` in its namespace."""
@@ -151,7 +152,20 @@ async def connect(args: argparse.Namespace) -> tuple[Any, Session]:
     idx = await client.get_namespace_index(args.namespace)
     session = Session(client, idx)
     await session.subscribe()
+    session.keep_alive = asyncio.create_task(_keep_alive(client))
     return client, session
+
+
+async def _keep_alive(client: Any) -> None:
+    """A request every third of the session's timeout (as the server revised it), so the
+    server keeps the session: asyncua's watchdog did that with its probe every second, and is
+    slowed to ``--watchdog-s`` here because its probe had one second to be answered. No tight
+    timeout: a slow answer on a loaded machine is still an answer."""
+    period_s = min(10.0, max(0.1, client.session_timeout / 1000 / 3))
+    while True:
+        await asyncio.sleep(period_s)
+        with contextlib.suppress(Exception):  # a dead connection fails the next command
+            await client.nodes.server_state.read_value()
 
 
 async def run(args: argparse.Namespace) -> int:
@@ -177,6 +191,8 @@ async def run(args: argparse.Namespace) -> int:
             if cmd == "quit":
                 break
     finally:
+        if session.keep_alive is not None:
+            session.keep_alive.cancel()
         with contextlib.suppress(Exception):
             await client.disconnect()
     return 0
@@ -226,7 +242,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--session-timeout-s", type=float, default=3600.0)
     # asyncua's default probes the server every 1 s and gives it 1 s to answer: a loaded
     # machine (the demo beside other work, a test suite) is taken for a dead server and the
-    # connection dropped under a job in flight ("client is disconnected").
+    # connection dropped under a job in flight ("client is disconnected"). The session is
+    # kept alive by a request every third of its timeout (``_keep_alive``).
     p.add_argument("--watchdog-s", type=float, default=30.0,
                    help="probe the server's state this often, given as long to answer")
     return p.parse_args(argv)

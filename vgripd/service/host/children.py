@@ -77,14 +77,22 @@ def context() -> ForkServerContext:
     return multiprocessing.get_context("forkserver")
 
 
+_ready_pid: int | None = None  # the fork server known to have imported PRELOAD
+
+
 def start_server() -> int:
-    """Start the fork server unless it runs, and wait until it has imported ``PRELOAD``
-    (the first child's start would wait as long); its pid. Blocking: the event loop runs it
-    in a thread."""
-    proc = context().Process(target=int, name="vgripd-forkserver-ready")
-    proc.start()
-    proc.join()
-    return server_pid()
+    """Start the fork server unless it runs, and wait until it has imported ``PRELOAD``; its
+    pid. A child's start waits as long while the server imports (seconds on a busy machine),
+    so the event loop calls this in a thread before it starts a child, which then takes
+    milliseconds; once the server is ready this returns at once."""
+    global _ready_pid
+    pid = server_pid()
+    if pid != _ready_pid:
+        proc = context().Process(target=int, name="vgripd-forkserver-ready")
+        proc.start()
+        proc.join()
+        _ready_pid = pid
+    return pid
 
 
 def server_pid() -> int:

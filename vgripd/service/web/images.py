@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from vgripd.config import Config
-from vgripd.service.host.children import ChildSetup, end_pool, start_child
+from vgripd.service.host.children import ChildSetup, end_pool, start_child, start_server
 from vgripd.service.host.children import context as children_context
 from vgripd.types import ImagePair, JobResult, Status
 
@@ -307,6 +307,8 @@ class ImageRenderer:
         may go to a dead helper and fail ``BrokenProcessPool`` although nothing else is wrong."""
         loop = asyncio.get_running_loop()
         for attempt in (1, 2):
+            if self._pool is None:  # the fork server ready off the event loop
+                await asyncio.to_thread(start_server)
             pool = self._executor()
             try:
                 return await asyncio.wrap_future(pool.submit(fn, *args), loop=loop)

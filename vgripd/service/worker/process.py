@@ -281,13 +281,14 @@ class WorkerClient:
                 await asyncio.sleep(delay_s)
             parent, child = socket.socketpair()
             try:
-                setup = await asyncio.to_thread(worker_setup, self.config.daemon.log_level)
+                # The server ready off the event loop (its imports take seconds on a busy
+                # machine); then the start, a fork of it, takes milliseconds.
+                await asyncio.to_thread(children.start_server)
                 proc = self._ctx.Process(
                     target=worker_main, name="vgripd-worker", daemon=True,
-                    args=(child, self.config, self.processor, setup))
-                # A fork of the fork server: milliseconds, but the first start waits for the
-                # server to import what it preloads, so off the event loop.
-                await asyncio.to_thread(proc.start)
+                    args=(child, self.config, self.processor,
+                          worker_setup(self.config.daemon.log_level)))
+                proc.start()
             finally:
                 child.close()
             reader, writer = await asyncio.open_connection(sock=parent)
