@@ -1,8 +1,8 @@
 """Shared test fixtures.
 
-Two autouse fixtures fail any test that leaves a thread behind (a leaked supervisor or executor
-would keep a real daemon from shutting down) or an asyncio task still pending on its event loop
-after its teardown (a daemon, link or peer that does not end what it started); each waits a few
+Autouse fixtures undo a test's in-process logging set-up, and fail any test that leaves a
+thread behind (a leaked supervisor or executor would keep a real daemon from shutting down) or
+an asyncio task still pending on its event loop after its teardown (a daemon, link or peer that does not end what it started); each waits a few
 seconds first, so a busy machine is no failure.
 
 Tests that need something from outside the repository (the public datasets, a system tool such
@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import fcntl
 import inspect
+import logging
 import os
 import shutil
 import tempfile
@@ -144,6 +145,22 @@ async def stop_task(task: asyncio.Task[object], wait_s: float = 10.0) -> None:
         while not task.done():
             task.cancel()
             await asyncio.wait({task}, timeout=0.1)
+
+
+@pytest.fixture(autouse=True)
+def root_logging_restored() -> Iterator[None]:
+    """Undoes ``configure_logging`` (``logging.basicConfig(force=True)``) of a test that runs
+    ``vgripd run`` or the like in-process: its handler writes to that test's captured stderr,
+    which pytest closes, and every later log line of the process would print a "Logging error"
+    traceback (slow enough to hold up an event loop for a second)."""
+    root, pymodbus = logging.getLogger(), logging.getLogger("pymodbus")
+    handlers, levels = list(root.handlers), (root.level, pymodbus.level)
+    yield
+    for handler in root.handlers[:]:  # pytest's own are subclasses, added and removed by it
+        if type(handler) is logging.StreamHandler and handler not in handlers:
+            root.removeHandler(handler)
+    root.setLevel(levels[0])
+    pymodbus.setLevel(levels[1])
 
 
 @pytest.fixture(autouse=True)

@@ -443,6 +443,8 @@ class URRtdeLink(SupervisedLink):
         async def session() -> Ended:
             nonlocal ever_up
             known = self.handshake.last_req_seq if self._baseline else None
+            if not ever_up and self.cell.state is LinkState.STOPPED:
+                self.cell.set(LinkState.CONNECTING, None)  # the helper's start counts too
             # the fork server ready off the event loop: the child's start then takes ms
             await asyncio.to_thread(children.start_server)
             child = _Child(self.options, known, self._output)
@@ -466,8 +468,6 @@ class URRtdeLink(SupervisedLink):
                      ever_up: bool) -> tuple[bool, str]:
         """Run one child until it fails; return (fatal, reason). ``ever_up``: an earlier child
         was up (only reconnections after that count)."""
-        if not ever_up and self.cell.state is LinkState.STOPPED:
-            self.cell.set(LinkState.CONNECTING, None)
         # The child's own start (an interpreter and ur_rtde loaded) is not the controller's
         # time: a busy cell PC takes seconds for it. connect_timeout_s runs from "started".
         try:

@@ -1,6 +1,6 @@
 """Start-up with a UR controller that accepts TCP and never answers (listed first): the camera
-and the links open at once, so the PLC's Modbus server and the status endpoint answer within a
-second of ``start()`` while the UR link is still waiting for its controller; READY follows when
+and the links open at once, so the PLC's Modbus server and the status endpoint answer while the UR
+link is still waiting for its controller; READY follows when
 every link has reported its first outcome (the UR link: DOWN after its connect_timeout_s)."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from vgripd.service.links.protocol import LinkState
 
 pytestmark = pytest.mark.timeout(120)
 SILENT_HOST = lo("127.0.8.1")
-CONNECT_TIMEOUT_S = 3.0
+CONNECT_TIMEOUT_S = 8.0  # seconds a loaded machine may take to open the PLC link
 
 
 @pytest.fixture
@@ -84,28 +84,27 @@ async def test_silent_ur_controller_delays_neither_the_plc_nor_the_status(
     starting = asyncio.create_task(daemon.start())
     try:
         words = None
-        plc_s = status_s = None
         status: dict[str, object] = {}
-        while time.monotonic() - t0 < CONNECT_TIMEOUT_S and (plc_s is None or status_s is None):
-            if plc_s is None and plc.health().state is LinkState.UP:
+        ur_waiting = []  # the UR link's state each time the PLC or the status answered
+        while not starting.done() and (words is None or not status):
+            if words is None and plc.health().state is LinkState.UP:
                 words = await read_map(plc.port)  # type: ignore[attr-defined]
-                if words is not None:
-                    plc_s = time.monotonic() - t0
+                ur_waiting.append(ur.health().state)
             server = daemon.status_server
-            if status_s is None and server is not None:
+            if not status and server is not None:
                 try:
                     port = server.port
                 except RuntimeError:  # not listening yet
                     port = 0
                 if port:
                     status = await get_status(port)
-                    status_s = time.monotonic() - t0
+                    ur_waiting.append(ur.health().state)
             await asyncio.sleep(0.01)  # a poller's period
-        assert plc_s is not None
-        assert plc_s < 1.0, plc_s
-        assert status_s is not None
-        assert status_s < 1.0, status_s
-        assert words is not None
+        # both answered while the UR link still waited for its controller (no time bound:
+        # a busy machine may take seconds to start, but never waits for the silent peer)
+        assert words is not None, time.monotonic() - t0
+        assert status, time.monotonic() - t0
+        assert ur_waiting[-1] is LinkState.CONNECTING, ur_waiting
         assert words[Reg.CHECK_U16] == CHECK_U16
         assert status["run_state"] == "starting"
         assert not starting.done()  # READY waits for the UR link's first outcome
