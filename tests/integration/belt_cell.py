@@ -62,7 +62,8 @@ def conveyor_data(camera: dict[str, Any]) -> dict[str, Any]:
         "links": [{"type": "modbus_server", "host": "127.0.0.1", "port": 0,
                    "map_version": 4}],
         "status": {"port": 0},
-        "daemon": {"worker": False},
+        # a job's budget for a test machine running two suites (10 s was exceeded once there)
+        "daemon": {"worker": False, "job_timeout_s": 60.0},
         "calibration": demo.model_dump(mode="json", exclude_none=True),
         "picking": {"max_objects": 4},
         "limits": {"max_translation_mm": 400.0, "max_rotation_deg": 60.0},
