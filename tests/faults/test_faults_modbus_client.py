@@ -102,8 +102,9 @@ async def test_drops_while_idle_one_line_each_no_traceback_no_lost_waiter(
     assert seen.words[Reg.ACK_SEQ] == 1
     assert seen.words[Reg.STATUS] == Status.OK
     # Trigger noticed within a poll (0.1 s), three writes for the capture and three for the
-    # result: far below the daemon's 2 s link-call limit that a lost waiter would cost.
-    assert latency_s < 1.0, latency_s
+    # result: a lost waiter would add the daemon's 2 s link-call limit; a busy machine may
+    # add a second of its own, so only the lost waiter's signature is a failure.
+    assert latency_s < 2.0, latency_s
     assert len(call_s) == drops
     assert max(call_s) < 2 * TIMEOUT_S + 0.5, call_s
     assert all(r.exc_info is None for r in caplog.records)
