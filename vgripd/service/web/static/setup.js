@@ -38,8 +38,18 @@ function row(cells) {
   }
   return tr;
 }
+// A button's action, one at a time: clicked again while its request is out (a double click,
+// an impatient operator on a busy cell PC), it is greyed and the click does nothing, so no
+// requests pile up behind the daemon's lock and hold the browser's few connections.
 function act(id, fn) {
-  $(id).addEventListener("click", (e) => { e.preventDefault(); window.setupActions += 1; fn(); });
+  const button = $(id);
+  button.addEventListener("click", async (e) => {
+    e.preventDefault();
+    if (button.disabled) return;
+    window.setupActions += 1;
+    button.disabled = true;
+    try { await fn(); } finally { button.disabled = false; }
+  });
 }
 function outcome(el, r) {
   const d = r.data;
