@@ -90,7 +90,17 @@ class Session:
         return self.ua.NodeId(self.ua.String(path), self.ua.Int16(self.idx))
 
     async def subscribe(self) -> None:
-        sub = await self.client.create_subscription(10, self.events)
+        """Result events at a 10 ms publishing interval, a keep-alive every 10 s when none
+        come. asyncua's client recreates a subscription it has heard nothing from for 1.5
+        keep-alive periods (its stale watchdog), and its publish loop can end for good in that
+        recreation (a Publish answered BadNoSubscription between the delete and the create):
+        with its default keep-alive (3/4 of the session timeout, 3 s at a 4 s session) a loaded
+        machine that held the server 1.5 s lost every later event."""
+        params = self.ua.CreateSubscriptionParameters(
+            RequestedPublishingInterval=10, RequestedLifetimeCount=10_000,
+            RequestedMaxKeepAliveCount=1000, MaxNotificationsPerPublish=10_000,
+            PublishingEnabled=True, Priority=0)
+        sub = await self.client.create_subscription(params, self.events)
         etype = self.client.get_node(self.node_id("ResultReadyEventType"))
         await sub.subscribe_events(self.vs, etype)
 
