@@ -44,7 +44,13 @@ from vgripd.peer.registers import (
     ValueCodec,
 )
 from vgripd.service.links.protocol import CountHandler, LinkState, Trigger, TriggerHandler
-from vgripd.service.links.supervisor import Ended, OutagePolicy, Reconnector, SupervisedLink
+from vgripd.service.links.supervisor import (
+    Ended,
+    OutagePolicy,
+    Reconnector,
+    SupervisedLink,
+    end_task,
+)
 from vgripd.types import JobResult, Status
 
 C = TypeVar("C")  # the transport's client object, one per connection
@@ -250,8 +256,7 @@ class MirrorClientLink(SupervisedLink, Generic[C]):
     async def _stop(self) -> None:
         task, self._task = self._task, None
         if task is not None:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
+            await end_task(task)
         self._release_waiters(LinkError(f"link {self.name}: closed"))
 
     # -- supervisor --------------------------------------------------------------------------

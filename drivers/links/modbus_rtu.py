@@ -45,6 +45,7 @@ from vgripd.service.links.supervisor import (
     Reconnector,
     backoff_initial,
     backoff_max,
+    end_task,
 )
 
 log = logging.getLogger(__name__)
@@ -213,8 +214,7 @@ class ModbusRtuLink(RegisterServerLink):
     async def close(self) -> None:
         task, self._supervisor = self._supervisor, None
         if task is not None:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
+            await end_task(task)
         if self._line is not None:
             self._line.close()
             self._line = None

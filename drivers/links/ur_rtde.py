@@ -84,6 +84,7 @@ from vgripd.service.links.supervisor import (
     SupervisedLink,
     backoff_initial,
     backoff_max,
+    end_task,
 )
 from vgripd.types import JobResult, Status
 
@@ -327,8 +328,7 @@ class URRtdeLink(SupervisedLink):
     async def close(self) -> None:
         task, self._task = self._task, None
         if task is not None:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
+            await end_task(task)
         self.cell.set(LinkState.STOPPED, None)
 
     def refusals(self) -> Mapping[str, int]:

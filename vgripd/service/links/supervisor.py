@@ -182,6 +182,19 @@ class OutagePolicy:
         return was
 
 
+async def end_task(task: asyncio.Task[Any]) -> None:
+    """Cancel ``task`` (a link's supervisor) and wait until it has ended; its error, if any, is
+    dropped (the link reported it). A cancel can be lost: Python 3.11's ``asyncio.wait_for`` in
+    a library under a link returns a result that came with the cancel and drops the cancel, and
+    the task runs on; a plain ``await`` then waits for ever (an S7 link's close hung a test for
+    its 300 s limit). So the task is cancelled again every second until it ends."""
+    while not task.done():
+        task.cancel()
+        await asyncio.wait({task}, timeout=1.0)
+    if not task.cancelled():
+        task.exception()  # retrieved: no "never retrieved" warning
+
+
 @dataclass(frozen=True)
 class Ended:
     """How a session ended: the link's ``error`` (its health's ``last_error``) and the level of

@@ -11,7 +11,13 @@ from hypothesis import strategies as st
 
 from tests.conftest import stop_task
 from vgripd.service.links.protocol import LinkState
-from vgripd.service.links.supervisor import Ended, HealthCell, OutagePolicy, Reconnector
+from vgripd.service.links.supervisor import (
+    Ended,
+    HealthCell,
+    OutagePolicy,
+    Reconnector,
+    end_task,
+)
 
 
 def test_cell_moves_since_only_with_the_state() -> None:
@@ -133,3 +139,27 @@ async def test_reconnector_logs_once_per_outage_counts_reconnects_and_waits_the_
         (logging.WARNING, "r1: lost; retrying with back-off up to 0.0 s"),
         (logging.DEBUG, "r1: still down (attempt 2): refused"),
     ]
+
+
+async def test_end_task_ends_a_supervisor_that_lost_a_cancel() -> None:
+    """A supervisor whose first cancel is lost (as Python 3.11's ``wait_for`` drops one that
+    comes with a result) runs on; ``end_task`` cancels it again until it has ended, and its
+    end is the cancel, not an error left unretrieved."""
+    lost = 0
+
+    async def supervisor() -> None:
+        nonlocal lost
+        while True:
+            try:
+                await asyncio.sleep(0.01)
+            except asyncio.CancelledError:
+                if lost:
+                    raise
+                lost += 1  # the first cancel dropped, as the library under the link did
+
+    task = asyncio.create_task(supervisor())
+    await asyncio.sleep(0.05)
+    async with asyncio.timeout(10):
+        await end_task(task)
+    assert task.cancelled()
+    assert lost == 1
