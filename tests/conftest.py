@@ -2,8 +2,9 @@
 
 Autouse fixtures undo a test's in-process logging set-up, and fail any test that leaves a
 thread behind (a leaked supervisor or executor would keep a real daemon from shutting down) or
-an asyncio task still pending on its event loop after its teardown (a daemon, link or peer that does not end what it started); each waits a few
-seconds first, so a busy machine is no failure.
+an asyncio task still pending on its event loop after its teardown (a daemon, link or peer that
+does not end what it started); each waits a few seconds first, so a busy machine is no
+failure.
 
 Tests that need something from outside the repository (the public datasets, a system tool such
 as ``mbpoll`` or ``socat``) go through :func:`need` / :func:`need_tool` / the ``datasets``
@@ -135,16 +136,13 @@ def ua_client(url: str, timeout: float = 30.0, **options: object) -> Any:
 
 
 async def stop_task(task: asyncio.Task[object], wait_s: float = 10.0) -> None:
-    """Cancel ``task`` and wait until it has ended, cancelling again if a cancel was lost.
+    """Cancel ``task`` and wait until it has ended, cancelling again if a cancel was lost (the
+    links' ``end_task``: Python 3.11's ``asyncio.wait_for``, inside snap7's asyncio client among
+    others, drops a cancel that arrives as the awaited read completes); at most ``wait_s``."""
+    from vgripd.service.links.supervisor import end_task
 
-    Python 3.11's ``asyncio.wait_for`` (inside snap7's asyncio client, among others) drops a
-    cancel that arrives as the awaited read completes; one ``cancel()`` then leaves the task
-    running (a mock PLC polling on).
-    """
     async with asyncio.timeout(wait_s):
-        while not task.done():
-            task.cancel()
-            await asyncio.wait({task}, timeout=0.1)
+        await end_task(task)
 
 
 @pytest.fixture(autouse=True)
